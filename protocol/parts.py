@@ -1,0 +1,51 @@
+"""The robot's controlboard parts and their joint names, in YARP order (the shape of the ports).
+
+Joint names are those of the `icub-models` URDF (`iCubGazeboV2_5`); angles are radians. The
+torso is ordered yaw, roll, pitch as on iCub's `torso` controlboard.
+"""
+
+from __future__ import annotations
+
+__all__ = ["ARM_PARTS", "PARTS", "part_of_joint"]
+
+PARTS: dict[str, tuple[str, ...]] = {
+    "torso": ("torso_yaw", "torso_roll", "torso_pitch"),
+    "left_arm": tuple(
+        f"l_{j}"
+        for j in (
+            "shoulder_pitch",
+            "shoulder_roll",
+            "shoulder_yaw",
+            "elbow",
+            "wrist_prosup",
+            "wrist_pitch",
+            "wrist_yaw",
+        )
+    ),
+    "right_arm": tuple(
+        f"r_{j}"
+        for j in (
+            "shoulder_pitch",
+            "shoulder_roll",
+            "shoulder_yaw",
+            "elbow",
+            "wrist_prosup",
+            "wrist_pitch",
+            "wrist_yaw",
+        )
+    ),
+}
+
+ARM_PARTS: tuple[str, ...] = ("left_arm", "right_arm")
+
+
+def part_of_joint(joint: str) -> str:
+    """Return the part ("torso", "left_arm", "right_arm") that owns `joint`.
+
+    Raises:
+        KeyError: the joint is not on any controlled part; the message lists the parts.
+    """
+    for part, joints in PARTS.items():
+        if joint in joints:
+            return part
+    raise KeyError(f"joint {joint!r} is not on a controlled part; parts: {', '.join(PARTS)}")
