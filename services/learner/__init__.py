@@ -1,0 +1,34 @@
+"""The learner service's pure core: PoWER, ARCHER and baselines behind one ask/tell protocol."""
+
+from services.learner.archer import Archer
+from services.learner.base import (
+    DEFAULT_BOUNDS,
+    Bounds,
+    Learner,
+    LearnerConfigError,
+    LearnerError,
+    ObservationError,
+    StateError,
+    scalar_return,
+)
+from services.learner.baselines import CmaEs, RandomSearch
+from services.learner.power import Power
+from services.learner.registry import ALGORITHMS, make_learner, restore_learner
+
+__all__ = [
+    "ALGORITHMS",
+    "DEFAULT_BOUNDS",
+    "Archer",
+    "Bounds",
+    "CmaEs",
+    "Learner",
+    "LearnerConfigError",
+    "LearnerError",
+    "ObservationError",
+    "Power",
+    "RandomSearch",
+    "StateError",
+    "make_learner",
+    "restore_learner",
+    "scalar_return",
+]

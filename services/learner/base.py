@@ -1,0 +1,387 @@
+"""The ask/tell protocol every learner follows, its errors, θ bounds and plain-state helpers."""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_BOUNDS",
+    "STATE_VERSION",
+    "Bounds",
+    "Learner",
+    "LearnerConfigError",
+    "LearnerError",
+    "ObservationError",
+    "StateError",
+    "rng_from_state",
+    "rng_state",
+    "scalar_return",
+]
+
+STATE_VERSION = 1
+_INT64_MAX = 2**63 - 1
+
+
+class LearnerError(ValueError):
+    """Base of every learner error."""
+
+
+class LearnerConfigError(LearnerError):
+    """An invalid learner option, bound or algorithm name."""
+
+
+class ObservationError(LearnerError):
+    """A θ or reward vector given to `tell` with the wrong shape or a non-finite value."""
+
+
+class StateError(LearnerError):
+    """A saved state that cannot be restored into this learner."""
+
+
+def scalar_return(r: np.ndarray) -> float:
+    """The paper's scalar return R = exp(−‖r‖) (Eq. 1) for a reward vector r in metres."""
+    r = np.asarray(r, dtype=float)
+    return math.exp(-math.sqrt(float(np.dot(r, r))))
+
+
+def _finite_option(name: str, value: float, *, low: float, high: float = math.inf) -> float:
+    """Validate a numeric option in [low, high] and return it as float."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise LearnerConfigError(f"{name} must be a finite number, got {value!r}")
+    if not low <= value <= high:
+        raise LearnerConfigError(f"{name} must be in [{low}, {high}], got {value!r}")
+    return float(value)
+
+
+def _std_option(name: str, value: float | Sequence[float], dim: int) -> np.ndarray:
+    """Validate a standard deviation (m), one for all components or one per component."""
+    try:
+        array = np.broadcast_to(np.asarray(value, dtype=float), (dim,)).copy()
+    except (TypeError, ValueError) as exc:
+        raise LearnerConfigError(
+            f"{name} must be one number or {dim} numbers, got {value!r}"
+        ) from exc
+    if not np.all(np.isfinite(array)) or np.any(array < 0):
+        raise LearnerConfigError(f"{name} must be finite and >= 0, got {value!r}")
+    return array
+
+
+def _count_option(name: str, value: int, *, low: int) -> int:
+    """Validate an integer option >= low."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise LearnerConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """Box bounds on θ (m): what the robot's hands can reach, per component.
+
+    Attributes:
+        low: lowest value of each θ component (m).
+        high: highest value of each θ component (m).
+    """
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __post_init__(self) -> None:
+        low = np.asarray(self.low, dtype=float)
+        high = np.asarray(self.high, dtype=float)
+        if low.ndim != 1 or low.shape != high.shape or low.size == 0:
+            raise LearnerConfigError(
+                f"bounds low {self.low!r} and high {self.high!r} must be vectors of equal length"
+            )
+        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
+            raise LearnerConfigError(
+                f"bounds must be finite with low < high per component, got low={self.low!r}, "
+                f"high={self.high!r}"
+            )
+        object.__setattr__(self, "low", tuple(float(x) for x in low))
+        object.__setattr__(self, "high", tuple(float(x) for x in high))
+
+    @property
+    def dim(self) -> int:
+        """Number of θ components."""
+        return len(self.low)
+
+    def clip(self, theta: np.ndarray) -> np.ndarray:
+        """θ (m) clipped into the box."""
+        return np.clip(theta, self.low, self.high)
+
+    def contains(self, theta: np.ndarray) -> bool:
+        """True if θ (m) lies inside the box (bounds included)."""
+        theta = np.asarray(theta, dtype=float)
+        return bool(np.all(theta >= self.low) and np.all(theta <= self.high))
+
+    def to_dict(self) -> dict[str, list[float]]:
+        """Plain-dict form for a saved state."""
+        return {"low": list(self.low), "high": list(self.high)}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Bounds:
+        """Inverse of `to_dict`."""
+        try:
+            return cls(low=tuple(data["low"]), high=tuple(data["high"]))
+        except (KeyError, TypeError) as exc:
+            raise StateError(
+                f"bounds must be {{'low': [...], 'high': [...]}}, got {data!r}"
+            ) from exc
+
+
+# The string hand sits 10-30 cm behind the bow hand (the draw stays above the 8 cm brace
+# height, so every θ in the box launches the arrow forward) and within 12 cm sideways and
+# vertically.
+DEFAULT_BOUNDS = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))
+
+
+def _plain(value: Any) -> Any:
+    """Bit-generator state → msgpack/JSON-friendly values (big ints and arrays tagged)."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return {"__array__": [_plain(int(x)) for x in value.ravel()], "dtype": str(value.dtype)}
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, int | np.integer):
+        value = int(value)
+        return value if -_INT64_MAX <= value <= _INT64_MAX else {"__int__": hex(value)}
+    if isinstance(value, float | np.floating):
+        return float(value)
+    if isinstance(value, str):
+        return value
+    raise StateError(f"cannot store a value of type {type(value).__name__} in a learner state")
+
+
+def _unplain(value: Any) -> Any:
+    """Inverse of `_plain`."""
+    if isinstance(value, dict):
+        if "__int__" in value:
+            return int(value["__int__"], 16)
+        if "__array__" in value:
+            return np.array([_unplain(x) for x in value["__array__"]], dtype=value["dtype"])
+        return {k: _unplain(v) for k, v in value.items()}
+    return value
+
+
+def rng_state(rng: np.random.Generator) -> dict[str, Any]:
+    """A Generator's bit_generator.state as plain values (128-bit ints become hex strings)."""
+    return _plain(rng.bit_generator.state)
+
+
+def rng_from_state(state: dict[str, Any]) -> np.random.Generator:
+    """A Generator that continues exactly where the one saved by `rng_state` stopped."""
+    try:
+        raw = _unplain(state)
+        bit_generator = getattr(np.random, raw["bit_generator"])()
+        bit_generator.state = raw
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise StateError(f"not a saved random generator state: {state!r}") from exc
+    return np.random.Generator(bit_generator)
+
+
+class Learner(ABC):
+    """The ask/tell protocol: `ask()` proposes θ (m), `tell(θ, r)` records the reward vector r (m).
+
+    θ is the string hand's position relative to the bow hand; r the arrow's offset from the target
+    centre on the target plane (r[0] to the robot's right, r[1] up); the scalar return is
+    R = exp(−‖r‖) (the paper's Eq. 1). `ask()` is idempotent until the next `tell`, and every
+    proposal is finite and inside `bounds`. `state_dict()` returns the whole state as plain values
+    (lists, floats, ints, strings); `load_state_dict()` puts it back, after which the learner
+    proposes exactly what the saved one would have.
+
+    Subclasses implement `_propose`, `_update`, `options`, and, if they keep more state than the
+    history, `_extra_state` and `_load_extra_state`.
+    """
+
+    algorithm: ClassVar[str]
+    exploration_rollouts: int = 1
+
+    def __init__(
+        self, theta0: np.ndarray, *, rng: np.random.Generator, bounds: Bounds = DEFAULT_BOUNDS
+    ) -> None:
+        if not isinstance(rng, np.random.Generator):
+            raise LearnerConfigError(
+                f"rng must be a numpy.random.Generator (e.g. numpy.random.default_rng(seed)), "
+                f"got {type(rng).__name__}"
+            )
+        if not isinstance(bounds, Bounds):
+            raise LearnerConfigError(f"bounds must be a Bounds, got {type(bounds).__name__}")
+        theta0 = np.asarray(theta0, dtype=float)
+        if theta0.shape != (bounds.dim,) or not np.all(np.isfinite(theta0)):
+            raise LearnerConfigError(
+                f"theta0 must be a finite {bounds.dim}-vector (m), got {theta0.tolist()!r}"
+            )
+        if not bounds.contains(theta0):
+            raise LearnerConfigError(
+                f"theta0 {theta0.tolist()} m lies outside the θ bounds low={list(bounds.low)}, "
+                f"high={list(bounds.high)}"
+            )
+        self.theta0 = theta0.copy()
+        self.bounds = bounds
+        self.rng = rng
+        self._thetas: list[np.ndarray] = []
+        self._rewards: list[np.ndarray] = []
+        self._returns: list[float] = []
+        self._pending: np.ndarray | None = None
+
+    # -- the protocol ---------------------------------------------------------------------------
+
+    def ask(self) -> np.ndarray:
+        """The next θ to try (m): finite and inside the bounds; the same until the next `tell`."""
+        if self._pending is None:
+            theta = np.asarray(self._propose(), dtype=float)
+            if theta.shape != self.theta0.shape or not np.all(np.isfinite(theta)):
+                # A numerical failure never reaches the robot: fall back to the best θ so far.
+                theta = self.best()[0] if self._thetas else self.theta0
+            self._pending = self.bounds.clip(theta)
+        return self._pending.copy()
+
+    def tell(self, theta: np.ndarray, r: np.ndarray) -> float:
+        """Record that θ (m) gave the reward vector r (m); returns R = exp(−‖r‖) (Eq. 1).
+
+        θ is the parameter actually used (it may differ from the last `ask()`).
+
+        Raises:
+            ObservationError: θ or r has the wrong shape or a non-finite value.
+        """
+        theta = np.array(theta, dtype=float, copy=True)
+        r = np.array(r, dtype=float, copy=True)
+        if theta.shape != self.theta0.shape or not np.all(np.isfinite(theta)):
+            raise ObservationError(
+                f"θ must be a finite {self.theta0.size}-vector (m), got {theta.tolist()!r}"
+            )
+        if r.shape != (2,) or not np.all(np.isfinite(r)):
+            raise ObservationError(
+                f"r must be a finite 2-vector (arrow − centre on the target plane, m), "
+                f"got {r.tolist()!r}"
+            )
+        big_return = scalar_return(r)
+        self._thetas.append(theta)
+        self._rewards.append(r)
+        self._returns.append(big_return)
+        self._pending = None
+        self._update(theta, r, big_return)
+        return big_return
+
+    # -- history --------------------------------------------------------------------------------
+
+    @property
+    def n_rollouts(self) -> int:
+        """Number of rollouts told so far."""
+        return len(self._thetas)
+
+    @property
+    def thetas(self) -> np.ndarray:
+        """(n, d) θ of every rollout told so far (m)."""
+        return np.array(self._thetas).reshape(-1, self.theta0.size)
+
+    @property
+    def rewards(self) -> np.ndarray:
+        """(n, 2) reward vectors r of every rollout (m)."""
+        return np.array(self._rewards).reshape(-1, 2)
+
+    @property
+    def returns(self) -> np.ndarray:
+        """(n,) scalar returns R = exp(−‖r‖)."""
+        return np.array(self._returns, dtype=float)
+
+    def ranked(self) -> np.ndarray:
+        """Rollout indices sorted by return, best first (ties: earlier first); Eq. 4's ind(k)."""
+        return np.argsort(-self.returns, kind="stable")
+
+    def best(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """(θ, r, R) of the best rollout so far.
+
+        Raises:
+            LearnerError: nothing has been told yet.
+        """
+        if not self._thetas:
+            raise LearnerError("no rollout told yet: call tell(θ, r) before best()")
+        i = int(self.ranked()[0])
+        return self._thetas[i].copy(), self._rewards[i].copy(), self._returns[i]
+
+    # -- state ----------------------------------------------------------------------------------
+
+    @abstractmethod
+    def options(self) -> dict[str, Any]:
+        """The constructor options (plain values), enough to rebuild an equal fresh learner."""
+
+    def state_dict(self) -> dict[str, Any]:
+        """The whole state as plain values (JSON and msgpack friendly)."""
+        return {
+            "version": STATE_VERSION,
+            "algorithm": self.algorithm,
+            "options": self.options(),
+            "theta0": self.theta0.tolist(),
+            "bounds": self.bounds.to_dict(),
+            "rng": rng_state(self.rng),
+            "thetas": [t.tolist() for t in self._thetas],
+            "rewards": [r.tolist() for r in self._rewards],
+            "pending": None if self._pending is None else self._pending.tolist(),
+            "extra": self._extra_state(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Replace this learner's state by a saved one (from `state_dict`).
+
+        Raises:
+            StateError: the state is malformed, from another algorithm or another θ dimension.
+        """
+        if not isinstance(state, dict):
+            raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+        missing = {"version", "algorithm", "rng", "thetas", "rewards", "pending", "extra"} - set(
+            state
+        )
+        if missing:
+            raise StateError(f"learner state lacks {sorted(missing)}")
+        if state["version"] != STATE_VERSION:
+            raise StateError(
+                f"learner state version {state['version']!r} is not supported; "
+                f"this code reads version {STATE_VERSION}"
+            )
+        if state["algorithm"] != self.algorithm:
+            raise StateError(
+                f"state of algorithm {state['algorithm']!r} cannot be loaded into a "
+                f"{self.algorithm!r} learner"
+            )
+        d = self.theta0.size
+        try:
+            thetas = [np.array(t, dtype=float) for t in state["thetas"]]
+            rewards = [np.array(r, dtype=float) for r in state["rewards"]]
+            pending = None if state["pending"] is None else np.array(state["pending"], dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise StateError(f"learner state has non-numeric history: {exc}") from exc
+        if len(thetas) != len(rewards) or any(t.shape != (d,) for t in thetas):
+            raise StateError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
+        if any(r.shape != (2,) for r in rewards) or (pending is not None and pending.shape != (d,)):
+            raise StateError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
+        self.rng = rng_from_state(state["rng"])
+        self._thetas = thetas
+        self._rewards = rewards
+        self._returns = [scalar_return(r) for r in rewards]
+        self._pending = pending
+        self._load_extra_state(state["extra"])
+
+    def _extra_state(self) -> dict[str, Any]:
+        """Algorithm state beyond the history (plain values)."""
+        return {}
+
+    def _load_extra_state(self, extra: dict[str, Any]) -> None:  # noqa: B027 (optional hook)
+        """Inverse of `_extra_state`."""
+
+    # -- the algorithm --------------------------------------------------------------------------
+
+    @abstractmethod
+    def _propose(self) -> np.ndarray:
+        """A new θ (m); the base class clips it into the bounds."""
+
+    @abstractmethod
+    def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
+        """Learn from the rollout just appended to the history."""

@@ -1,0 +1,422 @@
+"""`archery experiment`: the paper's simulation experiment (Section IV, Fig. 5 and Fig. 6)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from services.learner.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
+from services.learner.registry import ALGORITHMS, make_learner
+from sim.ballistic import BallisticError, BallisticWorld, Scenario
+from sim.geometry import INNER_RING_RADIUS
+
+__all__ = [
+    "CURVE_COLUMNS",
+    "DEFAULT_ALGORITHMS",
+    "WORLDS",
+    "AlgorithmRun",
+    "ExperimentConfig",
+    "ExperimentError",
+    "build_parser",
+    "main",
+    "run_algorithm",
+    "run_experiment",
+    "summarise",
+    "write_outputs",
+]
+
+DEFAULT_ALGORITHMS = ("archer", "power", "cma", "random")
+# curves.csv: θ (m), the observed and the true reward vector (m), the true distance ‖r‖ (m).
+CURVE_COLUMNS = (
+    "algorithm",
+    "session",
+    "rollout",
+    "theta_x",
+    "theta_y",
+    "theta_z",
+    "r_x",
+    "r_y",
+    "r_true_x",
+    "r_true_y",
+    "distance",
+)
+WORLDS = ("ballistic",)
+
+
+class ExperimentError(LearnerError):
+    """An invalid experiment setting (world, algorithm list, budget, start θ)."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """One experiment: every algorithm runs `sessions` sessions of `rollouts` rollouts.
+
+    Session s of every algorithm sees the same observation-noise stream and its learner gets the
+    same seed, both derived from (seed, s); so results do not depend on which algorithms run.
+
+    Attributes:
+        algorithms: names from `services.learner.registry.ALGORITHMS`.
+        sessions: number of independent learning sessions per algorithm.
+        rollouts: rollout budget per session.
+        seed: master seed.
+        scenario: the simulated range.
+        bounds: θ box (m) given to every learner.
+        world: the simulator; only "ballistic" (the paper's analytic model) here.
+    """
+
+    algorithms: tuple[str, ...] = DEFAULT_ALGORITHMS
+    sessions: int = 40
+    rollouts: int = 60
+    seed: int = 0
+    scenario: Scenario = field(default_factory=Scenario)
+    bounds: Bounds = DEFAULT_BOUNDS
+    world: str = "ballistic"
+
+    def __post_init__(self) -> None:
+        if self.world not in WORLDS:
+            raise ExperimentError(
+                f"unknown world {self.world!r}; valid worlds: {', '.join(WORLDS)}"
+            )
+        if not self.algorithms:
+            raise ExperimentError(f"no algorithm given; valid algorithms: {', '.join(ALGORITHMS)}")
+        for name in self.algorithms:
+            if name not in ALGORITHMS:
+                raise ExperimentError(
+                    f"unknown algorithm {name!r}; valid algorithms: {', '.join(ALGORITHMS)}"
+                )
+        if len(set(self.algorithms)) != len(self.algorithms):
+            raise ExperimentError(f"algorithm list {list(self.algorithms)} repeats a name")
+        for name, low in (("sessions", 1), ("rollouts", 1), ("seed", 0)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ExperimentError(f"{name} must be an integer >= {low}, got {value!r}")
+        if not self.bounds.contains(np.array(self.scenario.start)):
+            raise ExperimentError(
+                f"start θ {list(self.scenario.start)} m lies outside the θ bounds "
+                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
+            )
+        for name in self.algorithms:
+            probe = self.learner(name, 0)
+            needed = probe.exploration_rollouts + 1
+            if self.rollouts < needed:
+                raise ExperimentError(
+                    f"rollouts {self.rollouts} is below {name}'s exploration phase "
+                    f"({probe.exploration_rollouts} rollouts) plus one learned rollout; "
+                    f"use rollouts >= {needed}"
+                )
+
+    def seeds(self, session: int) -> tuple[np.random.SeedSequence, np.random.SeedSequence]:
+        """(world noise seed, learner seed) of a session."""
+        return (
+            np.random.SeedSequence(self.seed, spawn_key=(session, 0)),
+            np.random.SeedSequence(self.seed, spawn_key=(session, 1)),
+        )
+
+    def learner(self, name: str, session: int) -> Learner:
+        """A fresh learner `name` for `session`, starting at the scenario's θ."""
+        return make_learner(
+            name,
+            np.array(self.scenario.start),
+            rng=np.random.default_rng(self.seeds(session)[1]),
+            bounds=self.bounds,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The run settings as plain values."""
+        return {
+            "sessions": self.sessions,
+            "rollouts": self.rollouts,
+            "seed": self.seed,
+            "algorithms": list(self.algorithms),
+            "bounds": self.bounds.to_dict(),
+        }
+
+
+@dataclass(frozen=True)
+class AlgorithmRun:
+    """Everything one algorithm did in an experiment.
+
+    Attributes:
+        name: the algorithm's name.
+        thetas: (sessions, rollouts, 3) θ of every rollout (m).
+        r_observed: (sessions, rollouts, 2) reward vectors the learner was told (m).
+        r_true: (sessions, rollouts, 2) true arrow − centre offsets (m).
+        wall_time: seconds spent on this algorithm (learning and simulation).
+    """
+
+    name: str
+    thetas: np.ndarray
+    r_observed: np.ndarray
+    r_true: np.ndarray
+    wall_time: float
+
+    @property
+    def distances(self) -> np.ndarray:
+        """(sessions, rollouts) true distance of each arrow to the centre (m)."""
+        return np.hypot(self.r_true[..., 0], self.r_true[..., 1])
+
+    def rollouts_to_hit(self) -> np.ndarray:
+        """(sessions,) 1-based index of the first hit (‖r‖ < 5 cm); budget + 1 if none."""
+        hits = self.distances < INNER_RING_RADIUS
+        budget = hits.shape[1]
+        return np.where(hits.any(axis=1), hits.argmax(axis=1) + 1, budget + 1)
+
+
+def run_algorithm(
+    config: ExperimentConfig, name: str, on_rollout: Callable[[], None] | None = None
+) -> AlgorithmRun:
+    """Run all sessions of one algorithm in lockstep (the physics is vectorised over sessions)."""
+    start = time.perf_counter()
+    n_s, n_r = config.sessions, config.rollouts
+    learners = [config.learner(name, s) for s in range(n_s)]
+    world = BallisticWorld(config.scenario)
+    observers = []
+    for s in range(n_s):
+        observer = BallisticWorld(config.scenario)
+        observer.reset(config.seeds(s)[0])
+        observers.append(observer)
+    thetas = np.empty((n_s, n_r, 3))
+    r_observed = np.empty((n_s, n_r, 2))
+    r_true = np.empty((n_s, n_r, 2))
+    for k in range(n_r):
+        batch = np.stack([learner.ask() for learner in learners])
+        impacts = world.impacts(batch)
+        for s, learner in enumerate(learners):
+            r = observers[s].observe(impacts.r[s])
+            learner.tell(batch[s], r)
+            r_observed[s, k] = r
+        thetas[:, k] = batch
+        r_true[:, k] = impacts.r
+        if on_rollout is not None:
+            on_rollout()
+    return AlgorithmRun(name, thetas, r_observed, r_true, time.perf_counter() - start)
+
+
+def run_experiment(config: ExperimentConfig, *, progress: bool = True) -> dict[str, AlgorithmRun]:
+    """Run every algorithm of `config`, with a progress bar on stderr if `progress`."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    runs: dict[str, AlgorithmRun] = {}
+    columns = (
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=Console(stderr=True), disable=not progress) as bar:
+        total = len(config.algorithms) * config.rollouts
+        task = bar.add_task(f"{config.sessions} sessions", total=total)
+        for name in config.algorithms:
+            bar.update(task, description=f"{name:>12} × {config.sessions} sessions")
+            runs[name] = run_algorithm(config, name, lambda: bar.advance(task))
+    return runs
+
+
+def _stats(values: np.ndarray) -> dict[str, float]:
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return {"median": float(median), "mean": float(values.mean()), "q1": float(q1), "q3": float(q3)}
+
+
+def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[str, Any]:
+    """The content of summary.json."""
+    algorithms = {}
+    for name, run in runs.items():
+        to_hit = run.rollouts_to_hit()
+        final = run.distances[:, -1]
+        algorithms[name] = {
+            "label": ALGORITHMS[name].label,
+            "rollouts_to_hit": _stats(to_hit.astype(float)),
+            "hit_rate": float(np.mean(to_hit <= config.rollouts)),
+            "hits": int(np.sum(to_hit <= config.rollouts)),
+            "final_distance": {"mean": float(final.mean()), "std": float(final.std())},
+            "wall_time_s": run.wall_time,
+        }
+    scenario = {"world": config.world, **config.scenario.to_dict()}
+    return {"scenario": scenario, "run": config.to_dict(), "algorithms": algorithms}
+
+
+def write_outputs(
+    out: Path, config: ExperimentConfig, runs: dict[str, AlgorithmRun], *, figures: bool = True
+) -> dict[str, Any]:
+    """Write summary.json, curves.csv and (if `figures`) fig5.png and fig6.png into `out`."""
+    out.mkdir(parents=True, exist_ok=True)
+    summary = summarise(config, runs)
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    with (out / "curves.csv").open("w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(CURVE_COLUMNS)
+        for name, run in runs.items():
+            distances = run.distances
+            for s in range(config.sessions):
+                for k in range(config.rollouts):
+                    values = (
+                        *run.thetas[s, k],
+                        *run.r_observed[s, k],
+                        *run.r_true[s, k],
+                        distances[s, k],
+                    )
+                    writer.writerow([name, s, k + 1, *(repr(float(v)) for v in values)])
+    if figures:
+        from services.learner.plots import plot_convergence, plot_trajectories
+
+        labels = {name: ALGORITHMS[name].label for name in runs}
+        plot_convergence(runs, labels, out / "fig6.png", title=_title(config))
+        plot_trajectories(
+            BallisticWorld(config.scenario), runs, labels, out / "fig5.png", session=0
+        )
+    return summary
+
+
+def _title(config: ExperimentConfig) -> str:
+    s = config.scenario
+    parts = [f"target {s.distance:g} m"]
+    if s.drag:
+        parts.append(f"drag {s.drag:g}/m, wind {', '.join(f'{w:g}' for w in s.wind)} m/s")
+    if s.noise:
+        parts.append(f"noise {100 * s.noise:g} cm")
+    return f"{config.sessions} sessions × {config.rollouts} rollouts; " + ", ".join(parts)
+
+
+def _floats(text: str, count: int, flag: str) -> tuple[float, ...]:
+    parts = text.split(",")
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != count or not all(math.isfinite(v) for v in values):
+        what = "a number" if count == 1 else f"{count} comma-separated numbers"
+        raise ExperimentError(f"{flag} needs {what}, got {text!r}")
+    return values
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line options of `archery experiment`."""
+    defaults = Scenario()
+    parser = argparse.ArgumentParser(
+        prog="archery experiment",
+        description="Run the paper's simulation experiment: learners against the ballistic world.",
+    )
+    add = parser.add_argument
+    add("--world", default="ballistic", help=f"simulator: {', '.join(WORLDS)} (default ballistic)")
+    add(
+        "--algo",
+        default=",".join(DEFAULT_ALGORITHMS),
+        help=f"comma-separated algorithms from: {', '.join(ALGORITHMS)} "
+        f"(default {','.join(DEFAULT_ALGORITHMS)})",
+    )
+    add("--sessions", default="40", help="learning sessions per algorithm (default 40)")
+    add("--rollouts", default="60", help="rollout budget per session (default 60)")
+    add("--seed", default="0", help="master seed (default 0)")
+    add("--distance", default=repr(defaults.distance), help="target distance, m (default 2.2)")
+    add("--wind", default="0,0,0", help="wind VX,VY,VZ in m/s, root frame; needs --drag")
+    add("--drag", default="0", help="drag K in a = −K‖v−w‖(v−w), 1/m (default 0)")
+    add("--noise", default="0", help="std of the observation noise on r, m (default 0)")
+    add(
+        "--bow-stiffness",
+        default=repr(defaults.bow_stiffness),
+        help=f"linear bow stiffness, N per m of draw (default {defaults.bow_stiffness:g})",
+    )
+    add(
+        "--start",
+        default=",".join(repr(x) for x in defaults.start),
+        help="start θ = string hand − bow hand X,Y,Z in m (default "
+        + ",".join(f"{x:g}" for x in defaults.start)
+        + ")",
+    )
+    add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
+    add("--no-progress", action="store_true", help="hide the progress bar")
+    add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
+    return parser
+
+
+def _int(text: str, flag: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ExperimentError(f"{flag} needs an integer, got {text!r}") from None
+
+
+def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
+    """Validate parsed options into an ExperimentConfig.
+
+    Raises:
+        ExperimentError, BallisticError: a value is malformed or out of range.
+    """
+    scenario = Scenario(
+        distance=_floats(args.distance, 1, "--distance")[0],
+        wind=_floats(args.wind, 3, "--wind"),
+        drag=_floats(args.drag, 1, "--drag")[0],
+        noise=_floats(args.noise, 1, "--noise")[0],
+        bow_stiffness=_floats(args.bow_stiffness, 1, "--bow-stiffness")[0],
+        start=_floats(args.start, 3, "--start"),
+    )
+    return ExperimentConfig(
+        algorithms=tuple(a.strip() for a in args.algo.split(",") if a.strip()),
+        sessions=_int(args.sessions, "--sessions"),
+        rollouts=_int(args.rollouts, "--rollouts"),
+        seed=_int(args.seed, "--seed"),
+        scenario=scenario,
+        world=args.world,
+    )
+
+
+def print_table(summary: dict[str, Any], wall_time: float) -> None:
+    """Print the per-algorithm results as a table on stdout."""
+    from rich.console import Console
+    from rich.table import Table
+
+    run = summary["run"]
+    table = Table(
+        title=f"{run['sessions']} sessions × {run['rollouts']} rollouts, seed {run['seed']}"
+    )
+    for column in (
+        "algorithm",
+        "rollouts to hit: median [q1, q3]",
+        "mean",
+        "hits",
+        "final ‖r‖ (m)",
+    ):
+        table.add_column(column, justify="left" if column == "algorithm" else "right")
+    for name, a in summary["algorithms"].items():
+        h = a["rollouts_to_hit"]
+        table.add_row(
+            name,
+            f"{h['median']:g} [{h['q1']:g}, {h['q3']:g}]",
+            f"{h['mean']:.1f}",
+            f"{a['hits']}/{run['sessions']}",
+            f"{a['final_distance']['mean']:.3f} ± {a['final_distance']['std']:.3f}",
+        )
+    Console().print(table)
+    Console().print(f"wall time {wall_time:.2f} s")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run `archery experiment [options]`; returns 0 on success, 2 on bad input."""
+    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    try:
+        config = config_from_args(args)
+        start = time.perf_counter()
+        runs = run_experiment(config, progress=not args.no_progress)
+        out = Path(args.out)
+        summary = write_outputs(out, config, runs, figures=not args.no_figures)
+        wall_time = time.perf_counter() - start
+    except (LearnerError, BallisticError) as exc:
+        print(f"archery experiment: error: {exc}", file=sys.stderr)
+        return 2
+    print_table(summary, wall_time)
+    print(
+        f"wrote {out}/summary.json, curves.csv"
+        + ("" if args.no_figures else ", fig5.png, fig6.png")
+    )
+    return 0

@@ -1,0 +1,128 @@
+"""Figures of the simulation experiment: convergence (the paper's Fig. 6) and arrows (Fig. 5)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sim.ballistic import BallisticWorld
+from sim.geometry import BOW_HAND, INNER_RING_RADIUS, TARGET_DIAMETER
+
+if TYPE_CHECKING:
+    from services.learner.experiment import AlgorithmRun
+
+__all__ = ["plot_convergence", "plot_trajectories"]
+
+_COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
+
+
+def _pyplot() -> ModuleType:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_convergence(
+    runs: Mapping[str, AlgorithmRun], labels: Mapping[str, str], path: Path, *, title: str = ""
+) -> None:
+    """Mean ± std over sessions of the arrow's distance to the centre (cm) vs rollout (Fig. 6)."""
+    plt = _pyplot()
+    fig, ax = plt.subplots(figsize=(9, 5.5), dpi=120)
+    for i, (name, run) in enumerate(runs.items()):
+        distance = 100.0 * run.distances  # cm
+        mean, std = distance.mean(axis=0), distance.std(axis=0)
+        rollout = np.arange(1, mean.size + 1)
+        colour = _COLOURS[i % len(_COLOURS)]
+        to_hit = np.median(run.rollouts_to_hit())
+        ax.plot(rollout, mean, color=colour, lw=2, label=f"{labels[name]} (median hit {to_hit:g})")
+        ax.fill_between(rollout, np.maximum(mean - std, 0.0), mean + std, color=colour, alpha=0.15)
+    ax.axhline(100 * INNER_RING_RADIUS, color="red", ls="--", lw=1, label="innermost ring (5 cm)")
+    ax.set_xlabel("rollout")
+    ax.set_ylabel("distance of the arrow to the target centre (cm)")
+    ax.set_xlim(1, max(run.distances.shape[1] for run in runs.values()))
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="upper right")
+    ax.set_title("Speed of convergence: mean ± std over sessions" + (f"\n{title}" if title else ""))
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_trajectories(
+    world: BallisticWorld,
+    runs: Mapping[str, AlgorithmRun],
+    labels: Mapping[str, str],
+    path: Path,
+    *,
+    session: int = 0,
+) -> None:
+    """One session per algorithm (Fig. 5): its arrows up to the first hit, the last one in red.
+
+    Top row: the flights seen from the side (height vs distance). Bottom row: where the arrows
+    met the target face, numbered by rollout.
+    """
+    plt = _pyplot()
+    names = list(runs)
+    fig, axes = plt.subplots(
+        2,
+        len(names),
+        figsize=(4.2 * len(names), 8.0),
+        dpi=110,
+        squeeze=False,
+        gridspec_kw={"height_ratios": [1.0, 1.25]},
+    )
+    centre = world.centre
+    radius = TARGET_DIAMETER / 2
+    for column, name in enumerate(names):
+        run = runs[name]
+        last = int(min(run.rollouts_to_hit()[session], run.thetas.shape[1]))
+        side, face = axes[0, column], axes[1, column]
+        for k in range(last):
+            path_k = world.trajectory(run.thetas[session, k])
+            final = k == last - 1
+            side.plot(
+                -path_k[:, 0],
+                path_k[:, 2],
+                color="red" if final else "0.55",
+                lw=2.2 if final else 0.8,
+                alpha=1.0 if final else 0.7,
+                zorder=3 if final else 2,
+            )
+        side.plot([-centre[0]] * 2, [centre[2] - radius, centre[2] + radius], color="k", lw=4)
+        side.plot(-BOW_HAND[0], BOW_HAND[2], "o", color="k", ms=4)
+        side.set_xlabel("distance ahead of the robot (m)")
+        side.set_ylabel("height (m)")
+        side.grid(alpha=0.3)
+        hit = run.rollouts_to_hit()[session] <= run.thetas.shape[1]
+        outcome = f"hit at rollout {last}" if hit else f"no hit in {last} rollouts"
+        side.set_title(f"{labels[name]}\nsession {session}: {outcome}")
+
+        for ring in (radius, 0.15, 0.10, INNER_RING_RADIUS):
+            face.add_patch(plt.Circle((0, 0), 100 * ring, fill=False, color="0.3", lw=1))
+        face.add_patch(plt.Circle((0, 0), 100 * INNER_RING_RADIUS, color="gold", alpha=0.5))
+        r = 100 * run.r_true[session, :last]
+        face.plot(r[:, 0], r[:, 1], "-", color="0.75", lw=0.8, zorder=1)
+        face.scatter(r[:-1, 0], r[:-1, 1], s=28, color="0.45", zorder=2)
+        face.scatter(r[-1, 0], r[-1, 1], s=60, color="red", zorder=3)
+        for k, (x, y) in enumerate(r, start=1):
+            if k <= 8 or k == last:
+                face.annotate(str(k), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        limit = max(100 * radius, float(np.abs(r).max()) + 5)
+        face.set_xlim(-limit, limit)
+        face.set_ylim(-limit, limit)
+        face.set_aspect("equal")
+        face.set_xlabel("right of centre (cm)")
+        face.set_ylabel("above centre (cm)")
+        face.set_title("impacts on the target, by rollout")
+    fig.suptitle("Arrow trajectories of one learning session per algorithm (final one in red)")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -1,0 +1,117 @@
+"""The learners by name: what `--algo` accepts, building a learner and restoring a saved one."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from services.learner.archer import Archer
+from services.learner.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerConfigError, StateError
+from services.learner.baselines import CmaEs, RandomSearch
+from services.learner.power import Power
+
+__all__ = ["ALGORITHMS", "LEARNER_CLASSES", "Algorithm", "make_learner", "restore_learner"]
+
+
+@dataclass(frozen=True)
+class Algorithm:
+    """A named learner configuration.
+
+    Attributes:
+        name: the name `--algo` accepts.
+        cls: the learner class.
+        options: constructor options on top of the class defaults.
+        label: a short label for tables and figures.
+    """
+
+    name: str
+    cls: type[Learner]
+    label: str
+    options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
+
+
+ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
+    {
+        a.name: a
+        for a in (
+            Algorithm("archer", Archer, "ARCHER (safeguarded)"),
+            Algorithm(
+                "archer-plain", Archer, "ARCHER (paper)", MappingProxyType({"safeguard": False})
+            ),
+            Algorithm(
+                "archer-ridge",
+                Archer,
+                "ARCHER (ridge λ=1e-3 m²)",
+                MappingProxyType({"safeguard": False, "ridge": 1e-3}),
+            ),
+            Algorithm("power", Power, "PoWER"),
+            Algorithm(
+                "power-sharp",
+                Power,
+                "PoWER (R = exp(−‖r‖/5 cm))",
+                MappingProxyType({"return_scale": 0.05}),
+            ),
+            Algorithm("cma", CmaEs, "CMA-ES"),
+            Algorithm("random", RandomSearch, "random search"),
+        )
+    }
+)
+
+LEARNER_CLASSES: Mapping[str, type[Learner]] = MappingProxyType(
+    {cls.algorithm: cls for cls in (Archer, Power, CmaEs, RandomSearch)}
+)
+
+
+def make_learner(
+    name: str,
+    theta0: np.ndarray,
+    *,
+    rng: np.random.Generator,
+    bounds: Bounds = DEFAULT_BOUNDS,
+    **options: Any,
+) -> Learner:
+    """Build the learner `name` (a key of ALGORITHMS); `options` override its settings.
+
+    Raises:
+        LearnerConfigError: unknown name or invalid option.
+    """
+    if name not in ALGORITHMS:
+        raise LearnerConfigError(
+            f"unknown algorithm {name!r}; valid algorithms: {', '.join(ALGORITHMS)}"
+        )
+    algorithm = ALGORITHMS[name]
+    merged = {**algorithm.options, **options}
+    try:
+        return algorithm.cls(theta0, rng=rng, bounds=bounds, **merged)
+    except TypeError as exc:
+        raise LearnerConfigError(f"invalid option for {name!r}: {exc}") from exc
+
+
+def restore_learner(state: Mapping[str, Any]) -> Learner:
+    """Rebuild a learner from `Learner.state_dict()`; its next proposal equals the saved one's.
+
+    Raises:
+        StateError: the state is malformed or names an unknown algorithm.
+    """
+    if not isinstance(state, Mapping):
+        raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+    algorithm = state.get("algorithm")
+    if algorithm not in LEARNER_CLASSES:
+        raise StateError(
+            f"learner state names algorithm {algorithm!r}; known: {', '.join(LEARNER_CLASSES)}"
+        )
+    try:
+        learner = LEARNER_CLASSES[algorithm](
+            np.asarray(state["theta0"], dtype=float),
+            rng=np.random.default_rng(0),  # replaced by the saved generator below
+            bounds=Bounds.from_dict(state["bounds"]),
+            **dict(state["options"]),
+        )
+    except (KeyError, TypeError, LearnerConfigError) as exc:
+        raise StateError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc
+    learner.load_state_dict(dict(state))
+    return learner
