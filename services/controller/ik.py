@@ -1,0 +1,610 @@
+"""Inverse kinematics of iCub's arms as in the paper's Eq. 9: hard position, soft orientation/rest.
+
+For one hand (or several hands at once) the solver computes
+
+    q* = argmin  w1·Σ_hands eₙ(q)ᵀ Σn eₙ(q)  +  w2·(q̂ − q)ᵀ Σq (q̂ − q)
+         s.t.    (x̂ − x(q))ᵀ Σx (x̂ − x(q)) < ε    and    q_min ≤ q ≤ q_max,
+
+where eₙ(q) = log(R̂ · R(q)ᵀ) is the axis-angle (rad, root axes) of the rotation still needed: the
+well-defined form of the paper's n̂ − n(q), equal to it for small errors. Each Gauss–Newton step
+solves a box-constrained QP in the joint step (position rows as regularised equalities, so the
+position has priority over orientation and rest posture), with Levenberg–Marquardt damping, a
+per-joint trust region and an exact-penalty merit test. Jacobians are Pinocchio's analytic ones.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from services.controller.errors import ConfigError, JointError, TargetError
+from services.controller.model import (
+    ArmsModel,
+    JointValues,
+    check_arm,
+    load_arms_model,
+)
+from services.controller.qp import solve_box_qp
+
+__all__ = [
+    "IkResult",
+    "IkSettings",
+    "IkSolver",
+    "OrientationTarget",
+    "PositionTarget",
+    "TargetsResult",
+    "as_rotation",
+    "orientation_residual",
+    "orientation_residual_jacobian",
+    "position_hessian_contraction",
+]
+
+_LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+# Regularisation of the position equality rows (m² per unit multiplier): a priority-0 row is a
+# penalty of weight 1e8; each priority level makes it 1000 times stiffer.
+_BASE_SLACK = 1e-8
+_PRIORITY_FACTOR = 1e-3
+# Exact-penalty merit f + ρ·Σ‖Sx·(x̂ − x)‖ with ρ = twice the largest multiplier of the step
+# (exactness asks ρ > ‖ν‖), and at least this (cost units per metre).
+_MERIT_PENALTY = 1.0
+_MIN_DAMPING = 1e-9
+_MAX_DAMPING = 1e6
+
+
+def _matrix3(value: Any, name: str) -> np.ndarray:
+    """A symmetric positive semi-definite 3×3 matrix (read-only), or ConfigError."""
+    mat = np.array(value, dtype=float)
+    if mat.shape != (3, 3) or not np.all(np.isfinite(mat)):
+        raise ConfigError(f"{name} must be a finite 3×3 matrix, got {value!r}")
+    if not np.allclose(mat, mat.T, atol=1e-12):
+        raise ConfigError(f"{name} must be symmetric, got {value!r}")
+    if np.linalg.eigvalsh(mat).min() < -1e-12:
+        raise ConfigError(f"{name} must be positive semi-definite, got {value!r}")
+    mat.setflags(write=False)
+    return mat
+
+
+def _sqrt_psd(mat: np.ndarray) -> np.ndarray:
+    """S with SᵀS = mat for a symmetric positive semi-definite matrix."""
+    vals, vecs = np.linalg.eigh(mat)
+    return (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
+
+
+@dataclass(frozen=True)
+class IkSettings:
+    """Weights and tolerances of the Eq. 9 problem (the paper used identity covariances).
+
+    Attributes:
+        orientation_weight: w1 (per rad²), ≥ 0.
+        rest_weight: w2 (per rad²), ≥ 0.
+        sigma_x: Σx, 3×3 PSD weighting of the position error in the constraint.
+        sigma_n: Σn, 3×3 PSD weighting of the orientation error (rad) in the cost.
+        sigma_q: Σq as per-joint diagonal weights {joint: weight ≥ 0}; unnamed joints weigh 1.
+        position_tolerance: the constraint holds when (x̂−x)ᵀΣx(x̂−x) < position_tolerance²,
+            i.e. ε = position_tolerance² (m²); must be > 0.
+        max_iterations: Gauss–Newton iterations (each one Jacobian evaluation), ≥ 1.
+        max_step: per-joint trust region of one iteration (rad), > 0.
+        step_tolerance: converged when the constraint holds and no joint moved more than
+            this in the last iteration (rad), ≥ 0.
+        cost_tolerance: ... or when the cost fell by less than this (rad²), ≥ 0.
+        damping: initial Levenberg–Marquardt damping (per rad²), > 0.
+    """
+
+    orientation_weight: float = 1.0
+    rest_weight: float = 0.01
+    sigma_x: Any = field(default_factory=lambda: np.eye(3))
+    sigma_n: Any = field(default_factory=lambda: np.eye(3))
+    sigma_q: Mapping[str, float] = field(default_factory=dict)
+    position_tolerance: float = 1e-4
+    max_iterations: int = 100
+    max_step: float = 0.4
+    step_tolerance: float = 1e-3
+    cost_tolerance: float = 1e-7
+    damping: float = 1e-4
+
+    def __post_init__(self) -> None:
+        for name in ("orientation_weight", "rest_weight", "step_tolerance", "cost_tolerance"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
+        for name in ("position_tolerance", "max_step", "damping"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+            raise ConfigError(
+                f"max_iterations must be an integer >= 1, got {self.max_iterations!r}"
+            )
+        object.__setattr__(self, "sigma_x", _matrix3(self.sigma_x, "sigma_x"))
+        object.__setattr__(self, "sigma_n", _matrix3(self.sigma_n, "sigma_n"))
+        weights = dict(self.sigma_q)
+        for joint, weight in weights.items():
+            if not (isinstance(weight, int | float) and math.isfinite(weight) and weight >= 0):
+                raise ConfigError(
+                    f"sigma_q[{joint!r}] must be a finite number >= 0, got {weight!r}"
+                )
+        object.__setattr__(self, "sigma_q", MappingProxyType(weights))
+
+
+@dataclass(frozen=True)
+class PositionTarget:
+    """A hard position constraint on a hand frame (m, root frame).
+
+    With `relative_to` set, the constrained quantity is x_arm − x_relative_to (the hand's position
+    relative to the other hand); otherwise x_arm. When several constraints cannot all be met, a
+    higher `priority` (0, 1 or 2) is met first.
+    """
+
+    arm: str
+    position: Any
+    relative_to: str | None = None
+    priority: int = 0
+
+    def __post_init__(self) -> None:
+        check_arm(self.arm)
+        if self.relative_to is not None:
+            check_arm(self.relative_to)
+            if self.relative_to == self.arm:
+                raise TargetError(f"relative_to must be the other arm, got {self.relative_to!r}")
+        if self.priority not in (0, 1, 2):
+            raise ConfigError(f"priority must be 0, 1 or 2, got {self.priority!r}")
+        object.__setattr__(self, "position", _position(self.position))
+
+
+@dataclass(frozen=True)
+class OrientationTarget:
+    """A desired hand orientation, part of the cost with weight w1·`weight`.
+
+    `orientation` is an axis-angle 3-vector (rad, root axes) or a 3×3 rotation matrix.
+    """
+
+    arm: str
+    orientation: Any
+    weight: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_arm(self.arm)
+        if not (math.isfinite(self.weight) and self.weight >= 0):
+            raise ConfigError(
+                f"orientation weight must be a finite number >= 0, got {self.weight!r}"
+            )
+        object.__setattr__(self, "orientation", as_rotation(self.orientation))
+
+
+@dataclass(frozen=True)
+class TargetsResult:
+    """Outcome of `IkSolver.solve_targets`.
+
+    Attributes:
+        q: posture {joint: rad} for all 17 joints (joints not solved keep their start value).
+        q_vector: the same in `JOINT_NAMES` order (read-only).
+        position_errors_m: ‖x̂ − x(q)‖ per position target, in the given order (m).
+        orientation_errors_rad: rotation angle still needed per orientation target (rad).
+        cost: the Eq. 9 cost at q (rad²).
+        reachable: every position constraint holds.
+        iterations: Gauss–Newton iterations used.
+    """
+
+    q: Mapping[str, float]
+    q_vector: np.ndarray
+    position_errors_m: tuple[float, ...]
+    orientation_errors_rad: tuple[float, ...]
+    cost: float
+    reachable: bool
+    iterations: int
+
+
+@dataclass(frozen=True)
+class IkResult:
+    """Outcome of `IkSolver.solve` for one hand.
+
+    Attributes:
+        q: posture {joint: rad} for all 17 joints (joints not in the chain keep their start value).
+        x: hand position reached (m, root frame).
+        orientation: hand orientation reached, axis-angle (rad, root axes).
+        position_error_m: ‖x̂ − x‖ (m).
+        orientation_error_rad: angle of the rotation from the reached to the desired orientation
+            (rad); 0 when no orientation was asked.
+        reachable: the position constraint holds; when False, q is the closest pose found.
+        iterations: Gauss–Newton iterations used.
+    """
+
+    q: Mapping[str, float]
+    x: np.ndarray
+    orientation: np.ndarray
+    position_error_m: float
+    orientation_error_rad: float
+    reachable: bool
+    iterations: int
+
+
+def _position(value: Any) -> np.ndarray:
+    try:
+        pos = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TargetError(f"position must be a 3-vector in metres, got {value!r}") from None
+    if pos.shape != (3,):
+        raise TargetError(
+            f"position must be a 3-vector in metres, got shape {pos.shape}: {value!r}"
+        )
+    if not np.all(np.isfinite(pos)):
+        raise TargetError(f"position must be finite (no NaN/inf), got {value!r}")
+    pos.setflags(write=False)
+    return pos
+
+
+def as_rotation(orientation: Any) -> np.ndarray:
+    """A read-only rotation matrix from an axis-angle 3-vector (rad) or a 3×3 rotation matrix.
+
+    Raises:
+        TargetError: wrong shape, NaN/inf, or a 3×3 matrix that is not a proper rotation.
+    """
+    try:
+        arr = np.array(orientation, dtype=float)
+    except (TypeError, ValueError):
+        raise TargetError(
+            "orientation must be an axis-angle 3-vector (rad) or a 3×3 rotation, "
+            f"got {orientation!r}"
+        ) from None
+    if not np.all(np.isfinite(arr)):
+        raise TargetError(f"orientation must be finite (no NaN/inf), got {orientation!r}")
+    if arr.shape == (3,):
+        rot = pin.exp3(arr)
+    elif arr.shape == (3, 3):
+        if not np.allclose(arr @ arr.T, np.eye(3), atol=1e-6) or np.linalg.det(arr) < 0:
+            raise TargetError(f"orientation matrix is not a proper rotation: {orientation!r}")
+        rot = arr
+    else:
+        raise TargetError(
+            "orientation must be an axis-angle 3-vector (rad) or a 3×3 rotation, "
+            f"got shape {arr.shape}"
+        )
+    rot = np.array(rot)
+    rot.setflags(write=False)
+    return rot
+
+
+def orientation_residual(target: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """eₙ = log(R̂·Rᵀ): axis-angle (rad, root axes) turning `rotation` R into `target` R̂."""
+    return np.asarray(pin.log3(target @ rotation.T))
+
+
+def orientation_residual_jacobian(
+    target: np.ndarray, rotation: np.ndarray, angular_jacobian: np.ndarray
+) -> np.ndarray:
+    """∂eₙ/∂q = −Jlog(R̂Rᵀ)·J_ω, for J_ω the hand's angular Jacobian in root axes (3×n)."""
+    return -np.asarray(pin.Jlog3(target @ rotation.T)) @ angular_jacobian
+
+
+@dataclass
+class _Eval:
+    """Everything one iteration needs at a posture (vectors over the active joints)."""
+
+    hessian: np.ndarray  # Gauss–Newton Hessian of the cost
+    gradient: np.ndarray  # minus the cost gradient
+    eq_matrix: np.ndarray  # Sx·J per position target, stacked
+    eq_rhs: np.ndarray  # Sx·(x̂ − x) per position target, stacked
+    jacobians: list[tuple[int, float, np.ndarray]]  # (target, sign, 6×n frame Jacobian)
+    cost: float  # Eq. 9 cost (rad²)
+    violation: float  # Σ ‖Sx·(x̂ − x)‖ over position targets (m)
+    feasible: bool
+
+
+def position_hessian_contraction(weights: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
+    """Σₖ wₖ·∂²xₖ/∂q² for a frame on a revolute chain, from its 6×n Jacobian (LOCAL_WORLD_ALIGNED).
+
+    Columns must be in ancestor-first order (Pinocchio's). For joints a ≤ b the second
+    derivative of the frame position is z_a × v_b (z: joint axis, v: linear Jacobian column), so
+    the contraction with w is (w × z_a)·v_b. Units: m per rad² times the units of w.
+    """
+    wx = np.array(
+        [
+            [0.0, -weights[2], weights[1]],
+            [weights[2], 0.0, -weights[0]],
+            [-weights[1], weights[0], 0.0],
+        ]
+    )
+    pairs = (wx @ jacobian[3:]).T @ jacobian[:3]
+    upper = np.triu(np.ones(pairs.shape, dtype=bool))
+    return np.where(upper, pairs, pairs.T)
+
+
+class IkSolver:
+    """Eq. 9 solver for iCub's hands (torso + arm chains) on the Pinocchio model.
+
+    Not thread-safe (one Pinocchio `Data` per solver): give each thread its own solver.
+    """
+
+    def __init__(self, model: ArmsModel | None = None, settings: IkSettings | None = None) -> None:
+        self.model = load_arms_model() if model is None else model
+        self.settings = IkSettings() if settings is None else settings
+        self._pin = self.model.model
+        self._data = self._pin.createData()
+        self._lower = self.model.to_pinocchio(self.model.lower)
+        self._upper = self.model.to_pinocchio(self.model.upper)
+        sqrt_q = np.ones(self.model.nq)
+        for joint, weight in self.settings.sigma_q.items():
+            sqrt_q[self.model.index(joint)] = weight
+        self._rest_sqrt = np.sqrt(self.settings.rest_weight * self.model.to_pinocchio(sqrt_q))
+        self._sqrt_x = _sqrt_psd(self.settings.sigma_x)
+        self._sqrt_n = math.sqrt(self.settings.orientation_weight) * _sqrt_psd(
+            self.settings.sigma_n
+        )
+        self._epsilon = self.settings.position_tolerance**2
+
+    # ----------------------------------------------------------------------------- public API
+
+    def solve(
+        self,
+        arm: str,
+        position: Any,
+        orientation: Any = None,
+        *,
+        q0: JointValues | None = None,
+        rest: JointValues | None = None,
+        use_torso: bool = True,
+    ) -> IkResult:
+        """Solve Eq. 9 for one hand.
+
+        Args:
+            arm: "left_arm" or "right_arm".
+            position: x̂, desired hand position (m, root frame), a 3-vector.
+            orientation: n̂ as an axis-angle 3-vector (rad, root axes) or a 3×3 rotation; None
+                drops the orientation term.
+            q0: warm start {joint: rad} or 17-vector (the current posture); missing joints take
+                the home posture; values are clipped into the joint limits.
+            rest: q̂, rest posture (same forms; default the home posture).
+            use_torso: solve torso + arm (10 joints) when True, the arm alone (7) when False
+                (iKin's setDOF); the torso then keeps its q0 value.
+
+        Raises:
+            TargetError: a malformed position or orientation. JointError: bad arm, names or
+            angles in q0/rest.
+        """
+        pos_target = PositionTarget(arm, position)
+        ori_targets = () if orientation is None else (OrientationTarget(arm, orientation),)
+        chain = self.model.chain(arm, use_torso=use_torso)
+        res = self.solve_targets((pos_target,), ori_targets, joints=chain, q0=q0, rest=rest)
+        x, rot = self.model.hand_pose(res.q_vector, arm)
+        orientation_out = np.asarray(pin.log3(rot))
+        x.setflags(write=False)
+        orientation_out.setflags(write=False)
+        return IkResult(
+            q=res.q,
+            x=x,
+            orientation=orientation_out,
+            position_error_m=res.position_errors_m[0],
+            orientation_error_rad=res.orientation_errors_rad[0] if ori_targets else 0.0,
+            reachable=res.reachable,
+            iterations=res.iterations,
+        )
+
+    def solve_targets(
+        self,
+        positions: Sequence[PositionTarget],
+        orientations: Sequence[OrientationTarget] = (),
+        *,
+        joints: Sequence[str],
+        q0: JointValues | None = None,
+        rest: JointValues | None = None,
+    ) -> TargetsResult:
+        """Solve Eq. 9 with several hands at once, moving only `joints` (names).
+
+        Position targets are hard constraints (each with the tolerance of the settings),
+        orientation targets and the rest posture are the cost.
+
+        Raises:
+            TargetError: no position target. JointError: unknown joint names or bad q0/rest.
+        """
+        if not positions:
+            raise TargetError("at least one PositionTarget is needed (the hard constraint)")
+        if not joints:
+            raise JointError(
+                f"joints must name at least one of {', '.join(self.model.joint_names)}"
+            )
+        idx = sorted({int(self.model.pin_index[self.model.index(j)]) for j in joints})
+        active = np.array(idx, dtype=np.intp)
+        q_start = self.model.to_pinocchio(self.model.clip(self.model.vector(q0)))
+        q_rest = self.model.to_pinocchio(self.model.vector(rest))
+        frames = self.model.frame_ids
+        pos_tasks = [
+            (
+                frames[t.arm],
+                -1 if t.relative_to is None else frames[t.relative_to],
+                np.asarray(t.position),
+                _BASE_SLACK * _PRIORITY_FACTOR**t.priority,
+            )
+            for t in positions
+        ]
+        ori_tasks = [
+            (frames[t.arm], np.asarray(t.orientation), math.sqrt(t.weight) * self._sqrt_n)
+            for t in orientations
+        ]
+        q, iterations, ev = self._run(q_start, active, pos_tasks, ori_tasks, q_rest)
+        pos_errors, ori_errors = self._errors(q, pos_tasks, ori_tasks)
+        q_vec = self.model.from_pinocchio(q)
+        q_vec.setflags(write=False)
+        return TargetsResult(
+            q=self.model.mapping(q_vec),
+            q_vector=q_vec,
+            position_errors_m=pos_errors,
+            orientation_errors_rad=ori_errors,
+            cost=float(ev.cost),
+            reachable=bool(ev.feasible),
+            iterations=iterations,
+        )
+
+    # ------------------------------------------------------------------------------- internals
+
+    def _errors(
+        self, q: np.ndarray, pos_tasks: list[tuple], ori_tasks: list[tuple]
+    ) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        model, data = self._pin, self._data
+        pin.forwardKinematics(model, data, q)
+        pos = []
+        for frame, ref, target, _ in pos_tasks:
+            x = pin.updateFramePlacement(model, data, frame).translation
+            if ref >= 0:
+                x = x - pin.updateFramePlacement(model, data, ref).translation
+            pos.append(float(np.linalg.norm(target - x)))
+        ori = []
+        for frame, target, _ in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, frame).rotation
+            ori.append(float(np.linalg.norm(orientation_residual(target, rot))))
+        return tuple(pos), tuple(ori)
+
+    def _evaluate(
+        self,
+        q: np.ndarray,
+        active: np.ndarray,
+        pos_tasks: list[tuple],
+        ori_tasks: list[tuple],
+        q_rest: np.ndarray,
+    ) -> _Eval:
+        model, data = self._pin, self._data
+        pin.computeJointJacobians(model, data, q)
+        sqrt_x = self._sqrt_x
+        n = active.size
+        eq_matrix = np.empty((3 * len(pos_tasks), n))
+        eq_rhs = np.empty(3 * len(pos_tasks))
+        jacobians = []
+        violation = 0.0
+        feasible = True
+        for k, (frame, ref, target, _) in enumerate(pos_tasks):
+            x = pin.updateFramePlacement(model, data, frame).translation
+            jac = pin.getFrameJacobian(model, data, frame, _LWA)[:, active]
+            jacobians.append((k, 1.0, jac))
+            lin = jac[:3]
+            if ref >= 0:
+                x = x - pin.updateFramePlacement(model, data, ref).translation
+                jac_ref = pin.getFrameJacobian(model, data, ref, _LWA)[:, active]
+                jacobians.append((k, -1.0, jac_ref))
+                lin = lin - jac_ref[:3]
+            err = sqrt_x @ (target - x)
+            sq = float(err @ err)
+            feasible = feasible and sq < self._epsilon
+            violation += math.sqrt(sq)
+            eq_matrix[3 * k : 3 * k + 3] = sqrt_x @ lin
+            eq_rhs[3 * k : 3 * k + 3] = err
+        # Rest posture: residual Sq·(q̂ − q − dq), linear in the step.
+        rest_sqrt = self._rest_sqrt[active]
+        r_rest = rest_sqrt * (q_rest[active] - q[active])
+        hessian = np.diag(rest_sqrt * rest_sqrt)
+        gradient = rest_sqrt * r_rest
+        cost = float(r_rest @ r_rest)
+        for frame, target, sqrt_n in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, frame).rotation
+            err_rot = target @ rot.T
+            res = sqrt_n @ np.asarray(pin.log3(err_rot))
+            jw = pin.getFrameJacobian(model, data, frame, _LWA)[3:, active]
+            a = -(sqrt_n @ np.asarray(pin.Jlog3(err_rot))) @ jw
+            hessian += a.T @ a
+            gradient -= a.T @ res
+            cost += float(res @ res)
+        return _Eval(hessian, gradient, eq_matrix, eq_rhs, jacobians, cost, violation, feasible)
+
+    def _lagrangian_hessian(self, ev: _Eval, nu: np.ndarray, damping: float) -> np.ndarray:
+        """Gauss–Newton Hessian + ν·(constraint curvature) + damping, if positive definite."""
+        base = ev.hessian + damping * np.eye(ev.hessian.shape[0])
+        if not nu.any():
+            return base
+        full = base.copy()
+        for k, sign, jac in ev.jacobians:
+            weights = sign * (self._sqrt_x.T @ nu[3 * k : 3 * k + 3])
+            full += position_hessian_contraction(weights, jac)
+        try:
+            np.linalg.cholesky(full)
+        except np.linalg.LinAlgError:
+            return base
+        return full
+
+    def _run(
+        self,
+        q: np.ndarray,
+        active: np.ndarray,
+        pos_tasks: list[tuple],
+        ori_tasks: list[tuple],
+        q_rest: np.ndarray,
+    ) -> tuple[np.ndarray, int, _Eval]:
+        """SQP iterations from q (Pinocchio order); returns (q, iterations, evaluation at q)."""
+        s = self.settings
+        lower = self._lower[active]
+        upper = self._upper[active]
+        slack = np.repeat([t[3] for t in pos_tasks], 3)
+        n_pos = len(pos_tasks)
+        ev = self._evaluate(q, active, pos_tasks, ori_tasks, q_rest)
+        best_q, best_ev = q, ev
+        nu = np.zeros(3 * n_pos)
+        rho = _MERIT_PENALTY
+        lam = s.damping
+        iterations = 0
+        while iterations < s.max_iterations:
+            iterations += 1
+            qa = q[active]
+            lb = np.maximum(lower - qa, -s.max_step)
+            ub = np.minimum(upper - qa, s.max_step)
+            hessian = self._lagrangian_hessian(ev, nu, lam)
+            at_limit = (lb >= 0.0) | (ub <= 0.0)
+            dq, nu_step = solve_box_qp(
+                hessian, ev.gradient, ev.eq_matrix, ev.eq_rhs, slack, lb, ub, at_limit
+            )
+            nu_norms = np.linalg.norm(nu_step.reshape(n_pos, 3), axis=1)
+            rho = max(_MERIT_PENALTY, 2.0 * float(nu_norms.max()))
+            merit = ev.cost + rho * ev.violation
+            # Decrease of the merit that the QP model predicts for this step.
+            lin_violation = np.linalg.norm(
+                (ev.eq_rhs - ev.eq_matrix @ dq).reshape(n_pos, 3), axis=1
+            ).sum()
+            predicted = float(ev.gradient @ dq - 0.5 * dq @ hessian @ dq) + rho * (
+                ev.violation - lin_violation
+            )
+            q_new = q.copy()
+            q_new[active] = np.clip(qa + dq, lower, upper)
+            ev_new = self._evaluate(q_new, active, pos_tasks, ori_tasks, q_rest)
+            actual = merit - (ev_new.cost + rho * ev_new.violation)
+            if actual < 0.25 * predicted and ev_new.violation > ev.violation:
+                # Second-order correction: pull the trial point back onto the linearised
+                # constraint with the least joint motion (cures the Maratos effect).
+                corr, _ = solve_box_qp(
+                    np.eye(active.size),
+                    np.zeros(active.size),
+                    ev.eq_matrix,
+                    ev_new.eq_rhs,
+                    slack,
+                    lb - dq,
+                    ub - dq,
+                )
+                q_soc = q.copy()
+                q_soc[active] = np.clip(qa + dq + corr, lower, upper)
+                ev_soc = self._evaluate(q_soc, active, pos_tasks, ori_tasks, q_rest)
+                actual_soc = merit - (ev_soc.cost + rho * ev_soc.violation)
+                if actual_soc > actual:
+                    q_new, ev_new, dq, actual = q_soc, ev_soc, dq + corr, actual_soc
+            nu = nu_step
+            ratio = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -1.0)
+            if ratio < 0.25:
+                lam *= 10.0
+            elif ratio > 0.75:
+                lam = max(lam * 0.1, _MIN_DAMPING)
+            if actual < 0 or (actual == 0 and predicted > 0):
+                if lam > _MAX_DAMPING:
+                    break  # no descent left: a local minimum of the merit
+                continue
+            change = ev.cost - ev_new.cost
+            q, ev = q_new, ev_new
+            if ev.feasible or ev.violation < best_ev.violation:
+                best_q, best_ev = q, ev
+            small_step = float(np.max(np.abs(dq))) < s.step_tolerance
+            if ev.feasible and (small_step or abs(change) < s.cost_tolerance):
+                break
+            if not ev.feasible and small_step and abs(change) < s.cost_tolerance:
+                break  # stalled outside the constraint: the closest pose from here
+        if ev.feasible:
+            return q, iterations, ev
+        return best_q, iterations, best_ev
