@@ -1,0 +1,273 @@
+"""The arrow's shot in the MuJoCo scene: launch from the hands, drag, impact, the Landing result.
+
+Launch: the arrow's tip leaves from the bow hand (the simulated `l_hand_dh_frame` site) along the
+direction from the string hand to the bow hand, −θ/‖θ‖ for θ = p_string − p_bow, with the speed
+of `sim.bow.Bow` for the actual θ, optionally perturbed by seeded speed and direction noise.
+
+Flight: the arrow is a free MuJoCo body under gravity. Air drag is an explicit force at its
+centre of mass, written to `xfrc_applied` before every physics step (MuJoCo's own fluid model is
+switched off in the scene):
+
+    a_drag = −K·‖v − w‖·(v − w)      K in 1/m, v the arrow's and w the wind's velocity (m/s),
+
+the same law as the analytic model of `sim.ballistic`. The arrow does not rotate in flight.
+
+Impact: after every step the tip's path over that step is tested against the target plane
+x = −distance and the floor z = −root_height; the crossing is interpolated inside the step, so
+the reported point does not depend on how far the arrow moved in one step. At the plane, a tip
+within the face radius is a hit; one outside it is a miss that is still reported on the plane
+(like the paper's arrows put back on the wall at their impact point). The arrow is then frozen
+there, pointing along its velocity. The result r = tip − centre on the plane, r[0] along +y (the
+robot's right) and r[1] along +z (up), in metres, is the shot's ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from enum import StrEnum
+
+import mujoco
+import numpy as np
+
+from sim.bow import Bow
+from sim.errors import StateError
+from sim.scene import ScenePhysics
+
+__all__ = [
+    "ArrowFlight",
+    "Landing",
+    "Launch",
+    "Outcome",
+    "arrow_quat",
+    "drag_acceleration",
+    "launch_velocity",
+]
+
+
+class Outcome(StrEnum):
+    """How a shot ended."""
+
+    TARGET = "target"  # the tip met the target face
+    OUTSIDE_FACE = "outside_face"  # the tip crossed the target plane outside the face
+    GROUND = "ground"  # the tip reached the floor first
+    TIMEOUT = "timeout"  # still flying after the time limit
+
+
+@dataclass(frozen=True)
+class Launch:
+    """The arrow's state at release.
+
+    Attributes:
+        position: tip position = bow hand position (m, root frame).
+        velocity: launch velocity (m/s, root frame), noise included.
+        theta: θ = p_string − p_bow at release (m).
+        wind: wind velocity for this shot (m/s, root frame), gust included.
+        sim_time: simulated time of the release (s).
+    """
+
+    position: np.ndarray
+    velocity: np.ndarray
+    theta: np.ndarray
+    wind: np.ndarray
+    sim_time: float
+
+
+@dataclass(frozen=True)
+class Landing:
+    """Where and when a shot ended.
+
+    Attributes:
+        outcome: how it ended (`Outcome`).
+        r: tip − target centre on the target plane (m): r[0] along +y, r[1] along +z; set when
+            the tip crossed the plane (TARGET, OUTSIDE_FACE), None otherwise.
+        point: final tip position (m, root frame).
+        velocity: tip velocity at that point (m/s).
+        sim_time: simulated time of the landing (s).
+        flight_time: time from release to landing (s).
+        launch: the release that started the flight.
+    """
+
+    outcome: Outcome
+    r: np.ndarray | None
+    point: np.ndarray
+    velocity: np.ndarray
+    sim_time: float
+    flight_time: float
+    launch: Launch
+
+    @property
+    def hit(self) -> bool:
+        """True if the arrow stuck in the target face."""
+        return self.outcome is Outcome.TARGET
+
+    @property
+    def reason(self) -> str | None:
+        """None for a hit, else why the shot missed ("outside_face", "ground", "timeout")."""
+        return None if self.hit else self.outcome.value
+
+
+def drag_acceleration(velocity: np.ndarray, wind: np.ndarray, drag: float) -> np.ndarray:
+    """Quadratic drag a = −K‖v − w‖(v − w) (m/s²) for velocity v, wind w (m/s), K (1/m)."""
+    relative = np.asarray(velocity, dtype=float) - np.asarray(wind, dtype=float)
+    return -drag * float(np.linalg.norm(relative)) * relative
+
+
+def arrow_quat(direction: np.ndarray) -> np.ndarray:
+    """Orientation (w, x, y, z) that points the arrow's +x along `direction`, kept upright.
+
+    The arrow's z axis is the one closest to world +z; a vertical direction uses world +y as
+    the reference instead.
+    """
+    x = np.asarray(direction, dtype=float)
+    norm = float(np.linalg.norm(x))
+    x = np.array([-1.0, 0.0, 0.0]) if norm < 1e-12 else x / norm
+    ref = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.999 else np.array([0.0, 1.0, 0.0])
+    y = np.cross(ref, x)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    quat = np.empty(4)
+    mujoco.mju_mat2Quat(quat, np.column_stack([x, y, z]).ravel())
+    return quat
+
+
+def launch_velocity(
+    bow_hand: np.ndarray,
+    string_hand: np.ndarray,
+    bow: Bow,
+    rng: np.random.Generator | None = None,
+    speed_noise: float = 0.0,
+    direction_noise: float = 0.0,
+) -> np.ndarray:
+    """Launch velocity (m/s) for the hand positions (m): the bow's speed along −θ/‖θ‖.
+
+    With `rng`, the speed is scaled by (1 + speed_noise·N(0, 1)) (kept ≥ 0) and the direction
+    is tilted by direction_noise·N(0, 1) radians about each of two axes perpendicular to it.
+
+    Raises:
+        StateError: the hands coincide, so there is no direction to shoot in.
+    """
+    theta = np.asarray(string_hand, dtype=float) - np.asarray(bow_hand, dtype=float)
+    norm = float(np.linalg.norm(theta))
+    if norm < 1e-9:
+        raise StateError(f"the hands coincide (θ = {theta} m): no direction to shoot in")
+    direction = -theta / norm
+    speed = bow.launch_speed(theta)
+    if rng is not None:
+        # Always draw the same three numbers, so the stream does not depend on the settings.
+        eps_speed, eps_a, eps_b = rng.standard_normal(3)
+        speed *= max(0.0, 1.0 + speed_noise * eps_speed)
+        ref = np.array([0.0, 0.0, 1.0]) if abs(direction[2]) < 0.999 else np.array([0.0, 1.0, 0.0])
+        side = np.cross(ref, direction)
+        side /= np.linalg.norm(side)
+        up = np.cross(direction, side)
+        direction = direction + direction_noise * (eps_a * side + eps_b * up)
+        direction /= np.linalg.norm(direction)
+    return speed * direction
+
+
+class ArrowFlight:
+    """One arrow's flight in a scene, from launch to landing; call around every physics step.
+
+    Args:
+        physics: the scene's physics queries.
+        launch: the release state; the arrow is placed and given its velocity here.
+        drag: K (1/m) of the drag law.
+        plane_x: the target plane x (m).
+        centre: target centre (m, root frame).
+        face_radius: target face radius (m).
+        floor_z: floor height (m).
+        max_flight_time: the flight ends as TIMEOUT after this long (s).
+    """
+
+    def __init__(
+        self,
+        physics: ScenePhysics,
+        launch: Launch,
+        *,
+        drag: float,
+        plane_x: float,
+        centre: np.ndarray,
+        face_radius: float,
+        floor_z: float,
+        max_flight_time: float,
+    ) -> None:
+        self.physics = physics
+        self.launch = launch
+        self.drag = float(drag)
+        self.plane_x = float(plane_x)
+        self.centre = np.asarray(centre, dtype=float)
+        self.face_radius = float(face_radius)
+        self.floor_z = float(floor_z)
+        self.max_flight_time = float(max_flight_time)
+        self._mass = physics.arrow_mass
+        self._gravity_force = physics.arrow_mass * physics.gravity
+        physics.set_arrow_pose(launch.position, arrow_quat(launch.velocity))
+        physics.set_arrow_velocity(launch.velocity)
+        self._prev_tip = launch.position.copy()
+        self._prev_vel = launch.velocity.copy()
+        self._prev_time = launch.sim_time
+        self.landing: Landing | None = None
+
+    def before_step(self) -> None:
+        """Apply this step's drag force (N) from the arrow's current velocity."""
+        if self.landing is None:
+            velocity = self.physics.arrow_velocity()
+            self._prev_tip = self.physics.arrow_tip()
+            self._prev_vel = velocity
+            self._prev_time = self.physics.time
+            if self.drag > 0.0:
+                accel = drag_acceleration(velocity, self.launch.wind, self.drag)
+                self.physics.set_arrow_force(self._mass * accel)
+            else:
+                self.physics.set_arrow_force(np.zeros(3))
+
+    def after_step(self) -> Landing | None:
+        """Check the step's path for an impact; on one, freeze the arrow there and return it."""
+        if self.landing is not None:
+            return None
+        physics = self.physics
+        p0, v0, t0 = self._prev_tip, self._prev_vel, self._prev_time
+        p1, v1, t1 = physics.arrow_tip(), physics.arrow_velocity(), physics.time
+        events: list[tuple[float, Outcome]] = []
+        if p0[0] > self.plane_x >= p1[0]:
+            events.append(((p0[0] - self.plane_x) / (p0[0] - p1[0]), Outcome.TARGET))
+        if p0[2] > self.floor_z >= p1[2]:
+            events.append(((p0[2] - self.floor_z) / (p0[2] - p1[2]), Outcome.GROUND))
+        if events:
+            s, outcome = min(events, key=lambda e: e[0])
+            s = float(s)
+        elif t1 - self.launch.sim_time >= self.max_flight_time:
+            s, outcome = 1.0, Outcome.TIMEOUT
+        else:
+            return None
+        point = p0 + s * (p1 - p0)
+        velocity = v0 + s * (v1 - v0)
+        when = float(t0 + s * (t1 - t0))
+        r = None
+        if outcome is Outcome.TARGET:
+            point[0] = self.plane_x  # exact on the plane
+            r = np.array([point[1] - self.centre[1], point[2] - self.centre[2]])
+            if math.hypot(r[0], r[1]) > self.face_radius:
+                outcome = Outcome.OUTSIDE_FACE
+        elif outcome is Outcome.GROUND:
+            point[2] = self.floor_z
+        self.landing = Landing(
+            outcome=outcome,
+            r=r,
+            point=point,
+            velocity=velocity,
+            sim_time=when,
+            flight_time=when - self.launch.sim_time,
+            launch=self.launch,
+        )
+        self.freeze()
+        return self.landing
+
+    def freeze(self) -> None:
+        """Hold the landed arrow still at its impact pose (gravity cancelled, zero velocity)."""
+        if self.landing is None:
+            raise StateError("the arrow has not landed yet; there is no impact pose to hold")
+        self.physics.set_arrow_pose(self.landing.point, arrow_quat(self.landing.velocity))
+        self.physics.set_arrow_velocity(np.zeros(3))
+        self.physics.set_arrow_force(-self._gravity_force)

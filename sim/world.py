@@ -1,0 +1,522 @@
+"""The simulated archery robot as a seeded, Gymnasium-like world: joints, nock, release, landing.
+
+`ArcheryWorld` is the task logic on top of the physics queries of `sim.scene.ScenePhysics`:
+position-controlled joints per YARP part (targets clamped to the joint limits and approached at
+a limited reference speed, like iCub's position control), an arrow that is stowed, nocked
+between the hands, flying or landed, and the shot of `sim.arrow`. Units: metres, radians,
+seconds, root frame (x backward, y right, z up).
+
+`reset(seed)` restores the home posture at time 0 and seeds the shot noise, so the same seed
+and the same commands give the same landing bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from enum import StrEnum
+
+import mujoco
+import numpy as np
+
+from protocol.parts import PARTS
+from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
+from sim.bow import Bow
+from sim.errors import CommandError, ConfigError, StateError
+from sim.geometry import TARGET_DIAMETER, target_centre
+from sim.scene import (
+    HOME_POSTURE,
+    SceneConfig,
+    ScenePhysics,
+    build_scene,
+)
+
+__all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]
+
+MAX_REFERENCE_SPEED = 2.0  # rad/s; up to this, commanded moves never pass the URDF joint limits
+
+_STOWED_TIP_ABOVE_FLOOR = 0.002  # m
+
+
+class ArrowState(StrEnum):
+    """Where the arrow is."""
+
+    STOWED = "stowed"  # beside the robot, not on the bow
+    NOCKED = "nocked"  # tip at the bow hand, along the string-to-bow-hand line, following the hands
+    FLYING = "flying"
+    LANDED = "landed"  # frozen where it met the target plane or the floor, or timed out
+
+
+def _vector3(name: str, value: object) -> tuple[float, float, float]:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{name} must be 3 numbers (x, y, z), got {value!r}") from exc
+    if array.shape != (3,) or not np.all(np.isfinite(array)):
+        raise ConfigError(f"{name} must be 3 finite numbers (x, y, z), got {value!r}")
+    return (float(array[0]), float(array[1]), float(array[2]))
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Every parameter of the simulated robot and shot, validated.
+
+    Attributes:
+        scene: the MuJoCo scene's parameters.
+        bow: the bow model (its arrow mass must equal the scene's).
+        drag: K of the drag law a = −K‖v − w‖(v − w) (1/m); 0 switches drag off.
+        wind: constant wind velocity (m/s, root frame); acts through drag only.
+        wind_gust: standard deviation of a random wind added per shot, per axis (m/s).
+        speed_noise: relative standard deviation of the launch speed (the bow's variability).
+        direction_noise: standard deviation of the launch direction, per axis (rad).
+        reference_speed: default joint reference speed: how fast a joint's setpoint moves
+            toward its target (rad/s).
+        position_tolerance: motion is done when every joint is this close to its target (rad).
+        velocity_tolerance: … and every joint is slower than this (rad/s).
+        max_flight_time: a flight still going after this long ends as a timeout (s).
+    """
+
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    bow: Bow = field(default_factory=Bow)
+    drag: float = 0.02
+    wind: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    wind_gust: float = 0.0
+    speed_noise: float = 0.01
+    direction_noise: float = 0.002
+    reference_speed: float = 0.5
+    position_tolerance: float = 1e-3
+    velocity_tolerance: float = 5e-3
+    max_flight_time: float = 3.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scene, SceneConfig):
+            raise ConfigError(f"scene must be a SceneConfig, got {self.scene!r}")
+        if not isinstance(self.bow, Bow):
+            raise ConfigError(f"bow must be a sim.bow.Bow, got {self.bow!r}")
+        if self.bow.arrow_mass != self.scene.arrow_mass:
+            raise ConfigError(
+                f"the bow's arrow mass {self.bow.arrow_mass} kg differs from the scene's "
+                f"{self.scene.arrow_mass} kg; set both to the same value"
+            )
+        object.__setattr__(self, "wind", _vector3("wind", self.wind))
+        bounds = {
+            "drag": (0.0, 10.0),
+            "wind_gust": (0.0, 50.0),
+            "speed_noise": (0.0, 1.0),
+            "direction_noise": (0.0, 1.0),
+            "reference_speed": (1e-3, MAX_REFERENCE_SPEED),
+            "position_tolerance": (1e-6, 0.5),
+            "velocity_tolerance": (1e-6, 5.0),
+            "max_flight_time": (0.01, 60.0),
+        }
+        for name, (low, high) in bounds.items():
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not math.isfinite(value):
+                raise ConfigError(f"{name} must be a finite number, got {value!r}")
+            if not low <= value <= high:
+                raise ConfigError(f"{name} must be in [{low}, {high}], got {value!r}")
+            object.__setattr__(self, name, float(value))
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-friendly copy of the parameters."""
+        out: dict[str, object] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, SceneConfig):
+                value = value.to_dict()
+            elif isinstance(value, Bow):
+                value = {g.name: getattr(value, g.name) for g in fields(value)}
+            elif isinstance(value, tuple):
+                value = list(value)
+            out[f.name] = value
+        return out
+
+
+class ArcheryWorld:
+    """The simulated iCub archer: seeded, steppable, with a blocking `release`.
+
+    Args:
+        config: world parameters (defaults if None).
+        model: a model built by `sim.scene.build_scene(config.scene)`, to share one build
+            between worlds; built here if None.
+    """
+
+    def __init__(
+        self, config: WorldConfig | None = None, model: mujoco.MjModel | None = None
+    ) -> None:
+        self.config = WorldConfig() if config is None else config
+        if model is None:
+            model = build_scene(self.config.scene)
+        elif abs(model.opt.timestep - self.config.scene.timestep) > 1e-15:
+            raise ConfigError(
+                f"the model's timestep {model.opt.timestep} s differs from the scene config's "
+                f"{self.config.scene.timestep} s; build the model with build_scene(config.scene)"
+            )
+        self.physics = ScenePhysics(model)
+        self._dt = self.physics.timestep
+        self._centre = target_centre(self.config.scene.target_distance)
+        self._parts = tuple(PARTS)
+        self._slices: dict[str, slice] = {}
+        start = 0
+        for part in self._parts:
+            self._slices[part] = slice(start, start + len(PARTS[part]))
+            start += len(PARTS[part])
+        self._act = np.concatenate([self.physics.actuator_indices(p) for p in self._parts])
+        # Software limits: the URDF limits shrunk by the stops' margin (see SceneConfig).
+        margin = np.concatenate([self.physics.joint_margins(p) for p in self._parts])
+        self._lower = (
+            np.concatenate([self.physics.joint_limits(p)[0] for p in self._parts]) + margin
+        )
+        self._upper = (
+            np.concatenate([self.physics.joint_limits(p)[1] for p in self._parts]) - margin
+        )
+        self._qadr = np.concatenate([self.physics.qpos_indices(p) for p in self._parts])
+        self._dadr = np.concatenate([self.physics.dof_indices(p) for p in self._parts])
+        self._home = np.concatenate([HOME_POSTURE[p] for p in self._parts])
+        self._target = self._home.copy()
+        self._reference = self._home.copy()
+        self._speed = np.full(self._home.size, self.config.reference_speed)
+        self._ramping = False
+        self._rng: np.random.Generator | None = None
+        self._arrow = ArrowState.STOWED
+        self._flight: ArrowFlight | None = None
+        self._landing: Landing | None = None
+        self._hold_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self.reset()
+
+    # -- episode ----------------------------------------------------------------------------
+    def reset(self, seed: int | None = None) -> None:
+        """Restore the home posture at rest, time 0, the arrow stowed; reseed if `seed` given.
+
+        Without a seed the noise stream continues (or starts from fresh entropy the first time),
+        as in Gymnasium.
+
+        Raises:
+            StateError: an arrow is in flight (let it land first).
+        """
+        if self._arrow is ArrowState.FLYING:
+            raise StateError("cannot reset while an arrow is flying; step until it lands first")
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        elif self._rng is None:
+            self._rng = np.random.default_rng()
+        physics = self.physics
+        physics.reset()
+        self._target = self._home.copy()
+        self._reference = self._home.copy()
+        self._speed[:] = self.config.reference_speed
+        self._ramping = False
+        physics.data.qpos[self._qadr] = self._home
+        physics.data.ctrl[self._act] = self._home
+        self._flight = None
+        self._landing = None
+        self._stow()
+        physics.forward()
+
+    # -- joints -----------------------------------------------------------------------------
+    def _part(self, part: object) -> slice:
+        if not isinstance(part, str) or part not in self._slices:
+            raise CommandError(f"unknown part {part!r}; parts: {', '.join(self._parts)}")
+        return self._slices[part]
+
+    def _vector(self, part: str, values: object, what: str) -> np.ndarray:
+        names = PARTS[part]
+        try:
+            array = np.asarray(values, dtype=float)
+        except (TypeError, ValueError) as exc:
+            raise CommandError(
+                f"{part} {what} must be {len(names)} numbers, got {values!r}"
+            ) from exc
+        if array.shape != (len(names),):
+            raise CommandError(
+                f"{part} {what} must have {len(names)} values ({', '.join(names)}), "
+                f"got shape {array.shape}"
+            )
+        if not np.all(np.isfinite(array)):
+            raise CommandError(f"{part} {what} must be finite, got {array.tolist()}")
+        return array
+
+    @property
+    def parts(self) -> tuple[str, ...]:
+        """The controlled parts, e.g. ("torso", "left_arm", "right_arm")."""
+        return self._parts
+
+    def joint_names(self, part: str) -> tuple[str, ...]:
+        """Joint names of `part` in YARP order."""
+        self._part(part)
+        return PARTS[part]
+
+    def joint_limits(self, part: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) software limits of `part`'s joints (rad): targets are clamped to these.
+
+        They lie `SceneConfig.limit_margin` inside the URDF limits, which joints never pass.
+        """
+        s = self._part(part)
+        return self._lower[s].copy(), self._upper[s].copy()
+
+    def joint_positions(self, part: str) -> np.ndarray:
+        """Joint angles of `part` (rad)."""
+        return self.physics.data.qpos[self._qadr[self._part(part)]].copy()
+
+    def joint_velocities(self, part: str) -> np.ndarray:
+        """Joint velocities of `part` (rad/s)."""
+        return self.physics.data.qvel[self._dadr[self._part(part)]].copy()
+
+    def joint_targets(self, part: str) -> np.ndarray:
+        """Current (clamped) position targets of `part` (rad)."""
+        return self._target[self._part(part)].copy()
+
+    def set_joint_targets(self, part: str, values: object) -> np.ndarray:
+        """Command `part`'s joints to `values` (rad, YARP order), clamped to the joint limits.
+
+        The servos' setpoints then move toward the targets at the reference speeds.
+
+        Returns:
+            The targets actually applied (rad), after clamping.
+
+        Raises:
+            CommandError: unknown part, wrong number of values, non-finite value.
+        """
+        s = self._part(part)
+        array = self._vector(part, values, "targets")
+        clamped = np.clip(array, self._lower[s], self._upper[s])
+        self._target[s] = clamped
+        self._ramping = True
+        return clamped.copy()
+
+    def reference_speeds(self, part: str) -> np.ndarray:
+        """Reference speeds of `part`'s joints (rad/s)."""
+        return self._speed[self._part(part)].copy()
+
+    def set_reference_speeds(self, part: str, speeds: object) -> np.ndarray:
+        """Set how fast `part`'s setpoints move toward their targets (rad/s, 0 < each ≤ 2).
+
+        Raises:
+            CommandError: unknown part, wrong number of values, non-finite or non-positive value.
+        """
+        s = self._part(part)
+        array = self._vector(part, speeds, "reference speeds")
+        if np.any(array <= 0) or np.any(array > MAX_REFERENCE_SPEED):
+            raise CommandError(
+                f"{part} reference speeds must be in (0, {MAX_REFERENCE_SPEED}] rad/s, "
+                f"got {array.tolist()}"
+            )
+        self._speed[s] = array
+        return array.copy()
+
+    def motion_done(self) -> bool:
+        """True when every setpoint has reached its target and every joint has settled there."""
+        if self._ramping:
+            return False
+        data = self.physics.data
+        error = np.max(np.abs(data.qpos[self._qadr] - self._target))
+        speed = np.max(np.abs(data.qvel[self._dadr]))
+        return bool(
+            error < self.config.position_tolerance and speed < self.config.velocity_tolerance
+        )
+
+    def move_until_done(self, timeout: float = 10.0, check_every: float = 0.01) -> bool:
+        """Step until `motion_done()` or `timeout` simulated seconds; True if done.
+
+        Motion is checked every `check_every` simulated seconds. An arrow in flight keeps flying.
+        """
+        if not math.isfinite(timeout) or timeout < 0:
+            raise CommandError(f"timeout must be a finite number of seconds >= 0, got {timeout!r}")
+        end = self.physics.time + timeout
+        while not self.motion_done():
+            if self.physics.time >= end - 0.5 * self._dt:
+                return False
+            self.step(min(check_every, end - self.physics.time))
+        return True
+
+    # -- time -------------------------------------------------------------------------------
+    @property
+    def sim_time(self) -> float:
+        """Simulated time since the last reset (s)."""
+        return self.physics.time
+
+    @property
+    def timestep(self) -> float:
+        """Physics timestep (s)."""
+        return self._dt
+
+    def step(self, duration: float | None = None) -> Landing | None:
+        """Advance the simulation by `duration` seconds (one timestep if None).
+
+        The duration is rounded to a whole number of timesteps (at least one).
+
+        Returns:
+            The landing, if an arrow landed during this call; else None.
+
+        Raises:
+            CommandError: the duration is negative or not finite.
+        """
+        if duration is None:
+            n = 1
+        else:
+            if not isinstance(duration, int | float) or not math.isfinite(duration) or duration < 0:
+                raise CommandError(
+                    f"duration must be a finite number of seconds >= 0, got {duration!r}"
+                )
+            n = max(1, round(duration / self._dt))
+        landed = None
+        physics = self.physics
+        data = physics.data
+        model = physics.model
+        flight = self._flight
+        for _ in range(n):
+            if self._ramping:
+                self._advance_setpoints()
+            if flight is not None:
+                flight.before_step()
+            mujoco.mj_step(model, data)
+            if flight is not None:
+                landing = flight.after_step()
+                if landing is not None:
+                    landed = self._landed(landing)
+                    flight = None
+        self._hold_arrow()
+        return landed
+
+    def _advance_setpoints(self) -> None:
+        step = self._speed * self._dt
+        delta = np.clip(self._target - self._reference, -step, step)
+        self._reference += delta
+        if np.array_equal(self._reference, self._target):
+            self._ramping = False
+        self.physics.data.ctrl[self._act] = self._reference
+
+    # -- the arrow --------------------------------------------------------------------------
+    @property
+    def arrow_state(self) -> ArrowState:
+        """Where the arrow is: stowed, nocked, flying or landed."""
+        return self._arrow
+
+    @property
+    def landing(self) -> Landing | None:
+        """The last shot's landing since the last reset, if any."""
+        return self._landing
+
+    def _stow(self) -> None:
+        scene = self.config.scene
+        tip = np.array([0.12, 0.30, -scene.root_height + _STOWED_TIP_ABOVE_FLOOR])
+        self._hold(tip, arrow_quat(np.array([0.0, 0.0, -1.0])))
+        self._arrow = ArrowState.STOWED
+
+    def _hold(self, tip: np.ndarray, quat: np.ndarray) -> None:
+        physics = self.physics
+        self._hold_pose = (tip, quat)
+        physics.set_arrow_pose(tip, quat)
+        physics.set_arrow_velocity(np.zeros(3))
+        physics.set_arrow_force(-physics.arrow_mass * physics.gravity)
+
+    def _hold_arrow(self) -> None:
+        """Re-pin a held arrow: on the hands when nocked, else where it was left."""
+        if self._arrow is ArrowState.FLYING:
+            return
+        if self._arrow is ArrowState.NOCKED:
+            self.physics.kinematics()
+            bow, string = self.physics.hand_positions()
+            self._hold(bow, arrow_quat(bow - string))
+        elif self._hold_pose is not None:
+            self._hold(*self._hold_pose)
+
+    def hand_positions(self) -> tuple[np.ndarray, np.ndarray]:
+        """(bow hand, string hand) positions now (m): sites `l_hand_dh_frame`, `r_hand_dh_frame`."""
+        self.physics.kinematics()
+        return self.physics.hand_positions()
+
+    def theta(self) -> np.ndarray:
+        """θ = p_string − p_bow now (m), the paper's policy parameter as actually reached."""
+        bow, string = self.hand_positions()
+        return string - bow
+
+    def nock(self) -> None:
+        """Take a fresh arrow onto the bow: tip at the bow hand, pointing away from the string hand.
+
+        A landed arrow is taken back; the nocked arrow follows the hands until `release`.
+
+        Raises:
+            StateError: an arrow is in flight.
+        """
+        if self._arrow is ArrowState.FLYING:
+            raise StateError("an arrow is in flight; wait for it to land before nocking another")
+        self._arrow = ArrowState.NOCKED
+        self._hold_arrow()
+
+    def launch(self) -> Launch:
+        """Release the string: the arrow starts flying; advance it with `step`.
+
+        Raises:
+            StateError: no arrow is nocked, or the hands coincide.
+        """
+        if self._arrow is not ArrowState.NOCKED:
+            raise StateError(
+                f"no arrow is nocked (the arrow is {self._arrow.value}); call nock() first"
+            )
+        cfg = self.config
+        rng = self._rng
+        assert rng is not None
+        bow, string = self.hand_positions()
+        velocity = launch_velocity(
+            bow,
+            string,
+            cfg.bow,
+            rng,
+            speed_noise=cfg.speed_noise,
+            direction_noise=cfg.direction_noise,
+        )
+        wind = np.asarray(cfg.wind) + cfg.wind_gust * rng.standard_normal(3)
+        launch = Launch(
+            position=bow,
+            velocity=velocity,
+            theta=string - bow,
+            wind=wind,
+            sim_time=self.physics.time,
+        )
+        scene = cfg.scene
+        self._flight = ArrowFlight(
+            self.physics,
+            launch,
+            drag=cfg.drag,
+            plane_x=-scene.target_distance,
+            centre=self._centre,
+            face_radius=TARGET_DIAMETER / 2,
+            floor_z=-scene.root_height,
+            max_flight_time=cfg.max_flight_time,
+        )
+        self._arrow = ArrowState.FLYING
+        self._hold_pose = None
+        return launch
+
+    def release(self) -> Landing:
+        """Release and simulate the flight to its end; the robot keeps moving meanwhile.
+
+        Returns:
+            The landing: hit with r on the target face, or a miss with its reason.
+
+        Raises:
+            StateError: no arrow is nocked, or the hands coincide.
+        """
+        self.launch()
+        while True:
+            landing = self.step(0.01)
+            if landing is not None:
+                return landing
+
+    def _landed(self, landing: Landing) -> Landing:
+        self._flight = None
+        self._landing = landing
+        self._arrow = ArrowState.LANDED
+        self._hold_pose = self.physics.arrow_pose()
+        return landing
+
+    # -- rendering ----------------------------------------------------------------------------
+    def qpos(self) -> np.ndarray:
+        """The full MuJoCo position vector (robot joints and arrow pose): all a renderer needs."""
+        return self.physics.qpos()
+
+    @property
+    def model(self) -> mujoco.MjModel:
+        """The compiled scene."""
+        return self.physics.model
