@@ -1,0 +1,229 @@
+"""The ask/tell protocol shared by every learner: state, determinism, bounds, errors."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.learner import (
+    ALGORITHMS,
+    DEFAULT_BOUNDS,
+    Archer,
+    Bounds,
+    CmaEs,
+    Learner,
+    LearnerConfigError,
+    LearnerError,
+    ObservationError,
+    RandomSearch,
+    StateError,
+    make_learner,
+    restore_learner,
+    scalar_return,
+)
+from services.learner.base import rng_from_state, rng_state
+from sim.ballistic import BallisticWorld, Scenario
+from sim.geometry import START_THETA
+
+NAMES = list(ALGORITHMS)
+
+
+def _learner(name: str, seed: int = 0) -> Learner:
+    return make_learner(name, np.array(START_THETA), rng=np.random.default_rng(seed))
+
+
+def _play(learner: Learner, world: BallisticWorld, rollouts: int) -> list[np.ndarray]:
+    proposals = []
+    for _ in range(rollouts):
+        theta = learner.ask()
+        proposals.append(theta)
+        learner.tell(theta, world.step(theta).r)
+    return proposals
+
+
+def _world() -> BallisticWorld:
+    world = BallisticWorld(Scenario(noise=0.005))
+    world.reset(11)
+    return world
+
+
+def test_scalar_return_is_equation_1() -> None:
+    assert scalar_return(np.array([0.3, 0.4])) == pytest.approx(math.exp(-0.5), abs=1e-16)
+    assert scalar_return(np.zeros(2)) == 1.0
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize("rollouts", [0, 2, 5, 9])
+@pytest.mark.parametrize("codec", ["json", "msgpack"])
+def test_restored_learner_makes_the_identical_next_proposals(
+    name: str, rollouts: int, codec: str
+) -> None:
+    world = _world()
+    original = _learner(name, seed=5)
+    _play(original, world, rollouts)
+    state = original.state_dict()
+    if codec == "json":
+        stored = json.loads(json.dumps(state, allow_nan=False))
+    else:
+        stored = msgpack.unpackb(msgpack.packb(state), raw=False)
+    restored = restore_learner(stored)
+    for _ in range(6):  # the same future, bit for bit
+        a, b = original.ask(), restored.ask()
+        assert np.array_equal(a, b)
+        r = world.step(a).r
+        assert original.tell(a, r) == restored.tell(b, r)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_pending_proposal_survives_a_restore(name: str) -> None:
+    learner = _learner(name, seed=2)
+    _play(learner, _world(), 4)
+    pending = learner.ask()
+    restored = restore_learner(json.loads(json.dumps(learner.state_dict())))
+    assert np.array_equal(restored.ask(), pending)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_same_seed_same_proposals_other_seed_other_proposals(name: str) -> None:
+    runs = [_play(_learner(name, seed), _world(), 12) for seed in (3, 3, 4)]
+    assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
+    assert not all(np.array_equal(a, b) for a, b in zip(runs[0], runs[2], strict=True))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_ask_is_idempotent_until_tell(name: str) -> None:
+    learner = _learner(name)
+    first = learner.ask()
+    assert np.array_equal(learner.ask(), first)
+    learner.tell(first, [0.1, 0.1])
+    assert learner.n_rollouts == 1
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    name=st.sampled_from(NAMES),
+    rewards=st.lists(
+        st.tuples(st.floats(-1e6, 1e6), st.floats(-1e6, 1e6)), min_size=1, max_size=16
+    ),
+    repeat=st.booleans(),
+)
+def test_proposals_are_finite_and_inside_the_bounds(
+    name: str, rewards: list[tuple[float, float]], repeat: bool
+) -> None:
+    # Arbitrary, even absurd or repeated, results never push θ out of the box or to NaN.
+    learner = _learner(name)
+    for r in rewards:
+        theta = learner.ask()
+        assert np.all(np.isfinite(theta)) and DEFAULT_BOUNDS.contains(theta)
+        learner.tell(theta, rewards[0] if repeat else r)
+    theta = learner.ask()
+    assert np.all(np.isfinite(theta)) and DEFAULT_BOUNDS.contains(theta)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(
+    ("theta", "r", "named"),
+    [
+        ([0.2, 0.0, 0.0], [float("nan"), 0.0], "r must be a finite 2-vector"),
+        ([0.2, 0.0, 0.0], [float("inf"), 0.0], "r must be a finite 2-vector"),
+        ([0.2, 0.0, 0.0], [0.1, 0.2, 0.3], "r must be a finite 2-vector"),
+        ([0.2, 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
+        ([0.2, float("nan"), 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
+    ],
+)
+def test_bad_observations_are_refused_and_change_nothing(
+    name: str, theta: list, r: list, named: str
+) -> None:
+    learner = _learner(name)
+    before = learner.state_dict()
+    with pytest.raises(ObservationError, match=named):
+        learner.tell(theta, r)
+    assert learner.state_dict() == before
+
+
+def test_learner_errors_form_one_hierarchy() -> None:
+    for error in (LearnerConfigError, ObservationError, StateError):
+        assert issubclass(error, LearnerError) and issubclass(error, ValueError)
+
+
+def test_unknown_algorithm_is_named_with_the_valid_ones() -> None:
+    with pytest.raises(LearnerConfigError, match=r"'powr'.*archer, archer-plain"):
+        make_learner("powr", np.array(START_THETA), rng=np.random.default_rng(0))
+
+
+def test_unknown_option_is_a_config_error() -> None:
+    with pytest.raises(LearnerConfigError, match="invalid option for 'power'"):
+        make_learner("power", np.array(START_THETA), rng=np.random.default_rng(0), sigma=3)
+
+
+def test_constructor_checks_rng_theta0_and_bounds() -> None:
+    with pytest.raises(LearnerConfigError, match=r"numpy\.random\.Generator"):
+        Archer(np.array(START_THETA), rng=np.random.RandomState(0))  # type: ignore[arg-type]
+    with pytest.raises(LearnerConfigError, match="outside the θ bounds"):
+        Archer(np.array([0.5, 0.0, 0.0]), rng=np.random.default_rng(0))
+    with pytest.raises(LearnerConfigError, match="finite 3-vector"):
+        Archer(np.array([0.2, 0.0]), rng=np.random.default_rng(0))
+    with pytest.raises(LearnerConfigError, match="low < high"):
+        Bounds(low=(0.0, 0.0), high=(1.0, 0.0))
+    with pytest.raises(LearnerConfigError, match="equal length"):
+        Bounds(low=(0.0,), high=(1.0, 1.0))
+
+
+def test_restore_refuses_broken_states() -> None:
+    learner = _learner("archer")
+    _play(learner, _world(), 3)
+    state = learner.state_dict()
+    with pytest.raises(StateError, match="'nope'"):
+        restore_learner({**state, "algorithm": "nope"})
+    with pytest.raises(StateError, match="version 99"):
+        restore_learner({**state, "version": 99})
+    with pytest.raises(StateError, match="2-vectors r"):
+        restore_learner({**state, "rewards": [[0.1, 0.2, 0.3]] * 3})
+    with pytest.raises(StateError, match="random generator"):
+        restore_learner({**state, "rng": {"bit_generator": "Nope"}})
+    with pytest.raises(StateError, match="cannot be loaded into"):
+        make_learner("power", np.array(START_THETA), rng=np.random.default_rng(0)).load_state_dict(
+            state
+        )
+    cma = _learner("cma")
+    _play(cma, _world(), 3)
+    broken = cma.state_dict()
+    broken["extra"]["events"] = "pu"
+    with pytest.raises(StateError, match="one 'u' per told rollout"):
+        restore_learner(broken)
+
+
+def test_generator_state_is_plain_and_exact() -> None:
+    for bit_generator in (np.random.PCG64(9), np.random.MT19937(9), np.random.Philox(9)):
+        rng = np.random.Generator(bit_generator)
+        rng.standard_normal(5)
+        plain = json.loads(json.dumps(rng_state(rng)))
+        msgpack.packb(plain)  # ints fit in 64 bits
+        assert np.array_equal(rng_from_state(plain).random(4), rng.random(4))
+
+
+def test_cma_draws_only_from_the_injected_generator() -> None:
+    np.random.seed(123)
+    before = np.random.get_state()[1].copy()
+    learner = CmaEs(np.array(START_THETA), rng=np.random.default_rng(0))
+    _play(learner, _world(), 10)
+    assert np.array_equal(np.random.get_state()[1], before)
+    assert learner.popsize == 7 and learner.exploration_rollouts == 7
+
+
+def test_random_search_explores_around_the_best_so_far() -> None:
+    learner = RandomSearch(np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001)
+    learner.tell([0.2, 0.05, 0.0], [0.5, 0.5])
+    learner.tell([0.25, -0.05, 0.0], [0.01, 0.0])
+    learner.tell([0.15, 0.0, 0.05], [0.3, 0.0])
+    samples = []
+    for _ in range(200):
+        samples.append(learner.ask())
+        learner.tell(samples[-1], [1.0, 1.0])
+    assert np.mean(samples, axis=0) == pytest.approx([0.25, -0.05, 0.0], abs=5e-4)
