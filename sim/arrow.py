@@ -10,7 +10,9 @@ switched off in the scene):
 
     a_drag = −K·‖v − w‖·(v − w)      K in 1/m, v the arrow's and w the wind's velocity (m/s),
 
-the same law as the analytic model of `sim.ballistic`. The arrow does not rotate in flight.
+the same law as the analytic model of `sim.ballistic`. The arrow does not rotate in flight. Its
+velocity starts half a step back (a leapfrog start), which makes MuJoCo's semi-implicit Euler
+exact for the drag-free parabola and second-order accurate with drag.
 
 Impact: after every step the tip's path over that step is tested against the target plane
 x = −distance and the floor z = −root_height; the crossing is interpolated inside the step, so
@@ -203,7 +205,11 @@ class ArrowFlight:
         self._mass = physics.arrow_mass
         self._gravity_force = physics.arrow_mass * physics.gravity
         physics.set_arrow_pose(launch.position, arrow_quat(launch.velocity))
-        physics.set_arrow_velocity(launch.velocity)
+        # Leapfrog start: MuJoCo's semi-implicit Euler moves positions with the end-of-step
+        # velocity, so a velocity held half a step back makes every step follow the exact
+        # parabola under gravity (otherwise the arrow drifts down by g·t·dt/2).
+        accel = physics.gravity + drag_acceleration(launch.velocity, launch.wind, self.drag)
+        physics.set_arrow_velocity(launch.velocity - 0.5 * physics.timestep * accel)
         self._prev_tip = launch.position.copy()
         self._prev_vel = launch.velocity.copy()
         self._prev_time = launch.sim_time
