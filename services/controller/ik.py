@@ -14,6 +14,7 @@ per-joint trust region and an exact-penalty merit test. Jacobians are Pinocchio'
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from typing import Any
 
 import numpy as np
 import pinocchio as pin
+import scipy.linalg.lapack
 
 from services.controller.errors import ConfigError, JointError, TargetError
 from services.controller.model import (
@@ -46,6 +48,7 @@ __all__ = [
 ]
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+_potrf = scipy.linalg.lapack.dpotrf
 # Regularisation of the position equality rows (m² per unit multiplier): a priority-0 row is a
 # penalty of weight 1e8; each priority level makes it 1000 times stiffer.
 _BASE_SLACK = 1e-8
@@ -94,6 +97,9 @@ class IkSettings:
             this in the last iteration (rad), ≥ 0.
         cost_tolerance: ... or when the cost fell by less than this (rad²), ≥ 0.
         damping: initial Levenberg–Marquardt damping (per rad²), > 0.
+        restarts: when the constraint is not met from the start posture, retry from this many
+            random in-limit postures of the moving joints, ≥ 0.
+        seed: seed of those restart postures (the same call always gives the same result).
     """
 
     orientation_weight: float = 1.0
@@ -107,6 +113,8 @@ class IkSettings:
     step_tolerance: float = 1e-3
     cost_tolerance: float = 1e-7
     damping: float = 1e-4
+    restarts: int = 4
+    seed: int = 0
 
     def __post_init__(self) -> None:
         for name in ("orientation_weight", "rest_weight", "step_tolerance", "cost_tolerance"):
@@ -117,6 +125,10 @@ class IkSettings:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
+        for name in ("restarts", "seed"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 0:
+                raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
         if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
             raise ConfigError(
                 f"max_iterations must be an integer >= 1, got {self.max_iterations!r}"
@@ -311,8 +323,23 @@ def position_hessian_contraction(weights: np.ndarray, jacobian: np.ndarray) -> n
         ]
     )
     pairs = (wx @ jacobian[3:]).T @ jacobian[:3]
-    upper = np.triu(np.ones(pairs.shape, dtype=bool))
-    return np.where(upper, pairs, pairs.T)
+    return np.where(_upper_mask(pairs.shape[0]), pairs, pairs.T)
+
+
+@functools.lru_cache(maxsize=8)
+def _identity(n: int) -> np.ndarray:
+    """Read-only n×n identity."""
+    eye = np.eye(n)
+    eye.setflags(write=False)
+    return eye
+
+
+@functools.lru_cache(maxsize=8)
+def _upper_mask(n: int) -> np.ndarray:
+    """Read-only boolean n×n mask of the upper triangle (diagonal included)."""
+    mask = np.triu(np.ones((n, n), dtype=bool))
+    mask.setflags(write=False)
+    return mask
 
 
 class IkSolver:
@@ -427,6 +454,19 @@ class IkSolver:
             for t in orientations
         ]
         q, iterations, ev = self._run(q_start, active, pos_tasks, ori_tasks, q_rest)
+        if not ev.feasible and self.settings.restarts:
+            # Joint limits can trap the local solver: retry from random in-limit postures of the
+            # moving joints (seeded, so the same call gives the same answer).
+            rng = np.random.default_rng(self.settings.seed)
+            for _ in range(self.settings.restarts):
+                q_try = q_start.copy()
+                q_try[active] = rng.uniform(self._lower[active], self._upper[active])
+                q_r, it_r, ev_r = self._run(q_try, active, pos_tasks, ori_tasks, q_rest)
+                iterations += it_r
+                if ev_r.feasible or ev_r.violation < ev.violation:
+                    q, ev = q_r, ev_r
+                if ev.feasible:
+                    break
         pos_errors, ori_errors = self._errors(q, pos_tasks, ori_tasks)
         q_vec = self.model.from_pinocchio(q)
         q_vec.setflags(write=False)
@@ -511,18 +551,15 @@ class IkSolver:
 
     def _lagrangian_hessian(self, ev: _Eval, nu: np.ndarray, damping: float) -> np.ndarray:
         """Gauss–Newton Hessian + ν·(constraint curvature) + damping, if positive definite."""
-        base = ev.hessian + damping * np.eye(ev.hessian.shape[0])
+        base = ev.hessian + damping * _identity(ev.hessian.shape[0])
         if not nu.any():
             return base
         full = base.copy()
         for k, sign, jac in ev.jacobians:
             weights = sign * (self._sqrt_x.T @ nu[3 * k : 3 * k + 3])
             full += position_hessian_contraction(weights, jac)
-        try:
-            np.linalg.cholesky(full)
-        except np.linalg.LinAlgError:
-            return base
-        return full
+        _, info = _potrf(full, lower=1)
+        return full if info == 0 else base
 
     def _run(
         self,
@@ -543,12 +580,13 @@ class IkSolver:
         nu = np.zeros(3 * n_pos)
         rho = _MERIT_PENALTY
         lam = s.damping
+        radius = s.max_step
         iterations = 0
         while iterations < s.max_iterations:
             iterations += 1
             qa = q[active]
-            lb = np.maximum(lower - qa, -s.max_step)
-            ub = np.minimum(upper - qa, s.max_step)
+            lb = np.maximum(lower - qa, -radius)
+            ub = np.minimum(upper - qa, radius)
             hessian = self._lagrangian_hessian(ev, nu, lam)
             at_limit = (lb >= 0.0) | (ub <= 0.0)
             dq, nu_step = solve_box_qp(
@@ -588,10 +626,13 @@ class IkSolver:
                     q_new, ev_new, dq, actual = q_soc, ev_soc, dq + corr, actual_soc
             nu = nu_step
             ratio = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -1.0)
+            step_size = float(np.max(np.abs(dq)))
             if ratio < 0.25:
                 lam *= 10.0
+                radius = max(0.5 * step_size, 1e-6)
             elif ratio > 0.75:
                 lam = max(lam * 0.1, _MIN_DAMPING)
+                radius = min(max(radius, 2.0 * step_size), s.max_step)
             if actual < 0 or (actual == 0 and predicted > 0):
                 if lam > _MAX_DAMPING:
                     break  # no descent left: a local minimum of the merit

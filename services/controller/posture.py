@@ -1,0 +1,289 @@
+"""The archery posture: both hands' poses from θ (string hand relative to bow hand), solved by IK.
+
+Conventions (root_link frame: x backward, y to the robot's right, z up; the robot faces −x):
+
+* θ = p_string − p_bow (m): the right (string) hand's position relative to the left (bow) hand.
+  The arrow flies from the string hand through the bow hand: direction a = −θ/‖θ‖.
+* The bow lies in the vertical plane that contains the arrow ("zero roll"); its axis is
+  b = the unit vertical with its component along a removed.
+* Hand frames (`l_hand_dh_frame`, `r_hand_dh_frame`, found from the URDF's hand meshes): +x runs
+  from the wrist towards the fingers, −y points to the thumb side, and z is normal to the palm:
+  the palm faces −z on the left hand and +z on the right hand.
+* Bow (left) hand: palm perpendicular to the arrow and facing the target (z_L = −a), bow grip
+  vertical across the palm with the thumb up (y_L = −b), so x_L = y_L × z_L.
+* String (right) hand: fingers along the arrow (x_R = a), thumb up (y_R = −b), so the palm faces
+  the bow hand (z_R = x_R × y_R).
+
+The relative position is what the learner controls, so it is the highest-priority constraint; the
+bow hand's absolute position comes next; orientations and a rest posture are the Eq. 9 cost.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from protocol.parts import PARTS
+from services.controller.errors import ConfigError, TargetError
+from services.controller.ik import (
+    IkSettings,
+    IkSolver,
+    OrientationTarget,
+    PositionTarget,
+    TargetsResult,
+)
+from services.controller.model import JointValues, load_arms_model
+
+__all__ = [
+    "ArcheryPosture",
+    "PostureConfig",
+    "PostureResult",
+    "arrow_direction",
+    "hand_orientations",
+]
+
+_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _vector3(value: Any, name: str, error: type[Exception]) -> np.ndarray:
+    try:
+        vec = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise error(f"{name} must be a 3-vector in metres, got {value!r}") from None
+    if vec.shape != (3,):
+        raise error(f"{name} must be a 3-vector in metres, got shape {vec.shape}: {value!r}")
+    if not np.all(np.isfinite(vec)):
+        raise error(f"{name} must be finite (no NaN/inf), got {value!r}")
+    vec.setflags(write=False)
+    return vec
+
+
+def arrow_direction(theta: Any) -> np.ndarray:
+    """Unit arrow direction −θ/‖θ‖ (root frame) for θ = p_string − p_bow (m).
+
+    Raises:
+        TargetError: θ is not a finite 3-vector, or the hands coincide.
+    """
+    th = _vector3(theta, "θ", TargetError)
+    norm = float(np.linalg.norm(th))
+    if norm < 1e-6:
+        raise TargetError(f"θ = {th.tolist()} m puts the string hand on the bow hand: no arrow")
+    return -th / norm
+
+
+def hand_orientations(theta: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Desired rotations (root frame) of the left and right hand frames for θ (m).
+
+    See the module docstring for the axes. Raises TargetError for a malformed θ or an arrow
+    within 1° of vertical (where "bow vertical" has no meaning).
+    """
+    a = arrow_direction(theta)
+    b = _UP - (_UP @ a) * a
+    norm_b = float(np.linalg.norm(b))
+    if norm_b < math.sin(math.radians(1.0)):
+        raise TargetError(f"θ = {np.asarray(theta).tolist()} m gives a vertical arrow")
+    b /= norm_b
+    y = -b
+    z_left = -a
+    left = np.column_stack((np.cross(y, z_left), y, z_left))
+    right = np.column_stack((a, y, np.cross(a, y)))
+    return left, right
+
+
+@dataclass(frozen=True)
+class PostureConfig:
+    """Where the bow hand sits and which θ the posture accepts.
+
+    Attributes:
+        bow_hand: nominal left-hand position (m, root frame).
+        theta_min, theta_max: per-axis bounds of θ (m); θ outside raises TargetError. The
+            defaults are the box verified reachable to < 1 mm (tests/test_posture.py).
+        nominal_theta: θ (m) of the reference posture (rest posture and default warm start).
+        use_torso: move the torso with the arms (True) or hold it at the start posture.
+        reference_starts: start postures tried when searching the reference posture, ≥ 1.
+        seed: seed of those start postures.
+        ik: settings of the underlying Eq. 9 solver.
+    """
+
+    bow_hand: Any = (-0.30, -0.10, 0.10)
+    theta_min: Any = (0.12, -0.02, -0.07)
+    theta_max: Any = (0.24, 0.06, 0.01)
+    nominal_theta: Any = (0.17, 0.03, -0.03)
+    use_torso: bool = True
+    reference_starts: int = 24
+    seed: int = 0
+    ik: IkSettings = field(default_factory=IkSettings)
+
+    def __post_init__(self) -> None:
+        for name in ("bow_hand", "theta_min", "theta_max", "nominal_theta"):
+            object.__setattr__(self, name, _vector3(getattr(self, name), name, ConfigError))
+        if np.any(self.theta_min >= self.theta_max):
+            raise ConfigError(
+                f"theta_min {self.theta_min.tolist()} must be below theta_max "
+                f"{self.theta_max.tolist()} on every axis"
+            )
+        if self.theta_min[0] <= 0:
+            raise ConfigError(
+                f"theta_min[0] must be > 0 m (string hand behind the bow hand, arrow towards −x), "
+                f"got {self.theta_min[0]}"
+            )
+        if np.any(self.nominal_theta < self.theta_min) or np.any(
+            self.nominal_theta > self.theta_max
+        ):
+            raise ConfigError(
+                f"nominal_theta {self.nominal_theta.tolist()} must lie in the θ box "
+                f"{self.theta_min.tolist()}..{self.theta_max.tolist()}"
+            )
+        if not isinstance(self.reference_starts, int) or self.reference_starts < 1:
+            raise ConfigError(
+                f"reference_starts must be an integer >= 1, got {self.reference_starts!r}"
+            )
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ConfigError(f"seed must be an integer >= 0, got {self.seed!r}")
+
+
+@dataclass(frozen=True)
+class PostureResult:
+    """The archery posture reached for one θ.
+
+    Attributes:
+        q: posture {joint: rad} for the 17 joints (torso, left arm, right arm).
+        theta: θ asked (m).
+        theta_achieved: x_right − x_left at q (m), what the arrow will see.
+        relative_error_m: ‖θ − θ_achieved‖ (m).
+        bow_hand: left hand position reached (m, root frame).
+        bow_hand_error_m: distance from the nominal bow-hand position (m).
+        arrow_direction: −θ_achieved/‖θ_achieved‖ (unit, root frame).
+        left_orientation, right_orientation: hand orientations reached, axis-angle (rad).
+        left_orientation_error_rad, right_orientation_error_rad: angle to the desired ones (rad).
+        reachable: both position constraints hold (relative and bow hand, within the IK
+            tolerance); when False, q is the closest posture found.
+        iterations: IK iterations used.
+    """
+
+    q: Mapping[str, float]
+    theta: np.ndarray
+    theta_achieved: np.ndarray
+    relative_error_m: float
+    bow_hand: np.ndarray
+    bow_hand_error_m: float
+    arrow_direction: np.ndarray
+    left_orientation: np.ndarray
+    right_orientation: np.ndarray
+    left_orientation_error_rad: float
+    right_orientation_error_rad: float
+    reachable: bool
+    iterations: int
+
+
+class ArcheryPosture:
+    """Turns θ into the two-hand archery posture (Section V-B of the paper).
+
+    Construction searches, from `reference_starts` seeded postures, the lowest-cost posture for
+    the nominal θ; it serves as rest posture q̂ and default warm start, so postures for nearby θ
+    stay in the same family. Not thread-safe (owns an `IkSolver`).
+    """
+
+    def __init__(self, config: PostureConfig | None = None, solver: IkSolver | None = None) -> None:
+        self.config = PostureConfig() if config is None else config
+        self.solver = IkSolver(load_arms_model(), self.config.ik) if solver is None else solver
+        self.model = self.solver.model
+        self.joints: tuple[str, ...] = (
+            (PARTS["torso"] if self.config.use_torso else ())
+            + PARTS["left_arm"]
+            + PARTS["right_arm"]
+        )
+        self.reference: np.ndarray = self._search_reference()
+        self.reference.setflags(write=False)
+
+    def check_theta(self, theta: Any) -> np.ndarray:
+        """θ as a read-only array, or TargetError naming θ and the configured box."""
+        th = _vector3(theta, "θ", TargetError)
+        cfg = self.config
+        if np.any(th < cfg.theta_min) or np.any(th > cfg.theta_max):
+            raise TargetError(
+                f"θ = {th.tolist()} m is outside the configured box "
+                f"{cfg.theta_min.tolist()}..{cfg.theta_max.tolist()} m"
+            )
+        return th
+
+    def solve(self, theta: Any, *, q0: JointValues | None = None) -> PostureResult:
+        """The posture for θ (m), warm-started from q0 (the current posture; default the
+        reference posture).
+
+        Raises:
+            TargetError: θ malformed or outside the configured box. JointError: bad q0.
+        """
+        th = self.check_theta(theta)
+        start = self.reference if q0 is None else self.model.vector(q0, default=self.reference)
+        res = self._solve(th, start)
+        return self._result(th, res)
+
+    # ------------------------------------------------------------------------------- internals
+
+    def _solve(
+        self, theta: np.ndarray, start: np.ndarray, rest: np.ndarray | None = None
+    ) -> TargetsResult:
+        left_rot, right_rot = hand_orientations(theta)
+        return self.solver.solve_targets(
+            (
+                PositionTarget("left_arm", self.config.bow_hand, priority=0),
+                PositionTarget("right_arm", theta, relative_to="left_arm", priority=1),
+            ),
+            (OrientationTarget("left_arm", left_rot), OrientationTarget("right_arm", right_rot)),
+            joints=self.joints,
+            q0=start,
+            rest=self.reference if rest is None else rest,
+        )
+
+    def _search_reference(self) -> np.ndarray:
+        cfg = self.config
+        rng = np.random.default_rng(cfg.seed)
+        idx = [self.model.index(j) for j in self.joints]
+        home = self.model.vector(None)
+        best: TargetsResult | None = None
+        for k in range(cfg.reference_starts):
+            start = home.copy()
+            if k:
+                start[idx] = rng.uniform(self.model.lower[idx], self.model.upper[idx])
+            res = self._solve(cfg.nominal_theta, start, rest=home)
+            if res.reachable and (best is None or res.cost < best.cost):
+                best = res
+        if best is None:
+            raise ConfigError(
+                f"no posture reaches bow hand {cfg.bow_hand.tolist()} m with θ "
+                f"{cfg.nominal_theta.tolist()} m; move the bow hand towards the shoulders"
+            )
+        return best.q_vector.copy()
+
+    def _result(self, theta: np.ndarray, res: TargetsResult) -> PostureResult:
+        q = res.q_vector
+        x_left, r_left = self.model.hand_pose(q, "left_arm")
+        x_right, r_right = self.model.hand_pose(q, "right_arm")
+        achieved = x_right - x_left
+        arrays = [achieved, x_left]
+        left_aa = np.asarray(pin.log3(r_left))
+        right_aa = np.asarray(pin.log3(r_right))
+        direction = -achieved / np.linalg.norm(achieved)
+        for arr in (*arrays, left_aa, right_aa, direction):
+            arr.setflags(write=False)
+        return PostureResult(
+            q=res.q,
+            theta=theta,
+            theta_achieved=achieved,
+            relative_error_m=float(np.linalg.norm(theta - achieved)),
+            bow_hand=x_left,
+            bow_hand_error_m=float(np.linalg.norm(self.config.bow_hand - x_left)),
+            arrow_direction=direction,
+            left_orientation=left_aa,
+            right_orientation=right_aa,
+            left_orientation_error_rad=res.orientation_errors_rad[0],
+            right_orientation_error_rad=res.orientation_errors_rad[1],
+            reachable=res.reachable,
+            iterations=res.iterations,
+        )
