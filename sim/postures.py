@@ -3,7 +3,7 @@
 The controller service owns the real IK (the paper's Eq. 9 with Pinocchio); this helper only
 finds joint angles that put the hand sites at given positions (m, root frame), with the bow hand
 oriented as `sim.scene` expects (grip vertical, back of the hand toward the string hand), by
-bounded least squares over the 14 arm joints, torso held fixed.
+bounded least squares over the 14 arm joints within the world's software limits, torso fixed.
 """
 
 from __future__ import annotations
@@ -53,8 +53,10 @@ def archery_posture(
     torso_q = np.asarray(HOME_POSTURE["torso"] if torso is None else torso, dtype=float)
     physics.set_joint_positions("torso", torso_q)
     home = np.concatenate([HOME_POSTURE[p] for p in _ARMS])
-    lower = np.concatenate([physics.joint_limits(p)[0] for p in _ARMS])
-    upper = np.concatenate([physics.joint_limits(p)[1] for p in _ARMS])
+    # The world's software limits: URDF limits shrunk by the joint stops' margin.
+    margin = np.concatenate([physics.joint_margins(p) for p in _ARMS])
+    lower = np.concatenate([physics.joint_limits(p)[0] for p in _ARMS]) + margin
+    upper = np.concatenate([physics.joint_limits(p)[1] for p in _ARMS]) - margin
     theta = string_hand - bow_hand
     back_of_hand = theta / max(float(np.linalg.norm(theta)), 1e-9)  # bow hand +z → string hand
     down = np.array([0.0, 0.0, -1.0])  # bow hand +y: grip axis, thumb (−y) up
