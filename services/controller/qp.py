@@ -55,6 +55,9 @@ def solve_box_qp(
     kkt[_DIAG[n : n + m], _DIAG[n : n + m]] = -eq_slack
     rhs = np.concatenate((gradient, eq_rhs))
     fixed = np.zeros(n, dtype=bool) if fixed_hint is None else fixed_hint.copy()
+    # Which bound a fixed variable sits on: +1 upper, -1 lower (hinted ones: the bound at 0).
+    side = np.where(upper <= 0.0, 1.0, -1.0)
+    pinned = lower >= upper  # a zero-width box: never released
     x = np.zeros(n)
     for _ in range(max_iterations):
         # Minimiser with the fixed variables held at their current (bound) values: their KKT
@@ -67,6 +70,7 @@ def solve_box_qp(
             sys_rhs = rhs.copy()
             sys_rhs[fix_idx] = x[fix_idx]
             _, _, sol, info = _gesv(system, sys_rhs)
+            sol[fix_idx] = x[fix_idx]
         else:
             fix_idx = None
             _, _, sol, info = _gesv(kkt, rhs)
@@ -82,19 +86,21 @@ def solve_box_qp(
             ratios = np.abs(room[idx]) / size[idx]
             k = int(np.argmin(ratios))
             block = int(idx[k])
-            x += ratios[k] * step
-            x[block] = lower[block] if step[block] < 0.0 else upper[block]
+            x = np.clip(x + ratios[k] * step, lower, upper)
+            upward = step[block] > 0.0
+            x[block] = upper[block] if upward else lower[block]
+            side[block] = 1.0 if upward else -1.0
             fixed[block] = True
             continue
-        x = sol[:n]
+        x = np.clip(sol[:n], lower, upper)
         if fix_idx is None:
             return x, sol[n:]
         # Multiplier of a fixed variable = its Lagrangian gradient (H·x − g + Cᵀν). Holding it
         # is right when that gradient pushes against the bound: ≥ 0 at lower, ≤ 0 at upper.
         grad = kkt[fix_idx] @ sol - gradient[fix_idx]
-        wrong = np.where(x[fix_idx] >= upper[fix_idx], grad, -grad)
+        wrong = np.where(pinned[fix_idx], -np.inf, side[fix_idx] * grad)
         worst = int(np.argmax(wrong))
         if wrong[worst] <= 1e-12:
             return x, sol[n:]
         fixed[fix_idx[worst]] = False
-    return np.clip(x, lower, upper), sol[n:]
+    return x, sol[n:]
