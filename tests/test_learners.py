@@ -135,6 +135,7 @@ def test_proposals_are_finite_and_inside_the_bounds(
         ([0.2, 0.0, 0.0], [0.1, 0.2, 0.3], "r must be a finite 2-vector"),
         ([0.2, 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
         ([0.2, float("nan"), 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
+        (["left", "up", "back"], [0.1, 0.2], "must be numeric vectors"),
     ],
 )
 def test_bad_observations_are_refused_and_change_nothing(

@@ -251,8 +251,13 @@ class Learner(ABC):
         Raises:
             ObservationError: θ or r has the wrong shape or a non-finite value.
         """
-        theta = np.array(theta, dtype=float, copy=True)
-        r = np.array(r, dtype=float, copy=True)
+        try:
+            theta = np.array(theta, dtype=float, copy=True)
+            r = np.array(r, dtype=float, copy=True)
+        except (TypeError, ValueError) as exc:
+            raise ObservationError(
+                f"θ and r must be numeric vectors (m), got {theta!r}, {r!r}"
+            ) from exc
         if theta.shape != self.theta0.shape or not np.all(np.isfinite(theta)):
             raise ObservationError(
                 f"θ must be a finite {self.theta0.size}-vector (m), got {theta.tolist()!r}"

@@ -347,7 +347,7 @@ def _int(text: str, flag: str) -> int:
         raise ExperimentError(f"{flag} needs an integer, got {text!r}") from None
 
 
-def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
+def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """Validate parsed options into an ExperimentConfig.
 
     Raises:
@@ -371,9 +371,10 @@ def config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     )
 
 
-def print_table(summary: dict[str, Any], wall_time: float) -> None:
+def _print_table(summary: dict[str, Any], wall_time: float) -> None:
     """Print the per-algorithm results as a table on stdout."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     run = summary["run"]
@@ -382,17 +383,17 @@ def print_table(summary: dict[str, Any], wall_time: float) -> None:
     )
     for column in (
         "algorithm",
-        "rollouts to hit: median [q1, q3]",
+        "to hit: median [q1, q3]",
         "mean",
         "hits",
         "final ‖r‖ (m)",
     ):
-        table.add_column(column, justify="left" if column == "algorithm" else "right")
+        table.add_column(escape(column), justify="left" if column == "algorithm" else "right")
     for name, a in summary["algorithms"].items():
         h = a["rollouts_to_hit"]
         table.add_row(
             name,
-            f"{h['median']:g} [{h['q1']:g}, {h['q3']:g}]",
+            escape(f"{h['median']:g} [{h['q1']:g}, {h['q3']:g}]"),
             f"{h['mean']:.1f}",
             f"{a['hits']}/{run['sessions']}",
             f"{a['final_distance']['mean']:.3f} ± {a['final_distance']['std']:.3f}",
@@ -405,7 +406,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run `archery experiment [options]`; returns 0 on success, 2 on bad input."""
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
-        config = config_from_args(args)
+        config = _config_from_args(args)
         start = time.perf_counter()
         runs = run_experiment(config, progress=not args.no_progress)
         out = Path(args.out)
@@ -414,7 +415,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (LearnerError, BallisticError) as exc:
         print(f"archery experiment: error: {exc}", file=sys.stderr)
         return 2
-    print_table(summary, wall_time)
+    _print_table(summary, wall_time)
     print(
         f"wrote {out}/summary.json, curves.csv"
         + ("" if args.no_figures else ", fig5.png, fig6.png")

@@ -35,19 +35,23 @@ def plot_convergence(
     """Mean ± std over sessions of the arrow's distance to the centre (cm) vs rollout (Fig. 6)."""
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(9, 5.5), dpi=120)
+    top = 0.0
     for i, (name, run) in enumerate(runs.items()):
         distance = 100.0 * run.distances  # cm
         mean, std = distance.mean(axis=0), distance.std(axis=0)
+        top = max(top, float(mean.max()))
         rollout = np.arange(1, mean.size + 1)
         colour = _COLOURS[i % len(_COLOURS)]
         to_hit = np.median(run.rollouts_to_hit())
-        ax.plot(rollout, mean, color=colour, lw=2, label=f"{labels[name]} (median hit {to_hit:g})")
+        label = f"{labels[name]}: median {to_hit:g} rollouts to hit"
+        ax.plot(rollout, mean, color=colour, lw=2, label=label)
         ax.fill_between(rollout, np.maximum(mean - std, 0.0), mean + std, color=colour, alpha=0.15)
     ax.axhline(100 * INNER_RING_RADIUS, color="red", ls="--", lw=1, label="innermost ring (5 cm)")
     ax.set_xlabel("rollout")
     ax.set_ylabel("distance of the arrow to the target centre (cm)")
     ax.set_xlim(1, max(run.distances.shape[1] for run in runs.values()))
-    ax.set_ylim(bottom=0)
+    # The bands of a session that ran away can be metres wide: keep the means readable.
+    ax.set_ylim(0, 1.25 * top)
     ax.grid(alpha=0.3)
     ax.legend(loc="upper right")
     ax.set_title("Speed of convergence: mean ± std over sessions" + (f"\n{title}" if title else ""))
@@ -74,11 +78,14 @@ def plot_trajectories(
     fig, axes = plt.subplots(
         2,
         len(names),
-        figsize=(4.2 * len(names), 8.0),
+        figsize=(4.2 * len(names), 8.6),
         dpi=110,
         squeeze=False,
-        gridspec_kw={"height_ratios": [1.0, 1.25]},
+        gridspec_kw={"height_ratios": [1.0, 1.3]},
+        layout="constrained",
     )
+    for ax in axes[0, 1:]:
+        ax.sharey(axes[0, 0])
     centre = world.centre
     radius = TARGET_DIAMETER / 2
     for column, name in enumerate(names):
@@ -123,6 +130,5 @@ def plot_trajectories(
         face.set_ylabel("above centre (cm)")
         face.set_title("impacts on the target, by rollout")
     fig.suptitle("Arrow trajectories of one learning session per algorithm (final one in red)")
-    fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

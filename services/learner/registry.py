@@ -34,6 +34,10 @@ class Algorithm:
     options: Mapping[str, Any] = field(default_factory=lambda: MappingProxyType({}))
 
 
+# archer: the default, safeguarded, exploring the draw (θ_x) 4x less than the aim (5 vs 20 mm);
+# archer-plain: the paper's algorithm with the same exploration; the -iso variants explore 20 mm
+# on every component; archer-ridge: the footnote's ridge regression. power: the paper's Eq. 1-4
+# with the authors' σ = 3 and decay 0.965; power-sharp: importance weights exp(−‖r‖/5 cm).
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
     {
         a.name: a
@@ -41,6 +45,18 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
             Algorithm("archer", Archer, "ARCHER (safeguarded)"),
             Algorithm(
                 "archer-plain", Archer, "ARCHER (paper)", MappingProxyType({"safeguard": False})
+            ),
+            Algorithm(
+                "archer-iso",
+                Archer,
+                "ARCHER (safeguarded, isotropic exploration)",
+                MappingProxyType({"explore_std": 0.02}),
+            ),
+            Algorithm(
+                "archer-plain-iso",
+                Archer,
+                "ARCHER (paper, isotropic exploration)",
+                MappingProxyType({"safeguard": False, "explore_std": 0.02}),
             ),
             Algorithm(
                 "archer-ridge",
