@@ -40,10 +40,13 @@ class Archer(Learner):
 
     - an ill-conditioned U (the N best results nearly collinear: σ_min(U) < σ_max(U)/max_cond)
       uses the truncated pseudo-inverse (only the well-determined direction) and adds an
-      exploratory step N(0, fallback_std²) to gather the missing information;
+      exploratory step N(0, s²) to gather the missing information, with
+      s = min(fallback_std, ‖r_1‖/g) and g = σ_max(U)/σ_max(Θ) the local gain (m of r per m of
+      θ), so that the exploration shrinks as the arrows close in on the centre;
     - every regression step is limited to a trust radius Δ (m) that doubles after an aimed
       rollout that beats the best so far and halves (down to `min_step`) after one that does not,
-      so a failed extrapolation is followed by a shorter one instead of the same one again.
+      so a failed extrapolation is followed by a shorter one instead of the same one again; at
+      `min_step` the exploratory step above is added too.
 
     Args:
         theta0: initial θ (m), the centre of the exploratory rollouts.
@@ -51,11 +54,14 @@ class Archer(Learner):
         bounds: θ box (m).
         n_best: N, how many best rollouts the regression uses (>= 2; 3 in the paper).
         n_explore: number of initial random rollouts (>= n_best; 3 in the paper).
-        explore_std: std of the initial exploration per θ component (m).
+        explore_std: std of the initial exploration (m), one number or one per θ component.
+            The default explores the draw (θ_x, string hand behind the bow hand) 5 mm and the
+            aim (θ_y, θ_z) 20 mm: the launch speed, set by the draw, is the most nonlinear
+            input of the shot, and a wide draw spread spoils the linear model of Eq. 5-6.
         ridge: λ of the footnote's ridge regression (m²); 0 gives the pseudo-inverse.
         safeguard: enable the ill-conditioning fallback and the trust radius.
         max_cond: largest accepted condition number σ_max/σ_min of U.
-        fallback_std: std of the exploratory step taken when U is ill-conditioned (m).
+        fallback_std: largest std of the exploratory step of the safeguards (m).
         trust_radius: initial trust radius Δ (m).
         min_step: smallest trust radius (m).
         max_step: largest trust radius (m).

@@ -229,7 +229,13 @@ def _stats(values: np.ndarray) -> dict[str, float]:
 
 
 def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[str, Any]:
-    """The content of summary.json."""
+    """The content of summary.json.
+
+    Per algorithm: rollouts_to_hit (median, mean, quartiles over sessions) counts the first
+    rollout whose true impact is inside the innermost ring (‖r‖ < 5 cm; a session that never hits
+    counts as budget + 1); hit_rate and hits, the sessions that hit within the budget;
+    final_distance, the true ‖r‖ (m) of the last rollout (mean and std over sessions).
+    """
     algorithms = {}
     for name, run in runs.items():
         to_hit = run.rollouts_to_hit()
