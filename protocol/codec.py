@@ -1,0 +1,84 @@
+"""Encoding and validated decoding of messages (msgpack via msgspec; never pickle)."""
+
+from __future__ import annotations
+
+from typing import Any, TypeVar, Union
+
+import msgspec
+
+from protocol.errors import DecodeError
+from protocol.messages import MESSAGE_TYPES, Array, Message
+
+__all__ = ["MAX_PAYLOAD_BYTES", "decode", "encode", "from_jsonable", "to_jsonable"]
+
+M = TypeVar("M", bound=Message)
+
+MAX_PAYLOAD_BYTES = 64 * 1024 * 1024  # a 4K RGB frame is 25 MB; nothing legitimate is bigger
+
+_encoder = msgspec.msgpack.Encoder()
+_any_decoder = msgspec.msgpack.Decoder(Union[tuple(MESSAGE_TYPES.values())])  # noqa: UP007
+_decoders: dict[type, msgspec.msgpack.Decoder] = {
+    cls: msgspec.msgpack.Decoder(cls) for cls in MESSAGE_TYPES.values()
+}
+
+
+def encode(message: Message) -> bytes:
+    """Serialize a message to msgpack bytes."""
+    return _encoder.encode(message)
+
+
+def decode(
+    payload: bytes, expected: type[M] | None = None, *, max_bytes: int = MAX_PAYLOAD_BYTES
+) -> M:
+    """Decode and validate a payload, optionally requiring one message type.
+
+    Raises:
+        DecodeError: oversized, not msgpack, not a message (or not `expected`), a foreign schema
+            version, a NaN where a number is required; the message says which.
+    """
+    if len(payload) > max_bytes:
+        raise DecodeError(f"payload of {len(payload)} bytes exceeds the limit of {max_bytes} bytes")
+    decoder = _decoders.get(expected, _any_decoder) if expected is not None else _any_decoder
+    try:
+        return decoder.decode(payload)  # type: ignore[no-any-return]
+    except msgspec.ValidationError as exc:
+        wanted = expected.__name__ if expected is not None else "message"
+        raise DecodeError(f"invalid {wanted}: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise DecodeError(f"payload is not msgpack: {exc}") from None
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, Array):
+        return value.to_numpy().tolist()
+    if isinstance(value, bytes):
+        return f"<{len(value)} bytes>"
+    if isinstance(value, msgspec.Struct):
+        out = {"type": type(value).__name__} if isinstance(value, Message) else {}
+        out.update({f: _jsonable(getattr(value, f)) for f in value.__struct_fields__})
+        return out
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_jsonable(v) for v in value]
+    return value
+
+
+def to_jsonable(message: Message) -> dict[str, Any]:
+    """A JSON-friendly dict of a message: arrays as nested lists, raw bytes summarised."""
+    return _jsonable(message)  # type: ignore[no-any-return]
+
+
+def from_jsonable(obj: Any, message_type: type[M]) -> M:
+    """Build a message of `message_type` from JSON-like data (the `type` field is optional).
+
+    Raises:
+        DecodeError: the data does not fit the type; the message names the field.
+    """
+    if not isinstance(obj, dict):
+        raise DecodeError(f"a {message_type.__name__} must be a JSON object, got {obj!r}")
+    data = {k: v for k, v in obj.items() if k != "type"}
+    try:
+        return msgspec.convert(data, message_type)
+    except msgspec.ValidationError as exc:
+        raise DecodeError(f"invalid {message_type.__name__}: {exc}") from None

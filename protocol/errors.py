@@ -1,0 +1,69 @@
+"""One exception hierarchy for the mesh; each error carries a stable code for RPC replies."""
+
+from __future__ import annotations
+
+__all__ = [
+    "ArcheryError",
+    "BadRequest",
+    "ConfigError",
+    "DecodeError",
+    "KeyNameError",
+    "RpcError",
+    "RpcTimeout",
+]
+
+
+class ArcheryError(Exception):
+    """Base of every error the project raises on purpose.
+
+    `code` is the short machine-readable name sent in RPC error replies; the message says what
+    was wrong and what would be valid.
+    """
+
+    code = "error"
+
+    def __init__(self, message: str, *, code: str | None = None) -> None:
+        super().__init__(message)
+        if code is not None:
+            self.code = code
+
+    @property
+    def message(self) -> str:
+        """The human-readable message."""
+        return str(self.args[0]) if self.args else ""
+
+
+class ConfigError(ArcheryError, ValueError):
+    """An invalid configuration value (a flag, a config file entry)."""
+
+    code = "bad_config"
+
+
+class KeyNameError(ArcheryError, ValueError):
+    """A malformed or unknown key name (robot prefix, part, port)."""
+
+    code = "bad_key"
+
+
+class DecodeError(ArcheryError, ValueError):
+    """A payload that is not a valid message: not msgpack, wrong type or schema, NaN, too big."""
+
+    code = "bad_message"
+
+
+class BadRequest(ArcheryError, ValueError):
+    """An RPC request whose arguments are invalid; raised by handlers, sent back as an error."""
+
+    code = "bad_request"
+
+
+class RpcError(ArcheryError):
+    """An RPC that failed: the remote replied with an error, or nothing answered."""
+
+    code = "rpc_error"
+
+
+class RpcTimeout(RpcError, TimeoutError):
+    """No reply arrived within the timeout (the service is absent, dead or stuck)."""
+
+    code = "timeout"

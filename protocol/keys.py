@@ -1,0 +1,172 @@
+"""Key names of the mesh: iCub's YARP port names as Zenoh keys, with a robot prefix.
+
+YARP's leading slash is dropped and `:i`, `:o`, `rpc:i` are kept, so `/icubSim/left_arm/state:o`
+becomes `icubSim/left_arm/state:o`. No other module types a key string by hand: every key is
+built here, and `port_of` tells which port (and so which message type) a key belongs to.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from protocol.errors import KeyNameError
+from protocol.parts import PARTS
+
+__all__ = ["DEFAULT_ROBOT", "PORTS", "SERVICES", "Keys", "PortSpec", "port_of", "validate_robot"]
+
+DEFAULT_ROBOT = "icubSim"
+SERVICES = ("robot", "camera", "detector", "controller", "learner")
+CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+
+
+@dataclass(frozen=True)
+class PortSpec:
+    """One kind of port: its key pattern after the robot prefix, kind and message type name."""
+
+    pattern: str  # e.g. "{part}/state:o"
+    kind: str  # "pub" (stream), "events" (lossless stream), "sub" (input stream) or "rpc"
+    message: str  # the message type's name in protocol.messages
+
+    def regex(self) -> re.Pattern[str]:
+        """A regex matching the full key (robot prefix included)."""
+        body = re.escape(self.pattern)
+        body = body.replace(r"\{part\}", "(?P<part>" + "|".join(PARTS) + ")")
+        body = body.replace(r"\{arm\}", "(?P<arm>" + "|".join(CARTESIAN_ARMS) + ")")
+        body = body.replace(r"\{service\}", r"(?P<service>[A-Za-z][A-Za-z0-9_\-]{0,63})")
+        return re.compile(r"^(?P<robot>[A-Za-z][A-Za-z0-9_\-]{0,63})/" + body + "$")
+
+
+PORTS: tuple[PortSpec, ...] = (
+    PortSpec("{part}/state:o", "pub", "JointState"),
+    PortSpec("{part}/command:i", "sub", "JointCommand"),
+    PortSpec("{part}/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("archery/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("world/state:o", "pub", "WorldState"),
+    PortSpec("world/events:o", "events", "WorldEvent"),
+    PortSpec("cam/target:o", "pub", "Image"),
+    PortSpec("cam/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("detector/hit:o", "events", "Detection"),
+    PortSpec("detector/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("cartesianController/{arm}/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("learner/rollout:o", "events", "Rollout"),
+    PortSpec("learner/rpc:i", "rpc", "RpcRequest"),
+    PortSpec("alive/{service}", "liveliness", "-"),
+    PortSpec("describe/{service}", "rpc", "Describe"),
+)
+_REGEXES = tuple((spec, spec.regex()) for spec in PORTS)
+
+
+def validate_robot(robot: str) -> str:
+    """Return `robot` if it is a valid prefix (a letter, then up to 63 of [A-Za-z0-9_-])."""
+    if not isinstance(robot, str) or not _NAME.match(robot):
+        raise KeyNameError(
+            f"invalid robot name {robot!r}: use a letter then letters, digits, '_' or '-' "
+            f"(at most 64 characters), e.g. {DEFAULT_ROBOT!r}"
+        )
+    return robot
+
+
+def port_of(key: str) -> PortSpec:
+    """The port a full key belongs to.
+
+    Raises:
+        KeyNameError: the key matches no port; the message lists the valid patterns.
+    """
+    for spec, regex in _REGEXES:
+        if regex.match(key):
+            return spec
+    patterns = ", ".join("ROBOT/" + spec.pattern for spec in PORTS)
+    raise KeyNameError(f"unknown key {key!r}; valid keys: {patterns}")
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Builds every key of one robot (prefix `robot`, default `icubSim`)."""
+
+    robot: str = DEFAULT_ROBOT
+
+    def __post_init__(self) -> None:
+        validate_robot(self.robot)
+
+    def _part(self, part: str) -> str:
+        if part not in PARTS:
+            raise KeyNameError(f"unknown part {part!r}; valid parts: {', '.join(PARTS)}")
+        return part
+
+    def state(self, part: str) -> str:
+        """Joint state stream of a controlboard part, e.g. `icubSim/left_arm/state:o`."""
+        return f"{self.robot}/{self._part(part)}/state:o"
+
+    def command(self, part: str) -> str:
+        """Joint position command input of a part, e.g. `icubSim/left_arm/command:i`."""
+        return f"{self.robot}/{self._part(part)}/command:i"
+
+    def part_rpc(self, part: str) -> str:
+        """Controlboard RPC of a part, e.g. `icubSim/torso/rpc:i`."""
+        return f"{self.robot}/{self._part(part)}/rpc:i"
+
+    def archery_rpc(self) -> str:
+        """The archery verbs of the robot: nock, release, reset, status."""
+        return f"{self.robot}/archery/rpc:i"
+
+    def world_state(self) -> str:
+        """Scene state for the camera: sim time and qpos."""
+        return f"{self.robot}/world/state:o"
+
+    def world_events(self) -> str:
+        """Released / landed / missed events, with the ground-truth impact (tests and plots)."""
+        return f"{self.robot}/world/events:o"
+
+    def cam_frames(self) -> str:
+        """Camera frames of the target."""
+        return f"{self.robot}/cam/target:o"
+
+    def cam_rpc(self) -> str:
+        """Camera RPC: grab a frame newer than a stamp."""
+        return f"{self.robot}/cam/rpc:i"
+
+    def detector_hits(self) -> str:
+        """Detections stream."""
+        return f"{self.robot}/detector/hit:o"
+
+    def detector_rpc(self) -> str:
+        """Detector RPC: measure, calibrate."""
+        return f"{self.robot}/detector/rpc:i"
+
+    def cartesian_rpc(self, arm: str) -> str:
+        """Cartesian controller RPC of `left_arm`, `right_arm` or `archery` (both arms)."""
+        if arm not in CARTESIAN_ARMS:
+            raise KeyNameError(
+                f"unknown cartesian controller {arm!r}; valid: {', '.join(CARTESIAN_ARMS)}"
+            )
+        return f"{self.robot}/cartesianController/{arm}/rpc:i"
+
+    def learner_rollouts(self) -> str:
+        """Every rollout of the learner."""
+        return f"{self.robot}/learner/rollout:o"
+
+    def learner_rpc(self) -> str:
+        """Learner RPC: start, stop, status."""
+        return f"{self.robot}/learner/rpc:i"
+
+    def alive(self, service: str) -> str:
+        """Liveliness token of a service (like a YARP name server entry)."""
+        return f"{self.robot}/alive/{self._service(service)}"
+
+    def describe(self, service: str) -> str:
+        """Where a service answers `describe` with its ports and message types."""
+        return f"{self.robot}/describe/{self._service(service)}"
+
+    def alive_all(self) -> str:
+        """Key expression matching the liveliness tokens of every service of this robot."""
+        return f"{self.robot}/alive/*"
+
+    @staticmethod
+    def _service(service: str) -> str:
+        if not _NAME.match(service):
+            raise KeyNameError(
+                f"invalid service name {service!r}; known services: {', '.join(SERVICES)}"
+            )
+        return service

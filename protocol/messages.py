@@ -1,0 +1,284 @@
+"""Message types of the mesh: small frozen msgspec Structs, msgpack on the wire.
+
+Every message carries a schema version, a sequence number, a wall-clock stamp (s since the Unix
+epoch) and, where it exists, the simulation time (s). Numpy arrays travel as `Array` (dtype,
+shape, raw bytes) and images as `Image` (width, height, encoding, raw bytes). A message is a
+msgpack map whose `type` field names its class, so any msgpack client can read it.
+
+Validation runs on construction *and* on decoding: a non-finite float anywhere, an array whose
+bytes do not match its shape, or a foreign schema version is rejected.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Literal
+
+import msgspec
+import numpy as np
+
+__all__ = [
+    "ALLOWED_DTYPES",
+    "MESSAGE_TYPES",
+    "SCHEMA_VERSION",
+    "Array",
+    "Describe",
+    "Detection",
+    "Image",
+    "JointCommand",
+    "JointState",
+    "Message",
+    "PortInfo",
+    "Rollout",
+    "RpcReply",
+    "RpcRequest",
+    "WorldEvent",
+    "WorldState",
+]
+
+SCHEMA_VERSION = 1
+ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8", "|b1")
+IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
+
+
+def _check_finite(value: Any, where: str) -> None:
+    """Raise ValueError if a non-finite float hides anywhere in `value`."""
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ValueError(f"{where} is {value!r}; a finite number is required")
+    elif isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            _check_finite(item, f"{where}[{i}]")
+    elif isinstance(value, dict):
+        for k, item in value.items():
+            _check_finite(item, f"{where}.{k}")
+    elif isinstance(value, Array):
+        pass  # validated by its own __post_init__
+
+
+class Array(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A numpy array as typed binary: dtype string (numpy `dtype.str`), shape, C-order bytes."""
+
+    dtype: str
+    shape: tuple[int, ...]
+    data: bytes
+
+    def __post_init__(self) -> None:
+        if self.dtype not in ALLOWED_DTYPES:
+            raise ValueError(f"array dtype {self.dtype!r} is not one of {ALLOWED_DTYPES}")
+        if any(n < 0 for n in self.shape) or len(self.shape) > 8:
+            raise ValueError(f"array shape {self.shape!r} must have ≤ 8 non-negative sizes")
+        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        if expected != len(self.data):
+            raise ValueError(
+                f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, "
+                f"got {len(self.data)}"
+            )
+        if self.dtype in ("<f4", "<f8") and not np.all(np.isfinite(self.to_numpy())):
+            raise ValueError("array holds NaN or infinite values; finite numbers are required")
+
+    @classmethod
+    def from_numpy(cls, array: np.ndarray) -> Array:
+        """Wrap a numpy array (converted to little-endian, C order)."""
+        a = np.ascontiguousarray(array)
+        a = a.astype(a.dtype.newbyteorder("<"), copy=False)
+        return cls(dtype=a.dtype.str, shape=tuple(int(n) for n in a.shape), data=a.tobytes())
+
+    def to_numpy(self) -> np.ndarray:
+        """A read-only numpy view of the bytes."""
+        return np.frombuffer(self.data, dtype=np.dtype(self.dtype)).reshape(self.shape)
+
+
+class Message(msgspec.Struct, frozen=True, kw_only=True, tag=True, tag_field="type"):
+    """Base of every message: schema version, sequence number, stamps (s)."""
+
+    schema: int = SCHEMA_VERSION
+    seq: int = 0
+    stamp: float = 0.0
+    sim_time: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.schema != SCHEMA_VERSION:
+            raise ValueError(
+                f"{type(self).__name__} has schema version {self.schema}; this node speaks "
+                f"version {SCHEMA_VERSION} (update the sender or this node)"
+            )
+        for name in self.__struct_fields__:
+            _check_finite(getattr(self, name), name)
+        self.validate()
+
+    def validate(self) -> None:
+        """Type-specific checks beyond the field types; raise ValueError when invalid."""
+
+
+class JointState(Message, frozen=True):
+    """Joint positions (rad) and velocities (rad/s) of one controlboard part."""
+
+    part: str
+    names: list[str]
+    position: list[float]
+    velocity: list[float]
+    motion_done: bool = True
+
+    def validate(self) -> None:
+        if not len(self.names) == len(self.position) == len(self.velocity):
+            raise ValueError(
+                f"joint state of {self.part!r}: {len(self.names)} names, "
+                f"{len(self.position)} positions and {len(self.velocity)} velocities differ"
+            )
+
+
+class JointCommand(Message, frozen=True):
+    """Joint position targets (rad) for a part; `names` selects a subset (default: all)."""
+
+    part: str
+    position: list[float]
+    names: list[str] | None = None
+
+    def validate(self) -> None:
+        if self.names is not None and len(self.names) != len(self.position):
+            raise ValueError(
+                f"joint command for {self.part!r}: {len(self.names)} names but "
+                f"{len(self.position)} positions"
+            )
+
+
+class WorldState(Message, frozen=True):
+    """What a renderer needs to draw the scene: generalized positions and the shot phase."""
+
+    qpos: Array
+    phase: str = "idle"  # idle | nocked | flying | stuck | missed
+    shot: int = 0
+
+
+class WorldEvent(Message, frozen=True):
+    """A shot event. `impact_m` is the ground-truth r (m) on the target plane: tests/plots only."""
+
+    kind: Literal["nocked", "released", "landed", "missed", "reset"]
+    shot: int = 0
+    impact_m: list[float] | None = None
+    reason: str = ""
+
+
+class Image(Message, frozen=True):
+    """An image: raw pixels (rgb8, bgr8, mono8; row-major) or compressed bytes (jpeg, png)."""
+
+    width: int
+    height: int
+    encoding: str
+    data: bytes
+    frame: int = 0
+
+    def validate(self) -> None:
+        if self.encoding not in IMAGE_ENCODINGS:
+            raise ValueError(
+                f"image encoding {self.encoding!r} is not one of {sorted(IMAGE_ENCODINGS)}"
+            )
+        if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
+            raise ValueError(f"image size {self.width}x{self.height} is outside 1..16384 px")
+        channels = IMAGE_ENCODINGS[self.encoding]
+        if channels and len(self.data) != self.width * self.height * channels:
+            raise ValueError(
+                f"{self.encoding} image of {self.width}x{self.height} needs "
+                f"{self.width * self.height * channels} bytes, got {len(self.data)}"
+            )
+
+    @classmethod
+    def from_numpy(cls, pixels: np.ndarray, encoding: str = "rgb8", **fields: Any) -> Image:
+        """Wrap an HxWx3 (rgb8/bgr8) or HxW (mono8) uint8 array."""
+        if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3):
+            raise ValueError(f"pixels must be a uint8 HxW or HxWx3 array, got {pixels.dtype}")
+        height, width = pixels.shape[:2]
+        data = np.ascontiguousarray(pixels).tobytes()
+        return cls(width=width, height=height, encoding=encoding, data=data, **fields)
+
+    def to_numpy(self) -> np.ndarray:
+        """Pixels as uint8: HxWx3 in RGB order for colour encodings, HxW for mono8."""
+        if self.encoding in ("jpeg", "png"):
+            import cv2
+
+            bgr = cv2.imdecode(np.frombuffer(self.data, np.uint8), cv2.IMREAD_COLOR)
+            if bgr is None:
+                raise ValueError(f"{self.encoding} image data does not decode")
+            return bgr[:, :, ::-1]
+        channels = IMAGE_ENCODINGS[self.encoding]
+        shape = (self.height, self.width, channels) if channels == 3 else (self.height, self.width)
+        pixels = np.frombuffer(self.data, np.uint8).reshape(shape)
+        return pixels[:, :, ::-1] if self.encoding == "bgr8" else pixels
+
+
+class Detection(Message, frozen=True):
+    """Target centre and arrow tip in an image (px) and the reward vector r (m)."""
+
+    frame_stamp: float
+    status: Literal["ok", "no_target", "no_arrow"]
+    target_px: list[float] | None = None
+    arrow_px: list[float] | None = None
+    target_confidence: float = 0.0
+    arrow_confidence: float = 0.0
+    r_m: list[float] | None = None
+
+
+class Rollout(Message, frozen=True):
+    """One learning rollout: θ (m), the measured r (m) and return R, or why it was aborted."""
+
+    session: str
+    index: int
+    theta: list[float]
+    status: Literal["proposed", "done", "aborted"]
+    r_m: list[float] | None = None
+    ret: float | None = None
+    hit: bool = False
+    cause: str = ""
+    truth_r_m: list[float] | None = None
+
+
+class RpcRequest(Message, frozen=True):
+    """A request to an `rpc:i` port: a verb and its arguments."""
+
+    verb: str
+    args: dict[str, Any] = {}
+
+
+class RpcReply(Message, frozen=True):
+    """`ok` with a result, or an error with a code and a message saying what was wrong."""
+
+    ok: bool
+    result: Any = None
+    code: str = ""
+    message: str = ""
+
+
+class PortInfo(msgspec.Struct, frozen=True):
+    """One port of a service: key, kind (pub, events, sub, rpc) and message type name."""
+
+    key: str
+    kind: str
+    message: str
+
+
+class Describe(Message, frozen=True):
+    """A service's self-description (like `yarp name list` plus port types)."""
+
+    service: str
+    ports: list[PortInfo]
+    pid: int = 0
+    host: str = ""
+    verbs: dict[str, list[str]] = {}
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.__name__: cls
+    for cls in (
+        JointState,
+        JointCommand,
+        WorldState,
+        WorldEvent,
+        Image,
+        Detection,
+        Rollout,
+        RpcRequest,
+        RpcReply,
+        Describe,
+    )
+}

@@ -1,0 +1,117 @@
+"""The network flags of every process (--connect, --listen, --mode, --robot); the Zenoh config.
+
+Multicast scouting is always off: every process reaches the mesh through a router it is told
+about (containers do not carry multicast, and parallel test runs must never meet). Shared-memory
+transport is off too: it was reported to drop large messages under CPU stalls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from dataclasses import dataclass
+
+import zenoh
+
+from protocol.errors import ConfigError
+from protocol.keys import DEFAULT_ROBOT, validate_robot
+
+__all__ = ["DEFAULT_ROUTER", "MODES", "NetConfig", "add_network_args", "open_session"]
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+MODES = ("peer", "client", "router")
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Where a process meets the mesh.
+
+    Attributes:
+        connect: endpoints to connect to (e.g. "tcp/127.0.0.1:7447"); a router, usually.
+        listen: endpoints to listen on (a router, or a peer others should reach).
+        mode: "peer" (default), "client" or "router".
+        robot: key prefix of the robot this process belongs to (default "icubSim").
+    """
+
+    connect: tuple[str, ...] = (DEFAULT_ROUTER,)
+    listen: tuple[str, ...] = ()
+    mode: str = "peer"
+    robot: str = DEFAULT_ROBOT
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"--mode {self.mode!r} is not one of {', '.join(MODES)}")
+        for flag, endpoints in (("--connect", self.connect), ("--listen", self.listen)):
+            for endpoint in endpoints:
+                if not isinstance(endpoint, str) or not _ENDPOINT.match(endpoint):
+                    raise ConfigError(
+                        f"{flag} {endpoint!r} is not a Zenoh endpoint; use PROTO/ADDRESS, "
+                        f"e.g. {DEFAULT_ROUTER}"
+                    )
+        if self.mode == "client" and not self.connect:
+            raise ConfigError("--mode client needs at least one --connect endpoint (a router)")
+        try:
+            validate_robot(self.robot)
+        except ValueError as exc:
+            raise ConfigError(f"--robot: {exc}") from None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> NetConfig:
+        """Build from the flags added by `add_network_args`."""
+        connect = tuple(args.connect) if args.connect else ()
+        if not connect and args.mode != "router":
+            connect = (DEFAULT_ROUTER,)
+        return cls(
+            connect=connect,
+            listen=tuple(args.listen or ()),
+            mode=args.mode,
+            robot=args.robot,
+        )
+
+    def zenoh_config(self) -> zenoh.Config:
+        """The Zenoh configuration for these settings."""
+        config = zenoh.Config()
+        config.insert_json5("mode", json.dumps(self.mode))
+        config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        if self.listen:
+            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        config.insert_json5("transport/shared_memory/enabled", "false")
+        return config
+
+
+def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "peer") -> None:
+    """Add --connect (repeatable), --listen (repeatable), --mode and --robot to `parser`."""
+    group = parser.add_argument_group("network")
+    group.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to connect to, repeatable (default {DEFAULT_ROUTER})",
+    )
+    group.add_argument(
+        "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on, repeatable"
+    )
+    group.add_argument("--mode", choices=MODES, default=default_mode, help="Zenoh session mode")
+    group.add_argument(
+        "--robot", default=DEFAULT_ROBOT, help=f"robot key prefix (default {DEFAULT_ROBOT})"
+    )
+
+
+def open_session(net: NetConfig) -> zenoh.Session:
+    """Open a Zenoh session for `net`.
+
+    Raises:
+        ConfigError: the session cannot open (in client mode: no router reachable).
+    """
+    zenoh.init_log_from_env_or("error")
+    try:
+        return zenoh.open(net.zenoh_config())
+    except zenoh.ZError as exc:
+        where = ", ".join(net.connect) or "(no endpoint)"
+        raise ConfigError(
+            f"cannot open a Zenoh {net.mode} session connecting to {where}: {exc}. "
+            f"Is a router running there? Start one with `archery router --listen ENDPOINT`."
+        ) from None

@@ -1,0 +1,502 @@
+"""The node base every service and tool builds on: typed pub/sub, RPC, liveliness, describe.
+
+A `Node` owns one Zenoh session. It publishes typed messages (stamping sequence numbers and
+wall time), subscribes latest-wins (state streams) or lossless FIFO (events), serves `rpc:i`
+ports from a worker thread (replies are `RpcReply`: ok with a result, or an error code and
+message), calls other services' RPC with a timeout, declares a liveliness token
+`ROBOT/alive/NAME` once `ready()` is called and answers `ROBOT/describe/NAME` with its ports. Malformed payloads are
+logged and counted, never fatal.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterable
+from typing import Any, Generic, TypeVar
+
+import msgspec
+import zenoh
+
+from protocol.codec import decode, encode
+from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout
+from protocol.keys import Keys
+from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest
+from protocol.netflags import NetConfig, open_session
+
+__all__ = ["Handler", "Node", "Publisher", "RpcServer", "Subscription", "shutdown_on_signals"]
+
+M = TypeVar("M", bound=Message)
+Handler = Callable[[dict[str, Any]], Any]
+log = logging.getLogger("archery.node")
+_STOP = object()
+
+
+class Publisher(Generic[M]):
+    """Publishes messages of one type on one key; stamps `seq` and wall time `stamp`.
+
+    `lossless=True` (events) blocks rather than drops under congestion; state streams drop the
+    oldest data instead (latest wins).
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, message_type: type[M], lossless: bool):
+        self.key = key
+        self.message_type = message_type
+        self._seq = 0
+        self._lock = threading.Lock()
+        self._pub = session.declare_publisher(
+            key,
+            congestion_control=(
+                zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
+            ),
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+
+    def put(self, message: M) -> M:
+        """Stamp and publish `message`; returns the stamped copy that was sent."""
+        if not isinstance(message, self.message_type):
+            raise TypeError(
+                f"{self.key} carries {self.message_type.__name__}, got {type(message).__name__}"
+            )
+        with self._lock:
+            self._seq += 1
+            stamped = msgspec.structs.replace(message, seq=self._seq, stamp=time.time())
+            self._pub.put(encode(stamped))
+        return stamped
+
+    def wait_matched(self, timeout: float) -> bool:
+        """Wait until at least one subscriber matches the key; False after `timeout` s."""
+        if self._pub.matching_status.matching:
+            return True
+        matched = threading.Event()
+
+        def on_status(status: zenoh.MatchingStatus) -> None:
+            if status.matching:
+                matched.set()
+
+        listener = self._pub.declare_matching_listener(on_status)
+        try:
+            return self._pub.matching_status.matching or matched.wait(timeout)
+        finally:
+            listener.undeclare()
+
+    def close(self) -> None:
+        """Undeclare the publisher."""
+        self._pub.undeclare()
+
+
+class Subscription(Generic[M]):
+    """Receives one message type on one key.
+
+    mode "latest": keeps only the newest message (`latest()`, `wait_newer()`); mode "fifo": keeps
+    every message in arrival order (`get()`), never dropping one. An optional callback runs on
+    Zenoh's thread for each valid message (keep it short). Invalid payloads are counted in
+    `dropped` and logged.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        message_type: type[M],
+        mode: str,
+        callback: Callable[[M], None] | None,
+    ) -> None:
+        if mode not in ("latest", "fifo"):
+            raise ValueError(f"subscription mode {mode!r} is not 'latest' or 'fifo'")
+        self.key = key
+        self.message_type = message_type
+        self.mode = mode
+        self.received = 0
+        self.dropped = 0
+        self.last_error = ""
+        self._callback = callback
+        self._latest: M | None = None
+        self._latest_time = 0.0
+        self._cond = threading.Condition()
+        self._queue: queue.Queue[M] = queue.Queue()
+        self._sub = session.declare_subscriber(key, self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            message = decode(sample.payload.to_bytes(), self.message_type)
+        except DecodeError as exc:
+            self.dropped += 1
+            self.last_error = str(exc)
+            if self.dropped <= 10 or self.dropped % 100 == 0:
+                log.warning("dropped message #%d on %s: %s", self.dropped, self.key, exc)
+            return
+        with self._cond:
+            self.received += 1
+            self._latest = message
+            self._latest_time = time.monotonic()
+            if self.mode == "fifo":
+                self._queue.put(message)
+            self._cond.notify_all()
+        if self._callback is not None:
+            try:
+                self._callback(message)
+            except Exception:
+                log.exception("callback for %s failed on message seq %d", self.key, message.seq)
+
+    def latest(self) -> M | None:
+        """The newest valid message, or None if none arrived yet."""
+        return self._latest
+
+    def age(self) -> float:
+        """Seconds since the newest valid message arrived (inf if none did)."""
+        return time.monotonic() - self._latest_time if self._latest is not None else float("inf")
+
+    def wait_newer(
+        self,
+        timeout: float,
+        predicate: Callable[[M], bool] | None = None,
+        after_seq: int | None = None,
+    ) -> M:
+        """Block until a message newer than `after_seq` (default: the current latest) arrives
+        that satisfies `predicate`.
+
+        Raises:
+            RpcTimeout: nothing suitable within `timeout` seconds; the message names the key.
+        """
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            if after_seq is None:
+                after_seq = self._latest.seq if self._latest is not None else -1
+            while True:
+                msg = self._latest
+                if (
+                    msg is not None
+                    and msg.seq > after_seq
+                    and (predicate is None or predicate(msg))
+                ):
+                    return msg
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise RpcTimeout(
+                        f"no suitable message on {self.key} within {timeout:g} s "
+                        f"(received {self.received}, dropped {self.dropped})"
+                    )
+                self._cond.wait(remaining)
+
+    def get(self, timeout: float | None = None) -> M:
+        """Next message in arrival order (fifo mode).
+
+        Raises:
+            RpcTimeout: nothing arrived within `timeout` seconds.
+        """
+        try:
+            return self._queue.get(timeout=timeout)
+        except queue.Empty:
+            raise RpcTimeout(f"no message on {self.key} within {timeout:g} s") from None
+
+    def close(self) -> None:
+        """Undeclare the subscriber."""
+        self._sub.undeclare()
+
+
+class RpcServer:
+    """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
+
+    Requests are handled one at a time, in order, on a worker thread (like a YARP RPC port), so
+    a slow handler never blocks Zenoh's threads. Handlers take the request's args dict and return
+    a msgpack-friendly result; an `ArcheryError` becomes an error reply with its code, any other
+    exception an "internal" error; the server keeps serving.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, handlers: dict[str, Handler]) -> None:
+        self.key = key
+        self.handlers = dict(handlers)
+        self.served = 0
+        self.errors = 0
+        self._seq = 0
+        self._queue: queue.Queue[Any] = queue.Queue()
+        self._queryable = session.declare_queryable(key, self._queue.put)
+        self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
+        self._thread.start()
+
+    def _work(self) -> None:
+        while True:
+            query = self._queue.get()
+            if query is _STOP:
+                return
+            try:
+                reply = self._handle(query)
+                self._seq += 1
+                reply = msgspec.structs.replace(reply, seq=self._seq, stamp=time.time())
+                query.reply(self.key, encode(reply))
+            except Exception:
+                log.exception("could not reply on %s", self.key)
+            finally:
+                query.drop()
+
+    def _handle(self, query: zenoh.Query) -> RpcReply:
+        self.served += 1
+        try:
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request = decode(payload, RpcRequest)
+        except DecodeError as exc:
+            self.errors += 1
+            return RpcReply(ok=False, code=exc.code, message=f"bad request on {self.key}: {exc}")
+        handler = self.handlers.get(request.verb)
+        if handler is None:
+            self.errors += 1
+            verbs = ", ".join(sorted(self.handlers))
+            return RpcReply(
+                ok=False,
+                code="unknown_verb",
+                message=f"{self.key} has no verb {request.verb!r}; verbs: {verbs}",
+            )
+        try:
+            result = handler(dict(request.args))
+            return RpcReply(ok=True, result=result)
+        except ArcheryError as exc:
+            self.errors += 1
+            return RpcReply(ok=False, code=exc.code, message=exc.message)
+        except Exception as exc:
+            self.errors += 1
+            log.exception("%s %s failed", self.key, request.verb)
+            return RpcReply(ok=False, code="internal", message=f"{request.verb} failed: {exc!r}")
+
+    def close(self) -> None:
+        """Stop serving (pending requests get no reply and time out at the caller)."""
+        self._queryable.undeclare()
+        self._queue.put(_STOP)
+        self._thread.join(timeout=5)
+
+
+class Node:
+    """One process's presence on the mesh. Use as a context manager.
+
+    Args:
+        name: the service name (liveliness token `ROBOT/alive/NAME`); None for anonymous tools.
+        net: network settings (from the common flags).
+        session: an already open session to use (the node then does not close it).
+    """
+
+    def __init__(
+        self, name: str | None, net: NetConfig, *, session: zenoh.Session | None = None
+    ) -> None:
+        self.name = name
+        self.net = net
+        self.keys = Keys(net.robot)
+        self._own_session = session is None
+        self.session = session if session is not None else open_session(net)
+        self._ports: list[PortInfo] = []
+        self._verbs: dict[str, list[str]] = {}
+        self._closables: list[Any] = []
+        self._queriers: dict[tuple[str, float], zenoh.Querier] = {}
+        self._rpc_seq = 0
+        self._closed = False
+        self._token = None
+        if name is not None:
+            self._describe = self.session.declare_queryable(
+                self.keys.describe(name), self._on_describe
+            )
+
+    def ready(self) -> None:
+        """Declare the liveliness token: call once every port is declared, so whoever sees
+        the service alive also finds all its ports."""
+        if self.name is None:
+            raise ValueError("an anonymous node has no liveliness token")
+        if self._token is None:
+            self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+
+    # -- context management -------------------------------------------------------------
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Undeclare everything (token first, so peers see the node leave) and close."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._token is not None:
+            self._token.undeclare()
+        if self.name is not None:
+            self._describe.undeclare()
+        for item in reversed(self._closables):
+            try:
+                item.close()
+            except Exception:
+                log.exception("closing %r", item)
+        for querier in self._queriers.values():
+            querier.undeclare()
+        if self._own_session:
+            self.session.close()
+
+    # -- ports --------------------------------------------------------------------------
+    def publisher(self, key: str, message_type: type[M], *, lossless: bool = False) -> Publisher[M]:
+        """Declare a typed publisher (`lossless` for event streams that must not drop)."""
+        pub = Publisher(self.session, key, message_type, lossless)
+        self._register(key, "events" if lossless else "pub", message_type.__name__, pub)
+        return pub
+
+    def subscribe(
+        self,
+        key: str,
+        message_type: type[M],
+        *,
+        mode: str = "latest",
+        callback: Callable[[M], None] | None = None,
+    ) -> Subscription[M]:
+        """Subscribe to a typed stream: mode "latest" (state) or "fifo" (lossless events)."""
+        sub = Subscription(self.session, key, message_type, mode, callback)
+        self._register(key, "sub", message_type.__name__, sub)
+        return sub
+
+    def serve(self, key: str, handlers: dict[str, Handler]) -> RpcServer:
+        """Serve an `rpc:i` key with a handler per verb."""
+        server = RpcServer(self.session, key, handlers)
+        self._register(key, "rpc", "RpcRequest", server)
+        self._verbs[key] = sorted(handlers)
+        return server
+
+    def _register(self, key: str, kind: str, message: str, closable: Any) -> None:
+        self._ports.append(PortInfo(key=key, kind=kind, message=message))
+        self._closables.append(closable)
+
+    def describe(self) -> Describe:
+        """This node's self-description."""
+        return Describe(
+            service=self.name or "",
+            ports=list(self._ports),
+            pid=os.getpid(),
+            host=socket.gethostname(),
+            verbs=dict(self._verbs),
+        )
+
+    def _on_describe(self, query: zenoh.Query) -> None:
+        query.reply(
+            query.key_expr, encode(msgspec.structs.replace(self.describe(), stamp=time.time()))
+        )
+
+    # -- rpc client ---------------------------------------------------------------------
+    def call(
+        self, key: str, verb: str, args: dict[str, Any] | None = None, *, timeout: float = 5.0
+    ) -> Any:
+        """Call `verb` on an `rpc:i` key and return the result.
+
+        Raises:
+            RpcError: the service replied with an error (its `code` is kept).
+            RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
+        """
+        self._rpc_seq += 1
+        request = RpcRequest(verb=verb, args=args or {}, seq=self._rpc_seq, stamp=time.time())
+        reply = self.request(key, encode(request), timeout=timeout)
+        if not reply.ok:
+            raise RpcError(f"{key} {verb}: {reply.message}", code=reply.code or "rpc_error")
+        return reply.result
+
+    def request(self, key: str, payload: bytes, *, timeout: float = 5.0) -> RpcReply:
+        """Send a raw request payload and return the decoded `RpcReply` (no error raising)."""
+        querier = self._queriers.get((key, timeout))
+        if querier is None:
+            querier = self.session.declare_querier(
+                key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
+            )
+            self._queriers[(key, timeout)] = querier
+        start = time.monotonic()
+        for reply in querier.get(payload=payload):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes(), RpcReply)
+            log.debug("error reply on %s: %s", key, reply.err.payload.to_string())
+        waited = time.monotonic() - start
+        if waited < timeout * 0.5:
+            raise RpcTimeout(
+                f"no service serves {key} (no reply after {waited:.2f} s); is it running? "
+                f"`archery ports` lists the live services"
+            )
+        raise RpcTimeout(
+            f"no reply from {key} within {timeout:g} s; the service may be dead or stuck "
+            f"(`archery ports` lists the live services)"
+        )
+
+    # -- liveliness ---------------------------------------------------------------------
+    def alive(self, timeout: float = 1.0) -> set[str]:
+        """Names of the services of this robot whose liveliness token is up now."""
+        names = set()
+        for reply in self.session.liveliness().get(self.keys.alive_all(), timeout=timeout):
+            if reply.ok is not None:
+                names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+        return names
+
+    def wait_alive(self, services: Iterable[str], timeout: float = 30.0) -> None:
+        """Block until every named service is alive (by liveliness, never by sleeping).
+
+        Raises:
+            RpcTimeout: some are still missing after `timeout` seconds; the message lists them.
+        """
+        wanted = set(services)
+        seen: set[str] = set()
+        cond = threading.Condition()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            name = str(sample.key_expr).rsplit("/", 1)[-1]
+            with cond:
+                if sample.kind == zenoh.SampleKind.PUT:
+                    seen.add(name)
+                else:
+                    seen.discard(name)
+                cond.notify_all()
+
+        sub = self.session.liveliness().declare_subscriber(
+            self.keys.alive_all(), on_token, history=True
+        )
+        try:
+            deadline = time.monotonic() + timeout
+            with cond:
+                while not wanted <= seen:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        missing = ", ".join(sorted(wanted - seen))
+                        raise RpcTimeout(
+                            f"services not alive after {timeout:g} s: {missing} "
+                            f"(robot {self.keys.robot!r})"
+                        )
+                    cond.wait(remaining)
+        finally:
+            sub.undeclare()
+
+    def wait_gone(self, service: str, timeout: float = 30.0) -> None:
+        """Block until the service's liveliness token disappears.
+
+        Raises:
+            RpcTimeout: still alive after `timeout` seconds.
+        """
+        deadline = time.monotonic() + timeout
+        gone = threading.Event()
+
+        def on_token(sample: zenoh.Sample) -> None:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                gone.set()
+
+        sub = self.session.liveliness().declare_subscriber(self.keys.alive(service), on_token)
+        try:
+            if service not in self.alive():
+                return
+            if not gone.wait(max(0.0, deadline - time.monotonic())):
+                raise RpcTimeout(f"service {service!r} still alive after {timeout:g} s")
+        finally:
+            sub.undeclare()
+
+
+def shutdown_on_signals() -> threading.Event:
+    """An event set by SIGINT or SIGTERM, so a service can end cleanly with exit status 0."""
+    stop = threading.Event()
+
+    def handle(signum: int, frame: object) -> None:
+        log.info("signal %d: shutting down", signum)
+        stop.set()
+
+    signal.signal(signal.SIGINT, handle)
+    signal.signal(signal.SIGTERM, handle)
+    return stop

@@ -1,0 +1,88 @@
+"""`archery router`: a Zenoh router from the Python package (no separate binary needed)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import socket
+import subprocess
+import sys
+import time
+
+import zenoh
+
+from protocol.errors import ConfigError
+from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
+from protocol.node import shutdown_on_signals
+
+__all__ = ["free_tcp_endpoint", "main", "open_router", "spawn_router", "wait_for_endpoint"]
+
+log = logging.getLogger("archery.router")
+
+
+def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
+    """A `tcp/HOST:PORT` endpoint on a port that is free right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return f"tcp/{host}:{sock.getsockname()[1]}"
+
+
+def open_router(listen: str | list[str], connect: tuple[str, ...] = ()) -> zenoh.Session:
+    """Open an in-process router session listening on `listen` (one endpoint or several)."""
+    endpoints = (listen,) if isinstance(listen, str) else tuple(listen)
+    return open_session(NetConfig(mode="router", listen=endpoints, connect=connect))
+
+
+def wait_for_endpoint(endpoint: str, timeout: float = 10.0) -> None:
+    """Block until a TCP endpoint accepts connections.
+
+    Raises:
+        ConfigError: it does not within `timeout` seconds.
+    """
+    host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with socket.create_connection((host.strip("[]"), int(port)), timeout=0.5):
+                return
+        except OSError:
+            if time.monotonic() > deadline:
+                raise ConfigError(f"nothing listens on {endpoint} after {timeout:g} s") from None
+            time.sleep(0.02)
+
+
+def spawn_router(endpoint: str, timeout: float = 10.0) -> subprocess.Popen[bytes]:
+    """Start `archery router --listen ENDPOINT` as a child process and wait until it listens."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+        stdin=subprocess.DEVNULL,
+    )
+    try:
+        wait_for_endpoint(endpoint, timeout)
+    except ConfigError:
+        proc.kill()
+        raise
+    return proc
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a router until SIGINT/SIGTERM; exit status 0 on a clean stop."""
+    parser = argparse.ArgumentParser(prog="archery router", description=__doc__)
+    add_network_args(parser, default_mode="router")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
+    if not args.listen:
+        args.listen = [DEFAULT_ROUTER]
+    try:
+        net = NetConfig.from_args(args)
+        if net.mode != "router":
+            raise ConfigError(f"archery router runs in router mode, not --mode {net.mode}")
+        stop = shutdown_on_signals()
+        with open_session(net):
+            log.info("router listening on %s", ", ".join(net.listen))
+            stop.wait()
+    except ConfigError as exc:
+        print(f"archery router: {exc}", file=sys.stderr)
+        return 2
+    log.info("router stopped")
+    return 0
