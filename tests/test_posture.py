@@ -1,0 +1,184 @@
+"""Tests of the archery posture: hand orientations from θ and the two-hand IK solve."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.controller.errors import ConfigError, JointError, TargetError
+from services.controller.ik import IkSettings
+from services.controller.posture import (
+    ArcheryPosture,
+    PostureConfig,
+    arrow_direction,
+    hand_orientations,
+)
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def posture() -> ArcheryPosture:
+    return ArcheryPosture()
+
+
+def box_thetas(config: PostureConfig, rng: np.random.Generator, n_random: int) -> list[np.ndarray]:
+    corners = [
+        np.array(c)
+        for c in itertools.product(*zip(config.theta_min, config.theta_max, strict=True))
+    ]
+    centre = [(config.theta_min + config.theta_max) / 2, config.nominal_theta]
+    random = [rng.uniform(config.theta_min, config.theta_max) for _ in range(n_random)]
+    return corners + centre + random
+
+
+def check_posture(posture: ArcheryPosture, theta: np.ndarray, result) -> None:
+    model = posture.model
+    q = model.vector(result.q)
+    assert np.all(q >= model.lower) and np.all(q <= model.upper)
+    x_left, r_left = model.hand_pose(q, "left_arm")
+    x_right, r_right = model.hand_pose(q, "right_arm")
+    np.testing.assert_allclose(result.theta_achieved, x_right - x_left, atol=1e-12)
+    np.testing.assert_allclose(result.bow_hand, x_left, atol=1e-12)
+    assert result.relative_error_m == pytest.approx(np.linalg.norm(theta - (x_right - x_left)))
+    assert result.relative_error_m <= 1e-3
+    assert result.bow_hand_error_m <= 1e-3
+    assert result.reachable
+    np.testing.assert_allclose(
+        result.arrow_direction, arrow_direction(x_right - x_left), atol=1e-12
+    )
+    want_left, want_right = hand_orientations(theta)
+    angle_left = np.linalg.norm(pin.log3(want_left @ r_left.T))
+    angle_right = np.linalg.norm(pin.log3(want_right @ r_right.T))
+    assert result.left_orientation_error_rad == pytest.approx(angle_left, abs=1e-9)
+    assert result.right_orientation_error_rad == pytest.approx(angle_right, abs=1e-9)
+
+
+# ------------------------------------------------------------------------------ orientations
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    theta=st.tuples(st.floats(0.05, 0.3), st.floats(-0.15, 0.15), st.floats(-0.15, 0.15)).map(
+        np.array
+    )
+)
+def test_hand_orientations_follow_the_paper(theta: np.ndarray) -> None:
+    left, right = hand_orientations(theta)
+    a = arrow_direction(theta)
+    np.testing.assert_allclose(a, -theta / np.linalg.norm(theta))
+    for rot in (left, right):
+        np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-12)
+        assert np.linalg.det(rot) == pytest.approx(1.0)
+    # Left palm perpendicular to the arrow, facing the target (palm normal is −z of the frame).
+    np.testing.assert_allclose(-left[:, 2], a, atol=1e-12)
+    # Right fingers (+x) along the arrow.
+    np.testing.assert_allclose(right[:, 0], a, atol=1e-12)
+    # Bow vertical, zero roll: the grip axis (y) lies in the vertical plane through the arrow,
+    # perpendicular to it, thumbs (−y) up; both hands share it.
+    for rot in (left, right):
+        y = rot[:, 1]
+        assert y @ a == pytest.approx(0.0, abs=1e-12)
+        assert y @ np.cross(a, UP) == pytest.approx(0.0, abs=1e-12)
+        assert -y @ UP > 0
+
+
+def test_orientation_inputs_are_checked() -> None:
+    with pytest.raises(TargetError, match="string hand on the bow hand"):
+        arrow_direction([0.0, 0.0, 0.0])
+    with pytest.raises(TargetError, match="vertical arrow"):
+        hand_orientations([0.0, 0.0, 0.2])
+    with pytest.raises(TargetError, match="finite"):
+        hand_orientations([np.nan, 0.0, 0.0])
+    with pytest.raises(TargetError, match="3-vector"):
+        arrow_direction([0.1, 0.0])
+
+
+# ------------------------------------------------------------------------------------- posture
+
+
+def test_reference_posture_reaches_the_nominal_bow_hand(posture: ArcheryPosture) -> None:
+    model = posture.model
+    x_left, _ = model.hand_pose(posture.reference, "left_arm")
+    x_right, _ = model.hand_pose(posture.reference, "right_arm")
+    np.testing.assert_allclose(x_left, posture.config.bow_hand, atol=1e-4)
+    np.testing.assert_allclose(x_right - x_left, posture.config.nominal_theta, atol=1e-4)
+
+
+def test_relative_position_is_met_over_the_theta_box(posture: ArcheryPosture) -> None:
+    """Corners, centre and random points of the configured θ box, each solved from the
+    reference posture, meet the relative position to 1 mm (in fact to micrometres)."""
+    for theta in box_thetas(posture.config, np.random.default_rng(0), n_random=12):
+        check_posture(posture, theta, posture.solve(theta))
+
+
+def test_warm_started_path_through_the_box(posture: ArcheryPosture) -> None:
+    """A learner's sequence of θ, each solve starting from the previous posture."""
+    config = posture.config
+    rng = np.random.default_rng(1)
+    theta = config.nominal_theta.copy()
+    q = None
+    for _ in range(25):
+        theta = np.clip(theta + rng.normal(0.0, 0.005, 3), config.theta_min, config.theta_max)
+        result = posture.solve(theta, q0=q)
+        check_posture(posture, theta, result)
+        if q is not None:  # small θ steps give small joint motions
+            moved = posture.model.vector(result.q) - posture.model.vector(q)
+            assert np.max(np.abs(moved)) < 0.5
+        q = result.q
+
+
+def test_theta_outside_the_box_or_malformed_is_rejected(posture: ArcheryPosture) -> None:
+    config = posture.config
+    for axis in range(3):
+        low = config.nominal_theta.copy()
+        low[axis] = config.theta_min[axis] - 1e-3
+        with pytest.raises(TargetError, match="outside the configured box"):
+            posture.solve(low)
+        high = config.nominal_theta.copy()
+        high[axis] = config.theta_max[axis] + 1e-3
+        with pytest.raises(TargetError, match="outside the configured box"):
+            posture.solve(high)
+    with pytest.raises(TargetError, match="finite"):
+        posture.solve([0.17, np.nan, -0.03])
+    with pytest.raises(TargetError, match="3-vector"):
+        posture.solve([[0.17, 0.03, -0.03]])
+    with pytest.raises(JointError, match="unknown joint"):
+        posture.solve(config.nominal_theta, q0={"neck_yaw": 0.0})
+
+
+def test_locked_torso_keeps_the_start_torso(posture: ArcheryPosture) -> None:
+    locked = ArcheryPosture(PostureConfig(use_torso=False, reference_starts=8))
+    torso = ("torso_yaw", "torso_roll", "torso_pitch")
+    theta = np.array([0.18, 0.02, -0.04])
+    start = dict(posture.model.mapping(locked.reference)) | {"torso_yaw": 0.1}
+    result = locked.solve(theta, q0=start)
+    assert all(result.q[j] == start[j] for j in torso)
+    check_posture(locked, theta, result)
+
+
+def test_unreachable_bow_hand_is_a_config_error() -> None:
+    fast = IkSettings(restarts=0, max_iterations=20)
+    with pytest.raises(ConfigError, match="bow hand"):
+        ArcheryPosture(PostureConfig(bow_hand=(-1.0, 0.0, 0.1), reference_starts=2, ik=fast))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"theta_min": (0.2, 0.0, 0.0), "theta_max": (0.1, 0.1, 0.1)}, "below theta_max"),
+        ({"theta_min": (-0.1, -0.1, -0.1)}, "theta_min"),
+        ({"nominal_theta": (0.3, 0.0, 0.0)}, "nominal_theta"),
+        ({"bow_hand": (0.0, np.nan, 0.0)}, "bow_hand"),
+        ({"bow_hand": (0.0, 0.0)}, "bow_hand"),
+        ({"reference_starts": 0}, "reference_starts"),
+    ],
+)
+def test_config_validation(kwargs: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        PostureConfig(**kwargs)
