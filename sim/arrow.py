@@ -56,7 +56,7 @@ class Outcome(StrEnum):
     TIMEOUT = "timeout"  # still flying after the time limit
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Launch:
     """The arrow's state at release.
 
@@ -74,8 +74,18 @@ class Launch:
     wind: np.ndarray
     sim_time: float
 
+    def to_dict(self) -> dict[str, object]:
+        """JSON-friendly copy (arrays become lists)."""
+        return {
+            "position": self.position.tolist(),
+            "velocity": self.velocity.tolist(),
+            "theta": self.theta.tolist(),
+            "wind": self.wind.tolist(),
+            "sim_time": self.sim_time,
+        }
 
-@dataclass(frozen=True)
+
+@dataclass(frozen=True, eq=False)
 class Landing:
     """Where and when a shot ended.
 
@@ -97,6 +107,19 @@ class Landing:
     sim_time: float
     flight_time: float
     launch: Launch
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-friendly copy (arrays become lists; the outcome its string value)."""
+        return {
+            "outcome": self.outcome.value,
+            "hit": self.hit,
+            "r": None if self.r is None else self.r.tolist(),
+            "point": self.point.tolist(),
+            "velocity": self.velocity.tolist(),
+            "sim_time": self.sim_time,
+            "flight_time": self.flight_time,
+            "launch": self.launch.to_dict(),
+        }
 
     @property
     def hit(self) -> bool:

@@ -117,6 +117,27 @@ class WorldConfig:
                 raise ConfigError(f"{name} must be in [{low}, {high}], got {value!r}")
             object.__setattr__(self, name, float(value))
 
+    @classmethod
+    def from_dict(cls, values: dict[str, object]) -> WorldConfig:
+        """The config from `to_dict`'s output (nested scene and bow dicts accepted).
+
+        Raises:
+            ConfigError: an unknown parameter name or an invalid value.
+        """
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f"unknown world parameters {unknown}; valid: {sorted(known)}")
+        kwargs = dict(values)
+        try:
+            if isinstance(kwargs.get("scene"), dict):
+                kwargs["scene"] = SceneConfig(**kwargs["scene"])  # type: ignore[arg-type]
+            if isinstance(kwargs.get("bow"), dict):
+                kwargs["bow"] = Bow(**kwargs["bow"])  # type: ignore[arg-type]
+        except (TypeError, ValueError) as exc:
+            raise ConfigError(f"invalid scene or bow parameters: {exc}") from exc
+        return cls(**kwargs)  # type: ignore[arg-type]
+
     def to_dict(self) -> dict[str, object]:
         """JSON-friendly copy of the parameters."""
         out: dict[str, object] = {}
@@ -177,7 +198,7 @@ class ArcheryWorld:
         self._reference = self._home.copy()
         self._speed = np.full(self._home.size, self.config.reference_speed)
         self._ramping = False
-        self._rng: np.random.Generator | None = None
+        self._rng = np.random.default_rng()  # fresh entropy until reset(seed) is called
         self._arrow = ArrowState.STOWED
         self._flight: ArrowFlight | None = None
         self._landing: Landing | None = None
@@ -188,8 +209,8 @@ class ArcheryWorld:
     def reset(self, seed: int | None = None) -> None:
         """Restore the home posture at rest, time 0, the arrow stowed; reseed if `seed` given.
 
-        Without a seed the noise stream continues (or starts from fresh entropy the first time),
-        as in Gymnasium.
+        Without a seed the noise stream continues (from fresh entropy if never seeded), as in
+        Gymnasium.
 
         Raises:
             StateError: an arrow is in flight (let it land first).
@@ -198,8 +219,6 @@ class ArcheryWorld:
             raise StateError("cannot reset while an arrow is flying; step until it lands first")
         if seed is not None:
             self._rng = np.random.default_rng(seed)
-        elif self._rng is None:
-            self._rng = np.random.default_rng()
         physics = self.physics
         physics.reset()
         self._target = self._home.copy()
@@ -456,7 +475,6 @@ class ArcheryWorld:
             )
         cfg = self.config
         rng = self._rng
-        assert rng is not None
         bow, string = self.hand_positions()
         velocity = launch_velocity(
             bow,

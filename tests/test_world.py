@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 
 import mujoco
@@ -389,4 +390,21 @@ def test_world_config_is_validated(model: mujoco.MjModel) -> None:
         WorldConfig(scene=SCENE, bow=Bow(arrow_mass=0.05))
     with pytest.raises(ConfigError, match="timestep"):
         ArcheryWorld(WorldConfig(scene=SceneConfig(meshes=False, timestep=0.001)), model=model)
-    assert WorldConfig(**{**WorldConfig().to_dict(), "scene": SCENE, "bow": Bow()}).scene == SCENE
+    config = WorldConfig(scene=SCENE, drag=0.03, wind=(0.5, 0.0, 0.0))
+    assert WorldConfig.from_dict(config.to_dict()) == config
+    with pytest.raises(ConfigError, match=r"unknown world parameters \['gravity'\]"):
+        WorldConfig.from_dict({"gravity": 9.81})
+
+
+def test_landing_serialises_to_plain_data(
+    model: mujoco.MjModel, postures: dict[str, dict[str, np.ndarray]]
+) -> None:
+    world = _world(model, **EXACT)
+    _go(world, postures["aim"])
+    world.nock()
+    landing = world.release()
+    data = landing.to_dict()
+    assert data["outcome"] == "target" and data["hit"] is True
+    assert data["r"] == landing.r.tolist()  # type: ignore[union-attr]
+    assert data["launch"]["theta"] == landing.launch.theta.tolist()  # type: ignore[index]
+    json.dumps(data)
