@@ -727,6 +727,11 @@ class ScenePhysics:
         self.data.qpos[self._arrow_qpos : self._arrow_qpos + 3] = tip
         self.data.qpos[self._arrow_qpos + 3 : self._arrow_qpos + 7] = quat
 
+    def stowed_arrow_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """(tip (m), quaternion) of the arrow's place off the bow: the model's initial pose."""
+        q = self.model.qpos0[self._arrow_qpos : self._arrow_qpos + 7]
+        return q[:3].copy(), q[3:].copy()
+
     def arrow_tip(self) -> np.ndarray:
         """The arrow tip's position (m): the free joint's translation, exact after any step."""
         return self.data.qpos[self._arrow_qpos : self._arrow_qpos + 3].copy()

@@ -35,8 +35,6 @@ __all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]
 
 MAX_REFERENCE_SPEED = 2.0  # rad/s; up to this, commanded moves never pass the URDF joint limits
 
-_STOWED_TIP_ABOVE_FLOOR = 0.002  # m
-
 
 class ArrowState(StrEnum):
     """Where the arrow is."""
@@ -417,9 +415,7 @@ class ArcheryWorld:
         return self._landing
 
     def _stow(self) -> None:
-        scene = self.config.scene
-        tip = np.array([0.12, 0.30, -scene.root_height + _STOWED_TIP_ABOVE_FLOOR])
-        self._hold(tip, arrow_quat(np.array([0.0, 0.0, -1.0])))
+        self._hold(*self.physics.stowed_arrow_pose())
         self._arrow = ArrowState.STOWED
 
     def _hold(self, tip: np.ndarray, quat: np.ndarray) -> None:
