@@ -1,25 +1,37 @@
-"""The exception hierarchy of the MuJoCo simulation (`sim.scene`, `sim.arrow`, `sim.world`)."""
+"""The exception hierarchy of the MuJoCo simulation, under the project's `ArcheryError`."""
 
 from __future__ import annotations
+
+from protocol import errors as project
 
 __all__ = ["CommandError", "ConfigError", "SceneError", "SimError", "StateError"]
 
 
-class SimError(Exception):
-    """Base of every error raised by the MuJoCo simulation."""
+class SimError(project.ArcheryError):
+    """Base of every error raised by the MuJoCo simulation (sim.scene, sim.arrow, sim.world)."""
+
+    code = "sim_error"
 
 
-class ConfigError(SimError, ValueError):
+class ConfigError(SimError, project.ConfigError):
     """An invalid scene or world parameter; the message names it and its valid range."""
+
+    code = "bad_config"
 
 
 class SceneError(SimError, RuntimeError):
     """The scene cannot be built (model file missing, unexpected URDF content)."""
 
+    code = "scene_error"
 
-class CommandError(SimError, ValueError):
-    """A bad command: unknown part or joint, wrong vector length, non-finite value."""
+
+class CommandError(SimError, project.BadRequest):
+    """A bad command: unknown part or site, wrong vector length, non-finite value."""
+
+    code = "bad_request"
 
 
 class StateError(SimError, RuntimeError):
     """A command that the world's current state does not allow (e.g. release with no arrow)."""
+
+    code = "bad_state"

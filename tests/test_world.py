@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from protocol.errors import ArcheryError, BadRequest
 from sim.arrow import Landing, Outcome, drag_acceleration
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, SimError, StateError
@@ -377,6 +378,12 @@ def test_shot_commands_in_the_wrong_state_raise(model: mujoco.MjModel) -> None:
         world.release()
     world.reset(seed=0)  # allowed again once the arrow has landed
     assert issubclass(StateError, SimError) and issubclass(CommandError, SimError)
+    assert issubclass(SimError, ArcheryError) and issubclass(CommandError, BadRequest)
+    assert (StateError.code, CommandError.code, ConfigError.code) == (
+        "bad_state",
+        "bad_request",
+        "bad_config",
+    )
 
 
 def test_world_config_is_validated(model: mujoco.MjModel) -> None:
