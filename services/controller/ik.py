@@ -355,10 +355,10 @@ class IkSolver:
         self._data = self._pin.createData()
         self._lower = self.model.to_pinocchio(self.model.lower)
         self._upper = self.model.to_pinocchio(self.model.upper)
-        sqrt_q = np.ones(self.model.nq)
+        sigma_q = np.ones(self.model.nq)
         for joint, weight in self.settings.sigma_q.items():
-            sqrt_q[self.model.index(joint)] = weight
-        self._rest_sqrt = np.sqrt(self.settings.rest_weight * self.model.to_pinocchio(sqrt_q))
+            sigma_q[self.model.index(joint)] = weight
+        self._rest_sqrt = np.sqrt(self.settings.rest_weight * self.model.to_pinocchio(sigma_q))
         self._sqrt_x = _sqrt_psd(self.settings.sigma_x)
         self._sqrt_n = math.sqrt(self.settings.orientation_weight) * _sqrt_psd(
             self.settings.sigma_n
@@ -505,8 +505,10 @@ class IkSolver:
         active: np.ndarray,
         pos_tasks: list[tuple],
         ori_tasks: list[tuple],
-        q_rest: np.ndarray,
+        rest: tuple[np.ndarray, np.ndarray, np.ndarray],
     ) -> _Eval:
+        """Residuals, Jacobians and the Gauss–Newton model at q; `rest` is (q̂, Sq diagonal,
+        Sq²) over the active joints."""
         model, data = self._pin, self._data
         pin.computeJointJacobians(model, data, q)
         sqrt_x = self._sqrt_x
@@ -533,9 +535,9 @@ class IkSolver:
             eq_matrix[3 * k : 3 * k + 3] = sqrt_x @ lin
             eq_rhs[3 * k : 3 * k + 3] = err
         # Rest posture: residual Sq·(q̂ − q − dq), linear in the step.
-        rest_sqrt = self._rest_sqrt[active]
-        r_rest = rest_sqrt * (q_rest[active] - q[active])
-        hessian = np.diag(rest_sqrt * rest_sqrt)
+        rest_target, rest_sqrt, rest_hessian = rest
+        r_rest = rest_sqrt * (rest_target - q[active])
+        hessian = rest_hessian.copy()
         gradient = rest_sqrt * r_rest
         cost = float(r_rest @ r_rest)
         for frame, target, sqrt_n in ori_tasks:
@@ -575,7 +577,11 @@ class IkSolver:
         upper = self._upper[active]
         slack = np.repeat([t[3] for t in pos_tasks], 3)
         n_pos = len(pos_tasks)
-        ev = self._evaluate(q, active, pos_tasks, ori_tasks, q_rest)
+        rest_sqrt = self._rest_sqrt[active]
+        rest = (q_rest[active], rest_sqrt, np.diag(rest_sqrt * rest_sqrt))
+        eye = _identity(active.size)
+        zeros = np.zeros(active.size)
+        ev = self._evaluate(q, active, pos_tasks, ori_tasks, rest)
         best_q, best_ev = q, ev
         nu = np.zeros(3 * n_pos)
         rho = _MERIT_PENALTY
@@ -592,26 +598,25 @@ class IkSolver:
             dq, nu_step = solve_box_qp(
                 hessian, ev.gradient, ev.eq_matrix, ev.eq_rhs, slack, lb, ub, at_limit
             )
-            nu_norms = np.linalg.norm(nu_step.reshape(n_pos, 3), axis=1)
-            rho = max(_MERIT_PENALTY, 2.0 * float(nu_norms.max()))
+            nu_sq = (nu_step * nu_step).reshape(n_pos, 3).sum(axis=1)
+            rho = max(_MERIT_PENALTY, 2.0 * math.sqrt(float(nu_sq.max())))
             merit = ev.cost + rho * ev.violation
             # Decrease of the merit that the QP model predicts for this step.
-            lin_violation = np.linalg.norm(
-                (ev.eq_rhs - ev.eq_matrix @ dq).reshape(n_pos, 3), axis=1
-            ).sum()
+            lin_res = ev.eq_rhs - ev.eq_matrix @ dq
+            lin_violation = float(np.sqrt((lin_res * lin_res).reshape(n_pos, 3).sum(axis=1)).sum())
             predicted = float(ev.gradient @ dq - 0.5 * dq @ hessian @ dq) + rho * (
                 ev.violation - lin_violation
             )
             q_new = q.copy()
-            q_new[active] = np.clip(qa + dq, lower, upper)
-            ev_new = self._evaluate(q_new, active, pos_tasks, ori_tasks, q_rest)
+            q_new[active] = np.minimum(np.maximum(qa + dq, lower), upper)
+            ev_new = self._evaluate(q_new, active, pos_tasks, ori_tasks, rest)
             actual = merit - (ev_new.cost + rho * ev_new.violation)
             if actual < 0.25 * predicted and ev_new.violation > ev.violation:
                 # Second-order correction: pull the trial point back onto the linearised
                 # constraint with the least joint motion (cures the Maratos effect).
                 corr, _ = solve_box_qp(
-                    np.eye(active.size),
-                    np.zeros(active.size),
+                    eye,
+                    zeros,
                     ev.eq_matrix,
                     ev_new.eq_rhs,
                     slack,
@@ -619,14 +624,14 @@ class IkSolver:
                     ub - dq,
                 )
                 q_soc = q.copy()
-                q_soc[active] = np.clip(qa + dq + corr, lower, upper)
-                ev_soc = self._evaluate(q_soc, active, pos_tasks, ori_tasks, q_rest)
+                q_soc[active] = np.minimum(np.maximum(qa + dq + corr, lower), upper)
+                ev_soc = self._evaluate(q_soc, active, pos_tasks, ori_tasks, rest)
                 actual_soc = merit - (ev_soc.cost + rho * ev_soc.violation)
                 if actual_soc > actual:
                     q_new, ev_new, dq, actual = q_soc, ev_soc, dq + corr, actual_soc
             nu = nu_step
             ratio = actual / predicted if predicted > 0 else (1.0 if actual >= 0 else -1.0)
-            step_size = float(np.max(np.abs(dq)))
+            step_size = float(np.abs(dq).max())
             if ratio < 0.25:
                 lam *= 10.0
                 radius = max(0.5 * step_size, 1e-6)
@@ -641,7 +646,7 @@ class IkSolver:
             q, ev = q_new, ev_new
             if ev.feasible or ev.violation < best_ev.violation:
                 best_q, best_ev = q, ev
-            small_step = float(np.max(np.abs(dq))) < s.step_tolerance
+            small_step = step_size < s.step_tolerance
             if ev.feasible and (small_step or abs(change) < s.cost_tolerance):
                 break
             if not ev.feasible and small_step and abs(change) < s.cost_tolerance:

@@ -9,6 +9,7 @@ __all__ = ["solve_box_qp"]
 
 _gesv = scipy.linalg.lapack.dgesv
 _DIAG = np.arange(256)
+_ROUNDING = 1e-13  # a full step this far past a bound (rad) is rounding, not a blocking bound
 
 
 def solve_box_qp(
@@ -54,7 +55,12 @@ def solve_box_qp(
     kkt[n:, n:] = 0.0
     kkt[_DIAG[n : n + m], _DIAG[n : n + m]] = -eq_slack
     rhs = np.concatenate((gradient, eq_rhs))
-    fixed = np.zeros(n, dtype=bool) if fixed_hint is None else fixed_hint.copy()
+    if fixed_hint is None:
+        fixed = np.zeros(n, dtype=bool)
+        n_fixed = 0
+    else:
+        fixed = fixed_hint.copy()
+        n_fixed = int(np.count_nonzero(fixed))
     # Which bound a fixed variable sits on: +1 upper, -1 lower (hinted ones: the bound at 0).
     side = np.where(upper <= 0.0, 1.0, -1.0)
     pinned = lower >= upper  # a zero-width box: never released
@@ -62,45 +68,45 @@ def solve_box_qp(
     for _ in range(max_iterations):
         # Minimiser with the fixed variables held at their current (bound) values: their KKT
         # rows become identity rows.
-        if fixed.any():
-            fix_idx = np.flatnonzero(fixed)
+        if n_fixed:
+            fix_idx = fixed.nonzero()[0]
             system = kkt.copy()
             system[fix_idx] = 0.0
             system[fix_idx, fix_idx] = 1.0
             sys_rhs = rhs.copy()
             sys_rhs[fix_idx] = x[fix_idx]
-            _, _, sol, info = _gesv(system, sys_rhs)
+            _, _, sol, info = _gesv(system, sys_rhs, overwrite_a=1, overwrite_b=1)
             sol[fix_idx] = x[fix_idx]
         else:
-            fix_idx = None
             _, _, sol, info = _gesv(kkt, rhs)
         if info != 0:
             raise np.linalg.LinAlgError(f"singular KKT system in solve_box_qp (info={info})")
-        step = sol[:n] - x
-        # Step to the first bound met by a free variable (ratio < 1 means it blocks).
-        room = np.where(step < 0.0, lower - x, upper - x)
-        size = np.abs(step)
-        blocking = (size > np.abs(room)) & ~fixed
-        if blocking.any():
-            idx = np.flatnonzero(blocking)
-            ratios = np.abs(room[idx]) / size[idx]
-            k = int(np.argmin(ratios))
+        target = sol[:n]
+        # Free variables whose full step leaves the box: step to the first bound they meet.
+        outside = (target < lower - _ROUNDING) | (target > upper + _ROUNDING)
+        if outside.any():
+            idx = outside.nonzero()[0]
+            step = target[idx] - x[idx]
+            bound = np.where(step < 0.0, lower[idx], upper[idx])
+            ratios = (bound - x[idx]) / step
+            k = int(ratios.argmin())
             block = int(idx[k])
-            x = np.clip(x + ratios[k] * step, lower, upper)
-            upward = step[block] > 0.0
-            x[block] = upper[block] if upward else lower[block]
-            side[block] = 1.0 if upward else -1.0
+            x = np.minimum(np.maximum(x + ratios[k] * (target - x), lower), upper)
+            x[block] = bound[k]
+            side[block] = 1.0 if step[k] > 0.0 else -1.0
             fixed[block] = True
+            n_fixed += 1
             continue
-        x = np.clip(sol[:n], lower, upper)
-        if fix_idx is None:
+        x = np.minimum(np.maximum(target, lower), upper)
+        if not n_fixed:
             return x, sol[n:]
         # Multiplier of a fixed variable = its Lagrangian gradient (H·x − g + Cᵀν). Holding it
         # is right when that gradient pushes against the bound: ≥ 0 at lower, ≤ 0 at upper.
         grad = kkt[fix_idx] @ sol - gradient[fix_idx]
         wrong = np.where(pinned[fix_idx], -np.inf, side[fix_idx] * grad)
-        worst = int(np.argmax(wrong))
+        worst = int(wrong.argmax())
         if wrong[worst] <= 1e-12:
             return x, sol[n:]
         fixed[fix_idx[worst]] = False
-    return x, sol[n:]
+        n_fixed -= 1
+    return np.minimum(np.maximum(x, lower), upper), sol[n:]
