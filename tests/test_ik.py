@@ -8,6 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol.errors import ArcheryError, BadRequest
+from protocol.errors import ConfigError as ProjectConfigError
 from protocol.parts import PARTS
 from services.controller.errors import ConfigError, ControllerError, JointError, TargetError
 from services.controller.ik import (
@@ -324,6 +326,9 @@ def test_bad_inputs_raise_clear_errors(solver: IkSolver) -> None:
         OrientationTarget("left_arm", [0.0, 0.0, 0.0], weight=-1.0)
     for error in (TargetError, JointError, ConfigError):
         assert issubclass(error, ControllerError) and issubclass(error, ValueError)
+        assert issubclass(error, ArcheryError) and error.code
+    assert issubclass(ConfigError, ProjectConfigError)
+    assert issubclass(TargetError, BadRequest) and issubclass(JointError, BadRequest)
 
 
 @pytest.mark.parametrize(

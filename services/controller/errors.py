@@ -1,25 +1,35 @@
-"""The controller core's exception hierarchy: every bad input raises a `ControllerError`."""
+"""The controller core's exceptions, under the project's `ArcheryError` (codes for RPC replies)."""
 
 from __future__ import annotations
+
+from protocol import errors as project
 
 __all__ = ["ConfigError", "ControllerError", "JointError", "TargetError"]
 
 
-class ControllerError(ValueError):
-    """Base class of the controller's errors; each message names the bad value and what is valid."""
+class ControllerError(project.ArcheryError, ValueError):
+    """Base of the controller's errors; each message names the bad value and what is valid."""
+
+    code = "controller_error"
 
 
-class ConfigError(ControllerError):
+class ConfigError(ControllerError, project.ConfigError):
     """An invalid solver or posture setting (weight, tolerance, covariance, bounds)."""
 
-
-class JointError(ControllerError):
-    """An unknown joint name, a non-finite joint angle or an unknown arm."""
+    code = "bad_config"
 
 
-class TargetError(ControllerError):
+class JointError(ControllerError, project.BadRequest):
+    """An unknown joint name or arm, a wrong-length joint vector, a non-finite joint angle."""
+
+    code = "bad_request"
+
+
+class TargetError(ControllerError, project.BadRequest):
     """A target that cannot be posed as a problem: wrong shape, NaN/inf, θ outside its bounds.
 
     A finite target the robot cannot reach is not an error: the solver returns its closest pose
     with `reachable=False`.
     """
+
+    code = "bad_request"
