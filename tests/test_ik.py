@@ -365,6 +365,8 @@ def test_results_are_deterministic_and_read_only(model: ArmsModel, solver: IkSol
         first.q["r_elbow"] = 0.0  # type: ignore[index]
     with pytest.raises(ValueError):
         first.x[0] = 0.0
+    np.testing.assert_array_equal(solver.hand_pose(first.q, "right_arm")[0], first.x)
+    np.testing.assert_allclose(model.hand_pose(first.q, "right_arm")[0], first.x, atol=1e-15)
     axis_angle = solver.solve("right_arm", x, pin.log3(rot))
     assert dict(axis_angle.q) == pytest.approx(dict(first.q))
     np.testing.assert_allclose(as_rotation(pin.log3(rot)), rot, atol=1e-12)

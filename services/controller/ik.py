@@ -6,10 +6,18 @@ For one hand (or several hands at once) the solver computes
          s.t.    (x̂ − x(q))ᵀ Σx (x̂ − x(q)) < ε    and    q_min ≤ q ≤ q_max,
 
 where eₙ(q) = log(R̂ · R(q)ᵀ) is the axis-angle (rad, root axes) of the rotation still needed: the
-well-defined form of the paper's n̂ − n(q), equal to it for small errors. Each Gauss–Newton step
-solves a box-constrained QP in the joint step (position rows as regularised equalities, so the
-position has priority over orientation and rest posture), with Levenberg–Marquardt damping, a
-per-joint trust region and an exact-penalty merit test. Jacobians are Pinocchio's analytic ones.
+well-defined form of the paper's n̂ − n(q), equal to it for small errors.
+
+Method: a small SQP. Each iteration solves a box-constrained QP in the joint step (`qp.py`): the
+linearised position rows are (regularised) equalities, so the position has priority over
+orientation and rest posture; the Hessian is Gauss–Newton for the cost plus the constraint
+curvature ν·∂²x/∂q² (from the multipliers ν), which restores fast convergence along the
+constraint. Steps are globalised by a per-joint trust region and Levenberg–Marquardt damping
+driven by an exact-penalty merit, with a second-order correction against the Maratos effect.
+All derivatives are analytic (Pinocchio Jacobians). The hand is driven to x̂ itself, the centre of
+the ε-ball, rather than to its surface: the cost given up is about ‖ν‖·√ε (≈ 1e-5 here).
+If the start posture leads nowhere feasible, seeded random restarts follow; an unreachable
+target returns the posture closest to it with `reachable=False`.
 """
 
 from __future__ import annotations
@@ -127,9 +135,13 @@ class IkSettings:
                 raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
         for name in ("restarts", "seed"):
             value = getattr(self, name)
-            if not isinstance(value, int) or value < 0:
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
-        if not isinstance(self.max_iterations, int) or self.max_iterations < 1:
+        if (
+            isinstance(self.max_iterations, bool)
+            or not isinstance(self.max_iterations, int)
+            or self.max_iterations < 1
+        ):
             raise ConfigError(
                 f"max_iterations must be an integer >= 1, got {self.max_iterations!r}"
             )
@@ -182,7 +194,9 @@ class OrientationTarget:
 
     def __post_init__(self) -> None:
         check_arm(self.arm)
-        if not (math.isfinite(self.weight) and self.weight >= 0):
+        if not (
+            isinstance(self.weight, int | float) and math.isfinite(self.weight) and self.weight >= 0
+        ):
             raise ConfigError(
                 f"orientation weight must be a finite number >= 0, got {self.weight!r}"
             )
@@ -194,7 +208,7 @@ class TargetsResult:
     """Outcome of `IkSolver.solve_targets`.
 
     Attributes:
-        q: posture {joint: rad} for all 17 joints (joints not solved keep their start value).
+        q: posture {joint: rad} for all 17 joints (joints not solved keep their clipped q0).
         q_vector: the same in `JOINT_NAMES` order (read-only).
         position_errors_m: ‖x̂ − x(q)‖ per position target, in the given order (m).
         orientation_errors_rad: rotation angle still needed per orientation target (rad).
@@ -217,10 +231,10 @@ class IkResult:
     """Outcome of `IkSolver.solve` for one hand.
 
     Attributes:
-        q: posture {joint: rad} for all 17 joints (joints not in the chain keep their start value).
+        q: posture {joint: rad} for all 17 joints (joints off the chain keep their clipped q0).
         x: hand position reached (m, root frame).
         orientation: hand orientation reached, axis-angle (rad, root axes).
-        position_error_m: ‖x̂ − x‖ (m).
+        position_error_m: ‖x̂ − x‖ (m, Euclidean; the constraint itself weighs it by Σx).
         orientation_error_rad: angle of the rotation from the reached to the desired orientation
             (rad); 0 when no orientation was asked.
         reachable: the position constraint holds; when False, q is the closest pose found.
@@ -398,7 +412,7 @@ class IkSolver:
         ori_targets = () if orientation is None else (OrientationTarget(arm, orientation),)
         chain = self.model.chain(arm, use_torso=use_torso)
         res = self.solve_targets((pos_target,), ori_targets, joints=chain, q0=q0, rest=rest)
-        x, rot = self.model.hand_pose(res.q_vector, arm)
+        x, rot = self.hand_pose(res.q_vector, arm)
         orientation_out = np.asarray(pin.log3(rot))
         x.setflags(write=False)
         orientation_out.setflags(write=False)
@@ -479,6 +493,14 @@ class IkSolver:
             reachable=bool(ev.feasible),
             iterations=iterations,
         )
+
+    def hand_pose(self, q: JointValues, arm: str) -> tuple[np.ndarray, np.ndarray]:
+        """Position (m) and rotation of `arm`'s hand frame in `root_link` at posture q (rad),
+        computed with this solver's own Pinocchio data."""
+        check_arm(arm)
+        pin.forwardKinematics(self._pin, self._data, self.model.to_pinocchio(self.model.vector(q)))
+        placement = pin.updateFramePlacement(self._pin, self._data, self.model.frame_ids[arm])
+        return placement.translation.copy(), placement.rotation.copy()
 
     # ------------------------------------------------------------------------------- internals
 

@@ -268,8 +268,8 @@ class ArcheryPosture:
 
     def _result(self, theta: np.ndarray, res: TargetsResult) -> PostureResult:
         q = res.q_vector
-        x_left, r_left = self.model.hand_pose(q, "left_arm")
-        x_right, r_right = self.model.hand_pose(q, "right_arm")
+        x_left, r_left = self.solver.hand_pose(q, "left_arm")
+        x_right, r_right = self.solver.hand_pose(q, "right_arm")
         achieved = x_right - x_left
         arrays = [achieved, x_left]
         left_aa = np.asarray(pin.log3(r_left))
