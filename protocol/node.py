@@ -4,8 +4,8 @@ A `Node` owns one Zenoh session. It publishes typed messages (stamping sequence 
 wall time), subscribes latest-wins (state streams) or lossless FIFO (events), serves `rpc:i`
 ports from a worker thread (replies are `RpcReply`: ok with a result, or an error code and
 message), calls other services' RPC with a timeout, declares a liveliness token
-`ROBOT/alive/NAME` once `ready()` is called and answers `ROBOT/describe/NAME` with its ports. Malformed payloads are
-logged and counted, never fatal.
+`ROBOT/alive/NAME` once `ready()` is called and answers `ROBOT/describe/NAME` with its ports.
+Malformed payloads are logged and counted, never fatal.
 """
 
 from __future__ import annotations

@@ -28,5 +28,6 @@ def target_centre(distance: float = TARGET_DISTANCE) -> np.ndarray:
     """Centre of the target face (m, root frame) for a target `distance` metres ahead."""
     return np.array([-distance, BOW_HAND[1], BOW_HAND[2]])
 
+
 # The reward vector r (the paper's 2-D "augmented reward") is the arrow's offset from the target
 # centre on the target plane, in metres: r[0] to the robot's right (+y), r[1] up (+z).

@@ -1,0 +1,70 @@
+"""The shape every service's `main()` shares: parse flags, build a frozen config, run until a
+signal, exit 0 on a clean stop and 2 with a clear message on a bad configuration."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import threading
+from collections.abc import Callable
+from typing import TypeVar
+
+from protocol.errors import ArcheryError
+from protocol.netflags import NetConfig, add_network_args
+from protocol.node import shutdown_on_signals
+
+__all__ = ["configure_logging", "service_main"]
+
+C = TypeVar("C")
+
+
+def configure_logging(verbose: bool = False) -> None:
+    """Log to stderr with time and logger name (services never `print`)."""
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+        stream=sys.stderr,
+    )
+
+
+def service_main(
+    argv: list[str] | None,
+    *,
+    prog: str,
+    description: str,
+    add_arguments: Callable[[argparse.ArgumentParser], None],
+    make_config: Callable[[argparse.Namespace, NetConfig], C],
+    run: Callable[[C, threading.Event], None],
+) -> int:
+    """Run a service from the command line.
+
+    `add_arguments` adds the service's own flags (the network flags are added here),
+    `make_config` turns the parsed flags into the service's frozen config (raising
+    `ArcheryError` subclasses for bad values) and `run(config, stop)` serves until `stop` is set
+    by SIGINT/SIGTERM.
+
+    Returns:
+        0 after a clean stop, 2 for a bad configuration, 1 when the service fails.
+    """
+    parser = argparse.ArgumentParser(prog=f"archery {prog}", description=description)
+    add_network_args(parser)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    add_arguments(parser)
+    args = parser.parse_args(argv)
+    configure_logging(args.verbose)
+    log = logging.getLogger(f"archery.{prog}")
+    try:
+        config = make_config(args, NetConfig.from_args(args))
+    except ArcheryError as exc:
+        print(f"archery {prog}: {exc}", file=sys.stderr)
+        return 2
+    stop = shutdown_on_signals()
+    try:
+        run(config, stop)
+    except ArcheryError as exc:
+        log.error("%s", exc)
+        print(f"archery {prog}: {exc}", file=sys.stderr)
+        return 1
+    log.info("stopped")
+    return 0

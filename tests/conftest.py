@@ -1,0 +1,43 @@
+"""Shared fixtures: a real Zenoh router on a free loopback port, per-test robot prefixes."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+
+import pytest
+
+from protocol.netflags import NetConfig
+from protocol.router import free_tcp_endpoint, spawn_router
+
+_counter = itertools.count()
+
+
+@pytest.fixture(scope="session")
+def router_endpoint() -> Iterator[str]:
+    """A real `archery router` process on a free loopback port, for the whole test session."""
+    endpoint = free_tcp_endpoint()
+    proc = spawn_router(endpoint)
+    yield endpoint
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+@pytest.fixture
+def net(router_endpoint: str) -> NetConfig:
+    """Network settings for one test: the shared router and a robot prefix of its own."""
+    return NetConfig(connect=(router_endpoint,), robot=f"t{os.getpid()}x{next(_counter)}")
+
+
+def archery(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
+    """Run the `archery` CLI in a child process and capture its output."""
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        stdin=subprocess.DEVNULL,
+    )

@@ -1,0 +1,63 @@
+"""The common network flags and session opening errors."""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import pytest
+
+from protocol.errors import ConfigError
+from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
+from protocol.router import free_tcp_endpoint
+
+
+def _parse(*argv: str) -> NetConfig:
+    parser = argparse.ArgumentParser()
+    add_network_args(parser)
+    return NetConfig.from_args(parser.parse_args(list(argv)))
+
+
+def test_defaults_connect_to_the_local_router() -> None:
+    net = _parse()
+    assert net == NetConfig(connect=(DEFAULT_ROUTER,), listen=(), mode="peer", robot="icubSim")
+
+
+def test_flags_are_repeatable() -> None:
+    net = _parse(
+        "--connect",
+        "tcp/10.0.0.1:7447",
+        "--connect",
+        "tcp/router:7447",
+        "--listen",
+        "tcp/0.0.0.0:0",
+        "--mode",
+        "client",
+        "--robot",
+        "icub2",
+    )
+    assert net.connect == ("tcp/10.0.0.1:7447", "tcp/router:7447")
+    assert net.listen == ("tcp/0.0.0.0:0",) and net.mode == "client" and net.robot == "icub2"
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"connect": ("127.0.0.1:7447",)}, "not a Zenoh endpoint"),
+        ({"listen": ("http://x",)}, "not a Zenoh endpoint"),
+        ({"mode": "server"}, "not one of peer, client, router"),
+        ({"robot": "bad/robot"}, "--robot: invalid robot name"),
+        ({"mode": "client", "connect": ()}, "needs at least one --connect"),
+    ],
+)
+def test_invalid_settings_name_the_flag(kwargs: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        NetConfig(**kwargs)
+
+
+def test_client_without_router_fails_at_once_with_advice() -> None:
+    net = NetConfig(connect=(free_tcp_endpoint(),), mode="client")
+    start = time.monotonic()
+    with pytest.raises(ConfigError, match="Is a router running there"):
+        open_session(net)
+    assert time.monotonic() - start < 5

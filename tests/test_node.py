@@ -1,0 +1,183 @@
+"""The node base over a real router: pub/sub, RPC, liveliness, describe, bad payloads."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+import pytest
+
+from protocol.errors import BadRequest, RpcError, RpcTimeout
+from protocol.messages import JointState, WorldEvent
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.selfcheck import ECHO_SERVICE
+
+
+def _state(i: int) -> JointState:
+    return JointState(part="torso", names=["a"], position=[float(i)], velocity=[0.0])
+
+
+@pytest.fixture
+def pair(net: NetConfig) -> Iterator[tuple[Node, Node]]:
+    with Node("server", net) as server, Node(None, net) as client:
+        yield server, client
+
+
+def test_latest_wins_stream(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    key = server.keys.state("torso")
+    pub = server.publisher(key, JointState)
+    sub = client.subscribe(key, JointState)
+    assert pub.wait_matched(5)
+    for i in range(1, 51):
+        pub.put(_state(i))
+    last = sub.wait_newer(5, predicate=lambda m: m.seq == 50, after_seq=0)
+    assert last.position == [50.0] and sub.latest() == last
+    assert last.stamp > 0 and sub.age() < 5
+
+
+def test_events_are_lossless_and_ordered(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    key = server.keys.world_events()
+    pub = server.publisher(key, WorldEvent, lossless=True)
+    sub = client.subscribe(key, WorldEvent, mode="fifo")
+    assert pub.wait_matched(5)
+    for i in range(500):
+        pub.put(WorldEvent(kind="released", shot=i))
+    shots = [sub.get(timeout=5).shot for _ in range(500)]
+    assert shots == list(range(500))
+    with pytest.raises(RpcTimeout, match="no message on"):
+        sub.get(timeout=0.05)
+
+
+def test_malformed_stream_payloads_are_counted_and_dropped(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    key = server.keys.state("torso")
+    sub = client.subscribe(key, JointState)
+    pub = server.publisher(key, JointState)
+    assert pub.wait_matched(5)
+    for garbage in (b"\xc1", b"not msgpack at all", b"\x81\xa4type\xa5Image"):
+        server.session.put(key, garbage)
+    pub.put(_state(7))
+    msg = sub.wait_newer(5, after_seq=0)
+    assert msg.position == [7.0]
+    assert sub.dropped == 3 and sub.received == 1
+    assert "JointState" in sub.last_error or "msgpack" in sub.last_error
+
+
+def test_rpc_ok_error_and_recovery(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    key = server.keys.archery_rpc()
+
+    def release(args: dict) -> dict:
+        if "speed" not in args:
+            raise BadRequest("release needs 'speed' (m/s)")
+        return {"speed": args["speed"] * 2}
+
+    def crash(args: dict) -> None:
+        raise ZeroDivisionError("division by zero")
+
+    server.serve(key, {"release": release, "crash": crash})
+    server.ready()
+    client.wait_alive(["server"], 10)
+    assert client.call(key, "release", {"speed": 2.5}) == {"speed": 5.0}
+    with pytest.raises(RpcError, match="needs 'speed'") as err:
+        client.call(key, "release")
+    assert err.value.code == "bad_request"
+    with pytest.raises(RpcError, match="no verb 'fly'; verbs: crash, release") as err:
+        client.call(key, "fly")
+    assert err.value.code == "unknown_verb"
+    with pytest.raises(RpcError, match="ZeroDivisionError") as err:
+        client.call(key, "crash")
+    assert err.value.code == "internal"
+    for garbage in (b"", b"\xc1", b"\x93\x01\x02\x03"):
+        reply = client.request(key, garbage)
+        assert not reply.ok and reply.code == "bad_message"
+    assert client.call(key, "release", {"speed": 1}) == {"speed": 2}
+
+
+def test_rpc_timeout_names_the_key(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    key = server.keys.detector_rpc()
+    gate = threading.Event()
+    server.serve(key, {"measure": lambda args: gate.wait(10)})
+    server.ready()
+    client.wait_alive(["server"], 10)
+    start = time.monotonic()
+    with pytest.raises(RpcTimeout, match=r"no reply from .*detector/rpc:i within 0.3 s"):
+        client.call(key, "measure", timeout=0.3)
+    assert time.monotonic() - start < 2
+    gate.set()
+
+
+def test_absent_service_fails_within_timeout_naming_the_key(net: NetConfig) -> None:
+    with Node(None, net) as client:
+        key = client.keys.learner_rpc()
+        start = time.monotonic()
+        with pytest.raises(RpcTimeout, match="learner/rpc:i"):
+            client.call(key, "status", timeout=1.0)
+        assert time.monotonic() - start < 1.5
+
+
+def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    server.publisher(server.keys.state("left_arm"), JointState)
+    server.serve(server.keys.part_rpc("left_arm"), {"getLimits": lambda a: {}})
+    server.ready()
+    client.wait_alive(["server"], 10)
+    from protocol.codec import decode
+    from protocol.messages import Describe
+
+    replies = list(client.session.get(client.keys.describe("server"), timeout=5))
+    info = decode(replies[0].ok.payload.to_bytes(), Describe)
+    assert info.service == "server"
+    assert {(p.key, p.kind, p.message) for p in info.ports} == {
+        (server.keys.state("left_arm"), "pub", "JointState"),
+        (server.keys.part_rpc("left_arm"), "rpc", "RpcRequest"),
+    }
+    assert info.verbs[server.keys.part_rpc("left_arm")] == ["getLimits"]
+
+
+def _spawn_echo(net: NetConfig) -> subprocess.Popen[bytes]:
+    argv = [sys.executable, "-m", "services.cli", "selfcheck", "--echo", "--robot", net.robot]
+    for endpoint in net.connect:
+        argv += ["--connect", endpoint]
+    return subprocess.Popen(argv, stdin=subprocess.DEVNULL)
+
+
+@pytest.mark.parametrize("how", ["kill", "terminate", "interrupt"])
+def test_liveliness_follows_a_real_process(net: NetConfig, how: str) -> None:
+    with Node(None, net) as client:
+        proc = _spawn_echo(net)
+        try:
+            client.wait_alive([ECHO_SERVICE], 30)
+            if how == "kill":
+                proc.kill()
+            elif how == "terminate":
+                proc.terminate()
+            else:
+                proc.send_signal(2)
+            client.wait_gone(ECHO_SERVICE, 15)
+            assert ECHO_SERVICE not in client.alive()
+            code = proc.wait(10)
+            assert code == (-9 if how == "kill" else 0)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def test_wait_alive_reports_what_is_missing(net: NetConfig) -> None:
+    with Node(None, net) as client, pytest.raises(RpcTimeout, match=r"not alive.*: camera, robot"):
+        client.wait_alive(["robot", "camera"], 0.3)
+
+
+def test_anonymous_nodes_have_no_token(net: NetConfig) -> None:
+    with Node(None, net) as tool:
+        with pytest.raises(ValueError, match="anonymous"):
+            tool.ready()
+        assert tool.alive(timeout=0.5) == set()

@@ -1,0 +1,155 @@
+"""Every CLI verb against a live node over a real router."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from protocol.messages import Image
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.selfcheck import ECHO_SERVICE
+from tests.conftest import archery
+
+
+@pytest.fixture
+def echo(net: NetConfig) -> Iterator[NetConfig]:
+    """The sample service as a real child process."""
+    argv = [sys.executable, "-m", "services.cli", "selfcheck", "--echo", "--robot", net.robot]
+    argv += ["--connect", net.connect[0]]
+    proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL)
+    with Node(None, net) as node:
+        node.wait_alive([ECHO_SERVICE], 30)
+    yield net
+    proc.terminate()
+    assert proc.wait(10) == 0
+
+
+def _flags(net: NetConfig) -> list[str]:
+    return ["--connect", net.connect[0], "--robot", net.robot]
+
+
+def test_ports_lists_live_services(echo: NetConfig) -> None:
+    out = archery("ports", *_flags(echo))
+    assert out.returncode == 0, out.stderr
+    assert "echo  (pid" in out.stdout
+    assert f"rpc    {echo.robot}/torso/rpc:i  [RpcRequest]  verbs: count, echo, fail" in out.stdout
+    assert f"pub    {echo.robot}/torso/state:o  [JointState]" in out.stdout
+    as_json = archery("ports", "--json", *_flags(echo))
+    assert json.loads(as_json.stdout.splitlines()[0])["service"] == "echo"
+
+
+def test_ports_with_nothing_alive(net: NetConfig) -> None:
+    out = archery("ports", *_flags(net), "--timeout", "0.5")
+    assert out.returncode == 1 and "no live services" in out.stderr
+
+
+def test_read_prints_json_lines(echo: NetConfig) -> None:
+    out = archery("read", f"{echo.robot}/torso/state:o", "--count", "3", *_flags(echo))
+    assert out.returncode == 0, out.stderr
+    lines = [json.loads(line) for line in out.stdout.splitlines()]
+    assert len(lines) == 3 and all(m["type"] == "JointState" for m in lines)
+    assert lines[0]["names"] == ["torso_yaw", "torso_roll", "torso_pitch"]
+    assert lines[0]["seq"] < lines[1]["seq"] < lines[2]["seq"]
+
+
+def test_read_rejects_rpc_and_unknown_keys(net: NetConfig) -> None:
+    out = archery("read", f"{net.robot}/torso/rpc:i", *_flags(net))
+    assert out.returncode == 1 and "not a stream; use `archery rpc`" in out.stderr
+    out = archery("read", f"{net.robot}/legs/state:o", *_flags(net))
+    assert out.returncode == 1 and "unknown key" in out.stderr
+
+
+def test_write_publishes_a_typed_message(echo: NetConfig) -> None:
+    command = json.dumps({"part": "torso", "position": [0.1, 0.0, -0.1]})
+    out = archery("write", f"{echo.robot}/torso/command:i", command, *_flags(echo))
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["type"] == "JointCommand"
+    count = archery("rpc", f"{echo.robot}/torso/rpc:i", "count", *_flags(echo))
+    assert json.loads(count.stdout) == {"commands": 1, "dropped": 0}
+
+
+@pytest.mark.parametrize(
+    ("payload", "error"),
+    [
+        ('{"part": "torso", "position": [NaN, 0, 0]}', "finite"),
+        ('{"part": "torso", "position": "up"}', "invalid JointCommand"),
+        ("{not json", "not valid JSON"),
+    ],
+)
+def test_write_rejects_bad_messages(echo: NetConfig, payload: str, error: str) -> None:
+    out = archery("write", f"{echo.robot}/torso/command:i", payload, *_flags(echo))
+    assert out.returncode == 1 and error in out.stderr
+
+
+def test_rpc_ok_error_and_timeout(echo: NetConfig) -> None:
+    key = f"{echo.robot}/torso/rpc:i"
+    out = archery("rpc", key, "echo", '{"a": [1, 2]}', *_flags(echo))
+    assert out.returncode == 0 and json.loads(out.stdout) == {"a": [1, 2]}
+    out = archery("rpc", key, "fail", '{"x": 3}', *_flags(echo))
+    assert out.returncode == 1 and "fail was asked to fail with x=3" in out.stderr
+    out = archery("rpc", key, "jump", *_flags(echo))
+    assert out.returncode == 1 and "no verb 'jump'" in out.stderr
+    out = archery("rpc", f"{echo.robot}/learner/rpc:i", "status", *_flags(echo), "--timeout", "1")
+    assert out.returncode == 1 and f"{echo.robot}/learner/rpc:i" in out.stderr
+    out = archery("rpc", key, "echo", "[1]", *_flags(echo))
+    assert out.returncode == 1 and "must be a JSON object" in out.stderr
+
+
+def test_tools_without_a_router_say_so(tmp_path: Path) -> None:
+    from protocol.router import free_tcp_endpoint
+
+    out = archery("ports", "--connect", free_tcp_endpoint())
+    assert out.returncode == 1 and "Is a router running there?" in out.stderr
+
+
+def test_view_saves_the_next_image(net: NetConfig, tmp_path: Path) -> None:
+    rgb = np.zeros((72, 128, 3), np.uint8)
+    rgb[:, :, 0] = 200  # red
+    rgb[10:20, 30:40] = (0, 255, 0)
+    with Node("camera", net) as cam:
+        pub = cam.publisher(cam.keys.cam_frames(), Image)
+        cam.ready()
+        stop = threading.Event()
+
+        def stream() -> None:
+            frame = 0
+            while not stop.wait(0.02):
+                frame += 1
+                pub.put(Image.from_numpy(rgb, frame=frame))
+
+        thread = threading.Thread(target=stream)
+        thread.start()
+        try:
+            out_png = tmp_path / "frame.png"
+            out = archery("view", cam.keys.cam_frames(), "--out", str(out_png), *_flags(net))
+        finally:
+            stop.set()
+            thread.join()
+    assert out.returncode == 0, out.stderr
+    assert "128x72 rgb8" in out.stdout
+    saved = cv2.imread(str(out_png))[:, :, ::-1]
+    assert np.array_equal(saved, rgb)
+    wrong = archery("view", f"{net.robot}/torso/state:o", "--out", "x.png", *_flags(net))
+    assert wrong.returncode == 1 and "does not carry images" in wrong.stderr
+
+
+def test_router_verb_and_selfcheck() -> None:
+    out = archery("selfcheck", timeout=120)
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert "8 passed, 0 failed" in out.stdout
+    bad = archery("router", "--listen", "localhost:1")
+    assert bad.returncode == 2 and "not a Zenoh endpoint" in bad.stderr
+
+
+def test_unknown_verb_lists_the_verbs() -> None:
+    out = archery("fly")
+    assert out.returncode == 2 and "valid verbs: router, ports" in out.stderr
