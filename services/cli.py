@@ -18,6 +18,15 @@ VERBS: dict[str, tuple[str, str]] = {
     "rpc": ("protocol.tools:rpc_main", "call an rpc:i verb and print the reply"),
     "view": ("protocol.tools:view_main", "save the next image on an image port as PNG"),
     "selfcheck": ("protocol.selfcheck:main", "start a router and two nodes, check the mesh"),
+    "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),
+    "camera": (
+        "services.camera.service:main",
+        "camera frames of the target (rendered/device/folder)",
+    ),
+    "detector": ("services.detector.service:main", "GMM colour detector: target centre, arrow tip"),
+    "calibrate": ("services.detector.offline:calibrate_main", "fit the colour model from pixels"),
+    "detect": ("services.detector.offline:detect_main", "detect target and arrow in an image"),
+    "controller": ("services.controller.service:main", "Pinocchio IK: archery posture for θ"),
     "experiment": (
         "services.learner.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",
