@@ -321,13 +321,24 @@ class ArcheryWorld:
         self._speed[s] = array
         return array.copy()
 
-    def motion_done(self) -> bool:
-        """True when every setpoint has reached its target and every joint has settled there."""
-        if self._ramping:
-            return False
+    def motion_done(self, part: str | None = None) -> bool:
+        """True when every setpoint has reached its target and every joint has settled there.
+
+        With `part`, only that part's joints are checked (iCub's per-controlboard
+        checkMotionDone); position within `position_tolerance` (rad), speed below
+        `velocity_tolerance` (rad/s).
+        """
+        if part is None:
+            if self._ramping:
+                return False
+            s = slice(None)
+        else:
+            s = self._part(part)
+            if self._ramping and not np.array_equal(self._reference[s], self._target[s]):
+                return False
         data = self.physics.data
-        error = np.max(np.abs(data.qpos[self._qadr] - self._target))
-        speed = np.max(np.abs(data.qvel[self._dadr]))
+        error = np.max(np.abs(data.qpos[self._qadr[s]] - self._target[s]))
+        speed = np.max(np.abs(data.qvel[self._dadr[s]]))
         return bool(
             error < self.config.position_tolerance and speed < self.config.velocity_tolerance
         )

@@ -1,0 +1,227 @@
+"""`archery robot`: the simulated iCub's controlboards and archery verbs on the mesh.
+
+Ports (ROBOT = the robot prefix, e.g. icubSim):
+
+* `ROBOT/{torso,left_arm,right_arm}/state:o` JointState at `state_rate` per simulated second;
+* `ROBOT/{part}/command:i` JointCommand position targets (validated as in `commands`);
+* `ROBOT/{part}/rpc:i` controlboard verbs: getJointNames, getLimits, getPositions, getTargets,
+  checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status;
+* `ROBOT/archery/rpc:i`: nock, release (replies after the landing), reset, status;
+* `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
+* `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset.
+
+The ground-truth impact r is only in the landed / missed events (tests and plots); the release
+reply tells the outcome, never r. The simulation runs on its own thread (`simloop`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import BadRequest
+from protocol.messages import Array, JointCommand, JointState, WorldEvent, WorldState
+from protocol.node import Handler, Node, Subscription
+from protocol.service import service_main
+from services.robot.config import RobotConfig, add_robot_arguments, config_from_args
+from services.robot.simloop import SimLoop
+from sim.world import ArcheryWorld
+
+__all__ = ["SERVICE", "main", "run"]
+
+SERVICE = "robot"
+log = logging.getLogger("archery.robot")
+
+
+class _MeshSink:
+    """The loop's streams as Zenoh publishers."""
+
+    def __init__(self, node: Node, parts: tuple[str, ...]) -> None:
+        keys = node.keys
+        self._states = {p: node.publisher(keys.state(p), JointState) for p in parts}
+        self._world = node.publisher(keys.world_state(), WorldState)
+        self._events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
+
+    def joint_state(
+        self,
+        part: str,
+        names: tuple[str, ...],
+        position: list[float],
+        velocity: list[float],
+        motion_done: bool,
+        sim_time: float,
+    ) -> None:
+        self._states[part].put(
+            JointState(
+                part=part,
+                names=list(names),
+                position=position,
+                velocity=velocity,
+                motion_done=motion_done,
+                sim_time=sim_time,
+            )
+        )
+
+    def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
+        self._world.put(
+            WorldState(qpos=Array.from_numpy(qpos), phase=phase, shot=shot, sim_time=sim_time)
+        )
+
+    def event(
+        self,
+        kind: str,
+        shot: int,
+        sim_time: float,
+        impact_m: list[float] | None = None,
+        reason: str = "",
+    ) -> None:
+        self._events.put(
+            WorldEvent(
+                kind=kind,  # type: ignore[arg-type]
+                shot=shot,
+                impact_m=impact_m,
+                reason=reason,
+                sim_time=sim_time,
+            )
+        )
+
+
+def _args(
+    args: dict[str, Any], verb: str, required: tuple[str, ...], optional: tuple[str, ...]
+) -> None:
+    """Raise BadRequest for a missing or unknown argument of `verb`."""
+    missing = [k for k in required if k not in args]
+    unknown = sorted(set(args) - set(required) - set(optional))
+    valid = ", ".join((*required, *optional)) or "none"
+    if missing:
+        raise BadRequest(f"{verb} needs {', '.join(missing)}; arguments: {valid}")
+    if unknown:
+        raise BadRequest(f"{verb} has no argument {unknown[0]!r}; arguments: {valid}")
+
+
+def _verb(
+    name: str,
+    func: Callable[[dict[str, Any]], Any],
+    required: tuple[str, ...] = (),
+    optional: tuple[str, ...] = (),
+) -> tuple[str, Handler]:
+    def handler(args: dict[str, Any]) -> Any:
+        _args(args, name, required, optional)
+        return func(args)
+
+    return name, handler
+
+
+def _part_handlers(
+    loop: SimLoop, part: str, commands: Subscription[JointCommand]
+) -> dict[str, Handler]:
+    limits = loop.limits[part]
+    names = list(limits.names)
+
+    def counters(_: dict[str, Any]) -> dict[str, Any]:
+        return loop.counters(part) | {"undecodable": commands.dropped}
+
+    def status(_: dict[str, Any]) -> dict[str, Any]:
+        return {
+            "part": part,
+            "names": names,
+            "motion_done": loop.motion_done(part),
+            "counters": counters({}),
+        } | loop.positions(part)
+
+    return dict(
+        [
+            _verb("getJointNames", lambda a: {"names": names}),
+            _verb(
+                "getLimits",
+                lambda a: {
+                    "names": names,
+                    "min": list(limits.lower),
+                    "max": list(limits.upper),
+                    "tolerance": limits.tolerance,
+                },
+            ),
+            _verb("getPositions", lambda a: loop.positions(part)),
+            _verb("getTargets", lambda a: {"names": names, "position": loop.targets(part)}),
+            _verb("checkMotionDone", lambda a: {"done": loop.motion_done(part)}),
+            _verb(
+                "setRefSpeeds",
+                lambda a: {"names": names, "speeds": loop.set_ref_speeds(part, a["speeds"])},
+                required=("speeds",),
+            ),
+            _verb("getRefSpeeds", lambda a: {"names": names, "speeds": loop.ref_speeds(part)}),
+            _verb(
+                "positionMove",
+                lambda a: {
+                    "names": names,
+                    "position": loop.position_move(part, a["position"], a.get("names")),
+                },
+                required=("position",),
+                optional=("names",),
+            ),
+            _verb("counters", counters),
+            _verb("status", status),
+        ]
+    )
+
+
+def _archery_handlers(loop: SimLoop) -> dict[str, Handler]:
+    return dict(
+        [
+            _verb("nock", lambda a: loop.nock()),
+            _verb("release", lambda a: loop.release()),
+            _verb("reset", lambda a: loop.reset(a.get("seed")), optional=("seed",)),
+            _verb("status", lambda a: loop.status()),
+        ]
+    )
+
+
+def run(config: RobotConfig, stop: threading.Event) -> None:
+    """Serve the simulated robot until `stop` is set."""
+    world = ArcheryWorld(config.world)
+    world.reset(config.seed)
+    with Node(SERVICE, config.net) as node:
+        keys = node.keys
+        sink = _MeshSink(node, world.parts)
+        loop = SimLoop(world, config, sink, seed=config.seed)
+        thread = threading.Thread(target=loop.run, args=(stop,), name="robot sim", daemon=True)
+        thread.start()
+        try:
+            for part in world.parts:
+
+                def on_command(msg: JointCommand, part: str = part) -> None:
+                    loop.command(part, msg.position, msg.names, msg.part)
+
+                commands = node.subscribe(keys.command(part), JointCommand, callback=on_command)
+                node.serve(keys.part_rpc(part), _part_handlers(loop, part, commands))
+            node.serve(keys.archery_rpc(), _archery_handlers(loop))
+            node.ready()
+            log.info(
+                "robot %r ready: rtf %g, seed %s, joint states %g Hz, world %g Hz (sim time)",
+                keys.robot,
+                config.rtf,
+                config.seed,
+                config.state_rate,
+                config.world_rate,
+            )
+            stop.wait()
+        finally:
+            stop.set()
+            loop.close()
+            thread.join(timeout=10)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`archery robot [flags]`: run the simulated robot until SIGINT/SIGTERM (exit status 0)."""
+    return service_main(
+        argv,
+        prog="robot",
+        description=__doc__.split("\n", 1)[0] if __doc__ else "the simulated iCub",
+        add_arguments=add_robot_arguments,
+        make_config=config_from_args,
+        run=run,
+    )
