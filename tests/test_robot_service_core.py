@@ -295,3 +295,15 @@ def test_motion_done_is_per_part(start: Any) -> None:
     with rec.lock:
         last = {s[1]: s[3] for s in rec.states}
     assert last == {"torso": True, "left_arm": False, "right_arm": True}
+
+
+def test_moves_sent_one_after_another_are_not_a_stream(start: Any) -> None:
+    loop, _ = start(watchdog=5.0)
+    for k in range(3):  # each command after the previous move is done, as a controller does
+        loop.command("torso", [0.0, 0.0, 0.05 * (k + 1)], None, "torso")
+        deadline = time.monotonic() + 5
+        while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
+            assert time.monotonic() < deadline
+            time.sleep(0.002)
+        assert not loop.counters("torso")["streaming"]
+    assert loop.counters("torso")["accepted"] == 3

@@ -108,6 +108,8 @@ class IkSettings:
         restarts: when the constraint is not met from the start posture, retry from this many
             random in-limit postures of the moving joints, ≥ 0.
         seed: seed of those restart postures (the same call always gives the same result).
+        limit_margin: every joint's URDF range shrinks by this much at both ends (rad),
+            0 ≤ margin < 0.1, so solutions stay inside a robot's software limits.
     """
 
     orientation_weight: float = 1.0
@@ -123,8 +125,12 @@ class IkSettings:
     damping: float = 1e-4
     restarts: int = 4
     seed: int = 0
+    limit_margin: float = 0.0
 
     def __post_init__(self) -> None:
+        margin = self.limit_margin
+        if not (isinstance(margin, int | float) and math.isfinite(margin) and 0 <= margin < 0.1):
+            raise ConfigError(f"limit_margin must be a number in [0, 0.1) rad, got {margin!r}")
         for name in ("orientation_weight", "rest_weight", "step_tolerance", "cost_tolerance"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
@@ -367,8 +373,9 @@ class IkSolver:
         self.settings = IkSettings() if settings is None else settings
         self._pin = self.model.model
         self._data = self._pin.createData()
-        self._lower = self.model.to_pinocchio(self.model.lower)
-        self._upper = self.model.to_pinocchio(self.model.upper)
+        margin = self.settings.limit_margin
+        self._lower = self.model.to_pinocchio(self.model.lower + margin)
+        self._upper = self.model.to_pinocchio(self.model.upper - margin)
         sigma_q = np.ones(self.model.nq)
         for joint, weight in self.settings.sigma_q.items():
             sigma_q[self.model.index(joint)] = weight
@@ -399,7 +406,7 @@ class IkSolver:
             orientation: n̂ as an axis-angle 3-vector (rad, root axes) or a 3×3 rotation; None
                 drops the orientation term.
             q0: warm start {joint: rad} or 17-vector (the current posture); missing joints take
-                the home posture; values are clipped into the joint limits.
+                the home posture; values are clipped into the joint limits (less `limit_margin`).
             rest: q̂, rest posture (same forms; default the home posture).
             use_torso: solve torso + arm (10 joints) when True, the arm alone (7) when False
                 (iKin's setDOF); the torso then keeps its q0 value.
@@ -452,6 +459,7 @@ class IkSolver:
         idx = sorted({int(self.model.pin_index[self.model.index(j)]) for j in joints})
         active = np.array(idx, dtype=np.intp)
         q_start = self.model.to_pinocchio(self.model.clip(self.model.vector(q0)))
+        q_start = np.clip(q_start, self._lower, self._upper)  # the margin's narrower range
         q_rest = self.model.to_pinocchio(self.model.vector(rest))
         frames = self.model.frame_ids
         pos_tasks = [

@@ -35,8 +35,8 @@ class RobotConfig:
             0 runs as fast as possible and only while something moves (see `simloop`).
         state_rate: joint state streams per simulated second (Hz).
         world_rate: world state messages per simulated second (Hz); also one after each landing.
-        watchdog: a command stream with no command for this long (wall s) freezes the part at
-            its measured positions; 0 switches the watchdog off.
+        watchdog: a command stream (commands overtaking unfinished moves) with no command for
+            this long (wall s) freezes the part at its measured positions; 0 switches it off.
         limit_tolerance: a command up to this far beyond a joint limit is clamped; further is
             rejected (rad).
         batch_window: at rtf 0, commands arriving within this long (wall s) of the one that woke

@@ -20,10 +20,13 @@ Timing model:
   runs identical). A move of one simulated second then takes ~10-20 ms of wall time.
 
 Watchdog (wall clock, command streams only): a command on `command:i` that arrives within
-`watchdog` s of the part's previous one makes the part *streaming*. A streaming part whose next
-command does not arrive within `watchdog` s is stale: if it is still moving, its targets freeze
-at the measured positions (counted in `watchdog_trips`); either way the stream ends. A single
-command (the first after a silence) or a `positionMove` is a move, followed to its end.
+`watchdog` s of the part's previous one, while the part is still moving toward that one, makes
+the part *streaming* (new targets overtake the old: interpolated or teleoperated targets). A
+streaming part whose next command does not arrive within `watchdog` s is stale: if it is still
+moving, its targets freeze at the measured positions (counted in `watchdog_trips`); either way
+the stream ends. Any other command (the first after a silence, or one sent after the previous
+move was done, as a cartesian controller does) and every `positionMove` is a move, followed to
+its end however long it takes.
 """
 
 from __future__ import annotations
@@ -328,10 +331,12 @@ class SimLoop:
             targets, clamped = self._validate(part, position, names, said)
         except CommandRejected:
             return
+        overtakes = not self.world.motion_done(part)
         self._apply(part, targets, clamped)
         stream = self._streams[part]
         wd = self.config.watchdog
-        stream.streaming = stream.last is not None and wd > 0 and at - stream.last <= wd
+        recent = stream.last is not None and wd > 0 and at - stream.last <= wd
+        stream.streaming = recent and overtakes
         stream.last = at
 
     def _position_move(self, part: str, position: Any, names: Any) -> list[float]:

@@ -1,0 +1,125 @@
+"""The cartesian controller's request and reply shapes, iKin style; pure (no Zenoh).
+
+Positions are metres in `root_link`; orientations travel as iKin's axis-angle 4-vectors
+[ax, ay, az, angle] (unit axis in root axes, angle in rad) and are turned into the rotation
+vectors (axis × angle) that `ik.IkSolver` takes. Trajectory time T (s of simulated time) becomes
+per-joint reference speeds |Δq|/T, so every joint of a move arrives together.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from protocol.errors import BadRequest
+from services.controller.errors import TargetError
+from services.controller.ik import IkResult
+
+__all__ = [
+    "MAX_REFERENCE_SPEED",
+    "MIN_REFERENCE_SPEED",
+    "axis_angle",
+    "check_args",
+    "ik_reply",
+    "number_arg",
+    "position_arg",
+    "reference_speeds",
+    "rotation_vector",
+]
+
+MAX_REFERENCE_SPEED = 2.0  # rad/s, the robot's upper bound for reference speeds
+MIN_REFERENCE_SPEED = 0.01  # rad/s, for joints that barely move
+
+
+def check_args(
+    args: Mapping[str, Any], verb: str, required: Iterable[str] = (), optional: Iterable[str] = ()
+) -> None:
+    """Raise BadRequest for a missing or unknown argument of `verb`, listing the valid ones."""
+    required, optional = tuple(required), tuple(optional)
+    valid = ", ".join((*required, *optional)) or "none"
+    missing = [k for k in required if k not in args]
+    if missing:
+        raise BadRequest(f"{verb} needs {', '.join(missing)}; arguments: {valid}")
+    unknown = sorted(set(args) - set(required) - set(optional))
+    if unknown:
+        raise BadRequest(f"{verb} has no argument {unknown[0]!r}; arguments: {valid}")
+
+
+def _finite_vector(value: Any, name: str, size: int, unit: str) -> np.ndarray:
+    if not isinstance(value, list | tuple) or isinstance(value, str):
+        raise TargetError(f"{name} must be a list of {size} numbers ({unit}), got {value!r}")
+    try:
+        vec = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TargetError(f"{name} must be {size} numbers ({unit}), got {value!r}") from None
+    if vec.shape != (size,):
+        raise TargetError(f"{name} must be {size} numbers ({unit}), got {len(value)}: {value!r}")
+    if not np.all(np.isfinite(vec)):
+        raise TargetError(f"{name} must be finite numbers ({unit}), got {value!r}")
+    return vec
+
+
+def position_arg(value: Any, name: str = "xd") -> np.ndarray:
+    """A position [x, y, z] (m) from a request, or TargetError (bad_request)."""
+    return _finite_vector(value, name, 3, "m")
+
+
+def rotation_vector(value: Any, name: str = "od") -> np.ndarray:
+    """The rotation vector (rad) of an iKin axis-angle [ax, ay, az, angle] from a request.
+
+    Raises:
+        TargetError: not 4 finite numbers, or a zero axis with a non-zero angle.
+    """
+    vec = _finite_vector(value, name, 4, "unit axis, then angle in rad")
+    axis, angle = vec[:3], float(vec[3])
+    norm = float(np.linalg.norm(axis))
+    if norm < 1e-9:
+        if angle == 0.0:
+            return np.zeros(3)
+        raise TargetError(f"{name} has a zero axis {axis.tolist()} with angle {angle} rad")
+    return axis / norm * angle
+
+
+def axis_angle(rotation: np.ndarray) -> list[float]:
+    """iKin's [ax, ay, az, angle] (unit axis, angle in [0, π] rad) of a rotation matrix or a
+    rotation vector (rad); the axis is +z for the identity."""
+    rot = np.asarray(rotation, dtype=float)
+    vec = np.asarray(pin.log3(rot)) if rot.shape == (3, 3) else rot
+    angle = float(np.linalg.norm(vec))
+    if angle < 1e-12:
+        return [0.0, 0.0, 1.0, 0.0]
+    return [*(vec / angle).tolist(), angle]
+
+
+def number_arg(args: Mapping[str, Any], key: str, low: float, high: float, unit: str) -> float:
+    """args[key] as a finite number in [low, high], or BadRequest naming the range."""
+    value = args[key]
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise BadRequest(f"{key} must be a number of {unit}, got {value!r}")
+    if not low <= value <= high:
+        raise BadRequest(f"{key} must be in [{low:g}, {high:g}] {unit}, got {value!r}")
+    return float(value)
+
+
+def reference_speeds(delta: np.ndarray, traj_time: float) -> np.ndarray:
+    """Per-joint reference speeds (rad/s) that cover |Δq| (rad) in `traj_time` (s), kept in
+    [MIN_REFERENCE_SPEED, MAX_REFERENCE_SPEED] (a move too large for T takes longer)."""
+    speeds = np.abs(np.asarray(delta, dtype=float)) / traj_time
+    return np.clip(speeds, MIN_REFERENCE_SPEED, MAX_REFERENCE_SPEED)
+
+
+def ik_reply(result: IkResult, joints: Iterable[str]) -> dict[str, Any]:
+    """The askForPose reply: q of the chain's joints (rad), x (m), o (axis-angle), errors."""
+    return {
+        "q": {name: float(result.q[name]) for name in joints},
+        "x": result.x.tolist(),
+        "o": axis_angle(result.orientation),
+        "position_error_m": float(result.position_error_m),
+        "orientation_error_rad": float(result.orientation_error_rad),
+        "reachable": bool(result.reachable),
+        "iterations": int(result.iterations),
+    }

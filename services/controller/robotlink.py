@@ -1,0 +1,178 @@
+"""The controller's side of the robot's controlboards: joint states in, targets out, over the mesh.
+
+A move: clip the targets into the robot's software limits (from each part's `getLimits`), set
+each part's reference speeds so every joint covers its distance in the trajectory time
+(`setRefSpeeds`), publish one `JointCommand` per part back to back on `command:i`, then wait
+until every part's `state:o` reports motion done within `joint_tolerance` of its targets.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol.errors import RpcError, RpcTimeout
+from protocol.messages import JointCommand, JointState
+from protocol.node import Node
+from protocol.parts import PARTS
+from services.controller.cartesian import reference_speeds
+
+__all__ = ["MoveResult", "RobotLink"]
+
+
+@dataclass(frozen=True)
+class MoveResult:
+    """How a move ended.
+
+    Attributes:
+        reached: every part reported motion done at its targets before the timeout.
+        targets: the joint targets sent {joint: rad} (after clipping into the limits).
+        measured: the latest measured posture {joint: rad} of every part.
+        wall_s: wall time from sending the commands to the end of the wait (s).
+        sim_time: the robot's simulated time of the latest state (s).
+        reason: why the move was not reached ("" when reached).
+    """
+
+    reached: bool
+    targets: Mapping[str, float]
+    measured: Mapping[str, float]
+    wall_s: float
+    sim_time: float
+    reason: str
+
+
+class RobotLink:
+    """Joint states, commands and controlboard RPC of one robot, for the controller's threads.
+
+    Args:
+        node: the controller's node (subscriptions and publishers are declared here).
+        robot_timeout: how long to wait for a joint state or an RPC reply (wall s).
+        joint_tolerance: a part counts as there when motion is done and every joint is within
+            this of its target (rad).
+    """
+
+    def __init__(self, node: Node, robot_timeout: float, joint_tolerance: float) -> None:
+        keys = node.keys
+        self._node = node
+        self._keys = keys
+        self.robot_timeout = robot_timeout
+        self.joint_tolerance = joint_tolerance
+        self.states = {p: node.subscribe(keys.state(p), JointState) for p in PARTS}
+        self._commands = {p: node.publisher(keys.command(p), JointCommand) for p in PARTS}
+        self._limits: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        self._lock = threading.Lock()
+
+    def state(self, part: str) -> JointState:
+        """The newest joint state of `part`, waiting up to `robot_timeout` for a fresh one.
+
+        Raises:
+            RpcTimeout: no state newer than `robot_timeout` s; the message names the key.
+        """
+        sub = self.states[part]
+        msg = sub.latest()
+        if msg is not None and sub.age() <= self.robot_timeout:
+            return msg
+        try:
+            return sub.wait_newer(self.robot_timeout)
+        except RpcTimeout:
+            raise RpcTimeout(
+                f"the robot is not answering: no joint state on {sub.key} within "
+                f"{self.robot_timeout:g} s; is `archery robot --robot {self._keys.robot}` running?"
+            ) from None
+
+    def posture(self, parts: tuple[str, ...] = tuple(PARTS)) -> dict[str, float]:
+        """The measured joint angles {joint: rad} of `parts` (fresh states, see `state`)."""
+        out: dict[str, float] = {}
+        for part in parts:
+            msg = self.state(part)
+            out.update(zip(msg.names, msg.position, strict=True))
+        return out
+
+    def fresh_posture(self) -> dict[str, float] | None:
+        """The measured posture of every part if all their states are fresh, else None."""
+        out: dict[str, float] = {}
+        for sub in self.states.values():
+            msg = sub.latest()
+            if msg is None or sub.age() > self.robot_timeout:
+                return None
+            out.update(zip(msg.names, msg.position, strict=True))
+        return out
+
+    def limits(self, part: str) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) software limits of `part` (rad, YARP order), asked once per part."""
+        with self._lock:
+            if part not in self._limits:
+                reply = self._node.call(
+                    self._keys.part_rpc(part), "getLimits", timeout=self.robot_timeout
+                )
+                if list(reply["names"]) != list(PARTS[part]):
+                    raise RpcError(
+                        f"{self._keys.part_rpc(part)} getLimits names {reply['names']} are not "
+                        f"the {part} joints {list(PARTS[part])}"
+                    )
+                self._limits[part] = (np.asarray(reply["min"]), np.asarray(reply["max"]))
+            return self._limits[part]
+
+    def move(self, targets: Mapping[str, float], traj_time: float, timeout: float) -> MoveResult:
+        """Move the joints named in `targets` {joint: rad}; only their parts are commanded.
+
+        Raises:
+            RpcTimeout / RpcError: the robot's state or RPC does not answer (names the key).
+        """
+        parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
+        current = self.posture(tuple(PARTS))
+        sent: dict[str, np.ndarray] = {}
+        for part in parts:
+            lower, upper = self.limits(part)
+            wanted = np.array([targets.get(j, current[j]) for j in PARTS[part]])
+            sent[part] = np.clip(wanted, lower, upper)
+            delta = sent[part] - np.array([current[j] for j in PARTS[part]])
+            self._node.call(
+                self._keys.part_rpc(part),
+                "setRefSpeeds",
+                {"speeds": reference_speeds(delta, traj_time).tolist()},
+                timeout=self.robot_timeout,
+            )
+        marks = {p: (self.states[p].latest().seq if self.states[p].latest() else 0) for p in parts}
+        start = time.monotonic()
+        for part in parts:
+            self._commands[part].put(JointCommand(part=part, position=sent[part].tolist()))
+        reason = ""
+        tol = self.joint_tolerance
+        for part in parts:
+            remaining = max(0.0, start + timeout - time.monotonic())
+            goal = sent[part]
+
+            def there(msg: JointState, goal: np.ndarray = goal) -> bool:
+                error = np.max(np.abs(np.asarray(msg.position) - goal))
+                return msg.motion_done and bool(error <= tol)
+
+            try:
+                self.states[part].wait_newer(remaining, there, after_seq=marks[part])
+            except RpcTimeout:
+                reason = (
+                    f"{self.states[part].key} did not show motion done within {tol:g} rad of "
+                    f"the targets within {timeout:g} s"
+                )
+                break
+        wall = time.monotonic() - start
+        latest = {p: self.states[p].latest() for p in PARTS}
+        measured = {
+            name: value
+            for msg in latest.values()
+            if msg is not None
+            for name, value in zip(msg.names, msg.position, strict=True)
+        }
+        sim_time = max((m.sim_time or 0.0) for m in latest.values() if m is not None)
+        return MoveResult(
+            reached=not reason,
+            targets={j: float(v) for p in parts for j, v in zip(PARTS[p], sent[p], strict=True)},
+            measured=measured,
+            wall_s=wall,
+            sim_time=sim_time,
+            reason=reason,
+        )

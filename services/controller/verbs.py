@@ -1,0 +1,283 @@
+"""The cartesian controllers' RPC verbs: one `ArmController` per arm, one `ArcheryController`.
+
+Each controller serves one `rpc:i` key, whose requests run one at a time on that key's worker
+thread, so each owns its IK solver (solvers are not thread-safe). Moves of all controllers share
+one lock: one motion at a time.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import ArcheryError, BadRequest
+from protocol.node import Handler
+from protocol.parts import PARTS
+from services.controller.cartesian import (
+    axis_angle,
+    check_args,
+    ik_reply,
+    number_arg,
+    position_arg,
+    rotation_vector,
+)
+from services.controller.config import ControllerConfig
+from services.controller.errors import ConfigError
+from services.controller.ik import IkSolver
+from services.controller.model import ArmsModel
+from services.controller.posture import ArcheryPosture
+from services.controller.robotlink import MoveResult, RobotLink
+
+__all__ = ["ArcheryController", "ArmController", "MotionLock"]
+
+TRAJ_TIME_RANGE = (0.05, 60.0)  # s of simulated time
+TIMEOUT_RANGE = (0.1, 3600.0)  # wall s
+
+
+class MotionLock:
+    """One move at a time across the controllers; a waiter gives up after its timeout."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+
+    @contextmanager
+    def hold(self, timeout: float) -> Iterator[None]:
+        """Own the robot for one move (a context manager).
+
+        Raises:
+            ArcheryError (code "busy"): another move still runs after `timeout` wall s.
+        """
+        if not self._lock.acquire(timeout=timeout):
+            raise ArcheryError(
+                f"another move is still running after {timeout:g} s; retry later", code="busy"
+            )
+        try:
+            yield
+        finally:
+            self._lock.release()
+
+
+def _timeout(args: Mapping[str, Any], default: float) -> float:
+    return number_arg(args, "timeout", *TIMEOUT_RANGE, "s") if "timeout" in args else default
+
+
+def _move_reply(move: MoveResult) -> dict[str, Any]:
+    return {
+        "reached": move.reached,
+        "reason": move.reason,
+        "wall_s": move.wall_s,
+        "sim_time": move.sim_time,
+    }
+
+
+class ArmController:
+    """iKin-like cartesian controller of one arm (`left_arm` or `right_arm`)."""
+
+    def __init__(
+        self,
+        arm: str,
+        model: ArmsModel,
+        config: ControllerConfig,
+        link: RobotLink,
+        motion: MotionLock,
+    ) -> None:
+        self.arm = arm
+        self._model = model
+        self._config = config
+        self._settings = config.ik
+        self._solver = IkSolver(model, config.ik)
+        self._link = link
+        self._motion = motion
+        self.torso = config.use_torso
+        self.traj_time = config.traj_time
+
+    def handlers(self) -> dict[str, Handler]:
+        """The verbs of `ROBOT/cartesianController/ARM/rpc:i`."""
+        return {
+            "askForPose": self.ask_for_pose,
+            "goToPose": self.go_to_pose,
+            "getPose": self.get_pose,
+            "setTolerance": self.set_tolerance,
+            "getTolerance": lambda a: self._get(a, "getTolerance", self._tolerance()),
+            "setTrajTime": self.set_traj_time,
+            "getTrajTime": lambda a: self._get(a, "getTrajTime", {"time": self.traj_time}),
+            "setDOF": self.set_dof,
+            "getDOF": lambda a: self._get(a, "getDOF", self._dof()),
+        }
+
+    @staticmethod
+    def _get(args: Mapping[str, Any], verb: str, reply: dict[str, Any]) -> dict[str, Any]:
+        check_args(args, verb)
+        return reply
+
+    def _chain(self) -> tuple[str, ...]:
+        return PARTS["torso"] + PARTS[self.arm]
+
+    def _solve(self, args: Mapping[str, Any], q0: Mapping[str, float] | None) -> Any:
+        xd = position_arg(args["xd"], "xd")
+        od = rotation_vector(args["od"], "od") if args.get("od") is not None else None
+        return self._solver.solve(self.arm, xd, od, q0=q0, use_torso=self.torso)
+
+    def ask_for_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"xd": [x, y, z] m, "od"?: [ax, ay, az, angle]} → the solution, without moving.
+
+        Warm-started from the robot's posture when its states are fresh, else from home."""
+        check_args(args, "askForPose", ("xd",), ("od",))
+        q0 = self._link.fresh_posture()
+        result = self._solve(args, q0)
+        return ik_reply(result, self._chain()) | {"warm_start": "home" if q0 is None else "robot"}
+
+    def go_to_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+        """askForPose, then move the chain there and reply once the robot reports it done.
+
+        The reply adds "reached" (False after `timeout` s, with the reason), the measured hand
+        position "x_measured" (m) and its distance to xd "position_error_measured_m"."""
+        check_args(args, "goToPose", ("xd",), ("od", "timeout"))
+        timeout = _timeout(args, self._config.motion_timeout)
+        current = self._link.posture()
+        result = self._solve(args, current)
+        moving = PARTS[self.arm] if not self.torso else self._chain()
+        with self._motion.hold(timeout):
+            move = self._link.move({j: result.q[j] for j in moving}, self.traj_time, timeout)
+        x_measured, _ = self._solver.hand_pose(move.measured, self.arm)
+        xd = position_arg(args["xd"], "xd")
+        return (
+            ik_reply(result, self._chain())
+            | {"q": {j: move.targets.get(j, float(result.q[j])) for j in self._chain()}}
+            | _move_reply(move)
+            | {
+                "x_measured": x_measured.tolist(),
+                "position_error_measured_m": float(np.linalg.norm(x_measured - xd)),
+            }
+        )
+
+    def get_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+        """The hand pose now, by forward kinematics of the robot's joint states."""
+        check_args(args, "getPose")
+        q = self._link.posture()
+        x, rotation = self._solver.hand_pose(q, self.arm)
+        return {
+            "x": x.tolist(),
+            "o": axis_angle(rotation),
+            "q": {j: q[j] for j in self._chain()},
+            "sim_time": self._link.state(self.arm).sim_time,
+        }
+
+    def _tolerance(self) -> dict[str, Any]:
+        return {"tolerance": self._settings.position_tolerance}
+
+    def set_tolerance(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"tolerance": m}: the IK position tolerance (the radius of the Eq. 9 ε-ball)."""
+        check_args(args, "setTolerance", ("tolerance",))
+        tolerance = number_arg(args, "tolerance", 1e-6, 0.1, "m")
+        try:
+            settings = replace(self._settings, position_tolerance=tolerance)
+        except ConfigError as exc:
+            raise BadRequest(str(exc)) from None
+        self._settings = settings
+        self._solver = IkSolver(self._model, settings)
+        return self._tolerance()
+
+    def set_traj_time(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"time": s}: trajectory time of the next moves (s of simulated time)."""
+        check_args(args, "setTrajTime", ("time",))
+        self.traj_time = number_arg(args, "time", *TRAJ_TIME_RANGE, "s")
+        return {"time": self.traj_time}
+
+    def _dof(self) -> dict[str, Any]:
+        joints = self._chain() if self.torso else PARTS[self.arm]
+        return {"torso": self.torso, "joints": list(joints)}
+
+    def set_dof(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"torso": bool}: solve and move the torso with the arm (True) or hold it (False)."""
+        check_args(args, "setDOF", ("torso",))
+        if not isinstance(args["torso"], bool):
+            raise BadRequest(f"torso must be true or false, got {args['torso']!r}")
+        self.torso = args["torso"]
+        return self._dof()
+
+
+class ArcheryController:
+    """The archery posture for θ on `ROBOT/cartesianController/archery/rpc:i`.
+
+    Postures are solved from the reference posture (not from the robot's current one), so the
+    same θ always gives the same joint targets, whatever the history.
+    """
+
+    def __init__(
+        self,
+        posture: ArcheryPosture,
+        config: ControllerConfig,
+        link: RobotLink,
+        motion: MotionLock,
+    ) -> None:
+        self._posture = posture
+        self._config = config
+        self._link = link
+        self._motion = motion
+        self.traj_time = config.traj_time
+
+    def handlers(self) -> dict[str, Handler]:
+        """The verbs of the archery key."""
+        return {
+            "posture": self.posture,
+            "setTrajTime": self.set_traj_time,
+            "getTrajTime": lambda a: ArmController._get(a, "getTrajTime", {"time": self.traj_time}),
+            "status": lambda a: ArmController._get(a, "status", self._status()),
+        }
+
+    def _status(self) -> dict[str, Any]:
+        cfg = self._posture.config
+        return {
+            "theta_min": cfg.theta_min.tolist(),
+            "theta_max": cfg.theta_max.tolist(),
+            "bow_hand": cfg.bow_hand.tolist(),
+            "nominal_theta": cfg.nominal_theta.tolist(),
+            "use_torso": cfg.use_torso,
+            "traj_time": self.traj_time,
+            "joints": list(self._posture.joints),
+        }
+
+    def set_traj_time(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"time": s}: trajectory time of the next postures (s of simulated time)."""
+        check_args(args, "setTrajTime", ("time",))
+        self.traj_time = number_arg(args, "time", *TRAJ_TIME_RANGE, "s")
+        return {"time": self.traj_time}
+
+    def posture(self, args: dict[str, Any]) -> dict[str, Any]:
+        """{"theta": [x, y, z] m, "timeout"?: s} → move both arms (and the torso) to the
+        archery posture for θ and reply once the robot reports the motion done.
+
+        Reply: "q" (targets sent, rad), "theta_achieved" (of the solved posture, m),
+        "theta_measured" (forward kinematics of the measured joints, m), "relative_error_m"
+        (‖θ − θ_achieved‖), "measured_error_m" (‖θ − θ_measured‖), "reachable" (IK), "reached"
+        (robot at the targets in time), "reason", "bow_hand" (m), "wall_s", "sim_time".
+        """
+        check_args(args, "posture", ("theta",), ("timeout",))
+        theta = self._posture.check_theta(args["theta"])
+        timeout = _timeout(args, self._config.motion_timeout)
+        current = self._link.posture()  # the robot must be there before anything is solved
+        q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
+        result = self._posture.solve(theta, q0=q0)
+        targets = {j: float(result.q[j]) for j in self._posture.joints}
+        with self._motion.hold(timeout):
+            move = self._link.move(targets, self.traj_time, timeout)
+        solver = self._posture.solver
+        left, _ = solver.hand_pose(move.measured, "left_arm")
+        right, _ = solver.hand_pose(move.measured, "right_arm")
+        measured = right - left
+        return {
+            "q": dict(move.targets),
+            "theta": theta.tolist(),
+            "theta_achieved": result.theta_achieved.tolist(),
+            "theta_measured": measured.tolist(),
+            "relative_error_m": result.relative_error_m,
+            "measured_error_m": float(np.linalg.norm(theta - measured)),
+            "reachable": result.reachable,
+            "bow_hand": result.bow_hand.tolist(),
+        } | _move_reply(move)
