@@ -10,8 +10,25 @@ Ports (ROBOT = the robot prefix, e.g. icubSim):
 * `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
 * `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset.
 
-The ground-truth impact r is only in the landed / missed events (tests and plots); the release
-reply tells the outcome, never r. The simulation runs on its own thread (`simloop`).
+Verbs (args → result; joint vectors in YARP order, rad):
+
+* getJointNames → {names}; getLimits → {names, min, max, tolerance} (software limits);
+  getPositions → {names, position, velocity, sim_time}; getTargets → {names, position};
+  checkMotionDone → {done}; setRefSpeeds {speeds: number or list, rad/s} → {names, speeds};
+  getRefSpeeds → {names, speeds}; positionMove {position, names?} → {names, position} (the
+  part's targets after the move, validated as a command); counters → {accepted, clamped,
+  rejected, rejected_by_reason, watchdog_trips, last_rejection, streaming, undecodable};
+  status → names, motion_done, counters and getPositions' fields.
+* nock → {shot, arrow, sim_time}; release → {shot, outcome, hit, reason, sim_time,
+  release_sim_time, flight_time, theta} once the arrow has landed; reset {seed?} → {sim_time,
+  seed, shot}; status → {sim_time, arrow, phase, shot, motion_done, seed, rtf, rates,
+  watchdog, limit_tolerance, timestep, counters, scene (SceneConfig.to_dict()), world
+  (WorldConfig.to_dict())}.
+
+Requests on one key are served one at a time, so a release holds `archery/rpc:i` until its
+landing and a reset sent meanwhile is answered after it (the world itself refuses a reset during
+a flight). The ground-truth impact r is only in the landed / missed events (tests and plots);
+the release reply tells the outcome, never r. The simulation runs on its own thread (`simloop`).
 """
 
 from __future__ import annotations
