@@ -48,6 +48,7 @@ class Publisher(Generic[M]):
         self.key = key
         self.message_type = message_type
         self._seq = 0
+        self._closed = False
         self._lock = threading.Lock()
         self._pub = session.declare_publisher(
             key,
@@ -86,8 +87,10 @@ class Publisher(Generic[M]):
             listener.undeclare()
 
     def close(self) -> None:
-        """Undeclare the publisher."""
-        self._pub.undeclare()
+        """Undeclare the publisher (idempotent)."""
+        if not self._closed:
+            self._closed = True
+            self._pub.undeclare()
 
 
 class Subscription(Generic[M]):
@@ -95,8 +98,9 @@ class Subscription(Generic[M]):
 
     mode "latest": keeps only the newest message (`latest()`, `wait_newer()`); mode "fifo": keeps
     every message in arrival order (`get()`), never dropping one. An optional callback runs on
-    Zenoh's thread for each valid message (keep it short). Invalid payloads are counted in
-    `dropped` and logged.
+    Zenoh's thread for each valid message, in order (keep it short); with a callback, a fifo
+    subscription hands every message to it instead of queueing it for `get()`. Invalid payloads
+    are counted in `dropped` and logged.
     """
 
     def __init__(
@@ -120,7 +124,7 @@ class Subscription(Generic[M]):
         self._latest_time = 0.0
         self._cond = threading.Condition()
         self._queue: queue.Queue[M] = queue.Queue()
-        self._sub = session.declare_subscriber(key, self._on_sample)
+        self._sub: zenoh.Subscriber | None = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
@@ -135,7 +139,7 @@ class Subscription(Generic[M]):
             self.received += 1
             self._latest = message
             self._latest_time = time.monotonic()
-            if self.mode == "fifo":
+            if self.mode == "fifo" and self._callback is None:
                 self._queue.put(message)
             self._cond.notify_all()
         if self._callback is not None:
@@ -196,8 +200,10 @@ class Subscription(Generic[M]):
             raise RpcTimeout(f"no message on {self.key} within {timeout:g} s") from None
 
     def close(self) -> None:
-        """Undeclare the subscriber."""
-        self._sub.undeclare()
+        """Undeclare the subscriber (idempotent)."""
+        if self._sub is not None:
+            self._sub.undeclare()
+            self._sub = None
 
 
 class RpcServer:
@@ -215,7 +221,7 @@ class RpcServer:
         self.served = 0
         self.errors = 0
         self._seq = 0
-        self._queue: queue.Queue[Any] = queue.Queue()
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._queryable = session.declare_queryable(key, self._queue.put)
         self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
         self._thread.start()
@@ -226,23 +232,24 @@ class RpcServer:
             if query is _STOP:
                 return
             try:
-                reply = self._handle(query)
                 self._seq += 1
-                reply = msgspec.structs.replace(reply, seq=self._seq, stamp=time.time())
-                query.reply(self.key, encode(reply))
+                query.reply(self.key, encode(self._handle(query, self._seq)))
             except Exception:
                 log.exception("could not reply on %s", self.key)
             finally:
                 query.drop()
 
-    def _handle(self, query: zenoh.Query) -> RpcReply:
+    def _handle(self, query: zenoh.Query, seq: int) -> RpcReply:
         self.served += 1
+        stamped = {"seq": seq, "stamp": time.time()}
         try:
             payload = query.payload.to_bytes() if query.payload is not None else b""
             request = decode(payload, RpcRequest)
         except DecodeError as exc:
             self.errors += 1
-            return RpcReply(ok=False, code=exc.code, message=f"bad request on {self.key}: {exc}")
+            return RpcReply(
+                ok=False, code=exc.code, message=f"bad request on {self.key}: {exc}", **stamped
+            )
         handler = self.handlers.get(request.verb)
         if handler is None:
             self.errors += 1
@@ -251,13 +258,14 @@ class RpcServer:
                 ok=False,
                 code="unknown_verb",
                 message=f"{self.key} has no verb {request.verb!r}; verbs: {verbs}",
+                **stamped,
             )
         try:
             result = handler(dict(request.args))
-            return RpcReply(ok=True, result=result)
+            return RpcReply(ok=True, result=result, **stamped)
         except ArcheryError as exc:
             self.errors += 1
-            return RpcReply(ok=False, code=exc.code, message=exc.message)
+            return RpcReply(ok=False, code=exc.code, message=exc.message, **stamped)
         except Exception as exc:
             self.errors += 1
             log.exception("%s %s failed", self.key, request.verb)
@@ -265,9 +273,10 @@ class RpcServer:
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""
-        self._queryable.undeclare()
-        self._queue.put(_STOP)
-        self._thread.join(timeout=5)
+        if self._thread.is_alive():
+            self._queryable.undeclare()
+            self._queue.put(_STOP)
+            self._thread.join(timeout=5)
 
 
 class Node:
@@ -292,6 +301,7 @@ class Node:
         self._closables: list[Any] = []
         self._queriers: dict[tuple[str, float], zenoh.Querier] = {}
         self._rpc_seq = 0
+        self._rpc_lock = threading.Lock()
         self._closed = False
         self._token = None
         if name is not None:
@@ -389,8 +399,10 @@ class Node:
             RpcError: the service replied with an error (its `code` is kept).
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
         """
-        self._rpc_seq += 1
-        request = RpcRequest(verb=verb, args=args or {}, seq=self._rpc_seq, stamp=time.time())
+        with self._rpc_lock:
+            self._rpc_seq += 1
+            seq = self._rpc_seq
+        request = RpcRequest(verb=verb, args=args or {}, seq=seq, stamp=time.time())
         reply = self.request(key, encode(request), timeout=timeout)
         if not reply.ok:
             raise RpcError(f"{key} {verb}: {reply.message}", code=reply.code or "rpc_error")
@@ -398,12 +410,13 @@ class Node:
 
     def request(self, key: str, payload: bytes, *, timeout: float = 5.0) -> RpcReply:
         """Send a raw request payload and return the decoded `RpcReply` (no error raising)."""
-        querier = self._queriers.get((key, timeout))
-        if querier is None:
-            querier = self.session.declare_querier(
-                key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
-            )
-            self._queriers[(key, timeout)] = querier
+        with self._rpc_lock:
+            querier = self._queriers.get((key, timeout))
+            if querier is None:
+                querier = self.session.declare_querier(
+                    key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
+                )
+                self._queriers[(key, timeout)] = querier
         start = time.monotonic()
         for reply in querier.get(payload=payload):
             if reply.ok is not None:

@@ -1,0 +1,12 @@
+FROM python:3.11-slim-bookworm
+# Mesa's EGL for headless MuJoCo rendering
+RUN apt-get update && apt-get install -y --no-install-recommends libegl1 libegl-mesa0 libgl1-mesa-dri \
+    && rm -rf /var/lib/apt/lists/*
+WORKDIR /app
+COPY pyproject.toml README.md ./
+COPY protocol ./protocol
+COPY services ./services
+COPY sim ./sim
+RUN pip install --no-cache-dir .
+ENV MUJOCO_GL=egl
+CMD ["archery", "--help"]
