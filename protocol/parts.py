@@ -8,32 +8,20 @@ from __future__ import annotations
 
 __all__ = ["ARM_PARTS", "PARTS", "part_of_joint"]
 
+_ARM_JOINTS = (
+    "shoulder_pitch",
+    "shoulder_roll",
+    "shoulder_yaw",
+    "elbow",
+    "wrist_prosup",
+    "wrist_pitch",
+    "wrist_yaw",
+)
+
 PARTS: dict[str, tuple[str, ...]] = {
     "torso": ("torso_yaw", "torso_roll", "torso_pitch"),
-    "left_arm": tuple(
-        f"l_{j}"
-        for j in (
-            "shoulder_pitch",
-            "shoulder_roll",
-            "shoulder_yaw",
-            "elbow",
-            "wrist_prosup",
-            "wrist_pitch",
-            "wrist_yaw",
-        )
-    ),
-    "right_arm": tuple(
-        f"r_{j}"
-        for j in (
-            "shoulder_pitch",
-            "shoulder_roll",
-            "shoulder_yaw",
-            "elbow",
-            "wrist_prosup",
-            "wrist_pitch",
-            "wrist_yaw",
-        )
-    ),
+    "left_arm": tuple(f"l_{joint}" for joint in _ARM_JOINTS),
+    "right_arm": tuple(f"r_{joint}" for joint in _ARM_JOINTS),
 }
 
 ARM_PARTS: tuple[str, ...] = ("left_arm", "right_arm")
