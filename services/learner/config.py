@@ -1,0 +1,288 @@
+"""Settings of the learner service (flags) and of one learning session (the `start` request)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import BadRequest, ConfigError
+from protocol.netflags import NetConfig
+from services.learner.base import Bounds, LearnerConfigError
+from services.learner.registry import ALGORITHMS
+
+__all__ = [
+    "DEFAULT_THETA0",
+    "ROBOT_OPTIONS",
+    "START_ARGS",
+    "LearnerServiceConfig",
+    "SessionConfig",
+    "add_learner_arguments",
+    "config_from_args",
+]
+
+# θ (m) where sessions start: on the simulated robot its arrows land on the target face about
+# 11 cm up and left of the centre (sim.geometry.START_THETA lands outside the face at 2.2 m).
+DEFAULT_THETA0 = (0.17, 0.006, -0.026)
+
+# Learner options for the MuJoCo robot, under the caller's own. Its hands move the arrow about
+# 11 m on the target per m of θ (aim) and 1-2 m per m of draw, so the analytic model's 10-20 mm
+# of exploration would scatter the first arrows off the 25 cm face: 3 mm scatters them ~3.5 cm.
+# ARCHER's trust radius starts at 2 cm (22 cm on the target) and never exceeds 4 cm.
+_EXPLORE = {"explore_std": 0.003}
+_ARCHER = {"explore_std": 0.003, "trust_radius": 0.02, "max_step": 0.04, "fallback_std": 0.002}
+ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
+    {
+        "archer": _ARCHER,
+        "archer-plain": _ARCHER,
+        "archer-iso": _ARCHER,
+        "archer-plain-iso": _ARCHER,
+        "archer-ridge": _ARCHER,
+        "power": _EXPLORE,
+        "power-sharp": _EXPLORE,
+        "random": _EXPLORE,
+        "cma": {"sigma0": 0.003},
+    }
+)
+
+START_ARGS = ("algo", "rollouts", "seed", "until_hit", "scenario", "options", "resume", "session")
+SCENARIO_KEYS = ("theta0", "bounds", "hit_radius", "reset")
+HIT_RADIUS = 0.05  # m: the paper's inner ring
+
+
+def _integer(name: str, value: Any, low: int, high: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+        raise BadRequest(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+    return value
+
+
+def _vector(name: str, value: Any, size: int = 3) -> tuple[float, ...]:
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        array = np.zeros(0)
+    if array.shape != (size,) or not np.all(np.isfinite(array)) or isinstance(value, str):
+        raise BadRequest(f"{name} must be {size} finite numbers (m), got {value!r}")
+    return tuple(float(x) for x in array)
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """One learning session, validated (what `start` asks for, or a journal's header).
+
+    Attributes:
+        algorithm: a name of `services.learner.registry.ALGORITHMS`.
+        rollouts: budget of done rollouts (aborted attempts are not counted).
+        seed: seeds the learner's generator, and the robot's shot noise at the start.
+        until_hit: end the session at the first rollout within `hit_radius` of the centre.
+        theta0: θ (m) the learner starts from.
+        bounds: θ box (m) of the learner; None: the controller's box. Must lie inside it.
+        hit_radius: a rollout hits when the measured ‖r‖ is below this (m).
+        reset: reset the robot (home posture, noise reseeded) when the session starts or resumes.
+        options: learner options on top of `ROBOT_OPTIONS` and the algorithm's defaults.
+        max_aborts: the session fails after this many aborted attempts in a row.
+    """
+
+    algorithm: str = "archer"
+    rollouts: int = 30
+    seed: int = 0
+    until_hit: bool = True
+    theta0: tuple[float, ...] = DEFAULT_THETA0
+    bounds: Bounds | None = None
+    hit_radius: float = HIT_RADIUS
+    reset: bool = True
+    options: Mapping[str, Any] = field(default_factory=dict)
+    max_aborts: int = 8
+
+    def __post_init__(self) -> None:
+        if self.algorithm not in ALGORITHMS:
+            raise BadRequest(
+                f"unknown algorithm {self.algorithm!r}; valid algorithms: {', '.join(ALGORITHMS)}"
+            )
+        _integer("rollouts", self.rollouts, 1, 10_000)
+        _integer("seed", self.seed, 0, 2**32 - 1)
+        _integer("max_aborts", self.max_aborts, 1, 1000)
+        for name in ("until_hit", "reset"):
+            if not isinstance(getattr(self, name), bool):
+                raise BadRequest(f"{name} must be true or false, got {getattr(self, name)!r}")
+        object.__setattr__(self, "theta0", _vector("scenario.theta0", self.theta0))
+        radius = self.hit_radius
+        if isinstance(radius, bool) or not isinstance(radius, int | float):
+            raise BadRequest(f"scenario.hit_radius must be a number (m), got {radius!r}")
+        if not (math.isfinite(radius) and 0.001 <= radius <= 0.25):
+            raise BadRequest(f"scenario.hit_radius must be in [0.001, 0.25] m, got {radius!r}")
+        object.__setattr__(self, "hit_radius", float(radius))
+        if not isinstance(self.options, Mapping):
+            raise BadRequest(f"options must be a map of learner options, got {self.options!r}")
+        if self.bounds is not None and not self.bounds.contains(np.array(self.theta0)):
+            raise BadRequest(
+                f"scenario.theta0 {list(self.theta0)} m lies outside the bounds "
+                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
+            )
+
+    def learner_options(self) -> dict[str, Any]:
+        """`ROBOT_OPTIONS` for the algorithm, overridden by `options`."""
+        return {**ROBOT_OPTIONS.get(self.algorithm, {}), **dict(self.options)}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values for the journal's header (`from_dict` reads them back)."""
+        return {
+            "until_hit": self.until_hit,
+            "theta0": list(self.theta0),
+            "bounds": None if self.bounds is None else self.bounds.to_dict(),
+            "hit_radius_m": self.hit_radius,
+            "reset": self.reset,
+            "max_aborts": self.max_aborts,
+        }
+
+    @classmethod
+    def from_request(cls, args: Mapping[str, Any]) -> SessionConfig:
+        """The session a `start` request asks for (without `resume`).
+
+        Raises:
+            BadRequest: an unknown argument or scenario key, or an invalid value; the message
+                names it and what is valid.
+        """
+        unknown = sorted(set(args) - set(START_ARGS))
+        if unknown:
+            raise BadRequest(
+                f"start has no argument {unknown[0]!r}; arguments: {', '.join(START_ARGS)}"
+            )
+        scenario = args.get("scenario", {})
+        if not isinstance(scenario, Mapping):
+            raise BadRequest(f"scenario must be a map with keys {', '.join(SCENARIO_KEYS)}")
+        unknown = sorted(set(scenario) - set(SCENARIO_KEYS))
+        if unknown:
+            raise BadRequest(
+                f"scenario has no key {unknown[0]!r}; scenario keys: {', '.join(SCENARIO_KEYS)}"
+            )
+        bounds = None
+        if scenario.get("bounds") is not None:
+            raw = scenario["bounds"]
+            if not isinstance(raw, Mapping) or set(raw) != {"low", "high"}:
+                raise BadRequest(
+                    f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {raw!r}"
+                )
+            try:
+                bounds = Bounds(
+                    low=_vector("scenario.bounds.low", raw["low"]),
+                    high=_vector("scenario.bounds.high", raw["high"]),
+                )
+            except LearnerConfigError as exc:
+                raise BadRequest(f"scenario.bounds: {exc}") from None
+        defaults = cls()
+        return cls(
+            algorithm=args.get("algo", defaults.algorithm),
+            rollouts=args.get("rollouts", defaults.rollouts),
+            seed=args.get("seed", defaults.seed),
+            until_hit=args.get("until_hit", defaults.until_hit),
+            theta0=scenario.get("theta0", defaults.theta0),
+            bounds=bounds,
+            hit_radius=scenario.get("hit_radius", defaults.hit_radius),
+            reset=scenario.get("reset", defaults.reset),
+            options=args.get("options", {}),
+        )
+
+    @classmethod
+    def from_header(cls, header: Mapping[str, Any]) -> SessionConfig:
+        """The session a journal's header describes (the learner itself comes from its state)."""
+        config = header["config"]
+        bounds = None if config.get("bounds") is None else Bounds.from_dict(config["bounds"])
+        return cls(
+            algorithm=header["algorithm"],
+            rollouts=header["rollouts"],
+            seed=header["seed"],
+            until_hit=config["until_hit"],
+            theta0=tuple(config["theta0"]),
+            bounds=bounds,
+            hit_radius=config["hit_radius_m"],
+            reset=config["reset"],
+            options=header["options"],
+            max_aborts=config["max_aborts"],
+        )
+
+
+@dataclass(frozen=True)
+class LearnerServiceConfig:
+    """Everything `archery learner` needs.
+
+    Attributes:
+        net: network settings (the common flags).
+        runs: directory of the session directories (`runs/<session>/journal.jsonl`, report).
+        service_wait: how long a session waits for a vanished service before it fails (wall s).
+        start_wait: how long `start` waits for the other services to be alive (wall s).
+        rpc_timeout: longest wait for a reply from another service (wall s).
+        report: write `report.png` and the hit frame when a session ends.
+    """
+
+    net: NetConfig = field(default_factory=NetConfig)
+    runs: Path = Path("runs")
+    service_wait: float = 120.0
+    start_wait: float = 5.0
+    rpc_timeout: float = 20.0
+    report: bool = True
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.net, NetConfig):
+            raise ConfigError(f"net must be a NetConfig, got {self.net!r}")
+        object.__setattr__(self, "runs", Path(self.runs))
+        for name, (low, high) in {
+            "service_wait": (0.1, 86400.0),
+            "start_wait": (0.0, 600.0),
+            "rpc_timeout": (0.5, 600.0),
+        }.items():
+            value = getattr(self, name)
+            flag = "--" + name.replace("_", "-")
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ConfigError(f"{flag} must be a number of seconds, got {value!r}")
+            if not (math.isfinite(value) and low <= value <= high):
+                raise ConfigError(f"{flag} must be in [{low:g}, {high:g}] s, got {value!r}")
+
+
+def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the learner service's own flags."""
+    defaults = LearnerServiceConfig()
+    parser.add_argument(
+        "--runs", default=str(defaults.runs), help="directory of session journals and reports"
+    )
+    parser.add_argument(
+        "--service-wait",
+        type=float,
+        default=defaults.service_wait,
+        help="wait this long for a vanished service before failing the session (s)",
+    )
+    parser.add_argument(
+        "--start-wait",
+        type=float,
+        default=defaults.start_wait,
+        help="`start` waits this long for the other services (s)",
+    )
+    parser.add_argument(
+        "--rpc-timeout",
+        type=float,
+        default=defaults.rpc_timeout,
+        help="longest wait for another service's reply (s)",
+    )
+    parser.add_argument("--no-report", action="store_true", help="write no report figures")
+
+
+def config_from_args(args: argparse.Namespace, net: NetConfig) -> LearnerServiceConfig:
+    """Build the config from parsed flags.
+
+    Raises:
+        ConfigError: an invalid value; the message names the flag and its valid range.
+    """
+    return LearnerServiceConfig(
+        net=net,
+        runs=Path(args.runs),
+        service_wait=args.service_wait,
+        start_wait=args.start_wait,
+        rpc_timeout=args.rpc_timeout,
+        report=not args.no_report,
+    )

@@ -1,0 +1,530 @@
+"""One learning session, rollout by rollout, journaled: the closed loop of DESIGN.md in order.
+
+A rollout (attempt `index`): θ from the learner (or the retry θ an abort left) → journal
+`proposed` → controller posture → robot nock and release → detector measure (a frame newer
+than the landing) → `tell(θ, r)` → journal `done` with the learner's state. The services are
+reached through a `Rig` (the mesh in `services.learner.rig`, fakes in tests), so this module
+knows no Zenoh.
+
+Aborts (journal `aborted`, the learner is not told; attempts are not counted as rollouts):
+
+* `service_lost`: a service did not answer or vanished. The session waits until every service
+  is alive again (up to `service_wait`), then re-runs the same θ.
+* `rpc_error`, `not_reached`: a service refused or the posture was not reached in time; the
+  same θ is re-run.
+* `no_target`: the detector sees no target (a camera or lighting problem, not the θ's fault);
+  the same θ is re-run.
+* `no_arrow`: no arrow on the target face: the shot missed it. No r is invented: the next
+  attempt backs off halfway from the missed θ towards the best θ so far (θ0 before any
+  rollout), and that θ is what the learner is told about; its own pending proposal is dropped.
+
+After `max_aborts` aborts in a row the session fails with the last cause; it can be resumed.
+The ground-truth impact (the robot's event) is logged beside each rollout for plots only.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from protocol.errors import ArcheryError, BadRequest
+from services.learner.base import Bounds, Learner, LearnerError
+from services.learner.config import SessionConfig
+from services.learner.journal import JOURNAL_NAME, Journal, JournalError
+from services.learner.registry import make_learner, restore_learner
+
+__all__ = [
+    "Measurement",
+    "PostureResult",
+    "Rig",
+    "RigError",
+    "ServiceLost",
+    "Session",
+    "SessionFailed",
+    "Shot",
+    "new_session_id",
+]
+
+log = logging.getLogger("archery.learner")
+
+
+class RigError(ArcheryError):
+    """A service replied with an error, or its reply made no sense."""
+
+    code = "rpc_error"
+
+
+class ServiceLost(RigError):
+    """A service did not reply in time or is no longer alive; `service` names it."""
+
+    code = "service_lost"
+
+    def __init__(self, service: str, message: str) -> None:
+        super().__init__(message)
+        self.service = service
+
+
+class SessionFailed(ArcheryError):
+    """The session cannot go on (too many aborts, a service gone for good); resumable."""
+
+    code = "session_failed"
+
+
+@dataclass(frozen=True)
+class PostureResult:
+    """The controller's answer: reached in time, why not, the θ measured (m), timings (s)."""
+
+    reached: bool
+    reason: str
+    theta_measured: list[float]
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Shot:
+    """A released arrow, landed: the robot's shot number, landing sim time (s), wall stamp of
+    the reply (s since the epoch), and what the robot says for the log (outcome)."""
+
+    shot: int
+    sim_time: float
+    stamp: float
+    outcome: str
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The detector's answer: status ok / no_target / no_arrow, r (m) when ok, the reply."""
+
+    status: str
+    r_m: list[float] | None
+    detection: dict[str, Any]
+    timing: dict[str, float] = field(default_factory=dict)
+
+
+class Rig(Protocol):
+    """The other services as one session sees them (every call may raise `RigError` or
+    `ServiceLost`)."""
+
+    services: tuple[str, ...]
+
+    def missing(self) -> list[str]:
+        """Services not alive now."""
+
+    def wait_services(self, timeout: float, stop: threading.Event) -> bool:
+        """Wait until every service is alive (True) or `stop` is set (False).
+
+        Raises ServiceLost when some are still missing after `timeout` s."""
+
+    def theta_box(self) -> Bounds:
+        """The controller's θ box (m)."""
+
+    def reset(self, seed: int) -> None:
+        """Robot to its home posture, shot noise reseeded."""
+
+    def posture(self, theta: np.ndarray) -> PostureResult:
+        """Move to the archery posture for θ (m) and wait until the motion is done."""
+
+    def shoot(self) -> Shot:
+        """Nock an arrow and release it; returns once it has landed."""
+
+    def measure(self, shot: Shot) -> Measurement:
+        """Detect target centre and arrow tip in a frame newer than the landing."""
+
+    def truth(self, shot: Shot) -> list[float] | None:
+        """The robot's ground-truth r (m) of the shot, for the log only (None if unknown)."""
+
+    def hit_frame(self, shot: Shot, measurement: Measurement) -> np.ndarray | None:
+        """The camera frame of the shot with the detection drawn on it (RGB), if available."""
+
+
+def new_session_id(algorithm: str, seed: int) -> str:
+    """A new session id: UTC time, algorithm, seed and 4 random hex digits."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    return f"{stamp}-{algorithm}-s{seed}-{np.random.default_rng().integers(16**4):04x}"
+
+
+def _distance(r: list[float]) -> float:
+    return float(np.hypot(r[0], r[1]))
+
+
+class Session:
+    """A session over a `Rig`, journaled in `directory/journal.jsonl`. Build with `create` or
+    `resume`; `run` it on one thread; `status` may be read from any thread.
+
+    Args:
+        on_record: called with each journal record right after it is durable (e.g. to publish
+            it on `learner/rollout:o`).
+        service_wait: how long to wait for a vanished service before failing (s).
+    """
+
+    def __init__(
+        self,
+        journal: Journal,
+        learner: Learner,
+        config: SessionConfig,
+        rig: Rig,
+        *,
+        on_record: Callable[[dict[str, Any]], None] | None = None,
+        service_wait: float = 120.0,
+    ) -> None:
+        self.journal = journal
+        self.learner = learner
+        self.config = config
+        self.rig = rig
+        self.directory = journal.path.parent
+        self.on_record = on_record
+        self.service_wait = service_wait
+        self.hit_frame_path: Path | None = None
+        self._lock = threading.Lock()
+        self._phase = "starting"
+        self._cause = ""
+        self._waiting: list[str] = []
+
+    # -- construction ---------------------------------------------------------------------------
+    @classmethod
+    def create(
+        cls, config: SessionConfig, rig: Rig, runs: Path, session_id: str | None = None, **kw: Any
+    ) -> Session:
+        """A new session: learner built, bounds checked against the controller's box, header
+        journaled.
+
+        Raises:
+            BadRequest: bad learner options, bounds beyond the controller's box, θ0 outside.
+            RigError: the controller did not tell its box.
+        """
+        box = rig.theta_box()
+        bounds = config.bounds or box
+        if not (box.contains(np.array(bounds.low)) and box.contains(np.array(bounds.high))):
+            raise BadRequest(
+                f"scenario.bounds low={list(bounds.low)}, high={list(bounds.high)} m exceed the "
+                f"controller's θ box low={list(box.low)}, high={list(box.high)} m"
+            )
+        if not bounds.contains(np.array(config.theta0)):
+            raise BadRequest(
+                f"scenario.theta0 {list(config.theta0)} m lies outside the θ box "
+                f"low={list(bounds.low)}, high={list(bounds.high)} m"
+            )
+        try:
+            learner = make_learner(
+                config.algorithm,
+                np.array(config.theta0),
+                rng=np.random.default_rng(config.seed),
+                bounds=bounds,
+                **config.learner_options(),
+            )
+        except LearnerError as exc:
+            raise BadRequest(f"options for {config.algorithm!r}: {exc}") from None
+        session_id = session_id or new_session_id(config.algorithm, config.seed)
+        header = {
+            "session": session_id,
+            "algorithm": config.algorithm,
+            "seed": config.seed,
+            "rollouts": config.rollouts,
+            "options": learner.options(),
+            "config": config.to_dict() | {"bounds": bounds.to_dict()},
+            "controller_box": box.to_dict(),
+            "learner_state": learner.state_dict(),
+        }
+        journal = Journal.create(runs / session_id, header)
+        return cls(journal, learner, config, rig, **kw)
+
+    @classmethod
+    def resume(cls, path: Path, rig: Rig, session: str | None = None, **kw: Any) -> Session:
+        """Continue the session journaled at `path` (a journal file or its directory).
+
+        The learner is restored from the last done rollout's state and asked again, so it
+        proposes exactly what it proposed before; an attempt left open is re-run with its θ.
+
+        Raises:
+            JournalError: unreadable journal, another session or version, an ended session.
+        """
+        path = Path(path)
+        if path.is_dir():
+            path = path / JOURNAL_NAME
+        journal = Journal.resume(path, session)
+        try:
+            config = SessionConfig.from_header(journal.state.header)
+            learner = restore_learner(journal.state.learner_state)
+        except (KeyError, TypeError, ValueError) as exc:
+            journal.close()
+            raise JournalError(f"journal {path} cannot restore its session: {exc}") from None
+        journal.append("resumed", after=journal.state.last_index)
+        return cls(journal, learner, config, rig, **kw)
+
+    # -- status ---------------------------------------------------------------------------------
+    @property
+    def session_id(self) -> str:
+        """The session id."""
+        return self.journal.state.session
+
+    def status(self) -> dict[str, Any]:
+        """Phase (starting, waiting, running, finished, stopped, failed), counts, results."""
+        with self._lock:
+            phase, cause, waiting = self._phase, self._cause, list(self._waiting)
+        state = self.journal.state
+        last = state.done[-1] if state.done else None
+        return state.summary() | {
+            "state": phase,
+            "cause": cause,
+            "waiting_for": waiting,
+            "journal": str(self.journal.path),
+            "directory": str(self.directory),
+            "last_theta": None if last is None else last["theta"],
+            "last_r_m": None if last is None else last["r_m"],
+        }
+
+    def _set(self, phase: str, cause: str = "", waiting: list[str] | None = None) -> None:
+        with self._lock:
+            self._phase, self._cause, self._waiting = phase, cause, waiting or []
+
+    # -- the loop -------------------------------------------------------------------------------
+    def _record(self, kind: str, **fields: Any) -> dict[str, Any]:
+        record = self.journal.append(kind, **fields)
+        if self.on_record is not None:
+            try:
+                self.on_record(record)
+            except Exception:
+                log.exception("publishing the %s record failed", kind)
+        return record
+
+    def run(self, stop: threading.Event) -> dict[str, Any]:
+        """Run rollouts until the hit (with until_hit), the budget, `stop`, or a failure.
+
+        Returns:
+            `status()` at the end.
+        """
+        try:
+            self._run(stop)
+        except SessionFailed as exc:
+            self._set("failed", exc.message)
+            log.error("session %s failed: %s", self.session_id, exc.message)
+            self._record("stopped", reason="failed", cause=exc.message)
+        except JournalError as exc:
+            self._set("failed", exc.message)
+            log.error("session %s: journal failure: %s", self.session_id, exc.message)
+        except RigError as exc:
+            self._set("failed", exc.message)
+            log.error("session %s failed to set up: %s", self.session_id, exc.message)
+            self._record("stopped", reason="failed", cause=exc.message)
+        finally:
+            self.journal.close()
+        return self.status()
+
+    def _run(self, stop: threading.Event) -> None:
+        config, state = self.config, self.journal.state
+        self._await_services(stop)
+        if config.reset and not stop.is_set():
+            self._guard(lambda: self.rig.reset(config.seed + state.last_index), stop)
+        while not stop.is_set():
+            reason = self._finished()
+            if reason is not None:
+                self._record("end", reason=reason, summary=state.summary())
+                self._set("finished", reason)
+                log.info("session %s finished: %s", self.session_id, reason)
+                return
+            in_row = sum(state.aborts_in_row.values())
+            if in_row >= config.max_aborts:
+                last = state.aborted[-1]
+                raise SessionFailed(
+                    f"{in_row} attempts in a row were aborted; the last at θ {last['theta']} m: "
+                    f"[{last['code']}] {last['cause']}"
+                )
+            self._set("running")
+            self._attempt(stop)
+        self._record("stopped", reason="stop requested")
+        self._set("stopped", "stop requested")
+
+    def _finished(self) -> str | None:
+        state = self.journal.state
+        if self.config.until_hit and state.hit_at() is not None:
+            return "hit"
+        if len(state.done) >= self.config.rollouts:
+            return "budget"
+        return None
+
+    def _await_services(self, stop: threading.Event) -> None:
+        missing = self.rig.missing()
+        if missing:
+            self._set("waiting", f"waiting for {', '.join(missing)}", missing)
+            log.warning("session %s waits for %s", self.session_id, ", ".join(missing))
+            try:
+                self.rig.wait_services(self.service_wait, stop)
+            except ServiceLost as exc:
+                raise SessionFailed(exc.message) from None
+        self._set("running")
+
+    def _guard(self, call: Callable[[], Any], stop: threading.Event) -> Any:
+        """Run a set-up call, waiting for the services and retrying once if one was lost."""
+        try:
+            return call()
+        except ServiceLost:
+            self._await_services(stop)
+            return call()
+
+    def _next_theta(self) -> np.ndarray:
+        state = self.journal.state
+        if state.open is not None:
+            # Left open by a crash: the learner was never told; run the same θ again.
+            self.learner.ask()  # keeps the generator where the first run left it
+            return np.array(state.open["theta"])
+        proposal = self.learner.ask()
+        return proposal if state.retry_theta is None else np.array(state.retry_theta)
+
+    def _attempt(self, stop: threading.Event) -> None:
+        state = self.journal.state
+        theta = self._next_theta()
+        if state.open is None:
+            index = state.last_index + 1
+            self._record("proposed", index=index, theta=theta.tolist())
+        else:
+            index = int(state.open["index"])
+            log.info("re-running open attempt %d at θ %s", index, theta.tolist())
+        start = time.perf_counter()
+        try:
+            posture = self.rig.posture(theta)
+            if not posture.reached:
+                self._abort(index, theta, "not_reached", f"posture not reached: {posture.reason}")
+                return
+            shot = self.rig.shoot()
+            measurement = self.rig.measure(shot)
+        except ServiceLost as exc:
+            self._abort(index, theta, exc.code, f"{exc.service}: {exc.message}")
+            self._await_services(stop)
+            return
+        except RigError as exc:
+            self._abort(index, theta, exc.code, exc.message)
+            return
+        truth = self.rig.truth(shot)
+        if measurement.status == "no_arrow":
+            retry = self._back_off(theta)
+            self._abort(
+                index,
+                theta,
+                "no_arrow",
+                f"the detector saw no arrow on the target (robot: {shot.outcome}); next θ backs "
+                f"off halfway towards the best θ",
+                retry=retry,
+                truth_r_m=truth,
+                detection=measurement.detection,
+            )
+            return
+        if measurement.status != "ok" or measurement.r_m is None:
+            self._abort(
+                index,
+                theta,
+                measurement.status,
+                f"the detector says {measurement.status} "
+                f"{measurement.detection.get('reason', '')}".strip(),
+                truth_r_m=truth,
+                detection=measurement.detection,
+            )
+            return
+        self._done(index, theta, posture, shot, measurement, truth, start)
+
+    def _back_off(self, theta: np.ndarray) -> np.ndarray:
+        state = self.journal.state
+        if state.done:
+            best = min(state.done, key=lambda d: d["distance_m"])
+            anchor = np.array(best["theta"])
+        else:
+            anchor = np.array(self.config.theta0)
+        return self.learner.bounds.clip(anchor + 0.5 * (theta - anchor))
+
+    def _abort(
+        self,
+        index: int,
+        theta: np.ndarray,
+        code: str,
+        cause: str,
+        retry: np.ndarray | None = None,
+        **extra: Any,
+    ) -> None:
+        log.warning("attempt %d at θ %s aborted [%s]: %s", index, theta.tolist(), code, cause)
+        self._record(
+            "aborted",
+            index=index,
+            theta=theta.tolist(),
+            code=code,
+            cause=cause,
+            retry_theta=(theta if retry is None else retry).tolist(),
+            **extra,
+        )
+
+    def _done(
+        self,
+        index: int,
+        theta: np.ndarray,
+        posture: PostureResult,
+        shot: Shot,
+        measurement: Measurement,
+        truth: list[float] | None,
+        start: float,
+    ) -> None:
+        r = [float(x) for x in measurement.r_m or ()]
+        told = time.perf_counter()
+        big_return = self.learner.tell(theta, np.array(r))
+        distance = _distance(r)
+        hit = distance < self.config.hit_radius
+        timing = posture.timing | shot.timing | measurement.timing
+        timing["learner_s"] = time.perf_counter() - told
+        rollout = len(self.journal.state.done) + 1
+        record = {
+            "index": index,
+            "rollout": rollout,
+            "theta": theta.tolist(),
+            "theta_measured": posture.theta_measured,
+            "r_m": r,
+            "ret": big_return,
+            "distance_m": distance,
+            "hit": hit,
+            "shot": shot.shot,
+            "outcome": shot.outcome,
+            "truth_r_m": truth,
+            "truth_distance_m": None if truth is None else _distance(truth),
+            "detection": measurement.detection,
+        }
+        if hit:  # the frame of the latest hit, taken before the next nock takes the arrow
+            before = time.perf_counter()
+            self._save_hit_frame(shot, measurement)
+            timing["hit_frame_s"] = time.perf_counter() - before
+        before = time.perf_counter()
+        timing["rollout_s"] = before - start
+        done = self.journal.append(
+            "done", **record, timing=timing, learner_state=self.learner.state_dict()
+        )
+        timing = timing | {"journal_s": time.perf_counter() - before}
+        if self.on_record is not None:
+            try:
+                self.on_record(done | {"timing": timing})  # published with the journal's time
+            except Exception:
+                log.exception("publishing the done record failed")
+        log.info(
+            "rollout %d (attempt %d): θ %s → r %s, %.1f cm%s",
+            rollout,
+            index,
+            np.round(theta, 4).tolist(),
+            np.round(r, 3).tolist(),
+            100 * distance,
+            " HIT" if hit else "",
+        )
+
+    def _save_hit_frame(self, shot: Shot, measurement: Measurement) -> None:
+        try:
+            pixels = self.rig.hit_frame(shot, measurement)
+        except RigError as exc:
+            log.warning("no frame of the hit: %s", exc.message)
+            return
+        if pixels is None:
+            return
+        from services.learner.report import save_png
+
+        self.hit_frame_path = self.directory / "hit.png"
+        save_png(self.hit_frame_path, pixels)

@@ -1,0 +1,312 @@
+"""Session logic against a fake rig: the loop's order, aborts and their retry θ, waiting for lost
+services, exact resume after a crash, stop, bad start requests, and the report figures."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from protocol.errors import BadRequest
+from services.learner.base import Bounds
+from services.learner.config import SessionConfig
+from services.learner.journal import JournalError, read_records
+from services.learner.report import draw_overlay, write_report
+from services.learner.session import (
+    Measurement,
+    PostureResult,
+    RigError,
+    ServiceLost,
+    Session,
+    Shot,
+)
+
+BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
+# r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.
+GAIN = np.array([[-1.0, -11.0, -1.1], [2.3, -4.0, -11.8]])
+AIM = np.array([0.16, 0.0, -0.018])
+
+
+class Crash(BaseException):
+    """Stands for the learner process dying (nothing catches it)."""
+
+
+class FakeRig:
+    """The services as a linear world: r = GAIN (θ − AIM), deterministic per θ; failures on cue.
+
+    `lose` maps an attempt number to the service that vanishes during it; `crash_at` raises
+    `Crash` in that attempt's measure; arrows with ‖r‖ > 0.25 m are not seen (no_arrow).
+    """
+
+    services = ("robot", "camera", "detector", "controller")
+
+    def __init__(self, lose: dict[int, str] | None = None, crash_at: int | None = None) -> None:
+        self.lose = dict(lose or {})
+        self.crash_at = crash_at
+        self.attempts = 0
+        self.calls: list[str] = []
+        self.gone: set[str] = set()
+        self.resets: list[int] = []
+        self.theta = np.zeros(3)
+        self.shots = 0
+        self.waits = 0
+
+    def missing(self) -> list[str]:
+        return sorted(self.gone)
+
+    def wait_services(self, timeout: float, stop: threading.Event) -> bool:
+        self.waits += 1
+        self.gone.clear()
+        return True
+
+    def theta_box(self) -> Bounds:
+        return BOX
+
+    def reset(self, seed: int) -> None:
+        self.resets.append(seed)
+
+    def posture(self, theta: np.ndarray) -> PostureResult:
+        self.attempts += 1
+        self.calls.append("posture")
+        self.theta = np.array(theta)
+        return PostureResult(True, "", list(theta), {"posture_s": 0.01})
+
+    def shoot(self) -> Shot:
+        self.calls.append("shoot")
+        self.shots += 1
+        return Shot(self.shots, 1.0, 0.0, "target", {"release_s": 0.01})
+
+    def _r(self) -> np.ndarray:
+        noise = np.random.default_rng(abs(hash(tuple(np.round(self.theta, 9))))).normal(0, 0.003, 2)
+        return GAIN @ (self.theta - AIM) + noise
+
+    def measure(self, shot: Shot) -> Measurement:
+        self.calls.append("measure")
+        if self.attempts in self.lose:
+            service = self.lose.pop(self.attempts)
+            self.gone.add(service)
+            raise ServiceLost(service, f"no reply from {service}")
+        if self.attempts == self.crash_at:
+            raise Crash()
+        r = self._r()
+        if np.linalg.norm(r) > 0.25:
+            return Measurement("no_arrow", None, {"status": "no_arrow"})
+        return Measurement("ok", r.tolist(), {"status": "ok", "r_m": r.tolist()})
+
+    def truth(self, shot: Shot) -> list[float] | None:
+        return (GAIN @ (self.theta - AIM)).tolist()
+
+    def hit_frame(self, shot: Shot, measurement: Measurement) -> np.ndarray | None:
+        return np.full((72, 128, 3), 90, np.uint8)
+
+
+def _kinds(path: Path) -> list[tuple[str, int | None]]:
+    return [(r["record"], r.get("index")) for r in read_records(path)[0]]
+
+
+def _check_each_once(path: Path) -> None:
+    """Every attempt proposed once and finished once, in order."""
+    records = read_records(path)[0]
+    proposed = [r["index"] for r in records if r["record"] == "proposed"]
+    finished = [r["index"] for r in records if r["record"] in ("done", "aborted")]
+    assert proposed == list(range(1, len(proposed) + 1))
+    assert finished == proposed
+
+
+def _run(config: SessionConfig, rig: FakeRig, runs: Path, **kw: Any) -> Session:
+    session = Session.create(config, rig, runs, session_id="s", **kw)
+    session.run(threading.Event())
+    return session
+
+
+def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
+    rig = FakeRig()
+    published: list[dict[str, Any]] = []
+    session = _run(SessionConfig(seed=1), rig, tmp_path, on_record=published.append)
+    status = session.status()
+    assert status["state"] == "finished" and status["ended"] == "hit"
+    assert status["hit_at"] is not None and status["hit_at"] <= 8
+    assert rig.calls[:3] == ["posture", "shoot", "measure"]
+    assert rig.resets == [1]
+    path = tmp_path / "s" / "journal.jsonl"
+    _check_each_once(path)
+    records = read_records(path)[0]
+    assert records[-1]["record"] == "end" and records[-1]["reason"] == "hit"
+    done = [r for r in records if r["record"] == "done"]
+    assert done[-1]["hit"] and done[-1]["distance_m"] < 0.05
+    assert all(r["truth_r_m"] is not None for r in done)
+    assert [r["record"] for r in published] == [r["record"] for r in records[1:]]
+    assert "journal_s" in published[1]["timing"]
+    assert (tmp_path / "s" / "hit.png").exists()
+
+
+def test_budget_ends_without_hit(tmp_path: Path) -> None:
+    session = _run(SessionConfig(algorithm="random", rollouts=3, seed=0), FakeRig(), tmp_path)
+    assert session.status()["ended"] == "budget" and session.status()["rollouts"] == 3
+
+
+def test_no_arrow_backs_off_and_never_invents_r(tmp_path: Path) -> None:
+    # θ0 whose exploration scatters arrows off the face.
+    config = SessionConfig(seed=4, theta0=(0.17, 0.015, -0.03), options={"explore_std": 0.01})
+    rig = FakeRig()
+    session = _run(config, rig, tmp_path)
+    records = read_records(session.journal.path)[0]
+    aborted = [r for r in records if r["record"] == "aborted"]
+    assert aborted and all(r["code"] == "no_arrow" for r in aborted)
+    done = [r for r in records if r["record"] == "done"]
+    told = {tuple(d["theta"]) for d in done}
+    for a in aborted:
+        assert tuple(a["theta"]) not in told  # the missed θ is never told
+        following = next(
+            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
+        )
+        assert following["theta"] == a["retry_theta"]
+        assert a["retry_theta"] != a["theta"]
+    assert len(session.learner.thetas) == len(done)
+    _check_each_once(session.journal.path)
+
+
+def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None:
+    rig = FakeRig(lose={2: "detector", 4: "robot"})
+    session = _run(SessionConfig(seed=2), rig, tmp_path)
+    records = read_records(session.journal.path)[0]
+    aborted = [r for r in records if r["record"] == "aborted"]
+    assert [a["code"] for a in aborted] == ["service_lost", "service_lost"]
+    assert "detector" in aborted[0]["cause"] and "robot" in aborted[1]["cause"]
+    for a in aborted:
+        retry = next(
+            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
+        )
+        assert retry["theta"] == a["theta"] == a["retry_theta"]
+    assert rig.waits == 2
+    assert session.status()["ended"] == "hit"
+    _check_each_once(session.journal.path)
+
+
+def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
+    config = SessionConfig(seed=5, until_hit=False, rollouts=8)
+    reference = _run(config, FakeRig(), tmp_path / "ref")
+    ref_thetas = [r["theta"] for r in reference.journal.state.done]
+
+    crashed = Session.create(config, FakeRig(crash_at=4), tmp_path / "run", session_id="s")
+    with pytest.raises(Crash):
+        crashed.run(threading.Event())
+    path = tmp_path / "run" / "s" / "journal.jsonl"
+    assert _kinds(path)[-1] == ("proposed", 4)
+    rig = FakeRig()
+    with pytest.raises(JournalError, match="not 'other'"):
+        Session.resume(path, rig, session="other")
+    resumed = Session.resume(path.parent, rig, session="s")
+    resumed.run(threading.Event())
+    records = read_records(path)[0]
+    assert [r["theta"] for r in records if r["record"] == "done"] == ref_thetas
+    assert [r["record"] for r in records].count("resumed") == 1
+    _check_each_once(path)
+    assert records[-1]["record"] == "end"
+    with pytest.raises(JournalError, match="has ended"):
+        Session.resume(path, FakeRig())
+
+
+def test_stop_then_resume(tmp_path: Path) -> None:
+    stop = threading.Event()
+    rig = FakeRig()
+    published: list[dict[str, Any]] = []
+
+    def on_record(record: dict[str, Any]) -> None:
+        published.append(record)
+        if record["record"] == "done" and record["rollout"] == 2:
+            stop.set()
+
+    session = Session.create(
+        SessionConfig(seed=3, until_hit=False, rollouts=4), rig, tmp_path, "s", on_record=on_record
+    )
+    assert session.run(stop)["state"] == "stopped"
+    assert len(session.journal.state.done) == 2
+    resumed = Session.resume(tmp_path / "s", FakeRig())
+    assert resumed.run(threading.Event())["ended"] == "budget"
+    _check_each_once(tmp_path / "s" / "journal.jsonl")
+
+
+def test_too_many_aborts_fail_the_session(tmp_path: Path) -> None:
+    class Blind(FakeRig):
+        def measure(self, shot: Shot) -> Measurement:
+            return Measurement("no_target", None, {"status": "no_target", "reason": "dark"})
+
+    session = _run(SessionConfig(max_aborts=3), Blind(), tmp_path)
+    status = session.status()
+    assert status["state"] == "failed" and "3 attempts in a row" in status["cause"]
+    assert "no_target" in status["cause"]
+    assert _kinds(session.journal.path)[-1] == ("stopped", None)
+
+
+def test_rig_error_aborts_and_retries(tmp_path: Path) -> None:
+    class Busy(FakeRig):
+        def shoot(self) -> Shot:
+            if self.attempts == 1:
+                raise RigError("archery/rpc:i release: busy")
+            return super().shoot()
+
+    session = _run(SessionConfig(seed=1), Busy(), tmp_path)
+    aborted = session.journal.state.aborted
+    assert [a["code"] for a in aborted] == ["rpc_error"] and "busy" in aborted[0]["cause"]
+    assert session.status()["ended"] == "hit"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        ({"algo": "archerx"}, "unknown algorithm 'archerx'; valid algorithms: archer"),
+        ({"rollouts": 0}, "rollouts must be an integer"),
+        ({"seed": -1}, "seed must be"),
+        ({"until_hit": "yes"}, "until_hit must be true or false"),
+        ({"scenario": {"wind": 3}}, "scenario has no key 'wind'"),
+        ({"scenario": {"theta0": [0.1, 0.2]}}, "theta0 must be 3 finite numbers"),
+        ({"scenario": {"hit_radius": -0.1}}, "hit_radius must be in"),
+        ({"scenario": {"bounds": {"low": [0, 0, 0]}}}, "bounds must be"),
+        ({"scenario": {"bounds": {"low": [0.2, 0, 0], "high": [0.1, 0.1, 0.1]}}}, "low < high"),
+        ({"speed": 3}, "start has no argument 'speed'"),
+    ],
+)
+def test_bad_start_requests(args: dict[str, Any], message: str) -> None:
+    with pytest.raises(BadRequest, match=message.replace("(", r"\(")):
+        SessionConfig.from_request(args)
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        (SessionConfig(theta0=(0.30, 0.0, 0.0)), "outside the θ box"),
+        (
+            SessionConfig(bounds=Bounds(low=(0.1, -0.1, -0.1), high=(0.3, 0.1, 0.1))),
+            "exceed the controller's θ box",
+        ),
+        (SessionConfig(options={"n_best": 1}), "options for 'archer'"),
+        (SessionConfig(options={"colour": 1}), "invalid option"),
+    ],
+)
+def test_bad_sessions_touch_nothing(tmp_path: Path, config: SessionConfig, message: str) -> None:
+    with pytest.raises(BadRequest, match=message):
+        Session.create(config, FakeRig(), tmp_path, "s")
+    assert not (tmp_path / "s").exists()
+
+
+def test_report_and_overlay(tmp_path: Path) -> None:
+    session = _run(SessionConfig(seed=1), FakeRig(), tmp_path)
+    path = write_report(session.journal.path)
+    assert path.stat().st_size > 10_000
+    frame = np.zeros((720, 1280, 3), np.uint8)
+    detection = {
+        "status": "ok",
+        "target_px": [640, 360],
+        "arrow_px": [700, 330],
+        "r_m": [0.03, 0.01],
+        "target_confidence": 0.9,
+        "arrow_confidence": 0.8,
+    }
+    image = draw_overlay(frame, detection, "rollout 4")
+    assert image.shape == frame.shape and image.dtype == np.uint8
+    assert image[360, 640 + 16].any() or image[360 + 16, 640].any()  # the centre's circle
+    assert not frame.any()  # the input is not drawn on
