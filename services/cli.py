@@ -27,6 +27,12 @@ VERBS: dict[str, tuple[str, str]] = {
     "calibrate": ("services.detector.offline:calibrate_main", "fit the colour model from pixels"),
     "detect": ("services.detector.offline:detect_main", "detect target and arrow in an image"),
     "controller": ("services.controller.service:main", "Pinocchio IK: archery posture for θ"),
+    "learner": (
+        "services.learner.service:main",
+        "learning sessions over the mesh (ARCHER, PoWER, baselines), journaled",
+    ),
+    "learn": ("services.learner.learn:main", "run one learning session against running services"),
+    "up": ("services.launcher:main", "start a router and all five services; stop them on Ctrl-C"),
     "experiment": (
         "services.learner.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",

@@ -1,0 +1,226 @@
+"""`archery learn`: run one learning session against running services and print its result.
+
+It asks the learner service to `start` (or `--resume`) a session, shows each rollout as it is
+published on `learner/rollout:o`, and ends by printing one JSON line on stdout:
+`{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
+"report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget), 1 when it
+failed or the learner vanished (the message says how to resume), 2 for bad input, 130 after
+Ctrl-C (the session is stopped after its current rollout and can be resumed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
+from protocol.messages import Rollout
+from protocol.netflags import NetConfig, add_network_args
+from protocol.node import Node
+from services.learner.registry import ALGORITHMS
+
+__all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
+
+FINAL_STATES = ("finished", "stopped", "failed")
+
+
+class SessionLost(ArcheryError):
+    """The learner vanished while following a session."""
+
+    code = "service_lost"
+
+
+def _vector3(text: str, flag: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3:
+        raise ConfigError(f"{flag} must be three numbers X,Y,Z (m), got {text!r}")
+    return values
+
+
+def _option(text: str) -> tuple[str, Any]:
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise ConfigError(f"--option must be NAME=VALUE (VALUE in JSON), got {text!r}")
+    try:
+        return name, json.loads(value)
+    except json.JSONDecodeError:
+        raise ConfigError(
+            f"--option {name}: {value!r} is not JSON (e.g. 0.003 or [1,2,3])"
+        ) from None
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of `archery learn`."""
+    parser = argparse.ArgumentParser(prog="archery learn", description=__doc__.split("\n")[0])
+    add_network_args(parser)
+    parser.add_argument("--algo", default="archer", help=f"one of {', '.join(ALGORITHMS)}")
+    parser.add_argument("--rollouts", type=int, default=30, help="budget of done rollouts")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the learner and the shots")
+    parser.add_argument(
+        "--no-until-hit",
+        action="store_true",
+        help="use the whole budget instead of ending at the first hit",
+    )
+    parser.add_argument("--theta0", metavar="X,Y,Z", help="start θ (m)")
+    parser.add_argument("--hit-radius", type=float, help="hit radius (m, default 0.05)")
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="NAME=VALUE", help="learner option"
+    )
+    parser.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
+    parser.add_argument(
+        "--wait", type=float, default=30.0, help="wait this long for the learner service (s)"
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    return parser
+
+
+def start_request(args: argparse.Namespace) -> dict[str, Any]:
+    """The `start` request for parsed flags."""
+    if args.resume:
+        return {"resume": args.resume}
+    scenario: dict[str, Any] = {}
+    if args.theta0:
+        scenario["theta0"] = _vector3(args.theta0, "--theta0")
+    if args.hit_radius is not None:
+        scenario["hit_radius"] = args.hit_radius
+    request: dict[str, Any] = {
+        "algo": args.algo,
+        "rollouts": args.rollouts,
+        "seed": args.seed,
+        "until_hit": not args.no_until_hit,
+        "options": dict(_option(text) for text in args.option),
+    }
+    if scenario:
+        request["scenario"] = scenario
+    return request
+
+
+def follow(
+    node: Node,
+    session: str,
+    rollouts: Any,
+    on_rollout: Callable[[Rollout], None],
+    *,
+    poll: float = 0.5,
+    gone_after: float = 5.0,
+) -> dict[str, Any]:
+    """Hand each `Rollout` of `session` to `on_rollout` until the session ends; its final status.
+
+    Raises:
+        SessionLost: the learner stopped answering for `gone_after` s.
+    """
+    key = node.keys.learner_rpc()
+    silent_since: float | None = None
+    while True:
+        try:
+            while True:
+                message = rollouts.get(timeout=poll)
+                if message.session == session:
+                    on_rollout(message)
+        except RpcTimeout:
+            pass
+        try:
+            status = node.call(key, "status", timeout=2.0)
+            silent_since = None
+        except RpcTimeout:
+            now = time.monotonic()
+            silent_since = silent_since or now
+            if now - silent_since > gone_after:
+                raise SessionLost(
+                    f"the learner stopped answering during session {session}; restart it "
+                    f"(`archery learner`) and continue with `archery learn --resume "
+                    f"<journal of {session}>`"
+                ) from None
+            continue
+        if status.get("session") == session and status.get("state") in FINAL_STATES:
+            try:  # records published before the final status
+                while True:
+                    message = rollouts.get(timeout=0.2)
+                    if message.session == session:
+                        on_rollout(message)
+            except RpcTimeout:
+                pass
+            return status
+
+
+def result_line(status: dict[str, Any]) -> str:
+    """The one JSON line `archery learn` prints."""
+    keys = ("session", "rollouts", "hit_at", "final_distance_m", "journal")
+    extra = ("status", "aborted", "report", "hit_frame")
+    line = {k: status.get(k) for k in keys} | {k: status.get(k) for k in extra}
+    line["status"] = status.get("state")
+    return json.dumps(line)
+
+
+def _progress(message: Rollout) -> None:
+    theta = ", ".join(f"{100 * v:.2f}" for v in message.theta)
+    if message.status == "proposed":
+        return
+    if message.status == "aborted":
+        print(
+            f"  attempt {message.index}: θ ({theta}) cm aborted: {message.cause}", file=sys.stderr
+        )
+        return
+    r = message.r_m or [float("nan")] * 2
+    distance = 100 * (r[0] ** 2 + r[1] ** 2) ** 0.5
+    hit = "  HIT" if message.hit else ""
+    print(
+        f"  attempt {message.index}: θ ({theta}) cm → r ({100 * r[0]:+.1f}, {100 * r[1]:+.1f}) cm, "
+        f"{distance:.1f} cm{hit}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `archery learn`; see the module docstring for the exit statuses."""
+    args = build_parser().parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+        request = start_request(args)
+    except ConfigError as exc:
+        print(f"archery learn: {exc}", file=sys.stderr)
+        return 2
+    show = (lambda m: None) if args.quiet else _progress
+    with Node(None, net) as node:
+        key = node.keys.learner_rpc()
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        try:
+            node.wait_alive(["learner"], timeout=args.wait)
+            status = node.call(key, "start", request, timeout=args.wait + 30)
+        except RpcError as exc:
+            print(f"archery learn: {exc}", file=sys.stderr)
+            return 2 if exc.code in ("bad_request", "bad_journal", "busy") else 1
+        session = status["session"]
+        if not args.quiet:
+            print(f"session {session}: journal {status['journal']}", file=sys.stderr)
+        try:
+            status = follow(node, session, rollouts, show)
+        except SessionLost as exc:
+            print(f"archery learn: {exc}", file=sys.stderr)
+            status = status | {"state": "lost"}
+            print(result_line(status))
+            return 1
+        except KeyboardInterrupt:
+            print("archery learn: stopping the session after its current rollout", file=sys.stderr)
+            try:
+                node.call(key, "stop", timeout=5.0)
+                status = follow(node, session, rollouts, show)
+            except (ArcheryError, KeyboardInterrupt):
+                pass
+            print(result_line(status))
+            return 130
+    print(result_line(status))
+    if status["state"] != "finished":
+        print(
+            f"archery learn: session {status['state']}: {status.get('cause', '')}", file=sys.stderr
+        )
+        return 1
+    return 0

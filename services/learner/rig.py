@@ -1,0 +1,188 @@
+"""The other services as one session sees them, over the mesh: the `Rig` of `session` on a Node.
+
+Calls, in a rollout's order (ROBOT = the robot prefix):
+
+* `ROBOT/cartesianController/archery/rpc:i posture {theta}` (and `status` for the θ box);
+* `ROBOT/archery/rpc:i nock`, then `release` (replies once the arrow has landed), `reset {seed}`;
+* `ROBOT/detector/rpc:i measure` for a frame newer than the landing;
+* `ROBOT/cam/rpc:i grab` for the hit frame drawn with the detection;
+* `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
+
+A call that gets no reply becomes `ServiceLost` naming the service; an error reply `RigError`
+with the service's code and message.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from typing import Any
+
+import numpy as np
+
+from protocol.errors import RpcError, RpcTimeout
+from protocol.messages import Image, WorldEvent
+from protocol.node import Node
+from services.learner.base import Bounds, LearnerConfigError
+from services.learner.report import draw_overlay
+from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
+
+__all__ = ["SERVICES", "MeshRig"]
+
+SERVICES = ("robot", "camera", "detector", "controller")
+log = logging.getLogger("archery.learner")
+_TRUTH_KEPT = 256  # shots whose ground truth is remembered
+
+
+class MeshRig:
+    """The robot, camera, detector and controller over `node`'s session.
+
+    Args:
+        node: the learner's node.
+        timeout: longest wait for a reply (wall s).
+    """
+
+    services = SERVICES
+
+    def __init__(self, node: Node, timeout: float = 20.0) -> None:
+        self.node = node
+        self.keys = node.keys
+        self.timeout = timeout
+        self._truth: OrderedDict[int, WorldEvent] = OrderedDict()
+        self._truth_cond = threading.Condition()
+        node.subscribe(self.keys.world_events(), WorldEvent, mode="fifo", callback=self._on_event)
+
+    def _on_event(self, event: WorldEvent) -> None:
+        if event.kind not in ("landed", "missed"):
+            return
+        with self._truth_cond:
+            self._truth[event.shot] = event
+            while len(self._truth) > _TRUTH_KEPT:
+                self._truth.popitem(last=False)
+            self._truth_cond.notify_all()
+
+    def _call(
+        self, service: str, key: str, verb: str, args: dict[str, Any] | None = None
+    ) -> tuple[Any, float]:
+        """(result, wall s) of one call; ServiceLost or RigError when it fails."""
+        start = time.perf_counter()
+        try:
+            result = self.node.call(key, verb, args, timeout=self.timeout)
+        except RpcTimeout as exc:
+            raise ServiceLost(service, exc.message) from None
+        except RpcError as exc:
+            raise RigError(exc.message, code=exc.code) from None
+        if not isinstance(result, dict):
+            raise RigError(f"{key} {verb} replied {result!r}, not a map", code="bad_reply")
+        return result, time.perf_counter() - start
+
+    # -- liveliness -----------------------------------------------------------------------------
+    def missing(self) -> list[str]:
+        """Services whose liveliness token is down now."""
+        return sorted(set(self.services) - self.node.alive())
+
+    def wait_services(self, timeout: float, stop: threading.Event) -> bool:
+        """Wait until every service is alive (True) or `stop` is set (False).
+
+        Raises:
+            ServiceLost: some are still missing after `timeout` s.
+        """
+        deadline = time.monotonic() + timeout
+        while not stop.is_set():
+            try:
+                self.node.wait_alive(self.services, timeout=min(1.0, timeout))
+                return True
+            except RpcTimeout:
+                if time.monotonic() > deadline:
+                    missing = self.missing()
+                    raise ServiceLost(
+                        ", ".join(missing) or "?",
+                        f"{', '.join(missing)} still not alive after {timeout:g} s "
+                        f"(robot {self.keys.robot!r}); restart them and resume the session",
+                    ) from None
+        return False
+
+    # -- the rollout ----------------------------------------------------------------------------
+    def theta_box(self) -> Bounds:
+        """The controller's θ box (m), from its `status`."""
+        result, _ = self._call("controller", self.keys.cartesian_rpc("archery"), "status")
+        try:
+            return Bounds(low=tuple(result["theta_min"]), high=tuple(result["theta_max"]))
+        except (KeyError, TypeError, LearnerConfigError) as exc:
+            raise RigError(f"the controller's status has no valid θ box: {exc}") from None
+
+    def reset(self, seed: int) -> None:
+        """Robot to the home posture, shot noise reseeded with `seed`."""
+        self._call("robot", self.keys.archery_rpc(), "reset", {"seed": int(seed)})
+
+    def posture(self, theta: np.ndarray) -> PostureResult:
+        """The archery posture for θ (m), once the robot reports the motion done."""
+        key = self.keys.cartesian_rpc("archery")
+        result, wall = self._call("controller", key, "posture", {"theta": list(map(float, theta))})
+        move = float(result.get("wall_s", 0.0))
+        return PostureResult(
+            reached=bool(result.get("reached")),
+            reason=str(result.get("reason", "")),
+            theta_measured=list(result.get("theta_measured") or []),
+            timing={"posture_s": wall, "move_s": move, "ik_and_transport_s": wall - move},
+        )
+
+    def shoot(self) -> Shot:
+        """Nock and release; returns when the arrow has landed."""
+        key = self.keys.archery_rpc()
+        _, nock = self._call("robot", key, "nock")
+        result, release = self._call("robot", key, "release")
+        try:
+            flight = float(result["flight_time"])
+            return Shot(
+                shot=int(result["shot"]),
+                sim_time=float(result["sim_time"]),
+                stamp=time.time(),
+                outcome=str(result.get("outcome", "")),
+                timing={"nock_s": nock, "release_s": release, "flight_sim_s": flight},
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RigError(f"{key} release replied without {exc}: {result!r}") from None
+
+    def measure(self, shot: Shot) -> Measurement:
+        """The detector's measurement of a frame newer than the landing."""
+        key = self.keys.detector_rpc()
+        result, wall = self._call("detector", key, "measure", {"after_sim_time": shot.sim_time})
+        status = result.get("status")
+        if status not in ("ok", "no_target", "no_arrow"):
+            raise RigError(f"{key} measure replied status {status!r}", code="bad_reply")
+        r = result.get("r_m")
+        if status == "ok" and (not isinstance(r, list) or len(r) != 2):
+            raise RigError(f"{key} measure replied ok without a 2-vector r_m: {r!r}")
+        timing = {"measure_s": wall}
+        for name, value in (result.get("timing") or {}).items():
+            if isinstance(value, int | float):
+                timing[f"detector_{name}"] = float(value)
+        return Measurement(status, r if status == "ok" else None, dict(result), timing)
+
+    def truth(self, shot: Shot) -> list[float] | None:
+        """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none)."""
+        with self._truth_cond:
+            self._truth_cond.wait_for(lambda: shot.shot in self._truth, timeout=1.0)
+            event = self._truth.get(shot.shot)
+        return None if event is None or event.impact_m is None else list(event.impact_m)
+
+    def hit_frame(self, shot: Shot, measurement: Measurement) -> np.ndarray | None:
+        """The camera's frame of the landed arrow with the detection drawn on it (RGB)."""
+        key = self.keys.cam_rpc()
+        try:
+            result = self.node.call(
+                key, "grab", {"after_sim_time": shot.sim_time}, timeout=self.timeout
+            )
+        except RpcTimeout as exc:
+            raise ServiceLost("camera", exc.message) from None
+        except RpcError as exc:
+            raise RigError(exc.message, code=exc.code) from None
+        image = result if isinstance(result, Image) else None
+        if image is None:
+            log.warning("camera grab replied %s, not an image", type(result).__name__)
+            return None
+        caption = f"shot {shot.shot}: hit"
+        return draw_overlay(image.to_numpy(), measurement.detection, caption)

@@ -1,0 +1,189 @@
+"""`archery learner` over a real router with the real robot and controller and stand-ins for the
+camera and detector (the detector reports the robot's landing with noise): sessions through RPC,
+rollouts on `learner/rollout:o`, the report, bad requests, a missing service, `archery learn`."""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from protocol.errors import RpcError
+from protocol.messages import Rollout, WorldEvent
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from services.controller import service as controller_service
+from services.controller.config import ControllerConfig
+from services.learner import service as learner_service
+from services.learner.config import LearnerServiceConfig
+from services.learner.journal import read_records
+from services.learner.learn import follow
+from services.robot import service as robot_service
+from services.robot.config import RobotConfig
+from sim.scene import SceneConfig
+from sim.world import WorldConfig
+from tests.conftest import archery
+
+WORLD = WorldConfig(scene=SceneConfig(meshes=False))
+
+
+def run_fake_sensors(net: NetConfig, stop: threading.Event, noise_m: float = 0.003) -> None:
+    """A camera that only shows up alive and a detector whose `measure` reports the robot's true
+    impact (from `world/events:o`) plus Gaussian noise, or no_arrow after a miss."""
+    rng = np.random.default_rng(0)
+    with Node("camera", net) as camera, Node("detector", net) as detector:
+        events: list[WorldEvent] = []
+        cond = threading.Condition()
+
+        def on_event(event: WorldEvent) -> None:
+            if event.kind in ("landed", "missed"):
+                with cond:
+                    events.append(event)
+                    cond.notify_all()
+
+        detector.subscribe(detector.keys.world_events(), WorldEvent, mode="fifo", callback=on_event)
+
+        def measure(args: dict[str, Any]) -> dict[str, Any]:
+            after = float(args["after_sim_time"])
+            with cond:
+                cond.wait_for(lambda: events and events[-1].sim_time >= after, timeout=5)
+                event = events[-1]
+            if event.impact_m is None or event.kind == "missed":
+                return {"status": "no_arrow", "r_m": None}
+            r = np.array(event.impact_m) + rng.normal(0, noise_m, 2)
+            return {"status": "ok", "r_m": r.tolist(), "timing": {"detect_s": 0.001}}
+
+        detector.serve(detector.keys.detector_rpc(), {"measure": measure})
+        camera.ready()
+        detector.ready()
+        stop.wait()
+
+
+@pytest.fixture
+def mesh(net: NetConfig, tmp_path: Path) -> Iterator[Node]:
+    """Robot, controller, fake sensors and the learner in threads; a client node."""
+    stop = threading.Event()
+    runs = [
+        (robot_service.run, RobotConfig(net=net, world=WORLD, seed=7)),
+        (controller_service.run, ControllerConfig(net=net)),
+        (run_fake_sensors, net),
+        (learner_service.run, LearnerServiceConfig(net=net, runs=tmp_path, start_wait=20)),
+    ]
+    threads = [threading.Thread(target=f, args=(c, stop), daemon=True) for f, c in runs]
+    for thread in threads:
+        thread.start()
+    with Node(None, net) as node:
+        node.wait_alive(["robot", "controller", "camera", "detector", "learner"], timeout=60)
+        yield node
+    stop.set()
+    for thread in threads:
+        thread.join(timeout=30)
+
+
+def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
+    keys = mesh.keys
+    rollouts = mesh.subscribe(keys.learner_rollouts(), Rollout, mode="fifo")
+    status = mesh.call(keys.learner_rpc(), "start", {"algo": "archer", "seed": 1}, timeout=30)
+    session = status["session"]
+    assert status["journal"] == str(tmp_path / session / "journal.jsonl")
+    with pytest.raises(RpcError, match="is running") as busy:
+        mesh.call(keys.learner_rpc(), "start", {"algo": "power"}, timeout=10)
+    assert busy.value.code == "busy"
+    seen: list[Rollout] = []
+    final = follow(mesh, session, rollouts, seen.append)
+    assert final["state"] == "finished" and final["ended"] == "hit"
+    assert final["hit_at"] <= 10
+    assert final["report"] == str(tmp_path / session / "report.png")
+    assert Path(final["report"]).stat().st_size > 10_000
+    records = read_records(Path(final["journal"]))[0]
+    rollout_records = [r for r in records if r["record"] in ("proposed", "done", "aborted")]
+    assert [(m.index, m.status) for m in seen] == [
+        (r["index"], r["record"]) for r in rollout_records
+    ]
+    done = [r for r in records if r["record"] == "done"]
+    for record in done:
+        # The learner was told the detector's r; the robot's truth is only logged beside it.
+        assert record["truth_r_m"] is not None
+        assert np.linalg.norm(np.subtract(record["r_m"], record["truth_r_m"])) < 0.02
+        assert np.linalg.norm(np.subtract(record["theta"], record["theta_measured"])) < 1e-3
+        assert record["timing"]["posture_s"] > 0 and record["timing"]["detector_detect_s"] > 0
+    assert done[-1]["hit"] and done[-1]["distance_m"] < 0.05
+    idle = mesh.call(keys.learner_rpc(), "status", timeout=10)
+    assert idle["session"] == session and idle["state"] == "finished"
+
+
+@pytest.mark.parametrize(
+    ("args", "code", "message"),
+    [
+        ({"algo": "nope"}, "bad_request", "valid algorithms: archer"),
+        ({"scenario": {"theta0": [0.5, 0.0, 0.0]}}, "bad_request", "outside the θ box"),
+        ({"scenario": {"hit_radius": "big"}}, "bad_request", "hit_radius must be a number"),
+        ({"options": {"explore_std": -1}}, "bad_request", "explore_std"),
+        ({"resume": "/nonexistent/journal.jsonl"}, "bad_journal", "cannot read journal"),
+        ({"resume": 3}, "bad_request", "resume must be a journal path"),
+    ],
+)
+def test_bad_start(
+    mesh: Node, tmp_path: Path, args: dict[str, Any], code: str, message: str
+) -> None:
+    with pytest.raises(RpcError, match=message) as error:
+        mesh.call(mesh.keys.learner_rpc(), "start", args, timeout=30)
+    assert error.value.code == code
+    assert list(tmp_path.iterdir()) == []
+    assert mesh.call(mesh.keys.learner_rpc(), "status", timeout=10) == {"state": "idle"}
+
+
+def test_missing_services_at_start(net: NetConfig, tmp_path: Path) -> None:
+    stop = threading.Event()
+    config = LearnerServiceConfig(net=net, runs=tmp_path, start_wait=0.5)
+    thread = threading.Thread(target=learner_service.run, args=(config, stop), daemon=True)
+    thread.start()
+    try:
+        with Node(None, net) as node:
+            node.wait_alive(["learner"], timeout=30)
+            with pytest.raises(
+                RpcError, match="services not alive: camera, controller, detector, robot"
+            ) as error:
+                node.call(node.keys.learner_rpc(), "start", {}, timeout=30)
+            assert error.value.code == "service_missing"
+        assert list(tmp_path.iterdir()) == []
+    finally:
+        stop.set()
+        thread.join(timeout=30)
+
+
+def test_stop_and_resume_over_the_mesh(mesh: Node, tmp_path: Path, net: NetConfig) -> None:
+    keys = mesh.keys
+    rollouts = mesh.subscribe(keys.learner_rollouts(), Rollout, mode="fifo")
+    request = {"algo": "power", "seed": 2, "rollouts": 4, "until_hit": False}
+    session = mesh.call(keys.learner_rpc(), "start", request, timeout=30)["session"]
+    first = rollouts.get(timeout=30)
+    assert first.status == "proposed" and first.session == session
+    stopping = mesh.call(keys.learner_rpc(), "stop", timeout=10)
+    assert stopping["stopping"] is True
+    stopped = follow(mesh, session, rollouts, lambda m: None)
+    assert stopped["state"] == "stopped" and stopped["rollouts"] < 4
+    # `archery learn --resume` finishes it and prints the JSON line.
+    result = archery(
+        "learn",
+        "--resume",
+        stopped["journal"],
+        "--connect",
+        net.connect[0],
+        "--robot",
+        net.robot,
+        timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    line = json.loads(result.stdout.strip().splitlines()[-1])
+    assert line["session"] == session and line["rollouts"] == 4 and line["status"] == "finished"
+    assert set(line) >= {"session", "rollouts", "hit_at", "final_distance_m", "journal"}
+    records = read_records(Path(line["journal"]))[0]
+    proposed = [r["index"] for r in records if r["record"] == "proposed"]
+    assert proposed == list(range(1, len(proposed) + 1))
+    assert "θ (" in result.stderr
