@@ -1,0 +1,121 @@
+"""`archery up` and its Launcher: start, liveliness, a child's death, clean stops, a busy port."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol.errors import ConfigError
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.router import free_tcp_endpoint, open_router
+from services.launcher import SERVICES, Launcher, LaunchError
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+
+def test_launcher_starts_watches_and_stops(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    with Launcher(endpoint, "up1", tmp_path / "logs") as launcher:
+        took = launcher.up(60, services=("robot", "controller"))
+        assert took < 60
+        net = NetConfig(connect=(endpoint,), robot="up1")
+        with Node(None, net) as node:
+            assert {"robot", "controller"} <= node.alive()
+        assert launcher.first_exit() is None
+        launcher.kill("controller")
+        dead = launcher.first_exit()
+        assert dead is not None and dead.name == "controller"
+        assert "controller was killed by signal 9" in launcher.describe_exit(dead)
+        launcher.start("controller")  # a restart
+        launcher.wait_alive(["controller"], 60)
+        codes = launcher.stop_all()
+    assert codes == {"robot": 0, "controller": 0, "router": 0}
+    assert "robot" in (tmp_path / "logs" / "robot.log").read_text()
+
+
+def test_a_child_that_fails_at_start_is_named(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    launcher = Launcher(endpoint, "up2", tmp_path, service_args={"robot": ["--rtf", "-3"]})
+    with pytest.raises(LaunchError, match="robot exited with status 2") as error:
+        launcher.up(60, services=("robot",))
+    assert "--rtf" in str(error.value)  # the end of its log says why
+    assert all(c.returncode is not None for c in launcher.children.values())
+
+
+def test_bad_settings(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="no service 'robots'; services: robot"):
+        Launcher(free_tcp_endpoint(), "x", tmp_path, service_args={"robots": []})
+    endpoint = free_tcp_endpoint()
+    with open_router(endpoint):
+        launcher = Launcher(endpoint, "x", tmp_path)
+        with pytest.raises(ConfigError, match="Is another router or `archery up` running"):
+            launcher.start_router()
+        assert launcher.children == {}
+
+
+def _up(endpoint: str, tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "services.cli",
+            "up",
+            "--listen",
+            endpoint,
+            "--robot",
+            "upcli",
+            "--logs",
+            str(tmp_path / "logs"),
+            "--runs",
+            str(tmp_path / "runs"),
+            *extra,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=os.environ | {"MUJOCO_GL": "egl"},
+    )
+
+
+def test_up_port_in_use(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    with open_router(endpoint):
+        proc = _up(endpoint, tmp_path)
+        _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert f"cannot listen on {endpoint}" in err
+
+
+@pytest.mark.slow
+def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    proc = _up(endpoint, tmp_path)
+    try:
+        net = NetConfig(connect=(endpoint,), robot="upcli")
+        deadline = time.monotonic() + 120
+        while True:  # the router must be up before a node can connect
+            assert proc.poll() is None, proc.communicate()
+            try:
+                with Node(None, net) as node:
+                    node.wait_alive(SERVICES, timeout=max(1.0, deadline - time.monotonic()))
+                break
+            except ConfigError:
+                time.sleep(0.2)
+        assert proc.stdout is not None
+        assert "all alive" in proc.stdout.readline() + proc.stdout.readline()
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "all stopped cleanly" in out
+    for name in SERVICES:
+        assert (tmp_path / "logs" / f"{name}.log").exists()
