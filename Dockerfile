@@ -1,5 +1,6 @@
+# One image for every process of the mesh (docker-compose.yml picks the verb per container).
 FROM python:3.11-slim-bookworm
-# Mesa's EGL for headless MuJoCo rendering
+# Mesa's EGL for headless MuJoCo rendering (the camera)
 RUN apt-get update && apt-get install -y --no-install-recommends libegl1 libegl-mesa0 libgl1-mesa-dri \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /app
@@ -7,6 +8,6 @@ COPY pyproject.toml README.md ./
 COPY protocol ./protocol
 COPY services ./services
 COPY sim ./sim
-RUN pip install --no-cache-dir .
-ENV MUJOCO_GL=egl
+RUN pip install --no-cache-dir . && mkdir -p /app/runs
+ENV MUJOCO_GL=egl PYTHONUNBUFFERED=1
 CMD ["archery", "--help"]
