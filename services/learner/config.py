@@ -84,7 +84,8 @@ class SessionConfig:
         theta0: θ (m) the learner starts from.
         bounds: θ box (m) of the learner; None: the controller's box. Must lie inside it.
         hit_radius: a rollout hits when the measured ‖r‖ is below this (m).
-        reset: reset the robot (home posture, noise reseeded) when the session starts or resumes.
+        reset: reset the robot (home posture, shot noise seeded with `seed`) when the session
+            starts (not when it resumes).
         options: learner options on top of `ROBOT_OPTIONS` and the algorithm's defaults.
         max_aborts: the session fails after this many aborted attempts in a row.
     """

@@ -26,6 +26,7 @@ from services.learner.registry import ALGORITHMS
 __all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
 
 FINAL_STATES = ("finished", "stopped", "failed")
+SERVICES = ("robot", "camera", "detector", "controller", "learner")
 
 
 class SessionLost(ArcheryError):
@@ -75,7 +76,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
     parser.add_argument(
-        "--wait", type=float, default=30.0, help="wait this long for the learner service (s)"
+        "--wait",
+        type=float,
+        default=60.0,
+        help="wait this long for the five services to be alive (s)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     return parser
@@ -193,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         key = node.keys.learner_rpc()
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         try:
-            node.wait_alive(["learner"], timeout=args.wait)
+            node.wait_alive(SERVICES, timeout=args.wait)
             status = node.call(key, "start", request, timeout=args.wait + 30)
         except RpcError as exc:
             print(f"archery learn: {exc}", file=sys.stderr)

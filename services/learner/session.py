@@ -321,8 +321,10 @@ class Session:
     def _run(self, stop: threading.Event) -> None:
         config, state = self.config, self.journal.state
         self._await_services(stop)
-        if config.reset and not stop.is_set():
-            self._guard(lambda: self.rig.reset(config.seed + state.last_index), stop)
+        if config.reset and state.last_index == 0 and not stop.is_set():
+            # A new session starts from the home posture with the shot noise seeded; a resumed
+            # one does not reset: a move the crashed learner left running may still be on.
+            self._guard(lambda: self.rig.reset(config.seed), stop)
         while not stop.is_set():
             reason = self._finished()
             if reason is not None:
@@ -380,14 +382,16 @@ class Session:
 
     def _attempt(self, stop: threading.Event) -> None:
         state = self.journal.state
+        start = time.perf_counter()
         theta = self._next_theta()
+        asked = time.perf_counter()
         if state.open is None:
             index = state.last_index + 1
             self._record("proposed", index=index, theta=theta.tolist())
         else:
             index = int(state.open["index"])
             log.info("re-running open attempt %d at θ %s", index, theta.tolist())
-        start = time.perf_counter()
+        timing = {"ask_s": asked - start, "journal_proposed_s": time.perf_counter() - asked}
         try:
             posture = self.rig.posture(theta)
             if not posture.reached:
@@ -427,7 +431,7 @@ class Session:
                 detection=measurement.detection,
             )
             return
-        self._done(index, theta, posture, shot, measurement, truth, start)
+        self._done(index, theta, posture, shot, measurement, truth, start, timing)
 
     def _back_off(self, theta: np.ndarray) -> np.ndarray:
         state = self.journal.state
@@ -467,13 +471,14 @@ class Session:
         measurement: Measurement,
         truth: list[float] | None,
         start: float,
+        timing: dict[str, float],
     ) -> None:
         r = [float(x) for x in measurement.r_m or ()]
         told = time.perf_counter()
         big_return = self.learner.tell(theta, np.array(r))
         distance = _distance(r)
         hit = distance < self.config.hit_radius
-        timing = posture.timing | shot.timing | measurement.timing
+        timing = timing | posture.timing | shot.timing | measurement.timing
         timing["learner_s"] = time.perf_counter() - told
         rollout = len(self.journal.state.done) + 1
         record = {
