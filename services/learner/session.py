@@ -39,6 +39,7 @@ from services.learner.base import Bounds, Learner, LearnerError
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.registry import make_learner, restore_learner
+from services.learner.report import save_png
 
 __all__ = [
     "Measurement",
@@ -314,6 +315,9 @@ class Session:
             self._set("failed", exc.message)
             log.error("session %s failed to set up: %s", self.session_id, exc.message)
             self._record("stopped", reason="failed", cause=exc.message)
+        except Exception as exc:  # a bug must not leave the session "running" forever
+            log.exception("session %s failed", self.session_id)
+            self._set("failed", f"internal error: {exc!r}")
         finally:
             self.journal.close()
         return self.status()
@@ -529,7 +533,10 @@ class Session:
             return
         if pixels is None:
             return
-        from services.learner.report import save_png
-
-        self.hit_frame_path = self.directory / "hit.png"
-        save_png(self.hit_frame_path, pixels)
+        path = self.directory / "hit.png"
+        try:
+            save_png(path, pixels)
+        except OSError as exc:
+            log.warning("could not save the hit frame: %s", exc)
+            return
+        self.hit_frame_path = path
