@@ -1,0 +1,1 @@
+"""The camera: frames of the target from a renderer, a real device or an image folder."""

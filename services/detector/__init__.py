@@ -1,0 +1,1 @@
+"""The detector: the paper's GMM colour model (Section III-C), detection, and its service."""

@@ -1,0 +1,84 @@
+"""Calibration pixels: the user's marks on one image, as points, rectangles or polygons.
+
+PIXELS.json: `{"target": [[x, y], ...], "arrow": [[x, y], ...]}` with x the pixel column and y
+the row; an entry may instead be `{"rect": [x, y, w, h]}` or `{"polygon": [[x, y], ...]}`
+(every pixel inside). "arrow" may be absent for a target-only model.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from services.detector.errors import CalibrationError
+
+__all__ = ["load_pixels", "sample_pixels"]
+
+
+def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
+    height, width = shape
+    mask = np.zeros((height, width), np.uint8)
+    if (
+        isinstance(entry, list | tuple)
+        and len(entry) == 2
+        and all(isinstance(v, int | float) for v in entry)
+    ):
+        x, y = round(entry[0]), round(entry[1])
+        if not (0 <= x < width and 0 <= y < height):
+            raise CalibrationError(f"{where}: point {entry} is outside the {width}x{height} image")
+        mask[y, x] = 1
+    elif isinstance(entry, dict) and "rect" in entry:
+        rect = entry["rect"]
+        if not (isinstance(rect, list) and len(rect) == 4 and rect[2] > 0 and rect[3] > 0):
+            raise CalibrationError(f"{where}: rect must be [x, y, w, h] with w, h > 0, got {rect}")
+        x, y, w, h = (round(v) for v in rect)
+        if x < 0 or y < 0 or x + w > width or y + h > height:
+            raise CalibrationError(f"{where}: rect {rect} leaves the {width}x{height} image")
+        mask[y : y + h, x : x + w] = 1
+    elif isinstance(entry, dict) and "polygon" in entry:
+        points = np.asarray(entry["polygon"], dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != 2 or len(points) < 3:
+            raise CalibrationError(f"{where}: a polygon needs ≥ 3 [x, y] vertices")
+        cv2.fillPoly(mask, [np.round(points).astype(np.int32)], 1)
+        if not mask.any():
+            raise CalibrationError(f"{where}: polygon {entry['polygon']} covers no pixel")
+    else:
+        raise CalibrationError(
+            f"{where}: {entry!r} is not a point [x, y], {{'rect': [x, y, w, h]}} or "
+            f"{{'polygon': [[x, y], ...]}}"
+        )
+    return mask
+
+
+def sample_pixels(rgb: np.ndarray, entries: list[Any], name: str) -> np.ndarray:
+    """RGB values (N, 3) of the marked pixels of one object (each pixel once)."""
+    if not isinstance(entries, list) or not entries:
+        raise CalibrationError(f"no calibration pixels for the {name}: mark some on the image")
+    mask = np.zeros(rgb.shape[:2], np.uint8)
+    for i, entry in enumerate(entries):
+        mask |= _entry_mask(entry, rgb.shape[:2], f"{name}[{i}]")
+    return rgb[mask > 0]
+
+
+def load_pixels(path: str | Path) -> dict[str, list[Any]]:
+    """Read PIXELS.json (also accepts a file with these under a "calibration" key)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"cannot read calibration pixels {str(path)!r}: {exc}") from None
+    if isinstance(data, dict) and "target" not in data and "calibration" in data:
+        data = data["calibration"]
+    if not isinstance(data, dict) or "target" not in data:
+        raise CalibrationError(
+            f"{path}: expected {{'target': [[x, y], ...], 'arrow': [...]}} ('arrow' optional)"
+        )
+    unknown = set(data) - {"target", "arrow", "note"}
+    if unknown:
+        raise CalibrationError(
+            f"{path}: unknown keys {sorted(unknown)}; valid: target, arrow (and a free 'note')"
+        )
+    return data

@@ -1,0 +1,31 @@
+"""Errors of the colour model and the detector, with their RPC codes."""
+
+from __future__ import annotations
+
+from protocol.errors import ArcheryError, BadRequest
+
+__all__ = ["CalibrationError", "DetectorError", "ImageError", "ModelFileError"]
+
+
+class DetectorError(ArcheryError):
+    """Base of the detector's errors."""
+
+    code = "detector_error"
+
+
+class CalibrationError(DetectorError, BadRequest):
+    """Calibration pixels that cannot give a model (too few, outside the image, ambiguous)."""
+
+    code = "bad_calibration"
+
+
+class ModelFileError(DetectorError, ValueError):
+    """A colour model file that is missing, malformed or of another version."""
+
+    code = "bad_model"
+
+
+class ImageError(DetectorError, BadRequest):
+    """An image of the wrong type, shape or size."""
+
+    code = "bad_image"
