@@ -25,6 +25,7 @@ the face (by default the blue ring's outer edge, 0.6 of the 50 cm target).
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -36,6 +37,8 @@ from services.detector.colour_model import ColourModel
 from services.detector.errors import ImageError
 
 __all__ = ["Detection", "Detector", "DetectorSettings", "Seen"]
+
+log = logging.getLogger("archery.detector")
 
 
 @dataclass(frozen=True)
@@ -49,6 +52,8 @@ class DetectorSettings:
         min_target_fraction: smallest target region, as a fraction of the image's pixels.
         min_target_confidence: below this the target is reported as not seen.
         min_arrow_pixels: smallest arrow-tip region (px).
+        max_arrow_fraction: largest arrow-tip region, as a fraction of the image (a larger one
+            means the arrow's colour model also covers the scene: reported as not seen).
         close_fraction: closing kernel size over the image's shorter side (bridges ring lines).
     """
 
@@ -57,6 +62,7 @@ class DetectorSettings:
     min_target_fraction: float = 5e-4
     min_target_confidence: float = 0.6
     min_arrow_pixels: int = 6
+    max_arrow_fraction: float = 0.01
     close_fraction: float = 0.01
 
     def __post_init__(self) -> None:
@@ -66,6 +72,7 @@ class DetectorSettings:
             "min_target_fraction": (self.min_target_fraction, 0.0, 0.5),
             "min_target_confidence": (self.min_target_confidence, 0.0, 1.0),
             "min_arrow_pixels": (self.min_arrow_pixels, 1, 100000),
+            "max_arrow_fraction": (self.max_arrow_fraction, 0.0, 1.0),
             "close_fraction": (self.close_fraction, 0.0, 0.2),
         }
         for name, (value, low, high) in checks.items():
@@ -202,6 +209,14 @@ class Detector:
         largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
         area = int(stats[largest, cv2.CC_STAT_AREA])
         if area < self.settings.min_arrow_pixels:
+            return None
+        if area > self.settings.max_arrow_fraction * membership.size:
+            log.warning(
+                "arrow-coloured region of %d px is too large for a tip (max %.0f): the arrow "
+                "model covers the scene; calibrate again",
+                area,
+                self.settings.max_arrow_fraction * membership.size,
+            )
             return None
         x0, y0, w, h = (int(v) for v in stats[largest, :4])
         region = labels[y0 : y0 + h, x0 : x0 + w] == largest
