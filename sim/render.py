@@ -1,14 +1,24 @@
-"""A lean offscreen renderer of the archery scene from qpos alone (for the camera service).
+"""A lean offscreen renderer of the archery scene from qpos alone, and the simulated camera's
+calibration marks.
 
 The target camera sees the target, its stand, the floor and, after a shot, the arrow; the robot
-is behind it. So the renderer builds the scene without the robot's meshes, hides the robot's
-geom group, and turns off shadows, reflections, the skybox and multisampling: a 1280×720 frame
-then costs a fraction of the default settings on a software GL (Mesa llvmpipe with EGL).
+is behind it. So the renderer builds the scene without the robot's meshes (they change no qpos),
+hides the robot's geom group, and turns off shadows, reflections, the skybox and multisampling:
+a 1280×720 frame then costs a fraction of the default settings on a software GL (Mesa llvmpipe
+with EGL). One renderer (one GL context) is reused for every frame; use it from the thread that
+created it.
+
+`calibration_frame` plays the paper's user for the simulated camera: it places an arrow on the
+face, renders the frame and returns the pixels a user would mark inside the coloured rings and
+on the tip — points of the scene projected through the camera (`project`), kept only where the
+segmentation shows that object.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import math
 import os
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -16,12 +26,34 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco
 import numpy as np
 
+from sim.arrow import arrow_quat
 from sim.errors import ConfigError
-from sim.scene import TARGET_CAMERA, SceneConfig, build_scene
+from sim.scene import (
+    ARROW_BODY,
+    RING_COLOURS,
+    TARGET_CAMERA,
+    TARGET_CENTRE_SITE,
+    SceneConfig,
+    ScenePhysics,
+    build_scene,
+)
 
-__all__ = ["ROBOT_GEOM_GROUP", "SceneRenderer"]
+__all__ = [
+    "CALIBRATION_ARROW_R",
+    "LEAN_FLAGS",
+    "ROBOT_GEOM_GROUP",
+    "SceneRenderer",
+    "calibration_frame",
+    "project",
+]
 
 ROBOT_GEOM_GROUP = 1
+LEAN_FLAGS = (
+    mujoco.mjtRndFlag.mjRND_SHADOW,
+    mujoco.mjtRndFlag.mjRND_REFLECTION,
+    mujoco.mjtRndFlag.mjRND_SKYBOX,
+)
+CALIBRATION_ARROW_R = (0.06, 0.19)  # m, where the calibration arrow sits (right, up): black ring
 
 
 class SceneRenderer:
@@ -62,13 +94,13 @@ class SceneRenderer:
         self._option = mujoco.MjvOption()
         if lean:
             self._option.geomgroup[ROBOT_GEOM_GROUP] = 0
-            for flag in (
-                mujoco.mjtRndFlag.mjRND_SHADOW,
-                mujoco.mjtRndFlag.mjRND_REFLECTION,
-                mujoco.mjtRndFlag.mjRND_SKYBOX,
-            ):
-                self._renderer.scene.flags[flag] = 0
         self._lean = lean
+
+    def __enter__(self) -> SceneRenderer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
     @property
     def nq(self) -> int:
@@ -88,15 +120,10 @@ class SceneRenderer:
                 f"(is the robot running a different scene configuration?)"
             )
         self.data.qpos[:] = qpos
-        mujoco.mj_kinematics(self.model, self.data)
-        mujoco.mj_camlight(self.model, self.data)
+        mujoco.mj_fwdPosition(self.model, self.data)  # poses, tendons, cameras and lights
         self._renderer.update_scene(self.data, camera=self.camera, scene_option=self._option)
-        if self._lean:
-            for flag in (
-                mujoco.mjtRndFlag.mjRND_SHADOW,
-                mujoco.mjtRndFlag.mjRND_REFLECTION,
-                mujoco.mjtRndFlag.mjRND_SKYBOX,
-            ):
+        if self._lean:  # update_scene restores the model's flags: switch them off each frame
+            for flag in LEAN_FLAGS:
                 self._renderer.scene.flags[flag] = 0
         return self._renderer.render()
 
@@ -111,5 +138,90 @@ class SceneRenderer:
         return geom.astype(np.int32)
 
     def close(self) -> None:
-        """Free the GL context."""
-        self._renderer.close()
+        """Free the GL context (idempotent)."""
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None  # type: ignore[assignment]
+
+
+def project(renderer: SceneRenderer, points: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (column, row) of world points (N, 3, m) in the renderer's camera.
+
+    Pixel (i, j) is centred on column i, row j (the image's top-left pixel is (0, 0)); the
+    camera pose is the one of the renderer's data (as of its last `render`).
+    """
+    model, data = renderer.model, renderer.data
+    cam = model.camera(renderer.camera).id
+    pos = data.cam_xpos[cam]
+    rot = data.cam_xmat[cam].reshape(3, 3)  # columns: camera x (right), y (up), z (backwards)
+    local = (np.asarray(points, dtype=float) - pos) @ rot
+    fovy = math.radians(float(model.cam_fovy[cam]))
+    focal = 0.5 * renderer.height / math.tan(0.5 * fovy)
+    column = 0.5 * renderer.width + focal * local[:, 0] / -local[:, 2] - 0.5
+    row = 0.5 * renderer.height - focal * local[:, 1] / -local[:, 2] - 0.5
+    return np.stack([column, row], axis=1)
+
+
+def calibration_frame(
+    renderer: SceneRenderer, qpos: np.ndarray, coloured_rings: int = 3, seed: int = 0
+) -> tuple[np.ndarray, dict[str, list[list[float]]]]:
+    """A frame with an arrow on the face, and marks {"target": [[x, y]…], "arrow": [[x, y]…]}.
+
+    Target marks lie inside the first `coloured_rings` rings (yellow, red, blue), away from ring
+    borders; arrow marks on the visible rim of the tip's disc. The renderer's data is left at
+    the calibration state.
+
+    Raises:
+        ConfigError: qpos of the wrong length, or `coloured_rings` outside 1..5.
+    """
+    if not 1 <= coloured_rings <= len(RING_COLOURS):
+        raise ConfigError(f"coloured_rings must be in 1..{len(RING_COLOURS)}, got {coloured_rings}")
+    qpos = np.asarray(qpos, dtype=np.float64)
+    if qpos.shape != (renderer.nq,):
+        raise ConfigError(f"qpos has {qpos.size} values; this scene has nq = {renderer.nq}")
+    physics = ScenePhysics(renderer.model, renderer.data)
+    renderer.data.qpos[:] = qpos
+    mujoco.mj_fwdPosition(renderer.model, renderer.data)
+    centre = physics.site_position(TARGET_CENTRE_SITE)
+    right, up = np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0])
+    tip = centre + CALIBRATION_ARROW_R[0] * right + CALIBRATION_ARROW_R[1] * up
+    direction = np.array([-1.0, 0.0, -0.05])
+    physics.set_arrow_pose(tip, arrow_quat(direction))
+    frame = renderer.render(renderer.data.qpos.copy())
+    rng = np.random.default_rng(seed)
+    radii = [0.0] + [r for r, _ in RING_COLOURS[:coloured_rings]]
+    target_points = []
+    for inner, outer in itertools.pairwise(radii):
+        rho = rng.uniform(inner + 0.008, outer - 0.008, 40)
+        phi = rng.uniform(0, 2 * math.pi, 40)
+        target_points += [
+            centre + r * (math.cos(p) * right + math.sin(p) * up)
+            for r, p in zip(rho, phi, strict=True)
+        ]
+    axis = direction / np.linalg.norm(direction)
+    side = np.cross(axis, up)
+    side /= np.linalg.norm(side)
+    lift = np.cross(side, axis)
+    back = tip - 0.012 * axis
+    phi = np.linspace(0, 2 * math.pi, 24, endpoint=False)
+    arrow_points = [back + 0.011 * (math.cos(p) * side + math.sin(p) * lift) for p in phi]
+    # keep only the marks where the camera really sees the object (not an occluding shaft)
+    seen = renderer.segment(renderer.data.qpos.copy())
+    model = renderer.model
+    tip_geom = int(model.body_geomadr[model.body(ARROW_BODY).id])  # the tip's disc comes first
+    ring_geoms = {model.geom(f"target_ring_{i}").id for i in range(coloured_rings)}
+
+    def visible(points: list[np.ndarray], geoms: set[int]) -> list[list[float]]:
+        pixels = project(renderer, np.array(points))
+        keep = []
+        for x, y in pixels:
+            col, row = round(x), round(y)
+            if 0 <= row < seen.shape[0] and 0 <= col < seen.shape[1] and seen[row, col] in geoms:
+                keep.append([round(float(x), 1), round(float(y), 1)])
+        return keep
+
+    marks = {
+        "target": visible(target_points, ring_geoms),
+        "arrow": visible(arrow_points, {tip_geom}),
+    }
+    return frame, marks

@@ -1,20 +1,27 @@
 """`archery camera`: frames of the target on `ROBOT/cam/target:o`, and `ROBOT/cam/rpc:i`.
 
 Sources: `mujoco` renders the robot's scene from `ROBOT/world/state:o` with its own model copy
-(built from the scene parameters the robot reports in `archery/rpc:i status`); `device:N` reads
-a real camera through OpenCV; `folder:PATH` replays images from disk.
+(built from the scene parameters the robot reports in `archery/rpc:i status`, or the default
+scene when no robot answers); `device:N` reads a real camera through OpenCV; `folder:PATH`
+replays images from disk (read when captured). Frames are RGB (`--encoding rgb8`, default) or
+compressed (`jpeg`, `png`) at `--rate` frames per second; a rendered frame carries the world
+state's sim time, a real one `sim_time` None.
 
-Verbs on `ROBOT/cam/rpc:i`:
-- `grab {"after_sim_time": s, "after_stamp": s, "timeout": s}` → an `Image` as a dict (raw
-  bytes kept): the first frame rendered from a world state at or after `after_sim_time` (mujoco)
-  and captured at or after the wall-clock `after_stamp` (any source), so a measurement never
-  sees the scene before the arrow landed; `timeout` error otherwise.
-- `calibration {}` (mujoco only) → {"image": Image dict, "pixels": {"target": […], "arrow": […]}}:
-  a frame with an arrow on the face and the pixels a user would mark on it.
-- `status {}` → source, size, rate, frames published, newest frame's sim time.
+Verbs on `ROBOT/cam/rpc:i` (args → result):
+- `grab {"after_sim_time": s, "after_stamp": s, "timeout": s}` → an `Image` as a dict
+  (`msgspec.to_builtins(image, builtin_types=(bytes,))`; `msgspec.convert(result, Image)` on the
+  caller's side): the first frame rendered from a world state with sim time ≥ `after_sim_time`
+  and whose capture started at wall time ≥ `after_stamp`, so a measurement never sees the scene
+  before the arrow landed. A device or folder frame has no sim time: there `after_sim_time`
+  means "captured after this request arrived". Error `timeout` when none comes within
+  `timeout` (default 5 s).
+- `calibration {}` (mujoco only) → {"image": Image dict, "pixels": {"target": [[x, y]…],
+  "arrow": [[x, y]…]}}: a frame with an arrow on the face and the pixels a user would mark.
+- `status {}` → source, size, rate, encoding, frames published, renders and mean render time
+  (ms), newest frame's sim time, the scene parameters and where they came from.
 
-One capture thread owns the source (GL contexts and devices belong to the thread that opened
-them); RPC handlers hand it work and wait on its frames.
+One capture thread (the one `run` is called on) owns the source: GL contexts and devices belong
+to the thread that opened them. RPC handlers hand it work and wait on its frames.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import logging
+import math
 import queue
 import threading
 import time
@@ -29,24 +37,37 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import msgspec
 import numpy as np
 
-from protocol.errors import BadRequest, ConfigError, RpcError, RpcTimeout
+from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Image, WorldState
 from protocol.netflags import NetConfig
-from protocol.node import Node
+from protocol.node import Node, Publisher
 from protocol.service import service_main
+from services.camera.frames import FrameStore, Freshness
 from services.camera.sources import DeviceSource, FolderSource, SourceSpec, parse_source
 
-__all__ = ["CameraConfig", "main", "run"]
+__all__ = ["ENCODINGS", "CameraConfig", "main", "run"]
 
 log = logging.getLogger("archery.camera")
+ENCODINGS = ("rgb8", "jpeg", "png")
+MAX_GRAB_TIMEOUT = 120.0  # s
 
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Camera settings: source, image size (px), stream rate (frames per wall second)."""
+    """Camera settings.
+
+    Attributes:
+        net: network settings.
+        source: where frames come from (`parse_source`).
+        width, height: image size (px) of rendered frames, and asked of a device.
+        rate: frames published per wall second.
+        encoding: rgb8 (raw), jpeg or png.
+        robot_timeout: how long to wait for the robot's scene parameters at start (s).
+    """
 
     net: NetConfig = field(default_factory=NetConfig)
     source: SourceSpec = field(default_factory=lambda: SourceSpec("mujoco"))
@@ -57,81 +78,55 @@ class CameraConfig:
     robot_timeout: float = 3.0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.source, SourceSpec):
+            raise ConfigError(f"source must be a SourceSpec (parse_source), got {self.source!r}")
         if not (16 <= self.width <= 4096 and 16 <= self.height <= 4096):
             raise ConfigError(f"--size {self.width}x{self.height} is outside 16..4096 px")
-        if not (0.1 <= self.rate <= 120):
+        if not (isinstance(self.rate, int | float) and 0.1 <= self.rate <= 120):
             raise ConfigError(f"--rate {self.rate} is outside 0.1..120 frames/s")
-        if self.encoding not in ("rgb8", "jpeg"):
-            raise ConfigError(f"--encoding {self.encoding!r} is not rgb8 or jpeg")
+        if self.encoding not in ENCODINGS:
+            raise ConfigError(f"--encoding {self.encoding!r} is not one of {', '.join(ENCODINGS)}")
+        if not (isinstance(self.robot_timeout, int | float) and 0 <= self.robot_timeout <= 60):
+            raise ConfigError(f"robot timeout {self.robot_timeout!r} is outside 0..60 s")
 
 
-class _FrameStore:
-    """The newest frame and who waits for one; thread-safe."""
-
-    def __init__(self) -> None:
-        self._cond = threading.Condition()
-        self.latest: Image | None = None
-        self.waiting = 0
-        self.count = 0
-
-    def put(self, image: Image) -> None:
-        with self._cond:
-            self.latest = image
-            self.count += 1
-            self._cond.notify_all()
-
-    def wait(
-        self, after_sim_time: float | None, after_stamp: float | None, timeout: float
-    ) -> Image:
-        def fits(image: Image | None) -> bool:
-            if image is None:
-                return False
-            if after_sim_time is not None and (image.sim_time or -1.0) < after_sim_time:
-                return False
-            return after_stamp is None or image.stamp >= after_stamp
-
-        deadline = time.monotonic() + timeout
-        with self._cond:
-            self.waiting += 1
-            try:
-                while not fits(self.latest):
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        newest = self.latest.sim_time if self.latest else None
-                        raise RpcTimeout(
-                            f"no frame after sim time {after_sim_time} / stamp {after_stamp} "
-                            f"within {timeout:g} s (newest frame: sim time {newest})"
-                        )
-                    self._cond.wait(remaining)
-                assert self.latest is not None
-                return self.latest
-            finally:
-                self.waiting -= 1
-
-
-def _number(args: dict[str, Any], name: str, default: float | None) -> float | None:
-    value = args.get(name, default)
+def _seconds(args: dict[str, Any], name: str) -> float | None:
+    value = args.get(name)
     if value is None:
         return None
-    if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
+    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
         raise BadRequest(f"{name} must be a finite number of seconds, got {value!r}")
     return float(value)
 
 
-class _Capture:
-    """The capture thread's state: the source, and the work RPC handlers hand it."""
+def _encode(pixels: np.ndarray, encoding: str, **fields: Any) -> Image:
+    if encoding == "rgb8":
+        return Image.from_numpy(pixels, **fields)
+    ok, data = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", pixels[:, :, ::-1])
+    if not ok:
+        raise ConfigError(f"{encoding} encoding of a {pixels.shape} frame failed")
+    height, width = pixels.shape[:2]
+    return Image(width=width, height=height, encoding=encoding, data=data.tobytes(), **fields)
 
-    def __init__(self, config: CameraConfig, node: Node, store: _FrameStore) -> None:
+
+class _Capture:
+    """The capture thread's state: the source, its frames, and the work RPC handlers hand it."""
+
+    def __init__(self, config: CameraConfig, node: Node, store: FrameStore) -> None:
         self.config = config
         self.node = node
         self.store = store
-        self.jobs: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future]] = (
-            queue.SimpleQueue()
-        )
+        self.jobs: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future[Any]]]
+        self.jobs = queue.SimpleQueue()
         self.wake = threading.Event()
         self.renderer: Any = None
         self.reader: DeviceSource | FolderSource | None = None
+        self.scene: dict[str, Any] | None = None
+        self.scene_from = ""
         self.frame = 0
+        self.renders = 0
+        self.render_seconds = 0.0
+        self.errors = 0
         self.world = None
         if config.source.kind == "mujoco":
             self.world = node.subscribe(
@@ -139,7 +134,8 @@ class _Capture:
             )
 
     def submit(self, job: Callable[[], Any], timeout: float) -> Any:
-        future: concurrent.futures.Future = concurrent.futures.Future()
+        """Run `job` on the capture thread and return its result (or raise its error)."""
+        future: concurrent.futures.Future[Any] = concurrent.futures.Future()
         self.jobs.put((job, future))
         self.wake.set()
         try:
@@ -147,19 +143,40 @@ class _Capture:
         except concurrent.futures.TimeoutError:
             raise RpcTimeout(f"the capture thread did not answer within {timeout:g} s") from None
 
+    def run_jobs(self) -> None:
+        """Run the queued jobs (capture thread)."""
+        while True:
+            try:
+                job, future = self.jobs.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                future.set_result(job())
+            except Exception as exc:
+                future.set_exception(exc)
+
     def _scene(self) -> Any:
         from sim.scene import SceneConfig
 
         try:
             status = self.node.call(
-                self.node.keys.archery_rpc(), "status", timeout=self.config.robot_timeout
+                self.node.keys.archery_rpc(), "status", timeout=max(0.1, self.config.robot_timeout)
             )
-            return SceneConfig(**status["scene"])
-        except (RpcError, KeyError, TypeError) as exc:
-            log.warning("robot scene unknown (%s): rendering the default scene", exc)
-            return SceneConfig()
+            scene = SceneConfig(**status["scene"])
+            self.scene_from = "robot"
+        except (RpcError, KeyError, TypeError, ValueError) as exc:
+            log.warning("the robot's scene is unknown (%s): rendering the default scene", exc)
+            scene = SceneConfig()
+            self.scene_from = "default"
+        self.scene = scene.to_dict()
+        return scene
 
     def open(self) -> None:
+        """Open the source (capture thread).
+
+        Raises:
+            ConfigError: the device cannot be opened, or the folder holds no readable image.
+        """
         source = self.config.source
         if source.kind == "mujoco":
             from sim.render import SceneRenderer
@@ -171,44 +188,88 @@ class _Capture:
             self.reader = DeviceSource(source.index, self.config.width, self.config.height)
         else:
             self.reader = FolderSource(source.path)
+            try:
+                self.reader.read()
+            except ArcheryError as exc:
+                raise ConfigError(f"--source folder:{source.path}: {exc}") from None
 
-    def publish(self, pixels: np.ndarray, sim_time: float | None, pub: Any) -> None:
+    def publish(
+        self, pixels: np.ndarray, sim_time: float | None, captured: float, pub: Any
+    ) -> None:
+        """Encode, publish and store a frame whose capture started at wall time `captured`."""
         self.frame += 1
-        if self.config.encoding == "jpeg":
-            import cv2
+        image = _encode(pixels, self.config.encoding, frame=self.frame, sim_time=sim_time)
+        self.store.put(pub.put(image), captured)
 
-            ok, data = cv2.imencode(".jpg", np.ascontiguousarray(pixels[:, :, ::-1]))
-            if not ok:
-                raise ConfigError("JPEG encoding of a frame failed")
-            image = Image(
-                width=pixels.shape[1],
-                height=pixels.shape[0],
-                encoding="jpeg",
-                data=data.tobytes(),
-                frame=self.frame,
-                sim_time=sim_time,
-            )
-        else:
-            image = Image.from_numpy(pixels, frame=self.frame, sim_time=sim_time)
-        self.store.put(pub.put(image))
-
-    def render_world(self, state: WorldState) -> np.ndarray:
-        qpos = state.qpos.to_numpy()
+    def render(self, qpos: np.ndarray) -> np.ndarray:
+        """Render `qpos`; a qpos of another length rebuilds the scene from the robot's status."""
         if qpos.shape != (self.renderer.nq,):
             log.warning(
-                "world state has %d qpos values, renderer %d: rebuilding",
+                "world state has %d qpos values, the scene %d: rebuilding it from the robot's "
+                "status",
                 qpos.size,
                 self.renderer.nq,
             )
             self.renderer.close()
             self.open()
-        return self.renderer.render(qpos)
+        started = time.perf_counter()
+        pixels = self.renderer.render(qpos)
+        self.renders += 1
+        self.render_seconds += time.perf_counter() - started
+        return pixels
 
     def close(self) -> None:
+        """Free the renderer or the device."""
         if self.renderer is not None:
             self.renderer.close()
         if self.reader is not None:
             self.reader.close()
+
+
+def _loop(capture: _Capture, pub: Publisher[Image], stop: threading.Event) -> None:
+    """Publish at the configured rate, and at once whenever a waiting grab can be served."""
+    store = capture.store
+    period = 1.0 / capture.config.rate
+    next_due = 0.0
+    last_seq: int | None = None
+    cached: tuple[np.ndarray, float | None, float] | None = None  # pixels, sim time, captured
+    while not stop.is_set():
+        capture.run_jobs()
+        now = time.monotonic()
+        due = now >= next_due
+        waiting = store.waiting()
+        try:
+            if capture.world is not None:
+                state = capture.world.latest()
+                new = state is not None and state.seq != last_seq
+                if state is not None and new and (due or waiting):
+                    last_seq = state.seq
+                    captured = time.time()
+                    pixels = capture.render(state.qpos.to_numpy())
+                    cached = (pixels, state.sim_time, captured)
+                    capture.publish(pixels, state.sim_time, captured, pub)
+                    next_due = now + period
+                elif due:
+                    if cached is None:  # no world state yet: the model's initial state
+                        qpos = np.asarray(capture.renderer.model.qpos0)
+                        cached = (capture.render(qpos), None, time.time())
+                    capture.publish(*cached, pub)
+                    next_due = now + period
+            else:
+                wall = time.time()
+                serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
+                if due or serve:
+                    captured = time.time()
+                    pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]
+                    capture.publish(pixels, None, captured, pub)
+                    next_due = now + period
+        except ArcheryError as exc:
+            capture.errors += 1
+            if capture.errors <= 5 or capture.errors % 100 == 0:
+                log.error("frame %d failed (%d so far): %s", capture.frame + 1, capture.errors, exc)
+            next_due = time.monotonic() + period
+        capture.wake.wait(max(0.0, min(period, next_due - time.monotonic())))
+        capture.wake.clear()
 
 
 def run(config: CameraConfig, stop: threading.Event) -> None:
@@ -216,37 +277,48 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
     with Node("camera", config.net) as node:
         keys = node.keys
         pub = node.publisher(keys.cam_frames(), Image)
-        store = _FrameStore()
+        store = FrameStore()
         capture = _Capture(config, node, store)
+        rendered = config.source.kind == "mujoco"
 
         def grab(args: dict[str, Any]) -> dict[str, Any]:
             unknown = set(args) - {"after_sim_time", "after_stamp", "timeout"}
             if unknown:
                 raise BadRequest(
-                    f"grab: unknown args {sorted(unknown)}; valid: after_sim_time, "
-                    f"after_stamp, timeout"
+                    f"grab: unknown args {sorted(unknown)}; valid: after_sim_time (s), "
+                    f"after_stamp (wall s), timeout (s)"
                 )
-            timeout = _number(args, "timeout", 5.0) or 5.0
-            capture.wake.set()
-            image = store.wait(
-                _number(args, "after_sim_time", None), _number(args, "after_stamp", None), timeout
-            )
-            return msgspec.to_builtins(image, builtin_types=(bytes,))
+            timeout = _seconds(args, "timeout")
+            timeout = 5.0 if timeout is None else timeout
+            if not 0 < timeout <= MAX_GRAB_TIMEOUT:
+                raise BadRequest(
+                    f"grab timeout must be in (0, {MAX_GRAB_TIMEOUT:g}] s, got {timeout}"
+                )
+            after_sim_time = _seconds(args, "after_sim_time")
+            after_stamp = _seconds(args, "after_stamp")
+            if not rendered and after_sim_time is not None:
+                after_sim_time, after_stamp = None, max(after_stamp or 0.0, time.time())
+            want = Freshness(after_sim_time=after_sim_time, after_stamp=after_stamp)
+            image = store.wait(want, timeout, on_wait=capture.wake.set)
+            return msgspec.to_builtins(image, builtin_types=(bytes,))  # type: ignore[no-any-return]
 
         def calibration(args: dict[str, Any]) -> dict[str, Any]:
-            if config.source.kind != "mujoco":
+            if not rendered:
                 raise BadRequest(
-                    "calibration marks come only from the mujoco source; mark "
-                    "pixels by hand and use `archery calibrate` for real images"
+                    f"calibration marks come only from the mujoco source (this camera is "
+                    f"{config.source.kind}): mark pixels by hand and use `archery calibrate`, "
+                    f"or the detector's `calibrate` verb with pixels"
                 )
 
             def job() -> dict[str, Any]:
-                from sim.calibration import calibration_frame
+                from sim.render import calibration_frame
 
                 latest = capture.world.latest() if capture.world else None
                 qpos = latest.qpos.to_numpy() if latest else capture.renderer.model.qpos0
                 pixels, marks = calibration_frame(capture.renderer, qpos)
-                image = Image.from_numpy(pixels, sim_time=latest.sim_time if latest else None)
+                image = Image.from_numpy(
+                    pixels, sim_time=latest.sim_time if latest else None, stamp=time.time()
+                )
                 return {
                     "image": msgspec.to_builtins(image, builtin_types=(bytes,)),
                     "pixels": marks,
@@ -256,6 +328,7 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
 
         def status(args: dict[str, Any]) -> dict[str, Any]:
             latest = store.latest
+            renders = capture.renders
             return {
                 "source": config.source.kind,
                 "width": config.width,
@@ -263,58 +336,51 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
                 "rate": config.rate,
                 "encoding": config.encoding,
                 "frames": store.count,
+                "renders": renders,
+                "render_ms": round(1e3 * capture.render_seconds / renders, 3) if renders else None,
+                "errors": capture.errors,
                 "latest_sim_time": latest.sim_time if latest else None,
+                "scene": capture.scene,
+                "scene_from": capture.scene_from,
             }
 
         node.serve(keys.cam_rpc(), {"grab": grab, "calibration": calibration, "status": status})
         capture.open()
         node.ready()
         log.info(
-            "camera up: %s source, %dx%d at %g frames/s",
+            "camera up: %s source, %dx%d at %g frames/s (%s)",
             config.source.kind,
             config.width,
             config.height,
             config.rate,
+            config.encoding,
         )
-        period = 1.0 / config.rate
-        next_due = 0.0
-        last_seq = -1
         try:
-            while not stop.is_set():
-                while True:
-                    try:
-                        job, future = capture.jobs.get_nowait()
-                    except queue.Empty:
-                        break
-                    try:
-                        future.set_result(job())
-                    except Exception as exc:
-                        future.set_exception(exc)
-                now = time.monotonic()
-                due = now >= next_due or store.waiting > 0
-                if capture.world is not None:
-                    state = capture.world.latest()
-                    if state is not None and due and (state.seq != last_seq or now >= next_due):
-                        capture.publish(capture.render_world(state), state.sim_time, pub)
-                        last_seq = state.seq
-                        next_due = now + period
-                elif due:
-                    capture.publish(capture.reader.read(), None, pub)  # type: ignore[union-attr]
-                    next_due = now + period
-                capture.wake.wait(max(0.0, min(period, next_due - time.monotonic())))
-                capture.wake.clear()
+            _loop(capture, pub, stop)
         finally:
             capture.close()
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
     defaults = CameraConfig()
-    parser.add_argument("--source", default="mujoco", help="mujoco, device:N or folder:PATH")
+    parser.add_argument(
+        "--source",
+        default="mujoco",
+        help="mujoco (render the robot's scene), device:N or folder:PATH",
+    )
     parser.add_argument(
         "--size", default=f"{defaults.width}x{defaults.height}", help="image size WIDTHxHEIGHT (px)"
     )
     parser.add_argument("--rate", type=float, default=defaults.rate, help="frames per second")
-    parser.add_argument("--encoding", default="rgb8", help="rgb8 (raw) or jpeg (slow links)")
+    parser.add_argument(
+        "--encoding", default=defaults.encoding, help="rgb8 (raw), jpeg or png (slow links)"
+    )
+    parser.add_argument(
+        "--robot-timeout",
+        type=float,
+        default=defaults.robot_timeout,
+        help="wait this long for the robot's scene parameters at start (s)",
+    )
 
 
 def _make_config(args: argparse.Namespace, net: NetConfig) -> CameraConfig:
@@ -329,6 +395,7 @@ def _make_config(args: argparse.Namespace, net: NetConfig) -> CameraConfig:
         height=height,
         rate=args.rate,
         encoding=args.encoding,
+        robot_timeout=args.robot_timeout,
     )
 
 

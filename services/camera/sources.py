@@ -10,16 +10,23 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
-from protocol.errors import ConfigError
+from protocol.errors import ArcheryError, ConfigError
 
-__all__ = ["DeviceSource", "FolderSource", "SourceSpec", "parse_source"]
+__all__ = ["DeviceSource", "FolderSource", "SourceError", "SourceSpec", "parse_source"]
 
 log = logging.getLogger("archery.camera")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+class SourceError(ArcheryError):
+    """A source that delivers no frame (device unplugged, unreadable files)."""
+
+    code = "no_frame"
 
 
 @dataclass(frozen=True)
@@ -47,24 +54,41 @@ def parse_source(text: str) -> SourceSpec:
         if not Path(path).is_dir():
             raise ConfigError(f"--source {text!r}: {path!r} is not a folder")
         return SourceSpec("folder", path=path)
-    raise ConfigError(f"--source {text!r} is not one of mujoco, device:N, folder:PATH")
+    raise ConfigError(
+        f"--source {text!r} is not one of mujoco, device:N (N = 0, 1, …), folder:PATH"
+    )
 
 
 class DeviceSource:
-    """A real camera through OpenCV's VideoCapture, at the requested size."""
+    """A real camera through OpenCV's VideoCapture, at the requested size (px).
 
-    def __init__(self, index: int, width: int, height: int) -> None:
-        self._capture = cv2.VideoCapture(index)
+    `capture` is the VideoCapture to use (a stand-in in tests); opened from `index` if None.
+    """
+
+    def __init__(self, index: int, width: int, height: int, capture: Any = None) -> None:
+        self.index = index
+        self._capture = cv2.VideoCapture(index) if capture is None else capture
         if not self._capture.isOpened():
-            raise ConfigError(f"camera device {index} cannot be opened (is it connected?)")
+            raise ConfigError(
+                f"camera device {index} cannot be opened (is it connected? `ls /dev/video*` "
+                f"lists the devices; use --source device:N with one of them)"
+            )
         self._capture.set(cv2.CAP_PROP_FRAME_WIDTH, width)
         self._capture.set(cv2.CAP_PROP_FRAME_HEIGHT, height)
+        self._capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)
 
-    def read(self) -> np.ndarray:
-        """The next frame (RGB)."""
+    def read(self, fresh: bool = False) -> np.ndarray:
+        """The next frame (RGB); with `fresh`, one buffered frame is dropped first, so the frame
+        returned was exposed after the call started.
+
+        Raises:
+            SourceError: the device delivered no frame.
+        """
+        if fresh:
+            self._capture.grab()
         ok, bgr = self._capture.read()
-        if not ok:
-            raise ConfigError("the camera device returned no frame")
+        if not ok or bgr is None:
+            raise SourceError(f"camera device {self.index} returned no frame")
         return np.ascontiguousarray(bgr[:, :, ::-1])
 
     def close(self) -> None:
@@ -81,8 +105,12 @@ class FolderSource:
             raise ConfigError(f"folder {path!r} holds no image ({', '.join(IMAGE_SUFFIXES)})")
         self._next = 0
 
-    def read(self) -> np.ndarray:
-        """The next image (RGB); unreadable files are skipped with a warning."""
+    def read(self, fresh: bool = False) -> np.ndarray:
+        """The next image (RGB), read from disk now; unreadable files are skipped with a warning.
+
+        Raises:
+            SourceError: no file of the folder can be read.
+        """
         for _ in range(len(self.files)):
             path = self.files[self._next]
             self._next = (self._next + 1) % len(self.files)
@@ -90,7 +118,7 @@ class FolderSource:
             if bgr is not None:
                 return np.ascontiguousarray(bgr[:, :, ::-1])
             log.warning("skipping %s: not a readable image", path)
-        raise ConfigError(f"no image of {self.files[0].parent} can be read")
+        raise SourceError(f"no image of {self.files[0].parent} can be read")
 
     def close(self) -> None:
         """Nothing to release."""

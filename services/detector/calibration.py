@@ -16,33 +16,54 @@ import numpy as np
 
 from services.detector.errors import CalibrationError
 
-__all__ = ["load_pixels", "sample_pixels"]
+__all__ = ["load_pixels", "parse_pixels", "sample_pixels"]
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and np.isfinite(value)
 
 
 def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
     height, width = shape
     mask = np.zeros((height, width), np.uint8)
-    if (
-        isinstance(entry, list | tuple)
-        and len(entry) == 2
-        and all(isinstance(v, int | float) for v in entry)
-    ):
+    if isinstance(entry, list | tuple) and len(entry) == 2 and all(_is_number(v) for v in entry):
         x, y = round(entry[0]), round(entry[1])
         if not (0 <= x < width and 0 <= y < height):
-            raise CalibrationError(f"{where}: point {entry} is outside the {width}x{height} image")
+            raise CalibrationError(
+                f"{where}: point {entry} is outside the {width}x{height} image (x in "
+                f"0..{width - 1}, y in 0..{height - 1}); were the pixels marked on another image?"
+            )
         mask[y, x] = 1
     elif isinstance(entry, dict) and "rect" in entry:
         rect = entry["rect"]
-        if not (isinstance(rect, list) and len(rect) == 4 and rect[2] > 0 and rect[3] > 0):
+        if not (
+            isinstance(rect, list)
+            and len(rect) == 4
+            and all(_is_number(v) for v in rect)
+            and rect[2] > 0
+            and rect[3] > 0
+        ):
             raise CalibrationError(f"{where}: rect must be [x, y, w, h] with w, h > 0, got {rect}")
         x, y, w, h = (round(v) for v in rect)
         if x < 0 or y < 0 or x + w > width or y + h > height:
             raise CalibrationError(f"{where}: rect {rect} leaves the {width}x{height} image")
         mask[y : y + h, x : x + w] = 1
     elif isinstance(entry, dict) and "polygon" in entry:
-        points = np.asarray(entry["polygon"], dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 2 or len(points) < 3:
-            raise CalibrationError(f"{where}: a polygon needs ≥ 3 [x, y] vertices")
+        vertices = entry["polygon"]
+        if (
+            not isinstance(vertices, list)
+            or len(vertices) < 3
+            or not all(
+                isinstance(v, list) and len(v) == 2 and all(_is_number(c) for c in v)
+                for v in vertices
+            )
+        ):
+            raise CalibrationError(
+                f"{where}: a polygon needs ≥ 3 [x, y] vertices, got {vertices!r}"
+            )
+        points = np.asarray(vertices, dtype=np.float64)
+        if np.any(points < 0) or np.any(points > [width - 1, height - 1]):
+            raise CalibrationError(f"{where}: polygon {vertices} leaves the {width}x{height} image")
         cv2.fillPoly(mask, [np.round(points).astype(np.int32)], 1)
         if not mask.any():
             raise CalibrationError(f"{where}: polygon {entry['polygon']} covers no pixel")
@@ -55,7 +76,11 @@ def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
 
 
 def sample_pixels(rgb: np.ndarray, entries: list[Any], name: str) -> np.ndarray:
-    """RGB values (N, 3) of the marked pixels of one object (each pixel once)."""
+    """RGB values (N, 3) of the marked pixels of one object (each pixel once).
+
+    Raises:
+        CalibrationError: no entries, a malformed entry, or one outside the image.
+    """
     if not isinstance(entries, list) or not entries:
         raise CalibrationError(f"no calibration pixels for the {name}: mark some on the image")
     mask = np.zeros(rgb.shape[:2], np.uint8)
@@ -64,21 +89,40 @@ def sample_pixels(rgb: np.ndarray, entries: list[Any], name: str) -> np.ndarray:
     return rgb[mask > 0]
 
 
-def load_pixels(path: str | Path) -> dict[str, list[Any]]:
-    """Read PIXELS.json (also accepts a file with these under a "calibration" key)."""
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise CalibrationError(f"cannot read calibration pixels {str(path)!r}: {exc}") from None
+def parse_pixels(data: Any, where: str = "calibration pixels") -> dict[str, list[Any]]:
+    """Check PIXELS.json content (also accepted: an object holding it under "calibration").
+
+    Returns:
+        {"target": entries} plus "arrow": entries when the set has an arrow.
+
+    Raises:
+        CalibrationError: not an object, no "target", an unknown key.
+    """
     if isinstance(data, dict) and "target" not in data and "calibration" in data:
         data = data["calibration"]
     if not isinstance(data, dict) or "target" not in data:
         raise CalibrationError(
-            f"{path}: expected {{'target': [[x, y], ...], 'arrow': [...]}} ('arrow' optional)"
+            f"{where}: expected {{'target': [[x, y], ...], 'arrow': [...]}} ('arrow' optional)"
         )
     unknown = set(data) - {"target", "arrow", "note"}
     if unknown:
         raise CalibrationError(
-            f"{path}: unknown keys {sorted(unknown)}; valid: target, arrow (and a free 'note')"
+            f"{where}: unknown keys {sorted(unknown)}; valid: target, arrow (and a free 'note')"
         )
-    return data
+    marks = {"target": data["target"]}
+    if data.get("arrow") is not None:
+        marks["arrow"] = data["arrow"]
+    return marks
+
+
+def load_pixels(path: str | Path) -> dict[str, list[Any]]:
+    """Read PIXELS.json (see `parse_pixels`).
+
+    Raises:
+        CalibrationError: unreadable, not JSON, or not a valid set.
+    """
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CalibrationError(f"cannot read calibration pixels {str(path)!r}: {exc}") from None
+    return parse_pixels(data, str(path))

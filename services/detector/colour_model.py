@@ -22,17 +22,21 @@ from sklearn.mixture import GaussianMixture
 from services.detector.errors import CalibrationError, ModelFileError
 
 __all__ = [
+    "MIN_CHROMA",
+    "MIN_PIXELS",
     "MODEL_FORMAT",
     "MODEL_VERSION",
     "ColourModel",
     "Gmm",
     "fit_gmm",
     "rgb_to_uv",
+    "rgb_to_uv_exact",
 ]
 
 MODEL_FORMAT = "archery-colour-model"
 MODEL_VERSION = 1
 MIN_PIXELS = 8  # fewer calibration pixels than this cannot support even one full covariance
+MIN_CHROMA = 10.0  # UV levels from grey: a set this close to grey is white, grey or black
 _REG_COVAR = 4.0  # (UV levels)²: JPEG and sensor noise floor, keeps single-colour sets sane
 
 
@@ -41,6 +45,15 @@ def rgb_to_uv(rgb: np.ndarray) -> np.ndarray:
     pixels = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 1, 3)
     yuv = cv2.cvtColor(pixels, cv2.COLOR_RGB2YUV).reshape(*rgb.shape[:-1], 3)
     return yuv[..., 1:].astype(np.float64)
+
+
+def rgb_to_uv_exact(rgb: np.ndarray) -> np.ndarray:
+    """(U, V) in floating point, unrounded: BT.601 as OpenCV's RGB→YUV, (..., 3) → (..., 2)."""
+    c = np.asarray(rgb, dtype=np.float64)
+    y = 0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2]
+    u = 0.492 * (c[..., 2] - y) + 128.0
+    v = 0.877 * (c[..., 0] - y) + 128.0
+    return np.clip(np.stack([u, v], axis=-1), 0.0, 255.0)
 
 
 @dataclass(frozen=True)
@@ -78,33 +91,62 @@ class Gmm:
         }
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Gmm:
-        """Inverse of `to_dict`; raises ModelFileError when inconsistent."""
+    def from_dict(cls, data: Any, name: str = "object") -> Gmm:
+        """Inverse of `to_dict`.
+
+        Raises:
+            ModelFileError: missing or inconsistent entries; the message names the object.
+        """
         try:
-            weights = np.asarray(data["weights"], dtype=float)
+            weights = np.asarray(data["weights"], dtype=float).reshape(-1)
             means = np.asarray(data["means"], dtype=float).reshape(len(weights), 2)
             covs = np.asarray(data["covariances"], dtype=float).reshape(len(weights), 2, 2)
-            bic = {int(k): float(v) for k, v in data.get("bic", {}).items()}
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ModelFileError(f"a GMM entry is malformed: {exc}") from None
-        if len(weights) == 0 or not np.all(np.isfinite(covs)) or np.any(np.linalg.det(covs) <= 0):
-            raise ModelFileError("a GMM needs ≥ 1 component with positive-definite covariances")
+            bic = {int(k): float(v) for k, v in dict(data.get("bic", {})).items()}
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelFileError(
+                f"the {name} GMM of the model file is malformed ({exc!r}); it needs "
+                f"weights, means and covariances"
+            ) from None
+        finite = all(np.all(np.isfinite(a)) for a in (weights, means, covs))
+        if len(weights) == 0 or not finite or np.any(np.linalg.eigvalsh(covs) <= 0):
+            raise ModelFileError(
+                f"the {name} GMM needs ≥ 1 component, finite values and positive-definite "
+                f"covariances"
+            )
+        if np.any(weights < 0) or abs(float(weights.sum()) - 1.0) > 1e-6:
+            raise ModelFileError(f"the {name} GMM priors must be ≥ 0 and sum to 1, got {weights}")
         return cls(weights=weights, means=means, covariances=covs, bic=bic)
 
 
 def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str = "object") -> Gmm:
     """Fit a full-covariance GMM to UV samples (N, 2), K = argmin BIC over 1..max_components.
 
+    K is also capped by the number of distinct colours and by N / `MIN_PIXELS`, so a set of a
+    single colour gives one Gaussian whose covariance is the noise floor `_REG_COVAR`·I.
+
     Raises:
-        CalibrationError: too few pixels, or not finite.
+        CalibrationError: too few pixels, non-finite values, or grey/white/black pixels (no
+            chroma: UV cannot tell them from the background).
     """
+    if not isinstance(max_components, int) or not 1 <= max_components <= 10:
+        raise CalibrationError(
+            f"max_components must be an integer in 1..10, got {max_components!r}"
+        )
     uv = np.asarray(uv, dtype=np.float64)
     if uv.ndim != 2 or uv.shape[1] != 2 or not np.all(np.isfinite(uv)):
         raise CalibrationError(f"{name}: UV samples must be a finite (N, 2) array, got {uv.shape}")
     if len(uv) < MIN_PIXELS:
         raise CalibrationError(
             f"{name}: {len(uv)} calibration pixels; at least {MIN_PIXELS} are needed "
-            f"(mark more pixels on the {name})"
+            f"(mark more pixels on the {name}, or a rectangle inside it)"
+        )
+    chroma = float(np.median(np.hypot(uv[:, 0] - 128.0, uv[:, 1] - 128.0)))
+    if chroma < MIN_CHROMA:
+        raise CalibrationError(
+            f"{name}: the calibration pixels are grey, white or black (median chroma "
+            f"{chroma:.1f} UV levels, at least {MIN_CHROMA:g} needed), and UV colour detection "
+            f"cannot tell those from the background: mark coloured parts (the yellow, red and "
+            f"blue rings; the tip's colour)"
         )
     distinct = len(np.unique(np.round(uv), axis=0))
     best: GaussianMixture | None = None
@@ -120,7 +162,8 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
         bic[k] = float(gmm.bic(uv))
         if best is None or bic[k] < bic[best.n_components]:
             best = gmm
-    assert best is not None
+    if best is None:  # unreachable: at least K = 1 is tried
+        raise CalibrationError(f"{name}: no GMM could be fitted")
     return Gmm(
         weights=best.weights_.copy(),
         means=best.means_.copy(),
@@ -142,26 +185,43 @@ class ColourModel:
     density_floor: float = 2e-5
 
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per-(U, V) membership of the target and of the arrow, uint8 0..255 each (256, 256).
+        """Membership of the target and of the arrow for every 8-bit (U, V): uint8 (256, 256).
 
-        A colour belongs to the more likely model, and only above the floor; membership then
-        saturates at 10× the floor, so that colours of high density (a tight cluster) do not
-        outweigh equally certain colours of a broader one (this is what biases a plain
-        likelihood-weighted centroid towards one ring).
+        Indexed [U, V]; 255 = surely the object, 0 = not it (see `memberships`).
         """
-        grid = np.stack(np.meshgrid(np.arange(256), np.arange(256), indexing="ij"), axis=-1)
-        p_target = self.target.density(grid.astype(np.float64))
-        p_arrow = (
-            self.arrow.density(grid.astype(np.float64)) if self.arrow else np.zeros_like(p_target)
-        )
+        u, v = np.meshgrid(np.arange(256.0), np.arange(256.0), indexing="ij")
+        target, arrow = self.memberships(np.stack([u, v], axis=-1))
+        return np.round(target * 255).astype(np.uint8), np.round(arrow * 255).astype(np.uint8)
+
+    def memberships(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(target, arrow) memberships 0..1 at UV points (..., 2), evaluated exactly.
+
+        A colour belongs to the more likely model only (densities compared, Eq. 8), and only
+        above the floor; membership then rises linearly and saturates at 10× the floor, so that
+        colours of high density (a tight cluster) do not outweigh equally certain colours of a
+        broader one (this is what biases a plain likelihood-weighted centroid towards one ring).
+        """
+        p_target = self.target.density(uv)
+        p_arrow = self.arrow.density(uv) if self.arrow else np.zeros_like(p_target)
         ceiling = 10 * self.density_floor
 
         def membership(p: np.ndarray, other: np.ndarray) -> np.ndarray:
-            m = np.clip((p - self.density_floor) / (ceiling - self.density_floor), 0, 1)
-            m[p <= other] = 0
-            return np.round(m * 255).astype(np.uint8)
+            m = np.clip((p - self.density_floor) / (ceiling - self.density_floor), 0.0, 1.0)
+            m[p <= other] = 0.0
+            return m
 
         return membership(p_target, p_arrow), membership(p_arrow, p_target)
+
+    def summary(self) -> dict[str, Any]:
+        """Components and BIC per object (for logs and replies)."""
+
+        def one(gmm: Gmm | None) -> dict[str, Any] | None:
+            if gmm is None:
+                return None
+            bic = {str(k): round(v, 2) for k, v in gmm.bic.items()}
+            return {"components": gmm.n_components, "bic": bic}
+
+        return {"target": one(self.target), "arrow": one(self.arrow)}
 
     def to_dict(self) -> dict[str, Any]:
         """The model file's content."""
@@ -182,29 +242,42 @@ class ColourModel:
             ModelFileError: not a colour model, or of another version.
         """
         if not isinstance(data, dict) or data.get("format") != MODEL_FORMAT:
-            raise ModelFileError(f"not an archery colour model (expected format {MODEL_FORMAT!r})")
+            raise ModelFileError(
+                f'not an archery colour model (expected "format": {MODEL_FORMAT!r}); '
+                f"make one with `archery calibrate`"
+            )
         if data.get("version") != MODEL_VERSION:
             raise ModelFileError(
                 f"colour model version {data.get('version')!r} is not supported; this detector "
                 f"reads version {MODEL_VERSION}: calibrate again with `archery calibrate`"
             )
+        if "target" not in data:
+            raise ModelFileError('the model file has no "target" GMM')
         arrow = data.get("arrow")
+        try:
+            floor = float(data.get("density_floor", 2e-5))
+        except (TypeError, ValueError):
+            floor = float("nan")
+        if not (math.isfinite(floor) and floor > 0):
+            raise ModelFileError(
+                f"density_floor must be a number > 0, got {data['density_floor']!r}"
+            )
         return cls(
-            target=Gmm.from_dict(data["target"]),
-            arrow=Gmm.from_dict(arrow) if arrow else None,
-            density_floor=float(data.get("density_floor", 2e-5)),
+            target=Gmm.from_dict(data["target"], "target"),
+            arrow=Gmm.from_dict(arrow, "arrow") if arrow is not None else None,
+            density_floor=floor,
         )
 
     def save(self, path: str | Path) -> None:
         """Write the model as JSON."""
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1))
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1) + "\n")
 
     @classmethod
     def load(cls, path: str | Path) -> ColourModel:
         """Read a model file; raises ModelFileError when missing or invalid."""
         try:
             data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ModelFileError(f"cannot read colour model {str(path)!r}: {exc}") from None
         return cls.from_dict(data)
 
@@ -227,13 +300,14 @@ class ColourModel:
             rgb_to_uv(target_rgb), max_components=max_components, seed=seed, name="target"
         )
         arrow = None
-        if arrow_rgb is not None and len(arrow_rgb):
+        if arrow_rgb is not None:
             arrow_uv = rgb_to_uv(arrow_rgb)
             arrow = fit_gmm(arrow_uv, max_components=max_components, seed=seed, name="arrow")
             confused = float(np.mean(target.density(arrow_uv) >= arrow.density(arrow_uv)))
-            if confused > 0.5:
+            if confused > 0.2:
                 raise CalibrationError(
-                    f"{confused:.0%} of the arrow pixels look more like the target: the arrow "
-                    f"tip needs a colour the target does not have"
+                    f"{confused:.0%} of the arrow pixels look more like the target than like "
+                    f"the arrow (at most 20 % may): the tip needs a colour the target does not "
+                    f"have, or the arrow pixels were marked on the target"
                 )
         return cls(target=target, arrow=arrow)

@@ -4,23 +4,36 @@ The paper's Eq. 7 estimates an object's centre as a likelihood-weighted sum of p
 As printed it divides each pixel's term by that pixel's own total likelihood S_xy, which gives
 every pixel the weight 1 (the centre of the whole image, whatever it shows). We implement what
 the method means: a weighted centroid m = Σ w(x) x / Σ w(x), normalised over the image, with
-w(x) the pixel's membership of the object's colour model.
+w(x) the pixel's membership of the object's colour model (`eq7_centroid` is that plain form).
 
 Real photographs break the plain version (measured 15–96 px off): arrow holes and ring lines
 punch gaps in the target, distractors share its colours (a yellow logo letter, a pin), and a
 tight colour cluster (yellow) has a higher likelihood than a broad one (blue), which drags the
-centroid towards one ring. So the weights are made robust in four steps, all O(pixels):
+centroid towards one ring. So the target's weights are made robust in four steps, all
+O(pixels):
 1. each pixel goes to the more likely model, and only above a likelihood floor (the 256×256 UV
    tables of `ColourModel.tables`), so background does not pull the centroid;
 2. only the largest connected region of target colour counts (distractors are separate blobs);
 3. holes inside that region (arrow holes, ring lines, the arrow itself) are filled;
 4. membership saturates: every pixel of the filled region weighs 1, whatever its density, so a
    colour the calibration happens to favour cannot pull the centre towards its ring.
-The pixels' mean membership then measures how well the colours match the calibration and
-enters the confidence: under a colour shift (warmer light) the centre stays usable but is
-reported with less confidence, and below a threshold as not seen.
-The region's size in the image gives the scale: the calibrated colours span a known diameter on
-the face (by default the blue ring's outer edge, 0.6 of the 50 cm target).
+Steps 2–3 run on the membership map averaged over s×s blocks (s ≈ shorter side / 240), which
+keeps a frame's cost a few milliseconds; the centroid is then that of the filled region at
+block resolution, with sub-block precision from the region's size.
+The region's mean membership measures how well the colours match the calibration and enters
+the confidence: under a colour shift (warmer light) the centre stays usable but is reported with
+less confidence, and below a threshold as not seen.
+
+The arrow tip m_A is the plain weighted centroid (Eq. 7) of arrow membership at full
+resolution, over the strongest arrow-coloured blob.
+
+Reward vector: the paper writes r = m_T − m_A in image terms. The mesh's convention is the
+arrow's offset from the centre, r[0] to the robot's right and r[1] up, in metres on the target
+plane; the camera looks at the face from the robot's side, so image columns grow to the right
+and rows grow downwards. Hence r = M (m_A − m_T) with the image-row sign flipped, where M maps
+pixels to metres: the filled target region (a disc of known diameter D on the face, imaged as
+an ellipse of second-moment matrix C in px²) gives M = (D/4) C^(-1/2), which also undoes the
+foreshortening of an oblique view.
 """
 
 from __future__ import annotations
@@ -33,12 +46,26 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.detector.colour_model import ColourModel
+from protocol.errors import ConfigError
+from services.detector.colour_model import ColourModel, rgb_to_uv_exact
 from services.detector.errors import ImageError
 
-__all__ = ["Detection", "Detector", "DetectorSettings", "Seen"]
+__all__ = [
+    "MAX_IMAGE_SIDE",
+    "MIN_IMAGE_SIDE",
+    "Detection",
+    "Detector",
+    "DetectorSettings",
+    "Seen",
+    "check_image",
+    "eq7_centroid",
+    "exact_memberships",
+]
 
 log = logging.getLogger("archery.detector")
+MIN_IMAGE_SIDE = 32  # px
+MAX_IMAGE_SIDE = 8192  # px
+ANALYSIS_SIDE = 240  # px: the block-averaged map's shorter side for the region analysis
 
 
 @dataclass(frozen=True)
@@ -51,7 +78,7 @@ class DetectorSettings:
             (yellow + red + blue rings of a 5- or 10-ring face: 0.6).
         min_target_fraction: smallest target region, as a fraction of the image's pixels.
         min_target_confidence: below this the target is reported as not seen.
-        min_arrow_pixels: smallest arrow-tip region (px).
+        min_arrow_pixels: smallest arrow-tip evidence (px of full membership).
         max_arrow_fraction: largest arrow-tip region, as a fraction of the image (a larger one
             means the arrow's colour model also covers the scene: reported as not seen).
         close_fraction: closing kernel size over the image's shorter side (bridges ring lines).
@@ -61,7 +88,7 @@ class DetectorSettings:
     coloured_fraction: float = 0.6
     min_target_fraction: float = 5e-4
     min_target_confidence: float = 0.6
-    min_arrow_pixels: int = 6
+    min_arrow_pixels: float = 6.0
     max_arrow_fraction: float = 0.01
     close_fraction: float = 0.01
 
@@ -71,15 +98,20 @@ class DetectorSettings:
             "coloured_fraction": (self.coloured_fraction, 0.01, 1.0),
             "min_target_fraction": (self.min_target_fraction, 0.0, 0.5),
             "min_target_confidence": (self.min_target_confidence, 0.0, 1.0),
-            "min_arrow_pixels": (self.min_arrow_pixels, 1, 100000),
+            "min_arrow_pixels": (self.min_arrow_pixels, 1.0, 1e6),
             "max_arrow_fraction": (self.max_arrow_fraction, 0.0, 1.0),
             "close_fraction": (self.close_fraction, 0.0, 0.2),
         }
         for name, (value, low, high) in checks.items():
             if not (
-                isinstance(value, int | float) and math.isfinite(value) and low <= value <= high
+                isinstance(value, int | float)
+                and not isinstance(value, bool)
+                and math.isfinite(value)
+                and low <= value <= high
             ):
-                raise ImageError(f"{name} = {value!r} is outside [{low}, {high}]")
+                raise ConfigError(
+                    f"detector setting {name} = {value!r} is outside [{low:g}, {high:g}]"
+                )
 
     @property
     def coloured_diameter_m(self) -> float:
@@ -105,14 +137,23 @@ class Seen:
 
 @dataclass(frozen=True)
 class Detection:
-    """What one frame shows. `r_m` = arrow − centre on the target plane (m): r[0] to the right
-    (image columns), r[1] up (against image rows) — the mesh's reward-vector convention."""
+    """What one frame shows.
+
+    Attributes:
+        target, arrow: what was seen of each (None: not seen).
+        r_m: arrow − centre on the target plane (m): r[0] to the right (image columns), r[1]
+            up (against image rows) — the mesh's reward-vector convention; None unless both
+            were seen.
+        metres_per_px: the 2×2 map M from an image offset (px: column, row) to a face offset
+            (m: right, down), from the target region; None without a target.
+        status: "ok", "no_target" or "no_arrow".
+    """
 
     target: Seen | None
     arrow: Seen | None
     r_m: tuple[float, float] | None
-    metres_per_px: tuple[float, float] | None
-    status: str  # "ok", "no_target", "no_arrow"
+    metres_per_px: np.ndarray | None
+    status: str
 
     def to_json(self) -> dict[str, Any]:
         """The offline `archery detect` output."""
@@ -121,6 +162,57 @@ class Detection:
             "arrow": self.arrow.to_dict() if self.arrow else None,
             "r_m": [round(v, 5) for v in self.r_m] if self.r_m else None,
         }
+
+
+def check_image(rgb: Any) -> np.ndarray:
+    """Return `rgb` as a contiguous RGB uint8 (H, W, 3) array.
+
+    Raises:
+        ImageError: another type, dtype or shape, or a side outside 32..8192 px.
+    """
+    if not isinstance(rgb, np.ndarray):
+        raise ImageError(f"expected an RGB image as a numpy array, got {type(rgb).__name__}")
+    if rgb.dtype != np.uint8:
+        raise ImageError(f"expected an 8-bit RGB image (uint8), got dtype {rgb.dtype}")
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ImageError(
+            f"expected a colour image of shape (H, W, 3), got {rgb.shape}: colour detection "
+            f"needs the U and V channels (a grey image has none)"
+        )
+    height, width = rgb.shape[:2]
+    if min(height, width) < MIN_IMAGE_SIDE or max(height, width) > MAX_IMAGE_SIDE:
+        raise ImageError(
+            f"image of {width}x{height} px: each side must be {MIN_IMAGE_SIDE}..{MAX_IMAGE_SIDE} px"
+        )
+    return np.ascontiguousarray(rgb)
+
+
+def exact_memberships(model: ColourModel, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(target, arrow) memberships 0..255 (float32) of every pixel, from the GMMs themselves.
+
+    The reference the tables are checked against: unrounded UV, densities evaluated per pixel
+    (cost grows with the number of components).
+    """
+    target, arrow = model.memberships(rgb_to_uv_exact(check_image(rgb)))
+    return (target * 255).astype(np.float32), (arrow * 255).astype(np.float32)
+
+
+def eq7_centroid(weights: np.ndarray) -> tuple[float, float] | None:
+    """The plain Eq. 7 centre Σ w(x) x / Σ w(x) over the image (px: column, row), or None if
+    Σ w = 0."""
+    moments = cv2.moments(np.asarray(weights, dtype=np.float32))
+    if moments["m00"] <= 0:
+        return None
+    return moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]
+
+
+def _block_mean(image: np.ndarray, s: int) -> np.ndarray:
+    """Mean over s×s blocks (the right and bottom remainders dropped)."""
+    if s == 1:
+        return image
+    height, width = image.shape
+    crop = image[: height - height % s, : width - width % s]
+    return cv2.resize(crop, (width // s, height // s), interpolation=cv2.INTER_AREA)
 
 
 class Detector:
@@ -136,103 +228,119 @@ class Detector:
 
     def memberships(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Per-pixel membership (uint8, 0..255) of the target and of the arrow, by table look-up."""
-        rgb = _check_image(rgb)
+        rgb = check_image(rgb)
         yuv = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV)
         index = (yuv[:, :, 1].astype(np.uint16) << 8) | yuv[:, :, 2]
-        return self._target_table[index], self._arrow_table[index]
+        arrow = self._arrow_table[index] if self.has_arrow_model else None
+        return self._target_table[index], arrow  # type: ignore[return-value]
 
     def detect(self, rgb: np.ndarray) -> Detection:
         """Detect in an RGB uint8 image (H, W, 3).
 
         Raises:
-            ImageError: not an RGB uint8 image of at least 32×32 px.
+            ImageError: not an RGB uint8 image with sides of 32..8192 px.
         """
-        target_m, arrow_m = self.memberships(rgb)
-        target, scale = self._find_target(target_m)
-        arrow = self._find_arrow(arrow_m) if self.has_arrow_model else None
-        if target is None:
+        return self.locate(*self.memberships(rgb))
+
+    def locate(self, target_m: np.ndarray, arrow_m: np.ndarray | None) -> Detection:
+        """Detect from membership maps (0..255; uint8 from the tables or float from
+        `exact_memberships`); `arrow_m` None for a target-only model."""
+        target, centre, metres = self._find_target(target_m)
+        arrow = self._find_arrow(arrow_m) if arrow_m is not None else None
+        if target is None or centre is None or metres is None:
             return Detection(None, arrow, None, None, "no_target")
         if arrow is None:
-            return Detection(target, None, None, scale, "no_arrow")
-        assert scale is not None
-        dx = (arrow.px[0] - target.px[0]) * scale[0]
-        dy = -(arrow.px[1] - target.px[1]) * scale[1]
-        return Detection(target, arrow, (dx, dy), scale, "ok")
+            return Detection(target, None, None, metres, "no_arrow")
+        face = metres @ (np.asarray(arrow.px) - centre)  # (right, down) on the face, m
+        return Detection(target, arrow, (float(face[0]), float(-face[1])), metres, "ok")
 
     def _find_target(
         self, membership: np.ndarray
-    ) -> tuple[Seen | None, tuple[float, float] | None]:
+    ) -> tuple[Seen | None, np.ndarray | None, np.ndarray | None]:
         s = self.settings
         height, width = membership.shape
-        mask = (membership > 0).astype(np.uint8)
-        size = max(3, round(min(height, width) * s.close_fraction) | 1)
+        block = max(1, min(height, width) // ANALYSIS_SIDE)
+        small = _block_mean(membership, block)
+        mask = (small > 31).astype(np.uint8)  # an eighth of the block is surely target
+        size = max(3, round(min(small.shape) * s.close_fraction) | 1)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
         closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
         if count < 2:
-            return None, None
+            return None, None, None
         largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        if stats[largest, cv2.CC_STAT_AREA] < s.min_target_fraction * height * width:
-            return None, None
+        smallest = s.min_target_fraction * membership.size / (block * block)
+        if stats[largest, cv2.CC_STAT_AREA] < smallest:
+            return None, None, None
         x0, y0, w, h = (int(v) for v in stats[largest, :4])
         region = (labels[y0 : y0 + h, x0 : x0 + w] == largest).astype(np.uint8)
         contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         outline = max(contours, key=cv2.contourArea)
         filled = np.zeros_like(region)
         cv2.drawContours(filled, [outline], -1, 1, thickness=cv2.FILLED)
-        # weights: every pixel of the filled region counts fully (membership saturated, holes
+        # weights: every block of the filled region counts fully (membership saturated, holes
         # filled); partial memberships would let the colour calibration bias the centre
         moments = cv2.moments(filled, binaryImage=True)
-        if moments["m00"] <= 0:
-            return None, None
-        cx, cy = moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]
-        width_px = 4 * math.sqrt(max(moments["mu20"], 1e-9) / moments["m00"])
-        height_px = 4 * math.sqrt(max(moments["mu02"], 1e-9) / moments["m00"])
+        area = float(moments["m00"])
+        if area <= 0:
+            return None, None, None
+        # block (i, j) covers full-resolution pixels i·s … i·s + s − 1: its centre is i·s + (s−1)/2
+        cx = (x0 + moments["m10"] / area) * block + 0.5 * (block - 1)
+        cy = (y0 + moments["m01"] / area) * block + 0.5 * (block - 1)
+        cov = np.array([[moments["mu20"], moments["mu11"]], [moments["mu11"], moments["mu02"]]])
+        cov = cov / area * block * block + np.eye(2) * (block * block - 1) / 12.0  # px²
+        eigenvalues, vectors = np.linalg.eigh(cov)
+        if eigenvalues[0] <= 0:
+            return None, None, None
+        # a disc of diameter D has second moments D²/16 per axis: M = (D/4) C^(-1/2)
+        inv_sqrt = vectors @ np.diag(eigenvalues**-0.5) @ vectors.T
+        metres = 0.25 * s.coloured_diameter_m * inv_sqrt
         # confidence: how disc-like the region is (an arc or a blotch scores low) and how well
         # its pixels match the calibrated colours (a colour shift, e.g. warmer light, lowers it)
-        area = float(moments["m00"])
         solidity = area / max(cv2.contourArea(cv2.convexHull(outline)), 1.0)
-        roundness = min(1.0, area / max(math.pi * width_px * height_px / 4, 1.0))
-        agreement = float(membership[y0 : y0 + h, x0 : x0 + w][filled > 0].mean()) / 255.0
+        ellipse_area = 4.0 * math.pi * math.sqrt(float(np.prod(eigenvalues))) / (block * block)
+        roundness = min(1.0, area / max(ellipse_area, 1.0))
+        agreement = float(small[y0 : y0 + h, x0 : x0 + w][filled > 0].mean()) / 255.0
         confidence = min(1.0, solidity) * roundness * min(1.0, agreement / 0.8)
         if confidence < s.min_target_confidence:
-            return None, None
-        seen = Seen(px=(x0 + cx, y0 + cy), confidence=confidence, pixels=int(area))
-        scale = (s.coloured_diameter_m / width_px, s.coloured_diameter_m / height_px)
-        return seen, scale
+            log.debug("target region of confidence %.2f is below the threshold", confidence)
+            return None, None, None
+        seen = Seen(px=(cx, cy), confidence=confidence, pixels=round(area * block * block))
+        return seen, np.array([cx, cy]), metres
 
     def _find_arrow(self, membership: np.ndarray) -> Seen | None:
-        mask = (membership > 0).astype(np.uint8)
+        s = self.settings
+        height, width = membership.shape
+        block = max(1, min(height, width) // ANALYSIS_SIDE)
+        small = _block_mean(membership, block)
+        mask = (small > 0).astype(np.uint8)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         if count < 2:
             return None
-        largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        area = int(stats[largest, cv2.CC_STAT_AREA])
-        if area < self.settings.min_arrow_pixels:
+        evidence = np.bincount(labels.ravel(), weights=small.ravel(), minlength=count)[1:]
+        evidence *= block * block / 255.0  # full-membership pixels per blob
+        best = int(np.argmax(evidence))
+        label = best + 1
+        if evidence[best] < s.min_arrow_pixels:
             return None
-        if area > self.settings.max_arrow_fraction * membership.size:
+        area = int(stats[label, cv2.CC_STAT_AREA]) * block * block
+        if area > s.max_arrow_fraction * membership.size:
             log.warning(
                 "arrow-coloured region of %d px is too large for a tip (max %.0f): the arrow "
                 "model covers the scene; calibrate again",
                 area,
-                self.settings.max_arrow_fraction * membership.size,
+                s.max_arrow_fraction * membership.size,
             )
             return None
-        x0, y0, w, h = (int(v) for v in stats[largest, :4])
-        region = labels[y0 : y0 + h, x0 : x0 + w] == largest
-        weights = np.where(region, membership[y0 : y0 + h, x0 : x0 + w], 0).astype(np.float32)
-        moments = cv2.moments(weights)
-        cx, cy = moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]
-        rest = int(stats[1:, cv2.CC_STAT_AREA].sum()) - area
-        confidence = min(1.0, area / (4 * self.settings.min_arrow_pixels)) * area / (area + rest)
-        return Seen(px=(x0 + cx, y0 + cy), confidence=confidence, pixels=area)
-
-
-def _check_image(rgb: Any) -> np.ndarray:
-    if not isinstance(rgb, np.ndarray) or rgb.dtype != np.uint8:
-        raise ImageError(f"expected an RGB uint8 image, got {getattr(rgb, 'dtype', type(rgb))}")
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ImageError(f"expected an RGB image of shape (H, W, 3), got {rgb.shape}")
-    if rgb.shape[0] < 32 or rgb.shape[1] < 32:
-        raise ImageError(f"image of {rgb.shape[1]}x{rgb.shape[0]} px is too small (min 32x32)")
-    return np.ascontiguousarray(rgb)
+        # the tip: Eq. 7's weighted centroid at full resolution over the blob's blocks
+        x0, y0, w, h = (int(v) * block for v in stats[label, :4])
+        blob = labels[y0 // block : (y0 + h) // block, x0 // block : (x0 + w) // block] == label
+        keep = np.kron(blob, np.ones((block, block), dtype=bool)) if block > 1 else blob
+        weights = np.where(keep, membership[y0 : y0 + h, x0 : x0 + w], 0).astype(np.float32)
+        centre = eq7_centroid(weights)
+        if centre is None:
+            return None
+        rest = float(evidence.sum()) - float(evidence[best])
+        strength = min(1.0, float(evidence[best]) / (4.0 * s.min_arrow_pixels))
+        confidence = strength * float(evidence[best]) / (float(evidence[best]) + rest)
+        return Seen(px=(x0 + centre[0], y0 + centre[1]), confidence=confidence, pixels=area)

@@ -1,24 +1,31 @@
 """`archery detector`: the GMM colour detector on the mesh (`ROBOT/detector/rpc:i`, `hit:o`).
 
-Verbs on `ROBOT/detector/rpc:i`:
+Verbs on `ROBOT/detector/rpc:i` (args → result):
 - `measure {"after_sim_time": s, "after_stamp": s, "timeout": s}` → grabs a camera frame newer
-  than those stamps (so it never sees the scene before the landing), detects, publishes the
-  `Detection` on `ROBOT/detector/hit:o` and replies with it as a dict: `status` ("ok",
-  "no_target", "no_arrow"), `r_m` = arrow − centre on the target plane (m; r[0] to the robot's
-  right, r[1] up), pixels and confidences, and `sim_time` of the frame.
-- `calibrate {"pixels": {"target": […], "arrow": […]}}` fits the colour model on the newest frame
-  (or on the camera's own marks when `pixels` is absent: the simulated camera provides them);
-  the model is saved to `--model` when given.
-- `frame {"overlay": true}` → {"png": bytes}: the last measured frame, with the detection drawn.
-- `status {}` → calibrated or not, model components, counts.
+  than those stamps (`cam/rpc:i grab` with the same args, so it never sees the scene before the
+  landing), detects, publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
+  with it as a dict: `status` ("ok", "no_target", "no_arrow"), `r_m` = arrow − centre on the
+  target plane (m; r[0] to the robot's right, r[1] up; the paper's r = m_T − m_A in pixels,
+  re-expressed), `target_px`, `arrow_px` (column, row), confidences, the frame's `sim_time`
+  and `frame_stamp`, plus `frame` (the camera's frame number) and `timing` {grab_s, detect_s}.
+- `calibrate {"pixels": {"target": […], "arrow": […]}, "after_sim_time": s, "after_stamp": s}`
+  fits the colour model on a camera frame (newer than the stamps) from the given pixels
+  (PIXELS.json form), or, without `pixels`, on the camera's own `calibration` frame and marks
+  (the simulated camera provides them); saved to `--model` when given. → the model summary
+  (components and BIC per object) and the pixel counts.
+- `frame {"overlay": true}` → {"png": bytes, "status": s}: the last measured frame, with the
+  detection and the filtered pixels drawn as in the paper's Fig. 9.
+- `status {}` → calibrated or not, the model summary, the settings, measurements so far.
 
-Without `--model`, or with a missing model file, the detector calibrates itself from the camera's
-`calibration` marks as soon as the camera is alive (`--no-auto-calibrate` turns that off).
+Without `--model`, or with a model file that does not exist yet, the detector calibrates itself
+from the camera's `calibration` marks as soon as the camera is alive (`--no-auto-calibrate`
+turns that off).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import threading
 import time
@@ -35,15 +42,17 @@ from protocol.messages import Image
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.service import service_main
-from services.detector.calibration import sample_pixels
+from services.detector.calibration import parse_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detection, Detector, DetectorSettings
-from services.detector.errors import DetectorError
+from services.detector.errors import DetectorError, ModelFileError
 from services.detector.overlay import draw_overlay, encode_png
 
-__all__ = ["DetectorConfig", "main", "run"]
+__all__ = ["DetectorConfig", "NotCalibrated", "main", "run"]
 
 log = logging.getLogger("archery.detector")
+MAX_TIMEOUT = 120.0  # s
+STAMP_ARGS = ("after_sim_time", "after_stamp")
 
 
 class NotCalibrated(DetectorError):
@@ -54,13 +63,59 @@ class NotCalibrated(DetectorError):
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Detector settings: model file, detection settings, camera timeout (s)."""
+    """Detector settings.
+
+    Attributes:
+        net: network settings.
+        model: colour model file (read at start if it exists, written by `calibrate`).
+        settings: detection settings (target size, thresholds).
+        auto_calibrate: without a model, calibrate from the camera's marks once it is alive.
+        camera_timeout: default wait for a camera frame (s).
+    """
 
     net: NetConfig = field(default_factory=NetConfig)
     model: str | None = None
     settings: DetectorSettings = field(default_factory=DetectorSettings)
     auto_calibrate: bool = True
     camera_timeout: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not (
+            isinstance(self.camera_timeout, int | float) and 0 < self.camera_timeout <= MAX_TIMEOUT
+        ):
+            raise ConfigError(
+                f"camera timeout must be in (0, {MAX_TIMEOUT:g}] s, got {self.camera_timeout!r}"
+            )
+
+
+def _stamp_args(args: dict[str, Any], verb: str, extra: tuple[str, ...]) -> dict[str, float]:
+    """The freshness args of a request, checked; unknown keys are an error naming the valid."""
+    unknown = set(args) - set(STAMP_ARGS) - {"timeout", *extra}
+    if unknown:
+        valid = ", ".join((*STAMP_ARGS, "timeout", *extra))
+        raise BadRequest(f"{verb}: unknown args {sorted(unknown)}; valid: {valid}")
+    out = {}
+    for name in STAMP_ARGS:
+        value = args.get(name)
+        if value is None:
+            continue
+        if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
+            raise BadRequest(f"{verb}: {name} must be a finite number of seconds, got {value!r}")
+        out[name] = float(value)
+    return out
+
+
+def _timeout(args: dict[str, Any], default: float) -> float:
+    value = args.get("timeout", default)
+    if (
+        not isinstance(value, int | float)
+        or isinstance(value, bool)
+        or not (0 < value <= MAX_TIMEOUT)
+    ):
+        raise BadRequest(
+            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {value!r}"
+        )
+    return float(value)
 
 
 def _image_from(result: Any, what: str) -> Image:
@@ -78,7 +133,7 @@ class _State:
         self.lock = threading.Lock()
         self.detector: Detector | None = None
         self.model: ColourModel | None = None
-        self.last: tuple[np.ndarray, Detection] | None = None
+        self.last: tuple[np.ndarray, Detection, Detector] | None = None
         self.measured = 0
         if config.model and Path(config.model).exists():
             self.set_model(ColourModel.load(config.model), save=False)
@@ -100,55 +155,64 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
         hits = node.publisher(keys.detector_hits(), DetectionMessage, lossless=True)
 
         def calibrate_from(image: Image, pixels: Any) -> dict[str, Any]:
-            if not isinstance(pixels, dict) or "target" not in pixels:
-                raise BadRequest("pixels must be {'target': [[x, y], ...], 'arrow': [...]}")
+            marks = parse_pixels(pixels, "pixels")
             rgb = image.to_numpy()
-            target = sample_pixels(rgb, pixels["target"], "target")
-            arrow = sample_pixels(rgb, pixels["arrow"], "arrow") if pixels.get("arrow") else None
+            target = sample_pixels(rgb, marks["target"], "target")
+            arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
             model = ColourModel.fit(target, arrow)
             state.set_model(model, save=True)
             return {
-                "target_components": model.target.n_components,
-                "arrow_components": model.arrow.n_components if model.arrow else None,
+                **model.summary(),
                 "target_pixels": len(target),
                 "arrow_pixels": 0 if arrow is None else len(arrow),
+                "frame_sim_time": image.sim_time,
+                "saved": config.model,
             }
 
         def calibrate(args: dict[str, Any]) -> dict[str, Any]:
+            stamps = _stamp_args(args, "calibrate", ("pixels",))
+            timeout = _timeout(args, config.camera_timeout)
             if "pixels" in args:
-                image = _image_from(
-                    node.call(keys.cam_rpc(), "grab", {}, timeout=config.camera_timeout), "frame"
+                grabbed = node.call(
+                    keys.cam_rpc(), "grab", {**stamps, "timeout": timeout}, timeout=timeout + 1.0
                 )
-                return calibrate_from(image, args["pixels"])
-            marks = node.call(keys.cam_rpc(), "calibration", {}, timeout=config.camera_timeout)
+                return calibrate_from(_image_from(grabbed, "camera frame"), args["pixels"])
+            marks = node.call(keys.cam_rpc(), "calibration", {}, timeout=timeout + 30.0)
+            if not isinstance(marks, dict) or "image" not in marks or "pixels" not in marks:
+                raise DecodeError(
+                    f"the camera's calibration reply has no image and pixels: {marks!r}"
+                )
             return calibrate_from(_image_from(marks["image"], "calibration frame"), marks["pixels"])
 
+        calibrating = threading.Lock()
+
+        def ensure_model() -> Detector | None:
+            """The detector, calibrated from the camera's marks first if there is none yet."""
+            with calibrating:
+                if state.detector is None:
+                    log.info("calibrated from the camera's marks: %s", calibrate({}))
+            return state.detector
+
         def measure(args: dict[str, Any]) -> dict[str, Any]:
-            unknown = set(args) - {"after_sim_time", "after_stamp", "timeout"}
-            if unknown:
-                raise BadRequest(
-                    f"measure: unknown args {sorted(unknown)}; valid: "
-                    f"after_sim_time, after_stamp, timeout"
-                )
-            with state.lock:
-                detector = state.detector
+            stamps = _stamp_args(args, "measure", ())
+            timeout = _timeout(args, config.camera_timeout)
+            detector = ensure_model() if config.auto_calibrate else state.detector
             if detector is None:
                 raise NotCalibrated(
-                    "the detector has no colour model yet: call `calibrate` "
-                    "(or start it with --model FILE)"
+                    "the detector has no colour model yet: call `calibrate` (with pixels for a "
+                    "real camera), or start it with --model FILE"
                 )
-            timeout = float(args.get("timeout", config.camera_timeout))
-            grab_args = {k: v for k, v in args.items() if k != "timeout"}
-            grab_args["timeout"] = timeout
-            image = _image_from(
-                node.call(keys.cam_rpc(), "grab", grab_args, timeout=timeout + 1.0), "frame"
-            )
-            rgb = image.to_numpy()
             started = time.perf_counter()
+            grabbed = node.call(
+                keys.cam_rpc(), "grab", {**stamps, "timeout": timeout}, timeout=timeout + 1.0
+            )
+            image = _image_from(grabbed, "camera frame")
+            rgb = image.to_numpy()
+            grabbed_at = time.perf_counter()
             found = detector.detect(rgb)
-            detect_ms = (time.perf_counter() - started) * 1e3
+            detect_s = time.perf_counter() - grabbed_at
             with state.lock:
-                state.last = (rgb, found)
+                state.last = (rgb, found, detector)
                 state.measured += 1
             message = hits.put(
                 DetectionMessage(
@@ -162,27 +226,32 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
                     sim_time=image.sim_time,
                 )
             )
-            reply = msgspec.to_builtins(message)
-            reply.update(frame=image.frame, detect_ms=round(detect_ms, 3))
-            return reply  # type: ignore[no-any-return]
+            reply: dict[str, Any] = msgspec.to_builtins(message)
+            reply["frame"] = image.frame
+            reply["timing"] = {
+                "grab_s": round(grabbed_at - started, 6),
+                "detect_s": round(detect_s, 6),
+            }
+            return reply
 
         def frame(args: dict[str, Any]) -> dict[str, Any]:
             with state.lock:
                 last = state.last
             if last is None:
                 raise BadRequest("no frame measured yet: call `measure` first")
-            rgb, found = last
-            shown = draw_overlay(rgb, found) if args.get("overlay", True) else rgb
-            return {"png": encode_png(shown), "status": found.status}
+            rgb, found, detector = last
+            if args.get("overlay", True):
+                rgb = draw_overlay(rgb, found, detector.memberships(rgb))
+            return {"png": encode_png(rgb), "status": found.status}
 
         def status(args: dict[str, Any]) -> dict[str, Any]:
             with state.lock:
                 model = state.model
                 return {
                     "calibrated": model is not None,
-                    "model": config.model,
-                    "target_components": model.target.n_components if model else None,
-                    "arrow_components": model.arrow.n_components if model and model.arrow else None,
+                    "model_file": config.model,
+                    "model": model.summary() if model else None,
+                    "settings": dataclasses.asdict(config.settings),
                     "measured": state.measured,
                 }
 
@@ -192,16 +261,22 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
         )
         node.ready()
         log.info("detector up (%s)", "calibrated" if state.detector else "not calibrated yet")
-        while not stop.is_set():
-            if state.detector is None and config.auto_calibrate:
-                try:
-                    node.wait_alive(["camera"], timeout=1.0)
-                    log.info("calibrated from the camera's marks: %s", calibrate({}))
-                except (ArcheryError, RpcError) as exc:
-                    log.info("auto-calibration not possible yet: %s", exc)
+        auto = config.auto_calibrate
+        while auto and state.detector is None and not stop.is_set():
+            try:
+                node.wait_alive(["camera"], timeout=1.0)
+                ensure_model()
+            except RpcError as exc:
+                if exc.code == BadRequest.code:  # a real camera: it has no marks to offer
+                    log.warning("no auto-calibration: %s", exc.message)
+                    auto = False
+                else:
+                    log.info("auto-calibration not possible yet: %s", exc.message)
                     stop.wait(1.0)
-                    continue
-            stop.wait(0.5)
+            except ArcheryError as exc:
+                log.warning("auto-calibration failed: %s", exc.message)
+                stop.wait(1.0)
+        stop.wait()
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -230,8 +305,11 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
-    if args.camera_timeout <= 0:
-        raise ConfigError(f"--camera-timeout must be > 0 s, got {args.camera_timeout}")
+    if args.model and Path(args.model).exists():
+        try:
+            ColourModel.load(args.model)
+        except ModelFileError as exc:
+            raise ConfigError(f"--model {args.model}: {exc}") from None
     settings = DetectorSettings(
         target_diameter_m=args.target_diameter, coloured_fraction=args.coloured_fraction
     )
