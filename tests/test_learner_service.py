@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import pytest
 
@@ -58,7 +59,11 @@ def run_fake_sensors(net: NetConfig, stop: threading.Event, noise_m: float = 0.0
             r = np.array(event.impact_m) + rng.normal(0, noise_m, 2)
             return {"status": "ok", "r_m": r.tolist(), "timing": {"detect_s": 0.001}}
 
-        detector.serve(detector.keys.detector_rpc(), {"measure": measure})
+        def frame(args: dict[str, Any]) -> dict[str, Any]:
+            assert args == {"overlay": True}
+            return {"png": cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes()}
+
+        detector.serve(detector.keys.detector_rpc(), {"measure": measure, "frame": frame})
         camera.ready()
         detector.ready()
         stop.wait()
@@ -100,6 +105,7 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
     assert final["hit_at"] <= 10
     assert final["report"] == str(tmp_path / session / "report.png")
     assert Path(final["report"]).stat().st_size > 10_000
+    assert Path(final["hit_frame"]).read_bytes().startswith(b"\x89PNG")
     records = read_records(Path(final["journal"]))[0]
     rollout_records = [r for r in records if r["record"] in ("proposed", "done", "aborted")]
     assert [(m.index, m.status) for m in seen] == [

@@ -1,86 +1,17 @@
-"""The figures of a session: `report.png` from its journal, and the hit frame's detector overlay."""
+"""The figure of a session, `report.png`, drawn from its journal."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from services.learner.journal import JournalState, read_records
 
-__all__ = ["draw_overlay", "plot_report", "save_png", "write_report"]
+__all__ = ["plot_report", "write_report"]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, 0.05)  # m
-
-
-def save_png(path: Path, pixels: np.ndarray) -> None:
-    """Write RGB (HxWx3) or grey (HxW) uint8 pixels to a PNG file."""
-    import cv2
-
-    image = pixels[:, :, ::-1] if pixels.ndim == 3 else pixels
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise OSError(f"could not write {path}")
-
-
-def _marker(
-    image: np.ndarray, centre: Sequence[float], colour: tuple[int, int, int], kind: str
-) -> None:
-    import cv2
-
-    x, y = (round(float(v)) for v in centre)
-    size = max(8, image.shape[1] // 80)
-    thick = max(2, image.shape[1] // 400)
-    if kind == "circle":
-        cv2.circle(image, (x, y), size, colour, thick, cv2.LINE_AA)
-        cv2.circle(image, (x, y), 2, colour, -1, cv2.LINE_AA)
-    else:
-        cv2.drawMarker(image, (x, y), colour, cv2.MARKER_TILTED_CROSS, 2 * size, thick, cv2.LINE_AA)
-
-
-def draw_overlay(pixels: np.ndarray, detection: dict[str, Any], caption: str = "") -> np.ndarray:
-    """The frame (RGB uint8) with the detection drawn on it: target centre (green circle), arrow
-    tip (red cross), the line between them, and a caption with r (cm) and the confidences."""
-    import cv2
-
-    image = np.ascontiguousarray(pixels.copy() if pixels.ndim == 3 else np.dstack([pixels] * 3))
-    target, arrow = detection.get("target_px"), detection.get("arrow_px")
-    green, red, yellow = (40, 220, 40), (255, 40, 40), (255, 220, 0)
-    if target is not None and arrow is not None:
-        a = tuple(round(float(v)) for v in target)
-        b = tuple(round(float(v)) for v in arrow)
-        cv2.line(image, a, b, yellow, max(2, image.shape[1] // 600), cv2.LINE_AA)
-    if target is not None:
-        _marker(image, target, green, "circle")
-    if arrow is not None:
-        _marker(image, arrow, red, "cross")
-    r = detection.get("r_m")
-    lines = [caption] if caption else []
-    if r is not None:
-        distance = 100 * float(np.hypot(*r))
-        lines.append(f"r = ({100 * r[0]:+.1f}, {100 * r[1]:+.1f}) cm, |r| = {distance:.1f} cm")
-    lines.append(
-        f"{detection.get('status', '?')}: target conf {detection.get('target_confidence', 0):.2f}, "
-        f"arrow conf {detection.get('arrow_confidence', 0):.2f}"
-    )
-    scale = image.shape[1] / 1280
-    height = int(34 * scale)
-    box = image[: height * len(lines) + int(12 * scale)]
-    box[:] = (0.35 * box).astype(np.uint8)
-    for i, text in enumerate(lines):
-        cv2.putText(
-            image,
-            text,
-            (int(12 * scale), int((i + 1) * height)),
-            cv2.FONT_HERSHEY_SIMPLEX,
-            0.9 * scale,
-            (255, 255, 255),
-            max(1, round(2 * scale)),
-            cv2.LINE_AA,
-        )
-    return image
 
 
 def plot_report(state: JournalState, path: Path) -> None:

@@ -4,8 +4,8 @@ Calls, in a rollout's order (ROBOT = the robot prefix):
 
 * `ROBOT/cartesianController/archery/rpc:i posture {theta}` (and `status` for the θ box);
 * `ROBOT/archery/rpc:i nock`, then `release` (replies once the arrow has landed), `reset {seed}`;
-* `ROBOT/detector/rpc:i measure` for a frame newer than the landing;
-* `ROBOT/cam/rpc:i grab` for the hit frame drawn with the detection;
+* `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}` for
+  the picture of a hit with the detection drawn on it;
 * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
 
 A call that gets no reply becomes `ServiceLost` naming the service; an error reply `RigError`
@@ -23,10 +23,9 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import RpcError, RpcTimeout
-from protocol.messages import Image, WorldEvent
+from protocol.messages import WorldEvent
 from protocol.node import Node
 from services.learner.base import Bounds, LearnerConfigError
-from services.learner.report import draw_overlay
 from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
 
 __all__ = ["SERVICES", "MeshRig"]
@@ -132,6 +131,7 @@ class MeshRig:
     def shoot(self) -> Shot:
         """Nock and release; returns when the arrow has landed."""
         key = self.keys.archery_rpc()
+        before = time.time()
         _, nock = self._call("robot", key, "nock")
         result, release = self._call("robot", key, "release")
         try:
@@ -139,7 +139,7 @@ class MeshRig:
             return Shot(
                 shot=int(result["shot"]),
                 sim_time=float(result["sim_time"]),
-                stamp=time.time(),
+                stamp=before,
                 outcome=str(result.get("outcome", "")),
                 timing={"nock_s": nock, "release_s": release, "flight_sim_s": flight},
             )
@@ -147,9 +147,15 @@ class MeshRig:
             raise RigError(f"{key} release replied without {exc}: {result!r}") from None
 
     def measure(self, shot: Shot) -> Measurement:
-        """The detector's measurement of a frame newer than the landing."""
+        """The detector's measurement of a frame rendered at or after the landing and captured
+        after the nock (so never a frame from before a reset or of an earlier arrow)."""
         key = self.keys.detector_rpc()
-        result, wall = self._call("detector", key, "measure", {"after_sim_time": shot.sim_time})
+        args = {
+            "after_sim_time": shot.sim_time,
+            "after_stamp": shot.stamp,
+            "timeout": max(0.5, self.timeout - 2.0),  # the detector answers before we give up
+        }
+        result, wall = self._call("detector", key, "measure", args)
         status = result.get("status")
         if status not in ("ok", "no_target", "no_arrow"):
             raise RigError(f"{key} measure replied status {status!r}", code="bad_reply")
@@ -169,20 +175,12 @@ class MeshRig:
             event = self._truth.get(shot.shot)
         return None if event is None or event.impact_m is None else list(event.impact_m)
 
-    def hit_frame(self, shot: Shot, measurement: Measurement) -> np.ndarray | None:
-        """The camera's frame of the landed arrow with the detection drawn on it (RGB)."""
-        key = self.keys.cam_rpc()
-        try:
-            result = self.node.call(
-                key, "grab", {"after_sim_time": shot.sim_time}, timeout=self.timeout
-            )
-        except RpcTimeout as exc:
-            raise ServiceLost("camera", exc.message) from None
-        except RpcError as exc:
-            raise RigError(exc.message, code=exc.code) from None
-        image = result if isinstance(result, Image) else None
-        if image is None:
-            log.warning("camera grab replied %s, not an image", type(result).__name__)
+    def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
+        """The detector's last measured frame with its overlay (PNG): called right after the
+        hit's `measure`, before anything else is measured."""
+        result, _ = self._call("detector", self.keys.detector_rpc(), "frame", {"overlay": True})
+        png = result.get("png")
+        if not isinstance(png, bytes) or not png.startswith(b"\x89PNG"):
+            log.warning("the detector's frame reply holds no PNG")
             return None
-        caption = f"shot {shot.shot}: hit"
-        return draw_overlay(image.to_numpy(), measurement.detection, caption)
+        return png

@@ -39,7 +39,6 @@ from services.learner.base import Bounds, Learner, LearnerError
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.registry import make_learner, restore_learner
-from services.learner.report import save_png
 
 __all__ = [
     "Measurement",
@@ -90,8 +89,9 @@ class PostureResult:
 
 @dataclass(frozen=True)
 class Shot:
-    """A released arrow, landed: the robot's shot number, landing sim time (s), wall stamp of
-    the reply (s since the epoch), and what the robot says for the log (outcome)."""
+    """A released arrow, landed: the robot's shot number, landing sim time (s), the wall time
+    (s since the epoch) just before the arrow was nocked (a frame captured later and rendered
+    at or after the landing shows this arrow), and what the robot says for the log."""
 
     shot: int
     sim_time: float
@@ -142,8 +142,8 @@ class Rig(Protocol):
     def truth(self, shot: Shot) -> list[float] | None:
         """The robot's ground-truth r (m) of the shot, for the log only (None if unknown)."""
 
-    def hit_frame(self, shot: Shot, measurement: Measurement) -> np.ndarray | None:
-        """The camera frame of the shot with the detection drawn on it (RGB), if available."""
+    def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
+        """The measured frame of the shot with the detection drawn on it (PNG), if available."""
 
 
 def new_session_id(algorithm: str, seed: int) -> str:
@@ -527,15 +527,15 @@ class Session:
 
     def _save_hit_frame(self, shot: Shot, measurement: Measurement) -> None:
         try:
-            pixels = self.rig.hit_frame(shot, measurement)
+            png = self.rig.hit_frame(shot, measurement)
         except RigError as exc:
             log.warning("no frame of the hit: %s", exc.message)
             return
-        if pixels is None:
+        if png is None:
             return
         path = self.directory / "hit.png"
         try:
-            save_png(path, pixels)
+            path.write_bytes(png)
         except OSError as exc:
             log.warning("could not save the hit frame: %s", exc)
             return
