@@ -27,7 +27,7 @@ def test_launcher_starts_watches_and_stops(tmp_path: Path) -> None:
         assert took < 60
         net = NetConfig(connect=(endpoint,), robot="up1")
         with Node(None, net) as node:
-            assert {"robot", "controller"} <= node.alive()
+            node.wait_alive(["robot", "controller"], timeout=10)
         assert launcher.first_exit() is None
         launcher.kill("controller")
         dead = launcher.first_exit()
