@@ -15,7 +15,7 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 demo: setup
-	$(VENV)/bin/archery selfcheck
+	$(PY) -m services.demo
 
 test: setup
 	$(PY) -m pytest
