@@ -42,8 +42,10 @@ _REG_COVAR = 4.0  # (UV levels)²: JPEG and sensor noise floor, keeps single-col
 
 def rgb_to_uv(rgb: np.ndarray) -> np.ndarray:
     """(U, V) chrominance (0..255, float) of RGB uint8 pixels, shape (..., 3) → (..., 2)."""
-    pixels = np.ascontiguousarray(rgb, dtype=np.uint8).reshape(-1, 1, 3)
-    yuv = cv2.cvtColor(pixels, cv2.COLOR_RGB2YUV).reshape(*rgb.shape[:-1], 3)
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    if rgb.size == 0:
+        return np.zeros((*rgb.shape[:-1], 2))
+    yuv = cv2.cvtColor(rgb.reshape(-1, 1, 3), cv2.COLOR_RGB2YUV).reshape(*rgb.shape[:-1], 3)
     return yuv[..., 1:].astype(np.float64)
 
 

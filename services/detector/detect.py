@@ -215,6 +215,29 @@ def _block_mean(image: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(crop, (width // s, height // s), interpolation=cv2.INTER_AREA)
 
 
+def _ellipse_overlap(filled: np.ndarray, moments: dict[str, float]) -> float:
+    """Intersection over union of a binary region and the ellipse of its second moments (an
+    ellipse, the image of a disc, scores ≈ 1; half a disc ≈ 0.8; an arc less)."""
+    area = moments["m00"]
+    centre = (moments["m10"] / area, moments["m01"] / area)
+    cov = np.array([[moments["mu20"], moments["mu11"]], [moments["mu11"], moments["mu02"]]]) / area
+    eigenvalues, vectors = np.linalg.eigh(cov)
+    semi = 2.0 * np.sqrt(np.maximum(eigenvalues, 0.0))  # a filled ellipse: variance = semi²/4
+    pad = int(math.ceil(semi.max())) + 2
+    canvas = np.zeros((filled.shape[0] + 2 * pad, filled.shape[1] + 2 * pad), np.uint8)
+    angle = math.degrees(math.atan2(vectors[1, 0], vectors[0, 0]))
+    cv2.ellipse(
+        canvas,
+        ((centre[0] + pad, centre[1] + pad), (2 * semi[0], 2 * semi[1]), angle),
+        1,
+        thickness=cv2.FILLED,
+    )
+    region = np.zeros_like(canvas)
+    region[pad : pad + filled.shape[0], pad : pad + filled.shape[1]] = filled
+    union = int(np.count_nonzero(canvas | region))
+    return int(np.count_nonzero(canvas & region)) / union if union else 0.0
+
+
 class Detector:
     """Finds the target centre and the arrow tip with a `ColourModel`; cost O(pixels)."""
 
@@ -273,6 +296,9 @@ class Detector:
         if stats[largest, cv2.CC_STAT_AREA] < smallest:
             return None, None, None
         x0, y0, w, h = (int(v) for v in stats[largest, :4])
+        if x0 == 0 or y0 == 0 or x0 + w == small.shape[1] or y0 + h == small.shape[0]:
+            log.debug("the target region touches the image border: cut, its centre unknown")
+            return None, None, None
         region = (labels[y0 : y0 + h, x0 : x0 + w] == largest).astype(np.uint8)
         contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
         outline = max(contours, key=cv2.contourArea)
@@ -295,13 +321,15 @@ class Detector:
         # a disc of diameter D has second moments D²/16 per axis: M = (D/4) C^(-1/2)
         inv_sqrt = vectors @ np.diag(eigenvalues**-0.5) @ vectors.T
         metres = 0.25 * s.coloured_diameter_m * inv_sqrt
-        # confidence: how disc-like the region is (an arc or a blotch scores low) and how well
-        # its pixels match the calibrated colours (a colour shift, e.g. warmer light, lowers it)
+        # confidence: how elliptic the region is (a cut or occluded disc, an arc or a blotch
+        # scores low) and how well its pixels match the calibrated colours (a colour shift, e.g.
+        # warmer light, lowers it)
         solidity = area / max(cv2.contourArea(cv2.convexHull(outline)), 1.0)
-        ellipse_area = 4.0 * math.pi * math.sqrt(float(np.prod(eigenvalues))) / (block * block)
-        roundness = min(1.0, area / max(ellipse_area, 1.0))
+        # IoU with the moment ellipse: ≈ 0.97 for a whole disc at block resolution, 0.81 for
+        # half a disc; mapped so that a disc missing a large part cannot be reported as seen
+        ellipticity = min(1.0, max(0.0, (_ellipse_overlap(filled, moments) - 0.75) / 0.2))
         agreement = float(small[y0 : y0 + h, x0 : x0 + w][filled > 0].mean()) / 255.0
-        confidence = min(1.0, solidity) * roundness * min(1.0, agreement / 0.8)
+        confidence = min(1.0, solidity) * ellipticity * min(1.0, agreement / 0.8)
         if confidence < s.min_target_confidence:
             log.debug("target region of confidence %.2f is below the threshold", confidence)
             return None, None, None
