@@ -1,4 +1,4 @@
-"""The figure of a session, `report.png`, drawn from its journal."""
+"""The pictures of a session: `report.png` from its journal, a caption on the hit frame."""
 
 from __future__ import annotations
 
@@ -8,10 +8,41 @@ import numpy as np
 
 from services.learner.journal import JournalState, read_records
 
-__all__ = ["plot_report", "write_report"]
+__all__ = ["caption_png", "plot_report", "write_report"]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, 0.05)  # m
+
+
+def caption_png(png: bytes, lines: list[str]) -> bytes:
+    """The PNG image with a dark band on top carrying `lines` in large white text.
+
+    Raises:
+        ValueError: `png` does not decode as an image.
+    """
+    import cv2
+
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ValueError("the frame is not a decodable image")
+    scale = max(1.0, image.shape[0] / 720)
+    line_height = int(46 * scale)
+    band = np.full((line_height * len(lines) + int(16 * scale), image.shape[1], 3), 32, np.uint8)
+    for i, text in enumerate(lines):
+        cv2.putText(
+            band,
+            text,
+            (int(16 * scale), int((i + 1) * line_height)),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            1.15 * scale,
+            (255, 255, 255),
+            max(2, round(2 * scale)),
+            cv2.LINE_AA,
+        )
+    ok, data = cv2.imencode(".png", np.vstack([band, image]))
+    if not ok:
+        raise ValueError("the captioned frame does not encode as PNG")
+    return data.tobytes()
 
 
 def plot_report(state: JournalState, path: Path) -> None:

@@ -39,6 +39,7 @@ from services.learner.base import Bounds, Learner, LearnerError
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.registry import make_learner, restore_learner
+from services.learner.report import caption_png
 
 __all__ = [
     "Measurement",
@@ -482,9 +483,9 @@ class Session:
         big_return = self.learner.tell(theta, np.array(r))
         distance = _distance(r)
         hit = distance < self.config.hit_radius
+        rollout = len(self.journal.state.done) + 1
         timing = timing | posture.timing | shot.timing | measurement.timing
         timing["learner_s"] = time.perf_counter() - told
-        rollout = len(self.journal.state.done) + 1
         record = {
             "index": index,
             "rollout": rollout,
@@ -502,7 +503,15 @@ class Session:
         }
         if hit:  # the frame of the latest hit, taken before the next nock takes the arrow
             before = time.perf_counter()
-            self._save_hit_frame(shot, measurement)
+            true = "" if truth is None else f" (true {100 * _distance(truth):.1f} cm)"
+            caption = [
+                f"session {self.session_id}, rollout {rollout}: hit, |r| = "
+                f"{100 * distance:.1f} cm{true}",
+                "theta = (" + ", ".join(f"{100 * v:.2f}" for v in theta) + ") cm. Left: the "
+                "camera frame, right: the pixels of the colour models; red cross: target "
+                "centre, blue circle: arrow tip",
+            ]
+            self._save_hit_frame(shot, measurement, caption)
             timing["hit_frame_s"] = time.perf_counter() - before
         before = time.perf_counter()
         timing["rollout_s"] = before - start
@@ -525,7 +534,7 @@ class Session:
             " HIT" if hit else "",
         )
 
-    def _save_hit_frame(self, shot: Shot, measurement: Measurement) -> None:
+    def _save_hit_frame(self, shot: Shot, measurement: Measurement, caption: list[str]) -> None:
         try:
             png = self.rig.hit_frame(shot, measurement)
         except RigError as exc:
@@ -535,8 +544,8 @@ class Session:
             return
         path = self.directory / "hit.png"
         try:
-            path.write_bytes(png)
-        except OSError as exc:
+            path.write_bytes(caption_png(png, caption))
+        except (OSError, ValueError) as exc:
             log.warning("could not save the hit frame: %s", exc)
             return
         self.hit_frame_path = path
