@@ -202,3 +202,17 @@ def test_density_is_the_mixture_of_eq_8() -> None:
         )
     assert gmm.density(point) == pytest.approx(expected, rel=1e-12)
     assert gmm.density(np.tile(point, (4, 3, 1))).shape == (4, 3)
+
+
+def test_a_few_mis_clicked_grey_pixels_do_not_make_grey_a_target_colour() -> None:
+    rng = np.random.default_rng(3)
+    clicks = np.concatenate(
+        [_cluster(c, 60, rng) for c in (YELLOW, RED, BLUE)] + [_cluster((90, 90, 95), 12, rng)]
+    )
+    model = ColourModel.fit(clicks)
+    chroma = np.hypot(*(model.target.means - 128.0).T)
+    assert np.all(chroma >= 10.0)
+    assert model.target.weights.sum() == pytest.approx(1.0)
+    target, _ = model.tables()
+    u, v = (int(c) for c in rgb_to_uv(np.array([(90, 90, 95)], np.uint8))[0])
+    assert target[u, v] == 0 and target[128, 128] == 0

@@ -53,6 +53,10 @@ def parse_source(text: str) -> SourceSpec:
         path = text[len("folder:") :]
         if not Path(path).is_dir():
             raise ConfigError(f"--source {text!r}: {path!r} is not a folder")
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in Path(path).iterdir()):
+            raise ConfigError(
+                f"--source {text!r}: the folder holds no image ({', '.join(IMAGE_SUFFIXES)})"
+            )
         return SourceSpec("folder", path=path)
     raise ConfigError(
         f"--source {text!r} is not one of mujoco, device:N (N = 0, 1, …), folder:PATH"

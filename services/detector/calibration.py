@@ -100,15 +100,18 @@ def parse_pixels(data: Any, where: str = "calibration pixels") -> dict[str, list
     """
     if isinstance(data, dict) and "target" not in data and "calibration" in data:
         data = data["calibration"]
-    if not isinstance(data, dict) or "target" not in data:
+    if not isinstance(data, dict):
         raise CalibrationError(
-            f"{where}: expected {{'target': [[x, y], ...], 'arrow': [...]}} ('arrow' optional)"
+            f"{where}: expected {{'target': [[x, y], ...], 'arrow': [...]}} ('arrow' optional), "
+            f"got {type(data).__name__}"
         )
     unknown = set(data) - {"target", "arrow", "note"}
     if unknown:
         raise CalibrationError(
             f"{where}: unknown keys {sorted(unknown)}; valid: target, arrow (and a free 'note')"
         )
+    if "target" not in data:
+        raise CalibrationError(f"{where}: no 'target' pixels; the target set is required")
     marks = {"target": data["target"]}
     if data.get("arrow") is not None:
         marks["arrow"] = data["arrow"]

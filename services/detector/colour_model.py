@@ -10,6 +10,7 @@ per-frame cost never depends on K: a frame costs one table look-up per pixel.
 from __future__ import annotations
 
 import json
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +34,7 @@ __all__ = [
     "rgb_to_uv_exact",
 ]
 
+log = logging.getLogger("archery.detector")
 MODEL_FORMAT = "archery-colour-model"
 MODEL_VERSION = 1
 MIN_PIXELS = 8  # fewer calibration pixels than this cannot support even one full covariance
@@ -166,10 +168,20 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
             best = gmm
     if best is None:  # unreachable: at least K = 1 is tried
         raise CalibrationError(f"{name}: no GMM could be fitted")
+    # A Gaussian centred on grey models mis-clicked pixels (a shaft, a hole, the background):
+    # UV cannot tell grey from the rest of the scene, so it is dropped (the median check above
+    # guarantees that most pixels, hence some Gaussian, have colour).
+    chroma = np.hypot(best.means_[:, 0] - 128.0, best.means_[:, 1] - 128.0)
+    keep = chroma >= MIN_CHROMA
+    if not keep.any():
+        raise CalibrationError(f"{name}: every Gaussian of the fit is grey; mark coloured pixels")
+    if not keep.all():
+        log.info("%s: dropped %d grey Gaussian(s) of %d", name, int((~keep).sum()), len(keep))
+    weights = best.weights_[keep]
     return Gmm(
-        weights=best.weights_.copy(),
-        means=best.means_.copy(),
-        covariances=best.covariances_.copy(),
+        weights=weights / weights.sum(),
+        means=best.means_[keep].copy(),
+        covariances=best.covariances_[keep].copy(),
         bic=bic,
     )
 

@@ -1,0 +1,238 @@
+"""The camera service over a real router: rendered frames of published world states, grab after
+a sim time or a wall stamp, the folder and device sources, bad requests and settings."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import cv2
+import msgspec
+import numpy as np
+import pytest
+
+from protocol.errors import ConfigError, RpcError
+from protocol.messages import Array, Image, WorldState
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from services.camera.service import CameraConfig, run
+from services.camera.sources import DeviceSource, SourceError, SourceSpec, parse_source
+from sim.arrow import arrow_quat
+from sim.render import SceneRenderer, project
+from sim.scene import TARGET_CENTRE_SITE, SceneConfig, ScenePhysics, build_scene
+from tests.conftest import archery
+
+
+@contextmanager
+def serving(config: CameraConfig) -> Iterator[None]:
+    """The camera service on a thread until the block ends."""
+    stop = threading.Event()
+    failed: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            run(config, stop)
+        except BaseException as exc:
+            failed.append(exc)
+
+    thread = threading.Thread(target=target, name="camera", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=15)
+        assert not thread.is_alive(), "the camera did not stop"
+        assert not failed, failed
+
+
+def _image(result: object) -> Image:
+    return msgspec.convert(result, Image)
+
+
+@pytest.fixture(scope="module")
+def physics() -> ScenePhysics:
+    return ScenePhysics(build_scene(SceneConfig(meshes=False)))
+
+
+def _state(qpos: np.ndarray, sim_time: float) -> WorldState:
+    return WorldState(qpos=Array.from_numpy(qpos), phase="stuck", shot=1, sim_time=sim_time)
+
+
+def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
+    net: NetConfig, physics: ScenePhysics
+) -> None:
+    config = CameraConfig(net=net, rate=20.0, robot_timeout=0.3)
+    physics.reset()
+    physics.forward()
+    centre = physics.site_position(TARGET_CENTRE_SITE)
+    stuck = centre + np.array([0.0, 0.08, -0.05])  # an arrow 8 cm right, 5 cm low
+    with serving(config), Node(None, net) as node:
+        keys = node.keys
+        node.wait_alive(["camera"], timeout=30)
+        frames = node.subscribe(keys.cam_frames(), Image)
+        world = node.publisher(keys.world_state(), WorldState)
+        # before any world state: frames of the model's initial state, without a sim time
+        first = frames.wait_newer(10)
+        assert first.sim_time is None and (first.width, first.height) == (1280, 720)
+        with pytest.raises(RpcError) as missing:
+            node.call(keys.cam_rpc(), "grab", {"after_sim_time": 0.0, "timeout": 0.3}, timeout=5)
+        assert missing.value.code == "timeout" and "no frame with sim time" in str(missing.value)
+
+        physics.set_arrow_pose(stuck, arrow_quat(np.array([-1.0, 0.0, -0.05])))
+        assert world.wait_matched(5)
+        world.put(_state(physics.qpos(), 2.5))
+        grabbed = _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 2.5}, timeout=10))
+        assert grabbed.sim_time == 2.5 and grabbed.encoding == "rgb8"
+        assert grabbed.stamp > 0 and grabbed.frame > first.frame
+        pixels = grabbed.to_numpy()
+        # the frame shows that state: the green tip where the arrow was put
+        with SceneRenderer(SceneConfig(meshes=False)) as renderer:
+            renderer.render(physics.qpos())
+            tip = project(renderer, stuck[None])[0]
+        col, row = np.round(tip).astype(int)
+        patch = pixels[row - 12 : row + 13, col - 12 : col + 13].reshape(-1, 3).astype(int)
+        green = (patch[:, 1] > 150) & (patch[:, 1] > patch[:, 0] + 60)
+        assert green.sum() > 30
+
+        # a later sim time: the grab waits for a state that reaches it
+        threading.Timer(0.3, lambda: world.put(_state(physics.qpos(), 3.0))).start()
+        later = _image(
+            node.call(keys.cam_rpc(), "grab", {"after_sim_time": 2.9, "timeout": 5}, timeout=10)
+        )
+        assert later.sim_time == 3.0
+        # and after a wall stamp: a frame whose capture started after it
+        now = time.time()
+        world.put(_state(physics.qpos(), 3.1))
+        fresh = _image(node.call(keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
+        assert fresh.stamp >= now
+
+        status = node.call(keys.cam_rpc(), "status", timeout=5)
+        assert status["source"] == "mujoco" and status["scene_from"] == "default"
+        assert status["renders"] >= 3 and status["render_ms"] > 0 and status["errors"] == 0
+        assert status["latest_sim_time"] >= 3.0
+
+        for args, message in (
+            ({"after": 1}, "unknown args"),
+            ({"after_sim_time": "soon"}, "finite number"),
+            ({"timeout": 0}, "timeout must be in"),
+        ):
+            with pytest.raises(RpcError, match=message) as bad:
+                node.call(keys.cam_rpc(), "grab", args, timeout=5)
+            assert bad.value.code == "bad_request"
+
+        # a world state of another scene is logged, never fatal
+        world.put(_state(np.zeros(7), 4.0))
+        world.put(_state(physics.qpos(), 4.1))
+        assert _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 4.1}, timeout=10))
+
+
+def test_calibration_marks_come_with_their_frame(net: NetConfig) -> None:
+    with serving(CameraConfig(net=net, rate=5.0, robot_timeout=0.3)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        result = node.call(node.keys.cam_rpc(), "calibration", timeout=30)
+        frame = _image(result["image"]).to_numpy()
+        assert frame.shape == (720, 1280, 3)
+        assert len(result["pixels"]["target"]) >= 100 and len(result["pixels"]["arrow"]) >= 8
+
+
+def _write(folder: Path, name: str, colour: tuple[int, int, int]) -> None:
+    cv2.imwrite(str(folder / name), np.full((48, 64, 3), colour[::-1], np.uint8))
+
+
+def test_folder_source_replays_images_captured_after_the_request(
+    net: NetConfig, tmp_path: Path
+) -> None:
+    _write(tmp_path, "a.png", (200, 0, 0))
+    _write(tmp_path, "b.jpg", (0, 0, 200))
+    (tmp_path / "notes.txt").write_text("not an image")
+    config = CameraConfig(net=net, source=parse_source(f"folder:{tmp_path}"), rate=2.0)
+    with serving(config), Node(None, net) as node:
+        keys = node.keys
+        node.wait_alive(["camera"], timeout=30)
+        colours = set()
+        for _ in range(2):
+            now = time.time()
+            image = _image(node.call(keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
+            assert image.stamp >= now and image.sim_time is None
+            assert (image.width, image.height) == (64, 48)
+            colours.add(int(np.argmax(image.to_numpy()[24, 32])))
+        assert colours == {0, 2}  # both files, in turn
+        # no sim time on real frames: after_sim_time means "captured after this request"
+        asked = time.time()
+        image = _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 99.0}, timeout=10))
+        assert image.stamp >= asked
+        with pytest.raises(RpcError, match="only from the mujoco source") as refused:
+            node.call(keys.cam_rpc(), "calibration", timeout=5)
+        assert refused.value.code == "bad_request"
+
+
+class _FakeCapture:
+    """A stand-in for cv2.VideoCapture: frames numbered by how many were taken."""
+
+    def __init__(self, opened: bool = True, fail: bool = False) -> None:
+        self.opened, self.fail, self.taken, self.settings = opened, fail, 0, {}
+
+    def isOpened(self) -> bool:  # OpenCV's name
+        return self.opened
+
+    def set(self, prop: int, value: float) -> bool:
+        self.settings[prop] = value
+        return True
+
+    def grab(self) -> bool:
+        self.taken += 1
+        return True
+
+    def read(self) -> tuple[bool, np.ndarray | None]:
+        if self.fail:
+            return False, None
+        self.taken += 1
+        frame = np.zeros((4, 6, 3), np.uint8)
+        frame[..., 0] = self.taken  # blue channel in BGR
+        return True, frame
+
+    def release(self) -> None:
+        self.opened = False
+
+
+def test_device_source_drops_a_buffered_frame_when_a_fresh_one_is_asked() -> None:
+    fake = _FakeCapture()
+    device = DeviceSource(0, 1280, 720, capture=fake)
+    assert fake.settings[cv2.CAP_PROP_FRAME_WIDTH] == 1280
+    assert fake.settings[cv2.CAP_PROP_BUFFERSIZE] == 1
+    assert device.read()[0, 0, 2] == 1  # RGB: the blue channel last
+    assert device.read(fresh=True)[0, 0, 2] == 3  # frame 2 was dropped
+    with pytest.raises(SourceError, match="returned no frame"):
+        DeviceSource(1, 64, 48, capture=_FakeCapture(fail=True)).read()
+    with pytest.raises(ConfigError, match="cannot be opened"):
+        DeviceSource(7, 64, 48, capture=_FakeCapture(opened=False))
+
+
+def test_bad_sources_and_settings_are_refused(tmp_path: Path) -> None:
+    assert parse_source("device:2") == SourceSpec("device", index=2)
+    for text, message in (
+        ("webcam", "is not one of"),
+        ("device:x", "is not one of"),
+        (f"folder:{tmp_path / 'none'}", "is not a folder"),
+    ):
+        with pytest.raises(ConfigError, match=message):
+            parse_source(text)
+    with pytest.raises(ConfigError, match="--rate"):
+        CameraConfig(rate=0.0)
+    with pytest.raises(ConfigError, match="--encoding"):
+        CameraConfig(encoding="bmp")
+    with pytest.raises(ConfigError, match="--size"):
+        CameraConfig(width=8)
+
+
+def test_the_command_line_explains_a_bad_source(tmp_path: Path) -> None:
+    done = archery("camera", "--source", f"folder:{tmp_path}", "--connect", "tcp/127.0.0.1:9")
+    assert done.returncode == 2 and "holds no image" in done.stderr

@@ -1,0 +1,162 @@
+"""The detector service over a real router, with the camera service rendering the world states
+the test publishes from a simulated shot: measure, calibrate, the hit stream, bad requests."""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import math
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from protocol.errors import RpcError
+from protocol.messages import Array, Detection, WorldState
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from services.camera.service import CameraConfig
+from services.camera.service import run as run_camera
+from services.detector.detect import DetectorSettings
+from services.detector.service import DetectorConfig
+from services.detector.service import run as run_detector
+from sim.bow import Bow
+from sim.geometry import BOW_HAND, TARGET_DISTANCE
+from sim.postures import archery_posture
+from sim.scene import SceneConfig, build_scene
+from sim.world import ArcheryWorld, WorldConfig
+
+SCENE = SceneConfig(meshes=False)
+
+
+@contextmanager
+def serving(run: Callable[[Any, threading.Event], None], config: Any) -> Iterator[None]:
+    """A service on a thread until the block ends; its failure fails the test."""
+    stop = threading.Event()
+    failed: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            run(config, stop)
+        except BaseException as exc:
+            failed.append(exc)
+
+    thread = threading.Thread(target=target, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(timeout=15)
+        assert not thread.is_alive() and not failed, failed
+
+
+@pytest.fixture(scope="module")
+def shot() -> tuple[np.ndarray, float, np.ndarray]:
+    """(qpos, sim time, true r) of an arrow stuck in the face after a real release."""
+    model = build_scene(SCENE)
+    world = ArcheryWorld(WorldConfig(scene=SCENE, direction_noise=0.02), model=model)
+    length = 0.17
+    speed = Bow().launch_speed(np.array([length, 0.0, 0.0]))
+    distance = BOW_HAND[0] + TARGET_DISTANCE
+    elevation = math.atan2(0.5 * 9.81 * (distance / speed) ** 2, distance)
+    theta = length * np.array([math.cos(elevation), 0.0, -math.sin(elevation)])
+    world.reset(5)
+    for part, values in archery_posture(model, BOW_HAND, BOW_HAND + theta, tolerance=5e-3).items():
+        world.set_joint_targets(part, values)
+    assert world.move_until_done(15.0)
+    world.nock()
+    landing = world.release()
+    assert landing.hit and landing.r is not None
+    return world.qpos(), world.sim_time, landing.r
+
+
+def _state(qpos: np.ndarray, sim_time: float) -> WorldState:
+    return WorldState(qpos=Array.from_numpy(qpos), phase="stuck", shot=1, sim_time=sim_time)
+
+
+def test_measure_a_landed_arrow_and_stream_the_detection(
+    net: NetConfig, shot: tuple[np.ndarray, float, np.ndarray], tmp_path: Path
+) -> None:
+    qpos, sim_time, truth = shot
+    model_file = tmp_path / "model.json"
+    with ExitStack() as stack:
+        stack.enter_context(serving(run_camera, CameraConfig(net=net, robot_timeout=0.3)))
+        stack.enter_context(serving(run_detector, DetectorConfig(net=net, model=str(model_file))))
+        node = stack.enter_context(Node(None, net))
+        keys = node.keys
+        node.wait_alive(["camera", "detector"], timeout=30)
+        hits = node.subscribe(keys.detector_hits(), Detection, mode="fifo")
+        world = node.publisher(keys.world_state(), WorldState)
+        assert world.wait_matched(5)
+        # the sim time of the landing: a frame from before it would not show the arrow
+        world.put(_state(qpos, sim_time - 0.5))
+        threading.Timer(0.3, lambda: world.put(_state(qpos, sim_time))).start()
+        reply = node.call(keys.detector_rpc(), "measure", {"after_sim_time": sim_time}, timeout=30)
+        assert reply["status"] == "ok" and reply["sim_time"] >= sim_time
+        assert np.linalg.norm(np.subtract(reply["r_m"], truth)) <= 0.01
+        assert reply["target_confidence"] > 0.9 and reply["arrow_confidence"] > 0.5
+        assert reply["timing"]["detect_s"] < 0.5 and reply["frame"] >= 1
+        streamed = hits.get(timeout=5)
+        assert streamed.r_m == reply["r_m"] and streamed.seq == reply["seq"]
+        assert model_file.is_file()  # auto-calibrated from the camera's marks, and saved
+
+        status = node.call(keys.detector_rpc(), "status", timeout=5)
+        assert status["calibrated"] and status["measured"] == 1
+        assert status["model"]["target"]["components"] > status["model"]["arrow"]["components"]
+
+        png = node.call(keys.detector_rpc(), "frame", timeout=10)["png"]
+        overlay = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+        assert overlay.shape[0] == 720 and overlay.shape[1] > 2 * 1280
+
+        # a landing the camera has not rendered yet: a clear timeout, not a stale frame
+        with pytest.raises(RpcError, match="no frame with sim time") as late:
+            node.call(
+                keys.detector_rpc(),
+                "measure",
+                {"after_sim_time": sim_time + 10, "timeout": 0.5},
+                timeout=10,
+            )
+        assert late.value.code == "timeout"
+        for args, message in (
+            ({"after_sim": 1.0}, "unknown args"),
+            ({"after_stamp": "now"}, "finite number"),
+            ({"timeout": -1}, "timeout must be"),
+        ):
+            with pytest.raises(RpcError, match=message) as bad:
+                node.call(keys.detector_rpc(), "measure", args, timeout=5)
+            assert bad.value.code == "bad_request"
+
+        # calibrate again from explicit pixels on the newest frame: a target-only model
+        marks = node.call(keys.cam_rpc(), "calibration", timeout=30)["pixels"]
+        summary = node.call(
+            keys.detector_rpc(), "calibrate", {"pixels": {"target": marks["target"]}}, timeout=30
+        )
+        assert summary["arrow"] is None and summary["target_pixels"] > 50
+        reply = node.call(keys.detector_rpc(), "measure", timeout=10)
+        assert reply["status"] == "no_arrow" and reply["r_m"] is None
+        with pytest.raises(RpcError, match="unknown keys") as bad:
+            node.call(keys.detector_rpc(), "calibrate", {"pixels": {"tip": []}}, timeout=10)
+        assert bad.value.code == "bad_calibration"
+
+
+def test_without_a_model_or_auto_calibration_measure_says_what_to_do(net: NetConfig) -> None:
+    config = DetectorConfig(
+        net=net, auto_calibrate=False, settings=DetectorSettings(), camera_timeout=1.0
+    )
+    with serving(run_detector, config), Node(None, net) as node:
+        node.wait_alive(["detector"], timeout=30)
+        with pytest.raises(RpcError, match="no colour model yet") as refused:
+            node.call(node.keys.detector_rpc(), "measure", timeout=5)
+        assert refused.value.code == "not_calibrated"
+        assert node.call(node.keys.detector_rpc(), "status", timeout=5)["calibrated"] is False
+        # no camera on the mesh: calibrating says so
+        with pytest.raises(RpcError, match="cam/rpc:i"):
+            node.call(node.keys.detector_rpc(), "calibrate", {"timeout": 0.5}, timeout=10)
