@@ -223,7 +223,7 @@ def _ellipse_overlap(filled: np.ndarray, moments: dict[str, float]) -> float:
     cov = np.array([[moments["mu20"], moments["mu11"]], [moments["mu11"], moments["mu02"]]]) / area
     eigenvalues, vectors = np.linalg.eigh(cov)
     semi = 2.0 * np.sqrt(np.maximum(eigenvalues, 0.0))  # a filled ellipse: variance = semi²/4
-    pad = int(math.ceil(semi.max())) + 2
+    pad = math.ceil(float(semi.max())) + 2
     canvas = np.zeros((filled.shape[0] + 2 * pad, filled.shape[1] + 2 * pad), np.uint8)
     angle = math.degrees(math.atan2(vectors[1, 0], vectors[0, 0]))
     cv2.ellipse(
@@ -244,18 +244,24 @@ class Detector:
     def __init__(self, model: ColourModel, settings: DetectorSettings | None = None) -> None:
         self.model = model
         self.settings = settings or DetectorSettings()
-        target_table, arrow_table = model.tables()
-        self._target_table = target_table.ravel()
-        self._arrow_table = arrow_table.ravel()
+        target_table, arrow_table = model.tables()  # indexed [U, V]
+        # one 16-bit entry per (U, V): target membership in the low byte, arrow in the high
+        # byte, at flat index U + 256·V (see `memberships`)
+        both = target_table.astype(np.uint16) | (arrow_table.astype(np.uint16) << 8)
+        self._table = np.ascontiguousarray(both.T).ravel()
         self.has_arrow_model = model.arrow is not None
 
-    def memberships(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per-pixel membership (uint8, 0..255) of the target and of the arrow, by table look-up."""
+    def memberships(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Per-pixel membership (uint8, 0..255) of the target and of the arrow (None for a
+        target-only model), by one table look-up per pixel."""
         rgb = check_image(rgb)
         yuv = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV)
-        index = (yuv[:, :, 1].astype(np.uint16) << 8) | yuv[:, :, 2]
-        arrow = self._arrow_table[index] if self.has_arrow_model else None
-        return self._target_table[index], arrow  # type: ignore[return-value]
+        height, width = yuv.shape[:2]
+        # bytes 1 and 2 of each 3-byte YUV pixel, read as one little-endian uint16: U + 256·V
+        index = np.ndarray((height * width,), dtype="<u2", buffer=yuv, offset=1, strides=(3,))
+        both = self._table.take(index).view(np.uint8).reshape(height, width, 2)
+        target, arrow = cv2.split(both)
+        return target, arrow if self.has_arrow_model else None
 
     def detect(self, rgb: np.ndarray) -> Detection:
         """Detect in an RGB uint8 image (H, W, 3).
