@@ -59,6 +59,8 @@ def _check_free(endpoint: str) -> None:
         return
     host, port = address.rsplit(":", 1)
     with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as sock:
+        # As a listener would: a port left in TIME_WAIT by a router just stopped is free.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((host.strip("[]"), int(port)))
         except OSError as exc:

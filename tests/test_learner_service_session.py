@@ -170,6 +170,15 @@ def test_no_arrow_backs_off_and_never_invents_r(tmp_path: Path) -> None:
     _check_each_once(session.journal.path)
 
 
+def test_theta0_off_the_face_fails_at_once(tmp_path: Path) -> None:
+    session = _run(
+        SessionConfig(theta0=(0.17, 0.04, -0.03), options={"explore_std": 0.0}), FakeRig(), tmp_path
+    )
+    status = session.status()
+    assert status["state"] == "failed" and "puts no arrow on the target face" in status["cause"]
+    assert status["aborted"] == 1 and status["rollouts"] == 0
+
+
 def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None:
     rig = FakeRig(lose={2: "detector", 4: "robot"})
     session = _run(SessionConfig(seed=2), rig, tmp_path)

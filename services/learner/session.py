@@ -17,6 +17,8 @@ Aborts (journal `aborted`, the learner is not told; attempts are not counted as 
 * `no_arrow`: no arrow on the target face: the shot missed it. No r is invented: the next
   attempt backs off halfway from the missed θ towards the best θ so far (θ0 before any
   rollout), and that θ is what the learner is told about; its own pending proposal is dropped.
+  When the missed θ is θ0 itself, before any rollout, the session fails at once (choose
+  another θ0).
 
 After `max_aborts` aborts in a row the session fails with the last cause; it can be resumed.
 The ground-truth impact (the robot's event) is logged beside each rollout for plots only.
@@ -36,7 +38,7 @@ import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
 from services.learner.base import Bounds, Learner, LearnerError
-from services.learner.config import SessionConfig
+from services.learner.config import DEFAULT_THETA0, SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.registry import make_learner, restore_learner
 from services.learner.report import caption_png
@@ -424,6 +426,12 @@ class Session:
                 truth_r_m=truth,
                 detection=measurement.detection,
             )
+            if np.allclose(retry, theta, atol=1e-9):  # θ0 itself, with nothing better known
+                raise SessionFailed(
+                    f"θ = {theta.tolist()} m puts no arrow on the target face (the detector saw "
+                    f"none) and no θ so far did better; start from another scenario.theta0 "
+                    f"(the default {list(DEFAULT_THETA0)} m lands on the face)"
+                )
             return
         if measurement.status != "ok" or measurement.r_m is None:
             self._abort(
