@@ -250,6 +250,10 @@ def test_too_many_aborts_fail_the_session(tmp_path: Path) -> None:
     assert status["state"] == "failed" and "3 attempts in a row" in status["cause"]
     assert "no_target" in status["cause"]
     assert _kinds(session.journal.path)[-1] == ("stopped", None)
+    # Resumed once the camera works again: the count of aborts in a row starts afresh.
+    resumed = Session.resume(session.journal.path, FakeRig())
+    assert resumed.run(threading.Event())["ended"] == "hit"
+    _check_each_once(session.journal.path)
 
 
 def test_rig_error_aborts_and_retries(tmp_path: Path) -> None:

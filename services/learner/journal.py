@@ -135,7 +135,7 @@ class JournalState:
         last_index: index of the latest proposed rollout (0 before any).
         open: the proposed record still waiting for its done/aborted record, if any.
         retry_theta: θ (m) the next attempt must run, set by an abort and cleared by a done.
-        aborts_in_row: aborted records since the last done, by code.
+        aborts_in_row: aborted records since the last done or resumed record, by code.
         ended: the end record, once the session is over.
         records: every record applied, in order.
     """
@@ -265,6 +265,8 @@ class JournalState:
                 self.aborted.append(record)
                 self.aborts_in_row[code] = self.aborts_in_row.get(code, 0) + 1
             self.open = None
+        elif kind == "resumed":
+            self.aborts_in_row = {}  # a deliberate restart gets a fresh count of aborts
         elif kind == "end":
             if self.open is not None:
                 raise JournalError(f"{where}: end while rollout {self.open['index']} is open")
