@@ -139,8 +139,7 @@ def follow(
             if now - silent_since > gone_after:
                 raise SessionLost(
                     f"the learner stopped answering during session {session}; restart it "
-                    f"(`archery learner`) and continue with `archery learn --resume "
-                    f"<journal of {session}>`"
+                    f"(`archery learner`) and continue the session with `archery learn --resume`"
                 ) from None
             continue
         if status.get("session") == session and status.get("state") in FINAL_STATES:
@@ -208,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             status = follow(node, session, rollouts, show)
         except SessionLost as exc:
-            print(f"archery learn: {exc}", file=sys.stderr)
+            print(f"archery learn: {exc} {status['journal']}", file=sys.stderr)
             status = status | {"state": "lost"}
             print(result_line(status))
             return 1
