@@ -4,7 +4,10 @@ separately, the learner are killed mid-session and every rollout is still journa
 
 from __future__ import annotations
 
+import json
 import os
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -18,6 +21,7 @@ from protocol.router import free_tcp_endpoint
 from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
 from services.learner.learn import follow
+from tests.conftest import archery
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 pytestmark = pytest.mark.slow
@@ -108,20 +112,34 @@ def test_detector_killed_mid_session(
 def test_learner_killed_mid_session(
     mesh: Launcher, client: tuple[Node, Subscription[Rollout]]
 ) -> None:
-    node, rollouts = client
-    session = _start(node, algo="archer", seed=2, rollouts=6, until_hit=False)
-    journal = node.call(node.keys.learner_rpc(), "status", timeout=10)["journal"]
-    _wait_done(rollouts, session, 2)
-    mesh.kill("learner")
-    before = read_records(Path(journal))[0]
-    mesh.start("learner")
-    mesh.wait_alive(["learner"], 60)
-    resumed = node.call(
-        node.keys.learner_rpc(), "start", {"resume": journal, "session": session}, timeout=60
+    _, rollouts = client
+    net = ["--connect", mesh.endpoint, "--robot", mesh.net.robot]
+    learn = ["learn", "--algo", "archer", "--seed", "2", "--rollouts", "6", "--no-until-hit"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *learn, *net],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
-    assert resumed["session"] == session
-    final = follow(node, session, rollouts, lambda m: None)
-    assert final["state"] == "finished" and final["rollouts"] == 6, final
-    records = _check_journal(Path(journal), 6)
+    try:
+        first = rollouts.get(timeout=60)
+        _wait_done(rollouts, first.session, 2)
+        mesh.kill("learner")
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1, err
+    lost = json.loads(out.strip().splitlines()[-1])
+    assert lost["session"] == first.session and lost["status"] == "lost"
+    assert f"archery learn --resume` {lost['journal']}" in err
+    before = read_records(Path(lost["journal"]))[0]
+    mesh.start("learner")
+    result = archery("learn", "--resume", lost["journal"], *net, timeout=120)
+    assert result.returncode == 0, result.stderr
+    final = json.loads(result.stdout.strip().splitlines()[-1])
+    assert final["session"] == first.session and final["status"] == "finished"
+    assert final["rollouts"] == 6
+    records = _check_journal(Path(lost["journal"]), 6)
     assert records[: len(before)] == before  # nothing journaled was changed
     assert [r["record"] for r in records].count("resumed") == 1
