@@ -22,10 +22,10 @@ from protocol.messages import Rollout
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node
 from services.learner.registry import ALGORITHMS
+from services.learner.session import FINAL_STATES
 
 __all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
 
-FINAL_STATES = ("finished", "stopped", "failed")
 SERVICES = ("robot", "camera", "detector", "controller", "learner")
 
 

@@ -39,12 +39,11 @@ from services.learner.config import (
 )
 from services.learner.report import write_report
 from services.learner.rig import MeshRig
-from services.learner.session import Session
+from services.learner.session import FINAL_STATES, Session
 
 __all__ = ["SERVICE", "LearnerService", "main", "run"]
 
 SERVICE = "learner"
-FINAL_STATES = ("finished", "stopped", "failed")
 log = logging.getLogger("archery.learner")
 
 

@@ -44,6 +44,7 @@ from services.learner.registry import make_learner, restore_learner
 from services.learner.report import caption_png
 
 __all__ = [
+    "FINAL_STATES",
     "Measurement",
     "PostureResult",
     "Rig",
@@ -56,6 +57,7 @@ __all__ = [
 ]
 
 log = logging.getLogger("archery.learner")
+FINAL_STATES = ("finished", "stopped", "failed")  # a session's phases once `run` has returned
 
 
 class RigError(ArcheryError):
