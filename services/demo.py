@@ -94,6 +94,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
             start = time.monotonic()
             with Live(progress.table, console=console, refresh_per_second=8):
                 final = follow(node, session, rollouts, progress.add)
+            console.print()  # the table's last line ends here when output is not a terminal
             wall = time.monotonic() - start
     except (ArcheryError, SessionLost) as exc:
         console.print(f"[red]archery demo: {exc}")
