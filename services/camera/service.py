@@ -123,6 +123,8 @@ class _Capture:
         self.reader: DeviceSource | FolderSource | None = None
         self.scene: dict[str, Any] | None = None
         self.scene_from = ""
+        self.scene_error = ""
+        self.scene_checked = 0.0
         self.frame = 0
         self.renders = 0
         self.render_seconds = 0.0
@@ -155,21 +157,55 @@ class _Capture:
             except Exception as exc:
                 future.set_exception(exc)
 
-    def _scene(self) -> Any:
+    def _robot_scene(self, timeout: float) -> Any:
+        """The robot's SceneConfig from its `status`, or None when no robot answers."""
         from sim.scene import SceneConfig
 
         try:
-            status = self.node.call(
-                self.node.keys.archery_rpc(), "status", timeout=max(0.1, self.config.robot_timeout)
-            )
-            scene = SceneConfig(**status["scene"])
-            self.scene_from = "robot"
+            status = self.node.call(self.node.keys.archery_rpc(), "status", timeout=timeout)
+            return SceneConfig(**status["scene"])
         except (RpcError, KeyError, TypeError, ValueError) as exc:
-            log.warning("the robot's scene is unknown (%s): rendering the default scene", exc)
+            self.scene_error = str(exc)
+            return None
+
+    def _scene(self) -> Any:
+        from sim.scene import SceneConfig
+
+        scene = self._robot_scene(max(0.1, self.config.robot_timeout))
+        if scene is None:
+            log.warning(
+                "the robot's scene is unknown (%s): rendering the default scene until the robot "
+                "answers",
+                self.scene_error,
+            )
             scene = SceneConfig()
             self.scene_from = "default"
+        else:
+            self.scene_from = "robot"
         self.scene = scene.to_dict()
+        self.scene_checked = time.monotonic()
         return scene
+
+    def recheck_scene(self) -> None:
+        """While rendering the default scene, ask the robot again (at most every 2 s) once its
+        world states arrive, and rebuild the renderer if its scene differs (capture thread)."""
+        if self.scene_from != "default" or time.monotonic() - self.scene_checked < 2.0:
+            return
+        self.scene_checked = time.monotonic()
+        scene = self._robot_scene(0.5)
+        if scene is None:
+            return
+        self.scene_from = "robot"
+        if scene.to_dict() != self.scene:
+            log.info("the robot reports another scene than the default: rebuilding it")
+            self.renderer.close()
+            self.renderer = None
+            from sim.render import SceneRenderer
+
+            self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
+            self.scene = scene.to_dict()
+        else:
+            log.info("the robot's scene is the default one")
 
     def open(self) -> None:
         """Open the source (capture thread).
@@ -243,6 +279,7 @@ def _loop(capture: _Capture, pub: Publisher[Image], stop: threading.Event) -> No
                 state = capture.world.latest()
                 new = state is not None and state.seq != last_seq
                 if state is not None and new and (due or waiting):
+                    capture.recheck_scene()
                     last_seq = state.seq
                     captured = time.time()
                     pixels = capture.render(state.qpos.to_numpy())
