@@ -6,7 +6,8 @@ every pixel the weight 1 (the centre of the whole image, whatever it shows). We 
 the method means: a weighted centroid m = Σ w(x) x / Σ w(x), normalised over the image, with
 w(x) the pixel's membership of the object's colour model (`eq7_centroid` is that plain form).
 
-Real photographs break the plain version (measured 15–96 px off): arrow holes and ring lines
+Real photographs break the plain version (4–74 px off on the four photos of benchmarks/RESULTS.md,
+more than 2 % of the diameter on three): arrow holes and ring lines
 punch gaps in the target, distractors share its colours (a yellow logo letter, a pin), and a
 tight colour cluster (yellow) has a higher likelihood than a broad one (blue), which drags the
 centroid towards one ring. So the target's weights are made robust in four steps, all
