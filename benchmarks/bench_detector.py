@@ -33,6 +33,7 @@ import sklearn
 from scipy.linalg import solve_triangular
 from sklearn.mixture import GaussianMixture
 
+from benchmarks.machine import cpu_model, pin_one_core
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel, Gmm, rgb_to_uv
 from services.detector.detect import Detector, eq7_centroid, exact_memberships
@@ -51,25 +52,6 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"
 SCENE = SceneConfig(meshes=False)
 TIME_GOAL_MS = 10.0
 RATIO_GOAL = 30.0
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _pin_one_core() -> str:
-    try:
-        core = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {core})
-        return f"pinned to core {core}"
-    except (AttributeError, OSError):
-        return "not pinned"
 
 
 def _times_ms(func: Callable[[], object], repeats: int) -> list[float]:
@@ -158,8 +140,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    pinning = _pin_one_core()
-    print(f"machine: {os.cpu_count()} CPUs ({pinning}), {_cpu_model()}")
+    pinning = pin_one_core()
+    print(f"machine: {os.cpu_count()} CPUs ({pinning}), {cpu_model()}")
     print(f"python {platform.python_version()}, scikit-learn {sklearn.__version__}")
 
     with SceneRenderer(SCENE) as renderer:

@@ -24,6 +24,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from benchmarks.machine import cpu_model, pin_one_core
 from sim.geometry import BOW_HAND, START_THETA
 from sim.postures import archery_posture
 from sim.scene import SIDE_CAMERA, TARGET_CAMERA, SceneConfig, build_scene, load_urdf_model
@@ -33,25 +34,6 @@ __all__ = ["main"]
 
 REALTIME_GOAL = 20.0  # × real time on one core
 THETA_B = START_THETA + np.array([0.02, 0.01, -0.01])  # m, a second archery posture
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _pin_one_core() -> str:
-    try:
-        core = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {core})
-        return f"pinned to core {core}"
-    except (AttributeError, OSError):
-        return "not pinned"
 
 
 def _realtime_factor(model: mujoco.MjModel, data: mujoco.MjData, seconds: float) -> float:
@@ -134,9 +116,9 @@ def main(argv: list[str] | None = None) -> int:
         "--render", type=Path, default=None, help="save and time camera frames here"
     )
     args = parser.parse_args(argv)
-    pinning = _pin_one_core()
+    pinning = pin_one_core()
 
-    print(f"machine: {os.cpu_count()} CPUs ({pinning}), {_cpu_model()}")
+    print(f"machine: {os.cpu_count()} CPUs ({pinning}), {cpu_model()}")
     print(f"python {platform.python_version()}, mujoco {mujoco.__version__}")
 
     start = time.perf_counter()

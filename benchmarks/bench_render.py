@@ -17,13 +17,13 @@ import statistics
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco
 import numpy as np
 
+from benchmarks.machine import cpu_model
 from protocol.messages import Array, Image, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
@@ -37,16 +37,6 @@ __all__ = ["main"]
 
 WIDTH, HEIGHT = 1280, 720
 RENDER_GOAL_MS = 40.0
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def _states(model: mujoco.MjModel, count: int) -> list[np.ndarray]:
@@ -165,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     affinity = os.sched_getaffinity(0)
     core = min(affinity)
     os.sched_setaffinity(0, {core})
-    print(f"machine: {os.cpu_count()} CPUs, {_cpu_model()}; renders pinned to core {core}")
+    print(f"machine: {os.cpu_count()} CPUs, {cpu_model()}; renders pinned to core {core}")
     gl = os.environ["MUJOCO_GL"]
     print(f"python {platform.python_version()}, mujoco {mujoco.__version__}, MUJOCO_GL={gl}")
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from sim.bow import Bow, BowError
 from sim.geometry import BOW_HAND, INNER_RING_RADIUS, START_THETA, TARGET_DISTANCE, target_centre
+from sim.vectors import vector3
 
 __all__ = [
     "GRAVITY",
@@ -55,16 +56,6 @@ class ShotError(BallisticError):
     """A θ that cannot be shot at the target (wrong shape, no draw, never reaches the plane)."""
 
 
-def _vector3(name: str, value: object) -> tuple[float, float, float]:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ScenarioError(f"{name} must be 3 numbers (x, y, z), got {value!r}") from exc
-    if array.shape != (3,) or not np.all(np.isfinite(array)):
-        raise ScenarioError(f"{name} must be 3 finite numbers (x, y, z), got {value!r}")
-    return (float(array[0]), float(array[1]), float(array[2]))
-
-
 @dataclass(frozen=True)
 class Scenario:
     """Every parameter of one simulated range, validated.
@@ -84,12 +75,12 @@ class Scenario:
     noise: float = 0.0
     bow_stiffness: float = Bow().stiffness
     start: tuple[float, float, float] = field(
-        default_factory=lambda: _vector3("start", START_THETA)
+        default_factory=lambda: vector3("start", START_THETA, ScenarioError)
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "wind", _vector3("wind", self.wind))
-        object.__setattr__(self, "start", _vector3("start", self.start))
+        object.__setattr__(self, "wind", vector3("wind", self.wind, ScenarioError))
+        object.__setattr__(self, "start", vector3("start", self.start, ScenarioError))
         for name in ("distance", "drag", "noise", "bow_stiffness"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not math.isfinite(value):

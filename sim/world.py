@@ -30,6 +30,7 @@ from sim.scene import (
     ScenePhysics,
     build_scene,
 )
+from sim.vectors import vector3
 
 __all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]
 
@@ -43,16 +44,6 @@ class ArrowState(StrEnum):
     NOCKED = "nocked"  # tip at the bow hand, along the string-to-bow-hand line, following the hands
     FLYING = "flying"
     LANDED = "landed"  # frozen where it met the target plane or the floor, or timed out
-
-
-def _vector3(name: str, value: object) -> tuple[float, float, float]:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f"{name} must be 3 numbers (x, y, z), got {value!r}") from exc
-    if array.shape != (3,) or not np.all(np.isfinite(array)):
-        raise ConfigError(f"{name} must be 3 finite numbers (x, y, z), got {value!r}")
-    return (float(array[0]), float(array[1]), float(array[2]))
 
 
 @dataclass(frozen=True)
@@ -96,7 +87,7 @@ class WorldConfig:
                 f"the bow's arrow mass {self.bow.arrow_mass} kg differs from the scene's "
                 f"{self.scene.arrow_mass} kg; set both to the same value"
             )
-        object.__setattr__(self, "wind", _vector3("wind", self.wind))
+        object.__setattr__(self, "wind", vector3("wind", self.wind, ConfigError))
         bounds = {
             "drag": (0.0, 10.0),
             "wind_gust": (0.0, 50.0),
