@@ -9,8 +9,6 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import threading
 import time
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -27,30 +25,7 @@ from services.camera.sources import DeviceSource, SourceError, SourceSpec, parse
 from sim.arrow import arrow_quat
 from sim.render import SceneRenderer, project
 from sim.scene import TARGET_CENTRE_SITE, SceneConfig, ScenePhysics, build_scene
-from tests.conftest import archery
-
-
-@contextmanager
-def serving(config: CameraConfig) -> Iterator[None]:
-    """The camera service on a thread until the block ends."""
-    stop = threading.Event()
-    failed: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            run(config, stop)
-        except BaseException as exc:
-            failed.append(exc)
-
-    thread = threading.Thread(target=target, name="camera", daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(timeout=15)
-        assert not thread.is_alive(), "the camera did not stop"
-        assert not failed, failed
+from tests.conftest import archery, serving
 
 
 def _image(result: object) -> Image:
@@ -74,7 +49,7 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
     physics.forward()
     centre = physics.site_position(TARGET_CENTRE_SITE)
     stuck = centre + np.array([0.0, 0.08, -0.05])  # an arrow 8 cm right, 5 cm low
-    with serving(config), Node(None, net) as node:
+    with serving(run, config), Node(None, net) as node:
         keys = node.keys
         node.wait_alive(["camera"], timeout=30)
         frames = node.subscribe(keys.cam_frames(), Image)
@@ -135,7 +110,7 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
 
 
 def test_calibration_marks_come_with_their_frame(net: NetConfig) -> None:
-    with serving(CameraConfig(net=net, rate=5.0, robot_timeout=0.3)), Node(None, net) as node:
+    with serving(run, CameraConfig(net=net, rate=5.0, robot_timeout=0.3)), Node(None, net) as node:
         node.wait_alive(["camera"], timeout=30)
         result = node.call(node.keys.cam_rpc(), "calibration", timeout=30)
         frame = _image(result["image"]).to_numpy()
@@ -154,7 +129,7 @@ def test_folder_source_replays_images_captured_after_the_request(
     _write(tmp_path, "b.jpg", (0, 0, 200))
     (tmp_path / "notes.txt").write_text("not an image")
     config = CameraConfig(net=net, source=parse_source(f"folder:{tmp_path}"), rate=2.0)
-    with serving(config), Node(None, net) as node:
+    with serving(run, config), Node(None, net) as node:
         keys = node.keys
         node.wait_alive(["camera"], timeout=30)
         colours = set()

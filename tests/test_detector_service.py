@@ -9,10 +9,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import math
 import threading
-from collections.abc import Callable, Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -32,30 +30,9 @@ from sim.geometry import BOW_HAND, TARGET_DISTANCE
 from sim.postures import archery_posture
 from sim.scene import SceneConfig, build_scene
 from sim.world import ArcheryWorld, WorldConfig
+from tests.conftest import serving
 
 SCENE = SceneConfig(meshes=False)
-
-
-@contextmanager
-def serving(run: Callable[[Any, threading.Event], None], config: Any) -> Iterator[None]:
-    """A service on a thread until the block ends; its failure fails the test."""
-    stop = threading.Event()
-    failed: list[BaseException] = []
-
-    def target() -> None:
-        try:
-            run(config, stop)
-        except BaseException as exc:
-            failed.append(exc)
-
-    thread = threading.Thread(target=target, daemon=True)
-    thread.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        thread.join(timeout=15)
-        assert not thread.is_alive() and not failed, failed
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,14 @@ from services.detector.detect import Detector, DetectorSettings, check_image
 from services.detector.errors import ImageError
 from services.detector.overlay import draw_overlay
 
-__all__ = ["calibrate_main", "detect_main", "read_rgb", "write_png"]
+__all__ = [
+    "add_settings_arguments",
+    "calibrate_main",
+    "detect_main",
+    "read_rgb",
+    "settings_from_args",
+    "write_png",
+]
 
 
 def read_rgb(path: str | Path) -> np.ndarray:
@@ -49,6 +56,30 @@ def write_png(path: str | Path, rgb: np.ndarray) -> None:
         raise ImageError(f"overlay path {str(path)!r} must end in .png")
     if not cv2.imwrite(str(path), np.ascontiguousarray(rgb[:, :, ::-1])):
         raise ImageError(f"cannot write {str(path)!r} (does its folder exist?)")
+
+
+def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
+    """The detection flags shared by `archery detect` and `archery detector`."""
+    defaults = DetectorSettings()
+    parser.add_argument(
+        "--target-diameter",
+        type=float,
+        default=defaults.target_diameter_m,
+        help="target face diameter (m)",
+    )
+    parser.add_argument(
+        "--coloured-fraction",
+        type=float,
+        default=defaults.coloured_fraction,
+        help="diameter of the calibrated colours over the face's (yellow+red+blue: 0.6)",
+    )
+
+
+def settings_from_args(args: argparse.Namespace) -> DetectorSettings:
+    """Detection settings from the flags of `add_settings_arguments` (validated)."""
+    return DetectorSettings(
+        target_diameter_m=args.target_diameter, coloured_fraction=args.coloured_fraction
+    )
 
 
 def calibrate_main(argv: list[str] | None = None) -> int:
@@ -89,7 +120,6 @@ def calibrate_main(argv: list[str] | None = None) -> int:
 
 def detect_main(argv: list[str] | None = None) -> int:
     """`archery detect IMAGE --model MODEL.json [--overlay OUT.png]`: one JSON object."""
-    defaults = DetectorSettings()
     parser = argparse.ArgumentParser(
         prog="archery detect",
         description="find the target centre and the arrow tip in an image (paper Section III-C)",
@@ -99,25 +129,11 @@ def detect_main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--overlay", help="write the image and its filtered pixels with the detection (PNG)"
     )
-    parser.add_argument(
-        "--target-diameter",
-        type=float,
-        default=defaults.target_diameter_m,
-        help="target face diameter (m)",
-    )
-    parser.add_argument(
-        "--coloured-fraction",
-        type=float,
-        default=defaults.coloured_fraction,
-        help="diameter of the calibrated colours over the face's (yellow+red+blue: 0.6)",
-    )
+    add_settings_arguments(parser)
     args = parser.parse_args(argv)
     try:
         rgb = read_rgb(args.image)
-        settings = DetectorSettings(
-            target_diameter_m=args.target_diameter, coloured_fraction=args.coloured_fraction
-        )
-        detector = Detector(ColourModel.load(args.model), settings)
+        detector = Detector(ColourModel.load(args.model), settings_from_args(args))
         memberships = detector.memberships(rgb)
         detection = detector.locate(*memberships)
         if args.overlay:

@@ -46,6 +46,7 @@ from services.detector.calibration import parse_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detection, Detector, DetectorSettings
 from services.detector.errors import DetectorError, ModelFileError
+from services.detector.offline import add_settings_arguments, settings_from_args
 from services.detector.overlay import draw_overlay, encode_png
 
 __all__ = ["DetectorConfig", "NotCalibrated", "main", "run"]
@@ -280,7 +281,6 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
 
 
 def _add_arguments(parser: argparse.ArgumentParser) -> None:
-    defaults = DetectorSettings()
     parser.add_argument(
         "--model", help="colour model file (read if it exists, written on calibrate)"
     )
@@ -289,18 +289,7 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="do not calibrate from the camera's marks when there is no model",
     )
-    parser.add_argument(
-        "--target-diameter",
-        type=float,
-        default=defaults.target_diameter_m,
-        help="target face diameter (m)",
-    )
-    parser.add_argument(
-        "--coloured-fraction",
-        type=float,
-        default=defaults.coloured_fraction,
-        help="diameter of the calibrated colours over the face's",
-    )
+    add_settings_arguments(parser)
     parser.add_argument("--camera-timeout", type=float, default=10.0, help="wall s")
 
 
@@ -310,9 +299,7 @@ def _make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
             ColourModel.load(args.model)
         except ModelFileError as exc:
             raise ConfigError(f"--model {args.model}: {exc}") from None
-    settings = DetectorSettings(
-        target_diameter_m=args.target_diameter, coloured_fraction=args.coloured_fraction
-    )
+    settings = settings_from_args(args)
     return DetectorConfig(
         net=net,
         model=args.model,
