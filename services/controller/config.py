@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import dataclass, field, replace
 
 from protocol.errors import ConfigError
 from protocol.netflags import NetConfig
+from protocol.service import config_number
 from services.controller.ik import IkSettings
 from services.controller.posture import PostureConfig
 
@@ -65,13 +65,8 @@ class ControllerConfig:
             "joint_tolerance": (1e-4, 0.5),
         }
         for name, (low, high) in bounds.items():
-            value = getattr(self, name)
             flag = "--" + name.replace("_", "-")
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ConfigError(f"{flag} must be a number, got {value!r}")
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ConfigError(f"{flag} must be in [{low:g}, {high:g}], got {value!r}")
-            object.__setattr__(self, name, float(value))
+            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high))
 
 
 def add_controller_arguments(parser: argparse.ArgumentParser) -> None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from protocol.errors import BadRequest, ConfigError
 from protocol.netflags import NetConfig
+from protocol.service import config_number
 from services.learner.base import Bounds, LearnerConfigError
 from services.learner.registry import ALGORITHMS
 
@@ -238,12 +239,8 @@ class LearnerServiceConfig:
             "start_wait": (0.0, 600.0),
             "rpc_timeout": (0.5, 600.0),
         }.items():
-            value = getattr(self, name)
             flag = "--" + name.replace("_", "-")
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ConfigError(f"{flag} must be a number of seconds, got {value!r}")
-            if not (math.isfinite(value) and low <= value <= high):
-                raise ConfigError(f"{flag} must be in [{low:g}, {high:g}] s, got {value!r}")
+            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high, "s"))
 
 
 def add_learner_arguments(parser: argparse.ArgumentParser) -> None:

@@ -8,19 +8,12 @@ from dataclasses import dataclass, field, replace
 
 from protocol.errors import ConfigError
 from protocol.netflags import NetConfig
+from protocol.service import config_number
 from sim.bow import BowError
 from sim.errors import SimError
 from sim.world import WorldConfig
 
 __all__ = ["RobotConfig", "add_robot_arguments", "config_from_args", "parse_vector3"]
-
-
-def _number(name: str, value: object, low: float, high: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ConfigError(f"{name} must be a finite number, got {value!r}")
-    if not low <= value <= high:
-        raise ConfigError(f"{name} must be in [{low:g}, {high:g}], got {value!r}")
-    return float(value)
 
 
 @dataclass(frozen=True)
@@ -75,7 +68,7 @@ class RobotConfig:
         }
         for name, (low, high) in bounds.items():
             flag = "--" + name.replace("_", "-")
-            object.__setattr__(self, name, _number(flag, getattr(self, name), low, high))
+            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high))
 
 
 def parse_vector3(text: str, flag: str) -> tuple[float, float, float]:
