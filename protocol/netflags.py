@@ -1,8 +1,14 @@
 """The network flags of every process (--connect, --listen, --mode, --robot); the Zenoh config.
 
-Multicast scouting is always off: every process reaches the mesh through a router it is told
-about (containers do not carry multicast, and parallel test runs must never meet). Shared-memory
-transport is off too: it was reported to drop large messages under CPU stalls.
+Every process listens and connects only where it is told. By default a process is a Zenoh
+client of the router it is given: it opens no listening socket and links to nothing else. In
+every mode multicast scouting and gossip are
+off, and a peer's listen endpoints are set explicitly (none by default; a Zenoh peer would
+otherwise listen on every interface and connect to whatever addresses other peers gossip). So
+every process reaches the mesh through the router it is given, all traffic meets there
+(containers do not carry multicast, and parallel test runs must never meet), and nothing opens
+a socket on any address but the ones on the command line. Shared-memory transport is off too:
+it was reported to drop large messages under CPU stalls.
 """
 
 from __future__ import annotations
@@ -31,13 +37,14 @@ class NetConfig:
     Attributes:
         connect: endpoints to connect to (e.g. "tcp/127.0.0.1:7447"); a router, usually.
         listen: endpoints to listen on (a router, or a peer others should reach).
-        mode: "peer" (default), "client" or "router".
+        mode: "client" (default: every link goes to the router), "peer" (also links directly to
+            the peers it is given with --connect and accepts links on --listen) or "router".
         robot: key prefix of the robot this process belongs to (default "icubSim").
     """
 
     connect: tuple[str, ...] = (DEFAULT_ROUTER,)
     listen: tuple[str, ...] = ()
-    mode: str = "peer"
+    mode: str = "client"
     robot: str = DEFAULT_ROBOT
 
     def __post_init__(self) -> None:
@@ -75,14 +82,17 @@ class NetConfig:
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
-        if self.listen:
-            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        # Explicit, even when empty: a Zenoh peer otherwise listens on every interface.
+        config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         config.insert_json5("scouting/multicast/enabled", "false")
+        # No gossip: a process never learns other processes' addresses, so it connects only to
+        # the endpoints it was given and all traffic meets at the router.
+        config.insert_json5("scouting/gossip/enabled", "false")
         config.insert_json5("transport/shared_memory/enabled", "false")
         return config
 
 
-def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "peer") -> None:
+def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "client") -> None:
     """Add --connect (repeatable), --listen (repeatable), --mode and --robot to `parser`."""
     group = parser.add_argument_group("network")
     group.add_argument(

@@ -20,7 +20,7 @@ def _parse(*argv: str) -> NetConfig:
 
 def test_defaults_connect_to_the_local_router() -> None:
     net = _parse()
-    assert net == NetConfig(connect=(DEFAULT_ROUTER,), listen=(), mode="peer", robot="icubSim")
+    assert net == NetConfig(connect=(DEFAULT_ROUTER,), listen=(), mode="client", robot="icubSim")
 
 
 def test_flags_are_repeatable() -> None:
