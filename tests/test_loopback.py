@@ -7,6 +7,7 @@ no listener on any interface, no connection to an address it was not given.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -26,10 +27,8 @@ def _sockets(pid: int) -> list[psutil._common.pconn]:
     proc = psutil.Process(pid)
     found = []
     for p in [proc, *proc.children(recursive=True)]:
-        try:
+        with contextlib.suppress(psutil.NoSuchProcess):
             found.extend(p.net_connections(kind="inet"))
-        except psutil.NoSuchProcess:
-            pass
     return found
 
 
@@ -55,8 +54,10 @@ def test_every_socket_of_a_running_mesh_is_on_the_given_loopback_endpoint(
     with Launcher(endpoint, robot, tmp_path / "logs") as launcher:
         launcher.up(120)
         learn = subprocess.Popen(
-            [sys.executable, "-m", "services.cli", "learn", "--connect", endpoint]
-            + ["--robot", robot, "--rollouts", "2", "--no-until-hit", "--quiet"],
+            [
+                *(sys.executable, "-m", "services.cli", "learn", "--connect", endpoint),
+                *("--robot", robot, "--rollouts", "2", "--no-until-hit", "--quiet"),
+            ],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
