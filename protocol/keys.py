@@ -12,11 +12,11 @@ from dataclasses import dataclass
 
 from protocol.errors import KeyNameError
 from protocol.parts import PARTS
+from protocol.robotspec import SERVICES
 
 __all__ = ["DEFAULT_ROBOT", "PORTS", "SERVICES", "Keys", "PortSpec", "port_of", "validate_robot"]
 
 DEFAULT_ROBOT = "icubSim"
-SERVICES = ("robot", "camera", "detector", "controller", "learner")
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from protocol import robotspec
+
 __all__ = [
     "BOW_HAND",
     "INNER_RING_RADIUS",
@@ -19,9 +21,9 @@ __all__ = [
 
 TARGET_DISTANCE = 2.2  # m, robot root to target plane (the paper's Fig. 7)
 TARGET_DIAMETER = 0.50  # m
-INNER_RING_RADIUS = 0.05  # m, a "hit" is ‖r‖ < this (the paper's Section IV)
-BOW_HAND = np.array([-0.30, -0.10, 0.10])  # m, nominal left (bow) hand position
-START_THETA = np.array([0.17, 0.03, -0.03])  # m, initial string-hand offset from the bow hand
+INNER_RING_RADIUS = robotspec.HIT_RADIUS  # m, a "hit" is ‖r‖ < this (the paper's Section IV)
+BOW_HAND = np.array(robotspec.BOW_HAND)  # m, nominal left (bow) hand position
+START_THETA = np.array(robotspec.NOMINAL_THETA)  # m, initial string-hand offset from the bow hand
 
 
 def target_centre(distance: float = TARGET_DISTANCE) -> np.ndarray:

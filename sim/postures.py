@@ -12,12 +12,13 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
+from protocol.robotspec import BOW_ARM, BOW_HAND_FRAME, STRING_ARM, STRING_HAND_FRAME, home_of
 from sim.errors import CommandError
-from sim.scene import BOW_HAND_SITE, HOME_POSTURE, STRING_HAND_SITE, ScenePhysics
+from sim.scene import ScenePhysics
 
 __all__ = ["archery_posture"]
 
-_ARMS = ("left_arm", "right_arm")
+_ARMS = (BOW_ARM, STRING_ARM)
 
 
 def archery_posture(
@@ -50,9 +51,9 @@ def archery_posture(
         if value.shape != (3,) or not np.all(np.isfinite(value)):
             raise CommandError(f"{name} must be a finite 3-vector in metres, got {value!r}")
     physics = ScenePhysics(model)
-    torso_q = np.asarray(HOME_POSTURE["torso"] if torso is None else torso, dtype=float)
+    torso_q = np.asarray(home_of("torso") if torso is None else torso, dtype=float)
     physics.set_joint_positions("torso", torso_q)
-    home = np.concatenate([HOME_POSTURE[p] for p in _ARMS])
+    home = np.concatenate([home_of(p) for p in _ARMS])
     # The world's software limits: URDF limits shrunk by the joint stops' margin.
     margin = np.concatenate([physics.joint_margins(p) for p in _ARMS])
     lower = np.concatenate([physics.joint_limits(p)[0] for p in _ARMS]) + margin
@@ -62,14 +63,14 @@ def archery_posture(
     down = np.array([0.0, 0.0, -1.0])  # bow hand +y: grip axis, thumb (−y) up
 
     def residual(q: np.ndarray) -> np.ndarray:
-        physics.set_joint_positions("left_arm", q[:7])
-        physics.set_joint_positions("right_arm", q[7:])
+        physics.set_joint_positions(BOW_ARM, q[:7])
+        physics.set_joint_positions(STRING_ARM, q[7:])
         physics.kinematics()
-        rot = physics.site_rotation(BOW_HAND_SITE)
+        rot = physics.site_rotation(BOW_HAND_FRAME)
         return np.concatenate(
             [
-                physics.site_position(BOW_HAND_SITE) - bow_hand,
-                physics.site_position(STRING_HAND_SITE) - string_hand,
+                physics.site_position(BOW_HAND_FRAME) - bow_hand,
+                physics.site_position(STRING_HAND_FRAME) - string_hand,
                 orientation_weight * (rot[:, 1] - down),
                 orientation_weight * (rot[:, 2] - back_of_hand),
                 rest_weight * (q - home),
@@ -84,4 +85,4 @@ def archery_posture(
             f"hands cannot reach bow {bow_hand.round(3)} / string {string_hand.round(3)} m: "
             f"position errors {error.round(4)} m exceed {tolerance} m"
         )
-    return {"torso": torso_q, "left_arm": solution.x[:7].copy(), "right_arm": solution.x[7:].copy()}
+    return {"torso": torso_q, BOW_ARM: solution.x[:7].copy(), STRING_ARM: solution.x[7:].copy()}

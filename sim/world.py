@@ -20,21 +20,15 @@ import mujoco
 import numpy as np
 
 from protocol.parts import PARTS
+from protocol.robotspec import MAX_REFERENCE_SPEED, home_of
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, StateError
 from sim.geometry import TARGET_DIAMETER, target_centre
-from sim.scene import (
-    HOME_POSTURE,
-    SceneConfig,
-    ScenePhysics,
-    build_scene,
-)
+from sim.scene import SceneConfig, ScenePhysics, build_scene
 from sim.vectors import vector3
 
 __all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]
-
-MAX_REFERENCE_SPEED = 2.0  # rad/s; up to this, commanded moves never pass the URDF joint limits
 
 
 class ArrowState(StrEnum):
@@ -182,7 +176,7 @@ class ArcheryWorld:
         )
         self._qadr = np.concatenate([self.physics.qpos_indices(p) for p in self._parts])
         self._dadr = np.concatenate([self.physics.dof_indices(p) for p in self._parts])
-        self._home = np.concatenate([HOME_POSTURE[p] for p in self._parts])
+        self._home = np.concatenate([home_of(p) for p in self._parts])
         self._target = self._home.copy()
         self._reference = self._home.copy()
         self._speed = np.full(self._home.size, self.config.reference_speed)

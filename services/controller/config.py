@@ -7,6 +7,7 @@ from dataclasses import dataclass, field, replace
 
 from protocol.errors import ConfigError
 from protocol.netflags import NetConfig
+from protocol.robotspec import ROBOT_TIMEOUT
 from protocol.service import config_number
 from services.controller.ik import IkSettings
 from services.controller.posture import PostureConfig
@@ -46,7 +47,7 @@ class ControllerConfig:
     use_torso: bool = True
     traj_time: float = 1.0
     motion_timeout: float = 30.0
-    robot_timeout: float = 3.0
+    robot_timeout: float = ROBOT_TIMEOUT
     joint_tolerance: float = 0.005
 
     def __post_init__(self) -> None:

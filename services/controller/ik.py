@@ -18,28 +18,43 @@ All derivatives are analytic (Pinocchio Jacobians). The hand is driven to x̂ it
 the ε-ball, rather than to its surface: the cost given up is about ‖ν‖·√ε (≈ 1e-5 here).
 If the start posture leads nowhere feasible, seeded random restarts follow; an unreachable
 target returns the posture closest to it with `reachable=False`.
+
+The settings, targets, results and resolved tasks are in `services.controller.ik_types`, the
+orientation and curvature derivatives in `services.controller.ik_derivatives`; both are
+re-exported here.
 """
 
 from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from types import MappingProxyType
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 import scipy.linalg.lapack
 
-from services.controller.errors import ConfigError, JointError, TargetError
-from services.controller.model import (
-    ArmsModel,
-    JointValues,
-    check_arm,
-    load_arms_model,
+from services.controller.errors import JointError, TargetError
+from services.controller.ik_derivatives import (
+    orientation_residual,
+    orientation_residual_jacobian,
+    position_hessian_contraction,
 )
+from services.controller.ik_types import (
+    FrameJacobian,
+    IkResult,
+    IkSettings,
+    OrientationTarget,
+    OrientationTask,
+    PositionTarget,
+    PositionTask,
+    RestTask,
+    TargetsResult,
+    as_rotation,
+)
+from services.controller.model import ArmsModel, JointValues, check_arm, load_arms_model
 from services.controller.qp import solve_box_qp
 
 __all__ = [
@@ -68,250 +83,10 @@ _MIN_DAMPING = 1e-9
 _MAX_DAMPING = 1e6
 
 
-def _matrix3(value: Any, name: str) -> np.ndarray:
-    """A symmetric positive semi-definite 3×3 matrix (read-only), or ConfigError."""
-    mat = np.array(value, dtype=float)
-    if mat.shape != (3, 3) or not np.all(np.isfinite(mat)):
-        raise ConfigError(f"{name} must be a finite 3×3 matrix, got {value!r}")
-    if not np.allclose(mat, mat.T, atol=1e-12):
-        raise ConfigError(f"{name} must be symmetric, got {value!r}")
-    if np.linalg.eigvalsh(mat).min() < -1e-12:
-        raise ConfigError(f"{name} must be positive semi-definite, got {value!r}")
-    mat.setflags(write=False)
-    return mat
-
-
 def _sqrt_psd(mat: np.ndarray) -> np.ndarray:
     """S with SᵀS = mat for a symmetric positive semi-definite matrix."""
     vals, vecs = np.linalg.eigh(mat)
     return (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
-
-
-@dataclass(frozen=True)
-class IkSettings:
-    """Weights and tolerances of the Eq. 9 problem (the paper used identity covariances).
-
-    Attributes:
-        orientation_weight: w1 (per rad²), ≥ 0.
-        rest_weight: w2 (per rad²), ≥ 0.
-        sigma_x: Σx, 3×3 PSD weighting of the position error in the constraint.
-        sigma_n: Σn, 3×3 PSD weighting of the orientation error (rad) in the cost.
-        sigma_q: Σq as per-joint diagonal weights {joint: weight ≥ 0}; unnamed joints weigh 1.
-        position_tolerance: the constraint holds when (x̂−x)ᵀΣx(x̂−x) < position_tolerance²,
-            i.e. ε = position_tolerance² (m²); must be > 0.
-        max_iterations: Gauss–Newton iterations (each one Jacobian evaluation), ≥ 1.
-        max_step: per-joint trust region of one iteration (rad), > 0.
-        step_tolerance: converged when the constraint holds and no joint moved more than
-            this in the last iteration (rad), ≥ 0.
-        cost_tolerance: ... or when the cost fell by less than this (rad²), ≥ 0.
-        damping: initial Levenberg–Marquardt damping (per rad²), > 0.
-        restarts: when the constraint is not met from the start posture, retry from this many
-            random in-limit postures of the moving joints, ≥ 0.
-        seed: seed of those restart postures (the same call always gives the same result).
-        limit_margin: every joint's URDF range shrinks by this much at both ends (rad),
-            0 ≤ margin < 0.1, so solutions stay inside a robot's software limits.
-    """
-
-    orientation_weight: float = 1.0
-    rest_weight: float = 0.01
-    sigma_x: Any = field(default_factory=lambda: np.eye(3))
-    sigma_n: Any = field(default_factory=lambda: np.eye(3))
-    sigma_q: Mapping[str, float] = field(default_factory=dict)
-    position_tolerance: float = 1e-4
-    max_iterations: int = 100
-    max_step: float = 0.4
-    step_tolerance: float = 1e-3
-    cost_tolerance: float = 1e-7
-    damping: float = 1e-4
-    restarts: int = 4
-    seed: int = 0
-    limit_margin: float = 0.0
-
-    def __post_init__(self) -> None:
-        margin = self.limit_margin
-        if not (isinstance(margin, int | float) and math.isfinite(margin) and 0 <= margin < 0.1):
-            raise ConfigError(f"limit_margin must be a number in [0, 0.1) rad, got {margin!r}")
-        for name in ("orientation_weight", "rest_weight", "step_tolerance", "cost_tolerance"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
-                raise ConfigError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("position_tolerance", "max_step", "damping"):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a finite number > 0, got {value!r}")
-        for name in ("restarts", "seed"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ConfigError(f"{name} must be an integer >= 0, got {value!r}")
-        if (
-            isinstance(self.max_iterations, bool)
-            or not isinstance(self.max_iterations, int)
-            or self.max_iterations < 1
-        ):
-            raise ConfigError(
-                f"max_iterations must be an integer >= 1, got {self.max_iterations!r}"
-            )
-        object.__setattr__(self, "sigma_x", _matrix3(self.sigma_x, "sigma_x"))
-        object.__setattr__(self, "sigma_n", _matrix3(self.sigma_n, "sigma_n"))
-        weights = dict(self.sigma_q)
-        for joint, weight in weights.items():
-            if not (isinstance(weight, int | float) and math.isfinite(weight) and weight >= 0):
-                raise ConfigError(
-                    f"sigma_q[{joint!r}] must be a finite number >= 0, got {weight!r}"
-                )
-        object.__setattr__(self, "sigma_q", MappingProxyType(weights))
-
-
-@dataclass(frozen=True)
-class PositionTarget:
-    """A hard position constraint on a hand frame (m, root frame).
-
-    With `relative_to` set, the constrained quantity is x_arm − x_relative_to (the hand's position
-    relative to the other hand); otherwise x_arm. When several constraints cannot all be met, a
-    higher `priority` (0, 1 or 2) is met first.
-    """
-
-    arm: str
-    position: Any
-    relative_to: str | None = None
-    priority: int = 0
-
-    def __post_init__(self) -> None:
-        check_arm(self.arm)
-        if self.relative_to is not None:
-            check_arm(self.relative_to)
-            if self.relative_to == self.arm:
-                raise TargetError(f"relative_to must be the other arm, got {self.relative_to!r}")
-        if self.priority not in (0, 1, 2):
-            raise ConfigError(f"priority must be 0, 1 or 2, got {self.priority!r}")
-        object.__setattr__(self, "position", _position(self.position))
-
-
-@dataclass(frozen=True)
-class OrientationTarget:
-    """A desired hand orientation, part of the cost with weight w1·`weight`.
-
-    `orientation` is an axis-angle 3-vector (rad, root axes) or a 3×3 rotation matrix.
-    """
-
-    arm: str
-    orientation: Any
-    weight: float = 1.0
-
-    def __post_init__(self) -> None:
-        check_arm(self.arm)
-        if not (
-            isinstance(self.weight, int | float) and math.isfinite(self.weight) and self.weight >= 0
-        ):
-            raise ConfigError(
-                f"orientation weight must be a finite number >= 0, got {self.weight!r}"
-            )
-        object.__setattr__(self, "orientation", as_rotation(self.orientation))
-
-
-@dataclass(frozen=True)
-class TargetsResult:
-    """Outcome of `IkSolver.solve_targets`.
-
-    Attributes:
-        q: posture {joint: rad} for all 17 joints (joints not solved keep their clipped q0).
-        q_vector: the same in `JOINT_NAMES` order (read-only).
-        position_errors_m: ‖x̂ − x(q)‖ per position target, in the given order (m).
-        orientation_errors_rad: rotation angle still needed per orientation target (rad).
-        cost: the Eq. 9 cost at q (rad²).
-        reachable: every position constraint holds.
-        iterations: Gauss–Newton iterations used.
-    """
-
-    q: Mapping[str, float]
-    q_vector: np.ndarray
-    position_errors_m: tuple[float, ...]
-    orientation_errors_rad: tuple[float, ...]
-    cost: float
-    reachable: bool
-    iterations: int
-
-
-@dataclass(frozen=True)
-class IkResult:
-    """Outcome of `IkSolver.solve` for one hand.
-
-    Attributes:
-        q: posture {joint: rad} for all 17 joints (joints off the chain keep their clipped q0).
-        x: hand position reached (m, root frame).
-        orientation: hand orientation reached, axis-angle (rad, root axes).
-        position_error_m: ‖x̂ − x‖ (m, Euclidean; the constraint itself weighs it by Σx).
-        orientation_error_rad: angle of the rotation from the reached to the desired orientation
-            (rad); 0 when no orientation was asked.
-        reachable: the position constraint holds; when False, q is the closest pose found.
-        iterations: Gauss–Newton iterations used.
-    """
-
-    q: Mapping[str, float]
-    x: np.ndarray
-    orientation: np.ndarray
-    position_error_m: float
-    orientation_error_rad: float
-    reachable: bool
-    iterations: int
-
-
-def _position(value: Any) -> np.ndarray:
-    try:
-        pos = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise TargetError(f"position must be a 3-vector in metres, got {value!r}") from None
-    if pos.shape != (3,):
-        raise TargetError(
-            f"position must be a 3-vector in metres, got shape {pos.shape}: {value!r}"
-        )
-    if not np.all(np.isfinite(pos)):
-        raise TargetError(f"position must be finite (no NaN/inf), got {value!r}")
-    pos.setflags(write=False)
-    return pos
-
-
-def as_rotation(orientation: Any) -> np.ndarray:
-    """A read-only rotation matrix from an axis-angle 3-vector (rad) or a 3×3 rotation matrix.
-
-    Raises:
-        TargetError: wrong shape, NaN/inf, or a 3×3 matrix that is not a proper rotation.
-    """
-    try:
-        arr = np.array(orientation, dtype=float)
-    except (TypeError, ValueError):
-        raise TargetError(
-            "orientation must be an axis-angle 3-vector (rad) or a 3×3 rotation, "
-            f"got {orientation!r}"
-        ) from None
-    if not np.all(np.isfinite(arr)):
-        raise TargetError(f"orientation must be finite (no NaN/inf), got {orientation!r}")
-    if arr.shape == (3,):
-        rot = pin.exp3(arr)
-    elif arr.shape == (3, 3):
-        if not np.allclose(arr @ arr.T, np.eye(3), atol=1e-6) or np.linalg.det(arr) < 0:
-            raise TargetError(f"orientation matrix is not a proper rotation: {orientation!r}")
-        rot = arr
-    else:
-        raise TargetError(
-            "orientation must be an axis-angle 3-vector (rad) or a 3×3 rotation, "
-            f"got shape {arr.shape}"
-        )
-    rot = np.array(rot)
-    rot.setflags(write=False)
-    return rot
-
-
-def orientation_residual(target: np.ndarray, rotation: np.ndarray) -> np.ndarray:
-    """eₙ = log(R̂·Rᵀ): axis-angle (rad, root axes) turning `rotation` R into `target` R̂."""
-    return np.asarray(pin.log3(target @ rotation.T))
-
-
-def orientation_residual_jacobian(
-    target: np.ndarray, rotation: np.ndarray, angular_jacobian: np.ndarray
-) -> np.ndarray:
-    """∂eₙ/∂q = −Jlog(R̂Rᵀ)·J_ω, for J_ω the hand's angular Jacobian in root axes (3×n)."""
-    return -np.asarray(pin.Jlog3(target @ rotation.T)) @ angular_jacobian
 
 
 @dataclass
@@ -322,28 +97,10 @@ class _Eval:
     gradient: np.ndarray  # minus the cost gradient
     eq_matrix: np.ndarray  # Sx·J per position target, stacked
     eq_rhs: np.ndarray  # Sx·(x̂ − x) per position target, stacked
-    jacobians: list[tuple[int, float, np.ndarray]]  # (target, sign, 6×n frame Jacobian)
+    jacobians: list[FrameJacobian]  # of every hand in a position task
     cost: float  # Eq. 9 cost (rad²)
     violation: float  # Σ ‖Sx·(x̂ − x)‖ over position targets (m)
     feasible: bool
-
-
-def position_hessian_contraction(weights: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
-    """Σₖ wₖ·∂²xₖ/∂q² for a frame on a revolute chain, from its 6×n Jacobian (LOCAL_WORLD_ALIGNED).
-
-    Columns must be in ancestor-first order (Pinocchio's). For joints a ≤ b the second
-    derivative of the frame position is z_a × v_b (z: joint axis, v: linear Jacobian column), so
-    the contraction with w is (w × z_a)·v_b. Units: m per rad² times the units of w.
-    """
-    wx = np.array(
-        [
-            [0.0, -weights[2], weights[1]],
-            [weights[2], 0.0, -weights[0]],
-            [-weights[1], weights[0], 0.0],
-        ]
-    )
-    pairs = (wx @ jacobian[3:]).T @ jacobian[:3]
-    return np.where(_upper_mask(pairs.shape[0]), pairs, pairs.T)
 
 
 @functools.lru_cache(maxsize=8)
@@ -352,14 +109,6 @@ def _identity(n: int) -> np.ndarray:
     eye = np.eye(n)
     eye.setflags(write=False)
     return eye
-
-
-@functools.lru_cache(maxsize=8)
-def _upper_mask(n: int) -> np.ndarray:
-    """Read-only boolean n×n mask of the upper triangle (diagonal included)."""
-    mask = np.triu(np.ones((n, n), dtype=bool))
-    mask.setflags(write=False)
-    return mask
 
 
 class IkSolver:
@@ -463,16 +212,20 @@ class IkSolver:
         q_rest = self.model.to_pinocchio(self.model.vector(rest))
         frames = self.model.frame_ids
         pos_tasks = [
-            (
-                frames[t.arm],
-                -1 if t.relative_to is None else frames[t.relative_to],
-                np.asarray(t.position),
-                _BASE_SLACK * _PRIORITY_FACTOR**t.priority,
+            PositionTask(
+                frame=frames[t.arm],
+                reference=None if t.relative_to is None else frames[t.relative_to],
+                target=np.asarray(t.position),
+                slack=_BASE_SLACK * _PRIORITY_FACTOR**t.priority,
             )
             for t in positions
         ]
         ori_tasks = [
-            (frames[t.arm], np.asarray(t.orientation), math.sqrt(t.weight) * self._sqrt_n)
+            OrientationTask(
+                frame=frames[t.arm],
+                target=np.asarray(t.orientation),
+                sqrt_weight=math.sqrt(t.weight) * self._sqrt_n,
+            )
             for t in orientations
         ]
         q, iterations, ev = self._run(q_start, active, pos_tasks, ori_tasks, q_rest)
@@ -513,32 +266,31 @@ class IkSolver:
     # ------------------------------------------------------------------------------- internals
 
     def _errors(
-        self, q: np.ndarray, pos_tasks: list[tuple], ori_tasks: list[tuple]
+        self, q: np.ndarray, pos_tasks: list[PositionTask], ori_tasks: list[OrientationTask]
     ) -> tuple[tuple[float, ...], tuple[float, ...]]:
         model, data = self._pin, self._data
         pin.forwardKinematics(model, data, q)
         pos = []
-        for frame, ref, target, _ in pos_tasks:
-            x = pin.updateFramePlacement(model, data, frame).translation
-            if ref >= 0:
-                x = x - pin.updateFramePlacement(model, data, ref).translation
-            pos.append(float(np.linalg.norm(target - x)))
+        for task in pos_tasks:
+            x = pin.updateFramePlacement(model, data, task.frame).translation
+            if task.reference is not None:
+                x = x - pin.updateFramePlacement(model, data, task.reference).translation
+            pos.append(float(np.linalg.norm(task.target - x)))
         ori = []
-        for frame, target, _ in ori_tasks:
-            rot = pin.updateFramePlacement(model, data, frame).rotation
-            ori.append(float(np.linalg.norm(orientation_residual(target, rot))))
+        for task in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, task.frame).rotation
+            ori.append(float(np.linalg.norm(orientation_residual(task.target, rot))))
         return tuple(pos), tuple(ori)
 
     def _evaluate(
         self,
         q: np.ndarray,
         active: np.ndarray,
-        pos_tasks: list[tuple],
-        ori_tasks: list[tuple],
-        rest: tuple[np.ndarray, np.ndarray, np.ndarray],
+        pos_tasks: list[PositionTask],
+        ori_tasks: list[OrientationTask],
+        rest: RestTask,
     ) -> _Eval:
-        """Residuals, Jacobians and the Gauss–Newton model at q; `rest` is (q̂, Sq diagonal,
-        Sq²) over the active joints."""
+        """Residuals, Jacobians and the Gauss–Newton model at q (over the active joints)."""
         model, data = self._pin, self._data
         pin.computeJointJacobians(model, data, q)
         sqrt_x = self._sqrt_x
@@ -548,34 +300,33 @@ class IkSolver:
         jacobians = []
         violation = 0.0
         feasible = True
-        for k, (frame, ref, target, _) in enumerate(pos_tasks):
-            x = pin.updateFramePlacement(model, data, frame).translation
-            jac = pin.getFrameJacobian(model, data, frame, _LWA)[:, active]
-            jacobians.append((k, 1.0, jac))
+        for k, task in enumerate(pos_tasks):
+            x = pin.updateFramePlacement(model, data, task.frame).translation
+            jac = pin.getFrameJacobian(model, data, task.frame, _LWA)[:, active]
+            jacobians.append(FrameJacobian(k, 1.0, jac))
             lin = jac[:3]
-            if ref >= 0:
-                x = x - pin.updateFramePlacement(model, data, ref).translation
-                jac_ref = pin.getFrameJacobian(model, data, ref, _LWA)[:, active]
-                jacobians.append((k, -1.0, jac_ref))
+            if task.reference is not None:
+                x = x - pin.updateFramePlacement(model, data, task.reference).translation
+                jac_ref = pin.getFrameJacobian(model, data, task.reference, _LWA)[:, active]
+                jacobians.append(FrameJacobian(k, -1.0, jac_ref))
                 lin = lin - jac_ref[:3]
-            err = sqrt_x @ (target - x)
+            err = sqrt_x @ (task.target - x)
             sq = float(err @ err)
             feasible = feasible and sq < self._epsilon
             violation += math.sqrt(sq)
             eq_matrix[3 * k : 3 * k + 3] = sqrt_x @ lin
             eq_rhs[3 * k : 3 * k + 3] = err
         # Rest posture: residual Sq·(q̂ − q − dq), linear in the step.
-        rest_target, rest_sqrt, rest_hessian = rest
-        r_rest = rest_sqrt * (rest_target - q[active])
-        hessian = rest_hessian.copy()
-        gradient = rest_sqrt * r_rest
+        r_rest = rest.sqrt_weight * (rest.target - q[active])
+        hessian = rest.hessian.copy()
+        gradient = rest.sqrt_weight * r_rest
         cost = float(r_rest @ r_rest)
-        for frame, target, sqrt_n in ori_tasks:
-            rot = pin.updateFramePlacement(model, data, frame).rotation
-            err_rot = target @ rot.T
-            res = sqrt_n @ np.asarray(pin.log3(err_rot))
-            jw = pin.getFrameJacobian(model, data, frame, _LWA)[3:, active]
-            a = -(sqrt_n @ np.asarray(pin.Jlog3(err_rot))) @ jw
+        for task in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, task.frame).rotation
+            err_rot = task.target @ rot.T
+            res = task.sqrt_weight @ np.asarray(pin.log3(err_rot))
+            jw = pin.getFrameJacobian(model, data, task.frame, _LWA)[3:, active]
+            a = -(task.sqrt_weight @ np.asarray(pin.Jlog3(err_rot))) @ jw
             hessian += a.T @ a
             gradient -= a.T @ res
             cost += float(res @ res)
@@ -587,9 +338,9 @@ class IkSolver:
         if not nu.any():
             return base
         full = base.copy()
-        for k, sign, jac in ev.jacobians:
-            weights = sign * (self._sqrt_x.T @ nu[3 * k : 3 * k + 3])
-            full += position_hessian_contraction(weights, jac)
+        for fj in ev.jacobians:
+            weights = fj.sign * (self._sqrt_x.T @ nu[3 * fj.task : 3 * fj.task + 3])
+            full += position_hessian_contraction(weights, fj.jacobian)
         _, info = _potrf(full, lower=1)
         return full if info == 0 else base
 
@@ -597,18 +348,18 @@ class IkSolver:
         self,
         q: np.ndarray,
         active: np.ndarray,
-        pos_tasks: list[tuple],
-        ori_tasks: list[tuple],
+        pos_tasks: list[PositionTask],
+        ori_tasks: list[OrientationTask],
         q_rest: np.ndarray,
     ) -> tuple[np.ndarray, int, _Eval]:
         """SQP iterations from q (Pinocchio order); returns (q, iterations, evaluation at q)."""
         s = self.settings
         lower = self._lower[active]
         upper = self._upper[active]
-        slack = np.repeat([t[3] for t in pos_tasks], 3)
+        slack = np.repeat([t.slack for t in pos_tasks], 3)
         n_pos = len(pos_tasks)
         rest_sqrt = self._rest_sqrt[active]
-        rest = (q_rest[active], rest_sqrt, np.diag(rest_sqrt * rest_sqrt))
+        rest = RestTask(q_rest[active], rest_sqrt, np.diag(rest_sqrt * rest_sqrt))
         eye = _identity(active.size)
         zeros = np.zeros(active.size)
         ev = self._evaluate(q, active, pos_tasks, ori_tasks, rest)

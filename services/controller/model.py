@@ -1,9 +1,13 @@
-"""Pinocchio kinematics of iCub's torso and both arms (17 joints), hand frames in `root_link`."""
+"""Pinocchio kinematics of iCub's torso and both arms (17 joints), hand frames in `root_link`.
+
+The model name, the hand frames and the home posture come from `protocol.robotspec`, shared with
+the simulator. Here the home posture only seeds the IK: it is the default for joints a caller
+leaves out, the default warm start and the default rest posture q̂ of Eq. 9.
+"""
 
 from __future__ import annotations
 
 import functools
-import math
 import os
 from collections.abc import Mapping
 from types import MappingProxyType
@@ -13,6 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from protocol.parts import ARM_PARTS, PARTS
+from protocol.robotspec import HAND_FRAMES, HOME_POSTURE, MODEL_NAME
 from services.controller.errors import JointError
 
 __all__ = [
@@ -25,27 +30,8 @@ __all__ = [
     "load_arms_model",
 ]
 
-MODEL_NAME = "iCubGazeboV2_5"
-
 #: Every controlled joint, in YARP order: torso (yaw, roll, pitch), left arm, right arm.
 JOINT_NAMES: tuple[str, ...] = PARTS["torso"] + PARTS["left_arm"] + PARTS["right_arm"]
-
-#: The end-effector frame of each arm part (iKin's hand frame: origin on the palm).
-HAND_FRAMES: Mapping[str, str] = MappingProxyType(
-    {"left_arm": "l_hand_dh_frame", "right_arm": "r_hand_dh_frame"}
-)
-
-_ARM_HOME_DEG = (-30.0, 30.0, 0.0, 45.0, 0.0, 0.0, 0.0)
-
-#: iCub's usual home posture (rad): torso straight, arms (-30, 30, 0, 45, 0, 0, 0) degrees.
-HOME_POSTURE: Mapping[str, float] = MappingProxyType(
-    {name: 0.0 for name in PARTS["torso"]}
-    | {
-        name: math.radians(deg)
-        for part in ARM_PARTS
-        for name, deg in zip(PARTS[part], _ARM_HOME_DEG, strict=True)
-    }
-)
 
 JointValues = Mapping[str, float] | np.ndarray
 

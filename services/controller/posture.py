@@ -29,6 +29,7 @@ import numpy as np
 import pinocchio as pin
 
 from protocol.parts import PARTS
+from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
 from services.controller.errors import ConfigError, TargetError
 from services.controller.ik import (
     IkSettings,
@@ -115,10 +116,10 @@ class PostureConfig:
             a few hundredths of a radian of orientation error.
     """
 
-    bow_hand: Any = (-0.30, -0.10, 0.10)
+    bow_hand: Any = BOW_HAND
     theta_min: Any = (0.12, -0.02, -0.07)
     theta_max: Any = (0.24, 0.06, 0.01)
-    nominal_theta: Any = (0.17, 0.03, -0.03)
+    nominal_theta: Any = NOMINAL_THETA
     use_torso: bool = True
     reference_starts: int = 24
     seed: int = 0
@@ -199,9 +200,7 @@ class ArcheryPosture:
         self.solver = IkSolver(load_arms_model(), self.config.ik) if solver is None else solver
         self.model = self.solver.model
         self.joints: tuple[str, ...] = (
-            (PARTS["torso"] if self.config.use_torso else ())
-            + PARTS["left_arm"]
-            + PARTS["right_arm"]
+            (PARTS["torso"] if self.config.use_torso else ()) + PARTS[BOW_ARM] + PARTS[STRING_ARM]
         )
         self.reference: np.ndarray = self._search_reference()
         self.reference.setflags(write=False)
@@ -237,10 +236,10 @@ class ArcheryPosture:
         left_rot, right_rot = hand_orientations(theta)
         return self.solver.solve_targets(
             (
-                PositionTarget("left_arm", self.config.bow_hand, priority=0),
-                PositionTarget("right_arm", theta, relative_to="left_arm", priority=1),
+                PositionTarget(BOW_ARM, self.config.bow_hand, priority=0),
+                PositionTarget(STRING_ARM, theta, relative_to=BOW_ARM, priority=1),
             ),
-            (OrientationTarget("left_arm", left_rot), OrientationTarget("right_arm", right_rot)),
+            (OrientationTarget(BOW_ARM, left_rot), OrientationTarget(STRING_ARM, right_rot)),
             joints=self.joints,
             q0=start,
             rest=self.reference if rest is None else rest,
@@ -268,8 +267,8 @@ class ArcheryPosture:
 
     def _result(self, theta: np.ndarray, res: TargetsResult) -> PostureResult:
         q = res.q_vector
-        x_left, r_left = self.solver.hand_pose(q, "left_arm")
-        x_right, r_right = self.solver.hand_pose(q, "right_arm")
+        x_left, r_left = self.solver.hand_pose(q, BOW_ARM)
+        x_right, r_right = self.solver.hand_pose(q, STRING_ARM)
         achieved = x_right - x_left
         arrays = [achieved, x_left]
         left_aa = np.asarray(pin.log3(r_left))

@@ -14,6 +14,7 @@ import numpy as np
 
 from protocol.errors import BadRequest, ConfigError
 from protocol.netflags import NetConfig
+from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from protocol.service import config_number
 from services.learner.base import Bounds, LearnerConfigError
 from services.learner.registry import ALGORITHMS
@@ -28,9 +29,8 @@ __all__ = [
     "config_from_args",
 ]
 
-# θ (m) where sessions start: on the simulated robot its arrows land on the target face about
-# 11 cm up and left of the centre (sim.geometry.START_THETA lands outside the face at 2.2 m).
-DEFAULT_THETA0 = (0.17, 0.006, -0.026)
+# θ (m) where sessions start (protocol.robotspec.THETA0).
+DEFAULT_THETA0 = THETA0
 
 # Learner options for the MuJoCo robot, under the caller's own. Its hands move the arrow about
 # 11 m on the target per m of θ (aim) and 1-2 m per m of draw, so the analytic model's 10-20 mm
@@ -54,7 +54,6 @@ ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
 
 START_ARGS = ("algo", "rollouts", "seed", "until_hit", "scenario", "options", "resume", "session")
 SCENARIO_KEYS = ("theta0", "bounds", "hit_radius", "reset")
-HIT_RADIUS = 0.05  # m: the paper's inner ring
 
 
 def _integer(name: str, value: Any, low: int, high: int) -> int:
@@ -227,7 +226,7 @@ class LearnerServiceConfig:
     runs: Path = Path("runs")
     service_wait: float = 120.0
     start_wait: float = 5.0
-    rpc_timeout: float = 20.0
+    rpc_timeout: float = RPC_TIMEOUT
     report: bool = True
 
     def __post_init__(self) -> None:

@@ -6,12 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
 
 __all__ = ["caption_png", "plot_report", "write_report"]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
-RINGS = (0.25, 0.15, 0.10, 0.05)  # m
+RINGS = (0.25, 0.15, 0.10, HIT_RADIUS)  # m
 
 
 def caption_png(png: bytes, lines: list[str]) -> bytes:
@@ -56,7 +57,7 @@ def plot_report(state: JournalState, path: Path) -> None:
 
     done = state.done
     header = state.header
-    radius = float(header["config"].get("hit_radius_m", 0.05))
+    radius = float(header["config"].get("hit_radius_m", HIT_RADIUS))
     fig, (face, curve) = plt.subplots(
         1, 2, figsize=(13, 6.2), dpi=110, gridspec_kw={"width_ratios": [1.0, 1.25]}
     )

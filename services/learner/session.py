@@ -6,21 +6,12 @@ than the landing) → `tell(θ, r)` → journal `done` with the learner's state.
 reached through a `Rig` (the mesh in `services.learner.rig`, fakes in tests), so this module
 knows no Zenoh.
 
-Aborts (journal `aborted`, the learner is not told; attempts are not counted as rollouts):
-
-* `service_lost`: a service did not answer or vanished. The session waits until every service
-  is alive again (up to `service_wait`), then re-runs the same θ.
-* `rpc_error`, `not_reached`: a service refused or the posture was not reached in time; the
-  same θ is re-run.
-* `no_target`: the detector sees no target (a camera or lighting problem, not the θ's fault);
-  the same θ is re-run.
-* `no_arrow`: no arrow on the target face: the shot missed it. No r is invented: the next
-  attempt backs off halfway from the missed θ towards the best θ so far (θ0 before any
-  rollout), and that θ is what the learner is told about; its own pending proposal is dropped.
-  When the missed θ is θ0 itself, before any rollout, the session fails at once (choose
-  another θ0).
-
-After `max_aborts` aborts in a row the session fails with the last cause; it can be resumed.
+Aborts (journal `aborted`, the learner is not told; attempts are not counted as rollouts)
+`service_lost`, `rpc_error`, `not_reached`, `no_target`, `no_arrow`…: what follows each (re-run
+the same θ, wait for the services up to `service_wait`, back off after a miss, fail) is decided
+by the pure policy of `services.learner.abort_policy`. After a `no_arrow` back-off, the back-off
+θ is what the learner is told about; its own pending proposal is dropped. After `max_aborts`
+aborts in a row the session fails with the last cause; it can be resumed.
 The ground-truth impact (the robot's event) is logged beside each rollout for plots only.
 """
 
@@ -37,8 +28,9 @@ from typing import Any, Protocol
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
+from services.learner.abort_policy import after_abort, streak_failure
 from services.learner.base import Bounds, Learner, LearnerError
-from services.learner.config import DEFAULT_THETA0, SessionConfig
+from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.registry import make_learner, restore_learner
 from services.learner.report import caption_png
@@ -341,13 +333,10 @@ class Session:
                 self._set("finished", reason)
                 log.info("session %s finished: %s", self.session_id, reason)
                 return
-            in_row = sum(state.aborts_in_row.values())
-            if in_row >= config.max_aborts:
-                last = state.aborted[-1]
-                raise SessionFailed(
-                    f"{in_row} attempts in a row were aborted; the last at θ {last['theta']} m: "
-                    f"[{last['code']}] {last['cause']}"
-                )
+            last = state.aborted[-1] if state.aborted else None
+            failure = streak_failure(state.aborts_in_row, config.max_aborts, last)
+            if failure is not None:
+                raise SessionFailed(failure)
             self._set("running")
             self._attempt(stop)
         self._record("stopped", reason="stop requested")
@@ -404,39 +393,33 @@ class Session:
         try:
             posture = self.rig.posture(theta)
             if not posture.reached:
-                self._abort(index, theta, "not_reached", f"posture not reached: {posture.reason}")
+                reason = f"posture not reached: {posture.reason}"
+                self._abort(stop, index, theta, "not_reached", reason)
                 return
             shot = self.rig.shoot()
             measurement = self.rig.measure(shot)
         except ServiceLost as exc:
-            self._abort(index, theta, exc.code, f"{exc.service}: {exc.message}")
-            self._await_services(stop)
+            self._abort(stop, index, theta, exc.code, f"{exc.service}: {exc.message}")
             return
         except RigError as exc:
-            self._abort(index, theta, exc.code, exc.message)
+            self._abort(stop, index, theta, exc.code, exc.message)
             return
         truth = self.rig.truth(shot)
         if measurement.status == "no_arrow":
-            retry = self._back_off(theta)
             self._abort(
+                stop,
                 index,
                 theta,
                 "no_arrow",
                 f"the detector saw no arrow on the target (robot: {shot.outcome}); next θ backs "
                 f"off halfway towards the best θ",
-                retry=retry,
                 truth_r_m=truth,
                 detection=measurement.detection,
             )
-            if np.allclose(retry, theta, atol=1e-9):  # θ0 itself, with nothing better known
-                raise SessionFailed(
-                    f"θ = {theta.tolist()} m puts no arrow on the target face (the detector saw "
-                    f"none) and no θ so far did better; start from another scenario.theta0 "
-                    f"(the default {list(DEFAULT_THETA0)} m lands on the face)"
-                )
             return
         if measurement.status != "ok" or measurement.r_m is None:
             self._abort(
+                stop,
                 index,
                 theta,
                 measurement.status,
@@ -448,24 +431,26 @@ class Session:
             return
         self._done(index, theta, posture, shot, measurement, truth, start, timing)
 
-    def _back_off(self, theta: np.ndarray) -> np.ndarray:
-        state = self.journal.state
-        if state.done:
-            best = min(state.done, key=lambda d: d["distance_m"])
-            anchor = np.array(best["theta"])
-        else:
-            anchor = np.array(self.config.theta0)
-        return self.learner.bounds.clip(anchor + 0.5 * (theta - anchor))
-
     def _abort(
         self,
+        stop: threading.Event,
         index: int,
         theta: np.ndarray,
         code: str,
         cause: str,
-        retry: np.ndarray | None = None,
         **extra: Any,
     ) -> None:
+        """Journal the aborted attempt with the θ the policy picks for the next one, then fail
+        or wait for the services as the policy says."""
+        state = self.journal.state
+        best = min(state.done, key=lambda d: d["distance_m"]) if state.done else None
+        decision = after_abort(
+            code,
+            theta,
+            best_theta=None if best is None else best["theta"],
+            theta0=self.config.theta0,
+            bounds=self.learner.bounds,
+        )
         log.warning("attempt %d at θ %s aborted [%s]: %s", index, theta.tolist(), code, cause)
         self._record(
             "aborted",
@@ -473,9 +458,13 @@ class Session:
             theta=theta.tolist(),
             code=code,
             cause=cause,
-            retry_theta=(theta if retry is None else retry).tolist(),
+            retry_theta=list(decision.retry_theta),
             **extra,
         )
+        if decision.failure is not None:
+            raise SessionFailed(decision.failure)
+        if decision.await_services:
+            self._await_services(stop)
 
     def _done(
         self,

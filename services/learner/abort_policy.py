@@ -1,0 +1,110 @@
+"""What a learning session does after an aborted attempt: a pure policy, no I/O.
+
+An attempt aborts when it ends without a measurement; the learner is not told and the attempt
+is not counted as a rollout. After each abort, by its code:
+
+* `service_lost` (a service did not answer or vanished): wait until every service is alive
+  again, then re-run the same θ.
+* `rpc_error`, `bad_reply` or any service error code, `not_reached` (the posture was not reached
+  in time), `no_target` (the detector sees no target: camera or lighting, not θ): re-run the
+  same θ.
+* `no_arrow` (no arrow on the target face: θ missed it): no r is invented; the next attempt runs
+  halfway from θ back towards the best θ so far (θ0 before any rollout), clipped into the θ box.
+
+A `no_arrow` whose back-off θ is θ itself (θ is θ0, or the best θ, with nothing better known)
+fails the session at once: re-running it would miss again. Independently of the code,
+`max_aborts` aborts in a row fail the session (`streak_failure`). θ is in metres.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from protocol.robotspec import THETA0
+from services.learner.base import Bounds
+
+__all__ = [
+    "BACK_OFF_FRACTION",
+    "NO_ARROW",
+    "SERVICE_LOST",
+    "AbortDecision",
+    "after_abort",
+    "streak_failure",
+]
+
+SERVICE_LOST = "service_lost"
+NO_ARROW = "no_arrow"
+
+#: After a miss, the next θ is anchor + this × (θ − anchor): halfway back towards the anchor.
+BACK_OFF_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class AbortDecision:
+    """What to do after one aborted attempt.
+
+    Attributes:
+        retry_theta: θ (m) the next attempt runs (journaled as the abort's `retry_theta`).
+        await_services: wait until every service is alive before the next attempt.
+        failure: why the session must fail now, after journaling the abort; None to go on.
+    """
+
+    retry_theta: tuple[float, ...]
+    await_services: bool = False
+    failure: str | None = None
+
+
+def after_abort(
+    code: str,
+    theta: Sequence[float],
+    *,
+    best_theta: Sequence[float] | None,
+    theta0: Sequence[float],
+    bounds: Bounds,
+) -> AbortDecision:
+    """The decision after an attempt at `theta` (m) aborted with `code` (see the module table).
+
+    Args:
+        code: the abort's code.
+        theta: θ of the aborted attempt (m).
+        best_theta: θ of the closest rollout so far (m), None before any rollout.
+        theta0: the session's starting θ (m), the back-off anchor before any rollout.
+        bounds: the session's θ box; a back-off θ is clipped into it.
+    """
+    current = np.asarray(theta, dtype=float)
+    if code == SERVICE_LOST:
+        return AbortDecision(_tuple(current), await_services=True)
+    if code != NO_ARROW:
+        return AbortDecision(_tuple(current))
+    anchor = np.asarray(theta0 if best_theta is None else best_theta, dtype=float)
+    retry = bounds.clip(anchor + BACK_OFF_FRACTION * (current - anchor))
+    failure = None
+    if np.allclose(retry, current, atol=1e-9):  # the anchor itself, with nothing better known
+        failure = (
+            f"θ = {current.tolist()} m puts no arrow on the target face (the detector saw "
+            f"none) and no θ so far did better; start from another scenario.theta0 "
+            f"(the default {list(THETA0)} m lands on the face)"
+        )
+    return AbortDecision(_tuple(retry), failure=failure)
+
+
+def streak_failure(
+    aborts_in_row: Mapping[str, int], max_aborts: int, last: Mapping[str, Any] | None
+) -> str | None:
+    """Why the session fails after `aborts_in_row` (count by code since the last rollout or
+    resume) reached `max_aborts`, naming the `last` aborted record; None below the limit."""
+    in_row = sum(aborts_in_row.values())
+    if in_row < max_aborts or last is None:
+        return None
+    return (
+        f"{in_row} attempts in a row were aborted; the last at θ {last['theta']} m: "
+        f"[{last['code']}] {last['cause']}"
+    )
+
+
+def _tuple(theta: np.ndarray) -> tuple[float, ...]:
+    return tuple(float(v) for v in theta)

@@ -1,0 +1,131 @@
+"""What the archery scene is made of: its validated parameters and the names of its parts.
+
+`SceneConfig` fully determines the model `sim.model_build.build_scene` compiles; the names are
+those of the compiled model's sites, bodies, joints, tendon and cameras. Hand sites carry the
+URDF's hand-frame names from `protocol.robotspec`, so the controller (Pinocchio) and the
+simulator (MuJoCo) talk about the same frames.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from protocol.parts import PARTS
+from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME, home_of
+from sim.bow import Bow
+from sim.errors import ConfigError
+from sim.geometry import TARGET_DISTANCE
+
+__all__ = [
+    "ARROW_BODY",
+    "ARROW_JOINT",
+    "ARROW_TIP_RGBA",
+    "ARROW_TIP_SITE",
+    "BOWSTRING_TENDON",
+    "BOW_HAND_SITE",
+    "HOME_POSTURE",
+    "RING_COLOURS",
+    "SIDE_CAMERA",
+    "STRING_HAND_SITE",
+    "TARGET_CAMERA",
+    "TARGET_CENTRE_SITE",
+    "SceneConfig",
+]
+
+# Names in the compiled model.
+BOW_HAND_SITE = BOW_HAND_FRAME  # the left (bow) hand's end-effector frame, as a site
+STRING_HAND_SITE = STRING_HAND_FRAME  # the right (string) hand's end-effector frame, as a site
+BOWSTRING_TENDON = "bowstring"
+ARROW_BODY = "arrow"
+ARROW_JOINT = "arrow_free"
+ARROW_TIP_SITE = "arrow_tip"
+TARGET_CENTRE_SITE = "target_centre"
+TARGET_CAMERA = "target_cam"
+SIDE_CAMERA = "side_cam"
+
+# The archery target face, innermost first: (outer radius in m, RGBA). The tip's green is in
+# none of them, so a colour model can tell the arrow from the target.
+RING_COLOURS: tuple[tuple[float, tuple[float, float, float, float]], ...] = (
+    (0.05, (1.00, 0.85, 0.05, 1.0)),  # yellow (gold)
+    (0.10, (0.90, 0.08, 0.08, 1.0)),  # red
+    (0.15, (0.10, 0.35, 0.90, 1.0)),  # blue
+    (0.20, (0.06, 0.06, 0.06, 1.0)),  # black
+    (0.25, (0.96, 0.96, 0.96, 1.0)),  # white
+)
+ARROW_TIP_RGBA = (0.10, 1.00, 0.10, 1.0)  # bright green suction-cup tip
+
+# `protocol.robotspec.HOME_POSTURE` per part (rad, YARP order): arms bent in front.
+HOME_POSTURE: dict[str, tuple[float, ...]] = {part: home_of(part) for part in PARTS}
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    """Every parameter of the scene, validated. Two equal configs build identical models.
+
+    Attributes:
+        root_height: height of the robot's root link above the floor (m); 0.62 puts the soles
+            on the floor with straight legs.
+        target_distance: root to target plane (m); the face is the plane x = −target_distance.
+        arrow_length: tip to nock (m).
+        arrow_mass: m of the arrow (kg); should match the bow model's.
+        timestep: physics step (s).
+        servo_bandwidth: natural frequency ω of every joint's position servo (rad/s).
+        servo_damping_ratio: ζ of every joint's servo at the home posture (1 = critical).
+        armature: reflected rotor inertia added to every controlled joint (kg·m²).
+        limit_margin: each joint's stop engages this far inside its URDF limit (rad); the world
+            clamps targets to the limits shrunk by this margin, so joints never pass the URDF
+            limits.
+        meshes: load the robot's STL meshes (needed to render it; physics does not use them).
+        camera_pos: position of `target_cam` (m, root frame), on the robot's frame above and
+            to the right of its head, looking at the target centre.
+        camera_fovy: vertical field of view of `target_cam` (degrees).
+    """
+
+    root_height: float = 0.62
+    target_distance: float = TARGET_DISTANCE
+    arrow_length: float = 0.30
+    arrow_mass: float = Bow().arrow_mass
+    timestep: float = 0.002
+    servo_bandwidth: float = 25.0
+    servo_damping_ratio: float = 1.0
+    armature: float = 0.01
+    limit_margin: float = 0.003
+    meshes: bool = True
+    camera_pos: tuple[float, float, float] = (0.05, 0.30, 0.55)
+    camera_fovy: float = 22.0
+
+    def __post_init__(self) -> None:
+        limits = {
+            "root_height": (0.3, 2.0),
+            "target_distance": (0.8, 50.0),
+            "arrow_length": (0.1, 1.0),
+            "arrow_mass": (1e-3, 0.5),
+            "timestep": (1e-4, 0.01),
+            "servo_bandwidth": (1.0, 200.0),
+            "servo_damping_ratio": (0.1, 5.0),
+            "armature": (0.0, 1.0),
+            "limit_margin": (0.0, 0.05),
+            "camera_fovy": (5.0, 120.0),
+        }
+        for name, (low, high) in limits.items():
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not math.isfinite(value):
+                raise ConfigError(f"scene {name} must be a finite number, got {value!r}")
+            if not low <= value <= high:
+                raise ConfigError(f"scene {name} must be in [{low}, {high}], got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if not isinstance(self.meshes, bool):
+            raise ConfigError(f"scene meshes must be True or False, got {self.meshes!r}")
+        pos = np.asarray(self.camera_pos, dtype=float)
+        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
+            raise ConfigError(
+                f"scene camera_pos must be 3 finite numbers (m), got {self.camera_pos!r}"
+            )
+        object.__setattr__(self, "camera_pos", tuple(float(v) for v in pos))
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-friendly copy of the parameters (for the camera to rebuild the same scene)."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
