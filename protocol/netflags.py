@@ -121,7 +121,13 @@ def open_session(net: NetConfig) -> zenoh.Session:
     try:
         return zenoh.open(net.zenoh_config())
     except zenoh.ZError as exc:
-        where = ", ".join(net.connect) or "(no endpoint)"
+        if net.mode == "router" or not net.connect:
+            raise ConfigError(
+                f"cannot open a Zenoh {net.mode} session listening on "
+                f"{', '.join(net.listen) or '(no endpoint)'}: {clean_zenoh_error(exc)}. Is "
+                f"another router running there? Use --listen with a free port"
+            ) from None
+        where = ", ".join(net.connect)
         listen = f" listening on {', '.join(net.listen)}" if net.listen else ""
         raise ConfigError(
             f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "

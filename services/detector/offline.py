@@ -41,6 +41,8 @@ def read_rgb(path: str | Path) -> np.ndarray:
     Raises:
         ImageError: missing, not an image, or of an unusable size.
     """
+    if not Path(path).is_file():  # before OpenCV, which would warn on stderr too
+        raise ImageError(f"cannot read an image from {str(path)!r}: no such file")
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ImageError(f"cannot read an image from {str(path)!r} (missing, or not an image)")
