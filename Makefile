@@ -15,7 +15,7 @@ $(VENV)/.installed: pyproject.toml
 setup: $(VENV)/.installed
 
 demo: setup
-	$(PY) -m services.demo
+	$(VENV)/bin/archery demo
 
 test: setup
 	$(PY) -m pytest

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import zenoh
 
+from protocol.cliargs import clean_zenoh_error
 from protocol.errors import ConfigError
 from protocol.keys import DEFAULT_ROBOT, validate_robot
 
@@ -120,8 +121,16 @@ def open_session(net: NetConfig) -> zenoh.Session:
     try:
         return zenoh.open(net.zenoh_config())
     except zenoh.ZError as exc:
-        where = ", ".join(net.connect) or "(no endpoint)"
+        if net.mode == "router" or not net.connect:
+            raise ConfigError(
+                f"cannot open a Zenoh {net.mode} session listening on "
+                f"{', '.join(net.listen) or '(no endpoint)'}: {clean_zenoh_error(exc)}. Is "
+                f"another router running there? Use --listen with a free port"
+            ) from None
+        where = ", ".join(net.connect)
+        listen = f" listening on {', '.join(net.listen)}" if net.listen else ""
         raise ConfigError(
-            f"cannot open a Zenoh {net.mode} session connecting to {where}: {exc}. "
-            f"Is a router running there? Start one with `archery router --listen ENDPOINT`."
+            f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
+            f"{clean_zenoh_error(exc)}. Is a router running there? Start one with "
+            f"`archery router --listen {net.connect[0] if net.connect else 'ENDPOINT'}`"
         ) from None

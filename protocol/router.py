@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import logging
 import socket
 import subprocess
@@ -11,6 +10,7 @@ import time
 
 import zenoh
 
+from protocol.cliargs import ArgumentParser
 from protocol.errors import ConfigError
 from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
 from protocol.node import shutdown_on_signals
@@ -67,7 +67,7 @@ def spawn_router(endpoint: str, timeout: float = 10.0) -> subprocess.Popen[bytes
 
 def main(argv: list[str] | None = None) -> int:
     """Run a router until SIGINT/SIGTERM; exit status 0 on a clean stop."""
-    parser = argparse.ArgumentParser(prog="archery router", description=__doc__)
+    parser = ArgumentParser(prog="archery router", description=__doc__)
     add_network_args(parser, default_mode="router")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")

@@ -6,7 +6,6 @@ streams a joint state) until SIGINT/SIGTERM; tests use it as a real process to k
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import subprocess
 import sys
@@ -14,10 +13,11 @@ import threading
 import time
 from collections.abc import Callable
 
+from protocol.cliargs import ArgumentParser, seconds
 from protocol.codec import decode
 from protocol.errors import ArcheryError, BadRequest, RpcError
 from protocol.messages import Describe, JointCommand, JointState, WorldEvent
-from protocol.netflags import NetConfig, add_network_args
+from protocol.netflags import NetConfig, add_network_args, open_session
 from protocol.node import Node, shutdown_on_signals
 from protocol.parts import PARTS
 from protocol.router import free_tcp_endpoint, open_router
@@ -159,16 +159,26 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the self-check (exit 0 when every check passes) or, with --echo, the sample service."""
-    parser = argparse.ArgumentParser(prog="archery selfcheck", description=__doc__)
+    parser = ArgumentParser(prog="archery selfcheck", description=__doc__)
     add_network_args(parser)
     parser.add_argument("--echo", action="store_true", help="only run the sample service")
-    parser.add_argument("--timeout", type=float, default=10.0, help="seconds per check")
+    parser.add_argument("--timeout", type=seconds, default=10.0, help="seconds per check")
     args = parser.parse_args(argv)
-    if args.echo:
-        run_echo(NetConfig.from_args(args), shutdown_on_signals())
-        return 0
-    if args.connect:
-        return 0 if _selfcheck(NetConfig.from_args(args), args.timeout) else 1
+    try:
+        net = NetConfig.from_args(args)
+    except ArcheryError as exc:
+        print(f"archery selfcheck: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.echo:
+            run_echo(net, shutdown_on_signals())
+            return 0
+        if args.connect:
+            open_session(net).close()  # no router there: say so before starting anything
+            return 0 if _selfcheck(net, args.timeout) else 1
+    except ArcheryError as exc:
+        print(f"archery selfcheck: {exc}", file=sys.stderr)
+        return 1
     endpoint = free_tcp_endpoint()
     with open_router(endpoint):
         net = NetConfig(connect=(endpoint,), robot=args.robot)

@@ -11,6 +11,7 @@ import threading
 from collections.abc import Callable
 from typing import TypeVar
 
+from protocol.cliargs import ArgumentParser
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import shutdown_on_signals
@@ -58,7 +59,7 @@ def service_main(
     Returns:
         0 after a clean stop, 2 for a bad configuration, 1 when the service fails.
     """
-    parser = argparse.ArgumentParser(prog=f"archery {prog}", description=description)
+    parser = ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     add_arguments(parser)
@@ -74,8 +75,7 @@ def service_main(
     try:
         run(config, stop)
     except ArcheryError as exc:
-        log.error("%s", exc)
-        print(f"archery {prog}: {exc}", file=sys.stderr)
+        print(f"archery {prog}: {exc}", file=sys.stderr)  # one line; also in a log file
         return 1
     log.info("stopped")
     return 0

@@ -5,12 +5,30 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
+import zenoh
+
+from protocol.cliargs import (
+    ArgumentParser,
+    check_image_path,
+    count,
+    loads_finite,
+    seconds,
+    seconds_or_zero,
+)
 from protocol.codec import decode, from_jsonable, to_jsonable
-from protocol.errors import ArcheryError, DecodeError, KeyNameError, RpcTimeout
+from protocol.errors import (
+    ArcheryError,
+    ConfigError,
+    DecodeError,
+    KeyNameError,
+    RpcError,
+    RpcTimeout,
+)
 from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message
 from protocol.netflags import NetConfig, add_network_args
@@ -20,16 +38,22 @@ __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
 
 def _parser(prog: str, description: str) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog=f"archery {prog}", description=description)
+    parser = ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser, default_mode="client")
-    parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait (default 5)")
+    parser.add_argument("--timeout", type=seconds, default=5.0, help="seconds to wait (default 5)")
     return parser
 
 
-def _run(prog: str, body: Callable[[], int]) -> int:
-    """Run a tool body, turning the project's errors into a message and exit status 1."""
+def _run(prog: str, check: Callable[[], Any], body: Callable[[Any], int]) -> int:
+    """Check the input (`check()`; its errors: exit status 2), then run `body(checked)` (its
+    errors, e.g. nothing reachable: exit status 1). Each error is one line on stderr."""
     try:
-        return body()
+        checked = check()
+    except ArcheryError as exc:
+        print(f"archery {prog}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return body(checked)
     except ArcheryError as exc:
         print(f"archery {prog}: {exc}", file=sys.stderr)
         return 1
@@ -44,18 +68,48 @@ def _stream_type(key: str) -> type[Message]:
     return MESSAGE_TYPES[spec.message]
 
 
+def _wait_any_alive(node: Node, wait: float) -> None:
+    """Block until some service of the robot is alive (by liveliness) or `wait` s have passed."""
+    seen = threading.Event()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            seen.set()
+
+    sub = node.session.liveliness().declare_subscriber(
+        node.keys.alive_all(), on_token, history=True
+    )
+    try:
+        seen.wait(wait)
+    finally:
+        sub.undeclare()
+
+
 def ports_main(argv: list[str] | None = None) -> int:
     """`archery ports`: live services of the robot and their ports (like `yarp name list`)."""
     parser = _parser("ports", "list live services and their ports")
     parser.add_argument("--json", action="store_true", help="one JSON object per service")
+    parser.add_argument(
+        "--wait",
+        type=seconds_or_zero,
+        default=0.0,
+        metavar="N",
+        help="wait up to N s for a service to come alive (default 0: list who is alive now)",
+    )
     args = parser.parse_args(argv)
 
-    def body() -> int:
-        with Node(None, NetConfig.from_args(args)) as node:
+    def body(net: NetConfig) -> int:
+        with Node(None, net) as node:
+            if args.wait:
+                _wait_any_alive(node, args.wait)
             names = sorted(node.alive(timeout=args.timeout))
             if not names:
-                print(f"no live services for robot {node.keys.robot!r}", file=sys.stderr)
-                return 1
+                print(
+                    f"archery ports: no service alive on robot {node.keys.robot!r} "
+                    f"(router {', '.join(net.connect)})",
+                    file=sys.stderr,
+                )
+                return 0
             for name in names:
                 replies = list(node.session.get(node.keys.describe(name), timeout=args.timeout))
                 ok = [r.ok for r in replies if r.ok is not None]
@@ -73,22 +127,30 @@ def ports_main(argv: list[str] | None = None) -> int:
                     print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
         return 0
 
-    return _run("ports", body)
+    return _run("ports", lambda: NetConfig.from_args(args), body)
 
 
 def read_main(argv: list[str] | None = None) -> int:
     """`archery read KEY [--count N]`: decoded messages as JSON lines (like `yarp read`)."""
     parser = _parser("read", "print decoded messages from a stream key as JSON lines")
     parser.add_argument("key")
-    parser.add_argument("--count", type=int, default=0, help="stop after N messages (0: never)")
+    parser.add_argument(
+        "--count",
+        type=count,
+        default=0,
+        help="stop after N messages, each waited for at most --timeout s (0: read until Ctrl-C)",
+    )
     args = parser.parse_args(argv)
 
-    def body() -> int:
-        message_type = _stream_type(args.key)
-        with Node(None, NetConfig.from_args(args)) as node:
+    def check() -> tuple[NetConfig, type[Message]]:
+        return NetConfig.from_args(args), _stream_type(args.key)
+
+    def body(checked: tuple[NetConfig, type[Message]]) -> int:
+        net, message_type = checked
+        with Node(None, net) as node:
             sub = node.subscribe(args.key, message_type, mode="fifo")
             printed = 0
-            while args.count <= 0 or printed < args.count:
+            while args.count == 0 or printed < args.count:
                 try:
                     message = sub.get(timeout=args.timeout if args.count else None)
                 except RpcTimeout:
@@ -102,34 +164,97 @@ def read_main(argv: list[str] | None = None) -> int:
                 printed += 1
         return 0
 
-    return _run("read", body)
+    return _run("read", check, body)
+
+
+def _command_total(counters: dict[str, Any]) -> int:
+    return sum(int(counters.get(k, 0)) for k in ("accepted", "rejected", "undecodable"))
+
+
+def _verdict(node: Node, rpc_key: str, before: dict[str, Any], timeout: float) -> str | None:
+    """Wait until the owner's counters count the command; the refusal message, or None.
+
+    Raises:
+        RpcError: the counters did not move within `timeout` s, or another command arrived in
+            the meantime and the counters cannot tell which was refused.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        after = node.call(rpc_key, "counters", timeout=timeout)
+        arrived = _command_total(after) - _command_total(before)
+        if arrived >= 1:
+            break
+        if time.monotonic() >= deadline:
+            raise RpcError(
+                f"the command was delivered but {rpc_key} did not count it within {timeout:g} s"
+            )
+        time.sleep(0.01)
+    refused = int(after.get("rejected", 0)) - int(before.get("rejected", 0))
+    undecodable = int(after.get("undecodable", 0)) - int(before.get("undecodable", 0))
+    if refused + undecodable == 0:
+        return None
+    if arrived == 1:
+        return str(after.get("last_rejection") or "the command could not be decoded")
+    raise RpcError(
+        f"{arrived} commands arrived on {rpc_key} at once and {refused + undecodable} were "
+        f"refused (the last: {after.get('last_rejection', '')!r}); cannot tell about this one"
+    )
 
 
 def write_main(argv: list[str] | None = None) -> int:
     """`archery write KEY JSON`: publish one message of the key's type (like `yarp write`)."""
-    parser = _parser("write", "publish one message, given as a JSON object, on a key")
+    parser = _parser(
+        "write",
+        "Publish one message, given as a JSON object, on a key. On a joint command port "
+        "(ROBOT/PART/command:i) the tool then asks the part's rpc:i `counters` verb whether the "
+        "robot accepted the command: it exits 1 with the robot's reason when it was refused "
+        "(and says so when the owner has no counters verb, or another command arrived at the "
+        "same moment). Exit status: 0 delivered (and accepted), 1 nobody subscribes, refused "
+        "or no verdict, 2 bad input (unknown key, invalid JSON or message).",
+    )
     parser.add_argument("key")
     parser.add_argument("json", help="the message fields as a JSON object")
     args = parser.parse_args(argv)
 
-    def body() -> int:
+    def check() -> tuple[NetConfig, type[Message], Message]:
+        net = NetConfig.from_args(args)
         message_type = _stream_type(args.key)
-        try:
-            data = json.loads(args.json)
-        except json.JSONDecodeError as exc:
-            raise DecodeError(f"the message is not valid JSON: {exc}") from None
-        message = from_jsonable(data, message_type)
-        lossless = port_of(args.key).kind == "events"
-        with Node(None, NetConfig.from_args(args)) as node:
+        data = loads_finite(args.json, "the message")
+        return net, message_type, from_jsonable(data, message_type)
+
+    def body(checked: tuple[NetConfig, type[Message], Message]) -> int:
+        net, message_type, message = checked
+        spec = port_of(args.key)
+        lossless = spec.kind == "events"
+        rpc_key = args.key.removesuffix("command:i") + "rpc:i" if spec.kind == "sub" else None
+        with Node(None, net) as node:
             pub = node.publisher(args.key, message_type, lossless=lossless)
             if not pub.wait_matched(args.timeout):
                 print(f"archery write: nobody subscribes to {args.key}", file=sys.stderr)
                 return 1
+            before, note = None, "its counters verb gave no counts"
+            if rpc_key is not None:
+                try:
+                    before = node.call(rpc_key, "counters", timeout=args.timeout)
+                except RpcError as exc:
+                    note = f"{rpc_key} has no command counters ({exc.code})"
             sent = pub.put(message)
-            print(json.dumps(to_jsonable(sent)))
+            print(json.dumps(to_jsonable(sent)), flush=True)
+            if rpc_key is None:
+                return 0
+            if not isinstance(before, dict):
+                print(
+                    f"archery write: delivered; whether it was accepted is unknown: {note}",
+                    file=sys.stderr,
+                )
+                return 0
+            refusal = _verdict(node, rpc_key, before, args.timeout)
+            if refusal is not None:
+                print(f"archery write: refused by {rpc_key}: {refusal}", file=sys.stderr)
+                return 1
         return 0
 
-    return _run("write", body)
+    return _run("write", check, body)
 
 
 def rpc_main(argv: list[str] | None = None) -> int:
@@ -140,49 +265,57 @@ def rpc_main(argv: list[str] | None = None) -> int:
     parser.add_argument("args", nargs="?", default="{}", help="arguments as a JSON object")
     args = parser.parse_args(argv)
 
-    def body() -> int:
+    def check() -> tuple[NetConfig, dict[str, Any]]:
+        net = NetConfig.from_args(args)
         spec = port_of(args.key)
         if spec.kind != "rpc" or spec.message != "RpcRequest":
             raise KeyNameError(f"{args.key} is a {spec.kind} port, not an rpc:i port")
-        try:
-            call_args: Any = json.loads(args.args)
-        except json.JSONDecodeError as exc:
-            raise DecodeError(f"the arguments are not valid JSON: {exc}") from None
+        call_args = loads_finite(args.args, "the arguments")
         if not isinstance(call_args, dict):
             raise DecodeError(f"the arguments must be a JSON object, got {args.args!r}")
-        with Node(None, NetConfig.from_args(args)) as node:
+        return net, call_args
+
+    def body(checked: tuple[NetConfig, dict[str, Any]]) -> int:
+        net, call_args = checked
+        with Node(None, net) as node:
             result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
-        print(json.dumps(result))
+        print(json.dumps(result), flush=True)
         return 0
 
-    return _run("rpc", body)
+    return _run("rpc", check, body)
 
 
 def view_main(argv: list[str] | None = None) -> int:
     """`archery view KEY --out FILE.png`: save the next image on an image port (like yarpview)."""
     parser = _parser("view", "save the next image published on an image port")
     parser.add_argument("key")
-    parser.add_argument("--out", required=True, help="PNG file to write")
+    parser.add_argument("--out", required=True, help="image file to write (.png, .jpg, …)")
     args = parser.parse_args(argv)
 
-    def body() -> int:
-        import cv2
-
+    def check() -> NetConfig:
+        net = NetConfig.from_args(args)
         if _stream_type(args.key) is not Image:
             raise KeyNameError(f"{args.key} does not carry images")
-        with Node(None, NetConfig.from_args(args)) as node:
+        check_image_path(args.out)
+        return net
+
+    def body(net: NetConfig) -> int:
+        import cv2
+
+        with Node(None, net) as node:
             sub = node.subscribe(args.key, Image)
             start = time.monotonic()
             image = sub.wait_newer(args.timeout)
             pixels = image.to_numpy()
         bgr = pixels[:, :, ::-1] if pixels.ndim == 3 else pixels
         if not cv2.imwrite(args.out, bgr):
-            raise KeyNameError(f"could not write {args.out!r}: use a .png path in a folder")
+            raise ConfigError(f"could not write {args.out!r}")
         waited = time.monotonic() - start
         print(
             f"{args.out}: {image.width}x{image.height} {image.encoding}, frame {image.frame}, "
-            f"waited {waited:.2f} s"
+            f"waited {waited:.2f} s",
+            flush=True,
         )
         return 0
 
-    return _run("view", body)
+    return _run("view", check, body)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
+import os
 import sys
 
 __all__ = ["VERBS", "main"]
@@ -37,29 +39,75 @@ VERBS: dict[str, tuple[str, str]] = {
         "services.learner.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",
     ),
+    "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
 }
 
 
 def _usage() -> str:
     width = max(len(v) for v in VERBS)
-    lines = ["usage: archery VERB [options]   (archery VERB --help for a verb's options)", ""]
+    lines = [
+        "usage: archery VERB [options]   (archery help VERB, or archery VERB --help, for a "
+        "verb's options)",
+        "       archery --version",
+        "",
+    ]
     lines += [f"  {verb.ljust(width)}  {help_}" for verb, (_, help_) in VERBS.items()]
     return "\n".join(lines)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run `archery VERB ...`; returns the verb's exit status."""
-    args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help", "help"):
-        print(_usage())
-        return 0
-    verb, rest = args[0], args[1:]
-    if verb not in VERBS:
-        print(f"archery: unknown verb {verb!r}; valid verbs: {', '.join(VERBS)}", file=sys.stderr)
-        return 2
+def _version() -> str:
+    try:
+        return importlib.metadata.version("archery")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def _unknown(verb: str) -> int:
+    print(f"archery: unknown verb {verb!r}; valid verbs: {', '.join(VERBS)}", file=sys.stderr)
+    return 2
+
+
+def _run(verb: str, rest: list[str]) -> int:
     module_name, func_name = VERBS[verb][0].split(":")
     func = getattr(importlib.import_module(module_name), func_name)
     return int(func(rest) or 0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `archery VERB ...`; returns the verb's exit status.
+
+    A closed stdout (`archery read KEY | head -1`) ends the verb quietly, as Unix tools do;
+    Ctrl-C outside a verb's own handling ends it with status 130 and no traceback.
+    """
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    if args[0] in ("-V", "--version"):
+        print(f"archery {_version()}")
+        return 0
+    verb, rest = args[0], args[1:]
+    if verb == "help":
+        if not rest:
+            print(_usage())
+            return 0
+        if rest[0] not in VERBS:
+            return _unknown(rest[0])
+        verb, rest = rest[0], ["--help"]
+    if verb not in VERBS:
+        return _unknown(verb)
+    try:
+        status = _run(verb, rest)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:
+        # The reader went away (see the Python docs' "Note on SIGPIPE"): send the rest of the
+        # output nowhere so the interpreter's final flush does not fail too, and end quietly.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 1
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == "__main__":

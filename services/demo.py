@@ -21,12 +21,15 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from protocol.errors import ArcheryError
+from protocol.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from protocol.errors import ArcheryError, ConfigError
 from protocol.messages import Rollout
+from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.router import free_tcp_endpoint
 from services.launcher import SERVICES, Launcher, LaunchError
 from services.learner.learn import SessionLost, follow, result_line
+from services.learner.registry import ALGORITHMS
 
 __all__ = ["main"]
 
@@ -79,9 +82,9 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
     with console.status(f"starting a router on {endpoint} and {', '.join(SERVICES)} …"):
         try:
             took = launcher.up(args.timeout)
-        except LaunchError as exc:
+        except (LaunchError, ConfigError) as exc:
             console.print(f"[red]archery demo: {exc}")
-            return 1
+            return 2 if isinstance(exc, ConfigError) else 1
     console.print(f"mesh up in {took:.1f} s: router on {endpoint}, {', '.join(SERVICES)}")
     try:
         with Node(None, launcher.net) as node:
@@ -135,6 +138,13 @@ def _summary(
     return 0 if final.get("state") == "finished" and hit_at is not None and not unclean else 1
 
 
+def _positive(text: str) -> int:
+    value = count(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; exit status 0 when the ring was hit and everything stopped cleanly."""
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -142,14 +152,29 @@ def main(argv: list[str] | None = None) -> int:
     # stop, zenoh sometimes reports internal "Undefined face context" errors that mean nothing
     # to a user; failures still surface as exceptions. The services keep their error logs.
     zenoh.init_log_from_env_or("off")
-    parser = argparse.ArgumentParser(prog="python -m services.demo", description=__doc__)
-    parser.add_argument("--algo", default="archer", help="the learner (default archer)")
-    parser.add_argument("--rollouts", type=int, default=30, help="budget of rollouts")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the learner and the shots")
+    parser = ArgumentParser(prog="archery demo", description=__doc__)
+    parser.add_argument(
+        "--algo", default="archer", choices=ALGORITHMS, help="the learner (default archer)"
+    )
+    parser.add_argument("--rollouts", type=_positive, default=30, help="budget of rollouts")
+    parser.add_argument("--seed", type=count, default=0, help="seed of the learner and the shots")
     parser.add_argument("--runs", default="runs", help="where the session directory goes")
-    parser.add_argument("--endpoint", help="the router's endpoint (default: a free local port)")
-    parser.add_argument("--timeout", type=float, default=120.0, help="start-up limit (s)")
+    parser.add_argument(
+        "--listen",
+        "--endpoint",
+        dest="endpoint",
+        metavar="ENDPOINT",
+        help="where the demo's router listens, tcp/HOST:PORT (default: a free local port)",
+    )
+    parser.add_argument("--timeout", type=seconds, default=120.0, help="start-up limit (s)")
     args = parser.parse_args(argv)
+    try:
+        if args.endpoint:
+            NetConfig(connect=(), listen=(args.endpoint,), mode="router")
+        check_writable_dir(Path(args.runs), "--runs", create=True)
+    except ConfigError as exc:
+        print(f"archery demo: {exc}", file=sys.stderr)
+        return 2
     console = Console()
     console.print(
         "[bold]archery demo[/]: a simulated iCub learns archery (Kormushev et al. 2010) "

@@ -25,6 +25,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocol.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
 from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
@@ -290,14 +291,14 @@ class Launcher:
 
 def build_parser() -> argparse.ArgumentParser:
     """The flags of `archery up`."""
-    parser = argparse.ArgumentParser(prog="archery up", description=__doc__.split("\n")[0])
+    parser = ArgumentParser(prog="archery up", description=__doc__.split("\n")[0])
     add_network_args(parser)
     parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
     parser.add_argument("--runs", default="runs", help="the learner's session directory")
-    parser.add_argument("--seed", type=int, default=0, help="the robot's shot-noise seed")
+    parser.add_argument("--seed", type=count, default=0, help="the robot's shot-noise seed")
     parser.add_argument(
         "--rtf",
-        type=float,
+        type=nonnegative,
         default=0.0,
         help="the robot's real-time factor (0: as fast as possible)",
     )
@@ -307,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="start no router: the services connect to the --connect endpoint",
     )
     parser.add_argument(
-        "--timeout", type=float, default=90.0, help="wait this long for all services (s)"
+        "--timeout", type=seconds, default=90.0, help="wait this long for all services (s)"
     )
     return parser
 
@@ -320,6 +321,8 @@ def main(argv: list[str] | None = None) -> int:
             endpoint = (args.connect or [DEFAULT_ROUTER])[0]
         else:
             endpoint = (args.listen or [DEFAULT_ROUTER])[0]
+        check_writable_dir(Path(args.logs), "--logs", create=True)
+        check_writable_dir(Path(args.runs), "--runs", create=True)
         launcher = Launcher(
             endpoint,
             NetConfig(connect=(endpoint,), robot=args.robot).robot,

@@ -17,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from protocol.cliargs import ArgumentParser
 from protocol.errors import ArcheryError
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
@@ -40,6 +41,8 @@ def read_rgb(path: str | Path) -> np.ndarray:
     Raises:
         ImageError: missing, not an image, or of an unusable size.
     """
+    if not Path(path).is_file():  # before OpenCV, which would warn on stderr too
+        raise ImageError(f"cannot read an image from {str(path)!r}: no such file")
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ImageError(f"cannot read an image from {str(path)!r} (missing, or not an image)")
@@ -84,7 +87,7 @@ def settings_from_args(args: argparse.Namespace) -> DetectorSettings:
 
 def calibrate_main(argv: list[str] | None = None) -> int:
     """`archery calibrate IMAGE --pixels PIXELS.json --out MODEL.json`; prints a JSON summary."""
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="archery calibrate",
         description="fit the target (and arrow tip) colour model from pixels marked on an image",
     )
@@ -120,7 +123,7 @@ def calibrate_main(argv: list[str] | None = None) -> int:
 
 def detect_main(argv: list[str] | None = None) -> int:
     """`archery detect IMAGE --model MODEL.json [--overlay OUT.png]`: one JSON object."""
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="archery detect",
         description="find the target centre and the arrow tip in an image (paper Section III-C)",
     )

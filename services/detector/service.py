@@ -36,6 +36,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from protocol.cliargs import check_writable_dir
 from protocol.errors import ArcheryError, BadRequest, ConfigError, DecodeError, RpcError
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
@@ -294,6 +295,11 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
+    if args.model:
+        model = Path(args.model)
+        if model.exists() and not model.is_file():
+            raise ConfigError(f"--model {args.model!r} is not a file")
+        check_writable_dir(model.parent, f"--model {args.model!r}: folder", create=False)
     if args.model and Path(args.model).exists():
         try:
             ColourModel.load(args.model)

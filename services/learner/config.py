@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.cliargs import check_writable_dir
 from protocol.errors import BadRequest, ConfigError
 from protocol.netflags import NetConfig
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
@@ -275,6 +276,7 @@ def config_from_args(args: argparse.Namespace, net: NetConfig) -> LearnerService
     Raises:
         ConfigError: an invalid value; the message names the flag and its valid range.
     """
+    check_writable_dir(Path(args.runs), "--runs", create=True)
     return LearnerServiceConfig(
         net=net,
         runs=Path(args.runs),

@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
+from protocol.errors import ConfigError
 from services.learner.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
 from services.learner.registry import ALGORITHMS, make_learner
 from sim.ballistic import BallisticError, BallisticWorld, Scenario
@@ -309,7 +311,7 @@ def _floats(text: str, count: int, flag: str) -> tuple[float, ...]:
 def build_parser() -> argparse.ArgumentParser:
     """The command-line options of `archery experiment`."""
     defaults = Scenario()
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="archery experiment",
         description="Run the paper's simulation experiment: learners against the ballistic world.",
     )
@@ -411,14 +413,16 @@ def _print_table(summary: dict[str, Any], wall_time: float) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run `archery experiment [options]`; returns 0 on success, 2 on bad input."""
     args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    out = Path(args.out)
     try:
         config = _config_from_args(args)
+        check_new_file(out, "--out")
+        check_writable_dir(out, "--out", create=True)  # before the work, not after it
         start = time.perf_counter()
         runs = run_experiment(config, progress=not args.no_progress)
-        out = Path(args.out)
         summary = write_outputs(out, config, runs, figures=not args.no_figures)
         wall_time = time.perf_counter() - start
-    except (LearnerError, BallisticError) as exc:
+    except (LearnerError, BallisticError, ConfigError) as exc:
         print(f"archery experiment: error: {exc}", file=sys.stderr)
         return 2
     _print_table(summary, wall_time)

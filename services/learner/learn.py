@@ -11,16 +11,20 @@ Ctrl-C (the session is stopped after its current rollout and can be resumed).
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
+import math
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
+from protocol.cliargs import ArgumentParser, loads_finite, seconds
 from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Rollout
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node
+from services.learner.config import SessionConfig
 from services.learner.registry import ALGORITHMS
 from services.learner.session import FINAL_STATES
 
@@ -40,26 +44,46 @@ def _vector3(text: str, flag: str) -> list[float]:
         values = [float(v) for v in text.split(",")]
     except ValueError:
         values = []
-    if len(values) != 3:
-        raise ConfigError(f"{flag} must be three numbers X,Y,Z (m), got {text!r}")
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{flag} must be three finite numbers X,Y,Z (m), got {text!r}")
     return values
 
 
-def _option(text: str) -> tuple[str, Any]:
+def option_names(algo: str) -> tuple[str, ...]:
+    """The options the learner `algo` accepts (its constructor's settings)."""
+    parameters = inspect.signature(ALGORITHMS[algo].cls.__init__).parameters
+    fixed = ("self", "theta0", "rng", "bounds")
+    return tuple(name for name in parameters if name not in fixed)
+
+
+def _option(text: str, algo: str) -> tuple[str, Any]:
     name, sep, value = text.partition("=")
     if not sep or not name:
         raise ConfigError(f"--option must be NAME=VALUE (VALUE in JSON), got {text!r}")
-    try:
-        return name, json.loads(value)
-    except json.JSONDecodeError:
+    valid = option_names(algo)
+    if name not in valid:
         raise ConfigError(
-            f"--option {name}: {value!r} is not JSON (e.g. 0.003 or [1,2,3])"
-        ) from None
+            f"--option {name!r}: {algo} has no such option; its options: {', '.join(valid)}"
+        )
+    try:
+        return name, loads_finite(value, f"--option {name}:")
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (VALUE is JSON, e.g. 0.003 or [1,2,3])") from None
+
+
+def _hit_radius(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of metres") from None
+    if not (math.isfinite(value) and 0.001 <= value <= 0.25):
+        raise argparse.ArgumentTypeError(f"{text!r} is not in [0.001, 0.25] m")
+    return value
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The flags of `archery learn`."""
-    parser = argparse.ArgumentParser(prog="archery learn", description=__doc__.split("\n")[0])
+    parser = ArgumentParser(prog="archery learn", description=__doc__.split("\n")[0])
     add_network_args(parser)
     parser.add_argument("--algo", default="archer", help=f"one of {', '.join(ALGORITHMS)}")
     parser.add_argument("--rollouts", type=int, default=30, help="budget of done rollouts")
@@ -70,14 +94,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="use the whole budget instead of ending at the first hit",
     )
     parser.add_argument("--theta0", metavar="X,Y,Z", help="start θ (m)")
-    parser.add_argument("--hit-radius", type=float, help="hit radius (m, default 0.05)")
+    parser.add_argument(
+        "--hit-radius", type=_hit_radius, help="hit radius (m, in [0.001, 0.25], default 0.05)"
+    )
     parser.add_argument(
         "--option", action="append", default=[], metavar="NAME=VALUE", help="learner option"
     )
     parser.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
     parser.add_argument(
         "--wait",
-        type=float,
+        type=seconds,
         default=60.0,
         help="wait this long for the five services to be alive (s)",
     )
@@ -87,6 +113,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def start_request(args: argparse.Namespace) -> dict[str, Any]:
     """The `start` request for parsed flags."""
+    if args.algo not in ALGORITHMS:
+        raise ConfigError(
+            f"--algo {args.algo!r} is not a learner; valid algorithms: {', '.join(ALGORITHMS)}"
+        )
     if args.resume:
         return {"resume": args.resume}
     scenario: dict[str, Any] = {}
@@ -99,7 +129,7 @@ def start_request(args: argparse.Namespace) -> dict[str, Any]:
         "rollouts": args.rollouts,
         "seed": args.seed,
         "until_hit": not args.no_until_hit,
-        "options": dict(_option(text) for text in args.option),
+        "options": dict(_option(text, args.algo) for text in args.option),
     }
     if scenario:
         request["scenario"] = scenario
@@ -188,11 +218,18 @@ def main(argv: list[str] | None = None) -> int:
     try:
         net = NetConfig.from_args(args)
         request = start_request(args)
-    except ConfigError as exc:
+        if "resume" not in request:
+            SessionConfig.from_request(request)  # the learner's own checks, before any waiting
+    except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2
     show = (lambda m: None) if args.quiet else _progress
-    with Node(None, net) as node:
+    try:
+        node = Node(None, net)
+    except ArcheryError as exc:
+        print(f"archery learn: {exc}", file=sys.stderr)
+        return 1
+    with node:
         key = node.keys.learner_rpc()
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         try:

@@ -136,6 +136,11 @@ def check_command(
                 "duplicate_joint", f"{where}: joint {repeated[0]!r} is named more than once"
             )
         index = [lookup[n] for n in names]
+    odd = [v for v in values if isinstance(v, bool | np.bool_ | str | bytes)]
+    if odd:  # numpy would read true as 1 rad and "0.1" as 0.1 rad
+        raise CommandRejected(
+            "bad_value", f"{where} position must be numbers (rad), not {odd[0]!r}: got {values!r}"
+        )
     try:
         wanted = np.array(values, dtype=float)
     except (TypeError, ValueError):

@@ -1,0 +1,297 @@
+"""Bad input never shows a traceback: every verb prints one line naming the bad value and exits
+2 (bad input) or 1 (a runtime failure, e.g. no router); a closed stdout ends a verb quietly."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from protocol.cliargs import clean_zenoh_error, loads_finite
+from protocol.errors import ConfigError
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.router import free_tcp_endpoint
+from protocol.selfcheck import ECHO_SERVICE, run_echo
+from services.cli import VERBS
+from tests.conftest import archery, serving
+
+# (argv, exit status, text the one stderr line must contain). In argv, {net} stands for the
+# flags of a live router and a robot of the test's own, {dead} for an endpoint where nothing
+# listens, {robot} for the robot name and {tmp} for a fresh folder.
+CASES: list[tuple[str, int, str]] = [
+    # read
+    ("read {robot}/torso/state:o --count 1 --timeout -1 {net}", 2, "'-1'"),
+    ("read {robot}/torso/state:o --count 1 --timeout nan {net}", 2, "'nan'"),
+    ("read {robot}/torso/state:o --count -1 {net}", 2, "'-1'"),
+    ("read {robot}/torso/state:o --count two {net}", 2, "'two'"),
+    ("read {robot}/torso/rpc:i {net}", 2, "not a stream"),
+    ("read {robot}/legs/state:o {net}", 2, "'{robot}/legs/state:o'"),
+    ("read {robot}/torso/state:o --count 1 --timeout 0.2 {net}", 1, "within 0.2 s"),
+    ("read {robot}/torso/state:o --connect {dead}", 1, "{dead}"),
+    # rpc
+    (
+        'rpc {robot}/cartesianController/archery/rpc:i posture {{"theta":[NaN,0.03,-0.03]}}',
+        2,
+        "NaN",
+    ),
+    (
+        'rpc {robot}/cartesianController/archery/rpc:i posture {{"theta":[Infinity,0,0]}}',
+        2,
+        "Infinity",
+    ),
+    (
+        'rpc {robot}/cartesianController/archery/rpc:i posture {{"theta":[-Infinity,0,0]}}',
+        2,
+        "-Infinity",
+    ),
+    ('rpc {robot}/torso/rpc:i positionMove {{"position":[NaN,0,0,0,0,0,0]}}', 2, "NaN"),
+    ("rpc {robot}/torso/rpc:i echo {{nope", 2, "{{nope"),
+    ("rpc {robot}/torso/rpc:i echo [1]", 2, "[1]"),
+    ("rpc {robot}/torso/state:o echo", 2, "not an rpc:i port"),
+    ("rpc {robot}/torso/rpc:i echo --timeout -1", 2, "'-1'"),
+    ("rpc {robot}/torso/rpc:i echo --timeout nan", 2, "'nan'"),
+    ("rpc {robot}/learner/rpc:i status --timeout 0.5 {net}", 1, "{robot}/learner/rpc:i"),
+    # write
+    ('write {robot}/torso/command:i {{"part":"torso","position":[true,0,0]}} {net}', 2, "bool"),
+    ('write {robot}/torso/command:i {{"part":"torso","position":[NaN,0,0]}} {net}', 2, "NaN"),
+    ('write {robot}/torso/command:i {{"part":"torso","position":"up"}} {net}', 2, "position"),
+    ("write {robot}/torso/command:i {{not-json {net}", 2, "{{not-json"),
+    (
+        'write {robot}/torso/command:i {{"part":"torso","position":[0,0,0]}} {net} --timeout 0.3',
+        1,
+        "nobody subscribes to {robot}/torso/command:i",
+    ),
+    # view
+    ("view {robot}/cam/target:o --out {tmp}/frame.txt {net}", 2, "'.txt'"),
+    ("view {robot}/cam/target:o --out {tmp}/no/dir/frame.png {net}", 2, "{tmp}/no/dir"),
+    ("view {robot}/torso/state:o --out {tmp}/frame.png {net}", 2, "does not carry images"),
+    # ports
+    ("ports --timeout -1", 2, "'-1'"),
+    ("ports --timeout nan", 2, "'nan'"),
+    ("ports --wait -3", 2, "'-3'"),
+    ("ports --connect 127.0.0.1:7447", 2, "'127.0.0.1:7447'"),
+    ("ports {net} --robot 9lives", 2, "'9lives'"),
+    ("ports --connect {dead}", 1, "{dead}"),
+    ("ports {net} --timeout 0.5", 0, "no service alive on robot '{robot}'"),
+    # selfcheck
+    ("selfcheck --timeout -1", 2, "'-1'"),
+    ("selfcheck --timeout nan", 2, "'nan'"),
+    ("selfcheck --connect {dead}", 1, "{dead}"),
+    # learn
+    ("learn --theta0 nan,0,0 --connect {dead}", 2, "'nan,0,0'"),
+    ("learn --theta0 1,2 --connect {dead}", 2, "'1,2'"),
+    ("learn --hit-radius nan --connect {dead}", 2, "'nan'"),
+    ("learn --hit-radius 3 --connect {dead}", 2, "'3'"),
+    ("learn --option nosuch=1 --connect {dead}", 2, "trust_radius"),
+    ("learn --algo cma --option nosuch=1 --connect {dead}", 2, "sigma0, popsize"),
+    ("learn --option explore_std=NaN --connect {dead}", 2, "NaN"),
+    ("learn --option explore_std --connect {dead}", 2, "'explore_std'"),
+    ("learn --algo nosuch --connect {dead}", 2, "'nosuch'"),
+    ("learn --rollouts 0 --connect {dead}", 2, "got 0"),
+    ("learn --seed -1 --connect {dead}", 2, "got -1"),
+    ("learn --wait -1", 2, "'-1'"),
+    ("learn --wait nan", 2, "'nan'"),
+    ("learn --mode client --connect {dead}", 1, "{dead}"),
+    ("learn --wait 0.3 {net}", 1, "not alive after 0.3 s"),
+    # up
+    ("up --timeout -1", 2, "'-1'"),
+    ("up --timeout nan", 2, "'nan'"),
+    ("up --rtf nan", 2, "'nan'"),
+    ("up --logs /proc/nope/logs", 2, "'/proc/nope/logs'"),
+    # experiment
+    ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
+    ("experiment --out /proc/x", 2, "'/proc/x'"),
+    ("experiment --sessions 0", 2, "got 0"),
+    # services: refused at start
+    ("learner --runs /proc/nope {net}", 2, "'/proc/nope'"),
+    ("learner --rpc-timeout nan {net}", 2, "nan"),
+    ("detector --model /no/such/dir/m.json {net}", 2, "'/no/such/dir'"),
+    ("detector --model {tmp} {net}", 2, "'{tmp}'"),
+    ("robot --rtf nan {net}", 2, "nan"),
+    ("camera --source bogus {net}", 2, "'bogus'"),
+    ("controller --traj-time nan {net}", 2, "nan"),
+    ("calibrate {tmp}/missing.png --pixels {tmp}/p.json --out {tmp}/m.json", 2, "missing.png"),
+    ("router --listen localhost:1", 2, "'localhost:1'"),
+    ("detect {tmp}/missing.jpg --model {tmp}/m.json", 2, "'{tmp}/missing.jpg'"),
+    # the dispatcher and demo
+    ("fly", 2, "'fly'"),
+    ("help fly", 2, "'fly'"),
+    ("demo --rollouts 0", 2, "'0'"),
+    ("demo --algo nosuch", 2, "'nosuch'"),
+    ("demo --listen 127.0.0.1:1", 2, "'127.0.0.1:1'"),
+    ("demo --runs /proc/nope", 2, "'/proc/nope'"),
+]
+
+
+def _argv(template: str, values: dict[str, str]) -> list[str]:
+    # Split first, so JSON arguments stay one argument each.
+    return [part.format(**values) for part in template.split(" ") if part]
+
+
+@pytest.fixture(scope="module")
+def table(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
+    """Every case run once, in parallel: {template: (values, CompletedProcess)}."""
+    tmp = tmp_path_factory.mktemp("cli")
+    (tmp / "file").write_text("not a folder\n")
+    dead = free_tcp_endpoint()
+    runs: dict[str, object] = {}
+
+    def run(case: tuple[int, tuple[str, int, str]]) -> None:
+        i, (template, _, _) = case
+        robot = f"cli{os.getpid()}n{i}"
+        values = {
+            "net": f"--connect {router_endpoint} --robot {robot}",
+            "dead": dead,
+            "robot": robot,
+            "tmp": str(tmp),
+        }
+        argv = []
+        for part in _argv(template, values):
+            argv += part.split(" ") if part.startswith("--connect ") else [part]
+        runs[template] = (values, archery(*argv, timeout=120))
+
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        list(pool.map(run, enumerate(CASES)))
+    return runs
+
+
+@pytest.mark.parametrize(("template", "status", "text"), CASES, ids=[c[0][:60] for c in CASES])
+def test_bad_input_is_one_line(
+    table: dict[str, object], template: str, status: int, text: str
+) -> None:
+    values, out = table[template]  # type: ignore[misc]
+    assert "Traceback" not in out.stdout + out.stderr, out.stderr
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode == status, out.stderr
+    assert len(lines) == 1, out.stderr
+    assert text.format(**values) in lines[0], lines[0]
+    assert ".rs:" not in lines[0]
+
+
+def test_every_verb_is_in_the_table() -> None:
+    tried = {template.split(" ")[0] for template, _, _ in CASES}
+    untried = set(VERBS) - tried
+    assert not untried, untried
+
+
+def test_version_and_help_verb() -> None:
+    version = archery("--version")
+    assert version.returncode == 0 and version.stdout.startswith("archery ")
+    assert version.stdout.split()[1][0].isdigit()
+    helped = archery("help", "read")
+    assert helped.returncode == 0 and helped.stdout.startswith("usage: archery read")
+    assert "--count" in helped.stdout
+    usage = archery("help")
+    assert usage.returncode == 0 and "  demo " in usage.stdout
+
+
+def test_json_arguments_refuse_non_finite_constants() -> None:
+    assert loads_finite('{"a": [1.5, -2]}', "x") == {"a": [1.5, -2]}
+    for constant in ("NaN", "Infinity", "-Infinity"):
+        with pytest.raises(ConfigError, match=constant):
+            loads_finite(f'{{"theta": [{constant}, 0]}}', "the arguments")
+
+
+def test_zenoh_errors_lose_their_rust_locations() -> None:
+    raw = (
+        "Unable to connect to any of [Single(tcp/127.0.0.1:1)]!  at /root/.cargo/git/checkouts/"
+        "zenoh-9c599d5ef3e0480e/cc83980/zenoh/src/net/runtime/orchestrator.rs:447."
+    )
+    assert clean_zenoh_error(raw) == "Unable to connect to any of [Single(tcp/127.0.0.1:1)]"
+
+
+@pytest.fixture
+def echo(net: NetConfig) -> Iterator[NetConfig]:
+    """The sample service (torso state at 50 Hz, rpc:i echo) on a thread."""
+    with serving(run_echo, net), Node(None, net) as node:
+        node.wait_alive([ECHO_SERVICE], 30)
+        yield net
+
+
+def _popen(*args: str) -> subprocess.Popen[bytes]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+
+
+def test_a_closed_stdout_ends_quietly(echo: NetConfig) -> None:
+    flags = ["--connect", echo.connect[0], "--robot", echo.robot]
+    # `archery read KEY | head -1`: the reader goes away after one line.
+    reader = _popen("read", f"{echo.robot}/torso/state:o", *flags)
+    assert reader.stdout is not None and reader.stderr is not None
+    first = json.loads(reader.stdout.readline())
+    assert first["type"] == "JointState"
+    reader.stdout.close()
+    assert reader.wait(30) in (0, 1)
+    assert reader.stderr.read() == b""
+    # `archery rpc ... | head -c 0`: the reader is gone before the reply is printed.
+    caller = _popen("rpc", f"{echo.robot}/torso/rpc:i", "echo", '{"a": 1}', *flags)
+    assert caller.stdout is not None and caller.stderr is not None
+    caller.stdout.close()
+    assert caller.wait(30) in (0, 1)
+    assert caller.stderr.read() == b""
+
+
+def test_write_without_counters_says_the_verdict_is_unknown(echo: NetConfig) -> None:
+    flags = ["--connect", echo.connect[0], "--robot", echo.robot]
+    command = json.dumps({"part": "torso", "position": [0.1, 0.0, -0.1]})
+    out = archery("write", f"{echo.robot}/torso/command:i", command, *flags)
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout)["type"] == "JointCommand"
+    assert out.stderr.strip().splitlines() == [
+        f"archery write: delivered; whether it was accepted is unknown: {echo.robot}/torso/rpc:i "
+        "has no command counters (unknown_verb)"
+    ]
+
+
+def test_ports_waits_for_a_service_by_liveliness(net: NetConfig) -> None:
+    flags = ["--connect", net.connect[0], "--robot", net.robot]
+    waiting = _popen("ports", *flags, "--wait", "60")
+    with serving(run_echo, net):
+        stdout, stderr = waiting.communicate(timeout=90)
+    assert waiting.returncode == 0, stderr
+    assert b"echo  (pid" in stdout and b"Traceback" not in stderr
+
+
+def test_a_refused_joint_command_fails_with_the_robots_reason(
+    net: NetConfig, tmp_path: Path
+) -> None:
+    from services.robot.config import RobotConfig
+    from services.robot.service import SERVICE, run
+    from sim.scene import SceneConfig
+    from sim.world import WorldConfig
+
+    config = RobotConfig(net=net, world=WorldConfig(scene=SceneConfig(meshes=False)))
+    flags = ["--connect", net.connect[0], "--robot", net.robot]
+    key = f"{net.robot}/torso/command:i"
+    with serving(run, config), Node(None, net) as node:
+        node.wait_alive([SERVICE], 60)
+        good = archery("write", key, '{"part": "torso", "position": [0.1, 0, 0]}', *flags)
+        assert good.returncode == 0 and good.stderr == "", good.stderr
+        for command, reason in (
+            ('{"part": "torso", "position": [9, 0, 0]}', "torso_yaw = 9 rad is outside"),
+            ('{"part": "left_arm", "position": [0, 0, 0]}', "part 'left_arm'"),
+            ('{"part": "torso", "position": [0, 0]}', "got 2"),
+        ):
+            out = archery("write", key, command, *flags)
+            lines = out.stderr.strip().splitlines()
+            assert out.returncode == 1, out.stderr
+            assert len(lines) == 1 and reason in lines[0], out.stderr
+            assert lines[0].startswith(f"archery write: refused by {net.robot}/torso/rpc:i: ")
+        # positionMove: true is not a joint angle (numpy would read it as 1 rad).
+        moved = archery(
+            "rpc", f"{net.robot}/torso/rpc:i", "positionMove", '{"position": [true, 0, 0]}', *flags
+        )
+        assert moved.returncode == 1 and "not True" in moved.stderr, moved.stderr
+        counters = node.call(f"{net.robot}/torso/rpc:i", "counters")
+    assert counters["accepted"] == 1 and counters["rejected"] == 4
