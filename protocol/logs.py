@@ -124,7 +124,7 @@ def configure(spec: str = DEFAULT_SPEC) -> None:
 
 
 def add_log_args(parser: argparse.ArgumentParser) -> None:
-    """Add `--log-level SPEC` (and `-v`, short for `--log-level debug`)."""
+    """Add `--log-level SPEC`."""
     parser.add_argument(
         "--log-level",
         default=DEFAULT_SPEC,
@@ -132,7 +132,4 @@ def add_log_args(parser: argparse.ArgumentParser) -> None:
         help="log verbosity, RUST_LOG-style: LEVEL[,TARGET=LEVEL...] with levels "
         f"{', '.join(LEVELS)}; e.g. debug or info,zenoh=debug (default {DEFAULT_SPEC}; "
         "logs go to stderr)",
-    )
-    parser.add_argument(
-        "-v", "--verbose", action="store_true", help="debug logging (--log-level debug)"
     )

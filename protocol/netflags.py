@@ -23,6 +23,7 @@ import zenoh
 from protocol.cliargs import clean_zenoh_error
 from protocol.errors import ConfigError
 from protocol.keys import DEFAULT_ROBOT, validate_robot
+from protocol.logs import add_log_args
 
 __all__ = ["DEFAULT_ROUTER", "MODES", "NetConfig", "add_network_args", "open_session"]
 
@@ -94,7 +95,9 @@ class NetConfig:
 
 
 def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "client") -> None:
-    """Add --connect (repeatable), --listen (repeatable), --mode and --robot to `parser`."""
+    """Add --connect (repeatable), --listen (repeatable), --mode, --robot and the logging flags
+    (--log-level, -v: applied by the `archery` entry point, see `protocol.logs`)."""
+    add_log_args(parser)
     group = parser.add_argument_group("network")
     group.add_argument(
         "--connect",
@@ -117,7 +120,6 @@ def open_session(net: NetConfig) -> zenoh.Session:
     Raises:
         ConfigError: the session cannot open (in client mode: no router reachable).
     """
-    zenoh.init_log_from_env_or("error")
     try:
         return zenoh.open(net.zenoh_config())
     except zenoh.ZError as exc:

@@ -70,7 +70,6 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="archery router", description=__doc__)
     add_network_args(parser, default_mode="router")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     if not args.listen:
         args.listen = [DEFAULT_ROUTER]
     try:

@@ -16,7 +16,7 @@ from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import shutdown_on_signals
 
-__all__ = ["config_number", "configure_logging", "service_main"]
+__all__ = ["config_number", "service_main"]
 
 C = TypeVar("C")
 
@@ -29,15 +29,6 @@ def config_number(name: str, value: object, low: float, high: float, unit: str =
     if not low <= value <= high:
         raise ConfigError(f"{name} must be in [{low:g}, {high:g}]{suffix}, got {value!r}")
     return float(value)
-
-
-def configure_logging(verbose: bool = False) -> None:
-    """Log to stderr with time and logger name (services never `print`)."""
-    logging.basicConfig(
-        level=logging.DEBUG if verbose else logging.INFO,
-        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
-        stream=sys.stderr,
-    )
 
 
 def service_main(
@@ -61,10 +52,8 @@ def service_main(
     """
     parser = ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser)
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     add_arguments(parser)
     args = parser.parse_args(argv)
-    configure_logging(args.verbose)
     log = logging.getLogger(f"archery.{prog}")
     try:
         config = make_config(args, NetConfig.from_args(args))

@@ -7,6 +7,10 @@ import importlib.metadata
 import os
 import sys
 
+from protocol.cliargs import ArgumentParser
+from protocol.errors import ConfigError
+from protocol.logs import DEFAULT_SPEC, add_log_args, configure
+
 __all__ = ["VERBS", "main"]
 
 # verb -> ("module:function", one-line help). Each function takes argv (list[str]) and returns
@@ -67,6 +71,25 @@ def _unknown(verb: str) -> int:
     return 2
 
 
+# The demo's own Zenoh sessions log nothing unless asked: while the services stop, Zenoh
+# sometimes reports internal "Undefined face context" errors that mean nothing to a user;
+# failures still surface as exceptions, and the services keep their logs.
+_DEFAULT_SPECS = {"demo": f"{DEFAULT_SPEC},zenoh=off"}
+
+
+def _configure_logging(verb: str, rest: list[str]) -> None:
+    """Apply the verb's `--log-level` before it runs: every log line on stderr.
+
+    Raises:
+        ConfigError: a malformed spec.
+    """
+    parser = ArgumentParser(prog=f"archery {verb}", add_help=False, allow_abbrev=False)
+    add_log_args(parser)
+    parser.set_defaults(log_level=_DEFAULT_SPECS.get(verb, DEFAULT_SPEC))
+    known, _ = parser.parse_known_args(rest)
+    configure(known.log_level)
+
+
 def _run(verb: str, rest: list[str]) -> int:
     module_name, func_name = VERBS[verb][0].split(":")
     func = getattr(importlib.import_module(module_name), func_name)
@@ -96,6 +119,11 @@ def main(argv: list[str] | None = None) -> int:
         verb, rest = rest[0], ["--help"]
     if verb not in VERBS:
         return _unknown(verb)
+    try:
+        _configure_logging(verb, rest)
+    except ConfigError as exc:
+        print(f"archery {verb}: {exc}", file=sys.stderr)
+        return 2
     try:
         status = _run(verb, rest)
         sys.stdout.flush()

@@ -16,7 +16,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import zenoh
 from rich.console import Console
 from rich.live import Live
 from rich.table import Table
@@ -148,10 +147,6 @@ def _positive(text: str) -> int:
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; exit status 0 when the ring was hit and everything stopped cleanly."""
     os.environ.setdefault("MUJOCO_GL", "egl")
-    # This process's own Zenoh sessions log nothing (RUST_LOG overrides): while the services
-    # stop, zenoh sometimes reports internal "Undefined face context" errors that mean nothing
-    # to a user; failures still surface as exceptions. The services keep their error logs.
-    zenoh.init_log_from_env_or("off")
     parser = ArgumentParser(prog="archery demo", description=__doc__)
     parser.add_argument(
         "--algo", default="archer", choices=ALGORITHMS, help="the learner (default archer)"
