@@ -296,12 +296,14 @@ class RpcServer:
         text = str(exc)
         what, _, path = text.partition(" - at `")
         path = path.rstrip("`") or "$"
+        if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
+            inner, _, what = what.partition(" is ")
+            path = path + inner[1:]
+            what = f"Expected a finite number, got {what.split(';')[0]}"
         message = f"invalid argument of {verb.name} at `{path}`: {what}"
-        schema = verb.schema()["args"]
-        field = path[2:].split(".")[0].split("[")[0] if path.startswith("$.") else ""
-        allowed = field_text(schema, field) if field else None
+        allowed = field_text(verb.schema()["args"], path)
         if allowed is not None:
-            return f"{message}; {field} must be {allowed}"
+            return f"{message}; {allowed[0]} must be {allowed[1]}"
         names = ", ".join(verb.args.__struct_fields__) or "none"
         return f"{message}; arguments of {verb.name}: {names}"
 

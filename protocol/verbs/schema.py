@@ -91,12 +91,30 @@ def fields_of(schema: dict[str, Any], name: str | None = None) -> tuple[str, lis
     return ref or body.get("title", "?"), rows
 
 
-def field_text(schema: dict[str, Any], field: str) -> str | None:
-    """The type text of one top-level field of a struct's schema (None if it has no such)."""
+def _struct_of(prop: dict[str, Any]) -> str | None:
+    """The struct a property holds ($ref, possibly inside an anyOf with null), if any."""
+    if "$ref" in prop:
+        return str(prop["$ref"]).rsplit("/", 1)[-1]
+    refs = [x["$ref"] for x in prop.get("anyOf", ()) if "$ref" in x]
+    return str(refs[0]).rsplit("/", 1)[-1] if len(refs) == 1 else None
+
+
+def field_text(schema: dict[str, Any], path: str) -> tuple[str, str] | None:
+    """(dotted field name, type text) of the field a msgspec error path points into, e.g.
+    `$.scenario.hit_radius` -> ("scenario.hit_radius", "float in [0.001, 0.25] (m)"), walking
+    into nested structs; None when the path names no field."""
     defs = schema.get("$defs", {})
-    ref = schema.get("$ref", "").rsplit("/", 1)[-1]
-    prop = defs.get(ref, schema).get("properties", {}).get(field)
-    return None if prop is None else type_text(prop, defs)
+    body = defs.get(schema.get("$ref", "").rsplit("/", 1)[-1], schema)
+    names = [part.split("[")[0] for part in path.split(".")[1:]]
+    for i, name in enumerate(names):
+        prop = body.get("properties", {}).get(name)
+        if prop is None:
+            return None
+        nested = _struct_of(prop)
+        if nested is None or i == len(names) - 1:
+            return ".".join(names[: i + 1]), type_text(prop, defs)
+        body = defs.get(nested, {})
+    return None
 
 
 def _table(title: str, schema: dict[str, Any], indent: str) -> list[str]:
