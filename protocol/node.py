@@ -31,7 +31,15 @@ from protocol.netflags import NetConfig, open_session
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
-__all__ = ["Handler", "Node", "Publisher", "RpcServer", "Subscription", "shutdown_on_signals"]
+__all__ = [
+    "Handler",
+    "Node",
+    "Publisher",
+    "RpcServer",
+    "Subscription",
+    "bad_args_message",
+    "shutdown_on_signals",
+]
 
 M = TypeVar("M", bound=Message)
 A = TypeVar("A", bound=msgspec.Struct)
@@ -223,6 +231,23 @@ class Subscription(Generic[M]):
             self._sub = None
 
 
+def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
+    """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
+    text = str(exc)
+    what, _, path = text.partition(" - at `")
+    path = path.rstrip("`") or "$"
+    if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
+        inner, _, what = what.partition(" is ")
+        path = path + inner[1:]
+        what = f"Expected a finite number, got {what.split(';')[0]}"
+    message = f"invalid argument of {verb.name} at `{path}`: {what}"
+    allowed = field_text(verb.schema()["args"], path)
+    if allowed is not None:
+        return f"{message}; {allowed[0]} must be {allowed[1]}"
+    names = ", ".join(verb.args.__struct_fields__) or "none"
+    return f"{message}; arguments of {verb.name}: {names}"
+
+
 class RpcServer:
     """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
 
@@ -291,22 +316,6 @@ class RpcServer:
         except RecursionError:
             raise DecodeError("the request nests too deep to decode") from None
 
-    def _bad_args(self, verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
-        """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
-        text = str(exc)
-        what, _, path = text.partition(" - at `")
-        path = path.rstrip("`") or "$"
-        if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
-            inner, _, what = what.partition(" is ")
-            path = path + inner[1:]
-            what = f"Expected a finite number, got {what.split(';')[0]}"
-        message = f"invalid argument of {verb.name} at `{path}`: {what}"
-        allowed = field_text(verb.schema()["args"], path)
-        if allowed is not None:
-            return f"{message}; {allowed[0]} must be {allowed[1]}"
-        names = ", ".join(verb.args.__struct_fields__) or "none"
-        return f"{message}; arguments of {verb.name}: {names}"
-
     def _handle(self, query: zenoh.Query, seq: int) -> RpcReply:
         self.served += 1
         try:
@@ -324,7 +333,7 @@ class RpcServer:
                 try:
                     args = verb.args_decoder.decode(request.args)
                 except msgspec.ValidationError as exc:
-                    return self._error("bad_request", self._bad_args(verb, exc), seq)
+                    return self._error("bad_request", bad_args_message(verb, exc), seq)
                 except (msgspec.DecodeError, RecursionError):
                     message = f"{verb.name}: the args are not msgpack or nest too deep"
                     return self._error("bad_message", message, seq)

@@ -9,12 +9,15 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
+
 from protocol.codec import decode, from_jsonable, to_jsonable
-from protocol.errors import ArcheryError, DecodeError, KeyNameError, RpcTimeout
+from protocol.errors import ArcheryError, BadRequest, DecodeError, KeyNameError, RpcTimeout
 from protocol.keys import port_of
-from protocol.messages import MESSAGE_TYPES, Describe, Image, Message
+from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
-from protocol.node import Node
+from protocol.node import Node, bad_args_message
+from protocol.verbs import Verb, table_for_key
 
 __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
@@ -48,6 +51,9 @@ def ports_main(argv: list[str] | None = None) -> int:
     """`archery ports`: live services of the robot and their ports (like `yarp name list`)."""
     parser = _parser("ports", "list live services and their ports")
     parser.add_argument("--json", action="store_true", help="one JSON object per service")
+    parser.add_argument(
+        "--verbose", action="store_true", help="message fields and each rpc verb's schemas"
+    )
     args = parser.parse_args(argv)
 
     def body() -> int:
@@ -71,9 +77,21 @@ def ports_main(argv: list[str] | None = None) -> int:
                     verbs = info.verbs.get(port.key)
                     extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
                     print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+                    if args.verbose:
+                        print("\n".join(_verbose_lines(info, port)))
         return 0
 
     return _run("ports", body)
+
+
+def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
+    from protocol.interface import interface_lines, message_lines
+
+    if port.kind != "rpc":
+        return message_lines(port.message, "      ")
+    if port.key in info.interfaces:
+        return interface_lines(info.interfaces[port.key], "      ")
+    return ["      (untyped verbs)"] if port.message == "RpcRequest" else []
 
 
 def read_main(argv: list[str] | None = None) -> int:
@@ -150,12 +168,30 @@ def rpc_main(argv: list[str] | None = None) -> int:
             raise DecodeError(f"the arguments are not valid JSON: {exc}") from None
         if not isinstance(call_args, dict):
             raise DecodeError(f"the arguments must be a JSON object, got {args.args!r}")
+        verb = _typed_verb(args.key, args.verb)
         with Node(None, NetConfig.from_args(args)) as node:
-            result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
-        print(json.dumps(result))
+            if verb is None:  # not in the local tables: the service decides
+                result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
+            else:
+                try:
+                    typed = msgspec.convert(call_args, verb.args, strict=True)
+                except msgspec.ValidationError as exc:
+                    raise BadRequest(bad_args_message(verb, exc)) from None
+                reply = node.call_typed(args.key, verb, typed, timeout=args.timeout)
+                result = msgspec.to_builtins(reply, builtin_types=(bytes,))
+        print(json.dumps(to_jsonable(result)))
         return 0
 
     return _run("rpc", body)
+
+
+def _typed_verb(key: str, name: str) -> Verb[Any, Any] | None:
+    """The verb `name` of the local table for `key`, or None (untyped, or unknown here)."""
+    try:
+        table = table_for_key(key)
+    except KeyNameError:
+        return None
+    return table[name] if name in table.names() else None
 
 
 def view_main(argv: list[str] | None = None) -> int:

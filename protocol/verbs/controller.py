@@ -25,7 +25,7 @@ AxisAngle = Annotated[
     list[float], Meta(min_length=4, max_length=4, description="[ax, ay, az] unit axis, angle rad")
 ]
 TrajTime = Annotated[
-    float, Meta(ge=TRAJ_TIME_RANGE[0], le=TRAJ_TIME_RANGE[1], description="s (sim time)")
+    float, Meta(ge=TRAJ_TIME_RANGE[0], le=TRAJ_TIME_RANGE[1], description="s, sim time")
 ]
 Timeout = Annotated[float, Meta(ge=TIMEOUT_RANGE[0], le=TIMEOUT_RANGE[1], description="wall s")]
 
@@ -89,7 +89,7 @@ class SetTrajTimeArgs(Args, frozen=True):
 
 
 class TrajTimeReply(Reply, frozen=True):
-    time: Annotated[float, Meta(description="s (sim time)")]
+    time: Annotated[float, Meta(description="s, sim time")]
 
 
 class SetDofArgs(Args, frozen=True):
@@ -102,7 +102,7 @@ class DofReply(Reply, frozen=True):
 
 
 _TRAJ = (
-    Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "trajectory time of the next moves"),
+    Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"),
     Verb("getTrajTime", NoArgs, TrajTimeReply, "trajectory time of the next moves"),
 )
 
@@ -151,7 +151,7 @@ class ArcheryStatusReply(Reply, frozen=True):
     bow_hand: Annotated[list[float], Meta(description="m")]
     nominal_theta: Annotated[list[float], Meta(description="m")]
     use_torso: bool
-    traj_time: Annotated[float, Meta(description="s (sim time)")]
+    traj_time: Annotated[float, Meta(description="s, sim time")]
     joints: list[str]
 
 
