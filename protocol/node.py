@@ -57,7 +57,12 @@ class _WireRequest(Message, frozen=True, tag="RpcRequest"):
     args: msgspec.Raw = msgspec.Raw(b"\x80")  # an empty map
 
 
-_request_decoder = msgspec.msgpack.Decoder(_WireRequest)
+class _Untaken(msgspec.Struct, frozen=True, tag="-", tag_field="type"):
+    """Never sent: in a union with `_WireRequest` it makes msgspec require the `type` tag (a
+    lone tagged struct decodes without one)."""
+
+
+_request_decoder = msgspec.msgpack.Decoder(_WireRequest | _Untaken)
 _dict_decoder = msgspec.msgpack.Decoder(dict[str, Any])
 _NO_TYPE = "missing required field `type`"
 
@@ -303,7 +308,7 @@ class RpcServer:
                 f"request of {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes"
             )
         try:
-            return _request_decoder.decode(payload)
+            request = _request_decoder.decode(payload)
         except msgspec.ValidationError as exc:
             if _NO_TYPE in str(exc):
                 raise DecodeError(
@@ -315,6 +320,9 @@ class RpcServer:
             raise DecodeError(f"payload is not msgpack: {exc}") from None
         except RecursionError:
             raise DecodeError("the request nests too deep to decode") from None
+        if not isinstance(request, _WireRequest):
+            raise DecodeError("the request's `type` is not 'RpcRequest'")
+        return request
 
     def _handle(self, query: zenoh.Query, seq: int) -> RpcReply:
         self.served += 1
