@@ -246,7 +246,7 @@ def test_settings_tolerance_trajectory_time_and_torso(services: Callable[..., Me
     assert mesh.arm("left_arm", "getTrajTime") == {"time": 0.5}
     dof = mesh.arm("left_arm", "setDOF", {"torso": False})
     assert dof == {"torso": False, "joints": list(PARTS["left_arm"])}
-    with pytest.raises(RpcError, match="got `str`.*torso must be bool"):
+    with pytest.raises(RpcError, match=r"got `str`.*torso must be bool"):
         mesh.arm("left_arm", "setDOF", {"torso": "no"})
     torso = mesh.robot("torso", "getTargets")["position"]
     reply = mesh.arm("left_arm", "goToPose", {"xd": [-0.3, -0.12, 0.02]})

@@ -200,7 +200,7 @@ def test_position_move_validates_like_the_stream(robot: Callable[..., Client]) -
     with pytest.raises(RpcError, match="outside its limits") as info:
         client.part("torso", "positionMove", {"position": [0.0, 0.0, 3.0]})
     assert info.value.code == "bad_request"
-    with pytest.raises(RpcError, match="unknown field `pos`.*arguments of positionMove: position"):
+    with pytest.raises(RpcError, match=r"unknown field `pos`.*arguments of positionMove: position"):
         client.part("torso", "positionMove", {"pos": [0.0, 0.0, 0.1]})
     with pytest.raises(RpcError, match="missing required field `position`") as info:
         client.part("torso", "positionMove", {})
