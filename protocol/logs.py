@@ -4,9 +4,11 @@ Stdout carries data (the JSON lines of `learn`, `read`, `rpc`...), so every log 
 and Zenoh's, goes to stderr, without ANSI colour codes unless stderr is a terminal.
 
 The level is a `RUST_LOG`-style spec: a default level, then `TARGET=LEVEL` items separated by
-commas, e.g. `info`, `debug`, `info,zenoh=debug`, `warn,archery.robot=debug`. Targets starting
-with `zenoh` set the level of Zenoh's own (Rust) logs; any other target is a Python logger
-name (ours are `archery.*`). Zenoh logs at `warn` unless the spec names it or its default is
+commas, e.g. `info`, `debug`, `info,zenoh=debug`, `warn,archery.robot=debug`. The default
+level is that of our loggers (`archery.*`); other Python libraries log their warnings and
+errors only, unless a target names them (`info,OpenGL=debug`). Targets starting with `zenoh`
+set the level of Zenoh's own (Rust) logs; any other target is a Python logger name.
+Zenoh logs at `error` unless the spec names it or its default is
 `debug`, `trace` or `off`. A `RUST_LOG` variable in the environment, when set, still wins for
 Zenoh's logs, as Zenoh documents. Zenoh's logger can be set up once per process: the first
 `configure` decides.
@@ -38,7 +40,7 @@ LEVELS = {
     "off": logging.CRITICAL + 10,
 }
 DEFAULT_SPEC = "info"
-_ZENOH_DEFAULT = "warn"
+_ZENOH_DEFAULT = "error"
 _stdout_moved = False
 _zenoh_configured = False
 
@@ -104,17 +106,23 @@ def configure(spec: str = DEFAULT_SPEC) -> None:
     """
     default, targets = parse_spec(spec)
     logging.basicConfig(
-        level=LEVELS[default],
+        level=max(LEVELS[default], LEVELS["warn"]),
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
         stream=sys.stderr,
         force=True,
     )
+    logging.getLogger("archery").setLevel(LEVELS[default])
     for target, level in targets.items():
         if not target.startswith("zenoh"):
             logging.getLogger(target).setLevel(LEVELS[level])
     global _zenoh_configured
     zenoh_spec = _zenoh_spec(default, targets)
     if _zenoh_configured or (zenoh_spec.split(",")[0] == "off" and "RUST_LOG" not in os.environ):
+        return
+    try:
+        if sys.stdout.fileno() != 1:
+            return  # stdout is not this process's descriptor 1 (captured): leave it alone
+    except (AttributeError, ValueError, OSError):
         return
     if not sys.stderr.isatty():
         os.environ.setdefault("NO_COLOR", "1")

@@ -258,13 +258,15 @@ class PortInfo(msgspec.Struct, frozen=True):
 
 
 class Describe(Message, frozen=True):
-    """A service's self-description (like `yarp name list` plus port types)."""
+    """A service's self-description (like `yarp name list` plus port types); `interfaces` holds
+    each typed rpc:i key's verbs as {doc, args, reply} (JSON schemas, `protocol.verbs`)."""
 
     service: str
     ports: list[PortInfo]
     pid: int = 0
     host: str = ""
     verbs: dict[str, list[str]] = {}
+    interfaces: dict[str, dict[str, Any]] = {}  # rpc key -> verb -> {doc, args, reply} schemas
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

@@ -23,18 +23,48 @@ from typing import Any, Generic, TypeVar
 import msgspec
 import zenoh
 
-from protocol.codec import decode, encode
+from protocol.codec import MAX_PAYLOAD_BYTES, decode, encode
 from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout
 from protocol.keys import Keys
-from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest
+from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
 from protocol.netflags import NetConfig, open_session
+from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
+from protocol.verbs.schema import field_text
 
-__all__ = ["Handler", "Node", "Publisher", "RpcServer", "Subscription", "shutdown_on_signals"]
+__all__ = [
+    "Handler",
+    "Node",
+    "Publisher",
+    "RpcServer",
+    "Subscription",
+    "bad_args_message",
+    "shutdown_on_signals",
+]
 
 M = TypeVar("M", bound=Message)
+A = TypeVar("A", bound=msgspec.Struct)
+R = TypeVar("R", bound=msgspec.Struct)
 Handler = Callable[[dict[str, Any]], Any]
 log = logging.getLogger("archery.node")
 _STOP = object()
+
+
+class _WireRequest(Message, frozen=True, tag="RpcRequest"):
+    """An `RpcRequest` as the server reads it: the args stay msgpack until the verb is known,
+    then decode straight into the verb's argument type."""
+
+    verb: str
+    args: msgspec.Raw = msgspec.Raw(b"\x80")  # an empty map
+
+
+class _Untaken(msgspec.Struct, frozen=True, tag="-", tag_field="type"):
+    """Never sent: in a union with `_WireRequest` it makes msgspec require the `type` tag (a
+    lone tagged struct decodes without one)."""
+
+
+_request_decoder = msgspec.msgpack.Decoder(_WireRequest | _Untaken)
+_dict_decoder = msgspec.msgpack.Decoder(dict[str, Any])
+_NO_TYPE = "missing required field `type`"
 
 
 class Publisher(Generic[M]):
@@ -206,18 +236,46 @@ class Subscription(Generic[M]):
             self._sub = None
 
 
+def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
+    """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
+    text = str(exc)
+    what, _, path = text.partition(" - at `")
+    path = path.rstrip("`") or "$"
+    if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
+        inner, _, what = what.partition(" is ")
+        path = path + inner[1:]
+        what = f"Expected a finite number, got {what.split(';')[0]}"
+    message = f"invalid argument of {verb.name} at `{path}`: {what}"
+    allowed = field_text(verb.schema()["args"], path)
+    if allowed is not None:
+        return f"{message}; {allowed[0]} must be {allowed[1]}"
+    names = ", ".join(verb.args.__struct_fields__) or "none"
+    return f"{message}; arguments of {verb.name}: {names}"
+
+
 class RpcServer:
     """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
 
     Requests are handled one at a time, in order, on a worker thread (like a YARP RPC port), so
-    a slow handler never blocks Zenoh's threads. Handlers take the request's args dict and return
-    a msgpack-friendly result; an `ArcheryError` becomes an error reply with its code, any other
-    exception an "internal" error; the server keeps serving.
+    a slow handler never blocks Zenoh's threads. This is the one place a request is validated:
+    for a typed verb table (`ServedVerbs`) the request's args are decoded straight into the
+    verb's `Args` type, and anything that does not fit (wrong type, out of range, NaN, unknown
+    or missing field) is answered `bad_request` naming the verb, the field and what is allowed;
+    the handler gets the typed args and returns the verb's `Reply`. Untyped handlers (a plain
+    dict of verb -> callable, for tests and tools) get the args as a dict. An `ArcheryError`
+    becomes an error reply with its code, any other exception an "internal" error; a payload
+    that is not a request (not msgpack, no `type` tag, nested too deep) `bad_message`. The
+    server keeps serving.
     """
 
-    def __init__(self, session: zenoh.Session, key: str, handlers: dict[str, Handler]) -> None:
+    def __init__(
+        self, session: zenoh.Session, key: str, handlers: ServedVerbs | dict[str, Handler]
+    ) -> None:
         self.key = key
-        self.handlers = dict(handlers)
+        self.table = handlers.table if isinstance(handlers, ServedVerbs) else None
+        self.handlers: dict[str, BoundVerb[Any, Any] | Handler] = (
+            dict(handlers.bound) if isinstance(handlers, ServedVerbs) else dict(handlers)
+        )
         self.served = 0
         self.errors = 0
         self._seq = 0
@@ -239,37 +297,75 @@ class RpcServer:
             finally:
                 query.drop()
 
+    def _error(self, code: str, message: str, seq: int) -> RpcReply:
+        self.errors += 1
+        return RpcReply(ok=False, code=code, message=message, seq=seq, stamp=time.time())
+
+    def _request(self, query: zenoh.Query) -> _WireRequest:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            raise DecodeError(
+                f"request of {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes"
+            )
+        try:
+            request = _request_decoder.decode(payload)
+        except msgspec.ValidationError as exc:
+            if _NO_TYPE in str(exc):
+                raise DecodeError(
+                    "the request map has no `type` field: an RpcRequest is a msgpack map "
+                    "{type: 'RpcRequest', verb: str, args: map}"
+                ) from None
+            raise DecodeError(f"invalid RpcRequest: {exc}") from None
+        except msgspec.DecodeError as exc:
+            raise DecodeError(f"payload is not msgpack: {exc}") from None
+        except RecursionError:
+            raise DecodeError("the request nests too deep to decode") from None
+        if not isinstance(request, _WireRequest):
+            raise DecodeError("the request's `type` is not 'RpcRequest'")
+        return request
+
     def _handle(self, query: zenoh.Query, seq: int) -> RpcReply:
         self.served += 1
-        stamped = {"seq": seq, "stamp": time.time()}
         try:
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            request = decode(payload, RpcRequest)
+            request = self._request(query)
         except DecodeError as exc:
-            self.errors += 1
-            return RpcReply(
-                ok=False, code=exc.code, message=f"bad request on {self.key}: {exc}", **stamped
-            )
-        handler = self.handlers.get(request.verb)
-        if handler is None:
-            self.errors += 1
+            return self._error(exc.code, f"bad request on {self.key}: {exc}", seq)
+        entry = self.handlers.get(request.verb)
+        if entry is None:
             verbs = ", ".join(sorted(self.handlers))
-            return RpcReply(
-                ok=False,
-                code="unknown_verb",
-                message=f"{self.key} has no verb {request.verb!r}; verbs: {verbs}",
-                **stamped,
-            )
+            message = f"{self.key} has no verb {request.verb!r}; verbs: {verbs}"
+            return self._error("unknown_verb", message, seq)
         try:
-            result = handler(dict(request.args))
-            return RpcReply(ok=True, result=result, **stamped)
+            if isinstance(entry, BoundVerb):
+                verb = entry.verb
+                try:
+                    args = verb.args_decoder.decode(request.args)
+                except msgspec.ValidationError as exc:
+                    return self._error("bad_request", bad_args_message(verb, exc), seq)
+                except (msgspec.DecodeError, RecursionError):
+                    message = f"{verb.name}: the args are not msgpack or nest too deep"
+                    return self._error("bad_message", message, seq)
+                result = entry.handler(args)
+                if not isinstance(result, verb.reply):
+                    raise TypeError(
+                        f"the handler returned {type(result).__name__}, not {verb.reply.__name__}"
+                    )
+            else:
+                try:
+                    raw = _dict_decoder.decode(request.args)
+                    _check_finite(raw, "args")
+                except (msgspec.ValidationError, ValueError) as exc:
+                    return self._error("bad_request", f"{request.verb}: {exc}", seq)
+                except (msgspec.DecodeError, RecursionError):
+                    message = f"{request.verb}: the args are not msgpack or nest too deep"
+                    return self._error("bad_message", message, seq)
+                result = entry(raw)
+            return RpcReply(ok=True, result=result, seq=seq, stamp=time.time())
         except ArcheryError as exc:
-            self.errors += 1
-            return RpcReply(ok=False, code=exc.code, message=exc.message, **stamped)
+            return self._error(exc.code, exc.message, seq)
         except Exception as exc:
-            self.errors += 1
             log.exception("%s %s failed", self.key, request.verb)
-            return RpcReply(ok=False, code="internal", message=f"{request.verb} failed: {exc!r}")
+            return self._error("internal", f"{request.verb} failed: {exc!r}", seq)
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""
@@ -298,6 +394,7 @@ class Node:
         self.session = session if session is not None else open_session(net)
         self._ports: list[PortInfo] = []
         self._verbs: dict[str, list[str]] = {}
+        self._interfaces: dict[str, dict[str, Any]] = {}
         self._closables: list[Any] = []
         self._queriers: dict[tuple[str, float], zenoh.Querier] = {}
         self._rpc_seq = 0
@@ -363,11 +460,15 @@ class Node:
         self._register(key, "sub", message_type.__name__, sub)
         return sub
 
-    def serve(self, key: str, handlers: dict[str, Handler]) -> RpcServer:
-        """Serve an `rpc:i` key with a handler per verb."""
-        server = RpcServer(self.session, key, handlers)
+    def serve(self, key: str, verbs: ServedVerbs | dict[str, Handler]) -> RpcServer:
+        """Serve an `rpc:i` key: a verb table with its handlers bound (`VerbTable.bind`), whose
+        argument and reply schemas `describe` then carries; or, untyped, a dict of verb ->
+        handler taking the args dict."""
+        server = RpcServer(self.session, key, verbs)
         self._register(key, "rpc", "RpcRequest", server)
-        self._verbs[key] = sorted(handlers)
+        self._verbs[key] = sorted(server.handlers)
+        if isinstance(verbs, ServedVerbs):
+            self._interfaces[key] = verbs.table.schemas
         return server
 
     def _register(self, key: str, kind: str, message: str, closable: Any) -> None:
@@ -382,6 +483,7 @@ class Node:
             pid=os.getpid(),
             host=socket.gethostname(),
             verbs=dict(self._verbs),
+            interfaces=dict(self._interfaces),
         )
 
     def _on_describe(self, query: zenoh.Query) -> None:
@@ -408,8 +510,52 @@ class Node:
             raise RpcError(f"{key} {verb}: {reply.message}", code=reply.code or "rpc_error")
         return reply.result
 
+    def call_typed(
+        self, key: str, verb: Verb[A, R], args: A | None = None, *, timeout: float = 5.0
+    ) -> R:
+        """Call a typed `verb` on an `rpc:i` key with its `Args` struct and return its `Reply`.
+
+        Raises:
+            RpcError: the service replied with an error (its `code` is kept), or (code
+                `bad_reply`) a reply that does not match the verb's reply type.
+            RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
+        """
+        if args is not None and not isinstance(args, verb.args):
+            raise TypeError(f"{verb.name} takes {verb.args.__name__}, got {type(args).__name__}")
+        with self._rpc_lock:
+            self._rpc_seq += 1
+            seq = self._rpc_seq
+        request = RpcRequest(
+            verb=verb.name,
+            args=args if args is not None else {},  # type: ignore[arg-type]  # a Struct encodes as a map
+            seq=seq,
+            stamp=time.time(),
+        )
+        payload = self._query(key, encode(request), timeout)
+        try:
+            reply = verb.reply_decoder.decode(payload)
+        except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
+            plain = decode(payload, RpcReply)  # an error reply, or a result of the wrong shape
+            if not plain.ok:
+                raise RpcError(f"{key} {verb.name}: {plain.message}", code=plain.code) from None
+            raise RpcError(
+                f"{key} {verb.name} replied a result that is not a {verb.reply.__name__}: {exc}",
+                code="bad_reply",
+            ) from None
+        if not reply.ok:
+            raise RpcError(f"{key} {verb.name}: {reply.message}", code=reply.code or "rpc_error")
+        if reply.result is None:
+            raise RpcError(
+                f"{key} {verb.name} replied ok without a {verb.reply.__name__}", code="bad_reply"
+            )
+        return reply.result  # type: ignore[no-any-return]
+
     def request(self, key: str, payload: bytes, *, timeout: float = 5.0) -> RpcReply:
         """Send a raw request payload and return the decoded `RpcReply` (no error raising)."""
+        return decode(self._query(key, payload, timeout), RpcReply)
+
+    def _query(self, key: str, payload: bytes, timeout: float) -> bytes:
+        """Send a request payload and return the first reply's payload bytes."""
         with self._rpc_lock:
             querier = self._queriers.get((key, timeout))
             if querier is None:
@@ -420,7 +566,7 @@ class Node:
         start = time.monotonic()
         for reply in querier.get(payload=payload):
             if reply.ok is not None:
-                return decode(reply.ok.payload.to_bytes(), RpcReply)
+                return reply.ok.payload.to_bytes()  # type: ignore[no-any-return]
             log.debug("error reply on %s: %s", key, reply.err.payload.to_string())
         waited = time.monotonic() - start
         if waited < timeout * 0.5:

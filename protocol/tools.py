@@ -10,6 +10,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import msgspec
 import zenoh
 
 from protocol.cliargs import (
@@ -23,6 +24,7 @@ from protocol.cliargs import (
 from protocol.codec import decode, from_jsonable, to_jsonable
 from protocol.errors import (
     ArcheryError,
+    BadRequest,
     ConfigError,
     DecodeError,
     KeyNameError,
@@ -30,9 +32,10 @@ from protocol.errors import (
     RpcTimeout,
 )
 from protocol.keys import port_of
-from protocol.messages import MESSAGE_TYPES, Describe, Image, Message
+from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
-from protocol.node import Node
+from protocol.node import Node, bad_args_message
+from protocol.verbs import Verb, table_for_key
 
 __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
@@ -96,6 +99,9 @@ def ports_main(argv: list[str] | None = None) -> int:
         metavar="N",
         help="wait up to N s for a service to come alive (default 0: list who is alive now)",
     )
+    parser.add_argument(
+        "--verbose", action="store_true", help="message fields and each rpc verb's schemas"
+    )
     args = parser.parse_args(argv)
 
     def body(net: NetConfig) -> int:
@@ -125,9 +131,21 @@ def ports_main(argv: list[str] | None = None) -> int:
                     verbs = info.verbs.get(port.key)
                     extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
                     print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+                    if args.verbose:
+                        print("\n".join(_verbose_lines(info, port)))
         return 0
 
     return _run("ports", lambda: NetConfig.from_args(args), body)
+
+
+def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
+    from protocol.interface import interface_lines, message_lines
+
+    if port.kind != "rpc":
+        return message_lines(port.message, "      ")
+    if port.key in info.interfaces:
+        return interface_lines(info.interfaces[port.key], "      ")
+    return ["      (untyped verbs)"] if port.message == "RpcRequest" else []
 
 
 def read_main(argv: list[str] | None = None) -> int:
@@ -265,7 +283,7 @@ def rpc_main(argv: list[str] | None = None) -> int:
     parser.add_argument("args", nargs="?", default="{}", help="arguments as a JSON object")
     args = parser.parse_args(argv)
 
-    def check() -> tuple[NetConfig, dict[str, Any]]:
+    def check() -> tuple[NetConfig, Verb[Any, Any] | None, Any]:
         net = NetConfig.from_args(args)
         spec = port_of(args.key)
         if spec.kind != "rpc" or spec.message != "RpcRequest":
@@ -273,16 +291,35 @@ def rpc_main(argv: list[str] | None = None) -> int:
         call_args = loads_finite(args.args, "the arguments")
         if not isinstance(call_args, dict):
             raise DecodeError(f"the arguments must be a JSON object, got {args.args!r}")
-        return net, call_args
+        verb = _typed_verb(args.key, args.verb)
+        if verb is not None:  # checked here, before any network work
+            try:
+                call_args = msgspec.convert(call_args, verb.args, strict=True)
+            except msgspec.ValidationError as exc:
+                raise BadRequest(bad_args_message(verb, exc)) from None
+        return net, verb, call_args
 
-    def body(checked: tuple[NetConfig, dict[str, Any]]) -> int:
-        net, call_args = checked
+    def body(checked: tuple[NetConfig, Verb[Any, Any] | None, Any]) -> int:
+        net, verb, call_args = checked
         with Node(None, net) as node:
-            result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
-        print(json.dumps(result), flush=True)
+            if verb is None:  # not in the local tables: the service decides
+                result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
+            else:
+                reply = node.call_typed(args.key, verb, call_args, timeout=args.timeout)
+                result = msgspec.to_builtins(reply, builtin_types=(bytes,))
+        print(json.dumps(to_jsonable(result)), flush=True)
         return 0
 
     return _run("rpc", check, body)
+
+
+def _typed_verb(key: str, name: str) -> Verb[Any, Any] | None:
+    """The verb `name` of the local table for `key`, or None (untyped, or unknown here)."""
+    try:
+        table = table_for_key(key)
+    except KeyNameError:
+        return None
+    return table[name] if name in table.names() else None
 
 
 def view_main(argv: list[str] | None = None) -> int:

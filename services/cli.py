@@ -22,6 +22,10 @@ VERBS: dict[str, tuple[str, str]] = {
     "read": ("protocol.tools:read_main", "print decoded messages from a key as JSON lines"),
     "write": ("protocol.tools:write_main", "publish one message, given as JSON, on a key"),
     "rpc": ("protocol.tools:rpc_main", "call an rpc:i verb and print the reply"),
+    "interface": (
+        "protocol.interface:interface_main",
+        "a port's message type; each rpc:i verb's argument and reply schema",
+    ),
     "view": ("protocol.tools:view_main", "save the next image on an image port as PNG"),
     "selfcheck": ("protocol.selfcheck:main", "start a router and two nodes, check the mesh"),
     "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),

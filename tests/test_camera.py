@@ -95,9 +95,9 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
         assert status["latest_sim_time"] >= 3.0
 
         for args, message in (
-            ({"after": 1}, "unknown args"),
-            ({"after_sim_time": "soon"}, "finite number"),
-            ({"timeout": 0}, "timeout must be in"),
+            ({"after": 1}, "unknown field `after`.*after_sim_time, after_stamp, timeout"),
+            ({"after_sim_time": "soon"}, r"`\$.after_sim_time`.*got `str`.*must be float"),
+            ({"timeout": 0}, r"timeout must be float in \(0, 120\]"),
         ):
             with pytest.raises(RpcError, match=message) as bad:
                 node.call(keys.cam_rpc(), "grab", args, timeout=5)

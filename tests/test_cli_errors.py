@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from protocol.cliargs import clean_zenoh_error, loads_finite
-from protocol.errors import ConfigError
+from protocol.errors import ConfigError, RpcError
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.router import free_tcp_endpoint
@@ -70,6 +70,9 @@ CASES: list[tuple[str, int, str]] = [
     ),
     # view
     ("view {robot}/cam/target:o --out {tmp}/frame.txt {net}", 2, "'.txt'"),
+    ("interface {robot}/nosuch:o --offline", 2, "nosuch:o"),
+    ("interface {robot}/torso/rpc:i --timeout nan --offline", 2, "'nan'"),
+    ("interface {robot}/torso/rpc:i --connect 127.0.0.1:7447", 2, "'127.0.0.1:7447'"),
     ("view {robot}/cam/target:o --out {tmp}/no/dir/frame.png {net}", 2, "{tmp}/no/dir"),
     ("view {robot}/torso/state:o --out {tmp}/frame.png {net}", 2, "does not carry images"),
     # ports
@@ -288,10 +291,15 @@ def test_a_refused_joint_command_fails_with_the_robots_reason(
             assert out.returncode == 1, out.stderr
             assert len(lines) == 1 and reason in lines[0], out.stderr
             assert lines[0].startswith(f"archery write: refused by {net.robot}/torso/rpc:i: ")
-        # positionMove: true is not a joint angle (numpy would read it as 1 rad).
+        # positionMove: true is not a joint angle (numpy would read it as 1 rad): the CLI
+        # refuses it before sending, and so does the robot when another client sends it.
         moved = archery(
             "rpc", f"{net.robot}/torso/rpc:i", "positionMove", '{"position": [true, 0, 0]}', *flags
         )
-        assert moved.returncode == 1 and "not True" in moved.stderr, moved.stderr
+        assert moved.returncode == 2, moved.stderr
+        assert "`$.position[0]`: Expected `float`, got `bool`" in moved.stderr
+        with pytest.raises(RpcError, match=r"Expected `float`, got `bool`") as refused:
+            node.call(f"{net.robot}/torso/rpc:i", "positionMove", {"position": [True, 0, 0]})
+        assert refused.value.code == "bad_request"
         counters = node.call(f"{net.robot}/torso/rpc:i", "counters")
-    assert counters["accepted"] == 1 and counters["rejected"] == 4
+    assert counters["accepted"] == 1 and counters["rejected"] == 3

@@ -134,17 +134,17 @@ def test_trajectory_time_sets_how_long_a_move_takes(services: Callable[..., Mesh
         took = reply["sim_time"] - start
         assert traj_time <= took < traj_time + 0.6, (traj_time, took)
     assert mesh.archery("getTrajTime") == {"time": 2.0}
-    with pytest.raises(RpcError, match=r"time must be in \[0.05, 60\] s"):
+    with pytest.raises(RpcError, match=r"`\$.time`.*time must be float in \[0.05, 60\] \(s"):
         mesh.archery("setTrajTime", {"time": 0.0})
 
 
 BAD_POSTURES = [
     ({"theta": [0.5, 0.0, 0.0]}, r"outside the configured box \[0.12, -0.02, -0.07\]"),
-    ({"theta": [0.17, 0.03]}, "3-vector"),
-    ({"theta": "far"}, "3-vector"),
-    ({"theta": [0.17, 0.03, -0.03], "speed": 1}, "no argument 'speed'; arguments: theta"),
-    ({}, "posture needs theta"),
-    ({"theta": [0.17, 0.03, -0.03], "timeout": -1}, "timeout must be in"),
+    ({"theta": [0.17, 0.03]}, r"length >= 3; theta must be list\[float\] length 3"),
+    ({"theta": "far"}, r"Expected `array`, got `str`.*theta must be list\[float\] length 3"),
+    ({"theta": [0.17, 0.03, -0.03], "speed": 1}, "unknown field `speed`.*: theta, timeout"),
+    ({}, "missing required field `theta`"),
+    ({"theta": [0.17, 0.03, -0.03], "timeout": -1}, r"timeout must be float in \[0.1, 3600\]"),
 ]
 
 
@@ -164,7 +164,8 @@ def test_nan_arguments_never_reach_a_handler(services: Callable[..., Mesh]) -> N
         ("left_arm", "askForPose", {"xd": [-0.3, math.inf, 0.1]}),
     ):
         reply = mesh.raw(mesh.keys.cartesian_rpc(arm), verb, args)
-        assert not reply.ok and reply.code == "bad_message" and "finite" in reply.message
+        assert not reply.ok and reply.code == "bad_request" and "finite" in reply.message
+        assert f"`$.{next(iter(args))}[" in reply.message  # names the field
     assert mesh.robot("torso", "counters")["accepted"] == 0
 
 
@@ -214,13 +215,13 @@ def test_an_unreachable_target_returns_the_closest_pose(services: Callable[..., 
 
 
 BAD_POSES = [
-    ({"xd": [0.1, 0.2]}, "xd must be 3 numbers"),
-    ({"xd": ["a", "b", "c"]}, "xd must be 3 numbers"),
-    ({"xd": 0.3}, "xd must be a list of 3 numbers"),
-    ({"xd": [-0.3, -0.1, 0.1], "od": [0, 0, 1]}, "od must be 4 numbers"),
+    ({"xd": [0.1, 0.2]}, r"xd must be list\[float\] length 3"),
+    ({"xd": ["a", "b", "c"]}, r"`\$.xd\[0\]`.*xd must be list\[float\] length 3"),
+    ({"xd": 0.3}, r"Expected `array`.*xd must be list\[float\] length 3"),
+    ({"xd": [-0.3, -0.1, 0.1], "od": [0, 0, 1]}, r"od must be list\[float\] length 4"),
     ({"xd": [-0.3, -0.1, 0.1], "od": [0, 0, 0, 1.0]}, "zero axis"),
-    ({"xd": [-0.3, -0.1, 0.1], "q0": []}, "no argument 'q0'"),
-    ({"od": [0, 0, 1, 0.0]}, "needs xd"),
+    ({"xd": [-0.3, -0.1, 0.1], "q0": []}, "unknown field `q0`"),
+    ({"od": [0, 0, 1, 0.0]}, "missing required field `xd`"),
 ]
 
 
@@ -239,13 +240,13 @@ def test_settings_tolerance_trajectory_time_and_torso(services: Callable[..., Me
     assert mesh.arm("left_arm", "setTolerance", {"tolerance": 0.002}) == {"tolerance": 0.002}
     assert mesh.arm("left_arm", "getTolerance") == {"tolerance": 0.002}
     assert mesh.arm("right_arm", "getTolerance")["tolerance"] == 1e-4  # per arm
-    with pytest.raises(RpcError, match="tolerance must be in"):
+    with pytest.raises(RpcError, match=r"tolerance must be float in \[1e-06, 0.1\] \(m\)"):
         mesh.arm("left_arm", "setTolerance", {"tolerance": 1.0})
     assert mesh.arm("left_arm", "setTrajTime", {"time": 0.5}) == {"time": 0.5}
     assert mesh.arm("left_arm", "getTrajTime") == {"time": 0.5}
     dof = mesh.arm("left_arm", "setDOF", {"torso": False})
     assert dof == {"torso": False, "joints": list(PARTS["left_arm"])}
-    with pytest.raises(RpcError, match="torso must be true or false"):
+    with pytest.raises(RpcError, match=r"got `str`.*torso must be bool"):
         mesh.arm("left_arm", "setDOF", {"torso": "no"})
     torso = mesh.robot("torso", "getTargets")["position"]
     reply = mesh.arm("left_arm", "goToPose", {"xd": [-0.3, -0.12, 0.02]})

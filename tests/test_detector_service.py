@@ -103,9 +103,9 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
             )
         assert late.value.code == "timeout"
         for args, message in (
-            ({"after_sim": 1.0}, "unknown args"),
-            ({"after_stamp": "now"}, "finite number"),
-            ({"timeout": -1}, "timeout must be"),
+            ({"after_sim": 1.0}, "unknown field `after_sim`.*after_sim_time, after_stamp"),
+            ({"after_stamp": "now"}, r"`\$.after_stamp`.*got `str`.*must be float"),
+            ({"timeout": -1}, r"timeout must be float in \(0, 120\]"),
         ):
             with pytest.raises(RpcError, match=message) as bad:
                 node.call(keys.detector_rpc(), "measure", args, timeout=5)

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -14,10 +15,11 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.errors import RpcError
+from protocol.errors import ArcheryError, RpcError
 from protocol.messages import Rollout, WorldEvent
 from protocol.netflags import NetConfig
 from protocol.node import Node
+from protocol.verbs import detector as dv
 from services.controller import service as controller_service
 from services.controller.config import ControllerConfig
 from services.learner import service as learner_service
@@ -49,21 +51,42 @@ def run_fake_sensors(net: NetConfig, stop: threading.Event, noise_m: float = 0.0
 
         detector.subscribe(detector.keys.world_events(), WorldEvent, mode="fifo", callback=on_event)
 
-        def measure(args: dict[str, Any]) -> dict[str, Any]:
-            after = float(args["after_sim_time"])
+        def measure(args: dv.MeasureArgs) -> dv.MeasureReply:
+            assert args.after_sim_time is not None
+            after = args.after_sim_time
             with cond:
                 cond.wait_for(lambda: events and events[-1].sim_time >= after, timeout=5)
                 event = events[-1]
-            if event.impact_m is None or event.kind == "missed":
-                return {"status": "no_arrow", "r_m": None}
-            r = np.array(event.impact_m) + rng.normal(0, noise_m, 2)
-            return {"status": "ok", "r_m": r.tolist(), "timing": {"detect_s": 0.001}}
+            found: dict[str, Any] = {"status": "no_arrow", "r_m": None}
+            if event.impact_m is not None and event.kind != "missed":
+                r = np.array(event.impact_m) + rng.normal(0, noise_m, 2)
+                found = {"status": "ok", "r_m": r.tolist()}
+            return dv.MeasureReply(
+                type="Detection",
+                schema=1,
+                seq=0,
+                stamp=time.time(),
+                sim_time=event.sim_time,
+                frame_stamp=time.time(),
+                target_px=None,
+                arrow_px=None,
+                target_confidence=1.0,
+                arrow_confidence=1.0,
+                frame=0,
+                timing={"detect_s": 0.001},
+                **found,
+            )
 
-        def frame(args: dict[str, Any]) -> dict[str, Any]:
-            assert args == {"overlay": True}
-            return {"png": cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes()}
+        def frame(args: dv.FrameArgs) -> dv.FrameReply:
+            assert args == dv.FrameArgs(overlay=True)
+            png = cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))[1].tobytes()
+            return dv.FrameReply(png=png, status="ok")
 
-        detector.serve(detector.keys.detector_rpc(), {"measure": measure, "frame": frame})
+        def absent(args: Any) -> Any:
+            raise ArcheryError("the fake detector has no such verb", code="unsupported")
+
+        verbs = {"measure": measure, "frame": frame, "calibrate": absent, "status": absent}
+        detector.serve(detector.keys.detector_rpc(), dv.DETECTOR_VERBS.bind(verbs))
         camera.ready()
         detector.ready()
         stop.wait()
@@ -128,10 +151,15 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
     [
         ({"algo": "nope"}, "bad_request", "valid algorithms: archer"),
         ({"scenario": {"theta0": [0.5, 0.0, 0.0]}}, "bad_request", "outside the θ box"),
-        ({"scenario": {"hit_radius": "big"}}, "bad_request", "hit_radius must be a number"),
+        (
+            {"scenario": {"hit_radius": "big"}},
+            "bad_request",
+            r"`\$.scenario.hit_radius`: Expected `float`, got `str`; scenario.hit_radius must be "
+            r"float in \[0.001, 0.25\]",
+        ),
         ({"options": {"explore_std": -1}}, "bad_request", "explore_std"),
         ({"resume": "/nonexistent/journal.jsonl"}, "bad_journal", "cannot read journal"),
-        ({"resume": 3}, "bad_request", "resume must be a journal path"),
+        ({"resume": 3}, "bad_request", r"`\$.resume`.*resume must be str.*\(journal path\)"),
     ],
 )
 def test_bad_start(

@@ -18,14 +18,14 @@ ANSI = re.compile(r"\x1b\[")
 @pytest.mark.parametrize(
     ("spec", "default", "targets", "zenoh"),
     [
-        ("info", "info", {}, "warn"),
+        ("info", "info", {}, "error"),
         ("debug", "debug", {}, "debug"),
-        ("WARNING", "warn", {}, "warn"),
+        ("WARNING", "warn", {}, "error"),
         ("off", "off", {}, "off"),
         ("info,zenoh=debug", "info", {"zenoh": "debug"}, "debug"),
-        ("error,archery.robot=debug", "error", {"archery.robot": "debug"}, "warn"),
-        ("info,zenoh::net=trace", "info", {"zenoh::net": "trace"}, "warn,zenoh::net=trace"),
-        ("", "info", {}, "warn"),
+        ("error,archery.robot=debug", "error", {"archery.robot": "debug"}, "error"),
+        ("info,zenoh::net=trace", "info", {"zenoh::net": "trace"}, "error,zenoh::net=trace"),
+        ("", "info", {}, "error"),
     ],
 )
 def test_specs(spec: str, default: str, targets: dict[str, str], zenoh: str) -> None:

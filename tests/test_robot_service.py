@@ -200,9 +200,12 @@ def test_position_move_validates_like_the_stream(robot: Callable[..., Client]) -
     with pytest.raises(RpcError, match="outside its limits") as info:
         client.part("torso", "positionMove", {"position": [0.0, 0.0, 3.0]})
     assert info.value.code == "bad_request"
-    with pytest.raises(RpcError, match="positionMove needs position"):
+    with pytest.raises(RpcError, match=r"unknown field `pos`.*arguments of positionMove: position"):
         client.part("torso", "positionMove", {"pos": [0.0, 0.0, 0.1]})
-    with pytest.raises(RpcError, match="reference speeds must be in"):
+    with pytest.raises(RpcError, match="missing required field `position`") as info:
+        client.part("torso", "positionMove", {})
+    assert info.value.code == "bad_request"
+    with pytest.raises(RpcError, match=r"`\$.speeds\[2\]`.*speeds must be float in \(0, 2\]"):
         client.part("torso", "setRefSpeeds", {"speeds": [0.5, 0.5, -1.0]})
     assert client.part("torso", "setRefSpeeds", {"speeds": 1.5})["speeds"] == [1.5] * 3
     after = client.settle()
@@ -217,7 +220,7 @@ def test_release_without_an_arrow_is_an_error_reply(robot: Callable[..., Client]
     with pytest.raises(RpcError, match="no arrow is nocked") as info:
         client.archery("release")
     assert info.value.code == "bad_state"
-    with pytest.raises(RpcError, match="seed must be an integer"):
+    with pytest.raises(RpcError, match=r"`\$.seed`.*got `str`.*seed must be int in \[0, "):
         client.archery("reset", {"seed": "seven"})
 
 

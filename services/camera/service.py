@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import concurrent.futures
 import logging
-import math
 import queue
 import threading
 import time
@@ -38,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
-import msgspec
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcError, RpcTimeout
@@ -46,6 +44,10 @@ from protocol.messages import Image, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher
 from protocol.service import service_main
+from protocol.verbs import NoArgs
+from protocol.verbs import camera as camera_verbs
+from protocol.verbs import robot as robot_verbs
+from protocol.verbs.camera import CAMERA_VERBS, CalibrationReply, CameraStatusReply, GrabArgs
 from services.camera.frames import FrameStore, Freshness
 from services.camera.sources import DeviceSource, FolderSource, SourceSpec, parse_source
 
@@ -53,7 +55,7 @@ __all__ = ["ENCODINGS", "CameraConfig", "main", "run"]
 
 log = logging.getLogger("archery.camera")
 ENCODINGS = ("rgb8", "jpeg", "png")
-MAX_GRAB_TIMEOUT = 120.0  # s
+MAX_GRAB_TIMEOUT = camera_verbs.MAX_GRAB_TIMEOUT  # s
 
 
 @dataclass(frozen=True)
@@ -88,15 +90,6 @@ class CameraConfig:
             raise ConfigError(f"--encoding {self.encoding!r} is not one of {', '.join(ENCODINGS)}")
         if not (isinstance(self.robot_timeout, int | float) and 0 <= self.robot_timeout <= 60):
             raise ConfigError(f"robot timeout {self.robot_timeout!r} is outside 0..60 s")
-
-
-def _seconds(args: dict[str, Any], name: str) -> float | None:
-    value = args.get(name)
-    if value is None:
-        return None
-    if not isinstance(value, int | float) or isinstance(value, bool) or not math.isfinite(value):
-        raise BadRequest(f"{name} must be a finite number of seconds, got {value!r}")
-    return float(value)
 
 
 def _encode(pixels: np.ndarray, encoding: str, **fields: Any) -> Image:
@@ -162,8 +155,10 @@ class _Capture:
         from sim.scene import SceneConfig
 
         try:
-            status = self.node.call(self.node.keys.archery_rpc(), "status", timeout=timeout)
-            return SceneConfig(**status["scene"])
+            status = self.node.call_typed(
+                self.node.keys.archery_rpc(), robot_verbs.ARCHERY_VERBS["status"], timeout=timeout
+            )
+            return SceneConfig(**status.scene)
         except (RpcError, KeyError, TypeError, ValueError) as exc:
             self.scene_error = str(exc)
             return None
@@ -318,28 +313,15 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
         capture = _Capture(config, node, store)
         rendered = config.source.kind == "mujoco"
 
-        def grab(args: dict[str, Any]) -> dict[str, Any]:
-            unknown = set(args) - {"after_sim_time", "after_stamp", "timeout"}
-            if unknown:
-                raise BadRequest(
-                    f"grab: unknown args {sorted(unknown)}; valid: after_sim_time (s), "
-                    f"after_stamp (wall s), timeout (s)"
-                )
-            timeout = _seconds(args, "timeout")
-            timeout = 5.0 if timeout is None else timeout
-            if not 0 < timeout <= MAX_GRAB_TIMEOUT:
-                raise BadRequest(
-                    f"grab timeout must be in (0, {MAX_GRAB_TIMEOUT:g}] s, got {timeout}"
-                )
-            after_sim_time = _seconds(args, "after_sim_time")
-            after_stamp = _seconds(args, "after_stamp")
+        def grab(args: GrabArgs) -> Image:
+            timeout = 5.0 if args.timeout is None else args.timeout
+            after_sim_time, after_stamp = args.after_sim_time, args.after_stamp
             if not rendered and after_sim_time is not None:
                 after_sim_time, after_stamp = None, max(after_stamp or 0.0, time.time())
             want = Freshness(after_sim_time=after_sim_time, after_stamp=after_stamp)
-            image = store.wait(want, timeout, on_wait=capture.wake.set)
-            return msgspec.to_builtins(image, builtin_types=(bytes,))  # type: ignore[no-any-return]
+            return store.wait(want, timeout, on_wait=capture.wake.set)
 
-        def calibration(args: dict[str, Any]) -> dict[str, Any]:
+        def calibration(args: NoArgs) -> CalibrationReply:
             if not rendered:
                 raise BadRequest(
                     f"calibration marks come only from the mujoco source (this camera is "
@@ -347,7 +329,7 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
                     f"or the detector's `calibrate` verb with pixels"
                 )
 
-            def job() -> dict[str, Any]:
+            def job() -> CalibrationReply:
                 from sim.render import calibration_frame
 
                 latest = capture.world.latest() if capture.world else None
@@ -356,32 +338,30 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
                 image = Image.from_numpy(
                     pixels, sim_time=latest.sim_time if latest else None, stamp=time.time()
                 )
-                return {
-                    "image": msgspec.to_builtins(image, builtin_types=(bytes,)),
-                    "pixels": marks,
-                }
+                return CalibrationReply(image=image, pixels=marks)
 
             return capture.submit(job, timeout=30.0)  # type: ignore[no-any-return]
 
-        def status(args: dict[str, Any]) -> dict[str, Any]:
+        def status(args: NoArgs) -> CameraStatusReply:
             latest = store.latest
             renders = capture.renders
-            return {
-                "source": config.source.kind,
-                "width": config.width,
-                "height": config.height,
-                "rate": config.rate,
-                "encoding": config.encoding,
-                "frames": store.count,
-                "renders": renders,
-                "render_ms": round(1e3 * capture.render_seconds / renders, 3) if renders else None,
-                "errors": capture.errors,
-                "latest_sim_time": latest.sim_time if latest else None,
-                "scene": capture.scene,
-                "scene_from": capture.scene_from,
-            }
+            return CameraStatusReply(
+                source=config.source.kind,
+                width=config.width,
+                height=config.height,
+                rate=config.rate,
+                encoding=config.encoding,
+                frames=store.count,
+                renders=renders,
+                render_ms=round(1e3 * capture.render_seconds / renders, 3) if renders else None,
+                errors=capture.errors,
+                latest_sim_time=latest.sim_time if latest else None,
+                scene=capture.scene,
+                scene_from=capture.scene_from,
+            )
 
-        node.serve(keys.cam_rpc(), {"grab": grab, "calibration": calibration, "status": status})
+        verbs = CAMERA_VERBS.bind({"grab": grab, "calibration": calibration, "status": status})
+        node.serve(keys.cam_rpc(), verbs)
         capture.open()
         node.ready()
         log.info(

@@ -1,4 +1,6 @@
-"""The cartesian controller's request and reply shapes, iKin style; pure (no Zenoh).
+"""The cartesian controller's geometry of requests and replies, iKin style; pure (no Zenoh).
+
+The request and reply types themselves, with their ranges, are in `protocol.verbs.controller`.
 
 Positions are metres in `root_link`; orientations travel as iKin's axis-angle 4-vectors
 [ax, ay, az, angle] (unit axis in root axes, angle in rad) and are turned into the rotation
@@ -8,14 +10,12 @@ per-joint reference speeds |Δq|/T, so every joint of a move arrives together.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
-from protocol.errors import BadRequest
 from services.controller.errors import TargetError
 from services.controller.ik import IkResult
 
@@ -23,30 +23,13 @@ __all__ = [
     "MAX_REFERENCE_SPEED",
     "MIN_REFERENCE_SPEED",
     "axis_angle",
-    "check_args",
     "ik_reply",
-    "number_arg",
-    "position_arg",
     "reference_speeds",
     "rotation_vector",
 ]
 
 MAX_REFERENCE_SPEED = 2.0  # rad/s, the robot's upper bound for reference speeds
 MIN_REFERENCE_SPEED = 0.01  # rad/s, for joints that barely move
-
-
-def check_args(
-    args: Mapping[str, Any], verb: str, required: Iterable[str] = (), optional: Iterable[str] = ()
-) -> None:
-    """Raise BadRequest for a missing or unknown argument of `verb`, listing the valid ones."""
-    required, optional = tuple(required), tuple(optional)
-    valid = ", ".join((*required, *optional)) or "none"
-    missing = [k for k in required if k not in args]
-    if missing:
-        raise BadRequest(f"{verb} needs {', '.join(missing)}; arguments: {valid}")
-    unknown = sorted(set(args) - set(required) - set(optional))
-    if unknown:
-        raise BadRequest(f"{verb} has no argument {unknown[0]!r}; arguments: {valid}")
 
 
 def _finite_vector(value: Any, name: str, size: int, unit: str) -> np.ndarray:
@@ -61,11 +44,6 @@ def _finite_vector(value: Any, name: str, size: int, unit: str) -> np.ndarray:
     if not np.all(np.isfinite(vec)):
         raise TargetError(f"{name} must be finite numbers ({unit}), got {value!r}")
     return vec
-
-
-def position_arg(value: Any, name: str = "xd") -> np.ndarray:
-    """A position [x, y, z] (m) from a request, or TargetError (bad_request)."""
-    return _finite_vector(value, name, 3, "m")
 
 
 def rotation_vector(value: Any, name: str = "od") -> np.ndarray:
@@ -93,16 +71,6 @@ def axis_angle(rotation: np.ndarray) -> list[float]:
     if angle < 1e-12:
         return [0.0, 0.0, 1.0, 0.0]
     return [*(vec / angle).tolist(), angle]
-
-
-def number_arg(args: Mapping[str, Any], key: str, low: float, high: float, unit: str) -> float:
-    """args[key] as a finite number in [low, high], or BadRequest naming the range."""
-    value = args[key]
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise BadRequest(f"{key} must be a number of {unit}, got {value!r}")
-    if not low <= value <= high:
-        raise BadRequest(f"{key} must be in [{low:g}, {high:g}] {unit}, got {value!r}")
-    return float(value)
 
 
 def reference_speeds(delta: np.ndarray, traj_time: float) -> np.ndarray:

@@ -8,7 +8,7 @@ one lock: one motion at a time.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
 from typing import Any
@@ -16,16 +16,10 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
-from protocol.node import Handler
 from protocol.parts import PARTS
-from services.controller.cartesian import (
-    axis_angle,
-    check_args,
-    ik_reply,
-    number_arg,
-    position_arg,
-    rotation_vector,
-)
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import controller as cv
+from services.controller.cartesian import axis_angle, ik_reply, rotation_vector
 from services.controller.config import ControllerConfig
 from services.controller.errors import ConfigError
 from services.controller.ik import IkSolver
@@ -35,8 +29,8 @@ from services.controller.robotlink import MoveResult, RobotLink
 
 __all__ = ["ArcheryController", "ArmController", "MotionLock"]
 
-TRAJ_TIME_RANGE = (0.05, 60.0)  # s of simulated time
-TIMEOUT_RANGE = (0.1, 3600.0)  # wall s
+TRAJ_TIME_RANGE = cv.TRAJ_TIME_RANGE  # s of simulated time
+TIMEOUT_RANGE = cv.TIMEOUT_RANGE  # wall s
 
 
 class MotionLock:
@@ -60,10 +54,6 @@ class MotionLock:
             yield
         finally:
             self._lock.release()
-
-
-def _timeout(args: Mapping[str, Any], default: float) -> float:
-    return number_arg(args, "timeout", *TIMEOUT_RANGE, "s") if "timeout" in args else default
 
 
 def _move_reply(move: MoveResult) -> dict[str, Any]:
@@ -96,109 +86,99 @@ class ArmController:
         self.torso = config.use_torso
         self.traj_time = config.traj_time
 
-    def handlers(self) -> dict[str, Handler]:
-        """The verbs of `ROBOT/cartesianController/ARM/rpc:i`."""
-        return {
-            "askForPose": self.ask_for_pose,
-            "goToPose": self.go_to_pose,
-            "getPose": self.get_pose,
-            "setTolerance": self.set_tolerance,
-            "getTolerance": lambda a: self._get(a, "getTolerance", self._tolerance()),
-            "setTrajTime": self.set_traj_time,
-            "getTrajTime": lambda a: self._get(a, "getTrajTime", {"time": self.traj_time}),
-            "setDOF": self.set_dof,
-            "getDOF": lambda a: self._get(a, "getDOF", self._dof()),
-        }
-
-    @staticmethod
-    def _get(args: Mapping[str, Any], verb: str, reply: dict[str, Any]) -> dict[str, Any]:
-        check_args(args, verb)
-        return reply
+    def handlers(self) -> ServedVerbs:
+        """The verbs of `ROBOT/cartesianController/ARM/rpc:i` (`protocol.verbs.controller`)."""
+        return cv.ARM_VERBS.bind(
+            {
+                "askForPose": self.ask_for_pose,
+                "goToPose": self.go_to_pose,
+                "getPose": self.get_pose,
+                "setTolerance": self.set_tolerance,
+                "getTolerance": lambda a: self._tolerance(),
+                "setTrajTime": self.set_traj_time,
+                "getTrajTime": lambda a: cv.TrajTimeReply(time=self.traj_time),
+                "setDOF": self.set_dof,
+                "getDOF": lambda a: self._dof(),
+            }
+        )
 
     def _chain(self) -> tuple[str, ...]:
         return PARTS["torso"] + PARTS[self.arm]
 
-    def _solve(self, args: Mapping[str, Any], q0: Mapping[str, float] | None) -> Any:
-        xd = position_arg(args["xd"], "xd")
-        od = rotation_vector(args["od"], "od") if args.get("od") is not None else None
+    def _solve(self, args: cv.AskForPoseArgs | cv.GoToPoseArgs, q0: dict[str, float] | None) -> Any:
+        xd = np.array(args.xd, dtype=float)
+        od = rotation_vector(args.od, "od") if args.od is not None else None
         return self._solver.solve(self.arm, xd, od, q0=q0, use_torso=self.torso)
 
-    def ask_for_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+    def ask_for_pose(self, args: cv.AskForPoseArgs) -> cv.AskForPoseReply:
         """{"xd": [x, y, z] m, "od"?: [ax, ay, az, angle]} → the solution, without moving.
 
         Warm-started from the robot's posture when its states are fresh, else from home."""
-        check_args(args, "askForPose", ("xd",), ("od",))
         q0 = self._link.fresh_posture()
         result = self._solve(args, q0)
-        return ik_reply(result, self._chain()) | {"warm_start": "home" if q0 is None else "robot"}
+        return cv.AskForPoseReply(
+            **ik_reply(result, self._chain()), warm_start="home" if q0 is None else "robot"
+        )
 
-    def go_to_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+    def go_to_pose(self, args: cv.GoToPoseArgs) -> cv.GoToPoseReply:
         """askForPose, then move the chain there and reply once the robot reports it done.
 
         The reply adds "reached" (False after `timeout` s, with the reason), the measured hand
         position "x_measured" (m) and its distance to xd "position_error_measured_m"."""
-        check_args(args, "goToPose", ("xd",), ("od", "timeout"))
-        timeout = _timeout(args, self._config.motion_timeout)
+        timeout = self._config.motion_timeout if args.timeout is None else args.timeout
         current = self._link.posture()
         result = self._solve(args, current)
         moving = PARTS[self.arm] if not self.torso else self._chain()
         with self._motion.hold(timeout):
             move = self._link.move({j: result.q[j] for j in moving}, self.traj_time, timeout)
         x_measured, _ = self._solver.hand_pose(move.measured, self.arm)
-        xd = position_arg(args["xd"], "xd")
-        return (
-            ik_reply(result, self._chain())
-            | {"q": {j: move.targets.get(j, float(result.q[j])) for j in self._chain()}}
-            | _move_reply(move)
-            | {
-                "x_measured": x_measured.tolist(),
-                "position_error_measured_m": float(np.linalg.norm(x_measured - xd)),
-            }
+        xd = np.array(args.xd, dtype=float)
+        return cv.GoToPoseReply(
+            **(
+                ik_reply(result, self._chain())
+                | {"q": {j: move.targets.get(j, float(result.q[j])) for j in self._chain()}}
+                | _move_reply(move)
+            ),
+            x_measured=x_measured.tolist(),
+            position_error_measured_m=float(np.linalg.norm(x_measured - xd)),
         )
 
-    def get_pose(self, args: dict[str, Any]) -> dict[str, Any]:
+    def get_pose(self, args: NoArgs) -> cv.PoseReply:
         """The hand pose now, by forward kinematics of the robot's joint states."""
-        check_args(args, "getPose")
         q = self._link.posture()
         x, rotation = self._solver.hand_pose(q, self.arm)
-        return {
-            "x": x.tolist(),
-            "o": axis_angle(rotation),
-            "q": {j: q[j] for j in self._chain()},
-            "sim_time": self._link.state(self.arm).sim_time,
-        }
+        return cv.PoseReply(
+            x=x.tolist(),
+            o=axis_angle(rotation),
+            q={j: q[j] for j in self._chain()},
+            sim_time=self._link.state(self.arm).sim_time,
+        )
 
-    def _tolerance(self) -> dict[str, Any]:
-        return {"tolerance": self._settings.position_tolerance}
+    def _tolerance(self) -> cv.ToleranceReply:
+        return cv.ToleranceReply(tolerance=self._settings.position_tolerance)
 
-    def set_tolerance(self, args: dict[str, Any]) -> dict[str, Any]:
+    def set_tolerance(self, args: cv.SetToleranceArgs) -> cv.ToleranceReply:
         """{"tolerance": m}: the IK position tolerance (the radius of the Eq. 9 ε-ball)."""
-        check_args(args, "setTolerance", ("tolerance",))
-        tolerance = number_arg(args, "tolerance", 1e-6, 0.1, "m")
         try:
-            settings = replace(self._settings, position_tolerance=tolerance)
+            settings = replace(self._settings, position_tolerance=args.tolerance)
         except ConfigError as exc:
             raise BadRequest(str(exc)) from None
         self._settings = settings
         self._solver = IkSolver(self._model, settings)
         return self._tolerance()
 
-    def set_traj_time(self, args: dict[str, Any]) -> dict[str, Any]:
+    def set_traj_time(self, args: cv.SetTrajTimeArgs) -> cv.TrajTimeReply:
         """{"time": s}: trajectory time of the next moves (s of simulated time)."""
-        check_args(args, "setTrajTime", ("time",))
-        self.traj_time = number_arg(args, "time", *TRAJ_TIME_RANGE, "s")
-        return {"time": self.traj_time}
+        self.traj_time = args.time
+        return cv.TrajTimeReply(time=self.traj_time)
 
-    def _dof(self) -> dict[str, Any]:
+    def _dof(self) -> cv.DofReply:
         joints = self._chain() if self.torso else PARTS[self.arm]
-        return {"torso": self.torso, "joints": list(joints)}
+        return cv.DofReply(torso=self.torso, joints=list(joints))
 
-    def set_dof(self, args: dict[str, Any]) -> dict[str, Any]:
+    def set_dof(self, args: cv.SetDofArgs) -> cv.DofReply:
         """{"torso": bool}: solve and move the torso with the arm (True) or hold it (False)."""
-        check_args(args, "setDOF", ("torso",))
-        if not isinstance(args["torso"], bool):
-            raise BadRequest(f"torso must be true or false, got {args['torso']!r}")
-        self.torso = args["torso"]
+        self.torso = args.torso
         return self._dof()
 
 
@@ -222,34 +202,35 @@ class ArcheryController:
         self._motion = motion
         self.traj_time = config.traj_time
 
-    def handlers(self) -> dict[str, Handler]:
-        """The verbs of the archery key."""
-        return {
-            "posture": self.posture,
-            "setTrajTime": self.set_traj_time,
-            "getTrajTime": lambda a: ArmController._get(a, "getTrajTime", {"time": self.traj_time}),
-            "status": lambda a: ArmController._get(a, "status", self._status()),
-        }
+    def handlers(self) -> ServedVerbs:
+        """The verbs of the archery key (`protocol.verbs.controller`)."""
+        return cv.ARCHERY_VERBS.bind(
+            {
+                "posture": self.posture,
+                "setTrajTime": self.set_traj_time,
+                "getTrajTime": lambda a: cv.TrajTimeReply(time=self.traj_time),
+                "status": lambda a: self._status(),
+            }
+        )
 
-    def _status(self) -> dict[str, Any]:
+    def _status(self) -> cv.ArcheryStatusReply:
         cfg = self._posture.config
-        return {
-            "theta_min": cfg.theta_min.tolist(),
-            "theta_max": cfg.theta_max.tolist(),
-            "bow_hand": cfg.bow_hand.tolist(),
-            "nominal_theta": cfg.nominal_theta.tolist(),
-            "use_torso": cfg.use_torso,
-            "traj_time": self.traj_time,
-            "joints": list(self._posture.joints),
-        }
+        return cv.ArcheryStatusReply(
+            theta_min=cfg.theta_min.tolist(),
+            theta_max=cfg.theta_max.tolist(),
+            bow_hand=cfg.bow_hand.tolist(),
+            nominal_theta=cfg.nominal_theta.tolist(),
+            use_torso=cfg.use_torso,
+            traj_time=self.traj_time,
+            joints=list(self._posture.joints),
+        )
 
-    def set_traj_time(self, args: dict[str, Any]) -> dict[str, Any]:
+    def set_traj_time(self, args: cv.SetTrajTimeArgs) -> cv.TrajTimeReply:
         """{"time": s}: trajectory time of the next postures (s of simulated time)."""
-        check_args(args, "setTrajTime", ("time",))
-        self.traj_time = number_arg(args, "time", *TRAJ_TIME_RANGE, "s")
-        return {"time": self.traj_time}
+        self.traj_time = args.time
+        return cv.TrajTimeReply(time=self.traj_time)
 
-    def posture(self, args: dict[str, Any]) -> dict[str, Any]:
+    def posture(self, args: cv.PostureArgs) -> cv.PostureReply:
         """{"theta": [x, y, z] m, "timeout"?: s} → move both arms (and the torso) to the
         archery posture for θ and reply once the robot reports the motion done.
 
@@ -258,9 +239,8 @@ class ArcheryController:
         (‖θ − θ_achieved‖), "measured_error_m" (‖θ − θ_measured‖), "reachable" (IK), "reached"
         (robot at the targets in time), "reason", "bow_hand" (m), "wall_s", "sim_time".
         """
-        check_args(args, "posture", ("theta",), ("timeout",))
-        theta = self._posture.check_theta(args["theta"])
-        timeout = _timeout(args, self._config.motion_timeout)
+        theta = self._posture.check_theta(args.theta)
+        timeout = self._config.motion_timeout if args.timeout is None else args.timeout
         current = self._link.posture()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
         result = self._posture.solve(theta, q0=q0)
@@ -271,13 +251,14 @@ class ArcheryController:
         left, _ = solver.hand_pose(move.measured, "left_arm")
         right, _ = solver.hand_pose(move.measured, "right_arm")
         measured = right - left
-        return {
-            "q": dict(move.targets),
-            "theta": theta.tolist(),
-            "theta_achieved": result.theta_achieved.tolist(),
-            "theta_measured": measured.tolist(),
-            "relative_error_m": result.relative_error_m,
-            "measured_error_m": float(np.linalg.norm(theta - measured)),
-            "reachable": result.reachable,
-            "bow_hand": result.bow_hand.tolist(),
-        } | _move_reply(move)
+        return cv.PostureReply(
+            q=dict(move.targets),
+            theta=theta.tolist(),
+            theta_achieved=result.theta_achieved.tolist(),
+            theta_measured=measured.tolist(),
+            relative_error_m=result.relative_error_m,
+            measured_error_m=float(np.linalg.norm(theta - measured)),
+            reachable=result.reachable,
+            bow_hand=result.bow_hand.tolist(),
+            **_move_reply(move),
+        )

@@ -37,12 +37,15 @@ import msgspec
 import numpy as np
 
 from protocol.cliargs import check_writable_dir
-from protocol.errors import ArcheryError, BadRequest, ConfigError, DecodeError, RpcError
+from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcError
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.service import service_main
+from protocol.verbs import NoArgs
+from protocol.verbs import detector as dv
+from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
 from services.detector.calibration import parse_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detection, Detector, DetectorSettings
@@ -50,11 +53,13 @@ from services.detector.errors import DetectorError, ModelFileError
 from services.detector.offline import add_settings_arguments, settings_from_args
 from services.detector.overlay import draw_overlay, encode_png
 
+GRAB = CAMERA_VERBS["grab"]
+CALIBRATION = CAMERA_VERBS["calibration"]
+
 __all__ = ["DetectorConfig", "NotCalibrated", "main", "run"]
 
 log = logging.getLogger("archery.detector")
-MAX_TIMEOUT = 120.0  # s
-STAMP_ARGS = ("after_sim_time", "after_stamp")
+MAX_TIMEOUT = dv.MAX_TIMEOUT  # s
 
 
 class NotCalibrated(DetectorError):
@@ -90,43 +95,6 @@ class DetectorConfig:
             )
 
 
-def _stamp_args(args: dict[str, Any], verb: str, extra: tuple[str, ...]) -> dict[str, float]:
-    """The freshness args of a request, checked; unknown keys are an error naming the valid."""
-    unknown = set(args) - set(STAMP_ARGS) - {"timeout", *extra}
-    if unknown:
-        valid = ", ".join((*STAMP_ARGS, "timeout", *extra))
-        raise BadRequest(f"{verb}: unknown args {sorted(unknown)}; valid: {valid}")
-    out = {}
-    for name in STAMP_ARGS:
-        value = args.get(name)
-        if value is None:
-            continue
-        if not isinstance(value, int | float) or isinstance(value, bool) or not np.isfinite(value):
-            raise BadRequest(f"{verb}: {name} must be a finite number of seconds, got {value!r}")
-        out[name] = float(value)
-    return out
-
-
-def _timeout(args: dict[str, Any], default: float) -> float:
-    value = args.get("timeout", default)
-    if (
-        not isinstance(value, int | float)
-        or isinstance(value, bool)
-        or not (0 < value <= MAX_TIMEOUT)
-    ):
-        raise BadRequest(
-            f"timeout must be a number of seconds in (0, {MAX_TIMEOUT:g}], got {value!r}"
-        )
-    return float(value)
-
-
-def _image_from(result: Any, what: str) -> Image:
-    try:
-        return msgspec.convert(result, Image)
-    except msgspec.ValidationError as exc:
-        raise DecodeError(f"{what} is not a valid Image: {exc}") from None
-
-
 class _State:
     """The detector's model and last frame; guarded by one lock."""
 
@@ -156,35 +124,34 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
         keys = node.keys
         hits = node.publisher(keys.detector_hits(), DetectionMessage, lossless=True)
 
-        def calibrate_from(image: Image, pixels: Any) -> dict[str, Any]:
+        def grab(args: dv.MeasureArgs | dv.CalibrateArgs) -> Image:
+            timeout = config.camera_timeout if args.timeout is None else args.timeout
+            grab_args = GrabArgs(
+                after_sim_time=args.after_sim_time, after_stamp=args.after_stamp, timeout=timeout
+            )
+            return node.call_typed(keys.cam_rpc(), GRAB, grab_args, timeout=timeout + 1.0)
+
+        def calibrate_from(image: Image, pixels: Any) -> dv.CalibrateReply:
             marks = parse_pixels(pixels, "pixels")
             rgb = image.to_numpy()
             target = sample_pixels(rgb, marks["target"], "target")
             arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
             model = ColourModel.fit(target, arrow)
             state.set_model(model, save=True)
-            return {
+            return dv.CalibrateReply(
                 **model.summary(),
-                "target_pixels": len(target),
-                "arrow_pixels": 0 if arrow is None else len(arrow),
-                "frame_sim_time": image.sim_time,
-                "saved": config.model,
-            }
+                target_pixels=len(target),
+                arrow_pixels=0 if arrow is None else len(arrow),
+                frame_sim_time=image.sim_time,
+                saved=config.model,
+            )
 
-        def calibrate(args: dict[str, Any]) -> dict[str, Any]:
-            stamps = _stamp_args(args, "calibrate", ("pixels",))
-            timeout = _timeout(args, config.camera_timeout)
-            if "pixels" in args:
-                grabbed = node.call(
-                    keys.cam_rpc(), "grab", {**stamps, "timeout": timeout}, timeout=timeout + 1.0
-                )
-                return calibrate_from(_image_from(grabbed, "camera frame"), args["pixels"])
-            marks = node.call(keys.cam_rpc(), "calibration", {}, timeout=timeout + 30.0)
-            if not isinstance(marks, dict) or "image" not in marks or "pixels" not in marks:
-                raise DecodeError(
-                    f"the camera's calibration reply has no image and pixels: {marks!r}"
-                )
-            return calibrate_from(_image_from(marks["image"], "calibration frame"), marks["pixels"])
+        def calibrate(args: dv.CalibrateArgs) -> dv.CalibrateReply:
+            if args.pixels is not None:
+                return calibrate_from(grab(args), args.pixels)
+            timeout = config.camera_timeout if args.timeout is None else args.timeout
+            marks = node.call_typed(keys.cam_rpc(), CALIBRATION, timeout=timeout + 30.0)
+            return calibrate_from(marks.image, marks.pixels)
 
         calibrating = threading.Lock()
 
@@ -192,12 +159,12 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
             """The detector, calibrated from the camera's marks first if there is none yet."""
             with calibrating:
                 if state.detector is None:
-                    log.info("calibrated from the camera's marks: %s", calibrate({}))
+                    log.info(
+                        "calibrated from the camera's marks: %s", calibrate(dv.CalibrateArgs())
+                    )
             return state.detector
 
-        def measure(args: dict[str, Any]) -> dict[str, Any]:
-            stamps = _stamp_args(args, "measure", ())
-            timeout = _timeout(args, config.camera_timeout)
+        def measure(args: dv.MeasureArgs) -> dv.MeasureReply:
             detector = ensure_model() if config.auto_calibrate else state.detector
             if detector is None:
                 raise NotCalibrated(
@@ -205,10 +172,7 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
                     "real camera), or start it with --model FILE"
                 )
             started = time.perf_counter()
-            grabbed = node.call(
-                keys.cam_rpc(), "grab", {**stamps, "timeout": timeout}, timeout=timeout + 1.0
-            )
-            image = _image_from(grabbed, "camera frame")
+            image = grab(args)
             rgb = image.to_numpy()
             grabbed_at = time.perf_counter()
             found = detector.detect(rgb)
@@ -228,39 +192,32 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
                     sim_time=image.sim_time,
                 )
             )
-            reply: dict[str, Any] = msgspec.to_builtins(message)
-            reply["frame"] = image.frame
-            reply["timing"] = {
-                "grab_s": round(grabbed_at - started, 6),
-                "detect_s": round(detect_s, 6),
-            }
-            return reply
+            timing = {"grab_s": round(grabbed_at - started, 6), "detect_s": round(detect_s, 6)}
+            return dv.MeasureReply(**msgspec.to_builtins(message), frame=image.frame, timing=timing)
 
-        def frame(args: dict[str, Any]) -> dict[str, Any]:
+        def frame(args: dv.FrameArgs) -> dv.FrameReply:
             with state.lock:
                 last = state.last
             if last is None:
                 raise BadRequest("no frame measured yet: call `measure` first")
             rgb, found, detector = last
-            if args.get("overlay", True):
+            if args.overlay:
                 rgb = draw_overlay(rgb, found, detector.memberships(rgb))
-            return {"png": encode_png(rgb), "status": found.status}
+            return dv.FrameReply(png=encode_png(rgb), status=found.status)
 
-        def status(args: dict[str, Any]) -> dict[str, Any]:
+        def status(args: NoArgs) -> dv.DetectorStatusReply:
             with state.lock:
                 model = state.model
-                return {
-                    "calibrated": model is not None,
-                    "model_file": config.model,
-                    "model": model.summary() if model else None,
-                    "settings": dataclasses.asdict(config.settings),
-                    "measured": state.measured,
-                }
+                return dv.DetectorStatusReply(
+                    calibrated=model is not None,
+                    model_file=config.model,
+                    model=model.summary() if model else None,
+                    settings=dataclasses.asdict(config.settings),
+                    measured=state.measured,
+                )
 
-        node.serve(
-            keys.detector_rpc(),
-            {"measure": measure, "calibrate": calibrate, "frame": frame, "status": status},
-        )
+        verbs = {"measure": measure, "calibrate": calibrate, "frame": frame, "status": status}
+        node.serve(keys.detector_rpc(), dv.DETECTOR_VERBS.bind(verbs))
         node.ready()
         log.info("detector up (%s)", "calibrated" if state.detector else "not calibrated yet")
         auto = config.auto_calibrate

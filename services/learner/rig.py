@@ -8,8 +8,9 @@ Calls, in a rollout's order (ROBOT = the robot prefix):
   the picture of a hit with the detection drawn on it;
 * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
 
-A call that gets no reply becomes `ServiceLost` naming the service; an error reply `RigError`
-with the service's code and message.
+Every call is typed (`protocol.verbs`): its reply is decoded into the verb's reply type. A call
+that gets no reply becomes `ServiceLost` naming the service; an error reply, or a reply that does
+not match its type, `RigError` with the service's code (`bad_reply`) and message.
 """
 
 from __future__ import annotations
@@ -18,13 +19,18 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from typing import Any
+from typing import Any, TypeVar
 
+import msgspec
 import numpy as np
 
 from protocol.errors import RpcError, RpcTimeout
 from protocol.messages import WorldEvent
 from protocol.node import Node
+from protocol.verbs import Verb
+from protocol.verbs import controller as cv
+from protocol.verbs import detector as dv
+from protocol.verbs import robot as rv
 from services.learner.base import Bounds, LearnerConfigError
 from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
 
@@ -33,6 +39,7 @@ __all__ = ["SERVICES", "MeshRig"]
 SERVICES = ("robot", "camera", "detector", "controller")
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
+R = TypeVar("R", bound=msgspec.Struct)
 
 
 class MeshRig:
@@ -63,18 +70,17 @@ class MeshRig:
             self._truth_cond.notify_all()
 
     def _call(
-        self, service: str, key: str, verb: str, args: dict[str, Any] | None = None
-    ) -> tuple[Any, float]:
-        """(result, wall s) of one call; ServiceLost or RigError when it fails."""
+        self, service: str, key: str, verb: Verb[Any, R], args: msgspec.Struct | None = None
+    ) -> tuple[R, float]:
+        """(typed reply, wall s) of one call; ServiceLost or RigError (with the service's code,
+        or `bad_reply` for a reply that does not match the verb's type) when it fails."""
         start = time.perf_counter()
         try:
-            result = self.node.call(key, verb, args, timeout=self.timeout)
+            result = self.node.call_typed(key, verb, args, timeout=self.timeout)
         except RpcTimeout as exc:
             raise ServiceLost(service, exc.message) from None
         except RpcError as exc:
             raise RigError(exc.message, code=exc.code) from None
-        if not isinstance(result, dict):
-            raise RigError(f"{key} {verb} replied {result!r}, not a map", code="bad_reply")
         return result, time.perf_counter() - start
 
     # -- liveliness -----------------------------------------------------------------------------
@@ -106,67 +112,63 @@ class MeshRig:
     # -- the rollout ----------------------------------------------------------------------------
     def theta_box(self) -> Bounds:
         """The controller's θ box (m), from its `status`."""
-        result, _ = self._call("controller", self.keys.cartesian_rpc("archery"), "status")
+        key = self.keys.cartesian_rpc("archery")
+        status, _ = self._call("controller", key, cv.ARCHERY_VERBS["status"])
         try:
-            return Bounds(low=tuple(result["theta_min"]), high=tuple(result["theta_max"]))
-        except (KeyError, TypeError, LearnerConfigError) as exc:
+            return Bounds(low=tuple(status.theta_min), high=tuple(status.theta_max))
+        except LearnerConfigError as exc:
             raise RigError(f"the controller's status has no valid θ box: {exc}") from None
 
     def reset(self, seed: int) -> None:
         """Robot to the home posture, shot noise reseeded with `seed`."""
-        self._call("robot", self.keys.archery_rpc(), "reset", {"seed": int(seed)})
+        reset = rv.ARCHERY_VERBS["reset"]
+        self._call("robot", self.keys.archery_rpc(), reset, rv.ResetArgs(seed=int(seed)))
 
     def posture(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done."""
         key = self.keys.cartesian_rpc("archery")
-        result, wall = self._call("controller", key, "posture", {"theta": list(map(float, theta))})
-        move = float(result.get("wall_s", 0.0))
+        args = cv.PostureArgs(theta=[float(x) for x in theta])
+        result, wall = self._call("controller", key, cv.ARCHERY_VERBS["posture"], args)
         return PostureResult(
-            reached=bool(result.get("reached")),
-            reason=str(result.get("reason", "")),
-            theta_measured=list(result.get("theta_measured") or []),
-            timing={"posture_s": wall, "move_s": move, "ik_and_transport_s": wall - move},
+            reached=result.reached,
+            reason=result.reason,
+            theta_measured=list(result.theta_measured),
+            timing={
+                "posture_s": wall,
+                "move_s": result.wall_s,
+                "ik_and_transport_s": wall - result.wall_s,
+            },
         )
 
     def shoot(self) -> Shot:
         """Nock and release; returns when the arrow has landed."""
         key = self.keys.archery_rpc()
         before = time.time()
-        _, nock = self._call("robot", key, "nock")
-        result, release = self._call("robot", key, "release")
-        try:
-            flight = float(result["flight_time"])
-            return Shot(
-                shot=int(result["shot"]),
-                sim_time=float(result["sim_time"]),
-                stamp=before,
-                outcome=str(result.get("outcome", "")),
-                timing={"nock_s": nock, "release_s": release, "flight_sim_s": flight},
-            )
-        except (KeyError, TypeError, ValueError) as exc:
-            raise RigError(f"{key} release replied without {exc}: {result!r}") from None
+        _, nock = self._call("robot", key, rv.ARCHERY_VERBS["nock"])
+        result, release = self._call("robot", key, rv.ARCHERY_VERBS["release"])
+        return Shot(
+            shot=result.shot,
+            sim_time=result.sim_time,
+            stamp=before,
+            outcome=result.outcome,
+            timing={"nock_s": nock, "release_s": release, "flight_sim_s": result.flight_time},
+        )
 
     def measure(self, shot: Shot) -> Measurement:
         """The detector's measurement of a frame rendered at or after the landing and captured
         after the nock (so never a frame from before a reset or of an earlier arrow)."""
         key = self.keys.detector_rpc()
-        args = {
-            "after_sim_time": shot.sim_time,
-            "after_stamp": shot.stamp,
-            "timeout": max(0.5, self.timeout - 2.0),  # the detector answers before we give up
-        }
-        result, wall = self._call("detector", key, "measure", args)
-        status = result.get("status")
-        if status not in ("ok", "no_target", "no_arrow"):
-            raise RigError(f"{key} measure replied status {status!r}", code="bad_reply")
-        r = result.get("r_m")
-        if status == "ok" and (not isinstance(r, list) or len(r) != 2):
-            raise RigError(f"{key} measure replied ok without a 2-vector r_m: {r!r}")
-        timing = {"measure_s": wall}
-        for name, value in (result.get("timing") or {}).items():
-            if isinstance(value, int | float):
-                timing[f"detector_{name}"] = float(value)
-        return Measurement(status, r if status == "ok" else None, dict(result), timing)
+        args = dv.MeasureArgs(
+            after_sim_time=shot.sim_time,
+            after_stamp=shot.stamp,
+            timeout=max(0.5, self.timeout - 2.0),  # the detector answers before we give up
+        )
+        result, wall = self._call("detector", key, dv.DETECTOR_VERBS["measure"], args)
+        if result.status == "ok" and result.r_m is None:
+            raise RigError(f"{key} measure replied ok without r_m", code="bad_reply")
+        timing = {"measure_s": wall} | {f"detector_{k}": v for k, v in result.timing.items()}
+        r = result.r_m if result.status == "ok" else None
+        return Measurement(result.status, r, msgspec.to_builtins(result), timing)
 
     def truth(self, shot: Shot) -> list[float] | None:
         """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none)."""
@@ -178,9 +180,10 @@ class MeshRig:
     def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
         """The detector's last measured frame with its overlay (PNG): called right after the
         hit's `measure`, before anything else is measured."""
-        result, _ = self._call("detector", self.keys.detector_rpc(), "frame", {"overlay": True})
-        png = result.get("png")
-        if not isinstance(png, bytes) or not png.startswith(b"\x89PNG"):
+        key = self.keys.detector_rpc()
+        result, _ = self._call("detector", key, dv.DETECTOR_VERBS["frame"], dv.FrameArgs())
+        png = result.png
+        if not png.startswith(b"\x89PNG"):
             log.warning("the detector's frame reply holds no PNG")
             return None
         return png

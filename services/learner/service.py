@@ -27,10 +27,14 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Rollout
 from protocol.node import Node, Publisher
 from protocol.service import service_main
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
 from services.learner.config import (
     LearnerServiceConfig,
     SessionConfig,
@@ -81,9 +85,9 @@ class LearnerService:
         self._stop = threading.Event()
         self._report: dict[str, str | None] = {}
 
-    def handlers(self) -> dict[str, Any]:
-        """The verbs of `ROBOT/learner/rpc:i`."""
-        return {"start": self.start, "stop": self.stop, "status": self.status}
+    def handlers(self) -> ServedVerbs:
+        """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
+        return LEARNER_VERBS.bind({"start": self.start, "stop": self.stop, "status": self.status})
 
     def _publish(self, record: dict[str, Any]) -> None:
         message = rollout_message(record)
@@ -106,8 +110,9 @@ class LearnerService:
                 code="service_missing",
             )
 
-    def start(self, args: dict[str, Any]) -> dict[str, Any]:
+    def start(self, request: StartArgs) -> LearnerStatusReply:
         """Start a new session or resume one (see the module docstring)."""
+        args: dict[str, Any] = msgspec.to_builtins(request)  # the arguments given
         with self._lock:
             if self._thread is not None and self._thread.is_alive():
                 assert self._session is not None
@@ -124,8 +129,6 @@ class LearnerService:
                     raise BadRequest(
                         f"start with resume takes only resume and session, not {unknown[0]!r}"
                     )
-                if not isinstance(args["resume"], str) or not args["resume"]:
-                    raise BadRequest(f"resume must be a journal path, got {args['resume']!r}")
                 self._check_services()
                 session = Session.resume(Path(args["resume"]), self.rig, args.get("session"), **kw)
             else:
@@ -157,30 +160,26 @@ class LearnerService:
                 log.exception("could not write the report of session %s", session.session_id)
         log.info("session %s: %s %s", session.session_id, status["state"], status["cause"])
 
-    def _status_of(self, session: Session) -> dict[str, Any]:
+    def _status_of(self, session: Session, **extra: Any) -> LearnerStatusReply:
         status = session.status() | {"report": None, "hit_frame": None} | self._report
         if status["state"] in FINAL_STATES and self._thread is not None and self._thread.is_alive():
             status["state"] = "reporting"
-        return status
+        return LearnerStatusReply(**status, **extra)
 
-    def stop(self, args: dict[str, Any]) -> dict[str, Any]:
+    def stop(self, args: NoArgs) -> LearnerStatusReply:
         """Ask the running session to stop after its current rollout."""
-        if args:
-            raise BadRequest(f"stop takes no arguments, got {sorted(args)}")
         with self._lock:
             if self._session is None or self._thread is None or not self._thread.is_alive():
-                return (
-                    {"state": "idle"} if self._session is None else self._status_of(self._session)
-                )
+                if self._session is None:
+                    return LearnerStatusReply(state="idle")
+                return self._status_of(self._session)
             self._stop.set()
-            return self._status_of(self._session) | {"stopping": True}
+            return self._status_of(self._session, stopping=True)
 
-    def status(self, args: dict[str, Any]) -> dict[str, Any]:
+    def status(self, args: NoArgs) -> LearnerStatusReply:
         """The running (or last) session's status, or {"state": "idle"}."""
-        if args:
-            raise BadRequest(f"status takes no arguments, got {sorted(args)}")
         session = self._session
-        return {"state": "idle"} if session is None else self._status_of(session)
+        return LearnerStatusReply(state="idle") if session is None else self._status_of(session)
 
     def close(self, timeout: float = 30.0) -> None:
         """Stop the running session (after its current rollout) and wait for it."""

@@ -10,7 +10,8 @@ Ports (ROBOT = the robot prefix, e.g. icubSim):
 * `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
 * `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset.
 
-Verbs (args → result; joint vectors in YARP order, rad):
+Verbs (args → result; joint vectors in YARP order, rad; the types are in `protocol.verbs.robot`,
+where the RPC server checks every request before a handler sees it):
 
 * getJointNames → {names}; getLimits → {names, min, max, tolerance} (software limits);
   getPositions → {names, position, velocity, sim_time}; getTargets → {names, position};
@@ -35,15 +36,14 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 
-from protocol.errors import BadRequest
 from protocol.messages import Array, JointCommand, JointState, WorldEvent, WorldState
-from protocol.node import Handler, Node, Subscription
+from protocol.node import Node, Subscription
 from protocol.service import service_main
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import robot as rv
 from services.robot.config import RobotConfig, add_robot_arguments, config_from_args
 from services.robot.simloop import SimLoop
 from sim.world import ArcheryWorld
@@ -107,93 +107,55 @@ class _MeshSink:
         )
 
 
-def _args(
-    args: dict[str, Any], verb: str, required: tuple[str, ...], optional: tuple[str, ...]
-) -> None:
-    """Raise BadRequest for a missing or unknown argument of `verb`."""
-    missing = [k for k in required if k not in args]
-    unknown = sorted(set(args) - set(required) - set(optional))
-    valid = ", ".join((*required, *optional)) or "none"
-    if missing:
-        raise BadRequest(f"{verb} needs {', '.join(missing)}; arguments: {valid}")
-    if unknown:
-        raise BadRequest(f"{verb} has no argument {unknown[0]!r}; arguments: {valid}")
-
-
-def _verb(
-    name: str,
-    func: Callable[[dict[str, Any]], Any],
-    required: tuple[str, ...] = (),
-    optional: tuple[str, ...] = (),
-) -> tuple[str, Handler]:
-    def handler(args: dict[str, Any]) -> Any:
-        _args(args, name, required, optional)
-        return func(args)
-
-    return name, handler
-
-
-def _part_handlers(
-    loop: SimLoop, part: str, commands: Subscription[JointCommand]
-) -> dict[str, Handler]:
+def _part_handlers(loop: SimLoop, part: str, commands: Subscription[JointCommand]) -> ServedVerbs:
     limits = loop.limits[part]
     names = list(limits.names)
 
-    def counters(_: dict[str, Any]) -> dict[str, Any]:
-        return loop.counters(part) | {"undecodable": commands.dropped}
+    def counters(_: NoArgs) -> rv.CountersReply:
+        return rv.CountersReply(**loop.counters(part), undecodable=commands.dropped)
 
-    def status(_: dict[str, Any]) -> dict[str, Any]:
-        return {
-            "part": part,
-            "names": names,
-            "motion_done": loop.motion_done(part),
-            "counters": counters({}),
-        } | loop.positions(part)
+    def status(_: NoArgs) -> rv.PartStatusReply:
+        return rv.PartStatusReply(
+            part=part,
+            names=names,
+            motion_done=loop.motion_done(part),
+            counters=counters(NoArgs()),
+            **loop.positions(part),
+        )
 
-    return dict(
-        [
-            _verb("getJointNames", lambda a: {"names": names}),
-            _verb(
-                "getLimits",
-                lambda a: {
-                    "names": names,
-                    "min": list(limits.lower),
-                    "max": list(limits.upper),
-                    "tolerance": limits.tolerance,
-                },
+    return rv.PART_VERBS.bind(
+        {
+            "getJointNames": lambda a: rv.JointNamesReply(names=names),
+            "getLimits": lambda a: rv.LimitsReply(
+                names=names,
+                min=list(limits.lower),
+                max=list(limits.upper),
+                tolerance=limits.tolerance,
             ),
-            _verb("getPositions", lambda a: loop.positions(part)),
-            _verb("getTargets", lambda a: {"names": names, "position": loop.targets(part)}),
-            _verb("checkMotionDone", lambda a: {"done": loop.motion_done(part)}),
-            _verb(
-                "setRefSpeeds",
-                lambda a: {"names": names, "speeds": loop.set_ref_speeds(part, a["speeds"])},
-                required=("speeds",),
+            "getPositions": lambda a: rv.PositionsReply(**loop.positions(part)),
+            "getTargets": lambda a: rv.TargetsReply(names=names, position=loop.targets(part)),
+            "checkMotionDone": lambda a: rv.MotionDoneReply(done=loop.motion_done(part)),
+            "setRefSpeeds": lambda a: rv.RefSpeedsReply(
+                names=names, speeds=loop.set_ref_speeds(part, a.speeds)
             ),
-            _verb("getRefSpeeds", lambda a: {"names": names, "speeds": loop.ref_speeds(part)}),
-            _verb(
-                "positionMove",
-                lambda a: {
-                    "names": names,
-                    "position": loop.position_move(part, a["position"], a.get("names")),
-                },
-                required=("position",),
-                optional=("names",),
+            "getRefSpeeds": lambda a: rv.RefSpeedsReply(names=names, speeds=loop.ref_speeds(part)),
+            "positionMove": lambda a: rv.TargetsReply(
+                names=names, position=loop.position_move(part, a.position, a.names)
             ),
-            _verb("counters", counters),
-            _verb("status", status),
-        ]
+            "counters": counters,
+            "status": status,
+        }
     )
 
 
-def _archery_handlers(loop: SimLoop) -> dict[str, Handler]:
-    return dict(
-        [
-            _verb("nock", lambda a: loop.nock()),
-            _verb("release", lambda a: loop.release()),
-            _verb("reset", lambda a: loop.reset(a.get("seed")), optional=("seed",)),
-            _verb("status", lambda a: loop.status()),
-        ]
+def _archery_handlers(loop: SimLoop) -> ServedVerbs:
+    return rv.ARCHERY_VERBS.bind(
+        {
+            "nock": lambda a: rv.NockReply(**loop.nock()),
+            "release": lambda a: rv.ReleaseReply(**loop.release()),
+            "reset": lambda a: rv.ResetReply(**loop.reset(a.seed)),
+            "status": lambda a: rv.ArcheryStatusReply(**loop.status()),
+        }
     )
 
 

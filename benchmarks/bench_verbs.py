@@ -1,0 +1,128 @@
+"""Typed RPC verbs against untyped dict verbs: round-trip latency over a real router.
+
+Both paths serve the same request (θ and a timeout) and the same reply (θ, a time, a flag) from
+one server node to one client node: the untyped path passes the args dict to the handler and
+returns a dict (`Node.call`); the typed path decodes the args straight into a Struct, the
+handler returns a reply Struct, and the client decodes it into that Struct (`Node.call_typed`).
+Repeats interleave the two so machine noise hits both alike; the goal is typed ≤ 1.05× untyped.
+
+    python -m benchmarks.bench_verbs [--calls 2000] [--repeats 7]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+from typing import Annotated
+
+import msgspec
+import numpy as np
+
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.router import free_tcp_endpoint, spawn_router
+from protocol.verbs import Args, Reply, Verb, VerbTable
+
+THETA = [0.17, 0.03, -0.03]
+
+
+class AimArgs(Args, frozen=True):
+    theta: Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+    timeout: Annotated[float, msgspec.Meta(ge=0.1, le=3600.0)] | None = None
+
+
+class AimReply(Reply, frozen=True):
+    theta: list[float]
+    time: float
+    reached: bool
+
+
+AIM = Verb("aim", AimArgs, AimReply, "benchmark verb")
+TABLE = VerbTable("bench", ("bench/rpc:i",), (AIM,))
+
+
+def _untyped(a: Node, key: str, calls: int) -> list[float]:
+    args = {"theta": THETA, "timeout": 5.0}
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        reply = a.call(key, "aim", args)
+        times.append((time.perf_counter() - t0) * 1e3)
+    assert reply["reached"]
+    return times
+
+
+def _typed(a: Node, key: str, calls: int) -> list[float]:
+    args = AimArgs(theta=THETA, timeout=5.0)
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        reply = a.call_typed(key, AIM, args)
+        times.append((time.perf_counter() - t0) * 1e3)
+    assert reply.reached
+    return times
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark and print medians, p99s and typed/untyped ratios with their spread."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_verbs", description=__doc__)
+    parser.add_argument("--calls", type=int, default=2000, help="calls per path and repeat")
+    parser.add_argument("--repeats", type=int, default=7, help="interleaved repeats (≥ 5)")
+    args = parser.parse_args(argv)
+    if args.repeats < 5:
+        parser.error("--repeats must be at least 5")
+    endpoint = free_tcp_endpoint()
+    router = spawn_router(endpoint)
+    net = NetConfig(connect=(endpoint,), robot="bench")
+    typed_key, untyped_key = "bench/typed/rpc:i", "bench/untyped/rpc:i"
+    per_repeat: list[tuple[list[float], list[float]]] = []
+    try:
+        with Node("bench_server", net) as server, Node(None, net) as client:
+            server.serve(
+                untyped_key,
+                {"aim": lambda a: {"theta": a["theta"], "time": 1.0, "reached": True}},
+            )
+            server.serve(
+                typed_key,
+                TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}),
+            )
+            _untyped(client, untyped_key, 200)  # warm up both paths
+            _typed(client, typed_key, 200)
+            for r in range(args.repeats):
+                if r % 2:  # alternate which path goes first
+                    typed = _typed(client, typed_key, args.calls)
+                    untyped = _untyped(client, untyped_key, args.calls)
+                else:
+                    untyped = _untyped(client, untyped_key, args.calls)
+                    typed = _typed(client, typed_key, args.calls)
+                per_repeat.append((untyped, typed))
+    finally:
+        router.terminate()
+        router.wait()
+
+    def p99(values: list[float]) -> float:
+        return float(np.percentile(values, 99))
+
+    all_u = [t for u, _ in per_repeat for t in u]
+    all_t = [t for _, ty in per_repeat for t in ty]
+    med_ratios = [statistics.median(ty) / statistics.median(u) for u, ty in per_repeat]
+    p99_ratios = [p99(ty) / p99(u) for u, ty in per_repeat]
+    cpu = platform.processor() or platform.machine()
+    print(f"machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(f"{args.repeats} interleaved repeats × {args.calls} calls per path, router on loopback")
+    print(f"{'figure':<22} {'untyped':>9} {'typed':>9} {'ratio':>7}  {'spread (min–max)':>18}")
+    for name, u, ty, ratios in (
+        ("RPC median (ms)", statistics.median(all_u), statistics.median(all_t), med_ratios),
+        ("RPC p99 (ms)", p99(all_u), p99(all_t), p99_ratios),
+    ):
+        spread = f"{min(ratios):.3f}–{max(ratios):.3f}"
+        print(f"{name:<22} {u:>9.3f} {ty:>9.3f} {ty / u:>6.3f}×  {spread:>18}")
+    print("ratio = typed / untyped (per-repeat ratios give the spread); goal ≤ 1.05×")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

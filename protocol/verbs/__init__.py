@@ -1,0 +1,44 @@
+"""Typed RPC verbs of every service (see `protocol.verbs.base`), and the tables by port."""
+
+from __future__ import annotations
+
+from protocol.errors import KeyNameError
+from protocol.verbs import camera, controller, detector, learner, robot
+from protocol.verbs.base import Args, BoundVerb, NoArgs, Reply, ServedVerbs, Verb, VerbTable
+
+__all__ = [
+    "TABLES",
+    "Args",
+    "BoundVerb",
+    "NoArgs",
+    "Reply",
+    "ServedVerbs",
+    "Verb",
+    "VerbTable",
+    "table_for_key",
+]
+
+TABLES: tuple[VerbTable, ...] = (
+    robot.PART_VERBS,
+    robot.ARCHERY_VERBS,
+    camera.CAMERA_VERBS,
+    detector.DETECTOR_VERBS,
+    controller.ARM_VERBS,
+    controller.ARCHERY_VERBS,
+    learner.LEARNER_VERBS,
+)
+_BY_PORT = {port: table for table in TABLES for port in table.ports}
+
+
+def table_for_key(key: str) -> VerbTable:
+    """The verb table of a full `rpc:i` key (robot prefix included).
+
+    Raises:
+        KeyNameError: no service's verbs are declared for that key; the message lists the keys.
+    """
+    _, _, port = key.partition("/")
+    table = _BY_PORT.get(port)
+    if table is None:
+        ports = ", ".join(f"ROBOT/{p}" for p in _BY_PORT)
+        raise KeyNameError(f"no verb table for {key!r}; typed rpc:i keys: {ports}")
+    return table

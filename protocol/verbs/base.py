@@ -1,0 +1,156 @@
+"""Typed RPC verbs: one Struct for a verb's arguments, one for its reply, and the verb tables.
+
+A `Verb` names a verb of an `rpc:i` port with its `Args` and `Reply` types and a one-line doc;
+a `VerbTable` lists the verbs of one kind of port. A service binds a handler to every verb of a
+table (`VerbTable.bind`) and serves the result (`Node.serve`); the `RpcServer` decodes each
+request's arguments straight into the verb's `Args` type, so handlers only ever see valid,
+typed arguments. Callers use `Node.call_typed`, which decodes the reply into the verb's `Reply`.
+
+Constraints live in the types (`Annotated[float, Meta(ge=..., le=...)]`, lengths, `Literal`);
+`Args` forbid unknown fields, and every float in an `Args` or `Reply` must be finite.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Generic, TypeVar
+
+import msgspec
+
+from protocol.messages import _check_finite
+
+__all__ = ["Args", "BoundVerb", "NoArgs", "Reply", "ServedVerbs", "Verb", "VerbTable"]
+
+
+class Args(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """Base of every verb's arguments: unknown fields are refused, floats must be finite."""
+
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            _check_finite(getattr(self, name), f"$.{name}")
+
+
+class NoArgs(Args, frozen=True):
+    """A verb that takes no arguments."""
+
+
+class Reply(msgspec.Struct, frozen=True, kw_only=True):
+    """Base of every verb's reply: floats must be finite."""
+
+    def __post_init__(self) -> None:
+        for name in self.__struct_fields__:
+            _check_finite(getattr(self, name), f"$.{name}")
+
+
+A = TypeVar("A", bound=msgspec.Struct)
+R = TypeVar("R", bound=msgspec.Struct)
+
+
+@dataclass(frozen=True)
+class Verb(Generic[A, R]):
+    """One verb: its name, argument and reply types, and a one-line doc."""
+
+    name: str
+    args: type[A]
+    reply: type[R]
+    doc: str
+
+    @functools.cached_property
+    def args_decoder(self) -> msgspec.msgpack.Decoder[A]:
+        """Decodes a request's msgpack args straight into `args`."""
+        return msgspec.msgpack.Decoder(self.args)
+
+    @functools.cached_property
+    def reply_decoder(self) -> msgspec.msgpack.Decoder[Any]:
+        """Decodes a whole `RpcReply` whose result is this verb's reply (or None)."""
+        from protocol.messages import RpcReply
+
+        typed = msgspec.defstruct(
+            "RpcReply",
+            [("result", self.reply | None, None)],
+            bases=(RpcReply,),
+            frozen=True,
+            kw_only=True,
+            tag="RpcReply",
+            tag_field="type",
+        )
+        return msgspec.msgpack.Decoder(typed)
+
+    def schema(self) -> dict[str, Any]:
+        """{"doc", "args", "reply"}: the doc and JSON schemas of the argument and reply types."""
+        return {
+            "doc": self.doc,
+            "args": msgspec.json.schema(self.args),
+            "reply": msgspec.json.schema(self.reply),
+        }
+
+
+@dataclass(frozen=True)
+class BoundVerb(Generic[A, R]):
+    """A verb and the handler that serves it (takes the typed args, returns the typed reply)."""
+
+    verb: Verb[A, R]
+    handler: Callable[[A], R]
+
+
+@dataclass(frozen=True)
+class ServedVerbs:
+    """A verb table with a handler bound to each of its verbs: what `Node.serve` takes."""
+
+    table: VerbTable
+    bound: Mapping[str, BoundVerb[Any, Any]]
+
+
+@dataclass(frozen=True)
+class VerbTable:
+    """The verbs of one kind of `rpc:i` port.
+
+    Attributes:
+        title: what serves the port (e.g. "robot controlboard").
+        ports: the key suffixes after the robot prefix this table serves (e.g. "torso/rpc:i").
+        verbs: the verbs, in the order they are documented.
+    """
+
+    title: str
+    ports: tuple[str, ...]
+    verbs: tuple[Verb[Any, Any], ...]
+    _by_name: dict[str, Verb[Any, Any]] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        by_name = {v.name: v for v in self.verbs}
+        if len(by_name) != len(self.verbs):
+            raise ValueError(f"{self.title}: a verb name is listed twice")
+        object.__setattr__(self, "_by_name", by_name)
+
+    def __getitem__(self, name: str) -> Verb[Any, Any]:
+        return self._by_name[name]
+
+    def __iter__(self) -> Iterator[Verb[Any, Any]]:
+        return iter(self.verbs)
+
+    def names(self) -> list[str]:
+        """The verb names, sorted."""
+        return sorted(self._by_name)
+
+    def bind(self, handlers: Mapping[str, Callable[[Any], Any]]) -> ServedVerbs:
+        """Bind a handler to every verb (by name).
+
+        Raises:
+            ValueError: a verb has no handler, or a handler has no verb.
+        """
+        missing = sorted(set(self._by_name) - set(handlers))
+        extra = sorted(set(handlers) - set(self._by_name))
+        if missing or extra:
+            raise ValueError(
+                f"{self.title}: handlers must match the verbs exactly; "
+                f"missing {missing}, not verbs {extra}"
+            )
+        bound = {name: BoundVerb(self._by_name[name], h) for name, h in handlers.items()}
+        return ServedVerbs(self, bound)
+
+    @functools.cached_property
+    def schemas(self) -> dict[str, dict[str, Any]]:
+        """verb name -> `Verb.schema()` (computed once)."""
+        return {v.name: v.schema() for v in self.verbs}

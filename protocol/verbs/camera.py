@@ -1,0 +1,51 @@
+"""Verbs of the camera, `ROBOT/cam/rpc:i`: grab a fresh frame, calibration marks, status."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from msgspec import Meta
+
+from protocol.messages import Image
+from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+
+__all__ = ["CAMERA_VERBS", "MAX_GRAB_TIMEOUT"]
+
+MAX_GRAB_TIMEOUT = 120.0  # s
+
+
+class GrabArgs(Args, frozen=True):
+    after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
+    after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
+    timeout: Annotated[float, Meta(gt=0.0, le=MAX_GRAB_TIMEOUT, description="s")] | None = None
+
+
+class CalibrationReply(Reply, frozen=True):
+    image: Image
+    pixels: Annotated[dict[str, list[list[float]]], Meta(description="{target, arrow}: [[x, y]…]")]
+
+
+class CameraStatusReply(Reply, frozen=True):
+    source: str
+    width: int
+    height: int
+    rate: Annotated[float, Meta(description="frames/s")]
+    encoding: str
+    frames: int
+    renders: int
+    render_ms: float | None
+    errors: int
+    latest_sim_time: float | None
+    scene: dict[str, Any] | None
+    scene_from: str
+
+
+CAMERA_VERBS = VerbTable(
+    "camera",
+    ("cam/rpc:i",),
+    (
+        Verb("grab", GrabArgs, Image, "the first frame fresher than the given times (default 5 s)"),
+        Verb("calibration", NoArgs, CalibrationReply, "a frame and its target/arrow marks"),
+        Verb("status", NoArgs, CameraStatusReply, "source, size, rate, frames, render time"),
+    ),
+)

@@ -1,0 +1,166 @@
+"""Verbs of the cartesian controllers: `ROBOT/cartesianController/{left_arm,right_arm}/rpc:i`
+(iKin style) and `ROBOT/cartesianController/archery/rpc:i` (the archery posture for θ).
+
+Positions are metres in `root_link`; orientations iKin axis-angle [ax, ay, az, angle (rad)].
+The θ box, the zero-axis rule and reachability depend on the loaded model and are checked by
+the controller itself.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from msgspec import Meta
+
+from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+
+__all__ = ["ARCHERY_VERBS", "ARM_VERBS", "TIMEOUT_RANGE", "TRAJ_TIME_RANGE"]
+
+TRAJ_TIME_RANGE = (0.05, 60.0)  # s of simulated time
+TIMEOUT_RANGE = (0.1, 3600.0)  # wall s
+TOLERANCE_RANGE = (1e-6, 0.1)  # m
+
+Position = Annotated[list[float], Meta(min_length=3, max_length=3, description="[x, y, z] m")]
+AxisAngle = Annotated[
+    list[float], Meta(min_length=4, max_length=4, description="[ax, ay, az] unit axis, angle rad")
+]
+TrajTime = Annotated[
+    float, Meta(ge=TRAJ_TIME_RANGE[0], le=TRAJ_TIME_RANGE[1], description="s, sim time")
+]
+Timeout = Annotated[float, Meta(ge=TIMEOUT_RANGE[0], le=TIMEOUT_RANGE[1], description="wall s")]
+
+
+# -- arms -----------------------------------------------------------------------------------------
+class AskForPoseArgs(Args, frozen=True):
+    xd: Position
+    od: AxisAngle | None = None
+
+
+class GoToPoseArgs(Args, frozen=True):
+    xd: Position
+    od: AxisAngle | None = None
+    timeout: Timeout | None = None
+
+
+class AskForPoseReply(Reply, frozen=True):
+    q: Annotated[dict[str, float], Meta(description="rad")]
+    x: Annotated[list[float], Meta(description="m")]
+    o: Annotated[list[float], Meta(description="axis-angle")]
+    position_error_m: float
+    orientation_error_rad: float
+    reachable: bool
+    iterations: int
+    warm_start: str
+
+
+class GoToPoseReply(Reply, frozen=True):
+    q: Annotated[dict[str, float], Meta(description="rad")]
+    x: Annotated[list[float], Meta(description="m")]
+    o: Annotated[list[float], Meta(description="axis-angle")]
+    position_error_m: float
+    orientation_error_rad: float
+    reachable: bool
+    iterations: int
+    reached: bool
+    reason: str
+    wall_s: float
+    sim_time: float
+    x_measured: Annotated[list[float], Meta(description="m")]
+    position_error_measured_m: float
+
+
+class PoseReply(Reply, frozen=True):
+    x: Annotated[list[float], Meta(description="m")]
+    o: Annotated[list[float], Meta(description="axis-angle")]
+    q: Annotated[dict[str, float], Meta(description="rad")]
+    sim_time: float
+
+
+class SetToleranceArgs(Args, frozen=True):
+    tolerance: Annotated[float, Meta(ge=TOLERANCE_RANGE[0], le=TOLERANCE_RANGE[1], description="m")]
+
+
+class ToleranceReply(Reply, frozen=True):
+    tolerance: Annotated[float, Meta(description="m")]
+
+
+class SetTrajTimeArgs(Args, frozen=True):
+    time: TrajTime
+
+
+class TrajTimeReply(Reply, frozen=True):
+    time: Annotated[float, Meta(description="s, sim time")]
+
+
+class SetDofArgs(Args, frozen=True):
+    torso: bool
+
+
+class DofReply(Reply, frozen=True):
+    torso: bool
+    joints: list[str]
+
+
+_TRAJ = (
+    Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"),
+    Verb("getTrajTime", NoArgs, TrajTimeReply, "trajectory time of the next moves"),
+)
+
+ARM_VERBS = VerbTable(
+    "cartesian controller of one arm",
+    ("cartesianController/left_arm/rpc:i", "cartesianController/right_arm/rpc:i"),
+    (
+        Verb("askForPose", AskForPoseArgs, AskForPoseReply, "solve IK for a pose, without moving"),
+        Verb("goToPose", GoToPoseArgs, GoToPoseReply, "solve IK and move there; replies when done"),
+        Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)"),
+        Verb("setTolerance", SetToleranceArgs, ToleranceReply, "IK position tolerance"),
+        Verb("getTolerance", NoArgs, ToleranceReply, "IK position tolerance"),
+        *_TRAJ,
+        Verb("setDOF", SetDofArgs, DofReply, "solve and move the torso with the arm, or hold it"),
+        Verb("getDOF", NoArgs, DofReply, "whether the torso moves, and the moving joints"),
+    ),
+)
+
+
+# -- archery --------------------------------------------------------------------------------------
+class PostureArgs(Args, frozen=True):
+    theta: Annotated[
+        list[float], Meta(min_length=3, max_length=3, description="θ, right − left hand, m")
+    ]
+    timeout: Timeout | None = None
+
+
+class PostureReply(Reply, frozen=True):
+    q: Annotated[dict[str, float], Meta(description="rad")]
+    theta: Annotated[list[float], Meta(description="m")]
+    theta_achieved: Annotated[list[float], Meta(description="m")]
+    theta_measured: Annotated[list[float], Meta(description="m")]
+    relative_error_m: float
+    measured_error_m: float
+    reachable: bool
+    bow_hand: Annotated[list[float], Meta(description="m")]
+    reached: bool
+    reason: str
+    wall_s: float
+    sim_time: float
+
+
+class ArcheryStatusReply(Reply, frozen=True):
+    theta_min: Annotated[list[float], Meta(description="m")]
+    theta_max: Annotated[list[float], Meta(description="m")]
+    bow_hand: Annotated[list[float], Meta(description="m")]
+    nominal_theta: Annotated[list[float], Meta(description="m")]
+    use_torso: bool
+    traj_time: Annotated[float, Meta(description="s, sim time")]
+    joints: list[str]
+
+
+ARCHERY_VERBS = VerbTable(
+    "cartesian controller: archery posture",
+    ("cartesianController/archery/rpc:i",),
+    (
+        Verb("posture", PostureArgs, PostureReply, "move both arms to the posture for θ"),
+        *_TRAJ,
+        Verb("status", NoArgs, ArcheryStatusReply, "θ box, bow hand, joints, trajectory time"),
+    ),
+)

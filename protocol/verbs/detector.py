@@ -1,0 +1,89 @@
+"""Verbs of the detector, `ROBOT/detector/rpc:i`: measure, calibrate, frame, status."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from msgspec import Meta
+
+from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+
+__all__ = ["DETECTOR_VERBS", "MAX_TIMEOUT"]
+
+MAX_TIMEOUT = 120.0  # s
+
+Timeout = Annotated[float, Meta(gt=0.0, le=MAX_TIMEOUT, description="s to wait for a frame")]
+
+
+class MeasureArgs(Args, frozen=True):
+    after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
+    after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
+    timeout: Timeout | None = None
+
+
+class CalibrateArgs(Args, frozen=True):
+    after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
+    after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
+    timeout: Timeout | None = None
+    pixels: (
+        Annotated[
+            dict[str, Any],
+            Meta(description="PIXELS.json: {target: [[x, y]…], arrow?: […]}; absent: the marks"),
+        ]
+        | None
+    ) = None
+
+
+class FrameArgs(Args, frozen=True):
+    overlay: bool = True
+
+
+class MeasureReply(Reply, frozen=True):
+    type: str
+    schema: int
+    seq: int
+    stamp: float
+    sim_time: float | None
+    frame_stamp: float
+    status: Literal["ok", "no_target", "no_arrow"]
+    target_px: list[float] | None
+    arrow_px: list[float] | None
+    target_confidence: float
+    arrow_confidence: float
+    r_m: Annotated[list[float], Meta(min_length=2, max_length=2, description="m")] | None
+    frame: int
+    timing: Annotated[dict[str, float], Meta(description="s")]
+
+
+class CalibrateReply(Reply, frozen=True):
+    target: dict[str, Any] | None
+    arrow: dict[str, Any] | None
+    target_pixels: int
+    arrow_pixels: int
+    frame_sim_time: float | None
+    saved: str | None
+
+
+class FrameReply(Reply, frozen=True):
+    png: bytes
+    status: str
+
+
+class DetectorStatusReply(Reply, frozen=True):
+    calibrated: bool
+    model_file: str | None
+    model: dict[str, Any] | None
+    settings: dict[str, Any]
+    measured: int
+
+
+DETECTOR_VERBS = VerbTable(
+    "detector",
+    ("detector/rpc:i",),
+    (
+        Verb("measure", MeasureArgs, MeasureReply, "detect target and arrow in a fresh frame"),
+        Verb("calibrate", CalibrateArgs, CalibrateReply, "fit the colour model from pixels"),
+        Verb("frame", FrameArgs, FrameReply, "the last measured frame as PNG (with overlay)"),
+        Verb("status", NoArgs, DetectorStatusReply, "colour model, settings, frames measured"),
+    ),
+)

@@ -1,0 +1,76 @@
+"""Verbs of the learner, `ROBOT/learner/rpc:i`: start (or resume), stop, status.
+
+Which algorithms exist, whether θ0 lies in the bounds and whether a journal can be resumed are
+checked by the learner itself.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+from msgspec import UNSET, Meta, UnsetType
+
+from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+
+__all__ = ["LEARNER_VERBS"]
+
+Vector3 = Annotated[list[float], Meta(min_length=3, max_length=3, description="m")]
+
+
+class Bounds(Args, frozen=True):
+    low: Vector3
+    high: Vector3
+
+
+class Scenario(Args, frozen=True):
+    theta0: Vector3 | UnsetType = UNSET
+    bounds: Bounds | UnsetType | None = UNSET
+    hit_radius: Annotated[float, Meta(ge=0.001, le=0.25, description="m")] | UnsetType = UNSET
+    reset: bool | UnsetType = UNSET
+
+
+class StartArgs(Args, frozen=True):
+    algo: Annotated[str, Meta(description="archer, power, …")] | UnsetType = UNSET
+    rollouts: Annotated[int, Meta(ge=1, le=10_000)] | UnsetType = UNSET
+    seed: Annotated[int, Meta(ge=0, le=2**32 - 1)] | UnsetType = UNSET
+    until_hit: bool | UnsetType = UNSET
+    scenario: Scenario | UnsetType = UNSET
+    options: Annotated[dict[str, Any], Meta(description="learner options")] | UnsetType = UNSET
+    resume: Annotated[str, Meta(min_length=1, description="journal path")] | UnsetType = UNSET
+    session: str | UnsetType | None = UNSET
+
+
+class LearnerStatusReply(Reply, frozen=True):
+    """{"state": "idle"} before any session; else the session's counts and results."""
+
+    state: str
+    session: str | UnsetType = UNSET
+    algorithm: str | UnsetType = UNSET
+    seed: int | UnsetType = UNSET
+    budget: int | UnsetType = UNSET
+    rollouts: int | UnsetType = UNSET
+    aborted: int | UnsetType = UNSET
+    hit_at: int | UnsetType | None = UNSET
+    final_distance_m: float | UnsetType | None = UNSET
+    best_distance_m: float | UnsetType | None = UNSET
+    ended: str | UnsetType | None = UNSET
+    cause: str | UnsetType = UNSET
+    waiting_for: list[str] | UnsetType = UNSET
+    journal: str | UnsetType = UNSET
+    directory: str | UnsetType = UNSET
+    last_theta: list[float] | UnsetType | None = UNSET
+    last_r_m: list[float] | UnsetType | None = UNSET
+    report: str | UnsetType | None = UNSET
+    hit_frame: str | UnsetType | None = UNSET
+    stopping: bool | UnsetType = UNSET
+
+
+LEARNER_VERBS = VerbTable(
+    "learner",
+    ("learner/rpc:i",),
+    (
+        Verb("start", StartArgs, LearnerStatusReply, "start a session, or resume a journal"),
+        Verb("stop", NoArgs, LearnerStatusReply, "stop the session after its current rollout"),
+        Verb("status", NoArgs, LearnerStatusReply, "the running or last session's status"),
+    ),
+)

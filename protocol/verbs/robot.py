@@ -1,0 +1,172 @@
+"""Verbs of the simulated robot: the controlboards `ROBOT/{part}/rpc:i` and `ROBOT/archery/rpc:i`.
+
+Joint vectors are in YARP order, in rad (rad/s for speeds). Limits that depend on the loaded
+model (joint limits, joint names) are checked by the robot itself.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from msgspec import Meta
+
+from protocol.parts import PARTS
+from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+
+__all__ = ["ARCHERY_VERBS", "PART_VERBS"]
+
+MAX_REFERENCE_SPEED = 2.0  # rad/s
+MAX_JOINTS = 64
+
+Speed = Annotated[float, Meta(gt=0.0, le=MAX_REFERENCE_SPEED, description="rad/s")]
+Joints = Annotated[list[float], Meta(min_length=1, max_length=MAX_JOINTS, description="rad")]
+JointNames = Annotated[list[str], Meta(min_length=1, max_length=MAX_JOINTS)]
+
+
+# -- controlboard ---------------------------------------------------------------------------------
+class JointNamesReply(Reply, frozen=True):
+    names: list[str]
+
+
+class LimitsReply(Reply, frozen=True):
+    names: list[str]
+    min: Annotated[list[float], Meta(description="rad")]
+    max: Annotated[list[float], Meta(description="rad")]
+    tolerance: Annotated[float, Meta(description="rad")]
+
+
+class PositionsReply(Reply, frozen=True):
+    names: list[str]
+    position: Annotated[list[float], Meta(description="rad")]
+    velocity: Annotated[list[float], Meta(description="rad/s")]
+    sim_time: Annotated[float, Meta(description="s")]
+
+
+class TargetsReply(Reply, frozen=True):
+    names: list[str]
+    position: Annotated[list[float], Meta(description="rad")]
+
+
+class MotionDoneReply(Reply, frozen=True):
+    done: bool
+
+
+class SetRefSpeedsArgs(Args, frozen=True):
+    speeds: Speed | Annotated[list[Speed], Meta(min_length=1, max_length=MAX_JOINTS)]
+
+
+class RefSpeedsReply(Reply, frozen=True):
+    names: list[str]
+    speeds: Annotated[list[float], Meta(description="rad/s")]
+
+
+class PositionMoveArgs(Args, frozen=True):
+    position: Joints
+    names: JointNames | None = None
+
+
+class CountersReply(Reply, frozen=True):
+    accepted: int
+    clamped: int
+    rejected: int
+    rejected_by_reason: dict[str, int]
+    watchdog_trips: int
+    last_rejection: str
+    streaming: bool
+    undecodable: int
+
+
+class PartStatusReply(Reply, frozen=True):
+    part: str
+    names: list[str]
+    motion_done: bool
+    counters: CountersReply
+    position: Annotated[list[float], Meta(description="rad")]
+    velocity: Annotated[list[float], Meta(description="rad/s")]
+    sim_time: Annotated[float, Meta(description="s")]
+
+
+PART_VERBS = VerbTable(
+    "robot controlboard",
+    tuple(f"{part}/rpc:i" for part in PARTS),
+    (
+        Verb("getJointNames", NoArgs, JointNamesReply, "the part's joint names, in YARP order"),
+        Verb("getLimits", NoArgs, LimitsReply, "software joint limits (rad) and clamp tolerance"),
+        Verb("getPositions", NoArgs, PositionsReply, "encoders: positions, velocities, sim time"),
+        Verb("getTargets", NoArgs, TargetsReply, "the current (clamped) position targets"),
+        Verb("checkMotionDone", NoArgs, MotionDoneReply, "True once every joint has settled"),
+        Verb(
+            "setRefSpeeds",
+            SetRefSpeedsArgs,
+            RefSpeedsReply,
+            "reference speeds: one for every joint, or one per joint",
+        ),
+        Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds"),
+        Verb(
+            "positionMove",
+            PositionMoveArgs,
+            TargetsReply,
+            "move to targets, validated like a command (names: a subset of joints)",
+        ),
+        Verb("counters", NoArgs, CountersReply, "command counters: accepted, clamped, rejected"),
+        Verb("status", NoArgs, PartStatusReply, "names, motion done, counters and encoders"),
+    ),
+)
+
+
+# -- archery --------------------------------------------------------------------------------------
+class NockReply(Reply, frozen=True):
+    shot: int
+    arrow: str
+    sim_time: Annotated[float, Meta(description="s")]
+
+
+class ReleaseReply(Reply, frozen=True):
+    shot: int
+    outcome: str
+    hit: bool
+    reason: str
+    sim_time: Annotated[float, Meta(description="s")]
+    release_sim_time: Annotated[float, Meta(description="s")]
+    flight_time: Annotated[float, Meta(description="s")]
+    theta: Annotated[list[float], Meta(description="m")]
+
+
+class ResetArgs(Args, frozen=True):
+    seed: Annotated[int, Meta(ge=0, le=2**63 - 1)] | None = None
+
+
+class ResetReply(Reply, frozen=True):
+    sim_time: Annotated[float, Meta(description="s")]
+    seed: int | None
+    shot: int
+
+
+class ArcheryStatusReply(Reply, frozen=True):
+    sim_time: Annotated[float, Meta(description="s")]
+    arrow: str
+    phase: Literal["idle", "nocked", "flying", "stuck", "missed"]
+    shot: int
+    motion_done: bool
+    seed: int | None
+    rtf: float
+    state_rate: float
+    world_rate: float
+    watchdog: float
+    limit_tolerance: float
+    timestep: float
+    counters: dict[str, dict[str, Any]]
+    scene: dict[str, Any]
+    world: dict[str, Any]
+
+
+ARCHERY_VERBS = VerbTable(
+    "robot archery",
+    ("archery/rpc:i",),
+    (
+        Verb("nock", NoArgs, NockReply, "put a fresh arrow on the bow"),
+        Verb("release", NoArgs, ReleaseReply, "release the arrow; replies once it has landed"),
+        Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed"),
+        Verb("status", NoArgs, ArcheryStatusReply, "arrow, phase, counters, scene and world"),
+    ),
+)
