@@ -11,7 +11,7 @@ import threading
 from collections.abc import Callable
 from typing import TypeVar
 
-from protocol.errors import ArcheryError, ConfigError
+from protocol.errors import ArcheryError, ConfigError, DuplicateService
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import shutdown_on_signals
 
@@ -56,11 +56,17 @@ def service_main(
     by SIGINT/SIGTERM.
 
     Returns:
-        0 after a clean stop, 2 for a bad configuration, 1 when the service fails.
+        0 after a clean stop, 2 for a bad configuration or when the service runs already
+        (without --replace), 1 when the service fails.
     """
     parser = argparse.ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument(
+        "--replace",
+        action="store_true",
+        help="if this service runs already (same robot), ask it to stop and take its place",
+    )
     add_arguments(parser)
     args = parser.parse_args(argv)
     configure_logging(args.verbose)
@@ -76,6 +82,6 @@ def service_main(
     except ArcheryError as exc:
         log.error("%s", exc)
         print(f"archery {prog}: {exc}", file=sys.stderr)
-        return 1
+        return 2 if isinstance(exc, DuplicateService) else 1
     log.info("stopped")
     return 0

@@ -9,10 +9,11 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from protocol.codec import decode, from_jsonable, to_jsonable
+from protocol.codec import from_jsonable, to_jsonable
 from protocol.errors import ArcheryError, DecodeError, KeyNameError, RpcTimeout
+from protocol.instances import describe_all
 from protocol.keys import port_of
-from protocol.messages import MESSAGE_TYPES, Describe, Image, Message
+from protocol.messages import MESSAGE_TYPES, Image, Message
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node
 
@@ -57,20 +58,20 @@ def ports_main(argv: list[str] | None = None) -> int:
                 print(f"no live services for robot {node.keys.robot!r}", file=sys.stderr)
                 return 1
             for name in names:
-                replies = list(node.session.get(node.keys.describe(name), timeout=args.timeout))
-                ok = [r.ok for r in replies if r.ok is not None]
-                if not ok:
+                described = describe_all(node.session, node.keys, name, timeout=args.timeout)
+                if not described:
                     print(f"{name}: alive, but no describe reply")
                     continue
-                info = decode(ok[0].payload.to_bytes(), Describe)
-                if args.json:
-                    print(json.dumps(to_jsonable(info)))
-                    continue
-                print(f"{name}  (pid {info.pid} on {info.host})")
-                for port in info.ports:
-                    verbs = info.verbs.get(port.key)
-                    extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
-                    print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+                many = f"  [{len(described)} instances!]" if len(described) > 1 else ""
+                for zid, info in sorted(described.items()):
+                    if args.json:
+                        print(json.dumps(to_jsonable(info) | {"instance": zid}))
+                        continue
+                    print(f"{name}  (pid {info.pid} on {info.host}, instance {zid}){many}")
+                    for port in info.ports:
+                        verbs = info.verbs.get(port.key)
+                        extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
+                        print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
         return 0
 
     return _run("ports", body)

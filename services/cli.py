@@ -37,6 +37,7 @@ VERBS: dict[str, tuple[str, str]] = {
         "services.learner.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",
     ),
+    "keys": ("protocol.credentials:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
 
 

@@ -9,7 +9,8 @@ Calls, in a rollout's order (ROBOT = the robot prefix):
 * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
 
 A call that gets no reply becomes `ServiceLost` naming the service; an error reply `RigError`
-with the service's code and message.
+with the service's code and message; a reply from any session but the service's live instance
+`RigError` with code `wrong_replier` (`Node.call(expect_service=...)`).
 """
 
 from __future__ import annotations
@@ -68,7 +69,7 @@ class MeshRig:
         """(result, wall s) of one call; ServiceLost or RigError when it fails."""
         start = time.perf_counter()
         try:
-            result = self.node.call(key, verb, args, timeout=self.timeout)
+            result = self.node.call(key, verb, args, timeout=self.timeout, expect_service=service)
         except RpcTimeout as exc:
             raise ServiceLost(service, exc.message) from None
         except RpcError as exc:

@@ -12,6 +12,8 @@ Aborts (journal `aborted`, the learner is not told; attempts are not counted as 
   is alive again (up to `service_wait`), then re-runs the same θ.
 * `rpc_error`, `not_reached`: a service refused or the posture was not reached in time; the
   same θ is re-run.
+* `wrong_replier`: a reply came from a session that is not the live instance of the service
+  asked (a stray or rogue responder); it is never used as data, and the same θ is re-run.
 * `no_target`: the detector sees no target (a camera or lighting problem, not the θ's fault);
   the same θ is re-run.
 * `no_arrow`: no arrow on the target face: the shot missed it. No r is invented: the next
