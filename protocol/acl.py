@@ -71,6 +71,7 @@ def roles(robot: str) -> dict[str, Role]:
         ),
         "detector": Role(
             publish=(k.detector_hits(),),
+            subscribe=(k.cam_frames(),),  # it grabs frames by RPC; streaming them is allowed
             serve=(k.detector_rpc(),),
             call=(k.cam_rpc(),),
         ),
