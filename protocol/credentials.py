@@ -53,7 +53,7 @@ OPERATOR = "operator"
 ROUTER = "router"
 IDENTITIES = (*SERVICES, ROUTER, OPERATOR)
 DEFAULT_DAYS = 365
-DEFAULT_HOSTS = ("localhost", "127.0.0.1", "router")  # "router": the compose service name
+DEFAULT_HOSTS = ("localhost", "127.0.0.1", "router", "router-secure")  # + compose names
 CA_CERT, CA_KEY, ACL_FILE, META_FILE = "ca.pem", "ca.key", "acl.json5", "deployment.json"
 
 
