@@ -7,9 +7,11 @@ __all__ = [
     "BadRequest",
     "ConfigError",
     "DecodeError",
+    "DuplicateService",
     "KeyNameError",
     "RpcError",
     "RpcTimeout",
+    "WrongReplier",
 ]
 
 
@@ -67,3 +69,16 @@ class RpcTimeout(RpcError, TimeoutError):
     """No reply arrived within the timeout (the service is absent, dead or stuck)."""
 
     code = "timeout"
+
+
+class WrongReplier(RpcError):
+    """A reply came from a session that does not hold the expected service's liveliness
+    token (a stray, duplicate or rogue responder); it is never used as data."""
+
+    code = "wrong_replier"
+
+
+class DuplicateService(ConfigError):
+    """A service of the same robot and name is alive already."""
+
+    code = "duplicate_service"

@@ -35,6 +35,7 @@ class PortSpec:
         body = body.replace(r"\{part\}", "(?P<part>" + "|".join(PARTS) + ")")
         body = body.replace(r"\{arm\}", "(?P<arm>" + "|".join(CARTESIAN_ARMS) + ")")
         body = body.replace(r"\{service\}", r"(?P<service>[A-Za-z][A-Za-z0-9_\-]{0,63})")
+        body = body.replace(r"\{instance\}", r"(?P<instance>[0-9a-f]{1,32})")
         return re.compile(r"^(?P<robot>[A-Za-z][A-Za-z0-9_\-]{0,63})/" + body + "$")
 
 
@@ -53,6 +54,7 @@ PORTS: tuple[PortSpec, ...] = (
     PortSpec("learner/rollout:o", "events", "Rollout"),
     PortSpec("learner/rpc:i", "rpc", "RpcRequest"),
     PortSpec("alive/{service}", "liveliness", "-"),
+    PortSpec("alive/{service}/{instance}", "liveliness", "-"),
     PortSpec("describe/{service}", "rpc", "Describe"),
 )
 _REGEXES = tuple((spec, spec.regex()) for spec in PORTS)
@@ -154,6 +156,17 @@ class Keys:
     def alive(self, service: str) -> str:
         """Liveliness token of a service (like a YARP name server entry)."""
         return f"{self.robot}/alive/{self._service(service)}"
+
+    def alive_instance(self, service: str, zid: str) -> str:
+        """Liveliness token naming the session (Zenoh id) that runs a service, so a client
+        can tell the live instance's replies from anyone else's."""
+        if not re.fullmatch(r"[0-9a-f]{1,32}", zid):
+            raise KeyNameError(f"invalid instance id {zid!r}: a Zenoh id in lowercase hex")
+        return f"{self.alive(service)}/{zid}"
+
+    def alive_instances(self, service: str) -> str:
+        """Key expression matching the instance tokens of one service."""
+        return f"{self.alive(service)}/*"
 
     def describe(self, service: str) -> str:
         """Where a service answers `describe` with its ports and message types."""

@@ -23,8 +23,9 @@ from typing import Any, Generic, TypeVar
 import msgspec
 import zenoh
 
+from protocol import instances
 from protocol.codec import MAX_PAYLOAD_BYTES, decode, encode
-from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout
+from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout, WrongReplier
 from protocol.keys import Keys
 from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
 from protocol.netflags import NetConfig, open_session
@@ -391,7 +392,9 @@ class Node:
         self.net = net
         self.keys = Keys(net.robot)
         self._own_session = session is None
-        self.session = session if session is not None else open_session(net)
+        self.session = (
+            session if session is not None else open_session(net.with_identity(name or "operator"))
+        )
         self._ports: list[PortInfo] = []
         self._verbs: dict[str, list[str]] = {}
         self._interfaces: dict[str, dict[str, Any]] = {}
@@ -401,7 +404,10 @@ class Node:
         self._rpc_lock = threading.Lock()
         self._closed = False
         self._token = None
+        self._instance_token = None
+        self._watch: instances.InstanceWatch | None = None
         if name is not None:
+            instances.claim(self.session, self.keys, name, net.replace)
             self._describe = self.session.declare_queryable(
                 self.keys.describe(name), self._on_describe
             )
@@ -412,6 +418,10 @@ class Node:
         if self.name is None:
             raise ValueError("an anonymous node has no liveliness token")
         if self._token is None:
+            zid = instances.zid_of(self.session)
+            self._instance_token = self.session.liveliness().declare_token(
+                self.keys.alive_instance(self.name, zid)
+            )
             self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
 
     # -- context management -------------------------------------------------------------
@@ -428,6 +438,9 @@ class Node:
         self._closed = True
         if self._token is not None:
             self._token.undeclare()
+            self._instance_token.undeclare()
+        if self._watch is not None:
+            self._watch.close()
         if self.name is not None:
             self._describe.undeclare()
         for item in reversed(self._closables):
@@ -487,37 +500,55 @@ class Node:
         )
 
     def _on_describe(self, query: zenoh.Query) -> None:
+        if query.payload is not None and query.payload.to_bytes() == instances.REPLACE:
+            instances.replace_requested(self.name or "")
         query.reply(
             query.key_expr, encode(msgspec.structs.replace(self.describe(), stamp=time.time()))
         )
 
     # -- rpc client ---------------------------------------------------------------------
     def call(
-        self, key: str, verb: str, args: dict[str, Any] | None = None, *, timeout: float = 5.0
+        self,
+        key: str,
+        verb: str,
+        args: dict[str, Any] | None = None,
+        *,
+        timeout: float = 5.0,
+        expect_service: str | None = None,
     ) -> Any:
-        """Call `verb` on an `rpc:i` key and return the result.
+        """Call `verb` on an `rpc:i` key and return the result; with `expect_service`, only a
+        reply from the live instance of that service is accepted.
 
         Raises:
             RpcError: the service replied with an error (its `code` is kept).
+            WrongReplier: only sessions other than `expect_service`'s live instance replied.
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
         """
         with self._rpc_lock:
             self._rpc_seq += 1
             seq = self._rpc_seq
         request = RpcRequest(verb=verb, args=args or {}, seq=seq, stamp=time.time())
-        reply = self.request(key, encode(request), timeout=timeout)
+        reply = self.request(key, encode(request), timeout=timeout, expect_service=expect_service)
         if not reply.ok:
             raise RpcError(f"{key} {verb}: {reply.message}", code=reply.code or "rpc_error")
         return reply.result
 
     def call_typed(
-        self, key: str, verb: Verb[A, R], args: A | None = None, *, timeout: float = 5.0
+        self,
+        key: str,
+        verb: Verb[A, R],
+        args: A | None = None,
+        *,
+        timeout: float = 5.0,
+        expect_service: str | None = None,
     ) -> R:
-        """Call a typed `verb` on an `rpc:i` key with its `Args` struct and return its `Reply`.
+        """Call a typed `verb` on an `rpc:i` key with its `Args` struct and return its `Reply`;
+        with `expect_service`, only a reply from the live instance of that service is accepted.
 
         Raises:
             RpcError: the service replied with an error (its `code` is kept), or (code
                 `bad_reply`) a reply that does not match the verb's reply type.
+            WrongReplier: only sessions other than `expect_service`'s live instance replied.
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
         """
         if args is not None and not isinstance(args, verb.args):
@@ -531,7 +562,7 @@ class Node:
             seq=seq,
             stamp=time.time(),
         )
-        payload = self._query(key, encode(request), timeout)
+        payload = self._query(key, encode(request), timeout, expect_service)
         try:
             reply = verb.reply_decoder.decode(payload)
         except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
@@ -550,12 +581,17 @@ class Node:
             )
         return reply.result  # type: ignore[no-any-return]
 
-    def request(self, key: str, payload: bytes, *, timeout: float = 5.0) -> RpcReply:
-        """Send a raw request payload and return the decoded `RpcReply` (no error raising)."""
-        return decode(self._query(key, payload, timeout), RpcReply)
+    def request(
+        self, key: str, payload: bytes, *, timeout: float = 5.0, expect_service: str | None = None
+    ) -> RpcReply:
+        """Send a raw request payload and return the decoded `RpcReply` (no error raising but
+        `WrongReplier` when `expect_service` is given and only others replied)."""
+        return decode(self._query(key, payload, timeout, expect_service), RpcReply)
 
-    def _query(self, key: str, payload: bytes, timeout: float) -> bytes:
-        """Send a request payload and return the first reply's payload bytes."""
+    def _query(
+        self, key: str, payload: bytes, timeout: float, expect_service: str | None = None
+    ) -> bytes:
+        """Send a request payload and return the first accepted reply's payload bytes."""
         with self._rpc_lock:
             querier = self._queriers.get((key, timeout))
             if querier is None:
@@ -564,10 +600,19 @@ class Node:
                 )
                 self._queriers[(key, timeout)] = querier
         start = time.monotonic()
+        rejected: list[str] = []
         for reply in querier.get(payload=payload):
             if reply.ok is not None:
-                return reply.ok.payload.to_bytes()  # type: ignore[no-any-return]
+                if expect_service is None or self._from_instance(expect_service, reply, rejected):
+                    return reply.ok.payload.to_bytes()  # type: ignore[no-any-return]
+                continue
             log.debug("error reply on %s: %s", key, reply.err.payload.to_string())
+        if rejected:
+            live = sorted(self._instances().holders(str(expect_service)))
+            raise WrongReplier(
+                f"{key}: the reply came from {', '.join(rejected)}, not from the live "
+                f"{expect_service!r} instance ({', '.join(live) or 'none alive'}); rejected"
+            )
         waited = time.monotonic() - start
         if waited < timeout * 0.5:
             raise RpcTimeout(
@@ -578,6 +623,23 @@ class Node:
             f"no reply from {key} within {timeout:g} s; the service may be dead or stuck "
             f"(`archery ports` lists the live services)"
         )
+
+    def _instances(self) -> instances.InstanceWatch:
+        with self._rpc_lock:
+            if self._watch is None:
+                self._watch = instances.InstanceWatch(self.session, self.keys)
+            return self._watch
+
+    def _from_instance(self, service: str, reply: zenoh.Reply, rejected: list[str]) -> bool:
+        """Whether `reply` comes from `service`'s live instance; if not, log and note it."""
+        zid = str(reply.replier_id.zid) if reply.replier_id is not None else "unknown"
+        if self._instances().is_instance(service, zid):
+            return True
+        log.warning(
+            "rejected a reply on %s from %s: not the live %s", reply.ok.key_expr, zid, service
+        )
+        rejected.append(f"session {zid}")
+        return False
 
     # -- liveliness ---------------------------------------------------------------------
     def alive(self, timeout: float = 1.0) -> set[str]:
@@ -651,6 +713,7 @@ class Node:
 def shutdown_on_signals() -> threading.Event:
     """An event set by SIGINT or SIGTERM, so a service can end cleanly with exit status 0."""
     stop = threading.Event()
+    instances.set_stop_event(stop)
 
     def handle(signum: int, frame: object) -> None:
         log.info("signal %d: shutting down", signum)

@@ -1,4 +1,8 @@
-"""`archery router`: a Zenoh router from the Python package (no separate binary needed)."""
+"""`archery router`: a Zenoh router from the Python package (no separate binary needed).
+
+With `--secure DIR` it accepts only mutual-TLS links from holders of a certificate of DIR's CA
+and enforces DIR/acl.json5 (see `protocol.acl`) on every link.
+"""
 
 from __future__ import annotations
 
@@ -12,7 +16,13 @@ import zenoh
 
 from protocol.cliargs import ArgumentParser
 from protocol.errors import ConfigError
-from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
+from protocol.netflags import (
+    DEFAULT_ROUTER,
+    DEFAULT_SECURE_ROUTER,
+    NetConfig,
+    add_network_args,
+    open_session,
+)
 from protocol.node import shutdown_on_signals
 
 __all__ = ["free_tcp_endpoint", "main", "open_router", "spawn_router", "wait_for_endpoint"]
@@ -27,10 +37,14 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
         return f"tcp/{host}:{sock.getsockname()[1]}"
 
 
-def open_router(listen: str | list[str], connect: tuple[str, ...] = ()) -> zenoh.Session:
-    """Open an in-process router session listening on `listen` (one endpoint or several)."""
+def open_router(
+    listen: str | list[str], connect: tuple[str, ...] = (), secure: str | None = None
+) -> zenoh.Session:
+    """Open an in-process router session listening on `listen` (one endpoint or several);
+    `secure`: a deployment directory (mutual TLS and its access control)."""
     endpoints = (listen,) if isinstance(listen, str) else tuple(listen)
-    return open_session(NetConfig(mode="router", listen=endpoints, connect=connect))
+    net = NetConfig(mode="router", listen=endpoints, connect=connect, secure=secure)
+    return open_session(net.with_identity("router"))
 
 
 def wait_for_endpoint(endpoint: str, timeout: float = 10.0) -> None:
@@ -51,10 +65,14 @@ def wait_for_endpoint(endpoint: str, timeout: float = 10.0) -> None:
             time.sleep(0.02)
 
 
-def spawn_router(endpoint: str, timeout: float = 10.0) -> subprocess.Popen[bytes]:
-    """Start `archery router --listen ENDPOINT` as a child process and wait until it listens."""
+def spawn_router(
+    endpoint: str, timeout: float = 10.0, secure: str | None = None
+) -> subprocess.Popen[bytes]:
+    """Start `archery router --listen ENDPOINT [--secure DIR]` as a child process and wait
+    until it listens."""
+    extra = ["--secure", secure] if secure is not None else []
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint],
+        [sys.executable, "-m", "services.cli", "router", "--listen", endpoint, *extra],
         stdin=subprocess.DEVNULL,
     )
     try:
@@ -71,14 +89,15 @@ def main(argv: list[str] | None = None) -> int:
     add_network_args(parser, default_mode="router")
     args = parser.parse_args(argv)
     if not args.listen:
-        args.listen = [DEFAULT_ROUTER]
+        args.listen = [DEFAULT_SECURE_ROUTER if args.secure else DEFAULT_ROUTER]
     try:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity("router")
         if net.mode != "router":
             raise ConfigError(f"archery router runs in router mode, not --mode {net.mode}")
         stop = shutdown_on_signals()
         with open_session(net):
-            log.info("router listening on %s", ", ".join(net.listen))
+            secure = f" (mutual TLS, access control of {net.secure})" if net.secure else ""
+            log.info("router listening on %s%s", ", ".join(net.listen), secure)
             stop.wait()
     except ConfigError as exc:
         print(f"archery router: {exc}", file=sys.stderr)

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from typing import TypeVar
 
 from protocol.cliargs import ArgumentParser
-from protocol.errors import ArcheryError, ConfigError
+from protocol.errors import ArcheryError, ConfigError, DuplicateService
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import shutdown_on_signals
 
@@ -48,10 +48,16 @@ def service_main(
     by SIGINT/SIGTERM.
 
     Returns:
-        0 after a clean stop, 2 for a bad configuration, 1 when the service fails.
+        0 after a clean stop, 2 for a bad configuration or when the service runs already
+        (without --replace), 1 when the service fails.
     """
     parser = ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser)
+    parser.add_argument(
+        "--replace",
+        action="store_true",
+        help="if this service runs already (same robot), ask it to stop and take its place",
+    )
     add_arguments(parser)
     args = parser.parse_args(argv)
     log = logging.getLogger(f"archery.{prog}")
@@ -65,6 +71,6 @@ def service_main(
         run(config, stop)
     except ArcheryError as exc:
         print(f"archery {prog}: {exc}", file=sys.stderr)  # one line; also in a log file
-        return 1
+        return 2 if isinstance(exc, DuplicateService) else 1
     log.info("stopped")
     return 0

@@ -21,7 +21,7 @@ from protocol.cliargs import (
     seconds,
     seconds_or_zero,
 )
-from protocol.codec import decode, from_jsonable, to_jsonable
+from protocol.codec import from_jsonable, to_jsonable
 from protocol.errors import (
     ArcheryError,
     BadRequest,
@@ -31,6 +31,7 @@ from protocol.errors import (
     RpcError,
     RpcTimeout,
 )
+from protocol.instances import describe_all
 from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
@@ -117,22 +118,22 @@ def ports_main(argv: list[str] | None = None) -> int:
                 )
                 return 0
             for name in names:
-                replies = list(node.session.get(node.keys.describe(name), timeout=args.timeout))
-                ok = [r.ok for r in replies if r.ok is not None]
-                if not ok:
+                described = describe_all(node.session, node.keys, name, timeout=args.timeout)
+                if not described:
                     print(f"{name}: alive, but no describe reply")
                     continue
-                info = decode(ok[0].payload.to_bytes(), Describe)
-                if args.json:
-                    print(json.dumps(to_jsonable(info)))
-                    continue
-                print(f"{name}  (pid {info.pid} on {info.host})")
-                for port in info.ports:
-                    verbs = info.verbs.get(port.key)
-                    extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
-                    print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
-                    if args.verbose:
-                        print("\n".join(_verbose_lines(info, port)))
+                many = f"  [{len(described)} instances!]" if len(described) > 1 else ""
+                for zid, info in sorted(described.items()):
+                    if args.json:
+                        print(json.dumps(to_jsonable(info) | {"instance": zid}))
+                        continue
+                    print(f"{name}  (pid {info.pid} on {info.host}, instance {zid}){many}")
+                    for port in info.ports:
+                        verbs = info.verbs.get(port.key)
+                        extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
+                        print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+                        if args.verbose:
+                            print("\n".join(_verbose_lines(info, port)))
         return 0
 
     return _run("ports", lambda: NetConfig.from_args(args), body)

@@ -48,6 +48,7 @@ VERBS: dict[str, tuple[str, str]] = {
         "run the paper's simulation experiment (learners on the ballistic world)",
     ),
     "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
+    "keys": ("protocol.credentials:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
 
 

@@ -27,7 +27,7 @@ from pathlib import Path
 
 from protocol.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
-from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args
+from protocol.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
 from protocol.router import wait_for_endpoint
 
@@ -56,7 +56,7 @@ def _die_with_parent() -> None:
 def _check_free(endpoint: str) -> None:
     """Raise ConfigError when something already listens on a tcp endpoint."""
     proto, address = endpoint.split("/", 1)
-    if proto != "tcp":
+    if proto not in ("tcp", "tls"):
         return
     host, port = address.rsplit(":", 1)
     with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as sock:
@@ -105,6 +105,7 @@ class Launcher:
         logs: directory of the children's logs.
         service_args: extra command-line arguments per service name.
         router: start a router (False: connect the services to one that runs already).
+        secure: a deployment directory (`archery keys init`): every child runs with --secure.
     """
 
     def __init__(
@@ -114,8 +115,10 @@ class Launcher:
         logs: Path = Path("runs/logs"),
         service_args: dict[str, Sequence[str]] | None = None,
         router: bool = True,
+        secure: str | None = None,
     ) -> None:
-        self.net = NetConfig(connect=(endpoint,), robot=robot)
+        self.net = NetConfig(connect=(endpoint,), robot=robot, secure=secure)
+        self.secure = ["--secure", secure] if secure else []
         self.endpoint = endpoint
         self.logs = Path(logs)
         self.service_args = {k: list(v) for k, v in (service_args or {}).items()}
@@ -151,7 +154,7 @@ class Launcher:
     def start_router(self, timeout: float = 15.0) -> None:
         """Start the router and wait until it listens."""
         _check_free(self.endpoint)
-        child = self._spawn("router", ["router", "--listen", self.endpoint])
+        child = self._spawn("router", ["router", "--listen", self.endpoint, *self.secure])
         try:
             wait_for_endpoint(self.endpoint, timeout)
         except ConfigError:
@@ -170,7 +173,7 @@ class Launcher:
             raise LaunchError(
                 f"{name} is running already (pid {old.proc.pid if old.proc else '?'})"
             )
-        argv = [name, "--connect", self.endpoint, "--robot", self.net.robot]
+        argv = [name, "--connect", self.endpoint, "--robot", self.net.robot, *self.secure]
         return self._spawn(name, argv + self.service_args.get(name, []))
 
     def up(self, timeout: float = 90.0, services: Iterable[str] = SERVICES) -> float:
@@ -317,21 +320,23 @@ def main(argv: list[str] | None = None) -> int:
     """Run `archery up` until Ctrl-C/SIGTERM (exit 0) or a child's failure (exit 1)."""
     args = build_parser().parse_args(argv)
     try:
+        default = DEFAULT_SECURE_ROUTER if args.secure else DEFAULT_ROUTER
         if args.no_router:
-            endpoint = (args.connect or [DEFAULT_ROUTER])[0]
+            endpoint = (args.connect or [default])[0]
         else:
-            endpoint = (args.listen or [DEFAULT_ROUTER])[0]
+            endpoint = (args.listen or [default])[0]
         check_writable_dir(Path(args.logs), "--logs", create=True)
         check_writable_dir(Path(args.runs), "--runs", create=True)
         launcher = Launcher(
             endpoint,
-            NetConfig(connect=(endpoint,), robot=args.robot).robot,
+            NetConfig(connect=(endpoint,), robot=args.robot, secure=args.secure).robot,
             Path(args.logs),
             {
                 "robot": ["--seed", str(args.seed), "--rtf", str(args.rtf)],
                 "learner": ["--runs", args.runs],
             },
             router=not args.no_router,
+            secure=args.secure,
         )
         stop = shutdown_on_signals()
         print(

@@ -71,6 +71,12 @@ CASES: list[tuple[str, int, str]] = [
     # view
     ("view {robot}/cam/target:o --out {tmp}/frame.txt {net}", 2, "'.txt'"),
     ("interface {robot}/nosuch:o --offline", 2, "nosuch:o"),
+    ("keys", 2, "action"),
+    ("keys bogus {tmp}/k", 2, "'bogus'"),
+    ("keys init", 2, "dir"),
+    ("keys init /proc/x", 2, "'/proc/x'"),
+    ("keys init {tmp}/k --days nan", 2, "nan"),
+    ("keys init {tmp}/k --days 0", 2, "--days"),
     ("interface {robot}/torso/rpc:i --timeout nan --offline", 2, "'nan'"),
     ("interface {robot}/torso/rpc:i --connect 127.0.0.1:7447", 2, "'127.0.0.1:7447'"),
     ("view {robot}/cam/target:o --out {tmp}/no/dir/frame.png {net}", 2, "{tmp}/no/dir"),
@@ -263,7 +269,7 @@ def test_ports_waits_for_a_service_by_liveliness(net: NetConfig) -> None:
     with serving(run_echo, net):
         stdout, stderr = waiting.communicate(timeout=90)
     assert waiting.returncode == 0, stderr
-    assert b"echo  (pid" in stdout and b"Traceback" not in stderr
+    assert b"echo  (pid" in stdout and b"Traceback" not in stderr, stderr
 
 
 def test_a_refused_joint_command_fails_with_the_robots_reason(

@@ -16,6 +16,7 @@ import pytest
 
 import protocol.router
 import protocol.service
+from protocol.credentials import DEFAULT_HOSTS
 from services.cli import VERBS
 from services.launcher import SERVICES
 from services.learner.learn import build_parser, start_request
@@ -54,9 +55,20 @@ def compose() -> dict[str, Any]:
     return read_compose(ROOT / "docker-compose.yml")
 
 
+def _plain(compose: dict[str, Any]) -> dict[str, Any]:
+    return {n: s for n, s in compose["services"].items() if "profiles" not in s}
+
+
+def _secure(compose: dict[str, Any]) -> dict[str, Any]:
+    return {n: s for n, s in compose["services"].items() if s.get("profiles") == ["secure"]}
+
+
 def test_services_and_image(compose: dict[str, Any]) -> None:
-    services = compose["services"]
+    services = _plain(compose)
     assert set(services) == {"router", *SERVICES, "demo"}
+    secure = _secure(compose)
+    assert set(secure) == {f"{n}-secure" for n in services}
+    assert set(services) | set(secure) == set(compose["services"])
     for name, service in services.items():
         assert service["build"] == "." and service["image"] == "archery:latest", name
         command = service["command"]
@@ -71,18 +83,45 @@ def test_services_and_image(compose: dict[str, Any]) -> None:
 
 
 def test_everyone_meets_at_the_router_by_name(compose: dict[str, Any]) -> None:
-    services = compose["services"]
+    services = _plain(compose)
     router = services["router"]["command"]
     listen = router[router.index("--listen") + 1]
     port = listen.rsplit(":", 1)[1]
     assert listen == f"tcp/0.0.0.0:{port}"
-    assert services["router"]["ports"] == [f"{port}:{port}"]
+    assert services["router"]["ports"] == [f"127.0.0.1:{port}:{port}"]  # the host's loopback
     for name, service in services.items():
         if name == "router":
             continue
         command = service["command"]
         assert command[command.index("--connect") + 1] == f"tcp/router:{port}", name
         assert "--listen" not in command
+
+
+def test_secure_profile(compose: dict[str, Any]) -> None:
+    """Mutual TLS to `router-secure`; each container mounts, read-only, the CA certificate and
+    its own identity only (the router also the ACL), never the CA key."""
+    services = _secure(compose)
+    router = services["router-secure"]
+    command = router["command"]
+    assert command[command.index("--listen") + 1] == "tls/0.0.0.0:7447"
+    assert command[command.index("--secure") + 1] == "/secrets"
+    assert router["ports"] == ["127.0.0.1:7448:7447"]
+    for name, service in services.items():
+        command = service["command"]
+        identity = {"router-secure": "router", "demo-secure": "operator"}.get(
+            name, name.removesuffix("-secure")
+        )
+        if name != "router-secure":
+            assert command[command.index("--connect") + 1] == "tls/router-secure:7447", name
+            assert command[command.index("--secure") + 1] == "/secrets", name
+            assert "router-secure" in service["depends_on"]
+        secrets = [v for v in service["volumes"] if v.startswith("./secrets/")]
+        wanted = {"ca.pem", f"{identity}.pem", f"{identity}.key"}
+        if name == "router-secure":
+            wanted.add("acl.json5")
+        assert {v.split(":")[0].removeprefix("./secrets/") for v in secrets} == wanted, name
+        assert all(v.endswith(":ro") for v in secrets), name
+    assert "router-secure" in DEFAULT_HOSTS  # the router's certificate names its host
 
 
 def test_learner_and_demo_share_the_runs(compose: dict[str, Any]) -> None:
@@ -95,7 +134,7 @@ def _parse_service(verb: str, argv: list[str], monkeypatch: pytest.MonkeyPatch) 
     """Run a service's main() with its flags but without serving: returns its config."""
     module_name, func = VERBS[verb][0].split(":")
     module = importlib.import_module(module_name)
-    real = module.service_main
+    real = protocol.service.service_main  # not module.service_main: patched by an earlier call
     seen: list[Any] = []
 
     def dry(argv: Any, **kw: Any) -> int:
@@ -113,6 +152,10 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
         argv = services[name]["command"][2:]
         config = _parse_service(name, argv, monkeypatch)
         assert config.net.connect == ("tcp/router:7447",)
+        argv = services[f"{name}-secure"]["command"][2:]
+        config = _parse_service(name, argv, monkeypatch)
+        assert config.net.connect == ("tls/router-secure:7447",)
+        assert config.net.secure == "/secrets"
     # The router: parsed and configured, but no session opened.
     stop = threading.Event()
     stop.set()
@@ -123,6 +166,9 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
     )
     assert protocol.router.main(services["router"]["command"][2:]) == 0
     assert opened[0].listen == ("tcp/0.0.0.0:7447",) and opened[0].mode == "router"
+    assert protocol.router.main(services["router-secure"]["command"][2:]) == 0
+    assert opened[1].listen == ("tls/0.0.0.0:7447",) and opened[1].secure == "/secrets"
+    assert opened[1].identity == "router"
     args = build_parser().parse_args(services["demo"]["command"][2:])
     assert start_request(args)["algo"] == "archer" and args.wait >= 60
 

@@ -10,7 +10,9 @@ Calls, in a rollout's order (ROBOT = the robot prefix):
 
 Every call is typed (`protocol.verbs`): its reply is decoded into the verb's reply type. A call
 that gets no reply becomes `ServiceLost` naming the service; an error reply, or a reply that does
-not match its type, `RigError` with the service's code (`bad_reply`) and message.
+not match its type, `RigError` with the service's code (`bad_reply`) and message; a reply from
+any session but the service's live instance `RigError` with code `wrong_replier`
+(`Node.call_typed(expect_service=...)`).
 """
 
 from __future__ import annotations
@@ -76,7 +78,9 @@ class MeshRig:
         or `bad_reply` for a reply that does not match the verb's type) when it fails."""
         start = time.perf_counter()
         try:
-            result = self.node.call_typed(key, verb, args, timeout=self.timeout)
+            result = self.node.call_typed(
+                key, verb, args, timeout=self.timeout, expect_service=service
+            )
         except RpcTimeout as exc:
             raise ServiceLost(service, exc.message) from None
         except RpcError as exc:

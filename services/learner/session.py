@@ -7,11 +7,13 @@ reached through a `Rig` (the mesh in `services.learner.rig`, fakes in tests), so
 knows no Zenoh.
 
 Aborts (journal `aborted`, the learner is not told; attempts are not counted as rollouts)
-`service_lost`, `rpc_error`, `not_reached`, `no_target`, `no_arrow`…: what follows each (re-run
-the same θ, wait for the services up to `service_wait`, back off after a miss, fail) is decided
-by the pure policy of `services.learner.abort_policy`. After a `no_arrow` back-off, the back-off
-θ is what the learner is told about; its own pending proposal is dropped. After `max_aborts`
-aborts in a row the session fails with the last cause; it can be resumed.
+`service_lost`, `rpc_error`, `not_reached`, `wrong_replier` (a reply from a session that is not
+the live instance of the service asked: never used as data), `no_target`, `no_arrow`…: what
+follows each (re-run the same θ, wait for the services up to `service_wait`, back off after a
+miss, fail) is decided by the pure policy of `services.learner.abort_policy`. After a
+`no_arrow` back-off, the back-off θ is what the learner is told about; its own pending proposal
+is dropped. After `max_aborts` aborts in a row the session fails with the last cause; it can be
+resumed.
 The ground-truth impact (the robot's event) is logged beside each rollout for plots only.
 """
 

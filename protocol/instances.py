@@ -1,0 +1,243 @@
+"""One live instance per service name, and replies only from that instance.
+
+A service's node, once ready, holds two liveliness tokens: `ROBOT/alive/NAME` (the service is
+up) and `ROBOT/alive/NAME/ZID`, where ZID is its session's Zenoh id (`session.info.zid()`).
+Every Zenoh reply carries the id of the session that sent it (`reply.replier_id.zid`), so a
+client that expects an answer from NAME accepts it only if the replier holds NAME's instance
+token (`InstanceWatch`); anything else is `WrongReplier` (code `wrong_replier`). With the
+router's access control (`--secure`) only NAME's certificate may hold those tokens; on a plain
+mesh anyone can, so the check only guards against mistakes (a stray or duplicate service), not
+against an attacker.
+
+Before a service declares any port, `claim` looks for a live instance of its name: if there is
+one, the new one refuses to start (`DuplicateService`, exit status 2) naming the pid and host
+of the live one (from its `describe` reply), unless `replace`. With `replace`, the live
+instance is asked to stop (a `describe` query whose payload is `REPLACE`): a service run by
+`service_main` stops as on SIGTERM, cleanly, and the new one waits until its tokens are gone;
+a process that cannot stop that way keeps running (logged on both sides) and the new one
+starts anyway after `timeout`, so two instances then run until the old one is stopped.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+
+import zenoh
+
+from protocol.codec import decode
+from protocol.errors import DecodeError, DuplicateService
+from protocol.keys import Keys
+from protocol.messages import Describe
+
+__all__ = [
+    "REPLACE",
+    "InstanceWatch",
+    "claim",
+    "describe_all",
+    "live_instances",
+    "replace_requested",
+    "set_stop_event",
+    "zid_of",
+]
+
+log = logging.getLogger("archery.node")
+REPLACE = b"replace"
+_stop_event: threading.Event | None = None
+
+
+def set_stop_event(stop: threading.Event) -> None:
+    """The event that stops this process cleanly (set by `shutdown_on_signals`): a request to
+    make way for a replacement sets it."""
+    global _stop_event
+    _stop_event = stop
+
+
+def replace_requested(name: str) -> None:
+    """A new instance of `name` started with --replace asks this one to stop."""
+    if _stop_event is None:
+        log.warning(
+            "a new %s instance asks this one to stop, but it runs without a stop signal "
+            "handler: it keeps running",
+            name,
+        )
+        return
+    log.warning("a new %s instance replaces this one: stopping", name)
+    _stop_event.set()
+
+
+def zid_of(session: zenoh.Session) -> str:
+    """A session's Zenoh id as it appears in keys and in `reply.replier_id.zid`."""
+    return str(session.info.zid())
+
+
+def live_instances(session: zenoh.Session, keys: Keys, name: str, timeout: float = 2.0) -> set[str]:
+    """Zenoh ids of the sessions holding an instance token of `name` now."""
+    zids = set()
+    for reply in session.liveliness().get(keys.alive_instances(name), timeout=timeout):
+        if reply.ok is not None:
+            zids.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
+    return zids
+
+
+def describe_all(
+    session: zenoh.Session,
+    keys: Keys,
+    name: str,
+    timeout: float = 2.0,
+    payload: bytes | None = None,
+) -> dict[str, Describe]:
+    """Every `describe` reply for `name` (each instance answers), by replier Zenoh id."""
+    out: dict[str, Describe] = {}
+    replies = session.get(
+        keys.describe(name),
+        payload=payload,
+        target=zenoh.QueryTarget.ALL,
+        consolidation=zenoh.ConsolidationMode.NONE,
+        timeout=timeout,
+    )
+    for reply in replies:
+        if reply.ok is None:
+            continue
+        zid = str(reply.replier_id.zid) if reply.replier_id is not None else "?"
+        try:
+            out[zid] = decode(reply.ok.payload.to_bytes(), Describe)
+        except DecodeError as exc:
+            log.warning("bad describe reply for %s from %s: %s", name, zid, exc)
+    return out
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _wait_gone(
+    session: zenoh.Session, keys: Keys, name: str, zids: set[str], timeout: float
+) -> set[str]:
+    """Wait until none of `zids` holds an instance token of `name`; returns those left."""
+    present: set[str] = set()
+    cond = threading.Condition()
+
+    def on_token(sample: zenoh.Sample) -> None:
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        with cond:
+            if sample.kind == zenoh.SampleKind.PUT:
+                present.add(zid)
+            else:
+                present.discard(zid)
+            cond.notify_all()
+
+    sub = session.liveliness().declare_subscriber(
+        keys.alive_instances(name), on_token, history=True
+    )
+    try:
+        with cond:
+            present |= live_instances(session, keys, name) & zids
+            cond.wait_for(lambda: not (present & zids), timeout=timeout)
+            return present & zids
+    finally:
+        sub.undeclare()
+
+
+def claim(
+    session: zenoh.Session, keys: Keys, name: str, replace: bool, timeout: float = 30.0
+) -> None:
+    """Make sure no other instance of `name` is alive before this one declares its ports.
+
+    Raises:
+        DuplicateService: one is alive (and `replace` is off); the message names its pid and
+            host.
+    """
+    own = zid_of(session)
+    others = live_instances(session, keys, name) - {own}
+    if not others:
+        return
+    described = {z: d for z, d in describe_all(session, keys, name).items() if z in others}
+    host = socket.gethostname()
+    if described and all(d.host == host and not _pid_alive(d.pid) for d in described.values()):
+        # The process is gone but the router has not noticed yet (a crash): wait for its lease.
+        left = _wait_gone(session, keys, name, others, timeout=15.0)
+        if not left:
+            return
+    where = "; ".join(
+        f"pid {d.pid} on {d.host} (instance {z})" for z, d in sorted(described.items())
+    ) or ", ".join(f"instance {z} (no describe reply)" for z in sorted(others))
+    if not replace:
+        raise DuplicateService(
+            f"{name} is running already for robot {keys.robot!r}: {where}. Stop it, or start "
+            f"this one with --replace to make the live one stop"
+        )
+    log.warning("replacing the live %s: %s", name, where)
+    describe_all(session, keys, name, payload=REPLACE)
+    start = time.monotonic()
+    left = _wait_gone(session, keys, name, others, timeout)
+    if left:
+        log.warning(
+            "the old %s (%s) is still alive after %.0f s; starting anyway: two instances run "
+            "until it stops",
+            name,
+            ", ".join(sorted(left)),
+            timeout,
+        )
+    else:
+        log.info("the old %s stopped after %.2f s", name, time.monotonic() - start)
+
+
+class InstanceWatch:
+    """Which session holds each service's instance token, kept current by liveliness
+    subscribers (one per service name, declared on first use)."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
+        self._session = session
+        self._keys = keys
+        self._holders: dict[str, set[str]] = {}
+        self._subs: list[zenoh.Subscriber] = []
+        self._lock = threading.Lock()
+
+    def _on_token(self, name: str, sample: zenoh.Sample) -> None:
+        zid = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._holders[name].add(zid)
+            else:
+                self._holders[name].discard(zid)
+
+    def holders(self, name: str, refresh: bool = False) -> set[str]:
+        """Zenoh ids holding `name`'s instance token (`refresh`: ask the router now)."""
+        with self._lock:
+            known = name in self._holders
+            if not known:
+                self._holders[name] = set()
+        if not known:
+            self._subs.append(
+                self._session.liveliness().declare_subscriber(
+                    self._keys.alive_instances(name),
+                    lambda sample: self._on_token(name, sample),
+                    history=True,
+                )
+            )
+        if refresh or not known:
+            live = live_instances(self._session, self._keys, name)
+            with self._lock:
+                self._holders[name] |= live
+        with self._lock:
+            return set(self._holders[name])
+
+    def is_instance(self, name: str, zid: str) -> bool:
+        """Whether `zid` holds `name`'s instance token (asks the router before saying no)."""
+        return zid in self.holders(name) or zid in self.holders(name, refresh=True)
+
+    def close(self) -> None:
+        """Undeclare the subscribers."""
+        for sub in self._subs:
+            sub.undeclare()
+        self._subs.clear()

@@ -1,0 +1,410 @@
+"""Secure mode against a real `archery router --secure` on a free loopback port: who may connect
+(mutual TLS with the deployment's CA), and what each identity may do (the router's access
+control). A denied flow is dropped at the router while the sender's call still succeeds, so
+every "never receives" check asserts on the receiver, after a positive control sent later on
+the same path has arrived."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import shutil
+import stat
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+from cryptography import x509
+
+from protocol.acl import rules
+from protocol.codec import encode
+from protocol.credentials import IDENTITIES, init_deployment, issue, load_authority, write_identity
+from protocol.errors import ConfigError, RpcError, WrongReplier
+from protocol.keys import Keys
+from protocol.messages import RpcReply
+from protocol.netflags import NetConfig, open_session
+from protocol.node import Node
+from protocol.router import free_tcp_endpoint, spawn_router
+from services.learner.rig import MeshRig
+from services.learner.session import RigError, Shot
+from tests.conftest import archery
+
+ROBOT = "secbot"
+K = Keys(ROBOT)
+
+
+@pytest.fixture(scope="module")
+def deployment(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return init_deployment(tmp_path_factory.mktemp("secure") / "deploy", robot=ROBOT)
+
+
+@pytest.fixture(scope="module")
+def other_deployment(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return init_deployment(tmp_path_factory.mktemp("other") / "deploy", robot=ROBOT)
+
+
+@pytest.fixture(scope="module")
+def endpoint(deployment: Path) -> Iterator[str]:
+    """A secure router process (mutual TLS + access control) on a free loopback port."""
+    tls = free_tcp_endpoint().replace("tcp/", "tls/")
+    proc = spawn_router(tls, secure=str(deployment))
+    yield tls
+    proc.terminate()
+    assert proc.wait(10) == 0
+
+
+def net_as(endpoint: str, identity: str, secure: Path) -> NetConfig:
+    return NetConfig(connect=(endpoint,), robot=ROBOT, secure=str(secure), identity=identity)
+
+
+@pytest.fixture
+def session_as(endpoint: str, deployment: Path) -> Iterator[Callable[[str], zenoh.Session]]:
+    """Open plain Zenoh sessions as an identity of the deployment; all closed at the end."""
+    opened: list[zenoh.Session] = []
+
+    def open_as(identity: str) -> zenoh.Session:
+        opened.append(open_session(net_as(endpoint, identity, deployment)))
+        return opened[-1]
+
+    yield open_as
+    for session in opened:
+        session.close()
+
+
+class Inbox:
+    """Samples received by one subscriber, with a wait on a condition."""
+
+    def __init__(self) -> None:
+        self.items: list[tuple[str, bytes]] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self._cond.notify_all()
+
+    def wait_for(self, payload: bytes, timeout: float = 10.0) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: payload in self.payloads(), timeout)
+
+    def payloads(self) -> list[bytes]:
+        return [p for _, p in self.items]
+
+
+def put_until_received(pub: zenoh.Session, key: str, inbox: Inbox, payload: bytes) -> None:
+    """Publish `payload` until `inbox` has it (a subscription propagates asynchronously)."""
+    deadline = time.monotonic() + 10
+    while not inbox.wait_for(payload, 0.1):
+        assert time.monotonic() < deadline, f"{payload!r} on {key} never arrived"
+        pub.put(key, payload)
+
+
+def raw_config(endpoint: str, **tls: Any) -> zenoh.Config:
+    config = zenoh.Config()
+    config.insert_json5("mode", '"client"')
+    config.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    for name, value in tls.items():
+        config.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
+    return config
+
+
+# -- the credentials -----------------------------------------------------------------------------
+def test_keys_init_writes_a_deployment(tmp_path: Path) -> None:
+    out = archery("keys", "init", str(tmp_path / "d"), "--robot", ROBOT, "--days", "30")
+    assert out.returncode == 0, out.stderr
+    d = tmp_path / "d"
+    assert stat.S_IMODE(d.stat().st_mode) == 0o700
+    ca = x509.load_pem_x509_certificate((d / "ca.pem").read_bytes())
+    for name in IDENTITIES:
+        assert stat.S_IMODE((d / f"{name}.key").stat().st_mode) == 0o600, name
+        cert = x509.load_pem_x509_certificate((d / f"{name}.pem").read_bytes())
+        cn = cert.subject.get_attributes_for_oid(x509.oid.NameOID.COMMON_NAME)[0].value
+        assert cn == name and cert.issuer == ca.subject
+        cert.verify_directly_issued_by(ca)
+        days = (cert.not_valid_after_utc - cert.not_valid_before_utc).total_seconds() / 86400
+        assert 29.9 < days < 30.1
+    router = x509.load_pem_x509_certificate((d / "router.pem").read_bytes())
+    san = router.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "localhost" in san.get_values_for_type(x509.DNSName)
+    assert [str(ip) for ip in san.get_values_for_type(x509.IPAddress)] == ["127.0.0.1"]
+    assert json.loads((d / "acl.json5").read_text()) == rules(ROBOT)
+    before = (d / "ca.pem").read_bytes()
+    again = archery("keys", "init", str(d))
+    assert again.returncode == 2 and "--force" in again.stderr
+    assert (d / "ca.pem").read_bytes() == before
+    forced = archery("keys", "init", str(d), "--force")
+    assert forced.returncode == 0 and (d / "ca.pem").read_bytes() != before
+
+
+def test_the_acl_loads_into_a_zenoh_config() -> None:
+    """insert_json5 refuses unknown keys: every key the generated policy uses is Zenoh's."""
+    policy = rules(ROBOT)
+    config = zenoh.Config()
+    config.insert_json5("access_control", json.dumps(policy))
+    loaded = json.loads(config.get_json("access_control"))
+    assert loaded["default_permission"] == "deny" and loaded["enabled"] is True
+    assert len(loaded["rules"]) == len(policy["rules"])
+    with pytest.raises(zenoh.ZError):
+        config.insert_json5("access_control", json.dumps(policy | {"no_such_key": 1}))
+
+
+def test_secure_mode_refuses_plain_endpoints(deployment: Path) -> None:
+    with pytest.raises(ConfigError, match="only mutual-TLS endpoints"):
+        NetConfig(connect=("tcp/127.0.0.1:7447",), secure=str(deployment))
+    with pytest.raises(ConfigError, match=r"no nobody\.key \(identity .nobody.\)"):
+        open_session(net_as("tls/127.0.0.1:7447", "nobody", deployment))
+
+
+# -- who may connect -------------------------------------------------------------------------
+def test_no_credentials_cannot_connect(endpoint: str, deployment: Path) -> None:
+    with pytest.raises(zenoh.ZError):  # trusts the router, presents no certificate
+        zenoh.open(raw_config(endpoint, root_ca_certificate=str(deployment / "ca.pem")))
+    with pytest.raises(zenoh.ZError):  # nothing at all
+        zenoh.open(raw_config(endpoint))
+
+
+def test_another_deployments_credentials_cannot_connect(
+    endpoint: str, deployment: Path, other_deployment: Path
+) -> None:
+    with pytest.raises(ConfigError, match="cannot open a secure"):
+        open_session(net_as(endpoint, "operator", other_deployment))
+    # Trusting the right router, but with a certificate of another CA: the router refuses it.
+    foreign = raw_config(
+        endpoint,
+        root_ca_certificate=str(deployment / "ca.pem"),
+        enable_mtls=True,
+        connect_private_key=str(other_deployment / "operator.key"),
+        connect_certificate=str(other_deployment / "operator.pem"),
+    )
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(foreign)
+    # The control: the same config with this deployment's certificate connects.
+    own = raw_config(
+        endpoint,
+        root_ca_certificate=str(deployment / "ca.pem"),
+        enable_mtls=True,
+        connect_private_key=str(deployment / "operator.key"),
+        connect_certificate=str(deployment / "operator.pem"),
+    )
+    zenoh.open(own).close()
+
+
+def test_an_expired_certificate_cannot_connect(
+    endpoint: str, deployment: Path, tmp_path: Path
+) -> None:
+    ca = load_authority(deployment)
+    now = dt.datetime.now(dt.UTC)
+    key, cert = issue(
+        ca, "camera", not_before=now - dt.timedelta(days=10), not_after=now - dt.timedelta(days=1)
+    )
+    expired = tmp_path / "expired"
+    expired.mkdir()
+    shutil.copy(deployment / "ca.pem", expired / "ca.pem")
+    write_identity(expired, "camera", key, cert)
+    with pytest.raises(ConfigError, match="expired"):
+        open_session(net_as(endpoint, "camera", expired))
+    key, cert = issue(ca, "camera", days=1)  # the control: a valid one from the same CA
+    write_identity(expired, "camera", key, cert)
+    open_session(net_as(endpoint, "camera", expired)).close()
+
+
+def test_plain_tcp_to_a_secure_router_fails(endpoint: str) -> None:
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(raw_config(endpoint.replace("tls/", "tcp/")))
+
+
+# -- what each identity may do ---------------------------------------------------------------
+def test_only_controller_and_operator_command_the_joints(session_as: Callable) -> None:
+    robot, camera, controller, operator = map(
+        session_as, ("robot", "camera", "controller", "operator")
+    )
+    key = K.command("left_arm")
+    at_robot, everything = Inbox(), Inbox()
+    robot.declare_subscriber(key, at_robot)
+    operator.declare_subscriber(f"{ROBOT}/**", everything)
+    put_until_received(controller, key, at_robot, b"controller-1")
+    put_until_received(camera, K.cam_frames(), everything, b"frame-1")
+    camera.put(key, b"camera-command")  # denied at the router: put() itself succeeds
+    camera.put(K.cam_frames(), b"frame-2")  # the control, same sender, after it
+    controller.put(key, b"controller-2")
+    operator.put(key, b"operator-1")  # the operator may command too
+    assert everything.wait_for(b"frame-2") and at_robot.wait_for(b"controller-2")
+    assert at_robot.wait_for(b"operator-1")
+    assert b"camera-command" not in at_robot.payloads()
+    assert b"camera-command" not in everything.payloads()
+    assert b"controller-2" in everything.payloads()  # the operator sees commands
+
+
+def test_frames_reach_the_detector_and_operator_only(session_as: Callable) -> None:
+    camera, detector, operator, learner, robot = map(
+        session_as, ("camera", "detector", "operator", "learner", "robot")
+    )
+    at_detector, at_operator, learner_all, learner_events = Inbox(), Inbox(), Inbox(), Inbox()
+    detector.declare_subscriber(K.cam_frames(), at_detector)
+    operator.declare_subscriber(f"{ROBOT}/**", at_operator)
+    learner.declare_subscriber(f"{ROBOT}/**", learner_all)  # not the operator: denied
+    learner.declare_subscriber(K.world_events(), learner_events)  # allowed: the control
+    put_until_received(camera, K.cam_frames(), at_detector, b"frame-1")
+    put_until_received(camera, K.cam_frames(), at_operator, b"frame-2")
+    put_until_received(robot, K.world_events(), learner_events, b"event-1")
+    for n in range(3, 6):
+        camera.put(K.cam_frames(), f"frame-{n}".encode())
+    robot.put(K.world_events(), b"event-2")
+    assert at_operator.wait_for(b"frame-5") and at_detector.wait_for(b"frame-5")
+    assert learner_events.wait_for(b"event-2")
+    assert not [k for k, _ in learner_all.items if k == K.cam_frames()]
+
+
+def test_only_the_owner_serves_an_rpc_key(session_as: Callable) -> None:
+    detector, controller, learner = map(session_as, ("detector", "controller", "learner"))
+    key = K.cartesian_rpc("archery")
+    stolen: list[str] = []
+
+    def rogue(query: zenoh.Query) -> None:
+        stolen.append(str(query.key_expr))
+        query.reply(query.key_expr, b"from the detector")
+
+    detector.declare_queryable(key, rogue)  # denied
+    detector.declare_queryable(K.detector_rpc(), lambda q: q.reply(q.key_expr, b"measured"))
+    controller.declare_queryable(key, lambda q: q.reply(q.key_expr, b"posture"))
+    zids = {str(s.info.zid()): name for s, name in ((detector, "d"), (controller, "c"))}
+
+    def ask(k: str) -> list[tuple[str, bytes]]:
+        replies = learner.get(
+            k, target=zenoh.QueryTarget.ALL, consolidation=zenoh.ConsolidationMode.NONE
+        )
+        return [(zids.get(str(r.replier_id.zid), "?"), r.ok.payload.to_bytes()) for r in replies]
+
+    deadline = time.monotonic() + 10  # the detector's declarations, in order, reached the router
+    while ask(K.detector_rpc()) != [("d", b"measured")] or ask(key) != [("c", b"posture")]:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    for _ in range(5):
+        assert ask(key) == [("c", b"posture")]
+    assert stolen == []
+
+
+def test_liveliness_tokens_only_under_ones_own_name(session_as: Callable) -> None:
+    camera, operator = session_as("camera"), session_as("operator")
+    denied = camera.liveliness().declare_token(K.alive("detector"))
+    control = camera.liveliness().declare_token(K.alive("camera"))  # after it
+    deadline = time.monotonic() + 10
+    while True:
+        seen = {str(r.ok.key_expr) for r in operator.liveliness().get(K.alive_all()) if r.ok}
+        if K.alive("camera") in seen:
+            break
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    assert K.alive("detector") not in seen
+    denied.undeclare()
+    control.undeclare()
+
+
+def forged_reply(result: dict[str, Any]) -> Callable[[zenoh.Query], None]:
+    def answer(query: zenoh.Query) -> None:
+        query.reply(query.key_expr, encode(RpcReply(ok=True, result=result, seq=1, stamp=0.0)))
+
+    return answer
+
+
+def test_a_rogue_measure_never_reaches_the_learner(
+    endpoint: str, deployment: Path, session_as: Callable
+) -> None:
+    camera = session_as("camera")
+    asked: list[bytes] = []
+
+    def rogue(query: zenoh.Query) -> None:
+        asked.append(b"")
+        forged_reply({"status": "ok", "r_m": [9.0, 9.0]})(query)
+
+    camera.declare_queryable(K.detector_rpc(), rogue)  # denied: the camera may not serve it
+    with (
+        Node("detector", net_as(endpoint, "detector", deployment)) as detector,
+        Node("learner", net_as(endpoint, "learner", deployment)) as learner,
+    ):
+        detector.serve(K.detector_rpc(), {"measure": lambda args: {"status": "no_target"}})
+        detector.ready()
+        learner.wait_alive(["detector"], 10)
+        for _ in range(5):
+            result = learner.call(K.detector_rpc(), "measure", timeout=5, expect_service="detector")
+            assert result == {"status": "no_target"}
+    assert asked == []
+
+
+# -- a rogue responder on a plain mesh: the learner-side check ----------------------------------
+def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path) -> None:
+    """No access control here: a plain session answers the detector's key while the detector is
+    alive; its reply is refused, as `wrong_replier`, never used as a measurement."""
+    keys = Keys(net.robot)
+    rogue = open_session(net)
+    try:
+        with Node("detector", net) as detector, Node("learner", net) as learner:
+            detector.ready()  # alive, but it serves no measure: only the rogue answers
+            rogue.declare_queryable(
+                keys.detector_rpc(), forged_reply({"status": "ok", "r_m": [9.0, 9.0]})
+            )
+            deadline = time.monotonic() + 10
+            while True:  # the rogue's queryable has reached the router: it answers
+                try:
+                    forged = learner.call(keys.detector_rpc(), "measure", timeout=2)
+                    break
+                except RpcError:
+                    assert time.monotonic() < deadline
+            assert forged["r_m"] == [9.0, 9.0]  # what the learner would take without the check
+            with pytest.raises(WrongReplier) as caught:
+                learner.call(keys.detector_rpc(), "measure", timeout=2, expect_service="detector")
+            assert caught.value.code == "wrong_replier"
+            assert str(rogue.info.zid()) in caught.value.message
+            rig = MeshRig(learner, timeout=3.0)
+            with pytest.raises(RigError) as rig_error:
+                rig.measure(Shot(shot=1, sim_time=0.0, stamp=time.time(), outcome="landed"))
+            assert rig_error.value.code == "wrong_replier"
+            # The live instance's own reply passes the same check.
+            detector.serve(keys.cam_rpc(), {"grab": lambda args: {"frame": 1}})
+            deadline = time.monotonic() + 10
+            while True:
+                try:
+                    got = learner.call(keys.cam_rpc(), "grab", timeout=2, expect_service="detector")
+                    break
+                except RpcError:
+                    assert time.monotonic() < deadline
+            assert got == {"frame": 1}
+    finally:
+        rogue.close()
+
+
+def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
+    from services.learner.config import SessionConfig
+    from services.learner.journal import read_records
+    from services.learner.session import Session
+    from tests.test_learner_service_session import FakeRig
+
+    class RogueRig(FakeRig):
+        def __init__(self) -> None:
+            super().__init__()
+            self.rogue_once = True
+
+        def measure(self, shot: Shot):  # type: ignore[no-untyped-def]
+            if self.rogue_once:
+                self.rogue_once = False
+                raise RigError(
+                    "detector/rpc:i: the reply came from session x", code="wrong_replier"
+                )
+            return super().measure(shot)
+
+    session = Session.create(
+        SessionConfig(algorithm="random", rollouts=2, seed=0), RogueRig(), tmp_path, session_id="s"
+    )
+    session.run(threading.Event())
+    records = read_records(session.journal.path)[0]
+    aborted = [r for r in records if r["record"] == "aborted"]
+    assert [a["code"] for a in aborted] == ["wrong_replier"]
+    assert "session x" in aborted[0]["cause"]
+    assert "r_m" not in aborted[0] and aborted[0]["retry_theta"] == aborted[0]["theta"]
+    done = [r for r in records if r["record"] == "done"]
+    assert len(done) == 2 and done[0]["theta"] == aborted[0]["theta"]  # the same θ, re-run

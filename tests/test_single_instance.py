@@ -1,0 +1,118 @@
+"""One live instance per service name and robot: a second one refuses to start (exit 2, naming
+the live one's pid and host) unless --replace, which makes the live one stop cleanly;
+`archery ports` lists every instance it sees."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from collections.abc import Iterator
+
+import pytest
+import zenoh
+
+from protocol.codec import encode
+from protocol.errors import DuplicateService
+from protocol.instances import live_instances, zid_of
+from protocol.messages import Describe
+from protocol.netflags import NetConfig, open_session
+from protocol.node import Node
+from tests.conftest import archery
+
+NAME = "detector"
+
+
+def _flags(net: NetConfig) -> list[str]:
+    return ["--connect", net.connect[0], "--robot", net.robot]
+
+
+@pytest.fixture
+def spawn(net: NetConfig) -> Iterator:
+    procs: list[subprocess.Popen[str]] = []
+
+    def start(*extra: str) -> subprocess.Popen[str]:
+        argv = [sys.executable, "-m", "tests.solo_service", NAME, *_flags(net), *extra]
+        procs.append(
+            subprocess.Popen(argv, stdin=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        )
+        return procs[-1]
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(10)
+
+
+def _instance_pids(node: Node) -> set[int]:
+    """Pids of the instances holding NAME's instance token now (from their describe)."""
+    from protocol.instances import describe_all
+
+    zids = live_instances(node.session, node.keys, NAME)
+    return {d.pid for z, d in describe_all(node.session, node.keys, NAME).items() if z in zids}
+
+
+def test_a_second_instance_refuses_to_start(net: NetConfig, spawn) -> None:
+    first = spawn()
+    with Node(None, net) as node:
+        node.wait_alive([NAME], 30)
+        second = spawn()
+        assert second.wait(30) == 2
+        err = second.stderr.read()
+        assert f"pid {first.pid} on {socket.gethostname()}" in err and "--replace" in err
+        assert first.poll() is None and _instance_pids(node) == {first.pid}
+
+
+def test_replace_stops_the_live_instance(net: NetConfig, spawn) -> None:
+    first = spawn()
+    with Node(None, net) as node:
+        node.wait_alive([NAME], 30)
+        second = spawn("--replace")
+        assert first.wait(30) == 0  # it stopped cleanly, as on SIGTERM
+        assert "replaces this one" in first.stderr.read()
+        node.wait_alive([NAME], 30)
+        pids: set[int] = set()
+        for _ in range(100):
+            pids = _instance_pids(node)
+            if pids == {second.pid}:
+                break
+        assert pids == {second.pid}
+        assert second.poll() is None
+
+
+def test_in_process_duplicate_names_the_live_one(net: NetConfig) -> None:
+    with Node(NAME, net) as first:
+        first.ready()
+        with pytest.raises(DuplicateService, match=f"pid {first.describe().pid} on"):
+            Node(NAME, net)
+        other = NetConfig(connect=net.connect, robot=net.robot + "b")
+        with Node(NAME, other) as elsewhere:  # another robot: its own name space
+            elsewhere.ready()
+
+
+def test_ports_shows_every_instance(net: NetConfig) -> None:
+    """A second session claiming the name without the check (an old build, a hand-made
+    session): `archery ports` lists both, not one of the two."""
+    stray = open_session(net)
+    try:
+        with Node(NAME, net) as node:
+            node.ready()
+            keys = node.keys
+            token = stray.liveliness().declare_token(keys.alive_instance(NAME, zid_of(stray)))
+            fake = Describe(service=NAME, ports=[], pid=424242, host="elsewhere", verbs={})
+
+            def answer(query: zenoh.Query) -> None:
+                query.reply(query.key_expr, encode(fake))
+
+            queryable = stray.declare_queryable(keys.describe(NAME), answer)
+            out = archery("ports", *_flags(net))
+            assert out.returncode == 0, out.stderr
+            lines = [line for line in out.stdout.splitlines() if line.startswith(NAME)]
+            assert len(lines) == 2 and all("[2 instances!]" in line for line in lines)
+            assert any(f"pid {node.describe().pid} " in line for line in lines)
+            assert any("pid 424242 on elsewhere" in line for line in lines)
+            queryable.undeclare()
+            token.undeclare()
+    finally:
+        stray.close()
