@@ -57,8 +57,9 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
         text=True,
     )
     try:
-        _wait_for_line(up, "all alive", timeout=60)
+        alive = _wait_for_line(up, "all alive", timeout=60)
         secure = ["--secure", str(deploy), "--connect", endpoint]
+        assert f"`archery learn {' '.join(secure)}`" in alive  # the hint is the secure command
         learn = archery(
             "learn", *secure, "--rollouts", str(ROLLOUTS), "--no-until-hit", timeout=60
         )
