@@ -48,9 +48,10 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
         assert made.returncode == 0, made.stderr
     endpoint = free_tcp_endpoint().replace("tcp/", "tls/")
     runs = tmp_path / "runs"
+    logs = tmp_path / "logs"
+    up_args = ["up", "--secure", str(deploy), "--listen", endpoint]
     up = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", "up", "--secure", str(deploy)]
-        + ["--listen", endpoint, "--logs", str(tmp_path / "logs"), "--runs", str(runs)],
+        [sys.executable, "-m", "services.cli", *up_args, "--logs", str(logs), "--runs", str(runs)],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -60,9 +61,7 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
         alive = _wait_for_line(up, "all alive", timeout=60)
         secure = ["--secure", str(deploy), "--connect", endpoint]
         assert f"`archery learn {' '.join(secure)}`" in alive  # the hint is the secure command
-        learn = archery(
-            "learn", *secure, "--rollouts", str(ROLLOUTS), "--no-until-hit", timeout=60
-        )
+        learn = archery("learn", *secure, "--rollouts", str(ROLLOUTS), "--no-until-hit", timeout=60)
         assert learn.returncode == 0, learn.stderr
         result = json.loads(learn.stdout.strip().splitlines()[-1])
         assert result["status"] == "finished", result
