@@ -1,17 +1,26 @@
 """Secure-mode benchmark: what mutual TLS and the router's access control cost against plain TCP.
 
-Two routers run on loopback in the same run: a plain one (`tcp/`) and a secure one (`tls/`,
-mutual TLS with a fresh deployment of `archery keys init`, access control of its
-`acl.json5`). Through each, with the deployment's identities in secure mode, over the
-protocol layer: the learner calls `ROBOT/detector/rpc:i` served by the detector (`Node.call`
-answered by `Node.serve`), and the camera streams lossless 1280×720 `Image` frames on
-`ROBOT/cam/target:o` to the detector, which decodes them.
+Everything runs on loopback in the same run, plain (`tcp/`) against secure (`tls/`: mutual TLS
+with a fresh deployment of `archery keys init`, the router enforcing its `acl.json5`), each
+figure measured in interleaved repeats (plain first on even repeats, secure first on odd ones)
+and reported as the median over repeats of secure/plain, with the spread (min–max):
 
-Interleaved repeats; per repeat the RPC round-trip median and p99 (ms) and frames/s; reported as
-the median over repeats of secure/plain, with the spread (min–max). Goals: ≤1.3× latency,
-≥0.8× throughput.
+1. Through two routers (`archery router`), with the deployment's identities in secure mode,
+   over the protocol layer: the learner calls `ROBOT/detector/rpc:i` served by the detector
+   (`Node.call` answered by `Node.serve`; RPC round-trip median and p99, ms), and the camera
+   streams lossless 1280×720 `Image` frames on `ROBOT/cam/target:o` to the operator (what
+   `archery view` reads), which decodes them (frames/s). Goals: ≤1.3× latency, ≥0.8×
+   throughput.
+2. Two whole meshes (`services.launcher.Launcher`: a router and the five services as child
+   processes, each service with its own identity in secure mode), one plain and one secure,
+   both up at once on different loopback ports: a learning session of `--rollouts` rollouts
+   (archer, `until_hit` off, the same seed on both, after one warm-up session each) is run
+   alternately on each, started and followed as `archery learn` does (the `operator`
+   identity). Per-rollout wall time = (arrival of the last done rollout − the start request)
+   / rollouts. Goal: ≤1.1×.
 
-Run: `python -m benchmarks.bench_secure [--calls 2000] [--frames 200] [--repeats 5]`
+Run: `python -m benchmarks.bench_secure [--calls 2000] [--frames 200] [--repeats 5]
+[--sessions 7] [--rollouts 5]`
 """
 
 from __future__ import annotations
@@ -21,6 +30,7 @@ import statistics
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -28,10 +38,12 @@ from rich.progress import Progress
 
 from benchmarks.machine import cpu_model
 from protocol.credentials import init_deployment
-from protocol.messages import Image
+from protocol.messages import Image, Rollout
 from protocol.netflags import NetConfig
-from protocol.node import Node, Publisher
+from protocol.node import Node, Publisher, Subscription
 from protocol.router import free_tcp_endpoint, spawn_router
+from services.launcher import SERVICES, Launcher
+from services.learner.learn import follow
 
 ROBOT = "bench"
 WIDTH, HEIGHT = 1280, 720
@@ -39,20 +51,22 @@ ARGS = {"theta": [0.17, 0.03, -0.03]}
 
 
 class Mesh:
-    """Learner, detector and camera nodes on one router, the verb served and the stream open."""
+    """Learner, detector, camera and operator nodes on one router, the verb served and the
+    frame stream open."""
 
     def __init__(self, endpoint: str, secure: str | None) -> None:
         def node(identity: str) -> Node:
             net = NetConfig(connect=(endpoint,), robot=ROBOT, secure=secure, identity=identity)
             return Node(None, net)
 
-        self.learner, self.detector, self.camera = map(node, ("learner", "detector", "camera"))
+        self.nodes = [node(n) for n in ("learner", "detector", "camera", "operator")]
+        self.learner, self.detector, self.camera, self.operator = self.nodes
         self.key = self.detector.keys.detector_rpc()
         self.detector.serve(self.key, {"measure": lambda args: args})
         self.frames = 0
         self._cond = threading.Condition()
-        self.detector.subscribe(
-            self.detector.keys.cam_frames(), Image, mode="fifo", callback=self._on_image
+        self.operator.subscribe(
+            self.operator.keys.cam_frames(), Image, mode="fifo", callback=self._on_image
         )
         self.pub: Publisher[Image] = self.camera.publisher(
             self.camera.keys.cam_frames(), Image, lossless=True
@@ -94,58 +108,158 @@ class Mesh:
             return frames / (self.last - start)
 
     def close(self) -> None:
-        for node in (self.learner, self.detector, self.camera):
+        for node in self.nodes:
             node.close()
+
+
+class Session:
+    """`archery learn` against one running mesh: start a session, follow it to its end."""
+
+    def __init__(self, launcher: Launcher, rollouts: int) -> None:
+        self.node = Node(None, launcher.net)  # the operator identity in secure mode
+        self.rollouts: Subscription[Rollout] = self.node.subscribe(
+            self.node.keys.learner_rollouts(), Rollout, mode="fifo"
+        )
+        self.node.wait_alive(SERVICES, timeout=60)
+        self.request = {
+            "algo": "archer",
+            "rollouts": rollouts,
+            "seed": 0,
+            "until_hit": False,
+            "options": {},
+        }
+
+    def per_rollout(self) -> float:
+        """Run one session; seconds from the start request to the last done rollout, per
+        rollout."""
+        done: list[float] = []
+
+        def on_rollout(message: Rollout) -> None:
+            if message.status == "done":
+                done.append(time.perf_counter())
+
+        start = time.perf_counter()
+        status = self.node.call(self.node.keys.learner_rpc(), "start", self.request, timeout=120)
+        final = follow(self.node, status["session"], self.rollouts, on_rollout, poll=0.05)
+        n = self.request["rollouts"]
+        if final.get("state") != "finished" or len(done) != n:
+            raise RuntimeError(f"session {final.get('state')} with {len(done)} of {n} rollouts")
+        return (done[-1] - start) / n
+
+    def close(self) -> None:
+        self.node.close()
+
+
+def interleaved(repeats: int, run: Callable[[str], None]) -> None:
+    """`run(mode)` for both modes `repeats` times, alternating which goes first."""
+    for r in range(repeats):
+        for mode in ("plain", "secure") if r % 2 == 0 else ("secure", "plain"):
+            run(mode)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print the table of ratios."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_secure", description=__doc__)
-    parser.add_argument("--calls", type=int, default=2000)
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--calls", type=int, default=2000, help="RPC calls per repeat")
+    parser.add_argument("--frames", type=int, default=200, help="frames per repeat")
+    parser.add_argument("--repeats", type=int, default=5, help="repeats of the RPC and frames")
+    parser.add_argument("--sessions", type=int, default=7, help="sessions per mesh (≥5)")
+    parser.add_argument("--rollouts", type=int, default=5, help="rollouts per session")
     args = parser.parse_args(argv)
+    if args.sessions < 1 or args.repeats < 1 or args.rollouts < 1:
+        parser.error("--repeats, --sessions and --rollouts must be at least 1")
     rgb = np.random.default_rng(0).integers(0, 255, (HEIGHT, WIDTH, 3), np.uint8)
     image = Image.from_numpy(rgb)
     figures: dict[str, dict[str, list[float]]] = {
-        t: {"median": [], "p99": [], "fps": []} for t in ("plain", "secure")
+        t: {"median": [], "p99": [], "fps": [], "rollout": []} for t in ("plain", "secure")
     }
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, Progress() as progress:
         deployment = str(init_deployment(Path(tmp) / "deploy", robot=ROBOT))
-        plain_ep = free_tcp_endpoint()
-        secure_ep = free_tcp_endpoint().replace("tcp/", "tls/")
-        routers = [spawn_router(plain_ep), spawn_router(secure_ep, secure=deployment)]
+        task = progress.add_task(
+            "RPC and frames", total=2 * args.repeats + 2 + 2 * (args.sessions + 1)
+        )
+
+        def endpoints() -> dict[str, str]:
+            return {
+                "plain": free_tcp_endpoint(),
+                "secure": free_tcp_endpoint().replace("tcp/", "tls/"),
+            }
+
+        # 1. RPC round trips and frames through two routers, nothing else running.
+        ep = endpoints()
+        routers = [spawn_router(ep["plain"]), spawn_router(ep["secure"], secure=deployment)]
         try:
-            meshes = {"plain": Mesh(plain_ep, None), "secure": Mesh(secure_ep, deployment)}
-            with Progress() as progress:
-                task = progress.add_task("secure benchmark", total=args.repeats * 2)
-                for r in range(args.repeats):
-                    order = ("plain", "secure") if r % 2 == 0 else ("secure", "plain")
-                    for mode in order:
-                        times = meshes[mode].rpc_times(args.calls)
-                        figures[mode]["median"].append(statistics.median(times))
-                        figures[mode]["p99"].append(float(np.percentile(times, 99)))
-                        figures[mode]["fps"].append(meshes[mode].frame_rate(image, args.frames))
-                        progress.advance(task)
+            meshes = {"plain": Mesh(ep["plain"], None), "secure": Mesh(ep["secure"], deployment)}
+
+            def rpc_and_frames(mode: str) -> None:
+                times = meshes[mode].rpc_times(args.calls)
+                figures[mode]["median"].append(statistics.median(times))
+                figures[mode]["p99"].append(float(np.percentile(times, 99)))
+                figures[mode]["fps"].append(meshes[mode].frame_rate(image, args.frames))
+                progress.advance(task)
+
+            interleaved(args.repeats, rpc_and_frames)
             for mesh in meshes.values():
                 mesh.close()
         finally:
             for proc in routers:
                 proc.terminate()
                 proc.wait()
-    print(f"\nmachine: {cpu_model()}; {args.repeats} interleaved repeats × {args.calls} calls")
-    print(f"and {args.frames} frames; routers on loopback (plain tcp/, secure tls/ + ACL)")
-    print(f"{'figure':<22} {'plain':>9} {'secure':>9} {'secure/plain':>13} {'spread':>14}")
-    for name, key in (
-        ("RPC median (ms)", "median"),
-        ("RPC p99 (ms)", "p99"),
-        ("1280x720 frames/s", "fps"),
+
+        # 2. Learning sessions on two whole meshes, plain and secure, both up.
+        ep = endpoints()
+        launchers: dict[str, Launcher] = {}
+        sessions: dict[str, Session] = {}
+        try:
+            for mode in ("plain", "secure"):
+                progress.update(task, description=f"starting the {mode} mesh")
+                launchers[mode] = Launcher(
+                    ep[mode],
+                    ROBOT,
+                    Path(tmp) / f"logs-{mode}",
+                    {"learner": ["--runs", str(Path(tmp) / f"runs-{mode}")]},
+                    secure=deployment if mode == "secure" else None,
+                )
+                launchers[mode].up(120)
+                sessions[mode] = Session(launchers[mode], args.rollouts)
+                progress.advance(task)
+            progress.update(task, description="learning sessions")
+            for mode in ("plain", "secure"):  # warm-up: calibration, first renders, caches
+                sessions[mode].per_rollout()
+                progress.advance(task)
+
+            def session(mode: str) -> None:
+                figures[mode]["rollout"].append(1e3 * sessions[mode].per_rollout())
+                progress.advance(task)
+
+            interleaved(args.sessions, session)
+        finally:
+            for client in sessions.values():
+                client.close()
+            for launcher in launchers.values():
+                launcher.stop_all()
+
+    print(f"\nmachine: {cpu_model()}; on loopback, plain tcp/ against secure tls/ + ACL")
+    print(f"{args.repeats} interleaved repeats × {args.calls} calls and {args.frames} frames;")
+    print(
+        f"{args.sessions} interleaved sessions × {args.rollouts} rollouts on two whole meshes "
+        f"(router + 5 services each)"
+    )
+    print(
+        f"{'figure':<24} {'plain':>9} {'secure':>9} {'secure/plain':>13} {'spread':>14} {'goal':>7}"
+    )
+    for name, key, goal in (
+        ("RPC median (ms)", "median", "≤1.3×"),
+        ("RPC p99 (ms)", "p99", "≤1.3×"),
+        ("1280x720 frames/s", "fps", "≥0.8×"),
+        ("session ms/rollout", "rollout", "≤1.1×"),
     ):
         plain, secure = figures["plain"][key], figures["secure"][key]
         ratios = [s / p for s, p in zip(secure, plain, strict=True)]
         print(
-            f"{name:<22} {statistics.median(plain):>9.3f} {statistics.median(secure):>9.3f} "
-            f"{statistics.median(ratios):>12.2f}× {min(ratios):>6.2f}–{max(ratios):.2f}×"
+            f"{name:<24} {statistics.median(plain):>9.3f} {statistics.median(secure):>9.3f} "
+            f"{statistics.median(ratios):>12.2f}× {min(ratios):>6.2f}–{max(ratios):.2f}× "
+            f"{goal:>7}"
         )
     return 0
 

@@ -15,7 +15,28 @@ calls; `_grants` turns each into the Zenoh messages and directions it takes:
 * call K: `query` in, `reply` out, `declare_queryable` out;
 * every identity holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
   `ROBOT/alive/NAME/*`), serves its own `ROBOT/describe/NAME`, may query its own describe (the
-  one-instance check) and watch every token of the robot.
+  one-instance check) and watch every token of the robot (`wait_alive`, the replier check).
+
+Every grant is a flow of the running services (a session of `archery learn` uses them all):
+
+* robot: publishes joint states, the scene (`world/state:o`) and world events; takes joint
+  commands; serves the joint RPCs and `archery/rpc:i` (nock, release, reset, status);
+* camera: subscribes to the scene (a change wakes the renderer), calls `archery/rpc:i`
+  (`status`: which scene to render), serves `cam/rpc:i` (grab, calibration marks) and
+  publishes the frames (read by `archery view`, the operator);
+* detector: calls `cam/rpc:i` (grabs the frame of a shot, the calibration marks), serves
+  `detector/rpc:i` (measure, calibrate), publishes `detector/hit:o`; it does not subscribe
+  to the frame stream;
+* controller: subscribes to the joint states, publishes joint commands, calls the joint RPCs
+  (`getLimits`, `setRefSpeeds`), serves the three cartesian controllers;
+* learner: calls `cartesianController/archery/rpc:i` (status, posture), `archery/rpc:i`
+  (reset, nock, release) and `detector/rpc:i` (measure, frame), subscribes to the world
+  events (the shot's outcome), serves `learner/rpc:i` and publishes `learner/rollout:o`;
+* operator (the CLI tools: `learn`, `ports`, `read`, `rpc`, `view`, `write`, and `up`
+  waiting for its children): calls every RPC (the learner's `start`/`status`/`stop` for
+  `archery learn`) and `describe/*`, reads every stream (`learner/rollout:o` for `archery
+  learn`), commands the joints, watches the liveliness tokens; it holds no token and serves
+  nothing.
 """
 
 from __future__ import annotations
@@ -71,9 +92,8 @@ def roles(robot: str) -> dict[str, Role]:
         ),
         "detector": Role(
             publish=(k.detector_hits(),),
-            subscribe=(k.cam_frames(),),  # it grabs frames by RPC; streaming them is allowed
             serve=(k.detector_rpc(),),
-            call=(k.cam_rpc(),),
+            call=(k.cam_rpc(),),  # it grabs frames by RPC; the frame stream is the operator's
         ),
         "controller": Role(
             publish=commands,

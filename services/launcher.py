@@ -348,7 +348,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2 if isinstance(exc, ConfigError) else 1
     print(
         f"archery up: all alive in {took:.1f} s (robot {launcher.net.robot!r}, logs in "
-        f"{launcher.logs}/). Run `archery learn --connect {endpoint}` in another shell; "
+        f"{launcher.logs}/). Run `archery learn {shlex.join(launcher.secure)}"
+        f"{' ' if args.secure else ''}--connect {endpoint}` in another shell; "
         f"Ctrl-C stops everything.",
         flush=True,
     )
