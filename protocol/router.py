@@ -66,11 +66,12 @@ def wait_for_endpoint(endpoint: str, timeout: float = 10.0) -> None:
 
 
 def spawn_router(
-    endpoint: str, timeout: float = 10.0, secure: str | None = None
+    endpoint: str, timeout: float = 10.0, secure: str | None = None, log_level: str = "warn"
 ) -> subprocess.Popen[bytes]:
     """Start `archery router --listen ENDPOINT [--secure DIR]` as a child process and wait
-    until it listens."""
+    until it listens; it logs at `log_level` (default warn: tests and benchmarks stay quiet)."""
     extra = ["--secure", secure] if secure is not None else []
+    extra += ["--log-level", log_level]
     proc = subprocess.Popen(
         [sys.executable, "-m", "services.cli", "router", "--listen", endpoint, *extra],
         stdin=subprocess.DEVNULL,
