@@ -17,8 +17,8 @@ from protocol.errors import BadRequest, ConfigError
 from protocol.netflags import NetConfig
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from protocol.service import config_number
-from services.learner.base import Bounds, LearnerConfigError
-from services.learner.registry import ALGORITHMS
+from services.learner.algorithms.base import Bounds, LearnerConfigError
+from services.learner.algorithms.registry import ALGORITHMS
 
 __all__ = [
     "DEFAULT_THETA0",
@@ -78,7 +78,7 @@ class SessionConfig:
     """One learning session, validated (what `start` asks for, or a journal's header).
 
     Attributes:
-        algorithm: a name of `services.learner.registry.ALGORITHMS`.
+        algorithm: a name of `services.learner.algorithms.registry.ALGORITHMS`.
         rollouts: budget of done rollouts (aborted attempts are not counted).
         seed: seeds the learner's generator, and the robot's shot noise at the start.
         until_hit: end the session at the first rollout within `hit_radius` of the centre.

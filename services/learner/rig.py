@@ -33,7 +33,7 @@ from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
 from protocol.verbs import robot as rv
-from services.learner.base import Bounds, LearnerConfigError
+from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
 
 __all__ = ["SERVICES", "MeshRig"]

@@ -41,9 +41,9 @@ from services.learner.config import (
     add_learner_arguments,
     config_from_args,
 )
-from services.learner.report import write_report
 from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, Session
+from services.learner.tools.report import write_report
 
 __all__ = ["SERVICE", "LearnerService", "main", "run"]
 
