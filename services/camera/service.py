@@ -43,6 +43,7 @@ from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcError, Rpc
 from protocol.messages import Image, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher
+from protocol.robotspec import CAMERA, ROBOT_TIMEOUT
 from protocol.service import service_main
 from protocol.verbs import NoArgs
 from protocol.verbs import camera as camera_verbs
@@ -77,7 +78,7 @@ class CameraConfig:
     height: int = 720
     rate: float = 10.0
     encoding: str = "rgb8"
-    robot_timeout: float = 3.0
+    robot_timeout: float = ROBOT_TIMEOUT
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, SourceSpec):
@@ -306,7 +307,7 @@ def _loop(capture: _Capture, pub: Publisher[Image], stop: threading.Event) -> No
 
 def run(config: CameraConfig, stop: threading.Event) -> None:
     """Serve until `stop` is set."""
-    with Node("camera", config.net) as node:
+    with Node(CAMERA, config.net) as node:
         keys = node.keys
         pub = node.publisher(keys.cam_frames(), Image)
         store = FrameStore()

@@ -18,6 +18,7 @@ import threading
 
 from protocol.node import Node
 from protocol.parts import ARM_PARTS
+from protocol.robotspec import CONTROLLER
 from protocol.service import service_main
 from services.controller.config import (
     ControllerConfig,
@@ -29,9 +30,8 @@ from services.controller.posture import ArcheryPosture
 from services.controller.robotlink import RobotLink
 from services.controller.verbs import ArcheryController, ArmController, MotionLock
 
-__all__ = ["SERVICE", "main", "run"]
+__all__ = ["main", "run"]
 
-SERVICE = "controller"
 log = logging.getLogger("archery.controller")
 
 
@@ -39,7 +39,7 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
     """Serve the cartesian controllers until `stop` is set."""
     model = load_arms_model()
     posture = ArcheryPosture(config.posture)
-    with Node(SERVICE, config.net) as node:
+    with Node(CONTROLLER, config.net) as node:
         keys = node.keys
         link = RobotLink(node, config.robot_timeout, config.joint_tolerance)
         motion = MotionLock()

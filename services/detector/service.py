@@ -42,6 +42,7 @@ from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
 from protocol.netflags import NetConfig
 from protocol.node import Node
+from protocol.robotspec import CAMERA, CAMERA_TIMEOUT, DETECTOR
 from protocol.service import service_main
 from protocol.verbs import NoArgs
 from protocol.verbs import detector as dv
@@ -84,7 +85,7 @@ class DetectorConfig:
     model: str | None = None
     settings: DetectorSettings = field(default_factory=DetectorSettings)
     auto_calibrate: bool = True
-    camera_timeout: float = 10.0
+    camera_timeout: float = CAMERA_TIMEOUT
 
     def __post_init__(self) -> None:
         if not (
@@ -120,7 +121,7 @@ class _State:
 def run(config: DetectorConfig, stop: threading.Event) -> None:
     """Serve until `stop` is set."""
     state = _State(config)
-    with Node("detector", config.net) as node:
+    with Node(DETECTOR, config.net) as node:
         keys = node.keys
         hits = node.publisher(keys.detector_hits(), DetectionMessage, lossless=True)
 
@@ -223,7 +224,7 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
         auto = config.auto_calibrate
         while auto and state.detector is None and not stop.is_set():
             try:
-                node.wait_alive(["camera"], timeout=1.0)
+                node.wait_alive([CAMERA], timeout=1.0)
                 ensure_model()
             except RpcError as exc:
                 if exc.code == BadRequest.code:  # a real camera: it has no marks to offer
@@ -248,7 +249,7 @@ def _add_arguments(parser: argparse.ArgumentParser) -> None:
         help="do not calibrate from the camera's marks when there is no model",
     )
     add_settings_arguments(parser)
-    parser.add_argument("--camera-timeout", type=float, default=10.0, help="wall s")
+    parser.add_argument("--camera-timeout", type=float, default=CAMERA_TIMEOUT, help="wall s")
 
 
 def _make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:

@@ -32,6 +32,7 @@ import msgspec
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Rollout
 from protocol.node import Node, Publisher
+from protocol.robotspec import LEARNER
 from protocol.service import service_main
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
@@ -45,9 +46,8 @@ from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, Session
 from services.learner.tools.report import write_report
 
-__all__ = ["SERVICE", "LearnerService", "main", "run"]
+__all__ = ["LearnerService", "main", "run"]
 
-SERVICE = "learner"
 log = logging.getLogger("archery.learner")
 
 
@@ -190,7 +190,7 @@ class LearnerService:
 
 def run(config: LearnerServiceConfig, stop: threading.Event) -> None:
     """Serve the learner until `stop` is set."""
-    with Node(SERVICE, config.net) as node:
+    with Node(LEARNER, config.net) as node:
         service = LearnerService(config, node)
         node.serve(node.keys.learner_rpc(), service.handlers())
         node.ready()

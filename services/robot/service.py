@@ -41,6 +41,7 @@ import numpy as np
 
 from protocol.messages import Array, JointCommand, JointState, WorldEvent, WorldState
 from protocol.node import Node, Subscription
+from protocol.robotspec import ROBOT
 from protocol.service import service_main
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv
@@ -48,9 +49,8 @@ from services.robot.config import RobotConfig, add_robot_arguments, config_from_
 from services.robot.simloop import SimLoop
 from sim.world import ArcheryWorld
 
-__all__ = ["SERVICE", "main", "run"]
+__all__ = ["main", "run"]
 
-SERVICE = "robot"
 log = logging.getLogger("archery.robot")
 
 
@@ -163,7 +163,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
     """Serve the simulated robot until `stop` is set."""
     world = ArcheryWorld(config.world)
     world.reset(config.seed)
-    with Node(SERVICE, config.net) as node:
+    with Node(ROBOT, config.net) as node:
         keys = node.keys
         sink = _MeshSink(node, world.parts)
         loop = SimLoop(world, config, sink, seed=config.seed)
