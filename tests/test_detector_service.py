@@ -20,7 +20,7 @@ from protocol.errors import RpcError
 from protocol.messages import Array, Detection, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
-from services.camera.service import CameraConfig
+from services.camera.config import CameraConfig
 from services.camera.service import run as run_camera
 from services.detector.detect import DetectorSettings
 from services.detector.service import DetectorConfig
