@@ -25,7 +25,7 @@ class RobotConfig:
         world: the simulated robot, bow and shot (`sim.world.WorldConfig`).
         seed: seed of the shot noise at start-up (`reset {"seed"}` reseeds); None: fresh entropy.
         rtf: real-time factor: 1.0 paces simulated time with the wall clock (for watching),
-            0 runs as fast as possible and only while something moves (see `simloop`).
+            0 runs as fast as possible and only while something moves (see `pacing`).
         state_rate: joint state streams per simulated second (Hz).
         world_rate: world state messages per simulated second (Hz); also one after each landing.
         watchdog: a command stream (commands overtaking unfinished moves) with no command for
