@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from services.learner.experiment import (
+from services.learner.algorithms.registry import ALGORITHMS
+from services.learner.tools.experiment import (
     AlgorithmRun,
     ExperimentConfig,
     run_algorithm,
     summarise,
     write_outputs,
 )
-from services.learner.registry import ALGORITHMS
 from sim.ballistic import Scenario
 
 __all__ = ["PAPER_ROLLOUTS", "SCENARIOS", "main"]

@@ -28,7 +28,8 @@ from protocol.messages import Array, Image, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.router import free_tcp_endpoint, spawn_router
-from services.camera.service import CameraConfig, run
+from services.camera.config import CameraConfig
+from services.camera.service import run
 from sim.arrow import arrow_quat
 from sim.render import LEAN_FLAGS, ROBOT_GEOM_GROUP, SceneRenderer
 from sim.scene import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig, ScenePhysics, build_scene

@@ -44,10 +44,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from protocol.keys import CARTESIAN_ARMS, SERVICES, Keys
+from protocol.keys import CARTESIAN_ARMS, Keys
 from protocol.parts import PARTS
 
-__all__ = ["ROLES", "Role", "roles", "rules"]
+__all__ = ["Role", "roles", "rules"]
 
 OPERATOR = "operator"
 
@@ -111,9 +111,6 @@ def roles(robot: str) -> dict[str, Role]:
         # verb, and command the joints (`archery write ROBOT/PART/command:i`), nothing else.
         OPERATOR: Role(publish=commands, subscribe=(f"{robot}/**",), call=every_rpc),
     }
-
-
-ROLES = (*SERVICES, OPERATOR)
 
 
 def _rule(rule_id: str, messages: list[str], flow: str, key_exprs: tuple[str, ...]) -> dict:

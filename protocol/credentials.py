@@ -43,7 +43,6 @@ __all__ = [
     "Authority",
     "init_deployment",
     "issue",
-    "load_authority",
     "main",
     "new_authority",
     "write_identity",
@@ -191,15 +190,6 @@ def write_identity(
     """Write `NAME.key` (0600) and `NAME.pem` (0644) into `directory`."""
     _write(directory / f"{name}.key", _key_pem(key), 0o600)
     _write(directory / f"{name}.pem", cert.public_bytes(serialization.Encoding.PEM), 0o644)
-
-
-def load_authority(directory: Path) -> Authority:
-    """The CA of a deployment directory (needs `ca.key`)."""
-    key = serialization.load_pem_private_key((directory / CA_KEY).read_bytes(), password=None)
-    if not isinstance(key, ec.EllipticCurvePrivateKey):
-        raise ConfigError(f"{directory / CA_KEY} is not an EC private key")
-    cert = x509.load_pem_x509_certificate((directory / CA_CERT).read_bytes())
-    return Authority(key, cert)
 
 
 def init_deployment(

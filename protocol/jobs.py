@@ -37,6 +37,7 @@ class JobQueue:
         self._jobs: deque[tuple[Callable[[], Any], Future[Any]]] = deque()
         self._cond = threading.Condition()
         self._closed = ""
+        self._woken = False  # a notify the owner has not waited for yet
 
     # -- any thread -------------------------------------------------------------------------
     def submit(self, func: Callable[[], T]) -> Future[T]:
@@ -81,16 +82,19 @@ class JobQueue:
         return bool(self._closed)
 
     def notify(self) -> None:
-        """Wake the owner if it waits (e.g. new sensor data arrived)."""
+        """Wake the owner (e.g. new sensor data arrived); if it is not waiting, its next `wait`
+        returns at once, so no wake-up is lost."""
         with self._cond:
+            self._woken = True
             self._cond.notify_all()
 
     # -- the owning thread ------------------------------------------------------------------
     def wait(self, timeout: float) -> bool:
         """Wait up to `timeout` s for a job (or `notify`/`close`); True if jobs are pending."""
         with self._cond:
-            if not self._jobs and not self._closed and timeout > 0:
+            if not self._jobs and not self._closed and not self._woken and timeout > 0:
                 self._cond.wait(timeout)
+            self._woken = False
             return bool(self._jobs)
 
     def drain(self) -> bool:

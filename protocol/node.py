@@ -29,6 +29,7 @@ from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout, Wro
 from protocol.keys import Keys
 from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
 from protocol.netflags import NetConfig, open_session
+from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
@@ -513,7 +514,7 @@ class Node:
         verb: str,
         args: dict[str, Any] | None = None,
         *,
-        timeout: float = 5.0,
+        timeout: float = CALL_TIMEOUT,
         expect_service: str | None = None,
     ) -> Any:
         """Call `verb` on an `rpc:i` key and return the result; with `expect_service`, only a
@@ -539,7 +540,7 @@ class Node:
         verb: Verb[A, R],
         args: A | None = None,
         *,
-        timeout: float = 5.0,
+        timeout: float = CALL_TIMEOUT,
         expect_service: str | None = None,
     ) -> R:
         """Call a typed `verb` on an `rpc:i` key with its `Args` struct and return its `Reply`;
@@ -582,7 +583,12 @@ class Node:
         return reply.result  # type: ignore[no-any-return]
 
     def request(
-        self, key: str, payload: bytes, *, timeout: float = 5.0, expect_service: str | None = None
+        self,
+        key: str,
+        payload: bytes,
+        *,
+        timeout: float = CALL_TIMEOUT,
+        expect_service: str | None = None,
     ) -> RpcReply:
         """Send a raw request payload and return the decoded `RpcReply` (no error raising but
         `WrongReplier` when `expect_service` is given and only others replied)."""

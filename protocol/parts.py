@@ -6,7 +6,7 @@ torso is ordered yaw, roll, pitch as on iCub's `torso` controlboard.
 
 from __future__ import annotations
 
-__all__ = ["ARM_PARTS", "PARTS", "part_of_joint"]
+__all__ = ["ARM_PARTS", "PARTS"]
 
 _ARM_JOINTS = (
     "shoulder_pitch",
@@ -25,15 +25,3 @@ PARTS: dict[str, tuple[str, ...]] = {
 }
 
 ARM_PARTS: tuple[str, ...] = ("left_arm", "right_arm")
-
-
-def part_of_joint(joint: str) -> str:
-    """Return the part ("torso", "left_arm", "right_arm") that owns `joint`.
-
-    Raises:
-        KeyError: the joint is not on any controlled part; the message lists the parts.
-    """
-    for part, joints in PARTS.items():
-        if joint in joints:
-            return part
-    raise KeyError(f"joint {joint!r} is not on a controlled part; parts: {', '.join(PARTS)}")

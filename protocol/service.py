@@ -5,30 +5,19 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 import threading
 from collections.abc import Callable
 from typing import TypeVar
 
 from protocol.cliargs import ArgumentParser
-from protocol.errors import ArcheryError, ConfigError, DuplicateService
+from protocol.errors import ArcheryError, DuplicateService
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import shutdown_on_signals
 
-__all__ = ["config_number", "service_main"]
+__all__ = ["service_main"]
 
 C = TypeVar("C")
-
-
-def config_number(name: str, value: object, low: float, high: float, unit: str = "") -> float:
-    """`value` as a float in [low, high] (in `unit`); ConfigError naming `name` otherwise."""
-    suffix = f" {unit}" if unit else ""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ConfigError(f"{name} must be a finite number{suffix}, got {value!r}")
-    if not low <= value <= high:
-        raise ConfigError(f"{name} must be in [{low:g}, {high:g}]{suffix}, got {value!r}")
-    return float(value)
 
 
 def service_main(

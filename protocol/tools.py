@@ -36,6 +36,7 @@ from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, bad_args_message
+from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import Verb, table_for_key
 
 __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
@@ -44,7 +45,12 @@ __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 def _parser(prog: str, description: str) -> argparse.ArgumentParser:
     parser = ArgumentParser(prog=f"archery {prog}", description=description)
     add_network_args(parser, default_mode="client")
-    parser.add_argument("--timeout", type=seconds, default=5.0, help="seconds to wait (default 5)")
+    parser.add_argument(
+        "--timeout",
+        type=seconds,
+        default=CALL_TIMEOUT,
+        help=f"seconds to wait (default {CALL_TIMEOUT:g})",
+    )
     return parser
 
 

@@ -41,10 +41,13 @@ VERBS: dict[str, tuple[str, str]] = {
         "services.learner.service:main",
         "learning sessions over the mesh (ARCHER, PoWER, baselines), journaled",
     ),
-    "learn": ("services.learner.learn:main", "run one learning session against running services"),
+    "learn": (
+        "services.learner.tools.learn:main",
+        "run one learning session against running services",
+    ),
     "up": ("services.launcher:main", "start a router and all five services; stop them on Ctrl-C"),
     "experiment": (
-        "services.learner.experiment:main",
+        "services.learner.tools.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",
     ),
     "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),

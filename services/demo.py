@@ -27,8 +27,8 @@ from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.router import free_tcp_endpoint
 from services.launcher import SERVICES, Launcher, LaunchError
-from services.learner.learn import SessionLost, follow, result_line
-from services.learner.registry import ALGORITHMS
+from services.learner.algorithms.registry import ALGORITHMS
+from services.learner.tools.learn import SessionLost, follow, result_line
 
 __all__ = ["main"]
 

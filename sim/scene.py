@@ -141,14 +141,6 @@ class ScenePhysics:
         self.data.qpos[self._qpos[self._part(part)]] = values
         self.data.qvel[self._dof[part]] = 0.0
 
-    def controls(self, part: str) -> np.ndarray:
-        """Position-servo setpoints of `part` (rad)."""
-        return self.data.ctrl[self._act[self._part(part)]].copy()
-
-    def set_controls(self, part: str, values: np.ndarray) -> None:
-        """Write `part`'s position-servo setpoints (rad); no clamping here."""
-        self.data.ctrl[self._act[self._part(part)]] = values
-
     # -- sites ----------------------------------------------------------------------------
     def site_position(self, name: str) -> np.ndarray:
         """Position of the site `name` (m) as of the last kinematics pass."""
@@ -239,7 +231,3 @@ class ScenePhysics:
     def qpos(self) -> np.ndarray:
         """A copy of the full generalised position vector (enough to render the scene)."""
         return self.data.qpos.copy()
-
-    def unstable(self) -> bool:
-        """True if MuJoCo flagged a bad (NaN/Inf/huge) acceleration since the last reset."""
-        return bool(self.data.warning[mujoco.mjtWarning.mjWARN_BADQACC].number > 0)

@@ -8,7 +8,7 @@ import pytest
 
 from protocol.robotspec import THETA0
 from services.learner.abort_policy import AbortDecision, after_abort, streak_failure
-from services.learner.base import Bounds
+from services.learner.algorithms.base import Bounds
 
 BOX = Bounds(low=(0.10, -0.05, -0.05), high=(0.30, 0.05, 0.05))
 START = (0.17, 0.006, -0.026)  # θ0 of the session (m)

@@ -20,7 +20,8 @@ from protocol.errors import ConfigError, RpcError
 from protocol.messages import Array, Image, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
-from services.camera.service import CameraConfig, run
+from services.camera.config import CameraConfig
+from services.camera.service import run
 from services.camera.sources import DeviceSource, SourceError, SourceSpec, parse_source
 from sim.arrow import arrow_quat
 from sim.render import SceneRenderer, project

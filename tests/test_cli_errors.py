@@ -275,8 +275,9 @@ def test_ports_waits_for_a_service_by_liveliness(net: NetConfig) -> None:
 def test_a_refused_joint_command_fails_with_the_robots_reason(
     net: NetConfig, tmp_path: Path
 ) -> None:
+    from protocol.robotspec import ROBOT
     from services.robot.config import RobotConfig
-    from services.robot.service import SERVICE, run
+    from services.robot.service import run
     from sim.scene import SceneConfig
     from sim.world import WorldConfig
 
@@ -284,7 +285,7 @@ def test_a_refused_joint_command_fails_with_the_robots_reason(
     flags = ["--connect", net.connect[0], "--robot", net.robot]
     key = f"{net.robot}/torso/command:i"
     with serving(run, config), Node(None, net) as node:
-        node.wait_alive([SERVICE], 60)
+        node.wait_alive([ROBOT], 60)
         good = archery("write", key, '{"part": "torso", "position": [0.1, 0, 0]}', *flags)
         assert good.returncode == 0 and good.stderr == "", good.stderr
         for command, reason in (

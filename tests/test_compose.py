@@ -19,7 +19,7 @@ import protocol.service
 from protocol.credentials import DEFAULT_HOSTS
 from services.cli import VERBS
 from services.launcher import SERVICES
-from services.learner.learn import build_parser, start_request
+from services.learner.tools.learn import build_parser, start_request
 
 ROOT = Path(__file__).resolve().parents[1]
 _LINE = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_][\w-]*):(?: (?P<value>.+))?$")

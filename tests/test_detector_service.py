@@ -20,10 +20,10 @@ from protocol.errors import RpcError
 from protocol.messages import Array, Detection, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
-from services.camera.service import CameraConfig
+from services.camera.config import CameraConfig
 from services.camera.service import run as run_camera
+from services.detector.config import DetectorConfig
 from services.detector.detect import DetectorSettings
-from services.detector.service import DetectorConfig
 from services.detector.service import run as run_detector
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE

@@ -20,7 +20,7 @@ from protocol.node import Node, Subscription
 from protocol.router import free_tcp_endpoint
 from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
-from services.learner.learn import follow
+from services.learner.tools.learn import follow
 from tests.conftest import archery
 
 os.environ.setdefault("MUJOCO_GL", "egl")

@@ -1,4 +1,4 @@
-"""Tests of `archery experiment` (services.learner.experiment) on small budgets."""
+"""Tests of `archery experiment` (services.learner.tools.experiment) on small budgets."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from services.cli import main as archery
-from services.learner.experiment import (
+from services.learner.tools.experiment import (
     CURVE_COLUMNS,
     AlgorithmRun,
     ExperimentConfig,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import pytest
 
@@ -76,3 +77,14 @@ def test_close_fails_pending_and_new_jobs() -> None:
     with pytest.raises(Unavailable, match="shutting down"):
         queue.submit(lambda: 2).result(1)
     assert queue.closed and not queue.wait(0.0)
+
+
+def test_a_notify_before_the_wait_is_not_lost() -> None:
+    queue = JobQueue(Unavailable, "the owner")
+    queue.notify()  # e.g. a frame arrived while the owner was busy
+    started = time.monotonic()
+    assert not queue.wait(5.0)
+    assert time.monotonic() - started < 1.0
+    started = time.monotonic()
+    assert not queue.wait(0.2)  # consumed: the next wait waits
+    assert time.monotonic() - started >= 0.15

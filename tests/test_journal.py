@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from services.learner.algorithms.registry import make_learner, restore_learner
 from services.learner.journal import (
     JOURNAL_NAME,
     JOURNAL_VERSION,
@@ -23,7 +24,6 @@ from services.learner.journal import (
     JournalState,
     read_records,
 )
-from services.learner.registry import make_learner, restore_learner
 
 
 def _learner() -> Any:

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.learner import Bounds, LearnerConfigError, Power
+from services.learner.algorithms import Bounds, LearnerConfigError, Power
 
 WIDE = Bounds(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 

@@ -25,7 +25,7 @@ from services.controller.config import ControllerConfig
 from services.learner import service as learner_service
 from services.learner.config import LearnerServiceConfig
 from services.learner.journal import read_records
-from services.learner.learn import follow
+from services.learner.tools.learn import follow
 from services.robot import service as robot_service
 from services.robot.config import RobotConfig
 from sim.scene import SceneConfig

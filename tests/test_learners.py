@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.learner import (
+from services.learner.algorithms import (
     ALGORITHMS,
     DEFAULT_BOUNDS,
     Archer,
@@ -27,7 +27,7 @@ from services.learner import (
     restore_learner,
     scalar_return,
 )
-from services.learner.base import rng_from_state, rng_state
+from services.learner.algorithms.base import rng_from_state, rng_state
 from sim.ballistic import BallisticWorld, Scenario
 from sim.geometry import START_THETA
 

@@ -20,8 +20,9 @@ from protocol.messages import JointCommand, JointState, WorldEvent, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node, Subscription
 from protocol.parts import PARTS
+from protocol.robotspec import ROBOT
 from services.robot.config import RobotConfig
-from services.robot.service import SERVICE, run
+from services.robot.service import run
 from sim.geometry import BOW_HAND, START_THETA
 from sim.postures import archery_posture
 from sim.scene import SceneConfig, build_scene
@@ -107,7 +108,7 @@ def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
         thread.start()
         node = Node(None, net)
         stops.append((stop, thread, node))
-        node.wait_alive([SERVICE], 30)
+        node.wait_alive([ROBOT], 30)
         return Client(node)
 
     yield start
@@ -283,11 +284,11 @@ def test_sigterm_ends_the_robot_process_cleanly(net: NetConfig) -> None:
     proc = subprocess.Popen([*argv, "--robot", net.robot, "--rtf", "1"], stdin=subprocess.DEVNULL)
     try:
         with Node(None, net) as node:
-            node.wait_alive([SERVICE], 60)
+            node.wait_alive([ROBOT], 60)
             assert node.call(node.keys.archery_rpc(), "status")["rtf"] == 1.0
             proc.terminate()
             assert proc.wait(20) == 0
-            node.wait_gone(SERVICE, 10)
+            node.wait_gone(ROBOT, 10)
     finally:
         if proc.poll() is None:
             proc.kill()

@@ -19,10 +19,20 @@ from typing import Any
 import pytest
 import zenoh
 from cryptography import x509
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec
 
 from protocol.acl import rules
 from protocol.codec import encode
-from protocol.credentials import IDENTITIES, init_deployment, issue, load_authority, write_identity
+from protocol.credentials import (
+    CA_CERT,
+    CA_KEY,
+    IDENTITIES,
+    Authority,
+    init_deployment,
+    issue,
+    write_identity,
+)
 from protocol.errors import ConfigError, RpcError, WrongReplier
 from protocol.keys import Keys
 from protocol.messages import RpcReply
@@ -194,10 +204,17 @@ def test_another_deployments_credentials_cannot_connect(
     zenoh.open(own).close()
 
 
+def _load_authority(directory: Path) -> Authority:
+    """The CA of a deployment directory (its `ca.key` and `ca.pem`), to issue test identities."""
+    key = serialization.load_pem_private_key((directory / CA_KEY).read_bytes(), password=None)
+    assert isinstance(key, ec.EllipticCurvePrivateKey)
+    return Authority(key, x509.load_pem_x509_certificate((directory / CA_CERT).read_bytes()))
+
+
 def test_an_expired_certificate_cannot_connect(
     endpoint: str, deployment: Path, tmp_path: Path
 ) -> None:
-    ca = load_authority(deployment)
+    ca = _load_authority(deployment)
     now = dt.datetime.now(dt.UTC)
     key, cert = issue(
         ca, "camera", not_before=now - dt.timedelta(days=10), not_after=now - dt.timedelta(days=1)

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from protocol.robotspec import MAX_REFERENCE_SPEED
 from services.controller.errors import TargetError
 from services.controller.ik import IkResult
 
@@ -28,7 +29,6 @@ __all__ = [
     "rotation_vector",
 ]
 
-MAX_REFERENCE_SPEED = 2.0  # rad/s, the robot's upper bound for reference speeds
 MIN_REFERENCE_SPEED = 0.01  # rad/s, for joints that barely move
 
 

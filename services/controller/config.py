@@ -5,14 +5,13 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field, replace
 
-from protocol.errors import ConfigError
+from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
 from protocol.netflags import NetConfig
 from protocol.robotspec import ROBOT_TIMEOUT
-from protocol.service import config_number
 from services.controller.ik import IkSettings
 from services.controller.posture import PostureConfig
 
-__all__ = ["LIMIT_MARGIN", "ControllerConfig", "add_controller_arguments", "config_from_args"]
+__all__ = ["LIMIT_MARGIN", "ControllerConfig", "add_arguments", "make_config"]
 
 # rad: IK solutions keep this far inside the URDF limits, more than the simulated robot's own
 # margin (3 mrad), so the targets sent are never clamped by the robot.
@@ -44,63 +43,33 @@ class ControllerConfig:
             ik=IkSettings(rest_weight=0.1, limit_margin=LIMIT_MARGIN)
         )
     )
-    use_torso: bool = True
-    traj_time: float = 1.0
-    motion_timeout: float = 30.0
-    robot_timeout: float = ROBOT_TIMEOUT
-    joint_tolerance: float = 0.005
+    use_torso: bool = flag(True, "hold the torso: arms (and posture) only", name="--no-torso")
+    traj_time: float = flag(
+        1.0, "trajectory time of a move", unit="s of sim time", low=0.05, high=60
+    )
+    motion_timeout: float = flag(30.0, "longest wait for a move", unit="wall s", low=0.1, high=3600)
+    robot_timeout: float = flag(
+        ROBOT_TIMEOUT,
+        "longest wait for the robot's states and RPC",
+        unit="wall s",
+        low=0.05,
+        high=600,
+    )
+    joint_tolerance: float = flag(
+        0.005, "a joint within this of its target is there", unit="rad", low=1e-4, high=0.5
+    )
 
     def __post_init__(self) -> None:
-        if not isinstance(self.net, NetConfig):
-            raise ConfigError(f"net must be a NetConfig, got {self.net!r}")
-        if not isinstance(self.ik, IkSettings):
-            raise ConfigError(f"ik must be an IkSettings, got {self.ik!r}")
-        if not isinstance(self.posture, PostureConfig):
-            raise ConfigError(f"posture must be a PostureConfig, got {self.posture!r}")
-        if not isinstance(self.use_torso, bool):
-            raise ConfigError(f"use_torso must be True or False, got {self.use_torso!r}")
-        bounds = {
-            "traj_time": (0.05, 60.0),
-            "motion_timeout": (0.1, 3600.0),
-            "robot_timeout": (0.05, 600.0),
-            "joint_tolerance": (1e-4, 0.5),
-        }
-        for name, (low, high) in bounds.items():
-            flag = "--" + name.replace("_", "-")
-            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high))
+        check_bounds(self)
 
 
-def add_controller_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the controller's own flags."""
-    defaults = ControllerConfig()
-    parser.add_argument(
-        "--traj-time",
-        type=float,
-        default=defaults.traj_time,
-        help="trajectory time of a move (s of sim time, default %(default)s)",
-    )
-    parser.add_argument(
-        "--motion-timeout",
-        type=float,
-        default=defaults.motion_timeout,
-        help="longest wait for a move (wall s)",
-    )
-    parser.add_argument(
-        "--robot-timeout",
-        type=float,
-        default=defaults.robot_timeout,
-        help="longest wait for the robot's states and RPC (wall s)",
-    )
-    parser.add_argument(
-        "--joint-tolerance",
-        type=float,
-        default=defaults.joint_tolerance,
-        help="a joint within this of its target is there (rad)",
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the controller's own flags: the config's and the IK's (tolerance, limit margin)."""
+    add_config_args(parser, ControllerConfig)
     parser.add_argument(
         "--tolerance",
         type=float,
-        default=defaults.ik.position_tolerance,
+        default=ControllerConfig().ik.position_tolerance,
         help="IK hand position tolerance (m)",
     )
     parser.add_argument(
@@ -109,12 +78,9 @@ def add_controller_arguments(parser: argparse.ArgumentParser) -> None:
         default=LIMIT_MARGIN,
         help="IK solutions keep this far inside the URDF joint limits (rad)",
     )
-    parser.add_argument(
-        "--no-torso", action="store_true", help="hold the torso: arms (and posture) only"
-    )
 
 
-def config_from_args(args: argparse.Namespace, net: NetConfig) -> ControllerConfig:
+def make_config(args: argparse.Namespace, net: NetConfig) -> ControllerConfig:
     """Build the config from parsed flags.
 
     Raises:
@@ -125,14 +91,5 @@ def config_from_args(args: argparse.Namespace, net: NetConfig) -> ControllerConf
     posture_ik = replace(
         base.posture.ik, position_tolerance=args.tolerance, limit_margin=args.limit_margin
     )
-    posture = replace(base.posture, ik=posture_ik, use_torso=not args.no_torso)
-    return ControllerConfig(
-        net=net,
-        ik=ik,
-        posture=posture,
-        use_torso=not args.no_torso,
-        traj_time=args.traj_time,
-        motion_timeout=args.motion_timeout,
-        robot_timeout=args.robot_timeout,
-        joint_tolerance=args.joint_tolerance,
-    )
+    posture = replace(base.posture, ik=posture_ik, use_torso=args.use_torso)
+    return config_from_args(ControllerConfig, args, net=net, ik=ik, posture=posture)

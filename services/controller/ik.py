@@ -323,10 +323,9 @@ class IkSolver:
         cost = float(r_rest @ r_rest)
         for task in ori_tasks:
             rot = pin.updateFramePlacement(model, data, task.frame).rotation
-            err_rot = task.target @ rot.T
-            res = task.sqrt_weight @ np.asarray(pin.log3(err_rot))
+            res = task.sqrt_weight @ orientation_residual(task.target, rot)
             jw = pin.getFrameJacobian(model, data, task.frame, _LWA)[3:, active]
-            a = -(task.sqrt_weight @ np.asarray(pin.Jlog3(err_rot))) @ jw
+            a = task.sqrt_weight @ orientation_residual_jacobian(task.target, rot, jw)
             hessian += a.T @ a
             gradient -= a.T @ res
             cost += float(res @ res)

@@ -158,20 +158,6 @@ class ArmsModel:
         placement = pin.updateFramePlacement(self.model, self.data, fid)
         return placement.translation.copy(), placement.rotation.copy()
 
-    def hand_jacobian(self, q: JointValues, arm: str) -> np.ndarray:
-        """6×17 Jacobian of `arm`'s hand frame: rows (ẋ m/s, ω rad/s) in root axes, columns in
-        `JOINT_NAMES` order (rad/s)."""
-        check_arm(arm)
-        fid = self.frame_ids[arm]
-        jac = pin.computeFrameJacobian(
-            self.model,
-            self.data,
-            self.to_pinocchio(self.vector(q)),
-            fid,
-            pin.ReferenceFrame.LOCAL_WORLD_ALIGNED,
-        )
-        return jac[:, self.pin_index].copy()
-
 
 def check_arm(arm: str) -> str:
     """Return `arm` if it is an arm part name, else raise `JointError` naming the valid ones."""

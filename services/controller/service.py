@@ -3,7 +3,7 @@
 Ports (ROBOT = the robot prefix):
 
 * `ROBOT/cartesianController/{left_arm,right_arm}/rpc:i`: askForPose, goToPose, getPose,
-  setTolerance, getTolerance, setTrajTime, getTrajTime, setDOF, getDOF (see `verbs`);
+  setTolerance, getTolerance, setTrajTime, getTrajTime, setDOF, getDOF (see `handlers`);
 * `ROBOT/cartesianController/archery/rpc:i`: posture, setTrajTime, getTrajTime, status.
 
 It reads the robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i`
@@ -18,20 +18,16 @@ import threading
 
 from protocol.node import Node
 from protocol.parts import ARM_PARTS
+from protocol.robotspec import CONTROLLER
 from protocol.service import service_main
-from services.controller.config import (
-    ControllerConfig,
-    add_controller_arguments,
-    config_from_args,
-)
+from services.controller.config import ControllerConfig, add_arguments, make_config
+from services.controller.handlers import ArcheryController, ArmController, MotionLock
 from services.controller.model import load_arms_model
 from services.controller.posture import ArcheryPosture
 from services.controller.robotlink import RobotLink
-from services.controller.verbs import ArcheryController, ArmController, MotionLock
 
-__all__ = ["SERVICE", "main", "run"]
+__all__ = ["main", "run"]
 
-SERVICE = "controller"
 log = logging.getLogger("archery.controller")
 
 
@@ -39,15 +35,15 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
     """Serve the cartesian controllers until `stop` is set."""
     model = load_arms_model()
     posture = ArcheryPosture(config.posture)
-    with Node(SERVICE, config.net) as node:
+    with Node(CONTROLLER, config.net) as node:
         keys = node.keys
         link = RobotLink(node, config.robot_timeout, config.joint_tolerance)
         motion = MotionLock()
         for arm in ARM_PARTS:
             controller = ArmController(arm, model, config, link, motion)
-            node.serve(keys.cartesian_rpc(arm), controller.handlers())
+            node.serve(keys.cartesian_rpc(arm), controller.verbs())
         archery = ArcheryController(posture, config, link, motion)
-        node.serve(keys.cartesian_rpc("archery"), archery.handlers())
+        node.serve(keys.cartesian_rpc("archery"), archery.verbs())
         node.ready()
         log.info(
             "controller %r ready: trajectory time %g s, torso %s, θ box %s..%s m",
@@ -64,9 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     """`archery controller [flags]`: serve until SIGINT/SIGTERM (exit status 0)."""
     return service_main(
         argv,
-        prog="controller",
+        prog=CONTROLLER,
         description="iKin-like cartesian controllers and the archery posture (Pinocchio IK)",
-        add_arguments=add_controller_arguments,
-        make_config=config_from_args,
+        add_arguments=add_arguments,
+        make_config=make_config,
         run=run,
     )

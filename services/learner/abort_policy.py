@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from protocol.robotspec import THETA0
-from services.learner.base import Bounds
+from services.learner.algorithms.base import Bounds
 
 __all__ = [
     "BACK_OFF_FRACTION",

@@ -13,12 +13,12 @@ from typing import Any
 import numpy as np
 
 from protocol.cliargs import check_writable_dir
-from protocol.errors import BadRequest, ConfigError
+from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from protocol.errors import BadRequest
 from protocol.netflags import NetConfig
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
-from protocol.service import config_number
-from services.learner.base import Bounds, LearnerConfigError
-from services.learner.registry import ALGORITHMS
+from services.learner.algorithms.base import Bounds, LearnerConfigError
+from services.learner.algorithms.registry import ALGORITHMS
 
 __all__ = [
     "DEFAULT_THETA0",
@@ -26,8 +26,8 @@ __all__ = [
     "START_ARGS",
     "LearnerServiceConfig",
     "SessionConfig",
-    "add_learner_arguments",
-    "config_from_args",
+    "add_arguments",
+    "make_config",
 ]
 
 # θ (m) where sessions start (protocol.robotspec.THETA0).
@@ -78,7 +78,7 @@ class SessionConfig:
     """One learning session, validated (what `start` asks for, or a journal's header).
 
     Attributes:
-        algorithm: a name of `services.learner.registry.ALGORITHMS`.
+        algorithm: a name of `services.learner.algorithms.registry.ALGORITHMS`.
         rollouts: budget of done rollouts (aborted attempts are not counted).
         seed: seeds the learner's generator, and the robot's shot noise at the start.
         until_hit: end the session at the first rollout within `hit_radius` of the centre.
@@ -224,64 +224,36 @@ class LearnerServiceConfig:
     """
 
     net: NetConfig = field(default_factory=NetConfig)
-    runs: Path = Path("runs")
-    service_wait: float = 120.0
-    start_wait: float = 5.0
-    rpc_timeout: float = RPC_TIMEOUT
-    report: bool = True
+    runs: Path = flag("runs", "directory of session journals and reports")
+    service_wait: float = flag(
+        120.0,
+        "wait this long for a vanished service before failing the session",
+        unit="s",
+        low=0.1,
+        high=86400,
+    )
+    start_wait: float = flag(
+        5.0, "`start` waits this long for the other services", unit="s", low=0, high=600
+    )
+    rpc_timeout: float = flag(
+        RPC_TIMEOUT, "longest wait for another service's reply", unit="s", low=0.5, high=600
+    )
+    report: bool = flag(True, "write no report figures", name="--no-report")
 
     def __post_init__(self) -> None:
-        if not isinstance(self.net, NetConfig):
-            raise ConfigError(f"net must be a NetConfig, got {self.net!r}")
-        object.__setattr__(self, "runs", Path(self.runs))
-        for name, (low, high) in {
-            "service_wait": (0.1, 86400.0),
-            "start_wait": (0.0, 600.0),
-            "rpc_timeout": (0.5, 600.0),
-        }.items():
-            flag = "--" + name.replace("_", "-")
-            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high, "s"))
+        check_bounds(self)
 
 
-def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the learner service's own flags."""
-    defaults = LearnerServiceConfig()
-    parser.add_argument(
-        "--runs", default=str(defaults.runs), help="directory of session journals and reports"
-    )
-    parser.add_argument(
-        "--service-wait",
-        type=float,
-        default=defaults.service_wait,
-        help="wait this long for a vanished service before failing the session (s)",
-    )
-    parser.add_argument(
-        "--start-wait",
-        type=float,
-        default=defaults.start_wait,
-        help="`start` waits this long for the other services (s)",
-    )
-    parser.add_argument(
-        "--rpc-timeout",
-        type=float,
-        default=defaults.rpc_timeout,
-        help="longest wait for another service's reply (s)",
-    )
-    parser.add_argument("--no-report", action="store_true", help="write no report figures")
+    add_config_args(parser, LearnerServiceConfig)
 
 
-def config_from_args(args: argparse.Namespace, net: NetConfig) -> LearnerServiceConfig:
+def make_config(args: argparse.Namespace, net: NetConfig) -> LearnerServiceConfig:
     """Build the config from parsed flags.
 
     Raises:
         ConfigError: an invalid value; the message names the flag and its valid range.
     """
     check_writable_dir(Path(args.runs), "--runs", create=True)
-    return LearnerServiceConfig(
-        net=net,
-        runs=Path(args.runs),
-        service_wait=args.service_wait,
-        start_wait=args.start_wait,
-        rpc_timeout=args.rpc_timeout,
-        report=not args.no_report,
-    )
+    return config_from_args(LearnerServiceConfig, args, net=net)

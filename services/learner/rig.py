@@ -29,16 +29,17 @@ import numpy as np
 from protocol.errors import RpcError, RpcTimeout
 from protocol.messages import WorldEvent
 from protocol.node import Node
+from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
 from protocol.verbs import robot as rv
-from services.learner.base import Bounds, LearnerConfigError
+from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
 
 __all__ = ["SERVICES", "MeshRig"]
 
-SERVICES = ("robot", "camera", "detector", "controller")
+SERVICES = (ROBOT, CAMERA, DETECTOR, CONTROLLER)  # the services a session needs
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 R = TypeVar("R", bound=msgspec.Struct)

@@ -24,190 +24,38 @@ from __future__ import annotations
 
 import logging
 import threading
-from pathlib import Path
-from typing import Any
 
-import msgspec
-
-from protocol.errors import ArcheryError, BadRequest
-from protocol.messages import Rollout
-from protocol.node import Node, Publisher
+from protocol.node import Node
+from protocol.robotspec import LEARNER
 from protocol.service import service_main
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
-from services.learner.config import (
-    LearnerServiceConfig,
-    SessionConfig,
-    add_learner_arguments,
-    config_from_args,
-)
-from services.learner.report import write_report
-from services.learner.rig import MeshRig
-from services.learner.session import FINAL_STATES, Session
+from services.learner.config import LearnerServiceConfig, add_arguments, make_config
+from services.learner.handlers import LearnerHandlers
 
-__all__ = ["SERVICE", "LearnerService", "main", "run"]
+__all__ = ["main", "run"]
 
-SERVICE = "learner"
 log = logging.getLogger("archery.learner")
-
-
-def rollout_message(record: dict[str, Any]) -> Rollout | None:
-    """The `Rollout` message of a proposed, done or aborted journal record (else None)."""
-    kind = record["record"]
-    if kind not in ("proposed", "done", "aborted"):
-        return None
-    return Rollout(
-        session=record["session"],
-        index=record["index"],
-        theta=record["theta"],
-        status=kind,
-        r_m=record.get("r_m"),
-        ret=record.get("ret"),
-        hit=bool(record.get("hit", False)),
-        cause=f"[{record['code']}] {record['cause']}" if kind == "aborted" else "",
-        truth_r_m=record.get("truth_r_m"),
-    )
-
-
-class LearnerService:
-    """The learner's RPC verbs and its one session thread."""
-
-    def __init__(self, config: LearnerServiceConfig, node: Node) -> None:
-        self.config = config
-        self.node = node
-        self.rig = MeshRig(node, config.rpc_timeout)
-        self.rollouts: Publisher[Rollout] = node.publisher(
-            node.keys.learner_rollouts(), Rollout, lossless=True
-        )
-        self._lock = threading.Lock()
-        self._session: Session | None = None
-        self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._report: dict[str, str | None] = {}
-
-    def handlers(self) -> ServedVerbs:
-        """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
-        return LEARNER_VERBS.bind({"start": self.start, "stop": self.stop, "status": self.status})
-
-    def _publish(self, record: dict[str, Any]) -> None:
-        message = rollout_message(record)
-        if message is not None:
-            self.rollouts.put(message)
-
-    def _check_services(self) -> None:
-        missing = self.rig.missing()
-        if missing and self.config.start_wait > 0:
-            never = threading.Event()
-            try:
-                self.rig.wait_services(self.config.start_wait, never)
-                missing = []
-            except ArcheryError:
-                missing = self.rig.missing()
-        if missing:
-            raise ArcheryError(
-                f"services not alive: {', '.join(missing)} (robot {self.node.keys.robot!r}); "
-                f"start them (`archery up` starts all) and retry",
-                code="service_missing",
-            )
-
-    def start(self, request: StartArgs) -> LearnerStatusReply:
-        """Start a new session or resume one (see the module docstring)."""
-        args: dict[str, Any] = msgspec.to_builtins(request)  # the arguments given
-        with self._lock:
-            if self._thread is not None and self._thread.is_alive():
-                assert self._session is not None
-                status = self._session.status()
-                raise ArcheryError(
-                    f"session {status['session']} is running ({status['rollouts']} of "
-                    f"{status['budget']} rollouts); stop it first (verb stop)",
-                    code="busy",
-                )
-            kw = {"on_record": self._publish, "service_wait": self.config.service_wait}
-            if "resume" in args:
-                unknown = sorted(set(args) - {"resume", "session"})
-                if unknown:
-                    raise BadRequest(
-                        f"start with resume takes only resume and session, not {unknown[0]!r}"
-                    )
-                self._check_services()
-                session = Session.resume(Path(args["resume"]), self.rig, args.get("session"), **kw)
-            else:
-                config = SessionConfig.from_request(args)
-                self._check_services()
-                session = Session.create(config, self.rig, self.config.runs, **kw)
-            self._session = session
-            self._report = {}
-            self._stop = threading.Event()
-            self._thread = threading.Thread(
-                target=self._run, args=(session, self._stop), name="session", daemon=True
-            )
-            self._thread.start()
-            log.info("session %s started: journal %s", session.session_id, session.journal.path)
-            return self._status_of(session)
-
-    def _run(self, session: Session, stop: threading.Event) -> None:
-        status = session.run(stop)
-        if self.config.report:
-            try:
-                report = write_report(session.journal.path)
-                self._report = {
-                    "report": str(report),
-                    "hit_frame": None
-                    if session.hit_frame_path is None
-                    else str(session.hit_frame_path),
-                }
-            except Exception:
-                log.exception("could not write the report of session %s", session.session_id)
-        log.info("session %s: %s %s", session.session_id, status["state"], status["cause"])
-
-    def _status_of(self, session: Session, **extra: Any) -> LearnerStatusReply:
-        status = session.status() | {"report": None, "hit_frame": None} | self._report
-        if status["state"] in FINAL_STATES and self._thread is not None and self._thread.is_alive():
-            status["state"] = "reporting"
-        return LearnerStatusReply(**status, **extra)
-
-    def stop(self, args: NoArgs) -> LearnerStatusReply:
-        """Ask the running session to stop after its current rollout."""
-        with self._lock:
-            if self._session is None or self._thread is None or not self._thread.is_alive():
-                if self._session is None:
-                    return LearnerStatusReply(state="idle")
-                return self._status_of(self._session)
-            self._stop.set()
-            return self._status_of(self._session, stopping=True)
-
-    def status(self, args: NoArgs) -> LearnerStatusReply:
-        """The running (or last) session's status, or {"state": "idle"}."""
-        session = self._session
-        return LearnerStatusReply(state="idle") if session is None else self._status_of(session)
-
-    def close(self, timeout: float = 30.0) -> None:
-        """Stop the running session (after its current rollout) and wait for it."""
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout)
 
 
 def run(config: LearnerServiceConfig, stop: threading.Event) -> None:
     """Serve the learner until `stop` is set."""
-    with Node(SERVICE, config.net) as node:
-        service = LearnerService(config, node)
-        node.serve(node.keys.learner_rpc(), service.handlers())
+    with Node(LEARNER, config.net) as node:
+        handlers = LearnerHandlers(config, node)
+        node.serve(node.keys.learner_rpc(), handlers.verbs())
         node.ready()
         log.info("learner %r ready: runs in %s", node.keys.robot, config.runs)
         try:
             stop.wait()
         finally:
-            service.close()
+            handlers.close()
 
 
 def main(argv: list[str] | None = None) -> int:
     """`archery learner [flags]`: serve until SIGINT/SIGTERM (exit status 0)."""
     return service_main(
         argv,
-        prog="learner",
+        prog=LEARNER,
         description="learning sessions over the mesh (PoWER, ARCHER, baselines), journaled",
-        add_arguments=add_learner_arguments,
-        make_config=config_from_args,
+        add_arguments=add_arguments,
+        make_config=make_config,
         run=run,
     )

@@ -31,11 +31,11 @@ import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
 from services.learner.abort_policy import after_abort, streak_failure
-from services.learner.base import Bounds, Learner, LearnerError
+from services.learner.algorithms.base import Bounds, Learner, LearnerError
+from services.learner.algorithms.registry import make_learner, restore_learner
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
-from services.learner.registry import make_learner, restore_learner
-from services.learner.report import caption_png
+from services.learner.tools.report import caption_png
 
 __all__ = [
     "FINAL_STATES",

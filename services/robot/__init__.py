@@ -8,7 +8,8 @@ from services.robot.commands import (
     check_command,
 )
 from services.robot.config import RobotConfig
-from services.robot.simloop import SimLoop, SimUnavailable, Sink, phase_of
+from services.robot.simloop import SimLoop, SimUnavailable, phase_of
+from services.robot.sink import Sink
 
 __all__ = [
     "REJECTION_REASONS",

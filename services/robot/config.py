@@ -6,14 +6,14 @@ import argparse
 import math
 from dataclasses import dataclass, field, replace
 
+from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
 from protocol.errors import ConfigError
 from protocol.netflags import NetConfig
-from protocol.service import config_number
 from sim.bow import BowError
 from sim.errors import SimError
 from sim.world import WorldConfig
 
-__all__ = ["RobotConfig", "add_robot_arguments", "config_from_args", "parse_vector3"]
+__all__ = ["RobotConfig", "add_arguments", "make_config", "parse_vector3"]
 
 
 @dataclass(frozen=True)
@@ -25,7 +25,7 @@ class RobotConfig:
         world: the simulated robot, bow and shot (`sim.world.WorldConfig`).
         seed: seed of the shot noise at start-up (`reset {"seed"}` reseeds); None: fresh entropy.
         rtf: real-time factor: 1.0 paces simulated time with the wall clock (for watching),
-            0 runs as fast as possible and only while something moves (see `simloop`).
+            0 runs as fast as possible and only while something moves (see `pacing`).
         state_rate: joint state streams per simulated second (Hz).
         world_rate: world state messages per simulated second (Hz); also one after each landing.
         watchdog: a command stream (commands overtaking unfinished moves) with no command for
@@ -39,36 +39,35 @@ class RobotConfig:
 
     net: NetConfig = field(default_factory=NetConfig)
     world: WorldConfig = field(default_factory=WorldConfig)
-    seed: int | None = 0
-    rtf: float = 0.0
-    state_rate: float = 50.0
-    world_rate: float = 30.0
-    watchdog: float = 0.5
-    limit_tolerance: float = 0.02
-    batch_window: float = 0.01
-    job_timeout: float = 10.0
+    seed: int | None = flag(0, "seed of the shot noise", low=0)
+    rtf: float = flag(
+        0.0, "real-time factor: 1 = wall-clock pace, 0 = as fast as possible", low=0, high=100
+    )
+    state_rate: float = flag(50.0, "joint states per sim s", unit="Hz", low=0.1, high=1000)
+    world_rate: float = flag(30.0, "world states per sim s", unit="Hz", low=0.1, high=1000)
+    watchdog: float = flag(
+        0.5, "stale command stream timeout, 0 = off", unit="wall s", low=0, high=60
+    )
+    limit_tolerance: float = flag(
+        0.02,
+        "commands this far beyond a limit are clamped, further rejected",
+        unit="rad",
+        low=0,
+        high=0.5,
+    )
+    batch_window: float = flag(
+        0.01,
+        "at rtf 0, commands within this of the first start together",
+        unit="wall s",
+        low=0,
+        high=1,
+    )
+    job_timeout: float = flag(
+        10.0, "longest wait of an RPC for the simulation thread", unit="wall s", low=0.1, high=600
+    )
 
     def __post_init__(self) -> None:
-        if not isinstance(self.net, NetConfig):
-            raise ConfigError(f"net must be a NetConfig, got {self.net!r}")
-        if not isinstance(self.world, WorldConfig):
-            raise ConfigError(f"world must be a sim.world.WorldConfig, got {self.world!r}")
-        if self.seed is not None and (
-            isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0
-        ):
-            raise ConfigError(f"--seed must be an integer >= 0, got {self.seed!r}")
-        bounds = {
-            "rtf": (0.0, 100.0),
-            "state_rate": (0.1, 1000.0),
-            "world_rate": (0.1, 1000.0),
-            "watchdog": (0.0, 60.0),
-            "limit_tolerance": (0.0, 0.5),
-            "batch_window": (0.0, 1.0),
-            "job_timeout": (0.1, 600.0),
-        }
-        for name, (low, high) in bounds.items():
-            flag = "--" + name.replace("_", "-")
-            object.__setattr__(self, name, config_number(flag, getattr(self, name), low, high))
+        check_bounds(self)
 
 
 def parse_vector3(text: str, flag: str) -> tuple[float, float, float]:
@@ -87,17 +86,10 @@ def parse_vector3(text: str, flag: str) -> tuple[float, float, float]:
     return values  # type: ignore[return-value]
 
 
-def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the robot's own flags."""
-    defaults = RobotConfig()
-    world = defaults.world
-    parser.add_argument("--seed", type=int, default=0, help="seed of the shot noise (default 0)")
-    parser.add_argument(
-        "--rtf",
-        type=float,
-        default=defaults.rtf,
-        help="real-time factor: 1 = wall-clock pace, 0 = as fast as possible (default 0)",
-    )
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the robot's own flags: the config's and the world's (wind, drag, bow stiffness)."""
+    world = WorldConfig()
+    add_config_args(parser, RobotConfig)
     parser.add_argument(
         "--wind", default=None, metavar="VX,VY,VZ", help="constant wind (m/s, root frame)"
     )
@@ -105,27 +97,9 @@ def add_robot_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--bow-stiffness", type=float, default=world.bow.stiffness, help="bow stiffness (N/m)"
     )
-    parser.add_argument(
-        "--state-rate", type=float, default=defaults.state_rate, help="joint states per sim s"
-    )
-    parser.add_argument(
-        "--world-rate", type=float, default=defaults.world_rate, help="world states per sim s"
-    )
-    parser.add_argument(
-        "--watchdog",
-        type=float,
-        default=defaults.watchdog,
-        help="stale command stream timeout (wall s, 0 = off)",
-    )
-    parser.add_argument(
-        "--limit-tolerance",
-        type=float,
-        default=defaults.limit_tolerance,
-        help="commands this far beyond a limit are clamped, further rejected (rad)",
-    )
 
 
-def config_from_args(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
+def make_config(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
     """Build the config from parsed flags.
 
     Raises:
@@ -141,13 +115,4 @@ def config_from_args(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
         world = replace(base, bow=bow, wind=wind, drag=args.drag)
     except SimError as exc:
         raise ConfigError(f"invalid world setting: {exc}") from None
-    return RobotConfig(
-        net=net,
-        world=world,
-        seed=args.seed,
-        rtf=args.rtf,
-        state_rate=args.state_rate,
-        world_rate=args.world_rate,
-        watchdog=args.watchdog,
-        limit_tolerance=args.limit_tolerance,
-    )
+    return config_from_args(RobotConfig, args, net=net, world=world)

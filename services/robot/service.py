@@ -37,147 +37,45 @@ from __future__ import annotations
 import logging
 import threading
 
-import numpy as np
-
-from protocol.messages import Array, JointCommand, JointState, WorldEvent, WorldState
-from protocol.node import Node, Subscription
+from protocol.messages import JointCommand
+from protocol.node import Node
+from protocol.robotspec import ROBOT
 from protocol.service import service_main
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import robot as rv
-from services.robot.config import RobotConfig, add_robot_arguments, config_from_args
+from services.robot.config import RobotConfig, add_arguments, make_config
+from services.robot.handlers import RobotHandlers
 from services.robot.simloop import SimLoop
+from services.robot.sink import MeshSink
 from sim.world import ArcheryWorld
 
-__all__ = ["SERVICE", "main", "run"]
+__all__ = ["main", "run"]
 
-SERVICE = "robot"
 log = logging.getLogger("archery.robot")
-
-
-class _MeshSink:
-    """The loop's streams as Zenoh publishers."""
-
-    def __init__(self, node: Node, parts: tuple[str, ...]) -> None:
-        keys = node.keys
-        self._states = {p: node.publisher(keys.state(p), JointState) for p in parts}
-        self._world = node.publisher(keys.world_state(), WorldState)
-        self._events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
-
-    def joint_state(
-        self,
-        part: str,
-        names: tuple[str, ...],
-        position: list[float],
-        velocity: list[float],
-        motion_done: bool,
-        sim_time: float,
-    ) -> None:
-        self._states[part].put(
-            JointState(
-                part=part,
-                names=list(names),
-                position=position,
-                velocity=velocity,
-                motion_done=motion_done,
-                sim_time=sim_time,
-            )
-        )
-
-    def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
-        self._world.put(
-            WorldState(qpos=Array.from_numpy(qpos), phase=phase, shot=shot, sim_time=sim_time)
-        )
-
-    def event(
-        self,
-        kind: str,
-        shot: int,
-        sim_time: float,
-        impact_m: list[float] | None = None,
-        reason: str = "",
-    ) -> None:
-        self._events.put(
-            WorldEvent(
-                kind=kind,  # type: ignore[arg-type]
-                shot=shot,
-                impact_m=impact_m,
-                reason=reason,
-                sim_time=sim_time,
-            )
-        )
-
-
-def _part_handlers(loop: SimLoop, part: str, commands: Subscription[JointCommand]) -> ServedVerbs:
-    limits = loop.limits[part]
-    names = list(limits.names)
-
-    def counters(_: NoArgs) -> rv.CountersReply:
-        return rv.CountersReply(**loop.counters(part), undecodable=commands.dropped)
-
-    def status(_: NoArgs) -> rv.PartStatusReply:
-        return rv.PartStatusReply(
-            part=part,
-            names=names,
-            motion_done=loop.motion_done(part),
-            counters=counters(NoArgs()),
-            **loop.positions(part),
-        )
-
-    return rv.PART_VERBS.bind(
-        {
-            "getJointNames": lambda a: rv.JointNamesReply(names=names),
-            "getLimits": lambda a: rv.LimitsReply(
-                names=names,
-                min=list(limits.lower),
-                max=list(limits.upper),
-                tolerance=limits.tolerance,
-            ),
-            "getPositions": lambda a: rv.PositionsReply(**loop.positions(part)),
-            "getTargets": lambda a: rv.TargetsReply(names=names, position=loop.targets(part)),
-            "checkMotionDone": lambda a: rv.MotionDoneReply(done=loop.motion_done(part)),
-            "setRefSpeeds": lambda a: rv.RefSpeedsReply(
-                names=names, speeds=loop.set_ref_speeds(part, a.speeds)
-            ),
-            "getRefSpeeds": lambda a: rv.RefSpeedsReply(names=names, speeds=loop.ref_speeds(part)),
-            "positionMove": lambda a: rv.TargetsReply(
-                names=names, position=loop.position_move(part, a.position, a.names)
-            ),
-            "counters": counters,
-            "status": status,
-        }
-    )
-
-
-def _archery_handlers(loop: SimLoop) -> ServedVerbs:
-    return rv.ARCHERY_VERBS.bind(
-        {
-            "nock": lambda a: rv.NockReply(**loop.nock()),
-            "release": lambda a: rv.ReleaseReply(**loop.release()),
-            "reset": lambda a: rv.ResetReply(**loop.reset(a.seed)),
-            "status": lambda a: rv.ArcheryStatusReply(**loop.status()),
-        }
-    )
 
 
 def run(config: RobotConfig, stop: threading.Event) -> None:
     """Serve the simulated robot until `stop` is set."""
     world = ArcheryWorld(config.world)
     world.reset(config.seed)
-    with Node(SERVICE, config.net) as node:
+    with Node(ROBOT, config.net) as node:
         keys = node.keys
-        sink = _MeshSink(node, world.parts)
-        loop = SimLoop(world, config, sink, seed=config.seed)
+        loop = SimLoop(world, config, MeshSink(node, world.parts), seed=config.seed)
         thread = threading.Thread(target=loop.run, args=(stop,), name="robot sim", daemon=True)
         thread.start()
         try:
+            commands = {
+                part: node.subscribe(
+                    keys.command(part),
+                    JointCommand,
+                    callback=lambda msg, part=part: loop.command(
+                        part, msg.position, msg.names, msg.part
+                    ),
+                )
+                for part in world.parts
+            }
+            handlers = RobotHandlers(loop, commands)
             for part in world.parts:
-
-                def on_command(msg: JointCommand, part: str = part) -> None:
-                    loop.command(part, msg.position, msg.names, msg.part)
-
-                commands = node.subscribe(keys.command(part), JointCommand, callback=on_command)
-                node.serve(keys.part_rpc(part), _part_handlers(loop, part, commands))
-            node.serve(keys.archery_rpc(), _archery_handlers(loop))
+                node.serve(keys.part_rpc(part), handlers.part_verbs(part))
+            node.serve(keys.archery_rpc(), handlers.archery_verbs())
             node.ready()
             log.info(
                 "robot %r ready: rtf %g, seed %s, joint states %g Hz, world %g Hz (sim time)",
@@ -198,9 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     """`archery robot [flags]`: run the simulated robot until SIGINT/SIGTERM (exit status 0)."""
     return service_main(
         argv,
-        prog="robot",
+        prog=ROBOT,
         description=__doc__.split("\n", 1)[0] if __doc__ else "the simulated iCub",
-        add_arguments=add_robot_arguments,
-        make_config=config_from_args,
+        add_arguments=add_arguments,
+        make_config=make_config,
         run=run,
     )

@@ -4,57 +4,43 @@ MuJoCo is not thread-safe, so one thread owns the world. Every other thread (RPC
 Zenoh callbacks) hands it work as a *job*, a closure queued with a future; the thread runs jobs
 between physics chunks, never in the middle of one.
 
-Timing model:
+Pacing (`pacing`): streams on a grid of simulated time, rtf × the wall clock when rtf > 0. At
+rtf 0 (default) the world runs as fast as possible while something moves (a part not done, or
+an arrow in flight) and not at all when everything is at rest: the thread then sleeps on its
+job queue and repeats the unchanged state on the streams at their rates in wall time. A command
+that wakes the idle robot starts the motion after `batch_window` wall seconds, together with the
+commands that arrived meanwhile (a controller's three part commands start at the same simulated
+time, which keeps same-seed runs identical). A move of one simulated second then takes ~10-20
+ms of wall time. A world state also goes out right after each nock, release, landing and reset.
 
-* Streams are scheduled in simulated time: joint states every 1/state_rate s, the world state
-  every 1/world_rate s, plus a world state right after each nock, release, landing and reset.
-  Physics advances in chunks that end on the next publication (at most 20 ms of sim time).
-* rtf > 0: simulated time advances continuously, at rtf × the wall clock, idle or not (a
-  falling-behind simulation re-anchors rather than racing to catch up).
-* rtf = 0 (default): as fast as possible while something moves (a part not done, or an arrow
-  in flight) and not at all when everything is at rest: the thread then sleeps on its job
-  queue and repeats the unchanged state on the streams at their rates in wall time, so
-  subscribers still see a live robot. A command that wakes the idle robot starts the motion
-  after `batch_window` wall seconds, together with the commands that arrived meanwhile (a
-  controller's three part commands start at the same simulated time, which keeps same-seed
-  runs identical). A move of one simulated second then takes ~10-20 ms of wall time.
-
-Watchdog (wall clock, command streams only): a command on `command:i` that arrives within
-`watchdog` s of the part's previous one, while the part is still moving toward that one, makes
-the part *streaming* (new targets overtake the old: interpolated or teleoperated targets). A
-streaming part whose next command does not arrive within `watchdog` s is stale: if it is still
-moving, its targets freeze at the measured positions (counted in `watchdog_trips`); either way
-the stream ends. Any other command (the first after a silence, or one sent after the previous
-move was done, as a cartesian controller does) and every `positionMove` is a move, followed to
-its end however long it takes.
+Watchdog (`watchdog`): a streaming part whose commands stop is frozen at its measured positions.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
-from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
+from protocol.jobs import JobQueue
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.config import RobotConfig
+from services.robot.pacing import MAX_IDLE_WAIT, Pacing
+from services.robot.sink import Sink
+from services.robot.watchdog import StreamWatchdog
 from sim.arrow import Landing, Launch
 from sim.errors import StateError
 from sim.world import ArcheryWorld, ArrowState
 
-__all__ = ["MAX_CHUNK", "SimLoop", "SimUnavailable", "Sink", "phase_of"]
+__all__ = ["SimLoop", "SimUnavailable", "phase_of"]
 
-MAX_CHUNK = 0.02  # s of simulated time per physics chunk at most (bounds the jobs' latency)
-_MAX_IDLE_WAIT = 0.1  # s of wall time between idle checks of the stop flag and the watchdog
-_MAX_LAG = 0.25  # s of wall time behind the rtf schedule before re-anchoring
+_SHUTTING_DOWN = "the robot is shutting down"
 
 log = logging.getLogger("archery.robot")
 
@@ -67,34 +53,6 @@ class SimUnavailable(ArcheryError):
     code = "unavailable"
 
 
-class Sink(Protocol):
-    """Where the loop's streams go (Zenoh publishers in the service; a list in tests)."""
-
-    def joint_state(
-        self,
-        part: str,
-        names: tuple[str, ...],
-        position: list[float],
-        velocity: list[float],
-        motion_done: bool,
-        sim_time: float,
-    ) -> None:
-        """One part's joint state: positions (rad), velocities (rad/s), sim time (s)."""
-
-    def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
-        """The scene's generalized positions, the shot phase and number, sim time (s)."""
-
-    def event(
-        self,
-        kind: str,
-        shot: int,
-        sim_time: float,
-        impact_m: list[float] | None = None,
-        reason: str = "",
-    ) -> None:
-        """A shot event (nocked, released, landed, missed, reset); impact_m is ground truth."""
-
-
 def phase_of(world: ArcheryWorld) -> str:
     """The shot phase for `WorldState`: idle, nocked, flying, stuck or missed."""
     state = world.arrow_state
@@ -102,18 +60,6 @@ def phase_of(world: ArcheryWorld) -> str:
         landing = world.landing
         return "stuck" if landing is not None and landing.hit else "missed"
     return {ArrowState.STOWED: "idle", ArrowState.NOCKED: "nocked"}.get(state, "flying")
-
-
-@dataclass
-class _Job:
-    func: Callable[[], Any]
-    future: Future[Any]
-
-
-@dataclass
-class _Stream:
-    last: float | None = None  # wall time of the last accepted stream command
-    streaming: bool = False
 
 
 class SimLoop:
@@ -134,9 +80,7 @@ class SimLoop:
         self._sink = sink
         self._seed = seed
         self._dt = world.timestep
-        self._max_chunk = max(1, round(MAX_CHUNK / self._dt))
-        self._state_period = 1.0 / config.state_rate
-        self._world_period = 1.0 / config.world_rate
+        self._pacing = Pacing(self._dt, config.state_rate, config.world_rate, config.rtf)
         self.limits = {
             part: PartLimits(
                 part=part,
@@ -148,75 +92,30 @@ class SimLoop:
             for part in world.parts
         }
         self._counters = {part: PartCounters() for part in world.parts}
-        self._streams = {part: _Stream() for part in world.parts}
-        self._jobs: deque[_Job] = deque()
-        self._cond = threading.Condition()
-        self._running = False
-        self._closed = False
+        self._streams = StreamWatchdog(world.parts, config.watchdog)
+        self._jobs = JobQueue(SimUnavailable, "the simulation thread")
         self._shot = 0
         self._landing_future: Future[dict[str, Any]] | None = None
         self._launch: Launch | None = None
-        self._next_state = 0.0  # sim time of the next joint state publication
-        self._next_world = 0.0
-        self._beat_state = 0.0  # wall time of the next idle repetition
-        self._beat_world = 0.0
         self._idle = False
 
     # -- jobs (any thread) -----------------------------------------------------------------
     def submit(self, func: Callable[[], T]) -> Future[T]:
         """Queue `func` to run on the simulation thread; its future holds the result."""
-        future: Future[T] = Future()
-        with self._cond:
-            if self._closed:
-                future.set_exception(SimUnavailable("the robot is shutting down"))
-                return future
-            self._jobs.append(_Job(func, future))
-            self._cond.notify_all()
-        return future
+        return self._jobs.submit(func)
 
     def call(self, func: Callable[[], T], timeout: float | None = None) -> T:
         """Run `func` on the simulation thread and return its result (or raise its error).
 
         Raises:
             SimUnavailable: the thread did not run it within `timeout` (default: the config's
-                job_timeout) wall seconds.
+                job_timeout) wall seconds, or the loop is closed.
         """
-        wait = self.config.job_timeout if timeout is None else timeout
-        future = self.submit(func)
-        try:
-            return future.result(wait)
-        except TimeoutError:
-            future.cancel()
-            raise SimUnavailable(
-                f"the simulation thread did not answer within {wait:g} s (running: {self._running})"
-            ) from None
+        return self._jobs.call(func, self.config.job_timeout if timeout is None else timeout)
 
     def close(self) -> None:
-        """Refuse new jobs and wake the loop (it ends once its `stop` event is set)."""
-        with self._cond:
-            self._closed = True
-            self._cond.notify_all()
-
-    def _wait_jobs(self, timeout: float) -> bool:
-        with self._cond:
-            if not self._jobs and timeout > 0:
-                self._cond.wait(timeout)
-            return bool(self._jobs)
-
-    def _drain(self) -> bool:
-        ran = False
-        while True:
-            with self._cond:
-                if not self._jobs:
-                    return ran
-                job = self._jobs.popleft()
-            ran = True
-            if not job.future.set_running_or_notify_cancel():
-                continue
-            try:
-                job.future.set_result(job.func())
-            except BaseException as exc:
-                job.future.set_exception(exc)
+        """Refuse new jobs, fail the pending ones and wake the loop, which then ends."""
+        self._jobs.close(_SHUTTING_DOWN)
 
     # -- the public verbs (any thread) -------------------------------------------------------
     def command(self, part: str, position: list[float], names: list[str] | None, said: str) -> None:
@@ -264,7 +163,7 @@ class SimLoop:
     def counters(self, part: str) -> dict[str, Any]:
         """`part`'s command counters and whether it is streaming."""
         return self.call(
-            lambda: self._counters[part].to_dict() | {"streaming": self._streams[part].streaming}
+            lambda: self._counters[part].to_dict() | {"streaming": self._streams.streaming(part)}
         )
 
     def nock(self) -> dict[str, Any]:
@@ -333,17 +232,13 @@ class SimLoop:
             return
         overtakes = not self.world.motion_done(part)
         self._apply(part, targets, clamped)
-        stream = self._streams[part]
-        wd = self.config.watchdog
-        recent = stream.last is not None and wd > 0 and at - stream.last <= wd
-        stream.streaming = recent and overtakes
-        stream.last = at
+        self._streams.command(part, at, overtakes)
 
     def _position_move(self, part: str, position: Any, names: Any) -> list[float]:
         if names is not None and not isinstance(names, list | tuple):
             raise BadRequest(f"names must be a list of joint names, got {names!r}")
         targets, clamped = self._validate(part, position, names, None)
-        self._streams[part] = _Stream()
+        self._streams.forget(part)
         return self._apply(part, targets, clamped)
 
     def _nock(self) -> dict[str, Any]:
@@ -388,8 +283,8 @@ class SimLoop:
         self.world.reset(seed)
         if seed is not None:
             self._seed = seed
-        self._streams = {part: _Stream() for part in self.world.parts}
-        self._schedule()
+        self._streams.forget()
+        self._pacing.schedule(self.world.sim_time)
         self._sink.event("reset", self._shot, self.world.sim_time)
         self._publish_joints()
         self._publish_world()
@@ -412,7 +307,7 @@ class SimLoop:
             "limit_tolerance": cfg.limit_tolerance,
             "timestep": self._dt,
             "counters": {
-                p: self._counters[p].to_dict() | {"streaming": self._streams[p].streaming}
+                p: self._counters[p].to_dict() | {"streaming": self._streams.streaming(p)}
                 for p in world.parts
             },
             "scene": world.config.scene.to_dict(),
@@ -432,104 +327,74 @@ class SimLoop:
                 world.motion_done(part),
                 t,
             )
-        self._beat_state = time.monotonic() + self._state_period
+        self._pacing.sent_joints()
 
     def _publish_world(self) -> None:
         world = self.world
         self._sink.world_state(world.qpos(), phase_of(world), self._shot, world.sim_time)
-        self._beat_world = time.monotonic() + self._world_period
+        self._pacing.sent_world()
 
     def _watchdog(self, now: float) -> None:
-        wd = self.config.watchdog
-        if wd <= 0:
-            return
-        for part, stream in self._streams.items():
-            if stream.streaming and stream.last is not None and now - stream.last > wd:
-                stream.streaming = False
-                if not self.world.motion_done(part):
-                    held = self.world.set_joint_targets(part, self.world.joint_positions(part))
-                    self._counters[part].watchdog_trips += 1
-                    log.warning(
-                        "%s command stream stale for %.2f s: holding at %s",
-                        part,
-                        now - stream.last,
-                        np.round(held, 4).tolist(),
-                    )
-
-    def _schedule(self) -> None:
-        """Publications on a grid of the periods from now (the current state goes out now)."""
-        t = self.world.sim_time
-        self._next_state = t + self._state_period
-        self._next_world = t + self._world_period
+        """Freeze the parts whose command stream went stale while they still move."""
+        for part, age in self._streams.stale(now):
+            if not self.world.motion_done(part):
+                held = self.world.set_joint_targets(part, self.world.joint_positions(part))
+                self._counters[part].watchdog_trips += 1
+                log.warning(
+                    "%s command stream stale for %.2f s: holding at %s",
+                    part,
+                    age,
+                    np.round(held, 4).tolist(),
+                )
 
     def _moving(self) -> bool:
         return self._landing_future is not None or not self.world.motion_done()
 
-    def _chunk(self) -> int:
-        """Steps up to the next scheduled publication (at least 1, at most MAX_CHUNK)."""
-        t = self.world.sim_time
-        ahead = min(self._next_state, self._next_world) - t
-        return min(self._max_chunk, max(1, math.ceil(ahead / self._dt - 1e-6)))
-
     def _advance(self, steps: int) -> None:
-        world = self.world
-        landing = world.step(steps * self._dt)
-        t = world.sim_time
-        half = 0.5 * self._dt
-        if t >= self._next_state - half:
+        landing = self.world.step(steps * self._dt)
+        joints, world = self._pacing.due(self.world.sim_time)
+        if joints:
             self._publish_joints()
-            self._next_state = max(self._next_state + self._state_period, t + half)
         if landing is not None:
-            self._landed(landing)
-        if t >= self._next_world - half:
-            if landing is None:
-                self._publish_world()
-            self._next_world = max(self._next_world + self._world_period, t + half)
+            self._landed(landing)  # publishes the world state
+        elif world:
+            self._publish_world()
 
     # -- the loop (simulation thread) --------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
-        """Serve jobs and advance the world until `stop` is set (see the module docstring)."""
-        self._running = True
-        rtf = self.config.rtf
-        anchor: tuple[float, float] | None = None  # (wall, sim) time pair of the rtf schedule
+        """Serve jobs and advance the world until `stop` is set or the loop is closed."""
+        jobs = self._jobs
         try:
-            self._schedule()
-            while not stop.is_set():
-                self._drain()
+            self._pacing.schedule(self.world.sim_time)
+            while not stop.is_set() and not jobs.closed:
+                jobs.drain()
                 self._watchdog(time.monotonic())
-                if rtf == 0:
+                if self.config.rtf == 0:
                     if self._moving():
                         self._idle = False
-                        self._advance(self._chunk())
+                        self._advance(self._pacing.chunk(self.world.sim_time))
                     else:
                         self._rest(stop)
                     continue
-                steps = self._chunk()
-                sim = self.world.sim_time
-                now = time.monotonic()
-                if anchor is None or sim < anchor[1] or now - self._due(anchor, sim) > _MAX_LAG:
-                    anchor = (now, sim)
-                due = self._due(anchor, sim + steps * self._dt)
-                if self._sleep_until(due, stop):
+                steps = self._pacing.chunk(self.world.sim_time)
+                if self._sleep_until(self._pacing.wall_due(self.world.sim_time, steps), stop):
                     continue  # jobs ran meanwhile: they may have changed the world
                 self._advance(steps)
         finally:
-            self._running = False
             self.close()
-            self._fail_pending()
-
-    def _due(self, anchor: tuple[float, float], sim: float) -> float:
-        return anchor[0] + (sim - anchor[1]) / self.config.rtf
+            future, self._landing_future = self._landing_future, None
+            if future is not None and not future.done():
+                future.set_exception(SimUnavailable("the robot stopped before the arrow landed"))
 
     def _sleep_until(self, due: float, stop: threading.Event) -> bool:
         """Wait until wall time `due`, running jobs that arrive; True if any ran."""
         ran = False
-        while not stop.is_set():
+        while not stop.is_set() and not self._jobs.closed:
             remaining = due - time.monotonic()
             if remaining <= 0:
                 break
-            if self._wait_jobs(min(remaining, _MAX_IDLE_WAIT)):
-                ran = self._drain() or ran
+            if self._jobs.wait(min(remaining, MAX_IDLE_WAIT)):
+                ran = self._jobs.drain() or ran
         return ran
 
     def _rest(self, stop: threading.Event) -> None:
@@ -538,26 +403,14 @@ class SimLoop:
             self._idle = True
             self._publish_joints()  # the final state shows motion_done at once
             self._publish_world()
-        now = time.monotonic()
-        wait = min(_MAX_IDLE_WAIT, self._beat_state - now, self._beat_world - now)
-        if self._wait_jobs(wait):
-            self._drain()
+        if self._jobs.wait(self._pacing.idle_wait()):
+            self._jobs.drain()
             if self._moving() and self.config.batch_window > 0:
                 # Let the rest of a batch of commands arrive, to start them together.
                 self._sleep_until(time.monotonic() + self.config.batch_window, stop)
             return
-        now = time.monotonic()
-        if now >= self._beat_state:
+        joints, world = self._pacing.beats()
+        if joints:
             self._publish_joints()
-        if now >= self._beat_world:
+        if world:
             self._publish_world()
-
-    def _fail_pending(self) -> None:
-        with self._cond:
-            jobs, self._jobs = list(self._jobs), deque()
-        for job in jobs:
-            if job.future.set_running_or_notify_cancel():
-                job.future.set_exception(SimUnavailable("the robot is shutting down"))
-        future, self._landing_future = self._landing_future, None
-        if future is not None and not future.done():
-            future.set_exception(SimUnavailable("the robot stopped before the arrow landed"))

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from services.learner.base import (
+from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
     Learner,

@@ -13,7 +13,7 @@ from sim.ballistic import BallisticWorld
 from sim.geometry import BOW_HAND, INNER_RING_RADIUS, TARGET_DIAMETER
 
 if TYPE_CHECKING:
-    from services.learner.experiment import AlgorithmRun
+    from services.learner.tools.experiment import AlgorithmRun
 
 __all__ = ["plot_convergence", "plot_trajectories"]
 

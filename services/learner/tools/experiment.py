@@ -17,8 +17,8 @@ import numpy as np
 
 from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from protocol.errors import ConfigError
-from services.learner.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
-from services.learner.registry import ALGORITHMS, make_learner
+from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
+from services.learner.algorithms.registry import ALGORITHMS, make_learner
 from sim.ballistic import BallisticError, BallisticWorld, Scenario
 from sim.geometry import INNER_RING_RADIUS
 
@@ -67,7 +67,7 @@ class ExperimentConfig:
     same seed, both derived from (seed, s); so results do not depend on which algorithms run.
 
     Attributes:
-        algorithms: names from `services.learner.registry.ALGORITHMS`.
+        algorithms: names from `services.learner.algorithms.registry.ALGORITHMS`.
         sessions: number of independent learning sessions per algorithm.
         rollouts: rollout budget per session.
         seed: master seed.
@@ -276,7 +276,7 @@ def write_outputs(
                     )
                     writer.writerow([name, s, k + 1, *(repr(float(v)) for v in values)])
     if figures:
-        from services.learner.plots import plot_convergence, plot_trajectories
+        from services.learner.tools.plots import plot_convergence, plot_trajectories
 
         labels = {name: ALGORITHMS[name].label for name in runs}
         plot_convergence(runs, labels, out / "fig6.png", title=_title(config))

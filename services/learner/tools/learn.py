@@ -24,13 +24,12 @@ from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Rollout
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node
+from protocol.robotspec import SERVICES
+from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
-from services.learner.registry import ALGORITHMS
 from services.learner.session import FINAL_STATES
 
 __all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
-
-SERVICES = ("robot", "camera", "detector", "controller", "learner")
 
 
 class SessionLost(ArcheryError):

@@ -9,10 +9,16 @@ from typing import Any
 
 import numpy as np
 
-from services.learner.archer import Archer
-from services.learner.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerConfigError, StateError
-from services.learner.baselines import CmaEs, RandomSearch
-from services.learner.power import Power
+from services.learner.algorithms.archer import Archer
+from services.learner.algorithms.base import (
+    DEFAULT_BOUNDS,
+    Bounds,
+    Learner,
+    LearnerConfigError,
+    StateError,
+)
+from services.learner.algorithms.baselines import CmaEs, RandomSearch
+from services.learner.algorithms.power import Power
 
 __all__ = ["ALGORITHMS", "LEARNER_CLASSES", "Algorithm", "make_learner", "restore_learner"]
 

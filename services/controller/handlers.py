@@ -1,4 +1,5 @@
-"""The cartesian controllers' RPC verbs: one `ArmController` per arm, one `ArcheryController`.
+"""The cartesian controllers' RPC verbs: one `ArmController` per arm, one `ArcheryController`
+(each keeps its own solver and trajectory time, so each key has its own handlers object).
 
 Each controller serves one `rpc:i` key, whose requests run one at a time on that key's worker
 thread, so each owns its IK solver (solvers are not thread-safe). Moves of all controllers share
@@ -86,7 +87,7 @@ class ArmController:
         self.torso = config.use_torso
         self.traj_time = config.traj_time
 
-    def handlers(self) -> ServedVerbs:
+    def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cartesianController/ARM/rpc:i` (`protocol.verbs.controller`)."""
         return cv.ARM_VERBS.bind(
             {
@@ -202,7 +203,7 @@ class ArcheryController:
         self._motion = motion
         self.traj_time = config.traj_time
 
-    def handlers(self) -> ServedVerbs:
+    def verbs(self) -> ServedVerbs:
         """The verbs of the archery key (`protocol.verbs.controller`)."""
         return cv.ARCHERY_VERBS.bind(
             {

@@ -1,0 +1,221 @@
+"""The camera's capture thread: it owns the source (renderer, device or folder), renders or reads
+frames, encodes and publishes them, and runs the work RPC handlers hand it (`jobs`).
+
+GL contexts and devices belong to the thread that opened them, so everything that touches the
+source runs here. A rendered frame follows the robot's world states on `ROBOT/world/state:o`
+with a model built from the scene the robot reports (`archery/rpc:i status`; the default scene
+until the robot answers); frames go out at the configured rate, and at once when a waiting
+`grab` can be served.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import cv2
+import numpy as np
+
+from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
+from protocol.jobs import JobQueue
+from protocol.messages import Image, WorldState
+from protocol.node import Node, Publisher
+from protocol.verbs import robot as robot_verbs
+from services.camera.config import CameraConfig
+from services.camera.frames import FrameStore
+from services.camera.sources import DeviceSource, FolderSource
+
+__all__ = ["Capture", "capture_loop", "encode"]
+
+log = logging.getLogger("archery.camera")
+
+
+def encode(pixels: np.ndarray, encoding: str, **fields: Any) -> Image:
+    """RGB pixels (H, W, 3) as an `Image`: raw (rgb8) or compressed (jpeg, png)."""
+    if encoding == "rgb8":
+        return Image.from_numpy(pixels, **fields)
+    ok, data = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", pixels[:, :, ::-1])
+    if not ok:
+        raise ConfigError(f"{encoding} encoding of a {pixels.shape} frame failed")
+    height, width = pixels.shape[:2]
+    return Image(width=width, height=height, encoding=encoding, data=data.tobytes(), **fields)
+
+
+class Capture:
+    """The capture thread's state: the source, its frames, and the work RPC handlers hand it."""
+
+    def __init__(self, config: CameraConfig, node: Node, store: FrameStore) -> None:
+        self.config = config
+        self.node = node
+        self.store = store
+        self.jobs = JobQueue(RpcTimeout, "the capture thread")
+        self.renderer: Any = None
+        self.reader: DeviceSource | FolderSource | None = None
+        self.scene: dict[str, Any] | None = None
+        self.scene_from = ""
+        self.scene_error = ""
+        self.scene_checked = 0.0
+        self.frame = 0
+        self.renders = 0
+        self.render_seconds = 0.0
+        self.errors = 0
+        self.world = None
+        if config.source.kind == "mujoco":
+            self.world = node.subscribe(
+                node.keys.world_state(), WorldState, callback=lambda _msg: self.jobs.notify()
+            )
+
+    def _robot_scene(self, timeout: float) -> Any:
+        """The robot's SceneConfig from its `status`, or None when no robot answers."""
+        from sim.scene import SceneConfig
+
+        try:
+            status = self.node.call_typed(
+                self.node.keys.archery_rpc(), robot_verbs.ARCHERY_VERBS["status"], timeout=timeout
+            )
+            return SceneConfig(**status.scene)
+        except (RpcError, KeyError, TypeError, ValueError) as exc:
+            self.scene_error = str(exc)
+            return None
+
+    def _scene(self) -> Any:
+        from sim.scene import SceneConfig
+
+        scene = self._robot_scene(max(0.1, self.config.robot_timeout))
+        if scene is None:
+            log.warning(
+                "the robot's scene is unknown (%s): rendering the default scene until the robot "
+                "answers",
+                self.scene_error,
+            )
+            scene = SceneConfig()
+            self.scene_from = "default"
+        else:
+            self.scene_from = "robot"
+        self.scene = scene.to_dict()
+        self.scene_checked = time.monotonic()
+        return scene
+
+    def recheck_scene(self) -> None:
+        """While rendering the default scene, ask the robot again (at most every 2 s) once its
+        world states arrive, and rebuild the renderer if its scene differs (capture thread)."""
+        if self.scene_from != "default" or time.monotonic() - self.scene_checked < 2.0:
+            return
+        self.scene_checked = time.monotonic()
+        scene = self._robot_scene(0.5)
+        if scene is None:
+            return
+        self.scene_from = "robot"
+        if scene.to_dict() != self.scene:
+            log.info("the robot reports another scene than the default: rebuilding it")
+            self.renderer.close()
+            self.renderer = None
+            from sim.render import SceneRenderer
+
+            self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
+            self.scene = scene.to_dict()
+        else:
+            log.info("the robot's scene is the default one")
+
+    def open(self) -> None:
+        """Open the source (capture thread).
+
+        Raises:
+            ConfigError: the device cannot be opened, or the folder holds no readable image.
+        """
+        source = self.config.source
+        if source.kind == "mujoco":
+            from sim.render import SceneRenderer
+
+            self.renderer = SceneRenderer(
+                self._scene(), width=self.config.width, height=self.config.height
+            )
+        elif source.kind == "device":
+            self.reader = DeviceSource(source.index, self.config.width, self.config.height)
+        else:
+            self.reader = FolderSource(source.path)
+            try:
+                self.reader.read()
+            except ArcheryError as exc:
+                raise ConfigError(f"--source folder:{source.path}: {exc}") from None
+
+    def publish(
+        self, pixels: np.ndarray, sim_time: float | None, captured: float, pub: Any
+    ) -> None:
+        """Encode, publish and store a frame whose capture started at wall time `captured`."""
+        self.frame += 1
+        image = encode(pixels, self.config.encoding, frame=self.frame, sim_time=sim_time)
+        self.store.put(pub.put(image), captured)
+
+    def render(self, qpos: np.ndarray) -> np.ndarray:
+        """Render `qpos`; a qpos of another length rebuilds the scene from the robot's status."""
+        if qpos.shape != (self.renderer.nq,):
+            log.warning(
+                "world state has %d qpos values, the scene %d: rebuilding it from the robot's "
+                "status",
+                qpos.size,
+                self.renderer.nq,
+            )
+            self.renderer.close()
+            self.open()
+        started = time.perf_counter()
+        pixels = self.renderer.render(qpos)
+        self.renders += 1
+        self.render_seconds += time.perf_counter() - started
+        return pixels
+
+    def close(self) -> None:
+        """Fail the pending and later jobs, and free the renderer or the device."""
+        self.jobs.close("the camera is shutting down")
+        if self.renderer is not None:
+            self.renderer.close()
+        if self.reader is not None:
+            self.reader.close()
+
+
+def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event) -> None:
+    """Publish at the configured rate, and at once whenever a waiting grab can be served."""
+    store = capture.store
+    period = 1.0 / capture.config.rate
+    next_due = 0.0
+    last_seq: int | None = None
+    cached: tuple[np.ndarray, float | None, float] | None = None  # pixels, sim time, captured
+    while not stop.is_set():
+        capture.jobs.drain()
+        now = time.monotonic()
+        due = now >= next_due
+        waiting = store.waiting()
+        try:
+            if capture.world is not None:
+                state = capture.world.latest()
+                new = state is not None and state.seq != last_seq
+                if state is not None and new and (due or waiting):
+                    capture.recheck_scene()
+                    last_seq = state.seq
+                    captured = time.time()
+                    pixels = capture.render(state.qpos.to_numpy())
+                    cached = (pixels, state.sim_time, captured)
+                    capture.publish(pixels, state.sim_time, captured, pub)
+                    next_due = now + period
+                elif due:
+                    if cached is None:  # no world state yet: the model's initial state
+                        qpos = np.asarray(capture.renderer.model.qpos0)
+                        cached = (capture.render(qpos), None, time.time())
+                    capture.publish(*cached, pub)
+                    next_due = now + period
+            else:
+                wall = time.time()
+                serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
+                if due or serve:
+                    captured = time.time()
+                    pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]
+                    capture.publish(pixels, None, captured, pub)
+                    next_due = now + period
+        except ArcheryError as exc:
+            capture.errors += 1
+            if capture.errors <= 5 or capture.errors % 100 == 0:
+                log.error("frame %d failed (%d so far): %s", capture.frame + 1, capture.errors, exc)
+            next_due = time.monotonic() + period
+        capture.jobs.wait(max(0.0, min(period, next_due - time.monotonic())))

@@ -1,0 +1,90 @@
+"""The camera's RPC verbs on `ROBOT/cam/rpc:i` (`protocol.verbs.camera`): grab, calibration,
+status. Frames come from the capture thread's store; work on the source runs on that thread."""
+
+from __future__ import annotations
+
+import time
+
+from protocol.errors import BadRequest
+from protocol.messages import Image
+from protocol.robotspec import CALL_TIMEOUT
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs.camera import CAMERA_VERBS, CalibrationReply, CameraStatusReply, GrabArgs
+from services.camera.capture import Capture
+from services.camera.config import CameraConfig
+from services.camera.frames import FrameStore, Freshness
+
+__all__ = ["CALIBRATION_TIMEOUT", "CameraHandlers"]
+
+CALIBRATION_TIMEOUT = 30.0  # wall s: a calibration frame is rendered on the capture thread
+
+
+class CameraHandlers:
+    """One method per camera verb."""
+
+    def __init__(self, config: CameraConfig, capture: Capture, store: FrameStore) -> None:
+        self._config = config
+        self._capture = capture
+        self._store = store
+        self._rendered = config.source.kind == "mujoco"
+
+    def verbs(self) -> ServedVerbs:
+        """The verbs of `ROBOT/cam/rpc:i`."""
+        return CAMERA_VERBS.bind(
+            {"grab": self.grab, "calibration": self.calibration, "status": self.status}
+        )
+
+    def grab(self, args: GrabArgs) -> Image:
+        """The first frame newer than the stamps (sim s, wall s), within `timeout` s.
+
+        A device or folder frame has no sim time: there `after_sim_time` means "captured after
+        this request arrived"."""
+        timeout = CALL_TIMEOUT if args.timeout is None else args.timeout
+        after_sim_time, after_stamp = args.after_sim_time, args.after_stamp
+        if not self._rendered and after_sim_time is not None:
+            after_sim_time, after_stamp = None, max(after_stamp or 0.0, time.time())
+        want = Freshness(after_sim_time=after_sim_time, after_stamp=after_stamp)
+        return self._store.wait(want, timeout, on_wait=self._capture.jobs.notify)
+
+    def calibration(self, args: NoArgs) -> CalibrationReply:
+        """A frame with an arrow on the face and the pixels a user would mark (mujoco only)."""
+        if not self._rendered:
+            raise BadRequest(
+                f"calibration marks come only from the mujoco source (this camera is "
+                f"{self._config.source.kind}): mark pixels by hand and use `archery calibrate`, "
+                f"or the detector's `calibrate` verb with pixels"
+            )
+        capture = self._capture
+
+        def job() -> CalibrationReply:
+            from sim.render import calibration_frame
+
+            latest = capture.world.latest() if capture.world else None
+            qpos = latest.qpos.to_numpy() if latest else capture.renderer.model.qpos0
+            pixels, marks = calibration_frame(capture.renderer, qpos)
+            image = Image.from_numpy(
+                pixels, sim_time=latest.sim_time if latest else None, stamp=time.time()
+            )
+            return CalibrationReply(image=image, pixels=marks)
+
+        return capture.jobs.call(job, timeout=CALIBRATION_TIMEOUT)
+
+    def status(self, args: NoArgs) -> CameraStatusReply:
+        """Source, size, rate, encoding, frames, renders and mean render time (ms), scene."""
+        config, capture = self._config, self._capture
+        latest = self._store.latest
+        renders = capture.renders
+        return CameraStatusReply(
+            source=config.source.kind,
+            width=config.width,
+            height=config.height,
+            rate=config.rate,
+            encoding=config.encoding,
+            frames=self._store.count,
+            renders=renders,
+            render_ms=round(1e3 * capture.render_seconds / renders, 3) if renders else None,
+            errors=capture.errors,
+            latest_sim_time=latest.sim_time if latest else None,
+            scene=capture.scene,
+            scene_from=capture.scene_from,
+        )

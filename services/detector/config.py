@@ -1,0 +1,81 @@
+"""The detector service's frozen, validated configuration and its command-line flags."""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from protocol.cliargs import check_writable_dir
+from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from protocol.errors import ConfigError
+from protocol.netflags import NetConfig
+from protocol.robotspec import CAMERA_TIMEOUT
+from protocol.verbs import detector as dv
+from services.detector.colour_model import ColourModel
+from services.detector.detect import DetectorSettings
+from services.detector.errors import ModelFileError
+from services.detector.offline import add_settings_arguments, settings_from_args
+
+__all__ = ["DetectorConfig", "add_arguments", "make_config"]
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Detector settings.
+
+    Attributes:
+        net: network settings.
+        model: colour model file (read at start if it exists, written by `calibrate`).
+        settings: detection settings (target size, thresholds; flags shared with `archery
+            detect`).
+        auto_calibrate: without a model, calibrate from the camera's marks once it is alive.
+        camera_timeout: default wait for a camera frame (s).
+    """
+
+    net: NetConfig = field(default_factory=NetConfig)
+    model: str | None = flag(
+        None, "colour model file (read if it exists, written on calibrate)", metavar="FILE"
+    )
+    settings: DetectorSettings = field(default_factory=DetectorSettings)
+    auto_calibrate: bool = flag(
+        True,
+        "do not calibrate from the camera's marks when there is no model",
+        name="--no-auto-calibrate",
+    )
+    camera_timeout: float = flag(
+        CAMERA_TIMEOUT,
+        "default wait for a camera frame",
+        unit="wall s",
+        low=0,
+        high=dv.MAX_TIMEOUT,
+        low_open=True,
+    )
+
+    def __post_init__(self) -> None:
+        check_bounds(self)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the detector's own flags: the config's and the detection settings'."""
+    add_config_args(parser, DetectorConfig)
+    add_settings_arguments(parser)
+
+
+def make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
+    """Build the config from parsed flags, checking the model file's place and contents.
+
+    Raises:
+        ConfigError: an invalid value; the message names the flag and what is valid.
+    """
+    if args.model:
+        model = Path(args.model)
+        if model.exists() and not model.is_file():
+            raise ConfigError(f"--model {args.model!r} is not a file")
+        check_writable_dir(model.parent, f"--model {args.model!r}: folder", create=False)
+        if model.exists():
+            try:
+                ColourModel.load(args.model)
+            except ModelFileError as exc:
+                raise ConfigError(f"--model {args.model}: {exc}") from None
+    return config_from_args(DetectorConfig, args, net=net, settings=settings_from_args(args))

@@ -1,0 +1,185 @@
+"""The detector's RPC verbs on `ROBOT/detector/rpc:i` (`protocol.verbs.detector`): measure,
+calibrate, frame, status; and the colour model they share (guarded by one lock)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import numpy as np
+
+from protocol.errors import BadRequest
+from protocol.messages import Detection as DetectionMessage
+from protocol.messages import Image
+from protocol.node import Node, Publisher
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import detector as dv
+from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
+from services.detector.calibration import parse_pixels, sample_pixels
+from services.detector.colour_model import ColourModel
+from services.detector.config import DetectorConfig
+from services.detector.detect import Detection, Detector
+from services.detector.errors import DetectorError
+from services.detector.overlay import draw_overlay, encode_png
+
+__all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
+
+log = logging.getLogger("archery.detector")
+GRAB = CAMERA_VERBS["grab"]
+CALIBRATION = CAMERA_VERBS["calibration"]
+GRAB_GRACE = 1.0  # wall s a grab's reply may take beyond the grab's own timeout
+CALIBRATION_GRACE = 30.0  # wall s the camera may take to render its calibration frame
+
+
+class NotCalibrated(DetectorError):
+    """A measurement before any colour model exists."""
+
+    code = "not_calibrated"
+
+
+class DetectorHandlers:
+    """One method per detector verb, the colour model and the last measured frame.
+
+    Args:
+        config: the detector's settings (model file, detection settings, camera wait).
+        node: calls the camera's `cam/rpc:i`.
+        hits: publishes each measurement on `ROBOT/detector/hit:o`.
+    """
+
+    def __init__(
+        self, config: DetectorConfig, node: Node, hits: Publisher[DetectionMessage]
+    ) -> None:
+        self._config = config
+        self._node = node
+        self._hits = hits
+        self._lock = threading.Lock()
+        self._calibrating = threading.Lock()
+        self.detector: Detector | None = None
+        self._model: ColourModel | None = None
+        self._last: tuple[np.ndarray, Detection, Detector] | None = None
+        self._measured = 0
+        if config.model and Path(config.model).exists():
+            self._set_model(ColourModel.load(config.model), save=False)
+
+    def verbs(self) -> ServedVerbs:
+        """The verbs of `ROBOT/detector/rpc:i`."""
+        return dv.DETECTOR_VERBS.bind(
+            {
+                "measure": self.measure,
+                "calibrate": self.calibrate,
+                "frame": self.frame,
+                "status": self.status,
+            }
+        )
+
+    def _set_model(self, model: ColourModel, *, save: bool) -> None:
+        detector = Detector(model, self._config.settings)
+        with self._lock:
+            self._model, self.detector = model, detector
+        if save and self._config.model:
+            model.save(self._config.model)
+            log.info("colour model saved to %s", self._config.model)
+
+    def _timeout(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> float:
+        return self._config.camera_timeout if args.timeout is None else args.timeout
+
+    def _grab(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> Image:
+        timeout = self._timeout(args)
+        grab = GrabArgs(
+            after_sim_time=args.after_sim_time, after_stamp=args.after_stamp, timeout=timeout
+        )
+        key = self._node.keys.cam_rpc()
+        return self._node.call_typed(key, GRAB, grab, timeout=timeout + GRAB_GRACE)
+
+    def _calibrate_from(self, image: Image, pixels: Any) -> dv.CalibrateReply:
+        marks = parse_pixels(pixels, "pixels")
+        rgb = image.to_numpy()
+        target = sample_pixels(rgb, marks["target"], "target")
+        arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
+        model = ColourModel.fit(target, arrow)
+        self._set_model(model, save=True)
+        return dv.CalibrateReply(
+            **model.summary(),
+            target_pixels=len(target),
+            arrow_pixels=0 if arrow is None else len(arrow),
+            frame_sim_time=image.sim_time,
+            saved=self._config.model,
+        )
+
+    def calibrate(self, args: dv.CalibrateArgs) -> dv.CalibrateReply:
+        """Fit the colour model on a camera frame from the given pixels, or from the camera's
+        own calibration frame and marks; saved to the model file when there is one."""
+        if args.pixels is not None:
+            return self._calibrate_from(self._grab(args), args.pixels)
+        timeout = self._timeout(args) + CALIBRATION_GRACE
+        marks = self._node.call_typed(self._node.keys.cam_rpc(), CALIBRATION, timeout=timeout)
+        return self._calibrate_from(marks.image, marks.pixels)
+
+    def ensure_model(self) -> Detector | None:
+        """The detector, calibrated from the camera's marks first if there is none yet."""
+        with self._calibrating:
+            if self.detector is None:
+                reply = self.calibrate(dv.CalibrateArgs())
+                log.info("calibrated from the camera's marks: %s", reply)
+        return self.detector
+
+    def measure(self, args: dv.MeasureArgs) -> dv.MeasureReply:
+        """Grab a frame newer than the stamps, detect, publish the detection and reply with it
+        (plus the camera's frame number and the timing {grab_s, detect_s}, wall s)."""
+        detector = self.ensure_model() if self._config.auto_calibrate else self.detector
+        if detector is None:
+            raise NotCalibrated(
+                "the detector has no colour model yet: call `calibrate` (with pixels for a "
+                "real camera), or start it with --model FILE"
+            )
+        started = time.perf_counter()
+        image = self._grab(args)
+        rgb = image.to_numpy()
+        grabbed_at = time.perf_counter()
+        found = detector.detect(rgb)
+        detect_s = time.perf_counter() - grabbed_at
+        with self._lock:
+            self._last = (rgb, found, detector)
+            self._measured += 1
+        message = self._hits.put(
+            DetectionMessage(
+                frame_stamp=image.stamp,
+                status=found.status,  # type: ignore[arg-type]
+                target_px=list(found.target.px) if found.target else None,
+                arrow_px=list(found.arrow.px) if found.arrow else None,
+                target_confidence=found.target.confidence if found.target else 0.0,
+                arrow_confidence=found.arrow.confidence if found.arrow else 0.0,
+                r_m=list(found.r_m) if found.r_m else None,
+                sim_time=image.sim_time,
+            )
+        )
+        timing = {"grab_s": round(grabbed_at - started, 6), "detect_s": round(detect_s, 6)}
+        return dv.MeasureReply(**msgspec.to_builtins(message), frame=image.frame, timing=timing)
+
+    def frame(self, args: dv.FrameArgs) -> dv.FrameReply:
+        """The last measured frame as PNG, with the detection drawn when `overlay`."""
+        with self._lock:
+            last = self._last
+        if last is None:
+            raise BadRequest("no frame measured yet: call `measure` first")
+        rgb, found, detector = last
+        if args.overlay:
+            rgb = draw_overlay(rgb, found, detector.memberships(rgb))
+        return dv.FrameReply(png=encode_png(rgb), status=found.status)
+
+    def status(self, args: NoArgs) -> dv.DetectorStatusReply:
+        """Calibrated or not, the model summary, the settings, measurements so far."""
+        with self._lock:
+            model = self._model
+            return dv.DetectorStatusReply(
+                calibrated=model is not None,
+                model_file=self._config.model,
+                model=model.summary() if model else None,
+                settings=dataclasses.asdict(self._config.settings),
+                measured=self._measured,
+            )

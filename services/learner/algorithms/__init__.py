@@ -1,0 +1,34 @@
+"""The learning algorithms: PoWER, ARCHER and baselines behind one ask/tell protocol."""
+
+from services.learner.algorithms.archer import Archer
+from services.learner.algorithms.base import (
+    DEFAULT_BOUNDS,
+    Bounds,
+    Learner,
+    LearnerConfigError,
+    LearnerError,
+    ObservationError,
+    StateError,
+    scalar_return,
+)
+from services.learner.algorithms.baselines import CmaEs, RandomSearch
+from services.learner.algorithms.power import Power
+from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
+
+__all__ = [
+    "ALGORITHMS",
+    "DEFAULT_BOUNDS",
+    "Archer",
+    "Bounds",
+    "CmaEs",
+    "Learner",
+    "LearnerConfigError",
+    "LearnerError",
+    "ObservationError",
+    "Power",
+    "RandomSearch",
+    "StateError",
+    "make_learner",
+    "restore_learner",
+    "scalar_return",
+]

@@ -1,0 +1,135 @@
+"""The robot's RPC verbs (`protocol.verbs.robot`): one method per verb, served from `SimLoop`.
+
+Part verbs take the part first (bound per `ROBOT/{part}/rpc:i` key by `part_verbs`); joint
+vectors are in YARP order (rad, rad/s), times in s of simulated time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from functools import partial
+from typing import Any
+
+from protocol.messages import JointCommand
+from protocol.node import Subscription
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import robot as rv
+from services.robot.simloop import SimLoop
+
+__all__ = ["RobotHandlers"]
+
+
+class RobotHandlers:
+    """The controlboard verbs of every part and the archery verbs.
+
+    Args:
+        loop: the simulation loop the verbs run on.
+        commands: each part's `command:i` subscription (its undecodable count is a counter).
+    """
+
+    def __init__(self, loop: SimLoop, commands: Mapping[str, Subscription[JointCommand]]) -> None:
+        self._loop = loop
+        self._commands = commands
+
+    def part_verbs(self, part: str) -> ServedVerbs:
+        """The verbs of `ROBOT/{part}/rpc:i`."""
+        verbs: dict[str, Callable[[str, Any], Any]] = {
+            "getJointNames": self.get_joint_names,
+            "getLimits": self.get_limits,
+            "getPositions": self.get_positions,
+            "getTargets": self.get_targets,
+            "checkMotionDone": self.check_motion_done,
+            "setRefSpeeds": self.set_ref_speeds,
+            "getRefSpeeds": self.get_ref_speeds,
+            "positionMove": self.position_move,
+            "counters": self.counters,
+            "status": self.part_status,
+        }
+        return rv.PART_VERBS.bind({name: partial(verb, part) for name, verb in verbs.items()})
+
+    def archery_verbs(self) -> ServedVerbs:
+        """The verbs of `ROBOT/archery/rpc:i`."""
+        return rv.ARCHERY_VERBS.bind(
+            {
+                "nock": self.nock,
+                "release": self.release,
+                "reset": self.reset,
+                "status": self.archery_status,
+            }
+        )
+
+    def _names(self, part: str) -> list[str]:
+        return list(self._loop.limits[part].names)
+
+    # -- controlboard verbs ------------------------------------------------------------------
+    def get_joint_names(self, part: str, args: NoArgs) -> rv.JointNamesReply:
+        """The part's joint names."""
+        return rv.JointNamesReply(names=self._names(part))
+
+    def get_limits(self, part: str, args: NoArgs) -> rv.LimitsReply:
+        """The software joint limits (rad) and the clamping tolerance beyond them (rad)."""
+        limits = self._loop.limits[part]
+        return rv.LimitsReply(
+            names=self._names(part),
+            min=list(limits.lower),
+            max=list(limits.upper),
+            tolerance=limits.tolerance,
+        )
+
+    def get_positions(self, part: str, args: NoArgs) -> rv.PositionsReply:
+        """Encoders: positions (rad), velocities (rad/s), sim time (s)."""
+        return rv.PositionsReply(**self._loop.positions(part))
+
+    def get_targets(self, part: str, args: NoArgs) -> rv.TargetsReply:
+        """The part's current (clamped) targets (rad)."""
+        return rv.TargetsReply(names=self._names(part), position=self._loop.targets(part))
+
+    def check_motion_done(self, part: str, args: NoArgs) -> rv.MotionDoneReply:
+        """Whether the part reached its targets and settled."""
+        return rv.MotionDoneReply(done=self._loop.motion_done(part))
+
+    def set_ref_speeds(self, part: str, args: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
+        """Set the reference speeds (rad/s: one for all joints, or one per joint)."""
+        speeds = self._loop.set_ref_speeds(part, args.speeds)
+        return rv.RefSpeedsReply(names=self._names(part), speeds=speeds)
+
+    def get_ref_speeds(self, part: str, args: NoArgs) -> rv.RefSpeedsReply:
+        """The reference speeds (rad/s)."""
+        return rv.RefSpeedsReply(names=self._names(part), speeds=self._loop.ref_speeds(part))
+
+    def position_move(self, part: str, args: rv.PositionMoveArgs) -> rv.TargetsReply:
+        """Validate and apply targets (rad) like a command; the part's targets after it."""
+        position = self._loop.position_move(part, args.position, args.names)
+        return rv.TargetsReply(names=self._names(part), position=position)
+
+    def counters(self, part: str, args: NoArgs) -> rv.CountersReply:
+        """Commands accepted, clamped and rejected (by reason), watchdog trips, undecodable."""
+        undecodable = self._commands[part].dropped
+        return rv.CountersReply(**self._loop.counters(part), undecodable=undecodable)
+
+    def part_status(self, part: str, args: NoArgs) -> rv.PartStatusReply:
+        """Names, motion done, counters and the encoders."""
+        return rv.PartStatusReply(
+            part=part,
+            names=self._names(part),
+            motion_done=self._loop.motion_done(part),
+            counters=self.counters(part, args),
+            **self._loop.positions(part),
+        )
+
+    # -- archery verbs -----------------------------------------------------------------------
+    def nock(self, args: NoArgs) -> rv.NockReply:
+        """Put a fresh arrow on the bow."""
+        return rv.NockReply(**self._loop.nock())
+
+    def release(self, args: NoArgs) -> rv.ReleaseReply:
+        """Release the nocked arrow; replies once it has landed."""
+        return rv.ReleaseReply(**self._loop.release())
+
+    def reset(self, args: rv.ResetArgs) -> rv.ResetReply:
+        """Home posture at sim time 0, the arrow stowed; reseeded when `seed` is given."""
+        return rv.ResetReply(**self._loop.reset(args.seed))
+
+    def archery_status(self, args: NoArgs) -> rv.ArcheryStatusReply:
+        """Arrow, phase, shot, sim time, counters, the scene and world configs."""
+        return rv.ArcheryStatusReply(**self._loop.status())

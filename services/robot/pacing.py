@@ -1,0 +1,96 @@
+"""When the simulation loop publishes and how fast simulated time runs.
+
+* Streams are scheduled in simulated time: joint states every 1/state_rate s, the world state
+  every 1/world_rate s. Physics advances in chunks that end on the next publication (at most
+  `MAX_CHUNK` s of sim time).
+* rtf > 0: simulated time advances at rtf × the wall clock; a simulation that falls more than
+  `MAX_LAG` s behind re-anchors rather than racing to catch up.
+* At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams at their
+  rates in wall time (*beats*), so subscribers still see a live robot.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+__all__ = ["MAX_CHUNK", "MAX_IDLE_WAIT", "MAX_LAG", "Pacing"]
+
+MAX_CHUNK = 0.02  # s of simulated time per physics chunk at most (bounds the jobs' latency)
+MAX_IDLE_WAIT = 0.1  # s of wall time between idle checks of the stop flag and the watchdog
+MAX_LAG = 0.25  # s of wall time behind the rtf schedule before re-anchoring
+
+
+class Pacing:
+    """The publication grid (sim time), the rtf schedule and the idle beats (wall time).
+
+    Args:
+        dt: the physics time step (s of sim time).
+        state_rate, world_rate: joint states and world states per simulated second (Hz).
+        rtf: real-time factor (> 0 for `wall_due`).
+    """
+
+    def __init__(self, dt: float, state_rate: float, world_rate: float, rtf: float) -> None:
+        self.dt = dt
+        self.rtf = rtf
+        self.state_period = 1.0 / state_rate
+        self.world_period = 1.0 / world_rate
+        self._max_chunk = max(1, round(MAX_CHUNK / dt))
+        self._next_state = 0.0  # sim time of the next joint state publication
+        self._next_world = 0.0
+        self._beat_state = 0.0  # wall time of the next idle repetition
+        self._beat_world = 0.0
+        self._anchor: tuple[float, float] | None = None  # (wall, sim) pair of the rtf schedule
+
+    # -- sim time ----------------------------------------------------------------------------
+    def schedule(self, sim_time: float) -> None:
+        """Publications on a grid of the periods from `sim_time` (its state goes out now)."""
+        self._next_state = sim_time + self.state_period
+        self._next_world = sim_time + self.world_period
+
+    def chunk(self, sim_time: float) -> int:
+        """Steps up to the next scheduled publication (at least 1, at most `MAX_CHUNK`)."""
+        ahead = min(self._next_state, self._next_world) - sim_time
+        return min(self._max_chunk, max(1, math.ceil(ahead / self.dt - 1e-6)))
+
+    def due(self, sim_time: float) -> tuple[bool, bool]:
+        """After a chunk ending at `sim_time`: whether joint states and a world state are due
+        (each due publication moves its grid on)."""
+        half = 0.5 * self.dt
+        joints = sim_time >= self._next_state - half
+        if joints:
+            self._next_state = max(self._next_state + self.state_period, sim_time + half)
+        world = sim_time >= self._next_world - half
+        if world:
+            self._next_world = max(self._next_world + self.world_period, sim_time + half)
+        return joints, world
+
+    # -- wall time ---------------------------------------------------------------------------
+    def wall_due(self, sim_time: float, steps: int) -> float:
+        """The wall time (monotonic s) at which `steps` more steps from `sim_time` are due."""
+        now = time.monotonic()
+        anchor = self._anchor
+        if anchor is None or sim_time < anchor[1] or now - self._wall(anchor, sim_time) > MAX_LAG:
+            anchor = self._anchor = (now, sim_time)
+        return self._wall(anchor, sim_time + steps * self.dt)
+
+    def _wall(self, anchor: tuple[float, float], sim_time: float) -> float:
+        return anchor[0] + (sim_time - anchor[1]) / self.rtf
+
+    def sent_joints(self) -> None:
+        """Joint states went out: the next idle repetition is one period (wall) away."""
+        self._beat_state = time.monotonic() + self.state_period
+
+    def sent_world(self) -> None:
+        """A world state went out: the next idle repetition is one period (wall) away."""
+        self._beat_world = time.monotonic() + self.world_period
+
+    def idle_wait(self) -> float:
+        """How long (wall s) the resting loop may sleep before its next beat or check."""
+        now = time.monotonic()
+        return min(MAX_IDLE_WAIT, self._beat_state - now, self._beat_world - now)
+
+    def beats(self) -> tuple[bool, bool]:
+        """Whether a joint state and a world state repetition are due now (at rest)."""
+        now = time.monotonic()
+        return now >= self._beat_state, now >= self._beat_world

@@ -1,0 +1,95 @@
+"""Where the simulation loop's streams go: the `Sink` it calls, and `MeshSink`, its Zenoh
+publishers (tests use a recording sink)."""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from protocol.messages import Array, JointState, WorldEvent, WorldState
+from protocol.node import Node
+
+__all__ = ["MeshSink", "Sink"]
+
+
+class Sink(Protocol):
+    """Where the loop's streams go (Zenoh publishers in the service; a list in tests)."""
+
+    def joint_state(
+        self,
+        part: str,
+        names: tuple[str, ...],
+        position: list[float],
+        velocity: list[float],
+        motion_done: bool,
+        sim_time: float,
+    ) -> None:
+        """One part's joint state: positions (rad), velocities (rad/s), sim time (s)."""
+
+    def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
+        """The scene's generalized positions, the shot phase and number, sim time (s)."""
+
+    def event(
+        self,
+        kind: str,
+        shot: int,
+        sim_time: float,
+        impact_m: list[float] | None = None,
+        reason: str = "",
+    ) -> None:
+        """A shot event (nocked, released, landed, missed, reset); impact_m is ground truth."""
+
+
+class MeshSink:
+    """The loop's streams as Zenoh publishers (`ROBOT/{part}/state:o`, `ROBOT/world/state:o`,
+    `ROBOT/world/events:o`, the last lossless)."""
+
+    def __init__(self, node: Node, parts: tuple[str, ...]) -> None:
+        keys = node.keys
+        self._states = {p: node.publisher(keys.state(p), JointState) for p in parts}
+        self._world = node.publisher(keys.world_state(), WorldState)
+        self._events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
+
+    def joint_state(
+        self,
+        part: str,
+        names: tuple[str, ...],
+        position: list[float],
+        velocity: list[float],
+        motion_done: bool,
+        sim_time: float,
+    ) -> None:
+        self._states[part].put(
+            JointState(
+                part=part,
+                names=list(names),
+                position=position,
+                velocity=velocity,
+                motion_done=motion_done,
+                sim_time=sim_time,
+            )
+        )
+
+    def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
+        self._world.put(
+            WorldState(qpos=Array.from_numpy(qpos), phase=phase, shot=shot, sim_time=sim_time)
+        )
+
+    def event(
+        self,
+        kind: str,
+        shot: int,
+        sim_time: float,
+        impact_m: list[float] | None = None,
+        reason: str = "",
+    ) -> None:
+        self._events.put(
+            WorldEvent(
+                kind=kind,  # type: ignore[arg-type]
+                shot=shot,
+                impact_m=impact_m,
+                reason=reason,
+                sim_time=sim_time,
+            )
+        )
