@@ -1,12 +1,15 @@
-"""`archery up`: a router and all five services as child processes of one command.
+"""`archery up`: a router and all five services as supervised child processes of one command.
 
 It starts `archery router --listen ENDPOINT` and `archery robot|camera|detector|controller|
 learner --connect ENDPOINT --robot NAME` (each with `python -m services.cli`, so this module
-imports no service), waits until every service is alive by liveliness, and then watches them.
-Ctrl-C or SIGTERM stops them all, the learner first and the router last, each with SIGTERM (a
-clean stop, exit status 0) and SIGKILL after a grace period; the first child that exits on its
-own stops the rest too, and `up` says which one it was, its exit status and the end of its log.
-Each child's output goes to `LOGS/<name>.log`; the children die with their parent.
+imports no service), waits until every service is alive by liveliness, and then supervises
+them (`services.supervisor`): a child that exits is restarted, left down or ends everything as
+its restart policy decides (`services.restart_policy`), the router on its same endpoint (the
+services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the learner first and
+the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
+period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
+`services.launch_config`). Each child's output goes to `LOGS/<name>.log`; the children die with
+their parent.
 """
 
 from __future__ import annotations
