@@ -34,7 +34,9 @@ from services.supervisor import Supervisor
 def drill(outage: float, logs: Path) -> dict[str, object]:
     """One router outage of about `outage` s under supervision."""
     base = default_mesh(free_tcp_endpoint(), "drill", runs=str(logs / "runs"))
-    router = dataclasses.replace(base.router, restart=RestartPolicy(backoff=outage, backoff_max=outage))
+    router = dataclasses.replace(
+        base.router, restart=RestartPolicy(backoff=outage, backoff_max=outage)
+    )
     launcher = Launcher(logs=logs, mesh=dataclasses.replace(base, router=router))
     stop = threading.Event()
     with launcher:
