@@ -82,6 +82,15 @@ class Mesh:
             assert self.thread_alive(), self.lines
             time.sleep(0.05)
 
+    def assert_only_restarted(self, name: str, before: dict[str, int]) -> None:
+        """`name` runs as a new process; every other child is the same process, running."""
+        now = self.pids()
+        assert now[name] != before[name]
+        assert {n: p for n, p in now.items() if n != name} == {
+            n: p for n, p in before.items() if n != name
+        }
+        assert self.launcher.first_exit() is None
+
     def thread_alive(self) -> bool:
         return self._thread.is_alive()
 
@@ -122,12 +131,7 @@ def test_a_killed_service_is_restarted_and_the_others_are_untouched(mesh: Mesh) 
     mesh.tokens.wait_for(("camera", "delete"), ("camera", "put"), after=after)
     mesh.wait_restarted("camera", before["camera"])
     assert "camera was killed by signal 9; restart 1 of 5 within 60 s, in 0.5 s" in mesh.lines
-    now = mesh.pids()
-    assert now["camera"] != before["camera"]
-    assert {n: p for n, p in now.items() if n != "camera"} == {
-        n: p for n, p in before.items() if n != "camera"
-    }
-    assert mesh.launcher.first_exit() is None
+    mesh.assert_only_restarted("camera", before)
     mesh.node.wait_alive(SERVICES, timeout=30)
 
 
@@ -151,12 +155,7 @@ def test_the_router_is_restarted_and_every_service_reconnects(mesh: Mesh) -> Non
     print(f"all five alive {alive_after:.2f} s after the router listened again")
     assert alive_after < 15
     assert "router was killed by signal 9; restart 1 of 5 within 60 s, in 2 s" in mesh.lines
-    now = mesh.pids()
-    assert now["router"] != before["router"]
-    assert {n: p for n, p in now.items() if n != "router"} == {
-        n: p for n, p in before.items() if n != "router"
-    }
-    assert mesh.launcher.first_exit() is None
+    mesh.assert_only_restarted("router", before)
     mesh.node.wait_alive(SERVICES, timeout=30)  # the old node's session reconnected too
 
 
