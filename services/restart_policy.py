@@ -15,7 +15,7 @@ from typing import Literal
 
 from protocol.errors import ConfigError
 
-__all__ = ["POLICIES", "Decision", "RestartPolicy", "decide"]
+__all__ = ["POLICIES", "Decision", "RestartPolicy", "decide", "describe_status"]
 
 POLICIES = ("always", "on-failure", "never")
 BAD_CONFIG = 2
