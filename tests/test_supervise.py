@@ -4,6 +4,7 @@ a killed router is restarted on its endpoint while every service reconnects by i
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import signal
@@ -14,6 +15,7 @@ import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import psutil
 import pytest
 import zenoh
 
@@ -180,10 +182,9 @@ def test_a_clean_exit_under_on_failure_is_left_down(mesh: Mesh) -> None:
 def _children(pid: int) -> dict[str, int]:
     """The direct children of a process, by the verb they run."""
     out = {}
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        for child in (task / "children").read_text().split():
-            argv = Path(f"/proc/{child}/cmdline").read_bytes().split(b"\0")
-            out[argv[3].decode()] = int(child)  # python -m services.cli VERB ...
+    for child in psutil.Process(pid).children():
+        with contextlib.suppress(psutil.NoSuchProcess):
+            out[child.cmdline()[3]] = child.pid  # python -m services.cli VERB ...
     return out
 
 
