@@ -3,7 +3,8 @@
 Verbs on `ROBOT/detector/rpc:i` (args → result):
 - `measure {"after_sim_time": s, "after_stamp": s, "timeout": s}` → grabs a camera frame newer
   than those stamps (`cam/rpc:i grab` with the same args, so it never sees the scene before the
-  landing), detects, publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
+  landing; a camera that does not answer is the error `upstream_lost` naming `camera`), detects,
+  publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
   with it as a dict: `status` ("ok", "no_target", "no_arrow"), `r_m` = arrow − centre on the
   target plane (m; r[0] to the robot's right, r[1] up; the paper's r = m_T − m_A in pixels,
   re-expressed), `target_px`, `arrow_px` (column, row), confidences, the frame's `sim_time`
@@ -37,7 +38,14 @@ import msgspec
 import numpy as np
 
 from protocol.cliargs import check_writable_dir
-from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcError
+from protocol.errors import (
+    ArcheryError,
+    BadRequest,
+    ConfigError,
+    RpcError,
+    RpcTimeout,
+    UpstreamLost,
+)
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
 from protocol.netflags import NetConfig
@@ -129,7 +137,10 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
             grab_args = GrabArgs(
                 after_sim_time=args.after_sim_time, after_stamp=args.after_stamp, timeout=timeout
             )
-            return node.call_typed(keys.cam_rpc(), GRAB, grab_args, timeout=timeout + 1.0)
+            try:
+                return node.call_typed(keys.cam_rpc(), GRAB, grab_args, timeout=timeout + 1.0)
+            except RpcTimeout as exc:  # the camera is gone or stuck: not the detector's fault
+                raise UpstreamLost("camera", f"the camera did not answer: {exc.message}") from None
 
         def calibrate_from(image: Image, pixels: Any) -> dv.CalibrateReply:
             marks = parse_pixels(pixels, "pixels")
