@@ -351,15 +351,15 @@ class Session:
             # one does not reset: a move the crashed learner left running may still be on.
             self._guard(lambda: self.rig.reset(config.seed), stop)
         while not stop.is_set():
-            self._await_services(stop)
-            if stop.is_set():
-                break
             reason = self._finished()
             if reason is not None:
                 self._record("end", reason=reason, summary=state.summary())
                 self._set("finished", reason)
                 log.info("session %s finished: %s", self.session_id, reason)
                 return
+            self._await_services(stop)
+            if stop.is_set():
+                break
             last = state.aborted[-1] if state.aborted else None
             failure = streak_failure(state.aborts_in_row, config.max_aborts, last)
             if failure is not None:
