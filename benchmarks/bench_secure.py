@@ -35,7 +35,6 @@ from pathlib import Path
 
 import numpy as np
 from rich.progress import Progress
-from services.learner.learn import follow
 
 from benchmarks.machine import cpu_model
 from protocol.credentials import init_deployment
@@ -44,6 +43,7 @@ from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher, Subscription
 from protocol.router import free_tcp_endpoint, spawn_router
 from services.launcher import SERVICES, Launcher
+from services.learner.tools.learn import follow
 
 ROBOT = "bench"
 WIDTH, HEIGHT = 1280, 720

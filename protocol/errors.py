@@ -11,6 +11,7 @@ __all__ = [
     "KeyNameError",
     "RpcError",
     "RpcTimeout",
+    "UpstreamLost",
     "WrongReplier",
 ]
 
@@ -69,6 +70,18 @@ class RpcTimeout(RpcError, TimeoutError):
     """No reply arrived within the timeout (the service is absent, dead or stuck)."""
 
     code = "timeout"
+
+
+class UpstreamLost(RpcError):
+    """A service could not do its work because a service it calls is lost (no reply, not
+    running): `service` names that upstream service (e.g. the detector's camera), so a client
+    can tell the lost service from the one that replied. Travels in `RpcReply.service`."""
+
+    code = "upstream_lost"
+
+    def __init__(self, service: str, message: str) -> None:
+        super().__init__(message)
+        self.service = service
 
 
 class WrongReplier(RpcError):

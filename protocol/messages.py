@@ -241,12 +241,14 @@ class RpcRequest(Message, frozen=True):
 
 
 class RpcReply(Message, frozen=True):
-    """`ok` with a result, or an error with a code and a message saying what was wrong."""
+    """`ok` with a result, or an error with a code and a message saying what was wrong;
+    `service` names the lost upstream service of an `upstream_lost` error."""
 
     ok: bool
     result: Any = None
     code: str = ""
     message: str = ""
+    service: str = ""
 
 
 class PortInfo(msgspec.Struct, frozen=True):

@@ -25,7 +25,14 @@ import zenoh
 
 from protocol import instances
 from protocol.codec import MAX_PAYLOAD_BYTES, decode, encode
-from protocol.errors import ArcheryError, DecodeError, RpcError, RpcTimeout, WrongReplier
+from protocol.errors import (
+    ArcheryError,
+    DecodeError,
+    RpcError,
+    RpcTimeout,
+    UpstreamLost,
+    WrongReplier,
+)
 from protocol.keys import Keys
 from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
 from protocol.netflags import NetConfig, open_session
@@ -255,6 +262,15 @@ def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
     return f"{message}; arguments of {verb.name}: {names}"
 
 
+def _reply_error(call: str, reply: RpcReply) -> RpcError:
+    """The error of an error reply to `call` ("KEY VERB"): `UpstreamLost` naming the lost
+    upstream service, else `RpcError` with the reply's code."""
+    message = f"{call}: {reply.message}"
+    if reply.code == UpstreamLost.code and reply.service:
+        return UpstreamLost(reply.service, message)
+    return RpcError(message, code=reply.code or "rpc_error")
+
+
 class RpcServer:
     """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
 
@@ -299,9 +315,11 @@ class RpcServer:
             finally:
                 query.drop()
 
-    def _error(self, code: str, message: str, seq: int) -> RpcReply:
+    def _error(self, code: str, message: str, seq: int, service: str = "") -> RpcReply:
         self.errors += 1
-        return RpcReply(ok=False, code=code, message=message, seq=seq, stamp=time.time())
+        return RpcReply(
+            ok=False, code=code, message=message, service=service, seq=seq, stamp=time.time()
+        )
 
     def _request(self, query: zenoh.Query) -> _WireRequest:
         payload = query.payload.to_bytes() if query.payload is not None else b""
@@ -363,6 +381,8 @@ class RpcServer:
                     return self._error("bad_message", message, seq)
                 result = entry(raw)
             return RpcReply(ok=True, result=result, seq=seq, stamp=time.time())
+        except UpstreamLost as exc:
+            return self._error(exc.code, exc.message, seq, exc.service)
         except ArcheryError as exc:
             return self._error(exc.code, exc.message, seq)
         except Exception as exc:
@@ -521,7 +541,8 @@ class Node:
         reply from the live instance of that service is accepted.
 
         Raises:
-            RpcError: the service replied with an error (its `code` is kept).
+            RpcError: the service replied with an error (its `code` is kept; `UpstreamLost`
+                naming the lost service for `upstream_lost`).
             WrongReplier: only sessions other than `expect_service`'s live instance replied.
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
         """
@@ -531,7 +552,7 @@ class Node:
         request = RpcRequest(verb=verb, args=args or {}, seq=seq, stamp=time.time())
         reply = self.request(key, encode(request), timeout=timeout, expect_service=expect_service)
         if not reply.ok:
-            raise RpcError(f"{key} {verb}: {reply.message}", code=reply.code or "rpc_error")
+            raise _reply_error(f"{key} {verb}", reply)
         return reply.result
 
     def call_typed(
@@ -547,7 +568,8 @@ class Node:
         with `expect_service`, only a reply from the live instance of that service is accepted.
 
         Raises:
-            RpcError: the service replied with an error (its `code` is kept), or (code
+            RpcError: the service replied with an error (its `code` is kept; `UpstreamLost`
+                naming the lost service for `upstream_lost`), or (code
                 `bad_reply`) a reply that does not match the verb's reply type.
             WrongReplier: only sessions other than `expect_service`'s live instance replied.
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
@@ -569,13 +591,13 @@ class Node:
         except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
             plain = decode(payload, RpcReply)  # an error reply, or a result of the wrong shape
             if not plain.ok:
-                raise RpcError(f"{key} {verb.name}: {plain.message}", code=plain.code) from None
+                raise _reply_error(f"{key} {verb.name}", plain) from None
             raise RpcError(
                 f"{key} {verb.name} replied a result that is not a {verb.reply.__name__}: {exc}",
                 code="bad_reply",
             ) from None
         if not reply.ok:
-            raise RpcError(f"{key} {verb.name}: {reply.message}", code=reply.code or "rpc_error")
+            raise _reply_error(f"{key} {verb.name}", reply)
         if reply.result is None:
             raise RpcError(
                 f"{key} {verb.name} replied ok without a {verb.reply.__name__}", code="bad_reply"

@@ -77,7 +77,9 @@ def test_decision_is_frozen_and_plain() -> None:
         ({}, 1, False),
         ({"no_target": 2}, 3, False),
         ({"no_target": 3}, 3, True),
-        ({"no_target": 1, "service_lost": 1, "no_arrow": 1}, 3, True),
+        ({"no_target": 1, "service_lost": 1, "no_arrow": 1}, 3, False),
+        ({"no_target": 1, "service_lost": 1, "no_arrow": 2}, 3, True),
+        ({"service_lost": 50}, 3, False),
         ({"rpc_error": 9}, 8, True),
     ],
 )
@@ -86,7 +88,7 @@ def test_streak_failure(in_row: dict[str, int], max_aborts: int, fails: bool) ->
     failure = streak_failure(in_row, max_aborts, last if in_row else None)
     assert (failure is not None) is fails
     if fails:
-        total = sum(in_row.values())
+        total = sum(n for code, n in in_row.items() if code != "service_lost")
         assert failure == (
             f"{total} attempts in a row were aborted; the last at θ {list(MISS)} m: "
             "[no_target] lights off"

@@ -134,6 +134,8 @@ def test_learner_killed_mid_session(
     assert lost["session"] == first.session and lost["status"] == "lost"
     assert f"archery learn --resume` {lost['journal']}" in err
     before = read_records(Path(lost["journal"]))[0]
+    # The counts of the last line are the journal's, not those of the session's start.
+    assert lost["rollouts"] == sum(r["record"] == "done" for r in before) >= 2
     mesh.start("learner")
     result = archery("learn", "--resume", lost["journal"], *net, timeout=120)
     assert result.returncode == 0, result.stderr

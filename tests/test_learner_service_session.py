@@ -58,6 +58,9 @@ class FakeRig:
     def missing(self) -> list[str]:
         return sorted(self.gone)
 
+    def lost_ago(self, service: str) -> float | None:
+        return 1.0 if service in self.gone else None
+
     def wait_services(self, timeout: float, stop: threading.Event) -> bool:
         self.waits += 1
         self.gone.clear()

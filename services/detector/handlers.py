@@ -13,10 +13,11 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from protocol.errors import BadRequest
+from protocol.errors import BadRequest, RpcTimeout, UpstreamLost
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
 from protocol.node import Node, Publisher
+from protocol.robotspec import CAMERA
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import detector as dv
 from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
@@ -94,7 +95,10 @@ class DetectorHandlers:
             after_sim_time=args.after_sim_time, after_stamp=args.after_stamp, timeout=timeout
         )
         key = self._node.keys.cam_rpc()
-        return self._node.call_typed(key, GRAB, grab, timeout=timeout + GRAB_GRACE)
+        try:
+            return self._node.call_typed(key, GRAB, grab, timeout=timeout + GRAB_GRACE)
+        except RpcTimeout as exc:  # the camera is gone or stuck: not the detector's fault
+            raise UpstreamLost(CAMERA, f"the camera did not answer: {exc.message}") from None
 
     def _calibrate_from(self, image: Image, pixels: Any) -> dv.CalibrateReply:
         marks = parse_pixels(pixels, "pixels")

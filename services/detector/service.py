@@ -3,7 +3,8 @@
 Verbs on `ROBOT/detector/rpc:i` (args → result):
 - `measure {"after_sim_time": s, "after_stamp": s, "timeout": s}` → grabs a camera frame newer
   than those stamps (`cam/rpc:i grab` with the same args, so it never sees the scene before the
-  landing), detects, publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
+  landing; a camera that does not answer is the error `upstream_lost` naming `camera`), detects,
+  publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
   with it as a dict: `status` ("ok", "no_target", "no_arrow"), `r_m` = arrow − centre on the
   target plane (m; r[0] to the robot's right, r[1] up; the paper's r = m_T − m_A in pixels,
   re-expressed), `target_px`, `arrow_px` (column, row), confidences, the frame's `sim_time`

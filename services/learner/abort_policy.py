@@ -3,8 +3,10 @@
 An attempt aborts when it ends without a measurement; the learner is not told and the attempt
 is not counted as a rollout. After each abort, by its code:
 
-* `service_lost` (a service did not answer or vanished): wait until every service is alive
-  again, then re-run the same θ.
+* `service_lost` (a service did not answer or vanished, or a service's upstream did): wait until
+  every service is alive again, then re-run the same θ. Waiting out a lost service is not a
+  failure of the attempts: these aborts do not count towards `max_aborts` (the session bounds
+  the wait by time instead, `service_wait`).
 * `rpc_error`, `bad_reply` or any service error code, `not_reached` (the posture was not reached
   in time), `no_target` (the detector sees no target: camera or lighting, not θ): re-run the
   same θ.
@@ -13,7 +15,8 @@ is not counted as a rollout. After each abort, by its code:
 
 A `no_arrow` whose back-off θ is θ itself (θ is θ0, or the best θ, with nothing better known)
 fails the session at once: re-running it would miss again. Independently of the code,
-`max_aborts` aborts in a row fail the session (`streak_failure`). θ is in metres.
+`max_aborts` aborts in a row, `service_lost` aside, fail the session (`streak_failure`). θ is in
+metres.
 """
 
 from __future__ import annotations
@@ -96,8 +99,9 @@ def streak_failure(
     aborts_in_row: Mapping[str, int], max_aborts: int, last: Mapping[str, Any] | None
 ) -> str | None:
     """Why the session fails after `aborts_in_row` (count by code since the last rollout or
-    resume) reached `max_aborts`, naming the `last` aborted record; None below the limit."""
-    in_row = sum(aborts_in_row.values())
+    resume; `service_lost` ones are not counted) reached `max_aborts`, naming the `last` aborted
+    record; None below the limit."""
+    in_row = sum(n for code, n in aborts_in_row.items() if code != SERVICE_LOST)
     if in_row < max_aborts or last is None:
         return None
     return (

@@ -94,7 +94,8 @@ class LearnerHandlers:
                 status = self._session.status()
                 raise ArcheryError(
                     f"session {status['session']} is running ({status['rollouts']} of "
-                    f"{status['budget']} rollouts); stop it first (verb stop)",
+                    f"{status['budget']} rollouts); follow it with `archery learn --attach "
+                    f"{status['session']}`, or stop it first (verb stop)",
                     code="busy",
                 )
             kw = {"on_record": self._publish, "service_wait": self.config.service_wait}

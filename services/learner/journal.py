@@ -18,6 +18,7 @@ Each record is written with one `write`, then `flush` and `os.fsync`, so a recor
 durable or (after a crash mid-write) a torn last line without its newline, which `read` ignores
 and `Journal.resume` cuts off before appending. `JournalState` replays the records and checks
 them: one header, one rollout at a time, each index proposed once and finished at most once.
+`check_invariants` lists every breach of a whole journal at once (for fault drills and tests).
 Pure: no Zenoh.
 """
 
@@ -40,6 +41,7 @@ __all__ = [
     "Journal",
     "JournalError",
     "JournalState",
+    "check_invariants",
     "read_records",
 ]
 
@@ -103,6 +105,48 @@ def read_records(path: Path) -> tuple[list[dict[str, Any]], int]:
         records.append(record)
         good += len(line) + 1
     return records, good
+
+
+def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False) -> list[str]:
+    """Every breach of a journal's rollout invariants (empty when it keeps them all): attempt
+    indices proposed 1, 2, … once each; each proposed attempt ended by exactly one `done` or
+    `aborted` record, after it (the last may stay open with `allow_open`, e.g. while running or
+    after a crash); done rollout numbers 1, 2, … in order.
+
+    Args:
+        records: the journal's records in order (`read_records`), header first.
+        allow_open: accept a last proposed attempt that has not ended yet.
+    """
+    violations: list[str] = []
+    proposed: list[int] = []
+    ended: dict[int, str] = {}
+    rollouts: list[int] = []
+    for number, record in enumerate(records, start=1):
+        kind, index = record.get("record"), record.get("index")
+        if kind == "proposed":
+            if index in proposed:
+                violations.append(f"record {number}: attempt {index} proposed again")
+            proposed.append(index)
+        elif kind in ("done", "aborted"):
+            if index not in proposed:
+                violations.append(f"record {number}: {kind} for attempt {index}, never proposed")
+            elif index in ended:
+                violations.append(
+                    f"record {number}: attempt {index} {kind} after it was {ended[index]} already"
+                )
+            ended.setdefault(index, kind)
+            if kind == "done":
+                rollouts.append(record.get("rollout"))
+    if proposed != list(range(1, len(proposed) + 1)):
+        violations.append(f"attempt indices not contiguous from 1: {proposed}")
+    if rollouts != list(range(1, len(rollouts) + 1)):
+        violations.append(f"done rollout numbers not contiguous from 1: {rollouts}")
+    open_ = [i for i in proposed if i not in ended]
+    if allow_open and open_ == proposed[-1:]:
+        open_ = []
+    if open_:
+        violations.append(f"attempts proposed but never ended: {open_}")
+    return violations
 
 
 def _index(record: dict[str, Any], where: str) -> int:

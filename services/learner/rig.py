@@ -13,6 +13,17 @@ that gets no reply becomes `ServiceLost` naming the service; an error reply, or 
 not match its type, `RigError` with the service's code (`bad_reply`) and message; a reply from
 any session but the service's live instance `RigError` with code `wrong_replier`
 (`Node.call_typed(expect_service=...)`).
+
+A service that replies it could not do its work because a service it calls is lost is not an
+error of its own: `upstream_lost` (the detector when the camera does not answer) becomes
+`ServiceLost` naming the upstream service, and so does a `timeout` error reply (the service's own
+call timed out: the controller's robot, the detector's camera; `UPSTREAM`) or any error reply
+while some service is not alive (that one is named).
+
+Each reply belongs to its own Zenoh query: a reply that comes after its call gave up is dropped,
+never handed to a later call. The ground truth of a shot is taken only from an event received
+after that shot was nocked, so a restarted robot's shot numbers never pick up an old event.
+Liveliness is watched all along, so `lost_ago` tells how long ago a service vanished.
 """
 
 from __future__ import annotations
@@ -25,8 +36,9 @@ from typing import Any, TypeVar
 
 import msgspec
 import numpy as np
+import zenoh
 
-from protocol.errors import RpcError, RpcTimeout
+from protocol.errors import RpcError, RpcTimeout, UpstreamLost, WrongReplier
 from protocol.messages import WorldEvent
 from protocol.node import Node
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
@@ -37,9 +49,11 @@ from protocol.verbs import robot as rv
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
 
-__all__ = ["SERVICES", "MeshRig"]
+__all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 
 SERVICES = (ROBOT, CAMERA, DETECTOR, CONTROLLER)  # the services a session needs
+#: The service each service calls to do its work: its `timeout` error means that one is lost.
+UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 R = TypeVar("R", bound=msgspec.Struct)
@@ -59,18 +73,33 @@ class MeshRig:
         self.node = node
         self.keys = node.keys
         self.timeout = timeout
-        self._truth: OrderedDict[int, WorldEvent] = OrderedDict()
+        self._truth: OrderedDict[int, tuple[float, WorldEvent]] = OrderedDict()
         self._truth_cond = threading.Condition()
+        self._lost_at: dict[str, float] = {}  # service -> monotonic time its token went
+        self._lost_lock = threading.Lock()
         node.subscribe(self.keys.world_events(), WorldEvent, mode="fifo", callback=self._on_event)
+        # Undeclared with the node's session.
+        self._liveliness = node.session.liveliness().declare_subscriber(
+            self.keys.alive_all(), self._on_token, history=True
+        )
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
             return
         with self._truth_cond:
-            self._truth[event.shot] = event
+            self._truth[event.shot] = (time.time(), event)
+            self._truth.move_to_end(event.shot)
             while len(self._truth) > _TRUTH_KEPT:
                 self._truth.popitem(last=False)
             self._truth_cond.notify_all()
+
+    def _on_token(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lost_lock:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._lost_at[name] = time.monotonic()
+            else:
+                self._lost_at.pop(name, None)
 
     def _call(
         self, service: str, key: str, verb: Verb[Any, R], args: msgspec.Struct | None = None
@@ -84,14 +113,35 @@ class MeshRig:
             )
         except RpcTimeout as exc:
             raise ServiceLost(service, exc.message) from None
+        except UpstreamLost as exc:
+            raise ServiceLost(exc.service, exc.message) from None
         except RpcError as exc:
+            lost = self._lost_behind(service, exc)
+            if lost is not None:
+                raise ServiceLost(lost, exc.message) from None
             raise RigError(exc.message, code=exc.code) from None
         return result, time.perf_counter() - start
+
+    def _lost_behind(self, service: str, exc: RpcError) -> str | None:
+        """The lost service behind `service`'s error reply `exc`, if any: a service not alive
+        now, else (for its `timeout` code) the service it calls."""
+        if exc.code == WrongReplier.code:
+            return None
+        missing = self.missing()
+        if missing:
+            return ", ".join(missing)
+        return UPSTREAM.get(service) if exc.code == RpcTimeout.code else None
 
     # -- liveliness -----------------------------------------------------------------------------
     def missing(self) -> list[str]:
         """Services whose liveliness token is down now."""
         return sorted(set(self.services) - self.node.alive())
+
+    def lost_ago(self, service: str) -> float | None:
+        """Seconds since `service`'s liveliness token went (None: not seen going)."""
+        with self._lost_lock:
+            lost = self._lost_at.get(service)
+        return None if lost is None else time.monotonic() - lost
 
     def wait_services(self, timeout: float, stop: threading.Event) -> bool:
         """Wait until every service is alive (True) or `stop` is set (False).
@@ -176,11 +226,18 @@ class MeshRig:
         return Measurement(result.status, r, msgspec.to_builtins(result), timing)
 
     def truth(self, shot: Shot) -> list[float] | None:
-        """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none)."""
+        """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none): only
+        an event received after the shot's nock, never one of an earlier robot instance's shot
+        of the same number."""
+
+        def event() -> WorldEvent | None:
+            received, found = self._truth.get(shot.shot, (0.0, None))
+            return found if received >= shot.stamp else None
+
         with self._truth_cond:
-            self._truth_cond.wait_for(lambda: shot.shot in self._truth, timeout=1.0)
-            event = self._truth.get(shot.shot)
-        return None if event is None or event.impact_m is None else list(event.impact_m)
+            self._truth_cond.wait_for(lambda: event() is not None, timeout=1.0)
+            found = event()
+        return None if found is None or found.impact_m is None else list(found.impact_m)
 
     def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
         """The detector's last measured frame with its overlay (PNG): called right after the

@@ -8,7 +8,8 @@ Ports (ROBOT = the robot prefix):
     session?: ID}` continues the one journaled at PATH (a journal or its directory). Replies
     at once with the session's status (its id, journal path); refused with code
     `service_missing` when the robot, camera, detector or controller is not alive, `busy`
-    while a session runs, `bad_request` or `bad_journal` for bad arguments; nothing journaled
+    while a session runs (the message says how to follow it: `archery learn --attach ID`),
+    `bad_request` or `bad_journal` for bad arguments; nothing journaled
     is touched then.
   - `stop` ends the running session after its current rollout (resumable); `status` → the
     running or last session's status (state idle, starting, waiting, running, reporting,

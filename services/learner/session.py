@@ -9,11 +9,17 @@ knows no Zenoh.
 Aborts (journal `aborted`, the learner is not told; attempts are not counted as rollouts)
 `service_lost`, `rpc_error`, `not_reached`, `wrong_replier` (a reply from a session that is not
 the live instance of the service asked: never used as data), `no_target`, `no_arrow`…: what
-follows each (re-run the same θ, wait for the services up to `service_wait`, back off after a
-miss, fail) is decided by the pure policy of `services.learner.abort_policy`. After a
-`no_arrow` back-off, the back-off θ is what the learner is told about; its own pending proposal
-is dropped. After `max_aborts` aborts in a row the session fails with the last cause; it can be
-resumed.
+follows each (re-run the same θ, wait for the services, back off after a miss, fail) is decided
+by the pure policy of `services.learner.abort_policy`. After a `no_arrow` back-off, the back-off
+θ is what the learner is told about; its own pending proposal is dropped. After `max_aborts`
+aborts in a row (`service_lost` aside) the session fails with the last cause; it can be resumed.
+
+A lost service (any of them: crashed, frozen past its lease, cut off) is waited for, within the
+same session: before each attempt, and again right before the shot (no arrow is released while
+a service that must see it is missing), the session checks that every service is alive; if not,
+it waits, in state `waiting` with `cause` saying for what ("waiting for camera (lost 3.2 s
+ago)"), logged every few seconds. The wait is bounded: `service_wait` s after the loss began (the
+first `service_lost` abort or wait since the last done rollout) the session fails, resumably.
 The ground-truth impact (the robot's event) is logged beside each rollout for plots only.
 """
 
@@ -30,7 +36,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
-from services.learner.abort_policy import after_abort, streak_failure
+from services.learner.abort_policy import SERVICE_LOST, after_abort, streak_failure
 from services.learner.algorithms.base import Bounds, Learner, LearnerError
 from services.learner.algorithms.registry import make_learner, restore_learner
 from services.learner.config import SessionConfig
@@ -51,6 +57,8 @@ __all__ = [
 ]
 
 log = logging.getLogger("archery.learner")
+WAIT_SLICE = 1.0  # s between looks at the services while waiting for them
+WAIT_LOG_EVERY = 5.0  # s between the log lines of a wait
 FINAL_STATES = ("finished", "stopped", "failed")  # a session's phases once `run` has returned
 
 
@@ -117,6 +125,9 @@ class Rig(Protocol):
 
     def missing(self) -> list[str]:
         """Services not alive now."""
+
+    def lost_ago(self, service: str) -> float | None:
+        """Seconds since `service` was seen going (None if it was not)."""
 
     def wait_services(self, timeout: float, stop: threading.Event) -> bool:
         """Wait until every service is alive (True) or `stop` is set (False).
@@ -187,6 +198,7 @@ class Session:
         self._phase = "starting"
         self._cause = ""
         self._waiting: list[str] = []
+        self._lost_since: float | None = None  # monotonic start of the loss being waited out
 
     # -- construction ---------------------------------------------------------------------------
     @classmethod
@@ -269,6 +281,8 @@ class Session:
         """Phase (starting, waiting, running, finished, stopped, failed), counts, results."""
         with self._lock:
             phase, cause, waiting = self._phase, self._cause, list(self._waiting)
+        if phase == "waiting":
+            cause = self.waiting_note(waiting)
         state = self.journal.state
         last = state.done[-1] if state.done else None
         return state.summary() | {
@@ -280,6 +294,14 @@ class Session:
             "last_theta": None if last is None else last["theta"],
             "last_r_m": None if last is None else last["r_m"],
         }
+
+    def waiting_note(self, missing: list[str]) -> str:
+        """What a wait is for: "waiting for camera (lost 3.2 s ago), robot"."""
+        names = []
+        for name in missing:
+            ago = self.rig.lost_ago(name)
+            names.append(name if ago is None else f"{name} (lost {ago:.1f} s ago)")
+        return "waiting for " + ", ".join(names)
 
     def _set(self, phase: str, cause: str = "", waiting: list[str] | None = None) -> None:
         with self._lock:
@@ -335,6 +357,9 @@ class Session:
                 self._set("finished", reason)
                 log.info("session %s finished: %s", self.session_id, reason)
                 return
+            self._await_services(stop)
+            if stop.is_set():
+                break
             last = state.aborted[-1] if state.aborted else None
             failure = streak_failure(state.aborts_in_row, config.max_aborts, last)
             if failure is not None:
@@ -353,15 +378,40 @@ class Session:
         return None
 
     def _await_services(self, stop: threading.Event) -> None:
+        """Wait until every service is alive or `stop` is set, showing what for; SessionFailed
+        once the loss has lasted `service_wait` s."""
         missing = self.rig.missing()
-        if missing:
-            self._set("waiting", f"waiting for {', '.join(missing)}", missing)
-            log.warning("session %s waits for %s", self.session_id, ", ".join(missing))
+        if self._lost_since is not None or missing:
+            self._lost_since = self._lost_since or time.monotonic()
+            if time.monotonic() - self._lost_since > self.service_wait:
+                raise SessionFailed(self._lost_for_good(missing))
+        if not missing:
+            self._set("running")
+            return
+        logged = None
+        while not stop.is_set():
+            self._set("waiting", waiting=missing)
+            now = time.monotonic()
+            if logged is None or now - logged >= WAIT_LOG_EVERY:
+                log.warning("session %s: %s", self.session_id, self.waiting_note(missing))
+                logged = now
+            remaining = self._lost_since + self.service_wait - now
+            if remaining <= 0:
+                raise SessionFailed(self._lost_for_good(missing))
             try:
-                self.rig.wait_services(self.service_wait, stop)
-            except ServiceLost as exc:
-                raise SessionFailed(exc.message) from None
+                if self.rig.wait_services(min(WAIT_SLICE, remaining), stop):
+                    log.info("session %s: every service is alive again", self.session_id)
+                    break
+            except ServiceLost:
+                missing = self.rig.missing() or missing
         self._set("running")
+
+    def _lost_for_good(self, missing: list[str]) -> str:
+        what = ", ".join(missing) + " still not alive" if missing else "services kept failing"
+        return (
+            f"{what} {self.service_wait:g} s after a service was lost; restart them and resume "
+            f"the session"
+        )
 
     def _guard(self, call: Callable[[], Any], stop: threading.Event) -> Any:
         """Run a set-up call, waiting for the services and retrying once if one was lost."""
@@ -397,6 +447,11 @@ class Session:
             if not posture.reached:
                 reason = f"posture not reached: {posture.reason}"
                 self._abort(stop, index, theta, "not_reached", reason)
+                return
+            missing = self.rig.missing()
+            if missing:  # nobody could measure (or release) the arrow: do not shoot
+                cause = f"{', '.join(missing)}: not alive before the shot; no arrow released"
+                self._abort(stop, index, theta, SERVICE_LOST, cause)
                 return
             shot = self.rig.shoot()
             measurement = self.rig.measure(shot)
@@ -454,6 +509,8 @@ class Session:
             bounds=self.learner.bounds,
         )
         log.warning("attempt %d at θ %s aborted [%s]: %s", index, theta.tolist(), code, cause)
+        if code == SERVICE_LOST and self._lost_since is None:
+            self._lost_since = time.monotonic()
         self._record(
             "aborted",
             index=index,
@@ -485,6 +542,7 @@ class Session:
         distance = _distance(r)
         hit = distance < self.config.hit_radius
         rollout = len(self.journal.state.done) + 1
+        self._lost_since = None
         timing = timing | posture.timing | shot.timing | measurement.timing
         timing["learner_s"] = time.perf_counter() - told
         record = {

@@ -1,7 +1,9 @@
 """`archery learn`: run one learning session against running services and print its result.
 
-It asks the learner service to `start` (or `--resume`) a session, shows each rollout as it is
-published on `learner/rollout:o`, and ends by printing one JSON line on stdout:
+It asks the learner service to `start` (or `--resume`) a session, or follows a running one
+(`--attach SESSION`, `services.learner.tools.attach`), shows each rollout as it is published on
+`learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
+on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
 "report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget), 1 when it
 failed or the learner vanished (the message says how to resume), 2 for bad input, 130 after
@@ -28,14 +30,19 @@ from protocol.robotspec import SERVICES
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
 from services.learner.session import FINAL_STATES
+from services.learner.tools import attach
 
 __all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
 
 
 class SessionLost(ArcheryError):
-    """The learner vanished while following a session."""
+    """The learner vanished while following a session; `status` is its last status seen."""
 
     code = "service_lost"
+
+    def __init__(self, message: str, status: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.status = status
 
 
 def _vector3(text: str, flag: str) -> list[float]:
@@ -99,7 +106,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--option", action="append", default=[], metavar="NAME=VALUE", help="learner option"
     )
-    parser.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
+    which.add_argument(
+        "--attach",
+        metavar="SESSION",
+        help="follow the running session SESSION (its id or journal) from where it is",
+    )
     parser.add_argument(
         "--wait",
         type=seconds,
@@ -143,14 +156,17 @@ def follow(
     *,
     poll: float = 0.5,
     gone_after: float = 5.0,
+    on_status: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
-    """Hand each `Rollout` of `session` to `on_rollout` until the session ends; its final status.
+    """Hand each `Rollout` of `session` to `on_rollout` (and each status polled to `on_status`)
+    until the session ends; its final status.
 
     Raises:
         SessionLost: the learner stopped answering for `gone_after` s.
     """
     key = node.keys.learner_rpc()
     silent_since: float | None = None
+    last: dict[str, Any] | None = None
     while True:
         try:
             while True:
@@ -168,9 +184,14 @@ def follow(
             if now - silent_since > gone_after:
                 raise SessionLost(
                     f"the learner stopped answering during session {session}; restart it "
-                    f"(`archery learner`) and continue the session with `archery learn --resume`"
+                    f"(`archery learner`) and continue the session with `archery learn --resume`",
+                    last,
                 ) from None
             continue
+        if status.get("session") == session:
+            last = status
+            if on_status is not None:
+                on_status(status)
         if status.get("session") == session and status.get("state") in FINAL_STATES:
             try:  # records published before the final status
                 while True:
@@ -223,6 +244,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2
     show = (lambda m: None) if args.quiet else _progress
+    waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
     try:
         node = Node(None, net)
     except ArcheryError as exc:
@@ -231,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     with node:
         key = node.keys.learner_rpc()
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        if args.attach:
+            return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet)
         try:
             node.wait_alive(SERVICES, timeout=args.wait)
             status = node.call(key, "start", request, timeout=args.wait + 30)
@@ -241,10 +265,10 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quiet:
             print(f"session {session}: journal {status['journal']}", file=sys.stderr)
         try:
-            status = follow(node, session, rollouts, show)
+            status = follow(node, session, rollouts, show, on_status=waiting)
         except SessionLost as exc:
             print(f"archery learn: {exc} {status['journal']}", file=sys.stderr)
-            status = status | {"state": "lost"}
+            status = attach.journal_counts(exc.status or status) | {"state": "lost"}
             print(result_line(status))
             return 1
         except KeyboardInterrupt:
@@ -254,9 +278,9 @@ def main(argv: list[str] | None = None) -> int:
                 status = follow(node, session, rollouts, show)
             except (ArcheryError, KeyboardInterrupt):
                 pass
-            print(result_line(status))
+            print(result_line(attach.journal_counts(status)))
             return 130
-    print(result_line(status))
+    print(result_line(attach.journal_counts(status)))
     if status["state"] != "finished":
         print(
             f"archery learn: session {status['state']}: {status.get('cause', '')}", file=sys.stderr
