@@ -35,37 +35,31 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
-def seconds(text: str) -> float:
-    """argparse type: a positive, finite number of seconds."""
+def _finite(text: str, noun: str, positive: bool) -> float:
+    """`text` as a finite float > 0 (`positive`) or >= 0, for argparse; `noun` names it."""
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a positive, finite number of seconds")
+        raise argparse.ArgumentTypeError(f"{text!r} is not a {noun}") from None
+    if not math.isfinite(value) or value < 0 or (positive and value == 0):
+        bound = f"positive, finite {noun}" if positive else f"finite {noun} >= 0"
+        raise argparse.ArgumentTypeError(f"{text!r} is not a {bound}")
     return value
+
+
+def seconds(text: str) -> float:
+    """argparse type: a positive, finite number of seconds."""
+    return _finite(text, "number of seconds", positive=True)
 
 
 def seconds_or_zero(text: str) -> float:
     """argparse type: a finite number of seconds >= 0 (0: do not wait)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number of seconds >= 0")
-    return value
+    return _finite(text, "number of seconds", positive=False)
 
 
 def nonnegative(text: str) -> float:
     """argparse type: a finite number >= 0."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number >= 0")
-    return value
+    return _finite(text, "number", positive=False)
 
 
 def count(text: str) -> int:

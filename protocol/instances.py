@@ -32,6 +32,7 @@ from protocol.codec import decode
 from protocol.errors import DecodeError, DuplicateService
 from protocol.keys import Keys
 from protocol.messages import Describe
+from protocol.tokens import TokenSet
 
 __all__ = [
     "REPLACE",
@@ -124,28 +125,10 @@ def _wait_gone(
     session: zenoh.Session, keys: Keys, name: str, zids: set[str], timeout: float
 ) -> set[str]:
     """Wait until none of `zids` holds an instance token of `name`; returns those left."""
-    present: set[str] = set()
-    cond = threading.Condition()
-
-    def on_token(sample: zenoh.Sample) -> None:
-        zid = str(sample.key_expr).rsplit("/", 1)[-1]
-        with cond:
-            if sample.kind == zenoh.SampleKind.PUT:
-                present.add(zid)
-            else:
-                present.discard(zid)
-            cond.notify_all()
-
-    sub = session.liveliness().declare_subscriber(
-        keys.alive_instances(name), on_token, history=True
-    )
-    try:
-        with cond:
-            present |= live_instances(session, keys, name) & zids
-            cond.wait_for(lambda: not (present & zids), timeout=timeout)
-            return present & zids
-    finally:
-        sub.undeclare()
+    with TokenSet(session, keys.alive_instances(name)) as present:
+        present.add(live_instances(session, keys, name) & zids)
+        present.wait_for(lambda now: not (now & zids), timeout)
+        return present.present() & zids
 
 
 def claim(
@@ -199,38 +182,20 @@ class InstanceWatch:
     def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self._session = session
         self._keys = keys
-        self._holders: dict[str, set[str]] = {}
-        self._subs: list[zenoh.Subscriber] = []
+        self._holders: dict[str, TokenSet] = {}
         self._lock = threading.Lock()
-
-    def _on_token(self, name: str, sample: zenoh.Sample) -> None:
-        zid = str(sample.key_expr).rsplit("/", 1)[-1]
-        with self._lock:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._holders[name].add(zid)
-            else:
-                self._holders[name].discard(zid)
 
     def holders(self, name: str, refresh: bool = False) -> set[str]:
         """Zenoh ids holding `name`'s instance token (`refresh`: ask the router now)."""
         with self._lock:
-            known = name in self._holders
-            if not known:
-                self._holders[name] = set()
-        if not known:
-            self._subs.append(
-                self._session.liveliness().declare_subscriber(
-                    self._keys.alive_instances(name),
-                    lambda sample: self._on_token(name, sample),
-                    history=True,
-                )
-            )
+            tokens = self._holders.get(name)
+            known = tokens is not None
+            if tokens is None:
+                tokens = TokenSet(self._session, self._keys.alive_instances(name))
+                self._holders[name] = tokens
         if refresh or not known:
-            live = live_instances(self._session, self._keys, name)
-            with self._lock:
-                self._holders[name] |= live
-        with self._lock:
-            return set(self._holders[name])
+            tokens.add(live_instances(self._session, self._keys, name))
+        return tokens.present()
 
     def is_instance(self, name: str, zid: str) -> bool:
         """Whether `zid` holds `name`'s instance token (asks the router before saying no)."""
@@ -238,6 +203,7 @@ class InstanceWatch:
 
     def close(self) -> None:
         """Undeclare the subscribers."""
-        for sub in self._subs:
-            sub.undeclare()
-        self._subs.clear()
+        with self._lock:
+            tokens, self._holders = list(self._holders.values()), {}
+        for token_set in tokens:
+            token_set.close()

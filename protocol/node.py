@@ -37,6 +37,7 @@ from protocol.keys import Keys
 from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
 from protocol.netflags import NetConfig, open_session
 from protocol.robotspec import CALL_TIMEOUT
+from protocol.tokens import TokenSet
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
@@ -685,35 +686,12 @@ class Node:
             RpcTimeout: some are still missing after `timeout` seconds; the message lists them.
         """
         wanted = set(services)
-        seen: set[str] = set()
-        cond = threading.Condition()
-
-        def on_token(sample: zenoh.Sample) -> None:
-            name = str(sample.key_expr).rsplit("/", 1)[-1]
-            with cond:
-                if sample.kind == zenoh.SampleKind.PUT:
-                    seen.add(name)
-                else:
-                    seen.discard(name)
-                cond.notify_all()
-
-        sub = self.session.liveliness().declare_subscriber(
-            self.keys.alive_all(), on_token, history=True
-        )
-        try:
-            deadline = time.monotonic() + timeout
-            with cond:
-                while not wanted <= seen:
-                    remaining = deadline - time.monotonic()
-                    if remaining <= 0:
-                        missing = ", ".join(sorted(wanted - seen))
-                        raise RpcTimeout(
-                            f"services not alive after {timeout:g} s: {missing} "
-                            f"(robot {self.keys.robot!r})"
-                        )
-                    cond.wait(remaining)
-        finally:
-            sub.undeclare()
+        with TokenSet(self.session, self.keys.alive_all()) as alive:
+            if not alive.wait_for(lambda seen: wanted <= seen, timeout):
+                missing = ", ".join(sorted(wanted - alive.present()))
+                raise RpcTimeout(
+                    f"services not alive after {timeout:g} s: {missing} (robot {self.keys.robot!r})"
+                )
 
     def wait_gone(self, service: str, timeout: float = 30.0) -> None:
         """Block until the service's liveliness token disappears.
