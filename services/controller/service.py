@@ -37,7 +37,7 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
     posture = ArcheryPosture(config.posture)
     with Node(CONTROLLER, config.net) as node:
         keys = node.keys
-        link = RobotLink(node, config.robot_timeout, config.joint_tolerance)
+        link = RobotLink(node, config.robot_timeout, config.joint_tolerance, config.state_max_age)
         motion = MotionLock()
         for arm in ARM_PARTS:
             controller = ArmController(arm, model, config, link, motion)
