@@ -51,8 +51,9 @@ class FrozenRobot:
 
     def _verbs(self, part: str) -> dict[str, Any]:
         n = len(PARTS[part])
+        limits = {"names": list(PARTS[part]), "min": [-3.0] * n, "max": [3.0] * n}
         return {
-            "getLimits": lambda a: {"names": list(PARTS[part]), "min": [-3.0] * n, "max": [3.0] * n},
+            "getLimits": lambda a: limits,
             "setRefSpeeds": lambda a: {"speeds": a["speeds"]},
         }
 
