@@ -11,6 +11,7 @@ __all__ = [
     "KeyNameError",
     "RpcError",
     "RpcTimeout",
+    "StaleState",
     "UpstreamLost",
     "WrongReplier",
 ]
@@ -95,3 +96,20 @@ class DuplicateService(ConfigError):
     """A service of the same robot and name is alive already."""
 
     code = "duplicate_service"
+
+
+class StaleState(ArcheryError):
+    """The newest message of a state stream is too old to use (its publisher is frozen, stuck
+    or lost); the message names the key and the age. Ages are arrival ages on the receiver's
+    monotonic clock, so clock differences between hosts do not matter."""
+
+    code = "stale_state"
+
+    def __init__(self, key: str, age: float, max_age: float) -> None:
+        if age == float("inf"):
+            text = f"no state on {key} within {max_age:g} s"
+        else:
+            text = f"the newest state on {key} is {age:.2f} s old (stale after {max_age:g} s)"
+        super().__init__(f"{text}: its publisher is frozen or lost")
+        self.key = key
+        self.age = age

@@ -30,6 +30,7 @@ from protocol.errors import (
     DecodeError,
     RpcError,
     RpcTimeout,
+    StaleState,
     UpstreamLost,
     WrongReplier,
 )
@@ -196,19 +197,45 @@ class Subscription(Generic[M]):
         """Seconds since the newest valid message arrived (inf if none did)."""
         return time.monotonic() - self._latest_time if self._latest is not None else float("inf")
 
+    def fresh(self, max_age: float, wait: float = 0.0) -> M:
+        """The newest message if it arrived within the last `max_age` s, else the next one to
+        arrive within `wait` s. The age is the arrival age on this host's monotonic clock (the
+        sender's stamp is on another host's clock).
+
+        Raises:
+            StaleState: no message that fresh; names the key and the newest one's age.
+        """
+        with self._cond:
+            old = self._latest
+            if old is not None and time.monotonic() - self._latest_time <= max_age:
+                return old
+            deadline = time.monotonic() + wait
+            while self._latest is old:  # identity: a restarted publisher's seq starts again
+                remaining = deadline - time.monotonic()
+                if remaining <= 0:
+                    raise StaleState(self.key, self.age(), max_age)
+                self._cond.wait(remaining)
+            return self._latest  # type: ignore[return-value]
+
     def wait_newer(
         self,
         timeout: float,
         predicate: Callable[[M], bool] | None = None,
         after_seq: int | None = None,
+        max_age: float | None = None,
     ) -> M:
         """Block until a message newer than `after_seq` (default: the current latest) arrives
         that satisfies `predicate`.
 
+        With `max_age`, give up as soon as the stream is silent for longer than that (no message
+        arrived for `max_age` s, counting from the call when none had arrived before).
+
         Raises:
             RpcTimeout: nothing suitable within `timeout` seconds; the message names the key.
+            StaleState: the stream went silent for longer than `max_age` s.
         """
-        deadline = time.monotonic() + timeout
+        start = time.monotonic()
+        deadline = start + timeout
         with self._cond:
             if after_seq is None:
                 after_seq = self._latest.seq if self._latest is not None else -1
@@ -220,12 +247,19 @@ class Subscription(Generic[M]):
                     and (predicate is None or predicate(msg))
                 ):
                     return msg
-                remaining = deadline - time.monotonic()
+                now = time.monotonic()
+                remaining = deadline - now
                 if remaining <= 0:
                     raise RpcTimeout(
                         f"no suitable message on {self.key} within {timeout:g} s "
                         f"(received {self.received}, dropped {self.dropped})"
                     )
+                if max_age is not None:
+                    heard = self._latest_time if msg is not None else start
+                    if now - heard > max_age:
+                        age = now - heard if msg is not None else float("inf")
+                        raise StaleState(self.key, age, max_age)
+                    remaining = min(remaining, heard + max_age - now + 1e-3)
                 self._cond.wait(remaining)
 
     def get(self, timeout: float | None = None) -> M:

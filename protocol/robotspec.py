@@ -46,6 +46,7 @@ __all__ = [
     "ROBOT_TIMEOUT",
     "RPC_TIMEOUT",
     "SERVICES",
+    "STATE_MAX_AGE",
     "STRING_ARM",
     "STRING_HAND_FRAME",
     "THETA0",
@@ -131,6 +132,9 @@ MAX_REFERENCE_SPEED = 2.0
 CALL_TIMEOUT = 5.0
 #: A joint state or a controlboard RPC reply from the robot (controller, camera).
 ROBOT_TIMEOUT = 3.0
+#: A robot state older than this (by its arrival on the receiver) is stale: never used, the
+#: caller gets `StaleState` (controller).
+STATE_MAX_AGE = 0.5
 #: A camera frame newer than a given time (detector).
 CAMERA_TIMEOUT = 10.0
 #: A reply from another service during a learning session (a posture move, a shot, a measure).

@@ -286,6 +286,21 @@ class ArcheryWorld:
         self._ramping = True
         return clamped.copy()
 
+    def hold(self, part: str) -> np.ndarray:
+        """Stop `part` where it is: its targets *and* its servos' setpoints become the measured
+        positions (clamped to the limits), so the setpoints do not first ramp back from where
+        they had run ahead. The joints then come to rest within the servos' settling time.
+
+        Returns:
+            The positions held (rad).
+        """
+        s = self._part(part)
+        held = np.clip(self.physics.data.qpos[self._qadr[s]], self._lower[s], self._upper[s])
+        self._target[s] = held
+        self._reference[s] = held
+        self.physics.data.ctrl[self._act[s]] = held
+        return held.copy()
+
     def reference_speeds(self, part: str) -> np.ndarray:
         """Reference speeds of `part`'s joints (rad/s)."""
         return self._speed[self._part(part)].copy()

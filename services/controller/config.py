@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 
 from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
 from protocol.netflags import NetConfig
-from protocol.robotspec import ROBOT_TIMEOUT
+from protocol.robotspec import ROBOT_TIMEOUT, STATE_MAX_AGE
 from services.controller.ik import IkSettings
 from services.controller.posture import PostureConfig
 
@@ -34,6 +34,8 @@ class ControllerConfig:
         robot_timeout: longest wait for a joint state or a controlboard RPC reply (wall s).
         joint_tolerance: the robot is at the targets when motion is done and every joint is
             within this of its target (rad).
+        state_max_age: a robot joint state that arrived longer ago than this is stale, never
+            used: the verbs reply `stale_state` (wall s; see `robotlink`).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -57,6 +59,9 @@ class ControllerConfig:
     )
     joint_tolerance: float = flag(
         0.005, "a joint within this of its target is there", unit="rad", low=1e-4, high=0.5
+    )
+    state_max_age: float = flag(
+        STATE_MAX_AGE, "a robot state older than this is stale", unit="wall s", low=0.05, high=60
     )
 
     def __post_init__(self) -> None:

@@ -4,6 +4,14 @@ A move: clip the targets into the robot's software limits (from each part's `get
 each part's reference speeds so every joint covers its distance in the trajectory time
 (`setRefSpeeds`), publish one `JointCommand` per part back to back on `command:i`, then wait
 until every part's `state:o` reports motion done within `joint_tolerance` of its targets.
+
+Stale states: a joint state that arrived more than `state_max_age` wall seconds ago (0.5 by
+default; its arrival age on this host, immune to clock differences between hosts) is never
+used: not as the measured posture, not as an IK seed, not for a motion-done check. Reading one
+waits at most `state_max_age` more for a newer state, then raises `StaleState` (code
+`stale_state`, naming the key and the age); a move whose part's stream goes silent for longer
+than `state_max_age` raises it at once instead of waiting for its timeout. The RPC verbs reply
+it as their error: the robot is frozen or lost.
 """
 
 from __future__ import annotations
@@ -15,10 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.errors import RpcError, RpcTimeout
+from protocol.errors import RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
 from protocol.node import Node
 from protocol.parts import PARTS
+from protocol.robotspec import STATE_MAX_AGE
 from services.controller.cartesian import reference_speeds
 
 __all__ = ["MoveResult", "RobotLink"]
@@ -53,29 +62,38 @@ class RobotLink:
         robot_timeout: how long to wait for a joint state or an RPC reply (wall s).
         joint_tolerance: a part counts as there when motion is done and every joint is within
             this of its target (rad).
+        state_max_age: a joint state that arrived longer ago than this (wall s) is stale.
     """
 
-    def __init__(self, node: Node, robot_timeout: float, joint_tolerance: float) -> None:
+    def __init__(
+        self,
+        node: Node,
+        robot_timeout: float,
+        joint_tolerance: float,
+        state_max_age: float = STATE_MAX_AGE,
+    ) -> None:
         keys = node.keys
         self._node = node
         self._keys = keys
         self.robot_timeout = robot_timeout
         self.joint_tolerance = joint_tolerance
+        self.state_max_age = state_max_age
         self.states = {p: node.subscribe(keys.state(p), JointState) for p in PARTS}
         self._commands = {p: node.publisher(keys.command(p), JointCommand) for p in PARTS}
         self._limits: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._lock = threading.Lock()
 
     def state(self, part: str) -> JointState:
-        """The newest joint state of `part`, waiting up to `robot_timeout` for a fresh one.
+        """The newest joint state of `part` if fresh, else the next within `state_max_age`; the
+        first state up to `robot_timeout`.
 
         Raises:
-            RpcTimeout: no state newer than `robot_timeout` s; the message names the key.
+            StaleState: the newest state is stale and no newer one came (names key and age).
+            RpcTimeout: no state ever arrived within `robot_timeout` s; the message names the key.
         """
         sub = self.states[part]
-        msg = sub.latest()
-        if msg is not None and sub.age() <= self.robot_timeout:
-            return msg
+        if sub.latest() is not None:
+            return sub.fresh(self.state_max_age, wait=self.state_max_age)
         try:
             return sub.wait_newer(self.robot_timeout)
         except RpcTimeout:
@@ -93,13 +111,15 @@ class RobotLink:
         return out
 
     def fresh_posture(self) -> dict[str, float] | None:
-        """The measured posture of every part if all their states are fresh, else None."""
+        """The measured posture of every part if all their states are fresh (see
+        `state_max_age`), else None."""
         out: dict[str, float] = {}
-        for sub in self.states.values():
-            msg = sub.latest()
-            if msg is None or sub.age() > self.robot_timeout:
-                return None
-            out.update(zip(msg.names, msg.position, strict=True))
+        try:
+            for sub in self.states.values():
+                msg = sub.fresh(self.state_max_age)
+                out.update(zip(msg.names, msg.position, strict=True))
+        except StaleState:
+            return None
         return out
 
     def limits(self, part: str) -> tuple[np.ndarray, np.ndarray]:
@@ -122,6 +142,7 @@ class RobotLink:
 
         Raises:
             RpcTimeout / RpcError: the robot's state or RPC does not answer (names the key).
+            StaleState: a part's state stream went silent for longer than `state_max_age`.
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
         current = self.posture(tuple(PARTS))
@@ -152,7 +173,9 @@ class RobotLink:
                 return msg.motion_done and bool(error <= tol)
 
             try:
-                self.states[part].wait_newer(remaining, there, after_seq=marks[part])
+                self.states[part].wait_newer(
+                    remaining, there, after_seq=marks[part], max_age=self.state_max_age
+                )
             except RpcTimeout:
                 reason = (
                     f"{self.states[part].key} did not show motion done within {tol:g} rad of "
@@ -160,14 +183,13 @@ class RobotLink:
                 )
                 break
         wall = time.monotonic() - start
-        latest = {p: self.states[p].latest() for p in PARTS}
+        latest = {p: self.state(p) for p in PARTS}
         measured = {
             name: value
             for msg in latest.values()
-            if msg is not None
             for name, value in zip(msg.names, msg.position, strict=True)
         }
-        sim_time = max((m.sim_time or 0.0) for m in latest.values() if m is not None)
+        sim_time = max((m.sim_time or 0.0) for m in latest.values())
         return MoveResult(
             reached=not reason,
             targets={j: float(v) for p in parts for j, v in zip(PARTS[p], sent[p], strict=True)},

@@ -9,6 +9,10 @@ Ports (ROBOT = the robot prefix):
 It reads the robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i`
 (getLimits, setRefSpeeds); it never imports the robot's code. Positions are metres in
 root_link, orientations iKin axis-angle [ax, ay, az, angle].
+
+A robot joint state that arrived more than `--state-max-age` wall s ago (default 0.5) is never
+used: the verbs reply `stale_state` naming the key and the age (the robot is frozen or lost),
+also when the states stop in the middle of a move (see `robotlink`).
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
     posture = ArcheryPosture(config.posture)
     with Node(CONTROLLER, config.net) as node:
         keys = node.keys
-        link = RobotLink(node, config.robot_timeout, config.joint_tolerance)
+        link = RobotLink(node, config.robot_timeout, config.joint_tolerance, config.state_max_age)
         motion = MotionLock()
         for arm in ARM_PARTS:
             controller = ArmController(arm, model, config, link, motion)

@@ -17,7 +17,8 @@ any session but the service's live instance `RigError` with code `wrong_replier`
 A service that replies it could not do its work because a service it calls is lost is not an
 error of its own: `upstream_lost` (the detector when the camera does not answer) becomes
 `ServiceLost` naming the upstream service, and so does a `timeout` error reply (the service's own
-call timed out: the controller's robot, the detector's camera; `UPSTREAM`) or any error reply
+call timed out: the controller's robot, the detector's camera; `UPSTREAM`), a `stale_state` reply
+(the controller's robot states stopped: the robot is frozen or lost), or any error reply
 while some service is not alive (that one is named).
 
 Each reply belongs to its own Zenoh query: a reply that comes after its call gave up is dropped,
@@ -38,7 +39,7 @@ import msgspec
 import numpy as np
 import zenoh
 
-from protocol.errors import RpcError, RpcTimeout, UpstreamLost, WrongReplier
+from protocol.errors import RpcError, RpcTimeout, StaleState, UpstreamLost, WrongReplier
 from protocol.messages import WorldEvent
 from protocol.node import Node
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
@@ -54,6 +55,9 @@ __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 SERVICES = (ROBOT, CAMERA, DETECTOR, CONTROLLER)  # the services a session needs
 #: The service each service calls to do its work: its `timeout` error means that one is lost.
 UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
+#: Error codes that mean the upstream service is lost: its call timed out, or its state stream
+#: is stale (a robot frozen mid-motion is as lost as a dead one).
+_UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 R = TypeVar("R", bound=msgspec.Struct)
@@ -130,7 +134,7 @@ class MeshRig:
         missing = self.missing()
         if missing:
             return ", ".join(missing)
-        return UPSTREAM.get(service) if exc.code == RpcTimeout.code else None
+        return UPSTREAM.get(service) if exc.code in _UPSTREAM_CODES else None
 
     # -- liveliness -----------------------------------------------------------------------------
     def missing(self) -> list[str]:

@@ -29,7 +29,8 @@ class RobotConfig:
         state_rate: joint state streams per simulated second (Hz).
         world_rate: world state messages per simulated second (Hz); also one after each landing.
         watchdog: a command stream (commands overtaking unfinished moves) with no command for
-            this long (wall s) freezes the part at its measured positions; 0 switches it off.
+            this long (wall s, from the last command's arrival) holds the part at its measured
+            positions (`watchdog`); 0 switches it off.
         limit_tolerance: a command up to this far beyond a joint limit is clamped; further is
             rejected (rad).
         batch_window: at rtf 0, commands arriving within this long (wall s) of the one that woke
@@ -46,7 +47,7 @@ class RobotConfig:
     state_rate: float = flag(50.0, "joint states per sim s", unit="Hz", low=0.1, high=1000)
     world_rate: float = flag(30.0, "world states per sim s", unit="Hz", low=0.1, high=1000)
     watchdog: float = flag(
-        0.5, "stale command stream timeout, 0 = off", unit="wall s", low=0, high=60
+        0.1, "stale command stream timeout, 0 = off", unit="wall s", low=0, high=60
     )
     limit_tolerance: float = flag(
         0.02,

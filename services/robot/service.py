@@ -8,7 +8,9 @@ Ports (ROBOT = the robot prefix, e.g. icubSim):
   checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status;
 * `ROBOT/archery/rpc:i`: nock, release (replies after the landing), reset, status;
 * `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
-* `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset.
+* `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset, and
+  watchdog (a part's command stream stopped mid-motion for `--watchdog` wall s, default 0.1:
+  the part is held at its measured positions, `watchdog_trips` counts it; see `watchdog`).
 
 Verbs (args → result; joint vectors in YARP order, rad; the types are in `protocol.verbs.robot`,
 where the RPC server checks every request before a handler sees it):

@@ -13,7 +13,12 @@ commands that arrived meanwhile (a controller's three part commands start at the
 time, which keeps same-seed runs identical). A move of one simulated second then takes ~10-20
 ms of wall time. A world state also goes out right after each nock, release, landing and reset.
 
-Watchdog (`watchdog`): a streaming part whose commands stop is frozen at its measured positions.
+Watchdog (`watchdog`): a streaming part (commands overtaking unfinished moves) whose commands
+stop for `config.watchdog` wall seconds (default 0.1) is held at its measured positions: the
+loop wakes at that deadline, even in the middle of its wait for the next paced chunk, counts a
+`watchdog_trips` and publishes a `watchdog` WorldEvent naming the part. At rtf 1 the hold comes
+~1 ms after the deadline and the joints stop within the servos' settling time; at rtf 0 see
+`watchdog` (the wall-clock timeout is then many simulated seconds).
 """
 
 from __future__ import annotations
@@ -334,18 +339,18 @@ class SimLoop:
         self._sink.world_state(world.qpos(), phase_of(world), self._shot, world.sim_time)
         self._pacing.sent_world()
 
-    def _watchdog(self, now: float) -> None:
-        """Freeze the parts whose command stream went stale while they still move."""
+    def _watchdog(self, now: float) -> bool:
+        """Hold the parts whose command stream went stale while they still move; True if any."""
+        tripped = False
         for part, age in self._streams.stale(now):
             if not self.world.motion_done(part):
-                held = self.world.set_joint_targets(part, self.world.joint_positions(part))
+                held = self.world.hold(part)
                 self._counters[part].watchdog_trips += 1
-                log.warning(
-                    "%s command stream stale for %.2f s: holding at %s",
-                    part,
-                    age,
-                    np.round(held, 4).tolist(),
-                )
+                tripped = True
+                reason = f"{part}: no command for {age:.3f} s mid-motion, held where it is"
+                log.warning("%s at %s", reason, np.round(held, 4).tolist())
+                self._sink.event("watchdog", self._shot, self.world.sim_time, None, reason)
+        return tripped
 
     def _moving(self) -> bool:
         return self._landing_future is not None or not self.world.motion_done()
@@ -387,13 +392,20 @@ class SimLoop:
                 future.set_exception(SimUnavailable("the robot stopped before the arrow landed"))
 
     def _sleep_until(self, due: float, stop: threading.Event) -> bool:
-        """Wait until wall time `due`, running jobs that arrive; True if any ran."""
+        """Wait until wall time `due`, running jobs that arrive and holding the parts whose
+        stream goes stale meanwhile (at its deadline); True if either changed the world."""
         ran = False
         while not stop.is_set() and not self._jobs.closed:
-            remaining = due - time.monotonic()
+            now = time.monotonic()
+            stale_at = self._streams.deadline()
+            if stale_at is not None and now >= stale_at:
+                ran = self._watchdog(now) or ran
+                stale_at = self._streams.deadline()
+            remaining = due - now
             if remaining <= 0:
                 break
-            if self._jobs.wait(min(remaining, MAX_IDLE_WAIT)):
+            wake = remaining if stale_at is None else min(remaining, max(0.0, stale_at - now))
+            if self._jobs.wait(min(wake, MAX_IDLE_WAIT)):
                 ran = self._jobs.drain() or ran
         return ran
 
