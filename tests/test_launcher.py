@@ -111,7 +111,13 @@ def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
         assert proc.stdout is not None
         assert "all alive" in proc.stdout.readline() + proc.stdout.readline()
         proc.send_signal(signal.SIGINT)
-        out, err = proc.communicate(timeout=60)
+        try:
+            out, err = proc.communicate(timeout=90)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            logs = {p.name: p.read_text()[-600:] for p in (tmp_path / "logs").glob("*.log")}
+            raise AssertionError(f"up did not stop: {out}\n{err}\n{logs}") from None
     finally:
         if proc.poll() is None:
             proc.kill()
