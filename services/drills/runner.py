@@ -54,7 +54,8 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from protocol.cliargs import ArgumentParser
+from protocol.cliargs import ArgumentParser, check_writable_dir
+from protocol.errors import ConfigError
 from services.drills.flood import flood_drill
 from services.drills.freeze import LEASE, freeze_service
 from services.drills.kill import kill_learner, kill_learner_repeatedly, kill_service
@@ -255,8 +256,15 @@ def main(argv: list[str] | None = None) -> int:
         if unknown:
             parser.error(f"no drill {unknown[0]!r}; drills: {', '.join(DRILLS)}")
         names = list(dict.fromkeys(args.only))
+    try:
+        if args.json:
+            check_writable_dir(Path(args.json).parent, "--json's folder", create=False)
+        if args.workdir:
+            check_writable_dir(Path(args.workdir), "--workdir", create=True)
+    except ConfigError as exc:
+        print(f"archery drill: {exc}", file=sys.stderr)
+        return 2
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="archery-drill-"))
-    workdir.mkdir(parents=True, exist_ok=True)
     # A table too wide for 80 columns: wrapped at 160 when not on a terminal (a file, CI).
     console = Console() if sys.stdout.isatty() else Console(width=160)
     progress_console = Console(stderr=True)
