@@ -66,15 +66,27 @@ def flood(mesh: DrillMesh, count: int, seed: int) -> dict[str, int]:
     return kinds
 
 
+def counted(mesh: DrillMesh) -> dict[str, int]:
+    """The robot's command counters of the left arm: accepted, rejected, undecodable."""
+    assert mesh.node is not None
+    reply = mesh.node.call(mesh.node.keys.part_rpc(PART), "counters", timeout=10)
+    return {k: int(reply[k]) for k in ("accepted", "rejected", "undecodable")}
+
+
 def flood_drill(mesh: DrillMesh, count: int, seed: int) -> DrillResult:
     """Flood the left arm's command port with `count` messages mid-session."""
     run = running_session(mesh, seed)
     before = mesh.pids()
+    first = counted(mesh)
     start = time.time()
     kinds = flood(mesh, count, seed)
     end = time.time()
     mesh.wait_done(run, AFTER, after=end)
     problems = same_processes(before, mesh.pids())
+    last = counted(mesh)
+    seen = {k: last[k] - first[k] for k in last}
+    if not any(seen.values()):
+        problems.append("the robot counted none of the commands")
     if any(r["record"] == "resumed" for r in run.records()):
         problems.append("the session was resumed, not continued")
     during = [r for r in run.records() if r["record"] == "done" and start < r["t"] <= end]
@@ -88,7 +100,13 @@ def flood_drill(mesh: DrillMesh, count: int, seed: int) -> DrillResult:
         recover_s=recovered(mesh, run, end),
         notes=[
             f"{count} messages in {end - start:.1f} s ({rate:,.0f}/s); {len(during)} rollouts "
-            f"done during it, {len(aborted)} attempts aborted since"
+            f"done during it, {len(aborted)} attempts aborted since; the robot counted "
+            + ", ".join(f"{n} {k}" for k, n in seen.items())
         ],
-        details={"kinds": kinds, "flood_s": end - start, "done_during": len(during)},
+        details={
+            "kinds": kinds,
+            "flood_s": end - start,
+            "done_during": len(during),
+            "robot_counted": seen,
+        },
     )

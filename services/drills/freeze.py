@@ -14,14 +14,7 @@ import signal
 import threading
 import time
 
-from services.drills.faults import (
-    AFTER,
-    finish,
-    noticed,
-    recovered,
-    running_session,
-    same_processes,
-)
+from services.drills import faults
 from services.drills.mesh import DrillMesh
 from services.drills.verdict import DrillResult
 
@@ -33,7 +26,7 @@ FREEZE = 12.0  # s: how long a service stays frozen
 
 def freeze_service(mesh: DrillMesh, service: str, seed: int, hold: float = FREEZE) -> DrillResult:
     """SIGSTOP `service` for `hold` s mid-session, then SIGCONT."""
-    run = running_session(mesh, seed)
+    run = faults.running_session(mesh, seed)
     before = mesh.pids()
     pid = before[service]
     fault = time.time()
@@ -49,21 +42,21 @@ def freeze_service(mesh: DrillMesh, service: str, seed: int, hold: float = FREEZ
     if went is None or went > cont:
         problems.append(f"{service}'s token did not go while it was frozen")
     back = mesh.tokens.wait(service, True, max(cont, went or fault))
-    mesh.wait_done(run, AFTER, after=back)
-    detect, learner = noticed(mesh, run, service, fault)
-    problems += same_processes(before, mesh.pids())
+    mesh.wait_done(run, faults.AFTER, after=back)
+    detect, learner = faults.noticed(mesh, run, service, fault)
+    problems += faults.same_processes(before, mesh.pids())
     if any(r["record"] == "resumed" for r in run.records()):
         problems.append("the session was resumed, not continued")
     notes = [f"frozen {cont - fault:.1f} s; token back {back - cont:.1f} s after SIGCONT"]
     if learner is not None:
         notes.append(f"learner waited for it after {learner:.2f} s")
-    return finish(
+    return faults.finish(
         f"freeze-{service}",
         mesh,
         [run],
         problems,
         detect_s=detect,
-        recover_s=recovered(mesh, run, back),
+        recover_s=faults.recovered(mesh, run, back),
         notes=notes,
         details={"learner_detect_s": learner, "token_back_after_cont_s": back - cont},
     )
