@@ -4,7 +4,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test lint format bench clean
+.PHONY: setup demo test lint format bench drills clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -30,6 +30,9 @@ format: setup
 
 bench: setup
 	$(PY) -m benchmarks.run
+
+drills: setup
+	$(VENV)/bin/archery drill
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

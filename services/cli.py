@@ -46,6 +46,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "run one learning session against running services",
     ),
     "up": ("services.launcher:main", "start a router and all five services; stop them on Ctrl-C"),
+    "drill": (
+        "services.drills.runner:main",
+        "fault drills on a real mesh (kills, freezes, router outages, floods); their table",
+    ),
     "experiment": (
         "services.learner.tools.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",

@@ -114,6 +114,11 @@ CASES: list[tuple[str, int, str]] = [
     ("up --timeout nan", 2, "'nan'"),
     ("up --rtf nan", 2, "'nan'"),
     ("up --logs /proc/nope/logs", 2, "'/proc/nope/logs'"),
+    # drill
+    ("drill --only kill-nobody", 2, "no drill 'kill-nobody'"),
+    ("drill --seed x", 2, "'x'"),
+    ("drill --workdir /proc/nope", 2, "'/proc/nope'"),
+    ("drill --json /proc/nope/out.json", 2, "'/proc/nope'"),
     # experiment
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),
