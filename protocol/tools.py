@@ -5,13 +5,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 import msgspec
-import zenoh
 
 from protocol.cliargs import (
     ArgumentParser,
@@ -37,6 +35,7 @@ from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, bad_args_message
 from protocol.robotspec import CALL_TIMEOUT
+from protocol.tokens import TokenSet
 from protocol.verbs import Verb, table_for_key
 
 __all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
@@ -78,21 +77,12 @@ def _stream_type(key: str) -> type[Message]:
     return MESSAGE_TYPES[spec.message]
 
 
-def _wait_any_alive(node: Node, wait: float) -> None:
-    """Block until some service of the robot is alive (by liveliness) or `wait` s have passed."""
-    seen = threading.Event()
-
-    def on_token(sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.PUT:
-            seen.set()
-
-    sub = node.session.liveliness().declare_subscriber(
-        node.keys.alive_all(), on_token, history=True
-    )
-    try:
-        seen.wait(wait)
-    finally:
-        sub.undeclare()
+def _wait_any_alive(node: Node, wait: float) -> set[str]:
+    """Block until some service of the robot is alive (by liveliness) or `wait` s have passed;
+    the names seen alive meanwhile."""
+    with TokenSet(node.session, node.keys.alive_all()) as alive:
+        alive.wait_for(bool, wait)
+        return alive.present()
 
 
 def ports_main(argv: list[str] | None = None) -> int:
@@ -113,9 +103,8 @@ def ports_main(argv: list[str] | None = None) -> int:
 
     def body(net: NetConfig) -> int:
         with Node(None, net) as node:
-            if args.wait:
-                _wait_any_alive(node, args.wait)
-            names = sorted(node.alive(timeout=args.timeout))
+            seen = _wait_any_alive(node, args.wait) if args.wait else set()
+            names = sorted(node.alive(timeout=args.timeout) | seen)
             if not names:
                 print(
                     f"archery ports: no service alive on robot {node.keys.robot!r} "
