@@ -133,14 +133,15 @@ def test_folder_source_replays_images_captured_after_the_request(
     with serving(run, config), Node(None, net) as node:
         keys = node.keys
         node.wait_alive(["camera"], timeout=30)
-        colours = set()
-        for _ in range(2):
+        seen: dict[int, int] = {}  # frame number -> its dominant colour channel
+        while len(set(seen.values())) < 2 and len(seen) < 8:
             now = time.time()
             image = _image(node.call(keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
             assert image.stamp >= now and image.sim_time is None
             assert (image.width, image.height) == (64, 48)
-            colours.add(int(np.argmax(image.to_numpy()[24, 32])))
-        assert colours == {0, 2}  # both files, in turn
+            seen[image.frame] = int(np.argmax(image.to_numpy()[24, 32]))
+        assert set(seen.values()) == {0, 2}  # both files, in turn: a frame's parity gives its file
+        assert len({(frame % 2, colour) for frame, colour in seen.items()}) == 2, seen
         # no sim time on real frames: after_sim_time means "captured after this request"
         asked = time.time()
         image = _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 99.0}, timeout=10))
