@@ -26,6 +26,12 @@ VERBS: dict[str, tuple[str, str]] = {
         "protocol.interface:interface_main",
         "a port's message type; each rpc:i verb's argument and reply schema",
     ),
+    "record": (
+        "protocol.observe:record_main",
+        "record the robot's streams (or KEY_PATTERNs) into an MCAP file",
+    ),
+    "replay": ("protocol.observe:replay_main", "publish an MCAP recording again, in time"),
+    "hz": ("protocol.observe:hz_main", "message rate and bandwidth of the matching keys"),
     "view": ("protocol.tools:view_main", "save the next image on an image port as PNG"),
     "selfcheck": ("protocol.selfcheck:main", "start a router and two nodes, check the mesh"),
     "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),
