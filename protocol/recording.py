@@ -425,7 +425,7 @@ class Recording:
         """
         with open(self.path, "rb") as stream:
             reader = NonSeekingReader(stream, validate_crcs=True, record_size_limit=None)
-            it = reader.iter_messages()
+            it = reader.iter_messages(log_time_order=False)
             while True:
                 try:
                     item: tuple[Schema | None, Channel, McapMessage] = next(it)
