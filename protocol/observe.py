@@ -219,6 +219,7 @@ def replay_main(argv: list[str] | None = None) -> int:
             frames = _Frames()
             if args.serve_grab:
                 node.serve(node.keys.cam_rpc(), {"grab": frames.grab})
+                print(f"archery replay: serving grab on {node.keys.cam_rpc()}", flush=True)
             published, keys = _publish(node, recording, args, only, robot, frames, stop)
             print(
                 f"archery replay: published {published} messages on {len(keys)} keys",

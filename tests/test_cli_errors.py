@@ -114,6 +114,7 @@ CASES: list[tuple[str, int, str]] = [
     ("up --timeout nan", 2, "'nan'"),
     ("up --rtf nan", 2, "'nan'"),
     ("up --logs /proc/nope/logs", 2, "'/proc/nope/logs'"),
+    ("up --record {tmp}/run.txt", 2, "--record '{tmp}/run.txt': give a file name ending in .mcap"),
     # experiment
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),
