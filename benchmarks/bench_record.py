@@ -16,6 +16,7 @@ Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8]`. It prints:
 from __future__ import annotations
 
 import argparse
+import contextlib
 import itertools
 import os
 import signal
@@ -29,33 +30,17 @@ from typing import Any
 
 import numpy as np
 
-from protocol.messages import Image, Rollout
+from protocol.messages import Detection, Image, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.recording import open_recording
 from protocol.router import free_tcp_endpoint
+from services.cli import spawn
 from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
 from services.learner.tools.learn import follow
 
-__all__ = ["main"]
-
-
-def _child(*args: str, ready: str) -> subprocess.Popen[str]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *args],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    if not line.startswith(ready):
-        raise RuntimeError(
-            f"{args[0]} did not start: {line} {proc.stderr.read() if proc.stderr else ''}"
-        )
-    return proc
+__all__ = ["main", "remeasure"]
 
 
 def _stop(proc: subprocess.Popen[str]) -> str:
@@ -87,8 +72,9 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
     pixels = _frame()
     results = []
     for rate in (10.0, 20.0, 30.0, 60.0):
+        frames = int(rate * seconds)
         path = tmp / f"fps{rate:g}.mcap"
-        recorder = _child(
+        recorder = spawn(
             "record",
             "--out",
             str(path),
@@ -96,6 +82,8 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
             endpoint,
             "--robot",
             net.robot,
+            "--count",
+            str(frames),
             ready="archery record: recording",
         )
         sent = 0
@@ -103,15 +91,36 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
             pub = node.publisher(node.keys.cam_frames(), Image)
             pub.wait_matched(10)
             start = time.monotonic()
-            while time.monotonic() - start < seconds:
+            while sent < frames:
                 pub.put(Image.from_numpy(pixels, frame=sent, sim_time=sent / rate))
                 sent += 1
                 time.sleep(max(0.0, start + sent / rate - time.monotonic()))
-        _stop(recorder)
+            # it ends by itself once it has every frame; late frames still count
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                recorder.wait(10)
+        if recorder.returncode is None:
+            _stop(recorder)
         written = open_recording(path).message_count or 0
         results.append((rate, sent, written))
         print(f"  {rate:4.0f} frames/s offered: {sent} published, {written} written", flush=True)
     return results
+
+
+def remeasure(node: Node, hits: list[Detection]) -> float:
+    """Measure each recorded detection's frame again (`after_sim_time` its sim time) through
+    the detector of `node`'s robot; the largest |Δr| (m) against the recorded r."""
+    worst = 0.0
+    for hit in hits:
+        again = node.call(
+            node.keys.detector_rpc(),
+            "measure",
+            {"after_sim_time": hit.sim_time, "timeout": 60},
+            timeout=90,
+        )
+        if again["status"] != "ok" or again["sim_time"] != hit.sim_time:
+            raise AssertionError(f"the replayed frame of sim time {hit.sim_time}: {again}")
+        worst = max(worst, float(np.max(np.abs(np.subtract(again["r_m"], hit.r_m)))))
+    return worst
 
 
 def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int]:
@@ -139,7 +148,7 @@ def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int]:
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
-    replay = _child(
+    replay = spawn(
         "replay",
         str(path),
         "--keys",
@@ -157,14 +166,7 @@ def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int]:
     try:
         with Node(None, NetConfig(connect=(endpoint,), robot=robot)) as node:
             node.wait_alive(["detector"], 60)
-            for hit in hits:
-                again = node.call(
-                    node.keys.detector_rpc(),
-                    "measure",
-                    {"after_sim_time": hit.sim_time, "timeout": 60},
-                    timeout=90,
-                )
-                worst = max(worst, float(np.max(np.abs(np.subtract(again["r_m"], hit.r_m)))))
+            worst = remeasure(node, hits)
     finally:
         _stop(replay)
         detector.terminate()
@@ -202,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
                 for with_recorder in order:
                     recorder = None
                     if with_recorder:
-                        recorder = _child(
+                        recorder = spawn(
                             "record",
                             "--out",
                             str(last),

@@ -216,20 +216,15 @@ def from_record(schema_name: str, data: bytes) -> ArcheryMessage:
         return record
     meta = record.archery
     common = {"schema": meta.schema, "seq": meta.seq, "stamp": meta.stamp, "frame": meta.frame}
+    if isinstance(record, _RawImage):
+        width, height, encoding = record.width, record.height, record.encoding
+    else:
+        width, height, encoding = meta.width, meta.height, record.format
     try:
-        if isinstance(record, _RawImage):
-            return Image(
-                width=record.width,
-                height=record.height,
-                encoding=record.encoding,
-                data=record.data,
-                sim_time=meta.sim_time,
-                **common,
-            )
         return Image(
-            width=meta.width,
-            height=meta.height,
-            encoding=record.format,
+            width=width,
+            height=height,
+            encoding=encoding,
             data=record.data,
             sim_time=meta.sim_time,
             **common,

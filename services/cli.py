@@ -5,13 +5,14 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import os
+import subprocess
 import sys
 
 from protocol.cliargs import ArgumentParser
 from protocol.errors import ConfigError
 from protocol.logs import DEFAULT_SPEC, add_log_args, configure
 
-__all__ = ["VERBS", "main"]
+__all__ = ["VERBS", "main", "spawn"]
 
 # verb -> ("module:function", one-line help). Each function takes argv (list[str]) and returns
 # the process exit status. Modules are imported only when their verb runs, so a tool never pays
@@ -59,6 +60,28 @@ VERBS: dict[str, tuple[str, str]] = {
     "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
     "keys": ("protocol.credentials:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
+
+
+def spawn(*args: str, ready: str) -> subprocess.Popen[str]:
+    """`archery ARGS…` as a child process (text pipes), returned once its first stdout line,
+    which must start with `ready`, says it is set up (tests and benchmarks).
+
+    Raises:
+        RuntimeError: it printed something else first, or ended; with its stderr.
+    """
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    line = proc.stdout.readline()
+    if not line.startswith(ready):
+        proc.kill()
+        raise RuntimeError(f"archery {args[0]} did not start: {line!r} {proc.stderr.read()}")
+    return proc
 
 
 def _usage() -> str:

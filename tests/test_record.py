@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,6 +31,7 @@ from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.recording import Recorder, from_record, open_recording, to_record
 from protocol.selfcheck import ECHO_SERVICE, run_echo
+from services.cli import spawn
 from tests.conftest import archery, serving
 
 
@@ -39,25 +39,19 @@ def _flags(net: NetConfig) -> list[str]:
     return ["--connect", net.connect[0], "--robot", net.robot]
 
 
-def _start(*args: str) -> subprocess.Popen[str]:
-    """An `archery` child whose first stdout line says it is ready."""
-    return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *args],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-
-
 def _recording(
     path: Path, net: NetConfig, *patterns: str, flush: str = "0.2"
 ) -> subprocess.Popen[str]:
-    proc = _start("record", "--out", str(path), *patterns, *_flags(net), "--flush-interval", flush)
-    assert proc.stdout is not None
-    line = proc.stdout.readline()
-    assert line.startswith("archery record: recording"), proc.stderr.read() if proc.stderr else ""
-    return proc
+    return spawn(
+        "record",
+        "--out",
+        str(path),
+        *patterns,
+        *_flags(net),
+        "--flush-interval",
+        flush,
+        ready="archery record: recording",
+    )
 
 
 def _messages() -> list[object]:

@@ -7,38 +7,24 @@ import os
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import signal
-import subprocess
-import sys
 import threading
-from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 
+from benchmarks.bench_record import remeasure
 from protocol.messages import Detection, WorldState
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.recording import open_recording
-from services.camera.config import CameraConfig
-from services.camera.service import run as run_camera
+from services.cli import spawn
 from services.detector.config import DetectorConfig
 from services.detector.service import run as run_detector
 from tests import test_detector_service
 from tests.conftest import serving
-from tests.test_detector_service import _state
+from tests.test_detector_service import _state, camera_and_detector
 
 shot = test_detector_service.shot  # the landed arrow's fixture, shared
-
-
-def _child(*args: str) -> subprocess.Popen[str]:
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *args],
-        stdin=subprocess.DEVNULL,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    return proc
 
 
 def test_replayed_frames_give_the_recorded_detections(
@@ -47,13 +33,9 @@ def test_replayed_frames_give_the_recorded_detections(
     qpos, sim_time, truth = shot
     model_file, path = tmp_path / "model.json", tmp_path / "camera.mcap"
     flags = ["--connect", net.connect[0]]
-    with ExitStack() as stack:
-        stack.enter_context(serving(run_camera, CameraConfig(net=net, robot_timeout=0.3)))
-        stack.enter_context(serving(run_detector, DetectorConfig(net=net, model=str(model_file))))
-        node = stack.enter_context(Node(None, net))
+    with camera_and_detector(net, model_file) as node:
         keys = node.keys
-        node.wait_alive(["camera", "detector"], timeout=30)
-        recorder = _child(
+        recorder = spawn(
             "record",
             "--out",
             str(path),
@@ -62,9 +44,8 @@ def test_replayed_frames_give_the_recorded_detections(
             "--robot",
             net.robot,
             *flags,
+            ready="archery record: recording",
         )
-        assert recorder.stdout is not None
-        assert recorder.stdout.readline().startswith("archery record: recording")
         world = node.publisher(keys.world_state(), WorldState)
         assert world.wait_matched(5)
         measured = []
@@ -89,7 +70,7 @@ def test_replayed_frames_give_the_recorded_detections(
     # a fresh detector, calibrated from the saved model, on another robot prefix; the replay
     # stands in for the camera (grab answered from the replayed frames)
     fresh = NetConfig(connect=net.connect, robot=net.robot + "replay")
-    replay = _child(
+    replay = spawn(
         "replay",
         str(path),
         "--keys",
@@ -100,22 +81,13 @@ def test_replayed_frames_give_the_recorded_detections(
         "--robot",
         fresh.robot,
         *flags,
+        ready="archery replay: serving grab on",
     )
     config = DetectorConfig(net=fresh, model=str(model_file), auto_calibrate=False)
-    assert replay.stdout is not None
-    assert replay.stdout.readline().startswith("archery replay: serving grab on")
     try:
         with serving(run_detector, config), Node(None, fresh) as node:
             node.wait_alive(["detector"], timeout=30)
-            for hit in hits:
-                again = node.call(
-                    node.keys.detector_rpc(),
-                    "measure",
-                    {"after_sim_time": hit.sim_time, "timeout": 60},
-                    timeout=90,
-                )
-                assert again["status"] == "ok" and again["sim_time"] == hit.sim_time
-                assert np.max(np.abs(np.subtract(again["r_m"], hit.r_m))) <= 1e-3
+            assert remeasure(node, hits) <= 1e-3  # 1 mm
     finally:
         replay.send_signal(signal.SIGINT)
         out, err = replay.communicate(timeout=60)
