@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import queue
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
 import msgspec
+import zenoh
 
 from protocol.cliargs import (
     ArgumentParser,
@@ -19,7 +21,7 @@ from protocol.cliargs import (
     seconds,
     seconds_or_zero,
 )
-from protocol.codec import from_jsonable, to_jsonable
+from protocol.codec import decode, from_jsonable, to_jsonable
 from protocol.errors import (
     ArcheryError,
     BadRequest,
@@ -27,13 +29,13 @@ from protocol.errors import (
     DecodeError,
     KeyNameError,
     RpcError,
-    RpcTimeout,
 )
 from protocol.instances import describe_all
 from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, bad_args_message
+from protocol.patterns import check_pattern, is_wildcard, stream_type
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.tokens import TokenSet
 from protocol.verbs import Verb, table_for_key
@@ -144,38 +146,98 @@ def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
     return ["      (untyped verbs)"] if port.message == "RpcRequest" else []
 
 
+def _field(value: Any, path: str) -> Any:
+    """The part of a JSON-like message at a dotted `path` (`r_m.0`, `names.1`); None if absent."""
+    for step in path.split("."):
+        if isinstance(value, dict):
+            value = value.get(step)
+        elif (
+            isinstance(value, list)
+            and step.lstrip("-").isdigit()
+            and -len(value) <= int(step) < len(value)
+        ):
+            value = value[int(step)]
+        else:
+            return None
+    return value
+
+
+def _check_field(message_type: type[Message] | None, path: str) -> None:
+    """Raise KeyNameError when `path`'s first step is no field of `message_type`."""
+    head = path.split(".", 1)[0]
+    if message_type is not None and head not in ("type", *message_type.__struct_fields__):
+        raise KeyNameError(
+            f"--field {path!r}: {message_type.__name__} has no field {head!r}; its fields: "
+            f"{', '.join(message_type.__struct_fields__)}"
+        )
+
+
 def read_main(argv: list[str] | None = None) -> int:
-    """`archery read KEY [--count N]`: decoded messages as JSON lines (like `yarp read`)."""
+    """`archery read KEY [--count N] [--field PATH]`: decoded messages as JSON lines (like `yarp
+    read`); a KEY with wildcards (`icubSim/*/state:o`) prints {"key", "value"} objects."""
     parser = _parser("read", "print decoded messages from a stream key as JSON lines")
-    parser.add_argument("key")
+    parser.add_argument("key", help="a stream key, or a pattern such as ROBOT/*/state:o")
     parser.add_argument(
         "--count",
         type=count,
         default=0,
         help="stop after N messages, each waited for at most --timeout s (0: read until Ctrl-C)",
     )
+    parser.add_argument(
+        "--field", metavar="PATH", help="print only this field, e.g. r_m.0 or position.2"
+    )
     args = parser.parse_args(argv)
+    wildcard = is_wildcard(args.key)
 
-    def check() -> tuple[NetConfig, type[Message]]:
-        return NetConfig.from_args(args), _stream_type(args.key)
+    def check() -> tuple[NetConfig, type[Message] | None]:
+        net = NetConfig.from_args(args)
+        if wildcard:
+            check_pattern(args.key)
+            message_type = None
+        else:
+            message_type = _stream_type(args.key)
+        if args.field is not None:
+            _check_field(message_type, args.field)
+        return net, message_type
 
-    def body(checked: tuple[NetConfig, type[Message]]) -> int:
+    def body(checked: tuple[NetConfig, type[Message] | None]) -> int:
         net, message_type = checked
+        received: queue.SimpleQueue[tuple[str, Message]] = queue.SimpleQueue()
+        malformed = [0]
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            wanted = message_type or stream_type(key)
+            if wanted is None:
+                return
+            try:
+                received.put((key, decode(sample.payload.to_bytes(), wanted)))
+            except DecodeError:
+                malformed[0] += 1
+
         with Node(None, net) as node:
-            sub = node.subscribe(args.key, message_type, mode="fifo")
+            sub = node.session.declare_subscriber(args.key, on_sample)
             printed = 0
-            while args.count == 0 or printed < args.count:
-                try:
-                    message = sub.get(timeout=args.timeout if args.count else None)
-                except RpcTimeout:
+            try:
+                while args.count == 0 or printed < args.count:
+                    try:
+                        key, message = received.get(timeout=args.timeout if args.count else None)
+                    except queue.Empty:
+                        print(
+                            f"archery read: no message on {args.key} within {args.timeout:g} s "
+                            f"({printed} of {args.count} read, {malformed[0]} malformed dropped)",
+                            file=sys.stderr,
+                        )
+                        return 1
+                    value: Any = to_jsonable(message)
+                    if args.field is not None:
+                        value = _field(value, args.field)
                     print(
-                        f"archery read: no message on {args.key} within {args.timeout:g} s "
-                        f"({printed} of {args.count} read, {sub.dropped} malformed dropped)",
-                        file=sys.stderr,
+                        json.dumps({"key": key, "value": value} if wildcard else value), flush=True
                     )
-                    return 1
-                print(json.dumps(to_jsonable(message)), flush=True)
-                printed += 1
+                    printed += 1
+            finally:
+                sub.undeclare()
         return 0
 
     return _run("read", check, body)

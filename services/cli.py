@@ -5,13 +5,14 @@ from __future__ import annotations
 import importlib
 import importlib.metadata
 import os
+import subprocess
 import sys
 
 from protocol.cliargs import ArgumentParser
 from protocol.errors import ConfigError
 from protocol.logs import DEFAULT_SPEC, add_log_args, configure
 
-__all__ = ["VERBS", "main"]
+__all__ = ["VERBS", "main", "spawn"]
 
 # verb -> ("module:function", one-line help). Each function takes argv (list[str]) and returns
 # the process exit status. Modules are imported only when their verb runs, so a tool never pays
@@ -26,6 +27,12 @@ VERBS: dict[str, tuple[str, str]] = {
         "protocol.interface:interface_main",
         "a port's message type; each rpc:i verb's argument and reply schema",
     ),
+    "record": (
+        "protocol.observe:record_main",
+        "record the robot's streams (or KEY_PATTERNs) into an MCAP file",
+    ),
+    "replay": ("protocol.observe:replay_main", "publish an MCAP recording again, in time"),
+    "hz": ("protocol.observe:hz_main", "message rate and bandwidth of the matching keys"),
     "view": ("protocol.tools:view_main", "save the next image on an image port as PNG"),
     "selfcheck": ("protocol.selfcheck:main", "start a router and two nodes, check the mesh"),
     "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),
@@ -57,6 +64,28 @@ VERBS: dict[str, tuple[str, str]] = {
     "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
     "keys": ("protocol.credentials:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
+
+
+def spawn(*args: str, ready: str) -> subprocess.Popen[str]:
+    """`archery ARGS…` as a child process (text pipes), returned once its first stdout line,
+    which must start with `ready`, says it is set up (tests and benchmarks).
+
+    Raises:
+        RuntimeError: it printed something else first, or ended; with its stderr.
+    """
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "services.cli", *args],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None and proc.stderr is not None
+    line = proc.stdout.readline()
+    if not line.startswith(ready):
+        proc.kill()
+        raise RuntimeError(f"archery {args[0]} did not start: {line!r} {proc.stderr.read()}")
+    return proc
 
 
 def _usage() -> str:

@@ -399,7 +399,41 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--timeout", type=seconds, default=90.0, help="wait this long for all services (s)"
     )
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the whole run (every stream of the robot) into this MCAP file",
+    )
     return parser
+
+
+def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
+    """An `archery record` child writing every stream of the first robot to `out` (its log
+    `LOGS/recorder.log`), started once it subscribes.
+
+    Raises:
+        LaunchError: it exited or did not subscribe within `timeout` s.
+    """
+    argv = ["record", "--out", out, "--connect", launcher.endpoint, "--robot", launcher.net.robot]
+    log = launcher.logs / "recorder.log"
+    with open(log, "wb") as sink:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "services.cli", *argv, *launcher.secure],
+            stdin=subprocess.DEVNULL,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=launcher.env,
+            start_new_session=True,
+            preexec_fn=_die_with_parent,
+        )
+    deadline = time.monotonic() + timeout
+    while b"archery record: recording" not in log.read_bytes():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            tail = log.read_text(errors="replace").strip().splitlines()[-1:]
+            raise LaunchError(f"the recorder did not start: {' '.join(tail) or 'no output'}")
+        time.sleep(0.05)
+    return proc
 
 
 def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
@@ -474,11 +508,25 @@ def main(argv: list[str] | None = None) -> int:
     try:
         mesh = mesh_from_args(args)
         check_writable_dir(Path(args.logs), "--logs", create=True)
+        if args.record is not None:
+            if not args.record.endswith(".mcap"):
+                raise ConfigError(f"--record {args.record!r}: give a file name ending in .mcap")
+            check_writable_dir(
+                Path(args.record).parent, f"--record {args.record!r}: folder", create=False
+            )
         launcher = Launcher(logs=Path(args.logs), secure=args.secure, mesh=mesh)
         stop = shutdown_on_signals()
         where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
         print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
         took = launcher.up(args.timeout)
+        recorder = None
+        if args.record is not None:
+            try:
+                recorder = start_recorder(launcher, args.record)
+            except LaunchError:
+                launcher.stop_all()
+                raise
+            print(f"archery up: recording to {args.record}", flush=True)
     except (ConfigError, LaunchError) as exc:
         print(f"archery up: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ConfigError) else 1
@@ -493,4 +541,11 @@ def main(argv: list[str] | None = None) -> int:
     supervisor = Supervisor(
         launcher, report=lambda line: print(f"archery up: {line}", file=sys.stderr, flush=True)
     )
-    return _final(launcher, supervisor, supervisor.run(stop))
+    outcome = supervisor.run(stop)
+    if recorder is not None:
+        recorder.terminate()
+        if recorder.wait(60) != 0:
+            print(
+                f"archery up: the recorder ended with status {recorder.returncode}", file=sys.stderr
+            )
+    return _final(launcher, supervisor, outcome)

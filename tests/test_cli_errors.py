@@ -119,6 +119,7 @@ CASES: list[tuple[str, int, str]] = [
     ("drill --seed x", 2, "'x'"),
     ("drill --workdir /proc/nope", 2, "'/proc/nope'"),
     ("drill --json /proc/nope/out.json", 2, "'/proc/nope'"),
+    ("up --record {tmp}/run.txt", 2, "--record '{tmp}/run.txt': give a file name ending in .mcap"),
     # experiment
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),
@@ -134,6 +135,24 @@ CASES: list[tuple[str, int, str]] = [
     ("calibrate {tmp}/missing.png --pixels {tmp}/p.json --out {tmp}/m.json", 2, "missing.png"),
     ("router --listen localhost:1", 2, "'localhost:1'"),
     ("detect {tmp}/missing.jpg --model {tmp}/m.json", 2, "'{tmp}/missing.jpg'"),
+    # record, replay, hz
+    ("record --out {tmp}/r.txt {net}", 2, "'{tmp}/r.txt': give a file name ending in .mcap"),
+    ("record {robot}/nosuch/** --out {tmp}/r.mcap {net}", 2, "matches no stream port"),
+    ("record {robot}//x --out {tmp}/r.mcap {net}", 2, "is not a key expression"),
+    ("record --out {tmp}/no/dir/r.mcap {net}", 2, "'{tmp}/no/dir'"),
+    ("record --out {tmp}/r.mcap --duration nan {net}", 2, "'nan'"),
+    ("record --out {tmp}/r.mcap --connect {dead}", 1, "{dead}"),
+    ("replay {tmp}/file {net}", 2, "'{tmp}/file' is not an MCAP file"),
+    ("replay {tmp}/missing.mcap {net}", 2, "'{tmp}/missing.mcap': No such file"),
+    ("replay {tmp}/cut.mcap {net}", 2, "is cut short"),
+    ("replay {tmp}/v9.mcap {net}", 2, "schema version 9"),
+    ("replay {tmp}/ok.mcap --keys {robot}/nosuch:o {net}", 2, "'{robot}/nosuch:o'"),
+    ("replay {tmp}/ok.mcap --rate 0 {net}", 2, "'0'"),
+    ("hz {robot}/cam/nosuch {net}", 2, "'{robot}/cam/nosuch' matches no stream port"),
+    ("hz {robot}/** --duration -1 {net}", 2, "'-1'"),
+    ("hz {robot}/torso/state:o --duration 0.3 {net}", 1, "no message on {robot}/torso/state:o"),
+    ("read {robot}/torso/state:o --field nosuch {net}", 2, "JointState has no field 'nosuch'"),
+    ("read {robot}/nosuch/** {net}", 2, "matches no stream port"),
     # the dispatcher and demo
     ("fly", 2, "'fly'"),
     ("help fly", 2, "'fly'"),
@@ -149,11 +168,27 @@ def _argv(template: str, values: dict[str, str]) -> list[str]:
     return [part.format(**values) for part in template.split(" ") if part]
 
 
+def _recordings(tmp: Path) -> None:
+    """ok.mcap (one event), cut.mcap (it, cut short), v9.mcap (of schema version 9)."""
+    from protocol.codec import encode
+    from protocol.messages import WorldEvent
+    from protocol.recording import Recorder
+
+    recorder = Recorder(tmp / "ok.mcap", "icubSim", ["icubSim/**"])
+    recorder.put("icubSim/world/events:o", encode(WorldEvent(kind="reset")))
+    recorder.close()
+    data = (tmp / "ok.mcap").read_bytes()
+    (tmp / "cut.mcap").write_bytes(data[: len(data) // 2])
+    version = b"schema_version\x01\x00\x00\x00"
+    (tmp / "v9.mcap").write_bytes(data.replace(version + b"1", version + b"9"))
+
+
 @pytest.fixture(scope="module")
 def table(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     """Every case run once, in parallel: {template: (values, CompletedProcess)}."""
     tmp = tmp_path_factory.mktemp("cli")
     (tmp / "file").write_text("not a folder\n")
+    _recordings(tmp)
     dead = free_tcp_endpoint()
     runs: dict[str, object] = {}
 

@@ -9,7 +9,8 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import math
 import threading
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import cv2
@@ -59,17 +60,25 @@ def _state(qpos: np.ndarray, sim_time: float) -> WorldState:
     return WorldState(qpos=Array.from_numpy(qpos), phase="stuck", shot=1, sim_time=sim_time)
 
 
+@contextmanager
+def camera_and_detector(net: NetConfig, model_file: Path) -> Iterator[Node]:
+    """The camera and the detector (auto-calibrating, saving its model to `model_file`) on
+    threads, and a node that has seen both alive."""
+    with ExitStack() as stack:
+        stack.enter_context(serving(run_camera, CameraConfig(net=net, robot_timeout=0.3)))
+        stack.enter_context(serving(run_detector, DetectorConfig(net=net, model=str(model_file))))
+        node = stack.enter_context(Node(None, net))
+        node.wait_alive(["camera", "detector"], timeout=30)
+        yield node
+
+
 def test_measure_a_landed_arrow_and_stream_the_detection(
     net: NetConfig, shot: tuple[np.ndarray, float, np.ndarray], tmp_path: Path
 ) -> None:
     qpos, sim_time, truth = shot
     model_file = tmp_path / "model.json"
-    with ExitStack() as stack:
-        stack.enter_context(serving(run_camera, CameraConfig(net=net, robot_timeout=0.3)))
-        stack.enter_context(serving(run_detector, DetectorConfig(net=net, model=str(model_file))))
-        node = stack.enter_context(Node(None, net))
+    with camera_and_detector(net, model_file) as node:
         keys = node.keys
-        node.wait_alive(["camera", "detector"], timeout=30)
         hits = node.subscribe(keys.detector_hits(), Detection, mode="fifo")
         world = node.publisher(keys.world_state(), WorldState)
         assert world.wait_matched(5)

@@ -12,8 +12,10 @@ from pathlib import Path
 import pytest
 
 from protocol.errors import ConfigError
+from protocol.messages import Image
 from protocol.netflags import NetConfig
 from protocol.node import Node
+from protocol.recording import open_recording
 from protocol.router import free_tcp_endpoint, open_router
 from services.launcher import SERVICES, Launcher, LaunchError
 
@@ -96,7 +98,7 @@ def test_up_port_in_use(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
     endpoint = free_tcp_endpoint()
-    proc = _up(endpoint, tmp_path)
+    proc = _up(endpoint, tmp_path, "--record", str(tmp_path / "run.mcap"))
     try:
         net = NetConfig(connect=(endpoint,), robot="upcli")
         deadline = time.monotonic() + 120
@@ -109,7 +111,10 @@ def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
             except ConfigError:
                 time.sleep(0.2)
         assert proc.stdout is not None
-        assert "all alive" in proc.stdout.readline() + proc.stdout.readline()
+        started = proc.stdout.readline() + proc.stdout.readline() + proc.stdout.readline()
+        assert "all alive" in started and "recording to" in started, started
+        with Node(None, net) as node:  # the camera's frames reach the recorder
+            node.subscribe(node.keys.cam_frames(), Image).wait_newer(30)
         proc.send_signal(signal.SIGINT)
         try:
             out, err = proc.communicate(timeout=90)
@@ -125,3 +130,7 @@ def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
     assert "all stopped cleanly" in out
     for name in SERVICES:
         assert (tmp_path / "logs" / f"{name}.log").exists()
+    recording = open_recording(tmp_path / "run.mcap")
+    assert recording.complete and recording.metadata["robot"] == "upcli"
+    keys = {key for key, _, _ in recording.messages()}
+    assert {"upcli/cam/target:o", "upcli/world/state:o", "upcli/torso/state:o"} <= keys

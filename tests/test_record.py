@@ -1,0 +1,249 @@
+"""`archery record`, `replay` and `hz` over a real router: exact round trips, a recorder killed
+with SIGKILL, replay timing, wildcards and rates."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import msgspec
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from protocol.codec import decode, encode
+from protocol.errors import ConfigError
+from protocol.messages import (
+    Array,
+    Detection,
+    Image,
+    JointState,
+    Rollout,
+    WorldEvent,
+    WorldState,
+)
+from protocol.netflags import NetConfig
+from protocol.node import Node
+from protocol.recording import Recorder, from_record, open_recording, to_record
+from protocol.selfcheck import ECHO_SERVICE, run_echo
+from services.cli import spawn
+from tests.conftest import archery, serving
+
+
+def _flags(net: NetConfig) -> list[str]:
+    return ["--connect", net.connect[0], "--robot", net.robot]
+
+
+def _recording(
+    path: Path, net: NetConfig, *patterns: str, flush: str = "0.2"
+) -> subprocess.Popen[str]:
+    return spawn(
+        "record",
+        "--out",
+        str(path),
+        *patterns,
+        *_flags(net),
+        "--flush-interval",
+        flush,
+        ready="archery record: recording",
+    )
+
+
+def _messages() -> list[object]:
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[10:20, 5:30] = (200, 30, 40)
+    ok, jpeg = cv2.imencode(".jpg", rgb)
+    assert ok
+    return [
+        Image.from_numpy(rgb, frame=3, sim_time=1.25, seq=7, stamp=time.time()),
+        Image(width=64, height=48, encoding="jpeg", data=jpeg.tobytes(), frame=4, sim_time=None),
+        Image.from_numpy(rgb[:, :, 0], encoding="mono8", stamp=1.0 / 3.0),
+        JointState(part="torso", names=["a", "b"], position=[0.1, 1 / 3], velocity=[0, 1e-300]),
+        WorldState(qpos=Array.from_numpy(np.linspace(0, 1, 7) / 3), sim_time=0.1 + 0.2),
+        WorldEvent(kind="landed", shot=2, impact_m=[0.01, -0.07]),
+        Detection(frame_stamp=1.5, status="ok", r_m=[0.012345678901234, -1 / 7]),
+        Rollout(session="s", index=1, theta=[0.1, 0.2, -0.3], status="done", ret=-0.5),
+    ]
+
+
+def test_a_record_holds_the_very_bytes_that_were_published() -> None:
+    for message in _messages():
+        # as the recorder sees it: decoded from the wire (an int in a float field is a float)
+        wire = decode(encode(message))  # type: ignore[arg-type]
+        schema, data = to_record(wire)
+        assert encode(from_record(schema, data)) == encode(wire)
+        if isinstance(message, Image):
+            assert schema in ("foxglove.RawImage", "foxglove.CompressedImage")
+            record = json.loads(data)
+            assert record["archery"]["frame"] == message.frame
+            if schema == "foxglove.RawImage":
+                assert record["step"] == len(message.data) // message.height
+
+
+def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> None:
+    path = tmp_path / "r.mcap"
+    recorder = Recorder(path, "icubSim", ["icubSim/**"], chunk_size=1024)
+    keys = ["cam/target:o", "cam/target:o", "cam/target:o", "torso/state:o", "world/state:o"]
+    keys += ["world/events:o", "detector/hit:o", "learner/rollout:o"]
+    messages = _messages()
+    for key, message in zip(keys, messages, strict=True):
+        recorder.put(f"icubSim/{key}", encode(message))  # type: ignore[arg-type]
+    recorder.put("icubSim/torso/state:o", b"\x93not a message")
+    stats = recorder.close()
+    assert stats.total == 8 and stats.malformed == 1
+    with open(path, "rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == 8 and summary.statistics.chunk_count >= 2
+        assert summary.chunk_indexes and all(c.message_index_offsets for c in summary.chunk_indexes)
+        names = {s.name for s in summary.schemas.values()}
+        assert {"foxglove.RawImage", "foxglove.CompressedImage", "archery.WorldState"} <= names
+        assert all(s.encoding == "jsonschema" for s in summary.schemas.values())
+        assert all(c.message_encoding == "json" for c in summary.channels.values())
+        for schema in summary.schemas.values():
+            json.loads(schema.data)
+        assert reader.get_header().profile == "archery"
+    recording = open_recording(path)
+    assert recording.complete and recording.message_count == 8
+    got = [encode(m) for _, m, _ in recording.messages()]
+    assert got == [encode(decode(encode(m))) for m in messages]  # type: ignore[arg-type]
+
+
+def test_recordings_of_another_schema_version_or_not_mcap_are_refused(tmp_path: Path) -> None:
+    text = tmp_path / "notes.mcap"
+    text.write_text("hello\n")
+    with pytest.raises(ConfigError, match="is not an MCAP file"):
+        open_recording(text)
+    other = tmp_path / "v0.mcap"
+    Recorder(other, "icubSim", ["icubSim/**"]).close()
+    data = other.read_bytes().replace(
+        b"schema_version\x01\x00\x00\x001", b"schema_version\x01\x00\x00\x009"
+    )
+    other.write_bytes(data)
+    with pytest.raises(ConfigError, match="schema version 9"):
+        open_recording(other)
+
+
+def _events(n: int, start: int = 0) -> list[WorldEvent]:
+    return [
+        WorldEvent(kind="landed", shot=start + i, impact_m=[i / 1000, -i / 3000]) for i in range(n)
+    ]
+
+
+def _wait_on_disk(path: Path, n: int, which: Callable[[str], bool] = lambda k: True) -> None:
+    """Wait until the recorder has handed `n` messages on the chosen keys to the file."""
+    deadline = time.monotonic() + 30
+    got = 0
+    while got < n:
+        assert time.monotonic() < deadline, f"{got} of {n} messages on disk"
+        got = sum(1 for k, _, _ in open_recording(path).messages(recover=True) if which(k))
+        time.sleep(0.05)
+
+
+def test_record_then_replay_over_the_mesh(net: NetConfig, tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    with serving(run_echo, net), Node(None, net) as node:
+        node.wait_alive([ECHO_SERVICE], 30)
+        recorder = _recording(path, net, f"{net.robot}/world/*", f"{net.robot}/**")
+        pub = node.publisher(node.keys.world_events(), WorldEvent, lossless=True)
+        assert pub.wait_matched(10)
+        sent = [pub.put(e) for e in _events(40)]
+        _wait_on_disk(path, len(sent), lambda k: k.endswith("/world/events:o"))
+        recorder.send_signal(signal.SIGINT)
+        out, err = recorder.communicate(timeout=30)
+    assert recorder.returncode == 0, err
+    recording = open_recording(path)
+    got = [(k, m) for k, m, _ in recording.messages()]
+    events = [m for k, m in got if k == f"{net.robot}/world/events:o"]
+    states = [m for k, m in got if k == f"{net.robot}/torso/state:o"]
+    assert [encode(m) for m in events] == [encode(m) for m in sent]  # none twice, none lost
+    assert len(states) >= 2 and all(isinstance(m, JointState) for m in states)
+    assert f"wrote {len(got)} messages on 2 keys" in out
+
+    # replayed into another robot prefix, in order and with the recorded spacing
+    target = NetConfig(connect=net.connect, robot=net.robot + "r")
+    with Node(None, target) as node:
+        sub = node.subscribe(node.keys.world_events(), WorldEvent, mode="fifo")
+        replay = archery(
+            "replay",
+            str(path),
+            "--keys",
+            f"{net.robot}/world/events:o",
+            "--rate",
+            "4",
+            "--connect",
+            net.connect[0],
+            "--robot",
+            target.robot,
+        )
+        assert replay.returncode == 0, replay.stderr
+        assert "published 40 messages on 1 keys" in replay.stdout
+        replayed = [sub.get(timeout=10) for _ in range(40)]
+    assert [encode(m) for m in replayed] == [encode(m) for m in sent]
+
+
+def test_a_killed_recorder_loses_at_most_its_last_chunk(net: NetConfig, tmp_path: Path) -> None:
+    path = tmp_path / "killed.mcap"
+    with Node(None, net) as node:
+        recorder = _recording(path, net, f"{net.robot}/**", flush="0.2")
+        pub = node.publisher(node.keys.world_events(), WorldEvent, lossless=True)
+        assert pub.wait_matched(10)
+        first = [pub.put(e) for e in _events(50)]
+        _wait_on_disk(path, len(first))
+        second = [pub.put(e) for e in _events(50, start=50)]
+        recorder.kill()
+        recorder.wait(30)
+    assert recorder.returncode == -signal.SIGKILL
+    recording = open_recording(path)
+    assert not recording.complete
+    with pytest.raises(ConfigError, match="unreadable record"):
+        list(recording.messages())
+    got = [encode(m) for _, m, _ in recording.messages(recover=True)]
+    published = [encode(m) for m in first + second]
+    assert len(first) <= len(got) <= len(published)
+    assert got == published[: len(got)]
+    # replay refuses it, and replays it with --recover
+    refused = archery("replay", str(path), *_flags(net))
+    assert refused.returncode == 2 and "--recover" in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    replayed = archery("replay", str(path), "--recover", "--rate", "100", *_flags(net))
+    assert replayed.returncode == 0, replayed.stderr
+    assert f"published {len(got)} messages" in replayed.stdout
+
+
+def test_hz_reports_the_rate_of_each_matching_key(net: NetConfig) -> None:
+    with serving(run_echo, net), Node(None, net) as node:
+        node.wait_alive([ECHO_SERVICE], 30)
+        out = archery("hz", f"{net.robot}/*/state:o", "--duration", "2", *_flags(net))
+    assert out.returncode == 0, out.stderr
+    total = out.stdout.split("--- total\n")[1].strip().splitlines()
+    assert len(total) == 1 and total[0].startswith(f"{net.robot}/torso/state:o  ")
+    rate = float(total[0].split()[1])
+    assert 35 < rate < 65, total[0]  # the echo service publishes at 50 Hz
+
+
+def test_read_with_a_wildcard_and_a_field(net: NetConfig) -> None:
+    with serving(run_echo, net), Node(None, net) as node:
+        node.wait_alive([ECHO_SERVICE], 30)
+        out = archery(
+            "read", f"{net.robot}/*/state:o", "--count", "3", "--field", "names.1", *_flags(net)
+        )
+        assert out.returncode == 0, out.stderr
+        lines = [json.loads(line) for line in out.stdout.splitlines()]
+        assert lines == [{"key": f"{net.robot}/torso/state:o", "value": "torso_roll"}] * 3
+        one = archery(
+            "read", f"{net.robot}/torso/state:o", "--count", "1", "--field", "part", *_flags(net)
+        )
+    assert one.returncode == 0 and one.stdout.splitlines()[0] == '"torso"', one.stderr
+
+
+def test_bytes_survive_msgspec_json() -> None:
+    # the format relies on it: bytes go to base64 and back unchanged
+    blob = bytes(range(256)) * 3
+    assert msgspec.json.decode(msgspec.json.encode(blob), type=bytes) == blob
