@@ -124,6 +124,13 @@ CASES: list[tuple[str, int, str]] = [
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),
     ("experiment --sessions 0", 2, "got 0"),
+    ("experiment --drag 0.05 --wind-change 20", 2, "'20'"),
+    ("experiment --drag 0.05 --wind-change x:0,1,0", 2, "'x:0,1,0'"),
+    ("experiment --drag 0.05 --wind-change 20:0,1", 2, "'0,1'"),
+    ("experiment --drag 0.05 --wind-change 20:0,nan,0", 2, "'0,nan,0'"),
+    ("experiment --drag 0.05 --wind-change 1:0,1,0", 2, "rollout 1"),
+    ("experiment --drag 0.05 --wind-change 61:0,1,0", 2, "rollout 61"),
+    ("experiment --wind-change 20:0,1,0", 2, "drag"),
     # services: refused at start
     ("learner --runs /proc/nope {net}", 2, "'/proc/nope'"),
     ("learner --rpc-timeout nan {net}", 2, "nan"),

@@ -127,3 +127,44 @@ def test_bad_input_is_a_clear_error(
 def test_config_rejects_repeated_algorithms() -> None:
     with pytest.raises(ExperimentError, match="repeats"):
         ExperimentConfig(algorithms=("archer", "archer"))
+
+
+def test_a_wind_change_is_run_counted_and_marked(tmp_path: Path) -> None:
+    argv = ["--sessions", "3", "--rollouts", "12", "--no-progress", "--drag", "0.05"]
+    argv += ["--wind", "0,3,0", "--wind-change", "6:0,-6,0", "--algo", "archer-prior,archer"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["scenario"]["wind_change"] == {"at": 6, "wind": [0.0, -6.0, 0.0]}
+    with (tmp_path / "curves.csv").open() as handle:
+        rows = [r for r in csv.DictReader(handle) if r["algorithm"] == "archer-prior"]
+    for s in range(3):
+        distances = [float(r["distance"]) for r in rows if int(r["session"]) == s]
+        hits = [k + 1 for k, d in enumerate(distances) if d < 0.05 and k + 1 >= 6]
+        assert hits and hits[0] - 6 + 1 <= 2  # re-hit within two rollouts of the change
+        assert distances[5] > 0.05  # the change moved the arrow off the ring
+    prior = summary["algorithms"]["archer-prior"]
+    assert prior["rollouts_to_rehit"]["median"] <= 2 and prior["rehits"] == 3
+    # The same rollouts without the change: the arrows stay on the ring.
+    config = ExperimentConfig(
+        algorithms=("archer-prior",),
+        sessions=2,
+        rollouts=12,
+        scenario=Scenario(drag=0.05, wind=(0.0, 3.0, 0.0)),
+    )
+    steady = run_algorithm(config, "archer-prior")
+    assert np.all(steady.distances[:, 1:] < 0.05)
+    assert (
+        summarise(config, {"archer-prior": steady})["algorithms"]["archer-prior"][
+            "rollouts_to_rehit"
+        ]
+        is None
+    )
+
+
+def test_rollouts_to_rehit_counts_from_the_change() -> None:
+    far, near = 0.3, 0.01
+    distances = np.array([[near, near, far, far, near], [near, far, far, far, far]])
+    r_true = np.stack([distances, np.zeros_like(distances)], axis=-1)
+    run = AlgorithmRun("x", np.zeros((2, 5, 3)), r_true, r_true, 0.0)
+    assert run.rollouts_to_rehit(3).tolist() == [3, 4]  # hit at 5; none (budget − 3 + 2)
+    assert run.rollouts_to_rehit(2).tolist() == [1, 5]  # rollout 2 itself hits

@@ -180,3 +180,21 @@ def test_safeguarded_archer_hits_in_every_session_and_plain_archer_does_not() ->
 def test_bad_options_are_named(options: dict, named: str) -> None:
     with pytest.raises(LearnerConfigError, match=named):
         Archer(np.array([0.2, 0.0, 0.0]), rng=np.random.default_rng(0), **options)
+
+
+def test_window_chooses_the_best_among_recent_rollouts_only() -> None:
+    # The best rollout overall (r = 0.01) is older than the window of 3: the regression uses
+    # the three most recent, as the hand case above with the stale best in front.
+    windowed = _archer(safeguard=False, window=3)
+    windowed.tell([5.0, 5.0, 5.0], [0.01, 0.0])
+    _tell_hand_case(windowed)
+    assert windowed.ask() == pytest.approx([-0.5, 0.0, 0.0], abs=1e-15)
+    everything = _archer(safeguard=False)
+    everything.tell([5.0, 5.0, 5.0], [0.01, 0.0])
+    _tell_hand_case(everything)
+    assert everything.ask() != pytest.approx([-0.5, 0.0, 0.0], abs=1e-3)
+
+
+def test_window_must_hold_the_n_best() -> None:
+    with pytest.raises(LearnerConfigError, match="window"):
+        _archer(window=2)

@@ -89,11 +89,14 @@ def test_a_pending_proposal_survives_a_restore(name: str) -> None:
     assert np.array_equal(restored.ask(), pending)
 
 
+# archer-prior aims with a deterministic model: its seed only drives the safeguards' exploration
+# (tests/test_learner_prior.py checks that).
 @pytest.mark.parametrize("name", NAMES)
 def test_same_seed_same_proposals_other_seed_other_proposals(name: str) -> None:
     runs = [_play(_learner(name, seed), _world(), 12) for seed in (3, 3, 4)]
     assert all(np.array_equal(a, b) for a, b in zip(runs[0], runs[1], strict=True))
-    assert not all(np.array_equal(a, b) for a, b in zip(runs[0], runs[2], strict=True))
+    if name != "archer-prior":
+        assert not all(np.array_equal(a, b) for a, b in zip(runs[0], runs[2], strict=True))
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -13,12 +13,14 @@ from services.learner.algorithms.base import (
 )
 from services.learner.algorithms.baselines import CmaEs, RandomSearch
 from services.learner.algorithms.power import Power
+from services.learner.algorithms.prior import ArcherPrior
 from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
 
 __all__ = [
     "ALGORITHMS",
     "DEFAULT_BOUNDS",
     "Archer",
+    "ArcherPrior",
     "Bounds",
     "CmaEs",
     "Learner",

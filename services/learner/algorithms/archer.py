@@ -48,6 +48,10 @@ class Archer(Learner):
       so a failed extrapolation is followed by a shorter one instead of the same one again; at
       `min_step` the exploratory step above is added too.
 
+    With `window` > 0 the N best are chosen among the `window` most recent rollouts only (and the
+    trust radius compares a rollout with those), so rollouts of a world that has since changed
+    (a new wind) stop steering the regression after `window` rollouts.
+
     Args:
         theta0: initial θ (m), the centre of the exploratory rollouts.
         rng: the random generator for exploration.
@@ -65,6 +69,7 @@ class Archer(Learner):
         trust_radius: initial trust radius Δ (m).
         min_step: smallest trust radius (m).
         max_step: largest trust radius (m).
+        window: choose the N best among this many most recent rollouts (>= n_best); 0: all.
     """
 
     algorithm = "archer"
@@ -85,6 +90,7 @@ class Archer(Learner):
         trust_radius: float = 0.06,
         min_step: float = 0.002,
         max_step: float = 0.1,
+        window: int = 0,
     ) -> None:
         super().__init__(theta0, rng=rng, bounds=bounds)
         self.n_best = _count_option("n_best (N)", n_best, low=2)
@@ -102,6 +108,11 @@ class Archer(Learner):
             "trust_radius (m)", trust_radius, low=self.min_step, high=self.max_step
         )
         self._radius0 = self.trust_radius
+        self.window = _count_option("window", window, low=0)
+        if 0 < self.window < self.n_best:
+            raise LearnerConfigError(
+                f"window must be 0 (all rollouts) or >= n_best ({self.n_best}), got {window!r}"
+            )
         self.exploration_rollouts = self.n_explore
 
     def options(self) -> dict[str, Any]:
@@ -117,6 +128,7 @@ class Archer(Learner):
             "trust_radius": self._radius0,
             "min_step": self.min_step,
             "max_step": self.max_step,
+            "window": self.window,
         }
 
     def _propose(self) -> np.ndarray:
@@ -125,7 +137,7 @@ class Archer(Learner):
             # Initial phase: large random exploration around θ0.
             return self.theta0 + self.explore_std * self.rng.standard_normal(d)
         # Sort the rollouts by return, best first (R(τ_i) >= R(τ_i+1)); keep the N best.
-        best = self.ranked()[: self.n_best]
+        best = self._recent_ranked(self.n_rollouts)[: self.n_best]
         thetas, rewards = self.thetas[best], self.rewards[best]
         # r_{1,T} = r_T − r_1 with r_T = (0, 0); U's rows are r_{1,i} = r_i − r_1, i = 2..N.
         r_1t = -rewards[0]
@@ -150,6 +162,12 @@ class Archer(Learner):
             step = step + min(self.fallback_std, needed) * self.rng.standard_normal(d)
         return thetas[0] + step
 
+    def _recent_ranked(self, end: int) -> np.ndarray:
+        """Indices of the rollouts before `end` that the window keeps, best first."""
+        start = max(0, end - self.window) if self.window else 0
+        returns = self.returns[start:end]
+        return start + np.argsort(-returns, kind="stable")
+
     def _weights(self, u: np.ndarray, r_1t: np.ndarray) -> tuple[np.ndarray, bool]:
         """W solving r_{1,T} = W U (Eq. 5), and whether U was ill-conditioned."""
         # U must have rank 2 (the reward's dimension) for the linear model to reach the goal.
@@ -172,7 +190,8 @@ class Archer(Learner):
         if not self.safeguard or self.n_rollouts <= self.n_explore:
             return
         # Trust radius: grow after an aimed rollout that improved on the best, shrink otherwise.
-        if big_return > max(self._returns[:-1]):
+        previous = self._recent_ranked(self.n_rollouts - 1)[0]
+        if big_return > self._returns[previous]:
             self.trust_radius = min(2.0 * self.trust_radius, self.max_step)
         else:
             self.trust_radius = max(0.5 * self.trust_radius, self.min_step)

@@ -19,6 +19,7 @@ from services.learner.algorithms.base import (
 )
 from services.learner.algorithms.baselines import CmaEs, RandomSearch
 from services.learner.algorithms.power import Power
+from services.learner.algorithms.prior import ArcherPrior
 
 __all__ = ["ALGORITHMS", "LEARNER_CLASSES", "Algorithm", "make_learner", "restore_learner"]
 
@@ -44,6 +45,8 @@ class Algorithm:
 # archer-plain: the paper's algorithm with the same exploration; the -iso variants explore 20 mm
 # on every component; archer-ridge: the footnote's ridge regression. power: the paper's Eq. 1-4
 # with the authors' σ = 3 and decay 0.965; power-sharp: importance weights exp(−‖r‖/5 cm).
+# archer-recent: ARCHER regressing on the N best of the 4 most recent rollouts (forgets a changed
+# world); archer-prior: the ballistic model aims and a Bayesian residual corrects it.
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
     {
         a.name: a
@@ -70,6 +73,13 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
                 "ARCHER (ridge λ=1e-3 m²)",
                 MappingProxyType({"safeguard": False, "ridge": 1e-3}),
             ),
+            Algorithm(
+                "archer-recent",
+                Archer,
+                "ARCHER (safeguarded, N best of the 4 most recent)",
+                MappingProxyType({"window": 4}),
+            ),
+            Algorithm("archer-prior", ArcherPrior, "ARCHER with the ballistic prior"),
             Algorithm("power", Power, "PoWER"),
             Algorithm(
                 "power-sharp",
@@ -84,7 +94,7 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
 )
 
 LEARNER_CLASSES: Mapping[str, type[Learner]] = MappingProxyType(
-    {cls.algorithm: cls for cls in (Archer, Power, CmaEs, RandomSearch)}
+    {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, RandomSearch)}
 )
 
 

@@ -9,7 +9,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ __all__ = [
     "AlgorithmRun",
     "ExperimentConfig",
     "ExperimentError",
+    "WindChange",
     "build_parser",
     "main",
     "run_algorithm",
@@ -60,6 +61,38 @@ class ExperimentError(LearnerError):
 
 
 @dataclass(frozen=True)
+class WindChange:
+    """The wind becomes `wind` (m/s, root frame) from rollout `at` (1-based) on."""
+
+    at: int
+    wind: tuple[float, float, float]
+
+    @classmethod
+    def parse(cls, text: str) -> WindChange:
+        """`AT:VX,VY,VZ`, e.g. `20:0,-3,0`.
+
+        Raises:
+            ExperimentError: malformed text.
+        """
+        at, sep, wind = text.partition(":")
+        try:
+            rollout = int(at)
+        except ValueError:
+            rollout = -1
+        values = _floats(wind, 3, "--wind-change") if sep and rollout >= 0 else ()
+        if not values:
+            raise ExperimentError(
+                f"--wind-change needs AT:VX,VY,VZ (a rollout number, then the new wind in m/s), "
+                f"got {text!r}"
+            )
+        return cls(rollout, (values[0], values[1], values[2]))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain values for summary.json."""
+        return {"at": self.at, "wind": list(self.wind)}
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     """One experiment: every algorithm runs `sessions` sessions of `rollouts` rollouts.
 
@@ -74,6 +107,7 @@ class ExperimentConfig:
         scenario: the simulated range.
         bounds: θ box (m) given to every learner.
         world: the simulator; only "ballistic" (the paper's analytic model) here.
+        wind_change: the wind changes during the sessions (None: it does not).
     """
 
     algorithms: tuple[str, ...] = DEFAULT_ALGORITHMS
@@ -83,6 +117,7 @@ class ExperimentConfig:
     scenario: Scenario = field(default_factory=Scenario)
     bounds: Bounds = DEFAULT_BOUNDS
     world: str = "ballistic"
+    wind_change: WindChange | None = None
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -107,6 +142,13 @@ class ExperimentConfig:
                 f"start θ {list(self.scenario.start)} m lies outside the θ bounds "
                 f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
             )
+        if self.wind_change is not None:
+            at = self.wind_change.at
+            if not 2 <= at <= self.rollouts:
+                raise ExperimentError(
+                    f"--wind-change rollout {at} must be in [2, {self.rollouts}] (the budget)"
+                )
+            self.changed_scenario()  # a wind without drag is rejected here
         for name in self.algorithms:
             probe = self.learner(name, 0)
             needed = probe.exploration_rollouts + 1
@@ -132,6 +174,16 @@ class ExperimentConfig:
             rng=np.random.default_rng(self.seeds(session)[1]),
             bounds=self.bounds,
         )
+
+    def changed_scenario(self) -> Scenario:
+        """The range after the wind change (the scenario itself without one).
+
+        Raises:
+            ScenarioError: the new wind needs drag and the scenario has none.
+        """
+        if self.wind_change is None:
+            return self.scenario
+        return replace(self.scenario, wind=self.wind_change.wind)
 
     def to_dict(self) -> dict[str, Any]:
         """The run settings as plain values."""
@@ -173,6 +225,12 @@ class AlgorithmRun:
         budget = hits.shape[1]
         return np.where(hits.any(axis=1), hits.argmax(axis=1) + 1, budget + 1)
 
+    def rollouts_to_rehit(self, at: int) -> np.ndarray:
+        """(sessions,) rollouts from `at` (1-based, counted as 1) to the first hit at or after it;
+        budget − at + 2 if none."""
+        hits = self.distances[:, at - 1 :] < INNER_RING_RADIUS
+        return np.where(hits.any(axis=1), hits.argmax(axis=1) + 1, hits.shape[1] + 1)
+
 
 def run_algorithm(
     config: ExperimentConfig, name: str, on_rollout: Callable[[], None] | None = None
@@ -182,6 +240,8 @@ def run_algorithm(
     n_s, n_r = config.sessions, config.rollouts
     learners = [config.learner(name, s) for s in range(n_s)]
     world = BallisticWorld(config.scenario)
+    changed = BallisticWorld(config.changed_scenario())
+    change_at = config.wind_change.at if config.wind_change is not None else n_r + 1
     observers = []
     for s in range(n_s):
         observer = BallisticWorld(config.scenario)
@@ -192,7 +252,7 @@ def run_algorithm(
     r_true = np.empty((n_s, n_r, 2))
     for k in range(n_r):
         batch = np.stack([learner.ask() for learner in learners])
-        impacts = world.impacts(batch)
+        impacts = (world if k + 1 < change_at else changed).impacts(batch)
         for s, learner in enumerate(learners):
             r = observers[s].observe(impacts.r[s])
             learner.tell(batch[s], r)
@@ -236,21 +296,34 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
     Per algorithm: rollouts_to_hit (median, mean, quartiles over sessions) counts the first
     rollout whose true impact is inside the innermost ring (‖r‖ < 5 cm; a session that never hits
     counts as budget + 1); hit_rate and hits, the sessions that hit within the budget;
-    final_distance, the true ‖r‖ (m) of the last rollout (mean and std over sessions).
+    final_distance, the true ‖r‖ (m) of the last rollout (mean and std over sessions). With a
+    wind change at rollout AT, rollouts_to_rehit counts from AT (as 1) to the first hit at or
+    after it (budget − AT + 2 if none) and rehits the sessions that hit again; both are null
+    without a change.
     """
     algorithms = {}
+    change = config.wind_change
     for name, run in runs.items():
         to_hit = run.rollouts_to_hit()
         final = run.distances[:, -1]
+        rehit = None if change is None else run.rollouts_to_rehit(change.at)
         algorithms[name] = {
             "label": ALGORITHMS[name].label,
             "rollouts_to_hit": _stats(to_hit.astype(float)),
             "hit_rate": float(np.mean(to_hit <= config.rollouts)),
             "hits": int(np.sum(to_hit <= config.rollouts)),
             "final_distance": {"mean": float(final.mean()), "std": float(final.std())},
+            "rollouts_to_rehit": None if rehit is None else _stats(rehit.astype(float)),
+            "rehits": None
+            if rehit is None
+            else int(np.sum(rehit <= config.rollouts - change.at + 1)),
             "wall_time_s": run.wall_time,
         }
-    scenario = {"world": config.world, **config.scenario.to_dict()}
+    scenario = {
+        "world": config.world,
+        **config.scenario.to_dict(),
+        "wind_change": None if change is None else change.to_dict(),
+    }
     return {"scenario": scenario, "run": config.to_dict(), "algorithms": algorithms}
 
 
@@ -279,7 +352,13 @@ def write_outputs(
         from services.learner.tools.plots import plot_convergence, plot_trajectories
 
         labels = {name: ALGORITHMS[name].label for name in runs}
-        plot_convergence(runs, labels, out / "fig6.png", title=_title(config))
+        plot_convergence(
+            runs,
+            labels,
+            out / "fig6.png",
+            title=_title(config),
+            change_at=None if config.wind_change is None else config.wind_change.at,
+        )
         plot_trajectories(
             BallisticWorld(config.scenario), runs, labels, out / "fig5.png", session=0
         )
@@ -293,6 +372,9 @@ def _title(config: ExperimentConfig) -> str:
         parts.append(f"drag {s.drag:g}/m, wind {', '.join(f'{w:g}' for w in s.wind)} m/s")
     if s.noise:
         parts.append(f"noise {100 * s.noise:g} cm")
+    if config.wind_change is not None:
+        wind = ", ".join(f"{w:g}" for w in config.wind_change.wind)
+        parts.append(f"wind {wind} m/s from rollout {config.wind_change.at}")
     return f"{config.sessions} sessions × {config.rollouts} rollouts; " + ", ".join(parts)
 
 
@@ -328,6 +410,12 @@ def build_parser() -> argparse.ArgumentParser:
     add("--seed", default="0", help="master seed (default 0)")
     add("--distance", default=repr(defaults.distance), help="target distance, m (default 2.2)")
     add("--wind", default="0,0,0", help="wind VX,VY,VZ in m/s, root frame; needs --drag")
+    add(
+        "--wind-change",
+        default=None,
+        metavar="AT:VX,VY,VZ",
+        help="the wind becomes VX,VY,VZ m/s from rollout AT on (needs --drag)",
+    )
     add("--drag", default="0", help="drag K in a = −K‖v−w‖(v−w), 1/m (default 0)")
     add("--noise", default="0", help="std of the observation noise on r, m (default 0)")
     add(
@@ -376,6 +464,7 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         seed=_int(args.seed, "--seed"),
         scenario=scenario,
         world=args.world,
+        wind_change=None if args.wind_change is None else WindChange.parse(args.wind_change),
     )
 
 
@@ -389,23 +478,28 @@ def _print_table(summary: dict[str, Any], wall_time: float) -> None:
     table = Table(
         title=f"{run['sessions']} sessions × {run['rollouts']} rollouts, seed {run['seed']}"
     )
-    for column in (
-        "algorithm",
-        "to hit: median [q1, q3]",
-        "mean",
-        "hits",
-        "final ‖r‖ (m)",
-    ):
+    change = summary["scenario"]["wind_change"]
+    columns = ["algorithm", "to hit: median [q1, q3]", "mean", "hits", "final ‖r‖ (m)"]
+    if change is not None:
+        columns += [f"re-hit after rollout {change['at']}: median [q1, q3]", "re-hits"]
+    for column in columns:
         table.add_column(escape(column), justify="left" if column == "algorithm" else "right")
     for name, a in summary["algorithms"].items():
         h = a["rollouts_to_hit"]
-        table.add_row(
+        row = [
             name,
             escape(f"{h['median']:g} [{h['q1']:g}, {h['q3']:g}]"),
             f"{h['mean']:.1f}",
             f"{a['hits']}/{run['sessions']}",
             f"{a['final_distance']['mean']:.3f} ± {a['final_distance']['std']:.3f}",
-        )
+        ]
+        if change is not None:
+            e = a["rollouts_to_rehit"]
+            row += [
+                escape(f"{e['median']:g} [{e['q1']:g}, {e['q3']:g}]"),
+                f"{a['rehits']}/{run['sessions']}",
+            ]
+        table.add_row(*row)
     Console().print(table)
     Console().print(f"wall time {wall_time:.2f} s")
 

@@ -30,9 +30,18 @@ def _pyplot() -> ModuleType:
 
 
 def plot_convergence(
-    runs: Mapping[str, AlgorithmRun], labels: Mapping[str, str], path: Path, *, title: str = ""
+    runs: Mapping[str, AlgorithmRun],
+    labels: Mapping[str, str],
+    path: Path,
+    *,
+    title: str = "",
+    change_at: int | None = None,
 ) -> None:
-    """Mean ± std over sessions of the arrow's distance to the centre (cm) vs rollout (Fig. 6)."""
+    """Mean ± std over sessions of the arrow's distance to the centre (cm) vs rollout (Fig. 6).
+
+    With `change_at` (1-based rollout where the world changed) the change is marked and each
+    label gives the median rollouts to hit again from it.
+    """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(9, 5.5), dpi=120)
     top = 0.0
@@ -44,9 +53,15 @@ def plot_convergence(
         colour = _COLOURS[i % len(_COLOURS)]
         to_hit = np.median(run.rollouts_to_hit())
         label = f"{labels[name]}: median {to_hit:g} rollouts to hit"
+        if change_at is not None:
+            label += f", {np.median(run.rollouts_to_rehit(change_at)):g} to re-hit"
         ax.plot(rollout, mean, color=colour, lw=2, label=label)
         ax.fill_between(rollout, np.maximum(mean - std, 0.0), mean + std, color=colour, alpha=0.15)
     ax.axhline(100 * INNER_RING_RADIUS, color="red", ls="--", lw=1, label="innermost ring (5 cm)")
+    if change_at is not None:
+        ax.axvline(
+            change_at, color="black", ls=":", lw=1.5, label=f"wind changes (rollout {change_at})"
+        )
     ax.set_xlabel("rollout")
     ax.set_ylabel("distance of the arrow to the target centre (cm)")
     ax.set_xlim(1, max(run.distances.shape[1] for run in runs.values()))
