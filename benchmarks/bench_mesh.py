@@ -92,6 +92,10 @@ def _frame(width: int, height: int) -> np.ndarray:
 class _Stream:
     """One publisher → subscriber pair; counts arrivals and keeps the last arrival's time."""
 
+    _item: object
+    _put: Callable[[object], object]
+    _closers: tuple[Callable[[], object], ...]
+
     def __init__(self) -> None:
         self.count = 0
         self.last = 0.0
@@ -104,7 +108,10 @@ class _Stream:
             self._cond.notify_all()
 
     def send(self, frames: int) -> None:
-        raise NotImplementedError
+        """Publish `frames` frames as fast as the (lossless) publisher takes them."""
+        put, item = self._put, self._item
+        for _ in range(frames):
+            put(item)
 
     def wait(self, count: int) -> float:
         with self._cond:
@@ -113,7 +120,8 @@ class _Stream:
             return self.last
 
     def close(self) -> None:
-        raise NotImplementedError
+        for close in self._closers:
+            close()
 
 
 class RawStream(_Stream):
@@ -134,17 +142,12 @@ class RawStream(_Stream):
                 raise RuntimeError(f"no raw subscriber matched {key}")
             time.sleep(0.01)
 
+        self._item, self._put = self.payload, self._pub.put
+        self._closers = (self._pub.undeclare, self._sub.undeclare)
+
     def _on_sample(self, sample: zenoh.Sample) -> None:
         sample.payload.to_bytes()
         self.arrived()
-
-    def send(self, frames: int) -> None:
-        for _ in range(frames):
-            self._pub.put(self.payload)
-
-    def close(self) -> None:
-        self._pub.undeclare()
-        self._sub.undeclare()
 
 
 class NodeStream(_Stream):
@@ -157,17 +160,11 @@ class NodeStream(_Stream):
         self._pub: Publisher[Image] = a.publisher(key, Image, lossless=True)
         if not self._pub.wait_matched(10):
             raise RuntimeError(f"no protocol subscriber matched {key}")
+        self._item, self._put = self.image, self._pub.put
+        self._closers = (self._pub.close, self._sub.close)
 
     def _on_image(self, image: Image) -> None:
         self.arrived()
-
-    def send(self, frames: int) -> None:
-        for _ in range(frames):
-            self._pub.put(self.image)
-
-    def close(self) -> None:
-        self._pub.close()
-        self._sub.close()
 
 
 def _prime(streams: list[_Stream]) -> None:
@@ -349,6 +346,19 @@ class _Streams(list):  # type: ignore[type-arg]
             stream.close()
 
 
+def _run_sides(
+    plan: Plan, sides: list[Callable[[], object]], tick: Callable[[], None]
+) -> list[tuple[list[object], list[object]]]:
+    """A warm-up block of each side, then the interleaved repeats; the endpoints closed."""
+    try:
+        for side in sides:
+            side()
+        return interleave(plan.repeats, plan.blocks, sides[0], sides[1], tick)
+    finally:
+        for side in sides:
+            side.close()  # type: ignore[attr-defined]
+
+
 def measure_frames(
     plan: Plan,
     fig: Figure,
@@ -362,13 +372,7 @@ def measure_frames(
         _side(lambda m=m: _Streams(m()), lambda s: _frame_block(s, plan.frames), fresh)
         for m in (raw, ours)
     ]
-    try:
-        sides[0]()
-        sides[1]()
-        results = interleave(plan.repeats, plan.blocks, sides[0], sides[1], tick)
-    finally:
-        for side in sides:
-            side.close()  # type: ignore[attr-defined]
+    results = _run_sides(plan, sides, tick)
     for raw_fps, our_fps in results:  # mean rate of the repeat's blocks (equal frame counts)
         fig.add(
             statistics.harmonic_mean(raw_fps),  # type: ignore[arg-type]
@@ -389,13 +393,7 @@ def measure_rpc(
 ) -> None:
     """Fill the median and p99 figures per repeat (after a warm-up block of each side)."""
     sides = [_side(m, lambda rpc: _rpc_block(rpc, calls), fresh) for m in (raw, ours)]
-    try:
-        sides[0]()
-        sides[1]()
-        results = interleave(plan.repeats, plan.blocks, sides[0], sides[1], tick)
-    finally:
-        for side in sides:
-            side.close()  # type: ignore[attr-defined]
+    results = _run_sides(plan, sides, tick)
     for raw_blocks, our_blocks in results:
         raw_t = [t for block in raw_blocks for t in block]  # type: ignore[attr-defined]
         our_t = [t for block in our_blocks for t in block]  # type: ignore[attr-defined]
@@ -563,11 +561,14 @@ def report(figures: list[Figure]) -> None:
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print the table of ratios."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_mesh", description=__doc__)
-    parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats (≥ 5)")
-    parser.add_argument("--blocks", type=int, default=4, help="blocks per side and repeat")
-    parser.add_argument("--frames", type=int, default=40, help="frames per stream and block")
-    parser.add_argument("--calls", type=int, default=300, help="trivial calls per block")
-    parser.add_argument("--slow-calls", type=int, default=60, help="1 ms calls per block")
+    for flag, default, what in (
+        ("--repeats", 5, "interleaved repeats (≥ 5)"),
+        ("--blocks", 4, "blocks per side and repeat"),
+        ("--frames", 40, "frames per stream and block"),
+        ("--calls", 300, "trivial calls per block"),
+        ("--slow-calls", 60, "1 ms calls per block"),
+    ):
+        parser.add_argument(flag, type=int, default=default, help=what)
     parser.add_argument("--streams", default="1,2,4", help="simultaneous stream counts")
     parser.add_argument("--no-secure", action="store_true", help="skip the secure-mode figures")
     args = parser.parse_args(argv)

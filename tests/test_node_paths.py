@@ -127,10 +127,9 @@ def test_only_verbs_that_never_wait_are_non_blocking() -> None:
 
 def test_the_reused_publish_buffer_never_mixes_frames(pair: tuple[Node, Node]) -> None:
     server, client = pair
-    key = server.keys.cam_frames()
-    pub = server.publisher(key, Image, lossless=True)
-    sub = client.subscribe(key, Image, mode="fifo")
-    assert pub.wait_matched(5)
+    sub = client.subscribe(server.keys.cam_frames(), Image, mode="fifo")
+    pub = server.publisher(sub.key, Image, lossless=True)
+    assert pub.wait_matched(5), "no subscriber matched the frames"
     sizes = [(64, 48), (8, 4), (64, 48), (1, 1), (32, 16)] * 4
     for i, (w, h) in enumerate(sizes):
         pub.put(Image.from_numpy(np.full((h, w, 3), i, np.uint8), frame=i))
