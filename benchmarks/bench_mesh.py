@@ -1,10 +1,30 @@
-"""Mesh benchmark: the protocol layer against raw zenoh-python, same router, same run.
+"""Mesh benchmark: the protocol layer against raw zenoh-python, same router, same process run.
 
-Measures 1280×720 RGB frames per second (lossless publisher → subscriber that decodes each
-frame) and RPC round trips (median, p99) through a real router on loopback, for raw Zenoh and
-for `protocol.Node`, and prints the cost ratio (protocol / raw; the goal is ≤ 1.2).
+Every figure is a cost ratio, protocol / raw, taken per repeat and reported as the median over
+repeats with its spread (min–max). Within a repeat, raw and protocol run in alternating blocks
+(ABBA, the first side alternating between repeats), each block long enough to time and short
+enough that machine noise (a shared 2-core machine) hits both sides alike.
 
-Run: `python -m benchmarks.bench_mesh [--frames 300] [--calls 3000] [--repeats 3]`
+- Frames: lossless RGB frames at 1280×720 and 640×480 from one session to another; the raw
+  receiver copies each payload to `bytes` (what a real consumer does), the protocol receiver
+  decodes and validates an `Image` (`Node.subscribe` with a callback). Figure: frames/s from
+  the first `put` to the arrival of the block's last frame; cost ratio = raw fps / protocol fps.
+- Streams: N = 1, 2, 4 camera streams at once through the router (N publisher/subscriber
+  pairs, each publisher on its own thread at full speed, 1280×720); aggregate frames/s.
+- RPC: round trips with a trivial handler and with a 1 ms handler (`time.sleep(0.001)` on
+  both sides). The raw queryable replies the request's payload (the same bytes as the
+  protocol's request); the protocol serves a typed verb (`Node.call_typed` against
+  `Node.serve`): the trivial echo is a non-blocking verb, the 1 ms one blocking (it runs on
+  the server's worker thread). Figures: median and p99 of the repeat's calls.
+- Secure: the same frames and RPC figures over a router in secure mode (mutual TLS with a
+  fresh `archery keys init` deployment, the router enforcing its ACL), protocol-over-secure
+  against raw-over-secure, with the deployment's identities (camera → operator, learner →
+  detector) on their ACL-granted keys.
+
+Goals (median over repeats): frames ≤ 1.15×, RPC median ≤ 1.2×, RPC p99 ≤ 1.5×.
+
+Run: `python -m benchmarks.bench_mesh [--repeats 5] [--blocks 4] [--frames 40] [--calls 300]
+[--slow-calls 60] [--no-secure]`
 """
 
 from __future__ import annotations
@@ -13,174 +33,571 @@ import argparse
 import os
 import platform
 import statistics
+import tempfile
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Annotated, TypeVar
 
+import msgspec
 import numpy as np
 import zenoh
 from rich.progress import Progress
 
-from protocol.messages import Image
+from benchmarks.machine import cpu_model
+from protocol.codec import encode
+from protocol.credentials import init_deployment
+from protocol.messages import Image, RpcRequest
 from protocol.netflags import NetConfig, open_session
-from protocol.node import Node
+from protocol.node import Node, Publisher
 from protocol.router import free_tcp_endpoint, spawn_router
+from protocol.verbs import Args, Reply, Verb, VerbTable
 
-WIDTH, HEIGHT = 1280, 720
+ROBOT = "bench"
+THETA = [0.17, 0.03, -0.03]
+GOALS = {"fps": 1.15, "median": 1.2, "p99": 1.5}
+T = TypeVar("T")
+R = TypeVar("R")
 
 
-def _raw_frames(a: zenoh.Session, b: zenoh.Session, key: str, frames: int) -> float:
-    """Frames/s of raw bytes from session a to session b (receiver copies the payload)."""
-    payload = np.random.default_rng(0).integers(0, 255, WIDTH * HEIGHT * 3, np.uint8).tobytes()
-    done = threading.Event()
-    count = [0, 0.0]
+class EchoArgs(Args, frozen=True):
+    theta: Annotated[list[float], msgspec.Meta(max_length=16)]
 
-    def on_sample(sample: zenoh.Sample) -> None:
+
+class EchoReply(Reply, frozen=True):
+    theta: list[float]
+
+
+ECHO = Verb("echo", EchoArgs, EchoReply, "reply θ at once", blocking=False)
+WORK = Verb("work", EchoArgs, EchoReply, "sleep 1 ms, then reply θ")
+TABLE = VerbTable("bench", ("bench/rpc:i",), (ECHO, WORK))
+
+
+def _echo(args: EchoArgs) -> EchoReply:
+    return EchoReply(theta=args.theta)
+
+
+def _work(args: EchoArgs) -> EchoReply:
+    time.sleep(0.001)
+    return EchoReply(theta=args.theta)
+
+
+def _frame(width: int, height: int) -> np.ndarray:
+    return np.random.default_rng(0).integers(0, 255, (height, width, 3), np.uint8)
+
+
+# -- streams --------------------------------------------------------------------------------------
+class _Stream:
+    """One publisher → subscriber pair; counts arrivals and keeps the last arrival's time."""
+
+    _item: object
+    _put: Callable[[object], object]
+    _closers: tuple[Callable[[], object], ...]
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.last = 0.0
+        self._cond = threading.Condition()
+
+    def arrived(self) -> None:
+        with self._cond:
+            self.count += 1
+            self.last = time.perf_counter()
+            self._cond.notify_all()
+
+    def send(self, frames: int) -> None:
+        """Publish `frames` frames as fast as the (lossless) publisher takes them."""
+        put, item = self._put, self._item
+        for _ in range(frames):
+            put(item)
+
+    def wait(self, count: int) -> float:
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.count >= count, timeout=60):
+                raise RuntimeError(f"only {self.count} of {count} frames arrived")
+            return self.last
+
+    def close(self) -> None:
+        for close in self._closers:
+            close()
+
+
+class RawStream(_Stream):
+    """Raw bytes; the receiver copies each payload to `bytes` as a real consumer would."""
+
+    def __init__(self, a: zenoh.Session, b: zenoh.Session, key: str, pixels: np.ndarray) -> None:
+        super().__init__()
+        self.payload = pixels.tobytes()
+        self._sub = b.declare_subscriber(key, self._on_sample)
+        self._pub = a.declare_publisher(
+            key,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            reliability=zenoh.Reliability.RELIABLE,
+        )
+        deadline = time.monotonic() + 10
+        while not self._pub.matching_status.matching:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no raw subscriber matched {key}")
+            time.sleep(0.01)
+
+        self._item, self._put = self.payload, self._pub.put
+        self._closers = (self._pub.undeclare, self._sub.undeclare)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
         sample.payload.to_bytes()
-        count[0] += 1
-        if count[0] == frames:
-            count[1] = time.perf_counter()
-            done.set()
+        self.arrived()
 
-    sub = b.declare_subscriber(key, on_sample)
-    pub = a.declare_publisher(
-        key,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-        reliability=zenoh.Reliability.RELIABLE,
+
+class NodeStream(_Stream):
+    """`Image` messages: stamped, encoded, decoded and validated by the protocol layer."""
+
+    def __init__(self, a: Node, b: Node, key: str, pixels: np.ndarray) -> None:
+        super().__init__()
+        self.image = Image.from_numpy(pixels)
+        self._sub = b.subscribe(key, Image, mode="fifo", callback=self._on_image)
+        self._pub: Publisher[Image] = a.publisher(key, Image, lossless=True)
+        if not self._pub.wait_matched(10):
+            raise RuntimeError(f"no protocol subscriber matched {key}")
+        self._item, self._put = self.image, self._pub.put
+        self._closers = (self._pub.close, self._sub.close)
+
+    def _on_image(self, image: Image) -> None:
+        self.arrived()
+
+
+def _prime(streams: list[_Stream]) -> None:
+    """One frame through each stream, so every route is in place before timing."""
+    for stream in streams:
+        for _ in range(50):
+            stream.send(1)
+            with stream._cond:
+                if stream._cond.wait_for(lambda s=stream: s.count > 0, timeout=0.2):
+                    break
+        else:
+            raise RuntimeError("a stream never delivered a frame")
+
+
+def _frame_block(streams: list[_Stream], frames: int) -> float:
+    """Aggregate frames/s of every stream sending `frames` at once (one thread per stream)."""
+    targets = [s.count + frames for s in streams]
+    threads = [threading.Thread(target=s.send, args=(frames,)) for s in streams[1:]]
+    start = time.perf_counter()
+    for thread in threads:
+        thread.start()
+    streams[0].send(frames)
+    for thread in threads:
+        thread.join()
+    end = max(s.wait(t) for s, t in zip(streams, targets, strict=True))
+    return len(streams) * frames / (end - start)
+
+
+# -- rpc ------------------------------------------------------------------------------------------
+class RawRpc:
+    """A raw queryable replying the request's payload (after `delay` s) and a raw querier."""
+
+    def __init__(self, a: zenoh.Session, b: zenoh.Session, key: str, delay: float) -> None:
+        self.delay = delay
+        self.payload = encode(RpcRequest(verb="echo", args={"theta": THETA}, stamp=time.time()))
+        self._queryable = b.declare_queryable(key, self._on_query)
+        self._querier = a.declare_querier(key, timeout=5.0)
+        deadline = time.monotonic() + 10
+        while not self._ok():
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"no raw queryable answers {key}")
+            time.sleep(0.01)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if self.delay:
+            time.sleep(self.delay)
+        query.reply(query.key_expr, payload)
+
+    def _ok(self) -> bool:
+        replies = list(self._querier.get(payload=self.payload))
+        return (
+            bool(replies)
+            and replies[0].ok is not None
+            and (
+                replies[0].ok.payload.to_bytes() == self.payload  # from this echo, not another
+            )
+        )
+
+    def call(self) -> None:
+        if not self._ok():
+            raise RuntimeError("a raw query got no reply")
+
+    def close(self) -> None:
+        self._querier.undeclare()
+        self._queryable.undeclare()
+
+
+class NodeRpc:
+    """`Node.call_typed` against `Node.serve` of the echo (non-blocking) or work (1 ms) verb."""
+
+    def __init__(self, client: Node, server: Node, key: str, delay: float) -> None:
+        self.client, self.key = client, key
+        self.verb = WORK if delay else ECHO
+        self.args = EchoArgs(theta=THETA)
+        self._server = server.serve(key, TABLE.bind({"echo": _echo, "work": _work}))
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                self.call()
+                break
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+
+    def call(self) -> None:
+        if self.client.call_typed(self.key, self.verb, self.args, timeout=5.0).theta != THETA:
+            raise RuntimeError("the echo changed θ")
+
+    def close(self) -> None:
+        self._server.close()
+
+
+def _rpc_block(rpc: RawRpc | NodeRpc, calls: int) -> list[float]:
+    times = []
+    for _ in range(calls):
+        t0 = time.perf_counter()
+        rpc.call()
+        times.append((time.perf_counter() - t0) * 1e3)
+    return times
+
+
+# -- interleaving ---------------------------------------------------------------------------------
+@dataclass
+class Figure:
+    """Per-repeat figures of one row: raw and protocol values, and the cost ratios."""
+
+    name: str
+    unit: str
+    goal: float
+    raw: list[float] = field(default_factory=list)
+    ours: list[float] = field(default_factory=list)
+    ratios: list[float] = field(default_factory=list)
+
+    def add(self, raw: float, ours: float, *, higher_is_better: bool) -> None:
+        self.raw.append(raw)
+        self.ours.append(ours)
+        self.ratios.append(raw / ours if higher_is_better else ours / raw)
+
+
+def interleave(
+    repeats: int, blocks: int, raw: Callable[[], object], ours: Callable[[], object], tick: Callable
+) -> list[tuple[list[object], list[object]]]:
+    """Per repeat, the raw and protocol results of `blocks` blocks each, in ABBA order."""
+    out = []
+    for r in range(repeats):
+        got: dict[str, list[object]] = {"raw": [], "ours": []}
+        for b in range(blocks):
+            order = ("raw", "ours") if (b + r) % 2 == 0 else ("ours", "raw")
+            for side in order:
+                got[side].append((raw if side == "raw" else ours)())
+                tick()
+        out.append((got["raw"], got["ours"]))
+    return out
+
+
+@dataclass
+class Plan:
+    repeats: int
+    blocks: int
+    frames: int
+    calls: int
+    slow_calls: int
+
+
+def _side(make: Callable[[], T], run: Callable[[T], R], fresh: bool) -> Callable[[], R]:
+    """One side's block: `run` on the endpoints `make` builds, built once (plain) or anew for
+    every block and closed after it (`fresh`: raw and protocol share the ACL-granted keys of
+    the secure mesh, so only one side's endpoints may exist at a time)."""
+    kept: list[T] = []
+
+    def block() -> R:
+        if fresh or not kept:
+            kept[:] = [make()]
+        try:
+            return run(kept[0])
+        finally:
+            if fresh:
+                kept.pop().close()  # type: ignore[attr-defined]
+
+    def close() -> None:
+        for item in kept:
+            item.close()  # type: ignore[attr-defined]
+
+    block.close = close  # type: ignore[attr-defined]
+    return block
+
+
+class _Streams(list):  # type: ignore[type-arg]
+    """Streams primed once built, closed together."""
+
+    def __init__(self, streams: list[_Stream]) -> None:
+        super().__init__(streams)
+        _prime(streams)
+
+    def close(self) -> None:
+        for stream in self:
+            stream.close()
+
+
+def _run_sides(
+    plan: Plan, sides: list[Callable[[], object]], tick: Callable[[], None]
+) -> list[tuple[list[object], list[object]]]:
+    """A warm-up block of each side, then the interleaved repeats; the endpoints closed."""
+    try:
+        for side in sides:
+            side()
+        return interleave(plan.repeats, plan.blocks, sides[0], sides[1], tick)
+    finally:
+        for side in sides:
+            side.close()  # type: ignore[attr-defined]
+
+
+def measure_frames(
+    plan: Plan,
+    fig: Figure,
+    raw: Callable[[], list[_Stream]],
+    ours: Callable[[], list[_Stream]],
+    tick: Callable[[], None],
+    fresh: bool = False,
+) -> None:
+    """Fill `fig` with per-repeat aggregate frames/s (after a warm-up block of each side)."""
+    sides = [
+        _side(lambda m=m: _Streams(m()), lambda s: _frame_block(s, plan.frames), fresh)
+        for m in (raw, ours)
+    ]
+    results = _run_sides(plan, sides, tick)
+    for raw_fps, our_fps in results:  # mean rate of the repeat's blocks (equal frame counts)
+        fig.add(
+            statistics.harmonic_mean(raw_fps),  # type: ignore[arg-type]
+            statistics.harmonic_mean(our_fps),  # type: ignore[arg-type]
+            higher_is_better=True,
+        )
+
+
+def measure_rpc(
+    median: Figure,
+    p99: Figure,
+    raw: Callable[[], RawRpc],
+    ours: Callable[[], NodeRpc],
+    plan: Plan,
+    calls: int,
+    tick: Callable[[], None],
+    fresh: bool = False,
+) -> None:
+    """Fill the median and p99 figures per repeat (after a warm-up block of each side)."""
+    sides = [_side(m, lambda rpc: _rpc_block(rpc, calls), fresh) for m in (raw, ours)]
+    results = _run_sides(plan, sides, tick)
+    for raw_blocks, our_blocks in results:
+        raw_t = [t for block in raw_blocks for t in block]  # type: ignore[attr-defined]
+        our_t = [t for block in our_blocks for t in block]  # type: ignore[attr-defined]
+        median.add(statistics.median(raw_t), statistics.median(our_t), higher_is_better=False)
+        p99.add(
+            float(np.percentile(raw_t, 99)),
+            float(np.percentile(our_t, 99)),
+            higher_is_better=False,
+        )
+
+
+# -- the meshes -----------------------------------------------------------------------------------
+@dataclass
+class Mesh:
+    """Raw sessions and protocol nodes on one router: (a → b) for streams and calls."""
+
+    raw_a: zenoh.Session
+    raw_b: zenoh.Session
+    node_a: Node
+    node_b: Node
+
+    def close(self) -> None:
+        for node in (self.node_a, self.node_b):
+            node.close()
+        for session in (self.raw_a, self.raw_b):
+            session.close()
+
+
+def _plain_mesh(endpoint: str) -> Mesh:
+    net = NetConfig(connect=(endpoint,), robot=ROBOT)
+    return Mesh(open_session(net), open_session(net), Node(None, net), Node(None, net))
+
+
+def _secure_nets(endpoint: str, deployment: str, a: str, b: str) -> tuple[NetConfig, NetConfig]:
+    def net(identity: str) -> NetConfig:
+        return NetConfig(connect=(endpoint,), robot=ROBOT, secure=deployment, identity=identity)
+
+    return net(a), net(b)
+
+
+def _secure_mesh(endpoint: str, deployment: str, a: str, b: str) -> Mesh:
+    net_a, net_b = _secure_nets(endpoint, deployment, a, b)
+    return Mesh(open_session(net_a), open_session(net_b), Node(None, net_a), Node(None, net_b))
+
+
+def run_plain(plan: Plan, streams: list[int], tick: Callable[[], None]) -> list[Figure]:
+    """Frames (two sizes), N streams and RPC through one plain router."""
+    figures = []
+    endpoint = free_tcp_endpoint()
+    router = spawn_router(endpoint)
+    mesh = _plain_mesh(endpoint)
+    try:
+        cases = [(1, 1280, 720), (1, 640, 480)] + [(n, 1280, 720) for n in streams if n != 1]
+        for n, width, height in cases:
+            name = f"{width}×{height} frames/s" if n == 1 else f"{n} streams 1280×720 fps"
+            fig = Figure(name, "fps", GOALS["fps"])
+            pixels = _frame(width, height)
+            key = f"{ROBOT}/n{n}w{width}"
+
+            def raw(key: str = key, pixels: np.ndarray = pixels, n: int = n) -> list[_Stream]:
+                return [
+                    RawStream(mesh.raw_a, mesh.raw_b, f"{key}/raw{i}", pixels) for i in range(n)
+                ]
+
+            def ours(key: str = key, pixels: np.ndarray = pixels, n: int = n) -> list[_Stream]:
+                return [
+                    NodeStream(mesh.node_a, mesh.node_b, f"{key}/ours{i}", pixels) for i in range(n)
+                ]
+
+            measure_frames(plan, fig, raw, ours, tick)
+            figures.append(fig)
+        for delay, calls, label in ((0.0, plan.calls, "trivial"), (0.001, plan.slow_calls, "1 ms")):
+            median = Figure(f"RPC {label} median (ms)", "ms", GOALS["median"])
+            p99 = Figure(f"RPC {label} p99 (ms)", "ms", GOALS["p99"])
+            key = f"{ROBOT}/rpc{int(delay * 1e3)}"
+            measure_rpc(
+                median,
+                p99,
+                lambda key=key, delay=delay: RawRpc(mesh.raw_a, mesh.raw_b, f"{key}/raw", delay),
+                lambda key=key, delay=delay: NodeRpc(
+                    mesh.node_a, mesh.node_b, f"{key}/ours", delay
+                ),
+                plan,
+                calls,
+                tick,
+            )
+            figures += [median, p99]
+    finally:
+        mesh.close()
+        router.terminate()
+        router.wait()
+    return figures
+
+
+def run_secure(plan: Plan, tick: Callable[[], None]) -> list[Figure]:
+    """1280×720 frames and RPC through a secure router (tls + ACL), raw and protocol, each
+    block on fresh endpoints (the two sides share the ACL-granted keys)."""
+    figures = []
+    with tempfile.TemporaryDirectory() as tmp:
+        deployment = str(init_deployment(Path(tmp) / "deploy", robot=ROBOT))
+        endpoint = free_tcp_endpoint().replace("tcp/", "tls/")
+        router = spawn_router(endpoint, secure=deployment)
+        meshes: list[Mesh] = []
+        try:
+            cam = _secure_mesh(endpoint, deployment, "camera", "operator")
+            meshes.append(cam)
+            frames_key = cam.node_a.keys.cam_frames()  # the ACL grants camera → operator
+            fig = Figure("secure 1280×720 frames/s", "fps", GOALS["fps"])
+            pixels = _frame(1280, 720)
+            measure_frames(
+                plan,
+                fig,
+                lambda: [RawStream(cam.raw_a, cam.raw_b, frames_key, pixels)],
+                lambda: [NodeStream(cam.node_a, cam.node_b, frames_key, pixels)],
+                tick,
+                fresh=True,
+            )
+            figures.append(fig)
+            rpc = _secure_mesh(endpoint, deployment, "learner", "detector")
+            meshes.append(rpc)
+            rpc_key = rpc.node_a.keys.detector_rpc()  # learner calls, detector serves
+            for delay, calls, label in (
+                (0.0, plan.calls, "trivial"),
+                (0.001, plan.slow_calls, "1 ms"),
+            ):
+                median = Figure(f"secure RPC {label} median", "ms", GOALS["median"])
+                p99 = Figure(f"secure RPC {label} p99", "ms", GOALS["p99"])
+                measure_rpc(
+                    median,
+                    p99,
+                    lambda delay=delay: RawRpc(rpc.raw_a, rpc.raw_b, rpc_key, delay),
+                    lambda delay=delay: NodeRpc(rpc.node_a, rpc.node_b, rpc_key, delay),
+                    plan,
+                    calls,
+                    tick,
+                    fresh=True,
+                )
+                figures += [median, p99]
+        finally:
+            for mesh in meshes:
+                mesh.close()
+            router.terminate()
+            router.wait()
+    return figures
+
+
+def report(figures: list[Figure]) -> None:
+    """Print one row per figure: medians over repeats, the median ratio, its spread, goal."""
+    head = f"{'figure':<28} {'raw':>9} {'protocol':>9} {'ratio':>7} {'spread':>12} {'goal':>8}"
+    print(head)
+    for fig in figures:
+        ratio = statistics.median(fig.ratios)
+        spread = f"{min(fig.ratios):.2f}–{max(fig.ratios):.2f}"
+        verdict = "met" if ratio <= fig.goal else "NOT met"
+        print(
+            f"{fig.name:<28} {statistics.median(fig.raw):>9.3f} {statistics.median(fig.ours):>9.3f}"
+            f" {ratio:>6.2f}× {spread:>12} ≤{fig.goal:.2f} {verdict}"
+        )
+    print(
+        "ratio = protocol cost / raw cost per repeat (frames: raw fps / protocol fps; RPC: "
+        "protocol ms / raw ms); raw and protocol columns are medians over repeats"
     )
-    while not pub.matching_status.matching:
-        time.sleep(0.01)
-    start = time.perf_counter()
-    for _ in range(frames):
-        pub.put(payload)
-    if not done.wait(60):
-        raise RuntimeError(f"raw: only {count[0]} of {frames} frames arrived")
-    pub.undeclare()
-    sub.undeclare()
-    return frames / (count[1] - start)
-
-
-def _node_frames(a: Node, b: Node, key: str, frames: int) -> float:
-    """Frames/s of `Image` messages through the protocol layer (encode, decode, validate)."""
-    rgb = np.random.default_rng(0).integers(0, 255, (HEIGHT, WIDTH, 3), np.uint8)
-    image = Image.from_numpy(rgb)
-    done = threading.Event()
-    stamps: list[float] = []
-
-    def on_image(message: Image) -> None:
-        stamps.append(time.perf_counter())
-        if len(stamps) == frames:
-            done.set()
-
-    sub = b.subscribe(key, Image, mode="latest", callback=on_image)
-    pub = a.publisher(key, Image, lossless=True)
-    pub.wait_matched(10)
-    start = time.perf_counter()
-    for i in range(frames):
-        pub.put(Image.from_numpy(rgb, frame=i) if i == 0 else image)
-    if not done.wait(60):
-        raise RuntimeError(f"protocol: only {len(stamps)} of {frames} frames arrived")
-    pub.close()
-    sub.close()
-    return frames / (stamps[-1] - start)
-
-
-def _raw_rpc(a: zenoh.Session, b: zenoh.Session, key: str, calls: int) -> list[float]:
-    """Round-trip times (ms) of raw queries answered by a raw queryable echoing the payload."""
-
-    def on_query(query: zenoh.Query) -> None:
-        query.reply(query.key_expr, query.payload.to_bytes() if query.payload else b"")
-
-    queryable = b.declare_queryable(key, on_query)
-    querier = a.declare_querier(key, timeout=5.0)
-    payload = b"x" * 64
-    while not list(querier.get(payload=payload)):
-        time.sleep(0.01)
-    times = []
-    for _ in range(calls):
-        t0 = time.perf_counter()
-        replies = list(querier.get(payload=payload))
-        times.append((time.perf_counter() - t0) * 1e3)
-        assert replies and replies[0].ok is not None
-    querier.undeclare()
-    queryable.undeclare()
-    return times
-
-
-def _node_rpc(a: Node, b: Node, key: str, calls: int) -> list[float]:
-    """Round-trip times (ms) of `Node.call` answered by `Node.serve` (decode, dispatch, encode)."""
-    b.serve(key, {"echo": lambda args: args})
-    args = {"theta": [0.17, 0.03, -0.03]}
-    a.call(key, "echo", args)
-    times = []
-    for _ in range(calls):
-        t0 = time.perf_counter()
-        a.call(key, "echo", args)
-        times.append((time.perf_counter() - t0) * 1e3)
-    return times
-
-
-def _p99(values: list[float]) -> float:
-    return float(np.percentile(values, 99))
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark and print a table with ratios."""
+    """Run the benchmark and print the table of ratios."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_mesh", description=__doc__)
-    parser.add_argument("--frames", type=int, default=300)
-    parser.add_argument("--calls", type=int, default=3000)
-    parser.add_argument("--repeats", type=int, default=3)
+    for flag, default, what in (
+        ("--repeats", 5, "interleaved repeats (≥ 5)"),
+        ("--blocks", 4, "blocks per side and repeat"),
+        ("--frames", 40, "frames per stream and block"),
+        ("--calls", 300, "trivial calls per block"),
+        ("--slow-calls", 60, "1 ms calls per block"),
+    ):
+        parser.add_argument(flag, type=int, default=default, help=what)
+    parser.add_argument("--streams", default="1,2,4", help="simultaneous stream counts")
+    parser.add_argument("--no-secure", action="store_true", help="skip the secure-mode figures")
     args = parser.parse_args(argv)
-    endpoint = free_tcp_endpoint()
-    router = spawn_router(endpoint)
-    net = NetConfig(connect=(endpoint,), robot="bench")
-    results: dict[str, list[float]] = {k: [] for k in ("raw_fps", "node_fps")}
-    raw_rtt: list[float] = []
-    node_rtt: list[float] = []
-    try:
-        raw_a, raw_b = open_session(net), open_session(net)
-        node_a, node_b = Node("bench_a", net), Node("bench_b", net)
-        with Progress() as progress:
-            task = progress.add_task("mesh benchmark", total=args.repeats * 4)
-            for r in range(args.repeats):
-                # interleave raw and protocol runs so machine noise hits both alike
-                results["raw_fps"].append(_raw_frames(raw_a, raw_b, f"bench/raw/f{r}", args.frames))
-                progress.advance(task)
-                results["node_fps"].append(
-                    _node_frames(node_a, node_b, f"bench/cam{r}/target:o", args.frames)
-                )
-                progress.advance(task)
-                raw_rtt += _raw_rpc(raw_a, raw_b, f"bench/raw/rpc{r}", args.calls)
-                progress.advance(task)
-                node_rtt += _node_rpc(node_a, node_b, f"bench/rpc{r}/rpc:i", args.calls)
-                progress.advance(task)
-        node_a.close()
-        node_b.close()
-        raw_a.close()
-        raw_b.close()
-    finally:
-        router.terminate()
-        router.wait()
-    raw_fps, node_fps = (
-        statistics.median(results["raw_fps"]),
-        statistics.median(results["node_fps"]),
+    if args.repeats < 5:
+        parser.error("--repeats must be at least 5")
+    if args.blocks < 2 or args.frames < 2 or args.calls < 2 or args.slow_calls < 2:
+        parser.error("--blocks, --frames, --calls and --slow-calls must be at least 2")
+    streams = [int(n) for n in args.streams.split(",")]
+    plan = Plan(args.repeats, args.blocks, args.frames, args.calls, args.slow_calls)
+    per_case = 2 * plan.repeats * plan.blocks
+    plain_cases = 2 + sum(1 for n in streams if n != 1) + 2
+    secure_cases = 0 if args.no_secure else 3
+    figures: list[Figure] = []
+    with Progress() as progress:
+        task = progress.add_task("mesh benchmark", total=per_case * (plain_cases + secure_cases))
+
+        def tick() -> None:
+            progress.advance(task)
+
+        figures += run_plain(plan, streams, tick)
+        if not args.no_secure:
+            figures += run_secure(plan, tick)
+    print(f"\nmachine: {cpu_model()}, {os.cpu_count()} cores, Python {platform.python_version()}")
+    print(
+        f"{plan.repeats} repeats × {plan.blocks} ABBA blocks per side: {plan.frames} frames per "
+        f"stream, {plan.calls} trivial / {plan.slow_calls} 1 ms calls per block; routers on "
+        f"loopback (plain tcp/, secure tls/ + ACL)"
     )
-    rows = [
-        ("1280x720 RGB frames/s", raw_fps, node_fps, raw_fps / node_fps),
-        (
-            "RPC round trip median (ms)",
-            statistics.median(raw_rtt),
-            statistics.median(node_rtt),
-            statistics.median(node_rtt) / statistics.median(raw_rtt),
-        ),
-        ("RPC round trip p99 (ms)", _p99(raw_rtt), _p99(node_rtt), _p99(node_rtt) / _p99(raw_rtt)),
-    ]
-    cpu = platform.processor() or platform.machine()
-    print(f"\nmachine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}")
-    print(f"{args.repeats} repeats × {args.frames} frames, {args.calls} calls, router on loopback")
-    print(f"{'figure':<28} {'raw zenoh':>10} {'protocol':>10} {'cost ratio':>11}")
-    for name, raw, ours, ratio in rows:
-        print(f"{name:<28} {raw:>10.3f} {ours:>10.3f} {ratio:>10.2f}×")
-    print("cost ratio = protocol time / raw time (frames: raw fps / protocol fps); goal ≤ 1.2×")
+    report(figures)
     return 0
 
 

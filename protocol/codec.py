@@ -9,7 +9,14 @@ import msgspec
 from protocol.errors import DecodeError
 from protocol.messages import MESSAGE_TYPES, Array, Message
 
-__all__ = ["MAX_PAYLOAD_BYTES", "decode", "encode", "from_jsonable", "to_jsonable"]
+__all__ = [
+    "MAX_PAYLOAD_BYTES",
+    "decode",
+    "encode",
+    "encode_into",
+    "from_jsonable",
+    "to_jsonable",
+]
 
 M = TypeVar("M", bound=Message)
 
@@ -25,6 +32,12 @@ _decoders: dict[type, msgspec.msgpack.Decoder] = {
 def encode(message: Message) -> bytes:
     """Serialize a message to msgpack bytes."""
     return _encoder.encode(message)
+
+
+def encode_into(message: Message, buffer: bytearray) -> None:
+    """Serialize a message into `buffer` (resized to fit), reusing its memory: no new
+    allocation per message for a publisher that keeps one buffer."""
+    _encoder.encode_into(message, buffer)
 
 
 def decode(

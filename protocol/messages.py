@@ -39,6 +39,8 @@ __all__ = [
 SCHEMA_VERSION = 1
 ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8", "|b1")
 IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
+_ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
+_FLOATS = ("<f4", "<f8")
 
 
 def _check_finite(value: Any, where: str) -> None:
@@ -68,13 +70,14 @@ class Array(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
             raise ValueError(f"array dtype {self.dtype!r} is not one of {ALLOWED_DTYPES}")
         if any(n < 0 for n in self.shape) or len(self.shape) > 8:
             raise ValueError(f"array shape {self.shape!r} must have ≤ 8 non-negative sizes")
-        expected = int(np.prod(self.shape, dtype=np.int64)) * np.dtype(self.dtype).itemsize
+        expected = math.prod(self.shape) * _ITEMSIZE[self.dtype]
         if expected != len(self.data):
             raise ValueError(
                 f"array of dtype {self.dtype} and shape {self.shape} needs {expected} bytes, "
                 f"got {len(self.data)}"
             )
-        if self.dtype in ("<f4", "<f8") and not np.all(np.isfinite(self.to_numpy())):
+        # one vectorised pass over a flat view of the bytes (no copy, no reshape)
+        if self.dtype in _FLOATS and not np.isfinite(np.frombuffer(self.data, self.dtype)).all():
             raise ValueError("array holds NaN or infinite values; finite numbers are required")
 
     @classmethod

@@ -10,6 +10,7 @@ Malformed payloads are logged and counted, never fatal.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import queue
@@ -24,7 +25,7 @@ import msgspec
 import zenoh
 
 from protocol import instances
-from protocol.codec import MAX_PAYLOAD_BYTES, decode, encode
+from protocol.codec import MAX_PAYLOAD_BYTES, decode, encode, encode_into
 from protocol.errors import (
     ArcheryError,
     DecodeError,
@@ -91,6 +92,7 @@ class Publisher(Generic[M]):
         self._seq = 0
         self._closed = False
         self._lock = threading.Lock()
+        self._buffer = bytearray()  # reused: Zenoh copies the payload out during `put`
         self._pub = session.declare_publisher(
             key,
             congestion_control=(
@@ -108,7 +110,8 @@ class Publisher(Generic[M]):
         with self._lock:
             self._seq += 1
             stamped = msgspec.structs.replace(message, seq=self._seq, stamp=time.time())
-            self._pub.put(encode(stamped))
+            encode_into(stamped, self._buffer)
+            self._pub.put(self._buffer)
         return stamped
 
     def wait_matched(self, timeout: float) -> bool:
@@ -309,16 +312,21 @@ def _reply_error(call: str, reply: RpcReply) -> RpcError:
 class RpcServer:
     """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
 
-    Requests are handled one at a time, in order, on a worker thread (like a YARP RPC port), so
-    a slow handler never blocks Zenoh's threads. This is the one place a request is validated:
-    for a typed verb table (`ServedVerbs`) the request's args are decoded straight into the
-    verb's `Args` type, and anything that does not fit (wrong type, out of range, NaN, unknown
-    or missing field) is answered `bad_request` naming the verb, the field and what is allowed;
-    the handler gets the typed args and returns the verb's `Reply`. Untyped handlers (a plain
-    dict of verb -> callable, for tests and tools) get the args as a dict. An `ArcheryError`
-    becomes an error reply with its code, any other exception an "internal" error; a payload
-    that is not a request (not msgpack, no `type` tag, nested too deep) `bad_message`. The
-    server keeps serving.
+    Requests for blocking verbs (the default) are handled one at a time, in order, on the
+    server's worker thread (like a YARP RPC port), so a slow handler never blocks Zenoh's
+    threads. A verb declared `blocking=False` (status and getters that never wait) is answered
+    right on the receive path, without a thread hand-off, so it is neither slowed by the hand-off
+    nor held up behind a blocking verb of the same port; it may run while a blocking handler
+    does. Requests that reach no handler (undecodable, unknown verb) are answered there too.
+
+    This is the one place a request is validated: for a typed verb table (`ServedVerbs`) the
+    request's args are decoded straight into the verb's `Args` type, and anything that does not
+    fit (wrong type, out of range, NaN, unknown or missing field) is answered `bad_request`
+    naming the verb, the field and what is allowed; the handler gets the typed args and returns
+    the verb's `Reply`. Untyped handlers (a plain dict of verb -> callable, for tests and tools)
+    get the args as a dict and are always blocking. An `ArcheryError` becomes an error reply
+    with its code, any other exception an "internal" error; a payload that is not a request (not
+    msgpack, no `type` tag, nested too deep) `bad_message`. The server keeps serving.
     """
 
     def __init__(
@@ -329,29 +337,57 @@ class RpcServer:
         self.handlers: dict[str, BoundVerb[Any, Any] | Handler] = (
             dict(handlers.bound) if isinstance(handlers, ServedVerbs) else dict(handlers)
         )
+        self.inline = frozenset(
+            name
+            for name, entry in self.handlers.items()
+            if isinstance(entry, BoundVerb) and not entry.verb.blocking
+        )
         self.served = 0
         self.errors = 0
-        self._seq = 0
+        self._seq = itertools.count(1)
+        self._counts = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._queryable = session.declare_queryable(key, self._queue.put)
+        self._queryable = session.declare_queryable(key, self._on_query)
         self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
         self._thread.start()
 
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Zenoh's thread: decode the request once; answer it here unless its verb blocks."""
+        try:
+            request: _WireRequest | DecodeError = self._request(query)
+        except DecodeError as exc:
+            request = exc
+        except Exception:
+            log.exception("could not read a request on %s", self.key)
+            query.drop()
+            return
+        if (
+            isinstance(request, _WireRequest)
+            and request.verb in self.handlers
+            and request.verb not in self.inline
+        ):
+            self._queue.put((query, request))
+        else:
+            self._answer(query, request)
+
     def _work(self) -> None:
         while True:
-            query = self._queue.get()
-            if query is _STOP:
+            item = self._queue.get()
+            if item is _STOP:
                 return
-            try:
-                self._seq += 1
-                query.reply(self.key, encode(self._handle(query, self._seq)))
-            except Exception:
-                log.exception("could not reply on %s", self.key)
-            finally:
-                query.drop()
+            self._answer(*item)
+
+    def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
+        try:
+            query.reply(self.key, encode(self._handle(request, next(self._seq))))
+        except Exception:
+            log.exception("could not reply on %s", self.key)
+        finally:
+            query.drop()
 
     def _error(self, code: str, message: str, seq: int, service: str = "") -> RpcReply:
-        self.errors += 1
+        with self._counts:
+            self.errors += 1
         return RpcReply(
             ok=False, code=code, message=message, service=service, seq=seq, stamp=time.time()
         )
@@ -379,12 +415,11 @@ class RpcServer:
             raise DecodeError("the request's `type` is not 'RpcRequest'")
         return request
 
-    def _handle(self, query: zenoh.Query, seq: int) -> RpcReply:
-        self.served += 1
-        try:
-            request = self._request(query)
-        except DecodeError as exc:
-            return self._error(exc.code, f"bad request on {self.key}: {exc}", seq)
+    def _handle(self, request: _WireRequest | DecodeError, seq: int) -> RpcReply:
+        with self._counts:
+            self.served += 1
+        if isinstance(request, DecodeError):
+            return self._error(request.code, f"bad request on {self.key}: {request}", seq)
         entry = self.handlers.get(request.verb)
         if entry is None:
             verbs = ", ".join(sorted(self.handlers))
@@ -456,7 +491,7 @@ class Node:
         self._interfaces: dict[str, dict[str, Any]] = {}
         self._closables: list[Any] = []
         self._queriers: dict[tuple[str, float], zenoh.Querier] = {}
-        self._rpc_seq = 0
+        self._rpc_seq = itertools.count(1)  # next() is atomic: no lock per call
         self._rpc_lock = threading.Lock()
         self._closed = False
         self._token = None
@@ -581,9 +616,7 @@ class Node:
             WrongReplier: only sessions other than `expect_service`'s live instance replied.
             RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
         """
-        with self._rpc_lock:
-            self._rpc_seq += 1
-            seq = self._rpc_seq
+        seq = next(self._rpc_seq)
         request = RpcRequest(verb=verb, args=args or {}, seq=seq, stamp=time.time())
         reply = self.request(key, encode(request), timeout=timeout, expect_service=expect_service)
         if not reply.ok:
@@ -611,9 +644,7 @@ class Node:
         """
         if args is not None and not isinstance(args, verb.args):
             raise TypeError(f"{verb.name} takes {verb.args.__name__}, got {type(args).__name__}")
-        with self._rpc_lock:
-            self._rpc_seq += 1
-            seq = self._rpc_seq
+        seq = next(self._rpc_seq)
         request = RpcRequest(
             verb=verb.name,
             args=args if args is not None else {},  # type: ignore[arg-type]  # a Struct encodes as a map
@@ -655,13 +686,15 @@ class Node:
         self, key: str, payload: bytes, timeout: float, expect_service: str | None = None
     ) -> bytes:
         """Send a request payload and return the first accepted reply's payload bytes."""
-        with self._rpc_lock:
-            querier = self._queriers.get((key, timeout))
-            if querier is None:
-                querier = self.session.declare_querier(
-                    key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
-                )
-                self._queriers[(key, timeout)] = querier
+        querier = self._queriers.get((key, timeout))
+        if querier is None:
+            with self._rpc_lock:
+                querier = self._queriers.get((key, timeout))
+                if querier is None:
+                    querier = self.session.declare_querier(
+                        key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
+                    )
+                    self._queriers[(key, timeout)] = querier
         start = time.monotonic()
         rejected: list[str] = []
         for reply in querier.get(payload=payload):

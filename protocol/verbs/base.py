@@ -50,12 +50,18 @@ R = TypeVar("R", bound=msgspec.Struct)
 
 @dataclass(frozen=True)
 class Verb(Generic[A, R]):
-    """One verb: its name, argument and reply types, and a one-line doc."""
+    """One verb: its name, argument and reply types, and a one-line doc.
+
+    `blocking=False` declares that the handler never waits (no sleep, no call, no wait on a
+    stream, on another thread's job or on a lock held across one): the server then answers it
+    right on the receive path instead of queueing it behind the blocking verbs of its port.
+    """
 
     name: str
     args: type[A]
     reply: type[R]
     doc: str
+    blocking: bool = True
 
     @functools.cached_property
     def args_decoder(self) -> msgspec.msgpack.Decoder[A]:

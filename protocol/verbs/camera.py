@@ -46,6 +46,12 @@ CAMERA_VERBS = VerbTable(
     (
         Verb("grab", GrabArgs, Image, "the first frame fresher than the given times (default 5 s)"),
         Verb("calibration", NoArgs, CalibrationReply, "a frame and its target/arrow marks"),
-        Verb("status", NoArgs, CameraStatusReply, "source, size, rate, frames, render time"),
+        Verb(
+            "status",
+            NoArgs,
+            CameraStatusReply,
+            "source, size, rate, frames, render time",
+            blocking=False,
+        ),
     ),
 )

@@ -103,7 +103,7 @@ class DofReply(Reply, frozen=True):
 
 _TRAJ = (
     Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"),
-    Verb("getTrajTime", NoArgs, TrajTimeReply, "trajectory time of the next moves"),
+    Verb("getTrajTime", NoArgs, TrajTimeReply, "trajectory time of the next moves", blocking=False),
 )
 
 ARM_VERBS = VerbTable(
@@ -114,10 +114,16 @@ ARM_VERBS = VerbTable(
         Verb("goToPose", GoToPoseArgs, GoToPoseReply, "solve IK and move there; replies when done"),
         Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)"),
         Verb("setTolerance", SetToleranceArgs, ToleranceReply, "IK position tolerance"),
-        Verb("getTolerance", NoArgs, ToleranceReply, "IK position tolerance"),
+        Verb("getTolerance", NoArgs, ToleranceReply, "IK position tolerance", blocking=False),
         *_TRAJ,
         Verb("setDOF", SetDofArgs, DofReply, "solve and move the torso with the arm, or hold it"),
-        Verb("getDOF", NoArgs, DofReply, "whether the torso moves, and the moving joints"),
+        Verb(
+            "getDOF",
+            NoArgs,
+            DofReply,
+            "whether the torso moves, and the moving joints",
+            blocking=False,
+        ),
     ),
 )
 
@@ -161,6 +167,12 @@ ARCHERY_VERBS = VerbTable(
     (
         Verb("posture", PostureArgs, PostureReply, "move both arms to the posture for θ"),
         *_TRAJ,
-        Verb("status", NoArgs, ArcheryStatusReply, "θ box, bow hand, joints, trajectory time"),
+        Verb(
+            "status",
+            NoArgs,
+            ArcheryStatusReply,
+            "θ box, bow hand, joints, trajectory time",
+            blocking=False,
+        ),
     ),
 )

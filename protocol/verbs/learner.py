@@ -71,6 +71,12 @@ LEARNER_VERBS = VerbTable(
     (
         Verb("start", StartArgs, LearnerStatusReply, "start a session, or resume a journal"),
         Verb("stop", NoArgs, LearnerStatusReply, "stop the session after its current rollout"),
-        Verb("status", NoArgs, LearnerStatusReply, "the running or last session's status"),
+        Verb(
+            "status",
+            NoArgs,
+            LearnerStatusReply,
+            "the running or last session's status",
+            blocking=False,
+        ),
     ),
 )

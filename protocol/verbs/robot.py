@@ -90,8 +90,20 @@ PART_VERBS = VerbTable(
     "robot controlboard",
     tuple(f"{part}/rpc:i" for part in PARTS),
     (
-        Verb("getJointNames", NoArgs, JointNamesReply, "the part's joint names, in YARP order"),
-        Verb("getLimits", NoArgs, LimitsReply, "software joint limits (rad) and clamp tolerance"),
+        Verb(
+            "getJointNames",
+            NoArgs,
+            JointNamesReply,
+            "the part's joint names, in YARP order",
+            blocking=False,
+        ),
+        Verb(
+            "getLimits",
+            NoArgs,
+            LimitsReply,
+            "software joint limits (rad) and clamp tolerance",
+            blocking=False,
+        ),
         Verb("getPositions", NoArgs, PositionsReply, "encoders: positions, velocities, sim time"),
         Verb("getTargets", NoArgs, TargetsReply, "the current (clamped) position targets"),
         Verb("checkMotionDone", NoArgs, MotionDoneReply, "True once every joint has settled"),
