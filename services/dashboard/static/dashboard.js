@@ -41,7 +41,7 @@ function drawFace(state) {
     const shade = done.length > 1 ? k / (done.length - 1) : 1;
     const dot = el("circle", {
       cx: points[k][0], cy: points[k][1], r: r.hit ? 1.3 : 0.9,
-      fill: `hsl(${200 - 160 * shade}, 85%, ${60 - 20 * shade}%)`,
+      fill: `hsl(${190 + 110 * shade}, 90%, ${70 - 20 * shade}%)`,
       stroke: last ? "#000" : "#fff", "stroke-width": last ? 0.4 : 0.2,
       class: "impact", "data-index": r.index,
     }, svg);
@@ -56,8 +56,9 @@ function drawCurve(state) {
   const done = state.rollouts.filter((r) => r.distance_m !== null);
   const ys = done.map((r) => 100 * r.distance_m);
   const ymax = Math.max(100 * state.hit_radius_m * 1.5, ...ys, 1) * 1.1;
-  const n = Math.max(done.length, 2);
-  const x = (k) => L + (k * (W - L - R)) / (n - 1);
+  const first = done.length ? done[0].index : 0;
+  const span = Math.max(done.length ? done[done.length - 1].index - first : 1, 1);
+  const x = (k) => L + ((done[k].index - first) * (W - L - R)) / span;
   const y = (v) => T + (H - T - B) * (1 - v / ymax);
   el("line", { x1: L, y1: H - B, x2: W - R, y2: H - B, stroke: "#444" }, svg);
   el("line", { x1: L, y1: T, x2: L, y2: H - B, stroke: "#444" }, svg);
@@ -85,7 +86,7 @@ function drawCurve(state) {
       fill: done[k].hit ? "#2e7d32" : "#1565c0", class: "distance-point" }, svg);
   });
   if (done.length) {
-    const first = done[0].index, last = done[done.length - 1].index;
+    const last = done[done.length - 1].index;
     el("text", { x: L, y: H - B + 14, "font-size": 11, "text-anchor": "middle" }, svg)
       .textContent = first;
     el("text", { x: x(done.length - 1), y: H - B + 14, "font-size": 11, "text-anchor": "middle" },
@@ -105,7 +106,9 @@ function showServices(state) {
   }
   const l = state.learner;
   const parts = [`learner: ${l.state || "?"}`];
-  if (l.rollouts !== undefined) parts.push(`${l.rollouts} of ${l.budget} rollouts`);
+  if (l.rollouts !== undefined) {
+    parts.push(l.budget !== undefined ? `${l.rollouts} of ${l.budget} rollouts` : `${l.rollouts} rollouts`);
+  }
   if (l.best_distance_m !== undefined) parts.push(`best ${cm(l.best_distance_m)}`);
   if (l.hit_at !== undefined) parts.push(`hit at rollout ${l.hit_at}`);
   document.getElementById("learner-state").textContent = parts.join(" · ");
