@@ -16,6 +16,7 @@ the detector, so watching never disturbs a session.
 
 from __future__ import annotations
 
+import argparse
 import errno
 import ipaddress
 import json
@@ -113,8 +114,7 @@ def _check_host(host: str) -> str:
 
 
 def _port(text: str) -> int:
-    import argparse
-
+    """argparse type: a TCP port, 0 (a free one) to 65535."""
     try:
         value = int(text)
     except ValueError:
@@ -189,14 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         "with overlay, target face, distance per rollout, liveliness and port rates",
     )
     add_network_args(parser, default_mode="client")
-    parser.add_argument(
-        "--port", type=_port, default=DEFAULT_PORT, help=f"HTTP port (default {DEFAULT_PORT})"
-    )
-    parser.add_argument(
-        "--host",
-        default="127.0.0.1",
-        help="address to listen on (default 127.0.0.1: this machine only)",
-    )
+    http = parser.add_argument_group("web page")
+    http.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"default {DEFAULT_PORT}")
+    http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
     args = parser.parse_args(argv)
     try:
         net = NetConfig.from_args(args)
