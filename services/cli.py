@@ -61,6 +61,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "services.learner.tools.experiment:main",
         "run the paper's simulation experiment (learners on the ballistic world)",
     ),
+    "dashboard": (
+        "services.dashboard.server:main",
+        "a live view in the browser: frame, target face, distances, liveliness, rates",
+    ),
     "demo": ("services.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
     "keys": ("protocol.credentials:main", "keys init DIR: CA, identities and ACL for --secure"),
 }

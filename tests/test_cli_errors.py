@@ -24,7 +24,8 @@ from tests.conftest import archery, serving
 
 # (argv, exit status, text the one stderr line must contain). In argv, {net} stands for the
 # flags of a live router and a robot of the test's own, {dead} for an endpoint where nothing
-# listens, {robot} for the robot name and {tmp} for a fresh folder.
+# listens, {busy} for a TCP port in use (the router's), {robot} for the robot name and {tmp}
+# for a fresh folder.
 CASES: list[tuple[str, int, str]] = [
     # read
     ("read {robot}/torso/state:o --count 1 --timeout -1 {net}", 2, "'-1'"),
@@ -160,6 +161,12 @@ CASES: list[tuple[str, int, str]] = [
     ("hz {robot}/torso/state:o --duration 0.3 {net}", 1, "no message on {robot}/torso/state:o"),
     ("read {robot}/torso/state:o --field nosuch {net}", 2, "JointState has no field 'nosuch'"),
     ("read {robot}/nosuch/** {net}", 2, "matches no stream port"),
+    # dashboard
+    ("dashboard --port {busy} {net}", 2, "--port {busy}: address 127.0.0.1:{busy} is in use"),
+    ("dashboard --host nohost --port 0 {net}", 2, "--host 'nohost' is not an IP address"),
+    ("dashboard --host 192.0.2.1 --port 0 {net}", 2, "cannot listen"),
+    ("dashboard --port 70000 {net}", 2, "'70000'"),
+    ("dashboard --port 0 --connect {dead}", 1, "{dead}"),
     # the dispatcher and demo
     ("fly", 2, "'fly'"),
     ("help fly", 2, "'fly'"),
@@ -205,6 +212,7 @@ def table(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> dic
         values = {
             "net": f"--connect {router_endpoint} --robot {robot}",
             "dead": dead,
+            "busy": router_endpoint.rsplit(":", 1)[1],
             "robot": robot,
             "tmp": str(tmp),
         }

@@ -1,0 +1,1 @@
+"""`archery dashboard`: a live view of a learning session in the browser."""
