@@ -148,7 +148,13 @@ def test_state_endpoint_and_files(net: NetConfig) -> None:
 def test_no_frame_yet_is_404(net: NetConfig) -> None:
     with Dashboard(net, bind("127.0.0.1", 0)) as dash:
         assert get(dash.url + "api/frame.png")[0] == 404
-        state = json.loads(get(dash.url + "api/state")[2])
+        deadline = time.monotonic() + 30  # until the first status and frame calls gave up
+        while True:
+            state = json.loads(get(dash.url + "api/state")[2])
+            if "state" in state["learner"] and state["frame"]["error"]:
+                break
+            assert time.monotonic() < deadline, state
+            time.sleep(0.1)
         assert state["learner"]["state"] == "unreachable" and state["rollouts"] == []
         assert "detector/rpc:i" in state["frame"]["error"]
 
