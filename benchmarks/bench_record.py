@@ -216,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
                         )
                     pair[with_recorder] = _per_rollout(node, rollouts, i, args.rollouts)
                     if recorder is not None:
-                        _stop(recorder)
+                        said = _stop(recorder).strip().splitlines()
+                        print(f"  {said[-1] if said else ''}", flush=True)
                 ratios.append(pair[True] / pair[False])
                 plain.append(pair[False])
                 recorded.append(pair[True])
