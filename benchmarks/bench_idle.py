@@ -20,8 +20,7 @@ from pathlib import Path
 
 import psutil
 
-from protocol.router import free_tcp_endpoint
-from services.launcher import Launcher
+from benchmarks.bench_record import mesh_launcher
 
 __all__ = ["main", "measure"]
 
@@ -42,21 +41,20 @@ def measure(procs: dict[str, psutil.Process], seconds: float) -> dict[str, float
     return {name: 100.0 * (_cpu(p) - before[name]) / wall for name, p in procs.items()}
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark; exit status 0 (1 when the idle mesh is over the goal)."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_idle", description=__doc__)
     parser.add_argument("--seconds", type=float, default=10.0, help="per measurement")
     parser.add_argument("--repeats", type=int, default=1, help="measurements")
     parser.add_argument("--settle", type=float, default=5.0, help="s after all are alive")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit status 0 (1 when the idle mesh is over the goal)."""
+    args = _parser().parse_args(argv)
+    os.environ.setdefault("MUJOCO_GL", "egl")
     tmp = Path(tempfile.mkdtemp(prefix="bench-idle-"))
-    launcher = Launcher(
-        free_tcp_endpoint(),
-        "benchidle",
-        tmp / "logs",
-        {"learner": ["--runs", str(tmp / "runs")], "detector": ["--model", str(tmp / "m.json")]},
-    )
+    launcher = mesh_launcher(tmp, "benchidle", tmp / "model.json")
     runs: list[dict[str, float]] = []
     with launcher:
         took = launcher.up(180)
