@@ -40,7 +40,7 @@ from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
 from services.learner.tools.learn import follow
 
-__all__ = ["main", "remeasure"]
+__all__ = ["main", "mesh_launcher", "remeasure"]
 
 
 def _stop(proc: subprocess.Popen[str]) -> str:
@@ -174,6 +174,17 @@ def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int]:
     return worst, len(hits)
 
 
+def mesh_launcher(tmp: Path, robot: str, model: Path) -> Launcher:
+    """A whole mesh on a free port: logs and the learner's runs under `tmp`, the detector's
+    colour model in `model`."""
+    return Launcher(
+        free_tcp_endpoint(),
+        robot,
+        tmp / "logs",
+        {"learner": ["--runs", str(tmp / "runs")], "detector": ["--model", str(model)]},
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -184,12 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="bench-record-"))
     model = tmp / "model.json"
-    launcher = Launcher(
-        free_tcp_endpoint(),
-        "bench",
-        tmp / "logs",
-        {"learner": ["--runs", str(tmp / "runs")], "detector": ["--model", str(model)]},
-    )
+    launcher = mesh_launcher(tmp, "bench", model)
     launcher.up(180)
     endpoint = launcher.endpoint
     ratios, plain, recorded = [], [], []
@@ -216,7 +222,8 @@ def main(argv: list[str] | None = None) -> int:
                         )
                     pair[with_recorder] = _per_rollout(node, rollouts, i, args.rollouts)
                     if recorder is not None:
-                        _stop(recorder)
+                        said = _stop(recorder).strip().splitlines()
+                        print(f"  {said[-1] if said else ''}", flush=True)
                 ratios.append(pair[True] / pair[False])
                 plain.append(pair[False])
                 recorded.append(pair[True])

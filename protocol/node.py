@@ -114,21 +114,26 @@ class Publisher(Generic[M]):
             self._pub.put(self._buffer)
         return stamped
 
+    def matching(self) -> bool:
+        """Whether at least one subscriber matches the key now."""
+        return bool(self._pub.matching_status.matching)
+
+    def on_matching(self, callback: Callable[[bool], None]) -> Callable[[], None]:
+        """Call `callback(matching)` whenever subscribers appear or all go; returns the function
+        that stops the calls (keep a reference while it should run)."""
+        listener = self._pub.declare_matching_listener(lambda s: callback(bool(s.matching)))
+        return listener.undeclare
+
     def wait_matched(self, timeout: float) -> bool:
         """Wait until at least one subscriber matches the key; False after `timeout` s."""
-        if self._pub.matching_status.matching:
+        if self.matching():
             return True
         matched = threading.Event()
-
-        def on_status(status: zenoh.MatchingStatus) -> None:
-            if status.matching:
-                matched.set()
-
-        listener = self._pub.declare_matching_listener(on_status)
+        stop = self.on_matching(lambda matching: matched.set() if matching else None)
         try:
-            return self._pub.matching_status.matching or matched.wait(timeout)
+            return self.matching() or matched.wait(timeout)
         finally:
-            listener.undeclare()
+            stop()
 
     def close(self) -> None:
         """Undeclare the publisher (idempotent)."""

@@ -34,6 +34,8 @@ from protocol.verbs.camera import MAX_GRAB_TIMEOUT, GrabArgs
 
 __all__ = ["hz_main", "record_main", "replay_main"]
 
+RECEIVE_QUEUE = 1024  # samples Zenoh queues per recorded pattern before it waits for us
+
 
 def _fail(prog: str, exc: ArcheryError, status: int) -> int:
     print(f"archery {prog}: {exc}", file=sys.stderr)
@@ -96,33 +98,44 @@ def record_main(argv: list[str] | None = None) -> int:
             received = [0]
             done = threading.Event()
 
-            def subscriber(i: int) -> zenoh.Subscriber:
+            def read(i: int, sub: zenoh.Subscriber) -> None:
+                # Zenoh's thread only queues samples (no Python, no GIL): a busy recorder
+                # never holds up the link, where the router would drop the frames it carries
                 earlier = exprs[:i]
-
-                def on_sample(sample: zenoh.Sample) -> None:
+                for sample in sub:
                     key = sample.key_expr
                     if any(e.includes(key) for e in earlier):
-                        return  # the earlier pattern's subscriber has it
+                        continue  # the earlier pattern's subscriber has it
                     recorder.put(str(key), sample.payload.to_bytes())
                     received[0] += 1
                     if args.count and received[0] >= args.count:
                         done.set()
 
-                return node.session.declare_subscriber(exprs[i], on_sample)
-
-            subs = [subscriber(i) for i in range(len(exprs))]
+            subs = [
+                node.session.declare_subscriber(expr, zenoh.handlers.FifoChannel(RECEIVE_QUEUE))
+                for expr in exprs
+            ]
+            readers = [
+                threading.Thread(target=read, args=(i, sub), name=f"record-{i}", daemon=True)
+                for i, sub in enumerate(subs)
+            ]
+            for reader in readers:
+                reader.start()
             print(f"archery record: recording {' '.join(patterns)} to {out}", flush=True)
             try:
                 _until(stop, done, args.duration)
             finally:
                 for sub in subs:
                     sub.undeclare()
+                for reader in readers:
+                    reader.join(10)
                 stats = recorder.close()
     except ArcheryError as exc:
         return _fail("record", exc, 1)
     print(
         f"archery record: wrote {stats.total} messages on {len(stats.written)} keys to {out}"
-        f" ({stats.malformed} malformed skipped)",
+        f" ({stats.malformed} malformed skipped, {stats.missing} missing by sequence number,"
+        f" {stats.overflow} dropped by a full queue)",
         flush=True,
     )
     return 0

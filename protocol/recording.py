@@ -244,6 +244,8 @@ class RecordStats:
     bytes: dict[str, int] = field(default_factory=dict)
     malformed: int = 0
     chunks: int = 0
+    missing: int = 0  # messages never seen: gaps in a key's sequence numbers
+    overflow: int = 0  # messages dropped because the writer fell `max_pending` bytes behind
 
     @property
     def total(self) -> int:
@@ -262,6 +264,11 @@ class Recorder:
         chunk_size: close a chunk once it holds this many bytes.
         flush_interval: close the chunk in progress at least this often (s), so a crash loses at
             most that much.
+        max_pending: bytes queued for the writer at most; a message beyond is dropped and
+            counted in `stats.overflow` (never blocks the receiving thread).
+
+    Losses are counted, never guessed: `stats.missing` counts the gaps in each key's sequence
+    numbers (messages dropped before they reached the recorder, or by the full queue).
     """
 
     def __init__(
@@ -273,6 +280,7 @@ class Recorder:
         compression: str = "zstd",
         chunk_size: int = 4 * 1024 * 1024,
         flush_interval: float = 1.0,
+        max_pending: int = 1 << 30,
     ) -> None:
         self.path = Path(path)
         try:
@@ -297,6 +305,10 @@ class Recorder:
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
         self._queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
+        self._pending_bytes = 0
+        self._max_pending = max_pending
+        self._lock = threading.Lock()
+        self._seqs: dict[str, int] = {}
         self._flush_interval = flush_interval
         self._dirty = False
         self._closed = False
@@ -305,17 +317,24 @@ class Recorder:
 
     def put(self, key: str, payload: bytes, received_ns: int | None = None) -> None:
         """Queue one payload received on `key` (any thread; never blocks)."""
+        with self._lock:
+            if self._pending_bytes + len(payload) > self._max_pending:
+                self.stats.overflow += 1
+                return
+            self._pending_bytes += len(payload)
         self._queue.put((key, payload, received_ns if received_ns is not None else time.time_ns()))
 
     def pending(self) -> int:
         """Payloads queued, not written yet."""
         return self._queue.qsize()
 
-    def _channel(self, key: str, schema_name: str, schema: bytes) -> int:
+    def _channel(self, key: str, schema_name: str, message: ArcheryMessage) -> int:
         channel = self._channels.get((key, schema_name))
         if channel is None:
             schema_id = self._schemas.get(schema_name)
             if schema_id is None:
+                encoding = message.encoding if isinstance(message, Image) else ""
+                schema = _schema_of(type(message), encoding)[1]
                 schema_id = self._writer.register_schema(schema_name, "jsonschema", schema)
                 self._schemas[schema_name] = schema_id
             channel = self._writer.register_channel(key, "json", schema_id)
@@ -323,6 +342,8 @@ class Recorder:
         return channel
 
     def _write(self, key: str, payload: bytes, received_ns: int) -> None:
+        with self._lock:
+            self._pending_bytes -= len(payload)
         message_type = stream_type(key)
         if message_type is None:
             self.stats.malformed += 1
@@ -334,9 +355,12 @@ class Recorder:
             if self.stats.malformed <= 10:
                 log.warning("skipped a malformed message on %s: %s", key, exc)
             return
+        last = self._seqs.get(key)
+        if last is not None and message.seq > last + 1:
+            self.stats.missing += message.seq - last - 1
+        self._seqs[key] = message.seq  # a lower seq: its sender restarted
         schema_name, data = to_record(message)
-        encoding = message.encoding if isinstance(message, Image) else ""
-        channel = self._channel(key, schema_name, _schema_of(message_type, encoding)[1])
+        channel = self._channel(key, schema_name, message)
         self._writer.add_message(
             channel,
             log_time=received_ns,

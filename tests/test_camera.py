@@ -92,7 +92,8 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
 
         status = node.call(keys.cam_rpc(), "status", timeout=5)
         assert status["source"] == "mujoco" and status["scene_from"] == "default"
-        assert status["renders"] >= 3 and status["render_ms"] > 0 and status["errors"] == 0
+        assert status["renders"] >= 2 and status["render_ms"] > 0 and status["errors"] == 0
+        assert status["reuses"] >= 2  # 3.0 and 3.1 show the qpos of 2.5: not rendered again
         assert status["latest_sim_time"] >= 3.0
 
         for args, message in (
@@ -108,6 +109,55 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
         world.put(_state(np.zeros(7), 4.0))
         world.put(_state(physics.qpos(), 4.1))
         assert _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 4.1}, timeout=10))
+
+
+def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scene(
+    net: NetConfig, physics: ScenePhysics
+) -> None:
+    physics.reset()
+    physics.forward()
+    qpos = physics.qpos()
+    with serving(run, CameraConfig(net=net, rate=20.0, robot_timeout=0.3)), Node(None, net) as node:
+        keys = node.keys
+        node.wait_alive(["camera"], timeout=30)
+        world = node.publisher(keys.world_state(), WorldState)
+        assert world.wait_matched(5)
+
+        def status() -> dict:
+            return node.call(keys.cam_rpc(), "status", timeout=5)
+
+        def grab(**args: float) -> Image:
+            return _image(node.call(keys.cam_rpc(), "grab", args, timeout=10))
+
+        # a robot at rest, nobody watching: 1 s of states at 30/s and no frame at all
+        for _ in range(30):
+            world.put(_state(qpos, 1.0))
+            time.sleep(1 / 30)
+        idle = status()
+        assert (idle["renders"], idle["reuses"], idle["frames"]) == (0, 0, 0)
+
+        # a grab still gets a fresh frame of the newest state: one render
+        assert grab(after_sim_time=1.0).sim_time == 1.0
+        assert status()["renders"] == 1
+        # the same qpos again, asked for after a stamp: the last render, stamped now
+        now = time.time()
+        world.put(_state(qpos, 1.5))
+        again = grab(after_stamp=now)
+        assert again.sim_time == 1.5 and again.stamp >= now
+        after = status()
+        assert (after["renders"], after["reuses"]) == (1, 1)
+
+        # a subscriber appears: frames flow at the rate, of the unchanged scene without renders
+        frames = node.subscribe(keys.cam_frames(), Image, mode="fifo")
+        got = [frames.get(timeout=10) for _ in range(3)]
+        assert [f.frame for f in got] == sorted({f.frame for f in got})
+        assert status()["renders"] == 1
+        # a moved scene is rendered again
+        moved = qpos.copy()
+        moved[0] += 0.1
+        world.put(_state(moved, 2.0))
+        assert grab(after_sim_time=2.0).sim_time == 2.0
+        assert status()["renders"] == 2
 
 
 def test_calibration_marks_come_with_their_frame(net: NetConfig) -> None:

@@ -115,6 +115,22 @@ def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> No
     assert got == [encode(decode(encode(m))) for m in messages]  # type: ignore[arg-type]
 
 
+def test_losses_are_counted_by_sequence_gaps_and_a_full_queue(tmp_path: Path) -> None:
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    frames = [encode(Image.from_numpy(rgb, frame=n, seq=n)) for n in (1, 2, 5, 6, 9)]
+    recorder = Recorder(tmp_path / "gaps.mcap", "icubSim", ["icubSim/**"])
+    for frame in frames:
+        recorder.put("icubSim/cam/target:o", frame)
+    recorder.put("icubSim/cam/target:o", encode(Image.from_numpy(rgb, seq=1)))  # a restart
+    stats = recorder.close()
+    assert (stats.total, stats.missing, stats.overflow) == (6, 4, 0)  # 3, 4, 7 and 8 missing
+
+    # a writer that falls behind drops (and counts) rather than holding up the receiver
+    full = Recorder(tmp_path / "full.mcap", "icubSim", ["icubSim/**"], max_pending=0)
+    full.put("icubSim/cam/target:o", frames[0])
+    assert full.close().overflow == 1
+
+
 def test_recordings_of_another_schema_version_or_not_mcap_are_refused(tmp_path: Path) -> None:
     text = tmp_path / "notes.mcap"
     text.write_text("hello\n")

@@ -33,6 +33,7 @@ class CameraStatusReply(Reply, frozen=True):
     encoding: str
     frames: int
     renders: int
+    reuses: Annotated[int, Meta(description="frames of an unchanged scene, not rendered again")]
     render_ms: float | None
     errors: int
     latest_sim_time: float | None

@@ -6,6 +6,13 @@ source runs here. A rendered frame follows the robot's world states on `ROBOT/wo
 with a model built from the scene the robot reports (`archery/rpc:i status`; the default scene
 until the robot answers); frames go out at the configured rate, and at once when a waiting
 `grab` can be served.
+
+Idle cost: frames are captured only while someone subscribes to the frames or a `grab` waits;
+otherwise the thread sleeps (a subscriber appearing wakes it). A world state whose qpos equals
+the one last rendered is not rendered again: the pixels would be the same, so the last render
+goes out again with this capture's stamp and the new state's sim time. That keeps `grab`'s
+promise: a frame "captured after a stamp" shows the newest world state known at that time, as
+a fresh render of it would.
 """
 
 from __future__ import annotations
@@ -59,13 +66,24 @@ class Capture:
         self.scene_checked = 0.0
         self.frame = 0
         self.renders = 0
+        self.reuses = 0  # frames of an unchanged qpos served from the last render
         self.render_seconds = 0.0
+        self._shown: tuple[bytes, np.ndarray] | None = None  # qpos and pixels of the last render
         self.errors = 0
+        self.watched = False  # someone subscribes to the frames (the capture loop keeps it)
         self.world = None
         if config.source.kind == "mujoco":
-            self.world = node.subscribe(
-                node.keys.world_state(), WorldState, callback=lambda _msg: self.jobs.notify()
-            )
+            self.world = node.subscribe(node.keys.world_state(), WorldState, callback=self._woken)
+
+    def _woken(self, _state: WorldState) -> None:
+        """A world state arrived: wake the capture thread if a frame is wanted at all."""
+        if self.watched or self.store.waiting():
+            self.jobs.notify()
+
+    def watch(self, matching: bool) -> None:
+        """Subscribers to the frames appeared (True) or all went (False)."""
+        self.watched = matching
+        self.jobs.notify()
 
     def _robot_scene(self, timeout: float) -> Any:
         """The robot's SceneConfig from its `status`, or None when no robot answers."""
@@ -112,6 +130,7 @@ class Capture:
             log.info("the robot reports another scene than the default: rebuilding it")
             self.renderer.close()
             self.renderer = None
+            self._shown = None
             from sim.render import SceneRenderer
 
             self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
@@ -159,11 +178,22 @@ class Capture:
                 self.renderer.nq,
             )
             self.renderer.close()
+            self._shown = None
             self.open()
         started = time.perf_counter()
         pixels = self.renderer.render(qpos)
         self.renders += 1
         self.render_seconds += time.perf_counter() - started
+        return pixels
+
+    def view(self, qpos: np.ndarray) -> np.ndarray:
+        """The pixels of `qpos`: the last render again when qpos is unchanged, else a render."""
+        key = qpos.tobytes()
+        if self._shown is not None and self._shown[0] == key:
+            self.reuses += 1
+            return self._shown[1]
+        pixels = self.render(qpos)
+        self._shown = (qpos.tobytes(), pixels) if qpos.shape == (self.renderer.nq,) else None
         return pixels
 
     def close(self) -> None:
@@ -176,46 +206,56 @@ class Capture:
 
 
 def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event) -> None:
-    """Publish at the configured rate, and at once whenever a waiting grab can be served."""
+    """Publish at the configured rate while someone subscribes, and at once whenever a waiting
+    grab can be served; sleep otherwise."""
     store = capture.store
     period = 1.0 / capture.config.rate
     next_due = 0.0
     last_seq: int | None = None
     cached: tuple[np.ndarray, float | None, float] | None = None  # pixels, sim time, captured
-    while not stop.is_set():
-        capture.jobs.drain()
-        now = time.monotonic()
-        due = now >= next_due
-        waiting = store.waiting()
-        try:
-            if capture.world is not None:
-                state = capture.world.latest()
-                new = state is not None and state.seq != last_seq
-                if state is not None and new and (due or waiting):
-                    capture.recheck_scene()
-                    last_seq = state.seq
-                    captured = time.time()
-                    pixels = capture.render(state.qpos.to_numpy())
-                    cached = (pixels, state.sim_time, captured)
-                    capture.publish(pixels, state.sim_time, captured, pub)
-                    next_due = now + period
-                elif due:
-                    if cached is None:  # no world state yet: the model's initial state
-                        qpos = np.asarray(capture.renderer.model.qpos0)
-                        cached = (capture.render(qpos), None, time.time())
-                    capture.publish(*cached, pub)
-                    next_due = now + period
-            else:
-                wall = time.time()
-                serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
-                if due or serve:
-                    captured = time.time()
-                    pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]
-                    capture.publish(pixels, None, captured, pub)
-                    next_due = now + period
-        except ArcheryError as exc:
-            capture.errors += 1
-            if capture.errors <= 5 or capture.errors % 100 == 0:
-                log.error("frame %d failed (%d so far): %s", capture.frame + 1, capture.errors, exc)
-            next_due = time.monotonic() + period
-        capture.jobs.wait(max(0.0, min(period, next_due - time.monotonic())))
+    stop_watching = pub.on_matching(capture.watch)
+    try:
+        while not stop.is_set():
+            capture.jobs.drain()
+            now = time.monotonic()
+            watched = capture.watched = pub.matching()
+            due = watched and now >= next_due
+            waiting = store.waiting()
+            try:
+                if capture.world is not None:
+                    state = capture.world.latest()
+                    new = state is not None and state.seq != last_seq
+                    if state is not None and new and (due or waiting):
+                        capture.recheck_scene()
+                        last_seq = state.seq
+                        captured = time.time()
+                        pixels = capture.view(state.qpos.to_numpy())
+                        cached = (pixels, state.sim_time, captured)
+                        capture.publish(pixels, state.sim_time, captured, pub)
+                        next_due = now + period
+                    elif due:
+                        if cached is None:  # no world state yet: the model's initial state
+                            qpos = np.asarray(capture.renderer.model.qpos0)
+                            cached = (capture.render(qpos), None, time.time())
+                        capture.publish(*cached, pub)
+                        next_due = now + period
+                else:
+                    wall = time.time()
+                    serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
+                    if due or serve:
+                        captured = time.time()
+                        pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]
+                        capture.publish(pixels, None, captured, pub)
+                        next_due = now + period
+            except ArcheryError as exc:
+                capture.errors += 1
+                if capture.errors <= 5 or capture.errors % 100 == 0:
+                    log.error(
+                        "frame %d failed (%d so far): %s", capture.frame + 1, capture.errors, exc
+                    )
+                next_due = time.monotonic() + period
+            # idle (no subscriber, no grab): wake on a job, a grab, a subscriber or the stop flag
+            wait = min(period, next_due - time.monotonic()) if watched else 0.5
+            capture.jobs.wait(max(0.0, wait))
+    finally:
+        stop_watching()

@@ -70,7 +70,8 @@ class CameraHandlers:
         return capture.jobs.call(job, timeout=CALIBRATION_TIMEOUT)
 
     def status(self, args: NoArgs) -> CameraStatusReply:
-        """Source, size, rate, encoding, frames, renders and mean render time (ms), scene."""
+        """Source, size, rate, encoding, frames, renders (and frames of an unchanged scene served
+        without one), mean render time (ms), scene."""
         config, capture = self._config, self._capture
         latest = self._store.latest
         renders = capture.renders
@@ -82,6 +83,7 @@ class CameraHandlers:
             encoding=config.encoding,
             frames=self._store.count,
             renders=renders,
+            reuses=capture.reuses,
             render_ms=round(1e3 * capture.render_seconds / renders, 3) if renders else None,
             errors=capture.errors,
             latest_sim_time=latest.sim_time if latest else None,

@@ -7,6 +7,9 @@ replays images from disk (read when captured). Frames are RGB (`--encoding rgb8`
 compressed (`jpeg`, `png`) at `--rate` frames per second; a rendered frame carries the world
 state's sim time, a real one `sim_time` None.
 
+Idle: frames are captured only while something subscribes to `ROBOT/cam/target:o` or a `grab`
+waits; an unchanged world state (same qpos) reuses the last render with a new capture stamp.
+
 Verbs on `ROBOT/cam/rpc:i` (args → result):
 - `grab {"after_sim_time": s, "after_stamp": s, "timeout": s}` → an `Image` as a dict
   (`msgspec.to_builtins(image, builtin_types=(bytes,))`; `msgspec.convert(result, Image)` on the
@@ -17,7 +20,8 @@ Verbs on `ROBOT/cam/rpc:i` (args → result):
   `timeout` (default 5 s).
 - `calibration {}` (mujoco only) → {"image": Image dict, "pixels": {"target": [[x, y]…],
   "arrow": [[x, y]…]}}: a frame with an arrow on the face and the pixels a user would mark.
-- `status {}` → source, size, rate, encoding, frames published, renders and mean render time
+- `status {}` → source, size, rate, encoding, frames published, renders, reuses (frames of an
+  unchanged qpos served from the last render) and mean render time
   (ms), newest frame's sim time, the scene parameters and where they came from.
 
 One capture thread (the one `run` is called on) owns the source: GL contexts and devices belong
