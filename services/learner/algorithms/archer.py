@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import combinations
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,8 @@ from services.learner.algorithms.base import (
 )
 
 __all__ = ["Archer"]
+
+_SEED_POOL = 8  # a transfer picks ARCHER's seeds among the source's this many best rollouts
 
 
 def _largest_singular(matrix: np.ndarray) -> float:
@@ -48,8 +51,9 @@ class Archer(Learner):
       so a failed extrapolation is followed by a shorter one instead of the same one again; at
       `min_step` the exploratory step above is added too.
 
-    Transfer (`seed_from` a session in another world): the source's N best rollouts become the
-    seeds, kept apart from the history as data of another world. The first rollout runs the
+    Transfer (`seed_from` a session in another world): the source's best rollout and the N − 1 of
+    its next best that span the best-conditioned U become the seeds, kept apart from the history
+    as data of another world. The first rollout runs the
     source's best θ instead of the random exploration; until N rollouts of this world exist, each
     step is Eq. 5-6 with U and Θ from the seeds' differences (their local gain, which carries over
     between worlds) and r_{1,T} = −r of the best rollout of this world (their own r, from the
@@ -223,13 +227,25 @@ class Archer(Learner):
             self.trust_radius = max(0.5 * self.trust_radius, self.min_step)
 
     def _seed_from(self, source: Learner) -> None:
-        best = source.ranked()[: self.n_best]
-        if best.size < self.n_best:
+        # The source's best rollout, and the N − 1 of its next best that span the best-conditioned
+        # U (a converged session's N best lie too close together to show the gain).
+        ranked = source.ranked()[:_SEED_POOL]
+        if ranked.size < self.n_best:
             raise LearnerConfigError(
-                f"the source session has {best.size} rollouts; ARCHER's seeds need N = "
+                f"the source session has {ranked.size} rollouts; ARCHER's seeds need N = "
                 f"{self.n_best}"
             )
-        self._set_seeds(source.thetas[best], source.rewards[best])
+        rewards = source.rewards
+        best, pool = int(ranked[0]), [int(i) for i in ranked[1:]]
+
+        def conditioning(others: tuple[int, ...]) -> float:
+            u = rewards[list(others)] - rewards[best]
+            singular = np.linalg.svd(u, compute_uv=False)
+            return float(singular[-1]) if singular.size == u.shape[1] else 0.0
+
+        others = max(combinations(pool, self.n_best - 1), key=conditioning)
+        chosen = [best, *others]
+        self._set_seeds(source.thetas[chosen], rewards[chosen])
 
     def _set_seeds(self, thetas: np.ndarray, rewards: np.ndarray) -> None:
         self._seeds = (self.bounds.clip(thetas), rewards.copy())
