@@ -135,7 +135,7 @@ def test_transfer_hits_faster_on_a_mismatched_world(
 
 
 def test_unsupported_algorithms_are_refused() -> None:
-    with pytest.raises(LearnerConfigError, match="power cannot start.*archer-prior"):
+    with pytest.raises(LearnerConfigError, match=r"power cannot start.*archer-prior"):
         check_transfer("power")
     assert set(TRANSFER_ALGORITHMS) >= {"archer", "archer-prior", "archer-recent"}
     assert "cma" not in TRANSFER_ALGORITHMS
