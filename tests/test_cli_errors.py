@@ -104,6 +104,8 @@ CASES: list[tuple[str, int, str]] = [
     ("learn --option explore_std=NaN --connect {dead}", 2, "NaN"),
     ("learn --option explore_std --connect {dead}", 2, "'explore_std'"),
     ("learn --algo nosuch --connect {dead}", 2, "'nosuch'"),
+    ("learn --from /no/such --connect {dead}", 2, "'/no/such'"),
+    ("learn --algo power --from s1 --connect {dead}", 2, "archer-prior"),
     ("learn --rollouts 0 --connect {dead}", 2, "got 0"),
     ("learn --seed -1 --connect {dead}", 2, "got -1"),
     ("learn --wait -1", 2, "'-1'"),
@@ -132,6 +134,8 @@ CASES: list[tuple[str, int, str]] = [
     ("experiment --drag 0.05 --wind-change 1:0,1,0", 2, "rollout 1"),
     ("experiment --drag 0.05 --wind-change 61:0,1,0", 2, "rollout 61"),
     ("experiment --wind-change 20:0,1,0", 2, "drag"),
+    ("experiment --from /no/such", 2, "'/no/such'"),
+    ("experiment --from {tmp} --algo power", 2, "learners.json"),
     # services: refused at start
     ("learner --runs /proc/nope {net}", 2, "'/proc/nope'"),
     ("learner --rpc-timeout nan {net}", 2, "nan"),

@@ -38,6 +38,13 @@ class StartArgs(Args, frozen=True):
     options: Annotated[dict[str, Any], Meta(description="learner options")] | UnsetType = UNSET
     resume: Annotated[str, Meta(min_length=1, description="journal path")] | UnsetType = UNSET
     session: str | UnsetType | None = UNSET
+    from_journal: (
+        Annotated[
+            str,
+            Meta(min_length=1, description="start from this session's learned model (id or path)"),
+        ]
+        | UnsetType
+    ) = UNSET
 
 
 class LearnerStatusReply(Reply, frozen=True):

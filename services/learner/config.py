@@ -53,7 +53,17 @@ ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
     }
 )
 
-START_ARGS = ("algo", "rollouts", "seed", "until_hit", "scenario", "options", "resume", "session")
+START_ARGS = (
+    "algo",
+    "rollouts",
+    "seed",
+    "until_hit",
+    "scenario",
+    "options",
+    "resume",
+    "session",
+    "from_journal",
+)
 SCENARIO_KEYS = ("theta0", "bounds", "hit_radius", "reset")
 
 
@@ -145,7 +155,8 @@ class SessionConfig:
 
     @classmethod
     def from_request(cls, args: Mapping[str, Any]) -> SessionConfig:
-        """The session a `start` request asks for (without `resume`).
+        """The session a `start` request asks for (without `resume`; its `from_journal` is the
+        caller's, `services.learner.transfer`).
 
         Raises:
             BadRequest: an unknown argument or scenario key, or an invalid value; the message

@@ -20,6 +20,7 @@ from services.learner.config import LearnerServiceConfig, SessionConfig
 from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, Session
 from services.learner.tools.report import write_report
+from services.learner.transfer import load_source
 
 __all__ = ["LearnerHandlers", "rollout_message"]
 
@@ -86,7 +87,8 @@ class LearnerHandlers:
             )
 
     def start(self, request: StartArgs) -> LearnerStatusReply:
-        """Start a new session or resume one (see the module docstring)."""
+        """Start a new session (from another session's learned model with `from_journal`) or
+        resume one (see the module docstring)."""
         args: dict[str, Any] = msgspec.to_builtins(request)  # the arguments given
         with self._lock:
             if self._thread is not None and self._thread.is_alive():
@@ -109,8 +111,11 @@ class LearnerHandlers:
                 session = Session.resume(Path(args["resume"]), self.rig, args.get("session"), **kw)
             else:
                 config = SessionConfig.from_request(args)
+                source = None
+                if "from_journal" in args:  # checked before any work
+                    source = load_source(args["from_journal"], config.algorithm, self.config.runs)
                 self._check_services()
-                session = Session.create(config, self.rig, self.config.runs, **kw)
+                session = Session.create(config, self.rig, self.config.runs, source=source, **kw)
             self._session = session
             self._report = {}
             self._stop = threading.Event()

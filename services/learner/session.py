@@ -38,10 +38,15 @@ import numpy as np
 from protocol.errors import ArcheryError, BadRequest
 from services.learner.abort_policy import SERVICE_LOST, after_abort, streak_failure
 from services.learner.algorithms.base import Bounds, Learner, LearnerError
-from services.learner.algorithms.registry import make_learner, restore_learner
+from services.learner.algorithms.registry import (
+    make_learner,
+    restore_learner,
+    transferred_learner,
+)
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
 from services.learner.tools.report import caption_png
+from services.learner.transfer import TransferSource
 
 __all__ = [
     "FINAL_STATES",
@@ -203,13 +208,22 @@ class Session:
     # -- construction ---------------------------------------------------------------------------
     @classmethod
     def create(
-        cls, config: SessionConfig, rig: Rig, runs: Path, session_id: str | None = None, **kw: Any
+        cls,
+        config: SessionConfig,
+        rig: Rig,
+        runs: Path,
+        session_id: str | None = None,
+        *,
+        source: TransferSource | None = None,
+        **kw: Any,
     ) -> Session:
-        """A new session: learner built, bounds checked against the controller's box, header
-        journaled.
+        """A new session: learner built (and seeded from `source`'s learned model, recorded as
+        the header's `from`), bounds checked against the controller's box, header journaled.
 
         Raises:
             BadRequest: bad learner options, bounds beyond the controller's box, θ0 outside.
+            JournalError: `source`'s learner state cannot seed this learner
+                (`services.learner.transfer.load_source` checks the rest first).
             RigError: the controller did not tell its box.
         """
         box = rig.theta_box()
@@ -234,6 +248,11 @@ class Session:
             )
         except LearnerError as exc:
             raise BadRequest(f"options for {config.algorithm!r}: {exc}") from None
+        if source is not None:
+            try:
+                transferred_learner(learner, source.state)
+            except LearnerError as exc:
+                raise JournalError(f"--from {source.journal}: {exc}") from None
         session_id = session_id or new_session_id(config.algorithm, config.seed)
         header = {
             "session": session_id,
@@ -245,6 +264,8 @@ class Session:
             "controller_box": box.to_dict(),
             "learner_state": learner.state_dict(),
         }
+        if source is not None:
+            header["from"] = source.header()
         journal = Journal.create(runs / session_id, header)
         return cls(journal, learner, config, rig, **kw)
 

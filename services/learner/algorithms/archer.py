@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import combinations
 from typing import Any
 
 import numpy as np
@@ -19,6 +20,8 @@ from services.learner.algorithms.base import (
 )
 
 __all__ = ["Archer"]
+
+_SEED_POOL = 8  # a transfer picks ARCHER's seeds among the source's this many best rollouts
 
 
 def _largest_singular(matrix: np.ndarray) -> float:
@@ -48,6 +51,15 @@ class Archer(Learner):
       so a failed extrapolation is followed by a shorter one instead of the same one again; at
       `min_step` the exploratory step above is added too.
 
+    Transfer (`seed_from` a session in another world): the source's best rollout and the N − 1 of
+    its next best that span the best-conditioned U become the seeds, kept apart from the history
+    as data of another world. The first rollout runs the
+    source's best θ instead of the random exploration; until N rollouts of this world exist, each
+    step is Eq. 5-6 with U and Θ from the seeds' differences (their local gain, which carries over
+    between worlds) and r_{1,T} = −r of the best rollout of this world (their own r, from the
+    other world, never enters), under the same trust radius and exploratory fallback. From N
+    rollouts of this world on, the seeds are no longer used.
+
     With `window` > 0 the N best are chosen among the `window` most recent rollouts only (and the
     trust radius compares a rollout with those), so rollouts of a world that has since changed
     (a new wind) stop steering the regression after `window` rollouts.
@@ -73,6 +85,7 @@ class Archer(Learner):
     """
 
     algorithm = "archer"
+    transferable = True
 
     def __init__(
         self,
@@ -114,6 +127,7 @@ class Archer(Learner):
                 f"window must be 0 (all rollouts) or >= n_best ({self.n_best}), got {window!r}"
             )
         self.exploration_rollouts = self.n_explore
+        self._seeds: tuple[np.ndarray, np.ndarray] | None = None  # (θ, r) of another world
 
     def options(self) -> dict[str, Any]:
         """Constructor options as plain values."""
@@ -133,22 +147,38 @@ class Archer(Learner):
 
     def _propose(self) -> np.ndarray:
         d = self.theta0.size
-        if self.n_rollouts < self.n_explore:
+        n = self.n_rollouts
+        if self._seeds is not None and n < self.n_best:
+            seed_thetas, seed_rewards = self._seeds
+            if n == 0:
+                return seed_thetas[0].copy()  # the other world's best θ
+            # Seeds of another world: only their differences (the local gain) carry over.
+            best = int(self._recent_ranked(n)[0])
+            return self._step(
+                self._thetas[best],
+                -self._rewards[best],
+                seed_rewards[1:] - seed_rewards[0],
+                seed_thetas[1:] - seed_thetas[0],
+            )
+        if n < self.n_explore:
             # Initial phase: large random exploration around θ0.
             return self.theta0 + self.explore_std * self.rng.standard_normal(d)
         # Sort the rollouts by return, best first (R(τ_i) >= R(τ_i+1)); keep the N best.
-        best = self._recent_ranked(self.n_rollouts)[: self.n_best]
+        best = self._recent_ranked(n)[: self.n_best]
         thetas, rewards = self.thetas[best], self.rewards[best]
         # r_{1,T} = r_T − r_1 with r_T = (0, 0); U's rows are r_{1,i} = r_i − r_1, i = 2..N.
-        r_1t = -rewards[0]
-        u = rewards[1:] - rewards[0]
-        theta_1i = thetas[1:] - thetas[0]
+        return self._step(thetas[0], -rewards[0], rewards[1:] - rewards[0], thetas[1:] - thetas[0])
+
+    def _step(
+        self, theta_1: np.ndarray, r_1t: np.ndarray, u: np.ndarray, theta_1i: np.ndarray
+    ) -> np.ndarray:
+        """θ_next from θ_1 (Eq. 5-6, and the safeguards) for r_{1,T}, U and Θ = θ_{1,i}."""
         # Eq. 5: weights W with r_{1,T} = W U.
         weights, ill_conditioned = self._weights(u, r_1t)
         # Eq. 6: θ̂_{1,T} = Σ_i w_i θ_{1,i+1}.
         step = weights @ theta_1i
         if not self.safeguard:
-            return thetas[0] + step
+            return theta_1 + step
         # Safeguard 1: limit the extrapolation to the trust radius.
         norm = float(np.linalg.norm(step))
         if norm > self.trust_radius:
@@ -159,8 +189,8 @@ class Archer(Learner):
         if ill_conditioned or self.trust_radius <= self.min_step:
             gain = _largest_singular(u) / max(_largest_singular(theta_1i), 1e-12)
             needed = float(np.linalg.norm(r_1t)) / gain if gain > 0 else self.fallback_std
-            step = step + min(self.fallback_std, needed) * self.rng.standard_normal(d)
-        return thetas[0] + step
+            step = step + min(self.fallback_std, needed) * self.rng.standard_normal(theta_1.size)
+        return theta_1 + step
 
     def _recent_ranked(self, end: int) -> np.ndarray:
         """Indices of the rollouts before `end` that the window keeps, best first."""
@@ -187,7 +217,7 @@ class Archer(Learner):
         return r_1t @ np.linalg.pinv(u), ill
 
     def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
-        if not self.safeguard or self.n_rollouts <= self.n_explore:
+        if not self.safeguard or self.n_rollouts <= self.exploration_rollouts:
             return
         # Trust radius: grow after an aimed rollout that improved on the best, shrink otherwise.
         previous = self._recent_ranked(self.n_rollouts - 1)[0]
@@ -196,8 +226,36 @@ class Archer(Learner):
         else:
             self.trust_radius = max(0.5 * self.trust_radius, self.min_step)
 
+    def _seed_from(self, source: Learner) -> None:
+        # The source's best rollout, and the N − 1 of its next best that span the best-conditioned
+        # U (a converged session's N best lie too close together to show the gain).
+        ranked = source.ranked()[:_SEED_POOL]
+        if ranked.size < self.n_best:
+            raise LearnerConfigError(
+                f"the source session has {ranked.size} rollouts; ARCHER's seeds need N = "
+                f"{self.n_best}"
+            )
+        rewards = source.rewards
+        best, pool = int(ranked[0]), [int(i) for i in ranked[1:]]
+
+        def conditioning(others: tuple[int, ...]) -> float:
+            u = rewards[list(others)] - rewards[best]
+            singular = np.linalg.svd(u, compute_uv=False)
+            return float(singular[-1]) if singular.size == u.shape[1] else 0.0
+
+        others = max(combinations(pool, self.n_best - 1), key=conditioning)
+        chosen = [best, *others]
+        self._set_seeds(source.thetas[chosen], rewards[chosen])
+
+    def _set_seeds(self, thetas: np.ndarray, rewards: np.ndarray) -> None:
+        self._seeds = (self.bounds.clip(thetas), rewards.copy())
+        self.exploration_rollouts = 1
+
     def _extra_state(self) -> dict[str, Any]:
-        return {"trust_radius": self.trust_radius}
+        seeds = None
+        if self._seeds is not None:
+            seeds = {"thetas": self._seeds[0].tolist(), "rewards": self._seeds[1].tolist()}
+        return {"trust_radius": self.trust_radius, "seeds": seeds}
 
     def _load_extra_state(self, extra: dict[str, Any]) -> None:
         try:
@@ -209,3 +267,18 @@ class Archer(Learner):
                 f"ARCHER trust_radius {radius!r} m is outside [{self.min_step}, {self.max_step}]"
             )
         self.trust_radius = radius
+        seeds = extra.get("seeds")
+        if seeds is None:
+            return
+        try:
+            thetas = np.array(seeds["thetas"], dtype=float)
+            rewards = np.array(seeds["rewards"], dtype=float)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise StateError(f"ARCHER seeds need 'thetas' and 'rewards' (m): {exc}") from exc
+        shape = (self.n_best, self.theta0.size)
+        if thetas.shape != shape or rewards.shape != (self.n_best, 2):
+            raise StateError(
+                f"ARCHER seeds must be {self.n_best} θ {self.theta0.size}-vectors and "
+                f"{self.n_best} r 2-vectors"
+            )
+        self._set_seeds(thetas, rewards)

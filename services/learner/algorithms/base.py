@@ -202,6 +202,7 @@ class Learner(ABC):
 
     algorithm: ClassVar[str]
     exploration_rollouts: int = 1
+    transferable: ClassVar[bool] = False  # `seed_from` can start it from another session
 
     def __init__(
         self, theta0: np.ndarray, *, rng: np.random.Generator, bounds: Bounds = DEFAULT_BOUNDS
@@ -380,6 +381,33 @@ class Learner(ABC):
 
     def _load_extra_state(self, extra: dict[str, Any]) -> None:  # noqa: B027 (optional hook)
         """Inverse of `_extra_state`."""
+
+    # -- transfer -------------------------------------------------------------------------------
+
+    def seed_from(self, source: Learner) -> None:
+        """Start this fresh learner from what `source`, a session in another world (another
+        distance, another bow), learned. Learners with `transferable` override `_seed_from`.
+
+        Raises:
+            LearnerConfigError: this learner cannot transfer, or `source` is of another algorithm
+                or θ dimension, or this learner has been asked or told already.
+        """
+        if not self.transferable:
+            raise LearnerConfigError(f"{self.algorithm} cannot start from another session")
+        if type(source) is not type(self) or source.theta0.size != self.theta0.size:
+            raise LearnerConfigError(
+                f"a {self.algorithm} learner can start only from a {self.algorithm} session "
+                f"with {self.theta0.size}-vectors θ, not from a {source.algorithm} one"
+            )
+        if self._thetas or self._pending is not None:
+            raise LearnerConfigError("seed_from needs a fresh learner (nothing asked or told)")
+        if source.n_rollouts == 0:
+            raise LearnerConfigError("the source session has no rollout to learn from")
+        self._seed_from(source)
+
+    def _seed_from(self, source: Learner) -> None:
+        """Take over what `source` learned (a checked fresh learner of the same class)."""
+        raise NotImplementedError(f"{type(self).__name__} sets transferable without _seed_from")
 
     # -- the algorithm --------------------------------------------------------------------------
 

@@ -23,6 +23,10 @@ __all__ = ["ArcherPrior"]
 
 _JACOBIAN_STEP = 1e-5  # m, finite-difference step of the model's Jacobian dr/dθ
 _NEWTON_ITERATIONS = 12
+# Std (m, and m/m) added in quadrature to a transferred posterior: a prior on c about 4 noise
+# stds wide, so that one rollout of the new world outweighs it ~16:1.
+TRANSFER_OFFSET_STD = 0.02
+TRANSFER_GAIN_STD = 0.5
 
 
 class ArcherPrior(Learner):
@@ -60,6 +64,12 @@ class ArcherPrior(Learner):
     wrong (surprise after surprise) the data correct it instead. `change_threshold` = 0 turns the
     detection off.
 
+    Transfer (`seed_from` a session in another world): the source's posterior of (c, D), moved
+    to this learner's θ0 (c' = c + D(θ0' − θ0_source)), becomes the prior, its covariance widened
+    by `TRANSFER_OFFSET_STD` (c) and `TRANSFER_GAIN_STD` (each entry of D) in quadrature: the
+    first proposal aims with the residual learned there, and a few rollouts here override it
+    wherever this world differs.
+
     Args:
         theta0: the θ (m) the Gauss-Newton solve of the first rollout starts from.
         rng: the random generator for the exploratory steps.
@@ -83,6 +93,7 @@ class ArcherPrior(Learner):
 
     algorithm = "archer-prior"
     exploration_rollouts = 0
+    transferable = True
 
     def __init__(
         self,
@@ -141,6 +152,9 @@ class ArcherPrior(Learner):
         self.forget_before = 0  # rollouts before this index are forgotten (a changed world)
         self.changes: list[int] = []  # 0-based indices of the rollouts that revealed a change
         self.settled = False  # the last rollout landed where the learner predicted
+        # Prior of (c, D) as rows [c; Dᵀ] (mean (d+1, 2), covariance (d+1, d+1)); a transfer sets
+        # it, else it is centred on 0 with the prior stds.
+        self._prior: tuple[np.ndarray, np.ndarray] | None = None
 
     def options(self) -> dict[str, Any]:
         """Constructor options as plain values."""
@@ -180,13 +194,18 @@ class ArcherPrior(Learner):
         except BallisticError:
             return None
 
-    def correction(self, upto: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Posterior mean (c, D) of the residual r − r_model ≈ c + D(θ − θ0), from the remembered
-        rollouts before index `upto` (all by default)."""
+    def posterior(self, upto: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior (mean, covariance) of the residual model's rows [c; Dᵀ] ((d+1, 2) and
+        (d+1, d+1), the same covariance for both components of r), from the remembered rollouts
+        before index `upto` (all by default)."""
         n = self.n_rollouts if upto is None else upto
         d = self.theta0.size
-        precision = np.diag([self.prior_offset_std**-2] + [self.prior_gain_std**-2] * d)
-        moment = np.zeros((d + 1, 2))
+        if self._prior is None:
+            precision = np.diag([self.prior_offset_std**-2] + [self.prior_gain_std**-2] * d)
+            moment = np.zeros((d + 1, 2))
+        else:
+            precision = np.linalg.inv(self._prior[1])
+            moment = precision @ self._prior[0]
         for i in range(self.forget_before, n):
             residual = self._residuals[i]
             if residual is None:
@@ -195,7 +214,13 @@ class ArcherPrior(Learner):
             phi = np.concatenate([[1.0], self._thetas[i] - self.theta0])
             precision += weight * np.outer(phi, phi) / self.noise_std**2
             moment += weight * np.outer(phi, residual) / self.noise_std**2
-        mean = np.linalg.solve(precision, moment)
+        covariance = np.linalg.inv(precision)
+        return covariance @ moment, covariance
+
+    def correction(self, upto: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Posterior mean (c, D) of the residual r − r_model ≈ c + D(θ − θ0), from the remembered
+        rollouts before index `upto` (all by default)."""
+        mean = self.posterior(upto)[0]
         return mean[0], mean[1:].T
 
     def predict(self, theta: np.ndarray) -> np.ndarray | None:
@@ -281,12 +306,25 @@ class ArcherPrior(Learner):
         else:
             self.trust_radius = max(0.5 * self.trust_radius, self.min_step)
 
+    def _seed_from(self, source: Learner) -> None:
+        assert isinstance(source, ArcherPrior)
+        mean, covariance = source.posterior()
+        d = self.theta0.size
+        shift = np.eye(d + 1)  # [c'; D'ᵀ] = shift @ [c; Dᵀ] with c' = c + D(θ0' − θ0)
+        shift[0, 1:] = self.theta0 - source.theta0
+        widen = np.diag([TRANSFER_OFFSET_STD**2] + [TRANSFER_GAIN_STD**2] * d)
+        self._prior = (shift @ mean, shift @ covariance @ shift.T + widen)
+
     def _extra_state(self) -> dict[str, Any]:
+        prior = None
+        if self._prior is not None:
+            prior = {"mean": self._prior[0].tolist(), "covariance": self._prior[1].tolist()}
         return {
             "trust_radius": self.trust_radius,
             "forget_before": self.forget_before,
             "changes": list(self.changes),
             "settled": self.settled,
+            "prior": prior,
         }
 
     def _load_extra_state(self, extra: dict[str, Any]) -> None:
@@ -313,7 +351,28 @@ class ArcherPrior(Learner):
             raise StateError(f"archer-prior 'settled' must be true or false, got {settled!r}")
         self.changes = changes
         self.settled = settled
+        self._prior = _prior_of(extra.get("prior"), self.theta0.size)
         # The residuals are a function of the history and the nominal model: recompute them.
         self._residuals = [
             self._model_residual(t, r) for t, r in zip(self._thetas, self._rewards, strict=True)
         ]
+
+
+def _prior_of(saved: Any, d: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A saved transferred prior (mean, covariance) of [c; Dᵀ], checked; None if there is none."""
+    if saved is None:
+        return None
+    try:
+        mean = np.array(saved["mean"], dtype=float)
+        covariance = np.array(saved["covariance"], dtype=float)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StateError(f"archer-prior prior needs 'mean' and 'covariance': {exc}") from exc
+    if mean.shape != (d + 1, 2) or covariance.shape != (d + 1, d + 1):
+        raise StateError(
+            f"archer-prior prior must be a ({d + 1}, 2) mean and a ({d + 1}, {d + 1}) covariance"
+        )
+    if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(covariance))):
+        raise StateError("archer-prior prior holds a non-finite value")
+    if not np.allclose(covariance, covariance.T) or np.linalg.eigvalsh(covariance).min() <= 0:
+        raise StateError("archer-prior prior covariance must be symmetric positive definite")
+    return mean, covariance

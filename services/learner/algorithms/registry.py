@@ -21,7 +21,16 @@ from services.learner.algorithms.baselines import CmaEs, RandomSearch
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 
-__all__ = ["ALGORITHMS", "LEARNER_CLASSES", "Algorithm", "make_learner", "restore_learner"]
+__all__ = [
+    "ALGORITHMS",
+    "LEARNER_CLASSES",
+    "TRANSFER_ALGORITHMS",
+    "Algorithm",
+    "check_transfer",
+    "make_learner",
+    "restore_learner",
+    "transferred_learner",
+]
 
 
 @dataclass(frozen=True)
@@ -97,6 +106,22 @@ LEARNER_CLASSES: Mapping[str, type[Learner]] = MappingProxyType(
     {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, RandomSearch)}
 )
 
+# The algorithms that can start from another session's learned model (`Learner.seed_from`).
+TRANSFER_ALGORITHMS = tuple(name for name, a in ALGORITHMS.items() if a.cls.transferable)
+
+
+def check_transfer(name: str, flag: str = "--from") -> None:
+    """Refuse, in one line, to start `name` from another session if it cannot.
+
+    Raises:
+        LearnerConfigError: `name` cannot transfer.
+    """
+    if name not in TRANSFER_ALGORITHMS:
+        raise LearnerConfigError(
+            f"{flag}: {name} cannot start from another session; the algorithms that can: "
+            f"{', '.join(TRANSFER_ALGORITHMS)}"
+        )
+
 
 def make_learner(
     name: str,
@@ -146,4 +171,22 @@ def restore_learner(state: Mapping[str, Any]) -> Learner:
     except (KeyError, TypeError, LearnerConfigError) as exc:
         raise StateError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc
     learner.load_state_dict(dict(state))
+    return learner
+
+
+def transferred_learner(learner: Learner, source_state: Mapping[str, Any]) -> Learner:
+    """`learner` (fresh) seeded with what the saved learner `source_state` learned.
+
+    Raises:
+        StateError: the source state is malformed, of another algorithm, or cannot seed it.
+    """
+    if source_state.get("algorithm") != learner.algorithm:
+        raise StateError(
+            f"the source learner is {source_state.get('algorithm')!r}, not {learner.algorithm!r}"
+        )
+    source = restore_learner(source_state)
+    try:
+        learner.seed_from(source)
+    except LearnerConfigError as exc:
+        raise StateError(f"cannot start from the source learner: {exc}") from None
     return learner

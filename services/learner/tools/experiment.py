@@ -1,4 +1,9 @@
-"""`archery experiment`: the paper's simulation experiment (Section IV, Fig. 5 and Fig. 6)."""
+"""`archery experiment`: the paper's simulation experiment (Section IV, Fig. 5 and Fig. 6).
+
+Every run also writes `learners.json`, each session's final learner state per algorithm;
+`--from DIR` starts the sessions of a new run (another distance, another bow) from those of the
+run in DIR (session s from DIR's session s, cycling when DIR has fewer): see
+`Learner.seed_from` for what each algorithm carries over."""
 
 from __future__ import annotations
 
@@ -18,7 +23,12 @@ import numpy as np
 from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from protocol.errors import ConfigError
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
-from services.learner.algorithms.registry import ALGORITHMS, make_learner
+from services.learner.algorithms.registry import (
+    ALGORITHMS,
+    check_transfer,
+    make_learner,
+    transferred_learner,
+)
 from sim.ballistic import BallisticError, BallisticWorld, Scenario
 from sim.geometry import INNER_RING_RADIUS
 
@@ -29,6 +39,7 @@ __all__ = [
     "AlgorithmRun",
     "ExperimentConfig",
     "ExperimentError",
+    "Transfer",
     "WindChange",
     "build_parser",
     "main",
@@ -54,6 +65,8 @@ CURVE_COLUMNS = (
     "distance",
 )
 WORLDS = ("ballistic",)
+LEARNERS_NAME = "learners.json"  # the final learner states of a run, what --from reads
+LEARNERS_VERSION = 1
 
 
 class ExperimentError(LearnerError):
@@ -93,6 +106,52 @@ class WindChange:
 
 
 @dataclass(frozen=True)
+class Transfer:
+    """Final learner states of an earlier run that seed the sessions of a new one.
+
+    Attributes:
+        source: where they come from (the earlier run's directory).
+        states: per algorithm, one learner state per session of the earlier run.
+    """
+
+    source: str
+    states: dict[str, tuple[dict[str, Any], ...]]
+
+    @classmethod
+    def load(cls, directory: Path) -> Transfer:
+        """The states an experiment wrote into `directory`.
+
+        Raises:
+            ExperimentError: no readable `learners.json` of this version there.
+        """
+        path = directory / LEARNERS_NAME
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise ExperimentError(
+                f"--from {str(directory)!r}: cannot read {LEARNERS_NAME} of an earlier "
+                f"`archery experiment --out DIR` ({getattr(exc, 'strerror', None) or exc})"
+            ) from None
+        if not isinstance(data, dict) or data.get("version") != LEARNERS_VERSION:
+            raise ExperimentError(
+                f"--from {str(directory)!r}: {path} is not a version {LEARNERS_VERSION} "
+                f"learner-state file"
+            )
+        states = data.get("algorithms")
+        if not isinstance(states, dict) or not all(
+            isinstance(v, list) and v and all(isinstance(x, dict) for x in v)
+            for v in states.values()
+        ):
+            raise ExperimentError(f"--from {str(directory)!r}: {path} holds no learner states")
+        return cls(str(directory), {name: tuple(v) for name, v in states.items()})
+
+    def state(self, name: str, session: int) -> dict[str, Any]:
+        """The state that seeds `session` of algorithm `name`."""
+        states = self.states[name]
+        return states[session % len(states)]
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     """One experiment: every algorithm runs `sessions` sessions of `rollouts` rollouts.
 
@@ -108,6 +167,7 @@ class ExperimentConfig:
         bounds: θ box (m) given to every learner.
         world: the simulator; only "ballistic" (the paper's analytic model) here.
         wind_change: the wind changes during the sessions (None: it does not).
+        transfer: start each session from an earlier run's learner (None: from scratch).
     """
 
     algorithms: tuple[str, ...] = DEFAULT_ALGORITHMS
@@ -118,6 +178,7 @@ class ExperimentConfig:
     bounds: Bounds = DEFAULT_BOUNDS
     world: str = "ballistic"
     wind_change: WindChange | None = None
+    transfer: Transfer | None = None
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -149,6 +210,14 @@ class ExperimentConfig:
                     f"--wind-change rollout {at} must be in [2, {self.rollouts}] (the budget)"
                 )
             self.changed_scenario()  # a wind without drag is rejected here
+        if self.transfer is not None:
+            for name in self.algorithms:
+                check_transfer(name)
+                if name not in self.transfer.states:
+                    raise ExperimentError(
+                        f"--from {self.transfer.source!r} has no {name} sessions; it has "
+                        f"{', '.join(self.transfer.states) or 'none'}"
+                    )
         for name in self.algorithms:
             probe = self.learner(name, 0)
             needed = probe.exploration_rollouts + 1
@@ -167,13 +236,21 @@ class ExperimentConfig:
         )
 
     def learner(self, name: str, session: int) -> Learner:
-        """A fresh learner `name` for `session`, starting at the scenario's θ."""
-        return make_learner(
+        """A fresh learner `name` for `session`, starting at the scenario's θ (and from the
+        transferred learner of `session`, with `transfer`).
+
+        Raises:
+            StateError: the transferred state cannot seed it.
+        """
+        learner = make_learner(
             name,
             np.array(self.scenario.start),
             rng=np.random.default_rng(self.seeds(session)[1]),
             bounds=self.bounds,
         )
+        if self.transfer is None:
+            return learner
+        return transferred_learner(learner, self.transfer.state(name, session))
 
     def changed_scenario(self) -> Scenario:
         """The range after the wind change (the scenario itself without one).
@@ -193,6 +270,7 @@ class ExperimentConfig:
             "seed": self.seed,
             "algorithms": list(self.algorithms),
             "bounds": self.bounds.to_dict(),
+            "from": None if self.transfer is None else self.transfer.source,
         }
 
 
@@ -206,6 +284,7 @@ class AlgorithmRun:
         r_observed: (sessions, rollouts, 2) reward vectors the learner was told (m).
         r_true: (sessions, rollouts, 2) true arrow − centre offsets (m).
         wall_time: seconds spent on this algorithm (learning and simulation).
+        states: each session's final learner state.
     """
 
     name: str
@@ -213,6 +292,7 @@ class AlgorithmRun:
     r_observed: np.ndarray
     r_true: np.ndarray
     wall_time: float
+    states: tuple[dict[str, Any], ...] = ()
 
     @property
     def distances(self) -> np.ndarray:
@@ -261,7 +341,8 @@ def run_algorithm(
         r_true[:, k] = impacts.r
         if on_rollout is not None:
             on_rollout()
-    return AlgorithmRun(name, thetas, r_observed, r_true, time.perf_counter() - start)
+    states = tuple(learner.state_dict() for learner in learners)
+    return AlgorithmRun(name, thetas, r_observed, r_true, time.perf_counter() - start, states)
 
 
 def run_experiment(config: ExperimentConfig, *, progress: bool = True) -> dict[str, AlgorithmRun]:
@@ -330,10 +411,15 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
 def write_outputs(
     out: Path, config: ExperimentConfig, runs: dict[str, AlgorithmRun], *, figures: bool = True
 ) -> dict[str, Any]:
-    """Write summary.json, curves.csv and (if `figures`) fig5.png and fig6.png into `out`."""
+    """Write summary.json, curves.csv, learners.json (the final learner states, what `--from`
+    reads) and (if `figures`) fig5.png and fig6.png into `out`."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(config, runs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    learners = {name: list(run.states) for name, run in runs.items() if run.states}
+    (out / LEARNERS_NAME).write_text(
+        json.dumps({"version": LEARNERS_VERSION, "algorithms": learners}, allow_nan=False) + "\n"
+    )
     with (out / "curves.csv").open("w", newline="") as handle:
         writer = csv.writer(handle)
         writer.writerow(CURVE_COLUMNS)
@@ -375,6 +461,8 @@ def _title(config: ExperimentConfig) -> str:
     if config.wind_change is not None:
         wind = ", ".join(f"{w:g}" for w in config.wind_change.wind)
         parts.append(f"wind {wind} m/s from rollout {config.wind_change.at}")
+    if config.transfer is not None:
+        parts.append(f"from {config.transfer.source}")
     return f"{config.sessions} sessions × {config.rollouts} rollouts; " + ", ".join(parts)
 
 
@@ -430,6 +518,12 @@ def build_parser() -> argparse.ArgumentParser:
         + ",".join(f"{x:g}" for x in defaults.start)
         + ")",
     )
+    add(
+        "--from",
+        dest="from_",
+        metavar="DIR",
+        help="start each session from the learner of an earlier run's --out DIR",
+    )
     add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
@@ -465,6 +559,7 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         scenario=scenario,
         world=args.world,
         wind_change=None if args.wind_change is None else WindChange.parse(args.wind_change),
+        transfer=None if args.from_ is None else Transfer.load(Path(args.from_)),
     )
 
 
@@ -521,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     _print_table(summary, wall_time)
     print(
-        f"wrote {out}/summary.json, curves.csv"
+        f"wrote {out}/summary.json, curves.csv, learners.json"
         + ("" if args.no_figures else ", fig5.png, fig6.png")
     )
     return 0

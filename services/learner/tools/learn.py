@@ -1,6 +1,8 @@
 """`archery learn`: run one learning session against running services and print its result.
 
-It asks the learner service to `start` (or `--resume`) a session, or follows a running one
+It asks the learner service to `start` (or `--resume`) a session, or to start one from another
+session's learned model (`--from SESSION`: its id under the learner's runs directory, or its
+journal; see `services.learner.transfer`), or follows a running one
 (`--attach SESSION`, `services.learner.tools.attach`), shows each rollout as it is published on
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
@@ -19,6 +21,7 @@ import math
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 from protocol.cliargs import ArgumentParser, loads_finite, seconds
@@ -27,7 +30,8 @@ from protocol.messages import Rollout
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node
 from protocol.robotspec import SERVICES
-from services.learner.algorithms.registry import ALGORITHMS
+from services.learner.algorithms.base import LearnerError
+from services.learner.algorithms.registry import ALGORITHMS, check_transfer
 from services.learner.config import SessionConfig
 from services.learner.session import FINAL_STATES
 from services.learner.tools import attach
@@ -109,6 +113,12 @@ def build_parser() -> argparse.ArgumentParser:
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
     which.add_argument(
+        "--from",
+        dest="from_",
+        metavar="SESSION",
+        help="start a new session from SESSION's learned model (its id or journal)",
+    )
+    which.add_argument(
         "--attach",
         metavar="SESSION",
         help="follow the running session SESSION (its id or journal) from where it is",
@@ -145,7 +155,24 @@ def start_request(args: argparse.Namespace) -> dict[str, Any]:
     }
     if scenario:
         request["scenario"] = scenario
+    if args.from_:
+        request["from_journal"] = _from_journal(args.from_, args.algo)
     return request
+
+
+def _from_journal(target: str, algo: str) -> str:
+    """`--from`'s session id, or its journal or directory as an absolute path (the learner may
+    run elsewhere); a path that does not exist here is refused."""
+    try:
+        check_transfer(algo)
+    except LearnerError as exc:
+        raise ConfigError(str(exc)) from None
+    path = Path(target)
+    if path.exists():
+        return str(path.resolve())
+    if "/" in target or target.endswith(".jsonl"):
+        raise ConfigError(f"--from {target!r}: no such journal or session directory")
+    return target  # a session id, looked up in the learner's runs directory
 
 
 def follow(
