@@ -44,7 +44,7 @@ def measure(procs: dict[str, psutil.Process], seconds: float) -> dict[str, float
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_idle", description=__doc__)
     parser.add_argument("--seconds", type=float, default=10.0, help="per measurement")
-    parser.add_argument("--repeats", type=int, default=1, help="measurements")
+    parser.add_argument("--repeats", type=int, default=5, help="measurements")
     parser.add_argument("--settle", type=float, default=5.0, help="s after all are alive")
     return parser
 
