@@ -249,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
                 )
         print("recorder throughput (1280×720 rgb8, zstd):", flush=True)
         fps = _throughput(endpoint, tmp, args.seconds)
-        worst, n, recorded = _fidelity(endpoint, last, model)
+        worst, n, n_hits = _fidelity(endpoint, last, model)
     finally:
         launcher.stop_all()
     kept = [rate for rate, sent, written in fps if written == sent]
@@ -270,7 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(f"highest 1280×720 rate with no frame lost: {max(kept) if kept else 0:g} frames/s")
     print(
-        f"replay fidelity: max |Δr| = {worst * 1e3:.4f} mm over the {n} of {recorded} recorded "
+        f"replay fidelity: max |Δr| = {worst * 1e3:.4f} mm over the {n} of {n_hits} recorded "
         "detections whose frame a replayed grab finds by sim time"
     )
     return 0
