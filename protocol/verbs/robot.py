@@ -155,11 +155,12 @@ class ResetReply(Reply, frozen=True):
     shot: int
 
 
-WindComponent = Annotated[float, Meta(ge=-MAX_WIND, le=MAX_WIND, description="m/s")]
-
-
 class SetWindArgs(Args, frozen=True):
-    wind: Annotated[list[WindComponent], Meta(min_length=3, max_length=3, description="m/s")]
+    """The robot refuses a component beyond ±MAX_WIND (a NaN is refused here, as not finite)."""
+
+    wind: Annotated[
+        list[float], Meta(min_length=3, max_length=3, description="m/s, each within ±50")
+    ]
 
 
 class WindReply(Reply, frozen=True):
