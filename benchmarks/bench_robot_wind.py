@@ -9,9 +9,9 @@ session then continues until it hits again, or `AFTER` rollouts later. Reported 
 rollouts to re-hit (the first rollout under the new wind counts as 1; `AFTER + 1` if none),
 median [q1, q3], and sessions hitting again.
 
-The change must land between two shots: the benchmark checks the robot's shot count (world
-events and `status`) and counts a shot already released under the old wind as a delay
-("late shots"), moving the change one rollout on.
+The change must land between two shots: the benchmark compares the robot's shot count (`status`,
+after `setWind`) with the hit's shot (its `done` record in the journal) and counts a shot already
+released under the old wind as a delay ("late shots"), moving the change one rollout on.
 
 Writes bench.json under --out and prints the table.
 """
@@ -43,35 +43,20 @@ def _quartiles(values: np.ndarray) -> str:
     return f"{median:g} [{q1:g}, {q3:g}]"
 
 
-def _session(node: Any, rollouts: Any, events: Any, algo: str, seed: int) -> dict[str, Any]:
-    from protocol.errors import RpcTimeout
+def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
+    from services.learner.journal import read_records
     from services.learner.tools.learn import follow
 
     robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
     node.call(robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)
-    while True:  # forget the events of earlier sessions
-        try:
-            events.get(timeout=0.05)
-        except RpcTimeout:
-            break
+    journal: list[Path] = []
     state: dict[str, Any] = {
         "first_hit": None,
         "change_at": None,
         "late_shots": 0,
         "rehit_at": None,
-        "shift_cm": None,
-        "released": 0,
         "stopped": False,
     }
-
-    def drain() -> None:
-        while True:
-            try:
-                event = events.get(timeout=0.0)
-            except RpcTimeout:
-                return
-            if event.kind == "released":
-                state["released"] = max(state["released"], event.shot)
 
     def stop() -> None:
         if not state["stopped"]:
@@ -82,16 +67,23 @@ def _session(node: Any, rollouts: Any, events: Any, algo: str, seed: int) -> dic
         if message.status != "done":
             return
         index = message.index
+        truth = None if message.truth_r_m is None else [100 * v for v in message.truth_r_m]
         if state["first_hit"] is None:
             if message.hit:
-                drain()
-                shot = state["released"]
                 node.call(robot, "setWind", {"wind": list(WIND)}, timeout=20)
-                late = node.call(robot, "status", timeout=20)["shot"] - shot
+                now = node.call(robot, "status", timeout=20)["shot"]
+                records = read_records(journal[0])[0]
+                shot = next(
+                    r["shot"] for r in records if r["record"] == "done" and r["index"] == index
+                )
+                late = now - shot
                 state.update(first_hit=index, change_at=index + 1 + late, late_shots=late)
+                state["truth_cm_hit"] = truth
             elif index >= BEFORE[algo]:
                 stop()
         elif index >= state["change_at"]:
+            if index == state["change_at"]:
+                state["truth_cm_first_after"] = truth
             if message.hit and state["rehit_at"] is None:
                 state["rehit_at"] = index
                 stop()
@@ -101,7 +93,9 @@ def _session(node: Any, rollouts: Any, events: Any, algo: str, seed: int) -> dic
     request = {"algo": algo, "seed": seed, "rollouts": BEFORE[algo] + AFTER + 2}
     request["until_hit"] = False
     start = time.perf_counter()
-    session = node.call(learner, "start", request, timeout=60)["session"]
+    started = node.call(learner, "start", request, timeout=60)
+    session = started["session"]
+    journal.append(Path(started["journal"]))
     final = follow(node, session, rollouts, on_rollout, poll=0.2)
     state["session"] = session
     state["wall_s"] = time.perf_counter() - start
@@ -125,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
 
-    from protocol.messages import Rollout, WorldEvent
+    from protocol.messages import Rollout
     from protocol.node import Node
     from protocol.router import free_tcp_endpoint
     from services.launcher import SERVICES, Launcher
@@ -139,7 +133,6 @@ def main(argv: list[str] | None = None) -> int:
     try:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-            events = node.subscribe(node.keys.world_events(), WorldEvent, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)
             with Progress(
                 "[progress.description]{task.description}",
@@ -153,9 +146,7 @@ def main(argv: list[str] | None = None) -> int:
                 for algo in ALGORITHMS:
                     bar.update(task, description=f"robot wind: {algo}")
                     for seed in range(args.sessions):
-                        runs.setdefault(algo, []).append(
-                            _session(node, rollouts, events, algo, seed)
-                        )
+                        runs.setdefault(algo, []).append(_session(node, rollouts, algo, seed))
                         bar.advance(task)
     finally:
         launcher.stop_all()
