@@ -20,7 +20,7 @@ calls; `_grants` turns each into the Zenoh messages and directions it takes:
 Every grant is a flow of the running services (a session of `archery learn` uses them all):
 
 * robot: publishes joint states, the scene (`world/state:o`) and world events; takes joint
-  commands; serves the joint RPCs and `archery/rpc:i` (nock, release, reset, status);
+  commands; serves the joint RPCs and `archery/rpc:i` (nock, release, reset, setWind, status);
 * camera: subscribes to the scene (a change wakes the renderer), calls `archery/rpc:i`
   (`status`: which scene to render), serves `cam/rpc:i` (grab, calibration marks) and
   publishes the frames (read by `archery view`, the operator);

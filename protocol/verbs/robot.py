@@ -13,10 +13,11 @@ from msgspec import Meta
 from protocol.parts import PARTS
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["ARCHERY_VERBS", "PART_VERBS"]
+__all__ = ["ARCHERY_VERBS", "MAX_WIND", "PART_VERBS"]
 
 MAX_REFERENCE_SPEED = 2.0  # rad/s
 MAX_JOINTS = 64
+MAX_WIND = 50.0  # m/s, per axis
 
 Speed = Annotated[float, Meta(gt=0.0, le=MAX_REFERENCE_SPEED, description="rad/s")]
 Joints = Annotated[list[float], Meta(min_length=1, max_length=MAX_JOINTS, description="rad")]
@@ -154,6 +155,18 @@ class ResetReply(Reply, frozen=True):
     shot: int
 
 
+class SetWindArgs(Args, frozen=True):
+    """The robot refuses a component beyond ±MAX_WIND (a NaN is refused here, as not finite)."""
+
+    wind: Annotated[
+        list[float], Meta(min_length=3, max_length=3, description="m/s, each within ±50")
+    ]
+
+
+class WindReply(Reply, frozen=True):
+    wind: Annotated[list[float], Meta(description="m/s, root frame")]
+
+
 class ArcheryStatusReply(Reply, frozen=True):
     sim_time: Annotated[float, Meta(description="s")]
     arrow: str
@@ -179,6 +192,12 @@ ARCHERY_VERBS = VerbTable(
         Verb("nock", NoArgs, NockReply, "put a fresh arrow on the bow"),
         Verb("release", NoArgs, ReleaseReply, "release the arrow; replies once it has landed"),
         Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed"),
+        Verb(
+            "setWind",
+            SetWindArgs,
+            WindReply,
+            "the constant wind (m/s, root frame) of the following shots; the wind now in force",
+        ),
         Verb("status", NoArgs, ArcheryStatusReply, "arrow, phase, counters, scene and world"),
     ),
 )

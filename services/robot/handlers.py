@@ -54,6 +54,7 @@ class RobotHandlers:
                 "nock": self.nock,
                 "release": self.release,
                 "reset": self.reset,
+                "setWind": self.set_wind,
                 "status": self.archery_status,
             }
         )
@@ -129,6 +130,10 @@ class RobotHandlers:
     def reset(self, args: rv.ResetArgs) -> rv.ResetReply:
         """Home posture at sim time 0, the arrow stowed; reseeded when `seed` is given."""
         return rv.ResetReply(**self._loop.reset(args.seed))
+
+    def set_wind(self, args: rv.SetWindArgs) -> rv.WindReply:
+        """Set the constant wind (m/s, root frame) of the shots released from now on."""
+        return rv.WindReply(wind=self._loop.set_wind(args.wind))
 
     def archery_status(self, args: NoArgs) -> rv.ArcheryStatusReply:
         """Arrow, phase, shot, sim time, counters, the scene and world configs."""

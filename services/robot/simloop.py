@@ -28,12 +28,14 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
 from protocol.jobs import JobQueue
+from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.config import RobotConfig
 from services.robot.pacing import MAX_IDLE_WAIT, Pacing
@@ -41,6 +43,7 @@ from services.robot.sink import Sink
 from services.robot.watchdog import StreamWatchdog
 from sim.arrow import Landing, Launch
 from sim.errors import StateError
+from sim.vectors import vector3
 from sim.world import ArcheryWorld, ArrowState
 
 __all__ = ["SimLoop", "SimUnavailable", "phase_of"]
@@ -201,6 +204,20 @@ class SimLoop:
             raise BadRequest(f"seed must be an integer >= 0 or absent, got {seed!r}")
         return self.call(lambda: self._reset(seed))
 
+    def set_wind(self, wind: Any) -> list[float]:
+        """Set the constant wind (m/s, root frame) of the shots launched from now on.
+
+        An arrow already flying keeps the wind drawn at its launch; on `archery/rpc:i` the call
+        waits behind a pending release anyway, like `reset`. Returns the wind now in force.
+
+        Raises:
+            BadRequest: not 3 finite numbers, or a component beyond ±MAX_WIND m/s.
+        """
+        vector = vector3("wind", wind, BadRequest)
+        if any(abs(v) > MAX_WIND for v in vector):
+            raise BadRequest(f"each wind component must be within ±{MAX_WIND:g} m/s, got {wind!r}")
+        return self.call(lambda: self._set_wind(vector))
+
     def status(self) -> dict[str, Any]:
         """Arrow state, sim time, shot count, counters, and the scene and world configs."""
         return self.call(self._status)
@@ -294,6 +311,11 @@ class SimLoop:
         self._publish_joints()
         self._publish_world()
         return {"sim_time": self.world.sim_time, "seed": seed, "shot": self._shot}
+
+    def _set_wind(self, wind: tuple[float, float, float]) -> list[float]:
+        self.world.config = replace(self.world.config, wind=wind)
+        log.info("wind set to %s m/s", list(wind))
+        return list(self.world.config.wind)
 
     def _status(self) -> dict[str, Any]:
         world = self.world

@@ -1,0 +1,179 @@
+"""Benchmark of a wind change on the MuJoCo iCub: rollouts to hit the 5 cm ring again.
+
+Run `MUJOCO_GL=egl python -m benchmarks.bench_robot_wind [--sessions 10]`. A router and the five
+services run as child processes (`services.launcher.Launcher`, as in `benchmarks.bench_prior`).
+Each session learns in calm air; right after its first hit (the learner's `done` rollout on
+`learner/rollout:o`), the benchmark calls the robot's `setWind` with `WIND`, so the wind turns
+from the next rollout on, as `archery experiment --wind-change` does on the ballistic world. The
+session then continues until it hits again, or `AFTER` rollouts later. Reported per learner:
+rollouts to re-hit (the first rollout under the new wind counts as 1; `AFTER + 1` if none),
+median [q1, q3], and sessions hitting again.
+
+The change must land between two shots: the benchmark compares the robot's shot count (`status`,
+after `setWind`) with the hit's shot (its `done` record in the journal) and counts a shot already
+released under the old wind as a delay ("late shots"), moving the change one rollout on.
+
+Writes bench.json under --out and prints the table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+__all__ = ["AFTER", "ALGORITHMS", "BEFORE", "WIND", "main"]
+
+WIND = (0.0, 15.0, 0.0)  # m/s: moves a centred shot ~10 cm sideways on the target
+ALGORITHMS = ("archer-prior", "archer-recent", "archer", "power")
+BEFORE = {"archer-prior": 30, "archer-recent": 30, "archer": 30, "power": 60}  # to the first hit
+AFTER = 30  # rollouts under the new wind to hit again
+
+
+def _quartiles(values: np.ndarray) -> str:
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return f"{median:g} [{q1:g}, {q3:g}]"
+
+
+def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
+    from services.learner.journal import read_records
+    from services.learner.tools.learn import follow
+
+    robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
+    node.call(robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)
+    journal: list[Path] = []
+    state: dict[str, Any] = {
+        "first_hit": None,
+        "change_at": None,
+        "late_shots": 0,
+        "rehit_at": None,
+        "stopped": False,
+    }
+
+    def stop() -> None:
+        if not state["stopped"]:
+            state["stopped"] = True
+            node.call(learner, "stop", timeout=20)
+
+    def on_rollout(message: Any) -> None:
+        if message.status != "done":
+            return
+        index = message.index
+        truth = None if message.truth_r_m is None else [100 * v for v in message.truth_r_m]
+        if state["first_hit"] is None:
+            if message.hit:
+                node.call(robot, "setWind", {"wind": list(WIND)}, timeout=20)
+                now = node.call(robot, "status", timeout=20)["shot"]
+                records = read_records(journal[0])[0]
+                shot = next(
+                    r["shot"] for r in records if r["record"] == "done" and r["index"] == index
+                )
+                late = now - shot
+                state.update(first_hit=index, change_at=index + 1 + late, late_shots=late)
+                state["truth_cm_hit"] = truth
+            elif index >= BEFORE[algo]:
+                stop()
+        elif index >= state["change_at"]:
+            if index == state["change_at"]:
+                state["truth_cm_first_after"] = truth
+            if message.hit and state["rehit_at"] is None:
+                state["rehit_at"] = index
+                stop()
+            elif index >= state["change_at"] + AFTER - 1:
+                stop()
+
+    request = {"algo": algo, "seed": seed, "rollouts": BEFORE[algo] + AFTER + 2}
+    request["until_hit"] = False
+    start = time.perf_counter()
+    started = node.call(learner, "start", request, timeout=60)
+    session = started["session"]
+    journal.append(Path(started["journal"]))
+    final = follow(node, session, rollouts, on_rollout, poll=0.2)
+    state["session"] = session
+    state["wall_s"] = time.perf_counter() - start
+    state["rollouts"] = final.get("rollouts")
+    if state["rehit_at"] is not None:
+        state["rehit"] = state["rehit_at"] - state["change_at"] + 1
+    else:
+        state["rehit"] = None if state["first_hit"] is None else AFTER + 1
+    return state
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the sessions, print the table, write bench.json under --out."""
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.bench_robot_wind", description=__doc__
+    )
+    parser.add_argument("--out", default="runs/bench-robot-wind", help="output directory")
+    parser.add_argument("--sessions", type=int, default=10, help="sessions per learner")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    args = parser.parse_args(argv)
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+
+    from protocol.messages import Rollout
+    from protocol.node import Node
+    from protocol.router import free_tcp_endpoint
+    from services.launcher import SERVICES, Launcher
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    launcher = Launcher(
+        free_tcp_endpoint(), "bench", out / "logs", {"learner": ["--runs", str(out)]}
+    )
+    launcher.up(180)
+    runs: dict[str, list[dict[str, Any]]] = {}
+    try:
+        with Node(None, launcher.net) as node:
+            rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+            node.wait_alive(SERVICES, timeout=30)
+            with Progress(
+                "[progress.description]{task.description}",
+                BarColumn(),
+                MofNCompleteColumn(),
+                TimeElapsedColumn(),
+                console=Console(stderr=True),
+                disable=args.no_progress,
+            ) as bar:
+                task = bar.add_task("robot wind", total=len(ALGORITHMS) * args.sessions)
+                for algo in ALGORITHMS:
+                    bar.update(task, description=f"robot wind: {algo}")
+                    for seed in range(args.sessions):
+                        runs.setdefault(algo, []).append(_session(node, rollouts, algo, seed))
+                        bar.advance(task)
+    finally:
+        launcher.stop_all()
+
+    wind = ", ".join(f"{w:g}" for w in WIND)
+    table = [
+        f"| robot learner | rollouts to the first hit: median [q1, q3] | to hit again after the "
+        f"wind turns to {wind} m/s: median [q1, q3] | sessions hitting again | late shots |",
+        "|---|---|---|---|---|",
+    ]
+    summary: dict[str, Any] = {"wind": list(WIND), "after": AFTER, "learners": {}}
+    for algo in ALGORITHMS:
+        sessions = runs[algo]
+        first = np.array([s["first_hit"] or BEFORE[algo] + 1 for s in sessions])
+        changed = [s for s in sessions if s["first_hit"] is not None]
+        rehit = np.array([s["rehit"] for s in changed]) if changed else np.array([np.nan])
+        again = sum(s["rehit_at"] is not None for s in changed)
+        late = sum(s["late_shots"] for s in sessions)
+        table.append(
+            f"| {algo} | {_quartiles(first)} | {_quartiles(rehit)} "
+            f"| {again}/{len(changed)} (of {len(sessions)}) | {late} |"
+        )
+        summary["learners"][algo] = {"sessions": sessions}
+    print("\n".join(table))
+    (out / "bench.json").write_text(json.dumps(summary, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
