@@ -85,7 +85,6 @@ class Archer(Learner):
     """
 
     algorithm = "archer"
-    transferable = True
 
     def __init__(
         self,

@@ -202,7 +202,13 @@ class Learner(ABC):
 
     algorithm: ClassVar[str]
     exploration_rollouts: int = 1
-    transferable: ClassVar[bool] = False  # `seed_from` can start it from another session
+    # `seed_from` can start it from another session: set for the classes that define
+    # `_seed_from(source)`, which takes over what a checked source of the same class learned
+    transferable: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls.transferable = callable(getattr(cls, "_seed_from", None))
 
     def __init__(
         self, theta0: np.ndarray, *, rng: np.random.Generator, bounds: Bounds = DEFAULT_BOUNDS
@@ -386,7 +392,7 @@ class Learner(ABC):
 
     def seed_from(self, source: Learner) -> None:
         """Start this fresh learner from what `source`, a session in another world (another
-        distance, another bow), learned. Learners with `transferable` override `_seed_from`.
+        distance, another bow), learned (learners that define `_seed_from`).
 
         Raises:
             LearnerConfigError: this learner cannot transfer, or `source` is of another algorithm
@@ -403,11 +409,7 @@ class Learner(ABC):
             raise LearnerConfigError("seed_from needs a fresh learner (nothing asked or told)")
         if source.n_rollouts == 0:
             raise LearnerConfigError("the source session has no rollout to learn from")
-        self._seed_from(source)
-
-    def _seed_from(self, source: Learner) -> None:
-        """Take over what `source` learned (a checked fresh learner of the same class)."""
-        raise NotImplementedError(f"{type(self).__name__} sets transferable without _seed_from")
+        self._seed_from(source)  # type: ignore[attr-defined]  # defined where transferable
 
     # -- the algorithm --------------------------------------------------------------------------
 

@@ -93,7 +93,6 @@ class ArcherPrior(Learner):
 
     algorithm = "archer-prior"
     exploration_rollouts = 0
-    transferable = True
 
     def __init__(
         self,
