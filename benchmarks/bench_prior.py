@@ -20,16 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
 
+from benchmarks.learning_mesh import learning_mesh, progress_bar
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.tools.experiment import (
     AlgorithmRun,
@@ -101,12 +99,6 @@ def _run_ballistic(
     )
     configs.append(("wind change", change))
     total = sum(len(c.algorithms) * c.rollouts for _, c in configs)
-    columns = (
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-    )
     table = [
         "| scenario | first shot ‖r‖ (cm) | algorithm | rollouts to hit: median [q1, q3] "
         "| sessions hit | final ‖r‖ (cm) | time (s) |",
@@ -118,7 +110,7 @@ def _run_ballistic(
         "|---|---|---|---|---|",
     ]
     results: dict[str, Any] = {}
-    with Progress(*columns, console=Console(stderr=True), disable=args.no_progress) as bar:
+    with progress_bar(args.no_progress) as bar:
         task = bar.add_task("ballistic", total=total)
         for scenario_name, config in configs:
             runs: dict[str, AlgorithmRun] = {}
@@ -165,38 +157,15 @@ def _robot_session(
 
 
 def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str, Any]]:
-    from protocol.messages import Rollout
-    from protocol.node import Node
-    from protocol.router import free_tcp_endpoint
-    from services.launcher import SERVICES, Launcher
-
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    launcher = Launcher(
-        free_tcp_endpoint(), "bench", out / "logs", {"learner": ["--runs", str(out)]}
-    )
-    launcher.up(180)
     finals: dict[str, list[dict[str, Any]]] = {}
-    try:
-        with Node(None, launcher.net) as node:
-            rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-            node.wait_alive(SERVICES, timeout=30)
-            with Progress(
-                "[progress.description]{task.description}",
-                BarColumn(),
-                MofNCompleteColumn(),
-                TimeElapsedColumn(),
-                console=Console(stderr=True),
-                disable=args.no_progress,
-            ) as bar:
-                task = bar.add_task("robot", total=len(ROBOT_VARIANTS) * args.robot_sessions)
-                for label, algo, options in ROBOT_VARIANTS:
-                    bar.update(task, description=f"robot: {label}")
-                    for seed in range(args.robot_sessions):
-                        final = _robot_session(node, rollouts, algo, options, seed)
-                        finals.setdefault(label, []).append(final)
-                        bar.advance(task)
-    finally:
-        launcher.stop_all()
+    with learning_mesh(out) as (node, rollouts), progress_bar(args.no_progress) as bar:
+        task = bar.add_task("robot", total=len(ROBOT_VARIANTS) * args.robot_sessions)
+        for label, algo, options in ROBOT_VARIANTS:
+            bar.update(task, description=f"robot: {label}")
+            for seed in range(args.robot_sessions):
+                final = _robot_session(node, rollouts, algo, options, seed)
+                finals.setdefault(label, []).append(final)
+                bar.advance(task)
     table = [
         "| robot learner | first shot ‖r‖ (cm): median [max] | rollouts to the 5 cm ring: "
         "median [q1, q3] | sessions hit | aborted attempts |",

@@ -20,15 +20,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+from benchmarks.learning_mesh import learning_mesh, progress_bar
 
 __all__ = ["AFTER", "ALGORITHMS", "BEFORE", "WIND", "main"]
 
@@ -119,37 +118,14 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
 
-    from protocol.messages import Rollout
-    from protocol.node import Node
-    from protocol.router import free_tcp_endpoint
-    from services.launcher import SERVICES, Launcher
-
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    launcher = Launcher(
-        free_tcp_endpoint(), "bench", out / "logs", {"learner": ["--runs", str(out)]}
-    )
-    launcher.up(180)
     runs: dict[str, list[dict[str, Any]]] = {}
-    try:
-        with Node(None, launcher.net) as node:
-            rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-            node.wait_alive(SERVICES, timeout=30)
-            with Progress(
-                "[progress.description]{task.description}",
-                BarColumn(),
-                MofNCompleteColumn(),
-                TimeElapsedColumn(),
-                console=Console(stderr=True),
-                disable=args.no_progress,
-            ) as bar:
-                task = bar.add_task("robot wind", total=len(ALGORITHMS) * args.sessions)
-                for algo in ALGORITHMS:
-                    bar.update(task, description=f"robot wind: {algo}")
-                    for seed in range(args.sessions):
-                        runs.setdefault(algo, []).append(_session(node, rollouts, algo, seed))
-                        bar.advance(task)
-    finally:
-        launcher.stop_all()
+    with learning_mesh(out) as (node, rollouts), progress_bar(args.no_progress) as bar:
+        task = bar.add_task("robot wind", total=len(ALGORITHMS) * args.sessions)
+        for algo in ALGORITHMS:
+            bar.update(task, description=f"robot wind: {algo}")
+            for seed in range(args.sessions):
+                runs.setdefault(algo, []).append(_session(node, rollouts, algo, seed))
+                bar.advance(task)
 
     wind = ", ".join(f"{w:g}" for w in WIND)
     table = [

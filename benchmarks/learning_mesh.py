@@ -1,0 +1,50 @@
+"""What the benchmarks of learning sessions on the MuJoCo iCub share: a whole mesh on a free
+loopback port with a client node following the learner's rollouts, and a progress bar."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+from protocol.messages import Rollout
+from protocol.node import Node, Subscription
+from protocol.router import free_tcp_endpoint
+from services.launcher import SERVICES, Launcher
+
+__all__ = ["learning_mesh", "progress_bar"]
+
+
+def progress_bar(disable: bool = False) -> Progress:
+    """A progress bar on stderr: description, bar, done of total, time elapsed."""
+    return Progress(
+        "[progress.description]{task.description}",
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        disable=disable,
+    )
+
+
+@contextmanager
+def learning_mesh(out: Path) -> Iterator[tuple[Node, Subscription[Rollout]]]:
+    """A router and the five services (logs under `out/logs`, the learner's sessions under
+    `out`), all alive; yields a client node and its FIFO subscription to the learner's
+    `Rollout` stream. Everything is stopped when the block ends."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    launcher = Launcher(
+        free_tcp_endpoint(), "bench", out / "logs", {"learner": ["--runs", str(out)]}
+    )
+    launcher.up(180)
+    try:
+        with Node(None, launcher.net) as node:
+            rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+            node.wait_alive(SERVICES, timeout=30)
+            yield node, rollouts
+    finally:
+        launcher.stop_all()
