@@ -9,21 +9,9 @@ import numpy as np
 import pytest
 
 from protocol.errors import RpcError
-from tests.test_robot_service import Client, Posture, posture, robot  # noqa: F401 (fixtures)
+from tests.test_robot_service import Client, Posture, posture, robot, shoot  # noqa: F401
 
 WIND = [0.0, 10.0, 0.0]  # m/s along +y: r[0] of the impact is along +y
-
-
-def shoot(client: Client, posture: Posture, seed: int) -> np.ndarray:  # noqa: F811
-    """The true impact (m, on the target plane) of a shot with launch noise seeded by `seed`."""
-    client.archery("reset", {"seed": seed})
-    client.move(posture)
-    client.archery("nock")
-    client.archery("release")
-    events = [client.event() for _ in range(4)]
-    assert [e.kind for e in events[:3]] == ["reset", "nocked", "released"]
-    assert events[3].impact_m is not None
-    return np.asarray(events[3].impact_m)
 
 
 def test_set_wind_moves_the_impact_downwind(
@@ -32,14 +20,18 @@ def test_set_wind_moves_the_impact_downwind(
 ) -> None:
     client = robot()
     assert client.archery("status")["world"]["wind"] == [0.0, 0.0, 0.0]
-    calm = shoot(client, posture, 3)
+    calm = np.asarray(shoot(client, posture, 3))
     assert client.archery("setWind", {"wind": WIND}) == {"wind": WIND}
     assert client.archery("status")["world"]["wind"] == WIND
-    windy = shoot(client, posture, 3)  # same seed: the same launch, only the wind differs
+    windy = np.asarray(
+        shoot(client, posture, 3)
+    )  # same seed: the same launch, only the wind differs
     shift = windy - calm
     assert shift[0] > 0.03 and abs(shift[1]) < shift[0]  # downwind, mostly sideways
     assert client.archery("setWind", {"wind": [0, 0, 0]}) == {"wind": [0.0, 0.0, 0.0]}
-    np.testing.assert_array_equal(shoot(client, posture, 3), calm)  # back to the calm impact
+    np.testing.assert_array_equal(
+        np.asarray(shoot(client, posture, 3)), calm
+    )  # back to the calm impact
 
 
 @pytest.mark.parametrize(
