@@ -1,16 +1,20 @@
-"""Benchmark of `archery record` and `archery replay`.
+"""Benchmark of `archery record`, `archery dashboard` and `archery replay`.
 
 Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8]`. It prints:
 
-* the recorder's cost: per-rollout wall time of learning sessions on one mesh (`archery up`'s
-  Launcher, robot at rtf 0) with a recorder of `ROBOT/**` running against without, the two
-  interleaved `--repeats` times; median of each pair's ratio and its spread (min, max);
+* the observers' cost: per-rollout wall time of learning sessions on one mesh (`archery up`'s
+  Launcher, robot at rtf 0) under four conditions, interleaved in a rotating order `--repeats`
+  times: nothing watching; a recorder of `ROBOT/**`; the dashboard with a client polling it as
+  its page does (`/api/state` every 0.5 s, `/api/frame.png` whenever the frame's version
+  changes); both. Per condition, the median over repeats of its ratio to the same repeat's
+  unwatched session, and the spread (min, max);
 * the recorder's throughput: 1280×720 rgb8 frames published at rising rates for `--seconds`
   s each, frames written against frames published (a drop is counted, never guessed); the
   highest rate with none lost;
-* replay fidelity: one session's recording replayed (camera frames, `--serve-grab`) into a
-  fresh detector loaded with the mesh detector's colour model; max |Δr| over every recorded
-  detection.
+* replay fidelity: the last recorded session replayed (camera frames, `--serve-grab`) into a
+  fresh detector loaded with the mesh detector's colour model; every detection measured again
+  (its frame found by sim time and stamp) and compared with the r the learner journaled; max
+  |Δr|.
 """
 
 from __future__ import annotations
@@ -19,7 +23,6 @@ import argparse
 import contextlib
 import itertools
 import os
-import signal
 import statistics
 import subprocess
 import sys
@@ -30,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.observers import CONDITIONS, Observers, stop
 from protocol.messages import Detection, Image, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node
@@ -43,20 +47,14 @@ from services.learner.tools.learn import follow
 __all__ = ["main", "mesh_launcher", "remeasure"]
 
 
-def _stop(proc: subprocess.Popen[str]) -> str:
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=120)
-    if proc.returncode != 0:
-        raise RuntimeError(f"exit {proc.returncode}: {err}")
-    return out
-
-
-def _per_rollout(node: Node, rollouts: Any, seed: int, budget: int) -> float:
+def _per_rollout(node: Node, rollouts: Any, seed: int, budget: int) -> tuple[float, Path]:
+    """One session of `budget` rollouts: its median wall time per rollout (s) and journal."""
     request = {"algo": "archer", "seed": seed, "rollouts": budget}
     session = node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
-    done = [r for r in read_records(Path(final["journal"]))[0] if r["record"] == "done"]
-    return statistics.median(b["t"] - a["t"] for a, b in itertools.pairwise(done))
+    journal = Path(final["journal"])
+    done = [r for r in read_records(journal)[0] if r["record"] == "done"]
+    return statistics.median(b["t"] - a["t"] for a, b in itertools.pairwise(done)), journal
 
 
 def _frame(width: int = 1280, height: int = 720) -> np.ndarray:
@@ -99,7 +97,7 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
             with contextlib.suppress(subprocess.TimeoutExpired):
                 recorder.wait(10)
         if recorder.returncode is None:
-            _stop(recorder)
+            stop(recorder)
         written = open_recording(path).message_count or 0
         results.append((rate, sent, written))
         print(f"  {rate:4.0f} frames/s offered: {sent} published, {written} written", flush=True)
@@ -107,43 +105,52 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
 
 
 def remeasure(node: Node, hits: list[Detection]) -> float:
-    """Measure each recorded detection's frame again (`after_sim_time` its sim time) through
-    the detector of `node`'s robot; the largest |Δr| (m) against the recorded r."""
+    """Measure each recorded detection's frame again (`after_sim_time` its sim time,
+    `after_stamp` its frame's stamp: every rollout resets the simulated clock, the stamp tells
+    the rollouts apart) through the detector of `node`'s robot; the largest |Δr| (m) against
+    the recorded r.
+
+    Raises:
+        AssertionError: a detection's frame was not found again, or not measured.
+    """
     worst = 0.0
     for hit in hits:
         again = node.call(
             node.keys.detector_rpc(),
             "measure",
-            {"after_sim_time": hit.sim_time, "timeout": 60},
+            {"after_sim_time": hit.sim_time, "after_stamp": hit.frame_stamp, "timeout": 60},
             timeout=90,
         )
-        if again["status"] != "ok" or again["sim_time"] != hit.sim_time:
+        found = (again["status"], again["sim_time"], again["frame_stamp"])
+        if found != ("ok", hit.sim_time, hit.frame_stamp):
             raise AssertionError(f"the replayed frame of sim time {hit.sim_time}: {again}")
         worst = max(worst, float(np.max(np.abs(np.subtract(again["r_m"], hit.r_m)))))
     return worst
 
 
-def _unambiguous(path: Path) -> tuple[list[Detection], int]:
-    """The recorded detections whose frame a replayed `grab {after_sim_time}` finds again, and
-    how many there were in all. Every rollout resets the simulated clock, so a grab for sim
-    time t is answered with the first replayed frame at or after t, which is the measured frame
-    only when no frame played before it (an earlier rollout's) already reached t."""
-    frames = [
-        m.sim_time
-        for k, m, _ in open_recording(path).messages()
-        if k.endswith("cam/target:o") and m.sim_time is not None
-    ]
-    hits = [
+def _detections(path: Path) -> list[Detection]:
+    """The recorded detections that measured an r."""
+    return [
         m
         for k, m, _ in open_recording(path).messages()
-        if k.endswith("detector/hit:o") and m.r_m is not None
+        if isinstance(m, Detection) and k.endswith("detector/hit:o") and m.r_m is not None
     ]
-    found = [h for h in hits if next((t for t in frames if t >= h.sim_time), None) == h.sim_time]
-    return found, len(hits)
 
 
-def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int, int]:
-    hits, recorded = _unambiguous(path)
+def _fidelity(endpoint: str, path: Path, model: Path, journal: Path) -> tuple[float, int, int]:
+    """Replay `path` into a fresh detector and measure every recorded detection again: the
+    largest |Δr| (m) against the r the learner journaled, the detections measured again and
+    the rollouts journaled with an r.
+
+    Raises:
+        AssertionError: a journaled r that no recorded detection holds, or a frame not found.
+    """
+    hits = _detections(path)
+    journaled = [r["r_m"] for r in read_records(journal)[0] if r["record"] == "done"]
+    by_r = {tuple(h.r_m or ()): h for h in hits}
+    missing = [r for r in journaled if tuple(r) not in by_r]
+    if missing:
+        raise AssertionError(f"journaled r without a recorded detection: {missing}")
     robot = "benchreplay"
     detector = subprocess.Popen(
         [
@@ -177,16 +184,15 @@ def _fidelity(endpoint: str, path: Path, model: Path) -> tuple[float, int, int]:
         endpoint,
         ready="archery replay: serving grab",
     )
-    worst = 0.0
     try:
         with Node(None, NetConfig(connect=(endpoint,), robot=robot)) as node:
             node.wait_alive(["detector"], 60)
-            worst = remeasure(node, hits)
+            worst = remeasure(node, [by_r[tuple(r)] for r in journaled])
     finally:
-        _stop(replay)
+        stop(replay)
         detector.terminate()
         detector.wait(30)
-    return worst, len(hits), recorded
+    return worst, len(hits), len(journaled)
 
 
 def mesh_launcher(tmp: Path, robot: str, model: Path) -> Launcher:
@@ -213,56 +219,53 @@ def main(argv: list[str] | None = None) -> int:
     launcher = mesh_launcher(tmp, "bench", model)
     launcher.up(180)
     endpoint = launcher.endpoint
-    ratios, plain, recorded = [], [], []
-    last = tmp / "session.mcap"
+    times: dict[str, list[float]] = {name: [] for name, _, _ in CONDITIONS}
+    last, journal = tmp / "session.mcap", tmp / "none"
     try:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)
             for i in range(args.repeats):
-                order = (False, True) if i % 2 == 0 else (True, False)
-                pair = {}
-                for with_recorder in order:
-                    recorder = None
-                    if with_recorder:
-                        recorder = spawn(
-                            "record",
-                            "--out",
-                            str(last),
-                            "--connect",
-                            endpoint,
-                            "--robot",
-                            "bench",
-                            ready="archery record: recording",
+                k = i % len(CONDITIONS)
+                for name, recorder, dashboard in CONDITIONS[k:] + CONDITIONS[:k]:
+                    with Observers(
+                        endpoint, "bench", last, recorder=recorder, dashboard=dashboard
+                    ) as observers:
+                        per_rollout, session_journal = _per_rollout(
+                            node, rollouts, i, args.rollouts
                         )
-                    pair[with_recorder] = _per_rollout(node, rollouts, i, args.rollouts)
-                    if recorder is not None:
-                        said = _stop(recorder).strip().splitlines()
-                        print(f"  {said[-1] if said else ''}", flush=True)
-                ratios.append(pair[True] / pair[False])
-                plain.append(pair[False])
-                recorded.append(pair[True])
+                    if recorder:
+                        journal = session_journal
+                    times[name].append(per_rollout)
+                    said = "; ".join(observers.said)
+                    print(f"  repeat {i} {name}: {per_rollout * 1e3:.0f} ms/rollout {said}")
+                base = times["none"][-1]
                 print(
-                    f"repeat {i}: {pair[False] * 1e3:.0f} ms/rollout without, "
-                    f"{pair[True] * 1e3:.0f} ms with the recorder (×{ratios[-1]:.3f})",
+                    f"repeat {i}: "
+                    + ", ".join(f"{n} ×{times[n][-1] / base:.3f}" for n, _, _ in CONDITIONS[1:]),
                     flush=True,
                 )
-        print("recorder throughput (1280×720 rgb8, zstd):", flush=True)
+        print("recorder throughput (1280×720 rgb8, lz4):", flush=True)
         fps = _throughput(endpoint, tmp, args.seconds)
-        worst, n, n_hits = _fidelity(endpoint, last, model)
+        worst, n_hits, n_journaled = _fidelity(endpoint, last, model, journal)
     finally:
         launcher.stop_all()
     kept = [rate for rate, sent, written in fps if written == sent]
     size = last.stat().st_size / 1e6
     print("\n--- bench_record")
     print(
-        "per-rollout wall time, with/without the recorder: median ratio "
-        f"×{statistics.median(ratios):.3f}"
-        f" (spread ×{min(ratios):.3f}–×{max(ratios):.3f}; {args.repeats} interleaved pairs of "
-        f"{args.rollouts}-rollout sessions; medians {statistics.median(plain) * 1e3:.0f} ms "
-        f"without, {statistics.median(recorded) * 1e3:.0f} ms with)"
+        f"per-rollout wall time against no observer ({args.repeats} interleaved repeats of "
+        f"{args.rollouts}-rollout sessions; median ms without: "
+        f"{statistics.median(times['none']) * 1e3:.0f})"
     )
-    print(f"last session's recording: {size:.1f} MB")
+    for name, _, _ in CONDITIONS[1:]:
+        ratios = [a / b for a, b in zip(times[name], times["none"], strict=True)]
+        print(
+            f"  {name}: median ratio ×{statistics.median(ratios):.3f} "
+            f"(spread ×{min(ratios):.3f}–×{max(ratios):.3f}; median "
+            f"{statistics.median(times[name]) * 1e3:.0f} ms)"
+        )
+    print(f"last recorded session: {size:.1f} MB")
     for rate, sent, written in fps:
         print(
             f"  offered {rate:g} frames/s: {sent} published, {written} written, "
@@ -270,8 +273,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     print(f"highest 1280×720 rate with no frame lost: {max(kept) if kept else 0:g} frames/s")
     print(
-        f"replay fidelity: max |Δr| = {worst * 1e3:.4f} mm over the {n} of {n_hits} recorded "
-        "detections whose frame a replayed grab finds by sim time"
+        f"replay fidelity: max |Δr| = {worst * 1e3:.4f} mm over all {n_journaled} journaled "
+        f"r of the last recorded session ({n_hits} recorded detections)"
     )
     return 0
 

@@ -24,7 +24,7 @@ import zenoh
 
 from protocol.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from protocol.codec import encode
-from protocol.errors import ArcheryError, ConfigError, RpcTimeout
+from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
 from protocol.messages import Image
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
@@ -67,7 +67,12 @@ def record_main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="the MCAP file to write (.mcap)")
     parser.add_argument("--duration", type=seconds, help="stop after this many seconds")
     parser.add_argument("--count", type=count, default=0, help="stop after N messages (0: no)")
-    parser.add_argument("--compression", choices=sorted(COMPRESSIONS), default="zstd")
+    parser.add_argument(
+        "--compression",
+        choices=sorted(COMPRESSIONS),
+        default="lz4",
+        help="of each chunk (default lz4: the cheapest on a busy machine)",
+    )
     parser.add_argument(
         "--flush-interval",
         type=seconds,
@@ -145,26 +150,44 @@ def record_main(argv: list[str] | None = None) -> int:
 
 
 class _Frames:
-    """The frames a replay has published, for `grab`: the newest `keep` of them."""
+    """The frames a replay has published, for `grab`: the newest `keep` of them.
+
+    A grab's times are read in the recording's clocks: `after_sim_time` against each frame's
+    sim time, `after_stamp` against each frame's own stamp (when the camera captured it in the
+    recorded session). Every rollout resets the simulated clock, so a sim time alone may match
+    an earlier rollout's frame; the stamp of the measured frame (a detection's `frame_stamp`),
+    or of the landing event the learner waited for, tells the rollouts apart.
+    """
 
     def __init__(self, keep: int = 256) -> None:
-        self._frames: collections.deque[tuple[Image, float]] = collections.deque(maxlen=keep)
+        self._frames: collections.deque[Image] = collections.deque(maxlen=keep)
+        self._dropped: float | None = None  # the stamp of the newest frame no longer kept
         self._cond = threading.Condition()
 
     def put(self, image: Image) -> None:
         with self._cond:
-            self._frames.append((image, time.time()))
+            if len(self._frames) == self._frames.maxlen:
+                self._dropped = self._frames[0].stamp
+            self._frames.append(image)
             self._cond.notify_all()
+
+    def _dropped_fits(self, after_stamp: float | None) -> bool:
+        """Whether a frame no longer kept might satisfy a grab for `after_stamp`."""
+        return self._dropped is not None and (after_stamp is None or after_stamp <= self._dropped)
 
     def grab(self, args: dict[str, Any]) -> Image:
         """The first frame (published so far, or within the timeout) with sim time ≥
-        `after_sim_time`, published at wall time ≥ `after_stamp`."""
+        `after_sim_time` and stamp ≥ `after_stamp`.
+
+        Raises:
+            RpcTimeout: no such frame published within the timeout.
+            BadRequest: the frame asked for may be one of those no longer kept.
+        """
         grab = msgspec.convert(args, GrabArgs, strict=True)
         timeout = grab.timeout or 5.0
 
-        def fits(item: tuple[Image, float]) -> bool:
-            image, published = item
-            if grab.after_stamp is not None and published < grab.after_stamp:
+        def fits(image: Image) -> bool:
+            if grab.after_stamp is not None and image.stamp < grab.after_stamp:
                 return False
             if grab.after_sim_time is None:
                 return True
@@ -173,14 +196,20 @@ class _Frames:
         deadline = time.monotonic() + min(timeout, MAX_GRAB_TIMEOUT)
         with self._cond:
             while True:
-                found = next((item[0] for item in self._frames if fits(item)), None)
+                found = next((image for image in self._frames if fits(image)), None)
                 if found is not None:
+                    if found is self._frames[0] and self._dropped_fits(grab.after_stamp):
+                        raise BadRequest(
+                            f"the frame asked for (sim time >= {grab.after_sim_time}, stamp >= "
+                            f"{grab.after_stamp}) may be among the replayed frames no longer "
+                            f"kept (the newest {self._frames.maxlen} are)"
+                        )
                     return found
                 left = deadline - time.monotonic()
                 if left <= 0:
                     raise RpcTimeout(
-                        f"no replayed frame with sim time >= {grab.after_sim_time} within "
-                        f"{timeout:g} s",
+                        f"no replayed frame with sim time >= {grab.after_sim_time} and stamp >= "
+                        f"{grab.after_stamp} within {timeout:g} s",
                     )
                 self._cond.wait(left)
 

@@ -1,22 +1,24 @@
 """Recordings of the mesh as MCAP files: what `archery record` writes and `archery replay` reads.
 
-The format, chosen so that a replay is exact and the Foxglove app and the `mcap` CLI read it:
+The format, chosen so that a replay is exact, the Foxglove app and the `mcap` CLI read it, and
+writing a camera frame costs a copy of its pixels and little else:
 
 - One MCAP channel per Zenoh key (the topic is the key, e.g. `icubSim/cam/target:o`), chunked
-  (zstd or lz4), with message and chunk indexes, statistics and summary offsets.
-- Every message is JSON (message encoding `json`) with a JSON schema (schema encoding
-  `jsonschema`). msgspec writes floats in their shortest round-trip form and bytes as base64, so
-  decoding the JSON into the message type and encoding it as msgpack gives back the very bytes
-  that were published (`tests/test_record.py` checks this): no float or field is lost.
-- Camera frames use Foxglove's well-known schemas, `foxglove.RawImage` (rgb8, bgr8, mono8) or
-  `foxglove.CompressedImage` (jpeg, png), so Foxglove's Image panel shows them; the fields of
-  `Image` Foxglove has no place for (schema, seq, stamp, sim_time, frame) ride along in an extra
-  `archery` object, which Foxglove ignores and the replay reads back. Protobuf (the
-  `foxglove-schemas-protobuf` package) would save the base64 third but has no room for those
-  fields, so a replayed frame would lose its sim time, which the detector's `measure` relies on.
-- Every other message uses its own type's schema (`msgspec.json.schema`), named `archery.TYPE`.
+  (lz4 by default; zstd or none on request), with message and chunk indexes, statistics and
+  summary offsets.
+- Camera frames use Foxglove's well-known schemas as protobuf, `foxglove.RawImage` (rgb8, bgr8,
+  mono8) or `foxglove.CompressedImage` (jpeg, png), with the fields of `Image` Foxglove has no
+  place for added (`protocol.image_records`): the pixels are written as raw bytes, and
+  Foxglove's Image panel shows them.
+- Every other message is JSON (message encoding `json`) with its own type's JSON schema
+  (`msgspec.json.schema`, schema encoding `jsonschema`), named `archery.TYPE`. msgspec writes
+  floats in their shortest round-trip form, so decoding the JSON into the message type and
+  encoding it as msgpack gives back the very bytes that were published (`tests/test_record.py`
+  checks this, frames included): no float or field is lost.
 - The header's profile is `archery`; a metadata record `archery` holds the message schema
-  version, the robot, the key patterns and the start time. A replay refuses another version.
+  version, the recording format, the robot, the key patterns and the start time. A replay
+  refuses another message schema version. Recordings of the first format (frames as JSON with
+  base64 pixels) are still read.
 - A message's log time is when the recorder received it, its publish time the sender's stamp,
   its sequence the sender's seq.
 
@@ -47,17 +49,21 @@ from mcap.writer import CompressionType, Writer
 
 from protocol.codec import decode
 from protocol.errors import ConfigError, DecodeError
+from protocol.image_records import COMPRESSED, RAW, image_from_record, image_record, image_schema
+from protocol.json_image_records import json_image_from_record
 from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Image
 from protocol.messages import Message as ArcheryMessage
 from protocol.patterns import stream_type
 
 __all__ = [
     "COMPRESSIONS",
+    "FORMAT",
     "PROFILE",
     "RecordStats",
     "Recorder",
     "Recording",
     "from_record",
+    "message_encoding",
     "open_recording",
     "to_record",
 ]
@@ -71,165 +77,55 @@ COMPRESSIONS = {
     "none": CompressionType.NONE,
 }
 _MAGIC = b"\x89MCAP0\r\n"
-_RAW = "foxglove.RawImage"
-_COMPRESSED = "foxglove.CompressedImage"
+FORMAT = "2"  # recording format: 2 = frames as protobuf; 1 (no `format` metadata) = as JSON
+_IMAGES = (RAW, COMPRESSED)
 
 
-class _Time(msgspec.Struct, frozen=True):
-    sec: int
-    nsec: int
+def message_encoding(schema_name: str) -> str:
+    """The MCAP message encoding of a schema's channel: protobuf for frames, else json."""
+    return "protobuf" if schema_name in _IMAGES else "json"
 
 
-class _ImageMeta(msgspec.Struct, frozen=True):
-    """The fields of `Image` that Foxglove's image schemas have no place for."""
-
-    schema: int
-    seq: int
-    stamp: float
-    sim_time: float | None
-    frame: int
-    width: int = 0  # compressed images only: their size
-    height: int = 0
-    encoding: str = ""
-
-
-class _RawImage(msgspec.Struct, frozen=True):
-    timestamp: _Time
-    frame_id: str
-    width: int
-    height: int
-    encoding: str
-    step: int
-    data: bytes
-    archery: _ImageMeta
-
-
-class _CompressedImage(msgspec.Struct, frozen=True):
-    timestamp: _Time
-    frame_id: str
-    data: bytes
-    format: str
-    archery: _ImageMeta
-
-
-_TIME_SCHEMA = {
-    "type": "object",
-    "properties": {
-        "sec": {"type": "integer", "minimum": 0},
-        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
-    },
-}
-
-
-def _image_schema(name: str) -> bytes:
-    """A Foxglove image schema as JSON schema, plus the `archery` object."""
-    struct = _RawImage if name == _RAW else _CompressedImage
-    properties: dict[str, Any] = {
-        "timestamp": _TIME_SCHEMA,
-        "frame_id": {"type": "string"},
-        "data": {"type": "string", "contentEncoding": "base64"},
-        "archery": msgspec.json.schema(_ImageMeta),
-    }
-    if struct is _RawImage:
-        properties |= {
-            "width": {"type": "integer", "minimum": 0},
-            "height": {"type": "integer", "minimum": 0},
-            "encoding": {"type": "string"},
-            "step": {"type": "integer", "minimum": 0},
-        }
-    else:
-        properties["format"] = {"type": "string"}
-    return json.dumps({"title": name, "type": "object", "properties": properties}).encode()
-
-
-def _schema_of(message_type: type[ArcheryMessage], encoding: str = "") -> tuple[str, bytes]:
-    """(schema name, JSON schema) of a message type's channel."""
-    if message_type is Image:
-        name = _COMPRESSED if encoding in ("jpeg", "png") else _RAW
-        return name, _image_schema(name)
-    return f"archery.{message_type.__name__}", json.dumps(
-        msgspec.json.schema(message_type)
-    ).encode()
-
-
-def _time(stamp: float) -> _Time:
-    sec = max(0, int(stamp))
-    return _Time(sec, min(999_999_999, max(0, round((stamp - sec) * 1e9))))
+def _schema_of(schema_name: str, message_type: type[ArcheryMessage]) -> tuple[str, bytes]:
+    """(schema encoding, schema data) of a channel's schema."""
+    if schema_name in _IMAGES:
+        return "protobuf", image_schema(schema_name)
+    return "jsonschema", json.dumps(msgspec.json.schema(message_type)).encode()
 
 
 _json = msgspec.json.Encoder()
 
 
 def to_record(message: ArcheryMessage) -> tuple[str, bytes]:
-    """(schema name, JSON bytes) of one message as the recording stores it."""
+    """(schema name, bytes) of one message as the recording stores it: a frame as protobuf,
+    anything else as JSON."""
     if isinstance(message, Image):
-        meta = _ImageMeta(
-            schema=message.schema,
-            seq=message.seq,
-            stamp=message.stamp,
-            sim_time=message.sim_time,
-            frame=message.frame,
-        )
-        if message.encoding in ("jpeg", "png"):
-            meta = msgspec.structs.replace(
-                meta, width=message.width, height=message.height, encoding=message.encoding
-            )
-            record: Any = _CompressedImage(
-                _time(message.stamp), "target_camera", message.data, message.encoding, meta
-            )
-            return _COMPRESSED, _json.encode(record)
-        channels = len(message.data) // (message.width * message.height)
-        record = _RawImage(
-            _time(message.stamp),
-            "target_camera",
-            message.width,
-            message.height,
-            message.encoding,
-            message.width * channels,
-            message.data,
-            meta,
-        )
-        return _RAW, _json.encode(record)
+        return image_record(message)
     return f"archery.{type(message).__name__}", _json.encode(message)
 
 
 _decoders: dict[str, msgspec.json.Decoder[Any]] = {
-    _RAW: msgspec.json.Decoder(_RawImage),
-    _COMPRESSED: msgspec.json.Decoder(_CompressedImage),
-} | {f"archery.{name}": msgspec.json.Decoder(cls) for name, cls in MESSAGE_TYPES.items()}
+    f"archery.{name}": msgspec.json.Decoder(cls) for name, cls in MESSAGE_TYPES.items()
+}
 
 
-def from_record(schema_name: str, data: bytes) -> ArcheryMessage:
-    """The message a record holds (validated, as on the wire).
+def from_record(schema_name: str, data: bytes, schema_encoding: str = "") -> ArcheryMessage:
+    """The message a record holds (validated, as on the wire); `schema_encoding` "jsonschema"
+    reads a frame of the first recording format.
 
     Raises:
         DecodeError: an unknown schema, or data that does not fit it.
     """
+    if schema_name in _IMAGES:
+        if schema_encoding == "jsonschema":
+            return json_image_from_record(schema_name, data)
+        return image_from_record(schema_name, data)
     decoder = _decoders.get(schema_name)
     if decoder is None:
         raise DecodeError(f"unknown schema {schema_name!r} in the recording")
     try:
-        record = decoder.decode(data)
+        return decoder.decode(data)  # type: ignore[no-any-return]
     except (msgspec.ValidationError, msgspec.DecodeError) as exc:
-        raise DecodeError(f"invalid {schema_name} record: {exc}") from None
-    if isinstance(record, ArcheryMessage):
-        return record
-    meta = record.archery
-    common = {"schema": meta.schema, "seq": meta.seq, "stamp": meta.stamp, "frame": meta.frame}
-    if isinstance(record, _RawImage):
-        width, height, encoding = record.width, record.height, record.encoding
-    else:
-        width, height, encoding = meta.width, meta.height, record.format
-    try:
-        return Image(
-            width=width,
-            height=height,
-            encoding=encoding,
-            data=record.data,
-            sim_time=meta.sim_time,
-            **common,
-        )
-    except ValueError as exc:
         raise DecodeError(f"invalid {schema_name} record: {exc}") from None
 
 
@@ -277,7 +173,7 @@ class Recorder:
         robot: str,
         patterns: list[str],
         *,
-        compression: str = "zstd",
+        compression: str = "lz4",
         chunk_size: int = 4 * 1024 * 1024,
         flush_interval: float = 1.0,
         max_pending: int = 1 << 30,
@@ -295,6 +191,7 @@ class Recorder:
             PROFILE,
             {
                 "schema_version": str(SCHEMA_VERSION),
+                "format": FORMAT,
                 "robot": robot,
                 "patterns": " ".join(patterns),
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -333,11 +230,10 @@ class Recorder:
         if channel is None:
             schema_id = self._schemas.get(schema_name)
             if schema_id is None:
-                encoding = message.encoding if isinstance(message, Image) else ""
-                schema = _schema_of(type(message), encoding)[1]
-                schema_id = self._writer.register_schema(schema_name, "jsonschema", schema)
+                encoding, schema = _schema_of(schema_name, type(message))
+                schema_id = self._writer.register_schema(schema_name, encoding, schema)
                 self._schemas[schema_name] = schema_id
-            channel = self._writer.register_channel(key, "json", schema_id)
+            channel = self._writer.register_channel(key, message_encoding(schema_name), schema_id)
             self._channels[(key, schema_name)] = channel
         return channel
 
@@ -457,7 +353,8 @@ class Recording:
                 schema, channel, record = item
                 if schema is None:
                     raise ConfigError(f"{self.path}: channel {channel.topic} has no schema")
-                yield channel.topic, from_record(schema.name, record.data), record.log_time
+                message = from_record(schema.name, record.data, schema.encoding)
+                yield channel.topic, message, record.log_time
 
 
 def open_recording(path: str | Path) -> Recording:

@@ -3,6 +3,7 @@ against a fake learner (Rollout messages, `status`) and a fake detector (`frame`
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import re
@@ -21,12 +22,13 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.messages import Rollout
+from protocol.messages import Image, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher
 from protocol.router import free_tcp_endpoint
 from services.cli import spawn
 from services.dashboard.server import Dashboard, bind
+from services.dashboard.watch import MeshWatch
 
 CHROMIUM = "/usr/bin/chromium"
 # (r_m, status): two measured rollouts, one aborted, a hit last
@@ -221,3 +223,42 @@ def test_the_page_in_a_headless_browser(net: NetConfig, tmp_path: Path) -> None:
     assert 'id="hit-count">1<' in html
     assert f'data-key="{net.robot}/learner/rollout:o"' in html
     assert 'class="ok"' in html  # the last poll succeeded
+
+
+def _camera_status(frames: int) -> dict[str, Any]:
+    return {
+        "source": "mujoco",
+        "width": 64,
+        "height": 48,
+        "rate": 10.0,
+        "encoding": "rgb8",
+        "frames": frames,
+        "renders": frames,
+        "reuses": 0,
+        "render_ms": None,
+        "errors": 0,
+        "latest_sim_time": None,
+        "scene": None,
+        "scene_from": "robot",
+    }
+
+
+def test_watching_does_not_subscribe_to_the_frames(net: NetConfig) -> None:
+    # the camera renders only for subscribers: the frames' rate comes from its status instead
+    counted = itertools.count(0, 3)
+    with Node("camera", net) as camera, Node(None, net) as node:
+        frames = camera.publisher(camera.keys.cam_frames(), Image)
+        camera.serve(camera.keys.cam_rpc(), {"status": lambda a: _camera_status(next(counted))})
+        camera.ready()
+        watch = MeshWatch(node, status_every=0.1)
+        try:
+            deadline = time.monotonic() + 30
+            while True:
+                rates = {r["key"]: r["hz"] for r in watch.snapshot()["rates"]}
+                if rates.get(camera.keys.cam_frames(), 0) > 0:
+                    break
+                assert time.monotonic() < deadline, rates
+                time.sleep(0.05)
+            assert not frames.matching()
+        finally:
+            watch.close()

@@ -14,7 +14,11 @@ import cv2
 import msgspec
 import numpy as np
 import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
+from mcap.writer import Writer
 
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError
@@ -78,11 +82,17 @@ def test_a_record_holds_the_very_bytes_that_were_published() -> None:
         schema, data = to_record(wire)
         assert encode(from_record(schema, data)) == encode(wire)
         if isinstance(message, Image):
-            assert schema in ("foxglove.RawImage", "foxglove.CompressedImage")
-            record = json.loads(data)
-            assert record["archery"]["frame"] == message.frame
+            # Foxglove's own schema reads the frame: pixels as raw bytes, no base64
+            fox = {"foxglove.RawImage": RawImage, "foxglove.CompressedImage": CompressedImage}
+            record = fox[schema].FromString(data)
+            assert record.data == message.data
+            assert abs(record.timestamp.ToNanoseconds() - message.stamp * 1e9) < 1e3  # 1 µs
             if schema == "foxglove.RawImage":
-                assert record["step"] == len(message.data) // message.height
+                assert (record.width, record.height) == (message.width, message.height)
+                assert record.step == len(message.data) // message.height
+                assert record.encoding == message.encoding
+            else:
+                assert record.format == message.encoding
 
 
 def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> None:
@@ -104,10 +114,18 @@ def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> No
         assert summary.chunk_indexes and all(c.message_index_offsets for c in summary.chunk_indexes)
         names = {s.name for s in summary.schemas.values()}
         assert {"foxglove.RawImage", "foxglove.CompressedImage", "archery.WorldState"} <= names
-        assert all(s.encoding == "jsonschema" for s in summary.schemas.values())
-        assert all(c.message_encoding == "json" for c in summary.channels.values())
+        images = {"foxglove.RawImage", "foxglove.CompressedImage"}
         for schema in summary.schemas.values():
-            json.loads(schema.data)
+            if schema.name in images:
+                assert schema.encoding == "protobuf"
+                files = FileDescriptorSet.FromString(schema.data)
+                assert files.file[0].name == "google/protobuf/timestamp.proto"
+            else:
+                assert schema.encoding == "jsonschema"
+                json.loads(schema.data)
+        for channel in summary.channels.values():
+            image = summary.schemas[channel.schema_id].name in images
+            assert channel.message_encoding == ("protobuf" if image else "json")
         assert reader.get_header().profile == "archery"
     recording = open_recording(path)
     assert recording.complete and recording.message_count == 8
@@ -259,7 +277,28 @@ def test_read_with_a_wildcard_and_a_field(net: NetConfig) -> None:
     assert one.returncode == 0 and one.stdout.splitlines()[0] == '"torso"', one.stderr
 
 
-def test_bytes_survive_msgspec_json() -> None:
-    # the format relies on it: bytes go to base64 and back unchanged
-    blob = bytes(range(256)) * 3
-    assert msgspec.json.decode(msgspec.json.encode(blob), type=bytes) == blob
+def test_a_recording_of_the_first_format_is_still_read(tmp_path: Path) -> None:
+    # frames as JSON with base64 pixels and an `archery` object, no `format` metadata
+    rgb = np.arange(48 * 64 * 3, dtype=np.uint8).reshape(48, 64, 3)
+    image = Image.from_numpy(rgb, frame=3, sim_time=1.25, seq=7, stamp=1.5)
+    record = {
+        "timestamp": {"sec": 1, "nsec": 500_000_000},
+        "frame_id": "target_camera",
+        "width": 64,
+        "height": 48,
+        "encoding": "rgb8",
+        "step": 192,
+        "data": image.data,
+        "archery": {"schema": 1, "seq": 7, "stamp": 1.5, "sim_time": 1.25, "frame": 3},
+    }
+    path = tmp_path / "v1.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        writer.start(profile="archery", library="archery")
+        writer.add_metadata("archery", {"schema_version": "1", "robot": "icubSim"})
+        schema = writer.register_schema("foxglove.RawImage", "jsonschema", b"{}")
+        channel = writer.register_channel("icubSim/cam/target:o", "json", schema)
+        writer.add_message(channel, log_time=1, data=msgspec.json.encode(record), publish_time=1)
+        writer.finish()
+    [(key, got, _)] = list(open_recording(path).messages())
+    assert key == "icubSim/cam/target:o" and encode(got) == encode(image)

@@ -1,4 +1,5 @@
-"""A recorded camera stream replayed into a fresh detector reproduces every recorded r."""
+"""A recorded camera stream replayed into a fresh detector reproduces every recorded r, also
+across a reset of the simulated clock."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 
 import signal
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -49,15 +51,22 @@ def test_replayed_frames_give_the_recorded_detections(
         world = node.publisher(keys.world_state(), WorldState)
         assert world.wait_matched(5)
         measured = []
-        for offset in (0.0, 0.25):  # two landings' frames: the same arrow, later sim times
+        # two rollouts' landings of the same arrow; the second after a reset of the simulated
+        # clock, so its sim time is below the first's: only the stamp tells their frames apart
+        for offset in (0.25, 0.0):
+            started = time.time()
             world.put(_state(qpos, sim_time + offset - 0.5))
             later = threading.Timer(0.3, lambda o=offset: world.put(_state(qpos, sim_time + o)))
             later.start()
             reply = node.call(
-                keys.detector_rpc(), "measure", {"after_sim_time": sim_time + offset}, timeout=30
+                keys.detector_rpc(),
+                "measure",
+                {"after_sim_time": sim_time + offset, "after_stamp": started},
+                timeout=30,
             )
             later.join()
             assert reply["status"] == "ok", reply
+            assert reply["sim_time"] == sim_time + offset
             measured.append(reply)
         assert np.linalg.norm(np.subtract(measured[0]["r_m"], truth)) <= 0.01
         recorder.send_signal(signal.SIGINT)

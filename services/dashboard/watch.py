@@ -1,5 +1,13 @@
 """What the dashboard shows, gathered from the mesh: the live services, each stream port's
-rate, the learner's rollouts and status, and the detector's last measured frame."""
+rate, the learner's rollouts and status, and the detector's last measured frame.
+
+Watching costs the session little: the rates come from subscribers to every stream but the
+camera's frames (a subscriber to the frames would make the camera render and the router
+forward 1280×720 frames for nothing but a count); the frame rate comes from the camera's
+non-blocking `status` instead. The detector's frame with its overlay (drawn and PNG-encoded on
+the detector's worker, between two measurements) is fetched after a rollout at most every
+`frame_every` s.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +29,7 @@ from protocol.patterns import stream_type
 from protocol.robotspec import HIT_RADIUS
 from protocol.tokens import TokenSet
 from protocol.verbs.base import NoArgs
+from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, FrameArgs
 from protocol.verbs.learner import LEARNER_VERBS
 from sim.scene_config import RING_COLOURS
@@ -31,6 +40,8 @@ log = logging.getLogger("archery.dashboard")
 
 MAX_ROLLOUTS = 2000  # rollouts kept per session (a session's budget is at most 10 000)
 _RPC_TIMEOUT = 2.0  # s: frame and status calls
+#: The streams whose arrivals are counted: every stream port but the camera's frames.
+_COUNTED = ("*/state:o", "*/command:i", "world/events:o", "detector/hit:o", "learner/rollout:o")
 
 
 def _hex(rgba: tuple[float, ...]) -> str:
@@ -49,6 +60,8 @@ class _Rates:
         self._lock = threading.Lock()
         self._times: dict[str, collections.deque[float]] = {}
         self._streams: dict[str, bool] = {}
+        self._counts: dict[str, tuple[float, int]] = {}  # key -> (when, count reported)
+        self._reported: dict[str, tuple[float, float]] = {}  # key -> (when, Hz)
 
     def add(self, key: str) -> None:
         is_stream = self._streams.get(key)
@@ -63,27 +76,49 @@ class _Rates:
             while times and times[0] < now - self.window:
                 times.popleft()
 
+    def count(self, key: str, total: int) -> None:
+        """A port's message count as its publisher reports it (the frames, from the camera's
+        status); its rate is the count's rise over the last two reports."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._counts.get(key)
+            self._counts[key] = (now, total)
+            if last is not None and now > last[0] and total >= last[1]:
+                self._reported[key] = (now, (total - last[1]) / (now - last[0]))
+
     def table(self) -> list[dict[str, Any]]:
         """Each key seen, with its rate (Hz, 0 when silent for a window) and last-seen age."""
         now = time.monotonic()
         with self._lock:
             items = sorted((k, list(v)) for k, v in self._times.items())
+            reported = dict(self._reported)
         out = []
         for key, times in items:
             recent = [t for t in times if t >= now - self.window]
             rate = len(recent) / self.window if recent else 0.0
             age = now - times[-1] if times else None
             out.append({"key": key, "hz": round(rate, 2), "age_s": age and round(age, 2)})
-        return out
+        for key, (when, rate) in sorted(reported.items()):
+            out.append({"key": key, "hz": round(rate, 2), "age_s": round(now - when, 2)})
+        return sorted(out, key=lambda row: row["key"])
 
 
 class MeshWatch:
     """Follows one robot's mesh through `node` until `close()`; `snapshot()` is the page's
     JSON, `frame()` the detector's last frame (PNG) and its version."""
 
-    def __init__(self, node: Node, *, window: float = 2.0, status_every: float = 2.0) -> None:
+    def __init__(
+        self,
+        node: Node,
+        *,
+        window: float = 2.0,
+        status_every: float = 2.0,
+        frame_every: float = 2.0,
+    ) -> None:
         self.node = node
         self.status_every = status_every
+        self.frame_every = frame_every
+        self._frame_fetched = -math.inf
         self._lock = threading.Lock()
         self._rollouts: list[dict[str, Any]] = []
         self._session = ""
@@ -96,9 +131,12 @@ class MeshWatch:
         self._rates = _Rates(window)
         keys = node.keys
         self._alive = TokenSet(node.session, keys.alive_all())
-        self._raw: zenoh.Subscriber | None = node.session.declare_subscriber(
-            f"{keys.robot}/**", lambda sample: self._rates.add(str(sample.key_expr))
-        )
+        self._raw: list[zenoh.Subscriber] = [
+            node.session.declare_subscriber(
+                f"{keys.robot}/{pattern}", lambda sample: self._rates.add(str(sample.key_expr))
+            )
+            for pattern in _COUNTED
+        ]
         node.subscribe(keys.learner_rollouts(), Rollout, mode="fifo", callback=self._on_rollout)
         self._frame_wanted.set()
         self._worker = threading.Thread(target=self._work, name="dashboard-mesh", daemon=True)
@@ -135,10 +173,16 @@ class MeshWatch:
                 next_status = time.monotonic() + self.status_every
                 if self.frame()[1] == 0:
                     self._frame_wanted.set()  # no frame yet: ask again (the detector may be up)
-            wanted = self._frame_wanted.wait(max(0.0, next_status - time.monotonic()))
-            if wanted and not self._stop.is_set():
-                self._frame_wanted.clear()
-                self._fetch_frame()
+            if self._frame_wanted.is_set():
+                next_frame = self._frame_fetched + self.frame_every
+                if time.monotonic() >= next_frame:
+                    self._frame_wanted.clear()
+                    self._frame_fetched = time.monotonic()
+                    self._fetch_frame()
+                    continue
+                self._stop.wait(max(0.0, min(next_frame, next_status) - time.monotonic()))
+                continue
+            self._frame_wanted.wait(max(0.0, next_status - time.monotonic()))
 
     def _fetch_status(self) -> None:
         try:
@@ -153,6 +197,13 @@ class MeshWatch:
             status = {"state": "unreachable", "error": str(exc)}
         with self._lock:
             self._status = status
+        try:
+            camera = self.node.call_typed(
+                self.node.keys.cam_rpc(), CAMERA_VERBS["status"], NoArgs(), timeout=_RPC_TIMEOUT
+            )
+        except ArcheryError:
+            return  # no camera: its frames' rate is not shown
+        self._rates.count(self.node.keys.cam_frames(), camera.frames)
 
     def _fetch_frame(self) -> None:
         try:
@@ -203,6 +254,6 @@ class MeshWatch:
         self._frame_wanted.set()
         self._worker.join(timeout=2 * _RPC_TIMEOUT + 1)
         self._alive.close()
-        if self._raw is not None:
-            self._raw.undeclare()
-            self._raw = None
+        for sub in self._raw:
+            sub.undeclare()
+        self._raw = []

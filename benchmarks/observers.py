@@ -1,0 +1,131 @@
+"""The observers whose cost `bench_record` measures: `archery record` and `archery dashboard`
+with a client that polls the dashboard as its page does."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import threading
+import urllib.request
+from pathlib import Path
+
+from protocol.router import free_tcp_endpoint
+from services.cli import spawn
+
+__all__ = ["CONDITIONS", "Observers", "stop"]
+
+#: (name, with the recorder, with the dashboard), the unwatched baseline first.
+CONDITIONS = (
+    ("none", False, False),
+    ("recorder", True, False),
+    ("dashboard", False, True),
+    ("both", True, True),
+)
+POLL = 0.5  # s: the page's poll period (`POLL_MS` in the dashboard's script)
+
+
+def stop(proc: subprocess.Popen[str]) -> str:
+    """SIGINT a child, wait for it and return its stdout.
+
+    Raises:
+        RuntimeError: it exited with another status than 0; with its stderr.
+    """
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    if proc.returncode != 0:
+        raise RuntimeError(f"exit {proc.returncode}: {err}")
+    return out
+
+
+class _PageClient:
+    """Polls `/api/state` every `POLL` s and fetches `/api/frame.png` whenever the frame's
+    version changes, like the dashboard's page in a browser; counts its requests."""
+
+    def __init__(self, url: str) -> None:
+        self.url = url
+        self.states = 0
+        self.frames = 0
+        self.errors = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="page-client", daemon=True)
+        self._thread.start()
+
+    def _get(self, path: str) -> bytes:
+        with urllib.request.urlopen(self.url + path, timeout=10) as response:
+            return response.read()  # type: ignore[no-any-return]
+
+    def _run(self) -> None:
+        version = 0
+        while not self._stop.wait(POLL):
+            try:
+                state = json.loads(self._get("api/state"))
+                self.states += 1
+                if state["frame"]["version"] != version:
+                    version = state["frame"]["version"]
+                    self._get(f"api/frame.png?v={version}")
+                    self.frames += 1
+            except OSError:
+                self.errors += 1
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(15)
+
+
+class Observers:
+    """Starts the observers of one condition on a mesh, and stops them (a context manager).
+
+    Args:
+        endpoint: the router's endpoint.
+        robot: the robot recorded and watched.
+        out: the recorder's file.
+        recorder: run `archery record` (every key of the robot).
+        dashboard: run `archery dashboard` and a client polling it.
+    """
+
+    def __init__(
+        self, endpoint: str, robot: str, out: Path, *, recorder: bool, dashboard: bool
+    ) -> None:
+        self.said: list[str] = []
+        self._recorder: subprocess.Popen[str] | None = None
+        self._dashboard: subprocess.Popen[str] | None = None
+        self._client: _PageClient | None = None
+        flags = ["--connect", endpoint, "--robot", robot]
+        try:
+            if recorder:
+                self._recorder = spawn(
+                    "record", "--out", str(out), *flags, ready="archery record: recording"
+                )
+            if dashboard:
+                port = free_tcp_endpoint().rsplit(":", 1)[1]
+                self._dashboard = spawn(
+                    "dashboard", "--port", port, *flags, ready="archery dashboard: serving"
+                )
+                self._client = _PageClient(f"http://127.0.0.1:{port}/")
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Stop what runs; the recorder's and the client's summaries go to `said`."""
+        if self._client is not None:
+            client, self._client = self._client, None
+            client.close()
+            self.said.append(
+                f"page client: {client.states} states, {client.frames} frames, "
+                f"{client.errors} errors"
+            )
+        for name in ("_dashboard", "_recorder"):
+            proc = getattr(self, name)
+            if proc is not None:
+                setattr(self, name, None)
+                lines = stop(proc).strip().splitlines()
+                if lines[1:]:
+                    self.said.append(lines[-1])
+
+    def __enter__(self) -> Observers:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
