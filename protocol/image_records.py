@@ -23,7 +23,14 @@ from google.protobuf.message import DecodeError as ProtobufDecodeError
 from protocol.errors import DecodeError
 from protocol.messages import Image
 
-__all__ = ["COMPRESSED", "RAW", "image_from_record", "image_record", "image_schema"]
+__all__ = [
+    "COMPRESSED",
+    "RAW",
+    "checked_image",
+    "image_from_record",
+    "image_record",
+    "image_schema",
+]
 
 RAW = "foxglove.RawImage"
 COMPRESSED = "foxglove.CompressedImage"
@@ -130,20 +137,39 @@ def image_from_record(name: str, data: bytes) -> Image:
     except ProtobufDecodeError as exc:
         raise DecodeError(f"invalid {name} record: {exc}") from None
     if name == COMPRESSED:
-        width, height, encoding = record.image_width, record.image_height, record.format
+        size = (record.image_width, record.image_height, record.format)
     else:
-        width, height, encoding = record.width, record.height, record.encoding
+        size = (record.width, record.height, record.encoding)
+    sim_time = record.sim_time if record.HasField("sim_time") else None
+    stamps = (record.archery_schema, record.seq, record.stamp, sim_time, record.frame)
+    return checked_image(name, stamps, size, record.data)
+
+
+def checked_image(
+    name: str,
+    stamps: tuple[int, int, float, float | None, int],
+    size: tuple[int, int, str],
+    data: bytes,
+) -> Image:
+    """The `Image` of a record of schema `name`: `stamps` (schema version, seq, stamp s, sim
+    time s, frame), `size` (width px, height px, encoding) and its pixels.
+
+    Raises:
+        DecodeError: an invalid image; names the schema.
+    """
+    schema, seq, stamp, sim_time, frame = stamps
+    width, height, encoding = size
     try:
         return Image(
-            schema=record.archery_schema,
-            seq=record.seq,
-            stamp=record.stamp,
-            sim_time=record.sim_time if record.HasField("sim_time") else None,
-            frame=record.frame,
+            schema=schema,
+            seq=seq,
+            stamp=stamp,
+            sim_time=sim_time,
+            frame=frame,
             width=width,
             height=height,
             encoding=encoding,
-            data=record.data,
+            data=data,
         )
     except ValueError as exc:
         raise DecodeError(f"invalid {name} record: {exc}") from None

@@ -12,7 +12,7 @@ from typing import Any
 import msgspec
 
 from protocol.errors import DecodeError
-from protocol.image_records import COMPRESSED, RAW
+from protocol.image_records import COMPRESSED, RAW, checked_image
 from protocol.messages import Image
 
 __all__ = ["json_image_from_record"]
@@ -71,20 +71,8 @@ def json_image_from_record(name: str, data: bytes) -> Image:
         raise DecodeError(f"invalid {name} record: {exc}") from None
     meta = record.archery
     if isinstance(record, _RawImage):
-        width, height, encoding = record.width, record.height, record.encoding
+        size = (record.width, record.height, record.encoding)
     else:
-        width, height, encoding = meta.width, meta.height, record.format
-    try:
-        return Image(
-            schema=meta.schema,
-            seq=meta.seq,
-            stamp=meta.stamp,
-            sim_time=meta.sim_time,
-            frame=meta.frame,
-            width=width,
-            height=height,
-            encoding=encoding,
-            data=record.data,
-        )
-    except ValueError as exc:
-        raise DecodeError(f"invalid {name} record: {exc}") from None
+        size = (meta.width, meta.height, record.format)
+    stamps = (meta.schema, meta.seq, meta.stamp, meta.sim_time, meta.frame)
+    return checked_image(name, stamps, size, record.data)
