@@ -121,7 +121,7 @@ class Observers:
             if proc is not None:
                 setattr(self, name, None)
                 lines = stop(proc).strip().splitlines()
-                if lines[1:]:
+                if lines:
                     self.said.append(lines[-1])
 
     def __enter__(self) -> Observers:

@@ -11,10 +11,12 @@ bytes do not match its shape, or a foreign schema version is rejected.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, Literal
 
 import msgspec
+import msgspec.inspect
 import numpy as np
 
 __all__ = [
@@ -34,6 +36,7 @@ __all__ = [
     "RpcRequest",
     "WorldEvent",
     "WorldState",
+    "finite_fields",
 ]
 
 SCHEMA_VERSION = 1
@@ -41,6 +44,39 @@ ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8",
 IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
 _ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
 _FLOATS = ("<f4", "<f8")
+
+
+_NO_FLOATS = (
+    msgspec.inspect.IntType,
+    msgspec.inspect.StrType,
+    msgspec.inspect.BoolType,
+    msgspec.inspect.LiteralType,
+    msgspec.inspect.NoneType,
+    msgspec.inspect.BytesType,
+    msgspec.inspect.StructType,  # a nested struct checks itself (Array, Message, Reply)
+)
+
+
+def _may_hold_float(info: msgspec.inspect.Type) -> bool:
+    inspect = msgspec.inspect
+    if isinstance(info, inspect.UnionType):
+        return any(_may_hold_float(t) for t in info.types)
+    if isinstance(info, inspect.ListType | inspect.VarTupleType | inspect.SetType):
+        return _may_hold_float(info.item_type)
+    if isinstance(info, inspect.TupleType):
+        return any(_may_hold_float(t) for t in info.item_types)
+    if isinstance(info, inspect.DictType):
+        return _may_hold_float(info.key_type) or _may_hold_float(info.value_type)
+    return not isinstance(info, _NO_FLOATS)
+
+
+@functools.cache
+def finite_fields(cls: type[msgspec.Struct]) -> tuple[str, ...]:
+    """The fields of a struct type whose values may hold a float, so `_check_finite` visits
+    only those (an int, str or bool field never holds NaN): computed once per type."""
+    info = msgspec.inspect.type_info(cls)
+    assert isinstance(info, msgspec.inspect.StructType)
+    return tuple(f.name for f in info.fields if _may_hold_float(f.type))
 
 
 def _check_finite(value: Any, where: str) -> None:
@@ -106,7 +142,7 @@ class Message(msgspec.Struct, frozen=True, kw_only=True, tag=True, tag_field="ty
                 f"{type(self).__name__} has schema version {self.schema}; this node speaks "
                 f"version {SCHEMA_VERSION} (update the sender or this node)"
             )
-        for name in self.__struct_fields__:
+        for name in finite_fields(type(self)):
             _check_finite(getattr(self, name), name)
         self.validate()
 

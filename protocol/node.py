@@ -146,10 +146,11 @@ class Subscription(Generic[M]):
     """Receives one message type on one key.
 
     mode "latest": keeps only the newest message (`latest()`, `wait_newer()`); mode "fifo": keeps
-    every message in arrival order (`get()`), never dropping one. An optional callback runs on
-    Zenoh's thread for each valid message, in order (keep it short); with a callback, a fifo
-    subscription hands every message to it instead of queueing it for `get()`. Invalid payloads
-    are counted in `dropped` and logged.
+    every message in arrival order (`get()`), never dropping one. An `Image` arrives as an
+    `ImageView`: its pixels a read-only view of the received payload, not a copy. An optional
+    callback runs on Zenoh's thread for each valid message, in order (keep it short); with a
+    callback, a fifo subscription hands every message to it instead of queueing it for `get()`.
+    Invalid payloads are counted in `dropped` and logged.
     """
 
     def __init__(
@@ -177,7 +178,7 @@ class Subscription(Generic[M]):
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         try:
-            message = decode(sample.payload.to_bytes(), self.message_type)
+            message = decode(sample.payload.to_bytes(), self.message_type, view=True)
         except DecodeError as exc:
             self.dropped += 1
             self.last_error = str(exc)

@@ -30,6 +30,7 @@ from protocol.messages import (
     RpcRequest,
     WorldEvent,
     WorldState,
+    finite_fields,
 )
 
 SAMPLES: list[Message] = [
@@ -248,3 +249,23 @@ def test_messages_are_frozen() -> None:
     with pytest.raises(AttributeError):
         SAMPLES[0].part = "other"  # type: ignore[misc]
     assert msgspec.structs.replace(SAMPLES[0], seq=5).seq == 5
+
+
+def test_an_image_view_holds_the_payload_not_a_copy() -> None:
+    image = Image.from_numpy(np.arange(48 * 64 * 3, dtype=np.uint8).reshape(48, 64, 3), seq=3)
+    payload = encode(image)
+    view = decode(payload, Image, view=True)
+    assert isinstance(view, Image) and isinstance(view.data, memoryview)
+    assert view.data.obj is payload and view.data.readonly
+    assert encode(view) == payload and view.to_numpy().tobytes() == image.data
+    short = encode(Image(width=2, height=2, encoding="rgb8", data=bytes(12)))
+    with pytest.raises(DecodeError, match="needs 12 bytes, got 11"):
+        decode(short.replace(b"\xc4\x0c" + bytes(12), b"\xc4\x0b" + bytes(11)), Image, view=True)
+    assert to_jsonable(view)["data"] == f"<{len(image.data)} bytes>"
+
+
+def test_only_fields_that_may_hold_a_float_are_checked_for_finiteness() -> None:
+    assert finite_fields(JointState) == ("position", "velocity", "stamp", "sim_time")
+    assert finite_fields(Image) == ("stamp", "sim_time")
+    with pytest.raises(ValueError, match="velocity"):
+        JointState(part="torso", names=["a"], position=[0.0], velocity=[math.nan])
