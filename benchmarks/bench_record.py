@@ -8,6 +8,9 @@ Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8]`. It prints:
   its page does (`/api/state` every 0.5 s, `/api/frame.png` whenever the frame's version
   changes); both. Per condition, the median over repeats of its ratio to the same repeat's
   unwatched session, and the spread (min, max);
+  Also each session's CPU time per rollout, per process (the mesh's and the observers'; the
+  polling client stands for the browser and is not counted): a figure that the load of other
+  jobs on a shared machine disturbs far less than wall time;
 * the recorder's throughput: 1280×720 rgb8 frames published at rising rates for `--seconds`
   s each, frames written against frames published (a drop is counted, never guessed); the
   highest rate with none lost;
@@ -33,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.observers import CONDITIONS, Observers, stop
+from benchmarks.observers import CONDITIONS, Observers, cpu_seconds, stop
 from protocol.messages import Detection, Image, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node
@@ -220,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     launcher.up(180)
     endpoint = launcher.endpoint
     times: dict[str, list[float]] = {name: [] for name, _, _ in CONDITIONS}
+    cpu: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in CONDITIONS}
+    mesh = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
     last, journal = tmp / "session.mcap", tmp / "none"
     try:
         with Node(None, launcher.net) as node:
@@ -231,9 +236,13 @@ def main(argv: list[str] | None = None) -> int:
                     with Observers(
                         endpoint, "bench", last, recorder=recorder, dashboard=dashboard
                     ) as observers:
+                        pids = mesh | observers.pids()
+                        before = cpu_seconds(pids)
                         per_rollout, session_journal = _per_rollout(
                             node, rollouts, i, args.rollouts
                         )
+                        after = cpu_seconds(pids)
+                    cpu[name].append({n: (after[n] - before[n]) / args.rollouts for n in pids})
                     if recorder:
                         journal = session_journal
                     times[name].append(per_rollout)
@@ -265,6 +274,12 @@ def main(argv: list[str] | None = None) -> int:
             f"(spread ×{min(ratios):.3f}–×{max(ratios):.3f}; median "
             f"{statistics.median(times[name]) * 1e3:.0f} ms)"
         )
+    print("CPU time per rollout (ms of CPU; median over repeats) of the mesh and the observers:")
+    for name, _, _ in CONDITIONS:
+        parts = {n: statistics.median(run.get(n, 0.0) for run in cpu[name]) for n in cpu[name][0]}
+        total = statistics.median(sum(run.values()) for run in cpu[name])
+        shown = ", ".join(f"{n} {v * 1e3:.1f}" for n, v in parts.items())
+        print(f"  {name}: total {total * 1e3:.1f} ({shown})")
     print(f"last recorded session: {size:.1f} MB")
     for rate, sent, written in fps:
         print(

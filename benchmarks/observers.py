@@ -10,10 +10,12 @@ import threading
 import urllib.request
 from pathlib import Path
 
+import psutil
+
 from protocol.router import free_tcp_endpoint
 from services.cli import spawn
 
-__all__ = ["CONDITIONS", "Observers", "stop"]
+__all__ = ["CONDITIONS", "Observers", "cpu_seconds", "stop"]
 
 #: (name, with the recorder, with the dashboard), the unwatched baseline first.
 CONDITIONS = (
@@ -35,6 +37,15 @@ def stop(proc: subprocess.Popen[str]) -> str:
     out, err = proc.communicate(timeout=120)
     if proc.returncode != 0:
         raise RuntimeError(f"exit {proc.returncode}: {err}")
+    return out
+
+
+def cpu_seconds(pids: dict[str, int]) -> dict[str, float]:
+    """CPU time (user + system, s) each named process has used so far."""
+    out = {}
+    for name, pid in pids.items():
+        times = psutil.Process(pid).cpu_times()
+        out[name] = times.user + times.system
     return out
 
 
@@ -106,6 +117,11 @@ class Observers:
         except BaseException:
             self.close()
             raise
+
+    def pids(self) -> dict[str, int]:
+        """The observers' processes: "recorder", "dashboard" (those that run)."""
+        procs = {"recorder": self._recorder, "dashboard": self._dashboard}
+        return {name: proc.pid for name, proc in procs.items() if proc is not None}
 
     def close(self) -> None:
         """Stop what runs; the recorder's and the client's summaries go to `said`."""

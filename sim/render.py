@@ -28,6 +28,7 @@ import numpy as np
 
 from sim.arrow import arrow_quat
 from sim.errors import ConfigError
+from sim.view_key import ViewKey
 from sim.scene import (
     ARROW_BODY,
     RING_COLOURS,
@@ -95,6 +96,7 @@ class SceneRenderer:
         if lean:
             self._option.geomgroup[ROBOT_GEOM_GROUP] = 0
         self._lean = lean
+        self._view = ViewKey(self.model, camera, width, height, self._option, lean=lean)
 
     def __enter__(self) -> SceneRenderer:
         return self
@@ -106,6 +108,11 @@ class SceneRenderer:
     def nq(self) -> int:
         """Length of the qpos vectors this renderer accepts."""
         return int(self.model.nq)
+
+    def view_key(self, qpos: np.ndarray) -> bytes:
+        """What the camera sees of `qpos`, as bytes: equal keys render equal images
+        (`sim.view_key`)."""
+        return self._view.key(qpos)
 
     def render(self, qpos: np.ndarray) -> np.ndarray:
         """An RGB uint8 image (height, width, 3) of the scene at `qpos`.

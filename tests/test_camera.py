@@ -152,10 +152,16 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         got = [frames.get(timeout=10) for _ in range(3)]
         assert [f.frame for f in got] == sorted({f.frame for f in got})
         assert status()["renders"] == 1
-        # a moved scene is rendered again
-        moved = qpos.copy()
-        moved[0] += 0.1
-        world.put(_state(moved, 2.0))
+        # the robot moving behind the camera changes nothing it sees: not rendered again
+        turned = qpos.copy()
+        turned[0] += 0.1  # the torso
+        world.put(_state(turned, 1.5))
+        assert grab(after_sim_time=1.5).sim_time == 1.5
+        assert status()["renders"] == 1
+        # an arrow on the face, in its view, is rendered again
+        centre = physics.site_position(TARGET_CENTRE_SITE)
+        physics.set_arrow_pose(centre + [0.0, 0.05, 0.05], arrow_quat(np.array([-1.0, 0, -0.05])))
+        world.put(_state(physics.qpos(), 2.0))
         assert grab(after_sim_time=2.0).sim_time == 2.0
         assert status()["renders"] == 2
 

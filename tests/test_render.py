@@ -90,3 +90,32 @@ def test_bad_settings_are_refused() -> None:
         SceneRenderer(SCENE, camera="nope")
     with pytest.raises(ConfigError, match=r"16\.\.4096"):
         SceneRenderer(SCENE, width=8)
+
+
+def test_a_view_key_changes_with_what_the_camera_sees_only(renderer: SceneRenderer) -> None:
+    model = renderer.model
+    rest = model.qpos0.copy()
+    # the robot turns its torso and moves both arms (behind the camera): same key, same image
+    moved = rest.copy()
+    rng = np.random.default_rng(3)
+    for j in range(model.njnt):
+        name = model.joint(j).name
+        if name.startswith(("torso_", "l_", "r_")):
+            moved[model.jnt_qposadr[j]] += rng.uniform(-0.3, 0.3)
+    assert not np.array_equal(moved, rest)
+    assert renderer.view_key(moved) == renderer.view_key(rest)
+    np.testing.assert_array_equal(renderer.render(moved), renderer.render(rest))
+    # an arrow on the face: another key and another image; moved on the face: another again
+    calibration_frame(renderer, rest)
+    stuck = renderer.data.qpos.copy()
+    assert renderer.view_key(stuck) != renderer.view_key(rest)
+    assert not np.array_equal(renderer.render(stuck), renderer.render(rest))
+    nudged = stuck.copy()
+    nudged[model.jnt_qposadr[model.joint("arrow_free").id] + 1] += 1e-6
+    assert renderer.view_key(nudged) != renderer.view_key(stuck)
+
+
+def test_without_the_lean_settings_the_key_is_the_qpos() -> None:
+    with SceneRenderer(SCENE, width=64, height=48, lean=False) as plain:
+        qpos = plain.model.qpos0.copy()
+        assert plain.view_key(qpos) == qpos.tobytes()

@@ -8,15 +8,18 @@ until the robot answers); frames go out at the configured rate, and at once when
 `grab` can be served.
 
 Idle cost: frames are captured only while someone subscribes to the frames or a `grab` waits;
-otherwise the thread sleeps (a subscriber appearing wakes it). A world state whose qpos equals
-the one last rendered is not rendered again: the pixels would be the same, so the last render
-goes out again with this capture's stamp and the new state's sim time. That keeps `grab`'s
-promise: a frame "captured after a stamp" shows the newest world state known at that time, as
-a fresh render of it would.
+otherwise the thread sleeps (a subscriber appearing wakes it). A world state that looks, to the
+camera, like one of the last few rendered (the same poses of everything movable in its view:
+`SceneRenderer.view_key`; the robot moving its arms behind the camera, or a scene reset to
+its empty target, changes nothing it sees) is not rendered again: the pixels would be the
+same, so that render goes out again with this capture's stamp and the new state's sim time.
+That keeps `grab`'s promise: a frame "captured after a stamp" shows the newest world state
+known at that time, as a fresh render of it would.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -37,6 +40,7 @@ from services.camera.sources import DeviceSource, FolderSource
 __all__ = ["Capture", "capture_loop", "encode"]
 
 log = logging.getLogger("archery.camera")
+KEPT_RENDERS = 4  # renders kept for reuse by view key (2.7 MB each at 1280×720)
 
 
 def encode(pixels: np.ndarray, encoding: str, **fields: Any) -> Image:
@@ -66,9 +70,11 @@ class Capture:
         self.scene_checked = 0.0
         self.frame = 0
         self.renders = 0
-        self.reuses = 0  # frames of an unchanged qpos served from the last render
+        self.reuses = 0  # frames of an unchanged view served from a kept render
         self.render_seconds = 0.0
-        self._shown: tuple[bytes, np.ndarray] | None = None  # qpos and pixels of the last render
+        # the last renders by view key (the most recent last): a few, so the empty target's
+        # render outlives the rollout that shows an arrow in it
+        self._shown: collections.OrderedDict[bytes, np.ndarray] = collections.OrderedDict()
         self.errors = 0
         self.watched = False  # someone subscribes to the frames (the capture loop keeps it)
         self.world = None
@@ -130,7 +136,7 @@ class Capture:
             log.info("the robot reports another scene than the default: rebuilding it")
             self.renderer.close()
             self.renderer = None
-            self._shown = None
+            self._shown.clear()
             from sim.render import SceneRenderer
 
             self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
@@ -178,7 +184,7 @@ class Capture:
                 self.renderer.nq,
             )
             self.renderer.close()
-            self._shown = None
+            self._shown.clear()
             self.open()
         started = time.perf_counter()
         pixels = self.renderer.render(qpos)
@@ -187,13 +193,19 @@ class Capture:
         return pixels
 
     def view(self, qpos: np.ndarray) -> np.ndarray:
-        """The pixels of `qpos`: the last render again when qpos is unchanged, else a render."""
-        key = qpos.tobytes()
-        if self._shown is not None and self._shown[0] == key:
+        """The pixels of `qpos`: a kept render of the same view key, else a new render."""
+        if qpos.shape != (self.renderer.nq,):
+            return self.render(qpos)  # rebuilds the scene
+        key = self.renderer.view_key(qpos)
+        pixels = self._shown.get(key)
+        if pixels is not None:
+            self._shown.move_to_end(key)
             self.reuses += 1
-            return self._shown[1]
+            return pixels
         pixels = self.render(qpos)
-        self._shown = (qpos.tobytes(), pixels) if qpos.shape == (self.renderer.nq,) else None
+        self._shown[key] = pixels
+        while len(self._shown) > KEPT_RENDERS:
+            self._shown.popitem(last=False)
         return pixels
 
     def close(self) -> None:

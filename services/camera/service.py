@@ -8,7 +8,8 @@ compressed (`jpeg`, `png`) at `--rate` frames per second; a rendered frame carri
 state's sim time, a real one `sim_time` None.
 
 Idle: frames are captured only while something subscribes to `ROBOT/cam/target:o` or a `grab`
-waits; an unchanged world state (same qpos) reuses the last render with a new capture stamp.
+waits; a world state the camera sees unchanged (the same poses of everything movable in its
+view) reuses a kept render with a new capture stamp.
 
 Verbs on `ROBOT/cam/rpc:i` (args → result):
 - `grab {"after_sim_time": s, "after_stamp": s, "timeout": s}` → an `Image` as a dict
@@ -21,7 +22,7 @@ Verbs on `ROBOT/cam/rpc:i` (args → result):
 - `calibration {}` (mujoco only) → {"image": Image dict, "pixels": {"target": [[x, y]…],
   "arrow": [[x, y]…]}}: a frame with an arrow on the face and the pixels a user would mark.
 - `status {}` → source, size, rate, encoding, frames published, renders, reuses (frames of an
-  unchanged qpos served from the last render) and mean render time
+  unchanged view served from a kept render) and mean render time
   (ms), newest frame's sim time, the scene parameters and where they came from.
 
 One capture thread (the one `run` is called on) owns the source: GL contexts and devices belong
