@@ -28,7 +28,6 @@ import numpy as np
 
 from sim.arrow import arrow_quat
 from sim.errors import ConfigError
-from sim.view_key import ViewKey
 from sim.scene import (
     ARROW_BODY,
     RING_COLOURS,
@@ -38,6 +37,7 @@ from sim.scene import (
     ScenePhysics,
     build_scene,
 )
+from sim.view_key import ViewKey
 
 __all__ = [
     "CALIBRATION_ARROW_R",

@@ -160,7 +160,8 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         assert status()["renders"] == 1
         # an arrow on the face, in its view, is rendered again
         centre = physics.site_position(TARGET_CENTRE_SITE)
-        physics.set_arrow_pose(centre + [0.0, 0.05, 0.05], arrow_quat(np.array([-1.0, 0, -0.05])))
+        on_face = centre + np.array([0.0, 0.05, 0.05])
+        physics.set_arrow_pose(on_face, arrow_quat(np.array([-1.0, 0, -0.05])))
         world.put(_state(physics.qpos(), 2.0))
         assert grab(after_sim_time=2.0).sim_time == 2.0
         assert status()["renders"] == 2
