@@ -230,6 +230,7 @@ def main(argv: list[str] | None = None) -> int:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)
+            _per_rollout(node, rollouts, 1000, args.rollouts)  # warm-up (calibration): untimed
             for i in range(args.repeats):
                 k = i % len(CONDITIONS)
                 for name, recorder, dashboard in CONDITIONS[k:] + CONDITIONS[:k]:
