@@ -8,8 +8,8 @@ enough that machine noise (a shared 2-core machine) hits both sides alike.
 - Frames: lossless RGB frames at 1280×720 and 640×480 from one session to another; the raw
   receiver copies each payload to `bytes` (what a real consumer does), the protocol receiver
   decodes and validates an `Image` (`Node.subscribe` with a callback; an `ImageView`, its pixels
-  a view of the received payload). Figure: frames/s from
-  the first `put` to the arrival of the block's last frame; cost ratio = raw fps / protocol fps.
+  a view of the received payload). Figure: frames/s from the first `put` to the arrival of the
+  block's last frame; cost ratio = raw fps / protocol fps.
 - Streams: N = 1, 2, 4 camera streams at once through the router (N publisher/subscriber
   pairs, each publisher on its own thread at full speed, 1280×720); aggregate frames/s.
 - RPC: round trips with a trivial handler and with a 1 ms handler (`time.sleep(0.001)` on
