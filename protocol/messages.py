@@ -54,6 +54,7 @@ _NO_FLOATS = (
     msgspec.inspect.NoneType,
     msgspec.inspect.BytesType,
     msgspec.inspect.StructType,  # a nested struct checks itself (Array, Message, Reply)
+    msgspec.inspect.RawType,  # undecoded msgpack: checked once decoded (RPC args)
 )
 
 
