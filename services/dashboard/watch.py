@@ -4,9 +4,10 @@ rate, the learner's rollouts and status, and the detector's last measured frame.
 Watching costs the session little: the rates come from subscribers to every stream but the
 camera's frames (a subscriber to the frames would make the camera render and the router
 forward 1280×720 frames for nothing but a count); the frame rate comes from the camera's
-non-blocking `status` instead. The detector's frame with its overlay (drawn and PNG-encoded on
-the detector's worker, between two measurements) is fetched after a rollout at most every
-`frame_every` s.
+non-blocking `status` instead. The detector's frame with its overlay is drawn and PNG-encoded
+on the detector's worker, where it holds up the next measurement: it is fetched after a
+rollout at most every `frame_every` s, and never sooner than `1 / FRAME_DUTY` times the last
+fetch's duration after it, so watching takes at most that share of the detector's time.
 """
 
 from __future__ import annotations
@@ -34,12 +35,13 @@ from protocol.verbs.detector import DETECTOR_VERBS, FrameArgs
 from protocol.verbs.learner import LEARNER_VERBS
 from sim.scene_config import RING_COLOURS
 
-__all__ = ["MAX_ROLLOUTS", "MeshWatch"]
+__all__ = ["FRAME_DUTY", "MAX_ROLLOUTS", "MeshWatch"]
 
 log = logging.getLogger("archery.dashboard")
 
 MAX_ROLLOUTS = 2000  # rollouts kept per session (a session's budget is at most 10 000)
 _RPC_TIMEOUT = 2.0  # s: frame and status calls
+FRAME_DUTY = 0.02  # the share of the detector's time the frame fetches may take at most
 #: The streams whose arrivals are counted: every stream port but the camera's frames.
 _COUNTED = ("*/state:o", "*/command:i", "world/events:o", "detector/hit:o", "learner/rollout:o")
 
@@ -119,6 +121,7 @@ class MeshWatch:
         self.status_every = status_every
         self.frame_every = frame_every
         self._frame_fetched = -math.inf
+        self._frame_took = 0.0  # s: the last frame call's duration
         self._lock = threading.Lock()
         self._rollouts: list[dict[str, Any]] = []
         self._session = ""
@@ -174,11 +177,14 @@ class MeshWatch:
                 if self.frame()[1] == 0:
                     self._frame_wanted.set()  # no frame yet: ask again (the detector may be up)
             if self._frame_wanted.is_set():
-                next_frame = self._frame_fetched + self.frame_every
+                wait = max(self.frame_every, self._frame_took / FRAME_DUTY)
+                next_frame = self._frame_fetched + wait
                 if time.monotonic() >= next_frame:
                     self._frame_wanted.clear()
                     self._frame_fetched = time.monotonic()
-                    self._fetch_frame()
+                    fetched = self._fetch_frame()
+                    took = time.monotonic() - self._frame_fetched
+                    self._frame_took = took if fetched else 0.0  # a failed call costs no work
                     continue
                 self._stop.wait(max(0.0, min(next_frame, next_status) - time.monotonic()))
                 continue
@@ -205,7 +211,8 @@ class MeshWatch:
             return  # no camera: its frames' rate is not shown
         self._rates.count(self.node.keys.cam_frames(), camera.frames)
 
-    def _fetch_frame(self) -> None:
+    def _fetch_frame(self) -> bool:
+        """Fetch the detector's frame; whether it came."""
         try:
             reply = self.node.call_typed(
                 self.node.keys.detector_rpc(),
@@ -216,10 +223,11 @@ class MeshWatch:
         except ArcheryError as exc:
             with self._lock:
                 self._frame_error = str(exc)
-            return
+            return False
         with self._lock:
             self._png, self._frame_error = reply.png, ""
             self._frame_version += 1
+        return True
 
     # -- page side ------------------------------------------------------------------------
     def frame(self) -> tuple[bytes | None, int]:
