@@ -23,7 +23,6 @@ Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8]`. It prints:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 import os
 import statistics
@@ -97,13 +96,14 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
                 sent += 1
                 time.sleep(max(0.0, start + sent / rate - time.monotonic()))
             # it ends by itself once it has every frame; late frames still count
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                recorder.wait(10)
-        if recorder.returncode is None:
-            stop(recorder)
+            try:
+                said, _ = recorder.communicate(timeout=10)
+            except subprocess.TimeoutExpired:
+                said = stop(recorder)
         written = open_recording(path).message_count or 0
         results.append((rate, sent, written))
         print(f"  {rate:4.0f} frames/s offered: {sent} published, {written} written", flush=True)
+        print(f"    {said.strip().splitlines()[-1] if said.strip() else ''}", flush=True)
     return results
 
 
