@@ -18,6 +18,7 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 from mcap.writer import Writer
 
 from protocol.codec import decode, encode
@@ -302,3 +303,24 @@ def test_a_recording_of_the_first_format_is_still_read(tmp_path: Path) -> None:
         writer.finish()
     [(key, got, _)] = list(open_recording(path).messages())
     assert key == "icubSim/cam/target:o" and encode(got) == encode(image)
+
+
+def test_the_mcap_protobuf_decoder_reads_the_frames_from_their_schema(tmp_path: Path) -> None:
+    # as a generic reader (Foxglove, the mcap tools) does: from the descriptor in the file
+    path = tmp_path / "frames.mcap"
+    recorder = Recorder(path, "icubSim", ["icubSim/**"])
+    images = [m for m in _messages() if isinstance(m, Image)]
+    for image in images:
+        recorder.put("icubSim/cam/target:o", encode(image))
+    recorder.close()
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        decoded = [(s.name, m) for s, _, _, m in reader.iter_decoded_messages()]
+    assert [name for name, _ in decoded] == [
+        "foxglove.RawImage",
+        "foxglove.CompressedImage",
+        "foxglove.RawImage",
+    ]
+    for (_, record), image in zip(decoded, images, strict=True):
+        assert record.data == image.data and record.frame == image.frame
+        assert record.HasField("sim_time") == (image.sim_time is not None)
