@@ -18,8 +18,8 @@ from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from google.protobuf.descriptor_pb2 import FileDescriptorSet
 from mcap.reader import make_reader
-from mcap_protobuf.decoder import DecoderFactory
 from mcap.writer import Writer
+from mcap_protobuf.decoder import DecoderFactory
 
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError
