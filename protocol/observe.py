@@ -237,8 +237,8 @@ def replay_main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--serve-grab",
         action="store_true",
-        help="answer ROBOT/cam/rpc:i grab with the replayed frames, and keep answering after "
-        "the end until Ctrl-C",
+        help="answer ROBOT/cam/rpc:i grab with the replayed frames (after_sim_time and "
+        "after_stamp in the recording's clocks), and keep answering after the end until Ctrl-C",
     )
     args = parser.parse_args(argv)
     robot = args.robot
