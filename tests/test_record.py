@@ -22,7 +22,7 @@ from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
 from protocol.codec import decode, encode
-from protocol.errors import ConfigError
+from protocol.errors import ConfigError, RpcTimeout
 from protocol.messages import (
     Array,
     Detection,
@@ -324,3 +324,27 @@ def test_the_mcap_protobuf_decoder_reads_the_frames_from_their_schema(tmp_path: 
     for (_, record), image in zip(decoded, images, strict=True):
         assert record.data == image.data and record.frame == image.frame
         assert record.HasField("sim_time") == (image.sim_time is not None)
+
+
+def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
+    from protocol.errors import BadRequest
+    from protocol.observe import _Frames
+
+    rgb = np.zeros((4, 4, 3), np.uint8)
+    # three rollouts, each restarting the simulated clock
+    shots = [
+        Image.from_numpy(rgb, sim_time=t, stamp=s) for t, s in ((1.0, 10), (0.9, 20), (1.1, 30))
+    ]
+    frames = _Frames(keep=3)
+    for shot in shots:
+        frames.put(shot)
+    for shot in shots:
+        args = {"after_sim_time": shot.sim_time, "after_stamp": shot.stamp, "timeout": 0.1}
+        assert frames.grab(args) is shot
+    assert frames.grab({"after_sim_time": 0.9, "timeout": 0.1}) is shots[0]  # by sim time only
+    with pytest.raises(RpcTimeout, match="no replayed frame"):
+        frames.grab({"after_stamp": 31.0, "timeout": 0.05})
+    frames.put(Image.from_numpy(rgb, sim_time=1.0, stamp=40))  # the first is no longer kept
+    with pytest.raises(BadRequest, match="no longer kept"):
+        frames.grab({"after_sim_time": 0.5, "after_stamp": 5.0, "timeout": 0.1})
+    assert frames.grab({"after_sim_time": 0.5, "after_stamp": 15.0, "timeout": 0.1}) is shots[1]
