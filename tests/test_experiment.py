@@ -31,7 +31,7 @@ def test_the_command_writes_valid_files(tmp_path: Path, capsys: pytest.CaptureFi
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scenario"]["world"] == "ballistic"
     assert summary["scenario"]["drag"] == 0.02 and summary["scenario"]["noise"] == 0.01
-    assert set(summary["algorithms"]) == {"archer", "power", "cma", "random"}
+    assert set(summary["algorithms"]) == {"archer", "power", "cma", "hill", "random"}
     for stats in summary["algorithms"].values():
         to_hit = stats["rollouts_to_hit"]
         assert set(to_hit) >= {"median", "mean", "q1", "q3"}
@@ -42,7 +42,7 @@ def test_the_command_writes_valid_files(tmp_path: Path, capsys: pytest.CaptureFi
     with (out / "curves.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert tuple(rows[0]) == CURVE_COLUMNS
-    assert len(rows) == 4 * 3 * 8
+    assert len(rows) == 5 * 3 * 8
     for row in rows:
         r_true = np.array([float(row["r_true_x"]), float(row["r_true_y"])])
         assert float(row["distance"]) == pytest.approx(np.linalg.norm(r_true), abs=1e-15)

@@ -148,7 +148,7 @@ def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
 
 
 def test_budget_ends_without_hit(tmp_path: Path) -> None:
-    session = _run(SessionConfig(algorithm="random", rollouts=3, seed=0), FakeRig(), tmp_path)
+    session = _run(SessionConfig(algorithm="hill", rollouts=3, seed=0), FakeRig(), tmp_path)
     assert session.status()["ended"] == "budget" and session.status()["rollouts"] == 3
 
 

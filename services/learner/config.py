@@ -48,7 +48,7 @@ ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
         "archer-ridge": _ARCHER,
         "power": _EXPLORE,
         "power-sharp": _EXPLORE,
-        "random": _EXPLORE,
+        "hill": _EXPLORE,
         "cma": {"sigma0": 0.003},
     }
 )

@@ -17,7 +17,12 @@ from services.learner.algorithms.base import (
     LearnerConfigError,
     StateError,
 )
-from services.learner.algorithms.baselines import CmaEs, RandomSearch
+from services.learner.algorithms.baselines import (
+    HILL_STATE_MARK,
+    CmaEs,
+    HillClimber,
+    RandomSearch,
+)
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 
@@ -97,13 +102,14 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
                 MappingProxyType({"return_scale": 0.05}),
             ),
             Algorithm("cma", CmaEs, "CMA-ES"),
-            Algorithm("random", RandomSearch, "random search"),
+            Algorithm("hill", HillClimber, "hill climber (best θ + noise)"),
+            Algorithm("random", RandomSearch, "random search (uniform in the θ box)"),
         )
     }
 )
 
 LEARNER_CLASSES: Mapping[str, type[Learner]] = MappingProxyType(
-    {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, RandomSearch)}
+    {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, HillClimber, RandomSearch)}
 )
 
 # The algorithms that can start from another session's learned model (`Learner.seed_from`).
@@ -148,14 +154,39 @@ def make_learner(
         raise LearnerConfigError(f"invalid option for {name!r}: {exc}") from exc
 
 
+def _check_not_old_random(state: Mapping[str, Any]) -> None:
+    """Refuse a state saved when "random" named the hill climber (now `hill`).
+
+    Such a state (algorithm "random" with the hill climber's step size in its extra state) is
+    not mapped to `hill`: its journal's header and options also say "random", so a resumed
+    session would run under a name that now means another algorithm. The error says so, and
+    that the earlier version that wrote it can finish it.
+
+    Raises:
+        StateError: it is such a state.
+    """
+    extra = state.get("extra")
+    hill_extra = isinstance(extra, Mapping) and HILL_STATE_MARK in extra
+    if state.get("algorithm") == "random" and hill_extra:
+        raise StateError(
+            "this learner state was saved when 'random' named the hill climber (best θ so far "
+            "+ noise), which is now 'hill'; 'random' is now uniform search, so it is not resumed "
+            "as either: finish it with the version that wrote it, or start a new 'hill' session"
+        )
+
+
 def restore_learner(state: Mapping[str, Any]) -> Learner:
     """Rebuild a learner from `Learner.state_dict()`; its next proposal equals the saved one's.
 
+    A state of the old "random" (the hill climber before it was renamed `hill`) is refused with
+    a clear error, never restored as another algorithm (`_check_not_old_random`).
+
     Raises:
-        StateError: the state is malformed or names an unknown algorithm.
+        StateError: the state is malformed, names an unknown algorithm, or is an old "random".
     """
     if not isinstance(state, Mapping):
         raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+    _check_not_old_random(state)
     algorithm = state.get("algorithm")
     if algorithm not in LEARNER_CLASSES:
         raise StateError(

@@ -49,7 +49,7 @@ __all__ = [
     "write_outputs",
 ]
 
-DEFAULT_ALGORITHMS = ("archer", "power", "cma", "random")
+DEFAULT_ALGORITHMS = ("archer", "power", "cma", "hill", "random")
 # curves.csv: θ (m), the observed and the true reward vector (m), the true distance ‖r‖ (m).
 CURVE_COLUMNS = (
     "algorithm",
