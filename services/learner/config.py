@@ -47,7 +47,7 @@ ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
         "archer-plain-iso": _ARCHER,
         "archer-ridge": _ARCHER,
         "power": _EXPLORE,
-        "power-sharp": _EXPLORE,
+        "power-metre": _EXPLORE,
         "hill": _EXPLORE,
         "cma": {"sigma0": 0.003},
     }

@@ -58,7 +58,9 @@ class Algorithm:
 # archer: the default, safeguarded, exploring the draw (θ_x) 4x less than the aim (5 vs 20 mm);
 # archer-plain: the paper's algorithm with the same exploration; the -iso variants explore 20 mm
 # on every component; archer-ridge: the footnote's ridge regression. power: the paper's Eq. 1-4
-# with the authors' σ = 3 and decay 0.965; power-sharp: importance weights exp(−‖r‖/5 cm).
+# with the authors' σ = 3 and decay 0.965, importance weights exp(−‖r‖/5 cm) (why: `Power`);
+# power-metre: the same with ‖r‖ in metres, exp(−‖r‖/1 m). hill: best θ so far + noise (called
+# "random" before); random: uniform in the θ box.
 # archer-recent: ARCHER regressing on the N best of the 4 most recent rollouts (forgets a changed
 # world); archer-prior: the ballistic model aims and a Bayesian residual corrects it.
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
@@ -96,10 +98,10 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
             Algorithm("archer-prior", ArcherPrior, "ARCHER with the ballistic prior"),
             Algorithm("power", Power, "PoWER"),
             Algorithm(
-                "power-sharp",
+                "power-metre",
                 Power,
-                "PoWER (R = exp(−‖r‖/5 cm))",
-                MappingProxyType({"return_scale": 0.05}),
+                "PoWER (R = exp(−‖r‖/1 m))",
+                MappingProxyType({"return_scale": 1.0}),
             ),
             Algorithm("cma", CmaEs, "CMA-ES"),
             Algorithm("hill", HillClimber, "hill climber (best θ + noise)"),
