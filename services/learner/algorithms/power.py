@@ -46,11 +46,13 @@ class Power(Learner):
     unit matters only to PoWER: its update (Eq. 2) weights the σ best rollouts by R, so with ‖r‖
     in metres arrows 5 and 20 cm from the centre weigh almost the same (e^−0.05 vs e^−0.2) and
     the mean moves slowly; ARCHER and the baselines use R only to rank rollouts, which no scale
-    changes. Sweeping s on the paper's ballistic scenario (40 sessions × 60 rollouts,
-    `benchmarks/bench_power_scale.py`, figures in benchmarks/RESULTS.md) gives a median of 26
-    rollouts to hit with s = 1 m against the paper's 19; 5 cm is the default because it is the
-    sweep's scale closest to 19 (median 18, within ±3 over five master seeds) and the task's
-    own unit: R = e^−1 on the 5 cm ring that counts as a hit. Other scales stay selectable
+    changes. Sweeping s on the paper's ballistic scenario (40 sessions × 60 rollouts, five
+    master seeds; `benchmarks/bench_power_scale.py`, table in benchmarks/RESULTS.md): with
+    s = 1 m PoWER needs a median of 26 rollouts to hit (25.5 over the seeds) against the
+    paper's 19; every s from 10 cm down to 5 mm lands within 19 ± 3. The default is 5 cm, in
+    the middle of that range, because it is the task's own length: R = e^−1 on the 5 cm ring
+    that counts as a hit (median 18 with seed 0, 20 over the seeds, each seed 18-20.5; 3 cm
+    lands on 19 over the seeds but is no length of the task). Other scales stay selectable
     (`power-metre` for 1 m; `archery experiment --power-scale S`, `archery learn --option
     return_scale=S`).
     """
