@@ -162,25 +162,20 @@ def plot_report(state: JournalState, path: Path) -> None:
     true = np.array(
         [np.nan if d.get("truth_distance_m") is None else 100 * d["truth_distance_m"] for d in done]
     )
-    curve.plot(
-        n,
-        measured,
-        "o-",
-        color="tab:blue",
-        lw=1.5 if many else 2,
-        ms=3.5 if many else 6,
-        label="measured by the detector",
-    )
+    # (values, style, colour, line width, marker size, label): smaller when there are many
+    lines = [(measured, "o-", "tab:blue", 2.0, 6.0, "measured by the detector")]
     if np.isfinite(true).any():
+        lines.append((true, "s--", "tab:gray", 1.2, 5.0, "true (robot's ground truth)"))
+    for values, style, colour, width, size, label in lines:
         curve.plot(
             n,
-            true,
-            "s--",
-            color="tab:gray",
-            lw=1.0 if many else 1.2,
-            ms=3 if many else 5,
-            mfc="none",
-            label="true (robot's ground truth)",
+            values,
+            style,
+            color=colour,
+            lw=0.75 * width if many else width,
+            ms=0.6 * size if many else size,
+            mfc=None if style == "o-" else "none",
+            label=label,
         )
     if hits.any():
         curve.scatter(
