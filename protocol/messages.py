@@ -86,6 +86,11 @@ def _check_finite(value: Any, where: str) -> None:
         if not math.isfinite(value):
             raise ValueError(f"{where} is {value!r}; a finite number is required")
     elif isinstance(value, list | tuple):
+        try:
+            if all(map(math.isfinite, value)):  # a list of numbers: one pass, no call per item
+                return
+        except (TypeError, OverflowError):
+            pass  # not all numbers (or an int too large for a float): item by item
         for i, item in enumerate(value):
             _check_finite(item, f"{where}[{i}]")
     elif isinstance(value, dict):
