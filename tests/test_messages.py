@@ -269,3 +269,11 @@ def test_only_fields_that_may_hold_a_float_are_checked_for_finiteness() -> None:
     assert finite_fields(Image) == ("stamp", "sim_time")
     with pytest.raises(ValueError, match="velocity"):
         JointState(part="torso", names=["a"], position=[0.0], velocity=[math.nan])
+
+
+def test_a_non_finite_number_in_a_list_is_named_by_its_index() -> None:
+    with pytest.raises(ValueError, match=r"position\[2\] is inf"):
+        JointCommand(part="torso", position=[0.1, 0.2, math.inf])
+    with pytest.raises(ValueError, match=r"args.x\[1\] is nan"):
+        RpcRequest(verb="v", args={"x": ["a", math.nan]})
+    assert RpcRequest(verb="v", args={"x": [10**400, "a", [1.5]]}).args["x"][0] == 10**400
