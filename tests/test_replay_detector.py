@@ -96,7 +96,8 @@ def test_replayed_frames_give_the_recorded_detections(
     try:
         with serving(run_detector, config), Node(None, fresh) as node:
             node.wait_alive(["detector"], timeout=30)
-            assert remeasure(node, hits) <= 1e-3  # 1 mm
+            worst, _ = remeasure(node, hits)
+            assert worst <= 1e-3  # 1 mm
     finally:
         replay.send_signal(signal.SIGINT)
         out, err = replay.communicate(timeout=60)
