@@ -29,6 +29,7 @@ from protocol.messages import Image
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
 from protocol.patterns import check_pattern, stream_type
+from protocol.priority import add_nice_arg, lower_priority
 from protocol.recording import COMPRESSIONS, Recorder, Recording, open_recording
 from protocol.verbs.camera import MAX_GRAB_TIMEOUT, GrabArgs
 
@@ -63,6 +64,7 @@ def record_main(argv: list[str] | None = None) -> int:
         "MCAP file, until Ctrl-C/SIGTERM, --duration or --count",
     )
     add_network_args(parser, default_mode="client")
+    add_nice_arg(parser)
     parser.add_argument("patterns", nargs="*", metavar="KEY_PATTERN", help="e.g. icubSim/**")
     parser.add_argument("--out", required=True, help="the MCAP file to write (.mcap)")
     parser.add_argument("--duration", type=seconds, help="stop after this many seconds")
@@ -90,6 +92,7 @@ def record_main(argv: list[str] | None = None) -> int:
         check_writable_dir(out.parent, f"--out {args.out!r}: folder", create=False)
     except ArcheryError as exc:
         return _fail("record", exc, 2)
+    lower_priority(args.nice)
     stop = shutdown_on_signals()
     try:
         with Node(None, net) as node:

@@ -4,6 +4,7 @@ with SIGKILL, replay timing, wildcards and rates."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import time
@@ -47,6 +48,7 @@ def _flags(net: NetConfig) -> list[str]:
 def _recording(
     path: Path, net: NetConfig, *patterns: str, flush: str = "0.2"
 ) -> subprocess.Popen[str]:
+    """`archery record` of `patterns` (and any further flags among them)."""
     return spawn(
         "record",
         "--out",
@@ -348,3 +350,25 @@ def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
     with pytest.raises(BadRequest, match="no longer kept"):
         frames.grab({"after_sim_time": 0.5, "after_stamp": 5.0, "timeout": 0.1})
     assert frames.grab({"after_sim_time": 0.5, "after_stamp": 15.0, "timeout": 0.1}) is shots[1]
+
+
+def _thread_niceness(pid: int) -> set[int]:
+    return {
+        int((task / "stat").read_text().rsplit(")", 1)[1].split()[16])
+        for task in Path(f"/proc/{pid}/task").iterdir()
+    }
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
+def test_the_recorder_runs_at_a_lower_priority_unless_told(net: NetConfig, tmp_path: Path) -> None:
+    mine = os.getpriority(os.PRIO_PROCESS, 0)
+    for flag, expected in (([], min(19, mine + 10)), (["--nice", "0"], mine)):
+        recorder = _recording(tmp_path / "n.mcap", net, f"{net.robot}/**", *flag)
+        try:
+            assert _thread_niceness(recorder.pid) == {expected}  # every thread, Zenoh's too
+        finally:
+            recorder.send_signal(signal.SIGINT)
+            recorder.communicate(timeout=30)
+    bad = archery("record", "--out", str(tmp_path / "b.mcap"), "--nice", "20", *_flags(net))
+    assert bad.returncode == 2 and "--nice" in bad.stderr and "0..19" in bad.stderr
+    assert len(bad.stderr.strip().splitlines()) == 1

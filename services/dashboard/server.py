@@ -34,6 +34,7 @@ from protocol.cliargs import ArgumentParser
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
+from protocol.priority import add_nice_arg, lower_priority
 from services.dashboard.watch import MeshWatch
 
 __all__ = ["DEFAULT_PORT", "Dashboard", "main"]
@@ -189,6 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         "with overlay, target face, distance per rollout, liveliness and port rates",
     )
     add_network_args(parser, default_mode="client")
+    add_nice_arg(parser)
     http = parser.add_argument_group("web page")
     http.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"default {DEFAULT_PORT}")
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
@@ -200,6 +202,7 @@ def main(argv: list[str] | None = None) -> int:
     except ArcheryError as exc:
         print(f"archery dashboard: {exc}", file=sys.stderr)
         return 2
+    lower_priority(args.nice)
     stop = shutdown_on_signals()
     try:
         with Dashboard(net, server) as dash:
