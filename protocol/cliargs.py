@@ -11,6 +11,7 @@ import json
 import math
 import os
 import re
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
@@ -24,6 +25,7 @@ __all__ = [
     "check_writable_dir",
     "clean_zenoh_error",
     "count",
+    "int_in",
     "loads_finite",
     "nonnegative",
     "seconds",
@@ -71,6 +73,21 @@ def count(text: str) -> int:
     if value < 0:
         raise argparse.ArgumentTypeError(f"{text!r} is negative; give 0 or more")
     return value
+
+
+def int_in(low: int, high: int, noun: str) -> Callable[[str], int]:
+    """argparse type: an integer in low..high, called `noun` in the error."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {noun}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {noun} ({low}..{high})")
+        return value
+
+    return parse
 
 
 def _refuse_constant(name: str) -> Any:

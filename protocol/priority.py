@@ -14,27 +14,18 @@ import os
 import threading
 from pathlib import Path
 
+from protocol.cliargs import int_in
+
 __all__ = ["OBSERVER_NICE", "add_nice_arg", "lower_priority"]
 
 OBSERVER_NICE = 10
-
-
-def _niceness(text: str) -> int:
-    """argparse type: a niceness increment, 0..19."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
-    if not 0 <= value <= 19:
-        raise argparse.ArgumentTypeError(f"{text!r} is not in 0..19")
-    return value
 
 
 def add_nice_arg(parser: argparse.ArgumentParser) -> None:
     """Add --nice N (default `OBSERVER_NICE`; 0 keeps the priority)."""
     parser.add_argument(
         "--nice",
-        type=_niceness,
+        type=int_in(0, 19, "a niceness increment"),
         default=OBSERVER_NICE,
         help=f"lower this process's CPU priority by N (0..19, default {OBSERVER_NICE}; 0: "
         "unchanged), so a busy machine serves the session first",

@@ -16,7 +16,6 @@ the detector, so watching never disturbs a session.
 
 from __future__ import annotations
 
-import argparse
 import errno
 import ipaddress
 import json
@@ -30,7 +29,7 @@ from importlib import resources
 from typing import Any
 from urllib.parse import urlsplit
 
-from protocol.cliargs import ArgumentParser
+from protocol.cliargs import ArgumentParser, int_in
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
@@ -114,17 +113,6 @@ def _check_host(host: str) -> str:
         ) from None
 
 
-def _port(text: str) -> int:
-    """argparse type: a TCP port, 0 (a free one) to 65535."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a port number (0..65535)")
-    return value
-
-
 def bind(host: str, port: int) -> _Server:
     """The HTTP server listening on `host:port` (port 0: a free one), not serving yet.
 
@@ -192,7 +180,12 @@ def main(argv: list[str] | None = None) -> int:
     add_network_args(parser, default_mode="client")
     add_nice_arg(parser)
     http = parser.add_argument_group("web page")
-    http.add_argument("--port", type=_port, default=DEFAULT_PORT, help=f"default {DEFAULT_PORT}")
+    http.add_argument(
+        "--port",
+        type=int_in(0, 65535, "a port number"),
+        default=DEFAULT_PORT,
+        help=f"default {DEFAULT_PORT}",
+    )
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
     args = parser.parse_args(argv)
     try:
