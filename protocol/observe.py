@@ -64,7 +64,7 @@ def record_main(argv: list[str] | None = None) -> int:
         "MCAP file, until Ctrl-C/SIGTERM, --duration or --count",
     )
     add_network_args(parser, default_mode="client")
-    add_nice_arg(parser)
+    add_nice_arg(parser, 0)
     parser.add_argument("patterns", nargs="*", metavar="KEY_PATTERN", help="e.g. icubSim/**")
     parser.add_argument("--out", required=True, help="the MCAP file to write (.mcap)")
     parser.add_argument("--duration", type=seconds, help="stop after this many seconds")

@@ -1,5 +1,7 @@
-"""A lower CPU priority for the observers (`archery record`, `archery dashboard`): on a busy
-machine they lag behind (their queues buffer) rather than slow the session they watch.
+"""A lower CPU priority for the observers: `archery dashboard` by default (on a busy machine
+it lags behind rather than slows the session it watches), `archery record --nice N` on request
+(a starved recorder makes the router drop latest-wins frames meant for it, so it keeps its
+priority unless told).
 
 Linux keeps a niceness per thread: it is raised for every thread running (numpy's, say) and
 before the Zenoh session starts, so the threads started later inherit it. Raising it needs no
@@ -21,13 +23,13 @@ __all__ = ["OBSERVER_NICE", "add_nice_arg", "lower_priority"]
 OBSERVER_NICE = 10
 
 
-def add_nice_arg(parser: argparse.ArgumentParser) -> None:
-    """Add --nice N (default `OBSERVER_NICE`; 0 keeps the priority)."""
+def add_nice_arg(parser: argparse.ArgumentParser, default: int) -> None:
+    """Add --nice N (0 keeps the priority)."""
     parser.add_argument(
         "--nice",
         type=int_in(0, 19, "a niceness increment"),
-        default=OBSERVER_NICE,
-        help=f"lower this process's CPU priority by N (0..19, default {OBSERVER_NICE}; 0: "
+        default=default,
+        help=f"lower this process's CPU priority by N (0..19, default {default}; 0: "
         "unchanged), so a busy machine serves the session first",
     )
 

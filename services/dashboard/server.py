@@ -33,7 +33,7 @@ from protocol.cliargs import ArgumentParser, int_in
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, add_network_args
 from protocol.node import Node, shutdown_on_signals
-from protocol.priority import add_nice_arg, lower_priority
+from protocol.priority import OBSERVER_NICE, add_nice_arg, lower_priority
 from services.dashboard.watch import MeshWatch
 
 __all__ = ["DEFAULT_PORT", "Dashboard", "main"]
@@ -178,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         "with overlay, target face, distance per rollout, liveliness and port rates",
     )
     add_network_args(parser, default_mode="client")
-    add_nice_arg(parser)
+    add_nice_arg(parser, OBSERVER_NICE)
     http = parser.add_argument_group("web page")
     http.add_argument(
         "--port",
