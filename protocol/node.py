@@ -36,7 +36,15 @@ from protocol.errors import (
     WrongReplier,
 )
 from protocol.keys import Keys
-from protocol.messages import Describe, Message, PortInfo, RpcReply, RpcRequest, _check_finite
+from protocol.messages import (
+    Describe,
+    Image,
+    Message,
+    PortInfo,
+    RpcReply,
+    RpcRequest,
+    _check_finite,
+)
 from protocol.netflags import NetConfig, open_session
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.tokens import TokenSet
@@ -99,6 +107,8 @@ class Publisher(Generic[M]):
                 zenoh.CongestionControl.BLOCK if lossless else zenoh.CongestionControl.DROP
             ),
             reliability=zenoh.Reliability.RELIABLE,
+            # a frame is megabytes: on every link it queues behind state, events and RPC
+            priority=zenoh.Priority.DATA_LOW if message_type is Image else zenoh.Priority.DATA,
         )
 
     def put(self, message: M) -> M:
