@@ -14,13 +14,15 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
-from sklearn.mixture import GaussianMixture
 
 from services.detector.errors import CalibrationError, ModelFileError
+
+if TYPE_CHECKING:
+    from sklearn.mixture import GaussianMixture
 
 __all__ = [
     "MIN_CHROMA",
@@ -152,6 +154,8 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
             f"cannot tell those from the background: mark coloured parts (the yellow, red and "
             f"blue rings; the tip's colour)"
         )
+    from sklearn.mixture import GaussianMixture  # a slow import: only when fitting
+
     distinct = len(np.unique(np.round(uv), axis=0))
     best: GaussianMixture | None = None
     bic: dict[int, float] = {}
