@@ -201,6 +201,20 @@ class ColourModel:
     target: Gmm
     arrow: Gmm | None = None
     density_floor: float = 2e-5
+    white_rgb: tuple[float, float, float] | None = None  # the calibration frame's white, 0..255
+
+    def component_table(self) -> np.ndarray:
+        """Index of the target's most responsible Gaussian for every 8-bit (U, V): uint8
+        (256, 256) indexed [U, V] (the rings of a face are its components)."""
+        u, v = np.meshgrid(np.arange(256.0), np.arange(256.0), indexing="ij")
+        uv = np.stack([u, v], axis=-1)
+        single = [
+            Gmm(np.ones(1), mu[None], cov[None], {}).density(uv) * w
+            for w, mu, cov in zip(
+                self.target.weights, self.target.means, self.target.covariances, strict=True
+            )
+        ]
+        return np.argmax(np.stack(single), axis=0).astype(np.uint8)
 
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
         """Membership of the target and of the arrow for every 8-bit (U, V): uint8 (256, 256).
@@ -250,6 +264,7 @@ class ColourModel:
             "density_floor": self.density_floor,
             "target": self.target.to_dict(),
             "arrow": self.arrow.to_dict() if self.arrow else None,
+            "white_rgb": list(self.white_rgb) if self.white_rgb is not None else None,
         }
 
     @classmethod
@@ -284,6 +299,7 @@ class ColourModel:
             target=Gmm.from_dict(data["target"], "target"),
             arrow=Gmm.from_dict(arrow, "arrow") if arrow is not None else None,
             density_floor=floor,
+            white_rgb=_white_from(data.get("white_rgb")),
         )
 
     def save(self, path: str | Path) -> None:
@@ -307,8 +323,10 @@ class ColourModel:
         *,
         max_components: int = 5,
         seed: int = 0,
+        white_rgb: np.ndarray | None = None,
     ) -> ColourModel:
-        """Fit both GMMs from calibration pixels (N, 3) RGB uint8.
+        """Fit both GMMs from calibration pixels (N, 3) RGB uint8; `white_rgb` is the
+        calibration frame's white (`whitebalance.estimate_white`), None if unknown.
 
         Raises:
             CalibrationError: too few pixels, or target and arrow colours that overlap so much
@@ -328,4 +346,22 @@ class ColourModel:
                     f"the arrow (at most 20 % may): the tip needs a colour the target does not "
                     f"have, or the arrow pixels were marked on the target"
                 )
-        return cls(target=target, arrow=arrow)
+        white = None if white_rgb is None else _white_from(list(np.asarray(white_rgb, float)))
+        return cls(target=target, arrow=arrow, white_rgb=white)
+
+
+def _white_from(value: Any) -> tuple[float, float, float] | None:
+    """A model's white RGB from its JSON form (None: not recorded).
+
+    Raises:
+        ModelFileError: not three numbers in 1..255.
+    """
+    if value is None:
+        return None
+    try:
+        white = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        white = ()
+    if len(white) != 3 or not all(math.isfinite(v) and 1.0 <= v <= 255.0 for v in white):
+        raise ModelFileError(f"white_rgb must be three numbers in 1..255, got {value!r}")
+    return white  # type: ignore[return-value]

@@ -1,0 +1,189 @@
+"""The target face in a downscaled membership map: its region, ring ellipses, centre and a
+confidence that means something (below the threshold the face is reported as not seen).
+
+The target's colour membership is thresholded, closed (ring lines, holes) and split into
+connected regions; each of the largest few is filled and its outer boundary fitted with a
+robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
+components are ordered by their radial position inside that ellipse (yellow, red, blue…) and
+the cumulative discs (yellow; yellow + red; …) are fitted too: concentric ellipses of one shape
+validate each other, and the centre is extrapolated from them (`rings.nested_centre`), which
+holds when arrows and fletchings cover part of the yellow. The confidence multiplies how much of
+the outer boundary was seen, how elliptic the region is, how well its colours match the
+calibration, and how many inner rings agree; the factors' ranges were set on the development
+set (`services.detector.devset`) so that wrong centres score below 0.5.
+All positions are pixels of the downscaled map.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
+
+__all__ = ["FaceFit", "find_face"]
+
+_MEMBER = 96  # membership (0..255) of a pixel counted as target colour
+_CANDIDATES = 3  # largest regions examined
+_MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
+_SAME_RING = 0.15  # components whose median radial positions differ less share a ring
+
+
+@dataclass(frozen=True)
+class FaceFit:
+    """A face found in the map: centre (px), its ring ellipses inner → outer (px; the last is
+    the outer boundary of the coloured rings), confidence 0..1 and its factors."""
+
+    centre: tuple[float, float]
+    ellipses: tuple[Ellipse, ...]
+    confidence: float
+    factors: dict[str, float]
+
+    @property
+    def outer(self) -> Ellipse:
+        """The coloured rings' outer boundary."""
+        return self.ellipses[-1]
+
+
+def _ramp(value: float, low: float, high: float) -> float:
+    return min(1.0, max(0.0, (value - low) / (high - low)))
+
+
+def _ellipse_mask(ellipse: Ellipse, shape: tuple[int, int]) -> np.ndarray:
+    mask = np.zeros(shape, np.uint8)
+    cv2.ellipse(mask, ellipse.cv_box(), 1, thickness=cv2.FILLED)
+    return mask
+
+
+def _fill(region: np.ndarray) -> np.ndarray:
+    """The region with its holes filled (largest outline only)."""
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    filled = np.zeros_like(region)
+    if contours:
+        cv2.drawContours(filled, [max(contours, key=cv2.contourArea)], -1, 1, cv2.FILLED)
+    return filled
+
+
+def _inner_rings(
+    outer: Ellipse, mask: np.ndarray, components: np.ndarray, kernel: np.ndarray
+) -> tuple[list[Ellipse], int]:
+    """Fitted cumulative discs inside `outer` that agree with it, and how many were expected."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 30:
+        return [], 0
+    rho = radial_position(outer, np.stack([xs, ys], axis=1))
+    labels = components[ys, xs]
+    inside = rho < 1.05
+    order = []
+    for k in np.unique(labels[inside]):
+        share = labels[inside] == k
+        if share.mean() >= _MIN_COMPONENT_SHARE:
+            order.append((float(np.median(rho[inside][share])), int(k)))
+    order.sort()
+    groups: list[list[int]] = []
+    last = -1.0
+    for position, k in order:
+        if groups and position - last < _SAME_RING:
+            groups[-1].append(k)
+        else:
+            groups.append([k])
+        last = position
+    found: list[Ellipse] = []
+    chosen: list[int] = []
+    for group in groups[:-1]:
+        chosen += group
+        disc = (mask & np.isin(components, chosen)).astype(np.uint8)
+        disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
+        count, labels_map, stats, _ = cv2.connectedComponentsWithStats(disc, connectivity=8)
+        if count < 2:
+            continue
+        biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+        ring = fit_disc(_fill((labels_map == biggest).astype(np.uint8)))
+        if ring is None:
+            continue
+        shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
+        if (
+            shift < 0.12 * outer.radius
+            and 0.12 < ring.radius / outer.radius < 0.95
+            and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
+            and ring.support > 0.5
+        ):
+            found.append(ring)
+    return found, max(0, len(groups) - 1)
+
+
+def _examine(
+    member: np.ndarray,
+    components: np.ndarray | None,
+    region: np.ndarray,
+    kernel: np.ndarray,
+) -> FaceFit | None:
+    filled = _fill(region)
+    outer = fit_disc(filled)
+    if outer is None or outer.radius < 3.0:
+        return None
+    height, width = member.shape
+    ellipse = _ellipse_mask(outer, (height, width))
+    inside_image = float(ellipse.sum())
+    full_area = math.pi * outer.axes[0] * outer.axes[1] / 4
+    if inside_image < 20 or full_area > 6 * height * width:
+        return None
+    union = float(np.count_nonzero(ellipse | filled))
+    iou = float(np.count_nonzero(ellipse & filled)) / union
+    agreement = float(member[ellipse > 0].mean()) / 255.0
+    rings: list[Ellipse] = []
+    expected = 0
+    if components is not None:
+        x0, y0, x1, y1 = outer.box((height, width))
+        mask = (member[y0:y1, x0:x1] > _MEMBER).astype(np.uint8) & ellipse[y0:y1, x0:x1]
+        local, expected = _inner_rings(
+            outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel
+        )
+        rings = [ring.moved(x0, y0) for ring in local]
+    factors = {
+        "support": _ramp(outer.support, 0.55, 0.85),
+        "visible": _ramp(inside_image / full_area, 0.6, 0.9),
+        "elliptic": _ramp(iou, 0.75, 0.92),
+        "colour": _ramp(agreement, 0.15, 0.5),
+        "rings": 1.0 if expected == 0 else 0.6 + 0.4 * len(rings) / expected,
+    }
+    confidence = math.prod(factors.values())
+    ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
+    return FaceFit(nested_centre(list(ellipses)), ellipses, confidence, factors)
+
+
+def find_face(
+    member: np.ndarray,
+    components: np.ndarray | None = None,
+    *,
+    close_fraction: float = 0.01,
+    min_fraction: float = 5e-4,
+) -> FaceFit | None:
+    """The most confident face in a membership map (uint8 0..255, downscaled), or None.
+
+    Args:
+        member: target membership per pixel.
+        components: the target GMM's most responsible component per pixel (uint8), or None to
+            fit the outer boundary only.
+        close_fraction: closing kernel over the map's shorter side (bridges ring lines).
+        min_fraction: smallest region examined, as a fraction of the map.
+    """
+    mask = (member > _MEMBER).astype(np.uint8)
+    size = max(3, round(min(member.shape) * close_fraction) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
+    if count < 2:
+        return None
+    areas = stats[1:, cv2.CC_STAT_AREA]
+    best: FaceFit | None = None
+    for index in np.argsort(areas)[::-1][:_CANDIDATES]:
+        if areas[index] < max(20.0, min_fraction * member.size):
+            break
+        fit = _examine(member, components, (labels == index + 1).astype(np.uint8), kernel)
+        if fit is not None and (best is None or fit.confidence > best.confidence):
+            best = fit
+    return best

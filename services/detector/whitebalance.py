@@ -1,0 +1,58 @@
+"""White balance: the colour of the scene's white, and the channel gains that map one frame's
+white onto the calibration frame's (von Kries), so the UV colour model holds under other light.
+
+The white is estimated from the frame itself: the median RGB of its bright, nearly grey pixels
+(a target face's paper, a wall), found iteratively so that a tinted white (warm light) is still
+recognised as white. Gains are clipped to a plausible range; a frame without such pixels has no
+estimate and is taken as it is.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["MAX_GAIN", "apply_gains", "estimate_white", "white_gains"]
+
+MAX_GAIN = 4.0  # largest (and 1/smallest) gain per channel
+_GREY_SPREAD = 0.22  # (max − min) / max of a channel triple still called grey, after balance
+_MIN_FRACTION = 0.01  # fewest white pixels, as a fraction of the frame
+
+
+def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
+    """RGB (float, 0..255) of the frame's white, or None when the frame shows too little of it.
+
+    Args:
+        rgb: an RGB uint8 image (H, W, 3), ideally downscaled (cost ∝ pixels).
+    """
+    pixels = np.asarray(rgb, dtype=np.float32).reshape(-1, 3)
+    luma = pixels @ np.array([0.299, 0.587, 0.114], np.float32)
+    bright = pixels[(luma >= np.percentile(luma, 50)) & (luma > 20)]
+    if len(bright) < _MIN_FRACTION * len(pixels):
+        return None
+    white = np.ones(3, np.float32)
+    chosen = bright
+    for _ in range(4):
+        balanced = bright / white
+        top = balanced.max(axis=1)
+        spread = (top - balanced.min(axis=1)) / np.maximum(top, 1.0)
+        candidates = bright[spread < _GREY_SPREAD]
+        if len(candidates) < _MIN_FRACTION * len(pixels):
+            break
+        chosen = candidates
+        white = np.median(chosen, axis=0) / max(float(np.median(chosen)), 1.0)
+    if chosen is bright:
+        return None
+    return np.median(chosen, axis=0).astype(np.float64)
+
+
+def white_gains(reference: np.ndarray | None, white: np.ndarray | None) -> np.ndarray | None:
+    """Per-channel gains (3,) that map `white` onto `reference`, or None if either is unknown."""
+    if reference is None or white is None or np.any(np.asarray(white) <= 0):
+        return None
+    return np.clip(np.asarray(reference, float) / np.asarray(white, float), 1 / MAX_GAIN, MAX_GAIN)
+
+
+def apply_gains(rgb: np.ndarray, gains: np.ndarray) -> np.ndarray:
+    """RGB uint8 image with each channel multiplied by its gain (saturated at 255)."""
+    scaled = np.asarray(rgb, np.float32) * np.asarray(gains, np.float32)
+    return np.clip(scaled, 0, 255).astype(np.uint8)
