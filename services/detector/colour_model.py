@@ -203,6 +203,17 @@ class ColourModel:
     density_floor: float = 2e-5
     white_rgb: tuple[float, float, float] | None = None  # the calibration frame's white, 0..255
 
+    def widened(self, variance: float) -> ColourModel:
+        """This model with `variance` (UV levels²) added to every target covariance: a looser
+        target model, for finding the face when the colours have drifted (JPEG, light)."""
+        target = Gmm(
+            self.target.weights,
+            self.target.means,
+            self.target.covariances + variance * np.eye(2),
+            self.target.bic,
+        )
+        return ColourModel(target, self.arrow, self.density_floor, self.white_rgb)
+
     def component_table(self) -> np.ndarray:
         """Index of the target's most responsible Gaussian for every 8-bit (U, V): uint8
         (256, 256) indexed [U, V] (the rings of a face are its components)."""

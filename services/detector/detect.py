@@ -71,6 +71,8 @@ MIN_IMAGE_SIDE = 32  # px
 MAX_IMAGE_SIDE = 8192  # px
 ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
 FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
+FACE_SPREAD = 6.0  # UV levels: added standard deviation of the target colours for the face
+CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
 SURE = 0.9  # a face this confident is not searched for again under the white balance
 WHITE_SIDE = 90  # px: the shorter side of the copy the white is estimated on
 
@@ -225,6 +227,13 @@ def _block_mean(image: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(crop, (width // s, height // s), interpolation=cv2.INTER_AREA)
 
 
+def _chroma_scaled(table: np.ndarray, gain: float) -> np.ndarray:
+    """A flat [U + 256·V] table for frames whose chroma is `gain` times the calibration's:
+    entry (u, v) is the original's at 128 + (u − 128, v − 128) / gain (nearest level)."""
+    levels = np.clip(np.round(128 + (np.arange(256) - 128) / gain), 0, 255).astype(np.int64)
+    return np.ascontiguousarray(table[levels[None, :] + 256 * levels[:, None]].ravel())
+
+
 def downscale(image: np.ndarray, side: int = FACE_SIDE) -> tuple[np.ndarray, float]:
     """The image (H, W[, C]) area-averaged so that its shorter side is about `side` px (never
     enlarged), and the factor (full-resolution px per downscaled px)."""
@@ -248,8 +257,11 @@ class Detector:
         # byte, at flat index U + 256·V (see `memberships`)
         both = target_table.astype(np.uint16) | (arrow_table.astype(np.uint16) << 8)
         self._table = np.ascontiguousarray(both.T).ravel()
-        self._target_table = np.ascontiguousarray(target_table.T).ravel()
-        self._component_table = np.ascontiguousarray(model.component_table().T).ravel()
+        loose = model.widened(FACE_SPREAD**2)
+        face_table = np.ascontiguousarray(loose.tables()[0].T).ravel()
+        self._component_table = np.ascontiguousarray(loose.component_table().T).ravel()
+        # the face tables for frames whose chroma is scaled (exposure, gamma): first as is
+        self._face_tables = [face_table] + [_chroma_scaled(face_table, a) for a in CHROMA_GAINS]
         self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
         self.has_arrow_model = model.arrow is not None
 
@@ -292,23 +304,35 @@ class Detector:
             balanced = self._face(apply_gains(small, gains), gains) if gains is not None else None
             if balanced is not None and (best is None or balanced.confidence > best.confidence):
                 best, best_gains = balanced, gains
+        if best is None or best.confidence < SURE:
+            image = small if best_gains is None else apply_gains(small, best_gains)
+            scaled = self._face(image, best_gains, len(self._face_tables))
+            if scaled is not None and (best is None or scaled.confidence > best.confidence):
+                best = scaled
         arrow_m = None
         if self.has_arrow_model:
             full = rgb if best_gains is None else apply_gains(rgb, best_gains)
             arrow_m = self.memberships(full)[1]
         return self._result(best, factor, arrow_m)
 
-    def _face(self, small: np.ndarray, gains: np.ndarray | None) -> FaceFit | None:
-        """The face in a downscaled RGB frame (already multiplied by `gains`, if any)."""
+    def _face(self, small: np.ndarray, gains: np.ndarray | None, tables: int = 1) -> FaceFit | None:
+        """The most confident face in a downscaled RGB frame (already multiplied by `gains`,
+        if any), with the first `tables` face tables (as is, then other chroma scales)."""
         index = self._uv_index(np.ascontiguousarray(small))
-        member = self._target_table.take(index).reshape(small.shape[:2])
         components = self._component_table.take(index).reshape(small.shape[:2])
-        return find_face(
-            member,
-            components,
-            close_fraction=self.settings.close_fraction,
-            min_fraction=self.settings.min_target_fraction,
-        )
+        best: FaceFit | None = None
+        for table in self._face_tables[:tables]:
+            fit = find_face(
+                table.take(index).reshape(small.shape[:2]),
+                components,
+                close_fraction=self.settings.close_fraction,
+                min_fraction=self.settings.min_target_fraction,
+            )
+            if fit is not None and (best is None or fit.confidence > best.confidence):
+                best = fit
+            if best is not None and best.confidence >= SURE:
+                break
+        return best
 
     def locate(self, target_m: np.ndarray, arrow_m: np.ndarray | None) -> Detection:
         """Detect from membership maps (0..255; uint8 from the tables or float from

@@ -69,11 +69,11 @@ def _fill(region: np.ndarray) -> np.ndarray:
 
 def _inner_rings(
     outer: Ellipse, mask: np.ndarray, components: np.ndarray, kernel: np.ndarray
-) -> tuple[list[Ellipse], int]:
-    """Fitted cumulative discs inside `outer` that agree with it, and how many were expected."""
+) -> list[Ellipse]:
+    """Fitted cumulative discs inside `outer` that agree with it."""
     ys, xs = np.nonzero(mask)
     if len(xs) < 30:
-        return [], 0
+        return []
     rho = radial_position(outer, np.stack([xs, ys], axis=1))
     labels = components[ys, xs]
     inside = rho < 1.05
@@ -106,13 +106,24 @@ def _inner_rings(
             continue
         shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
         if (
-            shift < 0.12 * outer.radius
+            shift < 0.25 * outer.radius
             and 0.12 < ring.radius / outer.radius < 0.95
             and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
             and ring.support > 0.5
         ):
             found.append(ring)
-    return found, max(0, len(groups) - 1)
+    return found
+
+
+def _rings_factor(outer: Ellipse, validated: int) -> float:
+    """Trust from the inner rings that agree with the outer one: two or more make the centre
+    sure; with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
+    ellipse's centre unknown, so the trust falls with its axis ratio."""
+    if validated >= 2:
+        return 1.0
+    if validated == 1:
+        return 0.8
+    return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
 def _examine(
@@ -135,11 +146,10 @@ def _examine(
     iou = float(np.count_nonzero(ellipse & filled)) / union
     agreement = float(member[ellipse > 0].mean()) / 255.0
     rings: list[Ellipse] = []
-    expected = 0
     if components is not None:
         x0, y0, x1, y1 = outer.box((height, width))
         mask = (member[y0:y1, x0:x1] > _MEMBER).astype(np.uint8) & ellipse[y0:y1, x0:x1]
-        local, expected = _inner_rings(
+        local = _inner_rings(
             outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel
         )
         rings = [ring.moved(x0, y0) for ring in local]
@@ -148,7 +158,7 @@ def _examine(
         "visible": _ramp(inside_image / full_area, 0.6, 0.9),
         "elliptic": _ramp(iou, 0.75, 0.92),
         "colour": _ramp(agreement, 0.15, 0.5),
-        "rings": 1.0 if expected == 0 else 0.6 + 0.4 * len(rings) / expected,
+        "rings": _rings_factor(outer, len(rings)) if components is not None else 1.0,
     }
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)

@@ -26,10 +26,11 @@ def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
     """
     pixels = np.asarray(rgb, dtype=np.float32).reshape(-1, 3)
     luma = pixels @ np.array([0.299, 0.587, 0.114], np.float32)
-    bright = pixels[(luma >= np.percentile(luma, 50)) & (luma > 20)]
+    bright = pixels[(luma >= np.percentile(luma, 60)) & (luma > 20)]
     if len(bright) < _MIN_FRACTION * len(pixels):
         return None
-    white = np.ones(3, np.float32)
+    # start from the bright pixels' median colour (grey world), so a strong tint is undone
+    white = np.median(bright, axis=0) / max(float(np.median(bright)), 1.0)
     chosen = bright
     for _ in range(4):
         balanced = bright / white
@@ -40,8 +41,6 @@ def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
             break
         chosen = candidates
         white = np.median(chosen, axis=0) / max(float(np.median(chosen)), 1.0)
-    if chosen is bright:
-        return None
     return np.median(chosen, axis=0).astype(np.float64)
 
 
