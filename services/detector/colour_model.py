@@ -155,21 +155,24 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
             f"blue rings; the tip's colour)"
         )
     from sklearn.mixture import GaussianMixture  # a slow import: only when fitting
+    from threadpoolctl import threadpool_limits  # scikit-learn's own dependency
 
     distinct = len(np.unique(np.round(uv), axis=0))
     best: GaussianMixture | None = None
     bic: dict[int, float] = {}
-    for k in range(1, min(max_components, max(1, distinct), len(uv) // MIN_PIXELS) + 1):
-        gmm = GaussianMixture(
-            n_components=k,
-            covariance_type="full",
-            reg_covar=_REG_COVAR,
-            random_state=seed,
-            n_init=2,
-        ).fit(uv)
-        bic[k] = float(gmm.bic(uv))
-        if best is None or bic[k] < bic[best.n_components]:
-            best = gmm
+    # one BLAS thread: on 2×2 covariances, thread start-up costs 20× the arithmetic
+    with threadpool_limits(limits=1):
+        for k in range(1, min(max_components, max(1, distinct), len(uv) // MIN_PIXELS) + 1):
+            gmm = GaussianMixture(
+                n_components=k,
+                covariance_type="full",
+                reg_covar=_REG_COVAR,
+                random_state=seed,
+                n_init=2,
+            ).fit(uv)
+            bic[k] = float(gmm.bic(uv))
+            if best is None or bic[k] < bic[best.n_components]:
+                best = gmm
     if best is None:  # unreachable: at least K = 1 is tried
         raise CalibrationError(f"{name}: no GMM could be fitted")
     # A Gaussian centred on grey models mis-clicked pixels (a shaft, a hole, the background):

@@ -149,9 +149,7 @@ def _examine(
     if components is not None:
         x0, y0, x1, y1 = outer.box((height, width))
         mask = (member[y0:y1, x0:x1] > _MEMBER).astype(np.uint8) & ellipse[y0:y1, x0:x1]
-        local = _inner_rings(
-            outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel
-        )
+        local = _inner_rings(outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel)
         rings = [ring.moved(x0, y0) for ring in local]
     factors = {
         "support": _ramp(outer.support, 0.55, 0.85),
