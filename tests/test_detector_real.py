@@ -85,7 +85,8 @@ def test_calibrate_then_detect_with_an_overlay(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
-    assert set(result) == {"target", "arrow", "r_m"}
+    assert set(result) == {"image", "target", "arrow", "r_m", "rings"}
+    assert result["image"] == str(DATA / "target-4.jpg") and len(result["rings"]) == 3
     assert result["arrow"] is None and result["r_m"] is None
     truth = _truth(4)
     assert np.hypot(*np.subtract(result["target"]["px"], truth["centre_px"])) < 9.0
