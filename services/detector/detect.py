@@ -51,7 +51,7 @@ from protocol.errors import ConfigError
 from services.detector.colour_model import ColourModel, rgb_to_uv_exact
 from services.detector.errors import ImageError
 from services.detector.rings import Ellipse
-from services.detector.target import FaceFit, find_face
+from services.detector.target import FaceFit, colour_groups, find_face
 from services.detector.whitebalance import apply_gains, estimate_white, white_gains
 
 __all__ = [
@@ -260,6 +260,7 @@ class Detector:
         loose = model.widened(FACE_SPREAD**2)
         face_table = np.ascontiguousarray(loose.tables()[0].T).ravel()
         self._component_table = np.ascontiguousarray(loose.component_table().T).ravel()
+        self._groups = colour_groups(model.target.means, model.target.weights)
         # the face tables for frames whose chroma is scaled (exposure, gamma): first as is
         self._face_tables = [face_table] + [_chroma_scaled(face_table, a) for a in CHROMA_GAINS]
         self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
@@ -325,6 +326,7 @@ class Detector:
             fit = find_face(
                 table.take(index).reshape(small.shape[:2]),
                 components,
+                self._groups,
                 close_fraction=self.settings.close_fraction,
                 min_fraction=self.settings.min_target_fraction,
             )

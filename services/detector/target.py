@@ -24,7 +24,7 @@ import numpy as np
 
 from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
 
-__all__ = ["FaceFit", "find_face"]
+__all__ = ["FaceFit", "colour_groups", "find_face"]
 
 _MEMBER = 96  # membership (0..255) of a pixel counted as target colour
 _CANDIDATES = 3  # largest regions examined
@@ -67,13 +67,36 @@ def _fill(region: np.ndarray) -> np.ndarray:
     return filled
 
 
+def colour_groups(
+    means: np.ndarray, weights: np.ndarray, distance: float = 30.0, least: float = 0.1
+) -> np.ndarray:
+    """Group id per GMM component (K,): components whose UV means (K, 2) chain within
+    `distance` UV levels are one colour (one ring of the face); a group of total prior below
+    `least` (stray calibration pixels, ring borders) gets id −1, a colour a face need not show."""
+    count = len(means)
+    group = np.arange(count)
+    for i in range(count):
+        for j in range(i + 1, count):
+            if np.hypot(*(means[i] - means[j])) < distance:
+                group[group == group[j]] = group[i]
+    ids = np.unique(group, return_inverse=True)[1]
+    mass = np.bincount(ids, weights=weights)
+    kept = {old: new for new, old in enumerate(np.flatnonzero(mass >= least))}
+    return np.array([kept.get(int(i), -1) for i in ids], dtype=np.int64)
+
+
 def _inner_rings(
-    outer: Ellipse, mask: np.ndarray, components: np.ndarray, kernel: np.ndarray
-) -> list[Ellipse]:
-    """Fitted cumulative discs inside `outer` that agree with it."""
+    outer: Ellipse,
+    mask: np.ndarray,
+    components: np.ndarray,
+    kernel: np.ndarray,
+    groups: np.ndarray,
+) -> tuple[list[Ellipse], int]:
+    """Fitted cumulative discs inside `outer` that agree with it, and how many of the
+    calibrated colours (`groups`: colour per component) the face shows."""
     ys, xs = np.nonzero(mask)
     if len(xs) < 30:
-        return []
+        return [], 0
     rho = radial_position(outer, np.stack([xs, ys], axis=1))
     labels = components[ys, xs]
     inside = rho < 1.05
@@ -83,18 +106,19 @@ def _inner_rings(
         if share.mean() >= _MIN_COMPONENT_SHARE:
             order.append((float(np.median(rho[inside][share])), int(k)))
     order.sort()
-    groups: list[list[int]] = []
+    shown = len({int(groups[k]) for _, k in order if k < len(groups) and groups[k] >= 0})
+    rings: list[list[int]] = []
     last = -1.0
     for position, k in order:
-        if groups and position - last < _SAME_RING:
-            groups[-1].append(k)
+        if rings and position - last < _SAME_RING:
+            rings[-1].append(k)
         else:
-            groups.append([k])
+            rings.append([k])
         last = position
     found: list[Ellipse] = []
     chosen: list[int] = []
-    for group in groups[:-1]:
-        chosen += group
+    for ring_components in rings[:-1]:
+        chosen += ring_components
         disc = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
         count, labels_map, stats, _ = cv2.connectedComponentsWithStats(disc, connectivity=8)
@@ -107,12 +131,12 @@ def _inner_rings(
         shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
         if (
             shift < 0.25 * outer.radius
-            and 0.12 < ring.radius / outer.radius < 0.95
+            and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
             and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
             and ring.support > 0.5
         ):
             found.append(ring)
-    return found
+    return found, shown
 
 
 def _rings_factor(outer: Ellipse, validated: int) -> float:
@@ -129,6 +153,7 @@ def _rings_factor(outer: Ellipse, validated: int) -> float:
 def _examine(
     member: np.ndarray,
     components: np.ndarray | None,
+    groups: np.ndarray | None,
     region: np.ndarray,
     kernel: np.ndarray,
 ) -> FaceFit | None:
@@ -146,11 +171,16 @@ def _examine(
     iou = float(np.count_nonzero(ellipse & filled)) / union
     agreement = float(member[ellipse > 0].mean()) / 255.0
     rings: list[Ellipse] = []
-    if components is not None:
+    complete = 1.0
+    if components is not None and groups is not None:
         x0, y0, x1, y1 = outer.box((height, width))
         mask = (member[y0:y1, x0:x1] > _MEMBER).astype(np.uint8) & ellipse[y0:y1, x0:x1]
-        local = _inner_rings(outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel)
+        local, shown = _inner_rings(
+            outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel, groups
+        )
         rings = [ring.moved(x0, y0) for ring in local]
+        # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
+        complete = _ramp(shown / max(1, int(groups.max()) + 1), 0.2, 0.6)
     factors = {
         "support": _ramp(outer.support, 0.55, 0.85),
         "visible": _ramp(inside_image / full_area, 0.6, 0.9),
@@ -159,6 +189,7 @@ def _examine(
         "elliptic": _ramp(iou + min(0.15, 2.0 / outer.radius), 0.75, 0.92),
         "colour": _ramp(agreement, 0.15, 0.5),
         "rings": _rings_factor(outer, len(rings)) if components is not None else 1.0,
+        "complete": complete,
     }
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
@@ -168,6 +199,7 @@ def _examine(
 def find_face(
     member: np.ndarray,
     components: np.ndarray | None = None,
+    groups: np.ndarray | None = None,
     *,
     close_fraction: float = 0.01,
     min_fraction: float = 5e-4,
@@ -178,6 +210,7 @@ def find_face(
         member: target membership per pixel.
         components: the target GMM's most responsible component per pixel (uint8), or None to
             fit the outer boundary only.
+        groups: the colour (ring) of each component (`colour_groups`), with `components`.
         close_fraction: closing kernel over the map's shorter side (bridges ring lines).
         min_fraction: smallest region examined, as a fraction of the map.
     """
@@ -193,7 +226,8 @@ def find_face(
     for index in np.argsort(areas)[::-1][:_CANDIDATES]:
         if areas[index] < max(20.0, min_fraction * member.size):
             break
-        fit = _examine(member, components, (labels == index + 1).astype(np.uint8), kernel)
+        region = (labels == index + 1).astype(np.uint8)
+        fit = _examine(member, components, groups, region, kernel)
         if fit is not None and (best is None or fit.confidence > best.confidence):
             best = fit
     return best

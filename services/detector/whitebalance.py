@@ -15,6 +15,7 @@ __all__ = ["MAX_GAIN", "apply_gains", "estimate_white", "white_gains"]
 
 MAX_GAIN = 4.0  # largest (and 1/smallest) gain per channel
 _GREY_SPREAD = 0.22  # (max − min) / max of a channel triple still called grey, after balance
+_MAX_TINT = 0.7  # (max − min) / max of the warmest or coldest white accepted (≈ 2500 K)
 _MIN_FRACTION = 0.01  # fewest white pixels, as a fraction of the frame
 
 
@@ -41,7 +42,10 @@ def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
             break
         chosen = candidates
         white = np.median(chosen, axis=0) / max(float(np.median(chosen)), 1.0)
-    return np.median(chosen, axis=0).astype(np.float64)
+    white_rgb = np.median(chosen, axis=0).astype(np.float64)
+    if (white_rgb.max() - white_rgb.min()) / max(white_rgb.max(), 1.0) > _MAX_TINT:
+        return None  # a saturated colour, not a tinted white: the frame shows no white
+    return white_rgb
 
 
 def white_gains(reference: np.ndarray | None, white: np.ndarray | None) -> np.ndarray | None:
