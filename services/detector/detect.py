@@ -73,8 +73,8 @@ ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
 FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
 FACE_SPREAD = 9.0  # UV levels: added standard deviation of the target colours for the face
 CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
-SURE = 0.9  # a face this confident is not searched for again under the white balance
-WHITE_SIDE = 90  # px: the shorter side of the copy the white is estimated on
+SURE = 0.75  # a face this confident is not searched for again under the white balance
+WHITE_SIDE = 64  # px: the shorter side of the copy the white is estimated on
 
 
 @dataclass(frozen=True)
@@ -329,6 +329,7 @@ class Detector:
                 self._groups,
                 close_fraction=self.settings.close_fraction,
                 min_fraction=self.settings.min_target_fraction,
+                needed_confidence=self.settings.min_target_confidence,
             )
             if fit is not None and (best is None or fit.confidence > best.confidence):
                 best = fit

@@ -155,32 +155,39 @@ def _examine(
     components: np.ndarray | None,
     groups: np.ndarray | None,
     region: np.ndarray,
+    corner: tuple[int, int],
     kernel: np.ndarray,
+    needed: float,
 ) -> FaceFit | None:
-    filled = _fill(region)
-    outer = fit_disc(filled)
+    """The face a region (a crop of the map with its corner (x, y) px) is, or None; the rings
+    are only looked at when the rest of the evidence could reach `needed` confidence."""
+    height, width = member.shape
+    filled_crop = _fill(region)
+    outer = fit_disc(filled_crop, corner, (height, width))
     if outer is None or outer.radius < 3.0:
         return None
-    height, width = member.shape
-    ellipse = _ellipse_mask(outer, (height, width))
-    inside_image = float(ellipse.sum())
     full_area = math.pi * outer.axes[0] * outer.axes[1] / 4
-    if inside_image < 20 or full_area > 6 * height * width:
+    if full_area > 6 * height * width:
         return None
-    union = float(np.count_nonzero(ellipse | filled))
+    x0, y0, x1, y1 = outer.box((height, width))
+    local = outer.moved(-x0, -y0)
+    ellipse = _ellipse_mask(local, (y1 - y0, x1 - x0))
+    inside_image = float(ellipse.sum())
+    if inside_image < 20:
+        return None
+    filled = np.zeros_like(ellipse)  # the filled region in the ellipse's box
+    cx, cy = corner
+    sx0, sy0 = max(x0, cx), max(y0, cy)
+    sx1, sy1 = min(x1, cx + region.shape[1]), min(y1, cy + region.shape[0])
+    if sx1 > sx0 and sy1 > sy0:
+        filled[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = filled_crop[
+            sy0 - cy : sy1 - cy, sx0 - cx : sx1 - cx
+        ]
+    outside = np.count_nonzero(filled_crop) - np.count_nonzero(filled)
+    union = float(np.count_nonzero(ellipse | filled)) + outside
     iou = float(np.count_nonzero(ellipse & filled)) / union
-    agreement = float(member[ellipse > 0].mean()) / 255.0
-    rings: list[Ellipse] = []
-    complete = 1.0
-    if components is not None and groups is not None:
-        x0, y0, x1, y1 = outer.box((height, width))
-        mask = (member[y0:y1, x0:x1] > _MEMBER).astype(np.uint8) & ellipse[y0:y1, x0:x1]
-        local, shown = _inner_rings(
-            outer.moved(-x0, -y0), mask, components[y0:y1, x0:x1], kernel, groups
-        )
-        rings = [ring.moved(x0, y0) for ring in local]
-        # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
-        complete = _ramp(shown / max(1, int(groups.max()) + 1), 0.2, 0.6)
+    box_member = member[y0:y1, x0:x1]
+    agreement = float(box_member[ellipse > 0].mean()) / 255.0
     factors = {
         "support": _ramp(outer.support, 0.55, 0.85),
         "visible": _ramp(inside_image / full_area, 0.6, 0.9),
@@ -188,9 +195,17 @@ def _examine(
         # are judged by what their pixels allow
         "elliptic": _ramp(iou + min(0.15, 2.0 / outer.radius), 0.75, 0.92),
         "colour": _ramp(agreement, 0.15, 0.5),
-        "rings": _rings_factor(outer, len(rings)) if components is not None else 1.0,
-        "complete": complete,
     }
+    rings: list[Ellipse] = []
+    if components is not None and groups is not None:
+        if math.prod(factors.values()) < needed:
+            return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
+        mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
+        found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
+        rings = [ring.moved(x0, y0) for ring in found]
+        factors["rings"] = _rings_factor(outer, len(rings))
+        # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
+        factors["complete"] = _ramp(shown / max(1, int(groups.max()) + 1), 0.2, 0.6)
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
     return FaceFit(nested_centre(list(ellipses)), ellipses, confidence, factors)
@@ -203,6 +218,7 @@ def find_face(
     *,
     close_fraction: float = 0.01,
     min_fraction: float = 5e-4,
+    needed_confidence: float = 0.0,
 ) -> FaceFit | None:
     """The most confident face in a membership map (uint8 0..255, downscaled), or None.
 
@@ -213,6 +229,7 @@ def find_face(
         groups: the colour (ring) of each component (`colour_groups`), with `components`.
         close_fraction: closing kernel over the map's shorter side (bridges ring lines).
         min_fraction: smallest region examined, as a fraction of the map.
+        needed_confidence: a region that cannot reach this is not analysed ring by ring.
     """
     mask = (member > _MEMBER).astype(np.uint8)
     size = max(3, round(min(member.shape) * close_fraction) | 1)
@@ -223,11 +240,16 @@ def find_face(
         return None
     areas = stats[1:, cv2.CC_STAT_AREA]
     best: FaceFit | None = None
+    pad = 2
     for index in np.argsort(areas)[::-1][:_CANDIDATES]:
         if areas[index] < max(20.0, min_fraction * member.size):
             break
-        region = (labels == index + 1).astype(np.uint8)
-        fit = _examine(member, components, groups, region, kernel)
+        x, y, w, h = (int(v) for v in stats[index + 1, :4])
+        x0, y0 = max(0, x - pad), max(0, y - pad)
+        crop = labels[y0 : y + h + pad, x0 : x + w + pad]
+        region = (crop == index + 1).astype(np.uint8)
+        needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
+        fit = _examine(member, components, groups, region, (x0, y0), kernel, needed)
         if fit is not None and (best is None or fit.confidence > best.confidence):
             best = fit
     return best
