@@ -39,17 +39,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.machine import cpu_model
+from services.detector import devset
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detector
-from services.detector.devset import (
-    Case,
-    Scene,
-    calibrate,
-    cases,
-    drawn_scenes,
-    judge,
-    photo_scenes,
-)
+from services.detector.devset import Case, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PHOTOS = ROOT.parent / "shared" / "data" / "real-targets"
@@ -115,13 +108,13 @@ def devset_figures(
     }
     timing = []
     for scene in scenes:
-        find = finders(calibrate(scene), legacy)
-        for case in cases(scene):
+        find = finders(devset.calibrate(scene), legacy)
+        for case in devset.cases(scene):
             if case.rgb.shape[:2] == (720, 1280):
                 timing.append(case)
             for name, detect in find.items():
                 px, confidence = detect(case.rgb)
-                verdict = judge(case, px, confidence)
+                verdict = devset.judge(case, px, confidence)
                 tally = counts[name][case.kind]
                 if verdict == "wrong":
                     tally["wrong"] += 1
@@ -137,12 +130,12 @@ def devset_figures(
 def photo_figures(legacy: ModuleType) -> dict[str, dict[str, list[float]]]:
     """Same-photo and cross-photo errors (fraction of the blue diameter; inf: not seen) and
     confidences per detector."""
-    scenes = photo_scenes(PHOTOS)
+    scenes = devset.photo_scenes(PHOTOS)
     out: dict[str, dict[str, list[float]]] = collections.defaultdict(
         lambda: collections.defaultdict(list)
     )
     for source in scenes:
-        find = finders(calibrate(source), legacy)
+        find = finders(devset.calibrate(source), legacy)
         for scene in scenes:
             setting = "same" if scene is source else "cross"
             for name, detect in find.items():
@@ -232,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as folder:
         tree = export_baseline(args.baseline, Path(folder))
         legacy = load_module(tree / "services" / "detector" / "detect.py", "baseline_detect")
-        scenes = drawn_scenes() + (photo_scenes(PHOTOS) if PHOTOS.is_dir() else [])
+        scenes = devset.drawn_scenes() + (devset.photo_scenes(PHOTOS) if PHOTOS.is_dir() else [])
         counts, frames = devset_figures(scenes, legacy)
         print(f"\n### Development set ({len(scenes)} scenes; baseline {args.baseline!r})\n")
         print(
@@ -285,7 +278,7 @@ def main(argv: list[str] | None = None) -> int:
                              right == len(errors) and wrong == 0)
                         )  # fmt: skip
 
-        model = calibrate(scenes[1])
+        model = devset.calibrate(scenes[1])
         ms = time_detection(frames, legacy, model, args.repeats)
         ratio = [b / t for b, t in zip(ms["baseline"], ms["this"], strict=True)]
         print(f"\n### Detection time per 1280×720 frame ({len(frames)} frames of the set, "

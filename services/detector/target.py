@@ -121,11 +121,7 @@ def _inner_rings(
         chosen += ring_components
         disc = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
-        count, labels_map, stats, _ = cv2.connectedComponentsWithStats(disc, connectivity=8)
-        if count < 2:
-            continue
-        biggest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        ring = fit_disc(_fill((labels_map == biggest).astype(np.uint8)))
+        ring = fit_disc(_fill(disc))
         if ring is None:
             continue
         shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
@@ -235,19 +231,17 @@ def find_face(
     size = max(3, round(min(member.shape) * close_fraction) | 1)
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
     closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
-    if count < 2:
-        return None
-    areas = stats[1:, cv2.CC_STAT_AREA]
+    outlines, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    areas = [cv2.contourArea(outline) for outline in outlines]
     best: FaceFit | None = None
     pad = 2
     for index in np.argsort(areas)[::-1][:_CANDIDATES]:
         if areas[index] < max(20.0, min_fraction * member.size):
             break
-        x, y, w, h = (int(v) for v in stats[index + 1, :4])
+        x, y, w, h = cv2.boundingRect(outlines[index])
         x0, y0 = max(0, x - pad), max(0, y - pad)
-        crop = labels[y0 : y + h + pad, x0 : x + w + pad]
-        region = (crop == index + 1).astype(np.uint8)
+        region = np.zeros((h + y - y0 + pad, w + x - x0 + pad), np.uint8)
+        cv2.drawContours(region, outlines, int(index), 1, cv2.FILLED, offset=(-x0, -y0))
         needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
         fit = _examine(member, components, groups, region, (x0, y0), kernel, needed)
         if fit is not None and (best is None or fit.confidence > best.confidence):
