@@ -3,8 +3,9 @@
 From calibration pixels (RGB) of the target and of the arrow's tip, each object gets a Gaussian
 mixture over (U, V) — Y is dropped so the model is robust to changes of brightness — with full
 covariances and the number of components K chosen by the Bayesian Information Criterion (the
-paper's Section III-C). The fitted densities are tabulated once on the 256×256 (U, V) grid, so
-per-frame cost never depends on K: a frame costs one table look-up per pixel.
+paper's Section III-C), fitted by EM (`em.fit_mixture`). The fitted densities are tabulated
+once on the 256×256 (U, V) grid, so per-frame cost never depends on K: a frame costs one table
+look-up per pixel.
 """
 
 from __future__ import annotations
@@ -14,15 +15,13 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 
+from services.detector.em import Mixture, fit_mixture
 from services.detector.errors import CalibrationError, ModelFileError
-
-if TYPE_CHECKING:
-    from sklearn.mixture import GaussianMixture
 
 __all__ = [
     "MIN_CHROMA",
@@ -154,41 +153,30 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
             f"cannot tell those from the background: mark coloured parts (the yellow, red and "
             f"blue rings; the tip's colour)"
         )
-    from sklearn.mixture import GaussianMixture  # a slow import: only when fitting
-    from threadpoolctl import threadpool_limits  # scikit-learn's own dependency
-
     distinct = len(np.unique(np.round(uv), axis=0))
-    best: GaussianMixture | None = None
+    best: Mixture | None = None
     bic: dict[int, float] = {}
-    # one BLAS thread: on 2×2 covariances, thread start-up costs 20× the arithmetic
-    with threadpool_limits(limits=1):
-        for k in range(1, min(max_components, max(1, distinct), len(uv) // MIN_PIXELS) + 1):
-            gmm = GaussianMixture(
-                n_components=k,
-                covariance_type="full",
-                reg_covar=_REG_COVAR,
-                random_state=seed,
-                n_init=2,
-            ).fit(uv)
-            bic[k] = float(gmm.bic(uv))
-            if best is None or bic[k] < bic[best.n_components]:
-                best = gmm
+    for k in range(1, min(max_components, max(1, distinct), len(uv) // MIN_PIXELS) + 1):
+        mixture = fit_mixture(uv, k, reg=_REG_COVAR, seed=seed, n_init=2)
+        bic[k] = mixture.bic(len(uv))
+        if best is None or bic[k] < bic[best.n_components]:
+            best = mixture
     if best is None:  # unreachable: at least K = 1 is tried
         raise CalibrationError(f"{name}: no GMM could be fitted")
     # A Gaussian centred on grey models mis-clicked pixels (a shaft, a hole, the background):
     # UV cannot tell grey from the rest of the scene, so it is dropped (the median check above
     # guarantees that most pixels, hence some Gaussian, have colour).
-    chroma = np.hypot(best.means_[:, 0] - 128.0, best.means_[:, 1] - 128.0)
+    chroma = np.hypot(best.means[:, 0] - 128.0, best.means[:, 1] - 128.0)
     keep = chroma >= MIN_CHROMA
     if not keep.any():
         raise CalibrationError(f"{name}: every Gaussian of the fit is grey; mark coloured pixels")
     if not keep.all():
         log.info("%s: dropped %d grey Gaussian(s) of %d", name, int((~keep).sum()), len(keep))
-    weights = best.weights_[keep]
+    weights = best.weights[keep]
     return Gmm(
         weights=weights / weights.sum(),
-        means=best.means_[keep].copy(),
-        covariances=best.covariances_[keep].copy(),
+        means=best.means[keep].copy(),
+        covariances=best.covariances[keep].copy(),
         bic=bic,
     )
 

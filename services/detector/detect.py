@@ -51,7 +51,7 @@ from protocol.errors import ConfigError
 from services.detector.colour_model import ColourModel, rgb_to_uv_exact
 from services.detector.errors import ImageError
 from services.detector.rings import Ellipse
-from services.detector.target import FaceFit, colour_groups, find_face
+from services.detector.target import FaceFit, colour_groups, find_face, merge_faces
 from services.detector.whitebalance import apply_gains, estimate_white, white_gains
 
 __all__ = [
@@ -71,7 +71,7 @@ MIN_IMAGE_SIDE = 32  # px
 MAX_IMAGE_SIDE = 8192  # px
 ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
 FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
-FACE_SPREAD = 9.0  # UV levels: added standard deviation of the target colours for the face
+FACE_SPREAD = 12.0  # UV levels: added standard deviation of the target colours for the face
 CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
 SURE = 0.75  # a face this confident is not searched for again under the white balance
 WHITE_SIDE = 64  # px: the shorter side of the copy the white is estimated on
@@ -299,30 +299,52 @@ class Detector:
         """
         rgb = check_image(rgb)
         small, factor = downscale(rgb)
-        best, best_gains = self._face(small, None), None
-        if self._white is not None and (best is None or best.confidence < SURE):
+        fits: list[tuple[FaceFit, np.ndarray | None]] = []
+
+        def best() -> FaceFit | None:
+            return max((f for f, _ in fits), key=lambda f: f.confidence, default=None)
+
+        def unsure() -> bool:
+            found = best()
+            return found is None or found.confidence < SURE
+
+        def add(fit: FaceFit | None, gains: np.ndarray | None) -> None:
+            if fit is not None:
+                fits.append((fit, gains))
+
+        add(self._face(small, None), None)
+        gains = None
+        if self._white is not None and unsure():
             gains = white_gains(self._white, estimate_white(downscale(small, WHITE_SIDE)[0]))
-            balanced = self._face(apply_gains(small, gains), gains) if gains is not None else None
-            if balanced is not None and (best is None or balanced.confidence > best.confidence):
-                best, best_gains = balanced, gains
-        if best is None or best.confidence < SURE:
-            image = small if best_gains is None else apply_gains(small, best_gains)
-            scaled = self._face(image, best_gains, len(self._face_tables))
-            if scaled is not None and (best is None or scaled.confidence > best.confidence):
-                best = scaled
+            if gains is not None:
+                add(self._face(apply_gains(small, gains), gains), gains)
+        if unsure():
+            for option in (None, gains) if gains is not None else (None,):
+                image = small if option is None else apply_gains(small, option)
+                add(self._face(image, option, len(self._face_tables), first=1), option)
+        face = best()
+        best_gains = next((g for f, g in fits if f is face), None)
+        if face is not None and face.confidence < SURE:
+            for other, _ in fits:  # rings seen under one correction complete another's
+                merged = merge_faces(face, other) if other is not face else None
+                if merged is not None and merged.confidence > face.confidence:
+                    face = merged
         arrow_m = None
         if self.has_arrow_model:
             full = rgb if best_gains is None else apply_gains(rgb, best_gains)
             arrow_m = self.memberships(full)[1]
-        return self._result(best, factor, arrow_m)
+        return self._result(face, factor, arrow_m)
 
-    def _face(self, small: np.ndarray, gains: np.ndarray | None, tables: int = 1) -> FaceFit | None:
+    def _face(
+        self, small: np.ndarray, gains: np.ndarray | None, tables: int = 1, first: int = 0
+    ) -> FaceFit | None:
         """The most confident face in a downscaled RGB frame (already multiplied by `gains`,
-        if any), with the first `tables` face tables (as is, then other chroma scales)."""
+        if any), with the face tables `first` … `tables` − 1 (as is, then other chroma
+        scales)."""
         index = self._uv_index(np.ascontiguousarray(small))
         components = self._component_table.take(index).reshape(small.shape[:2])
         best: FaceFit | None = None
-        for table in self._face_tables[:tables]:
+        for table in self._face_tables[first:tables]:
             fit = find_face(
                 table.take(index).reshape(small.shape[:2]),
                 components,

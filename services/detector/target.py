@@ -24,7 +24,7 @@ import numpy as np
 
 from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
 
-__all__ = ["FaceFit", "colour_groups", "find_face"]
+__all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
 
 _MEMBER = 96  # membership (0..255) of a pixel counted as target colour
 _CANDIDATES = 3  # largest regions examined
@@ -41,6 +41,8 @@ class FaceFit:
     ellipses: tuple[Ellipse, ...]
     confidence: float
     factors: dict[str, float]
+    colours: frozenset[int] = frozenset()  # the calibrated colours (ring groups) it shows
+    n_colours: int = 0  # how many the calibration has
 
     @property
     def outer(self) -> Ellipse:
@@ -91,12 +93,12 @@ def _inner_rings(
     components: np.ndarray,
     kernel: np.ndarray,
     groups: np.ndarray,
-) -> tuple[list[Ellipse], int]:
+) -> tuple[list[Ellipse], set[int]]:
     """Fitted cumulative discs inside `outer` that agree with it, and how many of the
     calibrated colours (`groups`: colour per component) the face shows."""
     ys, xs = np.nonzero(mask)
     if len(xs) < 30:
-        return [], 0
+        return [], set()
     rho = radial_position(outer, np.stack([xs, ys], axis=1))
     labels = components[ys, xs]
     inside = rho < 1.05
@@ -106,7 +108,7 @@ def _inner_rings(
         if share.mean() >= _MIN_COMPONENT_SHARE:
             order.append((float(np.median(rho[inside][share])), int(k)))
     order.sort()
-    shown = len({int(groups[k]) for _, k in order if k < len(groups) and groups[k] >= 0})
+    shown = {int(groups[k]) for _, k in order if k < len(groups) and groups[k] >= 0}
     rings: list[list[int]] = []
     last = -1.0
     for position, k in order:
@@ -193,6 +195,8 @@ def _examine(
         "colour": _ramp(agreement, 0.15, 0.5),
     }
     rings: list[Ellipse] = []
+    shown: set[int] = set()
+    n_colours = 0
     if components is not None and groups is not None:
         if math.prod(factors.values()) < needed:
             return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
@@ -201,10 +205,39 @@ def _examine(
         rings = [ring.moved(x0, y0) for ring in found]
         factors["rings"] = _rings_factor(outer, len(rings))
         # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
-        factors["complete"] = _ramp(shown / max(1, int(groups.max()) + 1), 0.2, 0.6)
+        n_colours = max(1, int(groups.max()) + 1)
+        factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
-    return FaceFit(nested_centre(list(ellipses)), ellipses, confidence, factors)
+    centre = nested_centre(list(ellipses))
+    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours)
+
+
+def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
+    """One face from two fits of it under different colour corrections (e.g. the yellow found
+    as is, the blue only after white balance): their rings together, if concentric; None if
+    they are not the same face or have no ring colours to join."""
+    if not first.n_colours or first.n_colours != second.n_colours:
+        return None
+    small = min(first.outer.radius, second.outer.radius)
+    if math.dist(first.outer.centre, second.outer.centre) > 0.15 * small:
+        return None
+    rings: list[Ellipse] = []
+    for ring in sorted((*first.ellipses, *second.ellipses), key=lambda e: e.radius):
+        if rings and ring.radius < 1.08 * rings[-1].radius:
+            if ring.support > rings[-1].support:
+                rings[-1] = ring
+            continue
+        rings.append(ring)
+    owner = first if first.outer.radius >= second.outer.radius else second
+    factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
+    factors["rings"] = _rings_factor(rings[-1], len(rings) - 1)
+    colours = first.colours | second.colours
+    factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
+    confidence = math.prod(factors.values())
+    ellipses = tuple(rings)
+    centre = nested_centre(rings)
+    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours)
 
 
 def find_face(
