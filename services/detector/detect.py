@@ -6,24 +6,17 @@ every pixel the weight 1 (the centre of the whole image, whatever it shows). We 
 the method means: a weighted centroid m = Σ w(x) x / Σ w(x), normalised over the image, with
 w(x) the pixel's membership of the object's colour model (`eq7_centroid` is that plain form).
 
-Real photographs break the plain version (4–74 px off on the four photos of benchmarks/RESULTS.md,
-more than 2 % of the diameter on three): arrow holes and ring lines
-punch gaps in the target, distractors share its colours (a yellow logo letter, a pin), and a
-tight colour cluster (yellow) has a higher likelihood than a broad one (blue), which drags the
-centroid towards one ring. So the target's weights are made robust in four steps, all
-O(pixels):
-1. each pixel goes to the more likely model, and only above a likelihood floor (the 256×256 UV
-   tables of `ColourModel.tables`), so background does not pull the centroid;
-2. only the largest connected region of target colour counts (distractors are separate blobs);
-3. holes inside that region (arrow holes, ring lines, the arrow itself) are filled;
-4. membership saturates: every pixel of the filled region weighs 1, whatever its density, so a
-   colour the calibration happens to favour cannot pull the centre towards its ring.
-Steps 2–3 run on the membership map averaged over s×s blocks (s ≈ shorter side / 240), which
-keeps a frame's cost a few milliseconds; the centroid is then that of the filled region at
-block resolution, with sub-block precision from the region's size.
-The region's mean membership measures how well the colours match the calibration and enters
-the confidence: under a colour shift (warmer light) the centre stays usable but is reported with
-less confidence, and below a threshold as not seen.
+Real photographs break the plain version: arrow holes and ring lines punch gaps in the target,
+distractors share its colours (a yellow logo letter, a pin), a tight colour cluster (yellow)
+outweighs a broad one (blue), light changes move the colours, and an oblique view shifts a
+centroid. So the centre comes from the face's geometry (`target.find_face`, `rings`): on a
+copy of the frame downscaled to `FACE_SIDE` px, the region of target colour is fitted with a
+robust ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
+concentric ellipses validate each other and give the centre extrapolated to radius 0. The
+frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`) and
+with its chroma scaled; rings found under different corrections are joined. The confidence
+says how much of the face and of its colours was seen; below `min_target_confidence` the target
+is reported as not seen.
 
 The arrow tip m_A is the plain weighted centroid (Eq. 7) of arrow membership at full
 resolution, over the strongest arrow-coloured blob.
@@ -32,8 +25,8 @@ Reward vector: the paper writes r = m_T − m_A in image terms. The mesh's conve
 arrow's offset from the centre, r[0] to the robot's right and r[1] up, in metres on the target
 plane; the camera looks at the face from the robot's side, so image columns grow to the right
 and rows grow downwards. Hence r = M (m_A − m_T) with the image-row sign flipped, where M maps
-pixels to metres: the filled target region (a disc of known diameter D on the face, imaged as
-an ellipse of second-moment matrix C in px²) gives M = (D/4) C^(-1/2), which also undoes the
+pixels to metres: the outer ring (a disc of known diameter D on the face, imaged as the ellipse
+A·(unit disc), A = R diag(a, b) Rᵀ in px) gives M = (D/2) A⁻¹, which also undoes the
 foreshortening of an oblique view.
 """
 
