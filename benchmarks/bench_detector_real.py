@@ -41,7 +41,7 @@ import numpy as np
 from benchmarks.machine import cpu_model
 from services.detector import devset
 from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector
+from services.detector.detect import Detector, DetectorSettings
 from services.detector.devset import Case, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -101,17 +101,26 @@ def devset_figures(
     scenes: list[Scene], legacy: ModuleType
 ) -> tuple[dict[str, dict[str, collections.Counter[str]]], list[Case]]:
     """Per detector and kind of change: counts of right / wrong / unsure (visible cases),
-    hidden cases seen; and the 1280×720 cases (for timing)."""
+    hidden cases seen; under "confidence", this detector's candidates without a threshold
+    ("right" or "off" > 5 %) per confidence quarter; and the 1280×720 cases (for timing)."""
     counts: dict[str, dict[str, collections.Counter[str]]] = {
         "baseline": collections.defaultdict(collections.Counter),
         "this": collections.defaultdict(collections.Counter),
+        "confidence": collections.defaultdict(collections.Counter),
     }
     timing = []
     for scene in scenes:
-        find = finders(devset.calibrate(scene), legacy)
+        model = devset.calibrate(scene)
+        find = finders(model, legacy)
+        raw = Detector(model, DetectorSettings(min_target_confidence=0.0))
         for case in devset.cases(scene):
             if case.rgb.shape[:2] == (720, 1280):
                 timing.append(case)
+            target = raw.detect(case.rgb).target  # every candidate, with its confidence
+            if target is not None:
+                off = math.dist(target.px, case.centre) > devset.TOLERANCE * case.diameter
+                band = min(3, int(target.confidence * 4))
+                counts["confidence"]["off" if off else "right"][f"{band}"] += 1
             for name, detect in find.items():
                 px, confidence = detect(case.rgb)
                 verdict = devset.judge(case, px, confidence)
@@ -250,6 +259,12 @@ def main(argv: list[str] | None = None) -> int:
               f"{new['right'] / new['visible']:.0%} | {old['wrong']} / {new['wrong']} | "
               f"{old['hidden seen']} / {new['hidden seen']} of {new['hidden']} |")  # fmt: skip
         goals.append(("no wrong answer with confidence ≥ 0.5 on the set", new["wrong"] == 0))
+        bands = counts["confidence"]
+        print("\nThis detector's candidates with no confidence threshold, per confidence:\n")
+        print("| confidence | centre within 5 % | centre off by > 5 % |")
+        print("|---|---|---|")
+        for band, label in enumerate(("0–0.25", "0.25–0.5", "0.5–0.75", "0.75–1")):
+            print(f"| {label} | {bands['right'][str(band)]} | {bands['off'][str(band)]} |")
 
         if PHOTOS.is_dir():
             photos = photo_figures(legacy)
