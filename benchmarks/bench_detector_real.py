@@ -158,9 +158,11 @@ def photo_figures(legacy: ModuleType) -> dict[str, dict[str, list[float]]]:
 def time_detection(
     frames: list[Case], legacy: ModuleType, model: ColourModel, repeats: int
 ) -> dict[str, list[float]]:
-    """Per repeat, the median ms per frame over `frames`, detectors interleaved."""
+    """Per repeat, the median ms per frame over `frames`, detectors interleaved; under
+    "NAME p90" and "NAME max", those of every frame of every repeat."""
     find = finders(model, legacy)
     medians: dict[str, list[float]] = {name: [] for name in find}
+    every: dict[str, list[float]] = {name: [] for name in find}
     for detect in find.values():  # warm-up
         detect(frames[0].rgb)
     for _ in range(repeats):
@@ -171,6 +173,10 @@ def time_detection(
                 detect(case.rgb)
                 times.append(1e3 * (time.perf_counter() - start))
             medians[name].append(statistics.median(times))
+            every[name] += times
+    for name, times in every.items():  # the slow frames: hard cases try more corrections
+        medians[f"{name} p90"] = [float(np.quantile(times, 0.9))]
+        medians[f"{name} max"] = [max(times)]
     return medians
 
 
@@ -298,11 +304,12 @@ def main(argv: list[str] | None = None) -> int:
         ratio = [b / t for b, t in zip(ms["baseline"], ms["this"], strict=True)]
         print(f"\n### Detection time per 1280×720 frame ({len(frames)} frames of the set, "
               f"{args.repeats} interleaved repeats)\n")  # fmt: skip
-        print("| detector | median ms per frame: median [min, max] of the repeats |")
-        print("|---|---|")
+        print("| detector | median ms per frame: median [min, max] of the repeats | p90 | max |")
+        print("|---|---|---|---|")
         for name in ("baseline", "this"):
-            print(f"| {name} | {_spread(ms[name])} |")
-        print(f"| ratio baseline / this | {_spread(ratio)} |")
+            print(f"| {name} | {_spread(ms[name])} | {ms[f'{name} p90'][0]:.2f} | "
+                  f"{ms[f'{name} max'][0]:.2f} |")  # fmt: skip
+        print(f"| ratio baseline / this | {_spread(ratio)} | | |")
         goals.append(
             (f"detection ≤ {TIME_GOAL_MS:g} ms", statistics.median(ms["this"]) <= TIME_GOAL_MS)
         )
