@@ -284,14 +284,32 @@ class Detector:
     def detect(self, rgb: np.ndarray) -> Detection:
         """Detect in an RGB uint8 image (H, W, 3).
 
-        The face is searched on a downscaled copy, as the frame is and white-balanced to the
-        calibration's light; the more confident of the two is kept.
+        The face is searched on a copy downscaled to `FACE_SIDE` px (shorter side), as the frame
+        is and under colour corrections; in a large image where none is seen, again at twice
+        the resolution (until the copy is within 2.5× of the image).
 
         Raises:
             ImageError: not an RGB uint8 image with sides of 32..8192 px.
         """
         rgb = check_image(rgb)
-        small, factor = downscale(rgb)
+        side = FACE_SIDE
+        while True:
+            small, factor = downscale(rgb, side)
+            face, best_gains = self._search(small)
+            seen = face is not None and face.confidence >= self.settings.min_target_confidence
+            # a large image may hold a small face: look again at twice the resolution
+            if seen or factor < 2.5:
+                break
+            side *= 2
+        arrow_m = None
+        if self.has_arrow_model:
+            full = rgb if best_gains is None else apply_gains(rgb, best_gains)
+            arrow_m = self.memberships(full)[1]
+        return self._result(face, factor, arrow_m)
+
+    def _search(self, small: np.ndarray) -> tuple[FaceFit | None, np.ndarray | None]:
+        """The face in a downscaled frame, as it is and under colour corrections, and the
+        white-balance gains it was found with (None: as it is)."""
         fits: list[tuple[FaceFit, np.ndarray | None]] = []
 
         def best() -> FaceFit | None:
@@ -322,11 +340,7 @@ class Detector:
                 merged = merge_faces(face, other) if other is not face else None
                 if merged is not None and merged.confidence > face.confidence:
                     face = merged
-        arrow_m = None
-        if self.has_arrow_model:
-            full = rgb if best_gains is None else apply_gains(rgb, best_gains)
-            arrow_m = self.memberships(full)[1]
-        return self._result(face, factor, arrow_m)
+        return face, best_gains
 
     def _face(
         self, small: np.ndarray, gains: np.ndarray | None, tables: int = 1, first: int = 0

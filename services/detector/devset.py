@@ -139,7 +139,8 @@ def draw_face(image: np.ndarray, centre: tuple[float, float], face_diameter: flo
 
 
 def drawn_scenes(seed: int = 0) -> list[Scene]:
-    """Drawn faces 110, 350, 650 px across in 1280×720 frames and 1300 px in a 1920×1440 one."""
+    """Drawn faces 110, 350, 650 px across in 1280×720 frames, 1300 px in a 1920×1440 one and
+    100 px in a 2400×1800 one (a phone photo of a distant face)."""
     rng = np.random.default_rng(seed)
     scenes = []
     for name, (width, height), face in (
@@ -147,6 +148,7 @@ def drawn_scenes(seed: int = 0) -> list[Scene]:
         ("drawn-350", (1280, 720), 350.0),
         ("drawn-650", (1280, 720), 650.0),
         ("drawn-1300", (1920, 1440), 1300.0),
+        ("drawn-100-in-2400", (2400, 1800), 100.0),
     ):
         image = _background((height, width), rng)
         centre = (

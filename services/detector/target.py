@@ -70,7 +70,7 @@ def _fill(region: np.ndarray) -> np.ndarray:
 
 
 def colour_groups(
-    means: np.ndarray, weights: np.ndarray, distance: float = 30.0, least: float = 0.1
+    means: np.ndarray, weights: np.ndarray, distance: float = 30.0, least: float = 0.2
 ) -> np.ndarray:
     """Group id per GMM component (K,): components whose UV means (K, 2) chain within
     `distance` UV levels are one colour (one ring of the face); a group of total prior below
