@@ -25,9 +25,12 @@ from services.detector.devset import (
 
 # known limits, reported as not seen (never wrong): drawn faces of flat colours at exposure ×2.5
 # clip to white and cyan until only one calibrated colour (the red ring) is left; on the 110 px
-# face (its yellow 22 px across), a 3 px blur mixes the rings into colours of none, and ten
-# arrows cover most of the yellow and red
+# face (its yellow 22 px across), a 3 px blur mixes the rings into colours of none, ten arrows
+# cover most of the yellow and red, and so do six arrows seen at 40° in warm light; light
+# falling to a quarter across the 350 px face leaves too little of its far side coloured
 KNOWN_MISSES = {
+    ("drawn-110", "combined", "warm, tilted, arrows, JPEG"),
+    ("drawn-350", "shadow", "0.25"),
     ("drawn-350", "exposure", "2.5"),
     ("drawn-650", "exposure", "2.5"),
     ("drawn-1300", "exposure", "2.5"),
@@ -35,9 +38,9 @@ KNOWN_MISSES = {
     ("drawn-110", "arrows", "10"),
 }
 # a 100 px face in a 2400×1800 frame is found by looking again at a finer scale, but its
-# calibration (120 marks on a 60 px disc, ring lines and blends included) is poor: of its 27
+# calibration (120 marks on a 60 px disc, ring lines and blends included) is poor: of its 31
 # visible cases at most this many are missed (never wrong); the plain frame is always found
-MISSES_ALLOWED = {"drawn-100-in-2400": 10}
+MISSES_ALLOWED = {"drawn-100-in-2400": 12}
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"
 DRAWN = {scene.name: scene for scene in drawn_scenes()}
 REAL = {scene.name: scene for scene in photo_scenes(PHOTOS)} if PHOTOS.is_dir() else {}

@@ -309,7 +309,36 @@ CHANGES: dict[str, list[Any]] = {
     "perspective": [("y", 30), ("y", 50), ("x", 50), ("y", -40)],
     "arrows": [3, 6, 10],
     "border": [0.8, 0.3, -0.4],
+    "shadow": [0.5, 0.25],
+    "combined": ["warm, tilted, arrows, JPEG", "dim, cold, noisy, blurred"],
 }
+
+
+def _shadow(scene: Scene, darkest: float) -> np.ndarray:
+    """Light falling off across the face, diagonally, from 1 to `darkest` (linear light)."""
+    height, width = scene.rgb.shape[:2]
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    across = ((x - scene.centre[0]) + (y - scene.centre[1])) / (math.sqrt(2) * scene.diameter)
+    light = 1.0 - (1.0 - darkest) * np.clip(across + 0.5, 0.0, 1.0)
+    return _encode(_linear(scene.rgb) * light[:, :, None])
+
+
+def _combined(scene: Scene, name: str, rng: np.random.Generator) -> Case:
+    """Several changes at once: "warm, tilted, arrows, JPEG" (6 arrows, 40° about the
+    vertical, 3200 K, quality 60) or "dim, cold, noisy, blurred" (×0.5, 7000 K, noise σ 10,
+    blur σ 1.2)."""
+    if name.startswith("warm"):
+        step = Scene(scene.name, _arrows(scene, 6, rng), scene.centre, scene.diameter)
+        tilted, centre, diameter = _tilt(step, 40, "y")
+        image = _jpeg(white_balance(tilted, 3200), 60)
+    else:
+        centre, diameter = scene.centre, scene.diameter
+        image = white_balance(_encode(_linear(scene.rgb) * 0.5), 7000)
+        noisy = image.astype(np.float32) + rng.normal(0, 10, image.shape).astype(np.float32)
+        image = cv2.GaussianBlur(np.clip(noisy, 0, 255).astype(np.uint8), (0, 0), 1.2)
+    return Case(
+        scene.name, "combined", name, np.ascontiguousarray(image), centre, diameter, "visible"
+    )
 
 
 def _apply(scene: Scene, kind: str, level: Any, rng: np.random.Generator) -> Case:
@@ -334,6 +363,10 @@ def _apply(scene: Scene, kind: str, level: Any, rng: np.random.Generator) -> Cas
         image = _arrows(scene, level, rng)
     elif kind == "border":
         image, centre, expect = _cut(scene, level)
+    elif kind == "shadow":
+        image = _shadow(scene, level)
+    elif kind == "combined":
+        return _combined(scene, level, rng)
     return Case(scene.name, kind, str(level), np.ascontiguousarray(image), centre, diameter, expect)
 
 
