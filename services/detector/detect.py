@@ -329,10 +329,11 @@ class Detector:
             gains = white_gains(self._white, estimate_white(downscale(small, WHITE_SIDE)[0]))
             if gains is not None:
                 add(self._face(apply_gains(small, gains), gains), gains)
-        if unsure():
-            for option in (None, gains) if gains is not None else (None,):
-                image = small if option is None else apply_gains(small, option)
-                add(self._face(image, option, len(self._face_tables), first=1), option)
+        if unsure():  # other chroma scales, on the better-balanced copy (balanced if none)
+            found = best()
+            option = gains if found is None else next(g for f, g in fits if f is found)
+            image = small if option is None else apply_gains(small, option)
+            add(self._face(image, option, len(self._face_tables), first=1), option)
         face = best()
         best_gains = next((g for f, g in fits if f is face), None)
         if face is not None and face.confidence < SURE:
