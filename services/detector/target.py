@@ -2,15 +2,16 @@
 confidence that means something (below the threshold the face is reported as not seen).
 
 The target's colour membership is thresholded, closed (ring lines, holes) and split into
-connected regions; each of the largest few is filled and its outer boundary fitted with a
-robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
+regions by their outer contours; each of the largest few is filled and its outer boundary
+fitted with a robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
 components are ordered by their radial position inside that ellipse (yellow, red, blue…) and
 the cumulative discs (yellow; yellow + red; …) are fitted too: concentric ellipses of one shape
 validate each other, and the centre is extrapolated from them (`rings.nested_centre`), which
 holds when arrows and fletchings cover part of the yellow. The confidence multiplies how much of
 the outer boundary was seen, how elliptic the region is, how well its colours match the
-calibration, and how many inner rings agree; the factors' ranges were set on the development
-set (`services.detector.devset`) so that wrong centres score below 0.5.
+calibration, how many inner rings agree and how many of the calibrated colours (ring groups of
+the GMM's components) the face shows; the factors' ranges were set on the development set
+(`services.detector.devset`) so that wrong centres score below 0.5.
 All positions are pixels of the downscaled map.
 """
 
@@ -94,8 +95,8 @@ def _inner_rings(
     kernel: np.ndarray,
     groups: np.ndarray,
 ) -> tuple[list[Ellipse], set[int]]:
-    """Fitted cumulative discs inside `outer` that agree with it, and how many of the
-    calibrated colours (`groups`: colour per component) the face shows."""
+    """Fitted cumulative discs inside `outer` that agree with it, and which of the calibrated
+    colours (`groups`: colour per component) the face shows."""
     ys, xs = np.nonzero(mask)
     if len(xs) < 30:
         return [], set()
