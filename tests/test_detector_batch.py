@@ -76,5 +76,14 @@ def test_batch_input_mistakes_are_one_line_and_exit_2(tmp_path: Path) -> None:
     )
     done = archery("detect", "--model", str(model))
     assert done.returncode == 2 and "Traceback" not in done.stderr
+    done = archery("detect", str(tmp_path), "--model", str(model))
+    assert done.returncode == 2 and "a folder, not a file" in done.stderr
     done = archery("detect", image, image, "--model", str(model), "--no-progress")
     assert done.returncode == 0 and done.stderr == "" and len(done.stdout.splitlines()) == 2
+    overlays = tmp_path / "overlays"
+    overlays.mkdir()
+    done = archery("detect", image, image, "--model", str(model), "--overlay", str(overlays))
+    assert done.returncode == 0 and sorted(p.name for p in overlays.iterdir()) == [
+        "a-2.png",
+        "a.png",
+    ]

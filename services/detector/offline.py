@@ -48,7 +48,8 @@ def read_rgb(path: str | Path) -> np.ndarray:
         ImageError: missing, not an image, or of an unusable size.
     """
     if not Path(path).is_file():  # before OpenCV, which would warn on stderr too
-        raise ImageError(f"cannot read an image from {str(path)!r}: no such file")
+        what = "a folder, not a file" if Path(path).is_dir() else "no such file"
+        raise ImageError(f"cannot read an image from {str(path)!r}: {what}")
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if bgr is None:
         raise ImageError(f"cannot read an image from {str(path)!r} (missing, or not an image)")
@@ -177,15 +178,17 @@ def detect_main(argv: list[str] | None = None) -> int:
         print(f"archery detect: {exc}", file=sys.stderr)
         return 2
     status = 0
+    stems: dict[str, int] = {}
     with _progress(len(args.image), enabled=several and not args.no_progress) as advance:
         for image in args.image:
             overlay = None
-            if args.overlay:
-                overlay = (
-                    Path(args.overlay) / f"{Path(image).stem}.png"
-                    if several
-                    else Path(args.overlay)
-                )
+            if args.overlay and not several:
+                overlay = Path(args.overlay)
+            elif args.overlay:
+                stem = Path(image).stem
+                stems[stem] = stems.get(stem, 0) + 1  # a/x.jpg, b/x.jpg → x.png, x-2.png
+                name = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
+                overlay = Path(args.overlay) / f"{name}.png"
             try:
                 line = _detect_one(detector, image, overlay, first)
             except ArcheryError as exc:
