@@ -88,7 +88,7 @@ class DetectorSettings:
 
     target_diameter_m: float = 0.50
     coloured_fraction: float = 0.6
-    min_target_fraction: float = 5e-4
+    min_target_fraction: float = 1e-4
     min_target_confidence: float = 0.5
     min_arrow_pixels: float = 6.0
     max_arrow_fraction: float = 0.01

@@ -310,6 +310,7 @@ CHANGES: dict[str, list[Any]] = {
     "arrows": [3, 6, 10],
     "border": [0.8, 0.3, -0.4],
     "shadow": [0.5, 0.25],
+    "distractors": [3, 6],
     "combined": ["warm, tilted, arrows, JPEG", "dim, cold, noisy, blurred"],
 }
 
@@ -321,6 +322,30 @@ def _shadow(scene: Scene, darkest: float) -> np.ndarray:
     across = ((x - scene.centre[0]) + (y - scene.centre[1])) / (math.sqrt(2) * scene.diameter)
     light = 1.0 - (1.0 - darkest) * np.clip(across + 0.5, 0.0, 1.0)
     return _encode(_linear(scene.rgb) * light[:, :, None])
+
+
+def _distractors(scene: Scene, count: int, rng: np.random.Generator) -> np.ndarray:
+    """Up to `count` blobs in the face's own colours (discs, squares, a letter's bar), each as
+    large as a ring, around the face but off it (the scene's logo, a pin, a bag)."""
+    image = scene.rgb.copy()
+    height, width = image.shape[:2]
+    face = scene.diameter / 0.6 / 2  # the whole face's radius, px
+    for i in range(count):
+        size = scene.diameter * rng.uniform(0.15, 0.35)
+        colour = FACE_COLOURS[2 + i % 3]
+        for _ in range(50):
+            x, y = rng.uniform(size, width - size), rng.uniform(size, height - size)
+            if math.dist((x, y), scene.centre) > face + 1.5 * size:
+                break
+        else:
+            continue
+        if i % 2 == 0:
+            cv2.circle(image, _pt(np.array([x, y])), round(size), colour, -1, cv2.LINE_AA)
+        else:
+            corner = np.array([x - size, y - 0.4 * size])
+            far = corner + np.array([2 * size, 0.8 * size])
+            cv2.rectangle(image, _pt(corner), _pt(far), colour, -1)
+    return image
 
 
 def _combined(scene: Scene, name: str, rng: np.random.Generator) -> Case:
@@ -365,6 +390,8 @@ def _apply(scene: Scene, kind: str, level: Any, rng: np.random.Generator) -> Cas
         image, centre, expect = _cut(scene, level)
     elif kind == "shadow":
         image = _shadow(scene, level)
+    elif kind == "distractors":
+        image = _distractors(scene, level, rng)
     elif kind == "combined":
         return _combined(scene, level, rng)
     return Case(scene.name, kind, str(level), np.ascontiguousarray(image), centre, diameter, expect)

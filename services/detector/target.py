@@ -28,7 +28,7 @@ from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_pos
 __all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
 
 _MEMBER = 96  # membership (0..255) of a pixel counted as target colour
-_CANDIDATES = 3  # largest regions examined
+_CANDIDATES = 5  # largest regions examined
 _MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
 _SAME_RING = 0.15  # components whose median radial positions differ less share a ring
 
