@@ -122,3 +122,20 @@ def test_a_scene_without_its_face_reports_no_target() -> None:
     half = round(0.7 * scene.diameter / 0.6)
     blank[max(0, y - half) : y + half, max(0, x - half) : x + half] = scene.rgb[:2, :2].mean((0, 1))
     assert detector.detect(blank).status == "no_target"
+
+
+def test_warm_light_is_balanced_against_the_calibration_s_white() -> None:
+    scene = DRAWN["drawn-350"]
+    detector = Detector(calibrate(scene))
+    same = detector.gains(scene.rgb)
+    assert same is not None and same == pytest.approx([1, 1, 1], abs=0.03)
+    assert detector.detect(scene.rgb).gains is None  # the calibration's own light: as it is
+    warm = next(c for c in cases(scene, kinds=["white balance"]) if c.level == "3000")
+    gains = detector.gains(warm.rgb)
+    assert gains is not None
+    red, _, blue = gains
+    assert blue > 1.2 > 0.9 > red  # warm light: blue boosted, red cut
+    found = detector.detect(warm.rgb)
+    assert found.target is not None and len(found.rings) == 3
+    assert found.gains is None or found.gains == pytest.approx(tuple(gains))
+    assert math.dist(found.target.px, warm.centre) < 0.05 * warm.diameter

@@ -32,6 +32,7 @@ foreshortening of an oblique view.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -151,6 +152,7 @@ class Detection:
         status: "ok", "no_target" or "no_arrow".
         rings: the fitted ring ellipses (px, inner → outer; the last is the coloured rings'
             outer boundary), empty without a target.
+        gains: the white balance (RGB channel gains) the face was found under, None: as is.
     """
 
     target: Seen | None
@@ -159,6 +161,7 @@ class Detection:
     metres_per_px: np.ndarray | None
     status: str
     rings: tuple[Ellipse, ...] = ()
+    gains: tuple[float, float, float] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The offline `archery detect` output."""
@@ -305,7 +308,10 @@ class Detector:
         if self.has_arrow_model:
             full = rgb if best_gains is None else apply_gains(rgb, best_gains)
             arrow_m = self.memberships(full)[1]
-        return self._result(face, factor, arrow_m)
+        found = self._result(face, factor, arrow_m)
+        if best_gains is None:
+            return found
+        return dataclasses.replace(found, gains=tuple(float(g) for g in best_gains))
 
     def _search(self, small: np.ndarray) -> tuple[FaceFit | None, np.ndarray | None]:
         """The face in a downscaled frame, as it is and under colour corrections, and the

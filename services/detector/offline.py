@@ -29,7 +29,7 @@ from services.detector.colour_model import ColourModel
 from services.detector.detect import WHITE_SIDE, Detector, DetectorSettings, check_image, downscale
 from services.detector.errors import ImageError
 from services.detector.overlay import draw_overlay
-from services.detector.whitebalance import estimate_white
+from services.detector.whitebalance import apply_gains, estimate_white
 
 __all__ = [
     "add_settings_arguments",
@@ -139,8 +139,9 @@ def _detect_one(
     input)."""
     rgb = read_rgb(image) if rgb is None else rgb
     detection = detector.detect(rgb)
-    if overlay is not None:
-        write_png(overlay, draw_overlay(rgb, detection, detector.memberships(rgb)))
+    if overlay is not None:  # the pixels the model keeps, under the light it was found in
+        shown = rgb if detection.gains is None else apply_gains(rgb, np.asarray(detection.gains))
+        write_png(overlay, draw_overlay(rgb, detection, detector.memberships(shown)))
     return {
         "image": image,
         **detection.to_json(),
