@@ -371,6 +371,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the mesh to start, a TOML launch description (see mesh.toml); replaces "
         "--listen/--connect/--robot/--seed/--rtf/--runs/--no-router",
     )
+    parser.add_argument(
+        "--robots",
+        type=count,
+        metavar="N",
+        help="a fleet of N robot stacks (robot, controller, camera, detector) under the prefixes "
+        "ROBOT1 … ROBOTN and one learner that runs sessions on all of them (default 1: one "
+        "robot under ROBOT itself)",
+    )
     parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
     parser.add_argument("--runs", help="the learner's session directory (default runs)")
     parser.add_argument("--seed", type=count, help="the robot's shot-noise seed (default 0)")
@@ -451,6 +459,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             "--rtf": args.rtf,
             "--runs": args.runs,
             "--no-router": args.no_router or None,
+            "--robots": args.robots,
         }
         clash = [flag for flag, value in given.items() if value is not None]
         if clash:
@@ -468,6 +477,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             rtf=args.rtf or 0.0,
             runs=runs,
             start_router=not args.no_router,
+            robots=1 if args.robots is None else args.robots,
         )
     return mesh.with_policy(args.restart, args.restart_budget)
 
