@@ -541,11 +541,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery up: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ConfigError) else 1
     robots = ", ".join(repr(r.prefix) for r in mesh.robots)
+    learn = f"archery learn {shlex.join(launcher.secure)}{' ' if launcher.secure else ''}"
+    learn += f"--connect {launcher.endpoint}"
+    if len(mesh.robots) > 1:
+        learn += f" --robot {mesh.robots[0].prefix}` (any robot) or `archery experiment "
+        learn += f"--world mesh --connect {launcher.endpoint}"
     print(
         f"archery up: all alive in {took:.1f} s (robot {robots}, logs in {launcher.logs}/). "
-        f"Run `archery learn {shlex.join(launcher.secure)}"
-        f"{' ' if launcher.secure else ''}--connect {launcher.endpoint}` in another shell; "
-        f"Ctrl-C stops everything.",
+        f"Run `{learn}` in another shell; Ctrl-C stops everything.",
         flush=True,
     )
     supervisor = Supervisor(

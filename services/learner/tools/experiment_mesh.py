@@ -35,6 +35,7 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
+from protocol.logs import DEFAULT_SPEC
 from protocol.netflags import NetConfig
 from protocol.node import shutdown_on_signals
 from protocol.robotspec import THETA0
@@ -546,6 +547,8 @@ def run_from_args(
     )
     prepare_out(out, config, resume=args.resume is not None)
     stop = shutdown_on_signals()
+    if args.log_level == DEFAULT_SPEC:  # a line per rollout of every robot would bury the bar
+        logging.getLogger("archery.learner").setLevel(logging.WARNING)
 
     def started(prefixes: list[str]) -> None:
         print(f"archery experiment: robots {', '.join(prefixes)}", file=sys.stderr, flush=True)
