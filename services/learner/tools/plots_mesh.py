@@ -25,8 +25,8 @@ def plot_impacts(
     session: int = 0,
     title: str = "",
 ) -> None:
-    """One panel per algorithm: session `session`'s impacts (cm from the centre) up to its first
-    hit, joined in rollout order and numbered, the last one in red, on the target's rings."""
+    """One panel per algorithm: every impact of session `session` (cm from the centre) on the
+    target's rings, coloured by rollout, its first hit ringed in red."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -37,30 +37,30 @@ def plot_impacts(
         1, len(names), figsize=(4.2 * len(names), 4.8), dpi=110, squeeze=False, layout="constrained"
     )
     face_cm = 100 * TARGET_DIAMETER / 2
+    shown = None
     for ax, name in zip(axes[0], names, strict=True):
         run = runs[name]
         budget = run.thetas.shape[1]
         first_hit = int(run.rollouts_to_hit()[session])
-        last = min(first_hit, budget)
-        impacts = 100 * run.r_true[session, :last]
-        for ring_cm in (face_cm, 15.0, 10.0):
-            ax.add_patch(plt.Circle((0, 0), ring_cm, fill=False, color="0.3", lw=1))
-        ax.add_patch(plt.Circle((0, 0), 100 * INNER_RING_RADIUS, color="gold", alpha=0.5))
-        ax.plot(impacts[:, 0], impacts[:, 1], "-", color="0.75", lw=0.8, zorder=1)
-        ax.scatter(impacts[:-1, 0], impacts[:-1, 1], s=24, color="0.45", zorder=2)
-        ax.scatter(impacts[-1, 0], impacts[-1, 1], s=60, color="red", zorder=3)
-        for k, (x, y) in enumerate(impacts, start=1):
-            if k <= 8 or k == last:
-                ax.annotate(str(k), (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        impacts = 100 * run.r_true[session]  # every rollout of the budget (cm)
+        for ring_cm in (face_cm, 15.0, 10.0, 100 * INNER_RING_RADIUS):
+            ax.add_patch(plt.Circle((0, 0), ring_cm, fill=False, color="0.35", lw=0.9))
+        ax.add_patch(plt.Circle((0, 0), 100 * INNER_RING_RADIUS, color="gold", alpha=0.4))
+        order = np.arange(1, budget + 1)
+        shown = ax.scatter(*impacts.T, c=order, cmap="viridis", s=22, vmin=1, vmax=budget, zorder=2)
+        if first_hit <= budget:
+            ax.scatter(*impacts[first_hit - 1], s=150, facecolors="none", edgecolors="red", lw=1.6)
+        ax.annotate("1", impacts[0], textcoords="offset points", xytext=(5, 5), fontsize=8)
         reach = max(face_cm, float(np.abs(impacts).max()) + 5)
-        ax.set_xlim(-reach, reach)
-        ax.set_ylim(-reach, reach)
-        ax.set_aspect("equal")
-        ax.set_xlabel("right of centre (cm)")
-        ax.set_ylabel("above centre (cm)")
-        outcome = f"hit at rollout {first_hit}" if first_hit <= budget else f"no hit in {budget}"
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal")
+        ax.set(xlabel="right of centre (cm)", ylabel="above centre (cm)")
+        outcome = (
+            f"first hit at rollout {first_hit} (red ring)" if first_hit <= budget else "no hit"
+        )
         ax.set_title(f"{labels[name]}\nsession {session}: {outcome}")
-    heading = "Impacts on the target of one session per algorithm (final one in red)"
+    if shown is not None:
+        fig.colorbar(shown, ax=axes[0].tolist(), label="rollout", shrink=0.8)
+    heading = "Impacts on the target of one session per algorithm"
     fig.suptitle(heading + (f"\n{title}" if title else ""))
     fig.savefig(path)
     plt.close(fig)
