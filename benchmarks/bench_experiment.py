@@ -41,10 +41,11 @@ ALGORITHM_ORDER = (
     "power",
     "power-sharp",
     "cma",
+    "hill",
     "random",
 )
-FIGURE_ALGORITHMS = ("archer", "archer-plain", "power", "cma", "random")
-DEFAULT_COMMAND_ALGORITHMS = ("archer", "power", "cma", "random")
+FIGURE_ALGORITHMS = ("archer", "archer-plain", "power", "cma", "hill", "random")
+DEFAULT_COMMAND_ALGORITHMS = ("archer", "power", "cma", "hill", "random")
 
 
 def _slug(name: str) -> str:

@@ -127,6 +127,8 @@ CASES: list[tuple[str, int, str]] = [
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),
     ("experiment --sessions 0", 2, "got 0"),
+    ("experiment --power-scale -1", 2, "got -1.0"),
+    ("experiment --fig6 mode", 2, "'mode'"),
     ("experiment --drag 0.05 --wind-change 20", 2, "'20'"),
     ("experiment --drag 0.05 --wind-change x:0,1,0", 2, "'x:0,1,0'"),
     ("experiment --drag 0.05 --wind-change 20:0,1", 2, "'0,1'"),

@@ -31,7 +31,7 @@ def test_the_command_writes_valid_files(tmp_path: Path, capsys: pytest.CaptureFi
     summary = json.loads((out / "summary.json").read_text())
     assert summary["scenario"]["world"] == "ballistic"
     assert summary["scenario"]["drag"] == 0.02 and summary["scenario"]["noise"] == 0.01
-    assert set(summary["algorithms"]) == {"archer", "power", "cma", "random"}
+    assert set(summary["algorithms"]) == {"archer", "power", "cma", "hill", "random"}
     for stats in summary["algorithms"].values():
         to_hit = stats["rollouts_to_hit"]
         assert set(to_hit) >= {"median", "mean", "q1", "q3"}
@@ -42,7 +42,7 @@ def test_the_command_writes_valid_files(tmp_path: Path, capsys: pytest.CaptureFi
     with (out / "curves.csv").open() as handle:
         rows = list(csv.DictReader(handle))
     assert tuple(rows[0]) == CURVE_COLUMNS
-    assert len(rows) == 4 * 3 * 8
+    assert len(rows) == 5 * 3 * 8
     for row in rows:
         r_true = np.array([float(row["r_true_x"]), float(row["r_true_y"])])
         assert float(row["distance"]) == pytest.approx(np.linalg.norm(r_true), abs=1e-15)
@@ -78,6 +78,58 @@ def test_a_session_that_never_hits_counts_as_budget_plus_one() -> None:
     stats = summarise(config, {"archer": run})["algorithms"]["archer"]
     assert stats["hit_rate"] == 0.5
     assert stats["rollouts_to_hit"]["median"] == 4.0
+    to_hit = stats["rollouts_to_hit"]
+    assert (to_hit["median_censored"], to_hit["q1_censored"], to_hit["q3_censored"]) == (
+        False,
+        False,
+        True,
+    )
+    assert to_hit["mean_censored"] and to_hit["censored_sessions"] == 1
+    assert to_hit["censored_at"] == 5
+
+
+def test_a_median_on_a_session_that_never_hit_is_printed_as_above_the_budget(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # Uniform random search at 5 m with 8 rollouts: no session hits.
+    argv = [*SMALL, "--algo", "archer,random", "--distance", "5", "--no-figures"]
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    summary = json.loads((tmp_path / "summary.json").read_text())["algorithms"]
+    assert summary["random"]["hits"] == 0 and summary["random"]["rollouts_to_hit"]["median"] == 9
+    assert summary["random"]["rollouts_to_hit"]["median_censored"]
+    assert not summary["archer"]["rollouts_to_hit"]["median_censored"]
+    row = next(line for line in out.splitlines() if "random" in line)
+    assert "> 8 [> 8, > 8]" in row and "≥ 9.0" in row and "0/3 (0 %)" in row
+    assert "9 [" not in row
+
+
+def test_power_scale_changes_power_only(tmp_path: Path) -> None:
+    common = {"sessions": 3, "rollouts": 8, "seed": 2}
+    plain = ExperimentConfig(algorithms=("archer", "power", "power-metre"), **common)
+    scaled = ExperimentConfig(
+        algorithms=("archer", "power", "power-metre"), power_scale=0.01, **common
+    )
+    assert np.array_equal(
+        run_algorithm(plain, "archer").thetas, run_algorithm(scaled, "archer").thetas
+    )
+    assert not np.array_equal(
+        run_algorithm(plain, "power").thetas, run_algorithm(scaled, "power").thetas
+    )
+    # power-metre is PoWER with s = 1 m: --power-scale 1 makes power the same learner.
+    metre = ExperimentConfig(algorithms=("power",), power_scale=1.0, **common)
+    assert np.array_equal(
+        run_algorithm(plain, "power-metre").thetas, run_algorithm(metre, "power").thetas
+    )
+    assert metre.learner("power", 0).return_scale == 1.0
+    assert scaled.to_dict()["power_scale_m"] == 0.01 and plain.to_dict()["power_scale_m"] is None
+
+
+@pytest.mark.parametrize("band", ["median", "mean"])
+def test_fig6_band_is_selectable(band: str, tmp_path: Path) -> None:
+    argv = [*SMALL, "--algo", "archer,hill", "--fig6", band, "--out", str(tmp_path)]
+    assert main(argv) == 0
+    assert (tmp_path / "fig6.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_same_seed_same_numbers_bit_for_bit_and_independent_of_the_algorithm_list() -> None:
@@ -113,6 +165,9 @@ def test_same_seed_same_numbers_bit_for_bit_and_independent_of_the_algorithm_lis
         (["--distance", "0.2"], "distance 0.2 m puts the target behind"),
         (["--bow-stiffness", "0"], "bow_stiffness must be > 0"),
         (["--start", "0.5,0,0"], "start θ [0.5, 0.0, 0.0] m lies outside the θ bounds"),
+        (["--power-scale", "0"], "--power-scale must be in [0.0001, 10] m, got 0.0"),
+        (["--power-scale", "5cm"], "--power-scale needs a number, got '5cm'"),
+        (["--power-scale", "inf"], "--power-scale needs a number, got 'inf'"),
     ],
 )
 def test_bad_input_is_a_clear_error(

@@ -383,7 +383,7 @@ def test_attach_to_a_running_session_reports_the_journals_counts(
     by: str,
 ) -> None:
     node, _ = gated_learner
-    request = {"algo": "random", "seed": 3, "rollouts": 5, "until_hit": False}
+    request = {"algo": "hill", "seed": 3, "rollouts": 5, "until_hit": False}
     started = node.call(node.keys.learner_rpc(), "start", request, timeout=30)
     session = started["session"]
     with pytest.raises(RpcError, match=f"follow it with `archery learn --attach {session}`"):

@@ -7,13 +7,17 @@ import math
 import numpy as np
 import pytest
 
-from services.learner.algorithms import Bounds, LearnerConfigError, Power
+from services.learner.algorithms import Bounds, LearnerConfigError, Power, make_learner
+from services.learner.algorithms.power import DEFAULT_RETURN_SCALE
+from sim.geometry import INNER_RING_RADIUS
 
 WIDE = Bounds(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 
 
 def test_update_is_the_return_weighted_mean_of_the_top_sigma() -> None:
-    learner = Power(np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=3)
+    learner = Power(
+        np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=3, return_scale=1.0
+    )
     told = [
         ([1.0, 0.0, 0.0], [0.3, 0.4]),  # ‖r‖ = 0.5
         ([0.0, 2.0, 0.0], [0.0, 0.1]),  # 0.1  (best)
@@ -41,7 +45,9 @@ def test_with_sigma_one_the_policy_jumps_to_the_best_rollout() -> None:
 
 def test_weights_survive_returns_that_underflow() -> None:
     # exp(−1000) is 0 in floating point; the ratio in Eq. 2 is still well defined.
-    learner = Power(np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=2)
+    learner = Power(
+        np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=2, return_scale=1.0
+    )
     learner.tell([1.0, 0.0, 0.0], [1000.0, 0.0])
     learner.tell([0.0, 1.0, 0.0], [1001.0, 0.0])
     e = math.exp(-1.0)
@@ -75,7 +81,7 @@ def test_per_component_exploration() -> None:
 
 
 def test_return_scale_sharpens_the_weights() -> None:
-    plain = Power(np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=2)
+    plain = Power(np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=2, return_scale=1)
     sharp = Power(
         np.zeros(3), rng=np.random.default_rng(0), bounds=WIDE, n_best=2, return_scale=0.01
     )
@@ -101,3 +107,18 @@ def test_return_scale_sharpens_the_weights() -> None:
 def test_bad_options_are_named(options: dict, named: str) -> None:
     with pytest.raises(LearnerConfigError, match=named):
         Power(np.array([0.2, 0.0, 0.0]), rng=np.random.default_rng(0), **options)
+
+
+def test_default_scale_is_the_5_cm_ring_and_power_metre_reads_r_in_metres() -> None:
+    default = make_learner("power", np.array([0.2, 0.0, 0.0]), rng=np.random.default_rng(0))
+    metre = make_learner("power-metre", np.array([0.2, 0.0, 0.0]), rng=np.random.default_rng(0))
+    assert default.return_scale == DEFAULT_RETURN_SCALE == INNER_RING_RADIUS
+    assert metre.return_scale == 1.0
+    for learner in (default, metre):
+        learner.tell([0.20, 0.0, 0.0], [0.05, 0.0])  # on the ring: weight e^−1 at 5 cm
+        learner.tell([0.22, 0.0, 0.0], [0.0, 0.0])
+    assert default.mean[0] == pytest.approx((0.22 + 0.20 * math.exp(-1)) / (1 + math.exp(-1)))
+    e = math.exp(-0.05)
+    assert metre.mean[0] == pytest.approx((0.22 + 0.20 * e) / (1 + e))
+    # The scale is PoWER's alone: the return every learner is told stays exp(−‖r‖ in m), Eq. 1.
+    assert default.returns[0] == metre.returns[0] == pytest.approx(math.exp(-0.05))

@@ -3,6 +3,7 @@ services, exact resume after a crash, stop, bad start requests, and the report f
 
 from __future__ import annotations
 
+import json
 import threading
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,7 @@ import pytest
 from protocol.errors import BadRequest
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SessionConfig
-from services.learner.journal import JournalError, read_records
+from services.learner.journal import JournalError, JournalState, read_records
 from services.learner.session import (
     Measurement,
     PostureResult,
@@ -23,7 +24,7 @@ from services.learner.session import (
     Session,
     Shot,
 )
-from services.learner.tools.report import write_report
+from services.learner.tools.report import interruptions, write_report
 
 BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.
@@ -148,7 +149,7 @@ def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
 
 
 def test_budget_ends_without_hit(tmp_path: Path) -> None:
-    session = _run(SessionConfig(algorithm="random", rollouts=3, seed=0), FakeRig(), tmp_path)
+    session = _run(SessionConfig(algorithm="hill", rollouts=3, seed=0), FakeRig(), tmp_path)
     assert session.status()["ended"] == "budget" and session.status()["rollouts"] == 3
 
 
@@ -196,6 +197,11 @@ def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None
         assert retry["theta"] == a["theta"] == a["retry_theta"]
     assert rig.waits == 2
     assert session.status()["ended"] == "hit"
+    marks = interruptions(session.journal.state)  # where report.png marks them
+    assert [code for _, code in marks.aborted] == ["service_lost", "service_lost"]
+    assert [p for p, _ in marks.aborted] == [
+        sum(1 for r in records[: records.index(a)] if r["record"] == "done") for a in aborted
+    ]
     _check_each_once(session.journal.path)
 
 
@@ -217,6 +223,7 @@ def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
     records = read_records(path)[0]
     assert [r["theta"] for r in records if r["record"] == "done"] == ref_thetas
     assert [r["record"] for r in records].count("resumed") == 1
+    assert interruptions(JournalState.from_records(records)).resumed == (3,)  # report.png
     _check_each_once(path)
     assert records[-1]["record"] == "end"
     with pytest.raises(JournalError, match="has ended"):
@@ -317,3 +324,21 @@ def test_report(tmp_path: Path) -> None:
     assert path.stat().st_size > 10_000
     image = cv2.imread(str(path))
     assert image is not None and image.shape[1] > image.shape[0] > 400
+
+
+def test_a_journal_of_the_old_random_hill_climber_is_refused_on_resume(tmp_path: Path) -> None:
+    config = SessionConfig(algorithm="hill", seed=5, until_hit=False, rollouts=8)
+    crashed = Session.create(config, FakeRig(crash_at=3), tmp_path, session_id="s")
+    with pytest.raises(Crash):
+        crashed.run(threading.Event())
+    path = tmp_path / "s" / "journal.jsonl"
+    # What the hill climber wrote when it was called "random".
+    lines = [json.loads(line) for line in path.read_text().splitlines()]
+    for record in lines:
+        if record["record"] == "header":
+            record["algorithm"] = "random"
+        if isinstance(record.get("learner_state"), dict):
+            record["learner_state"]["algorithm"] = "random"
+    path.write_text("".join(json.dumps(r) + "\n" for r in lines))
+    with pytest.raises(JournalError, match=r"'random' named the hill climber.*now 'hill'"):
+        Session.resume(path, FakeRig())

@@ -17,6 +17,7 @@ from services.learner.algorithms import (
     Archer,
     Bounds,
     CmaEs,
+    HillClimber,
     Learner,
     LearnerConfigError,
     LearnerError,
@@ -221,8 +222,8 @@ def test_cma_draws_only_from_the_injected_generator() -> None:
     assert learner.popsize == 7 and learner.exploration_rollouts == 7
 
 
-def test_random_search_explores_around_the_best_so_far() -> None:
-    learner = RandomSearch(np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001)
+def test_hill_climber_explores_around_the_best_so_far() -> None:
+    learner = HillClimber(np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001)
     learner.tell([0.2, 0.05, 0.0], [0.5, 0.5])
     learner.tell([0.25, -0.05, 0.0], [0.01, 0.0])
     learner.tell([0.15, 0.0, 0.05], [0.3, 0.0])
@@ -231,3 +232,38 @@ def test_random_search_explores_around_the_best_so_far() -> None:
         samples.append(learner.ask())
         learner.tell(samples[-1], [1.0, 1.0])
     assert np.mean(samples, axis=0) == pytest.approx([0.25, -0.05, 0.0], abs=5e-4)
+
+
+def test_random_search_draws_uniformly_in_the_bounds_whatever_the_rewards() -> None:
+    bounds = Bounds(low=(0.1, -0.1, -0.05), high=(0.3, 0.1, 0.05))
+    learner = RandomSearch(np.array(START_THETA), rng=np.random.default_rng(2), bounds=bounds)
+    samples = []
+    for _ in range(4000):
+        samples.append(learner.ask())
+        learner.tell(samples[-1], [0.0, 0.0] if len(samples) == 1 else [1.0, 1.0])
+    samples = np.array(samples)
+    low, high = np.array(bounds.low), np.array(bounds.high)
+    assert np.all(samples >= low) and np.all(samples <= high)
+    # Uniform: mean at the box centre, std (high − low)/√12, per component (4000 samples).
+    width = high - low
+    assert np.all(np.abs(samples.mean(axis=0) - (low + high) / 2) < 0.02 * width)
+    assert np.all(np.abs(samples.std(axis=0) / (width / math.sqrt(12)) - 1) < 0.05)
+    # The best rollout (the first) does not attract the search.
+    assert np.linalg.norm(samples[1:] - samples[0], axis=1).min() > 1e-4
+
+
+def test_random_search_is_reproducible_from_its_seed() -> None:
+    a, b = _learner("random", seed=9), _learner("random", seed=9)
+    world = _world()
+    assert [t.tolist() for t in _play(a, world, 5)] == [t.tolist() for t in _play(b, world, 5)]
+    assert not np.array_equal(_learner("random", seed=10).ask(), _learner("random", seed=9).ask())
+
+
+def test_a_state_saved_when_random_named_the_hill_climber_is_refused() -> None:
+    hill = _learner("hill", seed=1)
+    _play(hill, _world(), 3)
+    old = json.loads(json.dumps(hill.state_dict()))
+    old["algorithm"] = "random"  # what the hill climber wrote under its former name
+    with pytest.raises(StateError, match=r"'random' named the hill climber.*now 'hill'"):
+        restore_learner(old)
+    assert restore_learner(hill.state_dict()).algorithm == "hill"

@@ -421,7 +421,7 @@ def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
             return super().measure(shot)
 
     session = Session.create(
-        SessionConfig(algorithm="random", rollouts=2, seed=0), RogueRig(), tmp_path, session_id="s"
+        SessionConfig(algorithm="hill", rollouts=2, seed=0), RogueRig(), tmp_path, session_id="s"
     )
     session.run(threading.Event())
     records = read_records(session.journal.path)[0]

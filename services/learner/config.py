@@ -47,8 +47,8 @@ ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
         "archer-plain-iso": _ARCHER,
         "archer-ridge": _ARCHER,
         "power": _EXPLORE,
-        "power-sharp": _EXPLORE,
-        "random": _EXPLORE,
+        "power-metre": _EXPLORE,
+        "hill": _EXPLORE,
         "cma": {"sigma0": 0.003},
     }
 )

@@ -11,7 +11,7 @@ from services.learner.algorithms.base import (
     StateError,
     scalar_return,
 )
-from services.learner.algorithms.baselines import CmaEs, RandomSearch
+from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
@@ -23,6 +23,7 @@ __all__ = [
     "ArcherPrior",
     "Bounds",
     "CmaEs",
+    "HillClimber",
     "Learner",
     "LearnerConfigError",
     "LearnerError",

@@ -1,4 +1,5 @@
-"""Baselines under the same ask/tell protocol: CMA-ES (the `cma` package) and random search."""
+"""Baselines under the same ask/tell protocol: CMA-ES (the `cma` package), a hill climber and
+uniform random search."""
 
 from __future__ import annotations
 
@@ -19,7 +20,11 @@ from services.learner.algorithms.base import (
     rng_state,
 )
 
-__all__ = ["CmaEs", "RandomSearch"]
+__all__ = ["HILL_STATE_MARK", "CmaEs", "HillClimber", "RandomSearch"]
+
+# The extra state key only the hill climber saves: how a state it saved is told apart, also one
+# saved when the hill climber was called "random" (see `registry.restore_learner`).
+HILL_STATE_MARK = "std"
 
 
 class CmaEs(Learner):
@@ -137,8 +142,10 @@ class CmaEs(Learner):
         self._pending = pending
 
 
-class RandomSearch(Learner):
-    """Random local search: each θ is the best θ so far plus N(0, std²) noise per component.
+class HillClimber(Learner):
+    """A stochastic hill climber: each θ is the best θ so far plus N(0, std²) noise per component.
+
+    Earlier versions called it "random"; that name is now the uniform `RandomSearch`.
 
     Args:
         theta0: the starting point, used until a rollout has been told (m).
@@ -148,7 +155,7 @@ class RandomSearch(Learner):
         decay: factor applied to the variance after each rollout (1 keeps it fixed).
     """
 
-    algorithm = "random"
+    algorithm = "hill"
 
     def __init__(
         self,
@@ -176,13 +183,38 @@ class RandomSearch(Learner):
         self.std = self.std * np.sqrt(self.decay)
 
     def _extra_state(self) -> dict[str, Any]:
-        return {"std": self.std.tolist()}
+        return {HILL_STATE_MARK: self.std.tolist()}
 
     def _load_extra_state(self, extra: dict[str, Any]) -> None:
         try:
-            std = np.array(extra["std"], dtype=float)
+            std = np.array(extra[HILL_STATE_MARK], dtype=float)
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"random-search state needs 'std' (m): {exc}") from exc
+            raise StateError(f"hill-climber state needs 'std' (m): {exc}") from exc
         if std.shape != self.theta0.shape:
-            raise StateError(f"random-search 'std' must have {self.theta0.size} components")
+            raise StateError(f"hill-climber 'std' must have {self.theta0.size} components")
         self.std = std
+
+
+class RandomSearch(Learner):
+    """Uniform random search: every θ is drawn uniformly in the θ bounds, independent of the
+    rewards (a floor that any learner must beat; it ignores θ0).
+
+    The state is the history and the generator: a restored learner draws the same θ next.
+
+    Args:
+        theta0: the start θ (m); only checked against the bounds, never proposed.
+        rng: the random generator.
+        bounds: θ box (m) that θ is drawn from.
+    """
+
+    algorithm = "random"
+
+    def options(self) -> dict[str, Any]:
+        """Constructor options as plain values (none beyond θ0, the generator and the bounds)."""
+        return {}
+
+    def _propose(self) -> np.ndarray:
+        return self.rng.uniform(self.bounds.low, self.bounds.high)
+
+    def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
+        """Nothing to learn: the next θ does not depend on the rewards."""

@@ -17,7 +17,12 @@ from services.learner.algorithms.base import (
     LearnerConfigError,
     StateError,
 )
-from services.learner.algorithms.baselines import CmaEs, RandomSearch
+from services.learner.algorithms.baselines import (
+    HILL_STATE_MARK,
+    CmaEs,
+    HillClimber,
+    RandomSearch,
+)
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 
@@ -53,7 +58,9 @@ class Algorithm:
 # archer: the default, safeguarded, exploring the draw (θ_x) 4x less than the aim (5 vs 20 mm);
 # archer-plain: the paper's algorithm with the same exploration; the -iso variants explore 20 mm
 # on every component; archer-ridge: the footnote's ridge regression. power: the paper's Eq. 1-4
-# with the authors' σ = 3 and decay 0.965; power-sharp: importance weights exp(−‖r‖/5 cm).
+# with the authors' σ = 3 and decay 0.965, importance weights exp(−‖r‖/5 cm) (why: `Power`);
+# power-metre: the same with ‖r‖ in metres, exp(−‖r‖/1 m). hill: best θ so far + noise (called
+# "random" before); random: uniform in the θ box.
 # archer-recent: ARCHER regressing on the N best of the 4 most recent rollouts (forgets a changed
 # world); archer-prior: the ballistic model aims and a Bayesian residual corrects it.
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
@@ -91,19 +98,20 @@ ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
             Algorithm("archer-prior", ArcherPrior, "ARCHER with the ballistic prior"),
             Algorithm("power", Power, "PoWER"),
             Algorithm(
-                "power-sharp",
+                "power-metre",
                 Power,
-                "PoWER (R = exp(−‖r‖/5 cm))",
-                MappingProxyType({"return_scale": 0.05}),
+                "PoWER (R = exp(−‖r‖/1 m))",
+                MappingProxyType({"return_scale": 1.0}),
             ),
             Algorithm("cma", CmaEs, "CMA-ES"),
-            Algorithm("random", RandomSearch, "random search"),
+            Algorithm("hill", HillClimber, "hill climber (best θ + noise)"),
+            Algorithm("random", RandomSearch, "random search (uniform in the θ box)"),
         )
     }
 )
 
 LEARNER_CLASSES: Mapping[str, type[Learner]] = MappingProxyType(
-    {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, RandomSearch)}
+    {cls.algorithm: cls for cls in (Archer, ArcherPrior, Power, CmaEs, HillClimber, RandomSearch)}
 )
 
 # The algorithms that can start from another session's learned model (`Learner.seed_from`).
@@ -148,14 +156,39 @@ def make_learner(
         raise LearnerConfigError(f"invalid option for {name!r}: {exc}") from exc
 
 
+def _check_not_old_random(state: Mapping[str, Any]) -> None:
+    """Refuse a state saved when "random" named the hill climber (now `hill`).
+
+    Such a state (algorithm "random" with the hill climber's step size in its extra state) is
+    not mapped to `hill`: its journal's header and options also say "random", so a resumed
+    session would run under a name that now means another algorithm. The error says so, and
+    that the earlier version that wrote it can finish it.
+
+    Raises:
+        StateError: it is such a state.
+    """
+    extra = state.get("extra")
+    hill_extra = isinstance(extra, Mapping) and HILL_STATE_MARK in extra
+    if state.get("algorithm") == "random" and hill_extra:
+        raise StateError(
+            "this learner state was saved when 'random' named the hill climber (best θ so far "
+            "+ noise), which is now 'hill'; 'random' is now uniform search, so it is not resumed "
+            "as either: finish it with the version that wrote it, or start a new 'hill' session"
+        )
+
+
 def restore_learner(state: Mapping[str, Any]) -> Learner:
     """Rebuild a learner from `Learner.state_dict()`; its next proposal equals the saved one's.
 
+    A state of the old "random" (the hill climber before it was renamed `hill`) is refused with
+    a clear error, never restored as another algorithm (`_check_not_old_random`).
+
     Raises:
-        StateError: the state is malformed or names an unknown algorithm.
+        StateError: the state is malformed, names an unknown algorithm, or is an old "random".
     """
     if not isinstance(state, Mapping):
         raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+    _check_not_old_random(state)
     algorithm = state.get("algorithm")
     if algorithm not in LEARNER_CLASSES:
         raise StateError(

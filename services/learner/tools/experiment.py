@@ -24,12 +24,15 @@ from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import add_network_args
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
+from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import (
     ALGORITHMS,
     check_transfer,
     make_learner,
     transferred_learner,
 )
+from services.learner.tools.censored import count_stats, format_counts, format_mean
+from services.learner.tools.plots import BANDS
 from sim.ballistic import BallisticError, BallisticWorld, Scenario
 from sim.geometry import INNER_RING_RADIUS
 
@@ -50,7 +53,7 @@ __all__ = [
     "write_outputs",
 ]
 
-DEFAULT_ALGORITHMS = ("archer", "power", "cma", "random")
+DEFAULT_ALGORITHMS = ("archer", "power", "cma", "hill", "random")
 # curves.csv: θ (m), the observed and the true reward vector (m), the true distance ‖r‖ (m).
 CURVE_COLUMNS = (
     "algorithm",
@@ -170,6 +173,8 @@ class ExperimentConfig:
             MuJoCo robots of a fleet, `services.learner.tools.experiment_mesh`).
         wind_change: the wind changes during the sessions (None: it does not).
         transfer: start each session from an earlier run's learner (None: from scratch).
+        power_scale: s (m) in PoWER's importance weights R = exp(−‖r‖/s) for every PoWER
+            algorithm of the run (None: each one's own, `Power`); no other learner has one.
     """
 
     algorithms: tuple[str, ...] = DEFAULT_ALGORITHMS
@@ -181,6 +186,7 @@ class ExperimentConfig:
     world: str = "ballistic"
     wind_change: WindChange | None = None
     transfer: Transfer | None = None
+    power_scale: float | None = None
 
     def __post_init__(self) -> None:
         if self.world not in WORLDS:
@@ -194,6 +200,11 @@ class ExperimentConfig:
                 raise ExperimentError(
                     f"unknown algorithm {name!r}; valid algorithms: {', '.join(ALGORITHMS)}"
                 )
+        scale = self.power_scale
+        if scale is not None and not (
+            isinstance(scale, int | float) and math.isfinite(scale) and 1e-4 <= scale <= 10
+        ):
+            raise ExperimentError(f"--power-scale must be in [0.0001, 10] m, got {scale!r}")
         if len(set(self.algorithms)) != len(self.algorithms):
             raise ExperimentError(f"algorithm list {list(self.algorithms)} repeats a name")
         for name, low in (("sessions", 1), ("rollouts", 1), ("seed", 0)):
@@ -244,11 +255,15 @@ class ExperimentConfig:
         Raises:
             StateError: the transferred state cannot seed it.
         """
+        options = {}
+        if self.power_scale is not None and ALGORITHMS[name].cls is Power:
+            options["return_scale"] = float(self.power_scale)
         learner = make_learner(
             name,
             np.array(self.scenario.start),
             rng=np.random.default_rng(self.seeds(session)[1]),
             bounds=self.bounds,
+            **options,
         )
         if self.transfer is None:
             return learner
@@ -273,6 +288,7 @@ class ExperimentConfig:
             "algorithms": list(self.algorithms),
             "bounds": self.bounds.to_dict(),
             "from": None if self.transfer is None else self.transfer.source,
+            "power_scale_m": self.power_scale,
         }
 
 
@@ -368,17 +384,14 @@ def run_experiment(config: ExperimentConfig, *, progress: bool = True) -> dict[s
     return runs
 
 
-def _stats(values: np.ndarray) -> dict[str, float]:
-    q1, median, q3 = np.percentile(values, [25, 50, 75])
-    return {"median": float(median), "mean": float(values.mean()), "q1": float(q1), "q3": float(q3)}
-
-
 def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[str, Any]:
     """The content of summary.json.
 
     Per algorithm: rollouts_to_hit (median, mean, quartiles over sessions) counts the first
     rollout whose true impact is inside the innermost ring (‖r‖ < 5 cm; a session that never hits
-    counts as budget + 1); hit_rate and hits, the sessions that hit within the budget;
+    counts as budget + 1), and says which of those statistics that count makes a bound only
+    (median_censored …, `services.learner.tools.censored.count_stats`); hit_rate and hits, the
+    sessions that hit within the budget;
     final_distance, the true ‖r‖ (m) of the last rollout (mean and std over sessions). With a
     wind change at rollout AT, rollouts_to_rehit counts from AT (as 1) to the first hit at or
     after it (budget − AT + 2 if none) and rehits the sessions that hit again; both are null
@@ -392,11 +405,13 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
         rehit = None if change is None else run.rollouts_to_rehit(change.at)
         algorithms[name] = {
             "label": ALGORITHMS[name].label,
-            "rollouts_to_hit": _stats(to_hit.astype(float)),
+            "rollouts_to_hit": count_stats(to_hit, config.rollouts),
             "hit_rate": float(np.mean(to_hit <= config.rollouts)),
             "hits": int(np.sum(to_hit <= config.rollouts)),
             "final_distance": {"mean": float(final.mean()), "std": float(final.std())},
-            "rollouts_to_rehit": None if rehit is None else _stats(rehit.astype(float)),
+            "rollouts_to_rehit": None
+            if rehit is None
+            else count_stats(rehit, config.rollouts - change.at + 1),
             "rehits": None
             if rehit is None
             else int(np.sum(rehit <= config.rollouts - change.at + 1)),
@@ -411,10 +426,16 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
 
 
 def write_outputs(
-    out: Path, config: ExperimentConfig, runs: dict[str, AlgorithmRun], *, figures: bool = True
+    out: Path,
+    config: ExperimentConfig,
+    runs: dict[str, AlgorithmRun],
+    *,
+    figures: bool = True,
+    band: str = "median",
 ) -> dict[str, Any]:
     """Write summary.json, curves.csv, learners.json (the final learner states, what `--from`
-    reads) and (if `figures`) fig5.png and fig6.png into `out`."""
+    reads) and (if `figures`) fig5.png and fig6.png into `out`; `band` is Fig. 6's ("median":
+    median and interquartile band, "mean": mean ± std; `plots.BANDS`)."""
     out.mkdir(parents=True, exist_ok=True)
     summary = summarise(config, runs)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
@@ -446,16 +467,22 @@ def write_outputs(
             out / "fig6.png",
             title=_title(config),
             change_at=None if config.wind_change is None else config.wind_change.at,
+            band=band,
         )
         plot_trajectories(
-            BallisticWorld(config.scenario), runs, labels, out / "fig5.png", session=0
+            BallisticWorld(config.scenario),
+            runs,
+            labels,
+            out / "fig5.png",
+            session=0,
+            title=_title(config),
         )
     return summary
 
 
 def _title(config: ExperimentConfig) -> str:
     s = config.scenario
-    parts = [f"target {s.distance:g} m"]
+    parts = [f"{config.world} world, target {s.distance:g} m"]
     if s.drag:
         parts.append(f"drag {s.drag:g}/m, wind {', '.join(f'{w:g}' for w in s.wind)} m/s")
     if s.noise:
@@ -465,6 +492,8 @@ def _title(config: ExperimentConfig) -> str:
         parts.append(f"wind {wind} m/s from rollout {config.wind_change.at}")
     if config.transfer is not None:
         parts.append(f"from {config.transfer.source}")
+    if config.power_scale is not None:
+        parts.append(f"PoWER's R = exp(−‖r‖/{100 * config.power_scale:g} cm)")
     return f"{config.sessions} sessions × {config.rollouts} rollouts; " + ", ".join(parts)
 
 
@@ -531,6 +560,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="DIR",
         help="start each session from the learner of an earlier run's --out DIR",
     )
+    add(
+        "--power-scale",
+        default=None,
+        metavar="S",
+        help="s in PoWER's weights exp(−‖r‖/s), m (default 0.05, the 5 cm ring; 1 = metres)",
+    )
+    add(
+        "--fig6",
+        choices=BANDS,
+        default="median",
+        help="fig6.png: median with the interquartile band (default), or mean ± std",
+    )
     add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
@@ -584,6 +625,9 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         world=args.world,
         wind_change=None if args.wind_change is None else WindChange.parse(args.wind_change),
         transfer=None if args.from_ is None else Transfer.load(Path(args.from_)),
+        power_scale=None
+        if args.power_scale is None
+        else _floats(args.power_scale, 1, "--power-scale")[0],
     )
 
 
@@ -598,7 +642,7 @@ def _print_table(summary: dict[str, Any], wall_time: float) -> None:
         title=f"{run['sessions']} sessions × {run['rollouts']} rollouts, seed {run['seed']}"
     )
     change = summary["scenario"]["wind_change"]
-    columns = ["algorithm", "to hit: median [q1, q3]", "mean", "hits", "final ‖r‖ (m)"]
+    columns = ["algorithm", "to hit: median [q1, q3]", "mean", "hit rate", "final ‖r‖ (m)"]
     if change is not None:
         columns += [f"re-hit after rollout {change['at']}: median [q1, q3]", "re-hits"]
     for column in columns:
@@ -607,19 +651,23 @@ def _print_table(summary: dict[str, Any], wall_time: float) -> None:
         h = a["rollouts_to_hit"]
         row = [
             name,
-            escape(f"{h['median']:g} [{h['q1']:g}, {h['q3']:g}]"),
-            f"{h['mean']:.1f}",
-            f"{a['hits']}/{run['sessions']}",
+            escape(format_counts(h)),
+            format_mean(h),
+            f"{a['hits']}/{run['sessions']} ({100 * a['hit_rate']:.0f} %)",
             f"{a['final_distance']['mean']:.3f} ± {a['final_distance']['std']:.3f}",
         ]
         if change is not None:
             e = a["rollouts_to_rehit"]
             row += [
-                escape(f"{e['median']:g} [{e['q1']:g}, {e['q3']:g}]"),
+                escape(format_counts(e)),
                 f"{a['rehits']}/{run['sessions']}",
             ]
         table.add_row(*row)
     Console().print(table)
+    Console().print(
+        f"A session that never hits counts as {run['rollouts'] + 1} rollouts: a median or "
+        f"quartile on one is shown as > {run['rollouts']}, a mean over them as ≥ (a lower bound)."
+    )
     Console().print(f"wall time {wall_time:.2f} s")
 
 
@@ -644,9 +692,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         else:
             runs = run_experiment(config, progress=not args.no_progress)
         figures = not args.no_figures
-        summary = write_outputs(out, config, runs, figures=figures and config.world != "mesh")
+        summary = write_outputs(
+            out, config, runs, figures=figures and config.world != "mesh", band=args.fig6
+        )
         if figures and config.world == "mesh":
-            experiment_mesh.write_mesh_figures(out, config, runs)
+            experiment_mesh.write_mesh_figures(out, config, runs, band=args.fig6)
         wall_time = time.perf_counter() - start
     except (LearnerError, BallisticError, ConfigError) as exc:
         print(f"archery experiment: error: {exc}", file=sys.stderr)

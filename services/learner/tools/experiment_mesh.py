@@ -39,6 +39,7 @@ from protocol.logs import DEFAULT_SPEC
 from protocol.netflags import NetConfig
 from protocol.node import shutdown_on_signals
 from protocol.robotspec import THETA0
+from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, JournalError, read_records
@@ -118,10 +119,17 @@ class SessionItem:
 
 def session_config(config: ExperimentConfig, item: SessionItem) -> SessionConfig:
     """The learner session of `item`: the ballistic world's learner seed for that session
-    number, the whole budget, the robot's start θ and θ box."""
+    number, the whole budget, the robot's start θ and θ box (and `--power-scale` for PoWER)."""
     seed = int(config.seeds(item.session)[1].generate_state(1)[0])
+    options = {}
+    if config.power_scale is not None and ALGORITHMS[item.algorithm].cls is Power:
+        options["return_scale"] = float(config.power_scale)
     return SessionConfig(
-        algorithm=item.algorithm, rollouts=config.rollouts, seed=seed, until_hit=False
+        algorithm=item.algorithm,
+        rollouts=config.rollouts,
+        seed=seed,
+        until_hit=False,
+        options=options,
     )
 
 
@@ -569,13 +577,17 @@ def _seconds(text: str, flag: str) -> float:
     return value
 
 
-def write_mesh_figures(out: Path, config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> None:
-    """fig6.png (distance per rollout over sessions) and fig5.png (session 0's impacts on the
-    target face per algorithm) of a run on the robot."""
+def write_mesh_figures(
+    out: Path, config: ExperimentConfig, runs: dict[str, AlgorithmRun], band: str = "median"
+) -> None:
+    """fig6.png (distance per rollout over sessions, `band` as `plots.plot_convergence`) and
+    fig5.png (session 0's impacts on the target face per algorithm) of a run on the robot."""
     from services.learner.tools.plots import plot_convergence
     from services.learner.tools.plots_mesh import plot_impacts
 
     labels = {name: ALGORITHMS[name].label for name in runs}
     title = f"{config.sessions} sessions × {config.rollouts} rollouts; MuJoCo iCub over the mesh"
-    plot_convergence(runs, labels, out / "fig6.png", title=title)
+    if config.power_scale is not None:
+        title += f", PoWER's R = exp(−‖r‖/{100 * config.power_scale:g} cm)"
+    plot_convergence(runs, labels, out / "fig6.png", title=title, band=band)
     plot_impacts(runs, labels, out / "fig5.png", session=0, title=title)

@@ -9,13 +9,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from services.learner.tools.censored import count_stats, format_count
 from sim.ballistic import BallisticWorld
 from sim.geometry import BOW_HAND, INNER_RING_RADIUS, TARGET_DIAMETER
 
 if TYPE_CHECKING:
     from services.learner.tools.experiment import AlgorithmRun
 
-__all__ = ["plot_convergence", "plot_trajectories"]
+__all__ = ["BANDS", "plot_convergence", "plot_trajectories"]
+
+# What Fig. 6 draws over sessions: "median" (the line) with the interquartile band, or "mean"
+# with ± one standard deviation (the band's lower edge clipped at 0 cm: a distance is ≥ 0).
+BANDS = ("median", "mean")
 
 _COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
 
@@ -36,27 +41,45 @@ def plot_convergence(
     *,
     title: str = "",
     change_at: int | None = None,
+    band: str = "median",
 ) -> None:
-    """Mean ± std over sessions of the arrow's distance to the centre (cm) vs rollout (Fig. 6).
+    """The arrow's distance to the centre (cm) vs rollout over sessions (Fig. 6): the median
+    with the interquartile band (`band` "median", the default), or the mean ± std ("mean").
 
-    With `change_at` (1-based rollout where the world changed) the change is marked and each
-    label gives the median rollouts to hit again from it.
+    Each label gives the median rollouts to hit and the sessions that hit; a median that is a
+    session which never hit reads "> budget". With `change_at` (1-based rollout where the world
+    changed) the change is marked and each label also gives the median rollouts to hit again.
+
+    Raises:
+        ValueError: `band` is not one of BANDS.
     """
+    if band not in BANDS:
+        raise ValueError(f"band must be one of {', '.join(BANDS)}, got {band!r}")
     plt = _pyplot()
-    fig, ax = plt.subplots(figsize=(9, 5.5), dpi=120)
+    fig, ax = plt.subplots(figsize=(9.5, 5.2 + 0.25 * (len(runs) + 2)), dpi=120)
     top = 0.0
     for i, (name, run) in enumerate(runs.items()):
         distance = 100.0 * run.distances  # cm
-        mean, std = distance.mean(axis=0), distance.std(axis=0)
-        top = max(top, float(mean.max()))
-        rollout = np.arange(1, mean.size + 1)
+        budget = distance.shape[1]
+        if band == "median":
+            low, centre, high = np.percentile(distance, [25, 50, 75], axis=0)
+        else:
+            centre, std = distance.mean(axis=0), distance.std(axis=0)
+            low, high = np.maximum(centre - std, 0.0), centre + std
+        top = max(top, float(centre.max()))
+        rollout = np.arange(1, budget + 1)
         colour = _COLOURS[i % len(_COLOURS)]
-        to_hit = np.median(run.rollouts_to_hit())
-        label = f"{labels[name]}: median {to_hit:g} rollouts to hit"
+        to_hit = count_stats(run.rollouts_to_hit(), budget)
+        hits = len(distance) - to_hit["censored_sessions"]
+        label = (
+            f"{labels[name]}: median {format_count(to_hit, 'median')} rollouts to hit, "
+            f"{hits}/{len(distance)} hit"
+        )
         if change_at is not None:
-            label += f", {np.median(run.rollouts_to_rehit(change_at)):g} to re-hit"
-        ax.plot(rollout, mean, color=colour, lw=2, label=label)
-        ax.fill_between(rollout, np.maximum(mean - std, 0.0), mean + std, color=colour, alpha=0.15)
+            rehit = count_stats(run.rollouts_to_rehit(change_at), budget - change_at + 1)
+            label += f", {format_count(rehit, 'median')} to re-hit"
+        ax.plot(rollout, centre, color=colour, lw=2, label=label)
+        ax.fill_between(rollout, low, high, color=colour, alpha=0.15)
     ax.axhline(100 * INNER_RING_RADIUS, color="red", ls="--", lw=1, label="innermost ring (5 cm)")
     if change_at is not None:
         ax.axvline(
@@ -65,11 +88,13 @@ def plot_convergence(
     ax.set_xlabel("rollout")
     ax.set_ylabel("distance of the arrow to the target centre (cm)")
     ax.set_xlim(1, max(run.distances.shape[1] for run in runs.values()))
-    # The bands of a session that ran away can be metres wide: keep the means readable.
+    # The bands of sessions that ran away can be metres wide: keep the central lines readable.
     ax.set_ylim(0, 1.25 * top)
     ax.grid(alpha=0.3)
-    ax.legend(loc="upper right")
-    ax.set_title("Speed of convergence: mean ± std over sessions" + (f"\n{title}" if title else ""))
+    # Below the axes: a curve that stays high (uniform random search) never hides under it.
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.12), fontsize=9)
+    what = "median and interquartile range" if band == "median" else "mean ± std (clipped at 0)"
+    ax.set_title(f"Speed of convergence: {what} over sessions" + (f"\n{title}" if title else ""))
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -82,11 +107,12 @@ def plot_trajectories(
     path: Path,
     *,
     session: int = 0,
+    title: str = "",
 ) -> None:
     """One session per algorithm (Fig. 5): its arrows up to the first hit, the last one in red.
 
     Top row: the flights seen from the side (height vs distance). Bottom row: where the arrows
-    met the target face, numbered by rollout.
+    met the target face, numbered by rollout. `title` (the scenario) goes under the heading.
     """
     plt = _pyplot()
     names = list(runs)
@@ -144,6 +170,7 @@ def plot_trajectories(
         face.set_xlabel("right of centre (cm)")
         face.set_ylabel("above centre (cm)")
         face.set_title("impacts on the target, by rollout")
-    fig.suptitle("Arrow trajectories of one learning session per algorithm (final one in red)")
+    heading = "Arrow trajectories of one learning session per algorithm (final one in red)"
+    fig.suptitle(heading + (f"\n{title}" if title else ""))
     fig.savefig(path)
     plt.close(fig)

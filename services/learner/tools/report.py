@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -9,10 +10,42 @@ import numpy as np
 from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
 
-__all__ = ["caption_png", "plot_report", "write_report"]
+__all__ = ["Interruptions", "caption_png", "interruptions", "plot_report", "write_report"]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, HIT_RADIUS)  # m
+LABELLED_FIRST = 8  # the face numbers the first rollouts, then every 10th, hits and the last
+MANY = 20  # above this many rollouts the markers and labels get smaller
+
+
+@dataclass(frozen=True)
+class Interruptions:
+    """Where a session was interrupted, on the done-rollout axis of the report.
+
+    A position p means "after done rollout p" (0: before the first); the report draws it at
+    p + 0.5, between two rollouts.
+
+    Attributes:
+        aborted: (position, code) of each aborted attempt, in order.
+        resumed: position of each resume (the session was continued from its journal).
+    """
+
+    aborted: tuple[tuple[int, str], ...]
+    resumed: tuple[int, ...]
+
+
+def interruptions(state: JournalState) -> Interruptions:
+    """The aborted attempts and resumes of a journal, placed between its done rollouts."""
+    done, aborted, resumed = 0, [], []
+    for record in state.records:
+        kind = record.get("record")
+        if kind == "done":
+            done += 1
+        elif kind == "aborted":
+            aborted.append((done, str(record.get("code", "?"))))
+        elif kind == "resumed":
+            resumed.append(done)
+    return Interruptions(tuple(aborted), tuple(resumed))
 
 
 def caption_png(png: bytes, lines: list[str]) -> bytes:
@@ -47,9 +80,11 @@ def caption_png(png: bytes, lines: list[str]) -> bytes:
 
 
 def plot_report(state: JournalState, path: Path) -> None:
-    """`report.png`: left, where each rollout's arrow met the target face (measured r, numbered,
-    hits in gold; the robot's true impact as a hollow marker); right, the distance to the centre
-    per rollout, measured and true, with the 5 cm ring."""
+    """`report.png`: left, where each rollout's arrow met the target face (measured r, coloured
+    by rollout, hits as stars; the robot's true impact as a hollow marker; numbered: the first
+    8, every 10th, the hits and the last); right, the distance to the centre per rollout,
+    measured and true, with the 5 cm ring, each aborted attempt (a red ×, between the rollouts
+    it fell between, with its code) and each resume of the session (a dotted line)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -67,29 +102,32 @@ def plot_report(state: JournalState, path: Path) -> None:
     r = np.array([d["r_m"] for d in done]).reshape(-1, 2) * 100
     truth = [d.get("truth_r_m") for d in done]
     hits = np.array([bool(d.get("hit")) for d in done], dtype=bool)
+    many = len(done) > MANY
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
-        face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=0.9, zorder=1)
+        face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=0.6 if many else 0.9, zorder=1)
     for k, d in enumerate(done):
         x, y = r[k]
         face.scatter(
             x,
             y,
-            s=130 if hits[k] else 55,
+            s=(90 if many else 130) if hits[k] else (28 if many else 55),
             color=colours[k],
             zorder=3,
             marker="*" if hits[k] else "o",
             edgecolors="k",
             linewidths=0.6,
         )
-        face.annotate(
-            str(d["rollout"]),
-            (x, y),
-            textcoords="offset points",
-            xytext=(6, 5),
-            fontsize=10,
-            weight="bold" if hits[k] else "normal",
-        )
+        number = int(d["rollout"])
+        if number <= LABELLED_FIRST or number % 10 == 0 or hits[k] or k == len(done) - 1:
+            face.annotate(
+                str(number),
+                (x, y),
+                textcoords="offset points",
+                xytext=(5, 4),
+                fontsize=8 if many else 10,
+                weight="bold" if hits[k] else "normal",
+            )
         if truth[k] is not None:
             face.scatter(
                 100 * truth[k][0],
@@ -111,29 +149,39 @@ def plot_report(state: JournalState, path: Path) -> None:
         "filled: measured by the detector, hollow: true (robot)"
     )
     face.grid(alpha=0.25)
+    if many:  # the colour tells the order where numbers would overlap
+        from matplotlib.colors import ListedColormap
+
+        order = plt.cm.ScalarMappable(
+            norm=plt.Normalize(0.5, len(done) + 0.5), cmap=ListedColormap(colours)
+        )
+        fig.colorbar(order, ax=face, fraction=0.04, pad=0.02, label="rollout")
 
     n = np.arange(1, len(done) + 1)
     measured = 100 * np.array([d["distance_m"] for d in done])
     true = np.array(
         [np.nan if d.get("truth_distance_m") is None else 100 * d["truth_distance_m"] for d in done]
     )
-    curve.plot(n, measured, "o-", color="tab:blue", lw=2, label="measured by the detector")
+    # (values, style, colour, line width, marker size, label): smaller when there are many
+    lines = [(measured, "o-", "tab:blue", 2.0, 6.0, "measured by the detector")]
     if np.isfinite(true).any():
+        lines.append((true, "s--", "tab:gray", 1.2, 5.0, "true (robot's ground truth)"))
+    for values, style, colour, width, size, label in lines:
         curve.plot(
             n,
-            true,
-            "s--",
-            color="tab:gray",
-            lw=1.2,
-            ms=5,
-            mfc="none",
-            label="true (robot's ground truth)",
+            values,
+            style,
+            color=colour,
+            lw=0.75 * width if many else width,
+            ms=0.6 * size if many else size,
+            mfc=None if style == "o-" else "none",
+            label=label,
         )
     if hits.any():
         curve.scatter(
             n[hits],
             measured[hits],
-            s=220,
+            s=150 if many else 220,
             marker="*",
             color="gold",
             edgecolors="k",
@@ -141,19 +189,49 @@ def plot_report(state: JournalState, path: Path) -> None:
             label="hit",
         )
     curve.axhline(100 * radius, color="red", ls="--", lw=1.2, label=f"{100 * radius:g} cm ring")
+    top = max(30.0, float(np.nanmax(measured)) * 1.1 if len(done) else 30.0)
+    marks = interruptions(state)
+    for i, position in enumerate(marks.resumed):
+        curve.axvline(
+            position + 0.5,
+            color="tab:purple",
+            ls=":",
+            lw=1.6,
+            label="session resumed" if i == 0 else None,
+        )
+    stacked: dict[int, int] = {}
+    for i, (position, code) in enumerate(marks.aborted):
+        level = stacked.get(position, 0)  # several aborts between the same two rollouts stack
+        stacked[position] = level + 1
+        y = top * (0.03 + 0.05 * level)
+        curve.scatter(
+            position + 0.5,
+            y,
+            marker="x",
+            s=60,
+            color="red",
+            linewidths=2,
+            zorder=5,
+            label="aborted attempt (code)" if i == 0 else None,
+        )
+        curve.annotate(
+            code, (position + 0.5, y), textcoords="offset points", xytext=(5, -3), fontsize=7
+        )
     curve.set_xlabel("rollout")
     curve.set_ylabel("distance of the arrow to the target centre (cm)")
-    curve.set_xlim(0.5, max(len(done), 1) + 0.5)
-    curve.set_ylim(0, max(30.0, float(np.nanmax(measured)) * 1.1 if len(done) else 30.0))
+    curve.set_xlim(0.5 if not marks.aborted else 0, max(len(done), 1) + 0.5)
+    curve.set_ylim(0, top)
     curve.xaxis.get_major_locator().set_params(integer=True)
     curve.grid(alpha=0.3)
-    curve.legend(loc="upper right")
+    curve.legend(loc="upper right", fontsize=9)
     summary = state.summary()
     hit_at = summary["hit_at"]
     outcome = f"hit at rollout {hit_at}" if hit_at else f"no hit in {len(done)} rollouts"
     n_aborted = summary["aborted"]
     aborted = f", {n_aborted} aborted attempt{'s' * (n_aborted != 1)}" if n_aborted else ""
-    curve.set_title(f"distance per rollout: {outcome}{aborted}")
+    n_resumed = len(marks.resumed)
+    resumed = f", resumed {n_resumed} time{'s' * (n_resumed != 1)}" if n_resumed else ""
+    curve.set_title(f"distance per rollout: {outcome}{aborted}{resumed}")
     fig.suptitle(
         f"session {state.session}: {header['algorithm']}, seed {header['seed']}", fontsize=13
     )
