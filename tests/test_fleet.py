@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-from protocol.messages import WorldEvent
+from protocol.messages import Rollout, WorldEvent
 from protocol.netflags import NetConfig
 from protocol.node import Node
 from protocol.router import free_tcp_endpoint, wait_for_endpoint
@@ -25,6 +25,7 @@ from services.launch_config import SERVICES, MeshConfig, RobotSpec, RouterSpec, 
 from services.launcher import Launcher
 from services.learner.journal import check_invariants, read_records
 from services.learner.tools.experiment import main as experiment_main
+from services.learner.tools.learn import follow
 from tests.conftest import archery
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -105,30 +106,22 @@ def _complete(out: Path, sessions: int = 2, rollouts: int = 5) -> dict[str, list
 
 
 def test_one_learner_runs_a_session_on_each_robot_at_once(fleet: dict[str, Launcher]) -> None:
-    learn = [sys.executable, "-m", "services.cli", "learn", "--connect", fleet["a"].endpoint]
-    learn += ["--rollouts", "3", "--no-until-hit", "--seed", "1"]
-    procs = [
-        subprocess.Popen(
-            [*learn, "--robot", robot],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for robot in ROBOTS
-    ]
-    finals = []
-    for proc in procs:
-        out, err = proc.communicate(timeout=240)
-        assert proc.returncode == 0, err
-        finals.append(json.loads(out.strip().splitlines()[-1]))
-    assert [f["rollouts"] for f in finals] == [3, 3]
-    starts, ends = [], []
-    for final in finals:
-        records = read_records(Path(final["journal"]))[0]
-        stamps = [r["t"] for r in records if r["record"] == "done"]
-        starts.append(stamps[0])
-        ends.append(stamps[-1])
-    assert max(starts) < min(ends), "the two sessions did not overlap"
+    with Node(None, _net(fleet, ROBOTS[0])) as one, Node(None, _net(fleet, ROBOTS[1])) as two:
+        feeds = [n.subscribe(n.keys.learner_rollouts(), Rollout, mode="fifo") for n in (one, two)]
+        request = {"algo": "archer", "until_hit": False, "seed": 1}
+        first = one.call(one.keys.learner_rpc(), "start", request | {"rollouts": 40}, timeout=60)
+        while feeds[0].get(timeout=120).status != "done":
+            pass
+        second = two.call(two.keys.learner_rpc(), "start", request | {"rollouts": 3}, timeout=60)
+        final = follow(two, second["session"], feeds[1], lambda m: None, poll=0.2)
+        assert (final["state"], final["rollouts"]) == ("finished", 3)
+        status = one.call(one.keys.learner_rpc(), "status", timeout=20)
+        assert (status["session"], status["state"]) == (first["session"], "running")
+        one.call(one.keys.learner_rpc(), "stop", timeout=20)
+        stopped = follow(one, first["session"], feeds[0], lambda m: None, poll=0.2)
+        assert stopped["state"] == "stopped" and 0 < stopped["rollouts"] < 40
+        learners = {Path(f["journal"]).parent.parent for f in (final, stopped)}
+        assert len(learners) == 1  # one learner's runs folder holds both robots' sessions
 
 
 def test_experiment_on_two_robots_across_two_routers(
@@ -217,6 +210,7 @@ def test_bad_robot_and_no_robot_are_one_line(fleet: dict[str, Launcher], tmp_pat
         stderr=subprocess.DEVNULL,
     )
     try:
+        wait_for_endpoint(alone, 30)
         none = archery(*common, "--connect", alone, "--out", str(tmp_path / "b"))
     finally:
         router.terminate()
