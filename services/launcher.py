@@ -9,7 +9,8 @@ services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the l
 the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
 period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
 `services.launch_config`). Each child's output goes to `LOGS/<name>.log`; the children die with
-their parent.
+their parent. `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN` and one
+learner serving them all (`launch_config.default_mesh`).
 """
 
 from __future__ import annotations

@@ -555,8 +555,9 @@ def run_from_args(
     )
     prepare_out(out, config, resume=args.resume is not None)
     stop = shutdown_on_signals()
-    if args.log_level == DEFAULT_SPEC:  # a line per rollout of every robot would bury the bar
-        logging.getLogger("archery.learner").setLevel(logging.WARNING)
+    if args.log_level == DEFAULT_SPEC:
+        # A line per rollout or abort of every robot would bury the bar; the journals hold them.
+        logging.getLogger("archery.learner").setLevel(logging.ERROR)
 
     def started(prefixes: list[str]) -> None:
         print(f"archery experiment: robots {', '.join(prefixes)}", file=sys.stderr, flush=True)
