@@ -145,6 +145,9 @@ def test_experiment_on_two_robots_across_two_routers(
     reference = json.loads((ballistic / "summary.json").read_text())
     assert summary.keys() == reference.keys()
     assert summary["scenario"]["world"] == "mesh"
+    with Node(None, _net(fleet)) as node:
+        box = node.call(node.keys.cartesian_rpc("archery"), "status", timeout=20)
+    assert summary["run"]["bounds"] == {"low": box["theta_min"], "high": box["theta_max"]}
     for name in ALGOS.split(","):
         assert summary["algorithms"][name].keys() == reference["algorithms"][name].keys()
     rows = (out / "curves.csv").read_text().strip().splitlines()

@@ -34,11 +34,12 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import ArcheryError, BadRequest
+from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.logs import DEFAULT_SPEC
 from protocol.netflags import NetConfig
 from protocol.node import shutdown_on_signals
 from protocol.robotspec import THETA0
+from services.learner.algorithms.base import Bounds
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
@@ -56,6 +57,7 @@ __all__ = [
     "MeshSettings",
     "SessionItem",
     "check_mesh_flags",
+    "fleet_box",
     "mesh_experiment_config",
     "prepare_out",
     "run_from_args",
@@ -119,7 +121,8 @@ class SessionItem:
 
 def session_config(config: ExperimentConfig, item: SessionItem) -> SessionConfig:
     """The learner session of `item`: the ballistic world's learner seed for that session
-    number, the whole budget, the robot's start θ and θ box (and `--power-scale` for PoWER)."""
+    number, the whole budget, the robot's start θ, `config`'s θ box (the robots' own, see
+    `run_mesh_experiment`) and `--power-scale` for PoWER."""
     seed = int(config.seeds(item.session)[1].generate_state(1)[0])
     options = {}
     if config.power_scale is not None and ALGORITHMS[item.algorithm].cls is Power:
@@ -129,6 +132,7 @@ def session_config(config: ExperimentConfig, item: SessionItem) -> SessionConfig
         rollouts=config.rollouts,
         seed=seed,
         until_hit=False,
+        bounds=config.bounds,
         options=options,
     )
 
@@ -139,7 +143,9 @@ def journal_path(out: Path, item: SessionItem) -> Path:
 
 
 def _plan(config: ExperimentConfig) -> dict[str, Any]:
-    return {"version": PLAN_VERSION, "world": config.world, "run": config.to_dict()}
+    """The settings `--resume` must match; the θ box is the robots' (in each journal's header)."""
+    run = {k: v for k, v in config.to_dict().items() if k != "bounds"}
+    return {"version": PLAN_VERSION, "world": config.world, "run": run}
 
 
 def prepare_out(out: Path, config: ExperimentConfig, resume: bool) -> None:
@@ -424,9 +430,12 @@ def run_mesh_experiment(
     *,
     progress: bool = True,
     on_start: Callable[[list[str]], None] | None = None,
-) -> dict[str, AlgorithmRun]:
+) -> tuple[ExperimentConfig, dict[str, AlgorithmRun]]:
     """Run (or continue) every session of `config` not finished in `out` on the fleet, with a
     progress bar on stderr; then read every session back from its journal.
+
+    Returns:
+        `config` with the fleet's θ box as its bounds, and every algorithm's sessions.
 
     Args:
         stop: set it (e.g. on SIGINT) to stop after the running rollouts (resumable).
@@ -438,10 +447,11 @@ def run_mesh_experiment(
         Interrupted: `stop` was set before the end.
         ExperimentError: a session failed again and again on live robots.
     """
-    work = _Experiment(config, out, settings)
     with open_fleet(
         settings.net, settings.robots, settings.start_timeout, settings.rpc_timeout
     ) as fleet:
+        config = replace(config, bounds=fleet_box(fleet))
+        work = _Experiment(config, out, settings)
         prefixes = [r.prefix for r in fleet]
         if on_start is not None:
             on_start(prefixes)
@@ -492,7 +502,25 @@ def run_mesh_experiment(
         )
     if work.moved:
         log.info("%d sessions moved to another robot after a robot was lost", work.moved)
-    return runs_from_journals(config, out)
+    return config, runs_from_journals(config, out)
+
+
+def fleet_box(fleet: list[FleetRobot]) -> Bounds:
+    """The θ box (m) of the fleet's controllers: every learner searches in it.
+
+    Raises:
+        ConfigError: the robots' boxes differ (choose robots of one kind with --robots).
+        RigError: a controller did not tell its box.
+    """
+    boxes = {robot.prefix: robot.rig.theta_box() for robot in fleet}
+    first = fleet[0].prefix
+    for prefix, box in boxes.items():
+        if box != boxes[first]:
+            raise ConfigError(
+                f"robots {first} and {prefix} have different θ boxes ({boxes[first].to_dict()} "
+                f"and {box.to_dict()} m); use robots of one kind (--robots)"
+            )
+    return boxes[first]
 
 
 #: Flags of the ballistic world that the MuJoCo robot does not take from the experiment.
@@ -562,10 +590,9 @@ def run_from_args(
     def started(prefixes: list[str]) -> None:
         print(f"archery experiment: robots {', '.join(prefixes)}", file=sys.stderr, flush=True)
 
-    runs = run_mesh_experiment(
+    return run_mesh_experiment(
         config, out, settings, stop, progress=not args.no_progress, on_start=started
     )
-    return config, runs
 
 
 def _seconds(text: str, flag: str) -> float:
