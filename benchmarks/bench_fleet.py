@@ -28,6 +28,7 @@ import statistics
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -112,6 +113,17 @@ def _one_run(n: int, config: ExperimentConfig, out: Path) -> dict[str, Any]:
     }
 
 
+def _median_table(
+    results: dict[int, list[dict[str, Any]]], field: str, columns: Sequence[str], unit: str
+) -> None:
+    """A Markdown table: per N, the median over repeats of each run's `field[column]` (ms)."""
+    print("| N | " + " | ".join(columns) + " |")
+    print("|---|" + "---|" * len(columns))
+    for n, runs in results.items():
+        cells = [f"{1e3 * statistics.median(r[field][c] for r in runs):.0f}{unit}" for c in columns]
+        print(f"| {n} | " + " | ".join(cells) + " |")
+
+
 def _spread(values: list[float]) -> str:
     return f"{statistics.median(values):.2f} [{min(values):.2f}, {max(values):.2f}]"
 
@@ -166,23 +178,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {n} | {_spread(rates)} | {_spread(ratios)} | {_spread(total)} |")
     services = list(results[sizes[0]][0]["cpu_s_per_rollout"])
     print("\nCPU per rollout per service (median over repeats; the stack's summed over robots):\n")
-    print("| N | " + " | ".join(services) + " |")
-    print("|---|" + "---|" * len(services))
-    for n in sizes:
-        cells = [
-            f"{1e3 * statistics.median(r['cpu_s_per_rollout'][s] for r in results[n]):.0f} ms"
-            for s in services
-        ]
-        print(f"| {n} | " + " | ".join(cells) + " |")
+    _median_table(results, "cpu_s_per_rollout", services, " ms")
     print("\nWhere a rollout's time goes (median over repeats of each run's median, ms):\n")
-    print("| N | " + " | ".join(TIMINGS) + " |")
-    print("|---|" + "---|" * len(TIMINGS))
-    for n in sizes:
-        cells = [
-            f"{1e3 * statistics.median(r['timing_median_s'][k] for r in results[n]):.0f}"
-            for k in TIMINGS
-        ]
-        print(f"| {n} | " + " | ".join(cells) + " |")
+    _median_table(results, "timing_median_s", TIMINGS, "")
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(
         json.dumps({"started": started, "config": vars(args), "results": results}, indent=2)
