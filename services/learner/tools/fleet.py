@@ -23,7 +23,15 @@ from protocol.tokens import TokenSet
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.session import Measurement, Shot
 
-__all__ = ["ExperimentRig", "FleetRobot", "NoRobot", "StackWatch", "open_fleet", "robot_stacks"]
+__all__ = [
+    "ExperimentRig",
+    "FleetRobot",
+    "NoRobot",
+    "StackWatch",
+    "alive_now",
+    "open_fleet",
+    "robot_stacks",
+]
 
 _ALIVE_ALL = "*/alive/*"  # every service's liveliness token, every robot prefix
 
@@ -118,6 +126,12 @@ class StackWatch:
         self._sub.undeclare()
 
 
+def alive_now(session: zenoh.Session, timeout: float = 5.0) -> list[str]:
+    """The robot stacks alive now, from one liveliness query (all routers' answers together)."""
+    replies = session.liveliness().get(_ALIVE_ALL, timeout=timeout)
+    return robot_stacks({str(r.ok.key_expr) for r in replies if r.ok is not None})
+
+
 @contextmanager
 def open_fleet(
     net: NetConfig, robots: Sequence[str] | None, timeout: float = 5.0, rpc_timeout: float = 20.0
@@ -132,7 +146,9 @@ def open_fleet(
     with open_session(net.with_identity("operator")) as session:
         with StackWatch(session) as watch:
             wanted = set(robots or ())
-            found = watch.wait_for(lambda seen: bool(seen) and wanted <= set(seen), timeout)
+            seen = watch.wait_for(lambda alive: bool(alive) and wanted <= set(alive), timeout)
+            # The tokens stream in one by one: a query's answer is the whole set at once.
+            found = sorted(set(seen) | set(alive_now(session, timeout)))
         if robots is None:
             chosen = found
             if not chosen:
