@@ -248,3 +248,28 @@ def test_a_robot_killed_mid_experiment_costs_no_session(
     finally:
         fleet["b"].start("robot")
         fleet["b"].wait_alive(["robot"], 60)
+
+
+def test_up_with_two_robots_starts_two_stacks_and_one_learner(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    argv = [sys.executable, "-m", "services.cli", "up", "--robots", "2", "--listen", endpoint]
+    argv += ["--runs", str(tmp_path / "runs"), "--logs", str(tmp_path / "logs")]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        lines = [proc.stdout.readline(), proc.stdout.readline()]
+        assert "all alive" in lines[1], (lines, proc.poll())
+        assert "robot 'icubSim1', 'icubSim2'" in lines[1]
+        assert f"--connect {endpoint} --robot icubSim1`" in lines[1]
+        for robot in ROBOTS:
+            with Node(None, NetConfig(connect=(endpoint,), robot=robot)) as node:
+                node.wait_alive([*STACK, "learner"], timeout=30)
+        logs = sorted(p.name for p in (tmp_path / "logs").glob("*.log"))
+        assert logs == sorted(
+            ["router.log", "learner@icubSim1.log"] + [f"{s}@{r}.log" for s in STACK for r in ROBOTS]
+        )
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0
+    assert "all stopped cleanly" in out
