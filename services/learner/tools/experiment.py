@@ -589,6 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     mesh.add_argument(
         "--robot-wait",
         default="10",
+        metavar="S",
         help="s a robot may be lost before its session moves to another robot (default 10)",
     )
     add_network_args(parser)
