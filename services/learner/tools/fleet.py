@@ -19,7 +19,6 @@ import zenoh
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import NetConfig, open_session
 from protocol.node import Node
-from protocol.tokens import TokenSet
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.session import Measurement, Shot
 
@@ -43,26 +42,8 @@ class NoRobot(ArcheryError):
 
 
 class ExperimentRig(MeshRig):
-    """A `MeshRig` that knows who is alive from liveliness events and takes no picture of a
-    hit.
-
-    `missing()` reads the live tokens a liveliness subscriber keeps (no query per call: a
-    query's 1 s timeout on a loaded machine would report every service missing and stall the
-    session); the hit frame, PNG-encoded by the detector, would cost most rollouts of an
-    experiment tens of ms.
-    """
-
-    def __init__(self, node: Node, timeout: float = 20.0) -> None:
-        super().__init__(node, timeout)
-        self._alive = TokenSet(node.session, node.keys.alive_all())
-
-    def missing(self) -> list[str]:
-        """Services whose liveliness token is down now."""
-        return sorted(set(self.services) - self._alive.present())
-
-    def close(self) -> None:
-        """Stop following the liveliness tokens."""
-        self._alive.close()
+    """A `MeshRig` that takes no picture of a hit: the hit frame, PNG-encoded by the detector,
+    would cost most rollouts of an experiment tens of ms."""
 
     def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
         """No frame: None."""
