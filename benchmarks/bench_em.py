@@ -78,9 +78,8 @@ def main() -> int:
         s.name: rgb_to_uv(sample_pixels(s.rgb, s.marks["target"], "target")).astype(np.float64)
         for s in scenes
     }
-    print(
-        f"{time.strftime('%a %b %d %H:%M UTC %Y', time.gmtime())}; {os.cpu_count()} CPUs, {cpu_model()}; python {platform.python_version()}"
-    )
+    started = time.strftime("%a %b %d %H:%M UTC %Y", time.gmtime())
+    print(f"{started}; {os.cpu_count()} CPUs, {cpu_model()}; python {platform.python_version()}")
     print(
         f"{len(sets)} calibration sets: " + ", ".join(f"{n} ({len(u)} px)" for n, u in sets.items())
     )
