@@ -175,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     exact = _times_ms(
         lambda: detector.locate(*exact_memberships(model, frame)), max(3, args.repeats // 10)
     )
-    by_lut = detector.detect(frame)
+    by_lut = detector.locate(*detector.memberships(frame))
     by_sk = detector.locate(*_sklearn_memberships(model, mixtures, frame))
     agree = max(
         float(np.hypot(*np.subtract(a.px, b.px)))

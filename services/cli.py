@@ -59,7 +59,7 @@ VERBS: dict[str, tuple[str, str]] = {
     ),
     "experiment": (
         "services.learner.tools.experiment:main",
-        "run the paper's simulation experiment (learners on the ballistic world)",
+        "run the paper's simulation experiment (the ballistic world, or the robots of a fleet)",
     ),
     "dashboard": (
         "services.dashboard.server:main",

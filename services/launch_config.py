@@ -47,6 +47,7 @@ __all__ = [
     "RouterSpec",
     "ServiceSpec",
     "default_mesh",
+    "fleet_prefixes",
     "load_mesh",
     "parse_mesh",
 ]
@@ -170,6 +171,21 @@ def _check_service(name: str, where: str) -> None:
         raise ConfigError(f"{where}: no service {name!r}; services: {', '.join(SERVICES)}")
 
 
+def fleet_prefixes(robot: str, robots: int) -> tuple[str, ...]:
+    """The robot prefixes of a fleet of `robots` stacks: `robot` itself for one, else
+    `robot1` … `robotN`.
+
+    Raises:
+        ConfigError: `robots` is below 1, or a prefix is not a valid robot prefix.
+    """
+    if isinstance(robots, bool) or not isinstance(robots, int) or robots < 1:
+        raise ConfigError(f"--robots must be an integer >= 1, got {robots!r}")
+    prefixes = (robot,) if robots == 1 else tuple(f"{robot}{i}" for i in range(1, robots + 1))
+    for prefix in prefixes:
+        NetConfig(robot=prefix)  # a valid prefix, or ConfigError
+    return prefixes
+
+
 def default_mesh(
     endpoint: str = DEFAULT_ROUTER,
     robot: str = DEFAULT_ROBOT,
@@ -179,13 +195,35 @@ def default_mesh(
     runs: str = "runs",
     start_router: bool = True,
     restart: RestartPolicy = DEFAULT_POLICY,
+    robots: int = 1,
 ) -> MeshConfig:
     """The mesh of `archery up` without --config: a router and the five services of one robot;
-    the robot gets `--seed` and `--rtf`, the learner `--runs`."""
-    args = {"robot": ("--seed", str(seed), "--rtf", f"{rtf:g}"), "learner": ("--runs", runs)}
+    the robot gets `--seed` and `--rtf`, the learner `--runs`.
+
+    With `robots` N > 1, a fleet: N robot stacks (robot, controller, camera, detector) under
+    the prefixes `ROBOT1` … `ROBOTN` (robot i's shot noise seeded with `seed + i - 1`) and one
+    learner, under the first prefix, that also serves the others (`--fleet`), so it can run a
+    session on each robot at once.
+    """
+    prefixes = fleet_prefixes(robot, robots)
+    args = {"robot": ("--rtf", f"{rtf:g}"), "learner": ("--runs", runs)}
+    if robots == 1:
+        args["robot"] = ("--seed", str(seed), *args["robot"])
+        specs: tuple[RobotSpec, ...] = (RobotSpec(robot),)
+    else:
+        stack = tuple(s for s in SERVICES if s != "learner")
+        specs = tuple(
+            RobotSpec(
+                prefix,
+                (*stack, "learner") if i == 0 else stack,
+                {"robot": ("--seed", str(seed + i))}
+                | ({"learner": ("--fleet", ",".join(prefixes[1:]))} if i == 0 else {}),
+            )
+            for i, prefix in enumerate(prefixes)
+        )
     return MeshConfig(
         RouterSpec(endpoint, start_router, restart),
-        (RobotSpec(robot),),
+        specs,
         {name: ServiceSpec(args.get(name, ()), restart) for name in SERVICES},
     )
 

@@ -9,7 +9,8 @@ services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the l
 the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
 period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
 `services.launch_config`). Each child's output goes to `LOGS/<name>.log`; the children die with
-their parent.
+their parent. `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN` and one
+learner serving them all (`launch_config.default_mesh`).
 """
 
 from __future__ import annotations
@@ -371,6 +372,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the mesh to start, a TOML launch description (see mesh.toml); replaces "
         "--listen/--connect/--robot/--seed/--rtf/--runs/--no-router",
     )
+    parser.add_argument(
+        "--robots",
+        type=count,
+        metavar="N",
+        help="a fleet of N robot stacks (robot, controller, camera, detector) under the prefixes "
+        "ROBOT1 … ROBOTN and one learner that runs sessions on all of them (default 1: one "
+        "robot under ROBOT itself)",
+    )
     parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
     parser.add_argument("--runs", help="the learner's session directory (default runs)")
     parser.add_argument("--seed", type=count, help="the robot's shot-noise seed (default 0)")
@@ -451,6 +460,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             "--rtf": args.rtf,
             "--runs": args.runs,
             "--no-router": args.no_router or None,
+            "--robots": args.robots,
         }
         clash = [flag for flag, value in given.items() if value is not None]
         if clash:
@@ -468,6 +478,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             rtf=args.rtf or 0.0,
             runs=runs,
             start_router=not args.no_router,
+            robots=1 if args.robots is None else args.robots,
         )
     return mesh.with_policy(args.restart, args.restart_budget)
 
@@ -531,11 +542,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery up: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ConfigError) else 1
     robots = ", ".join(repr(r.prefix) for r in mesh.robots)
+    learn = f"archery learn {shlex.join(launcher.secure)}{' ' if launcher.secure else ''}"
+    learn += f"--connect {launcher.endpoint}"
+    if len(mesh.robots) > 1:
+        learn += f" --robot {mesh.robots[0].prefix}` (any robot) or `archery experiment "
+        learn += f"--world mesh --connect {launcher.endpoint}"
     print(
         f"archery up: all alive in {took:.1f} s (robot {robots}, logs in {launcher.logs}/). "
-        f"Run `archery learn {shlex.join(launcher.secure)}"
-        f"{' ' if launcher.secure else ''}--connect {launcher.endpoint}` in another shell; "
-        f"Ctrl-C stops everything.",
+        f"Run `{learn}` in another shell; Ctrl-C stops everything.",
         flush=True,
     )
     supervisor = Supervisor(

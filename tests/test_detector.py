@@ -121,7 +121,7 @@ def test_the_arrow_tip_is_found_next_to_its_projection(rig: Rig) -> None:
 def test_lut_matches_the_exact_gmm_within_a_pixel(rig: Rig) -> None:
     _shoot(rig, 1)
     frame = rig.renderer.render(rig.world.qpos())
-    by_table = rig.detector.detect(frame)
+    by_table = rig.detector.locate(*rig.detector.memberships(frame))
     exact = rig.detector.locate(*exact_memberships(rig.model, frame))
     assert by_table.status == exact.status == "ok"
     for a, b in ((by_table.target, exact.target), (by_table.arrow, exact.arrow)):

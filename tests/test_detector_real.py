@@ -45,27 +45,22 @@ def test_centre_within_two_percent_of_the_diameter_and_no_arrow(detector: Detect
     assert error <= 0.02 * truth["blue_ring_outer_diameter_px"], error  # ≈ 9 px
 
 
-def test_warmer_light_gives_a_looser_less_confident_centre_never_a_confident_wrong_one(
-    detector: Detector,
-) -> None:
-    """Photo 1: the model from photo 2 loses the yellow ring under warm light. The filled region
-    still centres on the face; the lower colour agreement shows in the confidence."""
+def test_warmer_light_still_gives_the_centre_from_the_rings(detector: Detector) -> None:
+    """Photo 1: the model from photo 2 loses much of the yellow under warm light; the outer
+    rings' ellipse still gives the centre, within 2 % of the blue ring's diameter."""
     truth = _truth(1)
     found = detector.detect(read_rgb(DATA / truth["image"]))
-    assert found.status in ("no_arrow", "no_target")
-    if found.target is not None:
-        error = float(np.hypot(*np.subtract(found.target.px, truth["centre_px"])))
-        assert error <= 0.03 * truth["blue_ring_outer_diameter_px"], error
-        same_light = [
-            detector.detect(read_rgb(DATA / f"target-{n}.jpg")).target.confidence  # type: ignore[union-attr]
-            for n in (2, 3)
-        ]
-        assert found.target.confidence < min(same_light) - 0.15
+    assert found.status == "no_arrow" and found.target is not None
+    assert found.target.confidence >= 0.5 and len(found.rings) >= 2
+    error = float(np.hypot(*np.subtract(found.target.px, truth["centre_px"])))
+    assert error <= 0.02 * truth["blue_ring_outer_diameter_px"], error
+    outer = found.rings[-1]
+    assert np.mean(outer.axes) == pytest.approx(truth["blue_ring_outer_diameter_px"], rel=0.05)
 
 
 def test_lut_matches_the_exact_gmm_on_a_photo(detector: Detector) -> None:
     rgb = read_rgb(DATA / "target-3.jpg")
-    by_table = detector.detect(rgb)
+    by_table = detector.locate(*detector.memberships(rgb))
     exact = detector.locate(*exact_memberships(detector.model, rgb))
     assert by_table.target is not None and exact.target is not None
     assert np.hypot(*np.subtract(by_table.target.px, exact.target.px)) <= 1.0
@@ -90,7 +85,8 @@ def test_calibrate_then_detect_with_an_overlay(tmp_path: Path) -> None:
     )
     assert done.returncode == 0, done.stderr
     result = json.loads(done.stdout)
-    assert set(result) == {"target", "arrow", "r_m"}
+    assert set(result) == {"image", "target", "arrow", "r_m", "rings"}
+    assert result["image"] == str(DATA / "target-4.jpg") and len(result["rings"]) == 3
     assert result["arrow"] is None and result["r_m"] is None
     truth = _truth(4)
     assert np.hypot(*np.subtract(result["target"]["px"], truth["centre_px"])) < 9.0

@@ -3,8 +3,9 @@
 From calibration pixels (RGB) of the target and of the arrow's tip, each object gets a Gaussian
 mixture over (U, V) — Y is dropped so the model is robust to changes of brightness — with full
 covariances and the number of components K chosen by the Bayesian Information Criterion (the
-paper's Section III-C). The fitted densities are tabulated once on the 256×256 (U, V) grid, so
-per-frame cost never depends on K: a frame costs one table look-up per pixel.
+paper's Section III-C), fitted by EM (`em.fit_mixture`). The fitted densities are tabulated
+once on the 256×256 (U, V) grid, so per-frame cost never depends on K: a frame costs one table
+look-up per pixel.
 """
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from sklearn.mixture import GaussianMixture
 
+from services.detector.em import Mixture, fit_mixture
 from services.detector.errors import CalibrationError, ModelFileError
 
 __all__ = [
@@ -153,35 +154,29 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
             f"blue rings; the tip's colour)"
         )
     distinct = len(np.unique(np.round(uv), axis=0))
-    best: GaussianMixture | None = None
+    best: Mixture | None = None
     bic: dict[int, float] = {}
     for k in range(1, min(max_components, max(1, distinct), len(uv) // MIN_PIXELS) + 1):
-        gmm = GaussianMixture(
-            n_components=k,
-            covariance_type="full",
-            reg_covar=_REG_COVAR,
-            random_state=seed,
-            n_init=2,
-        ).fit(uv)
-        bic[k] = float(gmm.bic(uv))
+        mixture = fit_mixture(uv, k, reg=_REG_COVAR, seed=seed, n_init=2)
+        bic[k] = mixture.bic(len(uv))
         if best is None or bic[k] < bic[best.n_components]:
-            best = gmm
+            best = mixture
     if best is None:  # unreachable: at least K = 1 is tried
         raise CalibrationError(f"{name}: no GMM could be fitted")
     # A Gaussian centred on grey models mis-clicked pixels (a shaft, a hole, the background):
     # UV cannot tell grey from the rest of the scene, so it is dropped (the median check above
     # guarantees that most pixels, hence some Gaussian, have colour).
-    chroma = np.hypot(best.means_[:, 0] - 128.0, best.means_[:, 1] - 128.0)
+    chroma = np.hypot(best.means[:, 0] - 128.0, best.means[:, 1] - 128.0)
     keep = chroma >= MIN_CHROMA
     if not keep.any():
         raise CalibrationError(f"{name}: every Gaussian of the fit is grey; mark coloured pixels")
     if not keep.all():
         log.info("%s: dropped %d grey Gaussian(s) of %d", name, int((~keep).sum()), len(keep))
-    weights = best.weights_[keep]
+    weights = best.weights[keep]
     return Gmm(
         weights=weights / weights.sum(),
-        means=best.means_[keep].copy(),
-        covariances=best.covariances_[keep].copy(),
+        means=best.means[keep].copy(),
+        covariances=best.covariances[keep].copy(),
         bic=bic,
     )
 
@@ -197,6 +192,31 @@ class ColourModel:
     target: Gmm
     arrow: Gmm | None = None
     density_floor: float = 2e-5
+    white_rgb: tuple[float, float, float] | None = None  # the calibration frame's white, 0..255
+
+    def widened(self, variance: float) -> ColourModel:
+        """This model with `variance` (UV levels²) added to every target covariance: a looser
+        target model, for finding the face when the colours have drifted (JPEG, light)."""
+        target = Gmm(
+            self.target.weights,
+            self.target.means,
+            self.target.covariances + variance * np.eye(2),
+            self.target.bic,
+        )
+        return ColourModel(target, self.arrow, self.density_floor, self.white_rgb)
+
+    def component_table(self) -> np.ndarray:
+        """Index of the target's most responsible Gaussian for every 8-bit (U, V): uint8
+        (256, 256) indexed [U, V] (the rings of a face are its components)."""
+        u, v = np.meshgrid(np.arange(256.0), np.arange(256.0), indexing="ij")
+        uv = np.stack([u, v], axis=-1)
+        single = [
+            Gmm(np.ones(1), mu[None], cov[None], {}).density(uv) * w
+            for w, mu, cov in zip(
+                self.target.weights, self.target.means, self.target.covariances, strict=True
+            )
+        ]
+        return np.argmax(np.stack(single), axis=0).astype(np.uint8)
 
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
         """Membership of the target and of the arrow for every 8-bit (U, V): uint8 (256, 256).
@@ -246,6 +266,7 @@ class ColourModel:
             "density_floor": self.density_floor,
             "target": self.target.to_dict(),
             "arrow": self.arrow.to_dict() if self.arrow else None,
+            "white_rgb": list(self.white_rgb) if self.white_rgb is not None else None,
         }
 
     @classmethod
@@ -280,6 +301,7 @@ class ColourModel:
             target=Gmm.from_dict(data["target"], "target"),
             arrow=Gmm.from_dict(arrow, "arrow") if arrow is not None else None,
             density_floor=floor,
+            white_rgb=_white_from(data.get("white_rgb")),
         )
 
     def save(self, path: str | Path) -> None:
@@ -303,8 +325,10 @@ class ColourModel:
         *,
         max_components: int = 5,
         seed: int = 0,
+        white_rgb: np.ndarray | None = None,
     ) -> ColourModel:
-        """Fit both GMMs from calibration pixels (N, 3) RGB uint8.
+        """Fit both GMMs from calibration pixels (N, 3) RGB uint8; `white_rgb` is the
+        calibration frame's white (`whitebalance.estimate_white`), None if unknown.
 
         Raises:
             CalibrationError: too few pixels, or target and arrow colours that overlap so much
@@ -324,4 +348,22 @@ class ColourModel:
                     f"the arrow (at most 20 % may): the tip needs a colour the target does not "
                     f"have, or the arrow pixels were marked on the target"
                 )
-        return cls(target=target, arrow=arrow)
+        white = None if white_rgb is None else _white_from(list(np.asarray(white_rgb, float)))
+        return cls(target=target, arrow=arrow, white_rgb=white)
+
+
+def _white_from(value: Any) -> tuple[float, float, float] | None:
+    """A model's white RGB from its JSON form (None: not recorded).
+
+    Raises:
+        ModelFileError: not three numbers in 1..255.
+    """
+    if value is None:
+        return None
+    try:
+        white = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        white = ()
+    if len(white) != 3 or not all(math.isfinite(v) and 1.0 <= v <= 255.0 for v in white):
+        raise ModelFileError(f"white_rgb must be three numbers in 1..255, got {value!r}")
+    return white  # type: ignore[return-value]

@@ -6,24 +6,17 @@ every pixel the weight 1 (the centre of the whole image, whatever it shows). We 
 the method means: a weighted centroid m = Σ w(x) x / Σ w(x), normalised over the image, with
 w(x) the pixel's membership of the object's colour model (`eq7_centroid` is that plain form).
 
-Real photographs break the plain version (4–74 px off on the four photos of benchmarks/RESULTS.md,
-more than 2 % of the diameter on three): arrow holes and ring lines
-punch gaps in the target, distractors share its colours (a yellow logo letter, a pin), and a
-tight colour cluster (yellow) has a higher likelihood than a broad one (blue), which drags the
-centroid towards one ring. So the target's weights are made robust in four steps, all
-O(pixels):
-1. each pixel goes to the more likely model, and only above a likelihood floor (the 256×256 UV
-   tables of `ColourModel.tables`), so background does not pull the centroid;
-2. only the largest connected region of target colour counts (distractors are separate blobs);
-3. holes inside that region (arrow holes, ring lines, the arrow itself) are filled;
-4. membership saturates: every pixel of the filled region weighs 1, whatever its density, so a
-   colour the calibration happens to favour cannot pull the centre towards its ring.
-Steps 2–3 run on the membership map averaged over s×s blocks (s ≈ shorter side / 240), which
-keeps a frame's cost a few milliseconds; the centroid is then that of the filled region at
-block resolution, with sub-block precision from the region's size.
-The region's mean membership measures how well the colours match the calibration and enters
-the confidence: under a colour shift (warmer light) the centre stays usable but is reported with
-less confidence, and below a threshold as not seen.
+Real photographs break the plain version: arrow holes and ring lines punch gaps in the target,
+distractors share its colours (a yellow logo letter, a pin), a tight colour cluster (yellow)
+outweighs a broad one (blue), light changes move the colours, and an oblique view shifts a
+centroid. So the centre comes from the face's geometry (`target.find_face`, `rings`): on a
+copy of the frame downscaled to `FACE_SIDE` px, the region of target colour is fitted with a
+robust ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
+concentric ellipses validate each other and give the centre extrapolated to radius 0. The
+frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`) and
+with its chroma scaled; rings found under different corrections are joined. The confidence
+says how much of the face and of its colours was seen; below `min_target_confidence` the target
+is reported as not seen.
 
 The arrow tip m_A is the plain weighted centroid (Eq. 7) of arrow membership at full
 resolution, over the strongest arrow-coloured blob.
@@ -32,13 +25,14 @@ Reward vector: the paper writes r = m_T − m_A in image terms. The mesh's conve
 arrow's offset from the centre, r[0] to the robot's right and r[1] up, in metres on the target
 plane; the camera looks at the face from the robot's side, so image columns grow to the right
 and rows grow downwards. Hence r = M (m_A − m_T) with the image-row sign flipped, where M maps
-pixels to metres: the filled target region (a disc of known diameter D on the face, imaged as
-an ellipse of second-moment matrix C in px²) gives M = (D/4) C^(-1/2), which also undoes the
+pixels to metres: the outer ring (a disc of known diameter D on the face, imaged as the ellipse
+A·(unit disc), A = R diag(a, b) Rᵀ in px) gives M = (D/2) A⁻¹, which also undoes the
 foreshortening of an oblique view.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -50,6 +44,9 @@ import numpy as np
 from protocol.errors import ConfigError
 from services.detector.colour_model import ColourModel, rgb_to_uv_exact
 from services.detector.errors import ImageError
+from services.detector.rings import Ellipse
+from services.detector.target import FaceFit, colour_groups, find_face, merge_faces
+from services.detector.whitebalance import apply_gains, estimate_white, white_gains
 
 __all__ = [
     "MAX_IMAGE_SIDE",
@@ -66,7 +63,12 @@ __all__ = [
 log = logging.getLogger("archery.detector")
 MIN_IMAGE_SIDE = 32  # px
 MAX_IMAGE_SIDE = 8192  # px
-ANALYSIS_SIDE = 240  # px: the block-averaged map's shorter side for the region analysis
+ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
+FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
+FACE_SPREAD = 12.0  # UV levels: added standard deviation of the target colours for the face
+CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
+SURE = 0.75  # a face this confident is not searched for again under the white balance
+WHITE_SIDE = 64  # px: the shorter side of the copy the white is estimated on
 
 
 @dataclass(frozen=True)
@@ -87,8 +89,8 @@ class DetectorSettings:
 
     target_diameter_m: float = 0.50
     coloured_fraction: float = 0.6
-    min_target_fraction: float = 5e-4
-    min_target_confidence: float = 0.6
+    min_target_fraction: float = 1e-4
+    min_target_confidence: float = 0.5
     min_arrow_pixels: float = 6.0
     max_arrow_fraction: float = 0.01
     close_fraction: float = 0.01
@@ -148,6 +150,9 @@ class Detection:
         metres_per_px: the 2×2 map M from an image offset (px: column, row) to a face offset
             (m: right, down), from the target region; None without a target.
         status: "ok", "no_target" or "no_arrow".
+        rings: the fitted ring ellipses (px, inner → outer; the last is the coloured rings'
+            outer boundary), empty without a target.
+        gains: the white balance (RGB channel gains) the face was found under, None: as is.
     """
 
     target: Seen | None
@@ -155,6 +160,8 @@ class Detection:
     r_m: tuple[float, float] | None
     metres_per_px: np.ndarray | None
     status: str
+    rings: tuple[Ellipse, ...] = ()
+    gains: tuple[float, float, float] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The offline `archery detect` output."""
@@ -216,27 +223,23 @@ def _block_mean(image: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(crop, (width // s, height // s), interpolation=cv2.INTER_AREA)
 
 
-def _ellipse_overlap(filled: np.ndarray, moments: dict[str, float]) -> float:
-    """Intersection over union of a binary region and the ellipse of its second moments (an
-    ellipse, the image of a disc, scores ≈ 1; half a disc ≈ 0.8; an arc less)."""
-    area = moments["m00"]
-    centre = (moments["m10"] / area, moments["m01"] / area)
-    cov = np.array([[moments["mu20"], moments["mu11"]], [moments["mu11"], moments["mu02"]]]) / area
-    eigenvalues, vectors = np.linalg.eigh(cov)
-    semi = 2.0 * np.sqrt(np.maximum(eigenvalues, 0.0))  # a filled ellipse: variance = semi²/4
-    pad = math.ceil(float(semi.max())) + 2
-    canvas = np.zeros((filled.shape[0] + 2 * pad, filled.shape[1] + 2 * pad), np.uint8)
-    angle = math.degrees(math.atan2(vectors[1, 0], vectors[0, 0]))
-    cv2.ellipse(
-        canvas,
-        ((centre[0] + pad, centre[1] + pad), (2 * semi[0], 2 * semi[1]), angle),
-        1,
-        thickness=cv2.FILLED,
-    )
-    region = np.zeros_like(canvas)
-    region[pad : pad + filled.shape[0], pad : pad + filled.shape[1]] = filled
-    union = int(np.count_nonzero(canvas | region))
-    return int(np.count_nonzero(canvas & region)) / union if union else 0.0
+def _chroma_scaled(table: np.ndarray, gain: float) -> np.ndarray:
+    """A flat [U + 256·V] table for frames whose chroma is `gain` times the calibration's:
+    entry (u, v) is the original's at 128 + (u − 128, v − 128) / gain (nearest level)."""
+    levels = np.clip(np.round(128 + (np.arange(256) - 128) / gain), 0, 255).astype(np.int64)
+    return np.ascontiguousarray(table[levels[None, :] + 256 * levels[:, None]].ravel())
+
+
+def downscale(image: np.ndarray, side: int = FACE_SIDE) -> tuple[np.ndarray, float]:
+    """The image (H, W[, C]) area-averaged so that its shorter side is about `side` px (never
+    enlarged), and the factor (full-resolution px per downscaled px)."""
+    height, width = image.shape[:2]
+    factor = min(height, width) / side
+    if factor <= 1.0:
+        return image, 1.0
+    size = (max(1, round(width / factor)), max(1, round(height / factor)))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    return small, width / size[0]
 
 
 class Detector:
@@ -250,98 +253,161 @@ class Detector:
         # byte, at flat index U + 256·V (see `memberships`)
         both = target_table.astype(np.uint16) | (arrow_table.astype(np.uint16) << 8)
         self._table = np.ascontiguousarray(both.T).ravel()
+        loose = model.widened(FACE_SPREAD**2)
+        face_table = np.ascontiguousarray(loose.tables()[0].T).ravel()
+        self._component_table = np.ascontiguousarray(loose.component_table().T).ravel()
+        self._groups = colour_groups(model.target.means, model.target.weights)
+        # the face tables for frames whose chroma is scaled (exposure, gamma): first as is
+        self._face_tables = [face_table] + [_chroma_scaled(face_table, a) for a in CHROMA_GAINS]
+        self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
         self.has_arrow_model = model.arrow is not None
+
+    @staticmethod
+    def _uv_index(rgb: np.ndarray) -> np.ndarray:
+        """U + 256·V per pixel (uint16, flat) of an RGB uint8 image."""
+        yuv = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV)
+        height, width = yuv.shape[:2]
+        # bytes 1 and 2 of each 3-byte YUV pixel, read as one little-endian uint16: U + 256·V
+        return np.ndarray((height * width,), dtype="<u2", buffer=yuv, offset=1, strides=(3,))
 
     def memberships(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         """Per-pixel membership (uint8, 0..255) of the target and of the arrow (None for a
         target-only model), by one table look-up per pixel."""
         rgb = check_image(rgb)
-        yuv = cv2.cvtColor(rgb, cv2.COLOR_RGB2YUV)
-        height, width = yuv.shape[:2]
-        # bytes 1 and 2 of each 3-byte YUV pixel, read as one little-endian uint16: U + 256·V
-        index = np.ndarray((height * width,), dtype="<u2", buffer=yuv, offset=1, strides=(3,))
-        both = self._table.take(index).view(np.uint8).reshape(height, width, 2)
+        height, width = rgb.shape[:2]
+        both = self._table.take(self._uv_index(rgb)).view(np.uint8).reshape(height, width, 2)
         target, arrow = cv2.split(both)
         return target, arrow if self.has_arrow_model else None
+
+    def gains(self, rgb: np.ndarray) -> np.ndarray | None:
+        """Channel gains mapping this frame's white onto the calibration frame's (None: the
+        model has no white, or the frame shows none)."""
+        return white_gains(self._white, estimate_white(downscale(check_image(rgb), WHITE_SIDE)[0]))
 
     def detect(self, rgb: np.ndarray) -> Detection:
         """Detect in an RGB uint8 image (H, W, 3).
 
+        The face is searched on a copy downscaled to `FACE_SIDE` px (shorter side), as the frame
+        is and under colour corrections; in a large image where none is seen, again at twice
+        the resolution (until the copy is within 2.5× of the image).
+
         Raises:
             ImageError: not an RGB uint8 image with sides of 32..8192 px.
         """
-        return self.locate(*self.memberships(rgb))
+        rgb = check_image(rgb)
+        side = FACE_SIDE
+        while True:
+            small, factor = downscale(rgb, side)
+            face, best_gains = self._search(small)
+            seen = face is not None and face.confidence >= self.settings.min_target_confidence
+            # a large image may hold a small face: look again at twice the resolution
+            if seen or factor < 2.5:
+                break
+            side *= 2
+        arrow_m = None
+        if self.has_arrow_model:
+            full = rgb if best_gains is None else apply_gains(rgb, best_gains)
+            arrow_m = self.memberships(full)[1]
+        found = self._result(face, factor, arrow_m)
+        if best_gains is None:
+            return found
+        return dataclasses.replace(found, gains=tuple(float(g) for g in best_gains))
+
+    def _search(self, small: np.ndarray) -> tuple[FaceFit | None, np.ndarray | None]:
+        """The face in a downscaled frame, as it is and under colour corrections, and the
+        white-balance gains it was found with (None: as it is)."""
+        fits: list[tuple[FaceFit, np.ndarray | None]] = []
+
+        def best() -> FaceFit | None:
+            return max((f for f, _ in fits), key=lambda f: f.confidence, default=None)
+
+        def unsure() -> bool:
+            found = best()
+            return found is None or found.confidence < SURE
+
+        def add(fit: FaceFit | None, gains: np.ndarray | None) -> None:
+            if fit is not None:
+                fits.append((fit, gains))
+
+        add(self._face(small, None), None)
+        gains = None
+        if self._white is not None and unsure():
+            gains = white_gains(self._white, estimate_white(downscale(small, WHITE_SIDE)[0]))
+            if gains is not None:
+                add(self._face(apply_gains(small, gains), gains), gains)
+        if unsure():  # other chroma scales, on the better-balanced copy (balanced if none)
+            found = best()
+            option = gains if found is None else next(g for f, g in fits if f is found)
+            image = small if option is None else apply_gains(small, option)
+            add(self._face(image, option, len(self._face_tables), first=1), option)
+        face = best()
+        best_gains = next((g for f, g in fits if f is face), None)
+        if face is not None and face.confidence < SURE:
+            for other, _ in fits:  # rings seen under one correction complete another's
+                merged = merge_faces(face, other) if other is not face else None
+                if merged is not None and merged.confidence > face.confidence:
+                    face = merged
+        return face, best_gains
+
+    def _face(
+        self, small: np.ndarray, gains: np.ndarray | None, tables: int = 1, first: int = 0
+    ) -> FaceFit | None:
+        """The most confident face in a downscaled RGB frame (already multiplied by `gains`,
+        if any), with the face tables `first` … `tables` − 1 (as is, then other chroma
+        scales)."""
+        index = self._uv_index(np.ascontiguousarray(small))
+        components = self._component_table.take(index).reshape(small.shape[:2])
+        best: FaceFit | None = None
+        for table in self._face_tables[first:tables]:
+            fit = find_face(
+                table.take(index).reshape(small.shape[:2]),
+                components,
+                self._groups,
+                close_fraction=self.settings.close_fraction,
+                min_fraction=self.settings.min_target_fraction,
+                needed_confidence=self.settings.min_target_confidence,
+            )
+            if fit is not None and (best is None or fit.confidence > best.confidence):
+                best = fit
+            if best is not None and best.confidence >= SURE:
+                break
+        return best
 
     def locate(self, target_m: np.ndarray, arrow_m: np.ndarray | None) -> Detection:
         """Detect from membership maps (0..255; uint8 from the tables or float from
-        `exact_memberships`); `arrow_m` None for a target-only model."""
-        target, centre, metres = self._find_target(target_m)
-        arrow = self._find_arrow(arrow_m) if arrow_m is not None else None
-        if target is None or centre is None or metres is None:
-            return Detection(None, arrow, None, None, "no_target")
-        if arrow is None:
-            return Detection(target, None, None, metres, "no_arrow")
-        face = metres @ (np.asarray(arrow.px) - centre)  # (right, down) on the face, m
-        return Detection(target, arrow, (float(face[0]), float(-face[1])), metres, "ok")
+        `exact_memberships`); `arrow_m` None for a target-only model. Only the outer boundary
+        of the face is fitted (no ring components)."""
+        small, factor = downscale(np.asarray(target_m, dtype=np.float32))
+        member = np.clip(np.round(small), 0, 255).astype(np.uint8)
+        fit = find_face(
+            member,
+            close_fraction=self.settings.close_fraction,
+            min_fraction=self.settings.min_target_fraction,
+        )
+        return self._result(fit, factor, arrow_m)
 
-    def _find_target(
-        self, membership: np.ndarray
-    ) -> tuple[Seen | None, np.ndarray | None, np.ndarray | None]:
+    def _result(self, fit: FaceFit | None, factor: float, arrow_m: np.ndarray | None) -> Detection:
+        """The detection from a face fit on a map `factor` times smaller than the frame."""
+        arrow = self._find_arrow(arrow_m) if arrow_m is not None else None
         s = self.settings
-        height, width = membership.shape
-        block = max(1, min(height, width) // ANALYSIS_SIDE)
-        small = _block_mean(membership, block)
-        mask = (small > 31).astype(np.uint8)  # an eighth of the block is surely target
-        size = max(3, round(min(small.shape) * s.close_fraction) | 1)
-        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-        closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
-        if count < 2:
-            return None, None, None
-        largest = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-        smallest = s.min_target_fraction * membership.size / (block * block)
-        if stats[largest, cv2.CC_STAT_AREA] < smallest:
-            return None, None, None
-        x0, y0, w, h = (int(v) for v in stats[largest, :4])
-        if x0 == 0 or y0 == 0 or x0 + w == small.shape[1] or y0 + h == small.shape[0]:
-            log.debug("the target region touches the image border: cut, its centre unknown")
-            return None, None, None
-        region = (labels[y0 : y0 + h, x0 : x0 + w] == largest).astype(np.uint8)
-        contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
-        outline = max(contours, key=cv2.contourArea)
-        filled = np.zeros_like(region)
-        cv2.drawContours(filled, [outline], -1, 1, thickness=cv2.FILLED)
-        # weights: every block of the filled region counts fully (membership saturated, holes
-        # filled); partial memberships would let the colour calibration bias the centre
-        moments = cv2.moments(filled, binaryImage=True)
-        area = float(moments["m00"])
-        if area <= 0:
-            return None, None, None
-        # block (i, j) covers full-resolution pixels i·s … i·s + s − 1: its centre is i·s + (s−1)/2
-        cx = (x0 + moments["m10"] / area) * block + 0.5 * (block - 1)
-        cy = (y0 + moments["m01"] / area) * block + 0.5 * (block - 1)
-        cov = np.array([[moments["mu20"], moments["mu11"]], [moments["mu11"], moments["mu02"]]])
-        cov = cov / area * block * block + np.eye(2) * (block * block - 1) / 12.0  # px²
-        eigenvalues, vectors = np.linalg.eigh(cov)
-        if eigenvalues[0] <= 0:
-            return None, None, None
-        # a disc of diameter D has second moments D²/16 per axis: M = (D/4) C^(-1/2)
-        inv_sqrt = vectors @ np.diag(eigenvalues**-0.5) @ vectors.T
-        metres = 0.25 * s.coloured_diameter_m * inv_sqrt
-        # confidence: how elliptic the region is (a cut or occluded disc, an arc or a blotch
-        # scores low) and how well its pixels match the calibrated colours (a colour shift, e.g.
-        # warmer light, lowers it)
-        solidity = area / max(cv2.contourArea(cv2.convexHull(outline)), 1.0)
-        # IoU with the moment ellipse: ≈ 0.97 for a whole disc at block resolution, 0.81 for
-        # half a disc; mapped so that a disc missing a large part cannot be reported as seen
-        ellipticity = min(1.0, max(0.0, (_ellipse_overlap(filled, moments) - 0.75) / 0.2))
-        agreement = float(small[y0 : y0 + h, x0 : x0 + w][filled > 0].mean()) / 255.0
-        confidence = min(1.0, solidity) * ellipticity * min(1.0, agreement / 0.8)
-        if confidence < s.min_target_confidence:
-            log.debug("target region of confidence %.2f is below the threshold", confidence)
-            return None, None, None
-        seen = Seen(px=(cx, cy), confidence=confidence, pixels=round(area * block * block))
-        return seen, np.array([cx, cy]), metres
+        if fit is None or fit.confidence < s.min_target_confidence:
+            if fit is not None:
+                log.debug("face of confidence %.2f is below the threshold", fit.confidence)
+            return Detection(None, arrow, None, None, "no_target")
+        shift = 0.5 * factor - 0.5  # downscaled pixel i covers full pixels i·f … (i + 1)·f − 1
+        rings = tuple(e.scaled(factor, shift) for e in fit.ellipses)
+        centre = np.array(fit.centre) * factor + shift
+        outer = rings[-1]
+        # the coloured disc of diameter D imaged as the ellipse A·(unit disc): M = (D/2)·A⁻¹
+        metres = 0.5 * s.coloured_diameter_m * np.linalg.inv(outer.semi_axes_matrix())
+        area = round(math.pi * outer.axes[0] * outer.axes[1] / 4)
+        target = Seen(
+            px=(float(centre[0]), float(centre[1])), confidence=fit.confidence, pixels=area
+        )
+        if arrow is None:
+            return Detection(target, None, None, metres, "no_arrow", rings)
+        face = metres @ (np.asarray(arrow.px) - centre)  # (right, down) on the face, m
+        return Detection(target, arrow, (float(face[0]), float(-face[1])), metres, "ok", rings)
 
     def _find_arrow(self, membership: np.ndarray) -> Seen | None:
         s = self.settings

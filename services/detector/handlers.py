@@ -24,9 +24,10 @@ from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
 from services.detector.calibration import parse_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.config import DetectorConfig
-from services.detector.detect import Detection, Detector
+from services.detector.detect import WHITE_SIDE, Detection, Detector, downscale
 from services.detector.errors import DetectorError
 from services.detector.overlay import draw_overlay, encode_png
+from services.detector.whitebalance import estimate_white
 
 __all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
 
@@ -105,7 +106,8 @@ class DetectorHandlers:
         rgb = image.to_numpy()
         target = sample_pixels(rgb, marks["target"], "target")
         arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
-        model = ColourModel.fit(target, arrow)
+        white = estimate_white(downscale(rgb, WHITE_SIDE)[0])
+        model = ColourModel.fit(target, arrow, white_rgb=white)
         self._set_model(model, save=True)
         return dv.CalibrateReply(
             **model.summary(),

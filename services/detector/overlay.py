@@ -1,5 +1,6 @@
 """Pictures of a detection, as in the paper's Fig. 9: the camera image and the pixels the colour
-models keep, with a red cross at the estimated target centre and a blue circle at the arrow."""
+models keep, with a red cross at the estimated target centre, the fitted ring ellipses (green:
+the inner rings, magenta: the coloured rings' outer boundary) and a blue circle at the arrow."""
 
 from __future__ import annotations
 
@@ -13,6 +14,8 @@ __all__ = ["draw_overlay", "encode_png", "filtered_pixels"]
 RED = (230, 20, 20)
 BLUE = (20, 90, 255)
 WHITE = (255, 255, 255)
+GREEN = (40, 230, 90)
+MAGENTA = (235, 40, 235)
 
 
 def filtered_pixels(
@@ -29,6 +32,21 @@ def filtered_pixels(
 def _marks(image: np.ndarray, detection: Detection) -> None:
     size = max(12, min(image.shape[:2]) // 40)
     thick = max(2, size // 6)
+    for i, ring in enumerate(detection.rings):
+        colour = MAGENTA if i == len(detection.rings) - 1 else GREEN
+        (cx, cy), (w, h), angle = ring.cv_box()
+        cv2.ellipse(
+            image,
+            (round(cx * 16), round(cy * 16)),
+            (round(w * 8), round(h * 8)),
+            angle,
+            0,
+            360,
+            colour,
+            max(1, thick // 2),
+            cv2.LINE_AA,
+            4,
+        )
     if detection.target is not None:
         x, y = (round(v) for v in detection.target.px)
         cv2.drawMarker(image, (x, y), RED, cv2.MARKER_CROSS, 2 * size, thick, cv2.LINE_AA)

@@ -14,7 +14,7 @@ import numpy as np
 
 from protocol.cliargs import check_writable_dir
 from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
-from protocol.errors import BadRequest
+from protocol.errors import BadRequest, ConfigError
 from protocol.netflags import NetConfig
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from services.learner.algorithms.base import Bounds, LearnerConfigError
@@ -232,6 +232,7 @@ class LearnerServiceConfig:
         start_wait: how long `start` waits for the other services to be alive (wall s).
         rpc_timeout: longest wait for a reply from another service (wall s).
         report: write `report.png` and the hit frame when a session ends.
+        fleet: more robot prefixes served by this one learner (a session on each at once).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -250,9 +251,28 @@ class LearnerServiceConfig:
         RPC_TIMEOUT, "longest wait for another service's reply", unit="s", low=0.5, high=600
     )
     report: bool = flag(True, "write no report figures", name="--no-report")
+    fleet: tuple[str, ...] = flag(
+        (),
+        "also run sessions on these robots (one learner for a fleet): it serves "
+        "PREFIX/learner/rpc:i for each, one session per robot at a time",
+        parse=lambda text: tuple(p.strip() for p in text.split(",") if p.strip()),
+        metavar="PREFIX,PREFIX",
+    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
+        for prefix in self.fleet:
+            try:
+                NetConfig(robot=prefix)
+            except ConfigError as exc:
+                raise ConfigError(f"--fleet {prefix!r}: {exc}") from None
+        robots = self.robots()
+        if len(set(robots)) != len(robots):
+            raise ConfigError(f"--fleet {','.join(self.fleet)}: a robot is listed twice")
+
+    def robots(self) -> tuple[str, ...]:
+        """Every robot prefix this learner serves: its own (`--robot`), then `--fleet`'s."""
+        return (self.net.robot, *self.fleet)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -43,6 +43,7 @@ from protocol.errors import RpcError, RpcTimeout, StaleState, UpstreamLost, Wron
 from protocol.messages import WorldEvent
 from protocol.node import Node
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
+from protocol.tokens import TokenSet
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
@@ -86,6 +87,9 @@ class MeshRig:
         self._liveliness = node.session.liveliness().declare_subscriber(
             self.keys.alive_all(), self._on_token, history=True
         )
+        # Who is alive, kept from liveliness events: a query per check would time out on a
+        # loaded machine and report every service missing.
+        self._tokens = TokenSet(node.session, self.keys.alive_all())
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
@@ -137,9 +141,13 @@ class MeshRig:
         return UPSTREAM.get(service) if exc.code in _UPSTREAM_CODES else None
 
     # -- liveliness -----------------------------------------------------------------------------
+    def close(self) -> None:
+        """Stop following the liveliness tokens (the rest goes with the node's session)."""
+        self._tokens.close()
+
     def missing(self) -> list[str]:
         """Services whose liveliness token is down now."""
-        return sorted(set(self.services) - self.node.alive())
+        return sorted(set(self.services) - self._tokens.present())
 
     def lost_ago(self, service: str) -> float | None:
         """Seconds since `service`'s liveliness token went (None: not seen going)."""
@@ -154,18 +162,17 @@ class MeshRig:
             ServiceLost: some are still missing after `timeout` s.
         """
         deadline = time.monotonic() + timeout
+        wanted = set(self.services)
         while not stop.is_set():
-            try:
-                self.node.wait_alive(self.services, timeout=min(1.0, timeout))
+            if self._tokens.wait_for(wanted.issubset, timeout=min(1.0, timeout)):
                 return True
-            except RpcTimeout:
-                if time.monotonic() > deadline:
-                    missing = self.missing()
-                    raise ServiceLost(
-                        ", ".join(missing) or "?",
-                        f"{', '.join(missing)} still not alive after {timeout:g} s "
-                        f"(robot {self.keys.robot!r}); restart them and resume the session",
-                    ) from None
+            if time.monotonic() > deadline:
+                missing = self.missing()
+                raise ServiceLost(
+                    ", ".join(missing) or "?",
+                    f"{', '.join(missing)} still not alive after {timeout:g} s "
+                    f"(robot {self.keys.robot!r}); restart them and resume the session",
+                )
         return False
 
     # -- the rollout ----------------------------------------------------------------------------

@@ -17,12 +17,17 @@ Ports (ROBOT = the robot prefix):
 * `ROBOT/learner/rollout:o` (events): a `Rollout` per journal record of a rollout (proposed,
   done, aborted), in order.
 
+With `--fleet P2,P3`, one learner process serves the same ports under each of those robot
+prefixes too, and runs a session on each robot at once.
+
 Sessions go to `RUNS/<session>/journal.jsonl`; when one ends, `report.png` (and `hit.png`, the
 frame of the latest hit with the detection drawn) are written beside it.
 """
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import logging
 import threading
 
@@ -38,16 +43,21 @@ log = logging.getLogger("archery.learner")
 
 
 def run(config: LearnerServiceConfig, stop: threading.Event) -> None:
-    """Serve the learner until `stop` is set."""
-    with Node(LEARNER, config.net) as node:
-        handlers = LearnerHandlers(config, node)
-        node.serve(node.keys.learner_rpc(), handlers.verbs())
-        node.ready()
-        log.info("learner %r ready: runs in %s", node.keys.robot, config.runs)
-        try:
-            stop.wait()
-        finally:
-            handlers.close()
+    """Serve the learner until `stop` is set: for its robot and each robot of `--fleet`, a
+    node of that robot with its own verbs and session thread (so one session per robot runs
+    at once)."""
+    with contextlib.ExitStack() as stack:
+        served = []
+        for robot in config.robots():
+            node = stack.enter_context(Node(LEARNER, dataclasses.replace(config.net, robot=robot)))
+            handlers = LearnerHandlers(config, node)
+            stack.callback(handlers.close)
+            node.serve(node.keys.learner_rpc(), handlers.verbs())
+            served.append(node)
+        for node in served:
+            node.ready()
+        log.info("learner ready for %s: runs in %s", ", ".join(config.robots()), config.runs)
+        stop.wait()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 
 from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
-from protocol.errors import ConfigError
+from protocol.errors import ArcheryError, ConfigError
+from protocol.netflags import add_network_args
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import (
@@ -67,7 +68,7 @@ CURVE_COLUMNS = (
     "r_true_y",
     "distance",
 )
-WORLDS = ("ballistic",)
+WORLDS = ("ballistic", "mesh")  # mesh: the MuJoCo iCubs of a fleet (experiment_mesh)
 LEARNERS_NAME = "learners.json"  # the final learner states of a run, what --from reads
 LEARNERS_VERSION = 1
 
@@ -168,7 +169,8 @@ class ExperimentConfig:
         seed: master seed.
         scenario: the simulated range.
         bounds: θ box (m) given to every learner.
-        world: the simulator; only "ballistic" (the paper's analytic model) here.
+        world: the simulator: "ballistic" (the paper's analytic model, here) or "mesh" (the
+            MuJoCo robots of a fleet, `services.learner.tools.experiment_mesh`).
         wind_change: the wind changes during the sessions (None: it does not).
         transfer: start each session from an earlier run's learner (None: from scratch).
         power_scale: s (m) in PoWER's importance weights R = exp(−‖r‖/s) for every PoWER
@@ -515,7 +517,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the paper's simulation experiment: learners against the ballistic world.",
     )
     add = parser.add_argument
-    add("--world", default="ballistic", help=f"simulator: {', '.join(WORLDS)} (default ballistic)")
+    add(
+        "--world",
+        default="ballistic",
+        help=f"simulator: {', '.join(WORLDS)} (default ballistic; mesh: the MuJoCo iCubs alive "
+        "on the mesh, e.g. of `archery up --robots N`)",
+    )
     add(
         "--algo",
         default=",".join(DEFAULT_ALGORITHMS),
@@ -568,6 +575,24 @@ def build_parser() -> argparse.ArgumentParser:
     add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
+    mesh = parser.add_argument_group("--world mesh")
+    mesh.add_argument(
+        "--robots",
+        metavar="PREFIX,PREFIX",
+        help="the robots to use (default: every robot stack alive on the mesh)",
+    )
+    mesh.add_argument(
+        "--resume",
+        metavar="DIR",
+        help="continue the experiment cut short in DIR (its --out), with the flags it ran with",
+    )
+    mesh.add_argument(
+        "--robot-wait",
+        default="10",
+        metavar="S",
+        help="s a robot may be lost before its session moves to another robot (default 10)",
+    )
+    add_network_args(parser)
     return parser
 
 
@@ -648,20 +673,38 @@ def _print_table(summary: dict[str, Any], wall_time: float) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run `archery experiment [options]`; returns 0 on success, 2 on bad input."""
-    args = build_parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    out = Path(args.out)
+    """Run `archery experiment [options]`; returns 0 on success, 2 on bad input, 1 when a run
+    on the mesh could not finish (no robot alive, interrupted: `--resume DIR` continues it)."""
+    parser = build_parser()
+    args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    out = Path(args.out if args.resume is None else args.resume)
     try:
         config = _config_from_args(args)
-        check_new_file(out, "--out")
-        check_writable_dir(out, "--out", create=True)  # before the work, not after it
+        flag = "--out" if args.resume is None else "--resume"
+        check_new_file(out, flag)
+        check_writable_dir(out, flag, create=args.resume is None)  # before the work
         start = time.perf_counter()
-        runs = run_experiment(config, progress=not args.no_progress)
-        summary = write_outputs(out, config, runs, figures=not args.no_figures, band=args.fig6)
+        if config.world == "mesh":
+            from services.learner.tools import experiment_mesh
+
+            config, runs = experiment_mesh.run_from_args(args, parser, config, out)
+        elif args.resume is not None or args.robots is not None:
+            raise ExperimentError("--resume and --robots are for --world mesh")
+        else:
+            runs = run_experiment(config, progress=not args.no_progress)
+        figures = not args.no_figures
+        summary = write_outputs(
+            out, config, runs, figures=figures and config.world != "mesh", band=args.fig6
+        )
+        if figures and config.world == "mesh":
+            experiment_mesh.write_mesh_figures(out, config, runs, band=args.fig6)
         wall_time = time.perf_counter() - start
     except (LearnerError, BallisticError, ConfigError) as exc:
         print(f"archery experiment: error: {exc}", file=sys.stderr)
         return 2
+    except ArcheryError as exc:  # the mesh: no robot, interrupted, a session failing
+        print(f"archery experiment: {exc}", file=sys.stderr)
+        return 1
     _print_table(summary, wall_time)
     print(
         f"wrote {out}/summary.json, curves.csv, learners.json"

@@ -1,0 +1,192 @@
+"""Benchmark of a fleet of MuJoCo iCubs on this machine: rollouts/s with N robot stacks, CPU
+seconds per rollout per process, and where a rollout's time goes.
+
+Run `python -m benchmarks.bench_fleet [--robots 1,2,3] [--repeats 5] [--sessions 6]
+[--rollouts 10]`. Each repeat runs every N in turn (interleaved, so a change in the machine's
+load hits every N alike): a fresh router and N robot stacks (robot at rtf 0, controller, camera,
+detector; `services.launcher.Launcher`), then one `archery experiment --world mesh` in this
+process (its learner: the work queue, one session thread per robot) of `--sessions` sessions
+per algorithm × `--rollouts` rollouts, the same work for every N; then everything is stopped.
+
+* rollouts/s: done rollouts between the first and the last done record of the run, over that
+  time (the start-up of the stacks is left out); its ratio to N = 1 of the same repeat;
+* CPU s per rollout per process: user + system CPU time (psutil) of each child over the run, and
+  of this process (the learner), divided by the run's rollouts; per service, summed over the
+  robots (what one rollout costs that service, wherever it ran);
+* where a rollout's time goes: medians of the journal's per-rollout timings.
+
+The baseline is N = 1 (one robot, today's mesh). Prints Markdown tables; writes
+`runs/bench-fleet/bench.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+
+from benchmarks.machine import cpu_model
+from protocol.netflags import NetConfig
+from protocol.router import free_tcp_endpoint
+from services.launch_config import (
+    SERVICES,
+    MeshConfig,
+    RobotSpec,
+    RouterSpec,
+    ServiceSpec,
+    fleet_prefixes,
+)
+from services.launcher import Launcher
+from services.learner.journal import read_records
+from services.learner.tools.experiment import ExperimentConfig
+from services.learner.tools.experiment_mesh import (
+    MeshSettings,
+    mesh_experiment_config,
+    run_mesh_experiment,
+)
+
+__all__ = ["main"]
+
+STACK = tuple(s for s in SERVICES if s != "learner")
+TIMINGS = ("rollout_s", "posture_s", "move_s", "nock_s", "release_s", "measure_s")
+
+
+def _cpu(pid: int) -> float:
+    try:
+        times = psutil.Process(pid).cpu_times()
+    except psutil.Error:
+        return float("nan")
+    return times.user + times.system
+
+
+def _one_run(n: int, config: ExperimentConfig, out: Path) -> dict[str, Any]:
+    """N robot stacks and one experiment over them; its figures."""
+    prefixes = fleet_prefixes("bench", n)
+    mesh = MeshConfig(
+        RouterSpec(free_tcp_endpoint()),
+        tuple(RobotSpec(p, STACK) for p in prefixes),
+        {"robot": ServiceSpec(("--rtf", "0"))},
+    )
+    launcher = Launcher(logs=out / "logs", mesh=mesh)
+    launcher.up(180)
+    try:
+        pids = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
+        before = {name: _cpu(pid) for name, pid in pids.items()} | {"learner": _cpu(os.getpid())}
+        settings = MeshSettings(NetConfig(connect=(launcher.endpoint,)), tuple(prefixes))
+        run_mesh_experiment(config, out, settings, threading.Event(), progress=False)
+        after = {name: _cpu(pid) for name, pid in pids.items()} | {"learner": _cpu(os.getpid())}
+    finally:
+        launcher.stop_all()
+    done = [
+        r
+        for path in sorted((out / "sessions").glob("*/journal.jsonl"))
+        for r in read_records(path)[0]
+        if r["record"] == "done"
+    ]
+    stamps = sorted(r["t"] for r in done)
+    rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
+    cpu: dict[str, list[float]] = {}
+    for name in after:
+        service = name.split("@")[0]
+        cpu.setdefault(service, []).append((after[name] - before[name]) / len(done))
+    timing = {
+        key: float(np.median([r["timing"][key] for r in done if key in r["timing"]]))
+        for key in TIMINGS
+    }
+    return {
+        "robots": n,
+        "rollouts": len(done),
+        "rollouts_per_s": rate,
+        "cpu_s_per_rollout": {k: float(np.sum(v)) for k, v in cpu.items()},
+        "cpu_s_per_rollout_all": float(sum(sum(v) for v in cpu.values())),
+        "timing_median_s": timing,
+    }
+
+
+def _median_table(
+    results: dict[int, list[dict[str, Any]]], field: str, columns: Sequence[str], unit: str
+) -> None:
+    """A Markdown table: per N, the median over repeats of each run's `field[column]` (ms)."""
+    print("| N | " + " | ".join(columns) + " |")
+    print("|---|" + "---|" * len(columns))
+    for n, runs in results.items():
+        cells = [f"{1e3 * statistics.median(r[field][c] for r in runs):.0f}{unit}" for c in columns]
+        print(f"| {n} | " + " | ".join(cells) + " |")
+
+
+def _spread(values: list[float]) -> str:
+    return f"{statistics.median(values):.2f} [{min(values):.2f}, {max(values):.2f}]"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit status 0."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_fleet", description=__doc__)
+    parser.add_argument("--robots", default="1,2,3", help="fleet sizes N, comma-separated")
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats")
+    parser.add_argument("--sessions", type=int, default=6, help="sessions per algorithm")
+    parser.add_argument("--rollouts", type=int, default=10, help="rollouts per session")
+    parser.add_argument("--algos", default="archer,power", help="algorithms, comma-separated")
+    parser.add_argument("--out", default="runs/bench-fleet", help="output directory")
+    args = parser.parse_args(argv)
+    sizes = [int(x) for x in args.robots.split(",")]
+    config = mesh_experiment_config(
+        ExperimentConfig(
+            algorithms=tuple(args.algos.split(",")),
+            sessions=args.sessions,
+            rollouts=args.rollouts,
+            world="mesh",
+        )
+    )
+    out = Path(args.out)
+    results: dict[int, list[dict[str, Any]]] = {n: [] for n in sizes}
+    started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    for repeat in range(args.repeats):
+        for n in sizes:
+            run = _one_run(n, config, out / f"r{repeat}-n{n}-{time.time_ns()}")
+            results[n].append(run)
+            print(
+                f"repeat {repeat + 1}, N={n}: {run['rollouts_per_s']:.2f} rollouts/s, "
+                f"CPU {run['cpu_s_per_rollout_all']:.3f} s/rollout",
+                file=sys.stderr,
+                flush=True,
+            )
+    base = [r["rollouts_per_s"] for r in results[sizes[0]]]
+    print(
+        f"\n{started}; {os.cpu_count()} cores, {cpu_model()}; {args.repeats} interleaved "
+        f"repeats of {len(config.algorithms)} algorithms × {args.sessions} sessions × "
+        f"{args.rollouts} rollouts per N\n"
+    )
+    print(
+        f"| N robots | rollouts/s: median [min, max] | ratio to N={sizes[0]} | CPU s/rollout, all |"
+    )
+    print("|---|---|---|---|")
+    for n in sizes:
+        rates = [r["rollouts_per_s"] for r in results[n]]
+        ratios = [r / b for r, b in zip(rates, base, strict=True)]
+        total = [r["cpu_s_per_rollout_all"] for r in results[n]]
+        print(f"| {n} | {_spread(rates)} | {_spread(ratios)} | {_spread(total)} |")
+    services = list(results[sizes[0]][0]["cpu_s_per_rollout"])
+    print("\nCPU per rollout per service (median over repeats; the stack's summed over robots):\n")
+    _median_table(results, "cpu_s_per_rollout", services, " ms")
+    print("\nWhere a rollout's time goes (median over repeats of each run's median, ms):\n")
+    _median_table(results, "timing_median_s", TIMINGS, "")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "bench.json").write_text(
+        json.dumps({"started": started, "config": vars(args), "results": results}, indent=2)
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

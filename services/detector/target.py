@@ -1,0 +1,283 @@
+"""The target face in a downscaled membership map: its region, ring ellipses, centre and a
+confidence that means something (below the threshold the face is reported as not seen).
+
+The target's colour membership is thresholded, closed (ring lines, holes) and split into
+regions by their outer contours; each of the largest few is filled and its outer boundary
+fitted with a robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
+components are ordered by their radial position inside that ellipse (yellow, red, blue…) and
+the cumulative discs (yellow; yellow + red; …) are fitted too: concentric ellipses of one shape
+validate each other, and the centre is extrapolated from them (`rings.nested_centre`), which
+holds when arrows and fletchings cover part of the yellow. The confidence multiplies how much of
+the outer boundary was seen, how elliptic the region is, how well its colours match the
+calibration, how many inner rings agree and how many of the calibrated colours (ring groups of
+the GMM's components) the face shows; the factors' ranges were set on the development set
+(`services.detector.devset`) so that wrong centres score below 0.5.
+All positions are pixels of the downscaled map.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
+
+__all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
+
+_MEMBER = 96  # membership (0..255) of a pixel counted as target colour
+_CANDIDATES = 5  # largest regions examined
+_MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
+_SAME_RING = 0.15  # components whose median radial positions differ less share a ring
+
+
+@dataclass(frozen=True)
+class FaceFit:
+    """A face found in the map: centre (px), its ring ellipses inner → outer (px; the last is
+    the outer boundary of the coloured rings), confidence 0..1 and its factors."""
+
+    centre: tuple[float, float]
+    ellipses: tuple[Ellipse, ...]
+    confidence: float
+    factors: dict[str, float]
+    colours: frozenset[int] = frozenset()  # the calibrated colours (ring groups) it shows
+    n_colours: int = 0  # how many the calibration has
+
+    @property
+    def outer(self) -> Ellipse:
+        """The coloured rings' outer boundary."""
+        return self.ellipses[-1]
+
+
+def _ramp(value: float, low: float, high: float) -> float:
+    return min(1.0, max(0.0, (value - low) / (high - low)))
+
+
+def _ellipse_mask(ellipse: Ellipse, shape: tuple[int, int]) -> np.ndarray:
+    mask = np.zeros(shape, np.uint8)
+    cv2.ellipse(mask, ellipse.cv_box(), 1, thickness=cv2.FILLED)
+    return mask
+
+
+def _fill(region: np.ndarray) -> np.ndarray:
+    """The region with its holes filled (largest outline only)."""
+    contours, _ = cv2.findContours(region, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    filled = np.zeros_like(region)
+    if contours:
+        cv2.drawContours(filled, [max(contours, key=cv2.contourArea)], -1, 1, cv2.FILLED)
+    return filled
+
+
+def colour_groups(
+    means: np.ndarray, weights: np.ndarray, distance: float = 30.0, least: float = 0.2
+) -> np.ndarray:
+    """Group id per GMM component (K,): components whose UV means (K, 2) chain within
+    `distance` UV levels are one colour (one ring of the face); a group of total prior below
+    `least` (stray calibration pixels, ring borders) gets id −1, a colour a face need not show."""
+    count = len(means)
+    group = np.arange(count)
+    for i in range(count):
+        for j in range(i + 1, count):
+            if np.hypot(*(means[i] - means[j])) < distance:
+                group[group == group[j]] = group[i]
+    ids = np.unique(group, return_inverse=True)[1]
+    mass = np.bincount(ids, weights=weights)
+    kept = {old: new for new, old in enumerate(np.flatnonzero(mass >= least))}
+    return np.array([kept.get(int(i), -1) for i in ids], dtype=np.int64)
+
+
+def _inner_rings(
+    outer: Ellipse,
+    mask: np.ndarray,
+    components: np.ndarray,
+    kernel: np.ndarray,
+    groups: np.ndarray,
+) -> tuple[list[Ellipse], set[int]]:
+    """Fitted cumulative discs inside `outer` that agree with it, and which of the calibrated
+    colours (`groups`: colour per component) the face shows."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) < 30:
+        return [], set()
+    rho = radial_position(outer, np.stack([xs, ys], axis=1))
+    labels = components[ys, xs]
+    inside = rho < 1.05
+    order = []
+    for k in np.unique(labels[inside]):
+        share = labels[inside] == k
+        if share.mean() >= _MIN_COMPONENT_SHARE:
+            order.append((float(np.median(rho[inside][share])), int(k)))
+    order.sort()
+    shown = {int(groups[k]) for _, k in order if k < len(groups) and groups[k] >= 0}
+    rings: list[list[int]] = []
+    last = -1.0
+    for position, k in order:
+        if rings and position - last < _SAME_RING:
+            rings[-1].append(k)
+        else:
+            rings.append([k])
+        last = position
+    found: list[Ellipse] = []
+    chosen: list[int] = []
+    for ring_components in rings[:-1]:
+        chosen += ring_components
+        disc = (mask & np.isin(components, chosen)).astype(np.uint8)
+        disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
+        ring = fit_disc(_fill(disc))
+        if ring is None:
+            continue
+        shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
+        if (
+            shift < 0.25 * outer.radius
+            and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
+            and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
+            and ring.support > 0.5
+        ):
+            found.append(ring)
+    return found, shown
+
+
+def _rings_factor(outer: Ellipse, validated: int) -> float:
+    """Trust from the inner rings that agree with the outer one: two or more make the centre
+    sure; with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
+    ellipse's centre unknown, so the trust falls with its axis ratio."""
+    if validated >= 2:
+        return 1.0
+    if validated == 1:
+        return 0.8
+    return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
+
+
+def _examine(
+    member: np.ndarray,
+    components: np.ndarray | None,
+    groups: np.ndarray | None,
+    region: np.ndarray,
+    corner: tuple[int, int],
+    kernel: np.ndarray,
+    needed: float,
+) -> FaceFit | None:
+    """The face a region (a crop of the map with its corner (x, y) px) is, or None; the rings
+    are only looked at when the rest of the evidence could reach `needed` confidence."""
+    height, width = member.shape
+    filled_crop = _fill(region)
+    outer = fit_disc(filled_crop, corner, (height, width))
+    if outer is None or outer.radius < 3.0:
+        return None
+    full_area = math.pi * outer.axes[0] * outer.axes[1] / 4
+    if full_area > 6 * height * width:
+        return None
+    x0, y0, x1, y1 = outer.box((height, width))
+    local = outer.moved(-x0, -y0)
+    ellipse = _ellipse_mask(local, (y1 - y0, x1 - x0))
+    inside_image = float(ellipse.sum())
+    if inside_image < 20:
+        return None
+    filled = np.zeros_like(ellipse)  # the filled region in the ellipse's box
+    cx, cy = corner
+    sx0, sy0 = max(x0, cx), max(y0, cy)
+    sx1, sy1 = min(x1, cx + region.shape[1]), min(y1, cy + region.shape[0])
+    if sx1 > sx0 and sy1 > sy0:
+        filled[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = filled_crop[
+            sy0 - cy : sy1 - cy, sx0 - cx : sx1 - cx
+        ]
+    outside = np.count_nonzero(filled_crop) - np.count_nonzero(filled)
+    union = float(np.count_nonzero(ellipse | filled)) + outside
+    iou = float(np.count_nonzero(ellipse & filled)) / union
+    box_member = member[y0:y1, x0:x1]
+    agreement = float(box_member[ellipse > 0].mean()) / 255.0
+    factors = {
+        "support": _ramp(outer.support, 0.55, 0.85),
+        "visible": _ramp(inside_image / full_area, 0.6, 0.9),
+        # a one-pixel boundary error costs a disc of radius r about 4/r of IoU: small faces
+        # are judged by what their pixels allow
+        "elliptic": _ramp(iou + min(0.15, 2.0 / outer.radius), 0.75, 0.92),
+        "colour": _ramp(agreement, 0.15, 0.5),
+    }
+    rings: list[Ellipse] = []
+    shown: set[int] = set()
+    n_colours = 0
+    if components is not None and groups is not None:
+        if math.prod(factors.values()) < needed:
+            return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
+        mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
+        found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
+        rings = [ring.moved(x0, y0) for ring in found]
+        factors["rings"] = _rings_factor(outer, len(rings))
+        # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
+        n_colours = max(1, int(groups.max()) + 1)
+        factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
+    confidence = math.prod(factors.values())
+    ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
+    centre = nested_centre(list(ellipses))
+    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours)
+
+
+def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
+    """One face from two fits of it under different colour corrections (e.g. the yellow found
+    as is, the blue only after white balance): their rings together, if concentric; None if
+    they are not the same face or have no ring colours to join."""
+    if not first.n_colours or first.n_colours != second.n_colours:
+        return None
+    small = min(first.outer.radius, second.outer.radius)
+    if math.dist(first.outer.centre, second.outer.centre) > 0.15 * small:
+        return None
+    rings: list[Ellipse] = []
+    for ring in sorted((*first.ellipses, *second.ellipses), key=lambda e: e.radius):
+        if rings and ring.radius < 1.08 * rings[-1].radius:
+            if ring.support > rings[-1].support:
+                rings[-1] = ring
+            continue
+        rings.append(ring)
+    owner = first if first.outer.radius >= second.outer.radius else second
+    factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
+    factors["rings"] = _rings_factor(rings[-1], len(rings) - 1)
+    colours = first.colours | second.colours
+    factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
+    confidence = math.prod(factors.values())
+    ellipses = tuple(rings)
+    centre = nested_centre(rings)
+    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours)
+
+
+def find_face(
+    member: np.ndarray,
+    components: np.ndarray | None = None,
+    groups: np.ndarray | None = None,
+    *,
+    close_fraction: float = 0.01,
+    min_fraction: float = 5e-4,
+    needed_confidence: float = 0.0,
+) -> FaceFit | None:
+    """The most confident face in a membership map (uint8 0..255, downscaled), or None.
+
+    Args:
+        member: target membership per pixel.
+        components: the target GMM's most responsible component per pixel (uint8), or None to
+            fit the outer boundary only.
+        groups: the colour (ring) of each component (`colour_groups`), with `components`.
+        close_fraction: closing kernel over the map's shorter side (bridges ring lines).
+        min_fraction: smallest region examined, as a fraction of the map.
+        needed_confidence: a region that cannot reach this is not analysed ring by ring.
+    """
+    mask = (member > _MEMBER).astype(np.uint8)
+    size = max(3, round(min(member.shape) * close_fraction) | 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    closed = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel)
+    outlines, _ = cv2.findContours(closed, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    areas = [cv2.contourArea(outline) for outline in outlines]
+    best: FaceFit | None = None
+    pad = 2
+    for index in np.argsort(areas)[::-1][:_CANDIDATES]:
+        if areas[index] < max(20.0, min_fraction * member.size):
+            break
+        x, y, w, h = cv2.boundingRect(outlines[index])
+        x0, y0 = max(0, x - pad), max(0, y - pad)
+        region = np.zeros((h + y - y0 + pad, w + x - x0 + pad), np.uint8)
+        cv2.drawContours(region, outlines, int(index), 1, cv2.FILLED, offset=(-x0, -y0))
+        needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
+        fit = _examine(member, components, groups, region, (x0, y0), kernel, needed)
+        if fit is not None and (best is None or fit.confidence > best.confidence):
+            best = fit
+    return best
