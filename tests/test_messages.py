@@ -170,7 +170,7 @@ def test_garbage_is_not_msgpack() -> None:
         decode(msgpack.packb([1, 2, 3]))
 
 
-@settings(max_examples=300)
+@settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=512))
 def test_decoder_fuzz_raw_bytes(payload: bytes) -> None:
     with contextlib.suppress(DecodeError):
@@ -191,7 +191,7 @@ json_values = st.recursive(
 )
 
 
-@settings(max_examples=300)
+@settings(max_examples=300, deadline=None)
 @given(
     st.sampled_from(sorted(MESSAGE_TYPES)),
     st.dictionaries(
