@@ -16,6 +16,7 @@ from rich.progress import Progress
 from rich.table import Table
 from scipy.optimize import minimize
 
+from protocol.progress import progress_bar
 from services.controller.ik import IkSettings, IkSolver
 from services.controller.model import HOME_POSTURE, ArmsModel, load_arms_model
 from services.controller.posture import ArcheryPosture
@@ -184,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     def slsqp(q0: Callable[[Case], np.ndarray]) -> Callable[[Case], np.ndarray]:
         return lambda case: baseline.solve(case, q0(case))
 
-    with Progress(console=console) as progress:
+    with progress_bar() as progress:
         for name, solve in (
             ("ours warm", ours(lambda c: c.q_warm)),
             ("ours cold", ours(lambda c: home)),

@@ -45,7 +45,6 @@ from typing import Annotated, TypeVar
 import msgspec
 import numpy as np
 import zenoh
-from rich.progress import Progress
 
 from benchmarks.machine import cpu_model
 from protocol.codec import encode
@@ -53,6 +52,7 @@ from protocol.credentials import init_deployment
 from protocol.messages import Image, RpcRequest
 from protocol.netflags import NetConfig, open_session
 from protocol.node import Node, Publisher
+from protocol.progress import progress_bar
 from protocol.router import free_tcp_endpoint, spawn_router
 from protocol.verbs import Args, Reply, Verb, VerbTable
 
@@ -583,7 +583,7 @@ def main(argv: list[str] | None = None) -> int:
     plain_cases = 2 + sum(1 for n in streams if n != 1) + 2
     secure_cases = 0 if args.no_secure else 3
     figures: list[Figure] = []
-    with Progress() as progress:
+    with progress_bar() as progress:
         task = progress.add_task("mesh benchmark", total=per_case * (plain_cases + secure_cases))
 
         def tick() -> None:

@@ -23,12 +23,12 @@ import statistics
 import time
 
 import numpy as np
-from rich.progress import Progress
 
 from benchmarks.machine import cpu_model
 from protocol.messages import Image
 from protocol.netflags import NetConfig
 from protocol.node import Node
+from protocol.progress import progress_bar
 from protocol.router import free_tcp_endpoint, spawn_router
 
 WIDTH, HEIGHT = 1280, 720
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     try:
         pairs = _pairs(router)
-        with Progress() as progress:
+        with progress_bar() as progress:
             task = progress.add_task("routing benchmark", total=args.repeats * 2)
             for r in range(args.repeats):
                 order = ("direct", "routed") if r % 2 == 0 else ("routed", "direct")

@@ -34,13 +34,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from rich.progress import Progress
 
 from benchmarks.machine import cpu_model
 from protocol.credentials import init_deployment
 from protocol.messages import Image, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher, Subscription
+from protocol.progress import progress_bar
 from protocol.router import free_tcp_endpoint, spawn_router
 from services.launcher import SERVICES, Launcher
 from services.learner.tools.learn import follow
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     figures: dict[str, dict[str, list[float]]] = {
         t: {"median": [], "p99": [], "fps": [], "rollout": []} for t in ("plain", "secure")
     }
-    with tempfile.TemporaryDirectory() as tmp, Progress() as progress:
+    with tempfile.TemporaryDirectory() as tmp, progress_bar() as progress:
         deployment = str(init_deployment(Path(tmp) / "deploy", robot=ROBOT))
         task = progress.add_task(
             "RPC and frames", total=2 * args.repeats + 2 + 2 * (args.sessions + 1)

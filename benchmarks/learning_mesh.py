@@ -8,27 +8,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
 from protocol.messages import Rollout
 from protocol.node import Node, Subscription
+from protocol.progress import progress_bar
 from protocol.router import free_tcp_endpoint
 from services.launcher import SERVICES, Launcher
 
 __all__ = ["learning_mesh", "progress_bar"]
-
-
-def progress_bar(disable: bool = False) -> Progress:
-    """A progress bar on stderr: description, bar, done of total, time elapsed."""
-    return Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-        console=Console(stderr=True),
-        disable=disable,
-    )
 
 
 @contextmanager

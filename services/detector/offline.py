@@ -24,6 +24,7 @@ import numpy as np
 
 from protocol.cliargs import ArgumentParser
 from protocol.errors import ArcheryError
+from protocol.progress import progress_bar
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.detect import WHITE_SIDE, Detector, DetectorSettings, check_image, downscale
@@ -209,10 +210,6 @@ def _progress(total: int, *, enabled: bool) -> Iterator[Callable[[], None]]:
     if not enabled:
         yield lambda: None
         return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
-    columns = ("images", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, console=Console(stderr=True)) as bar:
-        task = bar.add_task("detect", total=total)
+    with progress_bar() as bar:
+        task = bar.add_task("images", total=total)
         yield lambda: bar.advance(task)

@@ -51,11 +51,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from protocol.cliargs import ArgumentParser, check_writable_dir
 from protocol.errors import ConfigError
+from protocol.progress import progress_bar
 from services.drills.flood import flood_drill
 from services.drills.freeze import LEASE, freeze_service
 from services.drills.kill import kill_learner, kill_learner_repeatedly, kill_service
@@ -269,15 +269,7 @@ def main(argv: list[str] | None = None) -> int:
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="archery-drill-"))
     # A table too wide for 80 columns: wrapped at 160 when not on a terminal (a file, CI).
     console = Console() if sys.stdout.isatty() else Console(width=160)
-    progress_console = Console(stderr=True)
-    with Progress(
-        TextColumn("[bold]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total}"),
-        TimeElapsedColumn(),
-        console=progress_console,
-        transient=True,
-    ) as progress:
+    with progress_bar(transient=True) as progress:
         task = progress.add_task("drills", total=len(names))
         seen: list[str] = []
 

@@ -23,6 +23,7 @@ import numpy as np
 from protocol.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from protocol.errors import ArcheryError, ConfigError
 from protocol.netflags import add_network_args
+from protocol.progress import progress_bar
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import (
@@ -365,17 +366,8 @@ def run_algorithm(
 
 def run_experiment(config: ExperimentConfig, *, progress: bool = True) -> dict[str, AlgorithmRun]:
     """Run every algorithm of `config`, with a progress bar on stderr if `progress`."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
-
     runs: dict[str, AlgorithmRun] = {}
-    columns = (
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TimeElapsedColumn(),
-    )
-    with Progress(*columns, console=Console(stderr=True), disable=not progress) as bar:
+    with progress_bar(disable=not progress) as bar:
         total = len(config.algorithms) * config.rollouts
         task = bar.add_task(f"{config.sessions} sessions", total=total)
         for name in config.algorithms:

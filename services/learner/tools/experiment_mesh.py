@@ -38,6 +38,7 @@ from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.logs import DEFAULT_SPEC
 from protocol.netflags import NetConfig
 from protocol.node import shutdown_on_signals
+from protocol.progress import progress_bar
 from protocol.robotspec import THETA0
 from services.learner.algorithms.base import Bounds
 from services.learner.algorithms.power import Power
@@ -409,17 +410,10 @@ class _Experiment:
 
 
 def _bar(disable: bool) -> Any:
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+    """The experiment's bar: sessions done of total, then rollouts/s and the time left."""
+    from rich.progress import TextColumn
 
-    return Progress(
-        "[progress.description]{task.description}",
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("sessions, {task.fields[info]}"),
-        console=Console(stderr=True),
-        disable=disable,
-    )
+    return progress_bar(TextColumn("sessions, {task.fields[info]}"), disable=disable)
 
 
 def run_mesh_experiment(
