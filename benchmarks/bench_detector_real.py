@@ -39,6 +39,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.machine import cpu_model
+from benchmarks.spread import median_spread
 from services.detector import devset
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detector, DetectorSettings
@@ -221,10 +222,6 @@ def time_cli(
     return out
 
 
-def _spread(values: list[float]) -> str:
-    return f"{statistics.median(values):.2f} [{min(values):.2f}, {max(values):.2f}]"
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print its tables (markdown); exit 1 if a goal is missed."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -307,9 +304,9 @@ def main(argv: list[str] | None = None) -> int:
         print("| detector | median ms per frame: median [min, max] of the repeats | p90 | max |")
         print("|---|---|---|---|")
         for name in ("baseline", "this"):
-            print(f"| {name} | {_spread(ms[name])} | {ms[f'{name} p90'][0]:.2f} | "
+            print(f"| {name} | {median_spread(ms[name])} | {ms[f'{name} p90'][0]:.2f} | "
                   f"{ms[f'{name} max'][0]:.2f} |")  # fmt: skip
-        print(f"| ratio baseline / this | {_spread(ratio)} | | |")
+        print(f"| ratio baseline / this | {median_spread(ratio)} | | |")
         goals.append(
             (f"detection ≤ {TIME_GOAL_MS:g} ms", statistics.median(ms["this"]) <= TIME_GOAL_MS)
         )
@@ -326,9 +323,10 @@ def main(argv: list[str] | None = None) -> int:
                 walls = [n[0] / o[0] for n, o in zip(new_t, old_t, strict=True)]
                 print(
                     f"| `archery {label.split()[0]}` {' '.join(label.split()[1:])} | "
-                    f"{_spread([t[0] for t in old_t])} | {_spread([t[0] for t in new_t])} | "
-                    f"{_spread(walls)} | {_spread([t[1] for t in old_t])} | "
-                    f"{_spread([t[1] for t in new_t])} |"
+                    f"{median_spread([t[0] for t in old_t])} | "
+                    f"{median_spread([t[0] for t in new_t])} | "
+                    f"{median_spread(walls)} | {median_spread([t[1] for t in old_t])} | "
+                    f"{median_spread([t[1] for t in new_t])} |"
                 )
                 goals.append(
                     (f"{label} ≤ {CLI_GOAL_S:g} s wall",

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import statistics
 import subprocess
 import sys
 import time
@@ -29,6 +28,7 @@ import numpy as np
 from sklearn.mixture import GaussianMixture
 
 from benchmarks.machine import cpu_model
+from benchmarks.spread import median_spread
 from services.detector.calibration import sample_pixels
 from services.detector.colour_model import _REG_COVAR, rgb_to_uv
 from services.detector.devset import Scene, drawn_scenes, photo_scenes
@@ -63,10 +63,6 @@ def _import_seconds() -> float:
     code += "print(time.perf_counter() - t)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return float(out.stdout.strip())
-
-
-def _fmt(values: list[float], unit: str = "") -> str:
-    return f"{statistics.median(values):.3g}{unit} [{min(values):.3g}, {max(values):.3g}]"
 
 
 def main() -> int:
@@ -104,8 +100,11 @@ def main() -> int:
     ratios = [s / e for s, e in zip(sk_ms, em_ms, strict=True)]
     print("\n| figure | numpy EM | scikit-learn | scikit-learn / EM |")
     print("|---|---|---|---|")
-    print(f"| K = 1..5 sweep per set (ms) | {_fmt(em_ms)} | {_fmt(sk_ms)} | {_fmt(ratios, '×')} |")
-    print(f"| import `sklearn.mixture` (s) | 0 | {_fmt(imports)} | |")
+    print(
+        f"| K = 1..5 sweep per set (ms) | {median_spread(em_ms, '.3g')} | "
+        f"{median_spread(sk_ms, '.3g')} | {median_spread(ratios, '.3g', '×')} |"
+    )
+    print(f"| import `sklearn.mixture` (s) | 0 | {median_spread(imports, '.3g')} | |")
     print("\n| set | EM: K, mean log-lik/px | scikit-learn: K, mean log-lik/px | Δ log-lik/px |")
     print("|---|---|---|---|")
     for name, ((k_em, ll_em), (k_sk, ll_sk)) in quality.items():

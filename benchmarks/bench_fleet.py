@@ -36,6 +36,7 @@ import numpy as np
 import psutil
 
 from benchmarks.machine import cpu_model
+from benchmarks.spread import median_spread
 from protocol.netflags import NetConfig
 from protocol.router import free_tcp_endpoint
 from services.launch_config import (
@@ -124,10 +125,6 @@ def _median_table(
         print(f"| {n} | " + " | ".join(cells) + " |")
 
 
-def _spread(values: list[float]) -> str:
-    return f"{statistics.median(values):.2f} [{min(values):.2f}, {max(values):.2f}]"
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -175,7 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         rates = [r["rollouts_per_s"] for r in results[n]]
         ratios = [r / b for r, b in zip(rates, base, strict=True)]
         total = [r["cpu_s_per_rollout_all"] for r in results[n]]
-        print(f"| {n} | {_spread(rates)} | {_spread(ratios)} | {_spread(total)} |")
+        print(
+            f"| {n} | {median_spread(rates)} | {median_spread(ratios)} | {median_spread(total)} |"
+        )
     services = list(results[sizes[0]][0]["cpu_s_per_rollout"])
     print("\nCPU per rollout per service (median over repeats; the stack's summed over robots):\n")
     _median_table(results, "cpu_s_per_rollout", services, " ms")
