@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = [
     "ALLOWED_DTYPES",
+    "MAX_BATCH",
     "MESSAGE_TYPES",
     "SCHEMA_VERSION",
     "Array",
@@ -40,6 +41,7 @@ __all__ = [
 ]
 
 SCHEMA_VERSION = 1
+MAX_BATCH = 16  # joint commands started together (one per part)
 ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8", "|b1")
 IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
 _ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
@@ -174,13 +176,24 @@ class JointState(Message, frozen=True):
 
 
 class JointCommand(Message, frozen=True):
-    """Joint position targets (rad) for a part; `names` selects a subset (default: all)."""
+    """Joint position targets (rad) for a part; `names` selects a subset (default: all).
+
+    `batch`: how many commands, this one included and one per part, the sender publishes back
+    to back to start together: a robot at rest waits for all of them (at most its batch window)
+    and starts them at one simulated time. 1 (default): start this one at once.
+    """
 
     part: str
     position: list[float]
     names: list[str] | None = None
+    batch: int = 1
 
     def validate(self) -> None:
+        if not 1 <= self.batch <= MAX_BATCH:
+            raise ValueError(
+                f"joint command for {self.part!r}: batch must be in 1..{MAX_BATCH}, "
+                f"got {self.batch}"
+            )
         if self.names is not None and len(self.names) != len(self.position):
             raise ValueError(
                 f"joint command for {self.part!r}: {len(self.names)} names but "

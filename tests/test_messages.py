@@ -277,3 +277,9 @@ def test_a_non_finite_number_in_a_list_is_named_by_its_index() -> None:
     with pytest.raises(ValueError, match=r"args.x\[1\] is nan"):
         RpcRequest(verb="v", args={"x": ["a", math.nan]})
     assert RpcRequest(verb="v", args={"x": [10**400, "a", [1.5]]}).args["x"][0] == 10**400
+
+
+@pytest.mark.parametrize("batch", [0, -1, 17])
+def test_a_joint_command_batch_outside_1_to_16_is_refused(batch: int) -> None:
+    with pytest.raises(ValueError, match=r"batch must be in 1\.\.16, got"):
+        JointCommand(part="torso", position=[0.0, 0.0, 0.0], batch=batch)

@@ -62,7 +62,9 @@ class Client:
 
     def command(self, targets: Posture) -> None:
         for part, values in targets.items():
-            self.commands[part].put(JointCommand(part=part, position=np.asarray(values).tolist()))
+            self.commands[part].put(  # one batch: the parts start at one sim time
+                JointCommand(part=part, position=np.asarray(values).tolist(), batch=len(targets))
+            )
 
     def settle(self) -> dict[str, int]:
         """Sequence numbers of states showing the robot now (at rest, its sim time stands still),

@@ -164,7 +164,7 @@ def start(model: mujoco.MjModel) -> Iterator[Any]:
 
 def _go(loop: SimLoop, posture: dict[str, np.ndarray]) -> None:
     for part, values in posture.items():
-        loop.command(part, values.tolist(), None, part)
+        loop.command(part, values.tolist(), None, part, batch=len(posture))
     deadline = time.monotonic() + 20
     while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
         assert time.monotonic() < deadline, "the posture was not reached"
@@ -307,3 +307,59 @@ def test_moves_sent_one_after_another_are_not_a_stream(start: Any) -> None:
             time.sleep(0.002)
         assert not loop.counters("torso")["streaming"]
     assert loop.counters("torso")["accepted"] == 3
+
+
+def _wait_moved(loop: SimLoop, timeout: float = 20.0) -> float:
+    """Wait until a move ended at rest; the wall time it took (s)."""
+    t0 = time.monotonic()
+    while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
+        assert time.monotonic() < t0 + timeout, "the move did not end"
+        time.sleep(0.002)
+    return time.monotonic() - t0
+
+
+def _first_motion(rec: Recorder, rest: dict[str, list[float]]) -> dict[str, float]:
+    """Per part, the sim time of its first state away from where it rested."""
+    with rec.lock:
+        states = list(rec.states)
+    return {
+        part: min(s[4] for s in states if s[1] == part and not np.allclose(s[2], home, atol=1e-4))
+        for part, home in rest.items()
+    }
+
+
+def test_an_announced_batch_starts_together_even_when_its_commands_trickle_in(
+    start: Any, posture: dict[str, np.ndarray]
+) -> None:
+    loop, rec = start(batch_window=1.0)
+    rest = {part: loop.positions(part)["position"] for part in posture}
+    for part, values in posture.items():
+        loop.command(part, values.tolist(), None, part, batch=len(posture))
+        time.sleep(0.05)  # a move at rtf 0 covers a simulated second in ~20 ms of wall time
+    _wait_moved(loop)
+    starts = _first_motion(rec, rest)
+    assert len(set(starts.values())) == 1, starts
+
+
+def test_a_command_without_a_batch_starts_at_once(start: Any) -> None:
+    loop, _ = start(batch_window=1.0)
+    loop.command("torso", [0.0, 0.0, 0.1], None, "torso")
+    assert _wait_moved(loop) < 0.9  # a move takes ~20 ms here, never the 1 s a batch may wait
+
+
+def test_an_incomplete_batch_starts_when_the_window_ends(start: Any) -> None:
+    loop, _ = start(batch_window=0.3)
+    loop.command("torso", [0.0, 0.0, 0.1], None, "torso", batch=3)  # the other two never come
+    assert _wait_moved(loop) >= 0.3
+    np.testing.assert_allclose(loop.positions("torso")["position"], [0.0, 0.0, 0.1], atol=0.02)
+
+
+def test_a_release_after_a_batched_move_waits_for_no_batch(
+    start: Any, posture: dict[str, np.ndarray]
+) -> None:
+    loop, _ = start(batch_window=1.0)
+    _go(loop, posture)
+    loop.nock()
+    t0 = time.monotonic()
+    loop.release()
+    assert time.monotonic() - t0 < 0.9  # a flight takes ~5 ms here, never the batch window

@@ -2,8 +2,9 @@
 
 A move: clip the targets into the robot's software limits (from each part's `getLimits`), set
 each part's reference speeds so every joint covers its distance in the trajectory time
-(`setRefSpeeds`), publish one `JointCommand` per part back to back on `command:i`, then wait
-until every part's `state:o` reports motion done within `joint_tolerance` of its targets.
+(`setRefSpeeds`), publish one `JointCommand` per part back to back on `command:i` as one batch
+(the robot starts them at one simulated time), then wait until every part's `state:o` reports
+motion done within `joint_tolerance` of its targets.
 
 Stale states: a joint state that arrived more than `state_max_age` wall seconds ago (0.5 by
 default; its arrival age on this host, immune to clock differences between hosts) is never
@@ -161,7 +162,9 @@ class RobotLink:
         marks = {p: (self.states[p].latest().seq if self.states[p].latest() else 0) for p in parts}
         start = time.monotonic()
         for part in parts:
-            self._commands[part].put(JointCommand(part=part, position=sent[part].tolist()))
+            self._commands[part].put(
+                JointCommand(part=part, position=sent[part].tolist(), batch=len(parts))
+            )
         reason = ""
         tol = self.joint_tolerance
         for part in parts:

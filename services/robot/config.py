@@ -33,8 +33,9 @@ class RobotConfig:
             positions (`watchdog`); 0 switches it off.
         limit_tolerance: a command up to this far beyond a joint limit is clamped; further is
             rejected (rad).
-        batch_window: at rtf 0, commands arriving within this long (wall s) of the one that woke
-            the idle simulation start together, at the same simulated time.
+        batch_window: at rtf 0, the longest wait (wall s) of a robot at rest for the rest of
+            an announced batch of commands (`JointCommand.batch`), to start them together; a
+            batch complete before then starts at once.
         job_timeout: longest wait of an RPC for the simulation thread (wall s).
     """
 
@@ -57,8 +58,8 @@ class RobotConfig:
         high=0.5,
     )
     batch_window: float = flag(
-        0.01,
-        "at rtf 0, commands within this of the first start together",
+        0.05,
+        "at rtf 0, longest wait for the rest of an announced command batch",
         unit="wall s",
         low=0,
         high=1,

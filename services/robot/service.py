@@ -69,7 +69,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                     keys.command(part),
                     JointCommand,
                     callback=lambda msg, part=part: loop.command(
-                        part, msg.position, msg.names, msg.part
+                        part, msg.position, msg.names, msg.part, msg.batch
                     ),
                 )
                 for part in world.parts

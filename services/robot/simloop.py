@@ -8,9 +8,10 @@ Pacing (`pacing`): streams on a grid of simulated time, rtf × the wall clock wh
 rtf 0 (default) the world runs as fast as possible while something moves (a part not done, or
 an arrow in flight) and not at all when everything is at rest: the thread then sleeps on its
 job queue and repeats the unchanged state on the streams at their rates in wall time. A command
-that wakes the idle robot starts the motion after `batch_window` wall seconds, together with the
-commands that arrived meanwhile (a controller's three part commands start at the same simulated
-time, which keeps same-seed runs identical). A move of one simulated second then takes ~10-20
+that wakes the idle robot starts the motion at once, unless it announces a batch
+(`JointCommand.batch` > 1: a controller's three part commands): then the loop waits for the
+rest of the batch, at most `batch_window` wall seconds, and starts them at one simulated time,
+which keeps same-seed runs identical. A move of one simulated second then takes ~10-20
 ms of wall time. A world state also goes out right after each nock, release, landing and reset.
 
 Watchdog (`watchdog`): a streaming part (commands overtaking unfinished moves) whose commands
@@ -106,6 +107,9 @@ class SimLoop:
         self._landing_future: Future[dict[str, Any]] | None = None
         self._launch: Launch | None = None
         self._idle = False
+        # commands (and the largest batch they announced) since the loop last came to rest
+        self._batch_seen = 0
+        self._batch_size = 0
 
     # -- jobs (any thread) -----------------------------------------------------------------
     def submit(self, func: Callable[[], T]) -> Future[T]:
@@ -126,12 +130,15 @@ class SimLoop:
         self._jobs.close(_SHUTTING_DOWN)
 
     # -- the public verbs (any thread) -------------------------------------------------------
-    def command(self, part: str, position: list[float], names: list[str] | None, said: str) -> None:
-        """A `command:i` message for `part` (`said`: the part the message names); not awaited.
+    def command(
+        self, part: str, position: list[float], names: list[str] | None, said: str, batch: int = 1
+    ) -> None:
+        """A `command:i` message for `part` (`said`: the part the message names; `batch`: how
+        many commands, this one included, start together); not awaited.
 
         Rejections are counted and logged, never applied."""
         received = time.monotonic()
-        self.submit(lambda: self._stream_command(part, position, names, said, received))
+        self.submit(lambda: self._stream_command(part, position, names, said, received, batch))
 
     def position_move(self, part: str, position: Any, names: Any = None) -> list[float]:
         """Validate and apply targets (rad) like a command; returns the part's targets."""
@@ -246,8 +253,16 @@ class SimLoop:
         return self.world.set_joint_targets(part, targets).tolist()
 
     def _stream_command(
-        self, part: str, position: list[float], names: list[str] | None, said: str, at: float
+        self,
+        part: str,
+        position: list[float],
+        names: list[str] | None,
+        said: str,
+        at: float,
+        batch: int = 1,
     ) -> None:
+        self._batch_seen += 1
+        self._batch_size = max(self._batch_size, batch)
         try:
             targets, clamped = self._validate(part, position, names, said)
         except CommandRejected:
@@ -413,11 +428,16 @@ class SimLoop:
             if future is not None and not future.done():
                 future.set_exception(SimUnavailable("the robot stopped before the arrow landed"))
 
-    def _sleep_until(self, due: float, stop: threading.Event) -> bool:
-        """Wait until wall time `due`, running jobs that arrive and holding the parts whose
-        stream goes stale meanwhile (at its deadline); True if either changed the world."""
+    def _sleep_until(
+        self, due: float, stop: threading.Event, until: Callable[[], bool] | None = None
+    ) -> bool:
+        """Wait until wall time `due` (or until `until()` holds), running jobs that arrive and
+        holding the parts whose stream goes stale meanwhile (at its deadline); True if either
+        changed the world."""
         ran = False
         while not stop.is_set() and not self._jobs.closed:
+            if until is not None and until():
+                break
             now = time.monotonic()
             stale_at = self._streams.deadline()
             if stale_at is not None and now >= stale_at:
@@ -435,13 +455,18 @@ class SimLoop:
         """rtf 0 and nothing moves: sleep on the job queue, repeating the streams in wall time."""
         if not self._idle:
             self._idle = True
+            self._batch_seen, self._batch_size = 0, 0
             self._publish_joints()  # the final state shows motion_done at once
             self._publish_world()
         if self._jobs.wait(self._pacing.idle_wait()):
             self._jobs.drain()
-            if self._moving() and self.config.batch_window > 0:
-                # Let the rest of a batch of commands arrive, to start them together.
-                self._sleep_until(time.monotonic() + self.config.batch_window, stop)
+            if self._moving() and self._batch_seen < self._batch_size:
+                # Let the rest of the announced batch arrive, to start them together.
+                self._sleep_until(
+                    time.monotonic() + self.config.batch_window,
+                    stop,
+                    until=lambda: self._batch_seen >= self._batch_size,
+                )
             return
         joints, world = self._pacing.beats()
         if joints:
