@@ -1,15 +1,20 @@
 """Benchmark of a fleet of MuJoCo iCubs on this machine: rollouts/s with N robot stacks, CPU
 seconds per rollout per process, and where a rollout's time goes.
 
-Run `python -m benchmarks.bench_fleet [--robots 1,2,3] [--repeats 5] [--sessions 6]
-[--rollouts 10]`. Each repeat runs every N in turn (interleaved, so a change in the machine's
-load hits every N alike): a fresh router and N robot stacks (robot at rtf 0, controller, camera,
+Run `python -m benchmarks.bench_fleet [--robots 1,2,3] [--repeats 5] [--sessions 6] [--rollouts
+10] [--pin]`. Each repeat runs every N in turn (interleaved, so a change in the machine's load
+hits every N alike): a fresh router and N robot stacks (robot at rtf 0, controller, camera,
 detector; `services.launcher.Launcher`), then one `archery experiment --world mesh` in this
-process (its learner: the work queue, one session thread per robot) of `--sessions` sessions
-per algorithm × `--rollouts` rollouts, the same work for every N; then everything is stopped.
+process (its learner: the work queue, one session thread per robot) of `--sessions` sessions per
+algorithm × `--rollouts` rollouts, the same work for every N; then everything is stopped.
 
 * rollouts/s: done rollouts between the first and the last done record of the run, over that
   time (the start-up of the stacks is left out); its ratio to N = 1 of the same repeat;
+* cores busy: rollouts/s × CPU s per rollout, how much of the machine the fleet keeps busy
+  (a single robot that keeps more than 2 / 1.6 = 1.25 of 2 cores busy leaves a second one less
+  than 0.6 of its rate);
+* `--pin`: robot stack i runs on core i mod the core count (the router and the learner on any),
+  which measures what a further core per robot adds, as a further host would;
 * CPU s per rollout per process: user + system CPU time (psutil) of each child over the run, and
   of this process (the learner), divided by the run's rollouts; per service, summed over the
   robots (what one rollout costs that service, wherever it ran);
@@ -22,6 +27,7 @@ The baseline is N = 1 (one robot, today's mesh). Prints Markdown tables; writes
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -70,8 +76,16 @@ def _cpu(pid: int) -> float:
     return times.user + times.system
 
 
-def _one_run(n: int, config: ExperimentConfig, out: Path) -> dict[str, Any]:
-    """N robot stacks and one experiment over them; its figures."""
+def _pin(pid: int, core: int) -> None:
+    """Keep every thread of process `pid` (and the threads it starts later) on one core."""
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            os.sched_setaffinity(int(task.name), {core})
+
+
+def _one_run(n: int, config: ExperimentConfig, out: Path, pin: bool = False) -> dict[str, Any]:
+    """N robot stacks and one experiment over them; its figures. `pin`: robot stack i runs on
+    core i mod the core count (the router and the learner on any)."""
     prefixes = fleet_prefixes("bench", n)
     mesh = MeshConfig(
         RouterSpec(free_tcp_endpoint()),
@@ -82,6 +96,12 @@ def _one_run(n: int, config: ExperimentConfig, out: Path) -> dict[str, Any]:
     launcher.up(180)
     try:
         pids = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
+        if pin:
+            cores = sorted(os.sched_getaffinity(0))
+            for name, pid in pids.items():
+                service, _, prefix = name.partition("@")  # a single robot's: no "@prefix"
+                if service in STACK:
+                    _pin(pid, cores[prefixes.index(prefix or prefixes[0]) % len(cores)])
         before = {name: _cpu(pid) for name, pid in pids.items()} | {"learner": _cpu(os.getpid())}
         settings = MeshSettings(NetConfig(connect=(launcher.endpoint,)), tuple(prefixes))
         run_mesh_experiment(config, out, settings, threading.Event(), progress=False)
@@ -110,6 +130,7 @@ def _one_run(n: int, config: ExperimentConfig, out: Path) -> dict[str, Any]:
         "rollouts_per_s": rate,
         "cpu_s_per_rollout": {k: float(np.sum(v)) for k, v in cpu.items()},
         "cpu_s_per_rollout_all": float(sum(sum(v) for v in cpu.values())),
+        "cores_busy": rate * float(sum(sum(v) for v in cpu.values())),
         "timing_median_s": timing,
     }
 
@@ -135,6 +156,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rollouts", type=int, default=10, help="rollouts per session")
     parser.add_argument("--algos", default="archer,power", help="algorithms, comma-separated")
     parser.add_argument("--out", default="runs/bench-fleet", help="output directory")
+    parser.add_argument(
+        "--pin",
+        action="store_true",
+        help="one core per robot stack (stack i on core i mod the cores): scaling per core",
+    )
     args = parser.parse_args(argv)
     sizes = [int(x) for x in args.robots.split(",")]
     config = mesh_experiment_config(
@@ -150,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     for repeat in range(args.repeats):
         for n in sizes:
-            run = _one_run(n, config, out / f"r{repeat}-n{n}-{time.time_ns()}")
+            run = _one_run(n, config, out / f"r{repeat}-n{n}-{time.time_ns()}", args.pin)
             results[n].append(run)
             print(
                 f"repeat {repeat + 1}, N={n}: {run['rollouts_per_s']:.2f} rollouts/s, "
@@ -162,18 +188,23 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"\n{started}; {os.cpu_count()} cores, {cpu_model()}; {args.repeats} interleaved "
         f"repeats of {len(config.algorithms)} algorithms × {args.sessions} sessions × "
-        f"{args.rollouts} rollouts per N\n"
+        f"{args.rollouts} rollouts per N"
+        + ("; robot stack i pinned to core i mod the cores" if args.pin else "")
+        + "\n"
     )
     print(
-        f"| N robots | rollouts/s: median [min, max] | ratio to N={sizes[0]} | CPU s/rollout, all |"
+        f"| N robots | rollouts/s: median [min, max] | ratio to N={sizes[0]} "
+        "| CPU s/rollout, all | cores busy |"
     )
-    print("|---|---|---|---|")
+    print("|---|---|---|---|---|")
     for n in sizes:
         rates = [r["rollouts_per_s"] for r in results[n]]
         ratios = [r / b for r, b in zip(rates, base, strict=True)]
         total = [r["cpu_s_per_rollout_all"] for r in results[n]]
+        busy = [r["cores_busy"] for r in results[n]]
         print(
-            f"| {n} | {median_spread(rates)} | {median_spread(ratios)} | {median_spread(total)} |"
+            f"| {n} | {median_spread(rates)} | {median_spread(ratios)} "
+            f"| {median_spread(total, '.3f')} | {median_spread(busy)} |"
         )
     services = list(results[sizes[0]][0]["cpu_s_per_rollout"])
     print("\nCPU per rollout per service (median over repeats; the stack's summed over robots):\n")

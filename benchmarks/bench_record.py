@@ -1,13 +1,14 @@
 """Benchmark of `archery record`, `archery dashboard` and `archery replay`.
 
-Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8]`. It prints:
+Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8] [--rtf 0]`. It prints:
 
 * the observers' cost: per-rollout wall time of learning sessions on one mesh (`archery up`'s
-  Launcher, robot at rtf 0) under four conditions, interleaved in a rotating order `--repeats`
-  times: nothing watching; a recorder of `ROBOT/**`; the dashboard with a client polling it as
-  its page does (`/api/state` every 0.5 s, `/api/frame.png` whenever the frame's version
-  changes); both. Per condition, the median over repeats of its ratio to the same repeat's
-  unwatched session, and the spread (min, max);
+  Launcher, robot at rtf 0 by default, or 1: the wall-clock pace of a watched session) under
+  four conditions, interleaved in a rotating order `--repeats` times: nothing watching; a
+  recorder of `ROBOT/**`; the dashboard with a client polling it as its page does (`/api/state`
+  every 0.5 s, `/api/frame.png` whenever the frame's version changes); both. Per condition, the
+  median over repeats of its ratio to the same repeat's unwatched session, and the spread (min,
+  max);
   Also each session's CPU time per rollout, per process (the mesh's and the observers'; the
   polling client stands for the browser and is not counted): a figure that the load of other
   jobs on a shared machine disturbs far less than wall time;
@@ -203,14 +204,18 @@ def _fidelity(endpoint: str, path: Path, model: Path, journal: Path) -> tuple[fl
     return worst, len(hits), len(journaled), exact
 
 
-def mesh_launcher(tmp: Path, robot: str, model: Path) -> Launcher:
+def mesh_launcher(tmp: Path, robot: str, model: Path, rtf: float = 0.0) -> Launcher:
     """A whole mesh on a free port: logs and the learner's runs under `tmp`, the detector's
-    colour model in `model`."""
+    colour model in `model`, the robot at real-time factor `rtf`."""
     return Launcher(
         free_tcp_endpoint(),
         robot,
         tmp / "logs",
-        {"learner": ["--runs", str(tmp / "runs")], "detector": ["--model", str(model)]},
+        {
+            "learner": ["--runs", str(tmp / "runs")],
+            "detector": ["--model", str(model)],
+            "robot": ["--rtf", f"{rtf:g}"],
+        },
     )
 
 
@@ -221,10 +226,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions (≥ 5)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per session")
     parser.add_argument("--seconds", type=float, default=5.0, help="per offered frame rate")
+    parser.add_argument(
+        "--rtf",
+        type=float,
+        default=0.0,
+        help="the robot's real-time factor: 0 = as fast as possible (default), 1 = wall-clock "
+        "pace, as when a session is watched",
+    )
     args = parser.parse_args(argv)
     tmp = Path(tempfile.mkdtemp(prefix="bench-record-"))
     model = tmp / "model.json"
-    launcher = mesh_launcher(tmp, "bench", model)
+    launcher = mesh_launcher(tmp, "bench", model, args.rtf)
     launcher.up(180)
     endpoint = launcher.endpoint
     times: dict[str, list[float]] = {name: [] for name, _, _ in CONDITIONS}
@@ -269,8 +281,8 @@ def main(argv: list[str] | None = None) -> int:
     size = last.stat().st_size / 1e6
     print("\n--- bench_record")
     print(
-        f"per-rollout wall time against no observer ({args.repeats} interleaved repeats of "
-        f"{args.rollouts}-rollout sessions; median ms without: "
+        f"per-rollout wall time against no observer (robot at rtf {args.rtf:g}; {args.repeats} "
+        f"interleaved repeats of {args.rollouts}-rollout sessions; median ms without: "
         f"{statistics.median(times['none']) * 1e3:.0f})"
     )
     for name, _, _ in CONDITIONS[1:]:
