@@ -57,6 +57,21 @@ def test_after_abort(
         assert str(list(THETA0)) in decision.failure  # names a θ0 that lands
 
 
+@pytest.mark.parametrize(("theta", "best"), [(MISS, BEST), (MISS, None), (START, None)])
+def test_a_learner_that_redraws_runs_its_draw_after_a_miss_and_never_fails(
+    theta: tuple[float, ...], best: tuple[float, ...] | None
+) -> None:
+    fresh = (0.25, -0.02, 0.04)
+    decision = after_abort(
+        "no_arrow", theta, best_theta=best, theta0=START, bounds=BOX, redraw=fresh
+    )
+    assert decision == AbortDecision(fresh)
+    outside = after_abort(
+        "no_arrow", theta, best_theta=best, theta0=START, bounds=BOX, redraw=(0.5, 0.0, 0.0)
+    )
+    assert outside.retry_theta == (0.30, 0.0, 0.0)  # clipped into the box
+
+
 def test_every_code_the_session_raises_has_a_row() -> None:
     codes = {row[0] for row in ROWS}
     assert {"service_lost", "rpc_error", "bad_reply", "not_reached", "no_target", "no_arrow"} <= (

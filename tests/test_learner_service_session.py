@@ -174,6 +174,25 @@ def test_no_arrow_backs_off_and_never_invents_r(tmp_path: Path) -> None:
     _check_each_once(session.journal.path)
 
 
+def test_random_search_draws_again_after_a_miss_instead_of_backing_off(tmp_path: Path) -> None:
+    # misses are frequent in this wide box: a long streak of them must not end the session
+    config = SessionConfig(algorithm="random", rollouts=20, seed=3, max_aborts=100)
+    session = _run(config, FakeRig(), tmp_path)
+    records = read_records(session.journal.path)[0]
+    aborted = [r for r in records if r["record"] == "aborted"]
+    assert aborted and all(r["code"] == "no_arrow" for r in aborted)  # the box is wide: misses
+    for a in aborted:
+        fresh = np.random.default_rng([3, a["index"]]).uniform(BOX.low, BOX.high)
+        np.testing.assert_allclose(a["retry_theta"], fresh, atol=0)  # uniform in the box, …
+        following = next(
+            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
+        )
+        assert following["theta"] == a["retry_theta"]  # … and run next
+        assert a["cause"].endswith("next θ drawn afresh")
+    assert session.status()["state"] == "finished"
+    _check_each_once(session.journal.path)
+
+
 def test_theta0_off_the_face_fails_at_once(tmp_path: Path) -> None:
     session = _run(
         SessionConfig(theta0=(0.17, 0.04, -0.03), options={"explore_std": 0.0}), FakeRig(), tmp_path

@@ -259,6 +259,18 @@ def test_random_search_is_reproducible_from_its_seed() -> None:
     assert not np.array_equal(_learner("random", seed=10).ask(), _learner("random", seed=9).ask())
 
 
+def test_only_random_search_redraws_after_a_miss_and_leaves_its_generator_alone() -> None:
+    learner = _learner("random", seed=9)
+    before = learner.state_dict()
+    draw = learner.redraw((9, 4))
+    assert draw is not None and learner.bounds.contains(draw)
+    np.testing.assert_array_equal(draw, learner.redraw((9, 4)))  # reproducible from the key
+    assert not np.array_equal(draw, learner.redraw((9, 5)))
+    assert learner.state_dict() == before
+    for name in ("archer", "power", "cma", "hill"):
+        assert _learner(name).redraw((9, 4)) is None  # these back off towards the best θ
+
+
 def test_a_state_saved_when_random_named_the_hill_climber_is_refused() -> None:
     hill = _learner("hill", seed=1)
     _play(hill, _world(), 3)

@@ -11,7 +11,9 @@ is not counted as a rollout. After each abort, by its code:
   in time), `no_target` (the detector sees no target: camera or lighting, not θ): re-run the
   same θ.
 * `no_arrow` (no arrow on the target face: θ missed it): no r is invented; the next attempt runs
-  halfway from θ back towards the best θ so far (θ0 before any rollout), clipped into the θ box.
+  halfway from θ back towards the best θ so far (θ0 before any rollout), clipped into the θ box;
+  or, for a learner whose proposals ignore the rewards (uniform random search, `redraw`), a θ
+  drawn afresh.
 
 A `no_arrow` whose back-off θ is θ itself (θ is θ0, or the best θ, with nothing better known)
 fails the session at once: re-running it would miss again. Independently of the code,
@@ -68,6 +70,7 @@ def after_abort(
     best_theta: Sequence[float] | None,
     theta0: Sequence[float],
     bounds: Bounds,
+    redraw: Sequence[float] | None = None,
 ) -> AbortDecision:
     """The decision after an attempt at `theta` (m) aborted with `code` (see the module table).
 
@@ -77,12 +80,16 @@ def after_abort(
         best_theta: θ of the closest rollout so far (m), None before any rollout.
         theta0: the session's starting θ (m), the back-off anchor before any rollout.
         bounds: the session's θ box; a back-off θ is clipped into it.
+        redraw: after a `no_arrow`, run this θ (m, clipped into the box) instead of backing off:
+            the learner's fresh draw (`Learner.redraw`), None for a back-off.
     """
     current = np.asarray(theta, dtype=float)
     if code == SERVICE_LOST:
         return AbortDecision(_tuple(current), await_services=True)
     if code != NO_ARROW:
         return AbortDecision(_tuple(current))
+    if redraw is not None:
+        return AbortDecision(_tuple(bounds.clip(np.asarray(redraw, dtype=float))))
     anchor = np.asarray(theta0 if best_theta is None else best_theta, dtype=float)
     retry = bounds.clip(anchor + BACK_OFF_FRACTION * (current - anchor))
     failure = None

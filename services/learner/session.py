@@ -36,7 +36,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
-from services.learner.abort_policy import SERVICE_LOST, after_abort, streak_failure
+from services.learner.abort_policy import NO_ARROW, SERVICE_LOST, after_abort, streak_failure
 from services.learner.algorithms.base import Bounds, Learner, LearnerError
 from services.learner.algorithms.registry import (
     make_learner,
@@ -489,8 +489,7 @@ class Session:
                 index,
                 theta,
                 "no_arrow",
-                f"the detector saw no arrow on the target (robot: {shot.outcome}); next θ backs "
-                f"off halfway towards the best θ",
+                f"the detector saw no arrow on the target (robot: {shot.outcome})",
                 truth_r_m=truth,
                 detection=measurement.detection,
             )
@@ -522,13 +521,21 @@ class Session:
         or wait for the services as the policy says."""
         state = self.journal.state
         best = min(state.done, key=lambda d: d["distance_m"]) if state.done else None
+        redraw = self.learner.redraw((self.config.seed, index)) if code == NO_ARROW else None
         decision = after_abort(
             code,
             theta,
             best_theta=None if best is None else best["theta"],
             theta0=self.config.theta0,
             bounds=self.learner.bounds,
+            redraw=redraw,
         )
+        if code == NO_ARROW:
+            cause += (
+                "; next θ drawn afresh"
+                if redraw is not None
+                else "; next θ backs off halfway towards the best θ"
+            )
         log.warning("attempt %d at θ %s aborted [%s]: %s", index, theta.tolist(), code, cause)
         if code == SERVICE_LOST and self._lost_since is None:
             self._lost_since = time.monotonic()

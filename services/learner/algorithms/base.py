@@ -240,6 +240,13 @@ class Learner(ABC):
 
     # -- the protocol ---------------------------------------------------------------------------
 
+    def redraw(self, key: Sequence[int]) -> np.ndarray | None:
+        """A θ (m) to run instead of one that put no arrow on the target, for a learner whose
+        proposals ignore the rewards; None (the default): the session backs off towards the
+        best θ instead (`abort_policy`). `key` (session seed, attempt index) makes the draw
+        reproducible from the journal alone, without touching the learner's generator."""
+        return None
+
     def ask(self) -> np.ndarray:
         """The next θ to try (m): finite and inside the bounds; the same until the next `tell`."""
         if self._pending is None:

@@ -216,5 +216,11 @@ class RandomSearch(Learner):
     def _propose(self) -> np.ndarray:
         return self.rng.uniform(self.bounds.low, self.bounds.high)
 
+    def redraw(self, key: Sequence[int]) -> np.ndarray:
+        """After a θ that missed the target, another uniform draw in the bounds (m), from a
+        generator seeded by `key`: backing off towards the best θ, as the other learners do,
+        would make this baseline a local search."""
+        return np.random.default_rng(list(key)).uniform(self.bounds.low, self.bounds.high)
+
     def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
         """Nothing to learn: the next θ does not depend on the rewards."""
