@@ -110,7 +110,7 @@ def _run_ballistic(
         "|---|---|---|---|---|",
     ]
     results: dict[str, Any] = {}
-    with progress_bar(args.no_progress) as bar:
+    with progress_bar(disable=args.no_progress) as bar:
         task = bar.add_task("ballistic", total=total)
         for scenario_name, config in configs:
             runs: dict[str, AlgorithmRun] = {}
@@ -158,7 +158,7 @@ def _robot_session(
 
 def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str, Any]]:
     finals: dict[str, list[dict[str, Any]]] = {}
-    with learning_mesh(out) as (node, rollouts), progress_bar(args.no_progress) as bar:
+    with learning_mesh(out) as (node, rollouts), progress_bar(disable=args.no_progress) as bar:
         task = bar.add_task("robot", total=len(ROBOT_VARIANTS) * args.robot_sessions)
         for label, algo, options in ROBOT_VARIANTS:
             bar.update(task, description=f"robot: {label}")

@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     runs: dict[str, list[dict[str, Any]]] = {}
-    with learning_mesh(out) as (node, rollouts), progress_bar(args.no_progress) as bar:
+    with learning_mesh(out) as (node, rollouts), progress_bar(disable=args.no_progress) as bar:
         task = bar.add_task("robot wind", total=len(ALGORITHMS) * args.sessions)
         for algo in ALGORITHMS:
             bar.update(task, description=f"robot wind: {algo}")
