@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import importlib.metadata
+import logging
 import os
 import subprocess
 import sys
@@ -60,6 +62,10 @@ VERBS: dict[str, tuple[str, str]] = {
     "experiment": (
         "services.learner.tools.experiment:main",
         "run the paper's simulation experiment (the ballistic world, or the robots of a fleet)",
+    ),
+    "report": (
+        "services.learner.tools.report_main:main",
+        "draw report.png beside session journals (a session's or an experiment's folder)",
     ),
     "dashboard": (
         "services.dashboard.server:main",
@@ -141,6 +147,14 @@ def _run(verb: str, rest: list[str]) -> int:
     return int(func(rest) or 0)
 
 
+def _reader_gone() -> int:
+    """The reader of stdout went away (see the Python docs' "Note on SIGPIPE"): send the rest
+    of the output nowhere so that the final flush does not fail too, and end quietly (1)."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 1
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run `archery VERB ...`; returns the verb's exit status.
 
@@ -174,14 +188,31 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()
         return status
     except BrokenPipeError:
-        # The reader went away (see the Python docs' "Note on SIGPIPE"): send the rest of the
-        # output nowhere so the interpreter's final flush does not fail too, and end quietly.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 1
+        return _reader_gone()
     except KeyboardInterrupt:
         return 130
 
 
+def entry() -> None:
+    """The `archery` command (and `python -m services.cli`): `main`, then leave with its status
+    without the interpreter's teardown.
+
+    Zenoh's threads may still hand the interpreter a callback or drop a reference while it
+    tears itself down; on Python 3.11 such a thread then exits by unwinding through native
+    frames that catch the unwind, and the process aborts (SIGABRT, "FATAL: exception not
+    rethrown") after a clean stop. Every verb closes and flushes what it writes before it
+    returns, so the process ends here: logging shut down, stdout and stderr flushed, `os._exit`.
+    """
+    try:
+        status = main()
+    except BrokenPipeError:  # `archery --help | head -1`
+        status = _reader_gone()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed or broken pipe
+            stream.flush()
+    os._exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()

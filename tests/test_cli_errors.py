@@ -123,6 +123,9 @@ CASES: list[tuple[str, int, str]] = [
     ("drill --workdir /proc/nope", 2, "'/proc/nope'"),
     ("drill --json /proc/nope/out.json", 2, "'/proc/nope'"),
     ("up --record {tmp}/run.txt", 2, "--record '{tmp}/run.txt': give a file name ending in .mcap"),
+    # report
+    ("report {tmp}/missing", 2, "{tmp}/missing: no such file or folder"),
+    ("report {tmp}", 2, "no journal.jsonl in it"),
     # experiment
     ("experiment --out {tmp}/file", 2, "'{tmp}/file'"),
     ("experiment --out /proc/x", 2, "'/proc/x'"),

@@ -200,6 +200,8 @@ def plot_report(state: JournalState, path: Path) -> None:
             label="session resumed" if i == 0 else None,
         )
     stacked: dict[int, int] = {}
+    codes = {code for _, code in marks.aborted}
+    one_code = next(iter(codes)) if len(codes) == 1 else None  # then named once, in the legend
     for i, (position, code) in enumerate(marks.aborted):
         level = stacked.get(position, 0)  # several aborts between the same two rollouts stack
         stacked[position] = level + 1
@@ -212,11 +214,12 @@ def plot_report(state: JournalState, path: Path) -> None:
             color="red",
             linewidths=2,
             zorder=5,
-            label="aborted attempt (code)" if i == 0 else None,
+            label=(f"aborted attempt ({one_code or 'code'})" if i == 0 else None),
         )
-        curve.annotate(
-            code, (position + 0.5, y), textcoords="offset points", xytext=(5, -3), fontsize=7
-        )
+        if one_code is None:
+            curve.annotate(
+                code, (position + 0.5, y), textcoords="offset points", xytext=(5, -3), fontsize=7
+            )
     curve.set_xlabel("rollout")
     curve.set_ylabel("distance of the arrow to the target centre (cm)")
     curve.set_xlim(0.5 if not marks.aborted else 0, max(len(done), 1) + 0.5)
