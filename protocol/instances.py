@@ -87,14 +87,15 @@ def live_instances(session: zenoh.Session, keys: Keys, name: str, timeout: float
 def describe_all(
     session: zenoh.Session,
     keys: Keys,
-    name: str,
+    name: str | None = None,
     timeout: float = 2.0,
     payload: bytes | None = None,
 ) -> dict[str, Describe]:
-    """Every `describe` reply for `name` (each instance answers), by replier Zenoh id."""
+    """Every `describe` reply for `name` (each instance answers; None: every service of the
+    robot), by replier Zenoh id."""
     out: dict[str, Describe] = {}
     replies = session.get(
-        keys.describe(name),
+        keys.describe_all() if name is None else keys.describe(name),
         payload=payload,
         target=zenoh.QueryTarget.ALL,
         consolidation=zenoh.ConsolidationMode.NONE,

@@ -172,6 +172,10 @@ class Keys:
         """Where a service answers `describe` with its ports and message types."""
         return f"{self.robot}/describe/{self._service(service)}"
 
+    def describe_all(self) -> str:
+        """Key expression matching every service's `describe`."""
+        return f"{self.robot}/describe/*"
+
     def alive_all(self) -> str:
         """Key expression matching the liveliness tokens of every service of this robot."""
         return f"{self.robot}/alive/*"

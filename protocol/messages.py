@@ -311,11 +311,14 @@ class RpcReply(Message, frozen=True):
 
 
 class PortInfo(msgspec.Struct, frozen=True):
-    """One port of a service: key, kind (pub, events, sub, rpc) and message type name."""
+    """One port of a service: key, kind (pub, events, sub, rpc), message type name and, for a
+    pub or events port, how many messages the service has sent on it since it started (its
+    rate is the count's rise between two describes: nobody need subscribe to measure it)."""
 
     key: str
     kind: str
     message: str
+    count: int = 0
 
 
 class Describe(Message, frozen=True):

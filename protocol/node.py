@@ -124,6 +124,11 @@ class Publisher(Generic[M]):
             self._pub.put(self._buffer)
         return stamped
 
+    @property
+    def count(self) -> int:
+        """Messages published so far (the last `seq`)."""
+        return self._seq
+
     def matching(self) -> bool:
         """Whether at least one subscriber matches the key now."""
         return bool(self._pub.matching_status.matching)
@@ -599,7 +604,12 @@ class Node:
         """This node's self-description."""
         return Describe(
             service=self.name or "",
-            ports=list(self._ports),
+            ports=[
+                msgspec.structs.replace(port, count=source.count)
+                if isinstance(source, Publisher)
+                else port
+                for port, source in zip(self._ports, self._closables, strict=True)
+            ],
             pid=os.getpid(),
             host=socket.gethostname(),
             verbs=dict(self._verbs),

@@ -3,13 +3,13 @@ against a fake learner (Rollout messages, `status`) and a fake detector (`frame`
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 import re
 import shutil
 import subprocess
 import tempfile
+import threading
 import time
 import urllib.error
 import urllib.request
@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.messages import Image, Rollout
+from protocol.messages import Image, JointState, Rollout
 from protocol.netflags import NetConfig
 from protocol.node import Node, Publisher
 from protocol.router import free_tcp_endpoint
@@ -225,40 +225,50 @@ def test_the_page_in_a_headless_browser(net: NetConfig, tmp_path: Path) -> None:
     assert 'class="ok"' in html  # the last poll succeeded
 
 
-def _camera_status(frames: int) -> dict[str, Any]:
-    return {
-        "source": "mujoco",
-        "width": 64,
-        "height": 48,
-        "rate": 10.0,
-        "encoding": "rgb8",
-        "frames": frames,
-        "renders": frames,
-        "reuses": 0,
-        "render_ms": None,
-        "errors": 0,
-        "latest_sim_time": None,
-        "scene": None,
-        "scene_from": "robot",
-    }
+def _rates(watch: MeshWatch, ready: Callable[[dict[str, float | None]], bool]) -> dict[str, Any]:
+    """The watch's rates {key: Hz} once `ready` holds for them (30 s at most)."""
+    deadline = time.monotonic() + 30
+    while True:
+        rates = {r["key"]: r["hz"] for r in watch.snapshot()["rates"]}
+        if ready(rates):
+            return rates
+        assert time.monotonic() < deadline, rates
+        time.sleep(0.05)
 
 
-def test_watching_does_not_subscribe_to_the_frames(net: NetConfig) -> None:
-    # the camera renders only for subscribers: the frames' rate comes from its status instead
-    counted = itertools.count(0, 3)
-    with Node("camera", net) as camera, Node(None, net) as node:
+def test_rates_come_from_the_publishers_counts_not_from_subscribing(net: NetConfig) -> None:
+    # a subscriber would make the camera render and the router forward every message
+    stop = threading.Event()
+    with Node("camera", net) as camera, Node("robot", net) as robot, Node(None, net) as node:
         frames = camera.publisher(camera.keys.cam_frames(), Image)
-        camera.serve(camera.keys.cam_rpc(), {"status": lambda a: _camera_status(next(counted))})
+        states = robot.publisher(robot.keys.state("torso"), JointState)
         camera.ready()
+        robot.ready()
+        pixels = np.zeros((2, 2, 3), np.uint8)
+        state = JointState(part="torso", names=["a"], position=[0.0], velocity=[0.0])
+
+        robot_lock, robot_gone = threading.Lock(), threading.Event()
+
+        def publish() -> None:
+            while not stop.wait(0.01):
+                frames.put(Image.from_numpy(pixels))
+                with robot_lock:
+                    if not robot_gone.is_set():
+                        states.put(state)
+
+        thread = threading.Thread(target=publish, daemon=True)
+        thread.start()
         watch = MeshWatch(node, status_every=0.1)
         try:
-            deadline = time.monotonic() + 30
-            while True:
-                rates = {r["key"]: r["hz"] for r in watch.snapshot()["rates"]}
-                if rates.get(camera.keys.cam_frames(), 0) > 0:
-                    break
-                assert time.monotonic() < deadline, rates
-                time.sleep(0.05)
-            assert not frames.matching()
+            both = (camera.keys.cam_frames(), robot.keys.state("torso"))
+            rates = _rates(watch, lambda r: all((r.get(k) or 0) > 0 for k in both))
+            assert all(rates[k] < 200 for k in both), rates  # ~100 Hz each
+            assert not frames.matching() and not states.matching()
+            with robot_lock:
+                robot_gone.set()
+                robot.close()  # its publisher is gone: its rate drops to 0
+            _rates(watch, lambda r: r.get(robot.keys.state("torso")) == 0)
         finally:
+            stop.set()
+            thread.join(5)
             watch.close()

@@ -11,6 +11,7 @@ from collections.abc import Iterator
 import pytest
 
 from protocol.errors import BadRequest, RpcError, RpcTimeout
+from protocol.instances import describe_all
 from protocol.messages import JointState, WorldEvent
 from protocol.netflags import NetConfig
 from protocol.node import Node
@@ -140,6 +141,19 @@ def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
         (server.keys.part_rpc("left_arm"), "rpc", "RpcRequest"),
     }
     assert info.verbs[server.keys.part_rpc("left_arm")] == ["getLimits"]
+    assert all(p.count == 0 for p in info.ports)
+
+
+def test_describe_counts_the_messages_of_each_publisher(pair: tuple[Node, Node]) -> None:
+    server, client = pair
+    states = server.publisher(server.keys.state("torso"), JointState)
+    server.publisher(server.keys.state("left_arm"), JointState)
+    server.ready()
+    for _ in range(3):  # nobody subscribes: the count is the publisher's own
+        states.put(JointState(part="torso", names=["a"], position=[0.0], velocity=[0.0]))
+    described = describe_all(client.session, client.keys)
+    counts = {p.key: p.count for d in described.values() for p in d.ports}
+    assert counts == {server.keys.state("torso"): 3, server.keys.state("left_arm"): 0}
 
 
 def _spawn_echo(net: NetConfig) -> subprocess.Popen[bytes]:

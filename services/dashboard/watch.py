@@ -1,18 +1,18 @@
 """What the dashboard shows, gathered from the mesh: the live services, each stream port's
 rate, the learner's rollouts and status, and the detector's last measured frame.
 
-Watching costs the session little: the rates come from subscribers to every stream but the
-camera's frames (a subscriber to the frames would make the camera render and the router
-forward 1280×720 frames for nothing but a count); the frame rate comes from the camera's
-non-blocking `status` instead. The detector's frame with its overlay is drawn and PNG-encoded
-on the detector's worker, where it holds up the next measurement: it is fetched after a
-rollout at most every `frame_every` s, and never sooner than `1 / FRAME_DUTY` times the last
-fetch's duration after it, so watching takes at most that share of the detector's time.
+Watching costs the session little: the rates come from the publishers' own message counts
+(`PortInfo.count` in each service's `describe`, polled with the learner's status), not from
+subscribing to the streams: a subscriber would have the router forward every joint state and,
+for the camera's frames, make the camera render 1280×720 frames for nothing but a count. The
+detector's frame with its overlay is drawn and PNG-encoded on the detector's worker, where it
+holds up the next measurement: it is fetched after a rollout at most every `frame_every` s,
+and never sooner than `1 / FRAME_DUTY` times the last fetch's duration after it, so watching
+takes at most that share of the detector's time.
 """
 
 from __future__ import annotations
 
-import collections
 import logging
 import math
 import threading
@@ -20,9 +20,9 @@ import time
 from typing import Any
 
 import msgspec
-import zenoh
 
 from protocol.errors import ArcheryError
+from protocol.instances import describe_all
 from protocol.keys import SERVICES
 from protocol.messages import Rollout
 from protocol.node import Node
@@ -30,7 +30,6 @@ from protocol.patterns import stream_type
 from protocol.robotspec import HIT_RADIUS
 from protocol.tokens import TokenSet
 from protocol.verbs.base import NoArgs
-from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, FrameArgs
 from protocol.verbs.learner import LEARNER_VERBS
 from sim.scene_config import RING_COLOURS
@@ -42,8 +41,6 @@ log = logging.getLogger("archery.dashboard")
 MAX_ROLLOUTS = 2000  # rollouts kept per session (a session's budget is at most 10 000)
 _RPC_TIMEOUT = 2.0  # s: frame and status calls
 FRAME_DUTY = 0.02  # the share of the detector's time the frame fetches may take at most
-#: The streams whose arrivals are counted: every stream port but the camera's frames.
-_COUNTED = ("*/state:o", "*/command:i", "world/events:o", "detector/hit:o", "learner/rollout:o")
 
 
 def _hex(rgba: tuple[float, ...]) -> str:
@@ -55,54 +52,34 @@ FACE = [{"radius_m": r, "colour": _hex(rgba)} for r, rgba in RING_COLOURS]
 
 
 class _Rates:
-    """Arrival times per stream key over the last `window` s: messages per second."""
+    """Each stream port's rate from its publisher's message count, as the describe polls
+    report it: the count's rise between two polls over the time between them (messages/s)."""
 
-    def __init__(self, window: float) -> None:
-        self.window = window
+    def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._times: dict[str, collections.deque[float]] = {}
-        self._streams: dict[str, bool] = {}
         self._counts: dict[str, tuple[float, int]] = {}  # key -> (when, count reported)
-        self._reported: dict[str, tuple[float, float]] = {}  # key -> (when, Hz)
+        self._rates: dict[str, float | None] = {}  # None: one report so far
 
-    def add(self, key: str) -> None:
-        is_stream = self._streams.get(key)
-        if is_stream is None:
-            is_stream = self._streams[key] = stream_type(key) is not None
-        if not is_stream:
-            return
+    def update(self, counts: dict[str, int]) -> None:
+        """One poll's counts {key: messages sent}; a key it lacks has lost its publisher."""
         now = time.monotonic()
         with self._lock:
-            times = self._times.setdefault(key, collections.deque())
-            times.append(now)
-            while times and times[0] < now - self.window:
-                times.popleft()
-
-    def count(self, key: str, total: int) -> None:
-        """A port's message count as its publisher reports it (the frames, from the camera's
-        status); its rate is the count's rise over the last two reports."""
-        now = time.monotonic()
-        with self._lock:
-            last = self._counts.get(key)
-            self._counts[key] = (now, total)
-            if last is not None and now > last[0] and total >= last[1]:
-                self._reported[key] = (now, (total - last[1]) / (now - last[0]))
+            for key in self._rates.keys() - counts.keys():
+                self._rates[key] = 0.0
+                self._counts.pop(key, None)
+            for key, total in counts.items():
+                last = self._counts.get(key)
+                self._counts[key] = (now, total)
+                if last is None or total < last[1] or now <= last[0]:  # new, or restarted
+                    self._rates[key] = None
+                else:
+                    self._rates[key] = (total - last[1]) / (now - last[0])
 
     def table(self) -> list[dict[str, Any]]:
-        """Each key seen, with its rate (Hz, 0 when silent for a window) and last-seen age."""
-        now = time.monotonic()
+        """Each stream port seen, with its rate (Hz; None until a second poll)."""
         with self._lock:
-            items = sorted((k, list(v)) for k, v in self._times.items())
-            reported = dict(self._reported)
-        out = []
-        for key, times in items:
-            recent = [t for t in times if t >= now - self.window]
-            rate = len(recent) / self.window if recent else 0.0
-            age = now - times[-1] if times else None
-            out.append({"key": key, "hz": round(rate, 2), "age_s": age and round(age, 2)})
-        for key, (when, rate) in sorted(reported.items()):
-            out.append({"key": key, "hz": round(rate, 2), "age_s": round(now - when, 2)})
-        return sorted(out, key=lambda row: row["key"])
+            rates = sorted(self._rates.items())
+        return [{"key": k, "hz": None if v is None else round(v, 2)} for k, v in rates]
 
 
 class MeshWatch:
@@ -113,7 +90,6 @@ class MeshWatch:
         self,
         node: Node,
         *,
-        window: float = 2.0,
         status_every: float = 2.0,
         frame_every: float = 2.0,
     ) -> None:
@@ -131,15 +107,9 @@ class MeshWatch:
         self._frame_error = ""
         self._frame_wanted = threading.Event()
         self._stop = threading.Event()
-        self._rates = _Rates(window)
+        self._rates = _Rates()
         keys = node.keys
         self._alive = TokenSet(node.session, keys.alive_all())
-        self._raw: list[zenoh.Subscriber] = [
-            node.session.declare_subscriber(
-                f"{keys.robot}/{pattern}", lambda sample: self._rates.add(str(sample.key_expr))
-            )
-            for pattern in _COUNTED
-        ]
         node.subscribe(keys.learner_rollouts(), Rollout, mode="fifo", callback=self._on_rollout)
         self._frame_wanted.set()
         self._worker = threading.Thread(target=self._work, name="dashboard-mesh", daemon=True)
@@ -203,13 +173,15 @@ class MeshWatch:
             status = {"state": "unreachable", "error": str(exc)}
         with self._lock:
             self._status = status
-        try:
-            camera = self.node.call_typed(
-                self.node.keys.cam_rpc(), CAMERA_VERBS["status"], NoArgs(), timeout=_RPC_TIMEOUT
-            )
-        except ArcheryError:
-            return  # no camera: its frames' rate is not shown
-        self._rates.count(self.node.keys.cam_frames(), camera.frames)
+        described = describe_all(self.node.session, self.node.keys, timeout=_RPC_TIMEOUT)
+        self._rates.update(
+            {
+                port.key: port.count
+                for describe in described.values()
+                for port in describe.ports
+                if port.kind in ("pub", "events") and stream_type(port.key) is not None
+            }
+        )
 
     def _fetch_frame(self) -> bool:
         """Fetch the detector's frame; whether it came."""
@@ -262,6 +234,3 @@ class MeshWatch:
         self._frame_wanted.set()
         self._worker.join(timeout=2 * _RPC_TIMEOUT + 1)
         self._alive.close()
-        for sub in self._raw:
-            sub.undeclare()
-        self._raw = []

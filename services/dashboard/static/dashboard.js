@@ -126,7 +126,7 @@ function showRates(state) {
     key.textContent = r.key.startsWith(prefix) ? r.key.slice(prefix.length) : r.key;
     const hz = document.createElement("td");
     hz.className = "hz";
-    hz.textContent = r.hz.toFixed(1);
+    hz.textContent = r.hz === null ? "…" : r.hz.toFixed(1);
     tr.append(key, hz);
     body.appendChild(tr);
   }
