@@ -162,13 +162,19 @@ def start(model: mujoco.MjModel) -> Iterator[Any]:
         assert not thread.is_alive()
 
 
+def _wait_moved(loop: SimLoop, timeout: float = 20.0) -> float:
+    """Wait until a move ended at rest; the wall time it took (s)."""
+    t0 = time.monotonic()
+    while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
+        assert time.monotonic() < t0 + timeout, "the move did not end"
+        time.sleep(0.002)
+    return time.monotonic() - t0
+
+
 def _go(loop: SimLoop, posture: dict[str, np.ndarray]) -> None:
     for part, values in posture.items():
         loop.command(part, values.tolist(), None, part, batch=len(posture))
-    deadline = time.monotonic() + 20
-    while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
-        assert time.monotonic() < deadline, "the posture was not reached"
-        time.sleep(0.005)
+    _wait_moved(loop)
 
 
 def test_rtf0_time_stands_still_at_rest_but_the_streams_go_on(start: Any) -> None:
@@ -301,21 +307,9 @@ def test_moves_sent_one_after_another_are_not_a_stream(start: Any) -> None:
     loop, _ = start(watchdog=5.0)
     for k in range(3):  # each command after the previous move is done, as a controller does
         loop.command("torso", [0.0, 0.0, 0.05 * (k + 1)], None, "torso")
-        deadline = time.monotonic() + 5
-        while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
-            assert time.monotonic() < deadline
-            time.sleep(0.002)
+        _wait_moved(loop, 5)
         assert not loop.counters("torso")["streaming"]
     assert loop.counters("torso")["accepted"] == 3
-
-
-def _wait_moved(loop: SimLoop, timeout: float = 20.0) -> float:
-    """Wait until a move ended at rest; the wall time it took (s)."""
-    t0 = time.monotonic()
-    while not loop.call(lambda: loop.world.motion_done() and loop.world.sim_time > 0):
-        assert time.monotonic() < t0 + timeout, "the move did not end"
-        time.sleep(0.002)
-    return time.monotonic() - t0
 
 
 def _first_motion(rec: Recorder, rest: dict[str, list[float]]) -> dict[str, float]:
