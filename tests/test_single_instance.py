@@ -14,7 +14,7 @@ import zenoh
 
 from protocol.codec import encode
 from protocol.errors import DuplicateService
-from protocol.instances import live_instances, zid_of
+from protocol.instances import InstanceWatch, live_instances, zid_of
 from protocol.messages import Describe
 from protocol.netflags import NetConfig, open_session
 from protocol.node import Node
@@ -116,3 +116,28 @@ def test_ports_shows_every_instance(net: NetConfig) -> None:
             token.undeclare()
     finally:
         stray.close()
+
+
+def test_a_fresh_watch_knows_a_live_instance_at_once(net: NetConfig) -> None:
+    """The first check of a fresh watch, made while its subscriber's history is still on its
+    way, accepts the live instance (a liveliness query made then may be answered empty)."""
+    with Node(NAME, net) as service, Node(None, net) as client:
+        service.ready()
+        zid = zid_of(service.session)
+        for attempt in range(300):
+            watch = InstanceWatch(client.session, client.keys)
+            try:
+                assert watch.is_instance(NAME, zid), f"attempt {attempt}: instance refused"
+            finally:
+                watch.close()
+
+
+def test_a_watch_refuses_a_session_that_holds_no_token(net: NetConfig) -> None:
+    with Node(NAME, net) as service, Node(None, net) as client:
+        service.ready()
+        watch = InstanceWatch(client.session, client.keys, settle=0.2)
+        try:
+            assert not watch.is_instance(NAME, zid_of(client.session))
+            assert watch.holders(NAME) == {zid_of(service.session)}
+        finally:
+            watch.close()
