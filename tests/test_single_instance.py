@@ -135,8 +135,9 @@ def test_a_fresh_watch_knows_a_live_instance_at_once(net: NetConfig) -> None:
 def test_a_watch_refuses_a_session_that_holds_no_token(net: NetConfig) -> None:
     with Node(NAME, net) as service, Node(None, net) as client:
         service.ready()
-        watch = InstanceWatch(client.session, client.keys, settle=0.2)
+        watch = InstanceWatch(client.session, client.keys, settle=0.5)
         try:
+            assert watch.is_instance(NAME, zid_of(service.session))
             assert not watch.is_instance(NAME, zid_of(client.session))
             assert watch.holders(NAME) == {zid_of(service.session)}
         finally:
