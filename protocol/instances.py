@@ -184,7 +184,7 @@ class InstanceWatch:
     declared, and a liveliness query made in that moment may come back empty although the
     router holds the token (zenoh 1.10.2: from 2 in 10,000 to 5 in 500 of the queries made
     right after declaring such a subscriber, each back within 0.2 ms; none of 10,000 without
-    one; `benchmarks/probe_liveliness.py`). So a replier not heard of yet is waited for, by
+    one; `benchmarks/bench_liveliness.py`). So a replier not heard of yet is waited for, by
     event, for up to `settle` seconds (s) before it is refused.
     """
 

@@ -13,7 +13,7 @@ A router process, one service holding its instance token, and one client session
 Reported per arrangement: the queries that came back without the token (summed over repeats,
 and per repeat as median [min, max]), and the wall time of those empty answers (ms).
 
-Run: `.venv/bin/python -m benchmarks.probe_liveliness [--queries N] [--repeats R]`
+Run: `.venv/bin/python -m benchmarks.bench_liveliness [--queries N] [--repeats R]`
 """
 
 from __future__ import annotations
