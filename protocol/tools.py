@@ -40,7 +40,7 @@ from protocol.robotspec import CALL_TIMEOUT
 from protocol.tokens import TokenSet
 from protocol.verbs import Verb, table_for_key
 
-__all__ = ["ports_main", "read_main", "rpc_main", "view_main", "write_main"]
+__all__ = ["alive_main", "ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
 
 def _parser(prog: str, description: str) -> argparse.ArgumentParser:
@@ -85,6 +85,27 @@ def _wait_any_alive(node: Node, wait: float) -> set[str]:
     with TokenSet(node.session, node.keys.alive_all()) as alive:
         alive.wait_for(bool, wait)
         return alive.present()
+
+
+def alive_main(argv: list[str] | None = None) -> int:
+    """`archery alive [NAME…]`: a health check. Exit 0 when the router answers and every named
+    service of the robot holds its liveliness token now; 1 (one line on stderr) when not."""
+    parser = _parser("alive", "exit 0 when the router answers and the named services are alive")
+    parser.add_argument("names", nargs="*", metavar="NAME", help="services that must be alive")
+    args = parser.parse_args(argv)
+
+    def body(net: NetConfig) -> int:
+        with Node(None, net) as node:
+            missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
+            if missing:
+                print(
+                    f"archery alive: not alive on robot {node.keys.robot!r}: {', '.join(missing)}",
+                    file=sys.stderr,
+                )
+                return 1
+        return 0
+
+    return _run("alive", lambda: NetConfig.from_args(args), body)
 
 
 def ports_main(argv: list[str] | None = None) -> int:

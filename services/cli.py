@@ -22,6 +22,10 @@ __all__ = ["VERBS", "main", "spawn"]
 VERBS: dict[str, tuple[str, str]] = {
     "router": ("protocol.router:main", "run a Zenoh router (the mesh's embedded default)"),
     "ports": ("protocol.tools:ports_main", "list live services and their ports (yarp name list)"),
+    "alive": (
+        "protocol.tools:alive_main",
+        "exit 0 when the router answers and the named services are alive (health checks)",
+    ),
     "read": ("protocol.tools:read_main", "print decoded messages from a key as JSON lines"),
     "write": ("protocol.tools:write_main", "publish one message, given as JSON, on a key"),
     "rpc": ("protocol.tools:rpc_main", "call an rpc:i verb and print the reply"),

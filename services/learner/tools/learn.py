@@ -7,9 +7,10 @@ journal; see `services.learner.transfer`), or follows a running one
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget), 1 when it
-failed or the learner vanished (the message says how to resume), 2 for bad input, 130 after
-Ctrl-C (the session is stopped after its current rollout and can be resumed).
+"report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget; with
+`--require-hit`, 3 when it finished without a hit), 1 when it failed or the learner vanished (the
+message says how to resume), 2 for bad input, 130 after Ctrl-C (the session is stopped after its
+current rollout and can be resumed).
 """
 
 from __future__ import annotations
@@ -130,6 +131,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="wait this long for the five services to be alive (s)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.add_argument(
+        "--require-hit",
+        action="store_true",
+        help="exit status 3 when the session finishes without a hit (containers, scripts)",
+    )
     return parser
 
 
@@ -307,10 +313,14 @@ def main(argv: list[str] | None = None) -> int:
                 pass
             print(result_line(attach.journal_counts(status)))
             return 130
-    print(result_line(attach.journal_counts(status)))
+    counts = attach.journal_counts(status)
+    print(result_line(counts))
     if status["state"] != "finished":
         print(
             f"archery learn: session {status['state']}: {status.get('cause', '')}", file=sys.stderr
         )
         return 1
+    if args.require_hit and counts.get("hit_at") is None:
+        print(f"archery learn: session {session} finished without a hit", file=sys.stderr)
+        return 3
     return 0
