@@ -1,10 +1,11 @@
-# One command per job: `make demo` runs the main job, `make test` the test suite.
+# One command per job: `make demo` runs the main job, `make test` the test suite, `make compose`
+# the containers.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test lint format bench drills clean
+.PHONY: setup demo test compose lint format bench drills clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -19,6 +20,10 @@ demo: setup
 
 test: setup
 	$(PY) -m pytest
+
+# The containers for real: images, docker-compose's demo, secure and fleet profiles, faults.
+compose: setup
+	$(PY) -m tests.containers
 
 lint: setup
 	$(VENV)/bin/ruff check .

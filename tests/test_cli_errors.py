@@ -83,6 +83,9 @@ CASES: list[tuple[str, int, str]] = [
     ("view {robot}/cam/target:o --out {tmp}/no/dir/frame.png {net}", 2, "{tmp}/no/dir"),
     ("view {robot}/torso/state:o --out {tmp}/frame.png {net}", 2, "does not carry images"),
     # ports
+    ("alive --timeout nan", 2, "'nan'"),
+    ("alive --connect {dead}", 1, "{dead}"),
+    ("alive robot camera {net} --timeout 0.5", 1, "not alive on robot '{robot}': camera, robot"),
     ("ports --timeout -1", 2, "'-1'"),
     ("ports --timeout nan", 2, "'nan'"),
     ("ports --wait -3", 2, "'-3'"),

@@ -1,6 +1,7 @@
-"""docker-compose.yml and the Dockerfile, checked without a Docker engine: one image, a router,
-one container per process, every command an `archery` verb whose flags parse, every process
-connected to the router by name."""
+"""docker-compose.yml and the Dockerfile, checked without a Docker engine: one image per process
+(a Dockerfile target each, built by one service only), a router, one container per process,
+every command an `archery` verb whose flags parse, every process connected to the router by name
+and checked healthy by liveliness. tests/test_containers.py runs them for real."""
 
 from __future__ import annotations
 
@@ -20,34 +21,9 @@ from protocol.credentials import DEFAULT_HOSTS
 from services.cli import VERBS
 from services.launcher import SERVICES
 from services.learner.tools.learn import build_parser, start_request
+from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]
-_LINE = re.compile(r"^(?P<indent> *)(?P<key>[A-Za-z_][\w-]*):(?: (?P<value>.+))?$")
-
-
-def read_compose(path: Path) -> dict[str, Any]:
-    """Read the compose file's YAML subset: nested `key:` blocks whose leaves are JSON values.
-
-    Anything else (anchors, block lists, bare strings) is an error, so what this reads is what
-    a YAML parser reads."""
-    root: dict[str, Any] = {}
-    stack: list[tuple[int, dict[str, Any]]] = [(-1, root)]
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip() or line.lstrip().startswith("#"):
-            continue
-        match = _LINE.match(line)
-        assert match, f"{path.name} line {number} is outside the subset: {line!r}"
-        indent = len(match["indent"])
-        while indent <= stack[-1][0]:
-            stack.pop()
-        parent = stack[-1][1]
-        assert match["key"] not in parent, f"line {number}: {match['key']!r} repeated"
-        if match["value"] is None:
-            parent[match["key"]] = child = {}
-            stack.append((indent, child))
-        else:
-            parent[match["key"]] = json.loads(match["value"])
-    return root
 
 
 @pytest.fixture(scope="module")
@@ -59,27 +35,67 @@ def _plain(compose: dict[str, Any]) -> dict[str, Any]:
     return {n: s for n, s in compose["services"].items() if "profiles" not in s}
 
 
+def _profile(compose: dict[str, Any], name: str) -> dict[str, Any]:
+    return {n: s for n, s in compose["services"].items() if s.get("profiles") == [name]}
+
+
 def _secure(compose: dict[str, Any]) -> dict[str, Any]:
-    return {n: s for n, s in compose["services"].items() if s.get("profiles") == ["secure"]}
+    return _profile(compose, "secure")
 
 
-def test_services_and_image(compose: dict[str, Any]) -> None:
+TARGETS = re.findall(r"^FROM \S+ AS (\w+)$", (ROOT / "Dockerfile").read_text(), re.M)
+
+
+def test_services_and_images(compose: dict[str, Any]) -> None:
     services = _plain(compose)
     assert set(services) == {"router", *SERVICES, "demo"}
     secure = _secure(compose)
     assert set(secure) == {f"{n}-secure" for n in services}
-    assert set(services) | set(secure) == set(compose["services"])
-    for name, service in services.items():
-        assert service["build"] == "." and service["image"] == "archery:latest", name
+    fleet = _profile(compose, "fleet")
+    assert set(services) | set(secure) | set(fleet) == set(compose["services"])
+    built: dict[str, str] = {}
+    for name, service in compose["services"].items():
+        image = service["image"]
+        assert re.fullmatch(r"archery-(\w+):latest", image), name
+        if "build" in service:  # each image is built by one service, with its target
+            target = service["build"]["target"]
+            assert image == f"archery-{target}:latest" and target in TARGETS, name
+            assert image not in built, f"{image} built by {built.get(image)} and {name}"
+            built[image] = name
         command = service["command"]
         assert command[0] == "archery" and command[1] in VERBS, name
+        assert service["user"] == "${ARCHERY_USER:-1000:1000}", name
+    assert set(built) == {f"archery-{t}:latest" for t in ("router", *SERVICES)}
+    assert {s["image"] for s in compose["services"].values()} <= set(built)
     for name in SERVICES:
         assert services[name]["command"][1] == name
-        assert services[name]["depends_on"] == ["router"]
+        assert services[name]["image"] == f"archery-{name}:latest"
+        assert services[name]["depends_on"] == {"router": {"condition": "service_healthy"}}
     assert services["demo"]["command"][1] == "learn"
-    assert set(services["demo"]["depends_on"]) == {"router", *SERVICES}
-    for name in ("robot", "camera"):  # they render or build MuJoCo scenes
-        assert services[name]["environment"]["MUJOCO_GL"] == "egl"
+    assert "--require-hit" in services["demo"]["command"]
+    assert services["demo"]["depends_on"] == {
+        n: {"condition": "service_healthy"} for n in ("router", *SERVICES)
+    }
+
+
+def test_every_process_has_a_liveliness_health_check(compose: dict[str, Any]) -> None:
+    """A container is healthy when its service holds its liveliness token (`archery alive NAME`
+    through its router); a router when it answers."""
+    for name, service in compose["services"].items():
+        if service["command"][1] in ("learn", "experiment"):
+            assert "healthcheck" not in service, name
+            continue
+        test = service["healthcheck"]["test"]
+        assert test[:3] == ["CMD", "archery", "alive"], name
+        verb = service["command"][1]
+        command = service["command"]
+        if verb == "router":
+            assert test[3] == "--connect" and "127.0.0.1:7447" in test[4], name
+        else:
+            assert test[3] == verb, name
+            assert test[test.index("--connect") + 1] == command[command.index("--connect") + 1]
+            if "--robot" in command:
+                assert test[test.index("--robot") + 1] == command[command.index("--robot") + 1]
 
 
 def test_everyone_meets_at_the_router_by_name(compose: dict[str, Any]) -> None:
@@ -88,7 +104,8 @@ def test_everyone_meets_at_the_router_by_name(compose: dict[str, Any]) -> None:
     listen = router[router.index("--listen") + 1]
     port = listen.rsplit(":", 1)[1]
     assert listen == f"tcp/0.0.0.0:{port}"
-    assert services["router"]["ports"] == [f"127.0.0.1:{port}:{port}"]  # the host's loopback
+    # the host's loopback only
+    assert services["router"]["ports"] == [f"127.0.0.1:${{ARCHERY_PORT:-{port}}}:{port}"]
     for name, service in services.items():
         if name == "router":
             continue
@@ -105,7 +122,7 @@ def test_secure_profile(compose: dict[str, Any]) -> None:
     command = router["command"]
     assert command[command.index("--listen") + 1] == "tls/0.0.0.0:7447"
     assert command[command.index("--secure") + 1] == "/secrets"
-    assert router["ports"] == ["127.0.0.1:7448:7447"]
+    assert router["ports"] == ["127.0.0.1:${ARCHERY_SECURE_PORT:-7448}:7447"]
     for name, service in services.items():
         command = service["command"]
         identity = {"router-secure": "router", "demo-secure": "operator"}.get(
@@ -115,19 +132,51 @@ def test_secure_profile(compose: dict[str, Any]) -> None:
             assert command[command.index("--connect") + 1] == "tls/router-secure:7447", name
             assert command[command.index("--secure") + 1] == "/secrets", name
             assert "router-secure" in service["depends_on"]
-        secrets = [v for v in service["volumes"] if v.startswith("./secrets/")]
+        if "healthcheck" in service:
+            test = service["healthcheck"]["test"]
+            assert test[test.index("--identity") + 1] == identity, name
+        prefix = "${ARCHERY_SECRETS:-./secrets}/"
+        secrets = [v for v in service["volumes"] if v.startswith(prefix)]
         wanted = {"ca.pem", f"{identity}.pem", f"{identity}.key"}
         if name == "router-secure":
             wanted.add("acl.json5")
-        assert {v.split(":")[0].removeprefix("./secrets/") for v in secrets} == wanted, name
+        assert {v.split(":/")[0].removeprefix(prefix) for v in secrets} == wanted, name
         assert all(v.endswith(":ro") for v in secrets), name
     assert "router-secure" in DEFAULT_HOSTS  # the router's certificate names its host
+
+
+def test_fleet_profile_crosses_only_the_routers_link(compose: dict[str, Any]) -> None:
+    """Robots on `robots`, the experiment on `lab`, the two routers linked over `link`."""
+    fleet = _profile(compose, "fleet")
+    networks = compose["networks"]
+    assert all(networks[n] == {"internal": True} for n in ("robots", "lab", "link"))
+    assert fleet["router-robots"]["networks"] == ["robots", "link"]
+    lab = fleet["router-lab"]
+    assert lab["networks"] == ["lab", "link"]
+    assert lab["command"][lab["command"].index("--connect") + 1] == "tcp/router-robots:7447"
+    stacks: dict[str, set[str]] = {}
+    for name, service in fleet.items():
+        command = service["command"]
+        if name.startswith("router-"):
+            continue
+        if command[1] == "experiment":
+            assert service["networks"] == ["lab"]
+            assert command[command.index("--connect") + 1] == "tcp/router-lab:7447"
+            continue
+        assert service["networks"] == ["robots"], name
+        assert command[command.index("--connect") + 1] == "tcp/router-robots:7447", name
+        stacks.setdefault(command[command.index("--robot") + 1], set()).add(command[1])
+    assert stacks == {
+        p: {"robot", "camera", "detector", "controller"} for p in ("icubSim1", "icubSim2")
+    }
+    experiment = fleet["experiment"]["command"]
+    assert experiment[experiment.index("--robots") + 1] == "icubSim1,icubSim2"
 
 
 def test_learner_and_demo_share_the_runs(compose: dict[str, Any]) -> None:
     learner = compose["services"]["learner"]
     runs = learner["command"][learner["command"].index("--runs") + 1]
-    assert learner["volumes"] == [f"./runs:{runs}"]
+    assert learner["volumes"] == [f"${{ARCHERY_RUNS:-./runs}}:{runs}"]
 
 
 def _parse_service(verb: str, argv: list[str], monkeypatch: pytest.MonkeyPatch) -> Any:
@@ -175,12 +224,21 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
 
 def test_dockerfile() -> None:
     text = (ROOT / "Dockerfile").read_text()
-    assert re.search(r"^FROM python:3\.11-slim", text, re.M)
-    for package in ("protocol", "services", "sim"):
-        assert f"COPY {package} ./{package}" in text
-    assert "pip install --no-cache-dir ." in text and "MUJOCO_GL=egl" in text
-    ignored = (ROOT / ".dockerignore").read_text().split()
-    assert "runs" in ignored and ".venv" in ignored
+    assert re.search(r"^ARG BASE=python:3\.11-slim-bookworm$", text, re.M)
+    assert set(TARGETS) == {"base", "wheel", "router", *SERVICES}
+    assert "useradd --uid 1000" in text
+    for target in ("router", *SERVICES):  # every process runs as the unprivileged user
+        stage = text.split(f" AS {target}\n", 1)[1].split("\nFROM ", 1)[0]
+        assert "\nUSER archery\n" in stage, target
+    lines = (ROOT / ".dockerignore").read_text().splitlines()
+    ignored = [line for line in lines if line and not line.startswith("#")]
+    assert ignored[0] == "*"  # only what is named goes in
+    assert "**/*.key" in ignored
+
+
+def test_gitignore_covers_the_secure_profiles_secrets() -> None:
+    ignored = (ROOT / ".gitignore").read_text().split()
+    assert "secrets/" in ignored and "*.key" in ignored
 
 
 def test_the_subset_reader_refuses_what_it_does_not_know(tmp_path: Path) -> None:

@@ -1,0 +1,277 @@
+"""The containers measured: image sizes against the one image of before, cold and warm builds,
+`docker-compose up` to the demo's hit, the wall time per rollout in containers against
+`archery up` on the same machine (interleaved repeats), and the fleet profile's rollouts/s
+against the same fleet on one network.
+
+    .venv/bin/python -m benchmarks.bench_containers [--repeats 5] [--rollouts 20]
+        [--before COMMIT] [--skip-build]
+
+Needs a Docker engine (as `make compose` does); images are tagged archery-*:latest, the image
+of before archery-before:bench.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import UTC, datetime
+from pathlib import Path
+
+from benchmarks.machine import cpu_model
+from benchmarks.spread import median_spread
+from protocol.progress import progress_bar
+from protocol.router import free_tcp_endpoint
+from tests.containers import (
+    CA_BUNDLES,
+    ROOT,
+    TARGETS,
+    Compose,
+    base_image,
+    build_client,
+    build_images,
+    engine_problem,
+    image_size,
+    journal_records,
+)
+
+SERVICES = ("router", "robot", "camera", "detector", "controller", "learner")
+
+
+def _before_image(commit: str, base: str) -> int:
+    """Build the one image of `commit` (its Dockerfile, its base line pointed at `base`, pip
+    given the CA bundle as the build secret); its size in bytes."""
+    with tempfile.TemporaryDirectory() as tmp:
+        archive = subprocess.run(
+            ["git", "archive", commit], cwd=ROOT, capture_output=True, check=True
+        ).stdout
+        subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
+        dockerfile = Path(tmp, "Dockerfile")
+        text = dockerfile.read_text().replace("FROM python:3.11-slim-bookworm", f"FROM {base}")
+        text = text.replace(
+            "RUN pip install",
+            "RUN --mount=type=secret,id=pip-ca PIP_CERT=/run/secrets/pip-ca pip install",
+        )
+        dockerfile.write_text(text)
+        command, env = build_client()
+        subprocess.run(
+            [
+                *command,
+                "--secret",
+                f"id=pip-ca,src={CA_BUNDLES[0]}",
+                "-t",
+                "archery-before:bench",
+                ".",
+            ],
+            cwd=tmp,
+            env=os.environ | env,
+            check=True,
+            capture_output=True,
+        )
+    return image_size("archery-before:bench")
+
+
+def _per_rollout(journal: Path, skip: int) -> float:
+    """Seconds per rollout between the `skip`-th and the last finished rollout of a journal."""
+    done = [r["t"] for r in journal_records(journal) if r["record"] == "done"]
+    return (done[-1] - done[skip - 1]) / (len(done) - skip)
+
+
+def _learn_args(rollouts: int, seed: int) -> list[str]:
+    return ["--rollouts", str(rollouts), "--no-until-hit", "--quiet", "--seed", str(seed)]
+
+
+def _containers_session(runs: Path, rollouts: int, seed: int) -> float:
+    """One session on the containers' mesh (started, used, torn down); s per rollout."""
+    compose = Compose(f"archerybench{os.getpid()}", runs)
+    with compose.running():
+        up = compose("up", "-d", "--no-build", *SERVICES[1:], timeout=600)
+        assert up.returncode == 0, up.stderr[-3000:]
+        run = compose(
+            "run", "--rm", "-T", "--no-deps", "demo", "archery", "learn", "--connect",
+            "tcp/router:7447", *_learn_args(rollouts, seed), timeout=900,
+        )  # fmt: skip
+        assert run.returncode == 0, run.stderr[-3000:]
+    journal = json.loads(run.stdout.strip().splitlines()[-1])["journal"]
+    return _per_rollout(runs / Path(journal).relative_to("/app/runs"), 5)
+
+
+def _host_session(runs: Path, rollouts: int, seed: int) -> float:
+    """One session on `archery up` on this machine (started, used, stopped); s per rollout."""
+    endpoint = free_tcp_endpoint()
+    archery = [sys.executable, "-m", "services.cli"]
+    up = subprocess.Popen(
+        [*archery, "up", "--listen", endpoint, "--runs", str(runs), "--log-level", "warn"],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        run = subprocess.run(
+            [
+                *archery,
+                "learn",
+                "--connect",
+                endpoint,
+                "--wait",
+                "120",
+                *_learn_args(rollouts, seed),
+            ],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=900,
+        )
+        assert run.returncode == 0, run.stderr[-3000:]
+    finally:
+        up.send_signal(signal.SIGINT)
+        up.wait(timeout=120)
+    journal = json.loads(run.stdout.strip().splitlines()[-1])["journal"]
+    return _per_rollout(Path(journal), 5)
+
+
+def _up_to_hit(runs: Path, fresh: bool) -> float:
+    """Seconds from `docker-compose up` to the demo's exit (0: a hit). `fresh`: no container
+    exists before; else the stopped containers of the previous run are started again."""
+    compose = Compose("archerybenchup", runs)
+    if fresh:
+        compose.down()
+    start = time.perf_counter()
+    up = compose(
+        "up", "--no-build", "--abort-on-container-exit", "--exit-code-from", "demo", timeout=900
+    )
+    seconds = time.perf_counter() - start
+    assert up.returncode == 0, up.stdout[-3000:]
+    compose("stop", timeout=300)
+    return seconds
+
+
+def _fleet(runs: Path, one_network: bool, sessions: int, rollouts: int) -> float:
+    """Rollouts/s of `archery experiment --world mesh` on the fleet profile: over the two
+    routers' link, or (`one_network`) with the experiment on the robots' network and router."""
+    compose = Compose(f"archerybenchfleet{os.getpid()}", runs)
+    compose.env |= {
+        "ARCHERY_FLEET_SESSIONS": str(sessions),
+        "ARCHERY_FLEET_ROLLOUTS": str(rollouts),
+        "ARCHERY_FLEET_ALGOS": "archer",
+        "ARCHERY_FLEET_OUT": "fleet",
+    }
+    with compose.running():
+        up = compose("up", "-d", "--no-build", "router-robots", "robot1", "camera1", "detector1",
+                     "controller1", "robot2", "camera2", "detector2", "controller2",
+                     "router-lab", profiles=("fleet",), timeout=600)  # fmt: skip
+        assert up.returncode == 0, up.stderr[-3000:]
+        network = ["--network", f"{compose.project}_robots"] if one_network else []
+        connect = "tcp/router-robots:7447" if one_network else "tcp/router-lab:7447"
+        start = time.perf_counter()
+        run = subprocess.run(
+            ["docker", "run", "--rm", *network, "-u", compose.env["ARCHERY_USER"]]
+            + ([] if one_network else ["--network", f"{compose.project}_lab"])
+            + ["-v", f"{runs}:/app/runs", "archery-learner:latest", "archery", "experiment"]
+            + ["--world", "mesh", "--connect", connect, "--robots", "icubSim1,icubSim2"]
+            + ["--algo", "archer", "--sessions", str(sessions), "--rollouts", str(rollouts)]
+            + ["--no-until-hit", "--no-progress", "--no-figures", "--out", f"/app/runs/f{start}"],
+            capture_output=True,
+            text=True,
+            timeout=1800,
+        )
+        seconds = time.perf_counter() - start
+        assert run.returncode == 0, run.stderr[-3000:]
+    return sessions * rollouts / seconds
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="bench_containers", description=__doc__)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--rollouts", type=int, default=20, help="per session (default 20)")
+    parser.add_argument("--before", default="a3f3eb1", help="the commit of the one image")
+    parser.add_argument("--skip-build", action="store_true", help="use the images as they are")
+    parser.add_argument("--no-progress", action="store_true")
+    args = parser.parse_args(argv)
+    problem = engine_problem()
+    if problem:
+        print(f"bench_containers: {problem}", file=sys.stderr)
+        return 1
+    base = base_image()
+    lines = [
+        f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
+        f"- Machine: {os.cpu_count()} cores, {cpu_model()}; base image {base} "
+        f"({image_size(base) / 1e6:.0f} MB)",
+    ]
+    if not args.skip_build:
+        before = _before_image(args.before, base)
+        subprocess.run(["docker", "builder", "prune", "-af"], capture_output=True, check=True)
+        for target in TARGETS:
+            subprocess.run(["docker", "rmi", "-f", f"archery-{target}:latest"], capture_output=True)
+        start = time.perf_counter()
+        build_images(base)
+        cold_s = time.perf_counter() - start
+        Path(ROOT, "protocol", "__init__.py").touch()  # a code change: the wheel stage again
+        start = time.perf_counter()
+        build_images(base)
+        warm_s = time.perf_counter() - start
+        lines.append(
+            f"- Build of the six images: cold {cold_s:.0f} s (no build cache; pip's index on "
+            f"this network), warm after a code change {warm_s:.0f} s"
+        )
+        sizes = {t: image_size(f"archery-{t}:latest") for t in TARGETS}
+        lines.append(
+            f"- Image size: before (one image, {args.before}) {before / 1e6:.0f} MB; after: "
+            + ", ".join(f"{t} {s / 1e6:.0f} MB" for t, s in sizes.items())
+            + f"; largest {max(sizes.values()) / 1e6:.0f} MB"
+        )
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = Path(tmp)
+        cold_up = [_up_to_hit(runs / "up", fresh=True)]
+        warm_up = [_up_to_hit(runs / "up", fresh=False)]
+        Compose("archerybenchup", runs / "up").down()
+        lines.append(
+            f"- `docker-compose up` to the demo's hit: fresh containers {cold_up[0]:.1f} s, "
+            f"stopped containers started again {warm_up[0]:.1f} s"
+        )
+        container, host, ratio = [], [], []
+        with progress_bar(disable=args.no_progress) as bar:
+            task = bar.add_task("sessions (host, containers)", total=2 * args.repeats)
+            for k in range(args.repeats):
+                order = (("host", _host_session), ("containers", _containers_session))
+                got = {}
+                for name, session in order if k % 2 == 0 else order[::-1]:
+                    got[name] = session(runs / f"{name}{k}", args.rollouts, k)
+                    bar.advance(task)
+                container.append(got["containers"])
+                host.append(got["host"])
+                ratio.append(got["containers"] / got["host"])
+        lines.append(
+            f"- Wall time per rollout, rollouts 6–{args.rollouts} of an ARCHER session "
+            f"(--no-until-hit), {args.repeats} interleaved repeats: containers "
+            f"{median_spread([1000 * c for c in container], '.0f', ' ms')}, `archery up` "
+            f"{median_spread([1000 * h for h in host], '.0f', ' ms')}; ratio "
+            f"{median_spread(ratio, '.2f', '×')} (goal ≤ 1.10×)"
+        )
+        fleet, one, fratio = [], [], []
+        repeats = max(3, args.repeats // 2 + 1)
+        with progress_bar(disable=args.no_progress) as bar:
+            task = bar.add_task("fleet experiments", total=2 * repeats)
+            for k in range(repeats):
+                for linked in (k % 2 == 0, k % 2 != 0):
+                    value = _fleet(runs / f"fleet{k}{linked}", not linked, 2, 6)
+                    (fleet if linked else one).append(value)
+                    bar.advance(task)
+                fratio.append(fleet[-1] / one[-1])
+        lines.append(
+            f"- Fleet profile (2 robot stacks, `experiment --world mesh`, 2 ARCHER sessions × 6 "
+            f"rollouts), {repeats} interleaved repeats: across the routers' link "
+            f"{median_spread(fleet, '.2f', ' rollouts/s')}, on one network and router "
+            f"{median_spread(one, '.2f', ' rollouts/s')}; ratio {median_spread(fratio, '.2f', '×')}"
+        )
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,356 @@
+"""The containers for real (`make compose`): the images build and each runs its process as a
+non-root user, no key enters an image, `docker-compose up` runs the demo to a hit, the secure
+profile too, the fleet profile runs an experiment across two networks whose routers link, and a
+session survives a killed service and a restarted router. Skipped, with the reason, where no
+Docker engine runs (`make compose` fails instead: ARCHERY_CONTAINERS=required)."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from tests.composefile import read_compose
+from tests.containers import (
+    REQUIRED,
+    ROOT,
+    TARGETS,
+    Compose,
+    base_image,
+    build_images,
+    engine_problem,
+    journal_records,
+    journals,
+    missing_secret,
+    port_problem,
+)
+
+pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800)]
+
+# What each image must import: every module of its process's packages. Left out on purpose: the
+# recording modules (`record`/`replay` run on a host, `archery[record]`) and sim.postures (a
+# fixture of the tests).
+IMPORTS = {
+    "router": ["protocol"],
+    "robot": ["services.robot", "sim"],
+    "camera": ["services.camera", "sim"],
+    "detector": ["services.detector"],
+    "controller": ["services.controller"],
+    "learner": ["services.learner"],
+}
+NOT_IN_IMAGES = (
+    "protocol.image_records",
+    "protocol.json_image_records",
+    "protocol.observe",
+    "protocol.recording",
+    "sim.postures",
+)
+_IMPORT_ALL = """
+import importlib, os, pkgutil, sys
+bad = []
+for pkg in sys.argv[2:]:
+    mod = importlib.import_module(pkg)
+    for info in pkgutil.walk_packages(mod.__path__, pkg + "."):
+        if info.name in sys.argv[1].split(","):
+            continue
+        try:
+            importlib.import_module(info.name)
+        except Exception as exc:
+            bad.append(f"{info.name}: {type(exc).__name__}: {exc}")
+print(os.getuid(), len(bad))
+print("\\n".join(bad), file=sys.stderr)
+"""
+
+
+def _engine() -> None:
+    problem = engine_problem()
+    if problem is not None:
+        if os.environ.get(REQUIRED) == "required":
+            pytest.fail(problem)
+        pytest.skip(problem)
+
+
+@pytest.fixture(scope="module")
+def base() -> str:
+    _engine()
+    return base_image()
+
+
+@pytest.fixture(scope="module")
+def images(base: str) -> dict[str, float]:
+    """Every image, built once for the module (seconds per target; cached layers are reused)."""
+    return build_images(base)
+
+
+def test_each_image_imports_its_process_and_runs_unprivileged(images: dict[str, float]) -> None:
+    for target in TARGETS:
+        run = subprocess.run(
+            [
+                "docker",
+                "run",
+                "--rm",
+                f"archery-{target}:latest",
+                "python3",
+                "-c",
+                _IMPORT_ALL,
+                ",".join(NOT_IN_IMAGES),
+                *IMPORTS[target],
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert run.returncode == 0, run.stderr
+        uid, failures = run.stdout.split()
+        assert failures == "0", f"{target}: {run.stderr}"
+        assert uid != "0", f"{target} runs as root"
+
+
+def test_the_controller_image_has_no_mujoco_or_opencv(images: dict[str, float]) -> None:
+    """`archery[controller]` is Pinocchio without the simulator or the vision stack."""
+    probe = "import importlib.util as u; print([m for m in ('mujoco','cv2') if u.find_spec(m)])"
+    out = subprocess.run(
+        ["docker", "run", "--rm", "archery-controller:latest", "python3", "-c", probe],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_no_key_enters_an_image(base: str, tmp_path: Path) -> None:
+    """A deployment in secrets/ and a stray key beside the Dockerfile stay out of the image."""
+    context = tmp_path / "context"
+    tracked = subprocess.run(
+        ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
+    for name in tracked:
+        if (ROOT / name).is_file():
+            (context / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, context / name)
+    subprocess.run(
+        [sys.executable, "-m", "services.cli", "keys", "init", str(context / "secrets")],
+        check=True,
+        capture_output=True,
+        cwd=ROOT,
+    )
+    (context / "services" / "stray.key").write_text((context / "secrets" / "ca.key").read_text())
+    build_images(base, ("learner",), context=context, tag="keycheck")
+    try:
+        find = subprocess.run(
+            [
+                "docker",
+                "run",
+                "--rm",
+                "archery-learner:keycheck",
+                "sh",
+                "-c",
+                "find / -xdev \\( -name '*.key' -o -name 'ca.pem' -o -name 'acl.json5' \\) -print;",
+                "grep -rl 'PRIVATE KEY' /app /build /usr/local/lib/python3*/*-packages/services",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+    finally:
+        subprocess.run(["docker", "rmi", "-f", "archery-learner:keycheck"], capture_output=True)
+    assert find.stdout.strip() == "", find.stdout
+
+
+def test_missing_secret_and_taken_port_are_named_before_any_container(tmp_path: Path) -> None:
+    line = missing_secret(tmp_path / "secrets")
+    assert line is not None and "secrets/ca.pem is missing" in line and "keys init" in line
+    assert "\n" not in line
+    with __import__("socket").socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        sock.listen()
+        port = sock.getsockname()[1]
+        assert port_problem(port) == f"port 127.0.0.1:{port} is already taken on this host " + (
+            "(set another one)"
+        )
+        run = subprocess.run(
+            [sys.executable, "-m", "tests.containers"],
+            env=os.environ | {"ARCHERY_PORT": str(port)},
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=120,
+        )
+    assert run.returncode == 1
+    assert run.stderr.count("\n") == 1 and f"127.0.0.1:{port}" in run.stderr, run.stderr
+
+
+@pytest.fixture
+def plain(images: dict[str, float], tmp_path: Path) -> Iterator[Compose]:
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    compose = Compose(f"archerytest{os.getpid()}", runs)
+    with compose.running():
+        yield compose
+    assert compose.leftovers() == []
+
+
+def _up(compose: Compose, exit_from: str, profile: str | None = None, timeout: float = 600) -> int:
+    """`docker-compose up -d` of the profile's containers (or the plain ones: with a profile,
+    compose would start those too) and the exit status of `exit_from` when it ends."""
+    services = read_compose(ROOT / "docker-compose.yml")["services"]
+    names = [n for n, s in services.items() if s.get("profiles", [None]) == [profile]]
+    profiles = (profile,) if profile else ()
+    up = compose("up", "-d", "--no-build", *names, profiles=profiles, timeout=timeout)
+    assert up.returncode == 0, up.stderr[-4000:] + compose.logs()
+    return compose.wait_exit(exit_from, timeout)
+
+
+def _owned_by_me(path: Path) -> None:
+    assert path.stat().st_uid == os.getuid(), f"{path} belongs to uid {path.stat().st_uid}"
+
+
+def _session(compose: Compose, *flags: str) -> subprocess.Popen[str]:
+    """`archery learn` in a one-off container of the learner's image, next to the services."""
+    return subprocess.Popen(
+        [
+            "docker-compose",
+            "-p",
+            compose.project,
+            "-f",
+            str(ROOT / "docker-compose.yml"),
+            "run",
+            "--rm",
+            "-T",
+            "--no-deps",
+            "demo",
+            "archery",
+            "learn",
+            "--quiet",
+            "--connect",
+            "tcp/router:7447",
+            *flags,
+        ],
+        env=os.environ | compose.env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def _wait_for_rollouts(runs: Path, known: set[Path], count: int, timeout: float) -> Path:
+    """Block until a new journal under `runs` holds `count` finished rollouts; the journal."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        for journal in set(journals(runs)) - known:
+            done = [r for r in journal_records(journal) if r["record"] in ("done", "aborted")]
+            if len(done) >= count:
+                return journal
+        time.sleep(0.1)
+    raise AssertionError(f"no new session reached {count} rollouts in {timeout:g} s")
+
+
+def _finished(proc: subprocess.Popen[str], rollouts: int) -> dict[str, object]:
+    out, err = proc.communicate(timeout=600)
+    assert proc.returncode == 0, err[-4000:]
+    result = json.loads(out.strip().splitlines()[-1])
+    assert result["status"] == "finished" and result["rollouts"] == rollouts, result
+    return result
+
+
+def test_compose_up_runs_the_demo_to_a_hit_and_survives_faults(plain: Compose) -> None:
+    """The demo exits 0 only on a hit (`--require-hit`) and writes runs/ as the invoking user;
+    then, on the same mesh, a session outlives a SIGKILLed controller (restarted by its policy)
+    and a restarted router."""
+    status = _up(plain, "demo")
+    assert status == 0, plain.logs("demo", "learner")
+    (journal,) = journals(plain.runs)
+    records = journal_records(journal)
+    assert records[-1]["record"] == "end"
+    assert any(r["record"] == "done" and r.get("hit") for r in records), records[-2:]
+    for path in (journal.parent, journal, journal.parent / "report.png"):
+        _owned_by_me(path)
+
+    for fault in ("kill", "router"):
+        known = set(journals(plain.runs))
+        proc = _session(plain, "--rollouts", "5", "--no-until-hit", "--seed", "3")
+        _wait_for_rollouts(plain.runs, known, 1, timeout=300)
+        if fault == "kill":  # the process dies as in a crash (`docker kill` would be a stop)
+            pid = subprocess.run(
+                ["docker", "inspect", "-f", "{{.State.Pid}}", plain.container("controller")],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout.strip()
+            os.kill(int(pid), signal.SIGKILL)
+        else:
+            subprocess.run(["docker", "restart", plain.container("router")], check=True)
+        _finished(proc, 5)
+    restarts = subprocess.run(
+        ["docker", "inspect", "-f", "{{.RestartCount}}", plain.container("controller")],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    assert int(restarts) >= 1
+
+
+def test_the_secure_profile_runs_the_demo_to_a_hit(
+    images: dict[str, float], tmp_path: Path
+) -> None:
+    runs, secrets = tmp_path / "runs", tmp_path / "secrets"
+    runs.mkdir()
+    subprocess.run(
+        [sys.executable, "-m", "services.cli", "keys", "init", str(secrets)],
+        check=True,
+        capture_output=True,
+        cwd=ROOT,
+    )
+    assert missing_secret(secrets) is None
+    compose = Compose(f"archerytestsecure{os.getpid()}", runs, secrets)
+    with compose.running():
+        status = _up(compose, "demo-secure", "secure")
+        assert status == 0, compose.logs("demo-secure", "learner-secure", "router-secure")
+    assert compose.leftovers() == []
+    (journal,) = journals(runs)
+    _owned_by_me(journal)
+
+
+def test_the_fleet_profile_runs_an_experiment_across_two_networks(
+    images: dict[str, float], tmp_path: Path
+) -> None:
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    compose = Compose(f"archerytestfleet{os.getpid()}", runs)
+    with compose.running():
+        status = _up(compose, "experiment", "fleet")
+        assert status == 0, compose.logs("experiment", "router-lab", "router-robots")
+        networks = {
+            name: subprocess.run(
+                [
+                    "docker",
+                    "inspect",
+                    "-f",
+                    "{{json .NetworkSettings.Networks}}",
+                    compose.container(name),
+                ],
+                capture_output=True,
+                text=True,
+                check=True,
+            ).stdout
+            for name in ("router-robots", "router-lab", "robot1", "experiment")
+        }
+    assert compose.leftovers() == []
+    project = compose.project
+    assert set(json.loads(networks["router-robots"])) == {f"{project}_robots", f"{project}_link"}
+    assert set(json.loads(networks["router-lab"])) == {f"{project}_lab", f"{project}_link"}
+    assert set(json.loads(networks["robot1"])) == {f"{project}_robots"}
+    assert set(json.loads(networks["experiment"])) == {f"{project}_lab"}
+    summary = json.loads((runs / "fleet-experiment" / "summary.json").read_text())
+    sessions = summary["run"]["sessions"]
+    assert sessions == 2
+    for algorithm in summary["algorithms"].values():
+        assert len(algorithm["rollouts_to_hit"]) == sessions
