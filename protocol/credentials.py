@@ -25,6 +25,7 @@ import datetime as dt
 import ipaddress
 import json
 import os
+import subprocess
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,6 +237,31 @@ def init_deployment(
     return path
 
 
+def unignored_keys(folder: Path) -> list[Path]:
+    """The private keys (`*.key`) in `folder` that a git work tree holding it does not ignore:
+    one `git add -A` from a commit. Empty outside a work tree, or where git is not installed."""
+    keys = sorted(folder.glob("*.key"))
+    try:
+        inside = subprocess.run(
+            ["git", "-C", str(folder), "rev-parse", "--is-inside-work-tree"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        if not keys or inside.stdout.strip() != "true":
+            return []
+        ignored = subprocess.run(
+            ["git", "-C", str(folder), "check-ignore", "--stdin"],
+            input="\n".join(k.name for k in keys),
+            capture_output=True,
+            text=True,
+            timeout=30,
+        ).stdout.split()
+    except (OSError, subprocess.TimeoutExpired):
+        return []
+    return [k for k in keys if k.name not in ignored]
+
+
 def main(argv: list[str] | None = None) -> int:
     """`archery keys init DIR [--robot R] [--days N] [--host H ...] [--force]`."""
     parser = ArgumentParser(prog="archery keys", description=__doc__.split("\n")[0])
@@ -272,4 +298,12 @@ def main(argv: list[str] | None = None) -> int:
         f"{args.days:g} days. Start the router with `archery router --secure {path} --listen "
         f"tls/127.0.0.1:7447` and every process with `--secure {path}`."
     )
+    exposed = unignored_keys(Path(path))
+    if exposed:
+        print(
+            f"archery keys: warning: {path} is in a git work tree that does not ignore its "
+            f"private keys ({', '.join(k.name for k in exposed)}): add `{Path(path).name}/` or "
+            "`*.key` to .gitignore",
+            file=sys.stderr,
+        )
     return 0

@@ -19,7 +19,7 @@ from services.launch_config import (
 )
 from services.launcher import Launcher, main
 from services.restart_policy import RestartPolicy
-from tests.test_compose import read_compose
+from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_RESTART = {"always": "always", "on-failure": "on-failure", "never": "no"}
@@ -50,11 +50,14 @@ def test_compose_describes_the_default_mesh() -> None:
     assert router[:3] == ["archery", "router", "--listen"] and len(router) == 4
     assert plain["router"]["restart"] == COMPOSE_RESTART[mesh.router.restart.mode]
     volume = compose["learner"]["volumes"][0]
-    host_runs, container_runs = volume.split(":")
+    host_runs, container_runs = volume.rsplit(":", 1)
     for child in mesh.children():
         command = plain[child.service]["command"]
         assert command[:4] == ["archery", child.service, "--connect", "tcp/router:7447"]
-        args = ["runs" if a == container_runs and host_runs == "./runs" else a for a in command[4:]]
+        args = [
+            "runs" if a == container_runs and host_runs == "${ARCHERY_RUNS:-./runs}" else a
+            for a in command[4:]
+        ]
         assert args == list(child.args), child.service
         assert plain[child.service]["restart"] == COMPOSE_RESTART[child.restart.mode]
 

@@ -10,6 +10,7 @@ import datetime as dt
 import json
 import shutil
 import stat
+import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -149,6 +150,19 @@ def test_keys_init_writes_a_deployment(tmp_path: Path) -> None:
     assert (d / "ca.pem").read_bytes() == before
     forced = archery("keys", "init", str(d), "--force")
     assert forced.returncode == 0 and (d / "ca.pem").read_bytes() != before
+
+
+@pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
+def test_keys_init_warns_of_keys_a_git_work_tree_would_commit(tmp_path: Path) -> None:
+    """Inside a work tree that does not ignore them, private keys are one `git add -A` from a
+    commit: `keys init` says so (and still writes them); ignored, it says nothing."""
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    out = archery("keys", "init", str(tmp_path / "secrets"))
+    assert out.returncode == 0, out.stderr
+    assert "warning" in out.stderr and "ca.key" in out.stderr and ".gitignore" in out.stderr
+    (tmp_path / ".gitignore").write_text("secrets/\n")
+    quiet = archery("keys", "init", str(tmp_path / "secrets"), "--force")
+    assert quiet.returncode == 0 and quiet.stderr == "", quiet.stderr
 
 
 def test_the_acl_loads_into_a_zenoh_config() -> None:
