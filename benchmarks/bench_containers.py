@@ -4,7 +4,7 @@
 against the same fleet on one network.
 
     .venv/bin/python -m benchmarks.bench_containers [--repeats 5] [--rollouts 20]
-        [--before COMMIT] [--skip-build]
+        [--before COMMIT] [--parts build,up,rollout,fleet]
 
 Needs a Docker engine (as `make compose` does); images are tagged archery-*:latest, the image
 of before archery-before:bench.
@@ -26,7 +26,7 @@ from pathlib import Path
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
 from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint
+from protocol.router import free_tcp_endpoint, wait_for_endpoint
 from tests.containers import (
     CA_BUNDLES,
     ROOT,
@@ -35,6 +35,7 @@ from tests.containers import (
     base_image,
     build_client,
     build_images,
+    copy_context,
     engine_problem,
     image_size,
     journal_records,
@@ -112,6 +113,7 @@ def _host_session(runs: Path, rollouts: int, seed: int) -> float:
         stderr=subprocess.DEVNULL,
     )
     try:
+        wait_for_endpoint(endpoint, timeout=60)
         run = subprocess.run(
             [
                 *archery,
@@ -175,14 +177,90 @@ def _fleet(runs: Path, one_network: bool, sessions: int, rollouts: int) -> float
             + ["-v", f"{runs}:/app/runs", "archery-learner:latest", "archery", "experiment"]
             + ["--world", "mesh", "--connect", connect, "--robots", "icubSim1,icubSim2"]
             + ["--algo", "archer", "--sessions", str(sessions), "--rollouts", str(rollouts)]
-            + ["--no-until-hit", "--no-progress", "--no-figures", "--out", f"/app/runs/f{start}"],
+            + ["--no-progress", "--no-figures", "--out", f"/app/runs/f{start:.0f}"],
             capture_output=True,
             text=True,
             timeout=1800,
         )
         seconds = time.perf_counter() - start
         assert run.returncode == 0, run.stderr[-3000:]
-    return sessions * rollouts / seconds
+    with (runs / f"f{start:.0f}" / "curves.csv").open() as curves:
+        done = sum(1 for _ in curves) - 1  # sessions end at their hit
+    return done / seconds
+
+
+def _measure_up(runs: Path, repeats: int, quiet: bool) -> str:
+    """`docker-compose up` to the demo's hit, fresh containers and stopped ones, interleaved."""
+    fresh, warm = [], []
+    with progress_bar(disable=quiet) as bar:
+        task = bar.add_task("up to the hit (fresh, warm)", total=2 * repeats)
+        for _ in range(repeats):
+            fresh.append(_up_to_hit(runs, fresh=True))
+            bar.advance(task)
+            warm.append(_up_to_hit(runs, fresh=False))
+            bar.advance(task)
+    Compose("archerybenchup", runs).down()
+    return (
+        f"- `docker-compose up` to the demo's hit, {repeats} interleaved repeats: fresh "
+        f"containers {median_spread(fresh, '.1f', ' s')}, stopped containers started again "
+        f"{median_spread(warm, '.1f', ' s')}"
+    )
+
+
+def _measure_rollouts(runs: Path, repeats: int, rollouts: int, quiet: bool) -> str:
+    """Wall time per rollout in containers and on `archery up`, alternating which goes first."""
+    container, host, ratio = [], [], []
+    with progress_bar(disable=quiet) as bar:
+        task = bar.add_task("sessions (host, containers)", total=2 * repeats)
+        for k in range(repeats):
+            order = (("host", _host_session), ("containers", _containers_session))
+            got = {}
+            for name, session in order if k % 2 == 0 else order[::-1]:
+                got[name] = session(runs / f"{name}{k}", rollouts, k)
+                bar.advance(task)
+            container.append(got["containers"])
+            host.append(got["host"])
+            ratio.append(got["containers"] / got["host"])
+    return (
+        f"- Wall time per rollout, rollouts 6–{rollouts} of an ARCHER session "
+        f"(--no-until-hit), {repeats} interleaved repeats: containers "
+        f"{median_spread([1000 * c for c in container], '.0f', ' ms')}, `archery up` "
+        f"{median_spread([1000 * h for h in host], '.0f', ' ms')}; ratio "
+        f"{median_spread(ratio, '.2f', '×')} (goal ≤ 1.10×)"
+    )
+
+
+def _measure_fleet(runs: Path, repeats: int, quiet: bool) -> str:
+    """The fleet profile's rollouts/s across the routers' link and on one network."""
+    fleet, one, ratio = [], [], []
+    with progress_bar(disable=quiet) as bar:
+        task = bar.add_task("fleet experiments (linked, one network)", total=2 * repeats)
+        for k in range(repeats):
+            for linked in (k % 2 == 0, k % 2 != 0):
+                value = _fleet(runs / f"fleet{k}{linked}", not linked, 2, 6)
+                (fleet if linked else one).append(value)
+                bar.advance(task)
+            ratio.append(fleet[-1] / one[-1])
+    return (
+        f"- Fleet profile (robot stacks icubSim1 and icubSim2, `experiment --world mesh`, 2 "
+        f"ARCHER sessions of at most 6 rollouts, ending at the hit), {repeats} interleaved "
+        f"repeats: across the routers' link {median_spread(fleet, '.2f', ' rollouts/s')}, on "
+        f"one network and router {median_spread(one, '.2f', ' rollouts/s')}; ratio "
+        f"{median_spread(ratio, '.2f', '×')}"
+    )
+
+
+class _Lines(list[str]):
+    """The result lines, each printed (stdout) as soon as it is measured."""
+
+    def __init__(self, *lines: str) -> None:
+        super().__init__()
+        for line in lines:
+            self.append(line)
+
+    def append(self, line: str) -> None:
+        print(line, flush=True)
+        super().append(line)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,7 +268,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--rollouts", type=int, default=20, help="per session (default 20)")
     parser.add_argument("--before", default="a3f3eb1", help="the commit of the one image")
-    parser.add_argument("--skip-build", action="store_true", help="use the images as they are")
+    parser.add_argument(
+        "--parts",
+        default="build,up,rollout,fleet",
+        help="what to measure (default build,up,rollout,fleet)",
+    )
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
     problem = engine_problem()
@@ -198,12 +280,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_containers: {problem}", file=sys.stderr)
         return 1
     base = base_image()
-    lines = [
+    lines = _Lines(
         f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC",
         f"- Machine: {os.cpu_count()} cores, {cpu_model()}; base image {base} "
         f"({image_size(base) / 1e6:.0f} MB)",
-    ]
-    if not args.skip_build:
+    )
+    parts = set(args.parts.split(","))
+    if "build" in parts:
         before = _before_image(args.before, base)
         subprocess.run(["docker", "builder", "prune", "-af"], capture_output=True, check=True)
         for target in TARGETS:
@@ -211,10 +294,15 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         build_images(base)
         cold_s = time.perf_counter() - start
-        Path(ROOT, "protocol", "__init__.py").touch()  # a code change: the wheel stage again
-        start = time.perf_counter()
-        build_images(base)
-        warm_s = time.perf_counter() - start
+        with tempfile.TemporaryDirectory() as tmp:  # a code change: the wheel stage again
+            context = copy_context(Path(tmp))
+            with (context / "protocol" / "errors.py").open("a") as file:
+                file.write("# a change\n")
+            start = time.perf_counter()
+            build_images(base, context=context, tag="warm")
+            warm_s = time.perf_counter() - start
+        for target in TARGETS:
+            subprocess.run(["docker", "rmi", "-f", f"archery-{target}:warm"], capture_output=True)
         lines.append(
             f"- Build of the six images: cold {cold_s:.0f} s (no build cache; pip's index on "
             f"this network), warm after a code change {warm_s:.0f} s"
@@ -227,49 +315,12 @@ def main(argv: list[str] | None = None) -> int:
         )
     with tempfile.TemporaryDirectory() as tmp:
         runs = Path(tmp)
-        cold_up = [_up_to_hit(runs / "up", fresh=True)]
-        warm_up = [_up_to_hit(runs / "up", fresh=False)]
-        Compose("archerybenchup", runs / "up").down()
-        lines.append(
-            f"- `docker-compose up` to the demo's hit: fresh containers {cold_up[0]:.1f} s, "
-            f"stopped containers started again {warm_up[0]:.1f} s"
-        )
-        container, host, ratio = [], [], []
-        with progress_bar(disable=args.no_progress) as bar:
-            task = bar.add_task("sessions (host, containers)", total=2 * args.repeats)
-            for k in range(args.repeats):
-                order = (("host", _host_session), ("containers", _containers_session))
-                got = {}
-                for name, session in order if k % 2 == 0 else order[::-1]:
-                    got[name] = session(runs / f"{name}{k}", args.rollouts, k)
-                    bar.advance(task)
-                container.append(got["containers"])
-                host.append(got["host"])
-                ratio.append(got["containers"] / got["host"])
-        lines.append(
-            f"- Wall time per rollout, rollouts 6–{args.rollouts} of an ARCHER session "
-            f"(--no-until-hit), {args.repeats} interleaved repeats: containers "
-            f"{median_spread([1000 * c for c in container], '.0f', ' ms')}, `archery up` "
-            f"{median_spread([1000 * h for h in host], '.0f', ' ms')}; ratio "
-            f"{median_spread(ratio, '.2f', '×')} (goal ≤ 1.10×)"
-        )
-        fleet, one, fratio = [], [], []
-        repeats = max(3, args.repeats // 2 + 1)
-        with progress_bar(disable=args.no_progress) as bar:
-            task = bar.add_task("fleet experiments", total=2 * repeats)
-            for k in range(repeats):
-                for linked in (k % 2 == 0, k % 2 != 0):
-                    value = _fleet(runs / f"fleet{k}{linked}", not linked, 2, 6)
-                    (fleet if linked else one).append(value)
-                    bar.advance(task)
-                fratio.append(fleet[-1] / one[-1])
-        lines.append(
-            f"- Fleet profile (2 robot stacks, `experiment --world mesh`, 2 ARCHER sessions × 6 "
-            f"rollouts), {repeats} interleaved repeats: across the routers' link "
-            f"{median_spread(fleet, '.2f', ' rollouts/s')}, on one network and router "
-            f"{median_spread(one, '.2f', ' rollouts/s')}; ratio {median_spread(fratio, '.2f', '×')}"
-        )
-    print("\n".join(lines))
+        if "up" in parts:
+            lines.append(_measure_up(runs / "up", args.repeats, args.no_progress))
+        if "rollout" in parts:
+            lines.append(_measure_rollouts(runs, args.repeats, args.rollouts, args.no_progress))
+        if "fleet" in parts:
+            lines.append(_measure_fleet(runs, args.repeats, args.no_progress))
     return 0
 
 

@@ -33,6 +33,7 @@ __all__ = [
     "base_image",
     "build_client",
     "build_images",
+    "copy_context",
     "engine_problem",
     "missing_secret",
     "port_problem",
@@ -151,6 +152,19 @@ def build_images(
         )
         seconds[target] = time.perf_counter() - start
     return seconds
+
+
+def copy_context(dest: Path) -> Path:
+    """Copy the files git tracks (as they are in the working tree) to `dest`: a build context
+    to change without touching the repository. Returns `dest`."""
+    tracked = subprocess.run(
+        ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout.split()
+    for name in tracked:
+        if (ROOT / name).is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(ROOT / name, dest / name)
+    return dest
 
 
 def image_size(tag: str) -> int:

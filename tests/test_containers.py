@@ -9,7 +9,6 @@ from __future__ import annotations
 import csv
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -27,6 +26,7 @@ from tests.containers import (
     Compose,
     base_image,
     build_images,
+    copy_context,
     engine_problem,
     journal_records,
     journals,
@@ -129,14 +129,7 @@ def test_the_controller_image_has_no_mujoco_or_opencv(images: dict[str, float]) 
 
 def test_no_key_enters_an_image(base: str, tmp_path: Path) -> None:
     """A deployment in secrets/ and a stray key beside the Dockerfile stay out of the image."""
-    context = tmp_path / "context"
-    tracked = subprocess.run(
-        ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
-    ).stdout.split()
-    for name in tracked:
-        if (ROOT / name).is_file():
-            (context / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / name, context / name)
+    context = copy_context(tmp_path / "context")
     subprocess.run(
         [sys.executable, "-m", "services.cli", "keys", "init", str(context / "secrets")],
         check=True,
