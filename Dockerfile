@@ -21,7 +21,9 @@ RUN --mount=type=secret,id=pip-ca sh /build/install.sh
 FROM base AS wheel
 COPY pyproject.toml README.md /src/
 COPY protocol /src/protocol
+COPY mesh /src/mesh
 COPY services /src/services
+COPY apps /src/apps
 COPY sim /src/sim
 RUN --mount=type=secret,id=pip-ca sh -c '[ ! -f /run/secrets/pip-ca ] || export PIP_CERT=/run/secrets/pip-ca; \
     python3 -m pip wheel --no-cache-dir --no-deps -w /wheel /src'

@@ -33,18 +33,19 @@ import sklearn
 from scipy.linalg import solve_triangular
 from sklearn.mixture import GaussianMixture
 
+from apps.detect import read_rgb, write_png
 from benchmarks.machine import cpu_model, pin_one_core
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel, Gmm, rgb_to_uv
 from services.detector.detect import Detector, eq7_centroid, exact_memberships
-from services.detector.offline import read_rgb, write_png
 from services.detector.overlay import draw_overlay
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.postures import archery_posture
+from sim.model_build import build_scene
 from sim.render import SceneRenderer, calibration_frame
-from sim.scene import SceneConfig, build_scene
+from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
+from tests.postures import archery_posture
 
 __all__ = ["main"]
 

@@ -2,7 +2,7 @@
 
 The baseline (default: the `main` branch) is exported from git into a temporary folder, and
 its detector and CLI run in the same process and the same run as this tree's, interleaved:
-- the development set (`services.detector.devset`): per kind of change, the fraction of the
+- the development set (`tests.devset`): per kind of change, the fraction of the
   visible cases whose centre is within 5 % of the blue ring's diameter, wrong centres reported
   with confidence ≥ 0.5, and faces mostly outside the image reported as seen;
 - the four shared photographs (when beside the clone): same-photo calibration (each photo
@@ -40,10 +40,10 @@ import numpy as np
 
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from services.detector import devset
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detector, DetectorSettings
-from services.detector.devset import Case, Scene
+from tests import devset
+from tests.devset import Case, Scene
 
 ROOT = Path(__file__).resolve().parents[1]
 PHOTOS = ROOT.parent / "shared" / "data" / "real-targets"
@@ -203,7 +203,7 @@ def time_cli(
         for name, tree in trees.items():
             env = {**os.environ, "PYTHONPATH": str(tree)}
             model = work / f"{name}.json"
-            cli = [sys.executable, "-m", "services.cli"]
+            cli = [sys.executable, "-m", "apps.cli"]
             commands = {
                 "calibrate one photo": [
                     *cli, "calibrate", str(photo), "--pixels", str(pixels), "--out", str(model)

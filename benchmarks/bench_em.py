@@ -31,8 +31,8 @@ from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
 from services.detector.calibration import sample_pixels
 from services.detector.colour_model import _REG_COVAR, rgb_to_uv
-from services.detector.devset import Scene, drawn_scenes, photo_scenes
 from services.detector.em import fit_mixture
+from tests.devset import Scene, drawn_scenes, photo_scenes
 
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"
 KS = range(1, 6)

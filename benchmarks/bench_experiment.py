@@ -12,15 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
+from apps.experiment.censored import format_count, format_counts, format_mean
+from apps.experiment.config import AlgorithmRun, ExperimentConfig
+from apps.experiment.experiment import run_algorithm, summarise, write_outputs
 from services.learner.algorithms.registry import ALGORITHMS
-from services.learner.tools.censored import format_count, format_counts, format_mean
-from services.learner.tools.experiment import (
-    AlgorithmRun,
-    ExperimentConfig,
-    run_algorithm,
-    summarise,
-    write_outputs,
-)
 from sim.ballistic import Scenario
 
 __all__ = ["PAPER_ROLLOUTS", "SCENARIOS", "main"]
@@ -76,7 +71,7 @@ def _time_default_command(out: Path, sessions: int, rollouts: int, seed: int) ->
     command = [
         sys.executable,
         "-m",
-        "services.cli",
+        "apps.cli",
         "experiment",
         "--sessions",
         str(sessions),

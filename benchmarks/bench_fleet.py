@@ -4,7 +4,7 @@ seconds per rollout per process, and where a rollout's time goes.
 Run `python -m benchmarks.bench_fleet [--robots 1,2,3] [--repeats 5] [--sessions 6] [--rollouts
 10] [--pin]`. Each repeat runs every N in turn (interleaved, so a change in the machine's load
 hits every N alike): a fresh router and N robot stacks (robot at rtf 0, controller, camera,
-detector; `services.launcher.Launcher`), then one `archery experiment --world mesh` in this
+detector; `apps.up.launcher.Launcher`), then one `archery experiment --world mesh` in this
 process (its learner: the work queue, one session thread per robot) of `--sessions` sessions per
 algorithm × `--rollouts` rollouts, the same work for every N; then everything is stopped.
 
@@ -41,11 +41,13 @@ from typing import Any
 import numpy as np
 import psutil
 
-from benchmarks.machine import cpu_model
-from benchmarks.spread import median_spread
-from protocol.netflags import NetConfig
-from protocol.router import free_tcp_endpoint
-from services.launch_config import (
+from apps.experiment.config import ExperimentConfig
+from apps.experiment.experiment_mesh import (
+    MeshSettings,
+    mesh_experiment_config,
+    run_mesh_experiment,
+)
+from apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
@@ -53,14 +55,12 @@ from services.launch_config import (
     ServiceSpec,
     fleet_prefixes,
 )
-from services.launcher import Launcher
+from apps.up.launcher import Launcher
+from benchmarks.machine import cpu_model
+from benchmarks.spread import median_spread
+from mesh.netflags import NetConfig
+from mesh.router import free_tcp_endpoint
 from services.learner.journal import read_records
-from services.learner.tools.experiment import ExperimentConfig
-from services.learner.tools.experiment_mesh import (
-    MeshSettings,
-    mesh_experiment_config,
-    run_mesh_experiment,
-)
 
 __all__ = ["main"]
 

@@ -16,9 +16,11 @@ from rich.progress import Progress
 from rich.table import Table
 from scipy.optimize import minimize
 
-from protocol.progress import progress_bar
-from services.controller.ik import IkSettings, IkSolver
-from services.controller.model import HOME_POSTURE, ArmsModel, load_arms_model
+from apps.progress import progress_bar
+from protocol.robotspec import HOME_POSTURE
+from services.controller.ik import IkSolver
+from services.controller.ik_types import IkSettings
+from services.controller.model import ArmsModel, load_arms_model
 from services.controller.posture import ArcheryPosture
 
 __all__ = ["Case", "Outcome", "SlsqpBaseline", "main"]

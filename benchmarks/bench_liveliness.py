@@ -1,5 +1,5 @@
 """How often a liveliness query misses a token the router holds, by what else the querying
-session has declared: the figures behind `protocol.instances.InstanceWatch` waiting for a
+session has declared: the figures behind `mesh.instances.InstanceWatch` waiting for a
 replier's token by event rather than trusting a query.
 
 A router process, one service holding its instance token, and one client session that asks
@@ -29,13 +29,13 @@ from datetime import UTC, datetime
 
 import zenoh
 
+from apps.progress import progress_bar
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from protocol.instances import live_instances, zid_of
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint, spawn_router
+from mesh.instances import live_instances, zid_of
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, spawn_router
 
 NAME = "robot"
 ARRANGEMENTS = ("alone", "fresh subscriber", "kept subscriber")

@@ -1,7 +1,7 @@
 """Benchmark of the closed loop over the mesh: wall time per rollout and rollouts to the ring.
 
 Run `python -m benchmarks.bench_loop [--seeds N] [--algos archer,power]`. It starts a router
-and the five services as child processes (`services.launcher.Launcher`, robot at rtf 0), then
+and the five services as child processes (`apps.up.launcher.Launcher`, robot at rtf 0), then
 runs one session per (algorithm, seed) through the learner's RPC, ending at the first rollout
 inside the 5 cm ring (measured by the detector) or at the budget. From the journals:
 
@@ -34,12 +34,12 @@ from typing import Any
 
 import numpy as np
 
+from apps.learn.follow import follow
+from apps.up.launcher import SERVICES, Launcher
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint
-from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
-from services.learner.tools.learn import follow
 
 __all__ = ["main"]
 

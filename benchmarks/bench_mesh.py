@@ -46,14 +46,14 @@ import msgspec
 import numpy as np
 import zenoh
 
+from apps.progress import progress_bar
 from benchmarks.machine import cpu_model
+from mesh.credentials import init_deployment
+from mesh.netflags import NetConfig, open_session
+from mesh.node import Node, Publisher
+from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
-from protocol.credentials import init_deployment
 from protocol.messages import Image, RpcRequest
-from protocol.netflags import NetConfig, open_session
-from protocol.node import Node, Publisher
-from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint, spawn_router
 from protocol.verbs import Args, Reply, Verb, VerbTable
 
 ROBOT = "bench"

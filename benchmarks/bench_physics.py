@@ -26,9 +26,11 @@ import numpy as np
 
 from benchmarks.machine import cpu_model, pin_one_core
 from sim.geometry import BOW_HAND, START_THETA
-from sim.postures import archery_posture
-from sim.scene import SIDE_CAMERA, TARGET_CAMERA, SceneConfig, build_scene, load_urdf_model
+from sim.model_build import build_scene
+from sim.scene_config import SIDE_CAMERA, TARGET_CAMERA, SceneConfig
+from sim.urdf import load_urdf_model
 from sim.world import ArcheryWorld, WorldConfig
+from tests.postures import archery_posture
 
 __all__ = ["main"]
 

@@ -20,10 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
+from apps.experiment.censored import count_stats, format_counts
+from apps.experiment.config import ExperimentConfig
+from apps.experiment.experiment import run_algorithm
 from benchmarks.machine import cpu_model
 from services.learner.algorithms.power import DEFAULT_RETURN_SCALE
-from services.learner.tools.censored import count_stats, format_counts
-from services.learner.tools.experiment import ExperimentConfig, run_algorithm
 
 __all__ = ["PAPER_POWER", "SCALES", "main"]
 

@@ -27,15 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from apps.experiment.config import AlgorithmRun, ExperimentConfig, WindChange
+from apps.experiment.experiment import run_algorithm, write_outputs
 from benchmarks.learning_mesh import learning_mesh, progress_bar
 from services.learner.algorithms.registry import ALGORITHMS
-from services.learner.tools.experiment import (
-    AlgorithmRun,
-    ExperimentConfig,
-    WindChange,
-    run_algorithm,
-    write_outputs,
-)
 from sim.ballistic import Scenario
 
 __all__ = ["CHANGE", "ROBOT_VARIANTS", "SCENARIOS", "main"]
@@ -143,8 +138,8 @@ def _run_ballistic(
 def _robot_session(
     node: Any, rollouts: Any, algo: str, options: dict[str, Any], seed: int
 ) -> dict[str, Any]:
+    from apps.learn.follow import follow
     from services.learner.journal import read_records
-    from services.learner.tools.learn import follow
 
     request = {"algo": algo, "seed": seed, "rollouts": ROBOT_BUDGET[algo], "options": options}
     start = time.perf_counter()

@@ -36,16 +36,16 @@ from typing import Any
 
 import numpy as np
 
+from apps.learn.follow import follow
+from apps.topics.recording import open_recording
+from apps.up.launcher import SERVICES, Launcher
 from benchmarks.observers import CONDITIONS, Observers, cpu_seconds, stop
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
 from protocol.messages import Detection, Image, Rollout
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.recording import open_recording
-from protocol.router import free_tcp_endpoint
-from services.cli import spawn
-from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
-from services.learner.tools.learn import follow
+from tests.spawn import spawn
 
 __all__ = ["main", "mesh_launcher", "remeasure"]
 
@@ -165,7 +165,7 @@ def _fidelity(endpoint: str, path: Path, model: Path, journal: Path) -> tuple[fl
         [
             sys.executable,
             "-m",
-            "services.cli",
+            "apps.cli",
             "detector",
             "--model",
             str(model),

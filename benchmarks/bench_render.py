@@ -24,15 +24,17 @@ import mujoco
 import numpy as np
 
 from benchmarks.machine import cpu_model
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.messages import Array, Image, WorldState
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint, spawn_router
 from services.camera.config import CameraConfig
 from services.camera.service import run
 from sim.arrow import arrow_quat
+from sim.model_build import build_scene
 from sim.render import LEAN_FLAGS, ROBOT_GEOM_GROUP, SceneRenderer
-from sim.scene import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig, ScenePhysics, build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig
 
 __all__ = ["main"]
 

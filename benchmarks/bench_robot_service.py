@@ -24,17 +24,17 @@ import time
 
 import numpy as np
 
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, open_router
 from protocol.messages import WorldEvent
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint, open_router
 from services.controller.posture import PostureConfig
 
 __all__ = ["main"]
 
 
 def _spawn(verb: str, net: NetConfig, *flags: str) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "services.cli", verb, "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "apps.cli", verb, "--connect", net.connect[0]]
     return subprocess.Popen([*argv, "--robot", net.robot, *flags], stdin=subprocess.DEVNULL)
 
 

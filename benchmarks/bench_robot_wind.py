@@ -1,7 +1,7 @@
 """Benchmark of a wind change on the MuJoCo iCub: rollouts to hit the 5 cm ring again.
 
 Run `MUJOCO_GL=egl python -m benchmarks.bench_robot_wind [--sessions 10]`. A router and the five
-services run as child processes (`services.launcher.Launcher`, as in `benchmarks.bench_prior`).
+services run as child processes (`apps.up.launcher.Launcher`, as in `benchmarks.bench_prior`).
 Each session learns in calm air; right after its first hit (the learner's `done` rollout on
 `learner/rollout:o`), the benchmark calls the robot's `setWind` with `WIND`, so the wind turns
 from the next rollout on, as `archery experiment --wind-change` does on the ballistic world. The
@@ -43,8 +43,8 @@ def _quartiles(values: np.ndarray) -> str:
 
 
 def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
+    from apps.learn.follow import follow
     from services.learner.journal import read_records
-    from services.learner.tools.learn import follow
 
     robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
     node.call(robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)

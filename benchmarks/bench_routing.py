@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
+from apps.progress import progress_bar
 from benchmarks.machine import cpu_model
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.messages import Image
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint, spawn_router
 
 WIDTH, HEIGHT = 1280, 720
 

@@ -11,7 +11,7 @@ and reported as the median over repeats of secure/plain, with the spread (min–
    streams lossless 1280×720 `Image` frames on `ROBOT/cam/target:o` to the operator (what
    `archery view` reads), which decodes them (frames/s). Goals: ≤1.3× latency, ≥0.8×
    throughput.
-2. Two whole meshes (`services.launcher.Launcher`: a router and the five services as child
+2. Two whole meshes (`apps.up.launcher.Launcher`: a router and the five services as child
    processes, each service with its own identity in secure mode), one plain and one secure,
    both up at once on different loopback ports: a learning session of `--rollouts` rollouts
    (archer, `until_hit` off, the same seed on both, after one warm-up session each) is run
@@ -35,15 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
+from apps.learn.follow import follow
+from apps.progress import progress_bar
+from apps.up.launcher import SERVICES, Launcher
 from benchmarks.machine import cpu_model
-from protocol.credentials import init_deployment
+from mesh.credentials import init_deployment
+from mesh.netflags import NetConfig
+from mesh.node import Node, Publisher, Subscription
+from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.messages import Image, Rollout
-from protocol.netflags import NetConfig
-from protocol.node import Node, Publisher, Subscription
-from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint, spawn_router
-from services.launcher import SERVICES, Launcher
-from services.learner.tools.learn import follow
 
 ROBOT = "bench"
 WIDTH, HEIGHT = 1280, 720

@@ -17,7 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
-from services.learner.tools.experiment import ExperimentConfig, Transfer, run_algorithm
+from apps.experiment.config import ExperimentConfig, Transfer
+from apps.experiment.experiment import run_algorithm
 from sim.ballistic import Scenario
 
 __all__ = ["PAIRS", "main"]

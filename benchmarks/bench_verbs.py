@@ -21,9 +21,9 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint, spawn_router
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.verbs import Args, Reply, Verb, VerbTable
 
 THETA = [0.17, 0.03, -0.03]

@@ -1,6 +1,6 @@
 """Drill: kill the router of a supervised mesh mid-session and restart it after 2 s and 15 s.
 
-The drills are `archery drill`'s (`services.drills.router`); this runs only those two:
+The drills are `archery drill`'s (`apps.drills.router`); this runs only those two:
 `MUJOCO_GL=egl python -m benchmarks.drill_router [--json OUT] [--seed N]`, the same as
 `archery drill --only router-2s --only router-15s`. Each row gives the router's outage, the
 seconds from the new router listening to all five services alive again (the notes) and to the
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-from services.drills.runner import main as drill_main
+from apps.drills.runner import main as drill_main
 
 
 def main(argv: list[str] | None = None) -> int:

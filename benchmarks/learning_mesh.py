@@ -8,11 +8,11 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from apps.progress import progress_bar
+from apps.up.launcher import SERVICES, Launcher
+from mesh.node import Node, Subscription
+from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout
-from protocol.node import Node, Subscription
-from protocol.progress import progress_bar
-from protocol.router import free_tcp_endpoint
-from services.launcher import SERVICES, Launcher
 
 __all__ = ["learning_mesh", "progress_bar"]
 

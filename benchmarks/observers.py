@@ -12,8 +12,8 @@ from pathlib import Path
 
 import psutil
 
-from protocol.router import free_tcp_endpoint
-from services.cli import spawn
+from mesh.router import free_tcp_endpoint
+from tests.spawn import spawn
 
 __all__ = ["CONDITIONS", "Observers", "cpu_seconds", "stop"]
 

@@ -1,6 +1,7 @@
-"""The mesh library: key names, message types, codec, node base and CLI tools.
-
-It is the only code the services share.
+"""The contract of the mesh, and only it: key names (`keys`), message types (`messages`), the
+RPC verbs of every service with their argument and reply types (`verbs`), the codec, the error
+codes and the shared robot facts (`robotspec`, `parts`). No Zenoh, no argparse, no I/O: a
+reader learns every message and verb of the mesh here. The runtime that carries them is `mesh`.
 """
 
 from protocol.codec import decode, encode
@@ -14,8 +15,6 @@ from protocol.errors import (
     RpcTimeout,
 )
 from protocol.keys import Keys, port_of
-from protocol.netflags import NetConfig, add_network_args
-from protocol.node import Node, shutdown_on_signals
 
 __all__ = [
     "ArcheryError",
@@ -24,13 +23,9 @@ __all__ = [
     "DecodeError",
     "KeyNameError",
     "Keys",
-    "NetConfig",
-    "Node",
     "RpcError",
     "RpcTimeout",
-    "add_network_args",
     "decode",
     "encode",
     "port_of",
-    "shutdown_on_signals",
 ]

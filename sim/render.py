@@ -28,14 +28,14 @@ import numpy as np
 
 from sim.arrow import arrow_quat
 from sim.errors import ConfigError
-from sim.scene import (
+from sim.model_build import build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import (
     ARROW_BODY,
     RING_COLOURS,
     TARGET_CAMERA,
     TARGET_CENTRE_SITE,
     SceneConfig,
-    ScenePhysics,
-    build_scene,
 )
 from sim.view_key import ViewKey
 

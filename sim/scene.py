@@ -5,7 +5,7 @@ a floor and cameras, assembled by `sim.model_build.build_scene` from a `sim.scen
 SceneConfig`; the model is fully determined by its config, so a renderer that rebuilds it with
 the same config reproduces any state from `qpos` alone. `ScenePhysics` is the thin layer of
 physics queries by name (joint slices per part, sites, the arrow's pose and velocity) that task
-logic builds on. This module also re-exports the names callers use from those modules.
+logic builds on.
 
 Frame: the MuJoCo world frame is the iCub `root_link` frame (x backward, y right, z up; metres);
 angles are radians, times seconds.
@@ -18,44 +18,16 @@ import numpy as np
 
 from protocol.parts import PARTS
 from sim.errors import CommandError, SceneError
-from sim.model_build import build_scene
-from sim.props import look_at_quat
 from sim.scene_config import (
     ARROW_BODY,
     ARROW_JOINT,
     ARROW_TIP_SITE,
     BOW_HAND_SITE,
-    BOWSTRING_TENDON,
-    HOME_POSTURE,
-    RING_COLOURS,
-    SIDE_CAMERA,
     STRING_HAND_SITE,
-    TARGET_CAMERA,
     TARGET_CENTRE_SITE,
-    SceneConfig,
 )
-from sim.urdf import MODEL_NAME, load_urdf_model, urdf_frame_placement
 
-__all__ = [
-    "ARROW_BODY",
-    "ARROW_JOINT",
-    "ARROW_TIP_SITE",
-    "BOWSTRING_TENDON",
-    "BOW_HAND_SITE",
-    "HOME_POSTURE",
-    "MODEL_NAME",
-    "RING_COLOURS",
-    "SIDE_CAMERA",
-    "STRING_HAND_SITE",
-    "TARGET_CAMERA",
-    "TARGET_CENTRE_SITE",
-    "SceneConfig",
-    "ScenePhysics",
-    "build_scene",
-    "load_urdf_model",
-    "look_at_quat",
-    "urdf_frame_placement",
-]
+__all__ = ["ScenePhysics"]
 
 
 class ScenePhysics:

@@ -25,7 +25,9 @@ from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, StateError
 from sim.geometry import TARGET_DIAMETER, target_centre
-from sim.scene import SceneConfig, ScenePhysics, build_scene
+from sim.model_build import build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import SceneConfig
 from sim.vectors import vector3
 
 __all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]

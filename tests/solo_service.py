@@ -7,8 +7,8 @@ import sys
 import threading
 from types import SimpleNamespace
 
-from protocol.node import Node
-from protocol.service import service_main
+from mesh.node import Node
+from mesh.service import service_main
 
 
 def main(argv: list[str]) -> int:

@@ -16,16 +16,18 @@ import msgspec
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.errors import ConfigError, RpcError
 from protocol.messages import Array, Image, WorldState
-from protocol.netflags import NetConfig
-from protocol.node import Node
 from services.camera.config import CameraConfig
 from services.camera.service import run
 from services.camera.sources import DeviceSource, SourceError, SourceSpec, parse_source
 from sim.arrow import arrow_quat
+from sim.model_build import build_scene
 from sim.render import SceneRenderer, project
-from sim.scene import TARGET_CENTRE_SITE, SceneConfig, ScenePhysics, build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import TARGET_CENTRE_SITE, SceneConfig
 from tests.conftest import archery, serving
 
 

@@ -13,13 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from protocol.cliargs import clean_zenoh_error, loads_finite
+from apps.cli import VERBS
+from apps.topics.selfcheck import ECHO_SERVICE, run_echo
+from mesh.cliargs import clean_zenoh_error, loads_finite
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
 from protocol.errors import ConfigError, RpcError
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint
-from protocol.selfcheck import ECHO_SERVICE, run_echo
-from services.cli import VERBS
 from tests.conftest import archery, serving
 
 # (argv, exit status, text the one stderr line must contain). In argv, {net} stands for the
@@ -196,9 +196,9 @@ def _argv(template: str, values: dict[str, str]) -> list[str]:
 
 def _recordings(tmp: Path) -> None:
     """ok.mcap (one event), cut.mcap (it, cut short), v9.mcap (of schema version 9)."""
+    from apps.topics.recording import Recorder
     from protocol.codec import encode
     from protocol.messages import WorldEvent
-    from protocol.recording import Recorder
 
     recorder = Recorder(tmp / "ok.mcap", "icubSim", ["icubSim/**"])
     recorder.put("icubSim/world/events:o", encode(WorldEvent(kind="reset")))
@@ -293,7 +293,7 @@ def echo(net: NetConfig) -> Iterator[NetConfig]:
 
 def _popen(*args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *args],
+        [sys.executable, "-m", "apps.cli", *args],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -345,7 +345,7 @@ def test_a_refused_joint_command_fails_with_the_robots_reason(
     from protocol.robotspec import ROBOT
     from services.robot.config import RobotConfig
     from services.robot.service import run
-    from sim.scene import SceneConfig
+    from sim.scene_config import SceneConfig
     from sim.world import WorldConfig
 
     config = RobotConfig(net=net, world=WorldConfig(scene=SceneConfig(meshes=False)))

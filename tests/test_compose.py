@@ -15,12 +15,12 @@ from typing import Any
 
 import pytest
 
-import protocol.router
-import protocol.service
-from protocol.credentials import DEFAULT_HOSTS
-from services.cli import VERBS
-from services.launcher import SERVICES
-from services.learner.tools.learn import build_parser, start_request
+import mesh.router
+import mesh.service
+from apps.cli import VERBS
+from apps.learn.learn import build_parser, start_request
+from apps.up.launcher import SERVICES
+from mesh.credentials import DEFAULT_HOSTS
 from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -183,14 +183,14 @@ def _parse_service(verb: str, argv: list[str], monkeypatch: pytest.MonkeyPatch) 
     """Run a service's main() with its flags but without serving: returns its config."""
     module_name, func = VERBS[verb][0].split(":")
     module = importlib.import_module(module_name)
-    real = protocol.service.service_main  # not module.service_main: patched by an earlier call
+    real = mesh.service.service_main  # not module.service_main: patched by an earlier call
     seen: list[Any] = []
 
     def dry(argv: Any, **kw: Any) -> int:
         return real(argv, **(kw | {"run": lambda config, stop: seen.append(config)}))
 
     monkeypatch.setattr(module, "service_main", dry)
-    monkeypatch.setattr(protocol.service, "shutdown_on_signals", threading.Event)
+    monkeypatch.setattr(mesh.service, "shutdown_on_signals", threading.Event)
     assert getattr(module, func)(argv) == 0
     return seen[0]
 
@@ -209,13 +209,13 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
     stop = threading.Event()
     stop.set()
     opened: list[Any] = []
-    monkeypatch.setattr(protocol.router, "shutdown_on_signals", lambda: stop)
+    monkeypatch.setattr(mesh.router, "shutdown_on_signals", lambda: stop)
     monkeypatch.setattr(
-        protocol.router, "open_session", lambda net: opened.append(net) or contextlib.nullcontext()
+        mesh.router, "open_session", lambda net: opened.append(net) or contextlib.nullcontext()
     )
-    assert protocol.router.main(services["router"]["command"][2:]) == 0
+    assert mesh.router.main(services["router"]["command"][2:]) == 0
     assert opened[0].listen == ("tcp/0.0.0.0:7447",) and opened[0].mode == "router"
-    assert protocol.router.main(services["router-secure"]["command"][2:]) == 0
+    assert mesh.router.main(services["router-secure"]["command"][2:]) == 0
     assert opened[1].listen == ("tls/0.0.0.0:7447",) and opened[1].secure == "/secrets"
     assert opened[1].identity == "router"
     args = build_parser().parse_args(services["demo"]["command"][2:])

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from protocol.cliargs import ArgumentParser
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.cliargs import ArgumentParser
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from protocol.errors import ConfigError
 
 

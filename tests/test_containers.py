@@ -37,7 +37,7 @@ from tests.containers import (
 pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800)]
 
 # What each image must import: every module of its process's packages. Left out on purpose: the
-# recording modules (`record`/`replay` run on a host, `archery[record]`) and sim.postures (a
+# recording modules (`record`/`replay` run on a host, `archery[record]`) and tests.postures (a
 # fixture of the tests).
 IMPORTS = {
     "router": ["protocol"],
@@ -48,11 +48,11 @@ IMPORTS = {
     "learner": ["services.learner"],
 }
 NOT_IN_IMAGES = (
-    "protocol.image_records",
-    "protocol.json_image_records",
-    "protocol.observe",
-    "protocol.recording",
-    "sim.postures",
+    "apps.topics.image_records",
+    "apps.topics.json_image_records",
+    "apps.topics.observe",
+    "apps.topics.recording",
+    "tests.postures",
 )
 _IMPORT_ALL = """
 import importlib, os, pkgutil, sys
@@ -131,7 +131,7 @@ def test_no_key_enters_an_image(base: str, tmp_path: Path) -> None:
     """A deployment in secrets/ and a stray key beside the Dockerfile stay out of the image."""
     context = copy_context(tmp_path / "context")
     subprocess.run(
-        [sys.executable, "-m", "services.cli", "keys", "init", str(context / "secrets")],
+        [sys.executable, "-m", "apps.cli", "keys", "init", str(context / "secrets")],
         check=True,
         capture_output=True,
         cwd=ROOT,
@@ -298,7 +298,7 @@ def test_the_secure_profile_runs_the_demo_to_a_hit(
     runs, secrets = tmp_path / "runs", tmp_path / "secrets"
     runs.mkdir()
     subprocess.run(
-        [sys.executable, "-m", "services.cli", "keys", "init", str(secrets)],
+        [sys.executable, "-m", "apps.cli", "keys", "init", str(secrets)],
         check=True,
         capture_output=True,
         cwd=ROOT,

@@ -13,10 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node, Subscription
 from protocol.errors import RpcError
 from protocol.messages import JointCommand, JointState
-from protocol.netflags import NetConfig
-from protocol.node import Node, Subscription
 from protocol.parts import PARTS
 from protocol.robotspec import CONTROLLER, ROBOT, STATE_MAX_AGE
 from services.controller import service as controller_service

@@ -22,13 +22,13 @@ import cv2
 import numpy as np
 import pytest
 
+from apps.dashboard.server import Dashboard, bind
+from apps.dashboard.watch import MeshWatch
+from mesh.netflags import NetConfig
+from mesh.node import Node, Publisher
+from mesh.router import free_tcp_endpoint
 from protocol.messages import Image, JointState, Rollout
-from protocol.netflags import NetConfig
-from protocol.node import Node, Publisher
-from protocol.router import free_tcp_endpoint
-from services.cli import spawn
-from services.dashboard.server import Dashboard, bind
-from services.dashboard.watch import MeshWatch
+from tests.spawn import spawn
 
 CHROMIUM = "/usr/bin/chromium"
 # (r_m, status): two measured rollouts, one aborted, a hit last

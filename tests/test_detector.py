@@ -22,10 +22,11 @@ from services.detector.errors import ImageError
 from sim.arrow import arrow_quat
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.postures import archery_posture
+from sim.model_build import build_scene
 from sim.render import SceneRenderer, calibration_frame, project
-from sim.scene import ARROW_TIP_SITE, TARGET_CENTRE_SITE, SceneConfig, build_scene
+from sim.scene_config import ARROW_TIP_SITE, TARGET_CENTRE_SITE, SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
+from tests.postures import archery_posture
 
 SCENE = SceneConfig(meshes=False)
 # a noisy bow, so the shots spread over the face

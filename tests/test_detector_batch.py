@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detector.devset import cases, drawn_scenes
 from tests.conftest import archery
+from tests.devset import cases, drawn_scenes
 
 
 def _write(path: Path, rgb: np.ndarray) -> str:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from services.detector.detect import Detector
-from services.detector.devset import (
+from tests.devset import (
     CHANGES,
     Scene,
     calibrate,

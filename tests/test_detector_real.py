@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 import pytest
 
+from apps.detect import read_rgb
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.detect import Detector, exact_memberships
-from services.detector.offline import read_rgb
 from tests.conftest import archery
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"

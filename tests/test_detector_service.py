@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.errors import RpcError
 from protocol.messages import Array, Detection, WorldState
-from protocol.netflags import NetConfig
-from protocol.node import Node
 from services.camera.config import CameraConfig
 from services.camera.service import run as run_camera
 from services.detector.config import DetectorConfig
@@ -28,10 +28,11 @@ from services.detector.detect import DetectorSettings
 from services.detector.service import run as run_detector
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.postures import archery_posture
-from sim.scene import SceneConfig, build_scene
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
+from tests.postures import archery_posture
 
 SCENE = SceneConfig(meshes=False)
 

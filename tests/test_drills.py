@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from services.drills import runner
-from services.drills.order import start_order
-from services.drills.verdict import DrillResult, Evidence, count_lost_duplicated, judge
-from services.launch_config import SERVICES
+from apps.drills import runner
+from apps.drills.order import start_order
+from apps.drills.verdict import DrillResult, Evidence, count_lost_duplicated, judge
+from apps.up.launch_config import SERVICES
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 

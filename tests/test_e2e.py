@@ -15,12 +15,12 @@ from typing import Any
 import numpy as np
 import pytest
 
+from apps.learn.follow import follow
+from apps.up.launcher import SERVICES, Launcher
+from mesh.node import Node, Subscription
+from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout
-from protocol.node import Node, Subscription
-from protocol.router import free_tcp_endpoint
-from services.launcher import SERVICES, Launcher
 from services.learner.journal import read_records
-from services.learner.tools.learn import follow
 from tests.conftest import archery
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -116,7 +116,7 @@ def test_learner_killed_mid_session(
     net = ["--connect", mesh.endpoint, "--robot", mesh.net.robot]
     learn = ["learn", "--algo", "archer", "--seed", "2", "--rollouts", "6", "--no-until-hit"]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *learn, *net],
+        [sys.executable, "-m", "apps.cli", *learn, *net],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -1,4 +1,4 @@
-"""Tests of `archery experiment` (services.learner.tools.experiment) on small budgets."""
+"""Tests of `archery experiment` (apps.experiment.experiment) on small budgets."""
 
 from __future__ import annotations
 
@@ -9,16 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.cli import main as archery
-from services.learner.tools.experiment import (
-    CURVE_COLUMNS,
-    AlgorithmRun,
-    ExperimentConfig,
-    ExperimentError,
-    main,
-    run_algorithm,
-    summarise,
-)
+from apps.cli import main as archery
+from apps.experiment.config import CURVE_COLUMNS, AlgorithmRun, ExperimentConfig, ExperimentError
+from apps.experiment.experiment import main, run_algorithm, summarise
 from sim.ballistic import Scenario
 
 SMALL = ["--sessions", "3", "--rollouts", "8", "--seed", "1", "--no-progress"]

@@ -8,12 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from protocol.errors import ConfigError
-from protocol.netflags import NetConfig
-from services.launch_config import default_mesh, fleet_prefixes
-from services.learner.config import LearnerServiceConfig
-from services.learner.tools.experiment import ExperimentConfig, ExperimentError
-from services.learner.tools.experiment_mesh import (
+from apps.experiment.config import ExperimentConfig, ExperimentError
+from apps.experiment.experiment_mesh import (
     PLAN_NAME,
     SessionItem,
     journal_path,
@@ -21,7 +17,11 @@ from services.learner.tools.experiment_mesh import (
     prepare_out,
     session_config,
 )
-from services.learner.tools.fleet import robot_stacks
+from apps.experiment.fleet import robot_stacks
+from apps.up.launch_config import default_mesh, fleet_prefixes
+from mesh.netflags import NetConfig
+from protocol.errors import ConfigError
+from services.learner.config import LearnerServiceConfig
 from tests.conftest import archery
 
 

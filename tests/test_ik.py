@@ -11,18 +11,16 @@ from hypothesis import strategies as st
 from protocol.errors import ArcheryError, BadRequest
 from protocol.errors import ConfigError as ProjectConfigError
 from protocol.parts import PARTS
+from protocol.robotspec import HOME_POSTURE
 from services.controller.errors import ConfigError, ControllerError, JointError, TargetError
-from services.controller.ik import (
-    IkSettings,
-    IkSolver,
-    OrientationTarget,
-    PositionTarget,
-    as_rotation,
+from services.controller.ik import IkSolver
+from services.controller.ik_derivatives import (
     orientation_residual,
     orientation_residual_jacobian,
     position_hessian_contraction,
 )
-from services.controller.model import HOME_POSTURE, JOINT_NAMES, ArmsModel, load_arms_model
+from services.controller.ik_types import IkSettings, OrientationTarget, PositionTarget, as_rotation
+from services.controller.model import JOINT_NAMES, ArmsModel, load_arms_model
 from services.controller.qp import solve_box_qp
 
 ARMS = ("left_arm", "right_arm")

@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from protocol.jobs import JobQueue
+from mesh.jobs import JobQueue
 
 
 class Unavailable(Exception):

@@ -8,8 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from protocol.errors import ConfigError
-from services.launch_config import (
+from apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
@@ -17,8 +16,9 @@ from services.launch_config import (
     load_mesh,
     parse_mesh,
 )
-from services.launcher import Launcher, main
-from services.restart_policy import RestartPolicy
+from apps.up.launcher import Launcher, main
+from apps.up.restart_policy import RestartPolicy
+from protocol.errors import ConfigError
 from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 
+from apps.topics.recording import open_recording
+from apps.up.launcher import SERVICES, Launcher, LaunchError
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, open_router
 from protocol.errors import ConfigError
 from protocol.messages import Image
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.recording import open_recording
-from protocol.router import free_tcp_endpoint, open_router
-from services.launcher import SERVICES, Launcher, LaunchError
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -67,7 +67,7 @@ def _up(endpoint: str, tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
         [
             sys.executable,
             "-m",
-            "services.cli",
+            "apps.cli",
             "up",
             "--listen",
             endpoint,

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from apps.experiment.config import ExperimentConfig
+from apps.experiment.experiment import run_algorithm
 from services.learner.algorithms import Archer, Bounds, LearnerConfigError
-from services.learner.tools.experiment import ExperimentConfig, run_algorithm
 
 WIDE = Bounds(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 

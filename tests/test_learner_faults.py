@@ -17,22 +17,22 @@ from typing import Any
 import numpy as np
 import pytest
 
+from apps.learn import attach, follow, learn
+from apps.up.launcher import SERVICES, Launcher
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
 from protocol.errors import RpcError, UpstreamLost
 from protocol.messages import Rollout, WorldEvent
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint
 from protocol.verbs import controller as cv
 from services.detector import service as detector_service
 from services.detector.colour_model import ColourModel
-from services.launcher import SERVICES, Launcher
 from services.learner import handlers as learner_handlers
 from services.learner import service as learner_service
 from services.learner.config import LearnerServiceConfig, SessionConfig
 from services.learner.journal import JournalState, check_invariants, read_records
 from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, ServiceLost, Session, Shot
-from services.learner.tools import attach, learn
 from tests.conftest import serving
 from tests.test_learner_service_session import FakeRig, Measurement, PostureResult
 
@@ -478,7 +478,7 @@ def test_camera_killed_and_restarted_mid_session(tmp_path: Path) -> None:
             assert status["state"] == "waiting"
             assert status["cause"].startswith("waiting for camera (lost ")
             launcher.start("camera")
-            final = learn.follow(node, session, rollouts, lambda m: None)
+            final = follow.follow(node, session, rollouts, lambda m: None)
         codes = launcher.stop_all()
     assert all(code == 0 for code in codes.values()), codes
     assert final["state"] == "finished" and final["rollouts"] == 4, final

@@ -15,20 +15,20 @@ import cv2
 import numpy as np
 import pytest
 
+from apps.learn.follow import follow
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.errors import ArcheryError, RpcError
 from protocol.messages import Rollout, WorldEvent
-from protocol.netflags import NetConfig
-from protocol.node import Node
 from protocol.verbs import detector as dv
 from services.controller import service as controller_service
 from services.controller.config import ControllerConfig
 from services.learner import service as learner_service
 from services.learner.config import LearnerServiceConfig
 from services.learner.journal import read_records
-from services.learner.tools.learn import follow
 from services.robot import service as robot_service
 from services.robot.config import RobotConfig
-from sim.scene import SceneConfig
+from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery
 

@@ -16,6 +16,7 @@ from protocol.errors import BadRequest
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SessionConfig
 from services.learner.journal import JournalError, JournalState, read_records
+from services.learner.report import interruptions, write_report
 from services.learner.session import (
     Measurement,
     PostureResult,
@@ -24,7 +25,6 @@ from services.learner.session import (
     Session,
     Shot,
 )
-from services.learner.tools.report import interruptions, write_report
 
 BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.

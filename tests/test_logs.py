@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
+from mesh.logs import _zenoh_spec, parse_spec
+from mesh.router import free_tcp_endpoint
 from protocol.errors import ConfigError
-from protocol.logs import _zenoh_spec, parse_spec
-from protocol.router import free_tcp_endpoint
 
 ANSI = re.compile(r"\x1b\[")
 
@@ -49,8 +49,8 @@ def test_bad_specs_name_the_bad_part(spec: str, match: str) -> None:
 def test_zenoh_logs_go_to_stderr_without_colour_and_stdout_keeps_the_data() -> None:
     """A child that logs Zenoh's debug lines and prints one data line."""
     code = (
-        "import zenoh; from protocol.logs import configure; configure('info,zenoh=debug'); "
-        "from protocol.netflags import NetConfig, open_session\n"
+        "import zenoh; from mesh.logs import configure; configure('info,zenoh=debug'); "
+        "from mesh.netflags import NetConfig, open_session\n"
         f"print('data line', flush=True)\n"
         "try:\n"
         f"    open_session(NetConfig(connect=({free_tcp_endpoint()!r},)))\n"

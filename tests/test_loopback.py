@@ -16,8 +16,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from protocol.router import free_tcp_endpoint
-from services.launcher import SERVICES, Launcher
+from apps.up.launcher import SERVICES, Launcher
+from mesh.router import free_tcp_endpoint
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -55,7 +55,7 @@ def test_every_socket_of_a_running_mesh_is_on_the_given_loopback_endpoint(
         launcher.up(120)
         learn = subprocess.Popen(
             [
-                *(sys.executable, "-m", "services.cli", "learn", "--connect", endpoint),
+                *(sys.executable, "-m", "apps.cli", "learn", "--connect", endpoint),
                 *("--robot", robot, "--rollouts", "2", "--no-until-hit", "--quiet"),
             ],
             stdout=subprocess.PIPE,

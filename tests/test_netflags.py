@@ -7,9 +7,9 @@ import time
 
 import pytest
 
+from mesh.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
+from mesh.router import free_tcp_endpoint
 from protocol.errors import ConfigError
-from protocol.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
-from protocol.router import free_tcp_endpoint
 
 
 def _parse(*argv: str) -> NetConfig:

@@ -10,12 +10,12 @@ from collections.abc import Iterator
 
 import pytest
 
+from apps.topics.selfcheck import ECHO_SERVICE
+from mesh.instances import describe_all
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.errors import BadRequest, RpcError, RpcTimeout
-from protocol.instances import describe_all
 from protocol.messages import JointState, WorldEvent
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.selfcheck import ECHO_SERVICE
 
 
 def _state(i: int) -> JointState:
@@ -157,7 +157,7 @@ def test_describe_counts_the_messages_of_each_publisher(pair: tuple[Node, Node])
 
 
 def _spawn_echo(net: NetConfig) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "services.cli", "selfcheck", "--echo", "--robot", net.robot]
+    argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     for endpoint in net.connect:
         argv += ["--connect", endpoint]
     return subprocess.Popen(argv, stdin=subprocess.DEVNULL)

@@ -11,10 +11,10 @@ import msgspec
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.errors import BadRequest, RpcError
 from protocol.messages import Array, Image
-from protocol.netflags import NetConfig
-from protocol.node import Node
 from protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
 
 

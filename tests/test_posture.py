@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from services.controller.errors import ConfigError, JointError, TargetError
-from services.controller.ik import IkSettings
+from services.controller.ik_types import IkSettings
 from services.controller.posture import (
     ArcheryPosture,
     PostureConfig,

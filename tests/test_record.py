@@ -22,6 +22,10 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
+from apps.topics.recording import Recorder, from_record, open_recording, to_record
+from apps.topics.selfcheck import ECHO_SERVICE, run_echo
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError, RpcTimeout
 from protocol.messages import (
@@ -33,12 +37,8 @@ from protocol.messages import (
     WorldEvent,
     WorldState,
 )
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.recording import Recorder, from_record, open_recording, to_record
-from protocol.selfcheck import ECHO_SERVICE, run_echo
-from services.cli import spawn
 from tests.conftest import archery, serving
+from tests.spawn import spawn
 
 
 def _flags(net: NetConfig) -> list[str]:
@@ -329,8 +329,8 @@ def test_the_mcap_protobuf_decoder_reads_the_frames_from_their_schema(tmp_path: 
 
 
 def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
+    from apps.topics.observe import _Frames
     from protocol.errors import BadRequest
-    from protocol.observe import _Frames
 
     rgb = np.zeros((4, 4, 3), np.uint8)
     # three rollouts, each restarting the simulated clock

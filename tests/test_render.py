@@ -13,7 +13,8 @@ import pytest
 
 from sim.errors import ConfigError
 from sim.render import SceneRenderer, calibration_frame, project
-from sim.scene import ARROW_TIP_SITE, RING_COLOURS, TARGET_CENTRE_SITE, SceneConfig, ScenePhysics
+from sim.scene import ScenePhysics
+from sim.scene_config import ARROW_TIP_SITE, RING_COLOURS, TARGET_CENTRE_SITE, SceneConfig
 
 SCENE = SceneConfig(meshes=False)
 

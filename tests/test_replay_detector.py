@@ -14,16 +14,16 @@ from pathlib import Path
 
 import numpy as np
 
+from apps.topics.recording import open_recording
 from benchmarks.bench_record import remeasure
+from mesh.netflags import NetConfig
+from mesh.node import Node
 from protocol.messages import Detection, WorldState
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.recording import open_recording
-from services.cli import spawn
 from services.detector.config import DetectorConfig
 from services.detector.service import run as run_detector
 from tests import test_detector_service
 from tests.conftest import serving
+from tests.spawn import spawn
 from tests.test_detector_service import _state, camera_and_detector
 
 shot = test_detector_service.shot  # the landed arrow's fixture, shared

@@ -8,7 +8,7 @@ import numpy as np
 
 from services.learner.algorithms.registry import make_learner
 from services.learner.journal import Journal, JournalState, read_records
-from services.learner.tools.report import Interruptions, interruptions, write_report
+from services.learner.report import Interruptions, interruptions, write_report
 
 THETA = [0.17, 0.0, -0.02]  # m
 

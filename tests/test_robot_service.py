@@ -15,19 +15,20 @@ import mujoco
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node, Subscription
 from protocol.errors import RpcError
 from protocol.messages import JointCommand, JointState, WorldEvent, WorldState
-from protocol.netflags import NetConfig
-from protocol.node import Node, Subscription
 from protocol.parts import PARTS
 from protocol.robotspec import ROBOT
 from services.robot.config import RobotConfig
 from services.robot.service import run
 from sim.geometry import BOW_HAND, START_THETA
-from sim.postures import archery_posture
-from sim.scene import SceneConfig, build_scene
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery
+from tests.postures import archery_posture
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 Posture = dict[str, np.ndarray]
@@ -286,7 +287,7 @@ def test_reset_waits_for_a_flight_to_land(robot: Callable[..., Client]) -> None:
 
 
 def test_sigterm_ends_the_robot_process_cleanly(net: NetConfig) -> None:
-    argv = [sys.executable, "-m", "services.cli", "robot", "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "apps.cli", "robot", "--connect", net.connect[0]]
     proc = subprocess.Popen([*argv, "--robot", net.robot, "--rtf", "1"], stdin=subprocess.DEVNULL)
     try:
         with Node(None, net) as node:

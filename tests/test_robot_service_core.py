@@ -19,9 +19,10 @@ from services.robot.config import RobotConfig
 from services.robot.simloop import SimLoop
 from sim.errors import StateError
 from sim.geometry import BOW_HAND, START_THETA
-from sim.postures import archery_posture
-from sim.scene import SceneConfig, build_scene
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
+from tests.postures import archery_posture
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 ARM = PartLimits(

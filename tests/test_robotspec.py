@@ -15,8 +15,10 @@ from protocol import robotspec
 from protocol.keys import SERVICES
 from protocol.parts import ARM_PARTS, PARTS
 from services.controller.model import ArmsModel, load_arms_model
-from sim.scene import HOME_POSTURE as SCENE_HOME
-from sim.scene import SceneConfig, ScenePhysics, build_scene
+from sim.model_build import build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import HOME_POSTURE as SCENE_HOME
+from sim.scene_config import SceneConfig
 
 POSITION_TOL = 1e-3  # m
 ANGLE_TOL = 1e-3  # rad

@@ -13,24 +13,23 @@ import pytest
 from protocol.parts import PARTS
 from sim.errors import CommandError, ConfigError, SceneError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
-from sim.postures import archery_posture
-from sim.scene import (
+from sim.model_build import build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import (
     ARROW_JOINT,
     ARROW_TIP_SITE,
     BOW_HAND_SITE,
     BOWSTRING_TENDON,
     HOME_POSTURE,
-    MODEL_NAME,
     RING_COLOURS,
     SIDE_CAMERA,
     STRING_HAND_SITE,
     TARGET_CAMERA,
     TARGET_CENTRE_SITE,
     SceneConfig,
-    ScenePhysics,
-    build_scene,
-    urdf_frame_placement,
 )
+from sim.urdf import MODEL_NAME, urdf_frame_placement
+from tests.postures import archery_posture
 
 CHEAP = SceneConfig(meshes=False)
 

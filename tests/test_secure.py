@@ -23,9 +23,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from protocol.acl import rules
-from protocol.codec import encode
-from protocol.credentials import (
+from mesh.acl import rules
+from mesh.credentials import (
     CA_CERT,
     CA_KEY,
     IDENTITIES,
@@ -34,12 +33,13 @@ from protocol.credentials import (
     issue,
     write_identity,
 )
+from mesh.netflags import NetConfig, open_session
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, spawn_router
+from protocol.codec import encode
 from protocol.errors import ConfigError, RpcError, WrongReplier
 from protocol.keys import Keys
 from protocol.messages import RpcReply
-from protocol.netflags import NetConfig, open_session
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint, spawn_router
 from services.learner.rig import MeshRig
 from services.learner.session import RigError, Shot
 from tests.conftest import archery

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from protocol.router import free_tcp_endpoint
+from mesh.router import free_tcp_endpoint
 from services.learner.journal import read_records
 from tests.conftest import archery
 
@@ -51,7 +51,7 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
     logs = tmp_path / "logs"
     up_args = ["up", "--secure", str(deploy), "--listen", endpoint]
     up = subprocess.Popen(
-        [sys.executable, "-m", "services.cli", *up_args, "--logs", str(logs), "--runs", str(runs)],
+        [sys.executable, "-m", "apps.cli", *up_args, "--logs", str(logs), "--runs", str(runs)],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

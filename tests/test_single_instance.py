@@ -12,12 +12,12 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
+from mesh.instances import InstanceWatch, live_instances, zid_of
+from mesh.netflags import NetConfig, open_session
+from mesh.node import Node
 from protocol.codec import encode
 from protocol.errors import DuplicateService
-from protocol.instances import InstanceWatch, live_instances, zid_of
 from protocol.messages import Describe
-from protocol.netflags import NetConfig, open_session
-from protocol.node import Node
 from tests.conftest import archery
 
 NAME = "detector"
@@ -47,7 +47,7 @@ def spawn(net: NetConfig) -> Iterator:
 
 def _instance_pids(node: Node) -> set[int]:
     """Pids of the instances holding NAME's instance token now (from their describe)."""
-    from protocol.instances import describe_all
+    from mesh.instances import describe_all
 
     zids = live_instances(node.session, node.keys, NAME)
     return {d.pid for z, d in describe_all(node.session, node.keys, NAME).items() if z in zids}

@@ -19,14 +19,14 @@ import psutil
 import pytest
 import zenoh
 
+from apps.up.launch_config import default_mesh
+from apps.up.launcher import SERVICES, Launcher
+from apps.up.restart_policy import RestartPolicy
+from apps.up.supervisor import GiveUp, Supervisor
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from protocol.errors import ConfigError
-from protocol.netflags import NetConfig
-from protocol.node import Node
-from protocol.router import free_tcp_endpoint, wait_for_endpoint
-from services.launch_config import default_mesh
-from services.launcher import SERVICES, Launcher
-from services.restart_policy import RestartPolicy
-from services.supervisor import GiveUp, Supervisor
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 ROBOT = "sup1"
@@ -184,7 +184,7 @@ def _children(pid: int) -> dict[str, int]:
     out = {}
     for child in psutil.Process(pid).children():
         with contextlib.suppress(psutil.NoSuchProcess):
-            out[child.cmdline()[3]] = child.pid  # python -m services.cli VERB ...
+            out[child.cmdline()[3]] = child.pid  # python -m apps.cli VERB ...
     return out
 
 
@@ -196,7 +196,7 @@ def test_up_stops_everything_when_the_budget_is_spent(tmp_path: Path) -> None:
     config.write_text(
         f'[router]\nendpoint = "{endpoint}"\n[robots.supcli]\nservices = ["controller"]\n'
     )
-    argv = [sys.executable, "-m", "services.cli", "up", "--config", str(config)]
+    argv = [sys.executable, "-m", "apps.cli", "up", "--config", str(config)]
     argv += ["--logs", str(tmp_path / "logs"), "--restart-budget", "1"]
     proc = subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ

@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from apps.experiment.config import ExperimentConfig, Transfer
+from apps.experiment.experiment import run_algorithm
 from protocol.errors import BadRequest
 from services.learner.algorithms.base import LearnerConfigError, StateError
 from services.learner.algorithms.registry import (
@@ -22,7 +24,6 @@ from services.learner.algorithms.registry import (
 from services.learner.config import SessionConfig
 from services.learner.journal import JournalError, read_records
 from services.learner.session import Session
-from services.learner.tools.experiment import ExperimentConfig, Transfer, run_algorithm
 from services.learner.transfer import load_source
 from sim.ballistic import BallisticWorld, Scenario
 from tests.test_learner_service_session import FakeRig

@@ -12,10 +12,10 @@ import msgspec
 import numpy as np
 import pytest
 
+from mesh.netflags import NetConfig
+from mesh.node import Node, bad_args_message
 from protocol.errors import RpcError
 from protocol.messages import Image, RpcReply
-from protocol.netflags import NetConfig
-from protocol.node import Node, bad_args_message
 from protocol.verbs import TABLES, NoArgs, Verb, table_for_key
 from protocol.verbs import controller as cv
 from tests.conftest import archery

@@ -15,9 +15,11 @@ from sim.arrow import Landing, Outcome, drag_acceleration
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, SimError, StateError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
-from sim.postures import archery_posture
-from sim.scene import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig, ScenePhysics, build_scene
+from sim.model_build import build_scene
+from sim.scene import ScenePhysics
+from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
 from sim.world import ArcheryWorld, ArrowState, WorldConfig
+from tests.postures import archery_posture
 
 SCENE = SceneConfig(meshes=False)
 EXACT = {"drag": 0.0, "speed_noise": 0.0, "direction_noise": 0.0}

@@ -11,11 +11,11 @@ from typing import Annotated, Any, Literal
 from msgspec import Meta
 
 from protocol.parts import PARTS
+from protocol.robotspec import MAX_REFERENCE_SPEED
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = ["ARCHERY_VERBS", "MAX_WIND", "PART_VERBS"]
 
-MAX_REFERENCE_SPEED = 2.0  # rad/s
 MAX_JOINTS = 64
 MAX_WIND = 50.0  # m/s, per axis
 

@@ -28,10 +28,10 @@ from typing import Any
 import cv2
 import numpy as np
 
+from mesh.jobs import JobQueue
+from mesh.node import Node, Publisher
 from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
-from protocol.jobs import JobQueue
 from protocol.messages import Image, WorldState
-from protocol.node import Node, Publisher
 from protocol.verbs import robot as robot_verbs
 from services.camera.config import CameraConfig
 from services.camera.frames import FrameStore
@@ -93,7 +93,7 @@ class Capture:
 
     def _robot_scene(self, timeout: float) -> Any:
         """The robot's SceneConfig from its `status`, or None when no robot answers."""
-        from sim.scene import SceneConfig
+        from sim.scene_config import SceneConfig
 
         try:
             status = self.node.call_typed(
@@ -105,7 +105,7 @@ class Capture:
             return None
 
     def _scene(self) -> Any:
-        from sim.scene import SceneConfig
+        from sim.scene_config import SceneConfig
 
         scene = self._robot_scene(max(0.1, self.config.robot_timeout))
         if scene is None:

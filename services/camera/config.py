@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
-from protocol.netflags import NetConfig
 from protocol.robotspec import ROBOT_TIMEOUT
 from services.camera.sources import SourceSpec, parse_source
 

@@ -34,10 +34,10 @@ from __future__ import annotations
 import logging
 import threading
 
+from mesh.node import Node
+from mesh.service import service_main
 from protocol.messages import Image
-from protocol.node import Node
 from protocol.robotspec import CAMERA
-from protocol.service import service_main
 from services.camera.capture import Capture, capture_loop
 from services.camera.config import CameraConfig, add_arguments, make_config
 from services.camera.frames import FrameStore

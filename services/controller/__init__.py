@@ -1,21 +1,16 @@
 """The controller service: Eq. 9 inverse kinematics and the archery posture for iCub's arms."""
 
+from protocol.robotspec import HAND_FRAMES, HOME_POSTURE
 from services.controller.errors import ConfigError, ControllerError, JointError, TargetError
-from services.controller.ik import (
+from services.controller.ik import IkSolver
+from services.controller.ik_types import (
     IkResult,
     IkSettings,
-    IkSolver,
     OrientationTarget,
     PositionTarget,
     TargetsResult,
 )
-from services.controller.model import (
-    HAND_FRAMES,
-    HOME_POSTURE,
-    JOINT_NAMES,
-    ArmsModel,
-    load_arms_model,
-)
+from services.controller.model import JOINT_NAMES, ArmsModel, load_arms_model
 from services.controller.posture import (
     ArcheryPosture,
     PostureConfig,

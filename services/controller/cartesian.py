@@ -18,7 +18,7 @@ import pinocchio as pin
 
 from protocol.robotspec import MAX_REFERENCE_SPEED
 from services.controller.errors import TargetError
-from services.controller.ik import IkResult
+from services.controller.ik_types import IkResult
 
 __all__ = [
     "MAX_REFERENCE_SPEED",

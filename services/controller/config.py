@@ -5,10 +5,10 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field, replace
 
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
-from protocol.netflags import NetConfig
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.netflags import NetConfig
 from protocol.robotspec import ROBOT_TIMEOUT, STATE_MAX_AGE
-from services.controller.ik import IkSettings
+from services.controller.ik_types import IkSettings
 from services.controller.posture import PostureConfig
 
 __all__ = ["LIMIT_MARGIN", "ControllerConfig", "add_arguments", "make_config"]

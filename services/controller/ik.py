@@ -20,8 +20,7 @@ If the start posture leads nowhere feasible, seeded random restarts follow; an u
 target returns the posture closest to it with `reachable=False`.
 
 The settings, targets, results and resolved tasks are in `services.controller.ik_types`, the
-orientation and curvature derivatives in `services.controller.ik_derivatives`; both are
-re-exported here.
+orientation and curvature derivatives in `services.controller.ik_derivatives`.
 """
 
 from __future__ import annotations
@@ -52,23 +51,11 @@ from services.controller.ik_types import (
     PositionTask,
     RestTask,
     TargetsResult,
-    as_rotation,
 )
 from services.controller.model import ArmsModel, JointValues, check_arm, load_arms_model
 from services.controller.qp import solve_box_qp
 
-__all__ = [
-    "IkResult",
-    "IkSettings",
-    "IkSolver",
-    "OrientationTarget",
-    "PositionTarget",
-    "TargetsResult",
-    "as_rotation",
-    "orientation_residual",
-    "orientation_residual_jacobian",
-    "position_hessian_contraction",
-]
+__all__ = ["IkSolver"]
 
 _LWA = pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
 _potrf = scipy.linalg.lapack.dpotrf

@@ -16,19 +16,11 @@ import icub_models
 import numpy as np
 import pinocchio as pin
 
-from protocol.parts import ARM_PARTS, PARTS
+from protocol.parts import PARTS
 from protocol.robotspec import HAND_FRAMES, HOME_POSTURE, MODEL_NAME
 from services.controller.errors import JointError
 
-__all__ = [
-    "ARM_PARTS",
-    "HAND_FRAMES",
-    "HOME_POSTURE",
-    "JOINT_NAMES",
-    "MODEL_NAME",
-    "ArmsModel",
-    "load_arms_model",
-]
+__all__ = ["JOINT_NAMES", "ArmsModel", "load_arms_model"]
 
 #: Every controlled joint, in YARP order: torso (yaw, roll, pitch), left arm, right arm.
 JOINT_NAMES: tuple[str, ...] = PARTS["torso"] + PARTS["left_arm"] + PARTS["right_arm"]

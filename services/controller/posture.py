@@ -31,9 +31,9 @@ import pinocchio as pin
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
 from services.controller.errors import ConfigError, TargetError
-from services.controller.ik import (
+from services.controller.ik import IkSolver
+from services.controller.ik_types import (
     IkSettings,
-    IkSolver,
     OrientationTarget,
     PositionTarget,
     TargetsResult,

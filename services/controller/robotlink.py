@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mesh.node import Node
 from protocol.errors import RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
-from protocol.node import Node
 from protocol.parts import PARTS
 from protocol.robotspec import STATE_MAX_AGE
 from services.controller.cartesian import reference_speeds

@@ -20,10 +20,10 @@ from __future__ import annotations
 import logging
 import threading
 
-from protocol.node import Node
+from mesh.node import Node
+from mesh.service import service_main
 from protocol.parts import ARM_PARTS
 from protocol.robotspec import CONTROLLER
-from protocol.service import service_main
 from services.controller.config import ControllerConfig, add_arguments, make_config
 from services.controller.handlers import ArcheryController, ArmController, MotionLock
 from services.controller.model import load_arms_model

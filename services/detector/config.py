@@ -6,18 +6,23 @@ import argparse
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from protocol.cliargs import check_writable_dir
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.cliargs import check_writable_dir
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
-from protocol.netflags import NetConfig
 from protocol.robotspec import CAMERA_TIMEOUT
 from protocol.verbs import detector as dv
 from services.detector.colour_model import ColourModel
 from services.detector.detect import DetectorSettings
 from services.detector.errors import ModelFileError
-from services.detector.offline import add_settings_arguments, settings_from_args
 
-__all__ = ["DetectorConfig", "add_arguments", "make_config"]
+__all__ = [
+    "DetectorConfig",
+    "add_arguments",
+    "add_settings_arguments",
+    "make_config",
+    "settings_from_args",
+]
 
 
 @dataclass(frozen=True)
@@ -79,3 +84,27 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
             except ModelFileError as exc:
                 raise ConfigError(f"--model {args.model}: {exc}") from None
     return config_from_args(DetectorConfig, args, net=net, settings=settings_from_args(args))
+
+
+def add_settings_arguments(parser: argparse.ArgumentParser) -> None:
+    """The detection flags shared by `archery detect` and `archery detector`."""
+    defaults = DetectorSettings()
+    parser.add_argument(
+        "--target-diameter",
+        type=float,
+        default=defaults.target_diameter_m,
+        help="target face diameter (m)",
+    )
+    parser.add_argument(
+        "--coloured-fraction",
+        type=float,
+        default=defaults.coloured_fraction,
+        help="diameter of the calibrated colours over the face's (yellow+red+blue: 0.6)",
+    )
+
+
+def settings_from_args(args: argparse.Namespace) -> DetectorSettings:
+    """Detection settings from the flags of `add_settings_arguments` (validated)."""
+    return DetectorSettings(
+        target_diameter_m=args.target_diameter, coloured_fraction=args.coloured_fraction
+    )

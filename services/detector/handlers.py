@@ -13,10 +13,10 @@ from typing import Any
 import msgspec
 import numpy as np
 
+from mesh.node import Node, Publisher
 from protocol.errors import BadRequest, RpcTimeout, UpstreamLost
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
-from protocol.node import Node, Publisher
 from protocol.robotspec import CAMERA
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import detector as dv

@@ -28,11 +28,11 @@ from __future__ import annotations
 import logging
 import threading
 
+from mesh.node import Node
+from mesh.service import service_main
 from protocol.errors import ArcheryError, BadRequest, RpcError
 from protocol.messages import Detection as DetectionMessage
-from protocol.node import Node
 from protocol.robotspec import CAMERA, DETECTOR
-from protocol.service import service_main
 from services.detector.config import DetectorConfig, add_arguments, make_config
 from services.detector.handlers import DetectorHandlers
 

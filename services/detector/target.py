@@ -11,7 +11,7 @@ holds when arrows and fletchings cover part of the yellow. The confidence multip
 the outer boundary was seen, how elliptic the region is, how well its colours match the
 calibration, how many inner rings agree and how many of the calibrated colours (ring groups of
 the GMM's components) the face shows; the factors' ranges were set on the development set
-(`services.detector.devset`) so that wrong centres score below 0.5.
+(`tests.devset`) so that wrong centres score below 0.5.
 All positions are pixels of the downscaled map.
 """
 

@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from protocol.cliargs import check_writable_dir
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.cliargs import check_writable_dir
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.netflags import NetConfig
 from protocol.errors import BadRequest, ConfigError
-from protocol.netflags import NetConfig
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.algorithms.registry import ALGORITHMS

@@ -11,15 +11,15 @@ from typing import Any
 
 import msgspec
 
+from mesh.node import Node, Publisher
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Rollout
-from protocol.node import Node, Publisher
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
 from services.learner.config import LearnerServiceConfig, SessionConfig
+from services.learner.report import write_report
 from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, Session
-from services.learner.tools.report import write_report
 from services.learner.transfer import load_source
 
 __all__ = ["LearnerHandlers", "rollout_message"]

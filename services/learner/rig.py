@@ -39,11 +39,11 @@ import msgspec
 import numpy as np
 import zenoh
 
+from mesh.node import Node
+from mesh.tokens import TokenSet
 from protocol.errors import RpcError, RpcTimeout, StaleState, UpstreamLost, WrongReplier
 from protocol.messages import WorldEvent
-from protocol.node import Node
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
-from protocol.tokens import TokenSet
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv

@@ -31,9 +31,9 @@ import dataclasses
 import logging
 import threading
 
-from protocol.node import Node
+from mesh.node import Node
+from mesh.service import service_main
 from protocol.robotspec import LEARNER
-from protocol.service import service_main
 from services.learner.config import LearnerServiceConfig, add_arguments, make_config
 from services.learner.handlers import LearnerHandlers
 

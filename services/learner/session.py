@@ -45,7 +45,7 @@ from services.learner.algorithms.registry import (
 )
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
-from services.learner.tools.report import caption_png
+from services.learner.report import caption_png
 from services.learner.transfer import TransferSource
 
 __all__ = [

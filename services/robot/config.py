@@ -6,9 +6,9 @@ import argparse
 import math
 from dataclasses import dataclass, field, replace
 
-from protocol.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
-from protocol.netflags import NetConfig
 from sim.bow import BowError
 from sim.errors import SimError
 from sim.world import WorldConfig

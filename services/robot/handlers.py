@@ -10,8 +10,8 @@ from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
 
+from mesh.node import Subscription
 from protocol.messages import JointCommand
-from protocol.node import Subscription
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv
 from services.robot.simloop import SimLoop

@@ -39,10 +39,10 @@ from __future__ import annotations
 import logging
 import threading
 
+from mesh.node import Node
+from mesh.service import service_main
 from protocol.messages import JointCommand
-from protocol.node import Node
 from protocol.robotspec import ROBOT
-from protocol.service import service_main
 from services.robot.config import RobotConfig, add_arguments, make_config
 from services.robot.handlers import RobotHandlers
 from services.robot.simloop import SimLoop

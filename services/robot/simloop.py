@@ -34,8 +34,8 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from mesh.jobs import JobQueue
 from protocol.errors import ArcheryError, BadRequest
-from protocol.jobs import JobQueue
 from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.config import RobotConfig

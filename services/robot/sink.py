@@ -7,8 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
+from mesh.node import Node
 from protocol.messages import Array, JointState, WorldEvent, WorldState
-from protocol.node import Node
 
 __all__ = ["MeshSink", "Sink"]
 

@@ -1,0 +1,202 @@
+"""The `archery` console script: one verb per service or tool, dispatched lazily."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib
+import importlib.metadata
+import logging
+import os
+import sys
+
+from mesh.cliargs import ArgumentParser
+from mesh.logs import DEFAULT_SPEC, add_log_args, configure
+from protocol.errors import ConfigError
+
+__all__ = ["VERBS", "main"]
+
+# verb -> ("module:function", one-line help). Each function takes argv (list[str]) and returns
+# the process exit status. Modules are imported only when their verb runs, so a tool never pays
+# for MuJoCo or Pinocchio it does not use.
+VERBS: dict[str, tuple[str, str]] = {
+    "router": ("mesh.router:main", "run a Zenoh router (the mesh's embedded default)"),
+    "ports": (
+        "apps.topics.tools:ports_main",
+        "list live services and their ports (yarp name list)",
+    ),
+    "alive": (
+        "apps.topics.tools:alive_main",
+        "exit 0 when the router answers and the named services are alive (health checks)",
+    ),
+    "read": ("apps.topics.tools:read_main", "print decoded messages from a key as JSON lines"),
+    "write": ("apps.topics.tools:write_main", "publish one message, given as JSON, on a key"),
+    "rpc": ("apps.topics.tools:rpc_main", "call an rpc:i verb and print the reply"),
+    "interface": (
+        "apps.topics.interface:interface_main",
+        "a port's message type; each rpc:i verb's argument and reply schema",
+    ),
+    "record": (
+        "apps.topics.observe:record_main",
+        "record the robot's streams (or KEY_PATTERNs) into an MCAP file",
+    ),
+    "replay": ("apps.topics.observe:replay_main", "publish an MCAP recording again, in time"),
+    "hz": ("apps.topics.observe:hz_main", "message rate and bandwidth of the matching keys"),
+    "view": ("apps.topics.tools:view_main", "save the next image on an image port as PNG"),
+    "selfcheck": ("apps.topics.selfcheck:main", "start a router and two nodes, check the mesh"),
+    "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),
+    "camera": (
+        "services.camera.service:main",
+        "camera frames of the target (rendered/device/folder)",
+    ),
+    "detector": ("services.detector.service:main", "GMM colour detector: target centre, arrow tip"),
+    "calibrate": ("apps.detect:calibrate_main", "fit the colour model from pixels"),
+    "detect": ("apps.detect:detect_main", "detect target and arrow in an image"),
+    "controller": ("services.controller.service:main", "Pinocchio IK: archery posture for θ"),
+    "learner": (
+        "services.learner.service:main",
+        "learning sessions over the mesh (ARCHER, PoWER, baselines), journaled",
+    ),
+    "learn": (
+        "apps.learn.learn:main",
+        "run one learning session against running services",
+    ),
+    "up": ("apps.up.launcher:main", "start a router and all five services; stop them on Ctrl-C"),
+    "drill": (
+        "apps.drills.runner:main",
+        "fault drills on a real mesh (kills, freezes, router outages, floods); their table",
+    ),
+    "experiment": (
+        "apps.experiment.experiment:main",
+        "run the paper's simulation experiment (the ballistic world, or the robots of a fleet)",
+    ),
+    "report": (
+        "apps.report:main",
+        "draw report.png beside session journals (a session's or an experiment's folder)",
+    ),
+    "dashboard": (
+        "apps.dashboard.server:main",
+        "a live view in the browser: frame, target face, distances, liveliness, rates",
+    ),
+    "demo": ("apps.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
+    "keys": ("apps.keys:main", "keys init DIR: CA, identities and ACL for --secure"),
+}
+
+
+def _usage() -> str:
+    width = max(len(v) for v in VERBS)
+    lines = [
+        "usage: archery VERB [options]   (archery help VERB, or archery VERB --help, for a "
+        "verb's options)",
+        "       archery --version",
+        "",
+    ]
+    lines += [f"  {verb.ljust(width)}  {help_}" for verb, (_, help_) in VERBS.items()]
+    return "\n".join(lines)
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("archery")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def _unknown(verb: str) -> int:
+    print(f"archery: unknown verb {verb!r}; valid verbs: {', '.join(VERBS)}", file=sys.stderr)
+    return 2
+
+
+# The demo's own Zenoh sessions log nothing unless asked: while the services stop, Zenoh
+# sometimes reports internal "Undefined face context" errors that mean nothing to a user;
+# failures still surface as exceptions, and the services keep their logs.
+_DEFAULT_SPECS = {"demo": f"{DEFAULT_SPEC},zenoh=off"}
+
+
+def _configure_logging(verb: str, rest: list[str]) -> None:
+    """Apply the verb's `--log-level` before it runs: every log line on stderr.
+
+    Raises:
+        ConfigError: a malformed spec.
+    """
+    parser = ArgumentParser(prog=f"archery {verb}", add_help=False, allow_abbrev=False)
+    add_log_args(parser)
+    parser.set_defaults(log_level=_DEFAULT_SPECS.get(verb, DEFAULT_SPEC))
+    known, _ = parser.parse_known_args(rest)
+    configure(known.log_level)
+
+
+def _run(verb: str, rest: list[str]) -> int:
+    module_name, func_name = VERBS[verb][0].split(":")
+    func = getattr(importlib.import_module(module_name), func_name)
+    return int(func(rest) or 0)
+
+
+def _reader_gone() -> int:
+    """The reader of stdout went away (see the Python docs' "Note on SIGPIPE"): send the rest
+    of the output nowhere so that the final flush does not fail too, and end quietly (1)."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    return 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `archery VERB ...`; returns the verb's exit status.
+
+    A closed stdout (`archery read KEY | head -1`) ends the verb quietly, as Unix tools do;
+    Ctrl-C outside a verb's own handling ends it with status 130 and no traceback.
+    """
+    args = list(sys.argv[1:] if argv is None else argv)
+    if not args or args[0] in ("-h", "--help"):
+        print(_usage())
+        return 0
+    if args[0] in ("-V", "--version"):
+        print(f"archery {_version()}")
+        return 0
+    verb, rest = args[0], args[1:]
+    if verb == "help":
+        if not rest:
+            print(_usage())
+            return 0
+        if rest[0] not in VERBS:
+            return _unknown(rest[0])
+        verb, rest = rest[0], ["--help"]
+    if verb not in VERBS:
+        return _unknown(verb)
+    try:
+        _configure_logging(verb, rest)
+    except ConfigError as exc:
+        print(f"archery {verb}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        status = _run(verb, rest)
+        sys.stdout.flush()
+        return status
+    except BrokenPipeError:
+        return _reader_gone()
+    except KeyboardInterrupt:
+        return 130
+
+
+def entry() -> None:
+    """The `archery` command (and `python -m apps.cli`): `main`, then leave with its status
+    without the interpreter's teardown.
+
+    Zenoh's threads may still hand the interpreter a callback or drop a reference while it
+    tears itself down; on Python 3.11 such a thread then exits by unwinding through native
+    frames that catch the unwind, and the process aborts (SIGABRT, "FATAL: exception not
+    rethrown") after a clean stop. Every verb closes and flushes what it writes before it
+    returns, so the process ends here: logging shut down, stdout and stderr flushed, `os._exit`.
+    """
+    try:
+        status = main()
+    except BrokenPipeError:  # `archery --help | head -1`
+        status = _reader_gone()
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):  # a closed or broken pipe
+            stream.flush()
+    os._exit(status)
+
+
+if __name__ == "__main__":
+    entry()

@@ -1,0 +1,207 @@
+"""`archery dashboard`: a live view of a learning session in the browser.
+
+The page shows the camera frame with the detector's overlay (the detector's last measured
+frame, fetched again after each rollout), the target face with each rollout's impact, the
+distance-per-rollout curve, each service's liveliness and each stream port's rate.
+
+Design: a small page served by the package itself. A standard-library `ThreadingHTTPServer`
+serves three files (`static/`: HTML, CSS and a short script that draws the face and the curve
+as SVG), a JSON endpoint (`/api/state`) the page polls twice a second, and the frame as PNG
+(`/api/frame.png`). Why: no extra dependency (no web framework, no Rerun), nothing fetched
+from a CDN so it works offline and behind a firewall, and any plain browser (or `curl`, or a
+headless Chromium in the tests) can read it. The mesh side (`watch.MeshWatch`) is an anonymous
+node: it subscribes, and calls only the non-blocking `status` of the learner and `frame` of
+the detector, so watching never disturbs a session.
+"""
+
+from __future__ import annotations
+
+import errno
+import ipaddress
+import json
+import logging
+import socket
+import sys
+import threading
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from importlib import resources
+from typing import Any
+from urllib.parse import urlsplit
+
+from apps.dashboard.watch import MeshWatch
+from mesh.cliargs import ArgumentParser, int_in
+from mesh.netflags import NetConfig, add_network_args
+from mesh.node import Node, shutdown_on_signals
+from mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
+from protocol.errors import ArcheryError, ConfigError
+
+__all__ = ["DEFAULT_PORT", "Dashboard", "main"]
+
+log = logging.getLogger("archery.dashboard")
+
+DEFAULT_PORT = 8765
+_TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
+_PAGES = {"/": "index.html", "/index.html": "index.html"}
+
+
+def _static(name: str) -> bytes | None:
+    """A file of the package's `static/` folder, or None when there is no such file."""
+    if "/" in name or name.startswith("."):
+        return None
+    path = resources.files("apps.dashboard").joinpath("static", name)
+    return path.read_bytes() if path.is_file() else None
+
+
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+    watch: MeshWatch
+
+
+class _Handler(BaseHTTPRequestHandler):
+    server: _Server
+    server_version = "archery-dashboard"
+
+    def log_message(self, format: str, *args: Any) -> None:
+        log.debug("%s " + format, self.address_string(), *args)
+
+    def _send(self, status: int, body: bytes, ctype: str) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def do_HEAD(self) -> None:
+        self.do_GET()
+
+    def do_GET(self) -> None:
+        path = urlsplit(self.path).path
+        if path == "/api/state":
+            body = json.dumps(self.server.watch.snapshot(), allow_nan=False).encode()
+            self._send(HTTPStatus.OK, body, "application/json")
+            return
+        if path == "/api/frame.png":
+            png, _ = self.server.watch.frame()
+            if png is None:
+                self._send(HTTPStatus.NOT_FOUND, b"no frame measured yet\n", "text/plain")
+            else:
+                self._send(HTTPStatus.OK, png, "image/png")
+            return
+        name = _PAGES.get(path)
+        if name is None and path.startswith("/static/"):
+            name = path.removeprefix("/static/")
+        body = _static(name) if name else None
+        if name is None or body is None:
+            self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain")
+            return
+        ctype = _TYPES.get("." + name.rsplit(".", 1)[-1], "application/octet-stream")
+        self._send(HTTPStatus.OK, body, ctype + "; charset=utf-8")
+
+
+def _check_host(host: str) -> str:
+    try:
+        return str(ipaddress.ip_address(host))
+    except ValueError:
+        if host == "localhost":
+            return "127.0.0.1"
+        raise ConfigError(
+            f"--host {host!r} is not an IP address; give one of this machine's addresses, "
+            f"e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (every interface)"
+        ) from None
+
+
+def bind(host: str, port: int) -> _Server:
+    """The HTTP server listening on `host:port` (port 0: a free one), not serving yet.
+
+    Raises:
+        ConfigError: the port is taken, or the address is not this machine's.
+    """
+    server_class = type(
+        "_BoundServer",
+        (_Server,),
+        {"address_family": socket.AF_INET6 if ":" in host else socket.AF_INET},
+    )
+    try:
+        return server_class((host, port), _Handler)
+    except OSError as exc:
+        if exc.errno == errno.EADDRINUSE:
+            raise ConfigError(
+                f"--port {port}: address {host}:{port} is in use by another program; "
+                f"choose another --port (0 picks a free one)"
+            ) from None
+        raise ConfigError(f"--host {host} --port {port}: cannot listen: {exc.strerror}") from None
+
+
+class Dashboard:
+    """The server and the mesh watch together; a context manager (tests use it directly)."""
+
+    def __init__(self, net: NetConfig, server: _Server) -> None:
+        self.server = server
+        try:
+            self.node = Node(None, net)
+        except BaseException:
+            self.server.server_close()
+            raise
+        self.server.watch = MeshWatch(self.node)
+        self._thread = threading.Thread(
+            target=self.server.serve_forever, name="dashboard-http", daemon=True
+        )
+        self._thread.start()
+
+    @property
+    def url(self) -> str:
+        host, port = self.server.server_address[:2]
+        shown = f"[{host}]" if ":" in str(host) else host
+        return f"http://{shown}:{port}/"
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+        self.server.watch.close()
+        self.node.close()
+
+    def __enter__(self) -> Dashboard:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`archery dashboard [--port N] [--host ADDR]`: serve the live view until Ctrl-C."""
+    parser = ArgumentParser(
+        prog="archery dashboard",
+        description="serve a live view of the robot's session in the browser: camera frame "
+        "with overlay, target face, distance per rollout, liveliness and port rates",
+    )
+    add_network_args(parser, default_mode="client")
+    add_nice_arg(parser, OBSERVER_NICE)
+    http = parser.add_argument_group("web page")
+    http.add_argument(
+        "--port",
+        type=int_in(0, 65535, "a port number"),
+        default=DEFAULT_PORT,
+        help=f"default {DEFAULT_PORT}",
+    )
+    http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
+    args = parser.parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+        host = _check_host(args.host)
+        server = bind(host, args.port)
+    except ArcheryError as exc:
+        print(f"archery dashboard: {exc}", file=sys.stderr)
+        return 2
+    lower_priority(args.nice)
+    stop = shutdown_on_signals()
+    try:
+        with Dashboard(net, server) as dash:
+            print(f"archery dashboard: serving {dash.url} (robot {net.robot})", flush=True)
+            stop.wait()
+    except ArcheryError as exc:
+        print(f"archery dashboard: {exc}", file=sys.stderr)
+        return 1
+    return 0

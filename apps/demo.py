@@ -1,0 +1,182 @@
+"""The demo (`make demo`): start the mesh, learn with ARCHER until the 5 cm ring is hit, show it.
+
+It starts a router and the five services on this machine (as `archery up` does, on a free
+port), runs one session as `archery learn` does with a live table per rollout (θ, r, distance,
+hit), stops everything cleanly, and prints where the session's files are: `runs/<session>/`
+with `journal.jsonl`, `report.png` (impacts on the target face and distance per rollout) and
+`hit.png` (the camera frame of the final hit with the detector's overlay).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.live import Live
+from rich.table import Table
+
+from apps.learn.follow import SessionLost, follow, result_line
+from apps.up.launcher import SERVICES, Launcher, LaunchError
+from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
+from protocol.errors import ArcheryError, ConfigError
+from protocol.messages import Rollout
+from services.learner.algorithms.registry import ALGORITHMS
+
+__all__ = ["main"]
+
+
+class Progress:
+    """A rich table with one row per finished attempt."""
+
+    def __init__(self, title: str) -> None:
+        self.table = Table(title=title, expand=False)
+        for name, justify in (
+            ("rollout", "right"),
+            ("θ x, y, z (cm)", "left"),
+            ("r right, up (cm)", "left"),
+            ("|r| (cm)", "right"),
+            ("", "left"),
+        ):
+            self.table.add_column(name, justify=justify, no_wrap=True)  # type: ignore[arg-type]
+        self.done = 0
+
+    def add(self, message: Rollout) -> None:
+        """Add the row of a done or aborted attempt."""
+        theta = ", ".join(f"{100 * v:.2f}" for v in message.theta)
+        if message.status == "aborted":
+            self.table.add_row("–", theta, "–", "–", f"[yellow]aborted {message.cause[:60]}")
+        elif message.status == "done" and message.r_m is not None:
+            self.done += 1
+            r = message.r_m
+            distance = 100 * (r[0] ** 2 + r[1] ** 2) ** 0.5
+            mark = "[bold green]HIT" if message.hit else ""
+            style = "bold green" if message.hit else ""
+            self.table.add_row(
+                str(self.done),
+                theta,
+                f"{100 * r[0]:+.1f}, {100 * r[1]:+.1f}",
+                f"[{style}]{distance:.1f}" if style else f"{distance:.1f}",
+                mark,
+            )
+
+
+def run_demo(args: argparse.Namespace, console: Console) -> int:
+    """Start the mesh, run the session with a live table, stop the mesh; the exit status."""
+    endpoint = args.endpoint or free_tcp_endpoint()
+    runs = Path(args.runs)
+    launcher = Launcher(
+        endpoint,
+        "icubSim",
+        runs / "logs",
+        {"robot": ["--seed", str(args.seed)], "learner": ["--runs", str(runs)]},
+    )
+    with console.status(f"starting a router on {endpoint} and {', '.join(SERVICES)} …"):
+        try:
+            took = launcher.up(args.timeout)
+        except (LaunchError, ConfigError) as exc:
+            console.print(f"[red]archery demo: {exc}")
+            return 2 if isinstance(exc, ConfigError) else 1
+    console.print(f"mesh up in {took:.1f} s: router on {endpoint}, {', '.join(SERVICES)}")
+    try:
+        with Node(None, launcher.net) as node:
+            rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+            node.wait_alive(SERVICES, timeout=30)  # also: their ports are known to this node
+            request = {"algo": args.algo, "rollouts": args.rollouts, "seed": args.seed}
+            status = node.call(node.keys.learner_rpc(), "start", request, timeout=60)
+            session = status["session"]
+            progress = Progress(f"{args.algo}: session {session}")
+            start = time.monotonic()
+            with Live(progress.table, console=console, refresh_per_second=8):
+                final = follow(node, session, rollouts, progress.add)
+            console.print()  # the table's last line ends here when output is not a terminal
+            wall = time.monotonic() - start
+    except (ArcheryError, SessionLost) as exc:
+        console.print(f"[red]archery demo: {exc}")
+        dead = launcher.first_exit()
+        if dead is not None:
+            console.print(launcher.describe_exit(dead))
+        return 1
+    finally:
+        with console.status("stopping the services …"):
+            codes = launcher.stop_all()
+    return _summary(console, final, wall, codes)
+
+
+def _summary(
+    console: Console, final: dict[str, Any], wall: float, codes: dict[str, int | None]
+) -> int:
+    hit_at = final.get("hit_at")
+    rollouts = final.get("rollouts")
+    if final.get("state") == "finished" and hit_at is not None:
+        console.print(
+            f"[bold green]Hit the 5 cm ring at rollout {hit_at}[/] "
+            f"({rollouts} rollouts, {final.get('aborted', 0)} aborted attempts, {wall:.1f} s; "
+            f"final distance {100 * final['final_distance_m']:.1f} cm)."
+        )
+    else:
+        console.print(
+            f"[yellow]No hit: session {final.get('state')} after {rollouts} rollouts "
+            f"{final.get('cause', '')}"
+        )
+    console.print(f"  journal:   {final.get('journal')}")
+    console.print(f"  report:    {final.get('report')}")
+    console.print(f"  hit frame: {final.get('hit_frame')}")
+    unclean = {n: c for n, c in codes.items() if c != 0}
+    console.print(
+        "services stopped cleanly" if not unclean else f"[yellow]unclean stops: {unclean}"
+    )
+    print(result_line(final))
+    return 0 if final.get("state") == "finished" and hit_at is not None and not unclean else 1
+
+
+def _positive(text: str) -> int:
+    value = count(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the demo; exit status 0 when the ring was hit and everything stopped cleanly."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    parser = ArgumentParser(prog="archery demo", description=__doc__)
+    parser.add_argument(
+        "--algo", default="archer", choices=ALGORITHMS, help="the learner (default archer)"
+    )
+    parser.add_argument("--rollouts", type=_positive, default=30, help="budget of rollouts")
+    parser.add_argument("--seed", type=count, default=0, help="seed of the learner and the shots")
+    parser.add_argument("--runs", default="runs", help="where the session directory goes")
+    parser.add_argument(
+        "--listen",
+        "--endpoint",
+        dest="endpoint",
+        metavar="ENDPOINT",
+        help="where the demo's router listens, tcp/HOST:PORT (default: a free local port)",
+    )
+    parser.add_argument("--timeout", type=seconds, default=120.0, help="start-up limit (s)")
+    args = parser.parse_args(argv)
+    try:
+        if args.endpoint:
+            NetConfig(connect=(), listen=(args.endpoint,), mode="router")
+        check_writable_dir(Path(args.runs), "--runs", create=True)
+    except ConfigError as exc:
+        print(f"archery demo: {exc}", file=sys.stderr)
+        return 2
+    console = Console()
+    console.print(
+        "[bold]archery demo[/]: a simulated iCub learns archery (Kormushev et al. 2010) "
+        "over a Zenoh mesh"
+    )
+    return run_demo(args, console)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

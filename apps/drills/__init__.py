@@ -1,0 +1,1 @@
+"""Fault drills against real processes on loopback (`archery drill`, `apps.drills.runner`)."""

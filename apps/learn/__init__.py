@@ -1,0 +1,1 @@
+"""`archery learn`: start, resume or follow one learning session on running services."""

@@ -1,0 +1,249 @@
+"""`archery learn`: run one learning session against running services and print its result.
+
+It asks the learner service to `start` (or `--resume`) a session, or to start one from another
+session's learned model (`--from SESSION`: its id under the learner's runs directory, or its
+journal; see `services.learner.transfer`), or follows a running one
+(`--attach SESSION`, `apps.learn.attach`), shows each rollout as it is published on
+`learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
+on stdout (its counts read from the session's journal):
+`{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
+"report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget; with
+`--require-hit`, 3 when it finished without a hit), 1 when it failed or the learner vanished (the
+message says how to resume), 2 for bad input, 130 after Ctrl-C (the session is stopped after its
+current rollout and can be resumed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import math
+import sys
+from pathlib import Path
+from typing import Any
+
+from apps.learn import attach
+from apps.learn.follow import SessionLost, follow, result_line
+from mesh.cliargs import ArgumentParser, loads_finite, seconds
+from mesh.netflags import NetConfig, add_network_args
+from mesh.node import Node
+from protocol.errors import ArcheryError, ConfigError, RpcError
+from protocol.messages import Rollout
+from protocol.robotspec import SERVICES
+from services.learner.algorithms.base import LearnerError
+from services.learner.algorithms.registry import ALGORITHMS, check_transfer
+from services.learner.config import SessionConfig
+
+__all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
+
+
+def _vector3(text: str, flag: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise ConfigError(f"{flag} must be three finite numbers X,Y,Z (m), got {text!r}")
+    return values
+
+
+def option_names(algo: str) -> tuple[str, ...]:
+    """The options the learner `algo` accepts (its constructor's settings)."""
+    parameters = inspect.signature(ALGORITHMS[algo].cls.__init__).parameters
+    fixed = ("self", "theta0", "rng", "bounds")
+    return tuple(name for name in parameters if name not in fixed)
+
+
+def _option(text: str, algo: str) -> tuple[str, Any]:
+    name, sep, value = text.partition("=")
+    if not sep or not name:
+        raise ConfigError(f"--option must be NAME=VALUE (VALUE in JSON), got {text!r}")
+    valid = option_names(algo)
+    if name not in valid:
+        raise ConfigError(
+            f"--option {name!r}: {algo} has no such option; its options: {', '.join(valid)}"
+        )
+    try:
+        return name, loads_finite(value, f"--option {name}:")
+    except ConfigError as exc:
+        raise ConfigError(f"{exc} (VALUE is JSON, e.g. 0.003 or [1,2,3])") from None
+
+
+def _hit_radius(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of metres") from None
+    if not (math.isfinite(value) and 0.001 <= value <= 0.25):
+        raise argparse.ArgumentTypeError(f"{text!r} is not in [0.001, 0.25] m")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of `archery learn`."""
+    parser = ArgumentParser(prog="archery learn", description=__doc__.split("\n")[0])
+    add_network_args(parser)
+    parser.add_argument("--algo", default="archer", help=f"one of {', '.join(ALGORITHMS)}")
+    parser.add_argument("--rollouts", type=int, default=30, help="budget of done rollouts")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the learner and the shots")
+    parser.add_argument(
+        "--no-until-hit",
+        action="store_true",
+        help="use the whole budget instead of ending at the first hit",
+    )
+    parser.add_argument("--theta0", metavar="X,Y,Z", help="start θ (m)")
+    parser.add_argument(
+        "--hit-radius", type=_hit_radius, help="hit radius (m, in [0.001, 0.25], default 0.05)"
+    )
+    parser.add_argument(
+        "--option", action="append", default=[], metavar="NAME=VALUE", help="learner option"
+    )
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
+    which.add_argument(
+        "--from",
+        dest="from_",
+        metavar="SESSION",
+        help="start a new session from SESSION's learned model (its id or journal)",
+    )
+    which.add_argument(
+        "--attach",
+        metavar="SESSION",
+        help="follow the running session SESSION (its id or journal) from where it is",
+    )
+    parser.add_argument(
+        "--wait",
+        type=seconds,
+        default=60.0,
+        help="wait this long for the five services to be alive (s)",
+    )
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    parser.add_argument(
+        "--require-hit",
+        action="store_true",
+        help="exit status 3 when the session finishes without a hit (containers, scripts)",
+    )
+    return parser
+
+
+def start_request(args: argparse.Namespace) -> dict[str, Any]:
+    """The `start` request for parsed flags."""
+    if args.algo not in ALGORITHMS:
+        raise ConfigError(
+            f"--algo {args.algo!r} is not a learner; valid algorithms: {', '.join(ALGORITHMS)}"
+        )
+    if args.resume:
+        return {"resume": args.resume}
+    scenario: dict[str, Any] = {}
+    if args.theta0:
+        scenario["theta0"] = _vector3(args.theta0, "--theta0")
+    if args.hit_radius is not None:
+        scenario["hit_radius"] = args.hit_radius
+    request: dict[str, Any] = {
+        "algo": args.algo,
+        "rollouts": args.rollouts,
+        "seed": args.seed,
+        "until_hit": not args.no_until_hit,
+        "options": dict(_option(text, args.algo) for text in args.option),
+    }
+    if scenario:
+        request["scenario"] = scenario
+    if args.from_:
+        request["from_journal"] = _from_journal(args.from_, args.algo)
+    return request
+
+
+def _from_journal(target: str, algo: str) -> str:
+    """`--from`'s session id, or its journal or directory as an absolute path (the learner may
+    run elsewhere); a path that does not exist here is refused."""
+    try:
+        check_transfer(algo)
+    except LearnerError as exc:
+        raise ConfigError(str(exc)) from None
+    path = Path(target)
+    if path.exists():
+        return str(path.resolve())
+    if "/" in target or target.endswith(".jsonl"):
+        raise ConfigError(f"--from {target!r}: no such journal or session directory")
+    return target  # a session id, looked up in the learner's runs directory
+
+
+def _progress(message: Rollout) -> None:
+    theta = ", ".join(f"{100 * v:.2f}" for v in message.theta)
+    if message.status == "proposed":
+        return
+    if message.status == "aborted":
+        print(
+            f"  attempt {message.index}: θ ({theta}) cm aborted: {message.cause}", file=sys.stderr
+        )
+        return
+    r = message.r_m or [float("nan")] * 2
+    distance = 100 * (r[0] ** 2 + r[1] ** 2) ** 0.5
+    hit = "  HIT" if message.hit else ""
+    print(
+        f"  attempt {message.index}: θ ({theta}) cm → r ({100 * r[0]:+.1f}, {100 * r[1]:+.1f}) cm, "
+        f"{distance:.1f} cm{hit}",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `archery learn`; see the module docstring for the exit statuses."""
+    args = build_parser().parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+        request = start_request(args)
+        if "resume" not in request:
+            SessionConfig.from_request(request)  # the learner's own checks, before any waiting
+    except ArcheryError as exc:
+        print(f"archery learn: {exc}", file=sys.stderr)
+        return 2
+    show = (lambda m: None) if args.quiet else _progress
+    waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
+    try:
+        node = Node(None, net)
+    except ArcheryError as exc:
+        print(f"archery learn: {exc}", file=sys.stderr)
+        return 1
+    with node:
+        key = node.keys.learner_rpc()
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        if args.attach:
+            return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet)
+        try:
+            node.wait_alive(SERVICES, timeout=args.wait)
+            status = node.call(key, "start", request, timeout=args.wait + 30)
+        except RpcError as exc:
+            print(f"archery learn: {exc}", file=sys.stderr)
+            return 2 if exc.code in ("bad_request", "bad_journal", "busy") else 1
+        session = status["session"]
+        if not args.quiet:
+            print(f"session {session}: journal {status['journal']}", file=sys.stderr)
+        try:
+            status = follow(node, session, rollouts, show, on_status=waiting)
+        except SessionLost as exc:
+            print(f"archery learn: {exc} {status['journal']}", file=sys.stderr)
+            status = attach.journal_counts(exc.status or status) | {"state": "lost"}
+            print(result_line(status))
+            return 1
+        except KeyboardInterrupt:
+            print("archery learn: stopping the session after its current rollout", file=sys.stderr)
+            try:
+                node.call(key, "stop", timeout=5.0)
+                status = follow(node, session, rollouts, show)
+            except (ArcheryError, KeyboardInterrupt):
+                pass
+            print(result_line(attach.journal_counts(status)))
+            return 130
+    counts = attach.journal_counts(status)
+    print(result_line(counts))
+    if status["state"] != "finished":
+        print(
+            f"archery learn: session {status['state']}: {status.get('cause', '')}", file=sys.stderr
+        )
+        return 1
+    if args.require_hit and counts.get("hit_at") is None:
+        print(f"archery learn: session {session} finished without a hit", file=sys.stderr)
+        return 3
+    return 0

@@ -1,0 +1,422 @@
+"""Observation tools: `archery record` (MCAP), `archery replay` and `archery hz`.
+
+`record` subscribes to key patterns (default `ROBOT/**`: every stream of the robot) and writes
+each message into an MCAP file (`apps.topics.recording` says why the format is what it is).
+`replay` publishes a recording back with its original timing (or `--rate` times faster); with
+`--serve-grab` it also answers the camera's `grab` verb from the frames it replays, so a fresh
+detector can measure them. `hz` prints each matching key's message rate and bandwidth (like
+`ros2 topic hz` and `bw`).
+"""
+
+from __future__ import annotations
+
+import collections
+import itertools
+import statistics
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import zenoh
+
+from apps.topics.recording import COMPRESSIONS, Recorder, Recording, open_recording
+from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from mesh.netflags import NetConfig, add_network_args
+from mesh.node import Node, shutdown_on_signals
+from mesh.patterns import check_pattern, stream_type
+from mesh.priority import add_nice_arg, lower_priority
+from protocol.codec import encode
+from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
+from protocol.messages import Image
+from protocol.verbs.camera import MAX_GRAB_TIMEOUT, GrabArgs
+
+__all__ = ["hz_main", "record_main", "replay_main"]
+
+RECEIVE_QUEUE = 1024  # samples Zenoh queues per recorded pattern before it waits for us
+
+
+def _fail(prog: str, exc: ArcheryError, status: int) -> int:
+    print(f"archery {prog}: {exc}", file=sys.stderr)
+    return status
+
+
+def _until(stop: threading.Event, done: threading.Event, duration: float | None) -> None:
+    """Block until Ctrl-C/SIGTERM (`stop`), `done`, or `duration` s."""
+    deadline = None if duration is None else time.monotonic() + duration
+    while not stop.is_set() and not done.is_set():
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
+            return
+        done.wait(0.1 if left is None else min(0.1, left))
+
+
+# -- record ---------------------------------------------------------------------------------------
+
+
+def record_main(argv: list[str] | None = None) -> int:
+    """`archery record --out FILE.mcap [PATTERN ...]`: record streams until Ctrl-C."""
+    parser = ArgumentParser(
+        prog="archery record",
+        description="record every message on the matching keys (default ROBOT/**) into an "
+        "MCAP file, until Ctrl-C/SIGTERM, --duration or --count",
+    )
+    add_network_args(parser, default_mode="client")
+    add_nice_arg(parser, 0)
+    parser.add_argument("patterns", nargs="*", metavar="KEY_PATTERN", help="e.g. icubSim/**")
+    parser.add_argument("--out", required=True, help="the MCAP file to write (.mcap)")
+    parser.add_argument("--duration", type=seconds, help="stop after this many seconds")
+    parser.add_argument("--count", type=count, default=0, help="stop after N messages (0: no)")
+    parser.add_argument(
+        "--compression",
+        choices=sorted(COMPRESSIONS),
+        default="lz4",
+        help="of each chunk (default lz4: the cheapest on a busy machine)",
+    )
+    parser.add_argument(
+        "--flush-interval",
+        type=seconds,
+        default=1.0,
+        help="close a chunk at least this often (s): what a crash may lose (default 1)",
+    )
+    args = parser.parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+        patterns = args.patterns or [f"{net.robot}/**"]
+        exprs = [check_pattern(p) for p in patterns]
+        out = Path(args.out)
+        if out.suffix != ".mcap":
+            raise ConfigError(f"--out {args.out!r}: give a file name ending in .mcap")
+        check_writable_dir(out.parent, f"--out {args.out!r}: folder", create=False)
+    except ArcheryError as exc:
+        return _fail("record", exc, 2)
+    lower_priority(args.nice)
+    stop = shutdown_on_signals()
+    try:
+        with Node(None, net) as node:
+            recorder = Recorder(
+                out,
+                net.robot,
+                patterns,
+                compression=args.compression,
+                flush_interval=args.flush_interval,
+            )
+            received = [0]
+            done = threading.Event()
+
+            def read(i: int, sub: zenoh.Subscriber) -> None:
+                # Zenoh's thread only queues samples (no Python, no GIL): a busy recorder
+                # never holds up the link, where the router would drop the frames it carries
+                earlier = exprs[:i]
+                for sample in sub:
+                    key = sample.key_expr
+                    if any(e.includes(key) for e in earlier):
+                        continue  # the earlier pattern's subscriber has it
+                    recorder.put(str(key), sample.payload.to_bytes())
+                    received[0] += 1
+                    if args.count and received[0] >= args.count:
+                        done.set()
+
+            subs = [
+                node.session.declare_subscriber(expr, zenoh.handlers.FifoChannel(RECEIVE_QUEUE))
+                for expr in exprs
+            ]
+            readers = [
+                threading.Thread(target=read, args=(i, sub), name=f"record-{i}", daemon=True)
+                for i, sub in enumerate(subs)
+            ]
+            for reader in readers:
+                reader.start()
+            print(f"archery record: recording {' '.join(patterns)} to {out}", flush=True)
+            try:
+                _until(stop, done, args.duration)
+            finally:
+                for sub in subs:
+                    sub.undeclare()
+                for reader in readers:
+                    reader.join(10)
+                stats = recorder.close()
+    except ArcheryError as exc:
+        return _fail("record", exc, 1)
+    print(
+        f"archery record: wrote {stats.total} messages on {len(stats.written)} keys to {out}"
+        f" ({stats.malformed} malformed skipped, {stats.missing} missing by sequence number,"
+        f" {stats.overflow} dropped by a full queue)",
+        flush=True,
+    )
+    return 0
+
+
+# -- replay ---------------------------------------------------------------------------------------
+
+
+class _Frames:
+    """The frames a replay has published, for `grab`: the newest `keep` of them.
+
+    A grab's times are read in the recording's clocks: `after_sim_time` against each frame's
+    sim time, `after_stamp` against each frame's own stamp (when the camera captured it in the
+    recorded session). Every rollout resets the simulated clock, so a sim time alone may match
+    an earlier rollout's frame; the stamp of the measured frame (a detection's `frame_stamp`),
+    or of the landing event the learner waited for, tells the rollouts apart.
+    """
+
+    def __init__(self, keep: int = 256) -> None:
+        self._frames: collections.deque[Image] = collections.deque(maxlen=keep)
+        self._dropped: float | None = None  # the stamp of the newest frame no longer kept
+        self._cond = threading.Condition()
+
+    def put(self, image: Image) -> None:
+        with self._cond:
+            if len(self._frames) == self._frames.maxlen:
+                self._dropped = self._frames[0].stamp
+            self._frames.append(image)
+            self._cond.notify_all()
+
+    def _dropped_fits(self, after_stamp: float | None) -> bool:
+        """Whether a frame no longer kept might satisfy a grab for `after_stamp`."""
+        return self._dropped is not None and (after_stamp is None or after_stamp <= self._dropped)
+
+    def grab(self, args: dict[str, Any]) -> Image:
+        """The first frame (published so far, or within the timeout) with sim time ≥
+        `after_sim_time` and stamp ≥ `after_stamp`.
+
+        Raises:
+            RpcTimeout: no such frame published within the timeout.
+            BadRequest: the frame asked for may be one of those no longer kept.
+        """
+        grab = msgspec.convert(args, GrabArgs, strict=True)
+        timeout = grab.timeout or 5.0
+
+        def fits(image: Image) -> bool:
+            if grab.after_stamp is not None and image.stamp < grab.after_stamp:
+                return False
+            if grab.after_sim_time is None:
+                return True
+            return image.sim_time is not None and image.sim_time >= grab.after_sim_time
+
+        deadline = time.monotonic() + min(timeout, MAX_GRAB_TIMEOUT)
+        with self._cond:
+            while True:
+                found = next((image for image in self._frames if fits(image)), None)
+                if found is not None:
+                    if found is self._frames[0] and self._dropped_fits(grab.after_stamp):
+                        raise BadRequest(
+                            f"the frame asked for (sim time >= {grab.after_sim_time}, stamp >= "
+                            f"{grab.after_stamp}) may be among the replayed frames no longer "
+                            f"kept (the newest {self._frames.maxlen} are)"
+                        )
+                    return found
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise RpcTimeout(
+                        f"no replayed frame with sim time >= {grab.after_sim_time} and stamp >= "
+                        f"{grab.after_stamp} within {timeout:g} s",
+                    )
+                self._cond.wait(left)
+
+
+def _remap(key: str, robot: str | None) -> str:
+    return key if robot is None else robot + "/" + key.split("/", 1)[1]
+
+
+def replay_main(argv: list[str] | None = None) -> int:
+    """`archery replay FILE.mcap [--rate R] [--keys PATTERN]`: publish a recording again."""
+    parser = ArgumentParser(
+        prog="archery replay",
+        description="publish a recording's messages again with their original timing",
+    )
+    add_network_args(parser, default_mode="client")
+    parser.set_defaults(robot=None)  # None: the keys as recorded
+    parser.add_argument("file", help="an MCAP file written by `archery record`")
+    parser.add_argument("--rate", type=seconds, default=1.0, help="speed factor (default 1)")
+    parser.add_argument("--keys", help="replay only the keys matching this pattern")
+    parser.add_argument(
+        "--recover",
+        action="store_true",
+        help="replay a file cut short (a killed recorder): the messages of its complete chunks",
+    )
+    parser.add_argument(
+        "--serve-grab",
+        action="store_true",
+        help="answer ROBOT/cam/rpc:i grab with the replayed frames (after_sim_time and "
+        "after_stamp in the recording's clocks), and keep answering after the end until Ctrl-C",
+    )
+    args = parser.parse_args(argv)
+    robot = args.robot
+    try:
+        recording = open_recording(args.file)
+        if robot is None:
+            args.robot = _rec_robot(recording)
+        net = NetConfig.from_args(args)
+        if not recording.complete and not args.recover:
+            raise ConfigError(
+                f"{args.file!r} is cut short (no summary: was the recorder killed?); "
+                f"--recover replays the messages of its complete chunks"
+            )
+        only = check_pattern(args.keys) if args.keys else None
+    except ArcheryError as exc:
+        return _fail("replay", exc, 2)
+    stop = shutdown_on_signals()
+    try:
+        with Node(None, net) as node:
+            frames = _Frames()
+            if args.serve_grab:
+                node.serve(node.keys.cam_rpc(), {"grab": frames.grab})
+                print(f"archery replay: serving grab on {node.keys.cam_rpc()}", flush=True)
+            published, keys = _publish(node, recording, args, only, robot, frames, stop)
+            print(
+                f"archery replay: published {published} messages on {len(keys)} keys",
+                flush=True,
+            )
+            if args.serve_grab:
+                stop.wait()
+    except ArcheryError as exc:
+        return _fail("replay", exc, 1)
+    return 0
+
+
+def _rec_robot(recording: Recording) -> str:
+    return recording.metadata.get("robot") or "icubSim"
+
+
+def _publish(
+    node: Node,
+    recording: Recording,
+    args: Any,
+    only: zenoh.KeyExpr | None,
+    robot: str | None,
+    frames: _Frames,
+    stop: threading.Event,
+) -> tuple[int, set[str]]:
+    publishers: dict[str, zenoh.Publisher] = {}
+    start = time.monotonic()
+    first: int | None = None
+    published = 0
+    try:
+        for key, message, log_time in recording.messages(recover=args.recover):
+            if stop.is_set():
+                break
+            if only is not None and not only.includes(zenoh.KeyExpr(key)):
+                continue
+            first = log_time if first is None else first
+            due = start + (log_time - first) / 1e9 / args.rate
+            if stop.wait(max(0.0, due - time.monotonic())):
+                break
+            out = _remap(key, robot)
+            pub = publishers.get(out)
+            if pub is None:
+                pub = node.session.declare_publisher(
+                    out,
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                    reliability=zenoh.Reliability.RELIABLE,
+                )
+                publishers[out] = pub
+            if isinstance(message, Image):
+                frames.put(message)
+            pub.put(encode(message))
+            published += 1
+    finally:
+        for pub in publishers.values():
+            pub.undeclare()
+    return published, set(publishers)
+
+
+# -- hz -------------------------------------------------------------------------------------------
+
+
+class _Rates:
+    """Arrival times and sizes per key."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.times: dict[str, list[float]] = collections.defaultdict(list)
+        self.sizes: dict[str, int] = collections.defaultdict(int)
+
+    def add(self, key: str, size: int) -> None:
+        with self.lock:
+            self.times[key].append(time.monotonic())
+            self.sizes[key] += size
+
+    def lines(self, since: float) -> list[str]:
+        out = []
+        with self.lock:
+            items = [(k, list(v), self.sizes[k]) for k, v in sorted(self.times.items())]
+        for key, times, size in items:
+            span = max(time.monotonic() - since, 1e-9)
+            gaps = [b - a for a, b in itertools.pairwise(times)]
+            rate = (len(times) - 1) / (times[-1] - times[0]) if len(gaps) else 0.0
+            jitter = (
+                f"  gap min {min(gaps) * 1e3:.1f} max {max(gaps) * 1e3:.1f} "
+                f"std {statistics.pstdev(gaps) * 1e3:.1f} ms"
+                if gaps
+                else ""
+            )
+            out.append(
+                f"{key}  {rate:.2f} Hz  {size / span / 1e6:.3f} MB/s  "
+                f"n={len(times)}  mean size {size / len(times) / 1e3:.1f} kB{jitter}"
+            )
+        return out
+
+
+def hz_main(argv: list[str] | None = None) -> int:
+    """`archery hz KEY_PATTERN`: message rate and bandwidth of each matching key."""
+    parser = ArgumentParser(
+        prog="archery hz",
+        description="print each matching key's message rate (Hz) and bandwidth (MB/s)",
+    )
+    add_network_args(parser, default_mode="client")
+    parser.add_argument("pattern", metavar="KEY_PATTERN")
+    parser.add_argument("--duration", type=seconds, help="measure this long (s), then print")
+    parser.add_argument("--count", type=count, default=0, help="stop after N messages (0: no)")
+    parser.add_argument(
+        "--window", type=seconds, default=1.0, help="print every N s while measuring (default 1)"
+    )
+    args = parser.parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+        expr = check_pattern(args.pattern)
+    except ArcheryError as exc:
+        return _fail("hz", exc, 2)
+    stop = shutdown_on_signals()
+    rates = _Rates()
+    done = threading.Event()
+    seen = [0]
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if stream_type(key) is None or done.is_set():
+            return
+        rates.add(key, len(sample.payload))
+        seen[0] += 1
+        if args.count and seen[0] >= args.count:
+            done.set()
+
+    try:
+        with Node(None, net) as node:
+            start = time.monotonic()
+            sub = node.session.declare_subscriber(expr, on_sample)
+            try:
+                end = None if args.duration is None else start + args.duration
+                while not stop.is_set() and not done.is_set():
+                    step = args.window if end is None else min(args.window, end - time.monotonic())
+                    if step <= 0:
+                        break
+                    if done.wait(step):
+                        break
+                    if end is None or time.monotonic() < end:
+                        for line in rates.lines(start):
+                            print(line, flush=True)
+            finally:
+                sub.undeclare()
+    except ArcheryError as exc:
+        return _fail("hz", exc, 1)
+    lines = rates.lines(start)
+    if not lines:
+        print(f"archery hz: no message on {args.pattern}", file=sys.stderr)
+        return 1
+    print("--- total", flush=True)
+    for line in lines:
+        print(line, flush=True)
+    return 0

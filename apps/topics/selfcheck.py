@@ -1,0 +1,186 @@
+"""`archery selfcheck`: start a router and a sample service, and check the mesh end to end.
+
+With `--echo`, run only the sample service (a torso controlboard that echoes RPC arguments and
+streams a joint state) until SIGINT/SIGTERM; tests use it as a real process to kill.
+"""
+
+from __future__ import annotations
+
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+
+from mesh.cliargs import ArgumentParser, seconds
+from mesh.netflags import NetConfig, add_network_args, open_session
+from mesh.node import Node, shutdown_on_signals
+from mesh.router import free_tcp_endpoint, open_router
+from protocol.codec import decode
+from protocol.errors import ArcheryError, BadRequest, RpcError
+from protocol.messages import Describe, JointCommand, JointState, WorldEvent
+from protocol.parts import PARTS
+
+__all__ = ["ECHO_SERVICE", "main", "run_echo"]
+
+ECHO_SERVICE = "echo"
+
+
+def _fail(args: dict[str, object]) -> None:
+    raise BadRequest(f"fail was asked to fail with x={args.get('x')!r}")
+
+
+def run_echo(net: NetConfig, stop: threading.Event, rate_hz: float = 50.0) -> None:
+    """Serve the sample service until `stop` is set: `torso/rpc:i` verbs echo, fail, count;
+    `torso/state:o` at `rate_hz`; every command on `torso/command:i` is re-published as a
+    `world/events:o` event (so tests can check lossless delivery)."""
+    with Node(ECHO_SERVICE, net) as node:
+        keys = node.keys
+        events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
+        state = node.publisher(keys.state("torso"), JointState)
+        received: list[int] = []
+
+        def on_command(msg: JointCommand) -> None:
+            received.append(msg.seq)
+            events.put(WorldEvent(kind="nocked", shot=len(received)))
+
+        commands = node.subscribe(
+            keys.command("torso"), JointCommand, mode="fifo", callback=on_command
+        )
+        node.serve(
+            keys.part_rpc("torso"),
+            {
+                "echo": lambda args: args,
+                "fail": _fail,
+                "count": lambda args: {
+                    "commands": commands.received,
+                    "dropped": commands.dropped,
+                },
+            },
+        )
+        node.ready()
+        names = list(PARTS["torso"])
+        period = 1.0 / rate_hz
+        while not stop.wait(period):
+            state.put(JointState(part="torso", names=names, position=[0.0] * 3, velocity=[0.0] * 3))
+
+
+def _check(results: list[bool], label: str, func: Callable[[], str]) -> None:
+    start = time.perf_counter()
+    try:
+        detail = func()
+        ok = True
+    except (ArcheryError, AssertionError) as exc:
+        detail, ok = str(exc), False
+    ms = (time.perf_counter() - start) * 1e3
+    print(f"  {'ok  ' if ok else 'FAIL'} {label:<44} {ms:8.1f} ms  {detail}", flush=True)
+    results.append(ok)
+
+
+def _selfcheck(net: NetConfig, timeout: float) -> bool:
+    argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
+    for endpoint in net.connect:
+        argv += ["--connect", endpoint]
+    child = subprocess.Popen(argv, stdin=subprocess.DEVNULL)
+    results: list[bool] = []
+    try:
+        with Node(None, net) as node:
+            keys = node.keys
+            rpc = keys.part_rpc("torso")
+
+            def alive() -> str:
+                node.wait_alive([ECHO_SERVICE], timeout)
+                return f"alive: {sorted(node.alive())}"
+
+            def describe() -> str:
+                replies = list(node.session.get(keys.describe(ECHO_SERVICE), timeout=timeout))
+                info = decode(replies[0].ok.payload.to_bytes(), Describe)
+                return f"{len(info.ports)} ports, pid {info.pid}"
+
+            def stream() -> str:
+                sub = node.subscribe(keys.state("torso"), JointState)
+                msg = sub.wait_newer(timeout)
+                return f"seq {msg.seq}, joints {', '.join(msg.names)}"
+
+            def rpc_ok() -> str:
+                times = []
+                for i in range(200):
+                    t0 = time.perf_counter()
+                    assert node.call(rpc, "echo", {"i": i}, timeout=timeout) == {"i": i}
+                    times.append((time.perf_counter() - t0) * 1e3)
+                return f"200 round trips, median {statistics.median(times):.3f} ms"
+
+            def rpc_error() -> str:
+                try:
+                    node.call(rpc, "fail", {"x": 1}, timeout=timeout)
+                except RpcError as exc:
+                    assert exc.code == "bad_request", exc.code
+                    return f"error reply [{exc.code}]"
+                raise AssertionError("an error reply was expected")
+
+            def malformed() -> str:
+                reply = node.request(rpc, b"\xc1 not msgpack", timeout=timeout)
+                assert not reply.ok and reply.code == "bad_message", reply
+                assert node.call(rpc, "echo", {"still": "serving"}) == {"still": "serving"}
+                return f"rejected [{reply.code}], still serving"
+
+            def missing() -> str:
+                try:
+                    node.call(keys.learner_rpc(), "status", timeout=1.0)
+                except RpcError as exc:
+                    return str(exc)[:60] + "…"
+                raise AssertionError("a timeout was expected")
+
+            def death() -> str:
+                child.terminate()
+                node.wait_gone(ECHO_SERVICE, timeout)
+                return f"token gone, exit status {child.wait(timeout)}"
+
+            print(f"mesh self-check on {', '.join(net.connect)} (robot {net.robot!r})")
+            for label, func in (
+                ("service appears by liveliness", alive),
+                ("describe lists its ports", describe),
+                ("state stream (latest wins)", stream),
+                ("rpc round trip", rpc_ok),
+                ("rpc error reply with a code", rpc_error),
+                ("malformed request gets an error reply", malformed),
+                ("absent service fails with its key", missing),
+                ("SIGTERM: clean exit, liveliness drops", death),
+            ):
+                _check(results, label, func)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+    print(f"{sum(results)} passed, {len(results) - sum(results)} failed")
+    return all(results)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the self-check (exit 0 when every check passes) or, with --echo, the sample service."""
+    parser = ArgumentParser(prog="archery selfcheck", description=__doc__)
+    add_network_args(parser)
+    parser.add_argument("--echo", action="store_true", help="only run the sample service")
+    parser.add_argument("--timeout", type=seconds, default=10.0, help="seconds per check")
+    args = parser.parse_args(argv)
+    try:
+        net = NetConfig.from_args(args)
+    except ArcheryError as exc:
+        print(f"archery selfcheck: {exc}", file=sys.stderr)
+        return 2
+    try:
+        if args.echo:
+            run_echo(net, shutdown_on_signals())
+            return 0
+        if args.connect:
+            open_session(net).close()  # no router there: say so before starting anything
+            return 0 if _selfcheck(net, args.timeout) else 1
+    except ArcheryError as exc:
+        print(f"archery selfcheck: {exc}", file=sys.stderr)
+        return 1
+    endpoint = free_tcp_endpoint()
+    with open_router(endpoint):
+        net = NetConfig(connect=(endpoint,), robot=args.robot)
+        ok = _selfcheck(net, args.timeout)
+    return 0 if ok else 1

@@ -1,0 +1,437 @@
+"""Introspection tools, the `yarp` CLI of this mesh: ports, read, write, rpc, view."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import msgspec
+import zenoh
+
+from mesh.cliargs import (
+    ArgumentParser,
+    check_image_path,
+    count,
+    loads_finite,
+    seconds,
+    seconds_or_zero,
+)
+from mesh.instances import describe_all
+from mesh.netflags import NetConfig, add_network_args
+from mesh.node import Node, bad_args_message
+from mesh.patterns import check_pattern, is_wildcard, stream_type
+from mesh.tokens import TokenSet
+from protocol.codec import decode, from_jsonable, to_jsonable
+from protocol.errors import (
+    ArcheryError,
+    BadRequest,
+    ConfigError,
+    DecodeError,
+    KeyNameError,
+    RpcError,
+)
+from protocol.keys import port_of
+from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
+from protocol.robotspec import CALL_TIMEOUT
+from protocol.verbs import Verb, table_for_key
+
+__all__ = ["alive_main", "ports_main", "read_main", "rpc_main", "view_main", "write_main"]
+
+
+def _parser(prog: str, description: str) -> argparse.ArgumentParser:
+    parser = ArgumentParser(prog=f"archery {prog}", description=description)
+    add_network_args(parser, default_mode="client")
+    parser.add_argument(
+        "--timeout",
+        type=seconds,
+        default=CALL_TIMEOUT,
+        help=f"seconds to wait (default {CALL_TIMEOUT:g})",
+    )
+    return parser
+
+
+def _run(prog: str, check: Callable[[], Any], body: Callable[[Any], int]) -> int:
+    """Check the input (`check()`; its errors: exit status 2), then run `body(checked)` (its
+    errors, e.g. nothing reachable: exit status 1). Each error is one line on stderr."""
+    try:
+        checked = check()
+    except ArcheryError as exc:
+        print(f"archery {prog}: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return body(checked)
+    except ArcheryError as exc:
+        print(f"archery {prog}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 0
+
+
+def _stream_type(key: str) -> type[Message]:
+    spec = port_of(key)
+    if spec.kind in ("rpc", "liveliness"):
+        raise KeyNameError(f"{key} is an {spec.kind} port, not a stream; use `archery rpc`")
+    return MESSAGE_TYPES[spec.message]
+
+
+def _wait_any_alive(node: Node, wait: float) -> set[str]:
+    """Block until some service of the robot is alive (by liveliness) or `wait` s have passed;
+    the names seen alive meanwhile."""
+    with TokenSet(node.session, node.keys.alive_all()) as alive:
+        alive.wait_for(bool, wait)
+        return alive.present()
+
+
+def alive_main(argv: list[str] | None = None) -> int:
+    """`archery alive [NAME…]`: a health check. Exit 0 when the router answers and every named
+    service of the robot holds its liveliness token now; 1 (one line on stderr) when not."""
+    parser = _parser("alive", "exit 0 when the router answers and the named services are alive")
+    parser.add_argument("names", nargs="*", metavar="NAME", help="services that must be alive")
+    args = parser.parse_args(argv)
+
+    def body(net: NetConfig) -> int:
+        with Node(None, net) as node:
+            missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
+            if missing:
+                print(
+                    f"archery alive: not alive on robot {node.keys.robot!r}: {', '.join(missing)}",
+                    file=sys.stderr,
+                )
+                return 1
+        return 0
+
+    return _run("alive", lambda: NetConfig.from_args(args), body)
+
+
+def ports_main(argv: list[str] | None = None) -> int:
+    """`archery ports`: live services of the robot and their ports (like `yarp name list`)."""
+    parser = _parser("ports", "list live services and their ports")
+    parser.add_argument("--json", action="store_true", help="one JSON object per service")
+    parser.add_argument(
+        "--wait",
+        type=seconds_or_zero,
+        default=0.0,
+        metavar="N",
+        help="wait up to N s for a service to come alive (default 0: list who is alive now)",
+    )
+    parser.add_argument(
+        "--verbose", action="store_true", help="message fields and each rpc verb's schemas"
+    )
+    args = parser.parse_args(argv)
+
+    def body(net: NetConfig) -> int:
+        with Node(None, net) as node:
+            seen = _wait_any_alive(node, args.wait) if args.wait else set()
+            names = sorted(node.alive(timeout=args.timeout) | seen)
+            if not names:
+                print(
+                    f"archery ports: no service alive on robot {node.keys.robot!r} "
+                    f"(router {', '.join(net.connect)})",
+                    file=sys.stderr,
+                )
+                return 0
+            for name in names:
+                described = describe_all(node.session, node.keys, name, timeout=args.timeout)
+                if not described:
+                    print(f"{name}: alive, but no describe reply")
+                    continue
+                many = f"  [{len(described)} instances!]" if len(described) > 1 else ""
+                for zid, info in sorted(described.items()):
+                    if args.json:
+                        print(json.dumps(to_jsonable(info) | {"instance": zid}))
+                        continue
+                    print(f"{name}  (pid {info.pid} on {info.host}, instance {zid}){many}")
+                    for port in info.ports:
+                        verbs = info.verbs.get(port.key)
+                        extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
+                        print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+                        if args.verbose:
+                            print("\n".join(_verbose_lines(info, port)))
+        return 0
+
+    return _run("ports", lambda: NetConfig.from_args(args), body)
+
+
+def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
+    from apps.topics.interface import interface_lines, message_lines
+
+    if port.kind != "rpc":
+        return message_lines(port.message, "      ")
+    if port.key in info.interfaces:
+        return interface_lines(info.interfaces[port.key], "      ")
+    return ["      (untyped verbs)"] if port.message == "RpcRequest" else []
+
+
+def _field(value: Any, path: str) -> Any:
+    """The part of a JSON-like message at a dotted `path` (`r_m.0`, `names.1`); None if absent."""
+    for step in path.split("."):
+        if isinstance(value, dict):
+            value = value.get(step)
+        elif (
+            isinstance(value, list)
+            and step.lstrip("-").isdigit()
+            and -len(value) <= int(step) < len(value)
+        ):
+            value = value[int(step)]
+        else:
+            return None
+    return value
+
+
+def _check_field(message_type: type[Message] | None, path: str) -> None:
+    """Raise KeyNameError when `path`'s first step is no field of `message_type`."""
+    head = path.split(".", 1)[0]
+    if message_type is not None and head not in ("type", *message_type.__struct_fields__):
+        raise KeyNameError(
+            f"--field {path!r}: {message_type.__name__} has no field {head!r}; its fields: "
+            f"{', '.join(message_type.__struct_fields__)}"
+        )
+
+
+def read_main(argv: list[str] | None = None) -> int:
+    """`archery read KEY [--count N] [--field PATH]`: decoded messages as JSON lines (like `yarp
+    read`); a KEY with wildcards (`icubSim/*/state:o`) prints {"key", "value"} objects."""
+    parser = _parser("read", "print decoded messages from a stream key as JSON lines")
+    parser.add_argument("key", help="a stream key, or a pattern such as ROBOT/*/state:o")
+    parser.add_argument(
+        "--count",
+        type=count,
+        default=0,
+        help="stop after N messages, each waited for at most --timeout s (0: read until Ctrl-C)",
+    )
+    parser.add_argument(
+        "--field", metavar="PATH", help="print only this field, e.g. r_m.0 or position.2"
+    )
+    args = parser.parse_args(argv)
+    wildcard = is_wildcard(args.key)
+
+    def check() -> tuple[NetConfig, type[Message] | None]:
+        net = NetConfig.from_args(args)
+        if wildcard:
+            check_pattern(args.key)
+            message_type = None
+        else:
+            message_type = _stream_type(args.key)
+        if args.field is not None:
+            _check_field(message_type, args.field)
+        return net, message_type
+
+    def body(checked: tuple[NetConfig, type[Message] | None]) -> int:
+        net, message_type = checked
+        received: queue.SimpleQueue[tuple[str, Message]] = queue.SimpleQueue()
+        malformed = [0]
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            wanted = message_type or stream_type(key)
+            if wanted is None:
+                return
+            try:
+                received.put((key, decode(sample.payload.to_bytes(), wanted)))
+            except DecodeError:
+                malformed[0] += 1
+
+        with Node(None, net) as node:
+            sub = node.session.declare_subscriber(args.key, on_sample)
+            printed = 0
+            try:
+                while args.count == 0 or printed < args.count:
+                    try:
+                        key, message = received.get(timeout=args.timeout if args.count else None)
+                    except queue.Empty:
+                        print(
+                            f"archery read: no message on {args.key} within {args.timeout:g} s "
+                            f"({printed} of {args.count} read, {malformed[0]} malformed dropped)",
+                            file=sys.stderr,
+                        )
+                        return 1
+                    value: Any = to_jsonable(message)
+                    if args.field is not None:
+                        value = _field(value, args.field)
+                    print(
+                        json.dumps({"key": key, "value": value} if wildcard else value), flush=True
+                    )
+                    printed += 1
+            finally:
+                sub.undeclare()
+        return 0
+
+    return _run("read", check, body)
+
+
+def _command_total(counters: dict[str, Any]) -> int:
+    return sum(int(counters.get(k, 0)) for k in ("accepted", "rejected", "undecodable"))
+
+
+def _verdict(node: Node, rpc_key: str, before: dict[str, Any], timeout: float) -> str | None:
+    """Wait until the owner's counters count the command; the refusal message, or None.
+
+    Raises:
+        RpcError: the counters did not move within `timeout` s, or another command arrived in
+            the meantime and the counters cannot tell which was refused.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        after = node.call(rpc_key, "counters", timeout=timeout)
+        arrived = _command_total(after) - _command_total(before)
+        if arrived >= 1:
+            break
+        if time.monotonic() >= deadline:
+            raise RpcError(
+                f"the command was delivered but {rpc_key} did not count it within {timeout:g} s"
+            )
+        time.sleep(0.01)
+    refused = int(after.get("rejected", 0)) - int(before.get("rejected", 0))
+    undecodable = int(after.get("undecodable", 0)) - int(before.get("undecodable", 0))
+    if refused + undecodable == 0:
+        return None
+    if arrived == 1:
+        return str(after.get("last_rejection") or "the command could not be decoded")
+    raise RpcError(
+        f"{arrived} commands arrived on {rpc_key} at once and {refused + undecodable} were "
+        f"refused (the last: {after.get('last_rejection', '')!r}); cannot tell about this one"
+    )
+
+
+def write_main(argv: list[str] | None = None) -> int:
+    """`archery write KEY JSON`: publish one message of the key's type (like `yarp write`)."""
+    parser = _parser(
+        "write",
+        "Publish one message, given as a JSON object, on a key. On a joint command port "
+        "(ROBOT/PART/command:i) the tool then asks the part's rpc:i `counters` verb whether the "
+        "robot accepted the command: it exits 1 with the robot's reason when it was refused "
+        "(and says so when the owner has no counters verb, or another command arrived at the "
+        "same moment). Exit status: 0 delivered (and accepted), 1 nobody subscribes, refused "
+        "or no verdict, 2 bad input (unknown key, invalid JSON or message).",
+    )
+    parser.add_argument("key")
+    parser.add_argument("json", help="the message fields as a JSON object")
+    args = parser.parse_args(argv)
+
+    def check() -> tuple[NetConfig, type[Message], Message]:
+        net = NetConfig.from_args(args)
+        message_type = _stream_type(args.key)
+        data = loads_finite(args.json, "the message")
+        return net, message_type, from_jsonable(data, message_type)
+
+    def body(checked: tuple[NetConfig, type[Message], Message]) -> int:
+        net, message_type, message = checked
+        spec = port_of(args.key)
+        lossless = spec.kind == "events"
+        rpc_key = args.key.removesuffix("command:i") + "rpc:i" if spec.kind == "sub" else None
+        with Node(None, net) as node:
+            pub = node.publisher(args.key, message_type, lossless=lossless)
+            if not pub.wait_matched(args.timeout):
+                print(f"archery write: nobody subscribes to {args.key}", file=sys.stderr)
+                return 1
+            before, note = None, "its counters verb gave no counts"
+            if rpc_key is not None:
+                try:
+                    before = node.call(rpc_key, "counters", timeout=args.timeout)
+                except RpcError as exc:
+                    note = f"{rpc_key} has no command counters ({exc.code})"
+            sent = pub.put(message)
+            print(json.dumps(to_jsonable(sent)), flush=True)
+            if rpc_key is None:
+                return 0
+            if not isinstance(before, dict):
+                print(
+                    f"archery write: delivered; whether it was accepted is unknown: {note}",
+                    file=sys.stderr,
+                )
+                return 0
+            refusal = _verdict(node, rpc_key, before, args.timeout)
+            if refusal is not None:
+                print(f"archery write: refused by {rpc_key}: {refusal}", file=sys.stderr)
+                return 1
+        return 0
+
+    return _run("write", check, body)
+
+
+def rpc_main(argv: list[str] | None = None) -> int:
+    """`archery rpc KEY VERB [JSON]`: call and print the reply; status 1 on error or timeout."""
+    parser = _parser("rpc", "call an rpc:i verb and print the result as JSON")
+    parser.add_argument("key")
+    parser.add_argument("verb")
+    parser.add_argument("args", nargs="?", default="{}", help="arguments as a JSON object")
+    args = parser.parse_args(argv)
+
+    def check() -> tuple[NetConfig, Verb[Any, Any] | None, Any]:
+        net = NetConfig.from_args(args)
+        spec = port_of(args.key)
+        if spec.kind != "rpc" or spec.message != "RpcRequest":
+            raise KeyNameError(f"{args.key} is a {spec.kind} port, not an rpc:i port")
+        call_args = loads_finite(args.args, "the arguments")
+        if not isinstance(call_args, dict):
+            raise DecodeError(f"the arguments must be a JSON object, got {args.args!r}")
+        verb = _typed_verb(args.key, args.verb)
+        if verb is not None:  # checked here, before any network work
+            try:
+                call_args = msgspec.convert(call_args, verb.args, strict=True)
+            except msgspec.ValidationError as exc:
+                raise BadRequest(bad_args_message(verb, exc)) from None
+        return net, verb, call_args
+
+    def body(checked: tuple[NetConfig, Verb[Any, Any] | None, Any]) -> int:
+        net, verb, call_args = checked
+        with Node(None, net) as node:
+            if verb is None:  # not in the local tables: the service decides
+                result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
+            else:
+                reply = node.call_typed(args.key, verb, call_args, timeout=args.timeout)
+                result = msgspec.to_builtins(reply, builtin_types=(bytes,))
+        print(json.dumps(to_jsonable(result)), flush=True)
+        return 0
+
+    return _run("rpc", check, body)
+
+
+def _typed_verb(key: str, name: str) -> Verb[Any, Any] | None:
+    """The verb `name` of the local table for `key`, or None (untyped, or unknown here)."""
+    try:
+        table = table_for_key(key)
+    except KeyNameError:
+        return None
+    return table[name] if name in table.names() else None
+
+
+def view_main(argv: list[str] | None = None) -> int:
+    """`archery view KEY --out FILE.png`: save the next image on an image port (like yarpview)."""
+    parser = _parser("view", "save the next image published on an image port")
+    parser.add_argument("key")
+    parser.add_argument("--out", required=True, help="image file to write (.png, .jpg, …)")
+    args = parser.parse_args(argv)
+
+    def check() -> NetConfig:
+        net = NetConfig.from_args(args)
+        if _stream_type(args.key) is not Image:
+            raise KeyNameError(f"{args.key} does not carry images")
+        check_image_path(args.out)
+        return net
+
+    def body(net: NetConfig) -> int:
+        import cv2
+
+        with Node(None, net) as node:
+            sub = node.subscribe(args.key, Image)
+            start = time.monotonic()
+            image = sub.wait_newer(args.timeout)
+            pixels = image.to_numpy()
+        bgr = pixels[:, :, ::-1] if pixels.ndim == 3 else pixels
+        if not cv2.imwrite(args.out, bgr):
+            raise ConfigError(f"could not write {args.out!r}")
+        waited = time.monotonic() - start
+        print(
+            f"{args.out}: {image.width}x{image.height} {image.encoding}, frame {image.frame}, "
+            f"waited {waited:.2f} s",
+            flush=True,
+        )
+        return 0
+
+    return _run("view", check, body)

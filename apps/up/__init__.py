@@ -1,0 +1,1 @@
+"""`archery up`: the launch description, the supervisor and its restart policy."""

@@ -1,0 +1,539 @@
+"""`archery up`: a router and all five services as supervised child processes of one command.
+
+It starts `archery router --listen ENDPOINT` and `archery robot|camera|detector|controller|
+learner --connect ENDPOINT --robot NAME` (each with `python -m apps.cli`, so this module
+imports no service), waits until every service is alive by liveliness, and then supervises
+them (`apps.up.supervisor`): a child that exits is restarted, left down or ends everything as
+its restart policy decides (`apps.up.restart_policy`), the router on its same endpoint (the
+services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the learner first and
+the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
+period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
+`apps.up.launch_config`). Each child's output goes to `LOGS/<name>.log`; the children die with
+their parent. `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN` and one
+learner serving them all (`launch_config.default_mesh`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import dataclasses
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+from apps.up.child import Child
+from apps.up.launch_config import (
+    SERVICES,
+    MeshConfig,
+    RobotSpec,
+    RouterSpec,
+    ServiceSpec,
+    default_mesh,
+    load_mesh,
+)
+from apps.up.restart_policy import POLICIES, RestartPolicy, describe_status
+from apps.up.supervisor import GiveUp, Supervisor
+from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
+from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
+from mesh.node import Node, shutdown_on_signals
+from mesh.router import wait_for_endpoint
+from protocol.errors import ArcheryError, ConfigError, RpcTimeout
+from protocol.keys import DEFAULT_ROBOT
+
+__all__ = ["SERVICES", "Child", "LaunchError", "Launcher", "main"]
+
+STOP_ORDER = ("learner", "detector", "camera", "controller", "robot")
+_PR_SET_PDEATHSIG = 1
+
+
+class LaunchError(ArcheryError):
+    """A child could not start, died, or did not come alive in time."""
+
+    code = "launch_failed"
+
+
+def _die_with_parent() -> None:
+    """In the child before exec: get SIGTERM when the parent dies (Linux), so no orphans."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+
+
+def _check_free(endpoint: str) -> None:
+    """Raise ConfigError when something already listens on a tcp endpoint."""
+    proto, address = endpoint.split("/", 1)
+    if proto not in ("tcp", "tls"):
+        return
+    host, port = address.rsplit(":", 1)
+    with socket.socket(socket.AF_INET6 if ":" in host.strip("[]") else socket.AF_INET) as sock:
+        # As a listener would: a port left in TIME_WAIT by a router just stopped is free.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host.strip("[]"), int(port)))
+        except OSError as exc:
+            raise ConfigError(
+                f"cannot listen on {endpoint}: {exc.strerror or exc}. Is another router or "
+                f"`archery up` running? Use --listen tcp/127.0.0.1:PORT with a free port, or "
+                f"connect to the running one"
+            ) from None
+
+
+class Launcher:
+    """Starts, watches and stops the router and the services. Use as a context manager.
+
+    Args:
+        endpoint: where the router listens and the services connect (`tcp/HOST:PORT`).
+        robot: the robot prefix.
+        logs: directory of the children's logs.
+        service_args: extra command-line arguments per service name.
+        router: start a router (False: connect the services to one that runs already).
+        secure: a deployment directory (`archery keys init`): every child runs with --secure.
+        mesh: a whole launch description (`apps.up.launch_config`); it replaces `endpoint`,
+            `robot`, `service_args` and `router`, and gives each child its restart policy.
+    """
+
+    def __init__(
+        self,
+        endpoint: str = DEFAULT_ROUTER,
+        robot: str = "icubSim",
+        logs: Path = Path("runs/logs"),
+        service_args: dict[str, Sequence[str]] | None = None,
+        router: bool = True,
+        secure: str | None = None,
+        *,
+        mesh: MeshConfig | None = None,
+    ) -> None:
+        if mesh is None:
+            args = {k: tuple(v) for k, v in (service_args or {}).items()}
+            unknown = sorted(set(args) - set(SERVICES))
+            if unknown:
+                raise ConfigError(f"no service {unknown[0]!r}; services: {', '.join(SERVICES)}")
+            mesh = MeshConfig(
+                RouterSpec(endpoint, router),
+                (RobotSpec(robot),),
+                {name: ServiceSpec(args.get(name, ())) for name in SERVICES},
+            )
+        self.mesh = mesh
+        self.endpoint = mesh.router.endpoint
+        self.net = NetConfig(connect=(self.endpoint,), robot=mesh.robots[0].prefix, secure=secure)
+        self.secure = ["--secure", secure] if secure else []
+        self.logs = Path(logs)
+        self.specs = {spec.id: spec for spec in mesh.children()}
+        self.with_router = mesh.router.start
+        self.children: dict[str, Child] = {}
+        self.env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+
+    def policy(self, name: str) -> RestartPolicy:
+        """The restart policy of a child (`router` or a service's id)."""
+        return self.mesh.router.restart if name == "router" else self.specs[name].restart
+
+    # -- starting -------------------------------------------------------------------------------
+    def _spawn(self, name: str, argv: list[str]) -> Child:
+        self.logs.mkdir(parents=True, exist_ok=True)
+        child = Child(name, [sys.executable, "-m", "apps.cli", *argv], self.logs / f"{name}.log")
+        with open(child.log, "ab") as log:
+            log.write(f"--- {time.strftime('%H:%M:%S')} {shlex.join(child.argv)}\n".encode())
+            log.flush()
+            child.proc = subprocess.Popen(
+                child.argv,
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=self.env,
+                start_new_session=True,  # a terminal's Ctrl-C reaches only us; we stop them
+                preexec_fn=_die_with_parent,
+            )
+        child.started = time.monotonic()
+        self.children[name] = child
+        return child
+
+    def start_router(self, timeout: float = 15.0, *, restart: bool = False) -> None:
+        """Start the router and wait until it listens.
+
+        Args:
+            timeout: how long to wait (s).
+            restart: a restart by the supervisor: no check that the port is free (the router
+                says so itself, exit status 2), and a failure stops only the new router.
+        """
+        if not restart:
+            _check_free(self.endpoint)
+        child = self._spawn("router", ["router", "--listen", self.endpoint, *self.secure])
+        deadline = time.monotonic() + timeout
+        while child.returncode is None:
+            try:
+                wait_for_endpoint(self.endpoint, min(0.5, max(0.0, deadline - time.monotonic())))
+                return
+            except ConfigError:
+                if time.monotonic() >= deadline:
+                    break
+        if restart:
+            self.kill("router")
+        else:
+            self.stop_all()
+        raise LaunchError(
+            f"the router did not listen on {self.endpoint} within {timeout:g} s "
+            f"(exit status {child.returncode}); its log {child.log}:\n{child.tail()}"
+        )
+
+    def start(self, name: str) -> Child:
+        """Start (or restart) one service (by its id: the service's name for one robot)."""
+        spec = self.specs.get(name)
+        if spec is None:
+            raise ConfigError(f"no service {name!r}; services: {', '.join(self.specs)}")
+        old = self.children.get(name)
+        if old is not None and old.returncode is None:
+            raise LaunchError(
+                f"{name} is running already (pid {old.proc.pid if old.proc else '?'})"
+            )
+        argv = [spec.service, "--connect", self.endpoint, "--robot", spec.robot, *self.secure]
+        return self._spawn(name, argv + list(spec.args))
+
+    def restart(self, name: str) -> None:
+        """Start a child that exited again: the router on its endpoint, or a service."""
+        if name == "router":
+            self.start_router(restart=True)
+        else:
+            self.start(name)
+
+    def up(self, timeout: float = 90.0, services: Iterable[str] | None = None) -> float:
+        """Start the router (if asked) and the services; wait until all are alive.
+
+        Args:
+            timeout: how long to wait for them (s).
+            services: the ids of the services to start (default: all of the mesh).
+
+        Returns:
+            Seconds until all were alive.
+
+        Raises:
+            LaunchError: one died or was not alive in time; everything started is stopped.
+        """
+        start = time.monotonic()
+        names = list(self.specs if services is None else services)
+        try:
+            if self.with_router:
+                self.start_router()
+            for name in names:
+                self.start(name)
+            self.wait_alive(names, timeout)
+        except BaseException:
+            self.stop_all()
+            raise
+        return time.monotonic() - start
+
+    def wait_alive(self, names: Iterable[str], timeout: float = 90.0) -> None:
+        """Wait by liveliness until the named services (ids) are alive.
+
+        Raises:
+            LaunchError: one exited meanwhile, or some are missing after `timeout` s.
+        """
+        by_robot: dict[str, dict[str, str]] = {}
+        for name in names:
+            spec = self.specs[name]
+            by_robot.setdefault(spec.robot, {})[spec.service] = name
+        deadline = time.monotonic() + timeout
+        for robot, ids in by_robot.items():
+            with Node(None, dataclasses.replace(self.net, robot=robot)) as node:
+                self._wait_robot(node, ids, deadline, timeout)
+
+    def _wait_robot(self, node: Node, ids: dict[str, str], deadline: float, timeout: float) -> None:
+        while True:
+            dead = self.first_exit()
+            if dead is not None:
+                raise LaunchError(self.describe_exit(dead))
+            try:
+                node.wait_alive(ids, timeout=min(1.0, max(0.05, deadline - time.monotonic())))
+                return
+            except RpcTimeout:
+                if time.monotonic() >= deadline:
+                    missing = sorted(ids[s] for s in set(ids) - node.alive())
+                    logs = "\n".join(
+                        f"--- {n} ({self.children[n].log}):\n{self.children[n].tail(6)}"
+                        for n in missing
+                        if n in self.children
+                    )
+                    raise LaunchError(
+                        f"not alive after {timeout:g} s: {', '.join(missing)}\n{logs}"
+                    ) from None
+
+    # -- watching -------------------------------------------------------------------------------
+    def first_exit(self) -> Child | None:
+        """The first child found to have exited, if any."""
+        return next((c for c in self.children.values() if c.returncode is not None), None)
+
+    def describe_exit(self, child: Child) -> str:
+        """Which child ended, how, and the end of its log."""
+        code = child.returncode
+        how = "is running" if code is None else describe_status(code)
+        return f"{child.name} {how}; the end of its log {child.log}:\n{child.tail()}"
+
+    def watch(self, stop: threading.Event, poll: float = 0.2) -> Child | None:
+        """Block until `stop` is set (None) or a child exits (that child); no restarts (see
+        `apps.up.supervisor.Supervisor` for those)."""
+        while not stop.wait(poll):
+            dead = self.first_exit()
+            if dead is not None:
+                return dead
+        return None
+
+    # -- stopping -------------------------------------------------------------------------------
+    def kill(self, name: str, sig: int = signal.SIGKILL) -> None:
+        """Send a signal to one child (tests: SIGKILL, a crash) and reap it."""
+        child = self.children[name]
+        if child.proc is not None and child.proc.poll() is None:
+            child.proc.send_signal(sig)
+            child.proc.wait(30)
+
+    def stop(self, names: Iterable[str], grace: float = 10.0) -> dict[str, int | None]:
+        """SIGTERM the named children together, SIGKILL those still running after `grace` s.
+
+        Returns:
+            Each one's exit status.
+        """
+        chosen = [self.children[n] for n in names if n in self.children]
+        for child in chosen:
+            if child.proc is not None and child.proc.poll() is None:
+                child.proc.terminate()
+        deadline = time.monotonic() + grace
+        for child in chosen:
+            if child.proc is None:
+                continue
+            try:
+                child.proc.wait(max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                child.proc.kill()
+                child.proc.wait(10)
+        return {c.name: c.returncode for c in chosen}
+
+    def stop_all(self, grace: float = 10.0) -> dict[str, int | None]:
+        """Stop the services (all at once, the learners' sessions first), then the router."""
+        services = [n for n in self.children if n != "router"]
+        learners = [n for n in services if self.specs[n].service == "learner"]
+        rest = sorted(
+            (n for n in services if n not in learners),
+            key=lambda n: STOP_ORDER.index(self.specs[n].service),
+        )
+        codes = self.stop(learners, grace) if learners else {}
+        codes |= self.stop(rest, grace)
+        codes |= self.stop(["router"], grace)
+        return codes
+
+    def __enter__(self) -> Launcher:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop_all()
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The flags of `archery up`."""
+    parser = ArgumentParser(prog="archery up", description=__doc__.split("\n")[0])
+    add_network_args(parser)
+    parser.set_defaults(robot=None)  # None: not given (the default mesh's, or --config's)
+    parser.add_argument(
+        "--config",
+        metavar="FILE",
+        help="the mesh to start, a TOML launch description (see mesh.toml); replaces "
+        "--listen/--connect/--robot/--seed/--rtf/--runs/--no-router",
+    )
+    parser.add_argument(
+        "--robots",
+        type=count,
+        metavar="N",
+        help="a fleet of N robot stacks (robot, controller, camera, detector) under the prefixes "
+        "ROBOT1 … ROBOTN and one learner that runs sessions on all of them (default 1: one "
+        "robot under ROBOT itself)",
+    )
+    parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
+    parser.add_argument("--runs", help="the learner's session directory (default runs)")
+    parser.add_argument("--seed", type=count, help="the robot's shot-noise seed (default 0)")
+    parser.add_argument(
+        "--rtf",
+        type=nonnegative,
+        help="the robot's real-time factor (default 0: as fast as possible)",
+    )
+    parser.add_argument(
+        "--no-router",
+        action="store_true",
+        help="start no router: the services connect to the --connect endpoint",
+    )
+    parser.add_argument(
+        "--restart",
+        choices=POLICIES,
+        help="restart policy of every child (default on-failure: a non-zero exit status or a "
+        "signal; exit status 2, a bad configuration, always stops everything)",
+    )
+    parser.add_argument(
+        "--restart-budget",
+        type=count,
+        metavar="N",
+        help="restarts allowed per child within 60 s; one more stops everything (default 5)",
+    )
+    parser.add_argument(
+        "--timeout", type=seconds, default=90.0, help="wait this long for all services (s)"
+    )
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record the whole run (every stream of the robot) into this MCAP file",
+    )
+    return parser
+
+
+def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
+    """An `archery record` child writing every stream of the first robot to `out` (its log
+    `LOGS/recorder.log`), started once it subscribes.
+
+    Raises:
+        LaunchError: it exited or did not subscribe within `timeout` s.
+    """
+    argv = ["record", "--out", out, "--connect", launcher.endpoint, "--robot", launcher.net.robot]
+    log = launcher.logs / "recorder.log"
+    with open(log, "wb") as sink:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "apps.cli", *argv, *launcher.secure],
+            stdin=subprocess.DEVNULL,
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            env=launcher.env,
+            start_new_session=True,
+            preexec_fn=_die_with_parent,
+        )
+    deadline = time.monotonic() + timeout
+    while b"archery record: recording" not in log.read_bytes():
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            tail = log.read_text(errors="replace").strip().splitlines()[-1:]
+            raise LaunchError(f"the recorder did not start: {' '.join(tail) or 'no output'}")
+        time.sleep(0.05)
+    return proc
+
+
+def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
+    """The mesh `up` starts: --config's, or the default built from the flags.
+
+    Raises:
+        ConfigError: a bad file, or --config together with a flag it replaces.
+    """
+    if args.config is not None:
+        given = {
+            "--listen": args.listen,
+            "--connect": args.connect,
+            "--robot": args.robot,
+            "--seed": args.seed,
+            "--rtf": args.rtf,
+            "--runs": args.runs,
+            "--no-router": args.no_router or None,
+            "--robots": args.robots,
+        }
+        clash = [flag for flag, value in given.items() if value is not None]
+        if clash:
+            raise ConfigError(f"{clash[0]} and --config: set it in {args.config} instead")
+        mesh = load_mesh(Path(args.config))
+    else:
+        default = DEFAULT_SECURE_ROUTER if args.secure else DEFAULT_ROUTER
+        chosen = args.connect if args.no_router else args.listen
+        runs = args.runs or "runs"
+        check_writable_dir(Path(runs), "--runs", create=True)
+        mesh = default_mesh(
+            (chosen or [default])[0],
+            NetConfig(robot=args.robot or DEFAULT_ROBOT).robot,
+            seed=args.seed or 0,
+            rtf=args.rtf or 0.0,
+            runs=runs,
+            start_router=not args.no_router,
+            robots=1 if args.robots is None else args.robots,
+        )
+    return mesh.with_policy(args.restart, args.restart_budget)
+
+
+def _final(launcher: Launcher, supervisor: Supervisor, outcome: GiveUp | None) -> int:
+    """Stop everything; print the truthful last line; the exit status."""
+    if outcome is not None:
+        tail = outcome.child.tail().replace("\n", "\n  | ")
+        print(f"archery up: the end of {outcome.child.log}:\n  | {tail}", file=sys.stderr)
+    running = {n for n, c in launcher.children.items() if c.returncode is None}
+    print("archery up: stopping …", flush=True)
+    codes = launcher.stop_all()
+    unclean = {n: c for n, c in codes.items() if n in running and c != 0}
+    if unclean:
+        listed = ", ".join(f"{n} ({describe_status(c)})" for n, c in unclean.items() if c)
+        print(f"archery up: did not stop cleanly: {listed}", file=sys.stderr)
+    if outcome is not None:
+        print(f"archery up: stopped everything: {outcome.line()}", file=sys.stderr)
+        return 1
+    if unclean:
+        return 1
+    notes = []
+    if supervisor.restarts:
+        counts = ", ".join(f"{n} {len(t)}" for n, t in supervisor.restarts.items() if t)
+        notes.append(f"restarts: {counts}" if counts else "")
+    if supervisor.left:
+        notes.append(f"left down before: {', '.join(supervisor.left)}")
+    notes = [n for n in notes if n]
+    print(f"archery up: all stopped cleanly{' (' + '; '.join(notes) + ')' if notes else ''}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run `archery up` until Ctrl-C/SIGTERM (exit 0) or until a child's restart policy gives
+    up (its budget is spent, or it exited with status 2: exit 1). Bad flags or a bad
+    --config file: exit 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        mesh = mesh_from_args(args)
+        check_writable_dir(Path(args.logs), "--logs", create=True)
+        if args.record is not None:
+            if not args.record.endswith(".mcap"):
+                raise ConfigError(f"--record {args.record!r}: give a file name ending in .mcap")
+            check_writable_dir(
+                Path(args.record).parent, f"--record {args.record!r}: folder", create=False
+            )
+        launcher = Launcher(logs=Path(args.logs), secure=args.secure, mesh=mesh)
+        stop = shutdown_on_signals()
+        where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
+        print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
+        took = launcher.up(args.timeout)
+        recorder = None
+        if args.record is not None:
+            try:
+                recorder = start_recorder(launcher, args.record)
+            except LaunchError:
+                launcher.stop_all()
+                raise
+            print(f"archery up: recording to {args.record}", flush=True)
+    except (ConfigError, LaunchError) as exc:
+        print(f"archery up: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ConfigError) else 1
+    robots = ", ".join(repr(r.prefix) for r in mesh.robots)
+    learn = f"archery learn {shlex.join(launcher.secure)}{' ' if launcher.secure else ''}"
+    learn += f"--connect {launcher.endpoint}"
+    if len(mesh.robots) > 1:
+        learn += f" --robot {mesh.robots[0].prefix}` (any robot) or `archery experiment "
+        learn += f"--world mesh --connect {launcher.endpoint}"
+    print(
+        f"archery up: all alive in {took:.1f} s (robot {robots}, logs in {launcher.logs}/). "
+        f"Run `{learn}` in another shell; Ctrl-C stops everything.",
+        flush=True,
+    )
+    supervisor = Supervisor(
+        launcher, report=lambda line: print(f"archery up: {line}", file=sys.stderr, flush=True)
+    )
+    outcome = supervisor.run(stop)
+    if recorder is not None:
+        recorder.terminate()
+        if recorder.wait(60) != 0:
+            print(
+                f"archery up: the recorder ended with status {recorder.returncode}", file=sys.stderr
+            )
+    return _final(launcher, supervisor, outcome)

@@ -1,0 +1,264 @@
+"""The network flags of every process (--connect, --listen, --mode, --robot); the Zenoh config.
+
+Every process listens and connects only where it is told. By default a process is a Zenoh
+client of the router it is given: it opens no listening socket and links to nothing else. In
+every mode multicast scouting and gossip are
+off, and a peer's listen endpoints are set explicitly (none by default; a Zenoh peer would
+otherwise listen on every interface and connect to whatever addresses other peers gossip). So
+every process reaches the mesh through the router it is given, all traffic meets there
+(containers do not carry multicast, and parallel test runs must never meet), and nothing opens
+a socket on any address but the ones on the command line. Shared-memory transport is off too:
+it was reported to drop large messages under CPU stalls.
+
+With `--secure DIR` (a deployment made by `archery keys init DIR`) every link is mutual TLS:
+endpoints must be `tls/...`, the process presents the certificate of its identity (the
+service's name, `operator` for the tools, `router` for the router; `--identity NAME` overrides
+it), verifies the other end against the deployment's CA, and a router enforces the access
+control of `DIR/acl.json5`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime as dt
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import zenoh
+
+from mesh.cliargs import clean_zenoh_error
+from mesh.logs import add_log_args
+from protocol.errors import ConfigError
+from protocol.keys import DEFAULT_ROBOT, validate_robot
+
+__all__ = [
+    "DEFAULT_ROUTER",
+    "DEFAULT_SECURE_ROUTER",
+    "MODES",
+    "NetConfig",
+    "add_network_args",
+    "open_session",
+]
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+DEFAULT_SECURE_ROUTER = "tls/127.0.0.1:7447"
+_IDENTITY = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+MODES = ("peer", "client", "router")
+_ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Where a process meets the mesh.
+
+    Attributes:
+        connect: endpoints to connect to (e.g. "tcp/127.0.0.1:7447"); a router, usually.
+        listen: endpoints to listen on (a router, or a peer others should reach).
+        mode: "client" (default: every link goes to the router), "peer" (also links directly to
+            the peers it is given with --connect and accepts links on --listen) or "router".
+        robot: key prefix of the robot this process belongs to (default "icubSim").
+        secure: a deployment directory (`archery keys init`): mutual TLS with its CA and, for
+            a router, its access control; None: plain links.
+        identity: whose certificate to present (`DIR/NAME.pem`); None: the process's default
+            (`with_identity`).
+        replace: a service whose name is taken asks the live instance to stop and starts
+            (otherwise it refuses to start).
+    """
+
+    connect: tuple[str, ...] = (DEFAULT_ROUTER,)
+    listen: tuple[str, ...] = ()
+    mode: str = "client"
+    robot: str = DEFAULT_ROBOT
+    secure: str | None = None
+    identity: str | None = None
+    replace: bool = False
+
+    def __post_init__(self) -> None:
+        if self.mode not in MODES:
+            raise ConfigError(f"--mode {self.mode!r} is not one of {', '.join(MODES)}")
+        for flag, endpoints in (("--connect", self.connect), ("--listen", self.listen)):
+            for endpoint in endpoints:
+                if not isinstance(endpoint, str) or not _ENDPOINT.match(endpoint):
+                    raise ConfigError(
+                        f"{flag} {endpoint!r} is not a Zenoh endpoint; use PROTO/ADDRESS, "
+                        f"e.g. {DEFAULT_ROUTER}"
+                    )
+        if self.mode == "client" and not self.connect:
+            raise ConfigError("--mode client needs at least one --connect endpoint (a router)")
+        try:
+            validate_robot(self.robot)
+        except ValueError as exc:
+            raise ConfigError(f"--robot: {exc}") from None
+        if self.identity is not None and not _IDENTITY.match(self.identity):
+            raise ConfigError(f"--identity {self.identity!r} is not a valid identity name")
+        if self.secure is not None:
+            for flag, endpoints in (("--connect", self.connect), ("--listen", self.listen)):
+                for endpoint in endpoints:
+                    if not endpoint.startswith("tls/"):
+                        raise ConfigError(
+                            f"{flag} {endpoint!r}: --secure allows only mutual-TLS endpoints; "
+                            f"use tls/HOST:PORT (e.g. {DEFAULT_SECURE_ROUTER}), never plain "
+                            f"{endpoint.split('/', 1)[0]}/"
+                        )
+
+    def with_identity(self, default: str) -> NetConfig:
+        """These settings with `identity` set to `default` unless --identity chose one."""
+        if self.identity is not None:
+            return self
+        return dataclasses.replace(self, identity=default)
+
+    def _credential(self, name: str) -> str:
+        assert self.secure is not None
+        path = Path(self.secure) / name
+        if not path.is_file():
+            raise ConfigError(
+                f"--secure {self.secure}: no {name} (identity {self.identity!r}); create the "
+                f"deployment with `archery keys init {self.secure}`"
+            )
+        return str(path.resolve())
+
+    def _tls_config(self, config: zenoh.Config) -> None:
+        if self.identity is None:
+            raise ConfigError("--secure needs an identity (--identity NAME)")
+        ca = self._credential("ca.pem")
+        key = self._credential(f"{self.identity}.key")
+        cert = self._credential(f"{self.identity}.pem")
+        tls = {
+            "root_ca_certificate": ca,
+            "enable_mtls": True,
+            "listen_private_key": key,
+            "listen_certificate": cert,
+            "connect_private_key": key,
+            "connect_certificate": cert,
+            "verify_name_on_connect": True,
+            "close_link_on_expiration": True,
+        }
+        for name, value in tls.items():
+            config.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
+        if self.mode == "router":
+            acl = Path(self._credential("acl.json5")).read_text()
+            try:
+                config.insert_json5("access_control", acl)
+            except zenoh.ZError as exc:
+                raise ConfigError(f"{self.secure}/acl.json5 is not a valid policy: {exc}") from None
+
+    def expired_hint(self) -> str:
+        """Why a secure session may have failed: a missing, expired or not-yet-valid
+        certificate of this identity ("" when none of these is the case)."""
+        if self.secure is None or self.identity is None:
+            return ""
+        from cryptography import x509
+
+        try:
+            path = Path(self.secure) / f"{self.identity}.pem"
+            cert = x509.load_pem_x509_certificate(path.read_bytes())
+        except (OSError, ValueError) as exc:
+            return f" (cannot read the certificate of {self.identity!r}: {exc})"
+        now = dt.datetime.now(dt.UTC)
+        if cert.not_valid_after_utc < now:
+            return f" (the certificate {path} expired on {cert.not_valid_after_utc} UTC)"
+        if cert.not_valid_before_utc > now:
+            return f" (the certificate {path} is valid only from {cert.not_valid_before_utc} UTC)"
+        return ""
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> NetConfig:
+        """Build from the flags added by `add_network_args`."""
+        secure = getattr(args, "secure", None)
+        connect = tuple(args.connect) if args.connect else ()
+        if not connect and args.mode != "router":
+            connect = (DEFAULT_SECURE_ROUTER if secure else DEFAULT_ROUTER,)
+        return cls(
+            connect=connect,
+            listen=tuple(args.listen or ()),
+            mode=args.mode,
+            robot=args.robot,
+            secure=secure,
+            identity=getattr(args, "identity", None),
+            replace=bool(getattr(args, "replace", False)),
+        )
+
+    def zenoh_config(self) -> zenoh.Config:
+        """The Zenoh configuration for these settings."""
+        config = zenoh.Config()
+        config.insert_json5("mode", json.dumps(self.mode))
+        config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
+        # Explicit, even when empty: a Zenoh peer otherwise listens on every interface.
+        config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        config.insert_json5("scouting/multicast/enabled", "false")
+        # No gossip: a process never learns other processes' addresses, so it connects only to
+        # the endpoints it was given and all traffic meets at the router.
+        config.insert_json5("scouting/gossip/enabled", "false")
+        config.insert_json5("transport/shared_memory/enabled", "false")
+        if self.secure is not None:
+            self._tls_config(config)
+        return config
+
+
+def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "client") -> None:
+    """Add --connect (repeatable), --listen (repeatable), --mode, --robot, --secure,
+    --identity and the logging flag (--log-level: applied by the `archery` entry point, see
+    `mesh.logs`)."""
+    add_log_args(parser)
+    group = parser.add_argument_group("network")
+    group.add_argument(
+        "--connect",
+        action="append",
+        metavar="ENDPOINT",
+        help=f"Zenoh endpoint to connect to, repeatable (default {DEFAULT_ROUTER})",
+    )
+    group.add_argument(
+        "--listen", action="append", metavar="ENDPOINT", help="endpoint to listen on, repeatable"
+    )
+    group.add_argument("--mode", choices=MODES, default=default_mode, help="Zenoh session mode")
+    group.add_argument(
+        "--robot", default=DEFAULT_ROBOT, help=f"robot key prefix (default {DEFAULT_ROBOT})"
+    )
+    group.add_argument(
+        "--secure",
+        metavar="DIR",
+        help="mutual TLS (and, for a router, access control) with the credentials of DIR "
+        "(`archery keys init DIR`); endpoints must be tls/..., default "
+        f"{DEFAULT_SECURE_ROUTER}",
+    )
+    group.add_argument(
+        "--identity",
+        metavar="NAME",
+        help="with --secure: the identity to present (default: the service's name, "
+        "`operator` for tools, `router` for the router)",
+    )
+
+
+def open_session(net: NetConfig) -> zenoh.Session:
+    """Open a Zenoh session for `net`.
+
+    Raises:
+        ConfigError: the session cannot open (in client mode: no router reachable).
+    """
+    config = net.zenoh_config()
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        if net.mode == "router" or not net.connect:
+            raise ConfigError(
+                f"cannot open a Zenoh {net.mode} session listening on "
+                f"{', '.join(net.listen) or '(no endpoint)'}: {clean_zenoh_error(exc)}. Is "
+                f"another router running there? Use --listen with a free port"
+            ) from None
+        where = ", ".join(net.connect)
+        listen = f" listening on {', '.join(net.listen)}" if net.listen else ""
+        if net.secure is not None:
+            raise ConfigError(
+                f"cannot open a secure Zenoh {net.mode} session as {net.identity!r} connecting "
+                f"to {where}: {clean_zenoh_error(exc)}{net.expired_hint()}. Is a router with "
+                f"the same deployment ({net.secure}) running there (`archery router --secure "
+                f"{net.secure} --listen ENDPOINT`)?"
+            ) from None
+        raise ConfigError(
+            f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
+            f"{clean_zenoh_error(exc)}. Is a router running there? Start one with "
+            f"`archery router --listen {net.connect[0] if net.connect else 'ENDPOINT'}`"
+        ) from None

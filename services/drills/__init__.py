@@ -1,1 +1,0 @@
-"""Fault drills against real processes on loopback (`archery drill`, `services.drills.runner`)."""

@@ -1,0 +1,146 @@
+"""The import rules ARCHITECTURE.md states, checked on the source (every import statement, at
+module level or inside a function): the layers, no service importing another, nothing importing
+a program, no import circle, no fixture of the tests in the product."""
+
+from __future__ import annotations
+
+import ast
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("protocol", "mesh", "services", "apps", "sim")
+SERVICES = ("robot", "camera", "detector", "controller", "learner")
+THIRD_PARTY_NOT_IN_PROTOCOL = ("zenoh", "argparse", "subprocess", "socket", "threading")
+
+
+def _modules() -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for package in PACKAGES:
+        for path in sorted((ROOT / package).rglob("*.py")):
+            parts = path.relative_to(ROOT).with_suffix("").parts
+            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            out[name] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(name: str, path: Path) -> Iterator[str]:
+    """Every module this one imports (absolute names; `from P import M` as P.M where M is a
+    module), in any scope."""
+    is_package = path.name == "__init__.py"
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            yield from (alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = name.split(".")
+                anchor = anchor[: len(anchor) - node.level + (1 if is_package else 0)]
+                base = ".".join([*anchor, base] if base else anchor)
+            for alias in node.names:
+                full = f"{base}.{alias.name}"
+                yield full if full in MODULES else base
+
+
+def _ours(imported: str) -> str | None:
+    """The module of ours an import names (the longest known prefix), or None."""
+    parts = imported.split(".")
+    for k in range(len(parts), 0, -1):
+        candidate = ".".join(parts[:k])
+        if candidate in MODULES:
+            return candidate
+    return None
+
+
+GRAPH = {
+    name: {m for m in map(_ours, _imports(name, path)) if m is not None and m != name}
+    for name, path in MODULES.items()
+}
+
+
+def _layer(module: str) -> str:
+    return module.split(".")[0]
+
+
+def test_the_contract_imports_only_itself_and_does_no_io() -> None:
+    for name, path in MODULES.items():
+        if _layer(name) != "protocol":
+            continue
+        assert {_layer(m) for m in GRAPH[name]} <= {"protocol"}, (name, GRAPH[name])
+        imported = set(_imports(name, path))
+        bad = {i for i in imported if i.split(".")[0] in THIRD_PARTY_NOT_IN_PROTOCOL}
+        assert not bad, (name, bad)
+
+
+def test_the_runtime_imports_only_the_contract() -> None:
+    for name in MODULES:
+        if _layer(name) == "mesh":
+            assert {_layer(m) for m in GRAPH[name]} <= {"protocol", "mesh"}, (name, GRAPH[name])
+
+
+def test_sim_imports_only_the_contract() -> None:
+    for name in MODULES:
+        if _layer(name) == "sim":
+            assert {_layer(m) for m in GRAPH[name]} <= {"protocol", "sim"}, (name, GRAPH[name])
+
+
+def test_services_are_exactly_five_and_never_import_each_other_or_a_program() -> None:
+    packages = {p.name for p in (ROOT / "services").iterdir() if (p / "__init__.py").is_file()}
+    assert packages == set(SERVICES)
+    assert {p.name for p in (ROOT / "services").glob("*.py")} == {"__init__.py"}
+    for name in MODULES:
+        if _layer(name) != "services" or name == "services":
+            continue
+        own = name.split(".")[1]
+        for imported in GRAPH[name]:
+            layer = _layer(imported)
+            assert layer in ("protocol", "mesh", "sim", "services"), (name, imported)
+            if layer == "services":
+                assert imported.split(".")[1] == own, (name, imported)
+            if layer == "sim":  # physics for the robot and camera, the analytic model
+                assert own in ("robot", "camera", "learner"), (name, imported)
+
+
+def test_nothing_imports_a_program() -> None:
+    for name in MODULES:
+        if _layer(name) != "apps":
+            assert not {m for m in GRAPH[name] if _layer(m) == "apps"}, (name, GRAPH[name])
+
+
+def _cycle_from(start: str) -> list[str] | None:
+    stack = [(start, [start])]
+    seen: set[str] = set()
+    while stack:
+        node, path = stack.pop()
+        for nxt in GRAPH[node]:
+            if nxt == start:
+                return path
+            if nxt not in seen:
+                seen.add(nxt)
+                stack.append((nxt, [*path, nxt]))
+    return None
+
+
+def _is_package_of(a: str, b: str) -> bool:
+    return b.startswith(a + ".")
+
+
+def test_no_import_circles() -> None:
+    """No module reaches itself through its imports (a package's `__init__` importing its own
+    modules is not a circle of theirs)."""
+    circles = []
+    for name in MODULES:
+        cycle = _cycle_from(name)
+        if cycle and not any(_is_package_of(m, name) or _is_package_of(name, m) for m in cycle):
+            circles.append(" → ".join([*cycle, name]))
+    assert not circles, "\n".join(circles)
+
+
+def test_no_test_fixture_in_the_product() -> None:
+    for name, path in MODULES.items():
+        text = path.read_text()
+        assert not re.search(r"^(from|import) (tests|benchmarks)\b", text, re.M), name
