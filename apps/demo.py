@@ -45,7 +45,7 @@ class Progress:
             ("|r| (cm)", "right"),
             ("", "left"),
         ):
-            self.table.add_column(name, justify=justify, no_wrap=True)  # type: ignore[arg-type]
+            self.table.add_column(name, justify=justify, no_wrap=True)  # type: ignore[arg-type]  # rich's JustifyMethod literals
         self.done = 0
 
     def add(self, message: Rollout) -> None:

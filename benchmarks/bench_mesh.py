@@ -325,17 +325,17 @@ def _side(make: Callable[[], T], run: Callable[[T], R], fresh: bool) -> Callable
             return run(kept[0])
         finally:
             if fresh:
-                kept.pop().close()  # type: ignore[attr-defined]
+                kept.pop().close()  # type: ignore[attr-defined]  # the endpoints close
 
     def close() -> None:
         for item in kept:
-            item.close()  # type: ignore[attr-defined]
+            item.close()  # type: ignore[attr-defined]  # the endpoints close
 
-    block.close = close  # type: ignore[attr-defined]
+    block.close = close  # type: ignore[attr-defined]  # a close function on the block
     return block
 
 
-class _Streams(list):  # type: ignore[type-arg]
+class _Streams(list):
     """Streams primed once built, closed together."""
 
     def __init__(self, streams: list[_Stream]) -> None:
@@ -357,7 +357,7 @@ def _run_sides(
         return interleave(plan.repeats, plan.blocks, sides[0], sides[1], tick)
     finally:
         for side in sides:
-            side.close()  # type: ignore[attr-defined]
+            side.close()  # type: ignore[attr-defined]  # _side's blocks have close
 
 
 def measure_frames(
@@ -376,8 +376,8 @@ def measure_frames(
     results = _run_sides(plan, sides, tick)
     for raw_fps, our_fps in results:  # mean rate of the repeat's blocks (equal frame counts)
         fig.add(
-            statistics.harmonic_mean(raw_fps),  # type: ignore[arg-type]
-            statistics.harmonic_mean(our_fps),  # type: ignore[arg-type]
+            statistics.harmonic_mean(raw_fps),  # type: ignore[arg-type,type-var]  # a side's blocks return frame rates
+            statistics.harmonic_mean(our_fps),  # type: ignore[arg-type,type-var]  # a side's blocks return frame rates
             higher_is_better=True,
         )
 
@@ -396,8 +396,8 @@ def measure_rpc(
     sides = [_side(m, lambda rpc: _rpc_block(rpc, calls), fresh) for m in (raw, ours)]
     results = _run_sides(plan, sides, tick)
     for raw_blocks, our_blocks in results:
-        raw_t = [t for block in raw_blocks for t in block]  # type: ignore[attr-defined]
-        our_t = [t for block in our_blocks for t in block]  # type: ignore[attr-defined]
+        raw_t = [t for block in raw_blocks for t in block]  # type: ignore[attr-defined]  # a side's blocks return call times
+        our_t = [t for block in our_blocks for t in block]  # type: ignore[attr-defined]  # a side's blocks return call times
         median.add(statistics.median(raw_t), statistics.median(our_t), higher_is_better=False)
         p99.add(
             float(np.percentile(raw_t, 99)),

@@ -64,7 +64,7 @@ class _PageClient:
 
     def _get(self, path: str) -> bytes:
         with urllib.request.urlopen(self.url + path, timeout=10) as response:
-            return response.read()  # type: ignore[no-any-return]
+            return response.read()
 
     def _run(self) -> None:
         version = 0

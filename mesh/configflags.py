@@ -191,7 +191,7 @@ def add_config_args(parser: argparse.ArgumentParser, cls: type) -> None:
         )
 
 
-def config_from_args(cls: type[Any], args: argparse.Namespace, **fixed: Any) -> Any:
+def config_from_args(cls: type, args: argparse.Namespace, **fixed: Any) -> Any:
     """The config `cls` from parsed flags (`add_config_args`) and the `fixed` values.
 
     Raises:
@@ -253,7 +253,8 @@ def check_bounds(config: Any) -> None:
         ConfigError: the first bad field; the message names its flag (or field) and what is
             valid.
     """
-    for f, kind, optional in _fields(type(config)):
+    cls: type = type(config)
+    for f, kind, optional in _fields(cls):
         value = getattr(config, f.name)
         if value is None and optional:
             continue

@@ -19,7 +19,7 @@ import socket
 import threading
 import time
 from collections.abc import Callable, Iterable
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, TypeVar, cast
 
 import msgspec
 import zenoh
@@ -131,7 +131,9 @@ class Publisher(Generic[M]):
 
     def matching(self) -> bool:
         """Whether at least one subscriber matches the key now."""
-        return bool(self._pub.matching_status.matching)
+        # zenoh's stub says bool; the property is a MatchingStatus
+        status = cast(zenoh.MatchingStatus, self._pub.matching_status)
+        return bool(status.matching)
 
     def on_matching(self, callback: Callable[[bool], None]) -> Callable[[], None]:
         """Call `callback(matching)` whenever subscribers appear or all go; returns the function
@@ -239,7 +241,7 @@ class Subscription(Generic[M]):
                 if remaining <= 0:
                     raise StaleState(self.key, self.age(), max_age)
                 self._cond.wait(remaining)
-            return self._latest  # type: ignore[return-value]
+            return self._latest  # type: ignore[return-value]  # not None: a message arrived
 
     def wait_newer(
         self,
@@ -515,8 +517,8 @@ class Node:
         self._rpc_seq = itertools.count(1)  # next() is atomic: no lock per call
         self._rpc_lock = threading.Lock()
         self._closed = False
-        self._token = None
-        self._instance_token = None
+        self._token: zenoh.LivelinessToken | None = None
+        self._instance_token: zenoh.LivelinessToken | None = None
         self._watch: instances.InstanceWatch | None = None
         if name is not None:
             instances.claim(self.session, self.keys, name, net.replace)
@@ -550,6 +552,7 @@ class Node:
         self._closed = True
         if self._token is not None:
             self._token.undeclare()
+            assert self._instance_token is not None  # declared together with _token
             self._instance_token.undeclare()
         if self._watch is not None:
             self._watch.close()
@@ -694,7 +697,7 @@ class Node:
             raise RpcError(
                 f"{key} {verb.name} replied ok without a {verb.reply.__name__}", code="bad_reply"
             )
-        return reply.result  # type: ignore[no-any-return]
+        return reply.result
 
     def request(
         self,
@@ -726,8 +729,9 @@ class Node:
         for reply in querier.get(payload=payload):
             if reply.ok is not None:
                 if expect_service is None or self._from_instance(expect_service, reply, rejected):
-                    return reply.ok.payload.to_bytes()  # type: ignore[no-any-return]
+                    return reply.ok.payload.to_bytes()
                 continue
+            assert reply.err is not None  # a reply is ok or an error
             log.debug("error reply on %s: %s", key, reply.err.payload.to_string())
         if rejected:
             live = sorted(self._instances().holders(str(expect_service)))
@@ -757,6 +761,7 @@ class Node:
         zid = str(reply.replier_id.zid) if reply.replier_id is not None else "unknown"
         if self._instances().is_instance(service, zid):
             return True
+        assert reply.ok is not None  # only ok replies are checked
         log.warning(
             "rejected a reply on %s from %s: not the live %s", reply.ok.key_expr, zid, service
         )

@@ -24,7 +24,7 @@ class TokenSet:
     def __init__(self, session: zenoh.Session, key_expr: str, history: bool = True) -> None:
         self._present: set[str] = set()
         self._cond = threading.Condition()
-        self._sub = session.liveliness().declare_subscriber(
+        self._sub: zenoh.Subscriber[None] | None = session.liveliness().declare_subscriber(
             key_expr, self._on_token, history=history
         )
 

@@ -148,7 +148,7 @@ class SceneRenderer:
         """Free the GL context (idempotent)."""
         if self._renderer is not None:
             self._renderer.close()
-            self._renderer = None  # type: ignore[assignment]
+            self._renderer = None
 
 
 def project(renderer: SceneRenderer, points: np.ndarray) -> np.ndarray:

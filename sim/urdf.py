@@ -105,7 +105,7 @@ def urdf_frame_placement(frame: str) -> tuple[str, np.ndarray, np.ndarray]:
         raise SceneError(
             f"{frame!r} is not a link of {MODEL_NAME}; e.g. {BOW_HAND_SITE}, {STRING_HAND_SITE}"
         )
-    parent_joint = {j.find("child").get("link"): j for j in root.iter("joint")}  # type: ignore[union-attr]
+    parent_joint = {j.find("child").get("link"): j for j in root.iter("joint")}  # type: ignore[union-attr]  # a URDF joint has a <child>
     pos, quat = np.zeros(3), np.array([1.0, 0.0, 0.0, 0.0])
     link = frame
     while link in parent_joint and parent_joint[link].get("type") == "fixed":
@@ -119,14 +119,14 @@ def urdf_frame_placement(frame: str) -> tuple[str, np.ndarray, np.ndarray]:
             float(v)
             for v in (origin.get("rpy", "0 0 0") if origin is not None else "0 0 0").split()
         )
-        joint_quat = _rpy_quat(rpy)  # type: ignore[arg-type]
+        joint_quat = _rpy_quat(rpy)  # type: ignore[arg-type]  # a URDF rpy is 3 angles
         rotated = np.empty(3)
         mujoco.mju_rotVecQuat(rotated, pos, joint_quat)
         pos = np.asarray(xyz) + rotated
         new_quat = np.empty(4)
         mujoco.mju_mulQuat(new_quat, joint_quat, quat)
         quat = new_quat
-        link = joint.find("parent").get("link")  # type: ignore[union-attr]
+        link = joint.find("parent").get("link")  # type: ignore[union-attr,assignment]  # a URDF joint has a <parent link=...>
     return link, pos, quat
 
 

@@ -116,12 +116,12 @@ class WorldConfig:
         kwargs = dict(values)
         try:
             if isinstance(kwargs.get("scene"), dict):
-                kwargs["scene"] = SceneConfig(**kwargs["scene"])  # type: ignore[arg-type]
+                kwargs["scene"] = SceneConfig(**kwargs["scene"])  # type: ignore[arg-type]  # a dict (isinstance above)
             if isinstance(kwargs.get("bow"), dict):
-                kwargs["bow"] = Bow(**kwargs["bow"])  # type: ignore[arg-type]
+                kwargs["bow"] = Bow(**kwargs["bow"])  # type: ignore[arg-type]  # a dict (isinstance above)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"invalid scene or bow parameters: {exc}") from exc
-        return cls(**kwargs)  # type: ignore[arg-type]
+        return cls(**kwargs)  # type: ignore[arg-type]  # WorldConfig checks the values
 
     def to_dict(self) -> dict[str, object]:
         """JSON-friendly copy of the parameters."""

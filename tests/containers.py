@@ -60,7 +60,7 @@ def _run(
         capture_output=True,
         text=True,
         timeout=timeout,
-        **kw,  # type: ignore[call-overload]
+        **kw,  # type: ignore[call-overload]  # run's keyword arguments, passed through
     )
 
 

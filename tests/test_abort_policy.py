@@ -83,7 +83,7 @@ def test_decision_is_frozen_and_plain() -> None:
     decision = after_abort("no_arrow", MISS, best_theta=BEST, theta0=START, bounds=BOX)
     assert all(type(v) is float for v in decision.retry_theta)
     with pytest.raises(AttributeError):
-        decision.retry_theta = START  # type: ignore[misc]
+        decision.retry_theta = START  # type: ignore[misc]  # frozen: the test writes on purpose
 
 
 @pytest.mark.parametrize(

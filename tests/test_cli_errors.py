@@ -242,7 +242,7 @@ def table(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> dic
 def test_bad_input_is_one_line(
     table: dict[str, object], template: str, status: int, text: str
 ) -> None:
-    values, out = table[template]  # type: ignore[misc]
+    values, out = table[template]  # type: ignore[misc]  # the fixture's (values, result) pairs
     assert "Traceback" not in out.stdout + out.stderr, out.stderr
     lines = [line for line in out.stderr.splitlines() if line.strip()]
     assert out.returncode == status, out.stderr

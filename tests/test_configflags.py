@@ -81,7 +81,7 @@ def test_a_config_built_in_code_is_checked_like_one_from_flags(
     overrides: dict[str, object], message: str
 ) -> None:
     with pytest.raises(ConfigError, match=message):
-        Settings(**overrides)  # type: ignore[arg-type]
+        Settings(**overrides)  # type: ignore[arg-type]  # bad values on purpose
 
 
 def test_none_is_valid_for_an_optional_field_and_parse_errors_name_the_flag() -> None:

@@ -80,7 +80,7 @@ def publish_shots(rollouts: Publisher[Rollout]) -> None:
                 session="s1",
                 index=k,
                 theta=[0.1, 0.02 * k, 0.0],
-                status=status,  # type: ignore[arg-type]
+                status=status,  # type: ignore[arg-type]  # a status the Literal forbids, on purpose
                 r_m=r if measured else None,
                 hit=measured and math.hypot(*r) < 0.05,
                 cause="" if measured else "no_arrow",

@@ -53,7 +53,7 @@ class Rig:
 @pytest.fixture(scope="module")
 def rig() -> Iterator[Rig]:
     model = build_scene(SCENE)
-    world = ArcheryWorld(WorldConfig(scene=SCENE, **NOISY), model=model)  # type: ignore[arg-type]
+    world = ArcheryWorld(WorldConfig(scene=SCENE, **NOISY), model=model)  # type: ignore[arg-type]  # float noise fields
     posture = archery_posture(model, BOW_HAND, BOW_HAND + _aim_theta(), tolerance=5e-3)
     with SceneRenderer(SCENE) as renderer:
         frame, marks = calibration_frame(renderer, world.qpos())
@@ -174,7 +174,7 @@ def test_images_of_the_wrong_type_or_size_are_refused(rig: Rig) -> None:
         ([[0, 0, 0]], "numpy array"),
     ):
         with pytest.raises(ImageError, match=message):
-            rig.detector.detect(bad)  # type: ignore[arg-type]
+            rig.detector.detect(bad)  # type: ignore[arg-type]  # non-images on purpose
 
 
 def test_bad_settings_are_refused() -> None:

@@ -373,7 +373,7 @@ def test_results_are_deterministic_and_read_only(model: ArmsModel, solver: IkSol
     assert dict(first.q) == dict(second.q)
     assert first.iterations == second.iterations
     with pytest.raises(TypeError):
-        first.q["r_elbow"] = 0.0  # type: ignore[index]
+        first.q["r_elbow"] = 0.0  # type: ignore[index]  # read-only: the test writes on purpose
     with pytest.raises(ValueError):
         first.x[0] = 0.0
     np.testing.assert_array_equal(solver.hand_pose(first.q, "right_arm")[0], first.x)

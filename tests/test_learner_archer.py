@@ -151,9 +151,9 @@ def test_repeated_failures_do_not_repeat_the_same_proposal() -> None:
         for _ in range(4):
             proposals.append(learner.ask())
             learner.tell(proposals[-1], [5.0, 5.0])
-        learner.proposals = proposals  # type: ignore[attr-defined]
-    assert all(np.array_equal(p, plain.proposals[0]) for p in plain.proposals)  # type: ignore[attr-defined]
-    distinct = {tuple(p) for p in guarded.proposals}  # type: ignore[attr-defined]
+        learner.proposals = proposals  # type: ignore[attr-defined]  # kept on the learner for the asserts below
+    assert all(np.array_equal(p, plain.proposals[0]) for p in plain.proposals)  # type: ignore[attr-defined]  # set above
+    distinct = {tuple(p) for p in guarded.proposals}  # type: ignore[attr-defined]  # set above
     assert len(distinct) == 4
 
 

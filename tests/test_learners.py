@@ -169,7 +169,7 @@ def test_unknown_option_is_a_config_error() -> None:
 
 def test_constructor_checks_rng_theta0_and_bounds() -> None:
     with pytest.raises(LearnerConfigError, match=r"numpy\.random\.Generator"):
-        Archer(np.array(START_THETA), rng=np.random.RandomState(0))  # type: ignore[arg-type]
+        Archer(np.array(START_THETA), rng=np.random.RandomState(0))  # type: ignore[arg-type]  # a legacy RandomState on purpose
     with pytest.raises(LearnerConfigError, match="outside the θ bounds"):
         Archer(np.array([0.5, 0.0, 0.0]), rng=np.random.default_rng(0))
     with pytest.raises(LearnerConfigError, match="finite 3-vector"):

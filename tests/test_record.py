@@ -81,7 +81,7 @@ def _messages() -> list[object]:
 def test_a_record_holds_the_very_bytes_that_were_published() -> None:
     for message in _messages():
         # as the recorder sees it: decoded from the wire (an int in a float field is a float)
-        wire = decode(encode(message))  # type: ignore[arg-type]
+        wire = decode(encode(message))  # type: ignore[arg-type,var-annotated]  # _messages() is a list[object]
         schema, data = to_record(wire)
         assert encode(from_record(schema, data)) == encode(wire)
         if isinstance(message, Image):
@@ -105,7 +105,7 @@ def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> No
     keys += ["world/events:o", "detector/hit:o", "learner/rollout:o"]
     messages = _messages()
     for key, message in zip(keys, messages, strict=True):
-        recorder.put(f"icubSim/{key}", encode(message))  # type: ignore[arg-type]
+        recorder.put(f"icubSim/{key}", encode(message))  # type: ignore[arg-type]  # _messages() is a list[object]
     recorder.put("icubSim/torso/state:o", b"\x93not a message")
     stats = recorder.close()
     assert stats.total == 8 and stats.malformed == 1
@@ -133,7 +133,7 @@ def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> No
     recording = open_recording(path)
     assert recording.complete and recording.message_count == 8
     got = [encode(m) for _, m, _ in recording.messages()]
-    assert got == [encode(decode(encode(m))) for m in messages]  # type: ignore[arg-type]
+    assert got == [encode(decode(encode(m))) for m in messages]  # type: ignore[arg-type]  # _messages() is a list[object]
 
 
 def test_losses_are_counted_by_sequence_gaps_and_a_full_queue(tmp_path: Path) -> None:

@@ -426,7 +426,7 @@ def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
             super().__init__()
             self.rogue_once = True
 
-        def measure(self, shot: Shot):  # type: ignore[no-untyped-def]
+        def measure(self, shot: Shot):
             if self.rogue_once:
                 self.rogue_once = False
                 raise RigError(

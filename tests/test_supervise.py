@@ -272,7 +272,7 @@ class _FakeLauncher:
 def test_the_supervisor_waits_out_the_back_off_and_gives_up_on_a_bad_configuration() -> None:
     fake = _FakeLauncher(RestartPolicy(backoff=1.0))
     lines: list[str] = []
-    supervisor = Supervisor(fake, report=lines.append, clock=lambda: fake.now)  # type: ignore[arg-type]
+    supervisor = Supervisor(fake, report=lines.append, clock=lambda: fake.now)  # type: ignore[arg-type]  # a fake launcher
     fake.children["camera"].returncode = 1
     assert supervisor.step() is None
     assert lines == ["camera exited with status 1; restart 1 of 5 within 60 s, in 1 s"]

@@ -55,7 +55,7 @@ def postures(model: mujoco.MjModel) -> dict[str, dict[str, np.ndarray]]:
 
 
 def _world(model: mujoco.MjModel, **overrides: object) -> ArcheryWorld:
-    return ArcheryWorld(WorldConfig(scene=SCENE, **overrides), model=model)  # type: ignore[arg-type]
+    return ArcheryWorld(WorldConfig(scene=SCENE, **overrides), model=model)  # type: ignore[arg-type]  # overrides of any WorldConfig field
 
 
 def _go(world: ArcheryWorld, posture: dict[str, np.ndarray]) -> None:
@@ -232,7 +232,7 @@ def test_release_with_drag_and_wind_matches_an_ode_solution(
     def plane(_t: float, state: np.ndarray) -> float:
         return state[0] - PLANE_X
 
-    plane.terminal = True  # type: ignore[attr-defined]
+    plane.terminal = True  # type: ignore[attr-defined]  # solve_ivp reads an event's terminal attribute
     start = np.concatenate([bow, Bow().launch_velocity(string - bow)])
     solution = solve_ivp(rhs, (0.0, 2.0), start, events=plane, rtol=1e-11, atol=1e-12)
     point = solution.y_events[0][0][:3]
@@ -398,7 +398,7 @@ def test_world_config_is_validated(model: mujoco.MjModel) -> None:
     with pytest.raises(ConfigError, match="drag"):
         WorldConfig(scene=SCENE, drag=-0.1)
     with pytest.raises(ConfigError, match="wind"):
-        WorldConfig(scene=SCENE, wind=(1.0, 2.0))  # type: ignore[arg-type]
+        WorldConfig(scene=SCENE, wind=(1.0, 2.0))  # type: ignore[arg-type]  # 2 components on purpose
     with pytest.raises(ConfigError, match="reference_speed"):
         WorldConfig(scene=SCENE, reference_speed=10.0)
     with pytest.raises(ConfigError, match="arrow mass"):
@@ -420,6 +420,6 @@ def test_landing_serialises_to_plain_data(
     landing = world.release()
     data = landing.to_dict()
     assert data["outcome"] == "target" and data["hit"] is True
-    assert data["r"] == landing.r.tolist()  # type: ignore[union-attr]
-    assert data["launch"]["theta"] == landing.launch.theta.tolist()  # type: ignore[index]
+    assert data["r"] == landing.r.tolist()  # type: ignore[union-attr]  # a target landing has r
+    assert data["launch"]["theta"] == landing.launch.theta.tolist()  # type: ignore[index]  # to_dict nests the launch dict
     json.dumps(data)

@@ -93,12 +93,12 @@ class _Handler(BaseHTTPRequestHandler):
         name = _PAGES.get(path)
         if name is None and path.startswith("/static/"):
             name = path.removeprefix("/static/")
-        body = _static(name) if name else None
-        if name is None or body is None:
+        content = _static(name) if name else None
+        if name is None or content is None:
             self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain")
             return
         ctype = _TYPES.get("." + name.rsplit(".", 1)[-1], "application/octet-stream")
-        self._send(HTTPStatus.OK, body, ctype + "; charset=utf-8")
+        self._send(HTTPStatus.OK, content, ctype + "; charset=utf-8")
 
 
 def _check_host(host: str) -> str:
@@ -153,8 +153,9 @@ class Dashboard:
 
     @property
     def url(self) -> str:
-        host, port = self.server.server_address[:2]
-        shown = f"[{host}]" if ":" in str(host) else host
+        address, port = self.server.server_address[:2]
+        host = str(address)  # as an f-string shows it
+        shown = f"[{host}]" if ":" in host else host
         return f"http://{shown}:{port}/"
 
     def close(self) -> None:

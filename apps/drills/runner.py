@@ -121,30 +121,30 @@ def _catalogue() -> dict[str, Drill]:
                 Drill(
                     f"kill-{service}",
                     "kill",
-                    lambda d, s, n=service: kill_service(d.mesh(), n, s),
+                    lambda d, s, n=service: kill_service(d.mesh(), n, s),  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
                 )
             )
     drills += [
-        Drill(f"freeze-{n}", "freeze", lambda d, s, n=n: freeze_service(d.mesh(), n, s))
+        Drill(f"freeze-{n}", "freeze", lambda d, s, n=n: freeze_service(d.mesh(), n, s))  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
         for n in SERVICES
     ]
     drills += [
-        Drill(f"router-{o:g}s", "router", lambda d, s, o=o: router_outage(d.mesh(), o, s))
+        Drill(f"router-{o:g}s", "router", lambda d, s, o=o: router_outage(d.mesh(), o, s))  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
         for o in (2.0, 15.0)
     ]
     drills += [
-        Drill(f"order-{k}", "order", lambda d, s, k=k: start_order_drill(d.workdir, k, s))
+        Drill(f"order-{k}", "order", lambda d, s, k=k: start_order_drill(d.workdir, k, s))  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
         for k in range(len(SERVICES) + 1)
     ]
     drills += [
-        Drill(f"flood-{c}", "flood", lambda d, s, c=c: flood_drill(d.mesh(), c, s))
+        Drill(f"flood-{c}", "flood", lambda d, s, c=c: flood_drill(d.mesh(), c, s))  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
         for c in (20_000, 2_000)
     ]
     drills += [
         Drill(
             f"kill-learner-x{k}",
             "kill",
-            lambda d, s, k=k: kill_learner_repeatedly(d.mesh(), k, s),
+            lambda d, s, k=k: kill_learner_repeatedly(d.mesh(), k, s),  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
         )
         for k in (20, 3)
     ]
@@ -214,7 +214,7 @@ def render(results: Sequence[DrillResult]) -> Table:
         ("dup", "right"),
         ("notes", "left"),
     ):
-        table.add_column(column, justify=justify, no_wrap=column != "notes")  # type: ignore[arg-type]
+        table.add_column(column, justify=justify, no_wrap=column != "notes")  # type: ignore[arg-type]  # rich's JustifyMethod literals
     for r in results:
         table.add_row(
             r.name,

@@ -73,15 +73,15 @@ def count_lost_duplicated(evidence: Evidence) -> tuple[int, int]:
     for record in evidence.records:
         kind, index = record.get("record"), record.get("index")
         if kind == "proposed":
-            proposed.append(index)  # type: ignore[arg-type]
+            proposed.append(index)  # type: ignore[arg-type]  # the record's index, as journaled
         elif kind in ("done", "aborted"):
-            ended.add(index)  # type: ignore[arg-type]
+            ended.add(index)  # type: ignore[arg-type]  # the record's index, as journaled
         if kind == "done":
             number = record.get("rollout")
             if index in done_indices or number in numbers:
                 duplicated += 1
-            done_indices.add(index)  # type: ignore[arg-type]
-            numbers.add(number)  # type: ignore[arg-type]
+            done_indices.add(index)  # type: ignore[arg-type]  # the record's index, as journaled
+            numbers.add(number)  # type: ignore[arg-type]  # a non-int is filtered out below
     never_ended = len([i for i in dict.fromkeys(proposed) if i not in ended])
     valid = [n for n in numbers if isinstance(n, int)]
     skipped = (max(valid) - len(valid)) if valid else 0

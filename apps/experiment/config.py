@@ -35,6 +35,7 @@ __all__ = [
     "Transfer",
     "WindChange",
     "floats",
+    "floats3",
 ]
 
 
@@ -330,3 +331,13 @@ def floats(text: str, count: int, flag: str) -> tuple[float, ...]:
         what = "a number" if count == 1 else f"{count} comma-separated numbers"
         raise ExperimentError(f"{flag} needs {what}, got {text!r}")
     return values
+
+
+def floats3(text: str, flag: str) -> tuple[float, float, float]:
+    """`floats(text, 3, flag)`: a 3-vector (x, y, z).
+
+    Raises:
+        ExperimentError: `text` is not 3 finite comma-separated numbers.
+    """
+    x, y, z = floats(text, 3, flag)
+    return (x, y, z)

@@ -31,6 +31,7 @@ from apps.experiment.config import (
     Transfer,
     WindChange,
     floats,
+    floats3,
 )
 from apps.experiment.plots import BANDS
 from apps.progress import progress_bar
@@ -132,10 +133,10 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
             "hits": int(np.sum(to_hit <= config.rollouts)),
             "final_distance": {"mean": float(final.mean()), "std": float(final.std())},
             "rollouts_to_rehit": None
-            if rehit is None
+            if rehit is None or change is None
             else count_stats(rehit, config.rollouts - change.at + 1),
             "rehits": None
-            if rehit is None
+            if rehit is None or change is None
             else int(np.sum(rehit <= config.rollouts - change.at + 1)),
             "wall_time_s": run.wall_time,
         }
@@ -321,11 +322,11 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """
     scenario = Scenario(
         distance=floats(args.distance, 1, "--distance")[0],
-        wind=floats(args.wind, 3, "--wind"),
+        wind=floats3(args.wind, "--wind"),
         drag=floats(args.drag, 1, "--drag")[0],
         noise=floats(args.noise, 1, "--noise")[0],
         bow_stiffness=floats(args.bow_stiffness, 1, "--bow-stiffness")[0],
-        start=floats(args.start, 3, "--start"),
+        start=floats3(args.start, "--start"),
     )
     return ExperimentConfig(
         algorithms=tuple(a.strip() for a in args.algo.split(",") if a.strip()),

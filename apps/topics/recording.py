@@ -124,7 +124,7 @@ def from_record(schema_name: str, data: bytes, schema_encoding: str = "") -> Arc
     if decoder is None:
         raise DecodeError(f"unknown schema {schema_name!r} in the recording")
     try:
-        return decoder.decode(data)  # type: ignore[no-any-return]
+        return decoder.decode(data)
     except (msgspec.ValidationError, msgspec.DecodeError) as exc:
         raise DecodeError(f"invalid {schema_name} record: {exc}") from None
 
@@ -275,7 +275,7 @@ class Recorder:
             try:
                 item = self._queue.get(timeout=timeout)
             except queue.Empty:
-                item = ()  # type: ignore[assignment]
+                item = ()  # type: ignore[assignment]  # (): nothing to write, flush check only
             if item is None:
                 return
             if item:

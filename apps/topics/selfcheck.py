@@ -12,6 +12,9 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from typing import cast
+
+import zenoh
 
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args, open_session
@@ -95,7 +98,8 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
             def describe() -> str:
                 replies = list(node.session.get(keys.describe(ECHO_SERVICE), timeout=timeout))
-                info = decode(replies[0].ok.payload.to_bytes(), Describe)
+                ok = cast(zenoh.Sample, replies[0].ok)  # describe replies ok
+                info = decode(ok.payload.to_bytes(), Describe)
                 return f"{len(info.ports)} ports, pid {info.pid}"
 
             def stream() -> str:

@@ -147,7 +147,9 @@ class MeshConfig:
 
     def with_policy(self, mode: str | None = None, budget: int | None = None) -> MeshConfig:
         """This mesh with every restart policy's mode and/or budget replaced."""
-        changes = {k: v for k, v in (("mode", mode), ("budget", budget)) if v is not None}
+        changes: dict[str, Any] = {
+            k: v for k, v in (("mode", mode), ("budget", budget)) if v is not None
+        }
         if not changes:
             return self
 
@@ -206,7 +208,7 @@ def default_mesh(
     session on each robot at once.
     """
     prefixes = fleet_prefixes(robot, robots)
-    args = {"robot": ("--rtf", f"{rtf:g}"), "learner": ("--runs", runs)}
+    args: dict[str, tuple[str, ...]] = {"robot": ("--rtf", f"{rtf:g}"), "learner": ("--runs", runs)}
     if robots == 1:
         args["robot"] = ("--seed", str(seed), *args["robot"])
         specs: tuple[RobotSpec, ...] = (RobotSpec(robot),)

@@ -79,7 +79,7 @@ def fields_of(schema: dict[str, Any], name: str | None = None) -> tuple[str, lis
     ref = name or schema.get("$ref", "").rsplit("/", 1)[-1]
     body = defs.get(ref, schema)
     required = set(body.get("required", ()))
-    rows = []
+    rows: list[tuple[str, ...]] = []
     for field, prop in body.get("properties", {}).items():
         if field in required:
             presence = "required"

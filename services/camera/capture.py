@@ -256,7 +256,7 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                     serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
                     if due or serve:
                         captured = time.time()
-                        pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]
+                        pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]  # not MuJoCo: a device or folder
                         capture.publish(pixels, None, captured, pub)
                         next_due = now + period
             except ArcheryError as exc:

@@ -12,7 +12,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import replace
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -152,7 +152,7 @@ class ArmController:
             x=x.tolist(),
             o=axis_angle(rotation),
             q={j: q[j] for j in self._chain()},
-            sim_time=self._link.state(self.arm).sim_time,
+            sim_time=cast(float, self._link.state(self.arm).sim_time),  # the robot stamps it
         )
 
     def _tolerance(self) -> cv.ToleranceReply:

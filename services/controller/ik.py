@@ -264,9 +264,9 @@ class IkSolver:
                 x = x - pin.updateFramePlacement(model, data, task.reference).translation
             pos.append(float(np.linalg.norm(task.target - x)))
         ori = []
-        for task in ori_tasks:
-            rot = pin.updateFramePlacement(model, data, task.frame).rotation
-            ori.append(float(np.linalg.norm(orientation_residual(task.target, rot))))
+        for ori_task in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, ori_task.frame).rotation
+            ori.append(float(np.linalg.norm(orientation_residual(ori_task.target, rot))))
         return tuple(pos), tuple(ori)
 
     def _evaluate(
@@ -308,11 +308,11 @@ class IkSolver:
         hessian = rest.hessian.copy()
         gradient = rest.sqrt_weight * r_rest
         cost = float(r_rest @ r_rest)
-        for task in ori_tasks:
-            rot = pin.updateFramePlacement(model, data, task.frame).rotation
-            res = task.sqrt_weight @ orientation_residual(task.target, rot)
-            jw = pin.getFrameJacobian(model, data, task.frame, _LWA)[3:, active]
-            a = task.sqrt_weight @ orientation_residual_jacobian(task.target, rot, jw)
+        for ori_task in ori_tasks:
+            rot = pin.updateFramePlacement(model, data, ori_task.frame).rotation
+            res = ori_task.sqrt_weight @ orientation_residual(ori_task.target, rot)
+            jw = pin.getFrameJacobian(model, data, ori_task.frame, _LWA)[3:, active]
+            a = ori_task.sqrt_weight @ orientation_residual_jacobian(ori_task.target, rot, jw)
             hessian += a.T @ a
             gradient -= a.T @ res
             cost += float(res @ res)

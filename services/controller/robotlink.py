@@ -159,7 +159,7 @@ class RobotLink:
                 {"speeds": reference_speeds(delta, traj_time).tolist()},
                 timeout=self.robot_timeout,
             )
-        marks = {p: (self.states[p].latest().seq if self.states[p].latest() else 0) for p in parts}
+        marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in parts}
         start = time.monotonic()
         for part in parts:
             self._commands[part].put(

@@ -166,8 +166,8 @@ def fit_gmm(uv: np.ndarray, *, max_components: int = 5, seed: int = 0, name: str
     # A Gaussian centred on grey models mis-clicked pixels (a shaft, a hole, the background):
     # UV cannot tell grey from the rest of the scene, so it is dropped (the median check above
     # guarantees that most pixels, hence some Gaussian, have colour).
-    chroma = np.hypot(best.means[:, 0] - 128.0, best.means[:, 1] - 128.0)
-    keep = chroma >= MIN_CHROMA
+    mean_chroma = np.hypot(best.means[:, 0] - 128.0, best.means[:, 1] - 128.0)
+    keep = mean_chroma >= MIN_CHROMA
     if not keep.any():
         raise CalibrationError(f"{name}: every Gaussian of the fit is grey; mark coloured pixels")
     if not keep.all():
@@ -366,4 +366,4 @@ def _white_from(value: Any) -> tuple[float, float, float] | None:
         white = ()
     if len(white) != 3 or not all(math.isfinite(v) and 1.0 <= v <= 255.0 for v in white):
         raise ModelFileError(f"white_rgb must be three numbers in 1..255, got {value!r}")
-    return white  # type: ignore[return-value]
+    return white

@@ -311,7 +311,8 @@ class Detector:
         found = self._result(face, factor, arrow_m)
         if best_gains is None:
             return found
-        return dataclasses.replace(found, gains=tuple(float(g) for g in best_gains))
+        red, green, blue = (float(g) for g in best_gains)  # white_gains: one per channel
+        return dataclasses.replace(found, gains=(red, green, blue))
 
     def _search(self, small: np.ndarray) -> tuple[FaceFit | None, np.ndarray | None]:
         """The face in a downscaled frame, as it is and under colour corrections, and the

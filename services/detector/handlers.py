@@ -155,7 +155,7 @@ class DetectorHandlers:
         message = self._hits.put(
             DetectionMessage(
                 frame_stamp=image.stamp,
-                status=found.status,  # type: ignore[arg-type]
+                status=found.status,  # type: ignore[arg-type]  # Detection.status: ok, no_target or no_arrow
                 target_px=list(found.target.px) if found.target else None,
                 arrow_px=list(found.arrow.px) if found.arrow else None,
                 target_confidence=found.target.confidence if found.target else 0.0,

@@ -84,7 +84,7 @@ def colour_groups(
                 group[group == group[j]] = group[i]
     ids = np.unique(group, return_inverse=True)[1]
     mass = np.bincount(ids, weights=weights)
-    kept = {old: new for new, old in enumerate(np.flatnonzero(mass >= least))}
+    kept = {int(old): new for new, old in enumerate(np.flatnonzero(mass >= least))}
     return np.array([kept.get(int(i), -1) for i in ids], dtype=np.int64)
 
 
@@ -122,7 +122,7 @@ def _inner_rings(
     chosen: list[int] = []
     for ring_components in rings[:-1]:
         chosen += ring_components
-        disc = (mask & np.isin(components, chosen)).astype(np.uint8)
+        disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
         ring = fit_disc(_fill(disc))
         if ring is None:

@@ -65,12 +65,12 @@ class AbortDecision:
 
 def after_abort(
     code: str,
-    theta: Sequence[float],
+    theta: Sequence[float] | np.ndarray,
     *,
     best_theta: Sequence[float] | None,
     theta0: Sequence[float],
     bounds: Bounds,
-    redraw: Sequence[float] | None = None,
+    redraw: Sequence[float] | np.ndarray | None = None,
 ) -> AbortDecision:
     """The decision after an attempt at `theta` (m) aborted with `code` (see the module table).
 

@@ -100,7 +100,10 @@ class LearnerHandlers:
                     f"{status['session']}`, or stop it first (verb stop)",
                     code="busy",
                 )
-            kw = {"on_record": self._publish, "service_wait": self.config.service_wait}
+            kw: dict[str, Any] = {
+                "on_record": self._publish,
+                "service_wait": self.config.service_wait,
+            }
             if "resume" in args:
                 unknown = sorted(set(args) - {"resume", "session"})
                 if unknown:

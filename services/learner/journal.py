@@ -118,9 +118,10 @@ def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False)
         allow_open: accept a last proposed attempt that has not ended yet.
     """
     violations: list[str] = []
-    proposed: list[int] = []
-    ended: dict[int, str] = {}
-    rollouts: list[int] = []
+    # as the records hold them: None where a record lacks its number
+    proposed: list[int | None] = []
+    ended: dict[int | None, str] = {}
+    rollouts: list[int | None] = []
     for number, record in enumerate(records, start=1):
         kind, index = record.get("record"), record.get("index")
         if kind == "proposed":

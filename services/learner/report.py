@@ -128,10 +128,11 @@ def plot_report(state: JournalState, path: Path) -> None:
                 fontsize=8 if many else 10,
                 weight="bold" if hits[k] else "normal",
             )
-        if truth[k] is not None:
+        true_r = truth[k]
+        if true_r is not None:
             face.scatter(
-                100 * truth[k][0],
-                100 * truth[k][1],
+                100 * true_r[0],
+                100 * true_r[1],
                 s=40,
                 facecolors="none",
                 edgecolors=colours[k],

@@ -72,7 +72,7 @@ class MeshRig:
         timeout: longest wait for a reply (wall s).
     """
 
-    services = SERVICES
+    services: tuple[str, ...] = SERVICES
 
     def __init__(self, node: Node, timeout: float = 20.0) -> None:
         self.node = node

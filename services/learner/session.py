@@ -416,6 +416,7 @@ class Session:
             if logged is None or now - logged >= WAIT_LOG_EVERY:
                 log.warning("session %s: %s", self.session_id, self.waiting_note(missing))
                 logged = now
+            assert self._lost_since is not None  # set above: services are missing
             remaining = self._lost_since + self.service_wait - now
             if remaining <= 0:
                 raise SessionFailed(self._lost_for_good(missing))

@@ -85,7 +85,7 @@ def parse_vector3(text: str, flag: str) -> tuple[float, float, float]:
         values = ()
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise ConfigError(f"{flag} must be three numbers X,Y,Z (m/s), got {text!r}")
-    return values  # type: ignore[return-value]
+    return values
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -68,7 +68,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                 part: node.subscribe(
                     keys.command(part),
                     JointCommand,
-                    callback=lambda msg, part=part: loop.command(
+                    callback=lambda msg, part=part: loop.command(  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
                         part, msg.position, msg.names, msg.part, msg.batch
                     ),
                 )

@@ -87,7 +87,7 @@ class MeshSink:
     ) -> None:
         self._events.put(
             WorldEvent(
-                kind=kind,  # type: ignore[arg-type]
+                kind=kind,  # type: ignore[arg-type]  # callers pass one of WorldEvent's kinds
                 shot=shot,
                 impact_m=impact_m,
                 reason=reason,

@@ -152,10 +152,10 @@ class Archer(Learner):
             if n == 0:
                 return seed_thetas[0].copy()  # the other world's best θ
             # Seeds of another world: only their differences (the local gain) carry over.
-            best = int(self._recent_ranked(n)[0])
+            top = int(self._recent_ranked(n)[0])
             return self._step(
-                self._thetas[best],
-                -self._rewards[best],
+                self._thetas[top],
+                -self._rewards[top],
                 seed_rewards[1:] - seed_rewards[0],
                 seed_thetas[1:] - seed_thetas[0],
             )

@@ -194,6 +194,7 @@ def restore_learner(state: Mapping[str, Any]) -> Learner:
         raise StateError(
             f"learner state names algorithm {algorithm!r}; known: {', '.join(LEARNER_CLASSES)}"
         )
+    assert isinstance(algorithm, str)  # one of LEARNER_CLASSES' names
     try:
         learner = LEARNER_CLASSES[algorithm](
             np.asarray(state["theta0"], dtype=float),
