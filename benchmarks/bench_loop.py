@@ -40,6 +40,7 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout
 from services.learner.journal import read_records
+from tests.rpc import rpc_call
 
 __all__ = ["main"]
 
@@ -49,7 +50,7 @@ BUDGET = {"archer": 30, "power": 60}
 def _session(node: Node, rollouts: Any, algo: str, seed: int, budget: int) -> dict[str, Any]:
     request = {"algo": algo, "seed": seed, "rollouts": budget}
     start = time.perf_counter()
-    session = node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+    session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     final["wall_s"] = time.perf_counter() - start
     return final
@@ -118,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
                         f"aborted, {final['wall_s']:.1f} s",
                         flush=True,
                     )
-            camera = node.call(node.keys.cam_rpc(), "status", timeout=10)
+            camera = rpc_call(node, node.keys.cam_rpc(), "status", timeout=10)
     finally:
         codes = launcher.stop_all()
     per_rollout: list[float] = []

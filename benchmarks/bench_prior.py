@@ -32,6 +32,7 @@ from apps.experiment.experiment import run_algorithm, write_outputs
 from benchmarks.learning_mesh import learning_mesh, progress_bar
 from services.learner.algorithms.registry import ALGORITHMS
 from sim.ballistic import Scenario
+from tests.rpc import rpc_call
 
 __all__ = ["CHANGE", "ROBOT_VARIANTS", "SCENARIOS", "main"]
 
@@ -143,7 +144,7 @@ def _robot_session(
 
     request = {"algo": algo, "seed": seed, "rollouts": ROBOT_BUDGET[algo], "options": options}
     start = time.perf_counter()
-    session = node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+    session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     final["wall_s"] = time.perf_counter() - start
     done = [r for r in read_records(Path(final["journal"]))[0] if r["record"] == "done"]

@@ -45,6 +45,7 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.messages import Detection, Image, Rollout
 from services.learner.journal import read_records
+from tests.rpc import rpc_call
 from tests.spawn import spawn
 
 __all__ = ["main", "mesh_launcher", "remeasure"]
@@ -53,7 +54,7 @@ __all__ = ["main", "mesh_launcher", "remeasure"]
 def _per_rollout(node: Node, rollouts: Any, seed: int, budget: int) -> tuple[float, Path]:
     """One session of `budget` rollouts: its median wall time per rollout (s) and journal."""
     request = {"algo": "archer", "seed": seed, "rollouts": budget}
-    session = node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+    session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     journal = Path(final["journal"])
     done = [r for r in read_records(journal)[0] if r["record"] == "done"]
@@ -124,7 +125,8 @@ def remeasure(node: Node, hits: list[Detection]) -> tuple[float, int]:
     """
     worst, exact = 0.0, 0
     for hit in hits:
-        again = node.call(
+        again = rpc_call(
+            node,
             node.keys.detector_rpc(),
             "measure",
             {"after_sim_time": hit.sim_time, "after_stamp": hit.frame_stamp, "timeout": 60},

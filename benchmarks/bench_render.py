@@ -35,6 +35,7 @@ from sim.model_build import build_scene
 from sim.render import LEAN_FLAGS, ROBOT_GEOM_GROUP, SceneRenderer
 from sim.scene import ScenePhysics
 from sim.scene_config import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig
+from tests.rpc import rpc_call
 
 __all__ = ["main"]
 
@@ -127,13 +128,13 @@ def _camera_rate(seconds: float) -> dict[str, float]:
                 time.sleep(0.005)
             elapsed = time.perf_counter() - start
             fps = (len(received) - count0) / elapsed
-            status = node.call(keys.cam_rpc(), "status", timeout=5)
+            status = rpc_call(node, keys.cam_rpc(), "status", timeout=5)
             latencies = []
             for i in range(20):
                 sim_time += 1.0
                 t0 = time.perf_counter()
                 world.put(WorldState(qpos=Array.from_numpy(states[i]), sim_time=sim_time))
-                node.call(keys.cam_rpc(), "grab", {"after_sim_time": sim_time}, timeout=10)
+                rpc_call(node, keys.cam_rpc(), "grab", {"after_sim_time": sim_time}, timeout=10)
                 latencies.append((time.perf_counter() - t0) * 1e3)
                 time.sleep(0.05)
         return {

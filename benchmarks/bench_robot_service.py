@@ -29,6 +29,7 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint, open_router
 from protocol.messages import WorldEvent
 from services.controller.posture import PostureConfig
+from tests.rpc import rpc_call
 
 __all__ = ["main"]
 
@@ -54,15 +55,17 @@ def _rollouts(node: Node, count: int, seed: int) -> dict[str, list[float]]:
     out: dict[str, list[float]] = {
         k: [] for k in ("posture", "nock", "release", "event", "total", "rtf", "error", "rpc")
     }
-    sim = node.call(keys.archery_rpc(), "status")["sim_time"]
+    sim = rpc_call(node, keys.archery_rpc(), "status")["sim_time"]
     for _ in range(count):
         theta = rng.uniform(box.theta_min, box.theta_max).tolist()
         t0 = time.perf_counter()
-        reply = node.call(keys.cartesian_rpc("archery"), "posture", {"theta": theta}, timeout=60)
+        reply = rpc_call(
+            node, keys.cartesian_rpc("archery"), "posture", {"theta": theta}, timeout=60
+        )
         t1 = time.perf_counter()
-        node.call(keys.archery_rpc(), "nock")
+        rpc_call(node, keys.archery_rpc(), "nock")
         t2 = time.perf_counter()
-        shot = node.call(keys.archery_rpc(), "release", timeout=60)
+        shot = rpc_call(node, keys.archery_rpc(), "release", timeout=60)
         t3 = time.perf_counter()
         while True:
             event = events.get(10)
@@ -81,7 +84,7 @@ def _rollouts(node: Node, count: int, seed: int) -> dict[str, list[float]]:
         sim = shot["sim_time"]
     for _ in range(200):
         t0 = time.perf_counter()
-        node.call(keys.part_rpc("left_arm"), "getPositions")
+        rpc_call(node, keys.part_rpc("left_arm"), "getPositions")
         out["rpc"].append(time.perf_counter() - t0)
     return out
 
@@ -101,8 +104,11 @@ def main(argv: list[str] | None = None) -> int:
             with Node(None, net) as node:
                 node.wait_alive(["robot", "controller"], 120)
                 startup = time.perf_counter() - start
-                node.call(
-                    node.keys.cartesian_rpc("archery"), "posture", {"theta": [0.17, 0.03, -0.03]}
+                rpc_call(
+                    node,
+                    node.keys.cartesian_rpc("archery"),
+                    "posture",
+                    {"theta": [0.17, 0.03, -0.03]},
                 )
                 results = _rollouts(node, args.rollouts, args.seed)
         finally:

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.learning_mesh import learning_mesh, progress_bar
+from tests.rpc import rpc_call
 
 __all__ = ["AFTER", "ALGORITHMS", "BEFORE", "WIND", "main"]
 
@@ -47,7 +48,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
     from services.learner.journal import read_records
 
     robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
-    node.call(robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)
+    rpc_call(node, robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)
     journal: list[Path] = []
     state: dict[str, Any] = {
         "first_hit": None,
@@ -60,7 +61,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
     def stop() -> None:
         if not state["stopped"]:
             state["stopped"] = True
-            node.call(learner, "stop", timeout=20)
+            rpc_call(node, learner, "stop", timeout=20)
 
     def on_rollout(message: Any) -> None:
         if message.status != "done":
@@ -69,8 +70,8 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
         truth = None if message.truth_r_m is None else [100 * v for v in message.truth_r_m]
         if state["first_hit"] is None:
             if message.hit:
-                node.call(robot, "setWind", {"wind": list(WIND)}, timeout=20)
-                now = node.call(robot, "status", timeout=20)["shot"]
+                rpc_call(node, robot, "setWind", {"wind": list(WIND)}, timeout=20)
+                now = rpc_call(node, robot, "status", timeout=20)["shot"]
                 records = read_records(journal[0])[0]
                 shot = next(
                     r["shot"] for r in records if r["record"] == "done" and r["index"] == index
@@ -92,7 +93,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
     request = {"algo": algo, "seed": seed, "rollouts": BEFORE[algo] + AFTER + 2}
     request["until_hit"] = False
     start = time.perf_counter()
-    started = node.call(learner, "start", request, timeout=60)
+    started = rpc_call(node, learner, "start", request, timeout=60)
     session = started["session"]
     journal.append(Path(started["journal"]))
     final = follow(node, session, rollouts, on_rollout, poll=0.2)

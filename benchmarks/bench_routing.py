@@ -25,6 +25,7 @@ import time
 import numpy as np
 
 from apps.progress import progress_bar
+from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
 from benchmarks.machine import cpu_model
 from mesh.netflags import NetConfig
 from mesh.node import Node
@@ -36,12 +37,11 @@ WIDTH, HEIGHT = 1280, 720
 
 def _rpc_times(a: Node, b: Node, key: str, calls: int) -> list[float]:
     """Round-trip times (ms) of `calls` echo calls from a to a verb served by b."""
-    b.serve(key, {"echo": lambda args: args})
-    args = {"theta": [0.17, 0.03, -0.03]}
+    b.serve(key, echo_verbs())
     deadline = time.monotonic() + 10
     while True:  # the queryable must be known at the caller first
         try:
-            a.call(key, "echo", args, timeout=1.0)
+            a.call_typed(key, ECHO, ECHO_ARGS, timeout=1.0)
             break
         except Exception:
             if time.monotonic() > deadline:
@@ -49,7 +49,7 @@ def _rpc_times(a: Node, b: Node, key: str, calls: int) -> list[float]:
     times = []
     for _ in range(calls):
         t0 = time.perf_counter()
-        a.call(key, "echo", args)
+        a.call_typed(key, ECHO, ECHO_ARGS)
         times.append((time.perf_counter() - t0) * 1e3)
     return times
 

@@ -38,16 +38,17 @@ import numpy as np
 from apps.learn.follow import follow
 from apps.progress import progress_bar
 from apps.up.launcher import SERVICES, Launcher
+from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
 from benchmarks.machine import cpu_model
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig
 from mesh.node import Node, Publisher, Subscription
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.messages import Image, Rollout
+from tests.rpc import rpc_call
 
 ROBOT = "bench"
 WIDTH, HEIGHT = 1280, 720
-ARGS = {"theta": [0.17, 0.03, -0.03]}
 
 
 class Mesh:
@@ -62,7 +63,7 @@ class Mesh:
         self.nodes = [node(n) for n in ("learner", "detector", "camera", "operator")]
         self.learner, self.detector, self.camera, self.operator = self.nodes
         self.key = self.detector.keys.detector_rpc()
-        self.detector.serve(self.key, {"measure": lambda args: args})
+        self.detector.serve(self.key, echo_verbs())
         self.frames = 0
         self._cond = threading.Condition()
         self.operator.subscribe(
@@ -76,7 +77,7 @@ class Mesh:
         deadline = time.monotonic() + 10
         while True:  # the queryable must be known at the router first
             try:
-                self.learner.call(self.key, "measure", ARGS, timeout=1.0)
+                self.learner.call_typed(self.key, ECHO, ECHO_ARGS, timeout=1.0)
                 break
             except Exception:
                 if time.monotonic() > deadline:
@@ -92,7 +93,7 @@ class Mesh:
         times = []
         for _ in range(calls):
             t0 = time.perf_counter()
-            self.learner.call(self.key, "measure", ARGS)
+            self.learner.call_typed(self.key, ECHO, ECHO_ARGS)
             times.append((time.perf_counter() - t0) * 1e3)
         return times
 
@@ -139,7 +140,9 @@ class Session:
                 done.append(time.perf_counter())
 
         start = time.perf_counter()
-        status = self.node.call(self.node.keys.learner_rpc(), "start", self.request, timeout=120)
+        status = rpc_call(
+            self.node, self.node.keys.learner_rpc(), "start", self.request, timeout=120
+        )
         final = follow(self.node, status["session"], self.rollouts, on_rollout, poll=0.05)
         n = self.request["rollouts"]
         if final.get("state") != "finished" or len(done) != n:

@@ -1,10 +1,11 @@
-"""Typed RPC verbs against untyped dict verbs: round-trip latency over a real router.
+"""Typed RPC verbs against plain-data requests: round-trip latency over a real router.
 
-Both paths serve the same request (θ and a timeout) and the same reply (θ, a time, a flag) from
-one server node to one client node: the untyped path passes the args dict to the handler and
-returns a dict (`Node.call`); the typed path decodes the args straight into a Struct, the
-handler returns a reply Struct, and the client decodes it into that Struct (`Node.call_typed`).
-Repeats interleave the two so machine noise hits both alike; the goal is typed ≤ 1.05× untyped.
+Both paths call the same typed server (a verb table served by `Node.serve`) with the same
+request (θ and a timeout) and get the same reply (θ, a time, a flag): the plain-data path sends
+the args as a dict and reads the reply as plain data (`tests.rpc.rpc_call`: what a client
+without the project's types, e.g. in another language, does); the typed path builds the args
+Struct and decodes the reply into its Struct (`Node.call_typed`). Repeats interleave the two
+so machine noise hits both alike; the goal is typed ≤ 1.05× plain.
 
     python -m benchmarks.bench_verbs [--calls 2000] [--repeats 7]
 """
@@ -25,6 +26,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.verbs import Args, Reply, Verb, VerbTable
+from tests.rpc import rpc_call
 
 THETA = [0.17, 0.03, -0.03]
 
@@ -44,12 +46,12 @@ AIM = Verb("aim", AimArgs, AimReply, "benchmark verb")
 TABLE = VerbTable("bench", ("bench/rpc:i",), (AIM,))
 
 
-def _untyped(a: Node, key: str, calls: int) -> list[float]:
+def _plain(a: Node, key: str, calls: int) -> list[float]:
     args = {"theta": THETA, "timeout": 5.0}
     times = []
     for _ in range(calls):
         t0 = time.perf_counter()
-        reply = a.call(key, "aim", args)
+        reply = rpc_call(a, key, "aim", args)
         times.append((time.perf_counter() - t0) * 1e3)
     assert reply["reached"]
     return times
@@ -67,7 +69,7 @@ def _typed(a: Node, key: str, calls: int) -> list[float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark and print medians, p99s and typed/untyped ratios with their spread."""
+    """Run the benchmark and print medians, p99s and typed/plain ratios with their spread."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_verbs", description=__doc__)
     parser.add_argument("--calls", type=int, default=2000, help="calls per path and repeat")
     parser.add_argument("--repeats", type=int, default=7, help="interleaved repeats (≥ 5)")
@@ -77,28 +79,26 @@ def main(argv: list[str] | None = None) -> int:
     endpoint = free_tcp_endpoint()
     router = spawn_router(endpoint)
     net = NetConfig(connect=(endpoint,), robot="bench")
-    typed_key, untyped_key = "bench/typed/rpc:i", "bench/untyped/rpc:i"
+    typed_key, plain_key = "bench/typed/rpc:i", "bench/plain/rpc:i"
     per_repeat: list[tuple[list[float], list[float]]] = []
     try:
         with Node("bench_server", net) as server, Node(None, net) as client:
-            server.serve(
-                untyped_key,
-                {"aim": lambda a: {"theta": a["theta"], "time": 1.0, "reached": True}},
-            )
+            served = TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)})
+            server.serve(plain_key, served)
             server.serve(
                 typed_key,
                 TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}),
             )
-            _untyped(client, untyped_key, 200)  # warm up both paths
+            _plain(client, plain_key, 200)  # warm up both paths
             _typed(client, typed_key, 200)
             for r in range(args.repeats):
                 if r % 2:  # alternate which path goes first
                     typed = _typed(client, typed_key, args.calls)
-                    untyped = _untyped(client, untyped_key, args.calls)
+                    plain = _plain(client, plain_key, args.calls)
                 else:
-                    untyped = _untyped(client, untyped_key, args.calls)
+                    plain = _plain(client, plain_key, args.calls)
                     typed = _typed(client, typed_key, args.calls)
-                per_repeat.append((untyped, typed))
+                per_repeat.append((plain, typed))
     finally:
         router.terminate()
         router.wait()
@@ -113,14 +113,14 @@ def main(argv: list[str] | None = None) -> int:
     cpu = platform.processor() or platform.machine()
     print(f"machine: {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}")
     print(f"{args.repeats} interleaved repeats × {args.calls} calls per path, router on loopback")
-    print(f"{'figure':<22} {'untyped':>9} {'typed':>9} {'ratio':>7}  {'spread (min–max)':>18}")
+    print(f"{'figure':<22} {'plain':>9} {'typed':>9} {'ratio':>7}  {'spread (min–max)':>18}")
     for name, u, ty, ratios in (
         ("RPC median (ms)", statistics.median(all_u), statistics.median(all_t), med_ratios),
         ("RPC p99 (ms)", p99(all_u), p99(all_t), p99_ratios),
     ):
         spread = f"{min(ratios):.3f}–{max(ratios):.3f}"
         print(f"{name:<22} {u:>9.3f} {ty:>9.3f} {ty / u:>6.3f}×  {spread:>18}")
-    print("ratio = typed / untyped (per-repeat ratios give the spread); goal ≤ 1.05×")
+    print("ratio = typed / plain (per-repeat ratios give the spread); goal ≤ 1.05×")
     return 0
 
 

@@ -45,26 +45,24 @@ from protocol.messages import (
     PortInfo,
     RpcReply,
     RpcRequest,
-    _check_finite,
 )
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
 __all__ = [
-    "Handler",
     "Node",
     "Publisher",
     "RpcServer",
     "Subscription",
     "bad_args_message",
+    "reply_error",
     "shutdown_on_signals",
 ]
 
 M = TypeVar("M", bound=Message)
 A = TypeVar("A", bound=msgspec.Struct)
 R = TypeVar("R", bound=msgspec.Struct)
-Handler = Callable[[dict[str, Any]], Any]
 log = logging.getLogger("archery.node")
 _STOP = object()
 
@@ -83,7 +81,6 @@ class _Untaken(msgspec.Struct, frozen=True, tag="-", tag_field="type"):
 
 
 _request_decoder = msgspec.msgpack.Decoder(_WireRequest | _Untaken)
-_dict_decoder = msgspec.msgpack.Decoder(dict[str, Any])
 _NO_TYPE = "missing required field `type`"
 
 
@@ -323,7 +320,7 @@ def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
     return f"{message}; arguments of {verb.name}: {names}"
 
 
-def _reply_error(call: str, reply: RpcReply) -> RpcError:
+def reply_error(call: str, reply: RpcReply) -> RpcError:
     """The error of an error reply to `call` ("KEY VERB"): `UpstreamLost` naming the lost
     upstream service, else `RpcError` with the reply's code."""
     message = f"{call}: {reply.message}"
@@ -346,24 +343,19 @@ class RpcServer:
     request's args are decoded straight into the verb's `Args` type, and anything that does not
     fit (wrong type, out of range, NaN, unknown or missing field) is answered `bad_request`
     naming the verb, the field and what is allowed; the handler gets the typed args and returns
-    the verb's `Reply`. Untyped handlers (a plain dict of verb -> callable, for tests and tools)
-    get the args as a dict and are always blocking. An `ArcheryError` becomes an error reply
+    the verb's `Reply`. An `ArcheryError` becomes an error reply
     with its code, any other exception an "internal" error; a payload that is not a request (not
     msgpack, no `type` tag, nested too deep) `bad_message`. The server keeps serving.
     """
 
-    def __init__(
-        self, session: zenoh.Session, key: str, handlers: ServedVerbs | dict[str, Handler]
-    ) -> None:
+    def __init__(self, session: zenoh.Session, key: str, verbs: ServedVerbs) -> None:
+        if not isinstance(verbs, ServedVerbs):
+            raise TypeError(f"serve {key} takes a bound verb table, got {type(verbs).__name__}")
         self.key = key
-        self.table = handlers.table if isinstance(handlers, ServedVerbs) else None
-        self.handlers: dict[str, BoundVerb[Any, Any] | Handler] = (
-            dict(handlers.bound) if isinstance(handlers, ServedVerbs) else dict(handlers)
-        )
+        self.table = verbs.table
+        self.handlers: dict[str, BoundVerb[Any, Any]] = dict(verbs.bound)
         self.inline = frozenset(
-            name
-            for name, entry in self.handlers.items()
-            if isinstance(entry, BoundVerb) and not entry.verb.blocking
+            name for name, entry in self.handlers.items() if not entry.verb.blocking
         )
         self.served = 0
         self.errors = 0
@@ -449,30 +441,19 @@ class RpcServer:
             message = f"{self.key} has no verb {request.verb!r}; verbs: {verbs}"
             return self._error("unknown_verb", message, seq)
         try:
-            if isinstance(entry, BoundVerb):
-                verb = entry.verb
-                try:
-                    args = verb.args_decoder.decode(request.args)
-                except msgspec.ValidationError as exc:
-                    return self._error("bad_request", bad_args_message(verb, exc), seq)
-                except (msgspec.DecodeError, RecursionError):
-                    message = f"{verb.name}: the args are not msgpack or nest too deep"
-                    return self._error("bad_message", message, seq)
-                result = entry.handler(args)
-                if not isinstance(result, verb.reply):
-                    raise TypeError(
-                        f"the handler returned {type(result).__name__}, not {verb.reply.__name__}"
-                    )
-            else:
-                try:
-                    raw = _dict_decoder.decode(request.args)
-                    _check_finite(raw, "args")
-                except (msgspec.ValidationError, ValueError) as exc:
-                    return self._error("bad_request", f"{request.verb}: {exc}", seq)
-                except (msgspec.DecodeError, RecursionError):
-                    message = f"{request.verb}: the args are not msgpack or nest too deep"
-                    return self._error("bad_message", message, seq)
-                result = entry(raw)
+            verb = entry.verb
+            try:
+                args = verb.args_decoder.decode(request.args)
+            except msgspec.ValidationError as exc:
+                return self._error("bad_request", bad_args_message(verb, exc), seq)
+            except (msgspec.DecodeError, RecursionError):
+                message = f"{verb.name}: the args are not msgpack or nest too deep"
+                return self._error("bad_message", message, seq)
+            result = entry.handler(args)
+            if not isinstance(result, verb.reply):
+                raise TypeError(
+                    f"the handler returned {type(result).__name__}, not {verb.reply.__name__}"
+                )
             return RpcReply(ok=True, result=result, seq=seq, stamp=time.time())
         except UpstreamLost as exc:
             return self._error(exc.code, exc.message, seq, exc.service)
@@ -588,15 +569,13 @@ class Node:
         self._register(key, "sub", message_type.__name__, sub)
         return sub
 
-    def serve(self, key: str, verbs: ServedVerbs | dict[str, Handler]) -> RpcServer:
+    def serve(self, key: str, verbs: ServedVerbs) -> RpcServer:
         """Serve an `rpc:i` key: a verb table with its handlers bound (`VerbTable.bind`), whose
-        argument and reply schemas `describe` then carries; or, untyped, a dict of verb ->
-        handler taking the args dict."""
+        argument and reply schemas `describe` then carries."""
         server = RpcServer(self.session, key, verbs)
         self._register(key, "rpc", "RpcRequest", server)
         self._verbs[key] = sorted(server.handlers)
-        if isinstance(verbs, ServedVerbs):
-            self._interfaces[key] = verbs.table.schemas
+        self._interfaces[key] = verbs.table.schemas
         return server
 
     def _register(self, key: str, kind: str, message: str, closable: Any) -> None:
@@ -627,31 +606,6 @@ class Node:
         )
 
     # -- rpc client ---------------------------------------------------------------------
-    def call(
-        self,
-        key: str,
-        verb: str,
-        args: dict[str, Any] | None = None,
-        *,
-        timeout: float = CALL_TIMEOUT,
-        expect_service: str | None = None,
-    ) -> Any:
-        """Call `verb` on an `rpc:i` key and return the result; with `expect_service`, only a
-        reply from the live instance of that service is accepted.
-
-        Raises:
-            RpcError: the service replied with an error (its `code` is kept; `UpstreamLost`
-                naming the lost service for `upstream_lost`).
-            WrongReplier: only sessions other than `expect_service`'s live instance replied.
-            RpcTimeout: nothing replied within `timeout` seconds; the message names the key.
-        """
-        seq = next(self._rpc_seq)
-        request = RpcRequest(verb=verb, args=args or {}, seq=seq, stamp=time.time())
-        reply = self.request(key, encode(request), timeout=timeout, expect_service=expect_service)
-        if not reply.ok:
-            raise _reply_error(f"{key} {verb}", reply)
-        return reply.result
-
     def call_typed(
         self,
         key: str,
@@ -686,13 +640,13 @@ class Node:
         except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
             plain = decode(payload, RpcReply)  # an error reply, or a result of the wrong shape
             if not plain.ok:
-                raise _reply_error(f"{key} {verb.name}", plain) from None
+                raise reply_error(f"{key} {verb.name}", plain) from None
             raise RpcError(
                 f"{key} {verb.name} replied a result that is not a {verb.reply.__name__}: {exc}",
                 code="bad_reply",
             ) from None
         if not reply.ok:
-            raise _reply_error(f"{key} {verb.name}", reply)
+            raise reply_error(f"{key} {verb.name}", reply)
         if reply.result is None:
             raise RpcError(
                 f"{key} {verb.name} replied ok without a {verb.reply.__name__}", code="bad_reply"

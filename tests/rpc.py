@@ -1,22 +1,21 @@
-"""Calling an `rpc:i` verb by its name from a test: through the port's verb table (arguments
-converted to the verb's `Args` type before anything is sent, the reply decoded into its `Reply`
-type), both as plain data, so a test can write its arguments and read its reply as dicts."""
+"""Calling an `rpc:i` verb by its name from a test, with its arguments as plain data sent as
+they are (as a client in another language would send them), so that the server's own checks
+are what a test sees; and fake services that serve some verbs of a table."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import Any
 
-import msgspec
-
-from mesh.node import Node, bad_args_message
+from mesh.node import Node, reply_error
 from protocol.codec import encode
-from protocol.errors import BadRequest, RpcError
+from protocol.errors import ArcheryError
 from protocol.messages import RpcRequest
 from protocol.robotspec import CALL_TIMEOUT
-from protocol.verbs import VerbTable, table_for_key
+from protocol.verbs import ServedVerbs, VerbTable
 
-__all__ = ["rpc_call"]
+__all__ = ["rpc_call", "some_verbs"]
 
 
 def rpc_call(
@@ -27,30 +26,32 @@ def rpc_call(
     *,
     timeout: float = CALL_TIMEOUT,
     expect_service: str | None = None,
-    table: VerbTable | None = None,
-    unchecked: bool = False,
 ) -> Any:
-    """Call `verb` (a name) on `key` with `args`; the reply as plain data (`table`: the verb
-    table of a port outside the project's tables, e.g. a test's own). `unchecked`: send `args`
-    as they are, for tests of what a server does with a request no typed client would send.
+    """Send `verb` with `args` (plain data, unchecked) to `key`; the reply's result as plain
+    data.
 
     Raises:
-        BadRequest: the port has no such verb, or `args` do not fit its arguments.
-        RpcError, RpcTimeout, WrongReplier: as `Node.call_typed`.
+        RpcError: the server replied an error (its code kept; `UpstreamLost` for
+            `upstream_lost`).
+        RpcTimeout, WrongReplier: as `Node.call_typed`.
     """
-    if unchecked:
-        request = RpcRequest(verb=verb, args=args or {}, seq=0, stamp=time.time())
-        plain = node.request(key, encode(request), timeout=timeout, expect_service=expect_service)
-        if not plain.ok:
-            raise RpcError(f"{key} {verb}: {plain.message}", code=plain.code or "rpc_error")
-        return plain.result
-    table = table or table_for_key(key)
-    if verb not in table.names():
-        raise BadRequest(f"{key} has no verb {verb!r}; verbs: {', '.join(table.names())}")
-    typed = table[verb]
-    try:
-        request = msgspec.convert(args or {}, typed.args)
-    except msgspec.ValidationError as exc:
-        raise BadRequest(bad_args_message(typed, exc)) from None
-    reply = node.call_typed(key, typed, request, timeout=timeout, expect_service=expect_service)
-    return msgspec.to_builtins(reply)
+    request = RpcRequest(verb=verb, args=args or {}, seq=0, stamp=time.time())
+    reply = node.request(key, encode(request), timeout=timeout, expect_service=expect_service)
+    if not reply.ok:
+        raise reply_error(f"{key} {verb}", reply)
+    return reply.result
+
+
+def some_verbs(table: VerbTable, handlers: dict[str, Callable[[Any], Any]]) -> ServedVerbs:
+    """`table` bound with `handlers` for some of its verbs, for a fake service in a test; every
+    other verb answers `unknown_verb` saying the fake does not serve it."""
+
+    def unserved(name: str) -> Callable[[Any], Any]:
+        def refuse(_: Any) -> Any:
+            raise ArcheryError(
+                f"this test's fake {table.title} does not serve {name}", code="unknown_verb"
+            )
+
+        return refuse
+
+    return table.bind({n: handlers.get(n, unserved(n)) for n in table.names()})

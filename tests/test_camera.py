@@ -29,6 +29,7 @@ from sim.render import SceneRenderer, project
 from sim.scene import ScenePhysics
 from sim.scene_config import TARGET_CENTRE_SITE, SceneConfig
 from tests.conftest import archery, serving
+from tests.rpc import rpc_call
 
 
 def _image(result: object) -> Image:
@@ -61,13 +62,17 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
         first = frames.wait_newer(10)
         assert first.sim_time is None and (first.width, first.height) == (1280, 720)
         with pytest.raises(RpcError) as missing:
-            node.call(keys.cam_rpc(), "grab", {"after_sim_time": 0.0, "timeout": 0.3}, timeout=5)
+            rpc_call(
+                node, keys.cam_rpc(), "grab", {"after_sim_time": 0.0, "timeout": 0.3}, timeout=5
+            )
         assert missing.value.code == "timeout" and "no frame with sim time" in str(missing.value)
 
         physics.set_arrow_pose(stuck, arrow_quat(np.array([-1.0, 0.0, -0.05])))
         assert world.wait_matched(5)
         world.put(_state(physics.qpos(), 2.5))
-        grabbed = _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 2.5}, timeout=10))
+        grabbed = _image(
+            rpc_call(node, keys.cam_rpc(), "grab", {"after_sim_time": 2.5}, timeout=10)
+        )
         assert grabbed.sim_time == 2.5 and grabbed.encoding == "rgb8"
         assert grabbed.stamp > 0 and grabbed.frame > first.frame
         pixels = grabbed.to_numpy()
@@ -83,16 +88,18 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
         # a later sim time: the grab waits for a state that reaches it
         threading.Timer(0.3, lambda: world.put(_state(physics.qpos(), 3.0))).start()
         later = _image(
-            node.call(keys.cam_rpc(), "grab", {"after_sim_time": 2.9, "timeout": 5}, timeout=10)
+            rpc_call(
+                node, keys.cam_rpc(), "grab", {"after_sim_time": 2.9, "timeout": 5}, timeout=10
+            )
         )
         assert later.sim_time == 3.0
         # and after a wall stamp: a frame whose capture started after it
         now = time.time()
         world.put(_state(physics.qpos(), 3.1))
-        fresh = _image(node.call(keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
+        fresh = _image(rpc_call(node, keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
         assert fresh.stamp >= now
 
-        status = node.call(keys.cam_rpc(), "status", timeout=5)
+        status = rpc_call(node, keys.cam_rpc(), "status", timeout=5)
         assert status["source"] == "mujoco" and status["scene_from"] == "default"
         assert status["renders"] >= 2 and status["render_ms"] > 0 and status["errors"] == 0
         assert status["reuses"] >= 2  # 3.0 and 3.1 show the qpos of 2.5: not rendered again
@@ -104,13 +111,13 @@ def test_grab_renders_a_world_state_at_or_after_the_asked_sim_time(
             ({"timeout": 0}, r"timeout must be float in \(0, 120\]"),
         ):
             with pytest.raises(RpcError, match=message) as bad:
-                node.call(keys.cam_rpc(), "grab", args, timeout=5)
+                rpc_call(node, keys.cam_rpc(), "grab", args, timeout=5)
             assert bad.value.code == "bad_request"
 
         # a world state of another scene is logged, never fatal
         world.put(_state(np.zeros(7), 4.0))
         world.put(_state(physics.qpos(), 4.1))
-        assert _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 4.1}, timeout=10))
+        assert _image(rpc_call(node, keys.cam_rpc(), "grab", {"after_sim_time": 4.1}, timeout=10))
 
 
 def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scene(
@@ -126,10 +133,10 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         assert world.wait_matched(5)
 
         def status() -> dict:
-            return node.call(keys.cam_rpc(), "status", timeout=5)
+            return rpc_call(node, keys.cam_rpc(), "status", timeout=5)
 
         def grab(**args: float) -> Image:
-            return _image(node.call(keys.cam_rpc(), "grab", args, timeout=10))
+            return _image(rpc_call(node, keys.cam_rpc(), "grab", args, timeout=10))
 
         # a robot at rest, nobody watching: 1 s of states at 30/s and no frame at all
         for _ in range(30):
@@ -172,7 +179,7 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
 def test_calibration_marks_come_with_their_frame(net: NetConfig) -> None:
     with serving(run, CameraConfig(net=net, rate=5.0, robot_timeout=0.3)), Node(None, net) as node:
         node.wait_alive(["camera"], timeout=30)
-        result = node.call(node.keys.cam_rpc(), "calibration", timeout=30)
+        result = rpc_call(node, node.keys.cam_rpc(), "calibration", timeout=30)
         frame = _image(result["image"]).to_numpy()
         assert frame.shape == (720, 1280, 3)
         assert len(result["pixels"]["target"]) >= 100 and len(result["pixels"]["arrow"]) >= 8
@@ -195,7 +202,7 @@ def test_folder_source_replays_images_captured_after_the_request(
         seen: dict[int, int] = {}  # frame number -> its dominant colour channel
         while len(set(seen.values())) < 2 and len(seen) < 8:
             now = time.time()
-            image = _image(node.call(keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
+            image = _image(rpc_call(node, keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
             assert image.stamp >= now and image.sim_time is None
             assert (image.width, image.height) == (64, 48)
             seen[image.frame] = int(np.argmax(image.to_numpy()[24, 32]))
@@ -203,10 +210,10 @@ def test_folder_source_replays_images_captured_after_the_request(
         assert len({(frame % 2, colour) for frame, colour in seen.items()}) == 2, seen
         # no sim time on real frames: after_sim_time means "captured after this request"
         asked = time.time()
-        image = _image(node.call(keys.cam_rpc(), "grab", {"after_sim_time": 99.0}, timeout=10))
+        image = _image(rpc_call(node, keys.cam_rpc(), "grab", {"after_sim_time": 99.0}, timeout=10))
         assert image.stamp >= asked
         with pytest.raises(RpcError, match="only from the mujoco source") as refused:
-            node.call(keys.cam_rpc(), "calibration", timeout=5)
+            rpc_call(node, keys.cam_rpc(), "calibration", timeout=5)
         assert refused.value.code == "bad_request"
 
 

@@ -20,7 +20,10 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.errors import ConfigError, RpcError
+from protocol.messages import JointCommand
+from protocol.verbs.robot import PART_VERBS
 from tests.conftest import archery, serving
+from tests.rpc import rpc_call, some_verbs
 
 # (argv, exit status, text the one stderr line must contain). In argv, {net} stands for the
 # flags of a live router and a robot of the test's own, {dead} for an endpoint where nothing
@@ -311,21 +314,26 @@ def test_a_closed_stdout_ends_quietly(echo: NetConfig) -> None:
     assert reader.wait(30) in (0, 1)
     assert reader.stderr.read() == b""
     # `archery rpc ... | head -c 0`: the reader is gone before the reply is printed.
-    caller = _popen("rpc", f"{echo.robot}/torso/rpc:i", "echo", '{"a": 1}', *flags)
+    caller = _popen("rpc", f"{echo.robot}/torso/rpc:i", "getJointNames", *flags)
     assert caller.stdout is not None and caller.stderr is not None
     caller.stdout.close()
     assert caller.wait(30) in (0, 1)
     assert caller.stderr.read() == b""
 
 
-def test_write_without_counters_says_the_verdict_is_unknown(echo: NetConfig) -> None:
-    flags = ["--connect", echo.connect[0], "--robot", echo.robot]
+def test_write_without_counters_says_the_verdict_is_unknown(net: NetConfig) -> None:
+    """A torso that takes commands but whose controlboard does not serve `counters`."""
+    flags = ["--connect", net.connect[0], "--robot", net.robot]
     command = json.dumps({"part": "torso", "position": [0.1, 0.0, -0.1]})
-    out = archery("write", f"{echo.robot}/torso/command:i", command, *flags)
+    with Node("torso", net) as torso:
+        torso.subscribe(torso.keys.command("torso"), JointCommand, mode="fifo")
+        torso.serve(torso.keys.part_rpc("torso"), some_verbs(PART_VERBS, {}))
+        torso.ready()
+        out = archery("write", f"{net.robot}/torso/command:i", command, *flags)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["type"] == "JointCommand"
     assert out.stderr.strip().splitlines() == [
-        f"archery write: delivered; whether it was accepted is unknown: {echo.robot}/torso/rpc:i "
+        f"archery write: delivered; whether it was accepted is unknown: {net.robot}/torso/rpc:i "
         "has no command counters (unknown_verb)"
     ]
 
@@ -373,7 +381,7 @@ def test_a_refused_joint_command_fails_with_the_robots_reason(
         assert moved.returncode == 2, moved.stderr
         assert "`$.position[0]`: Expected `float`, got `bool`" in moved.stderr
         with pytest.raises(RpcError, match=r"Expected `float`, got `bool`") as refused:
-            node.call(f"{net.robot}/torso/rpc:i", "positionMove", {"position": [True, 0, 0]})
+            rpc_call(node, f"{net.robot}/torso/rpc:i", "positionMove", {"position": [True, 0, 0]})
         assert refused.value.code == "bad_request"
-        counters = node.call(f"{net.robot}/torso/rpc:i", "counters")
+        counters = rpc_call(node, f"{net.robot}/torso/rpc:i", "counters")
     assert counters["accepted"] == 1 and counters["rejected"] == 3

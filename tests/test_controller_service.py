@@ -25,6 +25,7 @@ from services.robot.config import RobotConfig
 from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery
+from tests.rpc import rpc_call
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 THETAS = ([0.17, 0.03, -0.03], [0.22, 0.0, -0.06], [0.13, 0.05, 0.0])
@@ -38,16 +39,16 @@ class Mesh:
         self.keys = node.keys
 
     def arm(self, arm: str, verb: str, args: dict[str, Any] | None = None) -> Any:
-        return self.node.call(self.keys.cartesian_rpc(arm), verb, args, timeout=30)
+        return rpc_call(self.node, self.keys.cartesian_rpc(arm), verb, args, timeout=30)
 
     def archery(self, verb: str, args: dict[str, Any] | None = None) -> Any:
-        return self.node.call(self.keys.cartesian_rpc("archery"), verb, args, timeout=30)
+        return rpc_call(self.node, self.keys.cartesian_rpc("archery"), verb, args, timeout=30)
 
     def robot(self, part: str, verb: str, args: dict[str, Any] | None = None) -> Any:
-        return self.node.call(self.keys.part_rpc(part), verb, args, timeout=10)
+        return rpc_call(self.node, self.keys.part_rpc(part), verb, args, timeout=10)
 
     def sim_time(self) -> float:
-        return float(self.node.call(self.keys.archery_rpc(), "status", timeout=10)["sim_time"])
+        return float(rpc_call(self.node, self.keys.archery_rpc(), "status", timeout=10)["sim_time"])
 
     def raw(self, key: str, verb: str, args: dict[str, Any]) -> Any:
         """Send a request that the client-side codec would refuse (e.g. NaN arguments)."""
@@ -277,7 +278,7 @@ def test_sigterm_ends_the_controller_process_cleanly(net: NetConfig) -> None:
     try:
         with Node(None, net) as node:
             node.wait_alive(["controller"], 60)
-            status = node.call(node.keys.cartesian_rpc("archery"), "status", timeout=10)
+            status = rpc_call(node, node.keys.cartesian_rpc("archery"), "status", timeout=10)
             assert status["theta_min"] == [0.12, -0.02, -0.07]
             proc.terminate()
             assert proc.wait(20) == 0

@@ -19,11 +19,14 @@ from protocol.errors import RpcError
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
 from protocol.robotspec import CONTROLLER, ROBOT, STATE_MAX_AGE
+from protocol.verbs import ServedVerbs
+from protocol.verbs import robot as rv
 from services.controller import service as controller_service
 from services.controller.config import ControllerConfig
 from services.learner.rig import MeshRig
 from services.learner.session import ServiceLost
 from tests.conftest import serving
+from tests.rpc import rpc_call, some_verbs
 
 THETA = [0.17, 0.03, -0.03]
 MOTION_TIMEOUT = 20.0  # wall s: the posture's own timeout, far beyond the stale limit
@@ -49,13 +52,16 @@ class FrozenRobot:
         self._thread = threading.Thread(target=self._publish, daemon=True)
         self._thread.start()
 
-    def _verbs(self, part: str) -> dict[str, Any]:
-        n = len(PARTS[part])
-        limits = {"names": list(PARTS[part]), "min": [-3.0] * n, "max": [3.0] * n}
-        return {
-            "getLimits": lambda a: limits,
-            "setRefSpeeds": lambda a: {"speeds": a["speeds"]},
-        }
+    def _verbs(self, part: str) -> ServedVerbs:
+        names = list(PARTS[part])
+        n = len(names)
+        limits = rv.LimitsReply(names=names, min=[-3.0] * n, max=[3.0] * n, tolerance=0.01)
+
+        def speeds(a: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
+            given = a.speeds if isinstance(a.speeds, list) else [a.speeds] * n
+            return rv.RefSpeedsReply(names=names, speeds=given)
+
+        return some_verbs(rv.PART_VERBS, {"getLimits": lambda a: limits, "setRefSpeeds": speeds})
 
     def _on_command(self, command: JointCommand) -> None:
         self.commanded.set()
@@ -98,7 +104,7 @@ def _posture(node: Node) -> tuple[RpcError, float]:
     """The controller's error reply to a posture request, and how long it took (wall s)."""
     start = time.monotonic()
     with pytest.raises(RpcError) as info:
-        node.call(node.keys.cartesian_rpc("archery"), "posture", {"theta": THETA}, timeout=30)
+        rpc_call(node, node.keys.cartesian_rpc("archery"), "posture", {"theta": THETA}, timeout=30)
     return info.value, time.monotonic() - start
 
 

@@ -28,6 +28,9 @@ from mesh.netflags import NetConfig
 from mesh.node import Node, Publisher
 from mesh.router import free_tcp_endpoint
 from protocol.messages import Image, JointState, Rollout
+from protocol.verbs.detector import DETECTOR_VERBS, FrameReply
+from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
+from tests.rpc import some_verbs
 from tests.spawn import spawn
 
 CHROMIUM = "/usr/bin/chromium"
@@ -59,12 +62,16 @@ def fake_services(net: NetConfig) -> Iterator[Publisher[Rollout]]:
     with Node("learner", net) as learner, Node("detector", net) as detector:
         learner.serve(
             learner.keys.learner_rpc(),
-            {"status": lambda args: {"state": "running", "session": "s1", "rollouts": 3}},
+            some_verbs(
+                LEARNER_VERBS,
+                {"status": lambda _: LearnerStatusReply(state="running", session="s1", rollouts=3)},
+            ),
         )
         rollouts = learner.publisher(learner.keys.learner_rollouts(), Rollout, lossless=True)
         learner.ready()
         detector.serve(
-            detector.keys.detector_rpc(), {"frame": lambda args: {"png": PNG, "status": "ok"}}
+            detector.keys.detector_rpc(),
+            some_verbs(DETECTOR_VERBS, {"frame": lambda _: FrameReply(png=PNG, status="ok")}),
         )
         detector.ready()
         yield rollouts

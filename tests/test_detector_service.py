@@ -33,6 +33,7 @@ from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
 from tests.postures import archery_posture
+from tests.rpc import rpc_call
 
 SCENE = SceneConfig(meshes=False)
 
@@ -86,7 +87,9 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
         # the sim time of the landing: a frame from before it would not show the arrow
         world.put(_state(qpos, sim_time - 0.5))
         threading.Timer(0.3, lambda: world.put(_state(qpos, sim_time))).start()
-        reply = node.call(keys.detector_rpc(), "measure", {"after_sim_time": sim_time}, timeout=30)
+        reply = rpc_call(
+            node, keys.detector_rpc(), "measure", {"after_sim_time": sim_time}, timeout=30
+        )
         assert reply["status"] == "ok" and reply["sim_time"] >= sim_time
         assert np.linalg.norm(np.subtract(reply["r_m"], truth)) <= 0.01
         assert reply["target_confidence"] > 0.9 and reply["arrow_confidence"] > 0.5
@@ -95,17 +98,18 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
         assert streamed.r_m == reply["r_m"] and streamed.seq == reply["seq"]
         assert model_file.is_file()  # auto-calibrated from the camera's marks, and saved
 
-        status = node.call(keys.detector_rpc(), "status", timeout=5)
+        status = rpc_call(node, keys.detector_rpc(), "status", timeout=5)
         assert status["calibrated"] and status["measured"] == 1
         assert status["model"]["target"]["components"] > status["model"]["arrow"]["components"]
 
-        png = node.call(keys.detector_rpc(), "frame", timeout=10)["png"]
+        png = rpc_call(node, keys.detector_rpc(), "frame", timeout=10)["png"]
         overlay = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         assert overlay.shape[0] == 720 and overlay.shape[1] > 2 * 1280
 
         # a landing the camera has not rendered yet: a clear timeout, not a stale frame
         with pytest.raises(RpcError, match="no frame with sim time") as late:
-            node.call(
+            rpc_call(
+                node,
                 keys.detector_rpc(),
                 "measure",
                 {"after_sim_time": sim_time + 10, "timeout": 0.5},
@@ -118,19 +122,23 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
             ({"timeout": -1}, r"timeout must be float in \(0, 120\]"),
         ):
             with pytest.raises(RpcError, match=message) as bad:
-                node.call(keys.detector_rpc(), "measure", args, timeout=5)
+                rpc_call(node, keys.detector_rpc(), "measure", args, timeout=5)
             assert bad.value.code == "bad_request"
 
         # calibrate again from explicit pixels on the newest frame: a target-only model
-        marks = node.call(keys.cam_rpc(), "calibration", timeout=30)["pixels"]
-        summary = node.call(
-            keys.detector_rpc(), "calibrate", {"pixels": {"target": marks["target"]}}, timeout=30
+        marks = rpc_call(node, keys.cam_rpc(), "calibration", timeout=30)["pixels"]
+        summary = rpc_call(
+            node,
+            keys.detector_rpc(),
+            "calibrate",
+            {"pixels": {"target": marks["target"]}},
+            timeout=30,
         )
         assert summary["arrow"] is None and summary["target_pixels"] > 50
-        reply = node.call(keys.detector_rpc(), "measure", timeout=10)
+        reply = rpc_call(node, keys.detector_rpc(), "measure", timeout=10)
         assert reply["status"] == "no_arrow" and reply["r_m"] is None
         with pytest.raises(RpcError, match="unknown keys") as bad:
-            node.call(keys.detector_rpc(), "calibrate", {"pixels": {"tip": []}}, timeout=10)
+            rpc_call(node, keys.detector_rpc(), "calibrate", {"pixels": {"tip": []}}, timeout=10)
         assert bad.value.code == "bad_calibration"
 
 
@@ -141,9 +149,9 @@ def test_without_a_model_or_auto_calibration_measure_says_what_to_do(net: NetCon
     with serving(run_detector, config), Node(None, net) as node:
         node.wait_alive(["detector"], timeout=30)
         with pytest.raises(RpcError, match="no colour model yet") as refused:
-            node.call(node.keys.detector_rpc(), "measure", timeout=5)
+            rpc_call(node, node.keys.detector_rpc(), "measure", timeout=5)
         assert refused.value.code == "not_calibrated"
-        assert node.call(node.keys.detector_rpc(), "status", timeout=5)["calibrated"] is False
+        assert rpc_call(node, node.keys.detector_rpc(), "status", timeout=5)["calibrated"] is False
         # no camera on the mesh: calibrating says so
         with pytest.raises(RpcError, match="cam/rpc:i"):
-            node.call(node.keys.detector_rpc(), "calibrate", {"timeout": 0.5}, timeout=10)
+            rpc_call(node, node.keys.detector_rpc(), "calibrate", {"timeout": 0.5}, timeout=10)

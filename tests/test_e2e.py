@@ -22,6 +22,7 @@ from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from tests.conftest import archery
+from tests.rpc import rpc_call
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 pytestmark = pytest.mark.slow
@@ -56,7 +57,7 @@ def client(mesh: Launcher) -> Iterator[tuple[Node, Subscription[Rollout]]]:
 
 
 def _start(node: Node, **request: Any) -> str:
-    return str(node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"])
+    return str(rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"])
 
 
 def _wait_done(rollouts: Subscription[Rollout], session: str, count: int) -> list[Rollout]:

@@ -27,6 +27,7 @@ from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from protocol.messages import Rollout, WorldEvent
 from services.learner.journal import check_invariants, read_records
 from tests.conftest import archery
+from tests.rpc import rpc_call
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 pytestmark = pytest.mark.slow
@@ -83,7 +84,9 @@ def _shots(fleet: dict[str, Launcher]) -> dict[str, int]:
     shots = {}
     for robot in ROBOTS:
         with Node(None, _net(fleet, robot)) as node:
-            shots[robot] = int(node.call(node.keys.archery_rpc(), "status", timeout=20)["shot"])
+            shots[robot] = int(
+                rpc_call(node, node.keys.archery_rpc(), "status", timeout=20)["shot"]
+            )
     return shots
 
 
@@ -109,15 +112,19 @@ def test_one_learner_runs_a_session_on_each_robot_at_once(fleet: dict[str, Launc
     with Node(None, _net(fleet, ROBOTS[0])) as one, Node(None, _net(fleet, ROBOTS[1])) as two:
         feeds = [n.subscribe(n.keys.learner_rollouts(), Rollout, mode="fifo") for n in (one, two)]
         request = {"algo": "archer", "until_hit": False, "seed": 1}
-        first = one.call(one.keys.learner_rpc(), "start", request | {"rollouts": 40}, timeout=60)
+        first = rpc_call(
+            one, one.keys.learner_rpc(), "start", request | {"rollouts": 40}, timeout=60
+        )
         while feeds[0].get(timeout=120).status != "done":
             pass
-        second = two.call(two.keys.learner_rpc(), "start", request | {"rollouts": 3}, timeout=60)
+        second = rpc_call(
+            two, two.keys.learner_rpc(), "start", request | {"rollouts": 3}, timeout=60
+        )
         final = follow(two, second["session"], feeds[1], lambda m: None, poll=0.2)
         assert (final["state"], final["rollouts"]) == ("finished", 3)
-        status = one.call(one.keys.learner_rpc(), "status", timeout=20)
+        status = rpc_call(one, one.keys.learner_rpc(), "status", timeout=20)
         assert (status["session"], status["state"]) == (first["session"], "running")
-        one.call(one.keys.learner_rpc(), "stop", timeout=20)
+        rpc_call(one, one.keys.learner_rpc(), "stop", timeout=20)
         stopped = follow(one, first["session"], feeds[0], lambda m: None, poll=0.2)
         assert stopped["state"] == "stopped" and 0 < stopped["rollouts"] < 40
         learners = {Path(f["journal"]).parent.parent for f in (final, stopped)}
@@ -146,7 +153,7 @@ def test_experiment_on_two_robots_across_two_routers(
     assert summary.keys() == reference.keys()
     assert summary["scenario"]["world"] == "mesh"
     with Node(None, _net(fleet)) as node:
-        box = node.call(node.keys.cartesian_rpc("archery"), "status", timeout=20)
+        box = rpc_call(node, node.keys.cartesian_rpc("archery"), "status", timeout=20)
     assert summary["run"]["bounds"] == {"low": box["theta_min"], "high": box["theta_max"]}
     for name in ALGOS.split(","):
         assert summary["algorithms"][name].keys() == reference["algorithms"][name].keys()

@@ -34,6 +34,7 @@ from services.learner.journal import JournalState, check_invariants, read_record
 from services.learner.rig import MeshRig
 from services.learner.session import FINAL_STATES, ServiceLost, Session, Shot
 from tests.conftest import serving
+from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig, Measurement, PostureResult
 
 os.environ.setdefault("MUJOCO_GL", "egl")
@@ -267,7 +268,7 @@ def test_detector_without_its_camera_is_service_lost_camera(net: NetConfig, tmp_
         node.wait_alive(["detector"], timeout=30)
         # The detector's own reply: upstream_lost naming the camera.
         with pytest.raises(RpcError) as error:
-            node.call(node.keys.detector_rpc(), "measure", {"timeout": 1.0}, timeout=10)
+            rpc_call(node, node.keys.detector_rpc(), "measure", {"timeout": 1.0}, timeout=10)
         assert isinstance(error.value, UpstreamLost) and error.value.service == "camera"
         # The rig makes it the loss of the camera, not an rpc error of the detector.
         rig = MeshRig(node, timeout=5.0)
@@ -384,10 +385,10 @@ def test_attach_to_a_running_session_reports_the_journals_counts(
 ) -> None:
     node, _ = gated_learner
     request = {"algo": "hill", "seed": 3, "rollouts": 5, "until_hit": False}
-    started = node.call(node.keys.learner_rpc(), "start", request, timeout=30)
+    started = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=30)
     session = started["session"]
     with pytest.raises(RpcError, match=f"follow it with `archery learn --attach {session}`"):
-        node.call(node.keys.learner_rpc(), "start", request, timeout=30)
+        rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=30)
     target = session if by == "id" else str(Path(started["journal"]).parent)
     assert learn.main(_learn(net, "--attach", target)) == 0
     out, err = capsys.readouterr()
@@ -447,7 +448,7 @@ def _status_when(node: Node, condition: Any, timeout: float) -> dict[str, Any]:
     deadline = time.monotonic() + timeout
     pause = threading.Event()
     while True:
-        status = node.call(node.keys.learner_rpc(), "status", timeout=10)
+        status = rpc_call(node, node.keys.learner_rpc(), "status", timeout=10)
         if condition(status):
             return status
         assert status["state"] not in FINAL_STATES and time.monotonic() < deadline, status
@@ -468,7 +469,9 @@ def test_camera_killed_and_restarted_mid_session(tmp_path: Path) -> None:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=60)
             request = {"algo": "archer", "seed": 1, "rollouts": 4, "until_hit": False}
-            session = node.call(node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+            session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)[
+                "session"
+            ]
             done = 0
             while done < 2:
                 message = rollouts.get(timeout=120)

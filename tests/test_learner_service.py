@@ -31,6 +31,7 @@ from services.robot.config import RobotConfig
 from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery
+from tests.rpc import rpc_call
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 
@@ -116,11 +117,11 @@ def mesh(net: NetConfig, tmp_path: Path) -> Iterator[Node]:
 def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
     keys = mesh.keys
     rollouts = mesh.subscribe(keys.learner_rollouts(), Rollout, mode="fifo")
-    status = mesh.call(keys.learner_rpc(), "start", {"algo": "archer", "seed": 1}, timeout=30)
+    status = rpc_call(mesh, keys.learner_rpc(), "start", {"algo": "archer", "seed": 1}, timeout=30)
     session = status["session"]
     assert status["journal"] == str(tmp_path / session / "journal.jsonl")
     with pytest.raises(RpcError, match="is running") as busy:
-        mesh.call(keys.learner_rpc(), "start", {"algo": "power"}, timeout=10)
+        rpc_call(mesh, keys.learner_rpc(), "start", {"algo": "power"}, timeout=10)
     assert busy.value.code == "busy"
     seen: list[Rollout] = []
     final = follow(mesh, session, rollouts, seen.append)
@@ -142,7 +143,7 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
         assert np.linalg.norm(np.subtract(record["theta"], record["theta_measured"])) < 1e-3
         assert record["timing"]["posture_s"] > 0 and record["timing"]["detector_detect_s"] > 0
     assert done[-1]["hit"] and done[-1]["distance_m"] < 0.05
-    idle = mesh.call(keys.learner_rpc(), "status", timeout=10)
+    idle = rpc_call(mesh, keys.learner_rpc(), "status", timeout=10)
     assert idle["session"] == session and idle["state"] == "finished"
 
 
@@ -166,10 +167,10 @@ def test_bad_start(
     mesh: Node, tmp_path: Path, args: dict[str, Any], code: str, message: str
 ) -> None:
     with pytest.raises(RpcError, match=message) as error:
-        mesh.call(mesh.keys.learner_rpc(), "start", args, timeout=30)
+        rpc_call(mesh, mesh.keys.learner_rpc(), "start", args, timeout=30)
     assert error.value.code == code
     assert list(tmp_path.iterdir()) == []
-    assert mesh.call(mesh.keys.learner_rpc(), "status", timeout=10) == {"state": "idle"}
+    assert rpc_call(mesh, mesh.keys.learner_rpc(), "status", timeout=10) == {"state": "idle"}
 
 
 def test_missing_services_at_start(net: NetConfig, tmp_path: Path) -> None:
@@ -183,7 +184,7 @@ def test_missing_services_at_start(net: NetConfig, tmp_path: Path) -> None:
             with pytest.raises(
                 RpcError, match="services not alive: camera, controller, detector, robot"
             ) as error:
-                node.call(node.keys.learner_rpc(), "start", {}, timeout=30)
+                rpc_call(node, node.keys.learner_rpc(), "start", {}, timeout=30)
             assert error.value.code == "service_missing"
         assert list(tmp_path.iterdir()) == []
     finally:
@@ -195,10 +196,10 @@ def test_stop_and_resume_over_the_mesh(mesh: Node, tmp_path: Path, net: NetConfi
     keys = mesh.keys
     rollouts = mesh.subscribe(keys.learner_rollouts(), Rollout, mode="fifo")
     request = {"algo": "power", "seed": 2, "rollouts": 4, "until_hit": False}
-    session = mesh.call(keys.learner_rpc(), "start", request, timeout=30)["session"]
+    session = rpc_call(mesh, keys.learner_rpc(), "start", request, timeout=30)["session"]
     first = rollouts.get(timeout=30)
     assert first.status == "proposed" and first.session == session
-    stopping = mesh.call(keys.learner_rpc(), "stop", timeout=10)
+    stopping = rpc_call(mesh, keys.learner_rpc(), "stop", timeout=10)
     assert stopping["stopping"] is True
     stopped = follow(mesh, session, rollouts, lambda m: None)
     assert stopped["state"] == "stopped" and stopped["rollouts"] < 4

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import subprocess
 import sys
 import threading
@@ -16,6 +17,30 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.errors import BadRequest, RpcError, RpcTimeout
 from protocol.messages import JointState, WorldEvent
+from protocol.verbs import Args, NoArgs, Reply, Verb, VerbTable
+from protocol.verbs.detector import DETECTOR_VERBS
+from protocol.verbs.robot import PART_VERBS
+from tests.rpc import rpc_call, some_verbs
+
+
+class SpeedArgs(Args, frozen=True):
+    speed: float
+
+
+class SpeedReply(Reply, frozen=True):
+    speed: float
+
+
+# A test's own verbs, served on the archery port's key.
+TEST_VERBS = VerbTable(
+    "test",
+    ("archery/rpc:i",),
+    (
+        Verb("release", SpeedArgs, SpeedReply, "twice the speed; refuses 0"),
+        Verb("crash", NoArgs, SpeedReply, "raises a ZeroDivisionError"),
+        Verb("measure", NoArgs, SpeedReply, "waits for a gate"),
+    ),
+)
 
 
 def _state(i: int) -> JointState:
@@ -74,43 +99,53 @@ def test_rpc_ok_error_and_recovery(pair: tuple[Node, Node]) -> None:
     server, client = pair
     key = server.keys.archery_rpc()
 
-    def release(args: dict) -> dict:
-        if "speed" not in args:
-            raise BadRequest("release needs 'speed' (m/s)")
-        return {"speed": args["speed"] * 2}
+    def release(args: SpeedArgs) -> SpeedReply:
+        if args.speed == 0:
+            raise BadRequest("release needs a speed above 0 (m/s)")
+        return SpeedReply(speed=args.speed * 2)
 
-    def crash(args: dict) -> None:
+    def crash(args: NoArgs) -> SpeedReply:
         raise ZeroDivisionError("division by zero")
 
-    server.serve(key, {"release": release, "crash": crash})
+    verbs = {"release": release, "crash": crash, "measure": crash}
+    server.serve(key, TEST_VERBS.bind(verbs))
     server.ready()
     client.wait_alive(["server"], 10)
-    assert client.call(key, "release", {"speed": 2.5}) == {"speed": 5.0}
-    with pytest.raises(RpcError, match="needs 'speed'") as err:
-        client.call(key, "release")
+    call = functools.partial(rpc_call, client, key)
+    assert call("release", {"speed": 2.5}) == {"speed": 5.0}
+    with pytest.raises(RpcError, match="needs a speed above 0") as err:
+        call("release", {"speed": 0})
     assert err.value.code == "bad_request"
-    with pytest.raises(RpcError, match="no verb 'fly'; verbs: crash, release") as err:
-        client.call(key, "fly")
+    with pytest.raises(RpcError, match="missing required field `speed`") as err:
+        call("release")
+    assert err.value.code == "bad_request"
+    with pytest.raises(RpcError, match="no verb 'fly'; verbs: crash, measure, release") as err:
+        call("fly")
     assert err.value.code == "unknown_verb"
     with pytest.raises(RpcError, match="ZeroDivisionError") as err:
-        client.call(key, "crash")
+        call("crash")
     assert err.value.code == "internal"
     for garbage in (b"", b"\xc1", b"\x93\x01\x02\x03"):
         reply = client.request(key, garbage)
         assert not reply.ok and reply.code == "bad_message"
-    assert client.call(key, "release", {"speed": 1}) == {"speed": 2}
+    assert call("release", {"speed": 1}) == {"speed": 2}
 
 
 def test_rpc_timeout_names_the_key(pair: tuple[Node, Node]) -> None:
     server, client = pair
     key = server.keys.detector_rpc()
     gate = threading.Event()
-    server.serve(key, {"measure": lambda args: gate.wait(10)})
+
+    def wait(_: NoArgs) -> SpeedReply:
+        gate.wait(10)
+        return SpeedReply(speed=0.0)
+
+    server.serve(key, some_verbs(DETECTOR_VERBS, {"measure": wait}))
     server.ready()
     client.wait_alive(["server"], 10)
     start = time.monotonic()
     with pytest.raises(RpcTimeout, match=r"no reply from .*detector/rpc:i within 0.3 s"):
-        client.call(key, "measure", timeout=0.3)
+        rpc_call(client, key, "measure", timeout=0.3)
     assert time.monotonic() - start < 2
     gate.set()
 
@@ -120,14 +155,14 @@ def test_absent_service_fails_within_timeout_naming_the_key(net: NetConfig) -> N
         key = client.keys.learner_rpc()
         start = time.monotonic()
         with pytest.raises(RpcTimeout, match="learner/rpc:i"):
-            client.call(key, "status", timeout=1.0)
+            rpc_call(client, key, "status", timeout=1.0)
         assert time.monotonic() - start < 1.5
 
 
 def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
     server, client = pair
     server.publisher(server.keys.state("left_arm"), JointState)
-    server.serve(server.keys.part_rpc("left_arm"), {"getLimits": lambda a: {}})
+    server.serve(server.keys.part_rpc("left_arm"), some_verbs(PART_VERBS, {}))
     server.ready()
     client.wait_alive(["server"], 10)
     from protocol.codec import decode
@@ -140,7 +175,7 @@ def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
         (server.keys.state("left_arm"), "pub", "JointState"),
         (server.keys.part_rpc("left_arm"), "rpc", "RpcRequest"),
     }
-    assert info.verbs[server.keys.part_rpc("left_arm")] == ["getLimits"]
+    assert info.verbs[server.keys.part_rpc("left_arm")] == PART_VERBS.names()
     assert all(p.count == 0 for p in info.ports)
 
 

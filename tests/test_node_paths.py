@@ -16,6 +16,7 @@ from mesh.node import Node
 from protocol.errors import BadRequest, RpcError
 from protocol.messages import Array, Image
 from protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
+from tests.rpc import rpc_call
 
 
 class WhoArgs(Args, frozen=True):
@@ -98,10 +99,10 @@ def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, N
     assert reply.code == "bad_request"
     assert reply.message.startswith("invalid argument of peek at `$.x`")
     with pytest.raises(RpcError, match="invalid argument of peek") as caught:
-        client.call(key, "peek", {"x": "high"})
+        rpc_call(client, key, "peek", {"x": "high"})
     assert caught.value.code == "bad_request"
     with pytest.raises(RpcError, match="has no verb 'nope'") as caught:
-        client.call(key, "nope")
+        rpc_call(client, key, "nope")
     assert caught.value.code == "unknown_verb"
     assert client.request(key, b"\xc1").code == "bad_message"
     assert client.call_typed(key, PEEK, WhoArgs(x=3.0)).x == 3.0  # still serving

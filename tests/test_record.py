@@ -37,6 +37,7 @@ from protocol.messages import (
     WorldEvent,
     WorldState,
 )
+from protocol.verbs.camera import GrabArgs
 from tests.conftest import archery, serving
 from tests.spawn import spawn
 
@@ -342,14 +343,14 @@ def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
         frames.put(shot)
     for shot in shots:
         args = {"after_sim_time": shot.sim_time, "after_stamp": shot.stamp, "timeout": 0.1}
-        assert frames.grab(args) is shot
-    assert frames.grab({"after_sim_time": 0.9, "timeout": 0.1}) is shots[0]  # by sim time only
+        assert frames.grab(GrabArgs(**args)) is shot
+    assert frames.grab(GrabArgs(after_sim_time=0.9, timeout=0.1)) is shots[0]  # by sim time only
     with pytest.raises(RpcTimeout, match="no replayed frame"):
-        frames.grab({"after_stamp": 31.0, "timeout": 0.05})
+        frames.grab(GrabArgs(after_stamp=31.0, timeout=0.05))
     frames.put(Image.from_numpy(rgb, sim_time=1.0, stamp=40))  # the first is no longer kept
     with pytest.raises(BadRequest, match="no longer kept"):
-        frames.grab({"after_sim_time": 0.5, "after_stamp": 5.0, "timeout": 0.1})
-    assert frames.grab({"after_sim_time": 0.5, "after_stamp": 15.0, "timeout": 0.1}) is shots[1]
+        frames.grab(GrabArgs(after_sim_time=0.5, after_stamp=5.0, timeout=0.1))
+    assert frames.grab(GrabArgs(after_sim_time=0.5, after_stamp=15.0, timeout=0.1)) is shots[1]
 
 
 def _thread_niceness(pid: int) -> set[int]:

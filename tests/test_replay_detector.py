@@ -23,6 +23,7 @@ from services.detector.config import DetectorConfig
 from services.detector.service import run as run_detector
 from tests import test_detector_service
 from tests.conftest import serving
+from tests.rpc import rpc_call
 from tests.spawn import spawn
 from tests.test_detector_service import _state, camera_and_detector
 
@@ -58,7 +59,8 @@ def test_replayed_frames_give_the_recorded_detections(
             world.put(_state(qpos, sim_time + offset - 0.5))
             later = threading.Timer(0.3, lambda o=offset: world.put(_state(qpos, sim_time + o)))
             later.start()
-            reply = node.call(
+            reply = rpc_call(
+                node,
                 keys.detector_rpc(),
                 "measure",
                 {"after_sim_time": sim_time + offset, "after_stamp": started},

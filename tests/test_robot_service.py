@@ -29,6 +29,7 @@ from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery
 from tests.postures import archery_posture
+from tests.rpc import rpc_call
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 Posture = dict[str, np.ndarray]
@@ -56,10 +57,10 @@ class Client:
             assert pub.wait_matched(10)
 
     def part(self, part: str, verb: str, args: dict[str, Any] | None = None) -> Any:
-        return self.node.call(self.keys.part_rpc(part), verb, args, timeout=10)
+        return rpc_call(self.node, self.keys.part_rpc(part), verb, args, timeout=10)
 
     def archery(self, verb: str, args: dict[str, Any] | None = None) -> Any:
-        return self.node.call(self.keys.archery_rpc(), verb, args, timeout=20)
+        return rpc_call(self.node, self.keys.archery_rpc(), verb, args, timeout=20)
 
     def command(self, targets: Posture) -> None:
         for part, values in targets.items():
@@ -292,7 +293,7 @@ def test_sigterm_ends_the_robot_process_cleanly(net: NetConfig) -> None:
     try:
         with Node(None, net) as node:
             node.wait_alive([ROBOT], 60)
-            assert node.call(node.keys.archery_rpc(), "status")["rtf"] == 1.0
+            assert rpc_call(node, node.keys.archery_rpc(), "status")["rtf"] == 1.0
             proc.terminate()
             assert proc.wait(20) == 0
             node.wait_gone(ROBOT, 10)

@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pytest
 import zenoh
 from cryptography import x509
@@ -39,13 +40,36 @@ from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
 from protocol.errors import ConfigError, RpcError, WrongReplier
 from protocol.keys import Keys
-from protocol.messages import RpcReply
+from protocol.messages import Image, RpcReply
+from protocol.verbs.camera import CAMERA_VERBS
+from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
 from services.learner.rig import MeshRig
 from services.learner.session import RigError, Shot
 from tests.conftest import archery
+from tests.rpc import rpc_call, some_verbs
 
 ROBOT = "secbot"
 K = Keys(ROBOT)
+
+
+def _no_target(_: object) -> MeasureReply:
+    """A detector's measure reply that saw no target."""
+    return MeasureReply(
+        type="Detection",
+        schema=1,
+        seq=0,
+        stamp=time.time(),
+        sim_time=None,
+        frame_stamp=0.0,
+        status="no_target",
+        target_px=None,
+        arrow_px=None,
+        target_confidence=0.0,
+        arrow_confidence=0.0,
+        r_m=None,
+        frame=0,
+        timing={},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -364,12 +388,14 @@ def test_a_rogue_measure_never_reaches_the_learner(
         Node("detector", net_as(endpoint, "detector", deployment)) as detector,
         Node("learner", net_as(endpoint, "learner", deployment)) as learner,
     ):
-        detector.serve(K.detector_rpc(), {"measure": lambda args: {"status": "no_target"}})
+        detector.serve(K.detector_rpc(), some_verbs(DETECTOR_VERBS, {"measure": _no_target}))
         detector.ready()
         learner.wait_alive(["detector"], 10)
         for _ in range(5):
-            result = learner.call(K.detector_rpc(), "measure", timeout=5, expect_service="detector")
-            assert result == {"status": "no_target"}
+            result = rpc_call(
+                learner, K.detector_rpc(), "measure", timeout=5, expect_service="detector"
+            )
+            assert result["status"] == "no_target"
     assert asked == []
 
 
@@ -388,13 +414,19 @@ def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path)
             deadline = time.monotonic() + 10
             while True:  # the rogue's queryable has reached the router: it answers
                 try:
-                    forged = learner.call(keys.detector_rpc(), "measure", timeout=2)
+                    forged = rpc_call(learner, keys.detector_rpc(), "measure", timeout=2)
                     break
                 except RpcError:
                     assert time.monotonic() < deadline
             assert forged["r_m"] == [9.0, 9.0]  # what the learner would take without the check
             with pytest.raises(WrongReplier) as caught:
-                learner.call(keys.detector_rpc(), "measure", timeout=2, expect_service="detector")
+                rpc_call(
+                    learner,
+                    keys.detector_rpc(),
+                    "measure",
+                    timeout=2,
+                    expect_service="detector",
+                )
             assert caught.value.code == "wrong_replier"
             assert str(rogue.info.zid()) in caught.value.message
             rig = MeshRig(learner, timeout=3.0)
@@ -402,15 +434,18 @@ def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path)
                 rig.measure(Shot(shot=1, sim_time=0.0, stamp=time.time(), outcome="landed"))
             assert rig_error.value.code == "wrong_replier"
             # The live instance's own reply passes the same check.
-            detector.serve(keys.cam_rpc(), {"grab": lambda args: {"frame": 1}})
+            tiny = Image.from_numpy(np.zeros((2, 2, 3), np.uint8), frame=1)
+            detector.serve(keys.cam_rpc(), some_verbs(CAMERA_VERBS, {"grab": lambda _: tiny}))
             deadline = time.monotonic() + 10
             while True:
                 try:
-                    got = learner.call(keys.cam_rpc(), "grab", timeout=2, expect_service="detector")
+                    got = rpc_call(
+                        learner, keys.cam_rpc(), "grab", timeout=2, expect_service="detector"
+                    )
                     break
                 except RpcError:
                     assert time.monotonic() < deadline
-            assert got == {"frame": 1}
+            assert got["frame"] == 1
     finally:
         rogue.close()
 

@@ -27,6 +27,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from protocol.errors import ConfigError
+from tests.rpc import rpc_call
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 ROBOT = "sup1"
@@ -152,7 +153,7 @@ def test_the_router_is_restarted_and_every_service_reconnects(mesh: Mesh) -> Non
     with Node(None, NetConfig(connect=(mesh.launcher.endpoint,), robot=ROBOT)) as node:
         node.wait_alive(SERVICES, timeout=30)
         alive_after = time.monotonic() - listening
-        status = node.call(node.keys.learner_rpc(), "status", timeout=10)
+        status = rpc_call(node, node.keys.learner_rpc(), "status", timeout=10)
     assert isinstance(status, dict)
     print(f"all five alive {alive_after:.2f} s after the router listened again")
     assert alive_after < 15

@@ -17,6 +17,8 @@ from apps.topics.selfcheck import ECHO_SERVICE
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.messages import Image
+from protocol.parts import PARTS
+from protocol.verbs.robot import PART_VERBS
 from tests.conftest import archery
 
 
@@ -41,7 +43,8 @@ def test_ports_lists_live_services(echo: NetConfig) -> None:
     out = archery("ports", *_flags(echo))
     assert out.returncode == 0, out.stderr
     assert "echo  (pid" in out.stdout
-    assert f"rpc    {echo.robot}/torso/rpc:i  [RpcRequest]  verbs: count, echo, fail" in out.stdout
+    verbs = ", ".join(PART_VERBS.names())
+    assert f"rpc    {echo.robot}/torso/rpc:i  [RpcRequest]  verbs: {verbs}" in out.stdout
     assert f"pub    {echo.robot}/torso/state:o  [JointState]" in out.stdout
     as_json = archery("ports", "--json", *_flags(echo))
     assert json.loads(as_json.stdout.splitlines()[0])["service"] == "echo"
@@ -73,8 +76,9 @@ def test_write_publishes_a_typed_message(echo: NetConfig) -> None:
     out = archery("write", f"{echo.robot}/torso/command:i", command, *_flags(echo))
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout)["type"] == "JointCommand"
-    count = archery("rpc", f"{echo.robot}/torso/rpc:i", "count", *_flags(echo))
-    assert json.loads(count.stdout) == {"commands": 1, "dropped": 0}
+    count = archery("rpc", f"{echo.robot}/torso/rpc:i", "counters", *_flags(echo))
+    counters = json.loads(count.stdout)
+    assert (counters["accepted"], counters["undecodable"]) == (1, 0)
 
 
 @pytest.mark.parametrize(
@@ -92,15 +96,16 @@ def test_write_rejects_bad_messages(echo: NetConfig, payload: str, error: str) -
 
 def test_rpc_ok_error_and_timeout(echo: NetConfig) -> None:
     key = f"{echo.robot}/torso/rpc:i"
-    out = archery("rpc", key, "echo", '{"a": [1, 2]}', *_flags(echo))
-    assert out.returncode == 0 and json.loads(out.stdout) == {"a": [1, 2]}
-    out = archery("rpc", key, "fail", '{"x": 3}', *_flags(echo))
-    assert out.returncode == 1 and "fail was asked to fail with x=3" in out.stderr
-    out = archery("rpc", key, "jump", *_flags(echo))
-    assert out.returncode == 1 and "no verb 'jump'" in out.stderr
+    out = archery("rpc", key, "setRefSpeeds", '{"speeds": [1, 2, 0.5]}', *_flags(echo))
+    assert out.returncode == 0, out.stderr
+    assert json.loads(out.stdout) == {"names": list(PARTS["torso"]), "speeds": [1.0, 2.0, 0.5]}
+    out = archery("rpc", key, "positionMove", '{"position": [0.1]}', *_flags(echo))
+    assert out.returncode == 1 and "positionMove needs one position per joint" in out.stderr
+    out = archery("rpc", key, "jump", *_flags(echo))  # bad input: refused before it is sent
+    assert out.returncode == 2 and "no verb 'jump'; verbs: checkMotionDone" in out.stderr
     out = archery("rpc", f"{echo.robot}/learner/rpc:i", "status", *_flags(echo), "--timeout", "1")
     assert out.returncode == 1 and f"{echo.robot}/learner/rpc:i" in out.stderr
-    out = archery("rpc", key, "echo", "[1]", *_flags(echo))
+    out = archery("rpc", key, "getJointNames", "[1]", *_flags(echo))
     assert out.returncode == 2 and "must be a JSON object" in out.stderr
 
 

@@ -16,9 +16,10 @@ from mesh.netflags import NetConfig
 from mesh.node import Node, bad_args_message
 from protocol.errors import RpcError
 from protocol.messages import Image, RpcReply
-from protocol.verbs import TABLES, NoArgs, Verb, table_for_key
+from protocol.verbs import TABLES, NoArgs, Reply, Verb, VerbTable, table_for_key
 from protocol.verbs import controller as cv
 from tests.conftest import archery
+from tests.rpc import rpc_call
 
 VERBS = [(table, verb) for table in TABLES for verb in table]
 STRUCTS = sorted(
@@ -199,9 +200,26 @@ def test_range_errors_state_the_whole_range() -> None:
 
 
 # -- the server, over a real router ----------------------------------------------------------------
+class SoonReply(Reply, frozen=True):
+    """What another implementation of getTrajTime might answer: not a TrajTimeReply."""
+
+    time: str
+
+
+OTHER = VerbTable(
+    "another controller",
+    ("cartesianController/left_arm/rpc:i",),
+    (
+        Verb("getTrajTime", NoArgs, SoonReply, "the time, in words"),
+        Verb("echo", cv.SetTrajTimeArgs, cv.TrajTimeReply, "its argument"),
+    ),
+)
+
+
 @pytest.fixture
 def served(net: NetConfig) -> Iterator[tuple[Node, str, str]]:
-    """The archery controller's verbs (trivial handlers) and an untyped key; a client node."""
+    """The archery controller's verbs (trivial handlers) and, on another key, a table whose
+    getTrajTime replies another type; a client node."""
     traj = {"time": 1.0}
 
     def set_time(args: cv.SetTrajTimeArgs) -> cv.TrajTimeReply:
@@ -213,7 +231,7 @@ def served(net: NetConfig) -> Iterator[tuple[Node, str, str]]:
 
     with Node("verbs", net) as server, Node(None, net) as client:
         key = server.keys.cartesian_rpc("archery")
-        untyped = server.keys.cartesian_rpc("left_arm")
+        other_key = server.keys.cartesian_rpc("left_arm")
         handlers = {
             "setTrajTime": set_time,
             "getTrajTime": lambda a: cv.TrajTimeReply(time=traj["time"]),
@@ -221,9 +239,13 @@ def served(net: NetConfig) -> Iterator[tuple[Node, str, str]]:
             "status": lambda a: "not a reply",
         }
         server.serve(key, cv.ARCHERY_VERBS.bind(handlers))
-        server.serve(untyped, {"getTrajTime": lambda a: {"time": "soon"}, "echo": lambda a: a})
+        other = {
+            "getTrajTime": lambda a: SoonReply(time="soon"),
+            "echo": lambda a: cv.TrajTimeReply(time=a.time),
+        }
+        server.serve(other_key, OTHER.bind(other))
         server.ready()
-        yield client, key, untyped
+        yield client, key, other_key
 
 
 def _raw(args_bytes: bytes, verb: str = "setTrajTime") -> bytes:
@@ -235,7 +257,7 @@ def test_server_answers_bad_request_naming_verb_field_and_range(served: Any) -> 
     client, key, _ = served
     reply = client.call_typed(key, cv.ARCHERY_VERBS["setTrajTime"], cv.SetTrajTimeArgs(time=0.5))
     assert reply == cv.TrajTimeReply(time=0.5)
-    assert client.call(key, "getTrajTime") == {"time": 0.5}
+    assert rpc_call(client, key, "getTrajTime") == {"time": 0.5}
     for args, says in (
         (
             {"time": 0.0},
@@ -248,7 +270,7 @@ def test_server_answers_bad_request_naming_verb_field_and_range(served: Any) -> 
         ({"time": 1.0, "speed": 2}, "unknown field `speed`; arguments of setTrajTime: time"),
     ):
         with pytest.raises(RpcError, match=says) as info:
-            client.call(key, "setTrajTime", args)
+            rpc_call(client, key, "setTrajTime", args)
         assert info.value.code == "bad_request"
     for bad in (math.nan, math.inf):  # out of any range
         payload = _raw(b"\x81\xa4time" + msgspec.msgpack.encode(bad))
@@ -259,13 +281,13 @@ def test_server_answers_bad_request_naming_verb_field_and_range(served: Any) -> 
         reply = client.request(key, _raw(theta, "posture"))
         assert not reply.ok and reply.code == "bad_request"
         assert "`$.theta[1]`: Expected a finite number" in reply.message
-    assert client.call(key, "getTrajTime") == {"time": 0.5}  # nothing reached the handler
+    assert rpc_call(client, key, "getTrajTime") == {"time": 0.5}  # nothing reached the handler
 
 
 def test_server_refuses_deep_nesting_and_untagged_requests(served: Any) -> None:
-    client, key, untyped = served
+    client, key, other_key = served
     deep = b"\x81\xa1a" * 5000 + b"\x80"
-    for k, verb in ((key, "setTrajTime"), (untyped, "echo")):
+    for k, verb in ((key, "setTrajTime"), (other_key, "echo")):
         reply = client.request(k, _raw(deep, verb), timeout=5)
         assert not reply.ok and reply.code == "bad_message" and "deep" in reply.message
     untagged = msgspec.msgpack.encode({"verb": "getTrajTime", "args": {}})
@@ -274,16 +296,16 @@ def test_server_refuses_deep_nesting_and_untagged_requests(served: Any) -> None:
     assert "no `type` field" in reply.message and "RpcRequest" in reply.message
     reply = client.request(key, msgspec.msgpack.encode({"type": "RpcReply", "ok": True}))
     assert not reply.ok and reply.code == "bad_message"
-    assert client.call(key, "getTrajTime", timeout=5) == {"time": 1.0}  # still serving
+    assert rpc_call(client, key, "getTrajTime", timeout=5) == {"time": 1.0}  # still serving
 
 
 def test_replies_are_typed_at_both_ends(served: Any) -> None:
-    client, key, untyped = served
+    client, key, other_key = served
     with pytest.raises(RpcError, match="handler returned str, not ArcheryStatusReply") as info:
-        client.call(key, "status")
+        rpc_call(client, key, "status")
     assert info.value.code == "internal"
     with pytest.raises(RpcError, match=r"not a TrajTimeReply.*\$.result.time") as info:
-        client.call_typed(untyped, cv.ARCHERY_VERBS["getTrajTime"])
+        client.call_typed(other_key, cv.ARCHERY_VERBS["getTrajTime"])
     assert info.value.code == "bad_reply"
     with pytest.raises(RpcError, match="not served here") as info:
         client.call_typed(key, cv.ARCHERY_VERBS["posture"], cv.PostureArgs(theta=[0.1, 0.0, 0.0]))
@@ -303,7 +325,7 @@ def test_describe_carries_each_verbs_schema(served: Any) -> None:
         "ports", "--verbose", "--connect", client.net.connect[0], "--robot", client.net.robot
     )
     assert out.returncode == 0, out.stderr
-    assert "reply: PostureReply" in out.stdout and "(untyped verbs)" in out.stdout
+    assert "reply: PostureReply" in out.stdout and "reply: SoonReply" in out.stdout
 
 
 def test_interface_offline_from_the_local_tables() -> None:

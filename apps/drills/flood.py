@@ -22,6 +22,7 @@ from apps.drills.mesh import DrillMesh
 from apps.drills.verdict import DrillResult
 from protocol.codec import encode
 from protocol.messages import JointCommand, JointState
+from protocol.verbs.robot import PART_VERBS
 
 __all__ = ["PART", "flood", "flood_drill"]
 
@@ -69,8 +70,12 @@ def flood(mesh: DrillMesh, count: int, seed: int) -> dict[str, int]:
 def counted(mesh: DrillMesh) -> dict[str, int]:
     """The robot's command counters of the left arm: accepted, rejected, undecodable."""
     assert mesh.node is not None
-    reply = mesh.node.call(mesh.node.keys.part_rpc(PART), "counters", timeout=10)
-    return {k: int(reply[k]) for k in ("accepted", "rejected", "undecodable")}
+    reply = mesh.node.call_typed(mesh.node.keys.part_rpc(PART), PART_VERBS["counters"], timeout=10)
+    return {
+        "accepted": reply.accepted,
+        "rejected": reply.rejected,
+        "undecodable": reply.undecodable,
+    }
 
 
 def flood_drill(mesh: DrillMesh, count: int, seed: int) -> DrillResult:

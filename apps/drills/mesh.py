@@ -21,6 +21,7 @@ from typing import Any
 
 import zenoh
 
+from apps.learn.client import learner_call
 from apps.up.launch_config import SERVICES, default_mesh
 from apps.up.launcher import Launcher
 from apps.up.restart_policy import RestartPolicy
@@ -94,10 +95,9 @@ class StatusWatch:
         self._thread.start()
 
     def _run(self) -> None:
-        key = self.node.keys.learner_rpc()
         while not self._stop.wait(self.period):
             try:
-                status = self.node.call(key, "status", timeout=0.5)
+                status = learner_call(self.node, "status", timeout=0.5)
             except ArcheryError:
                 continue
             self.seen.append((time.time(), status["state"], list(status.get("waiting_for", []))))
@@ -272,7 +272,7 @@ class DrillMesh:
     def call(self, verb: str, args: dict[str, Any] | None = None, timeout: float = 60) -> Any:
         """Call a verb of the learner."""
         assert self.node is not None
-        return self.node.call(self.node.keys.learner_rpc(), verb, args, timeout=timeout)
+        return learner_call(self.node, verb, args, timeout=timeout)
 
     def start_session(self, seed: int, rollouts: int = 10_000) -> SessionRun:
         """Start a session (no end at the first hit); wait until it runs."""

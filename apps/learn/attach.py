@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from apps.learn.client import learner_call
 from apps.learn.follow import SessionLost, follow, result_line
 from mesh.node import Node, Subscription
 from protocol.errors import ArcheryError, RpcError
@@ -113,7 +114,7 @@ def attach(
         stderr_line(f"archery learn: --attach {target}: {exc}")
         return 2
     try:
-        status = node.call(node.keys.learner_rpc(), "status", timeout=10.0)
+        status = learner_call(node, "status", timeout=10.0)
     except RpcError as exc:
         stderr_line(f"archery learn: --attach: the learner does not answer: {exc}")
         return 1

@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from apps.learn.client import learner_call
 from mesh.node import Node
 from protocol.errors import ArcheryError, RpcTimeout
 from protocol.messages import Rollout
@@ -42,7 +43,6 @@ def follow(
     Raises:
         SessionLost: the learner stopped answering for `gone_after` s.
     """
-    key = node.keys.learner_rpc()
     silent_since: float | None = None
     last: dict[str, Any] | None = None
     while True:
@@ -54,7 +54,7 @@ def follow(
         except RpcTimeout:
             pass
         try:
-            status = node.call(key, "status", timeout=2.0)
+            status = learner_call(node, "status", timeout=2.0)
             silent_since = None
         except RpcTimeout:
             now = time.monotonic()

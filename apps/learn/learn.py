@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from apps.learn import attach
+from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
 from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
@@ -194,8 +195,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         net = NetConfig.from_args(args)
         request = start_request(args)
-        if "resume" not in request:
-            SessionConfig.from_request(request)  # the learner's own checks, before any waiting
+        if "resume" not in request:  # the learner's own checks, then the verb's types
+            SessionConfig.from_request(request)
+        start_args(request)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2
@@ -207,13 +209,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 1
     with node:
-        key = node.keys.learner_rpc()
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         if args.attach:
             return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet)
         try:
             node.wait_alive(SERVICES, timeout=args.wait)
-            status = node.call(key, "start", request, timeout=args.wait + 30)
+            status = learner_call(node, "start", request, timeout=args.wait + 30)
         except RpcError as exc:
             print(f"archery learn: {exc}", file=sys.stderr)
             return 2 if exc.code in ("bad_request", "bad_journal", "busy") else 1
@@ -230,7 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         except KeyboardInterrupt:
             print("archery learn: stopping the session after its current rollout", file=sys.stderr)
             try:
-                node.call(key, "stop", timeout=5.0)
+                learner_call(node, "stop", timeout=5.0)
                 status = follow(node, session, rollouts, show)
             except (ArcheryError, KeyboardInterrupt):
                 pass

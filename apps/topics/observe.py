@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import msgspec
 import zenoh
 
 from apps.topics.recording import COMPRESSIONS, Recorder, Recording, open_recording
@@ -31,7 +30,14 @@ from mesh.priority import add_nice_arg, lower_priority
 from protocol.codec import encode
 from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
 from protocol.messages import Image
-from protocol.verbs.camera import MAX_GRAB_TIMEOUT, GrabArgs
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs.camera import (
+    CAMERA_VERBS,
+    MAX_GRAB_TIMEOUT,
+    CalibrationReply,
+    CameraStatusReply,
+    GrabArgs,
+)
 
 __all__ = ["hz_main", "record_main", "replay_main"]
 
@@ -178,7 +184,40 @@ class _Frames:
         """Whether a frame no longer kept might satisfy a grab for `after_stamp`."""
         return self._dropped is not None and (after_stamp is None or after_stamp <= self._dropped)
 
-    def grab(self, args: dict[str, Any]) -> Image:
+    def verbs(self) -> ServedVerbs:
+        """The camera's verbs as a replay answers them: `grab` from the replayed frames; a
+        replay has no calibration marks (`calibration` says so) and reports its frames in
+        `status`."""
+
+        def calibration(_: NoArgs) -> CalibrationReply:
+            raise BadRequest(
+                "a replay has no calibration marks; give the detector the colour model of the "
+                "recorded session (`archery detector --model FILE`)"
+            )
+
+        def status(_: NoArgs) -> CameraStatusReply:
+            with self._cond:
+                last = self._frames[-1] if self._frames else None
+                count = len(self._frames)
+            return CameraStatusReply(
+                source="replay",
+                width=last.width if last else 0,
+                height=last.height if last else 0,
+                rate=0.0,
+                encoding=last.encoding if last else "",
+                frames=count,
+                renders=0,
+                reuses=0,
+                render_ms=None,
+                errors=0,
+                latest_sim_time=last.sim_time if last else None,
+                scene=None,
+                scene_from="replay",
+            )
+
+        return CAMERA_VERBS.bind({"grab": self.grab, "calibration": calibration, "status": status})
+
+    def grab(self, grab: GrabArgs) -> Image:
         """The first frame (published so far, or within the timeout) with sim time ≥
         `after_sim_time` and stamp ≥ `after_stamp`.
 
@@ -186,7 +225,6 @@ class _Frames:
             RpcTimeout: no such frame published within the timeout.
             BadRequest: the frame asked for may be one of those no longer kept.
         """
-        grab = msgspec.convert(args, GrabArgs, strict=True)
         timeout = grab.timeout or 5.0
 
         def fits(image: Image) -> bool:
@@ -263,7 +301,7 @@ def replay_main(argv: list[str] | None = None) -> int:
         with Node(None, net) as node:
             frames = _Frames()
             if args.serve_grab:
-                node.serve(node.keys.cam_rpc(), {"grab": frames.grab})
+                node.serve(node.keys.cam_rpc(), frames.verbs())
                 print(f"archery replay: serving grab on {node.keys.cam_rpc()}", flush=True)
             published, keys = _publish(node, recording, args, only, robot, frames, stop)
             print(

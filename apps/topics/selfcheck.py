@@ -1,7 +1,8 @@
 """`archery selfcheck`: start a router and a sample service, and check the mesh end to end.
 
-With `--echo`, run only the sample service (a torso controlboard that echoes RPC arguments and
-streams a joint state) until SIGINT/SIGTERM; tests use it as a real process to kill.
+With `--echo`, run only the sample service (a torso controlboard that moves nothing, serving
+the real controlboard verbs, and streams a joint state) until SIGINT/SIGTERM; tests use it as a
+real process to kill.
 """
 
 from __future__ import annotations
@@ -18,26 +19,92 @@ import zenoh
 
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args, open_session
-from mesh.node import Node, shutdown_on_signals
+from mesh.node import Node, Subscription, shutdown_on_signals
 from mesh.router import free_tcp_endpoint, open_router
 from protocol.codec import decode
 from protocol.errors import ArcheryError, BadRequest, RpcError
 from protocol.messages import Describe, JointCommand, JointState, WorldEvent
 from protocol.parts import PARTS
+from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import robot as rv
+from protocol.verbs.learner import LEARNER_VERBS
 
 __all__ = ["ECHO_SERVICE", "main", "run_echo"]
 
 ECHO_SERVICE = "echo"
 
 
-def _fail(args: dict[str, object]) -> None:
-    raise BadRequest(f"fail was asked to fail with x={args.get('x')!r}")
+def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
+    """A torso controlboard that moves nothing: the real verb table, answered from fixed joint
+    values; `positionMove` refuses a position list of the wrong length (an error reply) and
+    `counters` counts the commands received on `torso/command:i`."""
+    names = list(PARTS["torso"])
+    zeros = [0.0] * len(names)
+    speeds = [0.5] * len(names)
+    targets = list(zeros)
+
+    def set_speeds(a: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
+        given = a.speeds if isinstance(a.speeds, list) else [a.speeds] * len(names)
+        if len(given) != len(names):
+            raise BadRequest(f"setRefSpeeds needs {len(names)} speeds, got {len(given)}")
+        speeds[:] = given
+        return rv.RefSpeedsReply(names=names, speeds=list(speeds))
+
+    def move(a: rv.PositionMoveArgs) -> rv.TargetsReply:
+        wanted = a.names or names
+        if len(a.position) != len(wanted) or not set(wanted) <= set(names):
+            raise BadRequest(
+                f"positionMove needs one position per joint of {wanted}, got {len(a.position)}"
+            )
+        for name, value in zip(wanted, a.position, strict=True):
+            targets[names.index(name)] = value
+        return rv.TargetsReply(names=names, position=list(targets))
+
+    def counters(_: NoArgs) -> rv.CountersReply:
+        return rv.CountersReply(
+            accepted=commands.received,
+            clamped=0,
+            rejected=0,
+            rejected_by_reason={},
+            watchdog_trips=0,
+            last_rejection="",
+            streaming=False,
+            undecodable=commands.dropped,
+        )
+
+    return rv.PART_VERBS.bind(
+        {
+            "getJointNames": lambda _: rv.JointNamesReply(names=names),
+            "getLimits": lambda _: rv.LimitsReply(
+                names=names, min=[-1.0] * len(names), max=[1.0] * len(names), tolerance=0.01
+            ),
+            "getPositions": lambda _: rv.PositionsReply(
+                names=names, position=zeros, velocity=zeros, sim_time=0.0
+            ),
+            "getTargets": lambda _: rv.TargetsReply(names=names, position=list(targets)),
+            "checkMotionDone": lambda _: rv.MotionDoneReply(done=True),
+            "setRefSpeeds": set_speeds,
+            "getRefSpeeds": lambda _: rv.RefSpeedsReply(names=names, speeds=list(speeds)),
+            "positionMove": move,
+            "counters": counters,
+            "status": lambda _: rv.PartStatusReply(
+                part="torso",
+                names=names,
+                motion_done=True,
+                counters=counters(NoArgs()),
+                position=list(targets),
+                velocity=zeros,
+                sim_time=0.0,
+            ),
+        }
+    )
 
 
 def run_echo(net: NetConfig, stop: threading.Event, rate_hz: float = 50.0) -> None:
-    """Serve the sample service until `stop` is set: `torso/rpc:i` verbs echo, fail, count;
-    `torso/state:o` at `rate_hz`; every command on `torso/command:i` is re-published as a
-    `world/events:o` event (so tests can check lossless delivery)."""
+    """Serve the sample service until `stop` is set: a torso controlboard (`torso/rpc:i`, the
+    real verbs, see `_torso_verbs`); `torso/state:o` at `rate_hz`; every command on
+    `torso/command:i` is re-published as a `world/events:o` event (so tests can check lossless
+    delivery)."""
     with Node(ECHO_SERVICE, net) as node:
         keys = node.keys
         events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
@@ -51,17 +118,7 @@ def run_echo(net: NetConfig, stop: threading.Event, rate_hz: float = 50.0) -> No
         commands = node.subscribe(
             keys.command("torso"), JointCommand, mode="fifo", callback=on_command
         )
-        node.serve(
-            keys.part_rpc("torso"),
-            {
-                "echo": lambda args: args,
-                "fail": _fail,
-                "count": lambda args: {
-                    "commands": commands.received,
-                    "dropped": commands.dropped,
-                },
-            },
-        )
+        node.serve(keys.part_rpc("torso"), _torso_verbs(commands))
         node.ready()
         names = list(PARTS["torso"])
         period = 1.0 / rate_hz
@@ -109,15 +166,17 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
             def rpc_ok() -> str:
                 times = []
-                for i in range(200):
+                for _ in range(200):
                     t0 = time.perf_counter()
-                    assert node.call(rpc, "echo", {"i": i}, timeout=timeout) == {"i": i}
+                    reply = node.call_typed(rpc, rv.PART_VERBS["getJointNames"], timeout=timeout)
                     times.append((time.perf_counter() - t0) * 1e3)
+                    assert reply.names == list(PARTS["torso"])
                 return f"200 round trips, median {statistics.median(times):.3f} ms"
 
             def rpc_error() -> str:
                 try:
-                    node.call(rpc, "fail", {"x": 1}, timeout=timeout)
+                    wrong = rv.PositionMoveArgs(position=[0.1])  # the torso has 3 joints
+                    node.call_typed(rpc, rv.PART_VERBS["positionMove"], wrong, timeout=timeout)
                 except RpcError as exc:
                     assert exc.code == "bad_request", exc.code
                     return f"error reply [{exc.code}]"
@@ -126,12 +185,13 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
             def malformed() -> str:
                 reply = node.request(rpc, b"\xc1 not msgpack", timeout=timeout)
                 assert not reply.ok and reply.code == "bad_message", reply
-                assert node.call(rpc, "echo", {"still": "serving"}) == {"still": "serving"}
+                still = node.call_typed(rpc, rv.PART_VERBS["getJointNames"], timeout=timeout)
+                assert still.names == list(PARTS["torso"])
                 return f"rejected [{reply.code}], still serving"
 
             def missing() -> str:
                 try:
-                    node.call(keys.learner_rpc(), "status", timeout=1.0)
+                    node.call_typed(keys.learner_rpc(), LEARNER_VERBS["status"], timeout=1.0)
                 except RpcError as exc:
                     return str(exc)[:60] + "…"
                 raise AssertionError("a timeout was expected")

@@ -39,6 +39,7 @@ from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import Verb, table_for_key
+from protocol.verbs.robot import PART_VERBS
 
 __all__ = ["alive_main", "ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
@@ -268,6 +269,13 @@ def _command_total(counters: dict[str, Any]) -> int:
     return sum(int(counters.get(k, 0)) for k in ("accepted", "rejected", "undecodable"))
 
 
+def _counters(node: Node, rpc_key: str, timeout: float) -> dict[str, Any]:
+    """The command counters of the part whose `rpc:i` is `rpc_key`, as plain data."""
+    reply = node.call_typed(rpc_key, PART_VERBS["counters"], timeout=timeout)
+    counters: dict[str, Any] = msgspec.to_builtins(reply)
+    return counters
+
+
 def _verdict(node: Node, rpc_key: str, before: dict[str, Any], timeout: float) -> str | None:
     """Wait until the owner's counters count the command; the refusal message, or None.
 
@@ -277,7 +285,7 @@ def _verdict(node: Node, rpc_key: str, before: dict[str, Any], timeout: float) -
     """
     deadline = time.monotonic() + timeout
     while True:
-        after = node.call(rpc_key, "counters", timeout=timeout)
+        after = _counters(node, rpc_key, timeout)
         arrived = _command_total(after) - _command_total(before)
         if arrived >= 1:
             break
@@ -332,7 +340,7 @@ def write_main(argv: list[str] | None = None) -> int:
             before, note = None, "its counters verb gave no counts"
             if rpc_key is not None:
                 try:
-                    before = node.call(rpc_key, "counters", timeout=args.timeout)
+                    before = _counters(node, rpc_key, args.timeout)
                 except RpcError as exc:
                     note = f"{rpc_key} has no command counters ({exc.code})"
             sent = pub.put(message)
@@ -371,34 +379,34 @@ def rpc_main(argv: list[str] | None = None) -> int:
         if not isinstance(call_args, dict):
             raise DecodeError(f"the arguments must be a JSON object, got {args.args!r}")
         verb = _typed_verb(args.key, args.verb)
-        if verb is not None:  # checked here, before any network work
-            try:
-                call_args = msgspec.convert(call_args, verb.args, strict=True)
-            except msgspec.ValidationError as exc:
-                raise BadRequest(bad_args_message(verb, exc)) from None
+        try:  # checked here, before any network work
+            call_args = msgspec.convert(call_args, verb.args, strict=True)
+        except msgspec.ValidationError as exc:
+            raise BadRequest(bad_args_message(verb, exc)) from None
         return net, verb, call_args
 
-    def body(checked: tuple[NetConfig, Verb[Any, Any] | None, Any]) -> int:
+    def body(checked: tuple[NetConfig, Verb[Any, Any], Any]) -> int:
         net, verb, call_args = checked
         with Node(None, net) as node:
-            if verb is None:  # not in the local tables: the service decides
-                result = node.call(args.key, args.verb, call_args, timeout=args.timeout)
-            else:
-                reply = node.call_typed(args.key, verb, call_args, timeout=args.timeout)
-                result = msgspec.to_builtins(reply, builtin_types=(bytes,))
+            reply = node.call_typed(args.key, verb, call_args, timeout=args.timeout)
+            result = msgspec.to_builtins(reply, builtin_types=(bytes,))
         print(json.dumps(to_jsonable(result)), flush=True)
         return 0
 
     return _run("rpc", check, body)
 
 
-def _typed_verb(key: str, name: str) -> Verb[Any, Any] | None:
-    """The verb `name` of the local table for `key`, or None (untyped, or unknown here)."""
-    try:
-        table = table_for_key(key)
-    except KeyNameError:
-        return None
-    return table[name] if name in table.names() else None
+def _typed_verb(key: str, name: str) -> Verb[Any, Any]:
+    """The verb `name` of the verb table for `key`.
+
+    Raises:
+        KeyNameError: no verb table serves `key`.
+        BadRequest: the table has no verb `name` (the message lists its verbs).
+    """
+    table = table_for_key(key)
+    if name not in table.names():
+        raise BadRequest(f"{key} has no verb {name!r}; verbs: {', '.join(table.names())}")
+    return table[name]
 
 
 def view_main(argv: list[str] | None = None) -> int:

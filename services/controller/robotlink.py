@@ -29,6 +29,7 @@ from protocol.errors import RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
 from protocol.robotspec import STATE_MAX_AGE
+from protocol.verbs.robot import PART_VERBS, SetRefSpeedsArgs
 from services.controller.cartesian import reference_speeds
 
 __all__ = ["MoveResult", "RobotLink"]
@@ -127,15 +128,15 @@ class RobotLink:
         """(lower, upper) software limits of `part` (rad, YARP order), asked once per part."""
         with self._lock:
             if part not in self._limits:
-                reply = self._node.call(
-                    self._keys.part_rpc(part), "getLimits", timeout=self.robot_timeout
+                reply = self._node.call_typed(
+                    self._keys.part_rpc(part), PART_VERBS["getLimits"], timeout=self.robot_timeout
                 )
-                if list(reply["names"]) != list(PARTS[part]):
+                if list(reply.names) != list(PARTS[part]):
                     raise RpcError(
-                        f"{self._keys.part_rpc(part)} getLimits names {reply['names']} are not "
+                        f"{self._keys.part_rpc(part)} getLimits names {reply.names} are not "
                         f"the {part} joints {list(PARTS[part])}"
                     )
-                self._limits[part] = (np.asarray(reply["min"]), np.asarray(reply["max"]))
+                self._limits[part] = (np.asarray(reply.min), np.asarray(reply.max))
             return self._limits[part]
 
     def move(self, targets: Mapping[str, float], traj_time: float, timeout: float) -> MoveResult:
@@ -153,10 +154,10 @@ class RobotLink:
             wanted = np.array([targets.get(j, current[j]) for j in PARTS[part]])
             sent[part] = np.clip(wanted, lower, upper)
             delta = sent[part] - np.array([current[j] for j in PARTS[part]])
-            self._node.call(
+            self._node.call_typed(
                 self._keys.part_rpc(part),
-                "setRefSpeeds",
-                {"speeds": reference_speeds(delta, traj_time).tolist()},
+                PART_VERBS["setRefSpeeds"],
+                SetRefSpeedsArgs(speeds=reference_speeds(delta, traj_time).tolist()),
                 timeout=self.robot_timeout,
             )
         marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in parts}

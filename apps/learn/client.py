@@ -1,0 +1,43 @@
+"""The learner's verbs as its clients call them: typed through `LEARNER_VERBS` (a start request
+is checked against `StartArgs` before it is sent), the status reply as plain data."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from mesh.node import Node, bad_args_message
+from protocol.errors import BadRequest
+from protocol.verbs.learner import LEARNER_VERBS, StartArgs
+
+__all__ = ["learner_call", "start_args"]
+
+
+def start_args(request: dict[str, Any]) -> StartArgs:
+    """A `start` request (plain data) as the verb's `StartArgs`.
+
+    Raises:
+        BadRequest: it does not fit (the message names the field and what it allows).
+    """
+    try:
+        return msgspec.convert(request, StartArgs)
+    except msgspec.ValidationError as exc:
+        raise BadRequest(bad_args_message(LEARNER_VERBS["start"], exc)) from None
+
+
+def learner_call(
+    node: Node, verb: str, request: dict[str, Any] | None = None, *, timeout: float
+) -> dict[str, Any]:
+    """Call the learner's `verb` (start, stop, status) on this node's robot; its status reply
+    as plain data (fields the learner did not set are left out).
+
+    Raises:
+        BadRequest: a `start` request that does not fit `StartArgs`.
+        RpcError, RpcTimeout: as `Node.call_typed`.
+    """
+    typed = LEARNER_VERBS[verb]
+    args = start_args(request or {}) if verb == "start" else None
+    reply = node.call_typed(node.keys.learner_rpc(), typed, args, timeout=timeout)
+    out: dict[str, Any] = msgspec.to_builtins(reply)
+    return out
