@@ -50,7 +50,8 @@ from apps.progress import progress_bar
 from benchmarks.machine import cpu_model
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig, open_session
-from mesh.node import Node, Publisher
+from mesh.node import Node
+from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
 from protocol.messages import Image, RpcRequest

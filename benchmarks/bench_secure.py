@@ -42,8 +42,10 @@ from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
 from benchmarks.machine import cpu_model
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig
-from mesh.node import Node, Publisher, Subscription
+from mesh.node import Node
+from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint, spawn_router
+from mesh.subscription import Subscription
 from protocol.messages import Image, Rollout
 from tests.rpc import rpc_call
 

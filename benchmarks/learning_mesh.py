@@ -10,8 +10,9 @@ from pathlib import Path
 
 from apps.progress import progress_bar
 from apps.up.launcher import SERVICES, Launcher
-from mesh.node import Node, Subscription
+from mesh.node import Node
 from mesh.router import free_tcp_endpoint
+from mesh.subscription import Subscription
 from protocol.messages import Rollout
 
 __all__ = ["learning_mesh", "progress_bar"]

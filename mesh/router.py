@@ -22,7 +22,7 @@ from mesh.netflags import (
     add_network_args,
     open_session,
 )
-from mesh.node import shutdown_on_signals
+from mesh.signals import shutdown_on_signals
 from protocol.errors import ConfigError
 
 __all__ = ["free_tcp_endpoint", "main", "open_router", "spawn_router", "wait_for_endpoint"]

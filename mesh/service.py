@@ -12,7 +12,7 @@ from typing import TypeVar
 
 from mesh.cliargs import ArgumentParser
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import shutdown_on_signals
+from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, DuplicateService
 
 __all__ = ["service_main"]

@@ -13,8 +13,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from protocol.parts import PARTS
-from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME, home_of
+from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
 from sim.bow import Bow
 from sim.errors import ConfigError
 from sim.geometry import TARGET_DISTANCE
@@ -26,7 +25,6 @@ __all__ = [
     "ARROW_TIP_SITE",
     "BOWSTRING_TENDON",
     "BOW_HAND_SITE",
-    "HOME_POSTURE",
     "RING_COLOURS",
     "SIDE_CAMERA",
     "STRING_HAND_SITE",
@@ -56,9 +54,6 @@ RING_COLOURS: tuple[tuple[float, tuple[float, float, float, float]], ...] = (
     (0.25, (0.96, 0.96, 0.96, 1.0)),  # white
 )
 ARROW_TIP_RGBA = (0.10, 1.00, 0.10, 1.0)  # bright green suction-cup tip
-
-# `protocol.robotspec.HOME_POSTURE` per part (rad, YARP order): arms bent in front.
-HOME_POSTURE: dict[str, tuple[float, ...]] = {part: home_of(part) for part in PARTS}
 
 
 @dataclass(frozen=True)

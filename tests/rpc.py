@@ -8,7 +8,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from mesh.node import Node, reply_error
+from mesh.node import Node
+from mesh.rpc_client import reply_error
 from protocol.codec import encode
 from protocol.errors import ArcheryError
 from protocol.messages import RpcRequest

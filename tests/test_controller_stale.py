@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from mesh.netflags import NetConfig
-from mesh.node import Node, Subscription
+from mesh.node import Node
+from mesh.subscription import Subscription
 from protocol.errors import RpcError
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS

@@ -25,7 +25,8 @@ import pytest
 from apps.dashboard.server import Dashboard, bind
 from apps.dashboard.watch import MeshWatch
 from mesh.netflags import NetConfig
-from mesh.node import Node, Publisher
+from mesh.node import Node
+from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint
 from protocol.messages import Image, JointState, Rollout
 from protocol.verbs.detector import DETECTOR_VERBS, FrameReply

@@ -17,8 +17,9 @@ import pytest
 
 from apps.learn.follow import follow
 from apps.up.launcher import SERVICES, Launcher
-from mesh.node import Node, Subscription
+from mesh.node import Node
 from mesh.router import free_tcp_endpoint
+from mesh.subscription import Subscription
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from tests.conftest import archery

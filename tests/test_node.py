@@ -18,7 +18,6 @@ from mesh.node import Node
 from protocol.errors import BadRequest, RpcError, RpcTimeout
 from protocol.messages import JointState, WorldEvent
 from protocol.verbs import Args, NoArgs, Reply, Verb, VerbTable
-from protocol.verbs.detector import DETECTOR_VERBS
 from protocol.verbs.robot import PART_VERBS
 from tests.rpc import rpc_call, some_verbs
 
@@ -140,7 +139,7 @@ def test_rpc_timeout_names_the_key(pair: tuple[Node, Node]) -> None:
         gate.wait(10)
         return SpeedReply(speed=0.0)
 
-    server.serve(key, some_verbs(DETECTOR_VERBS, {"measure": wait}))
+    server.serve(key, some_verbs(TEST_VERBS, {"measure": wait}))
     server.ready()
     client.wait_alive(["server"], 10)
     start = time.monotonic()

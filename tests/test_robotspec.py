@@ -17,7 +17,6 @@ from protocol.parts import ARM_PARTS, PARTS
 from services.controller.model import ArmsModel, load_arms_model
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
-from sim.scene_config import HOME_POSTURE as SCENE_HOME
 from sim.scene_config import SceneConfig
 
 POSITION_TOL = 1e-3  # m
@@ -104,7 +103,6 @@ def test_home_is_inside_the_limits_of_both_models(scene: ScenePhysics, arms: Arm
         margin = scene.joint_margins(part)
         home = np.array(robotspec.home_of(part))
         assert np.all(home >= lower + margin) and np.all(home <= upper - margin), part
-        assert SCENE_HOME[part] == robotspec.home_of(part)
 
 
 def test_home_of_names_the_parts() -> None:

@@ -11,6 +11,7 @@ import pinocchio as pin
 import pytest
 
 from protocol.parts import PARTS
+from protocol.robotspec import home_of
 from sim.errors import CommandError, ConfigError, SceneError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
 from sim.model_build import build_scene
@@ -20,7 +21,6 @@ from sim.scene_config import (
     ARROW_TIP_SITE,
     BOW_HAND_SITE,
     BOWSTRING_TENDON,
-    HOME_POSTURE,
     RING_COLOURS,
     SIDE_CAMERA,
     STRING_HAND_SITE,
@@ -32,6 +32,9 @@ from sim.urdf import MODEL_NAME, urdf_frame_placement
 from tests.postures import archery_posture
 
 CHEAP = SceneConfig(meshes=False)
+
+# `protocol.robotspec.HOME_POSTURE` per part (rad, YARP order)
+HOME_BY_PART = {part: home_of(part) for part in PARTS}
 
 
 @pytest.fixture(scope="module")
@@ -162,12 +165,12 @@ def test_scene_steps_stably_for_minutes(cheap_model: mujoco.MjModel) -> None:
 def test_servos_hold_a_posture_against_gravity(cheap_model: mujoco.MjModel) -> None:
     physics = ScenePhysics(cheap_model)
     physics.reset()
-    for part, values in HOME_POSTURE.items():
+    for part, values in HOME_BY_PART.items():
         physics.set_joint_positions(part, np.asarray(values))
         physics.data.ctrl[physics.actuator_indices(part)] = values
     for _ in range(round(1.0 / physics.timestep)):
         physics.step()
-    for part, values in HOME_POSTURE.items():
+    for part, values in HOME_BY_PART.items():
         np.testing.assert_allclose(physics.joint_positions(part), values, atol=1e-6)
 
 
@@ -202,7 +205,7 @@ def test_target_camera_frames_the_whole_target_unoccluded(
 ) -> None:
     physics = ScenePhysics(full_model)
     if posture == "home":
-        joints = {part: np.asarray(values) for part, values in HOME_POSTURE.items()}
+        joints = {part: np.asarray(values) for part, values in HOME_BY_PART.items()}
     else:
         joints = archery_posture(full_model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
     for part, values in joints.items():

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mesh.netflags import NetConfig
-from mesh.node import Node, bad_args_message
+from mesh.node import Node
+from mesh.rpc_server import bad_args_message
 from protocol.errors import RpcError
 from protocol.messages import Image, RpcReply
 from protocol.verbs import TABLES, NoArgs, Reply, Verb, VerbTable, table_for_key

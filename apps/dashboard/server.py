@@ -32,8 +32,9 @@ from urllib.parse import urlsplit
 from apps.dashboard.watch import MeshWatch
 from mesh.cliargs import ArgumentParser, int_in
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node, shutdown_on_signals
+from mesh.node import Node
 from mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
+from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DEFAULT_PORT", "Dashboard", "main"]

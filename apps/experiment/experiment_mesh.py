@@ -39,7 +39,7 @@ from apps.experiment.fleet import FleetRobot, NoRobot, StackWatch, open_fleet
 from apps.progress import progress_bar
 from mesh.logs import DEFAULT_SPEC
 from mesh.netflags import NetConfig
-from mesh.node import shutdown_on_signals
+from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.robotspec import THETA0
 from services.learner.algorithms.base import Bounds

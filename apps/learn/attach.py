@@ -20,7 +20,8 @@ from typing import Any
 
 from apps.learn.client import learner_call
 from apps.learn.follow import SessionLost, follow, result_line
-from mesh.node import Node, Subscription
+from mesh.node import Node
+from mesh.subscription import Subscription
 from protocol.errors import ArcheryError, RpcError
 from protocol.messages import Rollout
 from services.learner.journal import (

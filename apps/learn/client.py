@@ -7,7 +7,8 @@ from typing import Any
 
 import msgspec
 
-from mesh.node import Node, bad_args_message
+from mesh.node import Node
+from mesh.rpc_server import bad_args_message
 from protocol.errors import BadRequest
 from protocol.verbs.learner import LEARNER_VERBS, StartArgs
 

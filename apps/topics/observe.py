@@ -24,9 +24,10 @@ import zenoh
 from apps.topics.recording import COMPRESSIONS, Recorder, Recording, open_recording
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node, shutdown_on_signals
+from mesh.node import Node
 from mesh.patterns import check_pattern, stream_type
 from mesh.priority import add_nice_arg, lower_priority
+from mesh.signals import shutdown_on_signals
 from protocol.codec import encode
 from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
 from protocol.messages import Image

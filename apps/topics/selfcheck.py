@@ -19,8 +19,10 @@ import zenoh
 
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args, open_session
-from mesh.node import Node, Subscription, shutdown_on_signals
+from mesh.node import Node
 from mesh.router import free_tcp_endpoint, open_router
+from mesh.signals import shutdown_on_signals
+from mesh.subscription import Subscription
 from protocol.codec import decode
 from protocol.errors import ArcheryError, BadRequest, RpcError
 from protocol.messages import Describe, JointCommand, JointState, WorldEvent

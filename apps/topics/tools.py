@@ -23,8 +23,9 @@ from mesh.cliargs import (
 )
 from mesh.instances import describe_all
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node, bad_args_message
+from mesh.node import Node
 from mesh.patterns import check_pattern, is_wildcard, stream_type
+from mesh.rpc_server import bad_args_message
 from mesh.tokens import TokenSet
 from protocol.codec import decode, from_jsonable, to_jsonable
 from protocol.errors import (

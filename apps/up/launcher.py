@@ -43,8 +43,9 @@ from apps.up.restart_policy import POLICIES, RestartPolicy, describe_status
 from apps.up.supervisor import GiveUp, Supervisor
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
 from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
-from mesh.node import Node, shutdown_on_signals
+from mesh.node import Node
 from mesh.router import wait_for_endpoint
+from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
 from protocol.keys import DEFAULT_ROBOT
 

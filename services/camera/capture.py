@@ -29,7 +29,8 @@ import cv2
 import numpy as np
 
 from mesh.jobs import JobQueue
-from mesh.node import Node, Publisher
+from mesh.node import Node
+from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Image, WorldState
 from protocol.verbs import robot as robot_verbs

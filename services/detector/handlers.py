@@ -13,7 +13,8 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from mesh.node import Node, Publisher
+from mesh.node import Node
+from mesh.publisher import Publisher
 from protocol.errors import BadRequest, RpcTimeout, UpstreamLost
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image

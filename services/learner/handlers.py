@@ -11,7 +11,8 @@ from typing import Any
 
 import msgspec
 
-from mesh.node import Node, Publisher
+from mesh.node import Node
+from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Rollout
 from protocol.verbs import NoArgs, ServedVerbs

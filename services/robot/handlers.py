@@ -10,7 +10,7 @@ from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
 
-from mesh.node import Subscription
+from mesh.subscription import Subscription
 from protocol.messages import JointCommand
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv

@@ -1,0 +1,211 @@
+"""Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
+arguments, handled on a worker thread (or inline for non-blocking verbs), replied `RpcReply`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import threading
+import time
+from typing import Any, TypeVar
+
+import msgspec
+import zenoh
+
+from protocol.codec import MAX_PAYLOAD_BYTES, encode
+from protocol.errors import (
+    ArcheryError,
+    DecodeError,
+    UpstreamLost,
+)
+from protocol.messages import (
+    Message,
+    RpcReply,
+)
+from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
+from protocol.verbs.schema import field_text
+
+__all__ = ["RpcServer", "bad_args_message"]
+
+A = TypeVar("A", bound=msgspec.Struct)
+log = logging.getLogger("archery.node")
+
+_STOP = object()
+
+
+class _WireRequest(Message, frozen=True, tag="RpcRequest"):
+    """An `RpcRequest` as the server reads it: the args stay msgpack until the verb is known,
+    then decode straight into the verb's argument type."""
+
+    verb: str
+    args: msgspec.Raw = msgspec.Raw(b"\x80")  # an empty map
+
+
+class _Untaken(msgspec.Struct, frozen=True, tag="-", tag_field="type"):
+    """Never sent: in a union with `_WireRequest` it makes msgspec require the `type` tag (a
+    lone tagged struct decodes without one)."""
+
+
+_request_decoder = msgspec.msgpack.Decoder(_WireRequest | _Untaken)
+_NO_TYPE = "missing required field `type`"
+
+
+def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
+    """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
+    text = str(exc)
+    what, _, path = text.partition(" - at `")
+    path = path.rstrip("`") or "$"
+    if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
+        inner, _, what = what.partition(" is ")
+        path = path + inner[1:]
+        what = f"Expected a finite number, got {what.split(';')[0]}"
+    message = f"invalid argument of {verb.name} at `{path}`: {what}"
+    allowed = field_text(verb.schema()["args"], path)
+    if allowed is not None:
+        return f"{message}; {allowed[0]} must be {allowed[1]}"
+    names = ", ".join(verb.args.__struct_fields__) or "none"
+    return f"{message}; arguments of {verb.name}: {names}"
+
+
+class RpcServer:
+    """Serves an `rpc:i` key: decodes `RpcRequest`, runs the verb's handler, replies `RpcReply`.
+
+    Requests for blocking verbs (the default) are handled one at a time, in order, on the
+    server's worker thread (like a YARP RPC port), so a slow handler never blocks Zenoh's
+    threads. A verb declared `blocking=False` (status and getters that never wait) is answered
+    right on the receive path, without a thread hand-off, so it is neither slowed by the hand-off
+    nor held up behind a blocking verb of the same port; it may run while a blocking handler
+    does. Requests that reach no handler (undecodable, unknown verb) are answered there too.
+
+    This is the one place a request is validated: for a typed verb table (`ServedVerbs`) the
+    request's args are decoded straight into the verb's `Args` type, and anything that does not
+    fit (wrong type, out of range, NaN, unknown or missing field) is answered `bad_request`
+    naming the verb, the field and what is allowed; the handler gets the typed args and returns
+    the verb's `Reply`. An `ArcheryError` becomes an error reply
+    with its code, any other exception an "internal" error; a payload that is not a request (not
+    msgpack, no `type` tag, nested too deep) `bad_message`. The server keeps serving.
+    """
+
+    def __init__(self, session: zenoh.Session, key: str, verbs: ServedVerbs) -> None:
+        if not isinstance(verbs, ServedVerbs):
+            raise TypeError(f"serve {key} takes a bound verb table, got {type(verbs).__name__}")
+        self.key = key
+        self.table = verbs.table
+        self.handlers: dict[str, BoundVerb[Any, Any]] = dict(verbs.bound)
+        self.inline = frozenset(
+            name for name, entry in self.handlers.items() if not entry.verb.blocking
+        )
+        self.served = 0
+        self.errors = 0
+        self._seq = itertools.count(1)
+        self._counts = threading.Lock()
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._queryable = session.declare_queryable(key, self._on_query)
+        self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
+        self._thread.start()
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        """Zenoh's thread: decode the request once; answer it here unless its verb blocks."""
+        try:
+            request: _WireRequest | DecodeError = self._request(query)
+        except DecodeError as exc:
+            request = exc
+        except Exception:
+            log.exception("could not read a request on %s", self.key)
+            query.drop()
+            return
+        if (
+            isinstance(request, _WireRequest)
+            and request.verb in self.handlers
+            and request.verb not in self.inline
+        ):
+            self._queue.put((query, request))
+        else:
+            self._answer(query, request)
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            self._answer(*item)
+
+    def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
+        try:
+            query.reply(self.key, encode(self._handle(request, next(self._seq))))
+        except Exception:
+            log.exception("could not reply on %s", self.key)
+        finally:
+            query.drop()
+
+    def _error(self, code: str, message: str, seq: int, service: str = "") -> RpcReply:
+        with self._counts:
+            self.errors += 1
+        return RpcReply(
+            ok=False, code=code, message=message, service=service, seq=seq, stamp=time.time()
+        )
+
+    def _request(self, query: zenoh.Query) -> _WireRequest:
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        if len(payload) > MAX_PAYLOAD_BYTES:
+            raise DecodeError(
+                f"request of {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes"
+            )
+        try:
+            request = _request_decoder.decode(payload)
+        except msgspec.ValidationError as exc:
+            if _NO_TYPE in str(exc):
+                raise DecodeError(
+                    "the request map has no `type` field: an RpcRequest is a msgpack map "
+                    "{type: 'RpcRequest', verb: str, args: map}"
+                ) from None
+            raise DecodeError(f"invalid RpcRequest: {exc}") from None
+        except msgspec.DecodeError as exc:
+            raise DecodeError(f"payload is not msgpack: {exc}") from None
+        except RecursionError:
+            raise DecodeError("the request nests too deep to decode") from None
+        if not isinstance(request, _WireRequest):
+            raise DecodeError("the request's `type` is not 'RpcRequest'")
+        return request
+
+    def _handle(self, request: _WireRequest | DecodeError, seq: int) -> RpcReply:
+        with self._counts:
+            self.served += 1
+        if isinstance(request, DecodeError):
+            return self._error(request.code, f"bad request on {self.key}: {request}", seq)
+        entry = self.handlers.get(request.verb)
+        if entry is None:
+            verbs = ", ".join(sorted(self.handlers))
+            message = f"{self.key} has no verb {request.verb!r}; verbs: {verbs}"
+            return self._error("unknown_verb", message, seq)
+        try:
+            verb = entry.verb
+            try:
+                args = verb.args_decoder.decode(request.args)
+            except msgspec.ValidationError as exc:
+                return self._error("bad_request", bad_args_message(verb, exc), seq)
+            except (msgspec.DecodeError, RecursionError):
+                message = f"{verb.name}: the args are not msgpack or nest too deep"
+                return self._error("bad_message", message, seq)
+            result = entry.handler(args)
+            if not isinstance(result, verb.reply):
+                raise TypeError(
+                    f"the handler returned {type(result).__name__}, not {verb.reply.__name__}"
+                )
+            return RpcReply(ok=True, result=result, seq=seq, stamp=time.time())
+        except UpstreamLost as exc:
+            return self._error(exc.code, exc.message, seq, exc.service)
+        except ArcheryError as exc:
+            return self._error(exc.code, exc.message, seq)
+        except Exception as exc:
+            log.exception("%s %s failed", self.key, request.verb)
+            return self._error("internal", f"{request.verb} failed: {exc!r}", seq)
+
+    def close(self) -> None:
+        """Stop serving (pending requests get no reply and time out at the caller)."""
+        if self._thread.is_alive():
+            self._queryable.undeclare()
+            self._queue.put(_STOP)
+            self._thread.join(timeout=5)
