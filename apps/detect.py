@@ -24,13 +24,13 @@ import numpy as np
 from apps.progress import progress_bar
 from mesh.cliargs import ArgumentParser
 from protocol.errors import ArcheryError
-from services.detector.calibration import load_pixels, sample_pixels
+from services.detector.calibration import fit_from_marks, load_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.config import add_settings_arguments, settings_from_args
-from services.detector.detect import WHITE_SIDE, Detector, check_image, downscale
+from services.detector.detect import Detector, check_image
 from services.detector.errors import ImageError
 from services.detector.overlay import draw_overlay
-from services.detector.whitebalance import apply_gains, estimate_white
+from services.detector.whitebalance import apply_gains
 
 __all__ = [
     "calibrate_main",
@@ -85,13 +85,10 @@ def calibrate_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         rgb = read_rgb(args.image)
-        marks = load_pixels(args.pixels)
-        target = sample_pixels(rgb, marks["target"], "target")
-        arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
-        white = estimate_white(downscale(rgb, WHITE_SIDE)[0])
-        model = ColourModel.fit(
-            target, arrow, max_components=args.max_components, seed=args.seed, white_rgb=white
+        fitted = fit_from_marks(
+            rgb, load_pixels(args.pixels), max_components=args.max_components, seed=args.seed
         )
+        model = fitted.model
         model.save(args.out)
     except (ArcheryError, OSError) as exc:
         print(f"archery calibrate: {exc}", file=sys.stderr)
@@ -99,8 +96,8 @@ def calibrate_main(argv: list[str] | None = None) -> int:
     summary = {
         "model": args.out,
         **model.summary(),
-        "target_pixels": len(target),
-        "arrow_pixels": 0 if arrow is None else len(arrow),
+        "target_pixels": fitted.target_pixels,
+        "arrow_pixels": fitted.arrow_pixels,
         "white_rgb": model.white_rgb,
     }
     print(json.dumps(summary))

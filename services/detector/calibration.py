@@ -8,15 +8,19 @@ the row; an entry may instead be `{"rect": [x, y, w, h]}` or `{"polygon": [[x, y
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from services.detector.colour_model import ColourModel
+from services.detector.detect import WHITE_SIDE, downscale
 from services.detector.errors import CalibrationError
+from services.detector.whitebalance import estimate_white
 
-__all__ = ["load_pixels", "parse_pixels", "sample_pixels"]
+__all__ = ["MarkedFit", "fit_from_marks", "load_pixels", "parse_pixels", "sample_pixels"]
 
 
 def _is_number(value: Any) -> bool:
@@ -129,3 +133,30 @@ def load_pixels(path: str | Path) -> dict[str, list[Any]]:
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CalibrationError(f"cannot read calibration pixels {str(path)!r}: {exc}") from None
     return parse_pixels(data, str(path))
+
+
+@dataclass(frozen=True)
+class MarkedFit:
+    """A colour model fitted from an image's marked pixels, and how many pixels of each."""
+
+    model: ColourModel
+    target_pixels: int
+    arrow_pixels: int
+
+
+def fit_from_marks(
+    rgb: np.ndarray, marks: dict[str, Any], *, max_components: int = 5, seed: int = 0
+) -> MarkedFit:
+    """Fit the colour model from the pixels `marks` names (`parse_pixels`) in the HxWx3 RGB
+    image, with the image's white (`whitebalance.estimate_white`) as its calibration white.
+
+    Raises:
+        CalibrationError: a mark outside the image, too few pixels, or colours that overlap.
+    """
+    target = sample_pixels(rgb, marks["target"], "target")
+    arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
+    white = estimate_white(downscale(rgb, WHITE_SIDE)[0])
+    model = ColourModel.fit(
+        target, arrow, max_components=max_components, seed=seed, white_rgb=white
+    )
+    return MarkedFit(model, len(target), 0 if arrow is None else len(arrow))

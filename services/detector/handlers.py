@@ -22,13 +22,12 @@ from protocol.robotspec import CAMERA
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import detector as dv
 from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
-from services.detector.calibration import parse_pixels, sample_pixels
+from services.detector.calibration import fit_from_marks, parse_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.config import DetectorConfig
-from services.detector.detect import WHITE_SIDE, Detection, Detector, downscale
+from services.detector.detect import Detection, Detector
 from services.detector.errors import DetectorError
 from services.detector.overlay import draw_overlay, encode_png
-from services.detector.whitebalance import estimate_white
 
 __all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
 
@@ -103,17 +102,12 @@ class DetectorHandlers:
             raise UpstreamLost(CAMERA, f"the camera did not answer: {exc.message}") from None
 
     def _calibrate_from(self, image: Image, pixels: Any) -> dv.CalibrateReply:
-        marks = parse_pixels(pixels, "pixels")
-        rgb = image.to_numpy()
-        target = sample_pixels(rgb, marks["target"], "target")
-        arrow = sample_pixels(rgb, marks["arrow"], "arrow") if "arrow" in marks else None
-        white = estimate_white(downscale(rgb, WHITE_SIDE)[0])
-        model = ColourModel.fit(target, arrow, white_rgb=white)
-        self._set_model(model, save=True)
+        fitted = fit_from_marks(image.to_numpy(), parse_pixels(pixels, "pixels"))
+        self._set_model(fitted.model, save=True)
         return dv.CalibrateReply(
-            **model.summary(),
-            target_pixels=len(target),
-            arrow_pixels=0 if arrow is None else len(arrow),
+            **fitted.model.summary(),
+            target_pixels=fitted.target_pixels,
+            arrow_pixels=fitted.arrow_pixels,
             frame_sim_time=image.sim_time,
             saved=self._config.model,
         )
