@@ -63,7 +63,7 @@ from apps.drills.verdict import DrillResult
 from apps.progress import progress_bar
 from apps.up.launch_config import SERVICES
 from mesh.cliargs import ArgumentParser, check_writable_dir
-from protocol.errors import ConfigError
+from protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DRILLS", "QUICK", "Drill", "Drills", "main", "render", "run_drills"]
 
@@ -88,7 +88,12 @@ class Drills:
         if self._mesh is not None:
             try:
                 self._mesh.wait_alive(timeout=30)
-            except Exception:
+            except ArcheryError as exc:  # said, not silent: the next drill gets a fresh mesh
+                print(
+                    f"archery drill: the mesh is not whole ({exc}); starting a fresh one",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 self.discard()
         if self._mesh is None:
             self._meshes += 1
