@@ -37,7 +37,7 @@ from apps.detect import read_rgb, write_png
 from benchmarks.machine import cpu_model, pin_one_core
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel, Gmm, rgb_to_uv
-from services.detector.detect import Detector, eq7_centroid, exact_memberships
+from services.detector.detect import Detector, eq7_centroid
 from services.detector.overlay import draw_overlay
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE
@@ -45,7 +45,9 @@ from sim.model_build import build_scene
 from sim.render import SceneRenderer, calibration_frame
 from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
+from tests.detector_reference import exact_memberships, locate
 from tests.postures import archery_posture
+from tests.world_steps import move_until_done
 
 __all__ = ["main"]
 
@@ -116,7 +118,7 @@ def _landings(renderer: SceneRenderer, shots: int) -> list[tuple[np.ndarray, np.
         world.reset(seed)
         for part, values in posture.items():
             world.set_joint_targets(part, values)
-        world.move_until_done(15.0)
+        move_until_done(world, 15.0)
         world.nock()
         landing = world.release()
         if landing.hit and landing.r is not None:
@@ -170,14 +172,14 @@ def main(argv: list[str] | None = None) -> int:
     lut = _times_ms(lambda: detector.detect(frame), args.repeats)
     lookup = _times_ms(lambda: detector.memberships(frame), args.repeats)
     sk = _times_ms(
-        lambda: detector.locate(*_sklearn_memberships(model, mixtures, frame)),
+        lambda: locate(detector, *_sklearn_memberships(model, mixtures, frame)),
         max(3, args.repeats // 10),
     )
     exact = _times_ms(
-        lambda: detector.locate(*exact_memberships(model, frame)), max(3, args.repeats // 10)
+        lambda: locate(detector, *exact_memberships(model, frame)), max(3, args.repeats // 10)
     )
-    by_lut = detector.locate(*detector.memberships(frame))
-    by_sk = detector.locate(*_sklearn_memberships(model, mixtures, frame))
+    by_lut = locate(detector, *detector.memberships(frame))
+    by_sk = locate(detector, *_sklearn_memberships(model, mixtures, frame))
     agree = max(
         float(np.hypot(*np.subtract(a.px, b.px)))
         for a, b in ((by_lut.target, by_sk.target), (by_lut.arrow, by_sk.arrow))

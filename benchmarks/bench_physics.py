@@ -31,6 +31,7 @@ from sim.scene_config import SIDE_CAMERA, TARGET_CAMERA, SceneConfig
 from sim.urdf import load_urdf_model
 from sim.world import ArcheryWorld, WorldConfig
 from tests.postures import archery_posture
+from tests.world_steps import move_until_done
 
 __all__ = ["main"]
 
@@ -82,7 +83,7 @@ def _timed(repeats: int, setup: Callable[[], None], run: Callable[[], object]) -
 def _go(world: ArcheryWorld, posture: dict[str, np.ndarray]) -> None:
     for part, values in posture.items():
         world.set_joint_targets(part, values)
-    if not world.move_until_done(timeout=15.0):
+    if not move_until_done(world, timeout=15.0):
         raise RuntimeError("the posture was not reached within 15 simulated seconds")
 
 
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         world.nock()
 
     def shot() -> None:
-        world.move_until_done(timeout=15.0)
+        move_until_done(world, timeout=15.0)
         world.release()
 
     shot_ms = _timed(args.repeats, fresh, shot)

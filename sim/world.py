@@ -345,20 +345,6 @@ class ArcheryWorld:
             error < self.config.position_tolerance and speed < self.config.velocity_tolerance
         )
 
-    def move_until_done(self, timeout: float = 10.0, check_every: float = 0.01) -> bool:
-        """Step until `motion_done()` or `timeout` simulated seconds; True if done.
-
-        Motion is checked every `check_every` simulated seconds. An arrow in flight keeps flying.
-        """
-        if not math.isfinite(timeout) or timeout < 0:
-            raise CommandError(f"timeout must be a finite number of seconds >= 0, got {timeout!r}")
-        end = self.physics.time + timeout
-        while not self.motion_done():
-            if self.physics.time >= end - 0.5 * self._dt:
-                return False
-            self.step(min(check_every, end - self.physics.time))
-        return True
-
     # -- time -------------------------------------------------------------------------------
     @property
     def sim_time(self) -> float:

@@ -17,7 +17,7 @@ import pytest
 from protocol.errors import ConfigError
 from services.detector.calibration import sample_pixels
 from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector, DetectorSettings, exact_memberships
+from services.detector.detect import Detector, DetectorSettings
 from services.detector.errors import ImageError
 from sim.arrow import arrow_quat
 from sim.bow import Bow
@@ -26,7 +26,9 @@ from sim.model_build import build_scene
 from sim.render import SceneRenderer, calibration_frame, project
 from sim.scene_config import ARROW_TIP_SITE, TARGET_CENTRE_SITE, SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
+from tests.detector_reference import exact_memberships, locate
 from tests.postures import archery_posture
+from tests.world_steps import move_until_done
 
 SCENE = SceneConfig(meshes=False)
 # a noisy bow, so the shots spread over the face
@@ -69,7 +71,7 @@ def _shoot(rig: Rig, seed: int):
     world.reset(seed)
     for part, values in rig.posture.items():
         world.set_joint_targets(part, values)
-    assert world.move_until_done(15.0)
+    assert move_until_done(world, 15.0)
     world.nock()
     return world.release()
 
@@ -122,8 +124,8 @@ def test_the_arrow_tip_is_found_next_to_its_projection(rig: Rig) -> None:
 def test_lut_matches_the_exact_gmm_within_a_pixel(rig: Rig) -> None:
     _shoot(rig, 1)
     frame = rig.renderer.render(rig.world.qpos())
-    by_table = rig.detector.locate(*rig.detector.memberships(frame))
-    exact = rig.detector.locate(*exact_memberships(rig.model, frame))
+    by_table = locate(rig.detector, *rig.detector.memberships(frame))
+    exact = locate(rig.detector, *exact_memberships(rig.model, frame))
     assert by_table.status == exact.status == "ok"
     for a, b in ((by_table.target, exact.target), (by_table.arrow, exact.arrow)):
         assert np.linalg.norm(np.subtract(a.px, b.px)) <= 1.0

@@ -13,8 +13,9 @@ import pytest
 from apps.detect import read_rgb
 from services.detector.calibration import load_pixels, sample_pixels
 from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector, exact_memberships
+from services.detector.detect import Detector
 from tests.conftest import archery
+from tests.detector_reference import exact_memberships, locate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"
 pytestmark = pytest.mark.skipif(
@@ -60,8 +61,8 @@ def test_warmer_light_still_gives_the_centre_from_the_rings(detector: Detector) 
 
 def test_lut_matches_the_exact_gmm_on_a_photo(detector: Detector) -> None:
     rgb = read_rgb(DATA / "target-3.jpg")
-    by_table = detector.locate(*detector.memberships(rgb))
-    exact = detector.locate(*exact_memberships(detector.model, rgb))
+    by_table = locate(detector, *detector.memberships(rgb))
+    exact = locate(detector, *exact_memberships(detector.model, rgb))
     assert by_table.target is not None and exact.target is not None
     assert np.hypot(*np.subtract(by_table.target.px, exact.target.px)) <= 1.0
 

@@ -34,6 +34,7 @@ from sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
 from tests.postures import archery_posture
 from tests.rpc import rpc_call
+from tests.world_steps import move_until_done
 
 SCENE = SceneConfig(meshes=False)
 
@@ -51,7 +52,7 @@ def shot() -> tuple[np.ndarray, float, np.ndarray]:
     world.reset(5)
     for part, values in archery_posture(model, BOW_HAND, BOW_HAND + theta, tolerance=5e-3).items():
         world.set_joint_targets(part, values)
-    assert world.move_until_done(15.0)
+    assert move_until_done(world, 15.0)
     world.nock()
     landing = world.release()
     assert landing.hit and landing.r is not None

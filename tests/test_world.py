@@ -20,6 +20,7 @@ from sim.scene import ScenePhysics
 from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
 from sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.postures import archery_posture
+from tests.world_steps import move_until_done
 
 SCENE = SceneConfig(meshes=False)
 EXACT = {"drag": 0.0, "speed_noise": 0.0, "direction_noise": 0.0}
@@ -61,7 +62,7 @@ def _world(model: mujoco.MjModel, **overrides: object) -> ArcheryWorld:
 def _go(world: ArcheryWorld, posture: dict[str, np.ndarray]) -> None:
     for part, values in posture.items():
         world.set_joint_targets(part, values)
-    assert world.move_until_done(timeout=15.0)
+    assert move_until_done(world, timeout=15.0)
 
 
 def _servo_setpoints(world: ArcheryWorld, part: str) -> np.ndarray:
@@ -159,7 +160,7 @@ def test_setpoints_move_at_the_reference_speed(model: mujoco.MjModel) -> None:
         assert np.max(np.abs(controls - previous)) <= speed * world.timestep + 1e-12
         previous = controls
     assert steps * world.timestep == pytest.approx(0.6 / speed, abs=2 * world.timestep)
-    assert world.move_until_done()
+    assert move_until_done(world)
 
 
 # -- the shot ------------------------------------------------------------------------------

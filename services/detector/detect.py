@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 from protocol.errors import ConfigError
-from services.detector.colour_model import ColourModel, rgb_to_uv_exact
+from services.detector.colour_model import ColourModel
 from services.detector.errors import ImageError
 from services.detector.rings import Ellipse
 from services.detector.target import FaceFit, colour_groups, find_face, merge_faces
@@ -57,7 +57,6 @@ __all__ = [
     "Seen",
     "check_image",
     "eq7_centroid",
-    "exact_memberships",
 ]
 
 log = logging.getLogger("archery.detector")
@@ -195,16 +194,6 @@ def check_image(rgb: Any) -> np.ndarray:
     return np.ascontiguousarray(rgb)
 
 
-def exact_memberships(model: ColourModel, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(target, arrow) memberships 0..255 (float32) of every pixel, from the GMMs themselves.
-
-    The reference the tables are checked against: unrounded UV, densities evaluated per pixel
-    (cost grows with the number of components).
-    """
-    target, arrow = model.memberships(rgb_to_uv_exact(check_image(rgb)))
-    return (target * 255).astype(np.float32), (arrow * 255).astype(np.float32)
-
-
 def eq7_centroid(weights: np.ndarray) -> tuple[float, float] | None:
     """The plain Eq. 7 centre Σ w(x) x / Σ w(x) over the image (px: column, row), or None if
     Σ w = 0."""
@@ -308,7 +297,7 @@ class Detector:
         if self.has_arrow_model:
             full = rgb if best_gains is None else apply_gains(rgb, best_gains)
             arrow_m = self.memberships(full)[1]
-        found = self._result(face, factor, arrow_m)
+        found = self.from_fit(face, factor, arrow_m)
         if best_gains is None:
             return found
         red, green, blue = (float(g) for g in best_gains)  # white_gains: one per channel
@@ -374,20 +363,7 @@ class Detector:
                 break
         return best
 
-    def locate(self, target_m: np.ndarray, arrow_m: np.ndarray | None) -> Detection:
-        """Detect from membership maps (0..255; uint8 from the tables or float from
-        `exact_memberships`); `arrow_m` None for a target-only model. Only the outer boundary
-        of the face is fitted (no ring components)."""
-        small, factor = downscale(np.asarray(target_m, dtype=np.float32))
-        member = np.clip(np.round(small), 0, 255).astype(np.uint8)
-        fit = find_face(
-            member,
-            close_fraction=self.settings.close_fraction,
-            min_fraction=self.settings.min_target_fraction,
-        )
-        return self._result(fit, factor, arrow_m)
-
-    def _result(self, fit: FaceFit | None, factor: float, arrow_m: np.ndarray | None) -> Detection:
+    def from_fit(self, fit: FaceFit | None, factor: float, arrow_m: np.ndarray | None) -> Detection:
         """The detection from a face fit on a map `factor` times smaller than the frame."""
         arrow = self._find_arrow(arrow_m) if arrow_m is not None else None
         s = self.settings
