@@ -8,6 +8,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
+import msgspec
 import mujoco
 import numpy as np
 import pytest
@@ -181,7 +182,7 @@ def _go(loop: SimLoop, posture: dict[str, np.ndarray]) -> None:
 def test_rtf0_time_stands_still_at_rest_but_the_streams_go_on(start: Any) -> None:
     loop, rec = start(state_rate=50.0)
     time.sleep(0.3)
-    assert loop.status()["sim_time"] == 0.0
+    assert loop.status().sim_time == 0.0
     with rec.lock:
         torso = [s for s in rec.states if s[1] == "torso"]
     assert len(torso) >= 8  # repeated at ~50 Hz of wall time while idle
@@ -195,7 +196,7 @@ def test_rtf0_moves_fast_and_streams_at_the_sim_time_rate(
     t0 = time.monotonic()
     _go(loop, posture)
     wall = time.monotonic() - t0
-    sim = loop.status()["sim_time"]
+    sim = loop.status().sim_time
     assert sim > 1.0 and wall < sim / 5, (sim, wall)  # far faster than real time
     with rec.lock:
         times = sorted({s[4] for s in rec.states if s[1] == "left_arm" and s[4] > 0})
@@ -210,9 +211,9 @@ def test_rtf0_moves_fast_and_streams_at_the_sim_time_rate(
 def test_rtf1_paces_sim_time_with_the_wall_clock(start: Any) -> None:
     loop, _ = start(rtf=1.0)
     time.sleep(0.1)
-    t0, s0 = time.monotonic(), loop.status()["sim_time"]
+    t0, s0 = time.monotonic(), loop.status().sim_time
     time.sleep(0.5)
-    t1, s1 = time.monotonic(), loop.status()["sim_time"]
+    t1, s1 = time.monotonic(), loop.status().sim_time
     assert (s1 - s0) == pytest.approx(t1 - t0, rel=0.2, abs=0.05)
 
 
@@ -222,13 +223,13 @@ def test_a_stale_stream_freezes_the_part_where_it_is(start: Any) -> None:
     for k in range(5):  # a stream: commands 20 ms apart, the last one far away
         loop.command("torso", [0.0, 0.0, 0.05 * (k + 1)], None, "torso")
         time.sleep(0.02)
-    assert loop.counters("torso")["streaming"]
+    assert loop.counters("torso").streaming
     time.sleep(0.35)  # stale after 0.1 s, while the slow setpoint is still on its way
     counters = loop.counters("torso")
-    assert counters["watchdog_trips"] == 1 and not counters["streaming"]
+    assert counters.watchdog_trips == 1 and not counters.streaming
     targets = np.array(loop.targets("torso"))
     assert 0.0 < targets[2] < 0.2  # frozen short of the last commanded 0.25 rad
-    frozen = loop.positions("torso")["position"]
+    frozen = loop.positions("torso").position
     np.testing.assert_allclose(
         targets, np.clip(frozen, *loop.world.joint_limits("torso")), atol=0.03
     )
@@ -241,14 +242,14 @@ def test_a_single_move_outlives_the_watchdog(start: Any) -> None:
     time.sleep(0.3)
     assert not loop.motion_done("torso")  # still moving, longer than the watchdog
     np.testing.assert_allclose(loop.targets("torso"), [0.0, 0.0, 0.08])
-    assert loop.counters("torso")["watchdog_trips"] == 0
+    assert loop.counters("torso").watchdog_trips == 0
 
 
 def test_reset_is_refused_during_a_flight(start: Any) -> None:
     loop, rec = start(rtf=1.0)
     loop.nock()  # from the home posture: a 0.38 s flight sideways to the ground
     result: dict[str, Any] = {}
-    thread = threading.Thread(target=lambda: result.update(loop.release()))
+    thread = threading.Thread(target=lambda: result.update(msgspec.to_builtins(loop.release())))
     thread.start()
     rec.wait_event("released")
     with pytest.raises(StateError, match="flying"):
@@ -260,7 +261,7 @@ def test_reset_is_refused_during_a_flight(start: Any) -> None:
         "released",
         "landed" if result["hit"] else "missed",
     ]
-    assert loop.reset(1)["sim_time"] == 0.0
+    assert loop.reset(1).sim_time == 0.0
 
 
 def test_a_landing_is_published_at_once_and_the_reply_has_no_ground_truth(
@@ -269,7 +270,7 @@ def test_a_landing_is_published_at_once_and_the_reply_has_no_ground_truth(
     loop, rec = start(world_rate=1.0)
     _go(loop, posture)
     loop.nock()
-    reply = loop.release()
+    reply = msgspec.to_builtins(loop.release())
     assert not {"r", "point", "impact_m", "velocity"} & set(reply)
     kind, shot, sim_time, impact, reason = rec.events[-1]
     assert kind in ("landed", "missed") and shot == reply["shot"] == 1
@@ -289,7 +290,7 @@ def test_bad_rpc_arguments_are_refused(start: Any) -> None:
         loop.position_move("left_arm", [3.0] * 7)
     with pytest.raises(StateError, match="no arrow is nocked"):
         loop.release()
-    assert loop.counters("left_arm")["rejected_by_reason"]["out_of_range"] == 1
+    assert loop.counters("left_arm").rejected_by_reason["out_of_range"] == 1
 
 
 def test_motion_done_is_per_part(start: Any) -> None:
@@ -309,8 +310,8 @@ def test_moves_sent_one_after_another_are_not_a_stream(start: Any) -> None:
     for k in range(3):  # each command after the previous move is done, as a controller does
         loop.command("torso", [0.0, 0.0, 0.05 * (k + 1)], None, "torso")
         _wait_moved(loop, 5)
-        assert not loop.counters("torso")["streaming"]
-    assert loop.counters("torso")["accepted"] == 3
+        assert not loop.counters("torso").streaming
+    assert loop.counters("torso").accepted == 3
 
 
 def _first_motion(rec: Recorder, rest: dict[str, list[float]]) -> dict[str, float]:
@@ -327,7 +328,7 @@ def test_an_announced_batch_starts_together_even_when_its_commands_trickle_in(
     start: Any, posture: dict[str, np.ndarray]
 ) -> None:
     loop, rec = start(batch_window=1.0)
-    rest = {part: loop.positions(part)["position"] for part in posture}
+    rest = {part: loop.positions(part).position for part in posture}
     for part, values in posture.items():
         loop.command(part, values.tolist(), None, part, batch=len(posture))
         time.sleep(0.05)  # a move at rtf 0 covers a simulated second in ~20 ms of wall time
@@ -346,7 +347,7 @@ def test_an_incomplete_batch_starts_when_the_window_ends(start: Any) -> None:
     loop, _ = start(batch_window=0.3)
     loop.command("torso", [0.0, 0.0, 0.1], None, "torso", batch=3)  # the other two never come
     assert _wait_moved(loop) >= 0.3
-    np.testing.assert_allclose(loop.positions("torso")["position"], [0.0, 0.0, 0.1], atol=0.02)
+    np.testing.assert_allclose(loop.positions("torso").position, [0.0, 0.0, 0.1], atol=0.02)
 
 
 def test_a_release_after_a_batched_move_waits_for_no_batch(

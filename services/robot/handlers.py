@@ -79,7 +79,7 @@ class RobotHandlers:
 
     def get_positions(self, part: str, args: NoArgs) -> rv.PositionsReply:
         """Encoders: positions (rad), velocities (rad/s), sim time (s)."""
-        return rv.PositionsReply(**self._loop.positions(part))
+        return self._loop.positions(part)
 
     def get_targets(self, part: str, args: NoArgs) -> rv.TargetsReply:
         """The part's current (clamped) targets (rad)."""
@@ -105,31 +105,33 @@ class RobotHandlers:
 
     def counters(self, part: str, args: NoArgs) -> rv.CountersReply:
         """Commands accepted, clamped and rejected (by reason), watchdog trips, undecodable."""
-        undecodable = self._commands[part].dropped
-        return rv.CountersReply(**self._loop.counters(part), undecodable=undecodable)
+        return self._loop.counters(part, undecodable=self._commands[part].dropped)
 
     def part_status(self, part: str, args: NoArgs) -> rv.PartStatusReply:
         """Names, motion done, counters and the encoders."""
+        encoders = self._loop.positions(part)
         return rv.PartStatusReply(
             part=part,
             names=self._names(part),
             motion_done=self._loop.motion_done(part),
             counters=self.counters(part, args),
-            **self._loop.positions(part),
+            position=encoders.position,
+            velocity=encoders.velocity,
+            sim_time=encoders.sim_time,
         )
 
     # -- archery verbs -----------------------------------------------------------------------
     def nock(self, args: NoArgs) -> rv.NockReply:
         """Put a fresh arrow on the bow."""
-        return rv.NockReply(**self._loop.nock())
+        return self._loop.nock()
 
     def release(self, args: NoArgs) -> rv.ReleaseReply:
         """Release the nocked arrow; replies once it has landed."""
-        return rv.ReleaseReply(**self._loop.release())
+        return self._loop.release()
 
     def reset(self, args: rv.ResetArgs) -> rv.ResetReply:
         """Home posture at sim time 0, the arrow stowed; reseeded when `seed` is given."""
-        return rv.ResetReply(**self._loop.reset(args.seed))
+        return self._loop.reset(args.seed)
 
     def set_wind(self, args: rv.SetWindArgs) -> rv.WindReply:
         """Set the constant wind (m/s, root frame) of the shots released from now on."""
@@ -137,4 +139,4 @@ class RobotHandlers:
 
     def archery_status(self, args: NoArgs) -> rv.ArcheryStatusReply:
         """Arrow, phase, shot, sim time, counters, the scene and world configs."""
-        return rv.ArcheryStatusReply(**self._loop.status())
+        return self._loop.status()

@@ -30,12 +30,13 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
 from mesh.jobs import JobQueue
 from protocol.errors import ArcheryError, BadRequest
+from protocol.verbs import robot as rv
 from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.config import RobotConfig
@@ -62,13 +63,18 @@ class SimUnavailable(ArcheryError):
     code = "unavailable"
 
 
-def phase_of(world: ArcheryWorld) -> str:
+Phase = Literal["idle", "nocked", "flying", "stuck", "missed"]
+
+
+def phase_of(world: ArcheryWorld) -> Phase:
     """The shot phase for `WorldState`: idle, nocked, flying, stuck or missed."""
     state = world.arrow_state
     if state is ArrowState.LANDED:
         landing = world.landing
         return "stuck" if landing is not None and landing.hit else "missed"
-    return {ArrowState.STOWED: "idle", ArrowState.NOCKED: "nocked"}.get(state, "flying")
+    if state is ArrowState.STOWED:
+        return "idle"
+    return "nocked" if state is ArrowState.NOCKED else "flying"
 
 
 class SimLoop:
@@ -104,7 +110,7 @@ class SimLoop:
         self._streams = StreamWatchdog(world.parts, config.watchdog)
         self._jobs = JobQueue(SimUnavailable, "the simulation thread")
         self._shot = 0
-        self._landing_future: Future[dict[str, Any]] | None = None
+        self._landing_future: Future[rv.ReleaseReply] | None = None
         self._launch: Launch | None = None
         self._idle = False
         # commands (and the largest batch they announced) since the loop last came to rest
@@ -144,16 +150,16 @@ class SimLoop:
         """Validate and apply targets (rad) like a command; returns the part's targets."""
         return self.call(lambda: self._position_move(part, position, names))
 
-    def positions(self, part: str) -> dict[str, Any]:
+    def positions(self, part: str) -> rv.PositionsReply:
         """Encoders of `part`: positions (rad), velocities (rad/s), sim time (s)."""
         world = self.world
         return self.call(
-            lambda: {
-                "names": list(world.joint_names(part)),
-                "position": world.joint_positions(part).tolist(),
-                "velocity": world.joint_velocities(part).tolist(),
-                "sim_time": world.sim_time,
-            }
+            lambda: rv.PositionsReply(
+                names=list(world.joint_names(part)),
+                position=world.joint_positions(part).tolist(),
+                velocity=world.joint_velocities(part).tolist(),
+                sim_time=world.sim_time,
+            )
         )
 
     def targets(self, part: str) -> list[float]:
@@ -175,17 +181,22 @@ class SimLoop:
         """`part`'s reference speeds (rad/s)."""
         return self.call(lambda: self.world.reference_speeds(part).tolist())
 
-    def counters(self, part: str) -> dict[str, Any]:
-        """`part`'s command counters and whether it is streaming."""
+    def counters(self, part: str, undecodable: int = 0) -> rv.CountersReply:
+        """`part`'s command counters, whether it is streaming, and `undecodable`: the commands
+        its port could not decode (counted by the service's subscription, not here)."""
         return self.call(
-            lambda: self._counters[part].to_dict() | {"streaming": self._streams.streaming(part)}
+            lambda: rv.CountersReply(
+                **self._counters[part].to_dict(),
+                streaming=self._streams.streaming(part),
+                undecodable=undecodable,
+            )
         )
 
-    def nock(self) -> dict[str, Any]:
+    def nock(self) -> rv.NockReply:
         """Put a fresh arrow on the bow."""
         return self.call(self._nock)
 
-    def release(self, timeout: float | None = None) -> dict[str, Any]:
+    def release(self, timeout: float | None = None) -> rv.ReleaseReply:
         """Release the nocked arrow and return once it has landed (see `_landed` for the reply).
 
         Raises:
@@ -201,7 +212,7 @@ class SimLoop:
         except TimeoutError:
             raise SimUnavailable(f"the arrow did not land within {timeout:g} wall s") from None
 
-    def reset(self, seed: Any = None) -> dict[str, Any]:
+    def reset(self, seed: Any = None) -> rv.ResetReply:
         """Back to the home posture at sim time 0, the arrow stowed; reseed when `seed` is set.
 
         Raises:
@@ -225,7 +236,7 @@ class SimLoop:
             raise BadRequest(f"each wind component must be within ±{MAX_WIND:g} m/s, got {wind!r}")
         return self.call(lambda: self._set_wind(vector))
 
-    def status(self) -> dict[str, Any]:
+    def status(self) -> rv.ArcheryStatusReply:
         """Arrow state, sim time, shot count, counters, and the scene and world configs."""
         return self.call(self._status)
 
@@ -278,14 +289,14 @@ class SimLoop:
         self._streams.forget(part)
         return self._apply(part, targets, clamped)
 
-    def _nock(self) -> dict[str, Any]:
+    def _nock(self) -> rv.NockReply:
         self.world.nock()
         t = self.world.sim_time
         self._sink.event("nocked", self._shot + 1, t)
         self._publish_world()
-        return {"shot": self._shot + 1, "arrow": self.world.arrow_state.value, "sim_time": t}
+        return rv.NockReply(shot=self._shot + 1, arrow=self.world.arrow_state.value, sim_time=t)
 
-    def _release(self) -> Future[dict[str, Any]]:
+    def _release(self) -> Future[rv.ReleaseReply]:
         if self._landing_future is not None:
             raise StateError("a release is already waiting for its landing")
         self._launch = self.world.launch()
@@ -302,21 +313,21 @@ class SimLoop:
         r = None if landing.r is None else landing.r.tolist()
         kind = "landed" if landing.hit else "missed"
         self._sink.event(kind, self._shot, landing.sim_time, r, landing.reason or "")
-        reply = {
-            "shot": self._shot,
-            "outcome": landing.outcome.value,
-            "hit": landing.hit,
-            "reason": landing.reason or "",
-            "sim_time": landing.sim_time,
-            "release_sim_time": launch.sim_time,
-            "flight_time": landing.flight_time,
-            "theta": launch.theta.tolist(),
-        }
+        reply = rv.ReleaseReply(
+            shot=self._shot,
+            outcome=landing.outcome.value,
+            hit=landing.hit,
+            reason=landing.reason or "",
+            sim_time=landing.sim_time,
+            release_sim_time=launch.sim_time,
+            flight_time=landing.flight_time,
+            theta=launch.theta.tolist(),
+        )
         future, self._landing_future = self._landing_future, None
         if future is not None:
             future.set_result(reply)
 
-    def _reset(self, seed: int | None) -> dict[str, Any]:
+    def _reset(self, seed: int | None) -> rv.ResetReply:
         self.world.reset(seed)
         if seed is not None:
             self._seed = seed
@@ -325,36 +336,36 @@ class SimLoop:
         self._sink.event("reset", self._shot, self.world.sim_time)
         self._publish_joints()
         self._publish_world()
-        return {"sim_time": self.world.sim_time, "seed": seed, "shot": self._shot}
+        return rv.ResetReply(sim_time=self.world.sim_time, seed=seed, shot=self._shot)
 
     def _set_wind(self, wind: tuple[float, float, float]) -> list[float]:
         self.world.config = replace(self.world.config, wind=wind)
         log.info("wind set to %s m/s", list(wind))
         return list(self.world.config.wind)
 
-    def _status(self) -> dict[str, Any]:
+    def _status(self) -> rv.ArcheryStatusReply:
         world = self.world
         cfg = self.config
-        return {
-            "sim_time": world.sim_time,
-            "arrow": world.arrow_state.value,
-            "phase": phase_of(world),
-            "shot": self._shot,
-            "motion_done": world.motion_done(),
-            "seed": self._seed,
-            "rtf": cfg.rtf,
-            "state_rate": cfg.state_rate,
-            "world_rate": cfg.world_rate,
-            "watchdog": cfg.watchdog,
-            "limit_tolerance": cfg.limit_tolerance,
-            "timestep": self._dt,
-            "counters": {
+        return rv.ArcheryStatusReply(
+            sim_time=world.sim_time,
+            arrow=world.arrow_state.value,
+            phase=phase_of(world),
+            shot=self._shot,
+            motion_done=world.motion_done(),
+            seed=self._seed,
+            rtf=cfg.rtf,
+            state_rate=cfg.state_rate,
+            world_rate=cfg.world_rate,
+            watchdog=cfg.watchdog,
+            limit_tolerance=cfg.limit_tolerance,
+            timestep=self._dt,
+            counters={
                 p: self._counters[p].to_dict() | {"streaming": self._streams.streaming(p)}
                 for p in world.parts
             },
-            "scene": world.config.scene.to_dict(),
-            "world": world.config.to_dict(),
-        }
+            scene=world.config.scene.to_dict(),
+            world=world.config.to_dict(),
+        )
 
     # -- streams (simulation thread) ---------------------------------------------------------
     def _publish_joints(self) -> None:
