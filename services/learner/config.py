@@ -11,12 +11,15 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+from msgspec import UnsetType
 
 from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
 from protocol.errors import BadRequest, ConfigError
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
+from protocol.verbs.learner import Bounds as StartBounds
+from protocol.verbs.learner import Scenario, StartArgs
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.algorithms.registry import ALGORITHMS
 
@@ -154,9 +157,46 @@ class SessionConfig:
         }
 
     @classmethod
-    def from_request(cls, args: Mapping[str, Any]) -> SessionConfig:
+    def from_start(cls, start: StartArgs) -> SessionConfig:
         """The session a `start` request asks for (without `resume`; its `from_journal` is the
-        caller's, `services.learner.transfer`).
+        caller's, `services.learner.transfer`): fields left unset take the defaults.
+
+        Raises:
+            BadRequest: an invalid value; the message names it and what is valid.
+        """
+        defaults = cls()
+        scenario = start.scenario if not isinstance(start.scenario, UnsetType) else Scenario()
+
+        def given(value: Any, default: Any) -> Any:
+            return default if isinstance(value, UnsetType) else value
+
+        bounds = None
+        raw = given(scenario.bounds, None)
+        if raw is not None:
+            try:
+                bounds = Bounds(
+                    low=_vector("scenario.bounds.low", raw.low),
+                    high=_vector("scenario.bounds.high", raw.high),
+                )
+            except LearnerConfigError as exc:
+                raise BadRequest(f"scenario.bounds: {exc}") from None
+        return cls(
+            algorithm=given(start.algo, defaults.algorithm),
+            rollouts=given(start.rollouts, defaults.rollouts),
+            seed=given(start.seed, defaults.seed),
+            until_hit=given(start.until_hit, defaults.until_hit),
+            theta0=given(scenario.theta0, defaults.theta0),
+            bounds=bounds,
+            hit_radius=given(scenario.hit_radius, defaults.hit_radius),
+            reset=given(scenario.reset, defaults.reset),
+            options=given(start.options, {}),
+        )
+
+    @classmethod
+    def from_request(cls, args: Mapping[str, Any]) -> SessionConfig:
+        """The session a `start` request given as plain data asks for (what `archery learn`
+        builds from its flags, checked before anything is sent): its keys and shape checked
+        here, its values by `from_start`, with the same messages the learner gives.
 
         Raises:
             BadRequest: an unknown argument or scenario key, or an invalid value; the message
@@ -175,32 +215,20 @@ class SessionConfig:
             raise BadRequest(
                 f"scenario has no key {unknown[0]!r}; scenario keys: {', '.join(SCENARIO_KEYS)}"
             )
-        bounds = None
-        if scenario.get("bounds") is not None:
-            raw = scenario["bounds"]
-            if not isinstance(raw, Mapping) or set(raw) != {"low", "high"}:
-                raise BadRequest(
-                    f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {raw!r}"
-                )
-            try:
-                bounds = Bounds(
-                    low=_vector("scenario.bounds.low", raw["low"]),
-                    high=_vector("scenario.bounds.high", raw["high"]),
-                )
-            except LearnerConfigError as exc:
-                raise BadRequest(f"scenario.bounds: {exc}") from None
-        defaults = cls()
-        return cls(
-            algorithm=args.get("algo", defaults.algorithm),
-            rollouts=args.get("rollouts", defaults.rollouts),
-            seed=args.get("seed", defaults.seed),
-            until_hit=args.get("until_hit", defaults.until_hit),
-            theta0=scenario.get("theta0", defaults.theta0),
-            bounds=bounds,
-            hit_radius=scenario.get("hit_radius", defaults.hit_radius),
-            reset=scenario.get("reset", defaults.reset),
-            options=args.get("options", {}),
-        )
+        raw = scenario.get("bounds")
+        if raw is not None and (not isinstance(raw, Mapping) or set(raw) != {"low", "high"}):
+            raise BadRequest(
+                f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {raw!r}"
+            )
+        # Built without msgspec's checks, so that the values meet the same checks (and
+        # messages) as on the learner: `from_start` and the config's own.
+        fields = {k: v for k, v in args.items() if k != "scenario"}
+        if scenario:
+            given = {k: v for k, v in scenario.items() if k != "bounds"}
+            if "bounds" in scenario:
+                given["bounds"] = None if raw is None else StartBounds(**raw)
+            fields["scenario"] = Scenario(**given)
+        return cls.from_start(StartArgs(**fields))
 
     @classmethod
     def from_header(cls, header: Mapping[str, Any]) -> SessionConfig:

@@ -9,7 +9,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import msgspec
+from msgspec import UnsetType
 
 from mesh.node import Node
 from mesh.publisher import Publisher
@@ -90,7 +90,9 @@ class LearnerHandlers:
     def start(self, request: StartArgs) -> LearnerStatusReply:
         """Start a new session (from another session's learned model with `from_journal`) or
         resume one (see the module docstring)."""
-        args: dict[str, Any] = msgspec.to_builtins(request)  # the arguments given
+        given = {
+            f for f in request.__struct_fields__ if not isinstance(getattr(request, f), UnsetType)
+        }
         with self._lock:
             if self._thread is not None and self._thread.is_alive():
                 assert self._session is not None
@@ -105,19 +107,20 @@ class LearnerHandlers:
                 "on_record": self._publish,
                 "service_wait": self.config.service_wait,
             }
-            if "resume" in args:
-                unknown = sorted(set(args) - {"resume", "session"})
+            if isinstance(request.resume, str):
+                unknown = sorted(given - {"resume", "session"})
                 if unknown:
                     raise BadRequest(
                         f"start with resume takes only resume and session, not {unknown[0]!r}"
                     )
                 self._check_services()
-                session = Session.resume(Path(args["resume"]), self.rig, args.get("session"), **kw)
+                wanted = request.session if isinstance(request.session, str) else None
+                session = Session.resume(Path(request.resume), self.rig, wanted, **kw)
             else:
-                config = SessionConfig.from_request(args)
+                config = SessionConfig.from_start(request)
                 source = None
-                if "from_journal" in args:  # checked before any work
-                    source = load_source(args["from_journal"], config.algorithm, self.config.runs)
+                if isinstance(request.from_journal, str):  # checked before any work
+                    source = load_source(request.from_journal, config.algorithm, self.config.runs)
                 self._check_services()
                 session = Session.create(config, self.rig, self.config.runs, source=source, **kw)
             self._session = session
