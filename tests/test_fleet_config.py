@@ -9,15 +9,9 @@ from pathlib import Path
 import pytest
 
 from apps.experiment.config import ExperimentConfig, ExperimentError
-from apps.experiment.experiment_mesh import (
-    PLAN_NAME,
-    SessionItem,
-    journal_path,
-    mesh_experiment_config,
-    prepare_out,
-    session_config,
-)
+from apps.experiment.experiment_mesh import journal_path, mesh_experiment_config
 from apps.experiment.fleet import robot_stacks
+from apps.experiment.mesh_out import PLAN_NAME, SessionItem, prepare_out, session_config
 from apps.up.launch_config import default_mesh, fleet_prefixes
 from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
