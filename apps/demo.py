@@ -20,9 +20,10 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from apps.learn.client import learner_call
+from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
-from apps.up.launcher import SERVICES, Launcher, LaunchError
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher, LaunchError
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from mesh.netflags import NetConfig
 from mesh.node import Node
@@ -91,7 +92,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)  # also: their ports are known to this node
             request = {"algo": args.algo, "rollouts": args.rollouts, "seed": args.seed}
-            status = learner_call(node, "start", request, timeout=60)
+            status = learner_call(node, "start", start_args(request), timeout=60)
             session = status["session"]
             progress = Progress(f"{args.algo}: session {session}")
             start = time.monotonic()

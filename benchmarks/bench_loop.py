@@ -35,7 +35,8 @@ from typing import Any
 import numpy as np
 
 from apps.learn.follow import follow
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.messages import Rollout

@@ -38,7 +38,8 @@ import numpy as np
 
 from apps.learn.follow import follow
 from apps.topics.recording import open_recording
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from benchmarks.observers import CONDITIONS, Observers, cpu_seconds, stop
 from mesh.netflags import NetConfig
 from mesh.node import Node

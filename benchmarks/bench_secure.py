@@ -37,7 +37,8 @@ import numpy as np
 
 from apps.learn.follow import follow
 from apps.progress import progress_bar
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
 from benchmarks.machine import cpu_model
 from mesh.credentials import init_deployment

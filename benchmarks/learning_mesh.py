@@ -9,7 +9,8 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from apps.progress import progress_bar
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from mesh.subscription import Subscription

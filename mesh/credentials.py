@@ -35,7 +35,8 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from protocol.errors import ConfigError
-from protocol.keys import DEFAULT_ROBOT, SERVICES, validate_robot
+from protocol.keys import DEFAULT_ROBOT, validate_robot
+from protocol.robotspec import SERVICES
 
 __all__ = [
     "IDENTITIES",

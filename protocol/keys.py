@@ -14,7 +14,7 @@ from protocol.errors import KeyNameError
 from protocol.parts import PARTS
 from protocol.robotspec import SERVICES
 
-__all__ = ["DEFAULT_ROBOT", "PORTS", "SERVICES", "Keys", "PortSpec", "port_of", "validate_robot"]
+__all__ = ["DEFAULT_ROBOT", "PORTS", "Keys", "PortSpec", "port_of", "validate_robot"]
 
 DEFAULT_ROBOT = "icubSim"
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")

@@ -22,13 +22,7 @@ from protocol.robotspec import MODEL_NAME
 from sim.errors import SceneError
 from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
 
-__all__ = [
-    "MODEL_NAME",
-    "add_hand_sites",
-    "load_urdf_model",
-    "robot_spec",
-    "urdf_frame_placement",
-]
+__all__ = ["add_hand_sites", "load_urdf_model", "robot_spec", "urdf_frame_placement"]
 
 _ROBOT_NAME_TAG = '<robot name="iCub">'
 _PACKAGE_PREFIX = "package://iCub/"

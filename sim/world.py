@@ -30,7 +30,7 @@ from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
 from sim.vectors import vector3
 
-__all__ = ["MAX_REFERENCE_SPEED", "ArcheryWorld", "ArrowState", "WorldConfig"]
+__all__ = ["ArcheryWorld", "ArrowState", "WorldConfig"]
 
 
 class ArrowState(StrEnum):

@@ -245,6 +245,12 @@ class Compose:
         out = self("ps", "-a", "-q", service).stdout.split()
         return out[0] if out else ""
 
+    def inspect(self, service: str, template: str) -> str:
+        """`docker inspect -f TEMPLATE` of the service's container (stripped)."""
+        out = _run(["docker", "inspect", "-f", template, self.container(service)])
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip()
+
     def wait_exit(self, service: str, timeout: float) -> int:
         """Block until the service's container exits; its exit status.
 

@@ -144,3 +144,25 @@ def test_no_test_fixture_in_the_product() -> None:
     for name, path in MODULES.items():
         text = path.read_text()
         assert not re.search(r"^(from|import) (tests|benchmarks)\b", text, re.M), name
+
+
+def test_no_module_re_exports_another_modules_names() -> None:
+    """A name is imported from the module that defines it: no module lists in `__all__` a name
+    it imports from another module of ours (a package's `__init__`, its public face, aside)."""
+    shims = []
+    for name, path in MODULES.items():
+        if path.name == "__init__.py":
+            continue
+        tree = ast.parse(path.read_text())
+        exported: set[str] = set()
+        imported: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.Assign) and any(
+                isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets
+            ):
+                exported = {e.value for e in node.value.elts if isinstance(e, ast.Constant)}
+            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+                imported |= {alias.asname or alias.name for alias in node.names}
+        if exported & imported:
+            shims.append(f"{name}: {sorted(exported & imported)}")
+    assert not shims, "\n".join(shims)

@@ -8,7 +8,11 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
+import os
 import re
+import shutil
+import subprocess
+import sys
 import threading
 from pathlib import Path
 from typing import Any
@@ -19,7 +23,7 @@ import mesh.router
 import mesh.service
 from apps.cli import VERBS
 from apps.learn.learn import build_parser, start_request
-from apps.up.launcher import SERVICES
+from apps.up.launch_config import SERVICES
 from mesh.credentials import DEFAULT_HOSTS
 from tests.composefile import read_compose
 
@@ -249,3 +253,69 @@ def test_the_subset_reader_refuses_what_it_does_not_know(tmp_path: Path) -> None
     path.write_text("services:\n  - a\n")
     with pytest.raises(AssertionError, match="outside the subset"):
         read_compose(path)
+
+
+# -- `make compose` where no engine can run ----------------------------------------------------
+def _make_compose(path: Path, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
+    """`python -m tests.containers` (what `make compose` runs) with PATH set to `path` only."""
+    return subprocess.run(
+        [sys.executable, "-m", "tests.containers", *args],
+        env=os.environ | {"PATH": str(path)} | env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+NO_DOCKER = "no Docker engine: `docker` is not installed (Debian: apt-get install docker.io)"
+
+
+def test_make_compose_without_docker_says_so_in_one_line(tmp_path: Path) -> None:
+    run = _make_compose(tmp_path)
+    assert run.returncode == 1
+    assert run.stderr.splitlines() == [f"make compose: {NO_DOCKER}"]
+
+
+def test_the_container_tests_skip_with_the_reason_without_docker(tmp_path: Path) -> None:
+    run = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pytest",
+            "-q",
+            "-rs",
+            "-p",
+            "no:cacheprovider",
+            "-m",
+            "containers",
+            str(ROOT / "tests" / "test_containers.py"),
+        ],
+        env=os.environ | {"PATH": str(tmp_path)},
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stdout[-2000:]
+    assert "SKIPPED" in run.stdout and NO_DOCKER in run.stdout
+    assert " passed" not in run.stdout.splitlines()[-1]
+
+
+@pytest.mark.skipif(shutil.which("docker") is None, reason="no docker client here to point away")
+def test_make_compose_names_what_is_missing_besides_the_client(tmp_path: Path) -> None:
+    """A docker client without docker-compose; then both, with no engine answering."""
+    (tmp_path / "docker").symlink_to(str(shutil.which("docker")))
+    run = _make_compose(tmp_path)
+    assert run.returncode == 1
+    assert run.stderr.splitlines() == [
+        "make compose: `docker-compose` is not installed (Debian: apt-get install docker-compose)"
+    ]
+    compose = shutil.which("docker-compose")
+    if compose is None:
+        return
+    (tmp_path / "docker-compose").symlink_to(compose)
+    dead = _make_compose(tmp_path, DOCKER_HOST=f"unix://{tmp_path}/no.sock")
+    assert dead.returncode == 1
+    (line,) = dead.stderr.splitlines()
+    assert line.startswith("make compose: no Docker engine answers (") and "start dockerd" in line

@@ -160,6 +160,7 @@ def test_no_key_enters_an_image(base: str, tmp_path: Path) -> None:
 
 
 def test_missing_secret_and_taken_port_are_named_before_any_container(tmp_path: Path) -> None:
+    _engine()  # the port is checked once an engine answers
     line = missing_secret(tmp_path / "secrets")
     assert line is not None and "secrets/ca.pem is missing" in line and "keys init" in line
     assert "\n" not in line
@@ -273,23 +274,11 @@ def test_compose_up_runs_the_demo_to_a_hit_and_survives_faults(plain: Compose) -
         proc = _session(plain, "--rollouts", "5", "--no-until-hit", "--seed", "3")
         _wait_for_rollouts(plain.runs, known, 1, timeout=300)
         if fault == "kill":  # the process dies as in a crash (`docker kill` would be a stop)
-            pid = subprocess.run(
-                ["docker", "inspect", "-f", "{{.State.Pid}}", plain.container("controller")],
-                capture_output=True,
-                text=True,
-                check=True,
-            ).stdout.strip()
-            os.kill(int(pid), signal.SIGKILL)
+            os.kill(int(plain.inspect("controller", "{{.State.Pid}}")), signal.SIGKILL)
         else:
             subprocess.run(["docker", "restart", plain.container("router")], check=True)
         _finished(proc, 5)
-    restarts = subprocess.run(
-        ["docker", "inspect", "-f", "{{.RestartCount}}", plain.container("controller")],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.strip()
-    assert int(restarts) >= 1
+    assert int(plain.inspect("controller", "{{.RestartCount}}")) >= 1
 
 
 def test_the_secure_profile_runs_the_demo_to_a_hit(
@@ -323,18 +312,7 @@ def test_the_fleet_profile_runs_an_experiment_across_two_networks(
         status = _up(compose, "experiment", "fleet")
         assert status == 0, compose.logs("experiment", "router-lab", "router-robots")
         networks = {
-            name: subprocess.run(
-                [
-                    "docker",
-                    "inspect",
-                    "-f",
-                    "{{json .NetworkSettings.Networks}}",
-                    compose.container(name),
-                ],
-                capture_output=True,
-                text=True,
-                check=True,
-            ).stdout
+            name: compose.inspect(name, "{{json .NetworkSettings.Networks}}")
             for name in ("router-robots", "router-lab", "robot1", "experiment")
         }
     assert compose.leftovers() == []

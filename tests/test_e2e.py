@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from apps.learn.follow import follow
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from mesh.subscription import Subscription

@@ -12,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from apps.topics.recording import open_recording
-from apps.up.launcher import SERVICES, Launcher, LaunchError
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher, LaunchError
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, open_router

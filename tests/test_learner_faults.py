@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 from apps.learn import attach, follow, learn
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint

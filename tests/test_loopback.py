@@ -16,7 +16,8 @@ from pathlib import Path
 import psutil
 import pytest
 
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
 from mesh.router import free_tcp_endpoint
 
 os.environ.setdefault("MUJOCO_GL", "egl")

@@ -12,8 +12,8 @@ import pinocchio as pin
 import pytest
 
 from protocol import robotspec
-from protocol.keys import SERVICES
 from protocol.parts import ARM_PARTS, PARTS
+from protocol.robotspec import SERVICES
 from services.controller.model import ArmsModel, load_arms_model
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics

@@ -11,7 +11,7 @@ import pinocchio as pin
 import pytest
 
 from protocol.parts import PARTS
-from protocol.robotspec import home_of
+from protocol.robotspec import MODEL_NAME, home_of
 from sim.errors import CommandError, ConfigError, SceneError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
 from sim.model_build import build_scene
@@ -28,7 +28,7 @@ from sim.scene_config import (
     TARGET_CENTRE_SITE,
     SceneConfig,
 )
-from sim.urdf import MODEL_NAME, urdf_frame_placement
+from sim.urdf import urdf_frame_placement
 from tests.postures import archery_posture
 
 CHEAP = SceneConfig(meshes=False)

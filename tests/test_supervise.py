@@ -19,8 +19,8 @@ import psutil
 import pytest
 import zenoh
 
-from apps.up.launch_config import default_mesh
-from apps.up.launcher import SERVICES, Launcher
+from apps.up.launch_config import SERVICES, default_mesh
+from apps.up.launcher import Launcher
 from apps.up.restart_policy import RestartPolicy
 from apps.up.supervisor import GiveUp, Supervisor
 from mesh.netflags import NetConfig

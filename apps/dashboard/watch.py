@@ -26,9 +26,8 @@ from mesh.node import Node
 from mesh.patterns import stream_type
 from mesh.tokens import TokenSet
 from protocol.errors import ArcheryError
-from protocol.keys import SERVICES
 from protocol.messages import Rollout
-from protocol.robotspec import HIT_RADIUS
+from protocol.robotspec import HIT_RADIUS, SERVICES
 from protocol.verbs.base import NoArgs
 from protocol.verbs.detector import DETECTOR_VERBS, FrameArgs
 from protocol.verbs.learner import LEARNER_VERBS

@@ -21,7 +21,7 @@ from typing import Any
 
 import zenoh
 
-from apps.learn.client import learner_call
+from apps.learn.client import learner_call, start_args
 from apps.up.launch_config import SERVICES, default_mesh
 from apps.up.launcher import Launcher
 from apps.up.restart_policy import RestartPolicy
@@ -272,7 +272,8 @@ class DrillMesh:
     def call(self, verb: str, args: dict[str, Any] | None = None, timeout: float = 60) -> Any:
         """Call a verb of the learner."""
         assert self.node is not None
-        return learner_call(self.node, verb, args, timeout=timeout)
+        start = start_args(args) if verb == "start" and args is not None else None
+        return learner_call(self.node, verb, start, timeout=timeout)
 
     def start_session(self, seed: int, rollouts: int = 10_000) -> SessionRun:
         """Start a session (no end at the first hit); wait until it runs."""

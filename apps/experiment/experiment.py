@@ -44,22 +44,7 @@ from services.learner.algorithms.registry import (
 )
 from sim.ballistic import BallisticError, BallisticWorld, Scenario
 
-__all__ = [
-    "CURVE_COLUMNS",
-    "DEFAULT_ALGORITHMS",
-    "WORLDS",
-    "AlgorithmRun",
-    "ExperimentConfig",
-    "ExperimentError",
-    "Transfer",
-    "WindChange",
-    "build_parser",
-    "main",
-    "run_algorithm",
-    "run_experiment",
-    "summarise",
-    "write_outputs",
-]
+__all__ = ["build_parser", "main", "run_algorithm", "run_experiment", "summarise", "write_outputs"]
 
 
 def run_algorithm(

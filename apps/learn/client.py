@@ -1,5 +1,6 @@
 """The learner's verbs as its clients call them: typed through `LEARNER_VERBS` (a start request
-is checked against `StartArgs` before it is sent), the status reply as plain data."""
+built as plain data is checked against `StartArgs` by `start_args` before it is sent), the
+status reply as plain data."""
 
 from __future__ import annotations
 
@@ -28,17 +29,14 @@ def start_args(request: dict[str, Any]) -> StartArgs:
 
 
 def learner_call(
-    node: Node, verb: str, request: dict[str, Any] | None = None, *, timeout: float
+    node: Node, verb: str, start: StartArgs | None = None, *, timeout: float
 ) -> dict[str, Any]:
-    """Call the learner's `verb` (start, stop, status) on this node's robot; its status reply
-    as plain data (fields the learner did not set are left out).
+    """Call the learner's `verb` (start with its `StartArgs`, stop, status) on this node's
+    robot; its status reply as plain data (fields the learner did not set are left out).
 
     Raises:
-        BadRequest: a `start` request that does not fit `StartArgs`.
         RpcError, RpcTimeout: as `Node.call_typed`.
     """
-    typed = LEARNER_VERBS[verb]
-    args = start_args(request or {}) if verb == "start" else None
-    reply = node.call_typed(node.keys.learner_rpc(), typed, args, timeout=timeout)
+    reply = node.call_typed(node.keys.learner_rpc(), LEARNER_VERBS[verb], start, timeout=timeout)
     out: dict[str, Any] = msgspec.to_builtins(reply)
     return out

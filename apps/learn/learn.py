@@ -35,7 +35,7 @@ from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import ALGORITHMS, check_transfer
 from services.learner.config import SessionConfig
 
-__all__ = ["SessionLost", "build_parser", "follow", "main", "result_line", "start_request"]
+__all__ = ["build_parser", "main", "start_request"]
 
 
 def _vector3(text: str, flag: str) -> list[float]:
@@ -197,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
         request = start_request(args)
         if "resume" not in request:  # the learner's own checks, then the verb's types
             SessionConfig.from_request(request)
-        start_args(request)
+        start = start_args(request)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2
@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
             return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet)
         try:
             node.wait_alive(SERVICES, timeout=args.wait)
-            status = learner_call(node, "start", request, timeout=args.wait + 30)
+            status = learner_call(node, "start", start, timeout=args.wait + 30)
         except RpcError as exc:
             print(f"archery learn: {exc}", file=sys.stderr)
             return 2 if exc.code in ("bad_request", "bad_journal", "busy") else 1

@@ -49,7 +49,7 @@ from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
 from protocol.keys import DEFAULT_ROBOT
 
-__all__ = ["SERVICES", "Child", "LaunchError", "Launcher", "main"]
+__all__ = ["LaunchError", "Launcher", "main"]
 
 STOP_ORDER = ("learner", "detector", "camera", "controller", "robot")
 _PR_SET_PDEATHSIG = 1

@@ -20,14 +20,7 @@ from protocol.robotspec import MAX_REFERENCE_SPEED
 from services.controller.errors import TargetError
 from services.controller.ik_types import IkResult
 
-__all__ = [
-    "MAX_REFERENCE_SPEED",
-    "MIN_REFERENCE_SPEED",
-    "axis_angle",
-    "ik_reply",
-    "reference_speeds",
-    "rotation_vector",
-]
+__all__ = ["MIN_REFERENCE_SPEED", "axis_angle", "ik_reply", "reference_speeds", "rotation_vector"]
 
 MIN_REFERENCE_SPEED = 0.01  # rad/s, for joints that barely move
 
