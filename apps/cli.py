@@ -60,7 +60,7 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.learn.learn:main",
         "run one learning session against running services",
     ),
-    "up": ("apps.up.launcher:main", "start a router and all five services; stop them on Ctrl-C"),
+    "up": ("apps.up.command:main", "start a router and all five services; stop them on Ctrl-C"),
     "drill": (
         "apps.drills.runner:main",
         "fault drills on a real mesh (kills, freezes, router outages, floods); their table",

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from apps.up.command import main
 from apps.up.launch_config import (
     SERVICES,
     MeshConfig,
@@ -16,7 +17,7 @@ from apps.up.launch_config import (
     load_mesh,
     parse_mesh,
 )
-from apps.up.launcher import Launcher, main
+from apps.up.launcher import Launcher
 from apps.up.restart_policy import RestartPolicy
 from protocol.errors import ConfigError
 from tests.composefile import read_compose

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import ctypes
+import signal
 import subprocess
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["Child"]
+__all__ = ["Child", "die_with_parent"]
+
+_PR_SET_PDEATHSIG = 1
 
 
 @dataclass
@@ -31,3 +35,12 @@ class Child:
     def returncode(self) -> int | None:
         """Its exit status once it has ended (negative: killed by that signal)."""
         return None if self.proc is None else self.proc.poll()
+
+
+def die_with_parent() -> None:
+    """In the child before exec: get SIGTERM when the parent dies (Linux), so no orphans."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass

@@ -15,8 +15,6 @@ learner serving them all (`launch_config.default_mesh`).
 
 from __future__ import annotations
 
-import argparse
-import ctypes
 import dataclasses
 import os
 import shlex
@@ -29,45 +27,29 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from apps.up.child import Child
+from apps.up.child import Child, die_with_parent
 from apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
     RouterSpec,
     ServiceSpec,
-    default_mesh,
-    load_mesh,
 )
-from apps.up.restart_policy import POLICIES, RestartPolicy, describe_status
-from apps.up.supervisor import GiveUp, Supervisor
-from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
-from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
+from apps.up.restart_policy import RestartPolicy, describe_status
+from mesh.netflags import DEFAULT_ROUTER, NetConfig
 from mesh.node import Node
 from mesh.router import wait_for_endpoint
-from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
-from protocol.keys import DEFAULT_ROBOT
 
-__all__ = ["LaunchError", "Launcher", "main"]
+__all__ = ["STOP_ORDER", "LaunchError", "Launcher"]
 
 STOP_ORDER = ("learner", "detector", "camera", "controller", "robot")
-_PR_SET_PDEATHSIG = 1
 
 
 class LaunchError(ArcheryError):
     """A child could not start, died, or did not come alive in time."""
 
     code = "launch_failed"
-
-
-def _die_with_parent() -> None:
-    """In the child before exec: get SIGTERM when the parent dies (Linux), so no orphans."""
-    try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except (OSError, AttributeError):
-        pass
 
 
 def _check_free(endpoint: str) -> None:
@@ -152,7 +134,7 @@ class Launcher:
                 stderr=subprocess.STDOUT,
                 env=self.env,
                 start_new_session=True,  # a terminal's Ctrl-C reaches only us; we stop them
-                preexec_fn=_die_with_parent,
+                preexec_fn=die_with_parent,
             )
         child.started = time.monotonic()
         self.children[name] = child
@@ -334,207 +316,3 @@ class Launcher:
 
     def __exit__(self, *exc: object) -> None:
         self.stop_all()
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The flags of `archery up`."""
-    parser = ArgumentParser(prog="archery up", description=__doc__.split("\n")[0])
-    add_network_args(parser)
-    parser.set_defaults(robot=None)  # None: not given (the default mesh's, or --config's)
-    parser.add_argument(
-        "--config",
-        metavar="FILE",
-        help="the mesh to start, a TOML launch description (see mesh.toml); replaces "
-        "--listen/--connect/--robot/--seed/--rtf/--runs/--no-router",
-    )
-    parser.add_argument(
-        "--robots",
-        type=count,
-        metavar="N",
-        help="a fleet of N robot stacks (robot, controller, camera, detector) under the prefixes "
-        "ROBOT1 … ROBOTN and one learner that runs sessions on all of them (default 1: one "
-        "robot under ROBOT itself)",
-    )
-    parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
-    parser.add_argument("--runs", help="the learner's session directory (default runs)")
-    parser.add_argument("--seed", type=count, help="the robot's shot-noise seed (default 0)")
-    parser.add_argument(
-        "--rtf",
-        type=nonnegative,
-        help="the robot's real-time factor (default 0: as fast as possible)",
-    )
-    parser.add_argument(
-        "--no-router",
-        action="store_true",
-        help="start no router: the services connect to the --connect endpoint",
-    )
-    parser.add_argument(
-        "--restart",
-        choices=POLICIES,
-        help="restart policy of every child (default on-failure: a non-zero exit status or a "
-        "signal; exit status 2, a bad configuration, always stops everything)",
-    )
-    parser.add_argument(
-        "--restart-budget",
-        type=count,
-        metavar="N",
-        help="restarts allowed per child within 60 s; one more stops everything (default 5)",
-    )
-    parser.add_argument(
-        "--timeout", type=seconds, default=90.0, help="wait this long for all services (s)"
-    )
-    parser.add_argument(
-        "--record",
-        metavar="FILE.mcap",
-        help="record the whole run (every stream of the robot) into this MCAP file",
-    )
-    return parser
-
-
-def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
-    """An `archery record` child writing every stream of the first robot to `out` (its log
-    `LOGS/recorder.log`), started once it subscribes.
-
-    Raises:
-        LaunchError: it exited or did not subscribe within `timeout` s.
-    """
-    argv = ["record", "--out", out, "--connect", launcher.endpoint, "--robot", launcher.net.robot]
-    log = launcher.logs / "recorder.log"
-    with open(log, "wb") as sink:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", *argv, *launcher.secure],
-            stdin=subprocess.DEVNULL,
-            stdout=sink,
-            stderr=subprocess.STDOUT,
-            env=launcher.env,
-            start_new_session=True,
-            preexec_fn=_die_with_parent,
-        )
-    deadline = time.monotonic() + timeout
-    while b"archery record: recording" not in log.read_bytes():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            tail = log.read_text(errors="replace").strip().splitlines()[-1:]
-            raise LaunchError(f"the recorder did not start: {' '.join(tail) or 'no output'}")
-        time.sleep(0.05)
-    return proc
-
-
-def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
-    """The mesh `up` starts: --config's, or the default built from the flags.
-
-    Raises:
-        ConfigError: a bad file, or --config together with a flag it replaces.
-    """
-    if args.config is not None:
-        given = {
-            "--listen": args.listen,
-            "--connect": args.connect,
-            "--robot": args.robot,
-            "--seed": args.seed,
-            "--rtf": args.rtf,
-            "--runs": args.runs,
-            "--no-router": args.no_router or None,
-            "--robots": args.robots,
-        }
-        clash = [flag for flag, value in given.items() if value is not None]
-        if clash:
-            raise ConfigError(f"{clash[0]} and --config: set it in {args.config} instead")
-        mesh = load_mesh(Path(args.config))
-    else:
-        default = DEFAULT_SECURE_ROUTER if args.secure else DEFAULT_ROUTER
-        chosen = args.connect if args.no_router else args.listen
-        runs = args.runs or "runs"
-        check_writable_dir(Path(runs), "--runs", create=True)
-        mesh = default_mesh(
-            (chosen or [default])[0],
-            NetConfig(robot=args.robot or DEFAULT_ROBOT).robot,
-            seed=args.seed or 0,
-            rtf=args.rtf or 0.0,
-            runs=runs,
-            start_router=not args.no_router,
-            robots=1 if args.robots is None else args.robots,
-        )
-    return mesh.with_policy(args.restart, args.restart_budget)
-
-
-def _final(launcher: Launcher, supervisor: Supervisor, outcome: GiveUp | None) -> int:
-    """Stop everything; print the truthful last line; the exit status."""
-    if outcome is not None:
-        tail = outcome.child.tail().replace("\n", "\n  | ")
-        print(f"archery up: the end of {outcome.child.log}:\n  | {tail}", file=sys.stderr)
-    running = {n for n, c in launcher.children.items() if c.returncode is None}
-    print("archery up: stopping …", flush=True)
-    codes = launcher.stop_all()
-    unclean = {n: c for n, c in codes.items() if n in running and c != 0}
-    if unclean:
-        listed = ", ".join(f"{n} ({describe_status(c)})" for n, c in unclean.items() if c)
-        print(f"archery up: did not stop cleanly: {listed}", file=sys.stderr)
-    if outcome is not None:
-        print(f"archery up: stopped everything: {outcome.line()}", file=sys.stderr)
-        return 1
-    if unclean:
-        return 1
-    notes = []
-    if supervisor.restarts:
-        counts = ", ".join(f"{n} {len(t)}" for n, t in supervisor.restarts.items() if t)
-        notes.append(f"restarts: {counts}" if counts else "")
-    if supervisor.left:
-        notes.append(f"left down before: {', '.join(supervisor.left)}")
-    notes = [n for n in notes if n]
-    print(f"archery up: all stopped cleanly{' (' + '; '.join(notes) + ')' if notes else ''}")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    """Run `archery up` until Ctrl-C/SIGTERM (exit 0) or until a child's restart policy gives
-    up (its budget is spent, or it exited with status 2: exit 1). Bad flags or a bad
-    --config file: exit 2."""
-    args = build_parser().parse_args(argv)
-    try:
-        mesh = mesh_from_args(args)
-        check_writable_dir(Path(args.logs), "--logs", create=True)
-        if args.record is not None:
-            if not args.record.endswith(".mcap"):
-                raise ConfigError(f"--record {args.record!r}: give a file name ending in .mcap")
-            check_writable_dir(
-                Path(args.record).parent, f"--record {args.record!r}: folder", create=False
-            )
-        launcher = Launcher(logs=Path(args.logs), secure=args.secure, mesh=mesh)
-        stop = shutdown_on_signals()
-        where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
-        print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
-        took = launcher.up(args.timeout)
-        recorder = None
-        if args.record is not None:
-            try:
-                recorder = start_recorder(launcher, args.record)
-            except LaunchError:
-                launcher.stop_all()
-                raise
-            print(f"archery up: recording to {args.record}", flush=True)
-    except (ConfigError, LaunchError) as exc:
-        print(f"archery up: {exc}", file=sys.stderr)
-        return 2 if isinstance(exc, ConfigError) else 1
-    robots = ", ".join(repr(r.prefix) for r in mesh.robots)
-    learn = f"archery learn {shlex.join(launcher.secure)}{' ' if launcher.secure else ''}"
-    learn += f"--connect {launcher.endpoint}"
-    if len(mesh.robots) > 1:
-        learn += f" --robot {mesh.robots[0].prefix}` (any robot) or `archery experiment "
-        learn += f"--world mesh --connect {launcher.endpoint}"
-    print(
-        f"archery up: all alive in {took:.1f} s (robot {robots}, logs in {launcher.logs}/). "
-        f"Run `{learn}` in another shell; Ctrl-C stops everything.",
-        flush=True,
-    )
-    supervisor = Supervisor(
-        launcher, report=lambda line: print(f"archery up: {line}", file=sys.stderr, flush=True)
-    )
-    outcome = supervisor.run(stop)
-    if recorder is not None:
-        recorder.terminate()
-        if recorder.wait(60) != 0:
-            print(
-                f"archery up: the recorder ended with status {recorder.returncode}", file=sys.stderr
-            )
-    return _final(launcher, supervisor, outcome)
