@@ -12,6 +12,7 @@ import sys
 from mesh.cliargs import ArgumentParser
 from mesh.logs import DEFAULT_SPEC, add_log_args, configure
 from protocol.errors import ConfigError
+from protocol.exit_status import INTERRUPTED
 
 __all__ = ["VERBS", "main"]
 
@@ -174,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         return _reader_gone()
     except KeyboardInterrupt:
-        return 130
+        return INTERRUPTED
 
 
 def entry() -> None:

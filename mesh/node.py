@@ -100,27 +100,44 @@ class Node(RpcClient, Liveliness):
         self.close()
 
     def close(self) -> None:
-        """Undeclare everything (token first, so peers see the node leave) and close."""
+        """Undeclare everything (token first, so peers see the node leave) and close.
+
+        Never raises: a part that cannot be closed (e.g. the router is gone and Zenoh's close
+        times out) is skipped, and the failures are logged as one line at the end.
+        """
         if self._closed:
             return
         self._closed = True
-        if self._token is not None:
-            self._token.undeclare()
-            assert self._instance_token is not None  # declared together with _token
-            self._instance_token.undeclare()
-        if self._watch is not None:
-            self._watch.close()
-        if self.name is not None:
-            self._describe.undeclare()
-        for item in reversed(self._closables):
+        failures: list[str] = []
+
+        def quietly(what: str, close: Callable[[], object]) -> None:
             try:
-                item.close()
-            except Exception:
-                log.exception("closing %r", item)
-        for querier in self._queriers.values():
-            querier.undeclare()
+                close()
+            except Exception as exc:  # closing must go on whatever one part raises
+                failures.append(f"{what}: {exc}")
+
+        if self._token is not None:
+            quietly("liveliness token", self._token.undeclare)
+            if self._instance_token is not None:
+                quietly("instance token", self._instance_token.undeclare)
+        if self._watch is not None:
+            quietly("liveliness watch", self._watch.close)
+        if self.name is not None:
+            quietly("describe queryable", self._describe.undeclare)
+        for item in reversed(self._closables):
+            quietly(type(item).__name__, item.close)
+        for key, querier in self._queriers.items():
+            quietly(f"querier {key[0]}", querier.undeclare)
         if self._own_session:
-            self.session.close()
+            quietly("session", self.session.close)
+        if failures:
+            unique = sorted(set(failures))
+            log.warning(
+                "closed %s with %d part(s) not closed cleanly: %s",
+                self.name or "the node",
+                len(failures),
+                "; ".join(unique[:3]) + (" …" if len(unique) > 3 else ""),
+            )
 
     # -- ports --------------------------------------------------------------------------
     def publisher(self, key: str, message_type: type[M], *, lossless: bool = False) -> Publisher[M]:

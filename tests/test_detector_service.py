@@ -29,6 +29,7 @@ from services.detector.service import run as run_detector
 from sim.bow import Bow
 from sim.geometry import BOW_HAND, TARGET_DISTANCE
 from sim.model_build import build_scene
+from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
@@ -141,6 +142,38 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
         with pytest.raises(RpcError, match="unknown keys") as bad:
             rpc_call(node, keys.detector_rpc(), "calibrate", {"pixels": {"tip": []}}, timeout=10)
         assert bad.value.code == "bad_calibration"
+
+
+def test_measure_without_stamps_measures_a_frame_taken_after_it_was_asked(
+    net: NetConfig, shot: tuple[np.ndarray, float, np.ndarray], tmp_path: Path
+) -> None:
+    """Two shots, nobody watching the camera in between: a bare `measure` gets the second."""
+    qpos, sim_time, truth = shot
+    physics = ScenePhysics(build_scene(SCENE))
+    physics.data.qpos[:] = qpos
+    physics.forward()
+    tip, quat = physics.arrow_pose()
+    moved = np.array([0.0, 0.06, 0.05])  # the second arrow 6 cm left and 5 cm above the first
+    physics.set_arrow_pose(tip + moved, quat)
+    second = physics.qpos()
+    with camera_and_detector(net, tmp_path / "model.json") as node:
+        keys = node.keys
+        world = node.publisher(keys.world_state(), WorldState)
+        assert world.wait_matched(5)
+        world.put(_state(qpos, sim_time))
+        first = rpc_call(
+            node, keys.detector_rpc(), "measure", {"after_sim_time": sim_time}, timeout=30
+        )
+        assert np.linalg.norm(np.subtract(first["r_m"], truth)) <= 0.01
+        world.put(_state(second, sim_time + 5.0))
+        # the world state reaches the camera asynchronously: a bare measure may, at worst, be of
+        # a frame captured after it was asked but before the state arrived; never the cached one
+        bare = rpc_call(node, keys.detector_rpc(), "measure", timeout=30)
+        while bare["sim_time"] < sim_time + 5.0:
+            assert bare["frame"] > first["frame"]  # a new capture, not the kept frame
+            bare = rpc_call(node, keys.detector_rpc(), "measure", timeout=30)
+        assert bare["frame"] > first["frame"] and bare["status"] == "ok"
+        assert np.linalg.norm(np.subtract(bare["r_m"], np.add(truth, moved[1:]))) <= 0.01
 
 
 def test_without_a_model_or_auto_calibration_measure_says_what_to_do(net: NetConfig) -> None:

@@ -154,12 +154,13 @@ def test_the_model_checks_itself() -> None:
         (["--config", "{bad}"], "services.eye: no service 'eye'"),
         (["--config", "{good}", "--seed", "3"], "--seed and --config: set it in"),
         (["--config", "{good}", "--robot", "r"], "--robot and --config"),
+        (["--robots", "1000", "--runs", "{runs}"], "--robots 1000: this machine holds at most"),
     ],
 )
 def test_up_refuses_a_bad_config_with_one_line_and_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], argv: list[str], message: str
 ) -> None:
-    files = {"missing": tmp_path / "none.toml", "bad": tmp_path / "bad.toml"}
+    files = {"missing": tmp_path / "none.toml", "bad": tmp_path / "bad.toml", "runs": tmp_path}
     files["bad"].write_text("[services.eye]\n")
     files["good"] = ROOT / "mesh.toml"
     argv = [a.format(**files) for a in argv] + ["--logs", str(tmp_path / "logs")]

@@ -16,7 +16,7 @@ from apps.up.launch_config import SERVICES
 from apps.up.launcher import Launcher, LaunchError
 from mesh.netflags import NetConfig
 from mesh.node import Node
-from mesh.router import free_tcp_endpoint, open_router
+from mesh.router import free_tcp_endpoint, open_router, wait_for_endpoint
 from protocol.errors import ConfigError
 from protocol.messages import Image
 
@@ -135,3 +135,39 @@ def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
     assert recording.complete and recording.metadata["robot"] == "upcli"
     keys = {key for key, _, _ in recording.messages()}
     assert {"upcli/cam/target:o", "upcli/world/state:o", "upcli/torso/state:o"} <= keys
+
+
+def _children_of(endpoint: str) -> list[int]:
+    """The pids of processes whose command line names `endpoint` (`up`'s children)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:
+            continue
+        if entry.name.isdigit() and endpoint.encode() in cmdline and b"apps.cli" in cmdline:
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_ctrl_c_while_starting_stops_everything_at_once(tmp_path: Path) -> None:
+    """SIGINT as soon as the router listens, while 3 robot stacks are starting: `up` stops all
+    it started and exits 130 (the goal: within 5 s; asserted with room for a loaded machine)."""
+    endpoint = free_tcp_endpoint()
+    proc = _up(endpoint, tmp_path, "--robots", "3")
+    try:
+        wait_for_endpoint(endpoint, 60)
+        started = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+        took = time.monotonic() - started
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    assert "interrupted while starting" in err
+    assert took < 15, took
+    deadline = time.monotonic() + 10
+    while _children_of(endpoint) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert _children_of(endpoint) == []

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.verbs.learner import MAX_ROLLOUTS
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import (
@@ -197,6 +198,8 @@ class ExperimentConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ExperimentError(f"{name} must be an integer >= {low}, got {value!r}")
+        if self.rollouts > MAX_ROLLOUTS:
+            raise ExperimentError(f"rollouts must be at most {MAX_ROLLOUTS}, got {self.rollouts}")
         if not self.bounds.contains(np.array(self.scenario.start)):
             raise ExperimentError(
                 f"start θ {list(self.scenario.start)} m lies outside the θ bounds "

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from apps.capacity import MAX_SESSIONS, check_experiment
 from apps.experiment.censored import count_stats, format_counts, format_mean
 from apps.experiment.config import (
     CURVE_COLUMNS,
@@ -271,6 +272,12 @@ def build_parser() -> argparse.ArgumentParser:
     add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
+    add(
+        "--allow-overload",
+        action="store_true",
+        help=f"run more than this machine holds (at most {MAX_SESSIONS} sessions per algorithm, "
+        "and the rollouts in half the available memory: `apps.capacity`)",
+    )
     mesh = parser.add_argument_group("--world mesh")
     mesh.add_argument(
         "--robots",
@@ -376,6 +383,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out if args.resume is None else args.resume)
     try:
         config = _config_from_args(args)
+        check_experiment(
+            len(config.algorithms), config.sessions, config.rollouts, args.allow_overload
+        )
         flag = "--out" if args.resume is None else "--resume"
         check_new_file(out, flag)
         check_writable_dir(out, flag, create=args.resume is None)  # before the work

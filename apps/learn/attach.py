@@ -23,6 +23,7 @@ from apps.learn.follow import SessionLost, follow, result_line
 from mesh.node import Node
 from mesh.subscription import Subscription
 from protocol.errors import ArcheryError, RpcError
+from protocol.exit_status import INTERRUPTED
 from protocol.messages import Rollout
 from services.learner.journal import (
     JOURNAL_NAME,
@@ -138,7 +139,7 @@ def attach(
         except KeyboardInterrupt:  # detaching leaves the session running
             stderr_line(f"archery learn: detached; session {session} goes on")
             print(result_line(journal_counts(status)))
-            return 130
+            return INTERRUPTED
     print(result_line(journal_counts(status)))
     if status.get("state") != "finished":
         stderr_line(f"archery learn: session {status.get('state')}: {status.get('cause', '')}")

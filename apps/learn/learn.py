@@ -29,6 +29,7 @@ from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError, RpcError
+from protocol.exit_status import INTERRUPTED
 from protocol.messages import Rollout
 from protocol.robotspec import SERVICES
 from services.learner.algorithms.base import LearnerError
@@ -236,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
             except (ArcheryError, KeyboardInterrupt):
                 pass
             print(result_line(attach.journal_counts(status)))
-            return 130
+            return INTERRUPTED
     counts = attach.journal_counts(status)
     print(result_line(counts))
     if status["state"] != "finished":

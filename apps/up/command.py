@@ -14,15 +14,17 @@ import sys
 import time
 from pathlib import Path
 
+from apps.capacity import check_robots
 from apps.up.child import die_with_parent
 from apps.up.launch_config import MeshConfig, default_mesh, load_mesh
-from apps.up.launcher import Launcher, LaunchError
+from apps.up.launcher import Launcher, LaunchError, StartInterrupted
 from apps.up.restart_policy import POLICIES, describe_status
 from apps.up.supervisor import GiveUp, Supervisor
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
 from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
 from mesh.signals import shutdown_on_signals
 from protocol.errors import ConfigError
+from protocol.exit_status import INTERRUPTED
 from protocol.keys import DEFAULT_ROBOT
 
 __all__ = ["build_parser", "main", "mesh_from_args", "start_recorder"]
@@ -48,6 +50,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="a fleet of N robot stacks (robot, controller, camera, detector) under the prefixes "
         "ROBOT1 … ROBOTN and one learner that runs sessions on all of them (default 1: one "
         "robot under ROBOT itself)",
+    )
+    parser.add_argument(
+        "--allow-overload",
+        action="store_true",
+        help="start more robot stacks than this machine holds (its maximum comes from the "
+        "available memory and the cores: `apps.capacity`)",
     )
     parser.add_argument("--logs", default="runs/logs", help="directory of the children's logs")
     parser.add_argument("--runs", help="the learner's session directory (default runs)")
@@ -187,6 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         mesh = mesh_from_args(args)
+        check_robots(len(mesh.robots), args.allow_overload)
         check_writable_dir(Path(args.logs), "--logs", create=True)
         if args.record is not None:
             if not args.record.endswith(".mcap"):
@@ -198,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         stop = shutdown_on_signals()
         where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
         print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
-        took = launcher.up(args.timeout)
+        took = launcher.up(args.timeout, stop=stop)
         recorder = None
         if args.record is not None:
             try:
@@ -207,6 +216,9 @@ def main(argv: list[str] | None = None) -> int:
                 launcher.stop_all()
                 raise
             print(f"archery up: recording to {args.record}", flush=True)
+    except StartInterrupted as exc:
+        print(f"archery up: {exc}", file=sys.stderr)
+        return INTERRUPTED
     except (ConfigError, LaunchError) as exc:
         print(f"archery up: {exc}", file=sys.stderr)
         return 2 if isinstance(exc, ConfigError) else 1

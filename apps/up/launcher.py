@@ -41,7 +41,7 @@ from mesh.node import Node
 from mesh.router import wait_for_endpoint
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
 
-__all__ = ["STOP_ORDER", "LaunchError", "Launcher"]
+__all__ = ["INTERRUPT_GRACE", "STOP_ORDER", "LaunchError", "Launcher", "StartInterrupted"]
 
 STOP_ORDER = ("learner", "detector", "camera", "controller", "robot")
 
@@ -50,6 +50,15 @@ class LaunchError(ArcheryError):
     """A child could not start, died, or did not come alive in time."""
 
     code = "launch_failed"
+
+
+class StartInterrupted(LaunchError):
+    """Ctrl-C or SIGTERM while starting: everything started was stopped."""
+
+    code = "interrupted"
+
+
+INTERRUPT_GRACE = 2.0  # s a child stopped during start-up gets before SIGKILL
 
 
 def _check_free(endpoint: str) -> None:
@@ -114,6 +123,7 @@ class Launcher:
         self.specs = {spec.id: spec for spec in mesh.children()}
         self.with_router = mesh.router.start
         self.children: dict[str, Child] = {}
+        self._stop: threading.Event | None = None  # set: stop starting (`up`)
         self.env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
 
     def policy(self, name: str) -> RestartPolicy:
@@ -153,6 +163,7 @@ class Launcher:
         child = self._spawn("router", ["router", "--listen", self.endpoint, *self.secure])
         deadline = time.monotonic() + timeout
         while child.returncode is None:
+            self._check_stop()
             try:
                 wait_for_endpoint(self.endpoint, min(0.5, max(0.0, deadline - time.monotonic())))
                 return
@@ -188,31 +199,50 @@ class Launcher:
         else:
             self.start(name)
 
-    def up(self, timeout: float = 90.0, services: Iterable[str] | None = None) -> float:
+    def up(
+        self,
+        timeout: float = 90.0,
+        services: Iterable[str] | None = None,
+        stop: threading.Event | None = None,
+    ) -> float:
         """Start the router (if asked) and the services; wait until all are alive.
 
         Args:
             timeout: how long to wait for them (s).
             services: the ids of the services to start (default: all of the mesh).
+            stop: set by Ctrl-C/SIGTERM: start no more, stop what started (within
+                `INTERRUPT_GRACE` s each) and raise `StartInterrupted`.
 
         Returns:
             Seconds until all were alive.
 
         Raises:
             LaunchError: one died or was not alive in time; everything started is stopped.
+            StartInterrupted: `stop` was set.
         """
         start = time.monotonic()
         names = list(self.specs if services is None else services)
+        self._stop = stop
         try:
             if self.with_router:
                 self.start_router()
             for name in names:
+                self._check_stop()
                 self.start(name)
             self.wait_alive(names, timeout)
+        except StartInterrupted:
+            self.stop(list(self.children), INTERRUPT_GRACE)  # all at once: no order to keep
+            raise
         except BaseException:
             self.stop_all()
             raise
+        finally:
+            self._stop = None
         return time.monotonic() - start
+
+    def _check_stop(self) -> None:
+        if self._stop is not None and self._stop.is_set():
+            raise StartInterrupted("interrupted while starting: stopped everything started")
 
     def wait_alive(self, names: Iterable[str], timeout: float = 90.0) -> None:
         """Wait by liveliness until the named services (ids) are alive.
@@ -231,6 +261,7 @@ class Launcher:
 
     def _wait_robot(self, node: Node, ids: dict[str, str], deadline: float, timeout: float) -> None:
         while True:
+            self._check_stop()
             dead = self.first_exit()
             if dead is not None:
                 raise LaunchError(self.describe_exit(dead))

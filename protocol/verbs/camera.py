@@ -15,6 +15,9 @@ MAX_GRAB_TIMEOUT = 120.0  # s
 
 
 class GrabArgs(Args, frozen=True):
+    """A frame rendered at or after `after_sim_time` and captured at or after `after_stamp`;
+    with neither, one captured after the request arrived (never an older kept frame)."""
+
     after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
     after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
     timeout: Annotated[float, Meta(gt=0.0, le=MAX_GRAB_TIMEOUT, description="s")] | None = None

@@ -16,12 +16,18 @@ Timeout = Annotated[float, Meta(gt=0.0, le=MAX_TIMEOUT, description="s to wait f
 
 
 class MeasureArgs(Args, frozen=True):
+    """Measure a frame rendered at or after `after_sim_time` and captured at or after
+    `after_stamp`; with neither, one captured after the request arrived."""
+
     after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
     after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
     timeout: Timeout | None = None
 
 
 class CalibrateArgs(Args, frozen=True):
+    """Fit the colour model on a fresh frame (the stamps as `MeasureArgs`) from `pixels`, or on
+    the camera's own calibration frame and marks."""
+
     after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
     after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
     timeout: Timeout | None = None

@@ -12,9 +12,11 @@ from msgspec import UNSET, Meta, UnsetType
 
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["LEARNER_VERBS"]
+__all__ = ["LEARNER_VERBS", "MAX_ROLLOUTS"]
 
 Vector3 = Annotated[list[float], Meta(min_length=3, max_length=3, description="m")]
+
+MAX_ROLLOUTS = 10_000  # the budget of done rollouts a session may ask for
 
 
 class Bounds(Args, frozen=True):
@@ -31,7 +33,7 @@ class Scenario(Args, frozen=True):
 
 class StartArgs(Args, frozen=True):
     algo: Annotated[str, Meta(description="archer, power, …")] | UnsetType = UNSET
-    rollouts: Annotated[int, Meta(ge=1, le=10_000)] | UnsetType = UNSET
+    rollouts: Annotated[int, Meta(ge=1, le=MAX_ROLLOUTS)] | UnsetType = UNSET
     seed: Annotated[int, Meta(ge=0, le=2**32 - 1)] | UnsetType = UNSET
     until_hit: bool | UnsetType = UNSET
     scenario: Scenario | UnsetType = UNSET

@@ -35,7 +35,7 @@ from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Image, WorldState
 from protocol.verbs import robot as robot_verbs
 from services.camera.config import CameraConfig
-from services.camera.frames import FrameStore
+from services.camera.frames import FrameStore, Freshness
 from services.camera.sources import DeviceSource, FolderSource
 
 __all__ = ["Capture", "capture_loop", "encode"]
@@ -218,6 +218,23 @@ class Capture:
             self.reader.close()
 
 
+def _needs_recapture(
+    waiting: list[Freshness], cached: tuple[np.ndarray, float | None, float] | None
+) -> bool:
+    """True if a waiting grab asks only for a capture after a wall stamp, which the render of
+    the newest world state (`cached`: pixels, sim time s, captured wall s) can serve again."""
+    sim_time = None if cached is None else cached[1]
+    return any(
+        want.after_stamp is not None
+        and (cached is None or cached[2] < want.after_stamp)
+        and (
+            want.after_sim_time is None
+            or (sim_time is not None and sim_time >= want.after_sim_time)
+        )
+        for want in waiting
+    )
+
+
 def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event) -> None:
     """Publish at the configured rate while someone subscribes, and at once whenever a waiting
     grab can be served; sleep otherwise."""
@@ -246,11 +263,12 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                         cached = (pixels, state.sim_time, captured)
                         capture.publish(pixels, state.sim_time, captured, pub)
                         next_due = now + period
-                    elif due:
+                    elif due or _needs_recapture(waiting, cached):
                         if cached is None:  # no world state yet: the model's initial state
                             qpos = np.asarray(capture.renderer.model.qpos0)
                             cached = (capture.render(qpos), None, time.time())
-                        capture.publish(*cached, pub)
+                        # the newest state is rendered already: the same pixels, captured now
+                        capture.publish(cached[0], cached[1], time.time(), pub)
                         next_due = now + period
                 else:
                     wall = time.time()

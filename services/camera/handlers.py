@@ -37,11 +37,15 @@ class CameraHandlers:
     def grab(self, args: GrabArgs) -> Image:
         """The first frame newer than the stamps (sim s, wall s), within `timeout` s.
 
-        A device or folder frame has no sim time: there `after_sim_time` means "captured after
-        this request arrived"."""
+        With neither stamp, a frame captured after this request arrived: never the newest frame
+        kept from before (nobody watching, it may show a shot of long ago). A device or folder
+        frame has no sim time: there `after_sim_time` also means "captured after this request
+        arrived"."""
         timeout = CALL_TIMEOUT if args.timeout is None else args.timeout
         after_sim_time, after_stamp = args.after_sim_time, args.after_stamp
-        if not self._rendered and after_sim_time is not None:
+        if after_sim_time is None and after_stamp is None:
+            after_stamp = time.time()
+        elif not self._rendered and after_sim_time is not None:
             after_sim_time, after_stamp = None, max(after_stamp or 0.0, time.time())
         want = Freshness(after_sim_time=after_sim_time, after_stamp=after_stamp)
         return self._store.wait(want, timeout, on_wait=self._capture.jobs.notify)
