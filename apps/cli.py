@@ -12,7 +12,7 @@ import sys
 from mesh.cliargs import ArgumentParser
 from mesh.logs import DEFAULT_SPEC, add_log_args, configure
 from protocol.errors import ConfigError
-from protocol.exit_status import INTERRUPTED
+from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK
 
 __all__ = ["VERBS", "main"]
 
@@ -147,12 +147,18 @@ def main(argv: list[str] | None = None) -> int:
     Ctrl-C outside a verb's own handling ends it with status 130 and no traceback.
     """
     args = list(sys.argv[1:] if argv is None else argv)
-    if not args or args[0] in ("-h", "--help"):
+    if not args:
+        print("archery: give a verb (`archery --help` lists them)", file=sys.stderr)
+        return BAD_INPUT
+    if args[0] in ("-h", "--help", "-V", "--version") and len(args) > 1:
+        print(f"archery: {args[0]} takes no arguments, got {' '.join(args[1:])!r}", file=sys.stderr)
+        return BAD_INPUT
+    if args[0] in ("-h", "--help"):
         print(_usage())
-        return 0
+        return OK
     if args[0] in ("-V", "--version"):
         print(f"archery {_version()}")
-        return 0
+        return OK
     verb, rest = args[0], args[1:]
     if verb == "help":
         if not rest:

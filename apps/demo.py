@@ -29,6 +29,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.errors import ArcheryError, ConfigError
+from protocol.exit_status import for_error
 from protocol.messages import Rollout
 from services.learner.algorithms.registry import ALGORITHMS
 
@@ -85,7 +86,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
             took = launcher.up(args.timeout)
         except (LaunchError, ConfigError) as exc:
             console.print(f"[red]archery demo: {exc}")
-            return 2 if isinstance(exc, ConfigError) else 1
+            return for_error(exc.code)
     console.print(f"mesh up in {took:.1f} s: router on {endpoint}, {', '.join(SERVICES)}")
     try:
         with Node(None, launcher.net) as node:

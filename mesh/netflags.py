@@ -31,7 +31,7 @@ import zenoh
 
 from mesh.cliargs import clean_zenoh_error
 from mesh.logs import add_log_args
-from protocol.errors import ConfigError
+from protocol.errors import ConfigError, Unreachable
 from protocol.keys import DEFAULT_ROBOT, validate_robot
 
 __all__ = [
@@ -251,13 +251,13 @@ def open_session(net: NetConfig) -> zenoh.Session:
         where = ", ".join(net.connect)
         listen = f" listening on {', '.join(net.listen)}" if net.listen else ""
         if net.secure is not None:
-            raise ConfigError(
+            raise Unreachable(
                 f"cannot open a secure Zenoh {net.mode} session as {net.identity!r} connecting "
                 f"to {where}: {clean_zenoh_error(exc)}{net.expired_hint()}. Is a router with "
                 f"the same deployment ({net.secure}) running there (`archery router --secure "
                 f"{net.secure} --listen ENDPOINT`)?"
             ) from None
-        raise ConfigError(
+        raise Unreachable(
             f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
             f"{clean_zenoh_error(exc)}. Is a router running there? Start one with "
             f"`archery router --listen {net.connect[0] if net.connect else 'ENDPOINT'}`"

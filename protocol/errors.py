@@ -12,6 +12,7 @@ __all__ = [
     "RpcError",
     "RpcTimeout",
     "StaleState",
+    "Unreachable",
     "UpstreamLost",
     "WrongReplier",
 ]
@@ -41,6 +42,13 @@ class ConfigError(ArcheryError, ValueError):
     """An invalid configuration value (a flag, a config file entry)."""
 
     code = "bad_config"
+
+
+class Unreachable(ConfigError):
+    """Nothing answers at the endpoint a client was told to connect to (a runtime failure, not
+    bad input: the same flags work once a router runs there)."""
+
+    code = "unreachable"
 
 
 class KeyNameError(ArcheryError, ValueError):

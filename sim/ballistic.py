@@ -42,6 +42,14 @@ __all__ = [
 
 GRAVITY = np.array([0.0, 0.0, -9.81])  # m/s², root frame (z up)
 _MIN_RANGE = 0.1  # m, the target plane must be at least this far in front of the bow hand
+MAX_WIND = 50.0  # m/s per axis: a storm; beyond it nothing reaches a target
+# (field, low, high, unit): ranges beyond which the model means nothing (and floats overflow)
+_RANGES = (
+    ("distance", -math.inf, 100.0, "m"),
+    ("drag", 0.0, 10.0, "1/m"),
+    ("noise", 0.0, 10.0, "m"),
+    ("bow_stiffness", 0.0, 1e5, "N/m"),
+)
 
 
 class BallisticError(ValueError):
@@ -49,7 +57,14 @@ class BallisticError(ValueError):
 
 
 class ScenarioError(BallisticError):
-    """An invalid scenario parameter (distance, wind, drag, noise, stiffness, start θ)."""
+    """An invalid scenario parameter (distance, wind, drag, noise, stiffness, start θ).
+
+    `field` names the parameter, so a command line can name its flag.
+    """
+
+    def __init__(self, message: str, field: str | None = None) -> None:
+        super().__init__(message)
+        self.field = field
 
 
 class ShotError(BallisticError):
@@ -84,20 +99,29 @@ class Scenario:
         for name in ("distance", "drag", "noise", "bow_stiffness"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not math.isfinite(value):
-                raise ScenarioError(f"{name} must be a finite number, got {value!r}")
+                raise ScenarioError(f"{name} must be a finite number, got {value!r}", name)
             object.__setattr__(self, name, float(value))
         min_distance = -float(BOW_HAND[0]) + _MIN_RANGE
         if self.distance < min_distance:
             raise ScenarioError(
                 f"distance {self.distance!r} m puts the target behind or at the bow hand; "
-                f"use a distance >= {min_distance:.2f} m"
+                f"use a distance >= {min_distance:.2f} m",
+                "distance",
             )
-        if self.drag < 0:
-            raise ScenarioError(f"drag must be >= 0 (1/m), got {self.drag!r}")
-        if self.noise < 0:
-            raise ScenarioError(f"noise must be >= 0 (m), got {self.noise!r}")
         if self.bow_stiffness <= 0:
-            raise ScenarioError(f"bow_stiffness must be > 0 (N/m), got {self.bow_stiffness!r}")
+            raise ScenarioError(
+                f"bow_stiffness must be > 0 (N/m), got {self.bow_stiffness!r}", "bow_stiffness"
+            )
+        for name, low, high, unit in _RANGES:
+            value = getattr(self, name)
+            if value < low:
+                raise ScenarioError(f"{name} must be >= {low:g} ({unit}), got {value!r}", name)
+            if value > high:
+                raise ScenarioError(f"{name} must be <= {high:g} ({unit}), got {value!r}", name)
+        if max(abs(w) for w in self.wind) > MAX_WIND:
+            raise ScenarioError(
+                f"wind must be at most {MAX_WIND:g} m/s per axis, got {self.wind}", "wind"
+            )
         if self.drag == 0 and any(self.wind):
             raise ScenarioError(
                 f"wind {self.wind} has no effect without air drag (it acts through drag only); "

@@ -183,6 +183,13 @@ CASES: list[tuple[str, int, str]] = [
     ("dashboard --port 70000 {net}", 2, "'70000'"),
     ("dashboard --port 0 --connect {dead}", 1, "{dead}"),
     # the dispatcher and demo
+    ("", 2, "give a verb"),
+    ("--version extra", 2, "--version takes no arguments, got 'extra'"),
+    ("--help extra", 2, "--help takes no arguments"),
+    ("ports --secure {tmp}/no-deployment", 2, "no ca.pem"),
+    ("up --robots 1000 --runs {tmp}/up-runs", 2, "--robots 1000: this machine holds at most"),
+    ("experiment --distance 1e308", 2, "--distance 1e308: distance must be <= 100"),
+    ("experiment --sessions 20000", 2, "--sessions 20000: at most 10000"),
     ("fly", 2, "'fly'"),
     ("help fly", 2, "'fly'"),
     ("demo --rollouts 0", 2, "'0'"),

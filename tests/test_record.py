@@ -278,7 +278,14 @@ def test_read_with_a_wildcard_and_a_field(net: NetConfig) -> None:
         one = archery(
             "read", f"{net.robot}/torso/state:o", "--count", "1", "--field", "part", *_flags(net)
         )
+        # a path the message does not have: one line naming it, bad input (2), nothing printed
+        past = archery(
+            "read", f"{net.robot}/torso/state:o", "--count", "1", "--field", "names.99",
+            *_flags(net),
+        )  # fmt: skip
     assert one.returncode == 0 and one.stdout.splitlines()[0] == '"torso"', one.stderr
+    assert past.returncode == 2 and past.stdout == "", past.stderr
+    assert "--field 'names.99': names has 3 entries, no entry '99'" in past.stderr
 
 
 def test_a_recording_of_the_first_format_is_still_read(tmp_path: Path) -> None:

@@ -36,6 +36,7 @@ from mesh.node import Node
 from mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
 from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, ConfigError
+from protocol.exit_status import for_error
 
 __all__ = ["DEFAULT_PORT", "Dashboard", "main"]
 
@@ -205,5 +206,5 @@ def main(argv: list[str] | None = None) -> int:
             stop.wait()
     except ArcheryError as exc:
         print(f"archery dashboard: {exc}", file=sys.stderr)
-        return 1
+        return for_error(exc.code)
     return 0

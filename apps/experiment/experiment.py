@@ -38,12 +38,13 @@ from apps.experiment.plots import BANDS
 from apps.progress import progress_bar
 from mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from mesh.netflags import add_network_args
-from protocol.errors import ArcheryError, ConfigError
+from protocol.errors import ArcheryError
+from protocol.exit_status import BAD_INPUT, for_error
 from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import (
     ALGORITHMS,
 )
-from sim.ballistic import BallisticError, BallisticWorld, Scenario
+from sim.ballistic import BallisticError, BallisticWorld, Scenario, ScenarioError
 
 __all__ = ["build_parser", "main", "run_algorithm", "run_experiment", "summarise", "write_outputs"]
 
@@ -312,14 +313,20 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     Raises:
         ExperimentError, BallisticError: a value is malformed or out of range.
     """
-    scenario = Scenario(
-        distance=floats(args.distance, 1, "--distance")[0],
-        wind=floats3(args.wind, "--wind"),
-        drag=floats(args.drag, 1, "--drag")[0],
-        noise=floats(args.noise, 1, "--noise")[0],
-        bow_stiffness=floats(args.bow_stiffness, 1, "--bow-stiffness")[0],
-        start=floats3(args.start, "--start"),
-    )
+    try:
+        scenario = Scenario(
+            distance=floats(args.distance, 1, "--distance")[0],
+            wind=floats3(args.wind, "--wind"),
+            drag=floats(args.drag, 1, "--drag")[0],
+            noise=floats(args.noise, 1, "--noise")[0],
+            bow_stiffness=floats(args.bow_stiffness, 1, "--bow-stiffness")[0],
+            start=floats3(args.start, "--start"),
+        )
+    except ScenarioError as exc:
+        if exc.field is None:
+            raise
+        flag = "--" + exc.field.replace("_", "-")
+        raise ExperimentError(f"{flag} {getattr(args, exc.field)}: {exc}") from None
     return ExperimentConfig(
         algorithms=tuple(a.strip() for a in args.algo.split(",") if a.strip()),
         sessions=_int(args.sessions, "--sessions"),
@@ -405,12 +412,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if figures and config.world == "mesh":
             experiment_mesh.write_mesh_figures(out, config, runs, band=args.fig6)
         wall_time = time.perf_counter() - start
-    except (LearnerError, BallisticError, ConfigError) as exc:
+    except (LearnerError, BallisticError) as exc:
         print(f"archery experiment: error: {exc}", file=sys.stderr)
-        return 2
-    except ArcheryError as exc:  # the mesh: no robot, interrupted, a session failing
-        print(f"archery experiment: {exc}", file=sys.stderr)
-        return 1
+        return BAD_INPUT
+    except ArcheryError as exc:  # a bad flag, or the mesh: no robot, interrupted, a failure
+        status = for_error(exc.code)
+        error = "error: " if status == BAD_INPUT else ""
+        print(f"archery experiment: {error}{exc}", file=sys.stderr)
+        return status
     _print_table(summary, wall_time)
     print(
         f"wrote {out}/summary.json, curves.csv, learners.json"

@@ -23,7 +23,7 @@ from apps.learn.follow import SessionLost, follow, result_line
 from mesh.node import Node
 from mesh.subscription import Subscription
 from protocol.errors import ArcheryError, RpcError
-from protocol.exit_status import INTERRUPTED
+from protocol.exit_status import INTERRUPTED, for_error
 from protocol.messages import Rollout
 from services.learner.journal import (
     JOURNAL_NAME,
@@ -119,7 +119,7 @@ def attach(
         status = learner_call(node, "status", timeout=10.0)
     except RpcError as exc:
         stderr_line(f"archery learn: --attach: the learner does not answer: {exc}")
-        return 1
+        return for_error(exc.code)
     if status.get("session") != session:
         return _not_running(session, path, status, result_line)
     if not quiet:

@@ -8,9 +8,9 @@ journal; see `services.learner.transfer`), or follows a running one
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
 "report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget; with
-`--require-hit`, 3 when it finished without a hit), 1 when it failed or the learner vanished (the
-message says how to resume), 2 for bad input, 130 after Ctrl-C (the session is stopped after its
-current rollout and can be resumed).
+`--require-hit`: 1 when it finished without a hit); 1 when it failed, the learner vanished (the
+message says how to resume) or is busy; 2 for bad input; 130 after Ctrl-C (the session is
+stopped after its current rollout and can be resumed).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError, RpcError
-from protocol.exit_status import INTERRUPTED
+from protocol.exit_status import FAILURE, INTERRUPTED, for_error
 from protocol.messages import Rollout
 from protocol.robotspec import SERVICES
 from services.learner.algorithms.base import LearnerError
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> int:
             status = learner_call(node, "start", start, timeout=args.wait + 30)
         except RpcError as exc:
             print(f"archery learn: {exc}", file=sys.stderr)
-            return 2 if exc.code in ("bad_request", "bad_journal", "busy") else 1
+            return for_error(exc.code)
         session = status["session"]
         if not args.quiet:
             print(f"session {session}: journal {status['journal']}", file=sys.stderr)
@@ -247,5 +247,5 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     if args.require_hit and counts.get("hit_at") is None:
         print(f"archery learn: session {session} finished without a hit", file=sys.stderr)
-        return 3
+        return FAILURE
     return 0

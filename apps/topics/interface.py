@@ -19,6 +19,7 @@ from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args
 from protocol.codec import decode
 from protocol.errors import ArcheryError
+from protocol.exit_status import for_error
 from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe
 from protocol.verbs import table_for_key
@@ -117,4 +118,4 @@ def interface_main(argv: list[str] | None = None) -> int:
         return _show(args.key, args)
     except ArcheryError as exc:
         print(f"archery interface: {exc}", file=sys.stderr)
-        return 1
+        return for_error(exc.code)

@@ -25,6 +25,7 @@ from mesh.signals import shutdown_on_signals
 from mesh.subscription import Subscription
 from protocol.codec import decode
 from protocol.errors import ArcheryError, BadRequest, RpcError
+from protocol.exit_status import for_error
 from protocol.messages import Describe, JointCommand, JointState, WorldEvent
 from protocol.parts import PARTS
 from protocol.verbs import NoArgs, ServedVerbs
@@ -244,7 +245,7 @@ def main(argv: list[str] | None = None) -> int:
             return 0 if _selfcheck(net, args.timeout) else 1
     except ArcheryError as exc:
         print(f"archery selfcheck: {exc}", file=sys.stderr)
-        return 1
+        return for_error(exc.code)
     endpoint = free_tcp_endpoint()
     with open_router(endpoint):
         net = NetConfig(connect=(endpoint,), robot=args.robot)

@@ -36,6 +36,7 @@ from protocol.errors import (
     KeyNameError,
     RpcError,
 )
+from protocol.exit_status import BAD_INPUT, INTERRUPTED, for_error
 from protocol.keys import port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.robotspec import CALL_TIMEOUT
@@ -59,7 +60,8 @@ def _parser(prog: str, description: str) -> argparse.ArgumentParser:
 
 def _run(prog: str, check: Callable[[], Any], body: Callable[[Any], int]) -> int:
     """Check the input (`check()`; its errors: exit status 2), then run `body(checked)` (its
-    errors, e.g. nothing reachable: exit status 1). Each error is one line on stderr."""
+    errors: `protocol.exit_status.for_error`, e.g. nothing reachable: 1, a remote service
+    refusing the request: 2; Ctrl-C: 130). Each error is one line on stderr."""
     try:
         checked = check()
     except ArcheryError as exc:
@@ -69,9 +71,9 @@ def _run(prog: str, check: Callable[[], Any], body: Callable[[Any], int]) -> int
         return body(checked)
     except ArcheryError as exc:
         print(f"archery {prog}: {exc}", file=sys.stderr)
-        return 1
+        return for_error(exc.code)
     except KeyboardInterrupt:
-        return 0
+        return INTERRUPTED
 
 
 def _stream_type(key: str) -> type[Message]:
@@ -170,18 +172,31 @@ def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
 
 
 def _field(value: Any, path: str) -> Any:
-    """The part of a JSON-like message at a dotted `path` (`r_m.0`, `names.1`); None if absent."""
+    """The part of a JSON-like message at a dotted `path` (`r_m.0`, `names.1`); None where a
+    step meets a null (an optional field not set, e.g. `r_m` of a detection without an arrow).
+
+    Raises:
+        KeyNameError: a step names no key of an object, or an index outside a list.
+    """
+    where = "the message"
     for step in path.split("."):
+        if value is None:
+            return None
         if isinstance(value, dict):
-            value = value.get(step)
-        elif (
-            isinstance(value, list)
-            and step.lstrip("-").isdigit()
-            and -len(value) <= int(step) < len(value)
-        ):
+            if step not in value:
+                raise KeyNameError(
+                    f"--field {path!r}: {where} has no {step!r}; it has {', '.join(value)}"
+                )
+            value = value[step]
+        elif isinstance(value, list):
+            if not (step.lstrip("-").isdigit() and -len(value) <= int(step) < len(value)):
+                raise KeyNameError(
+                    f"--field {path!r}: {where} has {len(value)} entries, no entry {step!r}"
+                )
             value = value[int(step)]
         else:
-            return None
+            raise KeyNameError(f"--field {path!r}: {where} is {value!r}, it has no {step!r}")
+        where = step
     return value
 
 
@@ -254,7 +269,11 @@ def read_main(argv: list[str] | None = None) -> int:
                         return 1
                     value: Any = to_jsonable(message)
                     if args.field is not None:
-                        value = _field(value, args.field)
+                        try:
+                            value = _field(value, args.field)
+                        except KeyNameError as exc:  # the user's path, judged on a message
+                            print(f"archery read: {exc}", file=sys.stderr)
+                            return BAD_INPUT
                     print(
                         json.dumps({"key": key, "value": value} if wildcard else value), flush=True
                     )
