@@ -118,6 +118,8 @@ CASES: list[tuple[str, int, str]] = [
     ("learn --wait nan", 2, "'nan'"),
     ("learn --mode client --connect {dead}", 1, "{dead}"),
     ("learn --wait 0.3 {net}", 1, "not alive after 0.3 s"),
+    ("learn --resume {tmp}/j.jsonl --rollouts 8 --seed 0", 2, "cannot honour --rollouts, --seed"),
+    ("learn --attach s1 --algo power", 2, "--attach follows the session as it runs"),
     # up
     ("up --timeout -1", 2, "'-1'"),
     ("up --timeout nan", 2, "'nan'"),

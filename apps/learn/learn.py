@@ -36,7 +36,19 @@ from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import ALGORITHMS, check_transfer
 from services.learner.config import SessionConfig
 
-__all__ = ["build_parser", "main", "start_request"]
+__all__ = ["DEFAULTS", "build_parser", "main", "session_flags_given", "start_request"]
+
+DEFAULTS: dict[str, Any] = {"algo": "archer", "rollouts": 30, "seed": 0}
+# (flag, argparse dest) of the flags that describe a new session
+SESSION_FLAGS = (
+    ("--algo", "algo"),
+    ("--rollouts", "rollouts"),
+    ("--seed", "seed"),
+    ("--no-until-hit", "no_until_hit"),
+    ("--theta0", "theta0"),
+    ("--hit-radius", "hit_radius"),
+    ("--option", "option"),
+)
 
 
 def _vector3(text: str, flag: str) -> list[float]:
@@ -85,9 +97,17 @@ def build_parser() -> argparse.ArgumentParser:
     """The flags of `archery learn`."""
     parser = ArgumentParser(prog="archery learn", description=__doc__.split("\n")[0])
     add_network_args(parser)
-    parser.add_argument("--algo", default="archer", help=f"one of {', '.join(ALGORITHMS)}")
-    parser.add_argument("--rollouts", type=int, default=30, help="budget of done rollouts")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the learner and the shots")
+    # The session's flags default to None (not given), so that --resume and --attach, which
+    # take the session as it was journaled, can refuse them; `start_request` applies defaults.
+    parser.add_argument(
+        "--algo", help=f"one of {', '.join(ALGORITHMS)} (default {DEFAULTS['algo']})"
+    )
+    parser.add_argument(
+        "--rollouts", type=int, help=f"budget of done rollouts (default {DEFAULTS['rollouts']})"
+    )
+    parser.add_argument(
+        "--seed", type=int, help=f"seed of the learner and the shots (default {DEFAULTS['seed']})"
+    )
     parser.add_argument(
         "--no-until-hit",
         action="store_true",
@@ -98,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--hit-radius", type=_hit_radius, help="hit radius (m, in [0.001, 0.25], default 0.05)"
     )
     parser.add_argument(
-        "--option", action="append", default=[], metavar="NAME=VALUE", help="learner option"
+        "--option", action="append", metavar="NAME=VALUE", help="learner option (repeatable)"
     )
     which = parser.add_mutually_exclusive_group()
     which.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
@@ -123,35 +143,53 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--require-hit",
         action="store_true",
-        help="exit status 3 when the session finishes without a hit (containers, scripts)",
+        help="exit status 1 when the session finishes without a hit (containers, scripts)",
     )
     return parser
 
 
+def session_flags_given(args: argparse.Namespace) -> list[str]:
+    """The flags describing a new session that were given (those --resume/--attach refuse)."""
+    values = ((flag, getattr(args, dest)) for flag, dest in SESSION_FLAGS)
+    return [flag for flag, value in values if value is not None and value is not False]
+
+
 def start_request(args: argparse.Namespace) -> dict[str, Any]:
-    """The `start` request for parsed flags."""
-    if args.algo not in ALGORITHMS:
-        raise ConfigError(
-            f"--algo {args.algo!r} is not a learner; valid algorithms: {', '.join(ALGORITHMS)}"
-        )
+    """The `start` request for parsed flags (the defaults of `DEFAULTS` for those not given).
+
+    Raises:
+        ConfigError: an unknown algorithm, or --resume with flags of a new session (the
+            journaled session goes on as it was started; the message names them).
+    """
     if args.resume:
+        given = session_flags_given(args)
+        if given:
+            raise ConfigError(
+                f"--resume continues the session as it was journaled; it cannot honour "
+                f"{', '.join(given)} (leave them out, or start a new session)"
+            )
         return {"resume": args.resume}
+    algo = DEFAULTS["algo"] if args.algo is None else args.algo
+    if algo not in ALGORITHMS:
+        raise ConfigError(
+            f"--algo {algo!r} is not a learner; valid algorithms: {', '.join(ALGORITHMS)}"
+        )
     scenario: dict[str, Any] = {}
     if args.theta0:
         scenario["theta0"] = _vector3(args.theta0, "--theta0")
     if args.hit_radius is not None:
         scenario["hit_radius"] = args.hit_radius
     request: dict[str, Any] = {
-        "algo": args.algo,
-        "rollouts": args.rollouts,
-        "seed": args.seed,
+        "algo": algo,
+        "rollouts": DEFAULTS["rollouts"] if args.rollouts is None else args.rollouts,
+        "seed": DEFAULTS["seed"] if args.seed is None else args.seed,
         "until_hit": not args.no_until_hit,
-        "options": dict(_option(text, args.algo) for text in args.option),
+        "options": dict(_option(text, algo) for text in args.option or []),
     }
     if scenario:
         request["scenario"] = scenario
     if args.from_:
-        request["from_journal"] = _from_journal(args.from_, args.algo)
+        request["from_journal"] = _from_journal(args.from_, algo)
     return request
 
 
@@ -195,6 +233,11 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         net = NetConfig.from_args(args)
+        given = session_flags_given(args)
+        if args.attach and given:
+            raise ConfigError(
+                f"--attach follows the session as it runs; it cannot honour {', '.join(given)}"
+            )
         request = start_request(args)
         if "resume" not in request:  # the learner's own checks, then the verb's types
             SessionConfig.from_request(request)
@@ -208,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         node = Node(None, net)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
-        return 1
+        return for_error(exc.code)
     with node:
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         if args.attach:
