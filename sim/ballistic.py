@@ -25,9 +25,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from protocol.vectors import finite_vector
 from sim.bow import Bow, BowError
 from sim.geometry import BOW_HAND, INNER_RING_RADIUS, START_THETA, TARGET_DISTANCE, target_centre
-from sim.vectors import vector3
 
 __all__ = [
     "GRAVITY",
@@ -89,13 +89,13 @@ class Scenario:
     drag: float = 0.0
     noise: float = 0.0
     bow_stiffness: float = Bow().stiffness
-    start: tuple[float, float, float] = field(
-        default_factory=lambda: vector3("start", START_THETA, ScenarioError)
-    )
+    start: tuple[float, float, float] = field(default_factory=lambda: tuple(START_THETA.tolist()))
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "wind", vector3("wind", self.wind, ScenarioError))
-        object.__setattr__(self, "start", vector3("start", self.start, ScenarioError))
+        wind = finite_vector("wind", self.wind, ScenarioError, unit="m/s")
+        start = finite_vector("start", self.start, ScenarioError, unit="m")
+        object.__setattr__(self, "wind", tuple(wind.tolist()))
+        object.__setattr__(self, "start", tuple(start.tolist()))
         for name in ("distance", "drag", "noise", "bow_stiffness"):
             value = getattr(self, name)
             if not isinstance(value, int | float) or not math.isfinite(value):

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from protocol.vectors import finite_vector
+
 __all__ = ["Bow", "BowError"]
 
 
@@ -59,9 +61,7 @@ class Bow:
         Raises:
             BowError: θ is not a finite 3-vector or the hands coincide.
         """
-        theta = np.asarray(theta, dtype=float)
-        if theta.shape != (3,) or not np.all(np.isfinite(theta)):
-            raise BowError(f"θ must be a finite 3-vector in metres, got {theta!r}")
+        theta = finite_vector("θ", theta, BowError, unit="m")
         norm = float(np.linalg.norm(theta))
         if norm < 1e-9:
             raise BowError("the string hand is on the bow hand (‖θ‖ = 0): no arrow direction")

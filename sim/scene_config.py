@@ -11,9 +11,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-import numpy as np
-
 from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
+from protocol.vectors import finite_vector
 from sim.bow import Bow
 from sim.errors import ConfigError
 from sim.geometry import TARGET_DISTANCE
@@ -114,12 +113,8 @@ class SceneConfig:
             object.__setattr__(self, name, float(value))
         if not isinstance(self.meshes, bool):
             raise ConfigError(f"scene meshes must be True or False, got {self.meshes!r}")
-        pos = np.asarray(self.camera_pos, dtype=float)
-        if pos.shape != (3,) or not np.all(np.isfinite(pos)):
-            raise ConfigError(
-                f"scene camera_pos must be 3 finite numbers (m), got {self.camera_pos!r}"
-            )
-        object.__setattr__(self, "camera_pos", tuple(float(v) for v in pos))
+        pos = finite_vector("scene camera_pos", self.camera_pos, ConfigError, unit="m")
+        object.__setattr__(self, "camera_pos", tuple(pos.tolist()))
 
     def to_dict(self) -> dict[str, object]:
         """JSON-friendly copy of the parameters (for the camera to rebuild the same scene)."""

@@ -21,6 +21,7 @@ import numpy as np
 
 from protocol.parts import PARTS
 from protocol.robotspec import MAX_REFERENCE_SPEED, home_of
+from protocol.vectors import finite_vector
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, StateError
@@ -28,7 +29,6 @@ from sim.geometry import TARGET_DIAMETER, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
-from sim.vectors import vector3
 
 __all__ = ["ArcheryWorld", "ArrowState", "WorldConfig"]
 
@@ -83,7 +83,8 @@ class WorldConfig:
                 f"the bow's arrow mass {self.bow.arrow_mass} kg differs from the scene's "
                 f"{self.scene.arrow_mass} kg; set both to the same value"
             )
-        object.__setattr__(self, "wind", vector3("wind", self.wind, ConfigError))
+        wind = finite_vector("wind", self.wind, ConfigError, unit="m/s")
+        object.__setattr__(self, "wind", tuple(wind.tolist()))
         bounds = {
             "drag": (0.0, 10.0),
             "wind_gust": (0.0, 50.0),

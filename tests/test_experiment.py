@@ -151,7 +151,10 @@ def test_same_seed_same_numbers_bit_for_bit_and_independent_of_the_algorithm_lis
         (["--rollouts", "6", "--algo", "cma"], "use rollouts >= 8"),
         (["--sessions", "0"], "sessions must be an integer >= 1, got 0"),
         (["--sessions", "many"], "--sessions needs an integer, got 'many'"),
-        (["--wind", "1,2"], "--wind needs 3 comma-separated numbers, got '1,2'"),
+        (
+            ["--wind", "1,2"],
+            "--wind must be a finite 3-vector (m/s): 3 comma-separated finite numbers, got '1,2'",
+        ),
         (["--wind", "1,0,0"], "has no effect without air drag"),
         (["--drag", "-1"], "drag must be >= 0"),
         (["--noise", "nan"], "--noise needs a number, got 'nan'"),

@@ -306,7 +306,7 @@ def test_rig_error_aborts_and_retries(tmp_path: Path) -> None:
         ({"seed": -1}, "seed must be"),
         ({"until_hit": "yes"}, "until_hit must be true or false"),
         ({"scenario": {"wind": 3}}, "scenario has no key 'wind'"),
-        ({"scenario": {"theta0": [0.1, 0.2]}}, "theta0 must be 3 finite numbers"),
+        ({"scenario": {"theta0": [0.1, 0.2]}}, "theta0 must be a finite 3-vector"),
         ({"scenario": {"hit_radius": -0.1}}, "hit_radius must be in"),
         ({"scenario": {"bounds": {"low": [0, 0, 0]}}}, "bounds must be"),
         ({"scenario": {"bounds": {"low": [0.2, 0, 0], "high": [0.1, 0.1, 0.1]}}}, "low < high"),

@@ -308,7 +308,7 @@ def test_sigterm_ends_the_robot_process_cleanly(net: NetConfig) -> None:
     ("flags", "message"),
     [
         (["--rtf", "-1"], "--rtf must be in"),
-        (["--wind", "1,2"], "--wind must be three numbers"),
+        (["--wind", "1,2"], "--wind must be a finite 3-vector"),
         (["--bow-stiffness", "0"], "--bow-stiffness"),
         (["--drag", "20"], "drag must be in"),
     ],

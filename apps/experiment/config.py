@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.vectors import parse_vector
 from protocol.verbs.learner import MAX_ROLLOUTS
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
 from services.learner.algorithms.power import Power
@@ -35,8 +36,7 @@ __all__ = [
     "ExperimentError",
     "Transfer",
     "WindChange",
-    "floats",
-    "floats3",
+    "number",
 ]
 
 
@@ -83,13 +83,13 @@ class WindChange:
             rollout = int(at)
         except ValueError:
             rollout = -1
-        values = floats(wind, 3, "--wind-change") if sep and rollout >= 0 else ()
-        if not values:
+        if not sep or rollout < 0:
             raise ExperimentError(
                 f"--wind-change needs AT:VX,VY,VZ (a rollout number, then the new wind in m/s), "
                 f"got {text!r}"
             )
-        return cls(rollout, (values[0], values[1], values[2]))
+        vx, vy, vz = parse_vector("--wind-change wind", wind, ExperimentError, unit="m/s")
+        return cls(rollout, (float(vx), float(vy), float(vz)))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain values for summary.json."""
@@ -319,28 +319,16 @@ class AlgorithmRun:
         return np.where(hits.any(axis=1), hits.argmax(axis=1) + 1, hits.shape[1] + 1)
 
 
-def floats(text: str, count: int, flag: str) -> tuple[float, ...]:
-    """`count` finite comma-separated numbers from `text`, the value of `flag`.
+def number(text: str, flag: str) -> float:
+    """The finite number `text`, the value of `flag` (its vectors: `protocol.vectors`).
 
     Raises:
-        ExperimentError: they are not.
+        ExperimentError: it is not one.
     """
-    parts = text.split(",")
     try:
-        values = tuple(float(p) for p in parts)
+        value = float(text)
     except ValueError:
-        values = ()
-    if len(values) != count or not all(math.isfinite(v) for v in values):
-        what = "a number" if count == 1 else f"{count} comma-separated numbers"
-        raise ExperimentError(f"{flag} needs {what}, got {text!r}")
-    return values
-
-
-def floats3(text: str, flag: str) -> tuple[float, float, float]:
-    """`floats(text, 3, flag)`: a 3-vector (x, y, z).
-
-    Raises:
-        ExperimentError: `text` is not 3 finite comma-separated numbers.
-    """
-    x, y, z = floats(text, 3, flag)
-    return (x, y, z)
+        value = math.nan
+    if not math.isfinite(value):
+        raise ExperimentError(f"{flag} needs a number, got {text!r}")
+    return value

@@ -31,8 +31,7 @@ from apps.experiment.config import (
     ExperimentError,
     Transfer,
     WindChange,
-    floats,
-    floats3,
+    number,
 )
 from apps.experiment.plots import BANDS
 from apps.progress import progress_bar
@@ -40,6 +39,7 @@ from mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
 from mesh.netflags import add_network_args
 from protocol.errors import ArcheryError
 from protocol.exit_status import BAD_INPUT, for_error
+from protocol.vectors import parse_vector
 from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import (
     ALGORITHMS,
@@ -315,12 +315,12 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
     """
     try:
         scenario = Scenario(
-            distance=floats(args.distance, 1, "--distance")[0],
-            wind=floats3(args.wind, "--wind"),
-            drag=floats(args.drag, 1, "--drag")[0],
-            noise=floats(args.noise, 1, "--noise")[0],
-            bow_stiffness=floats(args.bow_stiffness, 1, "--bow-stiffness")[0],
-            start=floats3(args.start, "--start"),
+            distance=number(args.distance, "--distance"),
+            wind=tuple(parse_vector("--wind", args.wind, ExperimentError, unit="m/s").tolist()),
+            drag=number(args.drag, "--drag"),
+            noise=number(args.noise, "--noise"),
+            bow_stiffness=number(args.bow_stiffness, "--bow-stiffness"),
+            start=tuple(parse_vector("--start", args.start, ExperimentError).tolist()),
         )
     except ScenarioError as exc:
         if exc.field is None:
@@ -336,9 +336,7 @@ def _config_from_args(args: argparse.Namespace) -> ExperimentConfig:
         world=args.world,
         wind_change=None if args.wind_change is None else WindChange.parse(args.wind_change),
         transfer=None if args.from_ is None else Transfer.load(Path(args.from_)),
-        power_scale=None
-        if args.power_scale is None
-        else floats(args.power_scale, 1, "--power-scale")[0],
+        power_scale=None if args.power_scale is None else number(args.power_scale, "--power-scale"),
     )
 
 

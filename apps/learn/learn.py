@@ -32,6 +32,7 @@ from protocol.errors import ArcheryError, ConfigError, RpcError
 from protocol.exit_status import FAILURE, INTERRUPTED, for_error
 from protocol.messages import Rollout
 from protocol.robotspec import SERVICES
+from protocol.vectors import parse_vector
 from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import ALGORITHMS, check_transfer
 from services.learner.config import SessionConfig
@@ -49,16 +50,6 @@ SESSION_FLAGS = (
     ("--hit-radius", "hit_radius"),
     ("--option", "option"),
 )
-
-
-def _vector3(text: str, flag: str) -> list[float]:
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        values = []
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ConfigError(f"{flag} must be three finite numbers X,Y,Z (m), got {text!r}")
-    return values
 
 
 def option_names(algo: str) -> tuple[str, ...]:
@@ -176,7 +167,7 @@ def start_request(args: argparse.Namespace) -> dict[str, Any]:
         )
     scenario: dict[str, Any] = {}
     if args.theta0:
-        scenario["theta0"] = _vector3(args.theta0, "--theta0")
+        scenario["theta0"] = parse_vector("--theta0", args.theta0, ConfigError).tolist()
     if args.hit_radius is not None:
         scenario["hit_radius"] = args.hit_radius
     request: dict[str, Any] = {

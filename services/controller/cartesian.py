@@ -17,6 +17,7 @@ import numpy as np
 import pinocchio as pin
 
 from protocol.robotspec import MAX_REFERENCE_SPEED
+from protocol.vectors import finite_vector
 from services.controller.errors import TargetError
 from services.controller.ik_types import IkResult
 
@@ -25,27 +26,13 @@ __all__ = ["MIN_REFERENCE_SPEED", "axis_angle", "ik_reply", "reference_speeds", 
 MIN_REFERENCE_SPEED = 0.01  # rad/s, for joints that barely move
 
 
-def _finite_vector(value: Any, name: str, size: int, unit: str) -> np.ndarray:
-    if not isinstance(value, list | tuple) or isinstance(value, str):
-        raise TargetError(f"{name} must be a list of {size} numbers ({unit}), got {value!r}")
-    try:
-        vec = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise TargetError(f"{name} must be {size} numbers ({unit}), got {value!r}") from None
-    if vec.shape != (size,):
-        raise TargetError(f"{name} must be {size} numbers ({unit}), got {len(value)}: {value!r}")
-    if not np.all(np.isfinite(vec)):
-        raise TargetError(f"{name} must be finite numbers ({unit}), got {value!r}")
-    return vec
-
-
 def rotation_vector(value: Any, name: str = "od") -> np.ndarray:
     """The rotation vector (rad) of an iKin axis-angle [ax, ay, az, angle] from a request.
 
     Raises:
         TargetError: not 4 finite numbers, or a zero axis with a non-zero angle.
     """
-    vec = _finite_vector(value, name, 4, "unit axis, then angle in rad")
+    vec = finite_vector(name, value, TargetError, size=4, unit="unit axis, then angle in rad")
     axis, angle = vec[:3], float(vec[3])
     norm = float(np.linalg.norm(axis))
     if norm < 1e-9:

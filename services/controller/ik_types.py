@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from protocol.vectors import finite_vector
 from services.controller.errors import ConfigError, TargetError
 from services.controller.model import check_arm
 
@@ -143,7 +144,9 @@ class PositionTarget:
                 raise TargetError(f"relative_to must be the other arm, got {self.relative_to!r}")
         if self.priority not in (0, 1, 2):
             raise ConfigError(f"priority must be 0, 1 or 2, got {self.priority!r}")
-        object.__setattr__(self, "position", _position(self.position))
+        object.__setattr__(
+            self, "position", finite_vector("position", self.position, TargetError, unit="m")
+        )
 
 
 @dataclass(frozen=True)
@@ -213,21 +216,6 @@ class IkResult:
     orientation_error_rad: float
     reachable: bool
     iterations: int
-
-
-def _position(value: Any) -> np.ndarray:
-    try:
-        pos = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise TargetError(f"position must be a 3-vector in metres, got {value!r}") from None
-    if pos.shape != (3,):
-        raise TargetError(
-            f"position must be a 3-vector in metres, got shape {pos.shape}: {value!r}"
-        )
-    if not np.all(np.isfinite(pos)):
-        raise TargetError(f"position must be finite (no NaN/inf), got {value!r}")
-    pos.setflags(write=False)
-    return pos
 
 
 def as_rotation(orientation: Any) -> np.ndarray:

@@ -30,6 +30,7 @@ import pinocchio as pin
 
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
+from protocol.vectors import finite_vector
 from services.controller.errors import ConfigError, TargetError
 from services.controller.ik import IkSolver
 from services.controller.ik_types import (
@@ -51,26 +52,13 @@ __all__ = [
 _UP = np.array([0.0, 0.0, 1.0])
 
 
-def _vector3(value: Any, name: str, error: type[Exception]) -> np.ndarray:
-    try:
-        vec = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        raise error(f"{name} must be a 3-vector in metres, got {value!r}") from None
-    if vec.shape != (3,):
-        raise error(f"{name} must be a 3-vector in metres, got shape {vec.shape}: {value!r}")
-    if not np.all(np.isfinite(vec)):
-        raise error(f"{name} must be finite (no NaN/inf), got {value!r}")
-    vec.setflags(write=False)
-    return vec
-
-
 def arrow_direction(theta: Any) -> np.ndarray:
     """Unit arrow direction −θ/‖θ‖ (root frame) for θ = p_string − p_bow (m).
 
     Raises:
         TargetError: θ is not a finite 3-vector, or the hands coincide.
     """
-    th = _vector3(theta, "θ", TargetError)
+    th = finite_vector("θ", theta, TargetError)
     norm = float(np.linalg.norm(th))
     if norm < 1e-6:
         raise TargetError(f"θ = {th.tolist()} m puts the string hand on the bow hand: no arrow")
@@ -127,7 +115,7 @@ class PostureConfig:
 
     def __post_init__(self) -> None:
         for name in ("bow_hand", "theta_min", "theta_max", "nominal_theta"):
-            object.__setattr__(self, name, _vector3(getattr(self, name), name, ConfigError))
+            object.__setattr__(self, name, finite_vector(name, getattr(self, name), ConfigError))
         if np.any(self.theta_min >= self.theta_max):
             raise ConfigError(
                 f"theta_min {self.theta_min.tolist()} must be below theta_max "
@@ -207,7 +195,7 @@ class ArcheryPosture:
 
     def check_theta(self, theta: Any) -> np.ndarray:
         """θ as a read-only array, or TargetError naming θ and the configured box."""
-        th = _vector3(theta, "θ", TargetError)
+        th = finite_vector("θ", theta, TargetError)
         cfg = self.config
         if np.any(th < cfg.theta_min) or np.any(th > cfg.theta_max):
             raise TargetError(

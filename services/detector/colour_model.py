@@ -20,6 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from protocol.vectors import finite_vector
 from services.detector.em import Mixture, fit_mixture
 from services.detector.errors import CalibrationError, ModelFileError
 
@@ -360,10 +361,8 @@ def _white_from(value: Any) -> tuple[float, float, float] | None:
     """
     if value is None:
         return None
-    try:
-        white = tuple(float(v) for v in value)
-    except (TypeError, ValueError):
-        white = ()
-    if len(white) != 3 or not all(math.isfinite(v) and 1.0 <= v <= 255.0 for v in white):
+    white = finite_vector("white_rgb", value, ModelFileError, unit="8-bit RGB levels")
+    if np.any(white < 1.0) or np.any(white > 255.0):
         raise ModelFileError(f"white_rgb must be three numbers in 1..255, got {value!r}")
-    return white
+    red, green, blue = white.tolist()
+    return (red, green, blue)

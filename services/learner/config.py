@@ -18,6 +18,7 @@ from mesh.configflags import add_config_args, check_bounds, config_from_args, fl
 from mesh.netflags import NetConfig
 from protocol.errors import BadRequest, ConfigError
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
+from protocol.vectors import finite_vector
 from protocol.verbs.learner import Bounds as StartBounds
 from protocol.verbs.learner import Scenario, StartArgs
 from services.learner.algorithms.base import Bounds, LearnerConfigError
@@ -76,14 +77,9 @@ def _integer(name: str, value: Any, low: int, high: int) -> int:
     return value
 
 
-def _vector(name: str, value: Any, size: int = 3) -> tuple[float, ...]:
-    try:
-        array = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        array = np.zeros(0)
-    if array.shape != (size,) or not np.all(np.isfinite(array)) or isinstance(value, str):
-        raise BadRequest(f"{name} must be {size} finite numbers (m), got {value!r}")
-    return tuple(float(x) for x in array)
+def _theta(name: str, value: Any) -> tuple[float, ...]:
+    """A θ-like 3-vector of a request (m) as a tuple, or BadRequest naming `name`."""
+    return tuple(finite_vector(name, value, BadRequest, unit="m").tolist())
 
 
 @dataclass(frozen=True)
@@ -126,7 +122,7 @@ class SessionConfig:
         for name in ("until_hit", "reset"):
             if not isinstance(getattr(self, name), bool):
                 raise BadRequest(f"{name} must be true or false, got {getattr(self, name)!r}")
-        object.__setattr__(self, "theta0", _vector("scenario.theta0", self.theta0))
+        object.__setattr__(self, "theta0", _theta("scenario.theta0", self.theta0))
         radius = self.hit_radius
         if isinstance(radius, bool) or not isinstance(radius, int | float):
             raise BadRequest(f"scenario.hit_radius must be a number (m), got {radius!r}")
@@ -175,8 +171,8 @@ class SessionConfig:
         if raw is not None:
             try:
                 bounds = Bounds(
-                    low=_vector("scenario.bounds.low", raw.low),
-                    high=_vector("scenario.bounds.high", raw.high),
+                    low=_theta("scenario.bounds.low", raw.low),
+                    high=_theta("scenario.bounds.high", raw.high),
                 )
             except LearnerConfigError as exc:
                 raise BadRequest(f"scenario.bounds: {exc}") from None

@@ -3,17 +3,17 @@
 from __future__ import annotations
 
 import argparse
-import math
 from dataclasses import dataclass, field, replace
 
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
+from protocol.vectors import parse_vector
 from sim.bow import BowError
 from sim.errors import SimError
 from sim.world import WorldConfig
 
-__all__ = ["RobotConfig", "add_arguments", "make_config", "parse_vector3"]
+__all__ = ["RobotConfig", "add_arguments", "make_config"]
 
 
 @dataclass(frozen=True)
@@ -72,22 +72,6 @@ class RobotConfig:
         check_bounds(self)
 
 
-def parse_vector3(text: str, flag: str) -> tuple[float, float, float]:
-    """Parse "X,Y,Z" into three finite floats.
-
-    Raises:
-        ConfigError: not three comma-separated finite numbers; the message names the flag.
-    """
-    parts = text.split(",")
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise ConfigError(f"{flag} must be three numbers X,Y,Z (m/s), got {text!r}")
-    return values
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the robot's own flags: the config's and the world's (wind, drag, bow stiffness)."""
     world = WorldConfig()
@@ -112,7 +96,9 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
         bow = replace(base.bow, stiffness=args.bow_stiffness)
     except BowError as exc:
         raise ConfigError(f"--bow-stiffness: {exc}") from None
-    wind = base.wind if args.wind is None else parse_vector3(args.wind, "--wind")
+    wind = base.wind
+    if args.wind is not None:
+        wind = tuple(parse_vector("--wind", args.wind, ConfigError, unit="m/s").tolist())
     try:
         world = replace(base, bow=bow, wind=wind, drag=args.drag)
     except SimError as exc:

@@ -36,6 +36,7 @@ import numpy as np
 
 from mesh.jobs import JobQueue
 from protocol.errors import ArcheryError, BadRequest
+from protocol.vectors import finite_vector
 from protocol.verbs import robot as rv
 from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
@@ -45,7 +46,6 @@ from services.robot.sink import Sink
 from services.robot.watchdog import StreamWatchdog
 from sim.arrow import Landing, Launch
 from sim.errors import StateError
-from sim.vectors import vector3
 from sim.world import ArcheryWorld, ArrowState
 
 __all__ = ["SimLoop", "SimUnavailable", "phase_of"]
@@ -231,7 +231,7 @@ class SimLoop:
         Raises:
             BadRequest: not 3 finite numbers, or a component beyond ±MAX_WIND m/s.
         """
-        vector = vector3("wind", wind, BadRequest)
+        vector = tuple(finite_vector("wind", wind, BadRequest, unit="m/s").tolist())
         if any(abs(v) > MAX_WIND for v in vector):
             raise BadRequest(f"each wind component must be within ±{MAX_WIND:g} m/s, got {wind!r}")
         return self.call(lambda: self._set_wind(vector))

@@ -10,6 +10,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from protocol.vectors import finite_vector
+
 __all__ = [
     "DEFAULT_BOUNDS",
     "STATE_VERSION",
@@ -220,11 +222,7 @@ class Learner(ABC):
             )
         if not isinstance(bounds, Bounds):
             raise LearnerConfigError(f"bounds must be a Bounds, got {type(bounds).__name__}")
-        theta0 = np.asarray(theta0, dtype=float)
-        if theta0.shape != (bounds.dim,) or not np.all(np.isfinite(theta0)):
-            raise LearnerConfigError(
-                f"theta0 must be a finite {bounds.dim}-vector (m), got {theta0.tolist()!r}"
-            )
+        theta0 = finite_vector("theta0", theta0, LearnerConfigError, size=bounds.dim)
         if not bounds.contains(theta0):
             raise LearnerConfigError(
                 f"theta0 {theta0.tolist()} m lies outside the θ bounds low={list(bounds.low)}, "
@@ -266,21 +264,16 @@ class Learner(ABC):
             ObservationError: θ or r has the wrong shape or a non-finite value.
         """
         try:
-            theta = np.array(theta, dtype=float, copy=True)
-            r = np.array(r, dtype=float, copy=True)
+            theta = np.asarray(theta, dtype=float)
+            r = np.asarray(r, dtype=float)
         except (TypeError, ValueError) as exc:
             raise ObservationError(
                 f"θ and r must be numeric vectors (m), got {theta!r}, {r!r}"
             ) from exc
-        if theta.shape != self.theta0.shape or not np.all(np.isfinite(theta)):
-            raise ObservationError(
-                f"θ must be a finite {self.theta0.size}-vector (m), got {theta.tolist()!r}"
-            )
-        if r.shape != (2,) or not np.all(np.isfinite(r)):
-            raise ObservationError(
-                f"r must be a finite 2-vector (arrow − centre on the target plane, m), "
-                f"got {r.tolist()!r}"
-            )
+        theta = finite_vector("θ", theta, ObservationError, size=self.theta0.size)
+        r = finite_vector(
+            "r", r, ObservationError, size=2, unit="m, arrow − centre on the target plane"
+        )
         big_return = scalar_return(r)
         self._thetas.append(theta)
         self._rewards.append(r)
