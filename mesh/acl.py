@@ -47,7 +47,7 @@ from typing import Any
 from protocol.keys import CARTESIAN_ARMS, Keys
 from protocol.parts import PARTS
 
-__all__ = ["Role", "roles", "rules"]
+__all__ = ["OPERATOR", "Role", "roles", "rules", "server_of"]
 
 OPERATOR = "operator"
 
@@ -174,3 +174,8 @@ def rules(robot: str) -> dict[str, Any]:
         "subjects": subjects,
         "policies": policies,
     }
+
+
+def server_of(robot: str, key: str) -> str | None:
+    """The identity that serves the `rpc:i` key `key` of robot `robot`, or None."""
+    return next((name for name, role in roles(robot).items() if key in role.serve), None)

@@ -24,6 +24,7 @@ import dataclasses
 import datetime as dt
 import json
 import re
+import socket
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,6 +49,7 @@ DEFAULT_SECURE_ROUTER = "tls/127.0.0.1:7447"
 _IDENTITY = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 MODES = ("peer", "client", "router")
 _ENDPOINT = re.compile(r"^(tcp|udp|tls|quic|ws|unixsock-stream)/\S+$")
+_PORT = re.compile(r"^(?:tcp|udp|tls|quic|ws)/.*:(\d+)$")  # the port of an IP endpoint
 
 
 @dataclass(frozen=True)
@@ -85,6 +87,12 @@ class NetConfig:
                     raise ConfigError(
                         f"{flag} {endpoint!r} is not a Zenoh endpoint; use PROTO/ADDRESS, "
                         f"e.g. {DEFAULT_ROUTER}"
+                    )
+                port = _PORT.search(endpoint)
+                if port is not None and not 0 <= int(port.group(1)) <= 65535:
+                    raise ConfigError(
+                        f"{flag} {endpoint!r}: port {port.group(1)} is not a port number "
+                        "(0 to 65535)"
                     )
         if self.mode == "client" and not self.connect:
             raise ConfigError("--mode client needs at least one --connect endpoint (a router)")
@@ -257,8 +265,26 @@ def open_session(net: NetConfig) -> zenoh.Session:
                 f"the same deployment ({net.secure}) running there (`archery router --secure "
                 f"{net.secure} --listen ENDPOINT`)?"
             ) from None
+        tls = [e for e in net.connect if e.startswith("tcp/") and _listens(e)]
+        if tls:
+            raise Unreachable(
+                f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
+                f"{clean_zenoh_error(exc)}. Something listens on {tls[0]} but does not answer "
+                f"plain Zenoh: a secure router? Connect with --secure DIR --connect "
+                f"tls/{tls[0].split('/', 1)[1]}"
+            ) from None
         raise Unreachable(
             f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
             f"{clean_zenoh_error(exc)}. Is a router running there? Start one with "
             f"`archery router --listen {net.connect[0] if net.connect else 'ENDPOINT'}`"
         ) from None
+
+
+def _listens(endpoint: str, timeout: float = 0.5) -> bool:
+    """Whether a TCP connection to a `tcp/HOST:PORT` endpoint is accepted (s to wait)."""
+    host, _, port = endpoint.split("/", 1)[1].rpartition(":")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            return True
+    except (OSError, ValueError):
+        return False

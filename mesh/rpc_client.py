@@ -14,6 +14,8 @@ import msgspec
 import zenoh
 
 from mesh import instances
+from mesh.acl import OPERATOR, server_of
+from mesh.netflags import NetConfig
 from protocol.codec import decode, encode
 from protocol.errors import (
     RpcError,
@@ -50,6 +52,8 @@ class RpcClient:
 
     session: zenoh.Session
     keys: Keys
+    net: NetConfig
+    name: str | None
     _queriers: dict[tuple[str, float], zenoh.Querier]
     _rpc_seq: Iterator[int]
     _rpc_lock: threading.Lock
@@ -143,6 +147,9 @@ class RpcClient:
                 f"{expect_service!r} instance ({', '.join(live) or 'none alive'}); rejected"
             )
         waited = time.monotonic() - start
+        denied = self._denied(key)
+        if denied is not None:
+            raise RpcError(denied, code="denied")
         if waited < timeout * 0.5:
             raise RpcTimeout(
                 f"no service serves {key} (no reply after {waited:.2f} s); is it running? "
@@ -151,6 +158,22 @@ class RpcClient:
         raise RpcTimeout(
             f"no reply from {key} within {timeout:g} s; the service may be dead or stuck "
             f"(`archery ports` lists the live services)"
+        )
+
+    def _denied(self, key: str) -> str | None:
+        """In secure mode, when the service serving `key` is alive yet nothing replied: the
+        router dropped the request, which only its access control does; the message says so.
+        None otherwise (plain mode, or the service is not alive)."""
+        if self.net.secure is None:
+            return None
+        server = server_of(self.keys.robot, key)
+        if server is None or not instances.live_instances(self.session, self.keys, server):
+            return None
+        identity = self.name or OPERATOR
+        return (
+            f"{key}: denied by access control: the {server} is alive, but the router drops "
+            f"this call from identity {identity!r} (secure mode; the rules are "
+            f"{self.net.secure}/acl.json5, `archery keys`)"
         )
 
     def _instances(self) -> instances.InstanceWatch:

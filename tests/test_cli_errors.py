@@ -95,6 +95,7 @@ CASES: list[tuple[str, int, str]] = [
     ("ports --connect 127.0.0.1:7447", 2, "'127.0.0.1:7447'"),
     ("ports {net} --robot 9lives", 2, "'9lives'"),
     ("ports --connect {dead}", 1, "{dead}"),
+    ("ports --connect tcp/127.0.0.1:99999", 2, "port 99999 is not a port number"),
     ("ports {net} --timeout 0.5", 0, "no service alive on robot '{robot}'"),
     # selfcheck
     ("selfcheck --timeout -1", 2, "'-1'"),

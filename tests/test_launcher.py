@@ -61,6 +61,10 @@ def test_bad_settings(tmp_path: Path) -> None:
         with pytest.raises(ConfigError, match="Is another router or `archery up` running"):
             launcher.start_router()
         assert launcher.children == {}
+        # a secure router's port: the hint keeps its tls/ form
+        secure = Launcher(endpoint.replace("tcp/", "tls/"), "x", tmp_path)
+        with pytest.raises(ConfigError, match=r"Use --listen tls/127\.0\.0\.1:PORT"):
+            secure.start_router()
 
 
 def _up(endpoint: str, tmp_path: Path, *extra: str) -> subprocess.Popen[str]:

@@ -38,7 +38,7 @@ from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
-from protocol.errors import ConfigError, RpcError, WrongReplier
+from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
 from protocol.keys import Keys
 from protocol.messages import Image, RpcReply
 from protocol.verbs.camera import CAMERA_VERBS
@@ -480,3 +480,25 @@ def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
     assert "r_m" not in aborted[0] and aborted[0]["retry_theta"] == aborted[0]["theta"]
     done = [r for r in records if r["record"] == "done"]
     assert len(done) == 2 and done[0]["theta"] == aborted[0]["theta"]  # the same θ, re-run
+
+
+def test_a_call_the_access_control_denies_says_so(endpoint: str, deployment: Path) -> None:
+    """The learner may not grab frames: with the camera alive, its call is named a denial by
+    access control, not an absent service."""
+    with Node("camera", net_as(endpoint, "camera", deployment)) as camera:
+        camera.serve(K.cam_rpc(), some_verbs(CAMERA_VERBS, {}))
+        camera.ready()
+        with Node("learner", net_as(endpoint, "learner", deployment)) as learner:
+            learner.wait_alive(["camera"], timeout=10)
+            with pytest.raises(RpcError) as denied:
+                learner.call_typed(K.cam_rpc(), CAMERA_VERBS["status"], timeout=3)
+    assert denied.value.code == "denied"
+    assert "denied by access control: the camera is alive" in str(denied.value)
+    assert "identity 'learner'" in str(denied.value)
+
+
+def test_a_plain_client_meeting_a_secure_router_is_told_so(endpoint: str) -> None:
+    plain = NetConfig(connect=(endpoint.replace("tls/", "tcp/"),), robot=ROBOT)
+    with pytest.raises(Unreachable, match="does not answer plain Zenoh: a secure router") as err:
+        open_session(plain)
+    assert f"--connect {endpoint}" in str(err.value)

@@ -75,7 +75,7 @@ def _check_free(endpoint: str) -> None:
         except OSError as exc:
             raise ConfigError(
                 f"cannot listen on {endpoint}: {exc.strerror or exc}. Is another router or "
-                f"`archery up` running? Use --listen tcp/127.0.0.1:PORT with a free port, or "
+                f"`archery up` running? Use --listen {proto}/{host}:PORT with a free port, or "
                 f"connect to the running one"
             ) from None
 
