@@ -14,7 +14,7 @@ from mesh.tokens import TokenSet
 from protocol.errors import (
     RpcTimeout,
 )
-from protocol.keys import Keys
+from protocol.keys import ALIVE_EVERY_ROBOT, Keys
 
 __all__ = ["Liveliness"]
 
@@ -32,6 +32,15 @@ class Liveliness:
             if reply.ok is not None:
                 names.add(str(reply.ok.key_expr).rsplit("/", 1)[-1])
         return names
+
+    def alive_robots(self, timeout: float = 1.0) -> dict[str, set[str]]:
+        """Every robot prefix with a service alive on this router: {prefix: service names}."""
+        robots: dict[str, set[str]] = {}
+        for reply in self.session.liveliness().get(ALIVE_EVERY_ROBOT, timeout=timeout):
+            if reply.ok is not None:
+                robot, _, name = str(reply.ok.key_expr).split("/", 2)
+                robots.setdefault(robot, set()).add(name)
+        return robots
 
     def wait_alive(self, services: Iterable[str], timeout: float = 30.0) -> None:
         """Block until every named service is alive (by liveliness, never by sleeping).

@@ -14,7 +14,15 @@ from protocol.errors import KeyNameError
 from protocol.parts import PARTS
 from protocol.robotspec import SERVICES
 
-__all__ = ["DEFAULT_ROBOT", "PORTS", "Keys", "PortSpec", "port_of", "validate_robot"]
+__all__ = [
+    "ALIVE_EVERY_ROBOT",
+    "DEFAULT_ROBOT",
+    "PORTS",
+    "Keys",
+    "PortSpec",
+    "port_of",
+    "validate_robot",
+]
 
 DEFAULT_ROBOT = "icubSim"
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
@@ -81,6 +89,9 @@ def port_of(key: str) -> PortSpec:
             return spec
     patterns = ", ".join("ROBOT/" + spec.pattern for spec in PORTS)
     raise KeyNameError(f"unknown key {key!r}; valid keys: {patterns}")
+
+
+ALIVE_EVERY_ROBOT = "*/alive/*"  # the liveliness tokens of every service of every robot
 
 
 @dataclass(frozen=True)

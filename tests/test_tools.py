@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -13,13 +14,13 @@ import cv2
 import numpy as np
 import pytest
 
-from apps.topics.selfcheck import ECHO_SERVICE
+from apps.topics.selfcheck import ECHO_SERVICE, run_echo
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.messages import Image
 from protocol.parts import PARTS
 from protocol.verbs.robot import PART_VERBS
-from tests.conftest import archery
+from tests.conftest import archery, serving
 
 
 @pytest.fixture
@@ -53,6 +54,30 @@ def test_ports_lists_live_services(echo: NetConfig) -> None:
 def test_ports_with_nothing_alive(net: NetConfig) -> None:
     out = archery("ports", *_flags(net), "--timeout", "0.5")
     assert out.returncode == 0 and f"no service alive on robot {net.robot!r}" in out.stderr
+
+
+def test_ports_without_a_robot_lists_every_robot_of_the_fleet(net: NetConfig) -> None:
+    """Two robots on one router (a fleet's `ROBOT1`, `ROBOT2`): plain `ports` groups both by
+    prefix; `--robot` narrows it; a robot with nothing alive names the ones that are."""
+    fleet = [dataclasses.replace(net, robot=f"{net.robot}f{i}") for i in (1, 2)]
+    with serving(run_echo, fleet[0]), serving(run_echo, fleet[1]):
+        for robot in fleet:
+            with Node(None, robot) as node:
+                node.wait_alive([ECHO_SERVICE], 30)
+        every = archery("ports", "--connect", net.connect[0])
+        one = archery("ports", *_flags(fleet[1]))
+        none = archery("ports", *_flags(net), "--timeout", "0.5")
+        as_json = archery("ports", "--json", "--connect", net.connect[0])
+    assert every.returncode == 0, every.stderr
+    for robot in fleet:
+        assert f"== robot {robot.robot}: 1 services" in every.stdout
+        assert f"{robot.robot}/torso/state:o" in every.stdout
+    assert f"{fleet[1].robot}/torso" in one.stdout and f"{fleet[0].robot}/" not in one.stdout
+    assert "== robot" not in one.stdout
+    assert f"no service alive on robot {net.robot!r}" in none.stderr
+    assert f"{fleet[0].robot}, {fleet[1].robot}" in none.stderr and "--robot NAME" in none.stderr
+    robots = {json.loads(line)["robot"] for line in as_json.stdout.splitlines()}
+    assert {r.robot for r in fleet} <= robots
 
 
 def test_read_prints_json_lines(echo: NetConfig) -> None:

@@ -37,7 +37,7 @@ from protocol.errors import (
     RpcError,
 )
 from protocol.exit_status import BAD_INPUT, INTERRUPTED, for_error
-from protocol.keys import port_of
+from protocol.keys import ALIVE_EVERY_ROBOT, DEFAULT_ROBOT, Keys, port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import Verb, table_for_key
@@ -83,14 +83,6 @@ def _stream_type(key: str) -> type[Message]:
     return MESSAGE_TYPES[spec.message]
 
 
-def _wait_any_alive(node: Node, wait: float) -> set[str]:
-    """Block until some service of the robot is alive (by liveliness) or `wait` s have passed;
-    the names seen alive meanwhile."""
-    with TokenSet(node.session, node.keys.alive_all()) as alive:
-        alive.wait_for(bool, wait)
-        return alive.present()
-
-
 def alive_main(argv: list[str] | None = None) -> int:
     """`archery alive [NAME…]`: a health check. Exit 0 when the router answers and every named
     service of the robot holds its liveliness token now; 1 (one line on stderr) when not."""
@@ -113,8 +105,10 @@ def alive_main(argv: list[str] | None = None) -> int:
 
 
 def ports_main(argv: list[str] | None = None) -> int:
-    """`archery ports`: live services of the robot and their ports (like `yarp name list`)."""
+    """`archery ports`: live services and their ports (like `yarp name list`): of every robot
+    on the router, grouped by robot prefix (a fleet: `ROBOT1`, `ROBOT2`, …), or of `--robot`."""
     parser = _parser("ports", "list live services and their ports")
+    parser.set_defaults(robot=None)  # None: every robot alive on the router
     parser.add_argument("--json", action="store_true", help="one JSON object per service")
     parser.add_argument(
         "--wait",
@@ -127,38 +121,60 @@ def ports_main(argv: list[str] | None = None) -> int:
         "--verbose", action="store_true", help="message fields and each rpc verb's schemas"
     )
     args = parser.parse_args(argv)
+    every = args.robot is None
+
+    def check() -> NetConfig:
+        robot = DEFAULT_ROBOT if every else args.robot
+        return NetConfig.from_args(argparse.Namespace(**(vars(args) | {"robot": robot})))
 
     def body(net: NetConfig) -> int:
         with Node(None, net) as node:
-            seen = _wait_any_alive(node, args.wait) if args.wait else set()
-            names = sorted(node.alive(timeout=args.timeout) | seen)
-            if not names:
+            if args.wait:
+                pattern = ALIVE_EVERY_ROBOT if every else node.keys.alive_all()
+                with TokenSet(node.session, pattern) as alive:
+                    alive.wait_for(bool, args.wait)
+            robots = node.alive_robots(timeout=args.timeout)
+            if not every:
+                robots = {args.robot: robots[args.robot]} if args.robot in robots else {}
+            if not robots:
+                where = "any robot" if every else f"robot {args.robot!r}"
+                others = sorted(node.alive_robots(timeout=args.timeout)) if not every else []
+                hint = f"; alive on it: robot {', '.join(others)} (--robot NAME)" if others else ""
                 print(
-                    f"archery ports: no service alive on robot {node.keys.robot!r} "
-                    f"(router {', '.join(net.connect)})",
+                    f"archery ports: no service alive on {where} (router "
+                    f"{', '.join(net.connect)}){hint}",
                     file=sys.stderr,
                 )
                 return 0
-            for name in names:
-                described = describe_all(node.session, node.keys, name, timeout=args.timeout)
-                if not described:
-                    print(f"{name}: alive, but no describe reply")
-                    continue
-                many = f"  [{len(described)} instances!]" if len(described) > 1 else ""
-                for zid, info in sorted(described.items()):
-                    if args.json:
-                        print(json.dumps(to_jsonable(info) | {"instance": zid}))
-                        continue
-                    print(f"{name}  (pid {info.pid} on {info.host}, instance {zid}){many}")
-                    for port in info.ports:
-                        verbs = info.verbs.get(port.key)
-                        extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
-                        print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
-                        if args.verbose:
-                            print("\n".join(_verbose_lines(info, port)))
+            for robot, names in sorted(robots.items()):
+                if len(robots) > 1 and not args.json:
+                    print(f"== robot {robot}: {len(names)} services")
+                keys = Keys(robot)
+                for name in sorted(names):
+                    _print_service(node, keys, name, args)
         return 0
 
-    return _run("ports", lambda: NetConfig.from_args(args), body)
+    return _run("ports", check, body)
+
+
+def _print_service(node: Node, keys: Keys, name: str, args: argparse.Namespace) -> None:
+    """The ports of one live service (each instance's, if several answer) as `ports` shows."""
+    described = describe_all(node.session, keys, name, timeout=args.timeout)
+    if not described:
+        print(f"{name}: alive, but no describe reply")
+        return
+    many = f"  [{len(described)} instances!]" if len(described) > 1 else ""
+    for zid, info in sorted(described.items()):
+        if args.json:
+            print(json.dumps(to_jsonable(info) | {"instance": zid, "robot": keys.robot}))
+            continue
+        print(f"{name}  (pid {info.pid} on {info.host}, instance {zid}){many}")
+        for port in info.ports:
+            verbs = info.verbs.get(port.key)
+            extra = f"  verbs: {', '.join(verbs)}" if verbs else ""
+            print(f"  {port.kind:<6} {port.key}  [{port.message}]{extra}")
+            if args.verbose:
+                print("\n".join(_verbose_lines(info, port)))
 
 
 def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
