@@ -124,8 +124,10 @@ def test_rpc_ok_error_and_timeout(echo: NetConfig) -> None:
     out = archery("rpc", key, "setRefSpeeds", '{"speeds": [1, 2, 0.5]}', *_flags(echo))
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout) == {"names": list(PARTS["torso"]), "speeds": [1.0, 2.0, 0.5]}
-    out = archery("rpc", key, "positionMove", '{"position": [0.1]}', *_flags(echo))
-    assert out.returncode == 1 and "positionMove needs one position per joint" in out.stderr
+    out = archery(
+        "rpc", key, "positionMove", '{"position": [0.1]}', *_flags(echo)
+    )  # refused by the service as wrong: bad input
+    assert out.returncode == 2 and "positionMove needs one position per joint" in out.stderr
     out = archery("rpc", key, "jump", *_flags(echo))  # bad input: refused before it is sent
     assert out.returncode == 2 and "no verb 'jump'; verbs: checkMotionDone" in out.stderr
     out = archery("rpc", f"{echo.robot}/learner/rpc:i", "status", *_flags(echo), "--timeout", "1")
