@@ -380,3 +380,21 @@ def test_the_recorder_runs_at_a_lower_priority_when_told(net: NetConfig, tmp_pat
     bad = archery("record", "--out", str(tmp_path / "b.mcap"), "--nice", "20", *_flags(net))
     assert bad.returncode == 2 and "--nice" in bad.stderr and "0..19" in bad.stderr
     assert len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_attachments_are_written_first_and_read_back(tmp_path: Path) -> None:
+    from apps.topics.recording import CALIBRATION_ATTACHMENT, Recorder
+
+    with_marks = Recorder(
+        tmp_path / "a.mcap",
+        "icubSim",
+        ["icubSim/**"],
+        attachments={CALIBRATION_ATTACHMENT: ("application/msgpack", b"\x81\xa1k\x01")},
+    )
+    with_marks.close()
+    without = Recorder(tmp_path / "b.mcap", "icubSim", ["icubSim/**"])
+    without.close()
+    assert open_recording(tmp_path / "a.mcap").attachment(CALIBRATION_ATTACHMENT) == (
+        b"\x81\xa1k\x01"
+    )
+    assert open_recording(tmp_path / "b.mcap").attachment(CALIBRATION_ATTACHMENT) is None

@@ -14,10 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.topics.recording import open_recording
+from apps.topics.recording import CALIBRATION_ATTACHMENT, open_recording
 from benchmarks.bench_record import remeasure
 from mesh.netflags import NetConfig
 from mesh.node import Node
+from protocol.keys import Keys
 from protocol.messages import Detection, WorldState
 from services.detector.config import DetectorConfig
 from services.detector.service import run as run_detector
@@ -78,8 +79,9 @@ def test_replayed_frames_give_the_recorded_detections(
     assert [h.r_m for h in hits] == [m["r_m"] for m in measured]
     assert all(isinstance(h, Detection) and h.sim_time is not None for h in hits)
 
-    # a fresh detector, calibrated from the saved model, on another robot prefix; the replay
-    # stands in for the camera (grab answered from the replayed frames)
+    # a fresh detector that was never calibrated (no model file), on another robot prefix;
+    # the replay stands in for the camera: grab from the replayed frames, calibration from the
+    # calibration frame and marks the recorder took from the camera
     fresh = NetConfig(connect=net.connect, robot=net.robot + "replay")
     replay = spawn(
         "replay",
@@ -94,12 +96,16 @@ def test_replayed_frames_give_the_recorded_detections(
         *flags,
         ready="archery replay: serving grab on",
     )
-    config = DetectorConfig(net=fresh, model=str(model_file), auto_calibrate=False)
+    assert open_recording(path).attachment(CALIBRATION_ATTACHMENT) is not None
+    config = DetectorConfig(net=fresh)  # calibrates itself from the camera's marks
     try:
+        fresh_keys = Keys(fresh.robot)
         with serving(run_detector, config), Node(None, fresh) as node:
             node.wait_alive(["detector"], timeout=30)
             worst, _ = remeasure(node, hits)
             assert worst <= 1e-3  # 1 mm
+            status = rpc_call(node, fresh_keys.detector_rpc(), "status", timeout=10)
+            assert status["calibrated"]
     finally:
         replay.send_signal(signal.SIGINT)
         out, err = replay.communicate(timeout=60)

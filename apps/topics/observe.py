@@ -19,9 +19,17 @@ import time
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import zenoh
 
-from apps.topics.recording import COMPRESSIONS, Recorder, Recording, open_recording
+from apps.topics.recording import (
+    CALIBRATION_ATTACHMENT,
+    CALIBRATION_MEDIA_TYPE,
+    COMPRESSIONS,
+    Recorder,
+    Recording,
+    open_recording,
+)
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
@@ -61,6 +69,21 @@ def _until(stop: threading.Event, done: threading.Event, duration: float | None)
 
 
 # -- record ---------------------------------------------------------------------------------------
+
+
+def _calibration(node: Node, exprs: list[zenoh.KeyExpr]) -> dict[str, tuple[str, bytes]]:
+    """The camera's calibration frame and marks, to record beside its frames (so a replay can
+    calibrate a fresh detector): asked when a pattern records the camera's frames; none (one
+    line on stderr) when the camera does not give them (not alive, a real device)."""
+    frames = node.keys.cam_frames()
+    if not any(expr.includes(zenoh.KeyExpr(frames)) for expr in exprs):
+        return {}
+    try:
+        marks = node.call_typed(node.keys.cam_rpc(), CAMERA_VERBS["calibration"], timeout=30)
+    except ArcheryError as exc:
+        print(f"archery record: no calibration marks recorded: {exc}", file=sys.stderr)
+        return {}
+    return {CALIBRATION_ATTACHMENT: (CALIBRATION_MEDIA_TYPE, msgspec.msgpack.encode(marks))}
 
 
 def record_main(argv: list[str] | None = None) -> int:
@@ -109,6 +132,7 @@ def record_main(argv: list[str] | None = None) -> int:
                 patterns,
                 compression=args.compression,
                 flush_interval=args.flush_interval,
+                attachments=_calibration(node, exprs),
             )
             received = [0]
             done = threading.Event()
@@ -185,16 +209,19 @@ class _Frames:
         """Whether a frame no longer kept might satisfy a grab for `after_stamp`."""
         return self._dropped is not None and (after_stamp is None or after_stamp <= self._dropped)
 
-    def verbs(self) -> ServedVerbs:
-        """The camera's verbs as a replay answers them: `grab` from the replayed frames; a
-        replay has no calibration marks (`calibration` says so) and reports its frames in
-        `status`."""
+    def verbs(self, marks: CalibrationReply | None) -> ServedVerbs:
+        """The camera's verbs as a replay answers them: `grab` from the replayed frames,
+        `calibration` with the recorded calibration frame and marks (`marks`; None: the
+        recording has none, which `calibration` says) and its frames in `status`."""
 
         def calibration(_: NoArgs) -> CalibrationReply:
-            raise BadRequest(
-                "a replay has no calibration marks; give the detector the colour model of the "
-                "recorded session (`archery detector --model FILE`)"
-            )
+            if marks is None:
+                raise BadRequest(
+                    "this recording has no calibration marks (the camera gave none when it was "
+                    "recorded); give the detector the colour model of the recorded session "
+                    "(`archery detector --model FILE`)"
+                )
+            return marks
 
         def status(_: NoArgs) -> CameraStatusReply:
             with self._cond:
@@ -302,7 +329,7 @@ def replay_main(argv: list[str] | None = None) -> int:
         with Node(None, net) as node:
             frames = _Frames()
             if args.serve_grab:
-                node.serve(node.keys.cam_rpc(), frames.verbs())
+                node.serve(node.keys.cam_rpc(), frames.verbs(_recorded_marks(recording)))
                 print(f"archery replay: serving grab on {node.keys.cam_rpc()}", flush=True)
             published, keys = _publish(node, recording, args, only, robot, frames, stop)
             print(
@@ -314,6 +341,21 @@ def replay_main(argv: list[str] | None = None) -> int:
     except ArcheryError as exc:
         return _fail("replay", exc, 1)
     return 0
+
+
+def _recorded_marks(recording: Recording) -> CalibrationReply | None:
+    """The camera's calibration reply recorded with the frames, or None.
+
+    Raises:
+        ConfigError: the attachment is there but unreadable.
+    """
+    data = recording.attachment(CALIBRATION_ATTACHMENT)
+    if data is None:
+        return None
+    try:
+        return msgspec.msgpack.decode(data, type=CalibrationReply)
+    except (msgspec.DecodeError, msgspec.ValidationError) as exc:
+        raise ConfigError(f"{recording.path}: its calibration attachment: {exc}") from None
 
 
 def _rec_robot(recording: Recording) -> str:

@@ -56,6 +56,8 @@ from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Image
 from protocol.messages import Message as ArcheryMessage
 
 __all__ = [
+    "CALIBRATION_ATTACHMENT",
+    "CALIBRATION_MEDIA_TYPE",
     "COMPRESSIONS",
     "FORMAT",
     "PROFILE",
@@ -77,6 +79,8 @@ COMPRESSIONS = {
     "none": CompressionType.NONE,
 }
 _MAGIC = b"\x89MCAP0\r\n"
+CALIBRATION_ATTACHMENT = "camera-calibration"  # the camera's `calibration` reply, encoded
+CALIBRATION_MEDIA_TYPE = "application/msgpack"
 FORMAT = "2"  # recording format: 2 = frames as protobuf; 1 (no `format` metadata) = as JSON
 _IMAGES = (RAW, COMPRESSED)
 
@@ -162,6 +166,8 @@ class Recorder:
             most that much.
         max_pending: bytes queued for the writer at most; a message beyond is dropped and
             counted in `stats.overflow` (never blocks the receiving thread).
+        attachments: {name: (media type, data)} written as MCAP attachments before any
+            message (e.g. `CALIBRATION_ATTACHMENT`, the camera's calibration frame and marks).
 
     Losses are counted, never guessed: `stats.missing` counts the gaps in each key's sequence
     numbers (messages dropped before they reached the recorder, or by the full queue).
@@ -177,6 +183,7 @@ class Recorder:
         chunk_size: int = 4 * 1024 * 1024,
         flush_interval: float = 1.0,
         max_pending: int = 1 << 30,
+        attachments: dict[str, tuple[str, bytes]] | None = None,
     ) -> None:
         self.path = Path(path)
         try:
@@ -197,6 +204,9 @@ class Recorder:
                 "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             },
         )
+        now = time.time_ns()
+        for name, (media_type, data) in (attachments or {}).items():
+            self._writer.add_attachment(now, now, name, media_type, data)
         self._writer.flush()
         self.stats = RecordStats()
         self._schemas: dict[str, int] = {}
@@ -327,6 +337,21 @@ class Recording:
     complete: bool
     metadata: dict[str, str]
     message_count: int | None
+
+    def attachment(self, name: str) -> bytes | None:
+        """The data of the attachment `name` (the first of that name), or None.
+
+        Raises:
+            ConfigError: the file's records cannot be read.
+        """
+        with open(self.path, "rb") as stream:
+            try:
+                for attachment in make_reader(stream).iter_attachments():
+                    if attachment.name == name:
+                        return bytes(attachment.data)
+            except (McapError, EOFError, ValueError, AssertionError) as exc:
+                raise ConfigError(f"{self.path}: unreadable attachment ({exc})") from None
+        return None
 
     def messages(self, *, recover: bool = False) -> Iterator[tuple[str, ArcheryMessage, int]]:
         """(key, message, log time ns) in file order (the order they were received).
