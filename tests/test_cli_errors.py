@@ -117,7 +117,7 @@ CASES: list[tuple[str, int, str]] = [
     ("learn --seed -1 --connect {dead}", 2, "got -1"),
     ("learn --wait -1", 2, "'-1'"),
     ("learn --wait nan", 2, "'nan'"),
-    ("learn --mode client --connect {dead}", 1, "{dead}"),
+    ("learn --mode client --connect {dead} --wait 0.5", 1, "{dead}"),
     ("learn --wait 0.3 {net}", 1, "not alive after 0.3 s"),
     ("learn --resume {tmp}/j.jsonl --rollouts 8 --seed 0", 2, "cannot honour --rollouts, --seed"),
     ("learn --attach s1 --algo power", 2, "--attach follows the session as it runs"),

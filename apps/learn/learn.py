@@ -16,9 +16,11 @@ stopped after its current rollout and can be resumed).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import inspect
 import math
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +30,8 @@ from apps.learn.follow import SessionLost, follow, result_line
 from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
-from protocol.errors import ArcheryError, ConfigError, RpcError
+from mesh.router import wait_for_endpoint
+from protocol.errors import ArcheryError, ConfigError, RpcError, Unreachable
 from protocol.exit_status import FAILURE, INTERRUPTED, for_error
 from protocol.messages import Rollout
 from protocol.robotspec import SERVICES
@@ -128,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--wait",
         type=seconds,
         default=60.0,
-        help="wait this long for the five services to be alive (s)",
+        help="wait this long for the router to listen and the five services to be alive (s)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.add_argument(
@@ -219,6 +222,26 @@ def _progress(message: Rollout) -> None:
     )
 
 
+def _open_node(net: NetConfig, wait: float) -> Node:
+    """A node on the mesh, waiting up to `wait` s for the router to listen (`archery up &`
+    followed at once by `archery learn`).
+
+    Raises:
+        Unreachable: no router listens at the endpoint after `wait` s.
+        ConfigError: other bad settings (e.g. a missing deployment file).
+    """
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            return Node(None, net)
+        except Unreachable:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise
+            with contextlib.suppress(ConfigError):  # then the session says why, once more
+                wait_for_endpoint(net.connect[0], left)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run `archery learn`; see the module docstring for the exit statuses."""
     args = build_parser().parse_args(argv)
@@ -239,7 +262,7 @@ def main(argv: list[str] | None = None) -> int:
     show = (lambda m: None) if args.quiet else _progress
     waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
     try:
-        node = Node(None, net)
+        node = _open_node(net, args.wait)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return for_error(exc.code)

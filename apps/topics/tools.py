@@ -84,14 +84,25 @@ def _stream_type(key: str) -> type[Message]:
 
 
 def alive_main(argv: list[str] | None = None) -> int:
-    """`archery alive [NAME…]`: a health check. Exit 0 when the router answers and every named
-    service of the robot holds its liveliness token now; 1 (one line on stderr) when not."""
+    """`archery alive [NAME…] [--wait N]`: a health check. Exit 0 when the router answers and
+    every named service of the robot holds its liveliness token now (or, with `--wait`, within
+    N s); 1 (one line on stderr) when not."""
     parser = _parser("alive", "exit 0 when the router answers and the named services are alive")
     parser.add_argument("names", nargs="*", metavar="NAME", help="services that must be alive")
+    parser.add_argument(
+        "--wait",
+        type=seconds_or_zero,
+        default=0.0,
+        metavar="N",
+        help="wait up to N s for them to come alive (by liveliness; default 0: alive now)",
+    )
     args = parser.parse_args(argv)
 
     def body(net: NetConfig) -> int:
         with Node(None, net) as node:
+            if args.wait:
+                with TokenSet(node.session, node.keys.alive_all()) as alive:
+                    alive.wait_for(lambda now: set(args.names) <= now, args.wait)
             missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
             if missing:
                 print(
@@ -134,6 +145,9 @@ def ports_main(argv: list[str] | None = None) -> int:
                 with TokenSet(node.session, pattern) as alive:
                     alive.wait_for(bool, args.wait)
             robots = node.alive_robots(timeout=args.timeout)
+            if every and not robots:  # in secure mode the ACL lets one see one's robot only
+                own = node.alive(timeout=args.timeout)
+                robots = {node.keys.robot: own} if own else {}
             if not every:
                 robots = {args.robot: robots[args.robot]} if args.robot in robots else {}
             if not robots:
