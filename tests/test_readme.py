@@ -25,7 +25,7 @@ from mesh.router import free_tcp_endpoint
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 BLOCK = re.compile(r"^```(sh|python) test\n(.*?)^```", re.M | re.S)
-EXPECT = re.compile(r"#=> (.+)$", re.M)
+EXPECT = re.compile(r"# ?=> (.+)$", re.M)  # `#=> TEXT`; `# => TEXT` in Python
 MESH_VERBS = [
     "ports",
     "alive",
