@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
 
@@ -38,12 +39,11 @@ def interruptions(state: JournalState) -> Interruptions:
     """The aborted attempts and resumes of a journal, placed between its done rollouts."""
     done, aborted, resumed = 0, [], []
     for record in state.records:
-        kind = record.get("record")
-        if kind == "done":
+        if isinstance(record, DoneRecord):
             done += 1
-        elif kind == "aborted":
-            aborted.append((done, str(record.get("code", "?"))))
-        elif kind == "resumed":
+        elif isinstance(record, AbortedRecord):
+            aborted.append((done, record.code))
+        elif isinstance(record, ResumedRecord):
             resumed.append(done)
     return Interruptions(tuple(aborted), tuple(resumed))
 
@@ -92,16 +92,16 @@ def plot_report(state: JournalState, path: Path) -> None:
 
     done = state.done
     header = state.header
-    radius = float(header["config"].get("hit_radius_m", HIT_RADIUS))
+    radius = float(header.config.get("hit_radius_m", HIT_RADIUS))
     fig, (face, curve) = plt.subplots(
         1, 2, figsize=(13, 6.2), dpi=110, gridspec_kw={"width_ratios": [1.0, 1.25]}
     )
     for ring in RINGS:
         face.add_patch(plt.Circle((0, 0), 100 * ring, fill=False, color="0.35", lw=1))
     face.add_patch(plt.Circle((0, 0), 100 * radius, color="gold", alpha=0.35, lw=0))
-    r = np.array([d["r_m"] for d in done]).reshape(-1, 2) * 100
-    truth = [d.get("truth_r_m") for d in done]
-    hits = np.array([bool(d.get("hit")) for d in done], dtype=bool)
+    r = np.array([d.r_m for d in done]).reshape(-1, 2) * 100
+    truth = [d.truth_r_m for d in done]
+    hits = np.array([d.hit for d in done], dtype=bool)
     many = len(done) > MANY
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
@@ -118,7 +118,7 @@ def plot_report(state: JournalState, path: Path) -> None:
             edgecolors="k",
             linewidths=0.6,
         )
-        number = int(d["rollout"])
+        number = d.rollout
         if number <= LABELLED_FIRST or number % 10 == 0 or hits[k] or k == len(done) - 1:
             face.annotate(
                 str(number),
@@ -159,9 +159,9 @@ def plot_report(state: JournalState, path: Path) -> None:
         fig.colorbar(order, ax=face, fraction=0.04, pad=0.02, label="rollout")
 
     n = np.arange(1, len(done) + 1)
-    measured = 100 * np.array([d["distance_m"] for d in done])
+    measured = 100 * np.array([d.distance_m for d in done])
     true = np.array(
-        [np.nan if d.get("truth_distance_m") is None else 100 * d["truth_distance_m"] for d in done]
+        [np.nan if d.truth_distance_m is None else 100 * d.truth_distance_m for d in done]
     )
     # (values, style, colour, line width, marker size, label): smaller when there are many
     lines = [(measured, "o-", "tab:blue", 2.0, 6.0, "measured by the detector")]
@@ -236,9 +236,7 @@ def plot_report(state: JournalState, path: Path) -> None:
     n_resumed = len(marks.resumed)
     resumed = f", resumed {n_resumed} time{'s' * (n_resumed != 1)}" if n_resumed else ""
     curve.set_title(f"distance per rollout: {outcome}{aborted}{resumed}")
-    fig.suptitle(
-        f"session {state.session}: {header['algorithm']}, seed {header['seed']}", fontsize=13
-    )
+    fig.suptitle(f"session {state.session}: {header.algorithm}, seed {header.seed}", fontsize=13)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

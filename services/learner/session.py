@@ -33,9 +33,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
+import msgspec
 import numpy as np
 
 from protocol.errors import ArcheryError, BadRequest
+from protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    EndRecord,
+    HeaderRecord,
+    JournalRecord,
+    ProposedRecord,
+    ResumedRecord,
+    StoppedRecord,
+)
+from protocol.verbs.learner import LearnerStatusReply
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST, after_abort, streak_failure
 from services.learner.algorithms.base import Bounds, Learner, LearnerError
 from services.learner.algorithms.registry import (
@@ -177,7 +189,7 @@ class Session:
 
     Args:
         on_record: called with each journal record right after it is durable (e.g. to publish
-            it on `learner/rollout:o`).
+            it on `learner/rollout:o`); a done record with its `timing` completed.
         service_wait: how long to wait for a vanished service before failing (s).
     """
 
@@ -188,7 +200,7 @@ class Session:
         config: SessionConfig,
         rig: Rig,
         *,
-        on_record: Callable[[dict[str, Any]], None] | None = None,
+        on_record: Callable[[JournalRecord], None] | None = None,
         service_wait: float = 120.0,
     ) -> None:
         self.journal = journal
@@ -254,18 +266,17 @@ class Session:
             except LearnerError as exc:
                 raise JournalError(f"--from {source.journal}: {exc}") from None
         session_id = session_id or new_session_id(config.algorithm, config.seed)
-        header = {
-            "session": session_id,
-            "algorithm": config.algorithm,
-            "seed": config.seed,
-            "rollouts": config.rollouts,
-            "options": learner.options(),
-            "config": config.to_dict() | {"bounds": bounds.to_dict()},
-            "controller_box": box.to_dict(),
-            "learner_state": learner.state_dict(),
-        }
-        if source is not None:
-            header["from"] = source.header()
+        header = HeaderRecord(
+            session=session_id,
+            algorithm=config.algorithm,
+            seed=config.seed,
+            rollouts=config.rollouts,
+            options=learner.options(),
+            config=config.to_dict() | {"bounds": bounds.to_dict()},
+            controller_box=box.to_dict(),
+            learner_state=learner.state_dict(),
+            from_=msgspec.UNSET if source is None else source.header(),
+        )
         journal = Journal.create(runs / session_id, header)
         return cls(journal, learner, config, rig, **kw)
 
@@ -289,7 +300,7 @@ class Session:
         except (KeyError, TypeError, ValueError) as exc:
             journal.close()
             raise JournalError(f"journal {path} cannot restore its session: {exc}") from None
-        journal.append("resumed", after=journal.state.last_index)
+        journal.append(ResumedRecord(after=journal.state.last_index))
         return cls(journal, learner, config, rig, **kw)
 
     # -- status ---------------------------------------------------------------------------------
@@ -298,23 +309,25 @@ class Session:
         """The session id."""
         return self.journal.state.session
 
-    def status(self) -> dict[str, Any]:
-        """Phase (starting, waiting, running, finished, stopped, failed), counts, results."""
+    def status(self) -> LearnerStatusReply:
+        """Phase (starting, waiting, running, finished, stopped, failed), counts, results: the
+        learner's `status` reply (its `report` and `hit_frame` are the service's to add)."""
         with self._lock:
             phase, cause, waiting = self._phase, self._cause, list(self._waiting)
         if phase == "waiting":
             cause = self.waiting_note(waiting)
         state = self.journal.state
         last = state.done[-1] if state.done else None
-        return state.summary() | {
-            "state": phase,
-            "cause": cause,
-            "waiting_for": waiting,
-            "journal": str(self.journal.path),
-            "directory": str(self.directory),
-            "last_theta": None if last is None else last["theta"],
-            "last_r_m": None if last is None else last["r_m"],
-        }
+        return LearnerStatusReply(
+            **state.summary(),
+            state=phase,
+            cause=cause,
+            waiting_for=waiting,
+            journal=str(self.journal.path),
+            directory=str(self.directory),
+            last_theta=None if last is None else last.theta,
+            last_r_m=None if last is None else last.r_m,
+        )
 
     def waiting_note(self, missing: list[str]) -> str:
         """What a wait is for: "waiting for camera (lost 3.2 s ago), robot"."""
@@ -329,16 +342,20 @@ class Session:
             self._phase, self._cause, self._waiting = phase, cause, waiting or []
 
     # -- the loop -------------------------------------------------------------------------------
-    def _record(self, kind: str, **fields: Any) -> dict[str, Any]:
-        record = self.journal.append(kind, **fields)
+    def _record(self, record: JournalRecord) -> JournalRecord:
+        """Journal `record`, then hand it to `on_record`."""
+        record = self.journal.append(record)
+        self._published(record)
+        return record
+
+    def _published(self, record: JournalRecord) -> None:
         if self.on_record is not None:
             try:
                 self.on_record(record)
             except Exception:
-                log.exception("publishing the %s record failed", kind)
-        return record
+                log.exception("publishing the %s record failed", record.kind)
 
-    def run(self, stop: threading.Event) -> dict[str, Any]:
+    def run(self, stop: threading.Event) -> LearnerStatusReply:
         """Run rollouts until the hit (with until_hit), the budget, `stop`, or a failure.
 
         Returns:
@@ -349,14 +366,14 @@ class Session:
         except SessionFailed as exc:
             self._set("failed", exc.message)
             log.error("session %s failed: %s", self.session_id, exc.message)
-            self._record("stopped", reason="failed", cause=exc.message)
+            self._record(StoppedRecord(reason="failed", cause=exc.message))
         except JournalError as exc:
             self._set("failed", exc.message)
             log.error("session %s: journal failure: %s", self.session_id, exc.message)
         except RigError as exc:
             self._set("failed", exc.message)
             log.error("session %s failed to set up: %s", self.session_id, exc.message)
-            self._record("stopped", reason="failed", cause=exc.message)
+            self._record(StoppedRecord(reason="failed", cause=exc.message))
         except Exception as exc:  # a bug must not leave the session "running" forever
             log.exception("session %s failed", self.session_id)
             self._set("failed", f"internal error: {exc!r}")
@@ -374,7 +391,7 @@ class Session:
         while not stop.is_set():
             reason = self._finished()
             if reason is not None:
-                self._record("end", reason=reason, summary=state.summary())
+                self._record(EndRecord(reason=reason, summary=state.summary()))
                 self._set("finished", reason)
                 log.info("session %s finished: %s", self.session_id, reason)
                 return
@@ -387,7 +404,7 @@ class Session:
                 raise SessionFailed(failure)
             self._set("running")
             self._attempt(stop)
-        self._record("stopped", reason="stop requested")
+        self._record(StoppedRecord(reason="stop requested"))
         self._set("stopped", "stop requested")
 
     def _finished(self) -> str | None:
@@ -448,7 +465,7 @@ class Session:
         if state.open is not None:
             # Left open by a crash: the learner was never told; run the same θ again.
             self.learner.ask()  # keeps the generator where the first run left it
-            return np.array(state.open["theta"])
+            return np.array(state.open.theta)
         proposal = self.learner.ask()
         return proposal if state.retry_theta is None else np.array(state.retry_theta)
 
@@ -459,9 +476,9 @@ class Session:
         asked = time.perf_counter()
         if state.open is None:
             index = state.last_index + 1
-            self._record("proposed", index=index, theta=theta.tolist())
+            self._record(ProposedRecord(index=index, theta=theta.tolist()))
         else:
-            index = int(state.open["index"])
+            index = state.open.index
             log.info("re-running open attempt %d at θ %s", index, theta.tolist())
         timing = {"ask_s": asked - start, "journal_proposed_s": time.perf_counter() - asked}
         try:
@@ -521,12 +538,12 @@ class Session:
         """Journal the aborted attempt with the θ the policy picks for the next one, then fail
         or wait for the services as the policy says."""
         state = self.journal.state
-        best = min(state.done, key=lambda d: d["distance_m"]) if state.done else None
+        best = min(state.done, key=lambda d: d.distance_m) if state.done else None
         redraw = self.learner.redraw((self.config.seed, index)) if code == NO_ARROW else None
         decision = after_abort(
             code,
             theta,
-            best_theta=None if best is None else best["theta"],
+            best_theta=None if best is None else best.theta,
             theta0=self.config.theta0,
             bounds=self.learner.bounds,
             redraw=redraw,
@@ -541,13 +558,14 @@ class Session:
         if code == SERVICE_LOST and self._lost_since is None:
             self._lost_since = time.monotonic()
         self._record(
-            "aborted",
-            index=index,
-            theta=theta.tolist(),
-            code=code,
-            cause=cause,
-            retry_theta=list(decision.retry_theta),
-            **extra,
+            AbortedRecord(
+                index=index,
+                theta=theta.tolist(),
+                code=code,
+                cause=cause,
+                retry_theta=list(decision.retry_theta),
+                **extra,
+            )
         )
         if decision.failure is not None:
             raise SessionFailed(decision.failure)
@@ -574,21 +592,6 @@ class Session:
         self._lost_since = None
         timing = timing | posture.timing | shot.timing | measurement.timing
         timing["learner_s"] = time.perf_counter() - told
-        record = {
-            "index": index,
-            "rollout": rollout,
-            "theta": theta.tolist(),
-            "theta_measured": posture.theta_measured,
-            "r_m": r,
-            "ret": big_return,
-            "distance_m": distance,
-            "hit": hit,
-            "shot": shot.shot,
-            "outcome": shot.outcome,
-            "truth_r_m": truth,
-            "truth_distance_m": None if truth is None else _distance(truth),
-            "detection": measurement.detection,
-        }
         if hit:  # the frame of the latest hit, taken before the next nock takes the arrow
             before = time.perf_counter()
             true = "" if truth is None else f" (true {100 * _distance(truth):.1f} cm)"
@@ -603,15 +606,27 @@ class Session:
             timing["hit_frame_s"] = time.perf_counter() - before
         before = time.perf_counter()
         timing["rollout_s"] = before - start
-        done = self.journal.append(
-            "done", **record, timing=timing, learner_state=self.learner.state_dict()
+        record = DoneRecord(
+            index=index,
+            rollout=rollout,
+            theta=theta.tolist(),
+            theta_measured=posture.theta_measured,
+            r_m=r,
+            ret=float(big_return),
+            distance_m=distance,
+            hit=hit,
+            shot=shot.shot,
+            outcome=shot.outcome,
+            truth_r_m=truth,
+            truth_distance_m=None if truth is None else _distance(truth),
+            detection=measurement.detection,
+            timing=timing,
+            learner_state=self.learner.state_dict(),
         )
+        done = self.journal.append(record)
         timing = timing | {"journal_s": time.perf_counter() - before}
-        if self.on_record is not None:
-            try:
-                self.on_record(done | {"timing": timing})  # published with the journal's time
-            except Exception:
-                log.exception("publishing the done record failed")
+        # published with the journal's time
+        self._published(msgspec.structs.replace(done, timing=timing))
         log.info(
             "rollout %d (attempt %d): θ %s → r %s, %.1f cm%s",
             rollout,
