@@ -40,12 +40,14 @@ from services.detector.colour_model import ColourModel
 from services.learner import handlers as learner_handlers
 from services.learner import service as learner_service
 from services.learner.config import LearnerServiceConfig, SessionConfig
+from services.learner.errors import ServiceLost
 from services.learner.journal import JournalState, check_invariants, read_records
 from services.learner.rig import MeshRig
-from services.learner.session import FINAL_STATES, ServiceLost, Session, Shot
+from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from services.learner.session import FINAL_STATES, Session
 from tests.conftest import serving
 from tests.rpc import rpc_call
-from tests.test_learner_service_session import FakeRig, Measurement, PostureResult
+from tests.test_learner_service_session import FakeRig
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 

@@ -22,16 +22,11 @@ from protocol.journal_records import (
 )
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SessionConfig
+from services.learner.errors import RigError, ServiceLost
 from services.learner.journal import JournalError, JournalState, read_records
 from services.learner.report import interruptions, write_report
-from services.learner.session import (
-    Measurement,
-    PostureResult,
-    RigError,
-    ServiceLost,
-    Session,
-    Shot,
-)
+from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from services.learner.session import Session
 
 BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.

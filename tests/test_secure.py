@@ -43,8 +43,9 @@ from protocol.keys import Keys
 from protocol.messages import Image, RpcReply
 from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
+from services.learner.errors import RigError
 from services.learner.rig import MeshRig
-from services.learner.session import RigError, Shot
+from services.learner.rig_protocol import Shot
 from tests.conftest import archery
 from tests.rpc import rpc_call, some_verbs
 

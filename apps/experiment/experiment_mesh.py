@@ -52,8 +52,9 @@ from protocol.journal_records import DoneRecord, JournalRecord
 from protocol.robotspec import THETA0
 from services.learner.algorithms.base import Bounds
 from services.learner.algorithms.registry import ALGORITHMS
+from services.learner.errors import RigError, ServiceLost
 from services.learner.journal import JournalError
-from services.learner.session import RigError, ServiceLost, Session
+from services.learner.session import Session
 
 __all__ = [
     "BALLISTIC_ONLY",

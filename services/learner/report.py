@@ -11,7 +11,14 @@ from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
 
-__all__ = ["Interruptions", "caption_png", "interruptions", "plot_report", "write_report"]
+__all__ = [
+    "Interruptions",
+    "caption_png",
+    "hit_caption",
+    "interruptions",
+    "plot_report",
+    "write_report",
+]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, HIT_RADIUS)  # m
@@ -46,6 +53,20 @@ def interruptions(state: JournalState) -> Interruptions:
         elif isinstance(record, ResumedRecord):
             resumed.append(done)
     return Interruptions(tuple(aborted), tuple(resumed))
+
+
+def hit_caption(session: str, done: DoneRecord) -> list[str]:
+    """The caption of a hit's frame: the session, rollout, measured (and true) ‖r‖ and θ, in
+    cm, and what the picture shows."""
+    truth = done.truth_distance_m
+    true = "" if truth is None else f" (true {100 * truth:.1f} cm)"
+    return [
+        f"session {session}, rollout {done.rollout}: hit, |r| = {100 * done.distance_m:.1f} cm"
+        f"{true}",
+        "theta = (" + ", ".join(f"{100 * v:.2f}" for v in done.theta) + ") cm. Left: the "
+        "camera frame, right: the pixels of the colour models; red cross: target centre, blue "
+        "circle: arrow tip",
+    ]
 
 
 def caption_png(png: bytes, lines: list[str]) -> bytes:
