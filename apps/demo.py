@@ -30,6 +30,7 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import for_error
+from protocol.journal_records import AbortedRecord, DoneRecord
 from protocol.messages import Rollout
 from services.learner.algorithms.registry import ALGORITHMS
 
@@ -53,15 +54,16 @@ class Progress:
 
     def add(self, message: Rollout) -> None:
         """Add the row of a done or aborted attempt."""
-        theta = ", ".join(f"{100 * v:.2f}" for v in message.theta)
-        if message.status == "aborted":
-            self.table.add_row("–", theta, "–", "–", f"[yellow]aborted {message.cause[:60]}")
-        elif message.status == "done" and message.r_m is not None:
+        record = message.record
+        theta = ", ".join(f"{100 * v:.2f}" for v in record.theta)
+        if isinstance(record, AbortedRecord):
+            self.table.add_row("–", theta, "–", "–", f"[yellow]aborted {record.note()[:60]}")
+        elif isinstance(record, DoneRecord):
             self.done += 1
-            r = message.r_m
+            r = record.r_m
             distance = 100 * (r[0] ** 2 + r[1] ** 2) ** 0.5
-            mark = "[bold green]HIT" if message.hit else ""
-            style = "bold green" if message.hit else ""
+            mark = "[bold green]HIT" if record.hit else ""
+            style = "bold green" if record.hit else ""
             self.table.add_row(
                 str(self.done),
                 theta,

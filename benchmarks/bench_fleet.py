@@ -60,6 +60,7 @@ from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
 from mesh.netflags import NetConfig
 from mesh.router import free_tcp_endpoint
+from protocol.journal_records import DoneRecord
 from services.learner.journal import read_records
 
 __all__ = ["main"]
@@ -112,16 +113,16 @@ def _one_run(n: int, config: ExperimentConfig, out: Path, pin: bool = False) -> 
         r
         for path in sorted((out / "sessions").glob("*/journal.jsonl"))
         for r in read_records(path)[0]
-        if r["record"] == "done"
+        if isinstance(r, DoneRecord)
     ]
-    stamps = sorted(r["t"] for r in done)
+    stamps = sorted(r.t for r in done)
     rate = (len(stamps) - 1) / (stamps[-1] - stamps[0])
     cpu: dict[str, list[float]] = {}
     for name in after:
         service = name.split("@")[0]
         cpu.setdefault(service, []).append((after[name] - before[name]) / len(done))
     timing = {
-        key: float(np.median([r["timing"][key] for r in done if key in r["timing"]]))
+        key: float(np.median([r.timing[key] for r in done if key in (r.timing or {})]))
         for key in TIMINGS
     }
     return {

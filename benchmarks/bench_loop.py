@@ -39,6 +39,7 @@ from apps.up.launch_config import SERVICES
 from apps.up.launcher import Launcher
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
+from protocol.journal_records import DoneRecord
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from tests.rpc import rpc_call
@@ -64,7 +65,7 @@ def _stats(values: list[float], scale: float = 1e3) -> dict[str, float]:
     return {"median": float(np.median(v)), "p90": float(np.percentile(v, 90)), "n": int(v.size)}
 
 
-def _breakdown(done: list[dict[str, Any]]) -> dict[str, list[float]]:
+def _breakdown(done: list[DoneRecord]) -> dict[str, list[float]]:
     parts: dict[str, list[float]] = {}
 
     def add(name: str, value: float | None) -> None:
@@ -72,7 +73,7 @@ def _breakdown(done: list[dict[str, Any]]) -> dict[str, list[float]]:
             parts.setdefault(name, []).append(float(value))
 
     for record in done:
-        t = record["timing"]
+        t = record.timing or {}
         detector = {k[len("detector_") :]: v for k, v in t.items() if k.startswith("detector_")}
         add("IK + transport (posture call − move)", t.get("ik_and_transport_s"))
         add("motion (controller's move)", t.get("move_s"))
@@ -124,18 +125,18 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         codes = launcher.stop_all()
     per_rollout: list[float] = []
-    done_all: list[dict[str, Any]] = []
+    done_all: list[DoneRecord] = []
     truth_error: list[float] = []
     for finals in sessions.values():
         for final in finals:
             records = read_records(Path(final["journal"]))[0]
-            done = [r for r in records if r["record"] == "done"]
+            done = [r for r in records if isinstance(r, DoneRecord)]
             done_all += done[1:]
-            per_rollout += [b["t"] - a["t"] for a, b in itertools.pairwise(done)]
+            per_rollout += [b.t - a.t for a, b in itertools.pairwise(done)]
             truth_error += [
-                float(np.linalg.norm(np.subtract(d["r_m"], d["truth_r_m"])))
+                float(np.linalg.norm(np.subtract(d.r_m, d.truth_r_m)))
                 for d in done
-                if d.get("truth_r_m") is not None
+                if d.truth_r_m is not None
             ]
     print(f"\nstart-up until all five services are alive: {startup:.1f} s; stop codes {codes}")
     print(

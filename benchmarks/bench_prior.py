@@ -140,6 +140,7 @@ def _robot_session(
     node: Any, rollouts: Any, algo: str, options: dict[str, Any], seed: int
 ) -> dict[str, Any]:
     from apps.learn.follow import follow
+    from protocol.journal_records import DoneRecord
     from services.learner.journal import read_records
 
     request = {"algo": algo, "seed": seed, "rollouts": ROBOT_BUDGET[algo], "options": options}
@@ -147,8 +148,8 @@ def _robot_session(
     session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     final["wall_s"] = time.perf_counter() - start
-    done = [r for r in read_records(Path(final["journal"]))[0] if r["record"] == "done"]
-    final["first_r_cm"] = 100 * float(np.linalg.norm(done[0]["r_m"])) if done else None
+    done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
+    final["first_r_cm"] = 100 * float(np.linalg.norm(done[0].r_m)) if done else None
     return final
 
 

@@ -44,6 +44,7 @@ from benchmarks.observers import CONDITIONS, Observers, cpu_seconds, stop
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
+from protocol.journal_records import DoneRecord
 from protocol.messages import Detection, Image, Rollout
 from services.learner.journal import read_records
 from tests.rpc import rpc_call
@@ -58,8 +59,8 @@ def _per_rollout(node: Node, rollouts: Any, seed: int, budget: int) -> tuple[flo
     session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     journal = Path(final["journal"])
-    done = [r for r in read_records(journal)[0] if r["record"] == "done"]
-    return statistics.median(b["t"] - a["t"] for a, b in itertools.pairwise(done)), journal
+    done = [r for r in read_records(journal)[0] if isinstance(r, DoneRecord)]
+    return statistics.median(b.t - a.t for a, b in itertools.pairwise(done)), journal
 
 
 def _frame(width: int = 1280, height: int = 720) -> np.ndarray:
@@ -158,7 +159,7 @@ def _fidelity(endpoint: str, path: Path, model: Path, journal: Path) -> tuple[fl
         AssertionError: a journaled r that no recorded detection holds, or a frame not found.
     """
     hits = _detections(path)
-    journaled = [r["r_m"] for r in read_records(journal)[0] if r["record"] == "done"]
+    journaled = [r.r_m for r in read_records(journal)[0] if isinstance(r, DoneRecord)]
     by_r = {tuple(h.r_m or ()): h for h in hits}
     missing = [r for r in journaled if tuple(r) not in by_r]
     if missing:

@@ -45,6 +45,7 @@ def _quartiles(values: np.ndarray) -> str:
 
 def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
     from apps.learn.follow import follow
+    from protocol.journal_records import DoneRecord
     from services.learner.journal import read_records
 
     robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
@@ -64,17 +65,18 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
             rpc_call(node, learner, "stop", timeout=20)
 
     def on_rollout(message: Any) -> None:
-        if message.status != "done":
+        record = message.record
+        if not isinstance(record, DoneRecord):
             return
-        index = message.index
-        truth = None if message.truth_r_m is None else [100 * v for v in message.truth_r_m]
+        index = record.index
+        truth = None if record.truth_r_m is None else [100 * v for v in record.truth_r_m]
         if state["first_hit"] is None:
-            if message.hit:
+            if record.hit:
                 rpc_call(node, robot, "setWind", {"wind": list(WIND)}, timeout=20)
                 now = rpc_call(node, robot, "status", timeout=20)["shot"]
                 records = read_records(journal[0])[0]
                 shot = next(
-                    r["shot"] for r in records if r["record"] == "done" and r["index"] == index
+                    r.shot for r in records if isinstance(r, DoneRecord) and r.index == index
                 )
                 late = now - shot
                 state.update(first_hit=index, change_at=index + 1 + late, late_shots=late)
@@ -84,7 +86,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
         elif index >= state["change_at"]:
             if index == state["change_at"]:
                 state["truth_cm_first_after"] = truth
-            if message.hit and state["rehit_at"] is None:
+            if record.hit and state["rehit_at"] is None:
                 state["rehit_at"] = index
                 stop()
             elif index >= state["change_at"] + AFTER - 1:

@@ -47,6 +47,7 @@ from mesh.node import Node
 from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint, spawn_router
 from mesh.subscription import Subscription
+from protocol.journal_records import DoneRecord
 from protocol.messages import Image, Rollout
 from tests.rpc import rpc_call
 
@@ -139,7 +140,7 @@ class Session:
         done: list[float] = []
 
         def on_rollout(message: Rollout) -> None:
-            if message.status == "done":
+            if isinstance(message.record, DoneRecord):
                 done.append(time.perf_counter())
 
         start = time.perf_counter()

@@ -19,6 +19,8 @@ import msgspec
 import msgspec.inspect
 import numpy as np
 
+from protocol.journal_records import RolloutRecord
+
 __all__ = [
     "ALLOWED_DTYPES",
     "MAX_BATCH",
@@ -279,17 +281,16 @@ class Detection(Message, frozen=True):
 
 
 class Rollout(Message, frozen=True):
-    """One learning rollout: θ (m), the measured r (m) and return R, or why it was aborted."""
+    """One rollout as the learner journaled it: its proposed, done or aborted journal record
+    (`protocol.journal_records`; a done record travels without the learner's state, which only
+    the journal keeps). θ, r and the distances are in m."""
 
-    session: str
-    index: int
-    theta: list[float]
-    status: Literal["proposed", "done", "aborted"]
-    r_m: list[float] | None = None
-    ret: float | None = None
-    hit: bool = False
-    cause: str = ""
-    truth_r_m: list[float] | None = None
+    record: RolloutRecord
+
+    def validate(self) -> None:
+        # the record is a nested struct: its floats are checked here
+        for name in finite_fields(type(self.record)):
+            _check_finite(getattr(self.record, name), f"record.{name}")
 
 
 class RpcRequest(Message, frozen=True):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from protocol.journal_records import AbortedRecord
 from protocol.robotspec import THETA0
 from services.learner.abort_policy import AbortDecision, after_abort, streak_failure
 from services.learner.algorithms.base import Bounds
@@ -99,7 +100,9 @@ def test_decision_is_frozen_and_plain() -> None:
     ],
 )
 def test_streak_failure(in_row: dict[str, int], max_aborts: int, fails: bool) -> None:
-    last = {"theta": list(MISS), "code": "no_target", "cause": "lights off"}
+    last = AbortedRecord(
+        index=1, theta=list(MISS), code="no_target", cause="lights off", retry_theta=list(MISS)
+    )
     failure = streak_failure(in_row, max_aborts, last if in_row else None)
     assert (failure is not None) is fails
     if fails:

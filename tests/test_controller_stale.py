@@ -24,8 +24,8 @@ from protocol.verbs import ServedVerbs
 from protocol.verbs import robot as rv
 from services.controller import service as controller_service
 from services.controller.config import ControllerConfig
+from services.learner.errors import ServiceLost
 from services.learner.rig import MeshRig
-from services.learner.session import ServiceLost
 from tests.conftest import serving
 from tests.rpc import rpc_call, some_verbs
 

@@ -28,6 +28,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint
+from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord, RolloutRecord
 from protocol.messages import Image, JointState, Rollout
 from protocol.verbs.detector import DETECTOR_VERBS, FrameReply
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
@@ -80,20 +81,26 @@ def fake_services(net: NetConfig) -> Iterator[Publisher[Rollout]]:
 
 def publish_shots(rollouts: Publisher[Rollout]) -> None:
     assert rollouts.wait_matched(30), "the dashboard does not subscribe to the rollouts"
-    rollouts.put(Rollout(session="s1", index=0, theta=[0.1, 0.0, 0.0], status="proposed"))
-    for k, (r, status) in enumerate(SHOTS):
-        measured = status == "done"
-        rollouts.put(
-            Rollout(
+    rollouts.put(Rollout(record=ProposedRecord(session="s1", index=1, theta=[0.1, 0.0, 0.0])))
+    for k, (r, status) in enumerate(SHOTS, start=1):
+        theta = [0.1, 0.02 * k, 0.0]
+        record: RolloutRecord
+        if status == "done":
+            distance = math.hypot(*r)
+            record = DoneRecord(
                 session="s1",
                 index=k,
-                theta=[0.1, 0.02 * k, 0.0],
-                status=status,  # type: ignore[arg-type]  # a status the Literal forbids, on purpose
-                r_m=r if measured else None,
-                hit=measured and math.hypot(*r) < 0.05,
-                cause="" if measured else "no_arrow",
+                rollout=k,
+                theta=theta,
+                r_m=r,
+                distance_m=distance,
+                hit=distance < 0.05,
             )
-        )
+        else:
+            record = AbortedRecord(
+                session="s1", index=k, theta=theta, code="no_arrow", cause="", retry_theta=theta
+            )
+        rollouts.put(Rollout(record=record))
 
 
 def get(url: str) -> tuple[int, str, bytes]:
@@ -150,7 +157,16 @@ def test_state_endpoint_and_files(net: NetConfig) -> None:
         assert get(dash.url + "static/server.py")[0] == 404
         assert get(dash.url + "nosuch")[0] == 404
         # a new session starts a fresh face
-        rollouts.put(Rollout(session="s2", index=0, theta=[0, 0, 0], status="done", r_m=[0, 0.2]))
+        done = DoneRecord(
+            session="s2",
+            index=1,
+            rollout=1,
+            theta=[0, 0, 0],
+            r_m=[0, 0.2],
+            distance_m=0.2,
+            hit=False,
+        )
+        rollouts.put(Rollout(record=done))
         state = wait_state(dash.url, lambda s: s["session"] == "s2")
         assert len(state["rollouts"]) == 1
 

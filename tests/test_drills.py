@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -14,26 +13,52 @@ from apps.drills import runner
 from apps.drills.order import start_order
 from apps.drills.verdict import DrillResult, Evidence, count_lost_duplicated, judge
 from apps.up.launch_config import SERVICES
+from protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    HeaderRecord,
+    JournalRecord,
+    ProposedRecord,
+)
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 
-def _r(kind: str, index: int | None = None, **fields: Any) -> dict[str, Any]:
-    record = {"record": kind, "session": "s", "t": 0.0, **fields}
-    if index is not None:
-        record["index"] = index
-    return record
+THETA = [0.17, 0.0, -0.02]
+HEADER = HeaderRecord(
+    session="s", algorithm="archer", seed=0, rollouts=3, options={}, config={}, learner_state={}
+)
 
 
-def _journal(*rollouts: tuple[int, str, int | None]) -> list[dict[str, Any]]:
+def _r(kind: str, index: int, rollout: int | None = None) -> JournalRecord:
+    """A proposed, done (rollout number `rollout`) or aborted record of attempt `index`."""
+    if kind == "proposed":
+        return ProposedRecord(session="s", index=index, theta=THETA)
+    if kind == "done":
+        assert rollout is not None
+        return DoneRecord(
+            session="s",
+            index=index,
+            rollout=rollout,
+            theta=THETA,
+            r_m=[0.0, 0.1],
+            distance_m=0.1,
+            hit=False,
+        )
+    return AbortedRecord(
+        session="s", index=index, theta=THETA, code="service_lost", cause="", retry_theta=THETA
+    )
+
+
+def _journal(*rollouts: tuple[int, str, int | None]) -> list[JournalRecord]:
     """A header, then per (index, outcome, rollout number) a proposed and its outcome."""
-    records = [_r("header")]
+    records: list[JournalRecord] = [HEADER]
     for index, outcome, number in rollouts:
         records.append(_r("proposed", index))
         if outcome == "done":
             records.append(_r("done", index, rollout=number))
         elif outcome == "aborted":
-            records.append(_r("aborted", index, code="service_lost"))
+            records.append(_r("aborted", index))
     return records
 
 

@@ -21,6 +21,7 @@ from apps.up.launcher import Launcher
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from mesh.subscription import Subscription
+from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from tests.conftest import archery
@@ -64,21 +65,21 @@ def _start(node: Node, **request: Any) -> str:
 
 def _wait_done(rollouts: Subscription[Rollout], session: str, count: int) -> list[Rollout]:
     seen: list[Rollout] = []
-    while sum(m.status == "done" for m in seen) < count:
+    while sum(isinstance(m.record, DoneRecord) for m in seen) < count:
         message = rollouts.get(timeout=60)
-        if message.session == session:
+        if message.record.session == session:
             seen.append(message)
     return seen
 
 
-def _check_journal(path: Path, done: int) -> list[dict[str, Any]]:
+def _check_journal(path: Path, done: int) -> list[JournalRecord]:
     """Each attempt proposed once and finished once, in order; `done` rollouts done."""
     records = read_records(path)[0]
-    proposed = [r["index"] for r in records if r["record"] == "proposed"]
-    finished = [r["index"] for r in records if r["record"] in ("done", "aborted")]
+    proposed = [r.index for r in records if isinstance(r, ProposedRecord)]
+    finished = [r.index for r in records if isinstance(r, DoneRecord | AbortedRecord)]
     assert proposed == list(range(1, len(proposed) + 1))
     assert finished == proposed
-    assert [r["rollout"] for r in records if r["record"] == "done"] == list(range(1, done + 1))
+    assert [r.rollout for r in records if isinstance(r, DoneRecord)] == list(range(1, done + 1))
     return records
 
 
@@ -89,9 +90,9 @@ def test_archer_hits_the_5cm_ring(client: tuple[Node, Subscription[Rollout]]) ->
     assert final["state"] == "finished" and final["ended"] == "hit", final
     assert final["hit_at"] <= 15 and final["final_distance_m"] < 0.05
     records = _check_journal(Path(final["journal"]), final["rollouts"])
-    last = [r for r in records if r["record"] == "done"][-1]
+    last = [r for r in records if isinstance(r, DoneRecord)][-1]
     # The detector's r agrees with the robot's ground truth (logged, never told).
-    assert np.linalg.norm(np.subtract(last["r_m"], last["truth_r_m"])) < 0.02
+    assert np.linalg.norm(np.subtract(last.r_m, last.truth_r_m)) < 0.02
     assert Path(final["report"]).stat().st_size > 10_000
     assert Path(final["hit_frame"]).stat().st_size > 10_000
 
@@ -107,8 +108,8 @@ def test_detector_killed_mid_session(
     final = follow(node, session, rollouts, lambda m: None)
     assert final["state"] == "finished" and final["rollouts"] == 6, final
     records = _check_journal(Path(final["journal"]), 6)
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert any(r["code"] == "service_lost" and "detector" in r["cause"] for r in aborted), aborted
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert any(r.code == "service_lost" and "detector" in r.cause for r in aborted), aborted
     mesh.wait_alive(["detector"], 60)
 
 
@@ -126,7 +127,7 @@ def test_learner_killed_mid_session(
     )
     try:
         first = rollouts.get(timeout=60)
-        _wait_done(rollouts, first.session, 2)
+        _wait_done(rollouts, first.record.session, 2)
         mesh.kill("learner")
         out, err = proc.communicate(timeout=60)
     finally:
@@ -134,17 +135,17 @@ def test_learner_killed_mid_session(
             proc.kill()
     assert proc.returncode == 1, err
     lost = json.loads(out.strip().splitlines()[-1])
-    assert lost["session"] == first.session and lost["status"] == "lost"
+    assert lost["session"] == first.record.session and lost["status"] == "lost"
     assert f"archery learn --resume` {lost['journal']}" in err
     before = read_records(Path(lost["journal"]))[0]
     # The counts of the last line are the journal's, not those of the session's start.
-    assert lost["rollouts"] == sum(r["record"] == "done" for r in before) >= 2
+    assert lost["rollouts"] == sum(isinstance(r, DoneRecord) for r in before) >= 2
     mesh.start("learner")
     result = archery("learn", "--resume", lost["journal"], *net, timeout=120)
     assert result.returncode == 0, result.stderr
     final = json.loads(result.stdout.strip().splitlines()[-1])
-    assert final["session"] == first.session and final["status"] == "finished"
+    assert final["session"] == first.record.session and final["status"] == "finished"
     assert final["rollouts"] == 6
     records = _check_journal(Path(lost["journal"]), 6)
     assert records[: len(before)] == before  # nothing journaled was changed
-    assert [r["record"] for r in records].count("resumed") == 1
+    assert [r.kind for r in records].count("resumed") == 1

@@ -24,6 +24,7 @@ from apps.up.launcher import Launcher
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, wait_for_endpoint
+from protocol.journal_records import DoneRecord, EndRecord, ResumedRecord
 from protocol.messages import Rollout, WorldEvent
 from services.learner.journal import check_invariants, read_records
 from tests.conftest import archery
@@ -102,8 +103,8 @@ def _complete(out: Path, sessions: int = 2, rollouts: int = 5) -> dict[str, list
     journals = _journals(out)
     assert len(journals) == sessions * len(ALGOS.split(","))
     for name, records in journals.items():
-        assert records[-1]["record"] == "end", name
-        assert sum(r["record"] == "done" for r in records) == rollouts, name
+        assert isinstance(records[-1], EndRecord), name
+        assert sum(isinstance(r, DoneRecord) for r in records) == rollouts, name
         assert check_invariants(records) == [], name
     return journals
 
@@ -115,7 +116,7 @@ def test_one_learner_runs_a_session_on_each_robot_at_once(fleet: dict[str, Launc
         first = rpc_call(
             one, one.keys.learner_rpc(), "start", request | {"rollouts": 40}, timeout=60
         )
-        while feeds[0].get(timeout=120).status != "done":
+        while not isinstance(feeds[0].get(timeout=120).record, DoneRecord):
             pass
         second = rpc_call(
             two, two.keys.learner_rpc(), "start", request | {"rollouts": 3}, timeout=60
@@ -185,7 +186,7 @@ def test_resume_after_the_experiment_was_killed(fleet: dict[str, Launcher], tmp_
             finished = {
                 name: (out / "sessions" / name / "journal.jsonl").read_bytes()
                 for name, records in _journals(out).items()
-                if records[-1]["record"] == "end"
+                if isinstance(records[-1], EndRecord)
             }
             changed.wait(0.05)
     finally:
@@ -198,7 +199,7 @@ def test_resume_after_the_experiment_was_killed(fleet: dict[str, Launcher], tmp_
     journals = _complete(out, sessions=3)
     for name, content in finished.items():
         assert (out / "sessions" / name / "journal.jsonl").read_bytes() == content, name
-    assert any(r["record"] == "resumed" for records in journals.values() for r in records)
+    assert any(isinstance(r, ResumedRecord) for records in journals.values() for r in records)
     assert json.loads((out / "summary.json").read_text())["run"]["sessions"] == 3
 
 
@@ -250,7 +251,7 @@ def test_a_robot_killed_mid_experiment_costs_no_session(
     try:
         assert proc.returncode == 0, err
         journals = _complete(out, sessions=3)
-        assert any(r["record"] == "resumed" for records in journals.values() for r in records)
+        assert any(isinstance(r, ResumedRecord) for records in journals.values() for r in records)
         assert "icubSim2 lost during session" in err
     finally:
         fleet["b"].start("robot")

@@ -24,19 +24,30 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.errors import RpcError, UpstreamLost
+from protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    HeaderRecord,
+    JournalRecord,
+    ProposedRecord,
+    StoppedRecord,
+)
 from protocol.messages import Rollout, WorldEvent
 from protocol.verbs import controller as cv
+from protocol.verbs.learner import LearnerStatusReply
 from services.detector import service as detector_service
 from services.detector.colour_model import ColourModel
 from services.learner import handlers as learner_handlers
 from services.learner import service as learner_service
 from services.learner.config import LearnerServiceConfig, SessionConfig
+from services.learner.errors import ServiceLost
 from services.learner.journal import JournalState, check_invariants, read_records
 from services.learner.rig import MeshRig
-from services.learner.session import FINAL_STATES, ServiceLost, Session, Shot
+from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from services.learner.session import FINAL_STATES, Session
 from tests.conftest import serving
 from tests.rpc import rpc_call
-from tests.test_learner_service_session import FakeRig, Measurement, PostureResult
+from tests.test_learner_service_session import FakeRig
 
 os.environ.setdefault("MUJOCO_GL", "egl")
 
@@ -56,7 +67,7 @@ class FaultRig(FakeRig):
         self.hold = hold
         self.back = threading.Event()
         self.session: Session | None = None
-        self.seen_waiting: list[dict[str, Any]] = []
+        self.seen_waiting: list[LearnerStatusReply] = []
         self.missing_at_shot: list[list[str]] = []
         self.lost_at: dict[str, float] = {}
 
@@ -102,7 +113,7 @@ def _session(rig: FaultRig, runs: Path, config: SessionConfig, **kw: Any) -> Ses
     return session
 
 
-def _records(session: Session) -> list[dict[str, Any]]:
+def _records(session: Session) -> list[JournalRecord]:
     return read_records(session.journal.path)[0]
 
 
@@ -112,37 +123,37 @@ def test_camera_lost_mid_measure_is_waited_for_in_the_same_session(tmp_path: Pat
     rig = FaultRig(lose)
     session = _session(rig, tmp_path, SessionConfig(seed=2, max_aborts=2))
     status = session.run(threading.Event())
-    assert status["state"] == "finished", status
+    assert status.state == "finished", status
     records = _records(session)
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert [(a["index"], a["code"]) for a in aborted] == [
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert [(a.index, a.code) for a in aborted] == [
         (2, "service_lost"),
         (3, "service_lost"),
         (4, "service_lost"),
     ]
-    assert all(a["cause"].startswith("camera: ") for a in aborted)
-    assert all(a["retry_theta"] == a["theta"] for a in aborted)
-    waiting = [s for s in rig.seen_waiting if s["state"] == "waiting"]
+    assert all(a.cause.startswith("camera: ") for a in aborted)
+    assert all(a.retry_theta == a.theta for a in aborted)
+    waiting = [s for s in rig.seen_waiting if s.state == "waiting"]
     assert len(waiting) == 3
     for seen in waiting:
-        assert seen["waiting_for"] == ["camera"]
-        assert seen["cause"].startswith("waiting for camera (lost ")
-        assert seen["cause"].endswith(" s ago)")
-    assert "resumed" not in [r["record"] for r in records]
+        assert seen.waiting_for == ["camera"]
+        assert seen.cause.startswith("waiting for camera (lost ")
+        assert seen.cause.endswith(" s ago)")
+    assert "resumed" not in [r.kind for r in records]
     assert check_invariants(records) == []
 
 
 def test_robot_lost_means_no_shot_while_it_is_missing(tmp_path: Path) -> None:
     rig = FaultRig({(2, "posture"): "robot"})
     session = _session(rig, tmp_path, SessionConfig(seed=1, until_hit=False, rollouts=4))
-    assert session.run(threading.Event())["state"] == "finished"
+    assert session.run(threading.Event()).state == "finished"
     assert all(missing == [] for missing in rig.missing_at_shot)
     assert rig.shots == 4  # one per done rollout: the aborted attempt released nothing
     records = _records(session)
-    (aborted,) = [r for r in records if r["record"] == "aborted"]
-    assert aborted["code"] == "service_lost"
-    assert aborted["cause"] == "robot: not alive before the shot; no arrow released"
-    assert rig.seen_waiting[0]["waiting_for"] == ["robot"]
+    (aborted,) = [r for r in records if isinstance(r, AbortedRecord)]
+    assert aborted.code == "service_lost"
+    assert aborted.cause == "robot: not alive before the shot; no arrow released"
+    assert rig.seen_waiting[0].waiting_for == ["robot"]
     assert check_invariants(records) == []
 
 
@@ -156,12 +167,12 @@ def test_services_missing_before_an_attempt_are_waited_for_first(tmp_path: Path)
         deadline = time.monotonic() + 10
         while not rig.seen_waiting and time.monotonic() < deadline:
             rig.back.wait(0.01)
-        assert rig.seen_waiting and rig.seen_waiting[0]["state"] == "waiting"
+        assert rig.seen_waiting and rig.seen_waiting[0].state == "waiting"
         assert rig.attempts == 0  # nothing proposed, moved or shot while it is missing
     finally:
         rig.back.set()
         waiter.join(10)
-    assert session.status()["state"] == "finished"
+    assert session.status().state == "finished"
     assert session.journal.state.aborted == []
 
 
@@ -169,13 +180,13 @@ def test_a_service_lost_for_good_fails_the_session_resumably(tmp_path: Path) -> 
     rig = FaultRig({(2, "measure"): "camera"}, hold=True)  # the camera never comes back
     session = _session(rig, tmp_path, SessionConfig(seed=1), service_wait=0.3)
     status = session.run(threading.Event())
-    assert status["state"] == "failed"
-    assert status["cause"].startswith("camera still not alive 0.3 s after a service was lost")
+    assert status.state == "failed"
+    assert status.cause.startswith("camera still not alive 0.3 s after a service was lost")
     records = _records(session)
-    assert records[-1]["record"] == "stopped" and records[-1]["reason"] == "failed"
+    assert isinstance(records[-1], StoppedRecord) and records[-1].reason == "failed"
     assert check_invariants(records) == []
     resumed = Session.resume(session.journal.path, FakeRig())
-    assert resumed.run(threading.Event())["state"] == "finished"
+    assert resumed.run(threading.Event()).state == "finished"
     assert check_invariants(_records(resumed)) == []
 
 
@@ -186,17 +197,35 @@ def test_a_stuck_service_that_stays_alive_is_bounded_by_service_wait(tmp_path: P
 
     session = _session(Stuck(), tmp_path, SessionConfig(seed=1), service_wait=0.2)
     status = session.run(threading.Event())
-    assert status["state"] == "failed"
-    assert "services kept failing 0.2 s after a service was lost" in status["cause"]
+    assert status.state == "failed"
+    assert "services kept failing 0.2 s after a service was lost" in status.cause
     assert check_invariants(_records(session)) == []
 
 
 # -- journal invariants ----------------------------------------------------------------------------
-def _r(kind: str, index: int, **fields: Any) -> dict[str, Any]:
-    return {"record": kind, "index": index, **fields}
+def _r(kind: str, index: int, rollout: int = 1) -> JournalRecord:
+    """A proposed, done or aborted record of attempt `index` (θ and r made up)."""
+    theta = [0.17, 0.0, -0.02]
+    if kind == "proposed":
+        return ProposedRecord(session="s", index=index, theta=theta)
+    if kind == "done":
+        return DoneRecord(
+            session="s",
+            index=index,
+            rollout=rollout,
+            theta=theta,
+            r_m=[0.0, 0.1],
+            distance_m=0.1,
+            hit=False,
+        )
+    return AbortedRecord(
+        session="s", index=index, theta=theta, code="no_arrow", cause="", retry_theta=theta
+    )
 
 
-HEADER = {"record": "header", "session": "s"}
+HEADER = HeaderRecord(
+    session="s", algorithm="archer", seed=0, rollouts=3, options={}, config={}, learner_state={}
+)
 
 
 @pytest.mark.parametrize(
@@ -243,7 +272,7 @@ HEADER = {"record": "header", "session": "s"}
         ),
     ],
 )
-def test_check_invariants(records: list[dict[str, Any]], violations: list[str]) -> None:
+def test_check_invariants(records: list[JournalRecord], violations: list[str]) -> None:
     assert check_invariants(records) == violations
 
 
@@ -400,7 +429,7 @@ def test_attach_to_a_running_session_reports_the_journals_counts(
     assert line["session"] == session and line["status"] == "finished"
     assert line["rollouts"] == 5 == len(state.done)
     assert (line["aborted"], line["hit_at"]) == (len(state.aborted), state.hit_at())
-    assert line["final_distance_m"] == state.done[-1]["distance_m"]
+    assert line["final_distance_m"] == state.done[-1].distance_m
     assert check_invariants(state.records) == []
     # Attaching once it has ended prints the same line at once.
     assert learn.main(_learn(net, "--attach", target)) == 0
@@ -422,7 +451,7 @@ def test_final_counts_come_from_the_journal(tmp_path: Path) -> None:
     stale = {"session": "s", "rollouts": 0, "aborted": 0, "journal": str(session.journal.path)}
     counted = attach.journal_counts(stale)
     assert (counted["rollouts"], counted["aborted"], counted["ended"]) == (3, 0, "budget")
-    assert counted["final_distance_m"] == session.journal.state.done[-1]["distance_m"]
+    assert counted["final_distance_m"] == session.journal.state.done[-1].distance_m
     unreadable = stale | {"journal": str(tmp_path / "elsewhere" / "journal.jsonl")}
     assert attach.journal_counts(unreadable) == unreadable  # the learner's own counts then
 
@@ -476,7 +505,8 @@ def test_camera_killed_and_restarted_mid_session(tmp_path: Path) -> None:
             done = 0
             while done < 2:
                 message = rollouts.get(timeout=120)
-                done += message.session == session and message.status == "done"
+                record = message.record
+                done += record.session == session and isinstance(record, DoneRecord)
             launcher.kill("camera")
             status = _status_when(node, lambda s: "camera" in s.get("waiting_for", []), 120)
             assert status["state"] == "waiting"
@@ -488,7 +518,7 @@ def test_camera_killed_and_restarted_mid_session(tmp_path: Path) -> None:
     assert final["state"] == "finished" and final["rollouts"] == 4, final
     records = read_records(Path(final["journal"]))[0]
     assert check_invariants(records) == []
-    assert "resumed" not in [r["record"] for r in records]
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert aborted and all(r["code"] == "service_lost" for r in aborted), aborted
-    assert any(r["cause"].startswith("camera") for r in aborted), aborted
+    assert "resumed" not in [r.kind for r in records]
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert aborted and all(r.code == "service_lost" for r in aborted), aborted
+    assert any(r.cause.startswith("camera") for r in aborted), aborted

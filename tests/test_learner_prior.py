@@ -9,8 +9,10 @@ import pytest
 
 from services.learner.algorithms import (
     ArcherPrior,
+    BallisticModel,
     Bounds,
     LearnerConfigError,
+    StateError,
     make_learner,
     restore_learner,
 )
@@ -189,14 +191,71 @@ def test_without_change_detection_the_stale_rollouts_slow_it_down() -> None:
 )
 def test_invalid_options_are_refused(options: dict) -> None:
     with pytest.raises(LearnerConfigError):
-        ArcherPrior(THETA0, rng=np.random.default_rng(0), **options)
+        _prior(**options)  # the model's options build the registry's default model
 
 
 def test_every_proposal_stays_inside_narrow_bounds() -> None:
     bounds = Bounds(low=(0.16, -0.01, -0.01), high=(0.18, 0.01, 0.01))
-    learner = ArcherPrior(np.array([0.17, 0.0, 0.0]), rng=np.random.default_rng(0), bounds=bounds)
+    learner = ArcherPrior(
+        np.array([0.17, 0.0, 0.0]),
+        rng=np.random.default_rng(0),
+        model=BallisticModel(),
+        bounds=bounds,
+    )
     world = BallisticWorld(Scenario(distance=5.0))
     for _ in range(6):
         theta = learner.ask()
         assert bounds.contains(theta)
         learner.tell(theta, world.step(theta).r)
+
+
+# -- an injected model -----------------------------------------------------------------------------
+GAIN = np.array([[-1.0, -11.0, -1.1], [2.3, -4.0, -11.8]])  # m of r per m of θ
+
+
+class LinearModel:
+    """A linear world's exact model: r = GAIN (θ − aim) (m); counts its calls."""
+
+    def __init__(self, aim: np.ndarray) -> None:
+        self.aim = aim
+        self.calls = 0
+
+    def impacts(self, thetas: np.ndarray) -> np.ndarray:
+        self.calls += 1
+        return (np.atleast_2d(thetas) - self.aim) @ GAIN.T
+
+    def options(self) -> dict[str, float]:
+        return {}
+
+
+def test_an_injected_model_is_the_one_it_aims_with() -> None:
+    model = LinearModel(THETA0 + np.array([0.004, 0.003, -0.002]))
+    learner = make_learner("archer-prior", THETA0, rng=np.random.default_rng(0), model=model)
+    assert isinstance(learner, ArcherPrior) and learner.model is model
+    theta = learner.ask()
+    assert model.calls > 0
+    assert np.linalg.norm(model.impacts(theta)[0]) < 1e-9  # the model's own aim: its centre
+    assert np.linalg.norm(learner.predict(theta)) < 1e-9
+    assert "model_distance" not in learner.options()  # not the nominal ballistic model
+    built = ArcherPrior(THETA0, rng=np.random.default_rng(0), model=model)
+    assert np.array_equal(built.ask(), theta)  # the same as the registry builds it
+    learner.tell(theta, model.impacts(theta)[0] + 0.01)  # the world is 1 cm off the model
+    # The state does not describe this model: restoring it needs the model again.
+    with pytest.raises(StateError, match="model of its own"):
+        restore_learner(learner.state_dict())
+    restored = restore_learner(learner.state_dict(), model=model)
+    assert np.array_equal(restored.ask(), learner.ask())
+    with pytest.raises(LearnerConfigError, match="not both"):
+        make_learner(
+            "archer-prior", THETA0, rng=np.random.default_rng(0), model=model, model_drag=0.1
+        )
+    with pytest.raises(LearnerConfigError, match="no physics model"):
+        make_learner("archer", THETA0, rng=np.random.default_rng(0), model=model)
+
+
+def test_the_registry_builds_the_nominal_ballistic_model_by_default() -> None:
+    learner = _prior(model_distance=3.0)
+    assert learner.model == BallisticModel(distance=3.0)
+    assert learner.options()["model_distance"] == 3.0 and learner.options()["model_drag"] == 0.0
+    restored = restore_learner(learner.state_dict())
+    assert isinstance(restored, ArcherPrior) and restored.model == learner.model

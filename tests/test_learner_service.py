@@ -19,6 +19,7 @@ from apps.learn.follow import follow
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.errors import ArcheryError, RpcError
+from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
 from protocol.messages import Rollout, WorldEvent
 from protocol.verbs import detector as dv
 from services.controller import service as controller_service
@@ -131,18 +132,20 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
     assert Path(final["report"]).stat().st_size > 10_000
     assert Path(final["hit_frame"]).read_bytes().startswith(b"\x89PNG")
     records = read_records(Path(final["journal"]))[0]
-    rollout_records = [r for r in records if r["record"] in ("proposed", "done", "aborted")]
-    assert [(m.index, m.status) for m in seen] == [
-        (r["index"], r["record"]) for r in rollout_records
+    rollout_records = [
+        r for r in records if isinstance(r, ProposedRecord | DoneRecord | AbortedRecord)
     ]
-    done = [r for r in records if r["record"] == "done"]
+    assert [(m.record.index, m.record.kind) for m in seen] == [
+        (r.index, r.kind) for r in rollout_records
+    ]
+    done = [r for r in records if isinstance(r, DoneRecord)]
     for record in done:
         # The learner was told the detector's r; the robot's truth is only logged beside it.
-        assert record["truth_r_m"] is not None
-        assert np.linalg.norm(np.subtract(record["r_m"], record["truth_r_m"])) < 0.02
-        assert np.linalg.norm(np.subtract(record["theta"], record["theta_measured"])) < 1e-3
-        assert record["timing"]["posture_s"] > 0 and record["timing"]["detector_detect_s"] > 0
-    assert done[-1]["hit"] and done[-1]["distance_m"] < 0.05
+        assert record.truth_r_m is not None
+        assert np.linalg.norm(np.subtract(record.r_m, record.truth_r_m)) < 0.02
+        assert np.linalg.norm(np.subtract(record.theta, record.theta_measured)) < 1e-3
+        assert record.timing["posture_s"] > 0 and record.timing["detector_detect_s"] > 0
+    assert done[-1].hit and done[-1].distance_m < 0.05
     idle = rpc_call(mesh, keys.learner_rpc(), "status", timeout=10)
     assert idle["session"] == session and idle["state"] == "finished"
 
@@ -198,7 +201,7 @@ def test_stop_and_resume_over_the_mesh(mesh: Node, tmp_path: Path, net: NetConfi
     request = {"algo": "power", "seed": 2, "rollouts": 4, "until_hit": False}
     session = rpc_call(mesh, keys.learner_rpc(), "start", request, timeout=30)["session"]
     first = rollouts.get(timeout=30)
-    assert first.status == "proposed" and first.session == session
+    assert isinstance(first.record, ProposedRecord) and first.record.session == session
     stopping = rpc_call(mesh, keys.learner_rpc(), "stop", timeout=10)
     assert stopping["stopping"] is True
     stopped = follow(mesh, session, rollouts, lambda m: None)
@@ -219,6 +222,6 @@ def test_stop_and_resume_over_the_mesh(mesh: Node, tmp_path: Path, net: NetConfi
     assert line["session"] == session and line["rollouts"] == 4 and line["status"] == "finished"
     assert set(line) >= {"session", "rollouts", "hit_at", "final_distance_m", "journal"}
     records = read_records(Path(line["journal"]))[0]
-    proposed = [r["index"] for r in records if r["record"] == "proposed"]
+    proposed = [r.index for r in records if isinstance(r, ProposedRecord)]
     assert proposed == list(range(1, len(proposed) + 1))
     assert "θ (" in result.stderr

@@ -13,18 +13,20 @@ import numpy as np
 import pytest
 
 from protocol.errors import BadRequest
+from protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    EndRecord,
+    JournalRecord,
+    ProposedRecord,
+)
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SessionConfig
+from services.learner.errors import RigError, ServiceLost
 from services.learner.journal import JournalError, JournalState, read_records
 from services.learner.report import interruptions, write_report
-from services.learner.session import (
-    Measurement,
-    PostureResult,
-    RigError,
-    ServiceLost,
-    Session,
-    Shot,
-)
+from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from services.learner.session import Session
 
 BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.
@@ -109,14 +111,14 @@ class FakeRig:
 
 
 def _kinds(path: Path) -> list[tuple[str, int | None]]:
-    return [(r["record"], r.get("index")) for r in read_records(path)[0]]
+    return [(r.kind, getattr(r, "index", None)) for r in read_records(path)[0]]
 
 
 def _check_each_once(path: Path) -> None:
     """Every attempt proposed once and finished once, in order."""
     records = read_records(path)[0]
-    proposed = [r["index"] for r in records if r["record"] == "proposed"]
-    finished = [r["index"] for r in records if r["record"] in ("done", "aborted")]
+    proposed = [r.index for r in records if isinstance(r, ProposedRecord)]
+    finished = [r.index for r in records if isinstance(r, DoneRecord | AbortedRecord)]
     assert proposed == list(range(1, len(proposed) + 1))
     assert finished == proposed
 
@@ -129,28 +131,28 @@ def _run(config: SessionConfig, rig: FakeRig, runs: Path, **kw: Any) -> Session:
 
 def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
     rig = FakeRig()
-    published: list[dict[str, Any]] = []
+    published: list[JournalRecord] = []
     session = _run(SessionConfig(seed=1), rig, tmp_path, on_record=published.append)
     status = session.status()
-    assert status["state"] == "finished" and status["ended"] == "hit"
-    assert status["hit_at"] is not None and status["hit_at"] <= 8
+    assert status.state == "finished" and status.ended == "hit"
+    assert isinstance(status.hit_at, int) and status.hit_at <= 8
     assert rig.calls[:3] == ["posture", "shoot", "measure"]
     assert rig.resets == [1]
     path = tmp_path / "s" / "journal.jsonl"
     _check_each_once(path)
     records = read_records(path)[0]
-    assert records[-1]["record"] == "end" and records[-1]["reason"] == "hit"
-    done = [r for r in records if r["record"] == "done"]
-    assert done[-1]["hit"] and done[-1]["distance_m"] < 0.05
-    assert all(r["truth_r_m"] is not None for r in done)
-    assert [r["record"] for r in published] == [r["record"] for r in records[1:]]
-    assert "journal_s" in published[1]["timing"]
+    assert isinstance(records[-1], EndRecord) and records[-1].reason == "hit"
+    done = [r for r in records if isinstance(r, DoneRecord)]
+    assert done[-1].hit and done[-1].distance_m < 0.05
+    assert all(r.truth_r_m is not None for r in done)
+    assert [r.kind for r in published] == [r.kind for r in records[1:]]
+    assert isinstance(published[1], DoneRecord) and "journal_s" in (published[1].timing or {})
     assert (tmp_path / "s" / "hit.png").exists()
 
 
 def test_budget_ends_without_hit(tmp_path: Path) -> None:
     session = _run(SessionConfig(algorithm="hill", rollouts=3, seed=0), FakeRig(), tmp_path)
-    assert session.status()["ended"] == "budget" and session.status()["rollouts"] == 3
+    assert session.status().ended == "budget" and session.status().rollouts == 3
 
 
 def test_no_arrow_backs_off_and_never_invents_r(tmp_path: Path) -> None:
@@ -159,17 +161,17 @@ def test_no_arrow_backs_off_and_never_invents_r(tmp_path: Path) -> None:
     rig = FakeRig()
     session = _run(config, rig, tmp_path)
     records = read_records(session.journal.path)[0]
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert aborted and all(r["code"] == "no_arrow" for r in aborted)
-    done = [r for r in records if r["record"] == "done"]
-    told = {tuple(d["theta"]) for d in done}
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert aborted and all(r.code == "no_arrow" for r in aborted)
+    done = [r for r in records if isinstance(r, DoneRecord)]
+    told = {tuple(d.theta) for d in done}
     for a in aborted:
-        assert tuple(a["theta"]) not in told  # the missed θ is never told
+        assert tuple(a.theta) not in told  # the missed θ is never told
         following = next(
-            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
+            r for r in records if isinstance(r, ProposedRecord) and r.index == a.index + 1
         )
-        assert following["theta"] == a["retry_theta"]
-        assert a["retry_theta"] != a["theta"]
+        assert following.theta == a.retry_theta
+        assert a.retry_theta != a.theta
     assert len(session.learner.thetas) == len(done)
     _check_each_once(session.journal.path)
 
@@ -179,17 +181,17 @@ def test_random_search_draws_again_after_a_miss_instead_of_backing_off(tmp_path:
     config = SessionConfig(algorithm="random", rollouts=20, seed=3, max_aborts=100)
     session = _run(config, FakeRig(), tmp_path)
     records = read_records(session.journal.path)[0]
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert aborted and all(r["code"] == "no_arrow" for r in aborted)  # the box is wide: misses
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert aborted and all(r.code == "no_arrow" for r in aborted)  # the box is wide: misses
     for a in aborted:
-        fresh = np.random.default_rng([3, a["index"]]).uniform(BOX.low, BOX.high)
-        np.testing.assert_allclose(a["retry_theta"], fresh, atol=0)  # uniform in the box, …
+        fresh = np.random.default_rng([3, a.index]).uniform(BOX.low, BOX.high)
+        np.testing.assert_allclose(a.retry_theta, fresh, atol=0)  # uniform in the box, …
         following = next(
-            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
+            r for r in records if isinstance(r, ProposedRecord) and r.index == a.index + 1
         )
-        assert following["theta"] == a["retry_theta"]  # … and run next
-        assert a["cause"].endswith("next θ drawn afresh")
-    assert session.status()["state"] == "finished"
+        assert following.theta == a.retry_theta  # … and run next
+        assert a.cause.endswith("next θ drawn afresh")
+    assert session.status().state == "finished"
     _check_each_once(session.journal.path)
 
 
@@ -198,28 +200,26 @@ def test_theta0_off_the_face_fails_at_once(tmp_path: Path) -> None:
         SessionConfig(theta0=(0.17, 0.04, -0.03), options={"explore_std": 0.0}), FakeRig(), tmp_path
     )
     status = session.status()
-    assert status["state"] == "failed" and "puts no arrow on the target face" in status["cause"]
-    assert status["aborted"] == 1 and status["rollouts"] == 0
+    assert status.state == "failed" and "puts no arrow on the target face" in status.cause
+    assert status.aborted == 1 and status.rollouts == 0
 
 
 def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None:
     rig = FakeRig(lose={2: "detector", 4: "robot"})
     session = _run(SessionConfig(seed=2), rig, tmp_path)
     records = read_records(session.journal.path)[0]
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert [a["code"] for a in aborted] == ["service_lost", "service_lost"]
-    assert "detector" in aborted[0]["cause"] and "robot" in aborted[1]["cause"]
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert [a.code for a in aborted] == ["service_lost", "service_lost"]
+    assert "detector" in aborted[0].cause and "robot" in aborted[1].cause
     for a in aborted:
-        retry = next(
-            r for r in records if r["record"] == "proposed" and r["index"] == a["index"] + 1
-        )
-        assert retry["theta"] == a["theta"] == a["retry_theta"]
+        retry = next(r for r in records if isinstance(r, ProposedRecord) and r.index == a.index + 1)
+        assert retry.theta == a.theta == a.retry_theta
     assert rig.waits == 2
-    assert session.status()["ended"] == "hit"
+    assert session.status().ended == "hit"
     marks = interruptions(session.journal.state)  # where report.png marks them
     assert [code for _, code in marks.aborted] == ["service_lost", "service_lost"]
     assert [p for p, _ in marks.aborted] == [
-        sum(1 for r in records[: records.index(a)] if r["record"] == "done") for a in aborted
+        sum(1 for r in records[: records.index(a)] if isinstance(r, DoneRecord)) for a in aborted
     ]
     _check_each_once(session.journal.path)
 
@@ -227,7 +227,7 @@ def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None
 def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
     config = SessionConfig(seed=5, until_hit=False, rollouts=8)
     reference = _run(config, FakeRig(), tmp_path / "ref")
-    ref_thetas = [r["theta"] for r in reference.journal.state.done]
+    ref_thetas = [r.theta for r in reference.journal.state.done]
 
     crashed = Session.create(config, FakeRig(crash_at=4), tmp_path / "run", session_id="s")
     with pytest.raises(Crash):
@@ -240,11 +240,11 @@ def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
     resumed = Session.resume(path.parent, rig, session="s")
     resumed.run(threading.Event())
     records = read_records(path)[0]
-    assert [r["theta"] for r in records if r["record"] == "done"] == ref_thetas
-    assert [r["record"] for r in records].count("resumed") == 1
+    assert [r.theta for r in records if isinstance(r, DoneRecord)] == ref_thetas
+    assert [r.kind for r in records].count("resumed") == 1
     assert interruptions(JournalState.from_records(records)).resumed == (3,)  # report.png
     _check_each_once(path)
-    assert records[-1]["record"] == "end"
+    assert isinstance(records[-1], EndRecord)
     with pytest.raises(JournalError, match="has ended"):
         Session.resume(path, FakeRig())
 
@@ -252,20 +252,20 @@ def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
 def test_stop_then_resume(tmp_path: Path) -> None:
     stop = threading.Event()
     rig = FakeRig()
-    published: list[dict[str, Any]] = []
+    published: list[JournalRecord] = []
 
-    def on_record(record: dict[str, Any]) -> None:
+    def on_record(record: JournalRecord) -> None:
         published.append(record)
-        if record["record"] == "done" and record["rollout"] == 2:
+        if isinstance(record, DoneRecord) and record.rollout == 2:
             stop.set()
 
     session = Session.create(
         SessionConfig(seed=3, until_hit=False, rollouts=4), rig, tmp_path, "s", on_record=on_record
     )
-    assert session.run(stop)["state"] == "stopped"
+    assert session.run(stop).state == "stopped"
     assert len(session.journal.state.done) == 2
     resumed = Session.resume(tmp_path / "s", FakeRig())
-    assert resumed.run(threading.Event())["ended"] == "budget"
+    assert resumed.run(threading.Event()).ended == "budget"
     _check_each_once(tmp_path / "s" / "journal.jsonl")
 
 
@@ -276,12 +276,12 @@ def test_too_many_aborts_fail_the_session(tmp_path: Path) -> None:
 
     session = _run(SessionConfig(max_aborts=3), Blind(), tmp_path)
     status = session.status()
-    assert status["state"] == "failed" and "3 attempts in a row" in status["cause"]
-    assert "no_target" in status["cause"]
+    assert status.state == "failed" and "3 attempts in a row" in status.cause
+    assert "no_target" in status.cause
     assert _kinds(session.journal.path)[-1] == ("stopped", None)
     # Resumed once the camera works again: the count of aborts in a row starts afresh.
     resumed = Session.resume(session.journal.path, FakeRig())
-    assert resumed.run(threading.Event())["ended"] == "hit"
+    assert resumed.run(threading.Event()).ended == "hit"
     _check_each_once(session.journal.path)
 
 
@@ -294,8 +294,8 @@ def test_rig_error_aborts_and_retries(tmp_path: Path) -> None:
 
     session = _run(SessionConfig(seed=1), Busy(), tmp_path)
     aborted = session.journal.state.aborted
-    assert [a["code"] for a in aborted] == ["rpc_error"] and "busy" in aborted[0]["cause"]
-    assert session.status()["ended"] == "hit"
+    assert [a.code for a in aborted] == ["rpc_error"] and "busy" in aborted[0].cause
+    assert session.status().ended == "hit"
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from protocol.codec import decode, encode, from_jsonable, to_jsonable
 from protocol.errors import DecodeError
+from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
 from protocol.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
@@ -49,13 +50,17 @@ SAMPLES: list[Message] = [
         r_m=[0.1, 0.05],
     ),
     Rollout(
-        session="s1",
-        index=4,
-        theta=[0.2, 0.0, 0.01],
-        status="done",
-        r_m=[0.0, 0.1],
-        ret=0.9,
-        hit=False,
+        record=DoneRecord(
+            session="s1",
+            t=1.5,
+            index=4,
+            rollout=3,
+            theta=[0.2, 0.0, 0.01],
+            r_m=[0.0, 0.1],
+            ret=0.9,
+            distance_m=0.1,
+            hit=False,
+        )
     ),
     RpcRequest(verb="posture", args={"theta": [0.1, 0.2, 0.3]}),
     RpcReply(ok=False, code="unreachable", message="too far"),
@@ -117,6 +122,25 @@ def test_non_finite_numbers_are_rejected(bad: float) -> None:
         decode(msgpack.packb(request))
     with pytest.raises(ValueError, match="finite"):
         Array.from_numpy(np.array([0.0, bad]))
+    rollout = msgpack.unpackb(encode(SAMPLES[6]), raw=False)
+    rollout["record"]["r_m"][1] = bad  # a journal record inside a message checks its floats too
+    with pytest.raises(DecodeError, match=r"record\.r_m\[1\]"):
+        decode(msgpack.packb(rollout))
+
+
+def test_a_rollout_carries_its_journal_record() -> None:
+    plain = msgpack.unpackb(encode(SAMPLES[6]), raw=False)
+    assert plain["record"]["record"] == "done" and "learner_state" not in plain["record"]
+    for record in (
+        ProposedRecord(session="s1", index=5, theta=[0.2, 0.0, 0.01]),
+        AbortedRecord(
+            session="s1", index=5, theta=[0.2, 0.0, 0.01], code="x", cause="y", retry_theta=[0.2]
+        ),
+    ):
+        assert decode(encode(Rollout(record=record)), Rollout).record == record
+    plain["record"]["index"] = 0  # attempts count from 1
+    with pytest.raises(DecodeError, match=r"index"):
+        decode(msgpack.packb(plain))
 
 
 def test_inconsistent_arrays_and_images_are_rejected() -> None:
@@ -215,6 +239,7 @@ json_values = st.recursive(
                 "stamp",
                 "theta",
                 "status",
+                "record",
                 "frame_stamp",
                 "ports",
                 "service",

@@ -28,6 +28,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.codec import decode, encode
 from protocol.errors import ConfigError, RpcTimeout
+from protocol.journal_records import DoneRecord
 from protocol.messages import (
     Array,
     Detection,
@@ -75,7 +76,18 @@ def _messages() -> list[object]:
         WorldState(qpos=Array.from_numpy(np.linspace(0, 1, 7) / 3), sim_time=0.1 + 0.2),
         WorldEvent(kind="landed", shot=2, impact_m=[0.01, -0.07]),
         Detection(frame_stamp=1.5, status="ok", r_m=[0.012345678901234, -1 / 7]),
-        Rollout(session="s", index=1, theta=[0.1, 0.2, -0.3], status="done", ret=-0.5),
+        Rollout(
+            record=DoneRecord(
+                session="s",
+                index=1,
+                rollout=1,
+                theta=[0.1, 0.2, -0.3],
+                r_m=[0.01, 1 / 3],
+                ret=-0.5,
+                distance_m=0.3335,
+                hit=False,
+            )
+        ),
     ]
 
 

@@ -6,6 +6,13 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    HeaderRecord,
+    ProposedRecord,
+    ResumedRecord,
+)
 from services.learner.algorithms.registry import make_learner
 from services.learner.journal import Journal, JournalState, read_records
 from services.learner.report import Interruptions, interruptions, write_report
@@ -19,42 +26,45 @@ def _journal(
     """A session of `rollouts` done rollouts; `aborts[p]` are the codes of the attempts aborted
     after done rollout p, `resumes` the done-rollout counts at which it was resumed."""
     learner = make_learner("power", np.array(THETA), rng=np.random.default_rng(3))
-    header = {
-        "session": "s1",
-        "algorithm": "power",
-        "seed": 3,
-        "rollouts": rollouts,
-        "options": learner.options(),
-        "config": {"hit_radius_m": 0.05},
-        "learner_state": learner.state_dict(),
-    }
+    header = HeaderRecord(
+        session="s1",
+        algorithm="power",
+        seed=3,
+        rollouts=rollouts,
+        options=learner.options(),
+        config={"hit_radius_m": 0.05},
+        learner_state=learner.state_dict(),
+    )
     rng = np.random.default_rng(0)
     index = 0
     with Journal.create(directory, header) as journal:
         for k in range(1, rollouts + 1):
             if k - 1 in resumes:
-                journal.append("resumed", after=index)
+                journal.append(ResumedRecord(after=index))
             for code in aborts.get(k - 1, []):
                 index += 1
-                journal.append("proposed", index=index, theta=THETA)
+                journal.append(ProposedRecord(index=index, theta=THETA))
                 journal.append(
-                    "aborted", index=index, theta=THETA, code=code, cause=code, retry_theta=THETA
+                    AbortedRecord(
+                        index=index, theta=THETA, code=code, cause=code, retry_theta=THETA
+                    )
                 )
             index += 1
-            journal.append("proposed", index=index, theta=THETA)
+            journal.append(ProposedRecord(index=index, theta=THETA))
             r = rng.normal(0.0, 0.3 * np.exp(-k / 25) + 0.03, 2)
             distance = float(np.linalg.norm(r))
             journal.append(
-                "done",
-                index=index,
-                rollout=k,
-                theta=THETA,
-                r_m=r.tolist(),
-                distance_m=distance,
-                hit=distance < 0.05,
-                truth_r_m=(r + 0.003).tolist(),
-                truth_distance_m=float(np.linalg.norm(r + 0.003)),
-                learner_state=learner.state_dict(),
+                DoneRecord(
+                    index=index,
+                    rollout=k,
+                    theta=THETA,
+                    r_m=r.tolist(),
+                    distance_m=distance,
+                    hit=distance < 0.05,
+                    truth_r_m=(r + 0.003).tolist(),
+                    truth_distance_m=float(np.linalg.norm(r + 0.003)),
+                    learner_state=learner.state_dict(),
+                )
             )
     return directory / "journal.jsonl"
 

@@ -43,8 +43,9 @@ from protocol.keys import Keys
 from protocol.messages import Image, RpcReply
 from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
+from services.learner.errors import RigError
 from services.learner.rig import MeshRig
-from services.learner.session import RigError, Shot
+from services.learner.rig_protocol import Shot
 from tests.conftest import archery
 from tests.rpc import rpc_call, some_verbs
 
@@ -451,6 +452,7 @@ def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path)
 
 
 def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
+    from protocol.journal_records import AbortedRecord, DoneRecord
     from services.learner.config import SessionConfig
     from services.learner.journal import read_records
     from services.learner.session import Session
@@ -474,12 +476,12 @@ def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
     )
     session.run(threading.Event())
     records = read_records(session.journal.path)[0]
-    aborted = [r for r in records if r["record"] == "aborted"]
-    assert [a["code"] for a in aborted] == ["wrong_replier"]
-    assert "session x" in aborted[0]["cause"]
-    assert "r_m" not in aborted[0] and aborted[0]["retry_theta"] == aborted[0]["theta"]
-    done = [r for r in records if r["record"] == "done"]
-    assert len(done) == 2 and done[0]["theta"] == aborted[0]["theta"]  # the same θ, re-run
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert [a.code for a in aborted] == ["wrong_replier"]
+    assert "session x" in aborted[0].cause
+    assert not hasattr(aborted[0], "r_m") and aborted[0].retry_theta == aborted[0].theta
+    done = [r for r in records if isinstance(r, DoneRecord)]
+    assert len(done) == 2 and done[0].theta == aborted[0].theta  # the same θ, re-run
 
 
 def test_a_call_the_access_control_denies_says_so(endpoint: str, deployment: Path) -> None:

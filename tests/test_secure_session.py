@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from mesh.router import free_tcp_endpoint
+from protocol.journal_records import DoneRecord
 from services.learner.journal import read_records
 from tests.conftest import archery
 
@@ -72,10 +73,10 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
         # Every flow of a rollout passed the router: the controller's posture, the robot's
         # release, the camera's frame grabbed by the detector, the detector's measurement.
         records = read_records(Path(result["journal"]))[0]
-        done = [r for r in records if r["record"] == "done"]
+        done = [r for r in records if isinstance(r, DoneRecord)]
         assert len(done) == ROLLOUTS
         for record in done:
-            assert len(record["r_m"]) == 2 and all(abs(v) < 1.0 for v in record["r_m"])
+            assert len(record.r_m) == 2 and all(abs(v) < 1.0 for v in record.r_m)
         assert Path(runs) in Path(result["journal"]).parents
 
         # Control: the camera's identity may not call the learner. The access control hides

@@ -7,12 +7,14 @@ import json
 import threading
 from pathlib import Path
 
+import msgspec
 import numpy as np
 import pytest
 
 from apps.experiment.config import ExperimentConfig, Transfer
 from apps.experiment.experiment import run_algorithm
 from protocol.errors import BadRequest
+from protocol.journal_records import HeaderRecord
 from services.learner.algorithms.base import LearnerConfigError, StateError
 from services.learner.algorithms.registry import (
     TRANSFER_ALGORITHMS,
@@ -170,7 +172,8 @@ def test_session_from_journal_records_its_source(tmp_path: Path, algo: str) -> N
         SessionConfig(algorithm=algo), FakeRig(), tmp_path, "second", source=source
     )
     header = read_records(second.journal.path)[0][0]
-    assert header["from"] == {"session": "first", "journal": str(source.journal), "algo": algo}
+    assert isinstance(header, HeaderRecord)
+    assert header.from_ == {"session": "first", "journal": str(source.journal), "algo": algo}
     fresh = make_learner(algo, np.array(SessionConfig().theta0), rng=np.random.default_rng(0))
     assert not np.allclose(second.learner.ask(), fresh.ask())
     # Resuming the new session restores the seeded learner.
@@ -188,7 +191,7 @@ def test_bad_source_journals_are_refused(tmp_path: Path) -> None:
         load_source("nosuch", "archer", tmp_path)
     with pytest.raises(BadRequest, match="power cannot start"):
         load_source(str(first.journal.path), "power")
-    records = read_records(first.journal.path)[0]
+    records = [msgspec.to_builtins(r) for r in read_records(first.journal.path)[0]]  # to edit
     old = tmp_path / "old.jsonl"
     old.write_text("".join(json.dumps(r | {"version": 0}) + "\n" for r in records[:1]))
     with pytest.raises(JournalError, match="journal version 0"):

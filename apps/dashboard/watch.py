@@ -26,6 +26,7 @@ from mesh.node import Node
 from mesh.patterns import stream_type
 from mesh.tokens import TokenSet
 from protocol.errors import ArcheryError
+from protocol.journal_records import DoneRecord, ProposedRecord
 from protocol.messages import Rollout
 from protocol.robotspec import HIT_RADIUS, SERVICES
 from protocol.verbs.base import NoArgs
@@ -116,21 +117,25 @@ class MeshWatch:
 
     # -- mesh side ------------------------------------------------------------------------
     def _on_rollout(self, rollout: Rollout) -> None:
-        if rollout.status == "proposed":
+        record = rollout.record
+        if isinstance(record, ProposedRecord):
             return
-        distance = math.hypot(*rollout.r_m) if rollout.r_m else None
+        if isinstance(record, DoneRecord):
+            r_m, distance, hit, cause = record.r_m, math.hypot(*record.r_m), record.hit, ""
+        else:
+            r_m, distance, hit, cause = None, None, False, record.note()
         row = {
-            "index": rollout.index,
-            "status": rollout.status,
-            "theta": rollout.theta,
-            "r_m": rollout.r_m,
+            "index": record.index,
+            "status": record.kind,
+            "theta": record.theta,
+            "r_m": r_m,
             "distance_m": distance,
-            "hit": rollout.hit,
-            "cause": rollout.cause,
+            "hit": hit,
+            "cause": cause,
         }
         with self._lock:
-            if rollout.session != self._session:
-                self._session, self._rollouts = rollout.session, []
+            if record.session != self._session:
+                self._session, self._rollouts = record.session, []
             self._rollouts.append(row)
             del self._rollouts[:-MAX_ROLLOUTS]
         self._frame_wanted.set()  # the detector has measured the rollout's frame

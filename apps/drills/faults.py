@@ -9,6 +9,7 @@ from typing import Any
 
 from apps.drills.mesh import DrillMesh, SessionRun
 from apps.drills.verdict import DrillResult, Evidence, judge
+from protocol.journal_records import AbortedRecord
 
 __all__ = ["finish", "noticed", "recovered", "running_session", "same_processes"]
 
@@ -39,12 +40,12 @@ def noticed(
         mesh.status.first_waiting(service, fault),
         next(
             (
-                r["t"]
+                r.t
                 for r in run.records()
-                if r["record"] == "aborted"
-                and r["code"] == "service_lost"
-                and r["t"] > fault
-                and service in r["cause"]
+                if isinstance(r, AbortedRecord)
+                and r.code == "service_lost"
+                and r.t > fault
+                and service in r.cause
             ),
             None,
         ),
@@ -61,7 +62,7 @@ def noticed(
 def recovered(mesh: DrillMesh, run: SessionRun, back: float) -> float | None:
     """Seconds from `back` (wall s) to the session's next done rollout (None: none yet)."""
     done = mesh.done_after(run, back)
-    return done[0]["t"] - back if done else None
+    return done[0].t - back if done else None
 
 
 def same_processes(

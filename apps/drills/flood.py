@@ -21,6 +21,7 @@ from apps.drills.faults import AFTER, finish, recovered, running_session, same_p
 from apps.drills.mesh import DrillMesh
 from apps.drills.verdict import DrillResult
 from protocol.codec import encode
+from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.messages import JointCommand, JointState
 from protocol.verbs.robot import PART_VERBS
 
@@ -92,10 +93,10 @@ def flood_drill(mesh: DrillMesh, count: int, seed: int) -> DrillResult:
     seen = {k: last[k] - first[k] for k in last}
     if not any(seen.values()):
         problems.append("the robot counted none of the commands")
-    if any(r["record"] == "resumed" for r in run.records()):
+    if any(isinstance(r, ResumedRecord) for r in run.records()):
         problems.append("the session was resumed, not continued")
-    during = [r for r in run.records() if r["record"] == "done" and start < r["t"] <= end]
-    aborted = [r for r in run.records() if r["record"] == "aborted" and r["t"] > start]
+    during = [r for r in run.records() if isinstance(r, DoneRecord) and start < r.t <= end]
+    aborted = [r for r in run.records() if isinstance(r, AbortedRecord) and r.t > start]
     rate = count / max(end - start, 1e-9)
     return finish(
         f"flood-{count}",

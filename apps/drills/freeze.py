@@ -17,6 +17,7 @@ import time
 from apps.drills import faults
 from apps.drills.mesh import DrillMesh
 from apps.drills.verdict import DrillResult
+from protocol.journal_records import ResumedRecord
 
 __all__ = ["FREEZE", "LEASE", "freeze_service"]
 
@@ -45,7 +46,7 @@ def freeze_service(mesh: DrillMesh, service: str, seed: int, hold: float = FREEZ
     mesh.wait_done(run, faults.AFTER, after=back)
     detect, learner = faults.noticed(mesh, run, service, fault)
     problems += faults.same_processes(before, mesh.pids())
-    if any(r["record"] == "resumed" for r in run.records()):
+    if any(isinstance(r, ResumedRecord) for r in run.records()):
         problems.append("the session was resumed, not continued")
     notes = [f"frozen {cont - fault:.1f} s; token back {back - cont:.1f} s after SIGCONT"]
     if learner is not None:

@@ -30,6 +30,7 @@ from apps.drills.faults import (
 )
 from apps.drills.mesh import WAIT, DrillMesh
 from apps.drills.verdict import DrillResult
+from protocol.journal_records import ResumedRecord
 
 __all__ = ["kill_learner", "kill_learner_repeatedly", "kill_service"]
 
@@ -56,7 +57,7 @@ def kill_service(mesh: DrillMesh, service: str, seed: int) -> DrillResult:
         recover_s=recover,
         details={"down_s": back - fault, "learner_detect_s": learner},
     )
-    if any(r["record"] == "resumed" for r in run.records()):
+    if any(isinstance(r, ResumedRecord) for r in run.records()):
         result.passed = False
         result.notes.insert(0, "the session was resumed, not continued")
     result.notes.append(f"back {back - fault:.1f} s after the kill")
@@ -134,7 +135,7 @@ def kill_learner_repeatedly(mesh: DrillMesh, times: int, seed: int) -> DrillResu
         if recover is not None:
             recovers.append(recover)
     mesh.wait_done(run, AFTER, after=time.time())
-    resumed = sum(r["record"] == "resumed" for r in run.records())
+    resumed = sum(isinstance(r, ResumedRecord) for r in run.records())
     if resumed != times:
         problems.append(f"{resumed} resumed records for {times} kills")
     return finish(

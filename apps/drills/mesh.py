@@ -29,6 +29,7 @@ from apps.up.supervisor import GiveUp, Supervisor
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from protocol.errors import ArcheryError, RpcTimeout
+from protocol.journal_records import DoneRecord, JournalRecord
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from services.learner.session import FINAL_STATES
@@ -119,13 +120,13 @@ class SessionRun:
     journal: Path
     published: list[tuple[float, Rollout]] = dataclasses.field(default_factory=list)
 
-    def records(self) -> list[dict[str, Any]]:
+    def records(self) -> list[JournalRecord]:
         """The journal's records now."""
         return read_records(self.journal)[0]
 
     def published_done(self) -> list[int]:
         """Attempt indices of the done rollouts it published, in order."""
-        return [m.index for _, m in self.published if m.status == "done"]
+        return [m.record.index for _, m in self.published if isinstance(m.record, DoneRecord)]
 
 
 class DrillMesh:
@@ -189,7 +190,7 @@ class DrillMesh:
     def _on_rollout(self, message: Rollout) -> None:
         with self._cond:
             for run in self._runs:
-                if run.session == message.session:
+                if run.session == message.record.session:
                     run.published.append((time.time(), message))
             self._cond.notify_all()
 
@@ -290,15 +291,15 @@ class DrillMesh:
         self.wait_alive(["learner"], timeout)
         self.call("start", {"resume": str(run.journal), "session": run.session}, timeout)
 
-    def done_after(self, run: SessionRun, after: float) -> list[dict[str, Any]]:
+    def done_after(self, run: SessionRun, after: float) -> list[DoneRecord]:
         """The journal's done records of `run` written after `after` (wall s)."""
-        return [r for r in run.records() if r["record"] == "done" and r["t"] > after]
+        return [r for r in run.records() if isinstance(r, DoneRecord) and r.t > after]
 
     def wait_done(self, run: SessionRun, count: int, after: float, timeout: float = WAIT) -> None:
         """Wait until `run` has published `count` done rollouts after `after` (wall s)."""
 
         def enough() -> bool:
-            done = [t for t, m in run.published if m.status == "done" and t > after]
+            done = [t for t, m in run.published if isinstance(m.record, DoneRecord) and t > after]
             return len(done) >= count
 
         self.until(enough, f"{count} rollouts done", timeout)

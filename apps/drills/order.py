@@ -53,7 +53,7 @@ def start_order_drill(workdir: Path, position: int, seed: int) -> DrillResult:
         last = time.time()
         alive = mesh.wait_alive()
         run = mesh.start_session(seed, rollouts=3)
-        first = mesh.until(lambda: mesh.done_after(run, last), "a rollout done")[0]["t"]
+        first = mesh.until(lambda: mesh.done_after(run, last), "a rollout done")[0].t
         restarts = {n: len(t) for n, t in mesh.supervisor.restarts.items() if t}
         listed = ", ".join(f"{n} {c}" for n, c in restarts.items()) or "none"
         return finish(

@@ -18,6 +18,7 @@ from apps.drills.mesh import WAIT, DrillMesh
 from apps.drills.verdict import DrillResult
 from apps.up.restart_policy import RestartPolicy
 from mesh.router import wait_for_endpoint
+from protocol.journal_records import ResumedRecord
 
 __all__ = ["router_outage"]
 
@@ -44,7 +45,7 @@ def router_outage(mesh: DrillMesh, outage: float, seed: int) -> DrillResult:
         launcher.mesh = original
     noticed = mesh.supervisor_noticed("router", fault)
     problems = same_processes(before, mesh.pids(), ["router"])
-    if any(r["record"] == "resumed" for r in run.records()):
+    if any(isinstance(r, ResumedRecord) for r in run.records()):
         problems.append("the session was resumed, not continued")
     assert mesh.status is not None
     waited = next((t for t, s, _ in mesh.status.seen if t > back and s == "waiting"), None)

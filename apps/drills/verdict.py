@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
+from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from services.learner.journal import check_invariants
 
 __all__ = ["DrillResult", "Evidence", "count_lost_duplicated", "judge"]
@@ -26,7 +27,7 @@ __all__ = ["DrillResult", "Evidence", "count_lost_duplicated", "judge"]
 class Evidence:
     """One session of a drill: its journal's records and the done attempts it published."""
 
-    records: list[dict[str, Any]]
+    records: list[JournalRecord]
     published_done: list[int] = field(default_factory=list)
 
 
@@ -71,20 +72,17 @@ def count_lost_duplicated(evidence: Evidence) -> tuple[int, int]:
     numbers: set[int] = set()
     duplicated = 0
     for record in evidence.records:
-        kind, index = record.get("record"), record.get("index")
-        if kind == "proposed":
-            proposed.append(index)  # type: ignore[arg-type]  # the record's index, as journaled
-        elif kind in ("done", "aborted"):
-            ended.add(index)  # type: ignore[arg-type]  # the record's index, as journaled
-        if kind == "done":
-            number = record.get("rollout")
-            if index in done_indices or number in numbers:
+        if isinstance(record, ProposedRecord):
+            proposed.append(record.index)
+        elif isinstance(record, DoneRecord | AbortedRecord):
+            ended.add(record.index)
+        if isinstance(record, DoneRecord):
+            if record.index in done_indices or record.rollout in numbers:
                 duplicated += 1
-            done_indices.add(index)  # type: ignore[arg-type]  # the record's index, as journaled
-            numbers.add(number)  # type: ignore[arg-type]  # a non-int is filtered out below
+            done_indices.add(record.index)
+            numbers.add(record.rollout)
     never_ended = len([i for i in dict.fromkeys(proposed) if i not in ended])
-    valid = [n for n in numbers if isinstance(n, int)]
-    skipped = (max(valid) - len(valid)) if valid else 0
+    skipped = (max(numbers) - len(numbers)) if numbers else 0
     unjournaled = len(set(evidence.published_done) - done_indices)
     return never_ended + skipped + unjournaled, duplicated
 

@@ -244,7 +244,7 @@ class ExperimentConfig:
         Raises:
             StateError: the transferred state cannot seed it.
         """
-        options = {}
+        options: dict[str, Any] = {}
         if self.power_scale is not None and ALGORITHMS[name].cls is Power:
             options["return_scale"] = float(self.power_scale)
         learner = make_learner(

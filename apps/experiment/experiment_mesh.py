@@ -48,11 +48,13 @@ from mesh.logs import DEFAULT_SPEC
 from mesh.netflags import NetConfig
 from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, BadRequest, ConfigError
+from protocol.journal_records import DoneRecord, JournalRecord
 from protocol.robotspec import THETA0
 from services.learner.algorithms.base import Bounds
 from services.learner.algorithms.registry import ALGORITHMS
+from services.learner.errors import RigError, ServiceLost
 from services.learner.journal import JournalError
-from services.learner.session import RigError, ServiceLost, Session
+from services.learner.session import Session
 
 __all__ = [
     "BALLISTIC_ONLY",
@@ -155,7 +157,7 @@ class _Experiment:
         todo = []
         for item in items:
             records = session_records(journal_path(out, item))
-            self.done_before += sum(r["record"] == "done" for r in records)
+            self.done_before += sum(isinstance(r, DoneRecord) for r in records)
             if not session_ended(records):
                 todo.append(item)
         self.total_sessions = len(items)
@@ -166,8 +168,8 @@ class _Experiment:
         self.stops: dict[str, threading.Event] = {}
         self.lock = threading.Lock()
 
-    def _on_record(self, record: dict[str, Any]) -> None:
-        if record["record"] == "done":
+    def _on_record(self, record: JournalRecord) -> None:
+        if isinstance(record, DoneRecord):
             with self.lock:
                 self.rollouts += 1
 
@@ -233,7 +235,7 @@ class _Experiment:
             raise FleetFailure(f"session {item.name} on {robot.prefix}: {exc.message}") from None
         log.info("session %s on robot %s", item.name, robot.prefix)
         status = session.run(stop)
-        if status["state"] == "finished":
+        if status.state == "finished":
             with self.lock:
                 self.finished += 1
             return False
@@ -246,14 +248,14 @@ class _Experiment:
                 "robot %s lost during session %s (%s): the session goes to the next free robot",
                 robot.prefix,
                 item.name,
-                status["cause"],
+                status.cause,
             )
             return True
         failures = self.queue.failures[item] = self.queue.failures.get(item, 0) + 1
         if failures >= MAX_FAILURES:
             raise FleetFailure(
                 f"session {item.name} failed {failures} times on live robots, last on "
-                f"{robot.prefix}: {status['cause']}; see {session.journal.path}"
+                f"{robot.prefix}: {status.cause}; see {session.journal.path}"
             )
         log.warning("session %s failed on %s: %s; it runs again", item.name, robot.prefix, status)
         return True

@@ -20,7 +20,7 @@ from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError
 from services.learner.rig import SERVICES, MeshRig
-from services.learner.session import Measurement, Shot
+from services.learner.rig_protocol import Measurement, Shot
 
 __all__ = [
     "ExperimentRig",

@@ -9,9 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from msgspec import UnsetType
 
 from apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
 from protocol.errors import ArcheryError
+from protocol.journal_records import DoneRecord, EndRecord, JournalRecord, SessionRecord
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
@@ -119,12 +121,14 @@ def prepare_out(out: Path, config: ExperimentConfig, resume: bool) -> None:
             )
 
 
-def session_records(path: Path) -> list[dict[str, Any]]:
+def session_records(path: Path) -> list[JournalRecord]:
+    """The records of a session's journal (none when it has not started)."""
     return read_records(path)[0] if path.exists() else []
 
 
-def session_ended(records: list[dict[str, Any]]) -> bool:
-    return any(r["record"] == "end" for r in records)
+def session_ended(records: list[JournalRecord]) -> bool:
+    """Whether the session's journal has its end record."""
+    return any(isinstance(r, EndRecord) for r in records)
 
 
 def runs_from_journals(config: ExperimentConfig, out: Path) -> dict[str, AlgorithmRun]:
@@ -145,17 +149,20 @@ def runs_from_journals(config: ExperimentConfig, out: Path) -> dict[str, Algorit
         for s in range(n_s):
             path = journal_path(out, SessionItem(name, s))
             records = session_records(path)
-            done = [r for r in records if r["record"] == "done"]
+            done = [r for r in records if isinstance(r, DoneRecord)]
             if not session_ended(records) or len(done) != n_r:
                 raise FleetFailure(
                     f"session {path.parent.name} is unfinished ({len(done)} of {n_r} rollouts "
                     f"in {path})"
                 )
-            thetas[s] = [d["theta"] for d in done]
-            r_obs[s] = [d["r_m"] for d in done]
-            r_true[s] = [d["truth_r_m"] or d["r_m"] for d in done]
-            stamps = [r["t"] for r in records if "t" in r]
+            thetas[s] = [d.theta for d in done]
+            r_obs[s] = [d.r_m for d in done]
+            r_true[s] = [d.truth_r_m or d.r_m for d in done]
+            stamps = [r.t for r in records if isinstance(r, SessionRecord)]
             wall += stamps[-1] - stamps[0]
-            states.append(done[-1]["learner_state"])
+            state = done[-1].learner_state
+            if isinstance(state, UnsetType):
+                raise FleetFailure(f"session {path.parent.name}: no learner state in {path}")
+            states.append(state)
         runs[name] = AlgorithmRun(name, thetas, r_obs, r_true, wall, tuple(states))
     return runs

@@ -24,6 +24,7 @@ from mesh.node import Node
 from mesh.subscription import Subscription
 from protocol.errors import ArcheryError, RpcError
 from protocol.exit_status import INTERRUPTED, for_error
+from protocol.journal_records import HeaderRecord
 from protocol.messages import Rollout
 from services.learner.journal import (
     JOURNAL_NAME,
@@ -52,9 +53,9 @@ def session_of(target: str) -> tuple[str, Path | None]:
     if not path.is_file():
         return target, None
     records, _ = read_records(path)
-    if not records or records[0].get("record") != "header" or "session" not in records[0]:
+    if not records or not isinstance(records[0], HeaderRecord):
         raise JournalError(f"{path} does not start with a journal header")
-    return str(records[0]["session"]), path
+    return records[0].session, path
 
 
 def journal_counts(status: dict[str, Any]) -> dict[str, Any]:

@@ -49,7 +49,7 @@ def follow(
         try:
             while True:
                 message = rollouts.get(timeout=poll)
-                if message.session == session:
+                if message.record.session == session:
                     on_rollout(message)
         except RpcTimeout:
             pass
@@ -74,7 +74,7 @@ def follow(
             try:  # records published before the final status
                 while True:
                     message = rollouts.get(timeout=0.2)
-                    if message.session == session:
+                    if message.record.session == session:
                         on_rollout(message)
             except RpcTimeout:
                 pass

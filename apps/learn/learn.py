@@ -33,6 +33,7 @@ from mesh.node import Node
 from mesh.router import wait_for_endpoint
 from protocol.errors import ArcheryError, ConfigError, RpcError, Unreachable
 from protocol.exit_status import FAILURE, INTERRUPTED, for_error
+from protocol.journal_records import AbortedRecord, ProposedRecord
 from protocol.messages import Rollout
 from protocol.robotspec import SERVICES
 from protocol.vectors import parse_vector
@@ -203,19 +204,18 @@ def _from_journal(target: str, algo: str) -> str:
 
 
 def _progress(message: Rollout) -> None:
-    theta = ", ".join(f"{100 * v:.2f}" for v in message.theta)
-    if message.status == "proposed":
+    record = message.record
+    theta = ", ".join(f"{100 * v:.2f}" for v in record.theta)
+    if isinstance(record, ProposedRecord):
         return
-    if message.status == "aborted":
-        print(
-            f"  attempt {message.index}: θ ({theta}) cm aborted: {message.cause}", file=sys.stderr
-        )
+    if isinstance(record, AbortedRecord):
+        print(f"  attempt {record.index}: θ ({theta}) cm aborted: {record.note()}", file=sys.stderr)
         return
-    r = message.r_m or [float("nan")] * 2
+    r = record.r_m
     distance = 100 * (r[0] ** 2 + r[1] ** 2) ** 0.5
-    hit = "  HIT" if message.hit else ""
+    hit = "  HIT" if record.hit else ""
     print(
-        f"  attempt {message.index}: θ ({theta}) cm → r ({100 * r[0]:+.1f}, {100 * r[1]:+.1f}) cm, "
+        f"  attempt {record.index}: θ ({theta}) cm → r ({100 * r[0]:+.1f}, {100 * r[1]:+.1f}) cm, "
         f"{distance:.1f} cm{hit}",
         file=sys.stderr,
         flush=True,

@@ -25,10 +25,10 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
+from protocol.journal_records import AbortedRecord
 from protocol.robotspec import THETA0
 from services.learner.algorithms.base import Bounds
 
@@ -103,7 +103,7 @@ def after_abort(
 
 
 def streak_failure(
-    aborts_in_row: Mapping[str, int], max_aborts: int, last: Mapping[str, Any] | None
+    aborts_in_row: Mapping[str, int], max_aborts: int, last: AbortedRecord | None
 ) -> str | None:
     """Why the session fails after `aborts_in_row` (count by code since the last rollout or
     resume; `service_lost` ones are not counted) reached `max_aborts`, naming the `last` aborted
@@ -111,10 +111,7 @@ def streak_failure(
     in_row = sum(n for code, n in aborts_in_row.items() if code != SERVICE_LOST)
     if in_row < max_aborts or last is None:
         return None
-    return (
-        f"{in_row} attempts in a row were aborted; the last at θ {last['theta']} m: "
-        f"[{last['code']}] {last['cause']}"
-    )
+    return f"{in_row} attempts in a row were aborted; the last at θ {last.theta} m: {last.note()}"
 
 
 def _tuple(theta: np.ndarray) -> tuple[float, ...]:

@@ -17,10 +17,11 @@ from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
 from protocol.errors import BadRequest, ConfigError
+from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from protocol.vectors import finite_vector
 from protocol.verbs.learner import Bounds as StartBounds
-from protocol.verbs.learner import Scenario, StartArgs
+from protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.algorithms.registry import ALGORITHMS
 
@@ -116,7 +117,7 @@ class SessionConfig:
             raise BadRequest(
                 f"unknown algorithm {self.algorithm!r}; valid algorithms: {', '.join(ALGORITHMS)}"
             )
-        _integer("rollouts", self.rollouts, 1, 10_000)
+        _integer("rollouts", self.rollouts, 1, MAX_ROLLOUTS)
         _integer("seed", self.seed, 0, 2**32 - 1)
         _integer("max_aborts", self.max_aborts, 1, 1000)
         for name in ("until_hit", "reset"):
@@ -227,20 +228,20 @@ class SessionConfig:
         return cls.from_start(StartArgs(**fields))
 
     @classmethod
-    def from_header(cls, header: Mapping[str, Any]) -> SessionConfig:
+    def from_header(cls, header: HeaderRecord) -> SessionConfig:
         """The session a journal's header describes (the learner itself comes from its state)."""
-        config = header["config"]
+        config = header.config
         bounds = None if config.get("bounds") is None else Bounds.from_dict(config["bounds"])
         return cls(
-            algorithm=header["algorithm"],
-            rollouts=header["rollouts"],
-            seed=header["seed"],
+            algorithm=header.algorithm,
+            rollouts=header.rollouts,
+            seed=header.seed,
             until_hit=config["until_hit"],
             theta0=tuple(config["theta0"]),
             bounds=bounds,
             hit_radius=config["hit_radius_m"],
             reset=config["reset"],
-            options=header["options"],
+            options=header.options,
             max_aborts=config["max_aborts"],
         )
 

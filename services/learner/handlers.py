@@ -9,11 +9,13 @@ import threading
 from pathlib import Path
 from typing import Any
 
+import msgspec
 from msgspec import UnsetType
 
 from mesh.node import Node
 from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, BadRequest
+from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from protocol.messages import Rollout
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
@@ -28,22 +30,14 @@ __all__ = ["LearnerHandlers", "rollout_message"]
 log = logging.getLogger("archery.learner")
 
 
-def rollout_message(record: dict[str, Any]) -> Rollout | None:
-    """The `Rollout` message of a proposed, done or aborted journal record (else None)."""
-    kind = record["record"]
-    if kind not in ("proposed", "done", "aborted"):
-        return None
-    return Rollout(
-        session=record["session"],
-        index=record["index"],
-        theta=record["theta"],
-        status=kind,
-        r_m=record.get("r_m"),
-        ret=record.get("ret"),
-        hit=bool(record.get("hit", False)),
-        cause=f"[{record['code']}] {record['cause']}" if kind == "aborted" else "",
-        truth_r_m=record.get("truth_r_m"),
-    )
+def rollout_message(record: JournalRecord) -> Rollout | None:
+    """The `Rollout` message of a proposed, done or aborted journal record (else None); a done
+    record goes without its learner state."""
+    if isinstance(record, DoneRecord):
+        return Rollout(record=msgspec.structs.replace(record, learner_state=msgspec.UNSET))
+    if isinstance(record, ProposedRecord | AbortedRecord):
+        return Rollout(record=record)
+    return None
 
 
 class LearnerHandlers:
@@ -66,7 +60,7 @@ class LearnerHandlers:
         """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
         return LEARNER_VERBS.bind({"start": self.start, "stop": self.stop, "status": self.status})
 
-    def _publish(self, record: dict[str, Any]) -> None:
+    def _publish(self, record: JournalRecord) -> None:
         message = rollout_message(record)
         if message is not None:
             self.rollouts.put(message)
@@ -98,9 +92,9 @@ class LearnerHandlers:
                 assert self._session is not None
                 status = self._session.status()
                 raise ArcheryError(
-                    f"session {status['session']} is running ({status['rollouts']} of "
-                    f"{status['budget']} rollouts); follow it with `archery learn --attach "
-                    f"{status['session']}`, or stop it first (verb stop)",
+                    f"session {status.session} is running ({status.rollouts} of "
+                    f"{status.budget} rollouts); follow it with `archery learn --attach "
+                    f"{status.session}`, or stop it first (verb stop)",
                     code="busy",
                 )
             kw: dict[str, Any] = {
@@ -146,13 +140,15 @@ class LearnerHandlers:
                 }
             except Exception:
                 log.exception("could not write the report of session %s", session.session_id)
-        log.info("session %s: %s %s", session.session_id, status["state"], status["cause"])
+        log.info("session %s: %s %s", session.session_id, status.state, status.cause)
 
     def _status_of(self, session: Session, **extra: Any) -> LearnerStatusReply:
-        status = session.status() | {"report": None, "hit_frame": None} | self._report
-        if status["state"] in FINAL_STATES and self._thread is not None and self._thread.is_alive():
-            status["state"] = "reporting"
-        return LearnerStatusReply(**status, **extra)
+        status = session.status()
+        state = status.state
+        if state in FINAL_STATES and self._thread is not None and self._thread.is_alive():
+            state = "reporting"
+        report = {"report": None, "hit_frame": None} | self._report
+        return msgspec.structs.replace(status, state=state, **report, **extra)
 
     def stop(self, args: NoArgs) -> LearnerStatusReply:
         """Ask the running session to stop after its current rollout."""

@@ -1,53 +1,62 @@
 """The crash-proof journal of a learning session: JSON lines, appended and fsynced one by one.
 
-A journal is one file, `runs/<session>/journal.jsonl`. Every line is one JSON object with a
-`record` kind and the `session` id:
-
-* `header` (first line, once): journal `version`, `algorithm`, `seed`, `rollouts` (budget of
-  done rollouts), `options` (the learner's), `config` (the rest of the session settings) and
-  `learner_state`, the learner before its first proposal.
-* `proposed` {index, theta}: rollout `index` (1, 2, …, attempts included) is about to run θ (m).
-* `done` {index, rollout, theta, r_m, distance_m, hit, learner_state, …}: rollout `index`
-  finished, the learner was told (θ, r) and `learner_state` is its state right after; `rollout`
-  counts done rollouts (1-based).
-* `aborted` {index, theta, code, cause, retry_theta}: rollout `index` ended without a
-  measurement (the learner was not told); the next attempt runs `retry_theta`.
-* `resumed`, `stopped` (paused, resumable) and `end` {reason, summary} (the session is over).
+A journal is one file, `runs/<session>/journal.jsonl`. Every line is one record of
+`protocol.journal_records` (header, proposed, done, aborted, resumed, stopped, end), a JSON
+object whose `record` field names its kind; every record after the header carries the `session`
+id and its wall time `t` (s since the epoch), which the journal stamps when it appends it.
+Lines are decoded with msgspec into those Structs (a line that does not fit is a `JournalError`
+naming the file, the line and the field) and encoded as they always were: compact JSON, UTF-8,
+no NaN, fields in their Struct's order, so a record decoded from a line encodes back to it.
 
 Each record is written with one `write`, then `flush` and `os.fsync`, so a record is either
 durable or (after a crash mid-write) a torn last line without its newline, which `read` ignores
 and `Journal.resume` cuts off before appending. `JournalState` replays the records and checks
-them: one header, one rollout at a time, each index proposed once and finished at most once.
-`check_invariants` lists every breach of a whole journal at once (for fault drills and tests).
-Pure: no Zenoh.
+what the types cannot: one header, one rollout at a time, each index proposed once and finished
+at most once, in order. `check_invariants` lists every breach of a whole journal at once (for
+fault drills and tests). Pure: no Zenoh.
 """
 
 from __future__ import annotations
 
 import json
-import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Union
+
+import msgspec
+import numpy as np
+from msgspec import UnsetType
 
 from protocol.errors import ArcheryError
+from protocol.journal_records import (
+    JOURNAL_VERSION,
+    RECORD_KINDS,
+    RECORD_TYPES,
+    AbortedRecord,
+    DoneRecord,
+    EndRecord,
+    HeaderRecord,
+    JournalRecord,
+    ProposedRecord,
+    ResumedRecord,
+    SessionRecord,
+)
 
 __all__ = [
     "JOURNAL_NAME",
-    "JOURNAL_VERSION",
-    "RECORD_KINDS",
     "Journal",
     "JournalError",
     "JournalState",
     "check_invariants",
+    "encode_record",
     "read_records",
 ]
 
-JOURNAL_VERSION = 1
 JOURNAL_NAME = "journal.jsonl"
-RECORD_KINDS = ("header", "proposed", "done", "aborted", "resumed", "stopped", "end")
+_decoder: msgspec.json.Decoder[Any] = msgspec.json.Decoder(Union[RECORD_TYPES])  # noqa: UP007
 
 
 class JournalError(ArcheryError, ValueError):
@@ -56,32 +65,81 @@ class JournalError(ArcheryError, ValueError):
     code = "bad_journal"
 
 
-def _encode(record: dict[str, Any]) -> bytes:
-    """One record as a JSON line (UTF-8, no NaN allowed)."""
+def _plain(value: Any) -> Any:
+    """A numpy scalar as the Python number it holds (what `json` wrote of it)."""
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"a journal record cannot hold {type(value).__name__} {value!r}")
+
+
+def encode_record(record: JournalRecord) -> bytes:
+    """One record as its journal line: compact JSON (UTF-8, fields in the Struct's order, no
+    NaN), newline included.
+
+    Raises:
+        JournalError: the record holds NaN or infinity, or a value JSON cannot hold.
+    """
     try:
-        text = json.dumps(record, allow_nan=False, separators=(",", ":"), ensure_ascii=False)
+        text = json.dumps(
+            msgspec.to_builtins(record, enc_hook=_plain),
+            allow_nan=False,
+            separators=(",", ":"),
+            ensure_ascii=False,
+        )
     except ValueError as exc:
-        raise JournalError(
-            f"record {record.get('record')!r} holds NaN or infinity: {exc}"
-        ) from None
+        raise JournalError(f"record {record.kind!r} holds NaN or infinity: {exc}") from None
+    except TypeError as exc:
+        raise JournalError(f"record {record.kind!r}: {exc}") from None
     return (text + "\n").encode()
 
 
-def read_records(path: Path) -> tuple[list[dict[str, Any]], int]:
+def _version_error(where: str, version: Any) -> JournalError:
+    return JournalError(
+        f"{where} has journal version {version!r}; this learner reads version "
+        f"{JOURNAL_VERSION} only (finish it with the version that wrote it)"
+    )
+
+
+def _decode(line: bytes, where: str) -> JournalRecord:
+    """The record of one JSON line, checked against its kind's Struct.
+
+    Raises:
+        JournalError: the line is JSON but not a record (not an object, no known `record`
+            kind), or a field is missing or of the wrong type; the message says which.
+        msgspec.DecodeError: the line is not JSON at all (the caller decides: torn or damaged).
+    """
+    try:
+        record: JournalRecord = _decoder.decode(line)
+    except msgspec.ValidationError as exc:
+        loose = msgspec.json.decode(line)
+        kind = loose.get("record") if isinstance(loose, dict) else None
+        if kind not in RECORD_KINDS:
+            raise JournalError(
+                f"{where} is not a journal record (a JSON object whose 'record' is one of "
+                f"{', '.join(RECORD_KINDS)})"
+            ) from None
+        if kind == "header" and loose.get("version") != JOURNAL_VERSION:
+            raise _version_error(where, loose.get("version")) from None
+        raise JournalError(f"{where}: {kind} record: {exc}") from None
+    return record
+
+
+def read_records(path: Path) -> tuple[list[JournalRecord], int]:
     """The records of a journal file and the byte length of its intact part.
 
     A last line without its newline, or one that is not valid JSON, is a torn write and is left
     out (its bytes lie beyond the returned length). Any other bad line is an error.
 
     Raises:
-        JournalError: the file is missing or unreadable, or a line other than the last is not a
-            JSON object.
+        JournalError: the file is missing or unreadable, or a line other than the last is not
+            JSON, or a line is no journal record or a record with a missing or mistyped field
+            (the message names the line and the field).
     """
     try:
         data = path.read_bytes()
     except OSError as exc:
         raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
-    records: list[dict[str, Any]] = []
+    records: list[JournalRecord] = []
     good = 0
     lines = data.split(b"\n")
     # After the last newline comes "" (an intact file) or the bytes of a torn write.
@@ -89,25 +147,20 @@ def read_records(path: Path) -> tuple[list[dict[str, Any]], int]:
     for number, line in enumerate(complete, start=1):
         final = number == len(complete) and not tail
         try:
-            record = json.loads(line)
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            record = _decode(line, f"{path} line {number}")
+        except msgspec.DecodeError as exc:
             if final:
                 break  # a torn write that reached its newline (e.g. zero-filled blocks)
             raise JournalError(
                 f"{path} line {number} is not JSON ({exc}); only the last line may be torn, so "
                 f"the file is damaged"
             ) from None
-        if not isinstance(record, dict) or record.get("record") not in RECORD_KINDS:
-            raise JournalError(
-                f"{path} line {number} is not a journal record (a JSON object whose 'record' "
-                f"is one of {', '.join(RECORD_KINDS)})"
-            )
         records.append(record)
         good += len(line) + 1
     return records, good
 
 
-def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False) -> list[str]:
+def check_invariants(records: Sequence[JournalRecord], *, allow_open: bool = False) -> list[str]:
     """Every breach of a journal's rollout invariants (empty when it keeps them all): attempt
     indices proposed 1, 2, … once each; each proposed attempt ended by exactly one `done` or
     `aborted` record, after it (the last may stay open with `allow_open`, e.g. while running or
@@ -118,17 +171,16 @@ def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False)
         allow_open: accept a last proposed attempt that has not ended yet.
     """
     violations: list[str] = []
-    # as the records hold them: None where a record lacks its number
-    proposed: list[int | None] = []
-    ended: dict[int | None, str] = {}
-    rollouts: list[int | None] = []
+    proposed: list[int] = []
+    ended: dict[int, str] = {}
+    rollouts: list[int] = []
     for number, record in enumerate(records, start=1):
-        kind, index = record.get("record"), record.get("index")
-        if kind == "proposed":
-            if index in proposed:
-                violations.append(f"record {number}: attempt {index} proposed again")
-            proposed.append(index)
-        elif kind in ("done", "aborted"):
+        if isinstance(record, ProposedRecord):
+            if record.index in proposed:
+                violations.append(f"record {number}: attempt {record.index} proposed again")
+            proposed.append(record.index)
+        elif isinstance(record, DoneRecord | AbortedRecord):
+            kind, index = record.kind, record.index
             if index not in proposed:
                 violations.append(f"record {number}: {kind} for attempt {index}, never proposed")
             elif index in ended:
@@ -136,8 +188,8 @@ def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False)
                     f"record {number}: attempt {index} {kind} after it was {ended[index]} already"
                 )
             ended.setdefault(index, kind)
-            if kind == "done":
-                rollouts.append(record.get("rollout"))
+            if isinstance(record, DoneRecord):
+                rollouts.append(record.rollout)
     if proposed != list(range(1, len(proposed) + 1)):
         violations.append(f"attempt indices not contiguous from 1: {proposed}")
     if rollouts != list(range(1, len(rollouts) + 1)):
@@ -148,25 +200,6 @@ def check_invariants(records: list[dict[str, Any]], *, allow_open: bool = False)
     if open_:
         violations.append(f"attempts proposed but never ended: {open_}")
     return violations
-
-
-def _index(record: dict[str, Any], where: str) -> int:
-    index = record.get("index")
-    if isinstance(index, bool) or not isinstance(index, int) or index < 1:
-        raise JournalError(f"{where}: index must be an integer >= 1, got {index!r}")
-    return index
-
-
-def _theta(record: dict[str, Any], key: str, where: str) -> list[float]:
-    value = record.get(key)
-    if (
-        not isinstance(value, list)
-        or not value
-        or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value)
-        or not all(math.isfinite(x) for x in value)
-    ):
-        raise JournalError(f"{where}: {key} must be a list of finite numbers (m), got {value!r}")
-    return [float(x) for x in value]
 
 
 @dataclass
@@ -185,29 +218,30 @@ class JournalState:
         records: every record applied, in order.
     """
 
-    header: dict[str, Any]
-    done: list[dict[str, Any]] = field(default_factory=list)
-    aborted: list[dict[str, Any]] = field(default_factory=list)
+    header: HeaderRecord
+    done: list[DoneRecord] = field(default_factory=list)
+    aborted: list[AbortedRecord] = field(default_factory=list)
     last_index: int = 0
-    open: dict[str, Any] | None = None
+    open: ProposedRecord | None = None
     retry_theta: list[float] | None = None
     aborts_in_row: dict[str, int] = field(default_factory=dict)
-    ended: dict[str, Any] | None = None
-    records: list[dict[str, Any]] = field(default_factory=list)
+    ended: EndRecord | None = None
+    records: list[JournalRecord] = field(default_factory=list)
 
     @property
     def session(self) -> str:
         """The session id."""
-        return str(self.header["session"])
+        return self.header.session
 
     @property
     def learner_state(self) -> dict[str, Any]:
         """The learner's state after the last done rollout (the header's before any)."""
-        source = self.done[-1] if self.done else self.header
-        return dict(source["learner_state"])
+        state = self.done[-1].learner_state if self.done else self.header.learner_state
+        assert not isinstance(state, UnsetType)  # `apply` takes no done record without it
+        return dict(state)
 
     @classmethod
-    def from_records(cls, records: list[dict[str, Any]], where: str = "journal") -> JournalState:
+    def from_records(cls, records: Sequence[JournalRecord], where: str = "journal") -> JournalState:
         """Replay records (the first must be the header).
 
         Raises:
@@ -222,53 +256,38 @@ class JournalState:
         return state
 
     @staticmethod
-    def _check_header(header: dict[str, Any], where: str) -> dict[str, Any]:
-        if header.get("record") != "header":
+    def _check_header(header: JournalRecord, where: str) -> HeaderRecord:
+        if not isinstance(header, HeaderRecord):
             raise JournalError(f"{where} does not start with a header record")
-        version = header.get("version")
-        if version != JOURNAL_VERSION:
-            raise JournalError(
-                f"{where} has journal version {version!r}; this learner reads version "
-                f"{JOURNAL_VERSION} only (finish it with the version that wrote it)"
-            )
-        for key, kind in (
-            ("session", str),
-            ("algorithm", str),
-            ("seed", int),
-            ("rollouts", int),
-            ("options", dict),
-            ("config", dict),
-            ("learner_state", dict),
-        ):
-            if not isinstance(header.get(key), kind):
-                raise JournalError(f"{where} header lacks {key!r} ({kind.__name__})")
+        if header.version != JOURNAL_VERSION:
+            raise _version_error(where, header.version)
         return header
 
-    def apply(self, record: dict[str, Any], where: str = "record") -> None:
+    def apply(self, record: JournalRecord, where: str = "record") -> None:
         """Check `record` against what came before and take it in (every check runs before
-        anything changes).
+        anything changes). Its fields' types are msgspec's to check (`read_records`,
+        `Journal.append`); these are the rules between records.
 
         Raises:
             JournalError: it breaks a rule (wrong session, index out of order, a rollout
                 finished twice, anything after the end …); the state is unchanged.
         """
-        kind = record.get("record")
-        if kind not in RECORD_KINDS or kind == "header":
+        if not isinstance(record, SessionRecord):
             raise JournalError(
-                f"{where}: kind {kind!r} is not one of {', '.join(RECORD_KINDS[1:])}"
+                f"{where}: kind {record.kind!r} is not one of {', '.join(RECORD_KINDS[1:])}"
             )
-        if record.get("session") != self.session:
+        kind = record.kind
+        if record.session != self.session:
             raise JournalError(
-                f"{where} belongs to session {record.get('session')!r}, not {self.session!r}"
+                f"{where} belongs to session {record.session!r}, not {self.session!r}"
             )
         if self.ended is not None:
             raise JournalError(f"{where}: {kind} after the session's end record")
-        if kind == "proposed":
-            index = _index(record, where)
-            _theta(record, "theta", where)
+        if isinstance(record, ProposedRecord):
+            index = record.index
             if self.open is not None:
                 raise JournalError(
-                    f"{where}: rollout {index} proposed while rollout {self.open['index']} is "
+                    f"{where}: rollout {index} proposed while rollout {self.open.index} is "
                     f"still open"
                 )
             if index != self.last_index + 1:
@@ -278,64 +297,59 @@ class JournalState:
                 )
             self.open = record
             self.last_index = index
-        elif kind in ("done", "aborted"):
-            index = _index(record, where)
-            theta = _theta(record, "theta", where)
-            if self.open is None or self.open["index"] != index:
-                opened = None if self.open is None else self.open["index"]
+        elif isinstance(record, DoneRecord | AbortedRecord):
+            index, theta = record.index, record.theta
+            if self.open is None or self.open.index != index:
+                opened = None if self.open is None else self.open.index
                 raise JournalError(
                     f"{where}: {kind} for rollout {index}, but the open rollout is {opened}"
                 )
-            if theta != self.open["theta"]:
+            if theta != self.open.theta:
                 raise JournalError(
-                    f"{where}: rollout {index} {kind} with θ {theta}, proposed {self.open['theta']}"
+                    f"{where}: rollout {index} {kind} with θ {theta}, proposed {self.open.theta}"
                 )
-            if kind == "done":
-                _theta(record, "r_m", where)
-                if not isinstance(record.get("learner_state"), dict):
+            if isinstance(record, DoneRecord):
+                if isinstance(record.learner_state, UnsetType):
                     raise JournalError(f"{where}: done record without a learner_state")
-                if record.get("rollout") != len(self.done) + 1:
+                if record.rollout != len(self.done) + 1:
                     raise JournalError(
-                        f"{where}: done rollout number {record.get('rollout')!r}, expected "
+                        f"{where}: done rollout number {record.rollout!r}, expected "
                         f"{len(self.done) + 1}"
                     )
                 self.done.append(record)
                 self.retry_theta = None
                 self.aborts_in_row = {}
             else:
-                code = record.get("code")
-                if not isinstance(code, str) or not code:
-                    raise JournalError(f"{where}: aborted record without a code")
-                self.retry_theta = _theta(record, "retry_theta", where)
+                self.retry_theta = list(record.retry_theta)
                 self.aborted.append(record)
-                self.aborts_in_row[code] = self.aborts_in_row.get(code, 0) + 1
+                self.aborts_in_row[record.code] = self.aborts_in_row.get(record.code, 0) + 1
             self.open = None
-        elif kind == "resumed":
+        elif isinstance(record, ResumedRecord):
             self.aborts_in_row = {}  # a deliberate restart gets a fresh count of aborts
-        elif kind == "end":
+        elif isinstance(record, EndRecord):
             if self.open is not None:
-                raise JournalError(f"{where}: end while rollout {self.open['index']} is open")
+                raise JournalError(f"{where}: end while rollout {self.open.index} is open")
             self.ended = record
         self.records.append(record)
 
     def hit_at(self) -> int | None:
         """The done-rollout number (1-based) of the first hit, or None."""
-        return next((int(d["rollout"]) for d in self.done if d.get("hit")), None)
+        return next((d.rollout for d in self.done if d.hit), None)
 
     def summary(self) -> dict[str, Any]:
-        """Counts and results so far, as plain values."""
+        """Counts and results so far, as plain values (distances in m)."""
         last = self.done[-1] if self.done else None
         return {
             "session": self.session,
-            "algorithm": self.header["algorithm"],
-            "seed": self.header["seed"],
-            "budget": self.header["rollouts"],
+            "algorithm": self.header.algorithm,
+            "seed": self.header.seed,
+            "budget": self.header.rollouts,
             "rollouts": len(self.done),
             "aborted": len(self.aborted),
             "hit_at": self.hit_at(),
-            "final_distance_m": None if last is None else last.get("distance_m"),
-            "best_distance_m": min((d["distance_m"] for d in self.done), default=None),
-            "ended": None if self.ended is None else self.ended.get("reason"),
+            "final_distance_m": None if last is None else last.distance_m,
+            "best_distance_m": min((d.distance_m for d in self.done), default=None),
+            "ended": None if self.ended is None else self.ended.reason,
         }
 
 
@@ -353,22 +367,23 @@ class Journal:
         self._file = open(path, "ab")  # noqa: SIM115 (kept open for the session)
 
     @classmethod
-    def create(cls, directory: Path, header: dict[str, Any]) -> Journal:
-        """Start `directory/journal.jsonl` with `header` (its `record`, `version` and `created`
-        are filled in).
+    def create(cls, directory: Path, header: HeaderRecord) -> Journal:
+        """Start `directory/journal.jsonl` with `header` (its `version` and `created` are filled
+        in).
 
         Raises:
-            JournalError: the journal exists already, or the header is incomplete.
+            JournalError: the journal exists already, or a field of the header is missing or
+                of the wrong type.
         """
-        header = {
-            "record": "header",
-            "version": JOURNAL_VERSION,
-            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-            **header,
-        }
-        state = JournalState.from_records([header], str(directory / JOURNAL_NAME))
-        directory.mkdir(parents=True, exist_ok=True)
         path = directory / JOURNAL_NAME
+        header = msgspec.structs.replace(
+            header,
+            version=JOURNAL_VERSION,
+            created=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        )
+        line = encode_record(header)
+        state = JournalState.from_records([_decode(line, f"{path} header")], str(path))
+        directory.mkdir(parents=True, exist_ok=True)
         try:
             fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError:
@@ -376,7 +391,7 @@ class Journal:
                 f"journal {path} exists already; resume it or choose another session id"
             ) from None
         try:
-            os.write(fd, _encode(header))
+            os.write(fd, line)
             os.fsync(fd)
         finally:
             os.close(fd)
@@ -401,7 +416,7 @@ class Journal:
             )
         if state.ended is not None:
             raise JournalError(
-                f"session {state.session!r} in {path} has ended ({state.ended.get('reason')}); "
+                f"session {state.session!r} in {path} has ended ({state.ended.reason}); "
                 f"start a new session instead"
             )
         if path.stat().st_size > good:
@@ -411,17 +426,22 @@ class Journal:
                 os.fsync(f.fileno())
         return cls(path, state)
 
-    def append(self, kind: str, **fields: Any) -> dict[str, Any]:
-        """Check, write and fsync one record of `kind`; returns it.
+    def append(self, record: JournalRecord) -> JournalRecord:
+        """Check, write and fsync one record; returns it as written (stamped with this
+        journal's `session` and the wall time `t`, s since the epoch).
 
         Raises:
-            JournalError: the record breaks the journal's rules (nothing is written).
+            JournalError: a field is missing or of the wrong type, or the record breaks the
+                journal's rules (nothing is written).
         """
-        record = {"record": kind, "session": self.state.session, "t": time.time(), **fields}
-        line = _encode(record)
+        where = f"new {record.kind} record"
+        if isinstance(record, SessionRecord):
+            record = msgspec.structs.replace(record, session=self.state.session, t=time.time())
+        line = encode_record(record)
+        record = _decode(line, where)  # what is written is what a reader will decode
         if self._file.closed:
             raise JournalError(f"journal {self.path} is closed; resume it to append")
-        self.state.apply(record, f"new {kind} record")  # checks before it changes anything
+        self.state.apply(record, where)  # checks before it changes anything
         try:
             self._file.write(line)
             self._file.flush()

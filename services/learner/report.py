@@ -7,10 +7,18 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
 
-__all__ = ["Interruptions", "caption_png", "interruptions", "plot_report", "write_report"]
+__all__ = [
+    "Interruptions",
+    "caption_png",
+    "hit_caption",
+    "interruptions",
+    "plot_report",
+    "write_report",
+]
 
 FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, HIT_RADIUS)  # m
@@ -38,14 +46,27 @@ def interruptions(state: JournalState) -> Interruptions:
     """The aborted attempts and resumes of a journal, placed between its done rollouts."""
     done, aborted, resumed = 0, [], []
     for record in state.records:
-        kind = record.get("record")
-        if kind == "done":
+        if isinstance(record, DoneRecord):
             done += 1
-        elif kind == "aborted":
-            aborted.append((done, str(record.get("code", "?"))))
-        elif kind == "resumed":
+        elif isinstance(record, AbortedRecord):
+            aborted.append((done, record.code))
+        elif isinstance(record, ResumedRecord):
             resumed.append(done)
     return Interruptions(tuple(aborted), tuple(resumed))
+
+
+def hit_caption(session: str, done: DoneRecord) -> list[str]:
+    """The caption of a hit's frame: the session, rollout, measured (and true) ‖r‖ and θ, in
+    cm, and what the picture shows."""
+    truth = done.truth_distance_m
+    true = "" if truth is None else f" (true {100 * truth:.1f} cm)"
+    return [
+        f"session {session}, rollout {done.rollout}: hit, |r| = {100 * done.distance_m:.1f} cm"
+        f"{true}",
+        "theta = (" + ", ".join(f"{100 * v:.2f}" for v in done.theta) + ") cm. Left: the "
+        "camera frame, right: the pixels of the colour models; red cross: target centre, blue "
+        "circle: arrow tip",
+    ]
 
 
 def caption_png(png: bytes, lines: list[str]) -> bytes:
@@ -92,16 +113,16 @@ def plot_report(state: JournalState, path: Path) -> None:
 
     done = state.done
     header = state.header
-    radius = float(header["config"].get("hit_radius_m", HIT_RADIUS))
+    radius = float(header.config.get("hit_radius_m", HIT_RADIUS))
     fig, (face, curve) = plt.subplots(
         1, 2, figsize=(13, 6.2), dpi=110, gridspec_kw={"width_ratios": [1.0, 1.25]}
     )
     for ring in RINGS:
         face.add_patch(plt.Circle((0, 0), 100 * ring, fill=False, color="0.35", lw=1))
     face.add_patch(plt.Circle((0, 0), 100 * radius, color="gold", alpha=0.35, lw=0))
-    r = np.array([d["r_m"] for d in done]).reshape(-1, 2) * 100
-    truth = [d.get("truth_r_m") for d in done]
-    hits = np.array([bool(d.get("hit")) for d in done], dtype=bool)
+    r = np.array([d.r_m for d in done]).reshape(-1, 2) * 100
+    truth = [d.truth_r_m for d in done]
+    hits = np.array([d.hit for d in done], dtype=bool)
     many = len(done) > MANY
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
@@ -118,7 +139,7 @@ def plot_report(state: JournalState, path: Path) -> None:
             edgecolors="k",
             linewidths=0.6,
         )
-        number = int(d["rollout"])
+        number = d.rollout
         if number <= LABELLED_FIRST or number % 10 == 0 or hits[k] or k == len(done) - 1:
             face.annotate(
                 str(number),
@@ -159,9 +180,9 @@ def plot_report(state: JournalState, path: Path) -> None:
         fig.colorbar(order, ax=face, fraction=0.04, pad=0.02, label="rollout")
 
     n = np.arange(1, len(done) + 1)
-    measured = 100 * np.array([d["distance_m"] for d in done])
+    measured = 100 * np.array([d.distance_m for d in done])
     true = np.array(
-        [np.nan if d.get("truth_distance_m") is None else 100 * d["truth_distance_m"] for d in done]
+        [np.nan if d.truth_distance_m is None else 100 * d.truth_distance_m for d in done]
     )
     # (values, style, colour, line width, marker size, label): smaller when there are many
     lines = [(measured, "o-", "tab:blue", 2.0, 6.0, "measured by the detector")]
@@ -236,9 +257,7 @@ def plot_report(state: JournalState, path: Path) -> None:
     n_resumed = len(marks.resumed)
     resumed = f", resumed {n_resumed} time{'s' * (n_resumed != 1)}" if n_resumed else ""
     curve.set_title(f"distance per rollout: {outcome}{aborted}{resumed}")
-    fig.suptitle(
-        f"session {state.session}: {header['algorithm']}, seed {header['seed']}", fontsize=13
-    )
+    fig.suptitle(f"session {state.session}: {header.algorithm}, seed {header.seed}", fontsize=13)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)

@@ -1,4 +1,4 @@
-"""The other services as one session sees them, over the mesh: the `Rig` of `session` on a Node.
+"""The other services as one session sees them, over the mesh: the session's `Rig` on a Node.
 
 Calls, in a rollout's order (ROBOT = the robot prefix):
 
@@ -49,7 +49,8 @@ from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
 from protocol.verbs import robot as rv
 from services.learner.algorithms.base import Bounds, LearnerConfigError
-from services.learner.session import Measurement, PostureResult, RigError, ServiceLost, Shot
+from services.learner.errors import RigError, ServiceLost
+from services.learner.rig_protocol import Measurement, PostureResult, Shot
 
 __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 

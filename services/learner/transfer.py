@@ -68,7 +68,7 @@ def load_source(target: str, algorithm: str, runs: Path | None = None) -> Transf
     path = _journal_path(target, runs)
     records, _ = read_records(path)
     state = JournalState.from_records(records, str(path))
-    source_algorithm = state.header["algorithm"]
+    source_algorithm = state.header.algorithm
     if source_algorithm != algorithm:
         raise JournalError(
             f"--from {path}: session {state.session} ran {source_algorithm}, not {algorithm}; "

@@ -12,6 +12,7 @@ from services.learner.algorithms.base import (
     scalar_return,
 )
 from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
+from services.learner.algorithms.impact_model import BallisticModel, ImpactModel
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
@@ -21,9 +22,11 @@ __all__ = [
     "DEFAULT_BOUNDS",
     "Archer",
     "ArcherPrior",
+    "BallisticModel",
     "Bounds",
     "CmaEs",
     "HillClimber",
+    "ImpactModel",
     "Learner",
     "LearnerConfigError",
     "LearnerError",

@@ -1,4 +1,4 @@
-"""ARCHER with a physics prior: the analytic ballistic model aims, the rollouts correct it."""
+"""ARCHER with a physics prior: a model of the shot aims, the rollouts correct it."""
 
 from __future__ import annotations
 
@@ -11,13 +11,10 @@ from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
     Learner,
-    LearnerConfigError,
     StateError,
     _finite_option,
 )
-from sim.ballistic import BallisticError, BallisticWorld, Scenario
-from sim.bow import Bow
-from sim.geometry import TARGET_DISTANCE
+from services.learner.algorithms.impact_model import ImpactModel
 
 __all__ = ["ArcherPrior"]
 
@@ -30,19 +27,21 @@ TRANSFER_GAIN_STD = 0.5
 
 
 class ArcherPrior(Learner):
-    """Aim with the analytic ballistic model, and learn from every rollout where it is wrong.
+    """Aim with a physics model, and learn from every rollout where it is wrong.
 
-    The prediction of where θ puts the arrow is the nominal model plus a learned linear residual,
+    The prediction of where θ puts the arrow is the model plus a learned linear residual,
 
         r̂(θ) = r_model(θ) + c + D (θ − θ0),
 
-    with r_model the ballistic model of `sim.ballistic` with nominal parameters (`model_distance`,
-    `model_stiffness`, `model_drag`, no wind), c (m) an offset and D (m of r per m of θ) a
-    correction of the model's Jacobian. (c, D) has a Gaussian prior centred on 0 (trust the model:
-    std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a Bayesian linear
-    regression on the residuals r_i − r_model(θ_i) of the rollouts (observation noise std
-    `noise_std`, each rollout weighted 2^(−age/half_life) when `half_life` > 0) gives its
-    posterior mean; the data override the prior wherever they disagree with the model.
+    with r_model the injected `model` (`impact_model.ImpactModel`; the registry's default is
+    the ballistic model of `sim.ballistic` with nominal parameters, `BallisticModel`, built
+    from the options `model_distance`, `model_stiffness`, `model_drag`, which the learner's
+    `options` include, so that a saved state restores it), c (m) an offset and D (m of r per m
+    of θ) a correction of the model's Jacobian. (c, D) has a Gaussian prior centred on 0 (trust
+    the model: std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a
+    Bayesian linear regression on the residuals r_i − r_model(θ_i) of the rollouts (observation
+    noise std `noise_std`, each rollout weighted 2^(−age/half_life) when `half_life` > 0) gives
+    its posterior mean; the data override the prior wherever they disagree with the model.
 
     Each proposal is a Gauss-Newton solve of r̂(θ) = 0 from the best rollout so far (θ0 before
     the first): the step is the least-norm solution in the metric diag(draw_weight, 1, 1), which
@@ -73,10 +72,8 @@ class ArcherPrior(Learner):
     Args:
         theta0: the θ (m) the Gauss-Newton solve of the first rollout starts from.
         rng: the random generator for the exploratory steps.
+        model: where the model says θ puts the arrow (r in m).
         bounds: θ box (m).
-        model_distance: target distance of the nominal model (m).
-        model_stiffness: bow stiffness of the nominal model (N/m).
-        model_drag: air-drag constant K of the nominal model (1/m).
         prior_offset_std: prior std of the offset c (m).
         prior_gain_std: prior std of each entry of the Jacobian correction D (m/m).
         noise_std: std of the observation noise on r assumed by the regression (m).
@@ -99,10 +96,8 @@ class ArcherPrior(Learner):
         theta0: np.ndarray,
         *,
         rng: np.random.Generator,
+        model: ImpactModel,
         bounds: Bounds = DEFAULT_BOUNDS,
-        model_distance: float = TARGET_DISTANCE,
-        model_stiffness: float = Bow().stiffness,
-        model_drag: float = 0.0,
         prior_offset_std: float = 0.5,
         prior_gain_std: float = 3.0,
         noise_std: float = 0.005,
@@ -117,9 +112,7 @@ class ArcherPrior(Learner):
         max_cond: float = 50.0,
     ) -> None:
         super().__init__(theta0, rng=rng, bounds=bounds)
-        self.model_distance = _finite_option("model_distance (m)", model_distance, low=0.0)
-        self.model_stiffness = _finite_option("model_stiffness (N/m)", model_stiffness, low=1e-6)
-        self.model_drag = _finite_option("model_drag (1/m)", model_drag, low=0.0)
+        self.model = model
         self.prior_offset_std = _finite_option("prior_offset_std (m)", prior_offset_std, low=1e-9)
         self.prior_gain_std = _finite_option("prior_gain_std", prior_gain_std, low=1e-9)
         self.noise_std = _finite_option("noise_std (m)", noise_std, low=1e-9)
@@ -135,16 +128,6 @@ class ArcherPrior(Learner):
         self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0)
         self.max_cond = _finite_option("max_cond", max_cond, low=1.0)
         self._radius0 = self.trust_radius
-        try:
-            self._model = BallisticWorld(
-                Scenario(
-                    distance=self.model_distance,
-                    bow_stiffness=self.model_stiffness,
-                    drag=self.model_drag,
-                )
-            )
-        except BallisticError as exc:
-            raise LearnerConfigError(f"invalid nominal model: {exc}") from exc
         self._metric = np.ones(self.theta0.size)
         self._metric[0] = self.draw_weight
         self._residuals: list[np.ndarray | None] = []
@@ -156,11 +139,8 @@ class ArcherPrior(Learner):
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
 
     def options(self) -> dict[str, Any]:
-        """Constructor options as plain values."""
-        return {
-            "model_distance": self.model_distance,
-            "model_stiffness": self.model_stiffness,
-            "model_drag": self.model_drag,
+        """Constructor options as plain values, the model's (`ImpactModel.options`) first."""
+        return self.model.options() | {
             "prior_offset_std": self.prior_offset_std,
             "prior_gain_std": self.prior_gain_std,
             "noise_std": self.noise_std,
@@ -178,19 +158,19 @@ class ArcherPrior(Learner):
     # -- the model ------------------------------------------------------------------------------
 
     def model_jacobian(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """(r_model(θ), dr_model/dθ) of the nominal model (m, m/m); None where it cannot shoot."""
+        """(r_model(θ), dr_model/dθ) of the model (m, m/m); None where it cannot shoot."""
         d = theta.size
         batch = np.vstack([theta, theta + _JACOBIAN_STEP * np.eye(d)])
         try:
-            r = self._model.impacts(batch).r
-        except BallisticError:
+            r = np.asarray(self.model.impacts(batch), dtype=float)
+        except ValueError:
             return None
         return r[0], (r[1:] - r[0]).T / _JACOBIAN_STEP
 
     def _model_residual(self, theta: np.ndarray, r: np.ndarray) -> np.ndarray | None:
         try:
-            return r - self._model.impacts(theta.reshape(1, -1)).r[0]
-        except BallisticError:
+            return r - np.asarray(self.model.impacts(theta.reshape(1, -1)), dtype=float)[0]
+        except ValueError:
             return None
 
     def posterior(self, upto: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -351,7 +331,7 @@ class ArcherPrior(Learner):
         self.changes = changes
         self.settled = settled
         self._prior = _prior_of(extra.get("prior"), self.theta0.size)
-        # The residuals are a function of the history and the nominal model: recompute them.
+        # The residuals are a function of the history and the model: recompute them.
         self._residuals = [
             self._model_residual(t, r) for t, r in zip(self._thetas, self._rewards, strict=True)
         ]

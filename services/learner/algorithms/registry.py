@@ -23,6 +23,7 @@ from services.learner.algorithms.baselines import (
     HillClimber,
     RandomSearch,
 )
+from services.learner.algorithms.impact_model import BallisticModel, ImpactModel
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 
@@ -131,18 +132,61 @@ def check_transfer(name: str, flag: str = "--from") -> None:
         )
 
 
+def _build(
+    cls: type[Learner],
+    theta0: np.ndarray,
+    rng: np.random.Generator,
+    bounds: Bounds,
+    options: Mapping[str, Any],
+    model: ImpactModel | None,
+    *,
+    saved: bool = False,
+) -> Learner:
+    """`cls` built with `options`. A learner that aims with a physics model (`ArcherPrior`) gets
+    `model`, or by default the nominal ballistic model its `model_*` options describe
+    (`BallisticModel`); restoring a `saved` learner whose options do not describe one needs
+    its `model` again.
+
+    Raises:
+        LearnerConfigError: an invalid option or model, a model with its options, a model for a
+            learner without one, or a saved learner's own model missing.
+        TypeError: an option `cls` does not take.
+    """
+    options = dict(options)
+    if issubclass(cls, ArcherPrior):
+        described = {k: options.pop(k) for k in BallisticModel.OPTIONS if k in options}
+        if model is not None and described:
+            raise LearnerConfigError(
+                f"give {cls.algorithm} a model or the options {', '.join(described)}, not both"
+            )
+        if model is None and saved and len(described) < len(BallisticModel.OPTIONS):
+            raise LearnerConfigError(
+                f"this {cls.algorithm} learner aimed with a model of its own (its options do not "
+                f"describe the nominal one): pass that model to restore it"
+            )
+        options["model"] = BallisticModel.from_options(**described) if model is None else model
+    elif model is not None:
+        raise LearnerConfigError(f"{cls.algorithm} aims with no physics model")
+    return cls(theta0, rng=rng, bounds=bounds, **options)
+
+
 def make_learner(
     name: str,
     theta0: np.ndarray,
     *,
     rng: np.random.Generator,
     bounds: Bounds = DEFAULT_BOUNDS,
+    model: ImpactModel | None = None,
     **options: Any,
 ) -> Learner:
     """Build the learner `name` (a key of ALGORITHMS); `options` override its settings.
 
+    `model` is the physics an `archer-prior` learner aims with; by default the registry builds
+    the nominal ballistic model (`impact_model.BallisticModel`) from its `model_distance` (m),
+    `model_stiffness` (N/m) and `model_drag` (1/m) options.
+
     Raises:
-        LearnerConfigError: unknown name or invalid option.
+        LearnerConfigError: unknown name, invalid option or model.
     """
     if name not in ALGORITHMS:
         raise LearnerConfigError(
@@ -151,7 +195,7 @@ def make_learner(
     algorithm = ALGORITHMS[name]
     merged = {**algorithm.options, **options}
     try:
-        return algorithm.cls(theta0, rng=rng, bounds=bounds, **merged)
+        return _build(algorithm.cls, theta0, rng, bounds, merged, model)
     except TypeError as exc:
         raise LearnerConfigError(f"invalid option for {name!r}: {exc}") from exc
 
@@ -177,11 +221,13 @@ def _check_not_old_random(state: Mapping[str, Any]) -> None:
         )
 
 
-def restore_learner(state: Mapping[str, Any]) -> Learner:
+def restore_learner(state: Mapping[str, Any], *, model: ImpactModel | None = None) -> Learner:
     """Rebuild a learner from `Learner.state_dict()`; its next proposal equals the saved one's.
 
-    A state of the old "random" (the hill climber before it was renamed `hill`) is refused with
-    a clear error, never restored as another algorithm (`_check_not_old_random`).
+    `model`: the physics model an `archer-prior` learner aimed with, when it was not the nominal
+    one its options describe (which is rebuilt by default). A state of the old "random" (the
+    hill climber before it was renamed `hill`) is refused with a clear error, never restored as
+    another algorithm (`_check_not_old_random`).
 
     Raises:
         StateError: the state is malformed, names an unknown algorithm, or is an old "random".
@@ -196,11 +242,14 @@ def restore_learner(state: Mapping[str, Any]) -> Learner:
         )
     assert isinstance(algorithm, str)  # one of LEARNER_CLASSES' names
     try:
-        learner = LEARNER_CLASSES[algorithm](
+        learner = _build(
+            LEARNER_CLASSES[algorithm],
             np.asarray(state["theta0"], dtype=float),
-            rng=np.random.default_rng(0),  # replaced by the saved generator below
-            bounds=Bounds.from_dict(state["bounds"]),
-            **dict(state["options"]),
+            np.random.default_rng(0),  # replaced by the saved generator below
+            Bounds.from_dict(state["bounds"]),
+            dict(state["options"]),
+            model,
+            saved=True,
         )
     except (KeyError, TypeError, LearnerConfigError) as exc:
         raise StateError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc

@@ -1,0 +1,186 @@
+"""The records of a learning session's journal: one tagged msgspec Struct per kind.
+
+A journal (`services.learner.journal`) is JSON lines, one record a line; the record's kind is
+its `record` field (the tag), so a line reads `{"record":"proposed","session":…,"t":…,…}`. The
+same Structs are what the learner builds, what the journal encodes and decodes, and (proposed,
+done and aborted) what `protocol.messages.Rollout` carries on `learner/rollout:o`.
+
+Kinds, in the order a session writes them:
+
+* `header` (first line, once): journal `version`, `created`, `session`, `algorithm`, `seed`,
+  `rollouts` (budget of done rollouts), `options` (the learner's), `config` (the rest of the
+  session settings), `controller_box` and `learner_state`, the learner before its first
+  proposal; `from` when the session started from another session's learned model.
+* `proposed` {index, theta}: attempt `index` (1, 2, …) is about to run θ (m).
+* `done` {index, rollout, theta, r_m, distance_m, hit, …, learner_state}: attempt `index`
+  finished, the learner was told (θ, r) and `learner_state` is its state right after; `rollout`
+  counts done rollouts (1-based).
+* `aborted` {index, theta, code, cause, retry_theta}: attempt `index` ended without a
+  measurement (the learner was not told); the next attempt runs `retry_theta` (m).
+* `resumed` {after}, `stopped` {reason, cause} (paused, resumable) and `end` {reason, summary}
+  (the session is over).
+
+Field order is the order of the lines on disk. A field that a line may lack (`controller_box`,
+`from`, an aborted record's `truth_r_m` and `detection`, a stopped record's `cause`, a published
+done record's `learner_state`) is `UNSET` when absent, so a record encodes back to its line.
+Which records may follow which (index order, one open attempt, the same θ) is the journal's
+business: these types say only what each record holds.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import msgspec
+from msgspec import UNSET, Meta, UnsetType
+
+__all__ = [
+    "JOURNAL_VERSION",
+    "RECORD_KINDS",
+    "RECORD_TYPES",
+    "AbortedRecord",
+    "DoneRecord",
+    "EndRecord",
+    "HeaderRecord",
+    "JournalRecord",
+    "ProposedRecord",
+    "ResumedRecord",
+    "RolloutRecord",
+    "SessionRecord",
+    "StoppedRecord",
+]
+
+JOURNAL_VERSION = 1
+
+Index = Annotated[int, Meta(ge=1, description="attempt or rollout number, 1-based")]
+Theta = Annotated[list[float], Meta(min_length=1, description="m")]
+Vector = Annotated[list[float], Meta(description="m")]
+
+
+class JournalRecord(msgspec.Struct, frozen=True, kw_only=True, tag_field="record"):
+    """Base of every journal record; `record` (the tag) names its kind."""
+
+    @property
+    def kind(self) -> str:
+        """The record's kind: header, proposed, done, aborted, resumed, stopped or end."""
+        return str(type(self).__struct_config__.tag)
+
+
+class HeaderRecord(JournalRecord, frozen=True, kw_only=True, tag="header"):
+    """The first line of a journal: what the session is, and its learner before any proposal.
+
+    `version` and `created` (UTC, ISO 8601) are filled in by the journal that writes it.
+    """
+
+    version: int = JOURNAL_VERSION
+    created: str = ""
+    session: str
+    algorithm: str
+    seed: int
+    rollouts: Annotated[int, Meta(description="budget of done rollouts")]
+    options: dict[str, Any]
+    config: dict[str, Any]
+    controller_box: dict[str, Any] | UnsetType = UNSET  # {"low", "high"} (m)
+    learner_state: dict[str, Any]
+    from_: dict[str, str] | UnsetType = msgspec.field(default=UNSET, name="from")
+
+
+class SessionRecord(JournalRecord, frozen=True, kw_only=True):
+    """Base of every record after the header: its `session` id and wall time `t` (s since the
+    epoch), both stamped by the journal when it appends the record."""
+
+    session: str = ""
+    t: float = 0.0
+
+
+class ProposedRecord(SessionRecord, frozen=True, kw_only=True, tag="proposed"):
+    """Attempt `index` is about to run θ (m)."""
+
+    index: Index
+    theta: Theta
+
+
+class DoneRecord(SessionRecord, frozen=True, kw_only=True, tag="done"):
+    """Attempt `index` was measured and the learner told: done rollout number `rollout`.
+
+    Attributes:
+        theta: θ run (m); theta_measured: θ the controller reached (m).
+        r_m: the measured r (m) on the target plane; ret: the return R = exp(−‖r‖/s).
+        distance_m: ‖r‖ (m); hit: ‖r‖ below the session's hit radius.
+        shot, outcome: the robot's shot number and what it says of the shot.
+        truth_r_m, truth_distance_m: the robot's ground-truth r and ‖r‖ (m), for plots only.
+        detection: the detector's reply (plain data); timing: the rollout's steps (s).
+        learner_state: the learner right after it was told; left out of a published record
+            (only the journal keeps it).
+    """
+
+    index: Index
+    rollout: Index
+    theta: Theta
+    theta_measured: Vector | None = None
+    r_m: Theta
+    ret: float | None = None
+    distance_m: Annotated[float, Meta(ge=0, description="m")]
+    hit: bool
+    shot: int | None = None
+    outcome: str | None = None
+    truth_r_m: Vector | None = None
+    truth_distance_m: Annotated[float, Meta(ge=0, description="m")] | None = None
+    detection: dict[str, Any] | None = None
+    timing: dict[str, float] | None = None
+    learner_state: dict[str, Any] | UnsetType = UNSET
+
+
+class AbortedRecord(SessionRecord, frozen=True, kw_only=True, tag="aborted"):
+    """Attempt `index` ended without a measurement (the learner was not told): why (`code`, a
+    machine-readable word such as no_arrow or service_lost, and `cause`), and the θ (m) the
+    next attempt runs. A detector's refusal keeps the ground truth (m) and its reply."""
+
+    index: Index
+    theta: Theta
+    code: Annotated[str, Meta(min_length=1)]
+    cause: str
+    retry_theta: Theta
+    truth_r_m: Vector | UnsetType | None = UNSET
+    detection: dict[str, Any] | UnsetType = UNSET
+
+    def note(self) -> str:
+        """ "[code] cause", as progress lines show an aborted attempt."""
+        return f"[{self.code}] {self.cause}"
+
+
+class ResumedRecord(SessionRecord, frozen=True, kw_only=True, tag="resumed"):
+    """The session was continued from its journal after attempt `after` (0: before any)."""
+
+    after: Annotated[int, Meta(ge=0)]
+
+
+class StoppedRecord(SessionRecord, frozen=True, kw_only=True, tag="stopped"):
+    """The session paused, resumable: `reason` (stop requested, failed) and, when it failed,
+    the `cause`."""
+
+    reason: str
+    cause: str | UnsetType = UNSET
+
+
+class EndRecord(SessionRecord, frozen=True, kw_only=True, tag="end"):
+    """The session is over: `reason` (hit, budget) and its summary (counts, distances in m:
+    `services.learner.journal.JournalState.summary`)."""
+
+    reason: str
+    summary: dict[str, Any]
+
+
+RECORD_TYPES: tuple[type[JournalRecord], ...] = (
+    HeaderRecord,
+    ProposedRecord,
+    DoneRecord,
+    AbortedRecord,
+    ResumedRecord,
+    StoppedRecord,
+    EndRecord,
+)
+RECORD_KINDS: tuple[str, ...] = tuple(str(t.__struct_config__.tag) for t in RECORD_TYPES)
+
+RolloutRecord = ProposedRecord | DoneRecord | AbortedRecord
+"""The records of one attempt, the ones `Rollout` messages carry."""

@@ -1,0 +1,118 @@
+"""How a learning session begins: a new one (learner built, checked against the controller's θ
+box, header journaled) or one continued from its journal (learner restored, `resumed`
+journaled). The runner is `services.learner.session.Session`; θ is in m.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+
+from protocol.errors import BadRequest
+from protocol.journal_records import HeaderRecord, ResumedRecord
+from services.learner.algorithms.base import Learner, LearnerError
+from services.learner.algorithms.registry import (
+    make_learner,
+    restore_learner,
+    transferred_learner,
+)
+from services.learner.config import SessionConfig
+from services.learner.journal import JOURNAL_NAME, Journal, JournalError
+from services.learner.rig_protocol import Rig
+from services.learner.transfer import TransferSource
+
+__all__ = ["new_session_id", "reopened_session", "started_session"]
+
+
+def new_session_id(algorithm: str, seed: int) -> str:
+    """A new session id: UTC time, algorithm, seed and 4 random hex digits."""
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    return f"{stamp}-{algorithm}-s{seed}-{np.random.default_rng().integers(16**4):04x}"
+
+
+def started_session(
+    config: SessionConfig,
+    rig: Rig,
+    runs: Path,
+    session_id: str | None = None,
+    source: TransferSource | None = None,
+) -> tuple[Journal, Learner]:
+    """The journal (`runs/<session>/journal.jsonl`, its header written) and learner of a new
+    session; the learner seeded from `source`'s learned model (recorded as the header's
+    `from`).
+
+    Raises:
+        BadRequest: bad learner options, bounds beyond the controller's box, θ0 outside.
+        JournalError: `source`'s learner state cannot seed this learner
+            (`services.learner.transfer.load_source` checks the rest first).
+        RigError: the controller did not tell its box.
+    """
+    box = rig.theta_box()
+    bounds = config.bounds or box
+    if not (box.contains(np.array(bounds.low)) and box.contains(np.array(bounds.high))):
+        raise BadRequest(
+            f"scenario.bounds low={list(bounds.low)}, high={list(bounds.high)} m exceed the "
+            f"controller's θ box low={list(box.low)}, high={list(box.high)} m"
+        )
+    if not bounds.contains(np.array(config.theta0)):
+        raise BadRequest(
+            f"scenario.theta0 {list(config.theta0)} m lies outside the θ box "
+            f"low={list(bounds.low)}, high={list(bounds.high)} m"
+        )
+    try:
+        learner = make_learner(
+            config.algorithm,
+            np.array(config.theta0),
+            rng=np.random.default_rng(config.seed),
+            bounds=bounds,
+            **config.learner_options(),
+        )
+    except LearnerError as exc:
+        raise BadRequest(f"options for {config.algorithm!r}: {exc}") from None
+    if source is not None:
+        try:
+            transferred_learner(learner, source.state)
+        except LearnerError as exc:
+            raise JournalError(f"--from {source.journal}: {exc}") from None
+    session_id = session_id or new_session_id(config.algorithm, config.seed)
+    header = HeaderRecord(
+        session=session_id,
+        algorithm=config.algorithm,
+        seed=config.seed,
+        rollouts=config.rollouts,
+        options=learner.options(),
+        config=config.to_dict() | {"bounds": bounds.to_dict()},
+        controller_box=box.to_dict(),
+        learner_state=learner.state_dict(),
+        from_=msgspec.UNSET if source is None else source.header(),
+    )
+    return Journal.create(runs / session_id, header), learner
+
+
+def reopened_session(
+    path: Path, session: str | None = None
+) -> tuple[Journal, Learner, SessionConfig]:
+    """The journal (`resumed` appended), restored learner and settings of the session
+    journaled at `path` (a journal file or its directory).
+
+    The learner is restored from the last done rollout's state, so asked again it proposes
+    exactly what it proposed before.
+
+    Raises:
+        JournalError: unreadable journal, another session or version, an ended session.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / JOURNAL_NAME
+    journal = Journal.resume(path, session)
+    try:
+        config = SessionConfig.from_header(journal.state.header)
+        learner = restore_learner(journal.state.learner_state)
+    except (KeyError, TypeError, ValueError) as exc:
+        journal.close()
+        raise JournalError(f"journal {path} cannot restore its session: {exc}") from None
+    journal.append(ResumedRecord(after=journal.state.last_index))
+    return journal, learner, config
