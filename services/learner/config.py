@@ -20,8 +20,8 @@ from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from protocol.vectors import finite_vector
-from protocol.verbs.learner import Bounds as StartBounds
 from protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
+from protocol.verbs.learner import Bounds as StartBounds
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.algorithms.registry import ALGORITHMS
 
