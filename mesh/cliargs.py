@@ -19,6 +19,7 @@ from protocol.errors import ConfigError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
+    "MAX_SECONDS",
     "ArgumentParser",
     "check_image_path",
     "check_new_file",
@@ -34,6 +35,7 @@ __all__ = [
 
 # What OpenCV's imwrite writes in every build (the others depend on optional codecs).
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".pgm")
+MAX_SECONDS = 1e7  # s: beyond it, waits overflow the clocks they are handed to
 _RUST_LOCATION = re.compile(r"\s+at /\S+\.rs:\d+\.?")
 
 
@@ -49,14 +51,23 @@ def _finite(text: str, noun: str, positive: bool) -> float:
     return value
 
 
+def _bounded_seconds(text: str, positive: bool) -> float:
+    value = _finite(text, "number of seconds", positive=positive)
+    if value > MAX_SECONDS:
+        raise argparse.ArgumentTypeError(
+            f"{text!r} s is beyond {MAX_SECONDS:.0f} s (116 days), the longest wait or duration"
+        )
+    return value
+
+
 def seconds(text: str) -> float:
-    """argparse type: a positive, finite number of seconds."""
-    return _finite(text, "number of seconds", positive=True)
+    """argparse type: a positive, finite number of seconds, at most `MAX_SECONDS`."""
+    return _bounded_seconds(text, positive=True)
 
 
 def seconds_or_zero(text: str) -> float:
-    """argparse type: a finite number of seconds >= 0 (0: do not wait)."""
-    return _finite(text, "number of seconds", positive=False)
+    """argparse type: a finite number of seconds in [0, `MAX_SECONDS`] (0: do not wait)."""
+    return _bounded_seconds(text, positive=False)
 
 
 def nonnegative(text: str) -> float:

@@ -24,6 +24,7 @@ import argparse
 import logging
 import os
 import sys
+from typing import Any
 
 import zenoh
 
@@ -98,6 +99,22 @@ def _move_stdout_to_stderr() -> None:
     _stdout_moved = True
 
 
+class _StderrHandler(logging.StreamHandler):
+    """Writes to whatever `sys.stderr` is when a record is emitted (not the stream of the moment
+    logging was configured, which may since have been closed or replaced)."""
+
+    def __init__(self) -> None:
+        super().__init__(sys.stderr)
+
+    @property  # read-only here: always the current sys.stderr
+    def stream(self) -> Any:
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value: Any) -> None:
+        pass
+
+
 def configure(spec: str = DEFAULT_SPEC) -> None:
     """Set up this process's logging from a `--log-level` spec (see the module docstring).
 
@@ -105,12 +122,9 @@ def configure(spec: str = DEFAULT_SPEC) -> None:
         ConfigError: the spec is malformed.
     """
     default, targets = parse_spec(spec)
-    logging.basicConfig(
-        level=max(LEVELS[default], LEVELS["warn"]),
-        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
-        stream=sys.stderr,
-        force=True,
-    )
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
+    logging.basicConfig(level=max(LEVELS[default], LEVELS["warn"]), handlers=[handler], force=True)
     logging.getLogger("archery").setLevel(LEVELS[default])
     for target, level in targets.items():
         if not target.startswith("zenoh"):

@@ -33,6 +33,7 @@ CASES: list[tuple[str, int, str]] = [
     # read
     ("read {robot}/torso/state:o --count 1 --timeout -1 {net}", 2, "'-1'"),
     ("read {robot}/torso/state:o --count 1 --timeout nan {net}", 2, "'nan'"),
+    ("read {robot}/torso/state:o --count 1 --timeout 1e308 {net}", 2, "beyond 10000000 s"),
     ("read {robot}/torso/state:o --count -1 {net}", 2, "'-1'"),
     ("read {robot}/torso/state:o --count two {net}", 2, "'two'"),
     ("read {robot}/torso/rpc:i {net}", 2, "not a stream"),

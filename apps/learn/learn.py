@@ -236,10 +236,19 @@ def _open_node(net: NetConfig, wait: float) -> Node:
             return Node(None, net)
         except Unreachable:
             left = deadline - time.monotonic()
-            if left <= 0:
-                raise
+            if left <= 0 or _listening(net.connect[0]):
+                raise  # something listens, yet no session: waiting will not change that
             with contextlib.suppress(ConfigError):  # then the session says why, once more
                 wait_for_endpoint(net.connect[0], left)
+
+
+def _listening(endpoint: str) -> bool:
+    """Whether the endpoint accepts a TCP connection now."""
+    try:
+        wait_for_endpoint(endpoint, 0.0)
+    except ConfigError:
+        return False
+    return True
 
 
 def main(argv: list[str] | None = None) -> int:
