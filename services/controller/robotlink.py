@@ -44,7 +44,8 @@ class MoveResult:
         targets: the joint targets sent {joint: rad} (after clipping into the limits).
         measured: the latest measured posture {joint: rad} of every part.
         wall_s: wall time from sending the commands to the end of the wait (s).
-        sim_time: the robot's simulated time of the latest state (s).
+        sim_time: the robot's simulated time (s) of the state that showed the move done (of
+            the latest state when it was not).
         reason: why the move was not reached ("" when reached).
     """
 
@@ -168,6 +169,7 @@ class RobotLink:
             )
         reason = ""
         tol = self.joint_tolerance
+        done_at = 0.0  # sim s of the state that showed the last part there (load-independent)
         for part in parts:
             remaining = max(0.0, start + timeout - time.monotonic())
             goal = sent[part]
@@ -177,9 +179,10 @@ class RobotLink:
                 return msg.motion_done and bool(error <= tol)
 
             try:
-                self.states[part].wait_newer(
+                arrived = self.states[part].wait_newer(
                     remaining, there, after_seq=marks[part], max_age=self.state_max_age
                 )
+                done_at = max(done_at, arrived.sim_time or 0.0)
             except RpcTimeout:
                 reason = (
                     f"{self.states[part].key} did not show motion done within {tol:g} rad of "
@@ -193,7 +196,7 @@ class RobotLink:
             for msg in latest.values()
             for name, value in zip(msg.names, msg.position, strict=True)
         }
-        sim_time = max((m.sim_time or 0.0) for m in latest.values())
+        sim_time = done_at if not reason else max((m.sim_time or 0.0) for m in latest.values())
         return MoveResult(
             reached=not reason,
             targets={j: float(v) for p in parts for j, v in zip(PARTS[p], sent[p], strict=True)},
