@@ -41,6 +41,7 @@ from protocol.robotspec import SERVICES
 __all__ = [
     "IDENTITIES",
     "Authority",
+    "identity_folder",
     "init_deployment",
     "issue",
     "new_authority",
@@ -259,3 +260,30 @@ def unignored_keys(folder: Path) -> list[Path]:
     except (OSError, subprocess.TimeoutExpired):
         return []
     return [k for k in keys if k.name not in ignored]
+
+
+def identity_folder(deployment: Path, identity: str, into: Path) -> Path:
+    """A folder `into`/`identity` (0700) holding what one process of `identity` needs of the
+    deployment and nothing more: the CA's certificate (never its key), the identity's
+    certificate and key, and for the router its access control. What `archery up --secure`
+    hands each child, so no service can read another's key or sign a certificate.
+
+    Raises:
+        ConfigError: the deployment lacks one of those files.
+    """
+    folder = into / identity
+    folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    names = [CA_CERT, f"{identity}.pem", f"{identity}.key"]
+    if identity == ROUTER:
+        names.append(ACL_FILE)
+    for name in names:
+        source = deployment / name
+        try:
+            data = source.read_bytes()
+        except OSError as exc:
+            raise ConfigError(
+                f"--secure {deployment}: cannot read {name} ({exc.strerror}); create the "
+                f"deployment with `archery keys init {deployment}`"
+            ) from None
+        _write(folder / name, data, 0o600 if name.endswith(".key") else 0o644)
+    return folder

@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime as dt
+import ipaddress
 import json
 import re
 import socket
@@ -68,6 +69,8 @@ class NetConfig:
             (`with_identity`).
         replace: a service whose name is taken asks the live instance to stop and starts
             (otherwise it refuses to start).
+        insecure_network: in plain mode, allow `listen` beyond loopback (anyone who reaches
+            that address may then publish, serve and call anything).
     """
 
     connect: tuple[str, ...] = (DEFAULT_ROUTER,)
@@ -77,6 +80,7 @@ class NetConfig:
     secure: str | None = None
     identity: str | None = None
     replace: bool = False
+    insecure_network: bool = False
 
     def __post_init__(self) -> None:
         if self.mode not in MODES:
@@ -102,6 +106,16 @@ class NetConfig:
             raise ConfigError(f"--robot: {exc}") from None
         if self.identity is not None and not _IDENTITY.match(self.identity):
             raise ConfigError(f"--identity {self.identity!r} is not a valid identity name")
+        if self.secure is None and not self.insecure_network:
+            for endpoint in self.listen:
+                if not _loopback(endpoint):
+                    raise ConfigError(
+                        f"--listen {endpoint}: plain mode trusts every peer, and this address "
+                        "is reachable from other machines, which could then move the robot. Use "
+                        "--secure DIR (mutual TLS and access control: `archery keys init DIR`), "
+                        "listen on 127.0.0.1, or give --insecure-network on a network you trust "
+                        "(e.g. a container network)"
+                    )
         if self.secure is not None:
             for flag, endpoints in (("--connect", self.connect), ("--listen", self.listen)):
                 for endpoint in endpoints:
@@ -187,6 +201,7 @@ class NetConfig:
             secure=secure,
             identity=getattr(args, "identity", None),
             replace=bool(getattr(args, "replace", False)),
+            insecure_network=bool(getattr(args, "insecure_network", False)),
         )
 
     def zenoh_config(self) -> zenoh.Config:
@@ -233,11 +248,31 @@ def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "cl
         f"{DEFAULT_SECURE_ROUTER}",
     )
     group.add_argument(
+        "--insecure-network",
+        action="store_true",
+        help="plain mode only: allow --listen beyond loopback (anyone reaching it may move the "
+        "robot; prefer --secure)",
+    )
+    group.add_argument(
         "--identity",
         metavar="NAME",
         help="with --secure: the identity to present (default: the service's name, "
         "`operator` for tools, `router` for the router)",
     )
+
+
+def _loopback(endpoint: str) -> bool:
+    """Whether a listen endpoint is reachable from this machine only (loopback, a Unix socket)."""
+    proto, _, address = endpoint.partition("/")
+    if proto == "unixsock-stream":
+        return True
+    host = address.rpartition(":")[0].strip("[]") or address
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a host name: it may resolve to any interface
 
 
 def open_session(net: NetConfig) -> zenoh.Session:

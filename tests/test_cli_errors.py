@@ -161,6 +161,8 @@ CASES: list[tuple[str, int, str]] = [
     ("controller --traj-time nan {net}", 2, "nan"),
     ("calibrate {tmp}/missing.png --pixels {tmp}/p.json --out {tmp}/m.json", 2, "missing.png"),
     ("router --listen localhost:1", 2, "'localhost:1'"),
+    ("router --listen tcp/0.0.0.0:{busy}", 2, "plain mode trusts every peer"),
+    ("up --listen tcp/0.0.0.0:7447 --runs {tmp}/up-runs2", 2, "--insecure-network"),
     ("detect {tmp}/missing.jpg --model {tmp}/m.json", 2, "'{tmp}/missing.jpg'"),
     # record, replay, hz
     ("record --out {tmp}/r.txt {net}", 2, "'{tmp}/r.txt': give a file name ending in .mcap"),

@@ -48,7 +48,8 @@ def test_compose_describes_the_default_mesh() -> None:
     plain = {n: s for n, s in compose.items() if "profiles" not in s and n != "demo"}
     assert set(plain) == {"router", *SERVICES}
     router = plain["router"]["command"]
-    assert router[:3] == ["archery", "router", "--listen"] and len(router) == 4
+    assert router[:3] == ["archery", "router", "--listen"] and len(router) == 5
+    assert router[4] == "--insecure-network"  # the container network is the trust boundary
     assert plain["router"]["restart"] == COMPOSE_RESTART[mesh.router.restart.mode]
     volume = compose["learner"]["volumes"][0]
     host_runs, container_runs = volume.rsplit(":", 1)

@@ -35,6 +35,7 @@ def test_flags_are_repeatable() -> None:
         "client",
         "--robot",
         "icub2",
+        "--insecure-network",
     )
     assert net.connect == ("tcp/10.0.0.1:7447", "tcp/router:7447")
     assert net.listen == ("tcp/0.0.0.0:0",) and net.mode == "client" and net.robot == "icub2"
@@ -61,3 +62,28 @@ def test_client_without_router_fails_at_once_with_advice() -> None:
     with pytest.raises(ConfigError, match="Is a router running there"):
         open_session(net)
     assert time.monotonic() - start < 5
+
+
+@pytest.mark.parametrize(
+    ("listen", "allowed"),
+    [
+        ("tcp/127.0.0.1:7447", True),
+        ("tcp/127.0.0.2:7447", True),
+        ("tcp/[::1]:7447", True),
+        ("tcp/localhost:7447", True),
+        ("unixsock-stream//tmp/archery.sock", True),
+        ("tcp/0.0.0.0:7447", False),
+        ("tcp/[::]:7447", False),
+        ("tcp/192.0.2.7:7447", False),
+        ("tcp/robothost:7447", False),
+    ],
+)
+def test_plain_mode_listens_beyond_loopback_only_when_told(listen: str, allowed: bool) -> None:
+    """Plain mode trusts every peer: listening where other machines reach it needs
+    --insecure-network (or --secure, which has its own tls/ rule)."""
+    if allowed:
+        assert NetConfig(listen=(listen,)).listen == (listen,)
+    else:
+        with pytest.raises(ConfigError, match="plain mode trusts every peer.*--insecure-network"):
+            NetConfig(listen=(listen,))
+    assert NetConfig(listen=(listen,), insecure_network=True).listen == (listen,)

@@ -504,3 +504,30 @@ def test_a_plain_client_meeting_a_secure_router_is_told_so(endpoint: str) -> Non
     with pytest.raises(Unreachable, match="does not answer plain Zenoh: a secure router") as err:
         open_session(plain)
     assert f"--connect {endpoint}" in str(err.value)
+
+
+def test_up_hands_each_child_only_the_ca_certificate_and_its_own_identity(
+    deployment: Path, tmp_path: Path
+) -> None:
+    from apps.up.launcher import Launcher
+
+    launcher = Launcher(
+        free_tcp_endpoint().replace("tcp/", "tls/"),
+        ROBOT,
+        tmp_path / "logs",
+        secure=str(deployment),
+    )
+    flag, robot_dir = launcher._identity("robot")
+    _, router_dir = launcher._identity("router")
+    assert flag == "--secure"
+    assert sorted(p.name for p in Path(robot_dir).iterdir()) == ["ca.pem", "robot.key", "robot.pem"]
+    assert sorted(p.name for p in Path(router_dir).iterdir()) == [
+        "acl.json5",
+        "ca.pem",
+        "router.key",
+        "router.pem",
+    ]
+    assert stat.S_IMODE(Path(robot_dir).stat().st_mode) == 0o700
+    assert stat.S_IMODE((Path(robot_dir) / "robot.key").stat().st_mode) == 0o600
+    launcher.stop_all()
+    assert not Path(robot_dir).exists() and not Path(router_dir).exists()

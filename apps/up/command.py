@@ -203,7 +203,20 @@ def main(argv: list[str] | None = None) -> int:
             check_writable_dir(
                 Path(args.record).parent, f"--record {args.record!r}: folder", create=False
             )
-        launcher = Launcher(logs=Path(args.logs), secure=args.secure, mesh=mesh)
+        if mesh.router.start:  # the router's listen endpoint, checked before anything starts
+            NetConfig(
+                connect=(),
+                listen=(mesh.router.endpoint,),
+                mode="router",
+                secure=args.secure,
+                insecure_network=args.insecure_network,
+            )
+        launcher = Launcher(
+            logs=Path(args.logs),
+            secure=args.secure,
+            mesh=mesh,
+            insecure_network=args.insecure_network,
+        )
         stop = shutdown_on_signals()
         where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
         print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)

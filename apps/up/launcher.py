@@ -18,10 +18,12 @@ from __future__ import annotations
 import dataclasses
 import os
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Iterable, Sequence
@@ -36,6 +38,7 @@ from apps.up.launch_config import (
     ServiceSpec,
 )
 from apps.up.restart_policy import RestartPolicy, describe_status
+from mesh.credentials import identity_folder
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
 from mesh.node import Node
 from mesh.router import wait_for_endpoint
@@ -89,9 +92,13 @@ class Launcher:
         logs: directory of the children's logs.
         service_args: extra command-line arguments per service name.
         router: start a router (False: connect the services to one that runs already).
-        secure: a deployment directory (`archery keys init`): every child runs with --secure.
+        secure: a deployment directory (`archery keys init`): every child runs with --secure,
+            given a folder of its own with the CA certificate and its identity only
+            (`mesh.credentials.identity_folder`), removed when everything stopped.
         mesh: a whole launch description (`apps.up.launch_config`); it replaces `endpoint`,
             `robot`, `service_args` and `router`, and gives each child its restart policy.
+        insecure_network: the router may listen beyond loopback in plain mode
+            (`--insecure-network`).
     """
 
     def __init__(
@@ -104,6 +111,7 @@ class Launcher:
         secure: str | None = None,
         *,
         mesh: MeshConfig | None = None,
+        insecure_network: bool = False,
     ) -> None:
         if mesh is None:
             args = {k: tuple(v) for k, v in (service_args or {}).items()}
@@ -118,7 +126,11 @@ class Launcher:
         self.mesh = mesh
         self.endpoint = mesh.router.endpoint
         self.net = NetConfig(connect=(self.endpoint,), robot=mesh.robots[0].prefix, secure=secure)
-        self.secure = ["--secure", secure] if secure else []
+        self.secure = ["--secure", secure] if secure else []  # for tools of the operator
+        # each child's own folder: the CA certificate and its identity only (never `ca.key`)
+        self._secrets = Path(tempfile.mkdtemp(prefix="archery-identities-")) if secure else None
+        self._deployment = Path(secure) if secure else None
+        self._insecure = ["--insecure-network"] if insecure_network else []
         self.logs = Path(logs)
         self.specs = {spec.id: spec for spec in mesh.children()}
         self.with_router = mesh.router.start
@@ -160,7 +172,8 @@ class Launcher:
         """
         if not restart:
             _check_free(self.endpoint)
-        child = self._spawn("router", ["router", "--listen", self.endpoint, *self.secure])
+        argv = ["router", "--listen", self.endpoint, *self._identity("router")]
+        child = self._spawn("router", argv + self._insecure)
         deadline = time.monotonic() + timeout
         while child.returncode is None:
             self._check_stop()
@@ -189,8 +202,15 @@ class Launcher:
             raise LaunchError(
                 f"{name} is running already (pid {old.proc.pid if old.proc else '?'})"
             )
-        argv = [spec.service, "--connect", self.endpoint, "--robot", spec.robot, *self.secure]
+        argv = [spec.service, "--connect", self.endpoint, "--robot", spec.robot]
+        argv += self._identity(spec.service)
         return self._spawn(name, argv + list(spec.args))
+
+    def _identity(self, identity: str) -> list[str]:
+        """`--secure FOLDER` of a child of `identity` (none in plain mode)."""
+        if self._secrets is None or self._deployment is None:
+            return []
+        return ["--secure", str(identity_folder(self._deployment, identity, self._secrets))]
 
     def restart(self, name: str) -> None:
         """Start a child that exited again: the router on its endpoint, or a service."""
@@ -232,6 +252,7 @@ class Launcher:
             self.wait_alive(names, timeout)
         except StartInterrupted:
             self.stop(list(self.children), INTERRUPT_GRACE)  # all at once: no order to keep
+            self.forget_identities()
             raise
         except BaseException:
             self.stop_all()
@@ -329,6 +350,11 @@ class Launcher:
                 child.proc.wait(10)
         return {c.name: c.returncode for c in chosen}
 
+    def forget_identities(self) -> None:
+        """Remove the children's identity folders (once every child has stopped)."""
+        if self._secrets is not None:
+            shutil.rmtree(self._secrets, ignore_errors=True)
+
     def stop_all(self, grace: float = 10.0) -> dict[str, int | None]:
         """Stop the services (all at once, the learners' sessions first), then the router."""
         services = [n for n in self.children if n != "router"]
@@ -340,6 +366,7 @@ class Launcher:
         codes = self.stop(learners, grace) if learners else {}
         codes |= self.stop(rest, grace)
         codes |= self.stop(["router"], grace)
+        self.forget_identities()
         return codes
 
     def __enter__(self) -> Launcher:
