@@ -84,6 +84,6 @@ def test_plain_mode_listens_beyond_loopback_only_when_told(listen: str, allowed:
     if allowed:
         assert NetConfig(listen=(listen,)).listen == (listen,)
     else:
-        with pytest.raises(ConfigError, match="plain mode trusts every peer.*--insecure-network"):
+        with pytest.raises(ConfigError, match=r"plain mode trusts every peer.*--insecure-network"):
             NetConfig(listen=(listen,))
     assert NetConfig(listen=(listen,), insecure_network=True).listen == (listen,)
