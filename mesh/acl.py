@@ -1,42 +1,41 @@
-"""The router's access control for one robot, generated from the port table.
+"""The router's access control for one robot, generated from the port and verb tables.
 
-Every identity (a certificate common name: the five services, `operator` for the CLI tools)
-gets exactly the flows its role needs, and everything else is denied (`default_permission:
-deny`). The router enforces the rules on its own links: `ingress` is what an identity sends to
-the router, `egress` what the router forwards to it. A denied message is dropped silently at
-the router: the sender's `put` or `declare_*` still succeeds, the receiver never sees it.
+Every identity (a certificate common name: the five services, `operator` and `viewer` for the
+CLI tools) gets exactly the flows its job needs, and everything else is denied
+(`default_permission: deny`). The router enforces the rules on its own links: `ingress` is what
+an identity sends to the router, `egress` what the router forwards to it. A denied message is
+dropped silently at the router: the sender's `put` or `declare_*` still succeeds, the receiver
+never sees it (a caller is told "denied by access control", `mesh.rpc_client`).
 
-A role is described by the keys it publishes, subscribes to, serves (`rpc:i` queryables) and
-calls; `_grants` turns each into the Zenoh messages and directions it takes:
+Access is per verb: a call of VERB on an `rpc:i` port goes to the key `PORT/VERB`
+(`protocol.keys.verb_key`) and a server answers `PORT/*`, so a rule can grant one verb and not
+its neighbours. A role is the keys it publishes, subscribes to, serves and calls; `_grants`
+turns each into the Zenoh messages and directions it takes:
 
 * publish K: `put` in, `declare_subscriber` out (the publisher learns who listens);
 * subscribe K: `declare_subscriber` in, `put` out;
 * serve K: `declare_queryable` in, `query` out, `reply` in;
-* call K: `query` in, `reply` out, `declare_queryable` out;
-* every identity holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
-  `ROBOT/alive/NAME/*`), serves its own `ROBOT/describe/NAME`, may query its own describe (the
-  one-instance check) and watch every token of the robot (`wait_alive`, the replier check).
+* call K: `query` in; `reply` and `declare_queryable` out on the port (`PORT/*`);
+* every service holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
+  `ROBOT/alive/NAME/*`), serves and may call its own `ROBOT/describe/NAME` and
+  `ROBOT/replace/NAME` (its next instance presents the same identity); every identity may watch
+  the robot's tokens (`wait_alive`, the replier check).
 
-Every grant is a flow of the running services (a session of `archery learn` uses them all):
+The calls of each service are those its code makes:
 
-* robot: publishes joint states, the scene (`world/state:o`) and world events; takes joint
-  commands; serves the joint RPCs and `archery/rpc:i` (nock, release, reset, setWind, status);
-* camera: subscribes to the scene (a change wakes the renderer), calls `archery/rpc:i`
-  (`status`: which scene to render), serves `cam/rpc:i` (grab, calibration marks) and
-  publishes the frames (read by `archery view`, the operator);
-* detector: calls `cam/rpc:i` (grabs the frame of a shot, the calibration marks), serves
-  `detector/rpc:i` (measure, calibrate), publishes `detector/hit:o`; it does not subscribe
-  to the frame stream;
-* controller: subscribes to the joint states, publishes joint commands, calls the joint RPCs
-  (`getLimits`, `setRefSpeeds`), serves the three cartesian controllers;
-* learner: calls `cartesianController/archery/rpc:i` (status, posture), `archery/rpc:i`
-  (reset, nock, release) and `detector/rpc:i` (measure, frame), subscribes to the world
-  events (the shot's outcome), serves `learner/rpc:i` and publishes `learner/rollout:o`;
-* operator (the CLI tools: `learn`, `ports`, `read`, `rpc`, `view`, `write`, and `up`
-  waiting for its children): calls every RPC (the learner's `start`/`status`/`stop` for
-  `archery learn`) and `describe/*`, reads every stream (`learner/rollout:o` for `archery
-  learn`), commands the joints, watches the liveliness tokens; it holds no token and serves
-  nothing.
+* robot: publishes joint states, the scene and world events; takes joint commands; serves the
+  joint RPCs and `archery/rpc:i`; calls nothing;
+* camera: calls `archery/rpc:i status` (which scene to render); serves `cam/rpc:i`;
+* detector: calls `cam/rpc:i grab, calibration`; serves `detector/rpc:i`; it does not
+  subscribe to the frame stream;
+* controller: calls each part's `getLimits, setRefSpeeds`, publishes joint commands, reads the
+  joint states; serves the three cartesian controllers;
+* learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
+  release` and the detector's `measure, frame`; serves `learner/rpc:i`;
+* operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
+  `replay`): every verb, the joint commands, every stream, every `describe` and `replace`;
+* viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
+  `interface`, `dashboard`): every stream and the verbs that change nothing (`Verb.reads`).
 """
 
 from __future__ import annotations
@@ -44,12 +43,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from protocol.keys import CARTESIAN_ARMS, Keys
+from protocol.keys import CARTESIAN_ARMS, Keys, verb_key, verbs_key
 from protocol.parts import PARTS
+from protocol.verbs import TABLES
 
-__all__ = ["OPERATOR", "Role", "roles", "rules", "server_of"]
+__all__ = ["OPERATOR", "TOOLS", "VIEWER", "Role", "roles", "rules", "server_of"]
 
-OPERATOR = "operator"
+OPERATOR = "operator"  # the tools that move the robot
+VIEWER = "viewer"  # the tools that only look
+TOOLS = (OPERATOR, VIEWER)  # identities of tools: no token, serve nothing
 
 
 @dataclass(frozen=True)
@@ -62,55 +64,84 @@ class Role:
     call: tuple[str, ...] = ()
 
 
+def _calls(key: str, *verbs: str) -> tuple[str, ...]:
+    """The keys of calls of `verbs` on the `rpc:i` port `key` (one key per verb)."""
+    return tuple(verb_key(key, verb) for verb in verbs)
+
+
+def _reading_calls(robot: str) -> tuple[str, ...]:
+    """Every verb of every table that only reads (`Verb.reads`), on each port that serves it."""
+    return tuple(
+        verb_key(f"{robot}/{port}", verb.name)
+        for table in TABLES
+        for port in table.ports
+        for verb in table
+        if verb.reads
+    )
+
+
 def roles(robot: str) -> dict[str, Role]:
-    """The role of every identity of a deployment for robot prefix `robot`."""
+    """The role of every identity of a deployment for robot prefix `robot`: per verb, exactly
+    the calls its job makes (the keys `protocol.keys.verb_key` gives)."""
     k = Keys(robot)
     states = tuple(k.state(p) for p in PARTS)
     commands = tuple(k.command(p) for p in PARTS)
     part_rpcs = tuple(k.part_rpc(p) for p in PARTS)
     cartesian = tuple(k.cartesian_rpc(a) for a in CARTESIAN_ARMS)
-    every_rpc = (
-        *part_rpcs,
-        k.archery_rpc(),
-        k.cam_rpc(),
-        k.detector_rpc(),
-        *cartesian,
-        k.learner_rpc(),
-        f"{robot}/describe/*",
-    )
+    every_rpc = (*part_rpcs, k.archery_rpc(), k.cam_rpc(), k.detector_rpc(), *cartesian)
+    every_verb = (*(verbs_key(key) for key in (*every_rpc, k.learner_rpc())),)
+    describe_all = f"{robot}/describe/*"
     return {
         "robot": Role(
             publish=(*states, k.world_state(), k.world_events()),
             subscribe=commands,
-            serve=(*part_rpcs, k.archery_rpc()),
+            serve=tuple(verbs_key(key) for key in (*part_rpcs, k.archery_rpc())),
         ),
         "camera": Role(
             publish=(k.cam_frames(),),
             subscribe=(k.world_state(),),
-            serve=(k.cam_rpc(),),
-            call=(k.archery_rpc(),),
+            serve=(verbs_key(k.cam_rpc()),),
+            call=_calls(k.archery_rpc(), "status"),  # which scene to render
         ),
         "detector": Role(
             publish=(k.detector_hits(),),
-            serve=(k.detector_rpc(),),
-            call=(k.cam_rpc(),),  # it grabs frames by RPC; the frame stream is the operator's
+            serve=(verbs_key(k.detector_rpc()),),
+            # it grabs frames by RPC; the frame stream is for people
+            call=_calls(k.cam_rpc(), "grab", "calibration"),
         ),
         "controller": Role(
             publish=commands,
             subscribe=states,
-            serve=cartesian,
-            call=part_rpcs,
+            serve=tuple(verbs_key(key) for key in cartesian),
+            call=tuple(c for key in part_rpcs for c in _calls(key, "getLimits", "setRefSpeeds")),
         ),
         "learner": Role(
             publish=(k.learner_rollouts(),),
             subscribe=(k.world_events(),),
-            serve=(k.learner_rpc(),),
-            call=(k.cartesian_rpc("archery"), k.archery_rpc(), k.detector_rpc()),
+            serve=(verbs_key(k.learner_rpc()),),
+            call=(
+                *_calls(k.cartesian_rpc("archery"), "status", "posture"),
+                *_calls(k.archery_rpc(), "reset", "nock", "release"),
+                *_calls(k.detector_rpc(), "measure", "frame"),
+            ),
         ),
-        # The CLI tools (ports, read, rpc, view, learn, up): read every stream, call every
-        # verb, and command the joints (`archery write ROBOT/PART/command:i`), nothing else.
-        OPERATOR: Role(publish=commands, subscribe=(f"{robot}/**",), call=every_rpc),
+        # The tools that move the robot or run sessions (rpc, write, learn, up): every verb,
+        # the joint commands, every stream.
+        OPERATOR: Role(
+            publish=commands,
+            subscribe=(f"{robot}/**",),
+            call=(*every_verb, describe_all, f"{robot}/replace/*"),
+        ),
+        # The tools that only look (ports, read, hz, record, view, dashboard, alive,
+        # interface): every stream and the verbs that change nothing.
+        VIEWER: Role(subscribe=(f"{robot}/**",), call=(*_reading_calls(robot), describe_all)),
     }
+
+
+def _port_of_call(call: str) -> str:
+    """`KEY/*` for a call's key `KEY/VERB` of an `rpc:i` port (other keys as they are)."""
+    head, _, _ = call.rpartition("/")
+    return verbs_key(head) if head.endswith("rpc:i") else call
 
 
 def _rule(rule_id: str, messages: list[str], flow: str, key_exprs: tuple[str, ...]) -> dict:
@@ -131,18 +162,23 @@ def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
     if role.subscribe:
         out.append(_rule(f"{name}-subscribe", ["declare_subscriber"], "ingress", role.subscribe))
         out.append(_rule(f"{name}-subscribe-data", ["put"], "egress", role.subscribe))
-    own_describe = f"{robot}/describe/{name}"
-    serve = (*role.serve, own_describe) if name != OPERATOR else role.serve
+    # its own describe and replace keys: served, and called by its next instance (a
+    # replacement presents the same identity; it holds no other)
+    own = (f"{robot}/describe/{name}", f"{robot}/replace/{name}")
+    serve = (*role.serve, *own) if name not in TOOLS else role.serve
     if serve:
         out.append(_rule(f"{name}-serve", ["declare_queryable", "reply"], "ingress", serve))
         out.append(_rule(f"{name}-serve-queries", ["query"], "egress", serve))
-    call = (*role.call, own_describe) if name != OPERATOR else role.call
+    call = (*role.call, *own) if name not in TOOLS else role.call
     out.append(_rule(f"{name}-call", ["query"], "ingress", call))
-    out.append(_rule(f"{name}-call-replies", ["reply", "declare_queryable"], "egress", call))
+    # the replies come on the verb's key; the server's queryable is declared on every verb of
+    # its port (`verbs_key`), which the caller learns of whole
+    ports = tuple(dict.fromkeys(_port_of_call(c) for c in call))
+    out.append(_rule(f"{name}-call-replies", ["reply", "declare_queryable"], "egress", ports))
     alive = f"{robot}/alive/**"
-    if name != OPERATOR:
-        own = (f"{robot}/alive/{name}", f"{robot}/alive/{name}/*")
-        out.append(_rule(f"{name}-token", ["liveliness_token"], "ingress", own))
+    if name not in TOOLS:
+        tokens = (f"{robot}/alive/{name}", f"{robot}/alive/{name}/*")
+        out.append(_rule(f"{name}-token", ["liveliness_token"], "ingress", tokens))
     out.append(
         _rule(
             f"{name}-watch",
@@ -178,4 +214,5 @@ def rules(robot: str) -> dict[str, Any]:
 
 def server_of(robot: str, key: str) -> str | None:
     """The identity that serves the `rpc:i` key `key` of robot `robot`, or None."""
-    return next((name for name, role in roles(robot).items() if key in role.serve), None)
+    served = verbs_key(key)
+    return next((name for name, role in roles(robot).items() if served in role.serve), None)

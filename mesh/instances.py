@@ -12,10 +12,14 @@ against an attacker.
 Before a service declares any port, `claim` looks for a live instance of its name: if there is
 one, the new one refuses to start (`DuplicateService`, exit status 2) naming the pid and host
 of the live one (from its `describe` reply), unless `replace`. With `replace`, the live
-instance is asked to stop (a `describe` query whose payload is `REPLACE`): a service run by
-`service_main` stops as on SIGTERM, cleanly, and the new one waits until its tokens are gone;
-a process that cannot stop that way keeps running (logged on both sides) and the new one
-starts anyway after `timeout`, so two instances then run until the old one is stopped.
+instance is asked to stop by a `ReplaceRequest` on its own key `ROBOT/replace/NAME` (never by
+a message to another port): it stops only when the request comes from a process of its own
+host, alive, whose command line runs `NAME` with `--replace` (`accept_replace`); anything else
+is refused and logged. In secure mode the router lets only NAME's own identity and the operator
+send it. A service run by `service_main` stops as on SIGTERM, cleanly, and the new one waits
+until its tokens are gone; a process that cannot stop that way keeps running (logged on both
+sides) and the new one starts anyway after `timeout`, so two instances then run until the old
+one is stopped.
 """
 
 from __future__ import annotations
@@ -25,18 +29,19 @@ import os
 import socket
 import threading
 import time
+from pathlib import Path
 
 import zenoh
 
 from mesh.tokens import TokenSet
-from protocol.codec import decode
+from protocol.codec import decode, encode
 from protocol.errors import DecodeError, DuplicateService
 from protocol.keys import Keys
-from protocol.messages import Describe
+from protocol.messages import Describe, ReplaceRequest
 
 __all__ = [
-    "REPLACE",
     "InstanceWatch",
+    "accept_replace",
     "claim",
     "describe_all",
     "live_instances",
@@ -46,7 +51,6 @@ __all__ = [
 ]
 
 log = logging.getLogger("archery.node")
-REPLACE = b"replace"
 _stop_event: threading.Event | None = None
 
 
@@ -112,6 +116,26 @@ def describe_all(
     return out
 
 
+def accept_replace(name: str, payload: bytes, host: str | None = None) -> str:
+    """Check a `ReplaceRequest` for the live instance of `name`: "" when it may stop, else why
+    not. It must come from this host, from a live process whose command line runs `name`
+    with `--replace` (`/proc/PID/cmdline`)."""
+    try:
+        request = decode(payload, ReplaceRequest)
+    except DecodeError as exc:
+        return f"not a ReplaceRequest: {exc}"
+    here = socket.gethostname() if host is None else host
+    if request.service != name or request.host != here:
+        return f"a request for {request.service[:64]!r} from host {request.host[:64]!r}"
+    try:
+        argv = Path(f"/proc/{request.pid}/cmdline").read_bytes().split(b"\0")
+    except (OSError, ValueError):
+        return f"no process {request.pid} on this host"
+    if name.encode() not in argv or b"--replace" not in argv:
+        return f"process {request.pid} does not run {name} with --replace"
+    return ""
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -161,7 +185,10 @@ def claim(
             f"this one with --replace to make the live one stop"
         )
     log.warning("replacing the live %s: %s", name, where)
-    describe_all(session, keys, name, payload=REPLACE)
+    request = ReplaceRequest(service=name, host=host, pid=os.getpid())
+    for reply in session.get(keys.replace(name), payload=encode(request), timeout=5.0):
+        if reply.err is not None:
+            log.warning("the live %s refused: %s", name, reply.err.payload.to_string()[:300])
     start = time.monotonic()
     left = _wait_gone(session, keys, name, others, timeout)
     if left:

@@ -10,6 +10,7 @@ logged and counted, never fatal.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import os
@@ -26,10 +27,12 @@ from mesh import instances
 from mesh.liveliness import Liveliness
 from mesh.netflags import NetConfig, open_session
 from mesh.publisher import Publisher
+from mesh.router import wait_for_endpoint
 from mesh.rpc_client import RpcClient
 from mesh.rpc_server import RpcServer
 from mesh.subscription import Subscription
 from protocol.codec import encode
+from protocol.errors import ConfigError, Unreachable
 from protocol.keys import Keys
 from protocol.messages import (
     Describe,
@@ -38,7 +41,7 @@ from protocol.messages import (
 )
 from protocol.verbs.base import ServedVerbs
 
-__all__ = ["Node"]
+__all__ = ["Node", "open_node"]
 
 M = TypeVar("M", bound=Message)
 log = logging.getLogger("archery.node")
@@ -78,6 +81,9 @@ class Node(RpcClient, Liveliness):
             instances.claim(self.session, self.keys, name, net.replace)
             self._describe = self.session.declare_queryable(
                 self.keys.describe(name), self._on_describe
+            )
+            self._replace = self.session.declare_queryable(
+                self.keys.replace(name), self._on_replace
             )
 
     def ready(self) -> None:
@@ -124,6 +130,7 @@ class Node(RpcClient, Liveliness):
             quietly("liveliness watch", self._watch.close)
         if self.name is not None:
             quietly("describe queryable", self._describe.undeclare)
+            quietly("replace queryable", self._replace.undeclare)
         for item in reversed(self._closables):
             quietly(type(item).__name__, item.close)
         for key, querier in self._queriers.items():
@@ -188,9 +195,50 @@ class Node(RpcClient, Liveliness):
             interfaces=dict(self._interfaces),
         )
 
+    def _on_replace(self, query: zenoh.Query) -> None:
+        """A new instance asks this one to stop (`mesh.instances`): stop if it may."""
+        name = self.name or ""
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        refused = instances.accept_replace(name, payload)
+        if refused:
+            log.warning("refused a request to make way for another %s: %s", name, refused)
+            query.reply_err(f"refused: {refused}".encode())
+        else:
+            query.reply(query.key_expr, b"stopping")
+            instances.replace_requested(name)
+        query.drop()
+
     def _on_describe(self, query: zenoh.Query) -> None:
-        if query.payload is not None and query.payload.to_bytes() == instances.REPLACE:
-            instances.replace_requested(self.name or "")
         query.reply(
             query.key_expr, encode(msgspec.structs.replace(self.describe(), stamp=time.time()))
         )
+
+
+def open_node(net: NetConfig, wait: float = 0.0, name: str | None = None) -> Node:
+    """A node on the mesh, waiting up to `wait` s for the router to listen (`archery up &` or
+    `archery router &` followed at once by a tool). Only while nothing listens: a router that
+    listens yet refuses the session (another deployment's certificate) fails at once.
+
+    Raises:
+        Unreachable: no router listens at the endpoint after `wait` s.
+        ConfigError: other bad settings (e.g. a missing deployment file).
+    """
+    deadline = time.monotonic() + wait
+    while True:
+        try:
+            return Node(name, net)
+        except Unreachable:
+            left = deadline - time.monotonic()
+            if left <= 0 or not net.connect or _listening(net.connect[0]):
+                raise
+            with contextlib.suppress(ConfigError):  # then the session says why, once more
+                wait_for_endpoint(net.connect[0], left)
+
+
+def _listening(endpoint: str) -> bool:
+    """Whether the endpoint accepts a TCP connection now."""
+    try:
+        wait_for_endpoint(endpoint, 0.0)
+    except ConfigError:
+        return False
+    return True

@@ -23,7 +23,7 @@ from protocol.errors import (
     UpstreamLost,
     WrongReplier,
 )
-from protocol.keys import Keys
+from protocol.keys import Keys, verb_key
 from protocol.messages import (
     RpcReply,
     RpcRequest,
@@ -87,7 +87,7 @@ class RpcClient:
             seq=seq,
             stamp=time.time(),
         )
-        payload = self._query(key, encode(request), timeout, expect_service)
+        payload = self._query(key, verb.name, encode(request), timeout, expect_service)
         try:
             reply = verb.reply_decoder.decode(payload)
         except (msgspec.ValidationError, msgspec.DecodeError, RecursionError) as exc:
@@ -111,26 +111,35 @@ class RpcClient:
         key: str,
         payload: bytes,
         *,
+        verb: str,
         timeout: float = CALL_TIMEOUT,
         expect_service: str | None = None,
     ) -> RpcReply:
-        """Send a raw request payload and return the decoded `RpcReply` (no error raising but
-        `WrongReplier` when `expect_service` is given and only others replied)."""
-        return decode(self._query(key, payload, timeout, expect_service), RpcReply)
+        """Send a raw request payload for `verb` and return the decoded `RpcReply` (no error
+        raising but `WrongReplier` when `expect_service` is given and only others replied)."""
+        return decode(self._query(key, verb, payload, timeout, expect_service), RpcReply)
 
     def _query(
-        self, key: str, payload: bytes, timeout: float, expect_service: str | None = None
+        self,
+        key: str,
+        verb: str,
+        payload: bytes,
+        timeout: float,
+        expect_service: str | None = None,
     ) -> bytes:
-        """Send a request payload and return the first accepted reply's payload bytes."""
-        querier = self._queriers.get((key, timeout))
+        """Send a request payload for `verb` to `KEY/VERB` (`protocol.keys.verb_key`: one key
+        per verb, so the router's access control can grant each verb on its own) and return
+        the first accepted reply's payload bytes."""
+        target = verb_key(key, verb)
+        querier = self._queriers.get((target, timeout))
         if querier is None:
             with self._rpc_lock:
-                querier = self._queriers.get((key, timeout))
+                querier = self._queriers.get((target, timeout))
                 if querier is None:
                     querier = self.session.declare_querier(
-                        key, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
+                        target, timeout=timeout, target=zenoh.QueryTarget.BEST_MATCHING
                     )
-                    self._queriers[(key, timeout)] = querier
+                    self._queriers[(target, timeout)] = querier
         start = time.monotonic()
         rejected: list[str] = []
         for reply in querier.get(payload=payload):
@@ -147,7 +156,7 @@ class RpcClient:
                 f"{expect_service!r} instance ({', '.join(live) or 'none alive'}); rejected"
             )
         waited = time.monotonic() - start
-        denied = self._denied(key)
+        denied = self._denied(key, verb)
         if denied is not None:
             raise RpcError(denied, code="denied")
         if waited < timeout * 0.5:
@@ -160,7 +169,7 @@ class RpcClient:
             f"(`archery ports` lists the live services)"
         )
 
-    def _denied(self, key: str) -> str | None:
+    def _denied(self, key: str, verb: str) -> str | None:
         """In secure mode, when the service serving `key` is alive yet nothing replied: the
         router dropped the request, which only its access control does; the message says so.
         None otherwise (plain mode, or the service is not alive)."""
@@ -171,8 +180,8 @@ class RpcClient:
             return None
         identity = self.name or OPERATOR
         return (
-            f"{key}: denied by access control: the {server} is alive, but the router drops "
-            f"this call from identity {identity!r} (secure mode; the rules are "
+            f"{key} {verb}: denied by access control: the {server} is alive, but the router "
+            f"drops this call from identity {identity!r} (secure mode; the rules are "
             f"{self.net.secure}/acl.json5, `archery keys`)"
         )
 

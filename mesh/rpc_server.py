@@ -20,6 +20,7 @@ from protocol.errors import (
     DecodeError,
     UpstreamLost,
 )
+from protocol.keys import verb_key, verbs_key
 from protocol.messages import (
     Message,
     RpcReply,
@@ -102,7 +103,7 @@ class RpcServer:
         self._seq = itertools.count(1)
         self._counts = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
-        self._queryable = session.declare_queryable(key, self._on_query)
+        self._queryable = session.declare_queryable(verbs_key(key), self._on_query)
         self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
         self._thread.start()
 
@@ -116,6 +117,13 @@ class RpcServer:
             log.exception("could not read a request on %s", self.key)
             query.drop()
             return
+        if isinstance(request, _WireRequest):
+            sent_to = str(query.key_expr).rsplit("/", 1)[-1]
+            if request.verb != sent_to:  # access control grants by key: they must agree
+                request = DecodeError(
+                    f"the request names verb {request.verb!r} but was sent to "
+                    f"{verb_key(self.key, sent_to)}"
+                )
         if (
             isinstance(request, _WireRequest)
             and request.verb in self.handlers
@@ -134,7 +142,7 @@ class RpcServer:
 
     def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
         try:
-            query.reply(self.key, encode(self._handle(request, next(self._seq))))
+            query.reply(query.key_expr, encode(self._handle(request, next(self._seq))))
         except Exception:
             log.exception("could not reply on %s", self.key)
         finally:

@@ -64,6 +64,7 @@ PORTS: tuple[PortSpec, ...] = (
     PortSpec("alive/{service}", "liveliness", "-"),
     PortSpec("alive/{service}/{instance}", "liveliness", "-"),
     PortSpec("describe/{service}", "rpc", "Describe"),
+    PortSpec("replace/{service}", "rpc", "ReplaceRequest"),
 )
 _REGEXES = tuple((spec, spec.regex()) for spec in PORTS)
 
@@ -92,6 +93,18 @@ def port_of(key: str) -> PortSpec:
 
 
 ALIVE_EVERY_ROBOT = "*/alive/*"  # the liveliness tokens of every service of every robot
+
+
+def verb_key(rpc_key: str, verb: str) -> str:
+    """The key a call of `verb` on the `rpc:i` port `rpc_key` is sent to: `RPC_KEY/VERB`, one
+    key per verb, so that access control grants each verb on its own (a server answers
+    `verbs_key(rpc_key)`)."""
+    return f"{rpc_key}/{verb}"
+
+
+def verbs_key(rpc_key: str) -> str:
+    """The key expression a server of the `rpc:i` port `rpc_key` answers: every verb's key."""
+    return f"{rpc_key}/*"
 
 
 @dataclass(frozen=True)
@@ -182,6 +195,10 @@ class Keys:
     def describe(self, service: str) -> str:
         """Where a service answers `describe` with its ports and message types."""
         return f"{self.robot}/describe/{self._service(service)}"
+
+    def replace(self, service: str) -> str:
+        """Where a service's live instance takes a `ReplaceRequest` from its replacement."""
+        return f"{self.robot}/replace/{self._service(service)}"
 
     def describe_all(self) -> str:
         """Key expression matching every service's `describe`."""

@@ -34,6 +34,7 @@ __all__ = [
     "JointState",
     "Message",
     "PortInfo",
+    "ReplaceRequest",
     "Rollout",
     "RpcReply",
     "RpcRequest",
@@ -334,6 +335,16 @@ class Describe(Message, frozen=True):
     interfaces: dict[str, dict[str, Any]] = {}  # rpc key -> verb -> {doc, args, reply} schemas
 
 
+class ReplaceRequest(Message, frozen=True):
+    """A new instance of a service, started with `--replace`, asks the live one to stop. The
+    live one stops only for a process of its own host that runs `archery NAME … --replace`:
+    `pid` must be alive there and its command line say so."""
+
+    service: str
+    host: str
+    pid: int
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.__name__: cls
     for cls in (
@@ -347,5 +358,6 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         RpcRequest,
         RpcReply,
         Describe,
+        ReplaceRequest,
     )
 }

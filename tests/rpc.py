@@ -37,7 +37,9 @@ def rpc_call(
         RpcTimeout, WrongReplier: as `Node.call_typed`.
     """
     request = RpcRequest(verb=verb, args=args or {}, seq=0, stamp=time.time())
-    reply = node.request(key, encode(request), timeout=timeout, expect_service=expect_service)
+    reply = node.request(
+        key, encode(request), verb=verb, timeout=timeout, expect_service=expect_service
+    )
     if not reply.ok:
         raise reply_error(f"{key} {verb}", reply)
     return reply.result

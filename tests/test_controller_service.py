@@ -55,7 +55,7 @@ class Mesh:
         payload = msgspec.msgpack.encode(
             {"type": "RpcRequest", "schema": 1, "verb": verb, "args": args}
         )
-        return self.node.request(key, payload, timeout=10)
+        return self.node.request(key, payload, verb=verb, timeout=10)
 
 
 @pytest.fixture

@@ -26,6 +26,7 @@ from protocol.messages import (
     JointState,
     Message,
     PortInfo,
+    ReplaceRequest,
     Rollout,
     RpcReply,
     RpcRequest,
@@ -65,6 +66,7 @@ SAMPLES: list[Message] = [
     RpcRequest(verb="posture", args={"theta": [0.1, 0.2, 0.3]}),
     RpcReply(ok=False, code="unreachable", message="too far"),
     Describe(service="robot", ports=[PortInfo(key="k", kind="pub", message="JointState")]),
+    ReplaceRequest(service="robot", host="lab-pc", pid=4242),
 ]
 
 

@@ -128,7 +128,7 @@ def test_rpc_ok_error_and_recovery(pair: tuple[Node, Node]) -> None:
         call("crash")
     assert err.value.code == "internal"
     for garbage in (b"", b"\xc1", b"\x93\x01\x02\x03"):
-        reply = client.request(key, garbage)
+        reply = client.request(key, garbage, verb="release")
         assert not reply.ok and reply.code == "bad_message"
     assert call("release", {"speed": 1}) == {"speed": 2}
 

@@ -123,7 +123,7 @@ def test_a_readme_block_runs_and_prints_what_it_says(
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         output, _ = proc.communicate()
-        raise AssertionError(f"the block did not end within 240 s:\n{output[-3000:]}") from None
+        raise AssertionError(f"the block did not end within 240 s:\n{output[-6000:]}") from None
     finally:
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, signal.SIGKILL)

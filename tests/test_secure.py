@@ -14,6 +14,7 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,7 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from mesh.acl import rules
+from mesh.acl import OPERATOR, VIEWER, roles, rules, server_of
 from mesh.credentials import (
     CA_CERT,
     CA_KEY,
@@ -39,8 +40,9 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
 from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
-from protocol.keys import Keys
+from protocol.keys import Keys, verb_key, verbs_key
 from protocol.messages import Image, RpcReply
+from protocol.verbs import TABLES, table_for_key
 from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
 from services.learner.errors import RigError
@@ -307,11 +309,12 @@ def test_frames_reach_the_operator_only(session_as: Callable) -> None:
     operator.declare_subscriber(f"{ROBOT}/**", at_operator)
     learner.declare_subscriber(f"{ROBOT}/**", learner_all)  # not the operator: denied
     learner.declare_subscriber(K.world_events(), learner_events)  # allowed: the control
-    camera.declare_queryable(K.cam_rpc(), lambda q: q.reply(q.key_expr, b"grabbed"))
+    camera.declare_queryable(verbs_key(K.cam_rpc()), lambda q: q.reply(q.key_expr, b"grabbed"))
     put_until_received(camera, K.cam_frames(), at_operator, b"frame-1")
     put_until_received(robot, K.world_events(), learner_events, b"event-1")
     deadline = time.monotonic() + 10  # the detector's declarations reached the router in order
-    while [r.ok.payload.to_bytes() for r in detector.get(K.cam_rpc()) if r.ok] != [b"grabbed"]:
+    grab = verb_key(K.cam_rpc(), "grab")
+    while [r.ok.payload.to_bytes() for r in detector.get(grab) if r.ok] != [b"grabbed"]:
         assert time.monotonic() < deadline, "the detector cannot grab a frame by RPC"
         time.sleep(0.05)
     for n in range(2, 6):
@@ -324,16 +327,21 @@ def test_frames_reach_the_operator_only(session_as: Callable) -> None:
 
 def test_only_the_owner_serves_an_rpc_key(session_as: Callable) -> None:
     detector, controller, learner = map(session_as, ("detector", "controller", "learner"))
-    key = K.cartesian_rpc("archery")
+    key = verb_key(K.cartesian_rpc("archery"), "posture")
     stolen: list[str] = []
 
     def rogue(query: zenoh.Query) -> None:
         stolen.append(str(query.key_expr))
         query.reply(query.key_expr, b"from the detector")
 
-    detector.declare_queryable(key, rogue)  # denied
-    detector.declare_queryable(K.detector_rpc(), lambda q: q.reply(q.key_expr, b"measured"))
-    controller.declare_queryable(key, lambda q: q.reply(q.key_expr, b"posture"))
+    detector.declare_queryable(verbs_key(K.cartesian_rpc("archery")), rogue)  # denied
+    measure = verb_key(K.detector_rpc(), "measure")
+    detector.declare_queryable(
+        verbs_key(K.detector_rpc()), lambda q: q.reply(q.key_expr, b"measured")
+    )
+    controller.declare_queryable(
+        verbs_key(K.cartesian_rpc("archery")), lambda q: q.reply(q.key_expr, b"posture")
+    )
     zids = {str(s.info.zid()): name for s, name in ((detector, "d"), (controller, "c"))}
 
     def ask(k: str) -> list[tuple[str, bytes]]:
@@ -343,7 +351,7 @@ def test_only_the_owner_serves_an_rpc_key(session_as: Callable) -> None:
         return [(zids.get(str(r.replier_id.zid), "?"), r.ok.payload.to_bytes()) for r in replies]
 
     deadline = time.monotonic() + 10  # the detector's declarations, in order, reached the router
-    while ask(K.detector_rpc()) != [("d", b"measured")] or ask(key) != [("c", b"posture")]:
+    while ask(measure) != [("d", b"measured")] or ask(key) != [("c", b"posture")]:
         assert time.monotonic() < deadline
         time.sleep(0.05)
     for _ in range(5):
@@ -384,7 +392,7 @@ def test_a_rogue_measure_never_reaches_the_learner(
         asked.append(b"")
         forged_reply({"status": "ok", "r_m": [9.0, 9.0]})(query)
 
-    camera.declare_queryable(K.detector_rpc(), rogue)  # denied: the camera may not serve it
+    camera.declare_queryable(verbs_key(K.detector_rpc()), rogue)  # denied: may not serve it
     with (
         Node("detector", net_as(endpoint, "detector", deployment)) as detector,
         Node("learner", net_as(endpoint, "learner", deployment)) as learner,
@@ -410,7 +418,7 @@ def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path)
         with Node("detector", net) as detector, Node("learner", net) as learner:
             detector.ready()  # alive, but it serves no measure: only the rogue answers
             rogue.declare_queryable(
-                keys.detector_rpc(), forged_reply({"status": "ok", "r_m": [9.0, 9.0]})
+                verbs_key(keys.detector_rpc()), forged_reply({"status": "ok", "r_m": [9.0, 9.0]})
             )
             deadline = time.monotonic() + 10
             while True:  # the rogue's queryable has reached the router: it answers
@@ -531,3 +539,71 @@ def test_up_hands_each_child_only_the_ca_certificate_and_its_own_identity(
     assert stat.S_IMODE((Path(robot_dir) / "robot.key").stat().st_mode) == 0o600
     launcher.stop_all()
     assert not Path(robot_dir).exists() and not Path(router_dir).exists()
+
+
+def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callable) -> None:
+    """Every identity × every verb of every `rpc:i` port, checked on the receiver's side: a fake
+    server (as the port's owner) records each call that reaches it."""
+    role_of = roles(ROBOT)
+    ports = [f"{ROBOT}/{port}" for table in TABLES for port in table.ports]
+    verbs = {key: [v.name for v in table_for_key(key)] for key in ports}
+    reached: set[tuple[str, str]] = set()  # (caller's tag, verb key)
+    lock = threading.Lock()
+
+    def record(query: zenoh.Query) -> None:
+        tag = query.payload.to_bytes().decode() if query.payload is not None else "?"
+        with lock:
+            reached.add((tag, str(query.key_expr)))
+        query.reply(query.key_expr, b"ok")
+
+    for key in ports:
+        owner = server_of(ROBOT, key)
+        assert owner is not None, key
+        session_as(owner).declare_queryable(verbs_key(key), record)
+    callers = ("robot", "camera", "detector", "controller", "learner", OPERATOR, VIEWER)
+    sessions = {name: session_as(name) for name in callers}
+    deadline = time.monotonic() + 10  # every queryable has reached the router
+    while any(
+        not list(sessions[OPERATOR].get(verb_key(key, "status"), payload=b"probe", timeout=2))
+        for key in ports
+        if "status" in verbs[key]
+    ):
+        assert time.monotonic() < deadline
+    calls = [(name, verb_key(key, v)) for name in callers for key in ports for v in verbs[key]]
+
+    def call(item: tuple[str, str]) -> None:
+        name, target = item
+        list(sessions[name].get(target, payload=name.encode(), timeout=2))
+
+    with ThreadPoolExecutor(max_workers=16) as pool:
+        list(pool.map(call, calls))
+    granted = {(n, t) for n, t in calls if _grants_call(role_of[n].call, t)}
+    assert len(granted) > 100 and len(calls) - len(granted) > 100  # both kinds are tried
+    assert {(n, t) for n, t in reached if n in callers} == granted
+    # what the issue names, spelled out
+    arch, cam, det = K.archery_rpc(), K.cam_rpc(), K.detector_rpc()
+    for name, target in (
+        ("camera", verb_key(arch, "nock")),
+        ("camera", verb_key(arch, "release")),
+        ("camera", verb_key(arch, "setWind")),
+        ("camera", verb_key(arch, "reset")),
+        ("controller", verb_key(K.part_rpc("left_arm"), "positionMove")),
+        ("learner", verb_key(det, "calibrate")),
+        ("learner", verb_key(K.cartesian_rpc("archery"), "setTrajTime")),
+        (VIEWER, verb_key(K.cartesian_rpc("archery"), "posture")),
+        (VIEWER, verb_key(K.learner_rpc(), "start")),
+    ):
+        assert (name, target) not in reached, (name, target)
+    for name, target in (
+        ("learner", verb_key(arch, "release")),
+        ("detector", verb_key(cam, "grab")),
+        ("controller", verb_key(K.part_rpc("left_arm"), "setRefSpeeds")),
+        (VIEWER, verb_key(det, "status")),
+        (OPERATOR, verb_key(K.cartesian_rpc("archery"), "posture")),
+    ):
+        assert (name, target) in reached, (name, target)
+
+
+def _grants_call(allowed: tuple[str, ...], target: str) -> bool:
+    """Whether one of the role's call keys (a verb key, or `KEY/*`) covers `target`."""
+    return any(a == target or (a.endswith("/*") and target.startswith(a[:-1])) for a in allowed)

@@ -4,6 +4,7 @@ the live one's pid and host) unless --replace, which makes the live one stop cle
 
 from __future__ import annotations
 
+import os
 import socket
 import subprocess
 import sys
@@ -17,7 +18,7 @@ from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
 from protocol.codec import encode
 from protocol.errors import DuplicateService
-from protocol.messages import Describe
+from protocol.messages import Describe, ReplaceRequest
 from tests.conftest import archery
 
 NAME = "detector"
@@ -142,3 +143,35 @@ def test_a_watch_refuses_a_session_that_holds_no_token(net: NetConfig) -> None:
             assert watch.holders(NAME) == {zid_of(service.session)}
         finally:
             watch.close()
+
+
+def test_no_message_but_a_local_replacement_stops_a_service(net: NetConfig, spawn) -> None:
+    """The old way (a `replace` payload on describe) and forged requests (another host, a pid
+    that is not `archery NAME --replace`, garbage) are refused and logged; the service runs on."""
+    first = spawn()
+    keys_net = NetConfig(connect=net.connect, robot=net.robot)
+    with Node(None, keys_net) as node:
+        node.wait_alive([NAME], 30)
+        keys = node.keys
+        list(node.session.get(keys.describe(NAME), payload=b"replace", timeout=5))
+        forged = (
+            ReplaceRequest(service=NAME, host="elsewhere", pid=first.pid),
+            ReplaceRequest(service=NAME, host=socket.gethostname(), pid=os.getpid()),
+            ReplaceRequest(service=NAME, host=socket.gethostname(), pid=2**22 + 7),
+        )
+        errors = []
+        for request in forged:
+            for reply in node.session.get(keys.replace(NAME), payload=encode(request), timeout=5):
+                assert reply.err is not None
+                errors.append(reply.err.payload.to_string())
+        for reply in node.session.get(keys.replace(NAME), payload=b"\xc1" * 10, timeout=5):
+            assert reply.err is not None
+            errors.append(reply.err.payload.to_string())
+        assert len(errors) == 4 and all(e.startswith("refused: ") for e in errors), errors
+        assert "from host 'elsewhere'" in errors[0]
+        assert "does not run detector with --replace" in errors[1]
+        assert "no process" in errors[2] and "not a ReplaceRequest" in errors[3]
+        assert first.poll() is None and _instance_pids(node) == {first.pid}
+    first.terminate()
+    assert first.wait(10) == 0
+    assert first.stderr.read().count("refused a request to make way") == 4

@@ -275,11 +275,11 @@ def test_server_answers_bad_request_naming_verb_field_and_range(served: Any) -> 
         assert info.value.code == "bad_request"
     for bad in (math.nan, math.inf):  # out of any range
         payload = _raw(b"\x81\xa4time" + msgspec.msgpack.encode(bad))
-        reply = client.request(key, payload)
+        reply = client.request(key, payload, verb="setTrajTime")
         assert not reply.ok and reply.code == "bad_request"
         assert "`$.time`" in reply.message and "time must be float in [0.05, 60]" in reply.message
         theta = msgspec.msgpack.encode({"theta": [0.1, bad, 0.0]})
-        reply = client.request(key, _raw(theta, "posture"))
+        reply = client.request(key, _raw(theta, "posture"), verb="posture")
         assert not reply.ok and reply.code == "bad_request"
         assert "`$.theta[1]`: Expected a finite number" in reply.message
     assert rpc_call(client, key, "getTrajTime") == {"time": 0.5}  # nothing reached the handler
@@ -289,13 +289,15 @@ def test_server_refuses_deep_nesting_and_untagged_requests(served: Any) -> None:
     client, key, other_key = served
     deep = b"\x81\xa1a" * 5000 + b"\x80"
     for k, verb in ((key, "setTrajTime"), (other_key, "echo")):
-        reply = client.request(k, _raw(deep, verb), timeout=5)
+        reply = client.request(k, _raw(deep, verb), verb=verb, timeout=5)
         assert not reply.ok and reply.code == "bad_message" and "deep" in reply.message
     untagged = msgspec.msgpack.encode({"verb": "getTrajTime", "args": {}})
-    reply = client.request(key, untagged, timeout=5)
+    reply = client.request(key, untagged, verb="getTrajTime", timeout=5)
     assert not reply.ok and reply.code == "bad_message"
     assert "no `type` field" in reply.message and "RpcRequest" in reply.message
-    reply = client.request(key, msgspec.msgpack.encode({"type": "RpcReply", "ok": True}))
+    reply = client.request(
+        key, msgspec.msgpack.encode({"type": "RpcReply", "ok": True}), verb="getTrajTime"
+    )
     assert not reply.ok and reply.code == "bad_message"
     assert rpc_call(client, key, "getTrajTime", timeout=5) == {"time": 1.0}  # still serving
 

@@ -30,6 +30,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from apps.dashboard.watch import MeshWatch
+from mesh.acl import VIEWER
 from mesh.cliargs import ArgumentParser, int_in
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
     args = parser.parse_args(argv)
     try:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity(VIEWER)
         host = _check_host(args.host)
         server = bind(host, args.port)
     except ArcheryError as exc:

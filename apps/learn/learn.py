@@ -16,11 +16,9 @@ stopped after its current rollout and can be resumed).
 from __future__ import annotations
 
 import argparse
-import contextlib
 import inspect
 import math
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -29,9 +27,8 @@ from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
 from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node
-from mesh.router import wait_for_endpoint
-from protocol.errors import ArcheryError, ConfigError, RpcError, Unreachable
+from mesh.node import open_node
+from protocol.errors import ArcheryError, ConfigError, RpcError
 from protocol.exit_status import FAILURE, INTERRUPTED, for_error
 from protocol.journal_records import AbortedRecord, ProposedRecord
 from protocol.messages import Rollout
@@ -222,35 +219,6 @@ def _progress(message: Rollout) -> None:
     )
 
 
-def _open_node(net: NetConfig, wait: float) -> Node:
-    """A node on the mesh, waiting up to `wait` s for the router to listen (`archery up &`
-    followed at once by `archery learn`).
-
-    Raises:
-        Unreachable: no router listens at the endpoint after `wait` s.
-        ConfigError: other bad settings (e.g. a missing deployment file).
-    """
-    deadline = time.monotonic() + wait
-    while True:
-        try:
-            return Node(None, net)
-        except Unreachable:
-            left = deadline - time.monotonic()
-            if left <= 0 or _listening(net.connect[0]):
-                raise  # something listens, yet no session: waiting will not change that
-            with contextlib.suppress(ConfigError):  # then the session says why, once more
-                wait_for_endpoint(net.connect[0], left)
-
-
-def _listening(endpoint: str) -> bool:
-    """Whether the endpoint accepts a TCP connection now."""
-    try:
-        wait_for_endpoint(endpoint, 0.0)
-    except ConfigError:
-        return False
-    return True
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run `archery learn`; see the module docstring for the exit statuses."""
     args = build_parser().parse_args(argv)
@@ -271,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     show = (lambda m: None) if args.quiet else _progress
     waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
     try:
-        node = _open_node(net, args.wait)
+        node = open_node(net, args.wait)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return for_error(exc.code)

@@ -15,6 +15,7 @@ from typing import Any
 
 import msgspec
 
+from mesh.acl import VIEWER
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args
 from protocol.codec import decode
@@ -68,7 +69,7 @@ def _show(key: str, args: argparse.Namespace) -> int:
         try:
             from mesh.node import Node
 
-            with Node(None, NetConfig.from_args(args)) as node:
+            with Node(None, NetConfig.from_args(args).with_identity(VIEWER)) as node:
                 live = live_interfaces(node, key, args.timeout)
         except ArcheryError as exc:
             print(f"archery interface: no live mesh ({exc}); local tables", file=sys.stderr)
@@ -110,7 +111,7 @@ def interface_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         port_of(args.key)
-        NetConfig.from_args(args)
+        NetConfig.from_args(args).with_identity(VIEWER)
     except ArcheryError as exc:  # bad input
         print(f"archery interface: {exc}", file=sys.stderr)
         return 2

@@ -30,6 +30,7 @@ from apps.topics.recording import (
     Recording,
     open_recording,
 )
+from mesh.acl import VIEWER
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
@@ -113,7 +114,7 @@ def record_main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity(VIEWER)
         patterns = args.patterns or [f"{net.robot}/**"]
         exprs = [check_pattern(p) for p in patterns]
         out = Path(args.out)
@@ -456,7 +457,7 @@ def hz_main(argv: list[str] | None = None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity(VIEWER)
         expr = check_pattern(args.pattern)
     except ArcheryError as exc:
         return _fail("hz", exc, 2)

@@ -186,7 +186,9 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
                 raise AssertionError("an error reply was expected")
 
             def malformed() -> str:
-                reply = node.request(rpc, b"\xc1 not msgpack", timeout=timeout)
+                reply = node.request(
+                    rpc, b"\xc1 not msgpack", verb="getJointNames", timeout=timeout
+                )
                 assert not reply.ok and reply.code == "bad_message", reply
                 still = node.call_typed(rpc, rv.PART_VERBS["getJointNames"], timeout=timeout)
                 assert still.names == list(PARTS["torso"])

@@ -13,6 +13,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from mesh.acl import VIEWER
 from mesh.cliargs import (
     ArgumentParser,
     check_image_path,
@@ -23,7 +24,7 @@ from mesh.cliargs import (
 )
 from mesh.instances import describe_all
 from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node
+from mesh.node import Node, open_node
 from mesh.patterns import check_pattern, is_wildcard, stream_type
 from mesh.rpc_server import bad_args_message
 from mesh.tokens import TokenSet
@@ -99,7 +100,7 @@ def alive_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def body(net: NetConfig) -> int:
-        with Node(None, net) as node:
+        with open_node(net, args.wait) as node:
             if args.wait:
                 with TokenSet(node.session, node.keys.alive_all()) as alive:
                     alive.wait_for(lambda now: set(args.names) <= now, args.wait)
@@ -112,7 +113,7 @@ def alive_main(argv: list[str] | None = None) -> int:
                 return 1
         return 0
 
-    return _run("alive", lambda: NetConfig.from_args(args), body)
+    return _run("alive", lambda: NetConfig.from_args(args).with_identity(VIEWER), body)
 
 
 def ports_main(argv: list[str] | None = None) -> int:
@@ -136,10 +137,11 @@ def ports_main(argv: list[str] | None = None) -> int:
 
     def check() -> NetConfig:
         robot = DEFAULT_ROBOT if every else args.robot
-        return NetConfig.from_args(argparse.Namespace(**(vars(args) | {"robot": robot})))
+        namespace = argparse.Namespace(**(vars(args) | {"robot": robot}))
+        return NetConfig.from_args(namespace).with_identity(VIEWER)
 
     def body(net: NetConfig) -> int:
-        with Node(None, net) as node:
+        with open_node(net, args.wait) as node:
             if args.wait:
                 pattern = ALIVE_EVERY_ROBOT if every else node.keys.alive_all()
                 with TokenSet(node.session, pattern) as alive:
@@ -258,7 +260,7 @@ def read_main(argv: list[str] | None = None) -> int:
     wildcard = is_wildcard(args.key)
 
     def check() -> tuple[NetConfig, type[Message] | None]:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity(VIEWER)
         if wildcard:
             check_pattern(args.key)
             message_type = None
@@ -467,7 +469,7 @@ def view_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def check() -> NetConfig:
-        net = NetConfig.from_args(args)
+        net = NetConfig.from_args(args).with_identity(VIEWER)
         if _stream_type(args.key) is not Image:
             raise KeyNameError(f"{args.key} does not carry images")
         check_image_path(args.out)

@@ -55,6 +55,9 @@ class Verb(Generic[A, R]):
     `blocking=False` declares that the handler never waits (no sleep, no call, no wait on a
     stream, on another thread's job or on a lock held across one): the server then answers it
     right on the receive path instead of queueing it behind the blocking verbs of its port.
+
+    `reads=True` declares that the verb changes nothing (no motion, no setting, no session):
+    the read-only `viewer` identity may call it (`mesh.acl`).
     """
 
     name: str
@@ -62,6 +65,7 @@ class Verb(Generic[A, R]):
     reply: type[R]
     doc: str
     blocking: bool = True
+    reads: bool = False
 
     @functools.cached_property
     def args_decoder(self) -> msgspec.msgpack.Decoder[A]:

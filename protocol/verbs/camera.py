@@ -48,14 +48,27 @@ CAMERA_VERBS = VerbTable(
     "camera",
     ("cam/rpc:i",),
     (
-        Verb("grab", GrabArgs, Image, "the first frame fresher than the given times (default 5 s)"),
-        Verb("calibration", NoArgs, CalibrationReply, "a frame and its target/arrow marks"),
+        Verb(
+            "grab",
+            GrabArgs,
+            Image,
+            "the first frame fresher than the given times (default 5 s)",
+            reads=True,
+        ),
+        Verb(
+            "calibration",
+            NoArgs,
+            CalibrationReply,
+            "a frame and its target/arrow marks",
+            reads=True,
+        ),
         Verb(
             "status",
             NoArgs,
             CameraStatusReply,
             "source, size, rate, frames, render time",
             blocking=False,
+            reads=True,
         ),
     ),
 )

@@ -103,18 +103,38 @@ class DofReply(Reply, frozen=True):
 
 _TRAJ = (
     Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"),
-    Verb("getTrajTime", NoArgs, TrajTimeReply, "trajectory time of the next moves", blocking=False),
+    Verb(
+        "getTrajTime",
+        NoArgs,
+        TrajTimeReply,
+        "trajectory time of the next moves",
+        blocking=False,
+        reads=True,
+    ),
 )
 
 ARM_VERBS = VerbTable(
     "cartesian controller of one arm",
     ("cartesianController/left_arm/rpc:i", "cartesianController/right_arm/rpc:i"),
     (
-        Verb("askForPose", AskForPoseArgs, AskForPoseReply, "solve IK for a pose, without moving"),
+        Verb(
+            "askForPose",
+            AskForPoseArgs,
+            AskForPoseReply,
+            "solve IK for a pose, without moving",
+            reads=True,
+        ),
         Verb("goToPose", GoToPoseArgs, GoToPoseReply, "solve IK and move there; replies when done"),
-        Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)"),
+        Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)", reads=True),
         Verb("setTolerance", SetToleranceArgs, ToleranceReply, "IK position tolerance"),
-        Verb("getTolerance", NoArgs, ToleranceReply, "IK position tolerance", blocking=False),
+        Verb(
+            "getTolerance",
+            NoArgs,
+            ToleranceReply,
+            "IK position tolerance",
+            blocking=False,
+            reads=True,
+        ),
         *_TRAJ,
         Verb("setDOF", SetDofArgs, DofReply, "solve and move the torso with the arm, or hold it"),
         Verb(
@@ -123,6 +143,7 @@ ARM_VERBS = VerbTable(
             DofReply,
             "whether the torso moves, and the moving joints",
             blocking=False,
+            reads=True,
         ),
     ),
 )
@@ -173,6 +194,7 @@ ARCHERY_VERBS = VerbTable(
             ArcheryStatusReply,
             "θ box, bow hand, joints, trajectory time",
             blocking=False,
+            reads=True,
         ),
     ),
 )

@@ -89,13 +89,20 @@ DETECTOR_VERBS = VerbTable(
     (
         Verb("measure", MeasureArgs, MeasureReply, "detect target and arrow in a fresh frame"),
         Verb("calibrate", CalibrateArgs, CalibrateReply, "fit the colour model from pixels"),
-        Verb("frame", FrameArgs, FrameReply, "the last measured frame as PNG (with overlay)"),
+        Verb(
+            "frame",
+            FrameArgs,
+            FrameReply,
+            "the last measured frame as PNG (with overlay)",
+            reads=True,
+        ),
         Verb(
             "status",
             NoArgs,
             DetectorStatusReply,
             "colour model, settings, frames measured",
             blocking=False,
+            reads=True,
         ),
     ),
 )

@@ -86,6 +86,7 @@ LEARNER_VERBS = VerbTable(
             LearnerStatusReply,
             "the running or last session's status",
             blocking=False,
+            reads=True,
         ),
     ),
 )

@@ -97,6 +97,7 @@ PART_VERBS = VerbTable(
             JointNamesReply,
             "the part's joint names, in YARP order",
             blocking=False,
+            reads=True,
         ),
         Verb(
             "getLimits",
@@ -104,25 +105,52 @@ PART_VERBS = VerbTable(
             LimitsReply,
             "software joint limits (rad) and clamp tolerance",
             blocking=False,
+            reads=True,
         ),
-        Verb("getPositions", NoArgs, PositionsReply, "encoders: positions, velocities, sim time"),
-        Verb("getTargets", NoArgs, TargetsReply, "the current (clamped) position targets"),
-        Verb("checkMotionDone", NoArgs, MotionDoneReply, "True once every joint has settled"),
+        Verb(
+            "getPositions",
+            NoArgs,
+            PositionsReply,
+            "encoders: positions, velocities, sim time",
+            reads=True,
+        ),
+        Verb(
+            "getTargets", NoArgs, TargetsReply, "the current (clamped) position targets", reads=True
+        ),
+        Verb(
+            "checkMotionDone",
+            NoArgs,
+            MotionDoneReply,
+            "True once every joint has settled",
+            reads=True,
+        ),
         Verb(
             "setRefSpeeds",
             SetRefSpeedsArgs,
             RefSpeedsReply,
             "reference speeds: one for every joint, or one per joint",
         ),
-        Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds"),
+        Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds", reads=True),
         Verb(
             "positionMove",
             PositionMoveArgs,
             TargetsReply,
             "move to targets, validated like a command (names: a subset of joints)",
         ),
-        Verb("counters", NoArgs, CountersReply, "command counters: accepted, clamped, rejected"),
-        Verb("status", NoArgs, PartStatusReply, "names, motion done, counters and encoders"),
+        Verb(
+            "counters",
+            NoArgs,
+            CountersReply,
+            "command counters: accepted, clamped, rejected",
+            reads=True,
+        ),
+        Verb(
+            "status",
+            NoArgs,
+            PartStatusReply,
+            "names, motion done, counters and encoders",
+            reads=True,
+        ),
     ),
 )
 
@@ -198,6 +226,12 @@ ARCHERY_VERBS = VerbTable(
             WindReply,
             "the constant wind (m/s, root frame) of the following shots; the wind now in force",
         ),
-        Verb("status", NoArgs, ArcheryStatusReply, "arrow, phase, counters, scene and world"),
+        Verb(
+            "status",
+            NoArgs,
+            ArcheryStatusReply,
+            "arrow, phase, counters, scene and world",
+            reads=True,
+        ),
     ),
 )
