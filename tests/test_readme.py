@@ -48,7 +48,15 @@ MESH_VERBS = [
 
 WRAPPER = r"""
 set -euo pipefail
-trap 'kill $(jobs -p) 2>/dev/null || true; wait || true' EXIT
+stop_jobs() {  # SIGTERM the background jobs; SIGKILL what still runs after 15 s
+  local pids; pids=$(jobs -p)
+  [[ -z "$pids" ]] && return 0
+  kill $pids 2>/dev/null || true
+  for _ in $(seq 150); do kill -0 $pids 2>/dev/null || break; sleep 0.1; done
+  kill -9 $pids 2>/dev/null || true
+  wait || true
+}
+trap stop_jobs EXIT
 archery() {
   local verb="$1"; shift
   local ep="$TCP"

@@ -101,10 +101,12 @@ def alive_main(argv: list[str] | None = None) -> int:
 
     def body(net: NetConfig) -> int:
         with open_node(net, args.wait) as node:
-            if args.wait:
+            if args.wait:  # the tokens seen by the subscription decide (no second query)
                 with TokenSet(node.session, node.keys.alive_all()) as alive:
                     alive.wait_for(lambda now: set(args.names) <= now, args.wait)
-            missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
+                    missing = sorted(set(args.names) - alive.present())
+            else:
+                missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
             if missing:
                 print(
                     f"archery alive: not alive on robot {node.keys.robot!r}: {', '.join(missing)}",
