@@ -109,15 +109,17 @@ def attach(
     show: Callable[[Rollout], None],
     *,
     quiet: bool = False,
-    **lost: Any,
+    gone_after: float = 5.0,
+    resume_timeout: float = 60.0,
+    note: Callable[[str], None] | None = None,
 ) -> int:
     """Follow the session `target` names (see the module docstring); prints the progress on
     stderr and the final JSON line on stdout; returns the exit status.
 
     Args:
-        lost: `follow`'s settings for a learner or router that vanishes (`gone_after`,
-            `resume_timeout`, `note`); once attached, a learner restarted without the
-            session is asked to resume it.
+        gone_after, resume_timeout, note: as `follow`'s (s, s, progress lines): once attached,
+            a vanished learner or router is waited for `gone_after` s, and a learner restarted
+            without the session is asked to resume it.
     """
     try:
         session, path = session_of(target)
@@ -148,7 +150,9 @@ def attach(
                 on_status=waiting,
                 journal=status.get("journal"),
                 resume=True,
-                **lost,
+                gone_after=gone_after,
+                resume_timeout=resume_timeout,
+                note=note,
             )
         except SessionLost as exc:
             stderr_line(f"archery learn: {exc}")

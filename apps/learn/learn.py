@@ -285,8 +285,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     show = (lambda m: None) if args.quiet else _progress
     waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
-    note = (lambda line: None) if args.quiet else attach.stderr_line
-    lost = {"gone_after": args.lost_wait, "resume_timeout": args.wait + 30, "note": note}
+    note = None if args.quiet else attach.stderr_line
+    resume_timeout = args.wait + 30.0  # s: a resumed session's `start` waits for the services
     try:
         node = _open_node(net, args.wait)
     except ArcheryError as exc:
@@ -295,7 +295,16 @@ def main(argv: list[str] | None = None) -> int:
     with node:
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         if args.attach:
-            return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet, **lost)
+            return attach.attach(
+                node,
+                rollouts,
+                args.attach,
+                show,
+                quiet=args.quiet,
+                gone_after=args.lost_wait,
+                resume_timeout=resume_timeout,
+                note=note,
+            )
         try:
             node.wait_alive(SERVICES, timeout=args.wait)
             status = learner_call(node, "start", start, timeout=args.wait + 30)
@@ -314,7 +323,9 @@ def main(argv: list[str] | None = None) -> int:
                 on_status=waiting,
                 journal=status["journal"],
                 resume=True,
-                **lost,
+                gone_after=args.lost_wait,
+                resume_timeout=resume_timeout,
+                note=note,
             )
         except SessionLost as exc:
             print(f"archery learn: {exc}", file=sys.stderr)
