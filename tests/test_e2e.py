@@ -119,6 +119,7 @@ def test_learner_killed_mid_session(
     _, rollouts = client
     net = ["--connect", mesh.endpoint, "--robot", mesh.net.robot]
     learn = ["learn", "--algo", "archer", "--seed", "2", "--rollouts", "6", "--no-until-hit"]
+    learn += ["--lost-wait", "5"]  # nothing restarts this learner: no need to wait long for it
     proc = subprocess.Popen(
         [sys.executable, "-m", "apps.cli", *learn, *net],
         stdout=subprocess.PIPE,

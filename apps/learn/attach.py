@@ -4,10 +4,11 @@ SESSION is a session id or its journal (the file or its directory). The client a
 for its `status`; if that is SESSION, it prints where the session stands, then each rollout as
 `archery learn` does, and the same final JSON line. A session that has ended already gets its
 final line at once (from the learner's status, or from the journal when the learner runs another
-session). The counts of every final line (rollouts, aborted, hit_at, final distance) are the
-journal's (`journal_counts`), never the client's own count, so a client that attached late, or
-that outlived its learner, reports the truth. Exit status as `archery learn`: 0 finished, 1
-failed, stopped, lost or not running, 2 for a bad SESSION.
+session). Once attached, it follows the session across a restarted learner or router as
+`archery learn` does (`apps.learn.follow`). The counts of every final line (rollouts, aborted,
+hit_at, final distance) are the journal's (`journal_counts`), never the client's own count, so a
+client that attached late, or that outlived its learner, reports the truth. Exit status as
+`archery learn`: 0 finished, 1 failed, stopped, lost or not running, 2 for a bad SESSION.
 """
 
 from __future__ import annotations
@@ -108,9 +109,18 @@ def attach(
     show: Callable[[Rollout], None],
     *,
     quiet: bool = False,
+    gone_after: float = 5.0,
+    resume_timeout: float = 60.0,
+    note: Callable[[str], None] | None = None,
 ) -> int:
     """Follow the session `target` names (see the module docstring); prints the progress on
-    stderr and the final JSON line on stdout; returns the exit status."""
+    stderr and the final JSON line on stdout; returns the exit status.
+
+    Args:
+        gone_after, resume_timeout, note: as `follow`'s (s, s, progress lines): once attached,
+            a vanished learner or router is waited for `gone_after` s, and a learner restarted
+            without the session is asked to resume it.
+    """
     try:
         session, path = session_of(target)
     except JournalError as exc:
@@ -132,11 +142,25 @@ def attach(
     if status.get("state") not in FINAL_STATES:
         waiting = (lambda s: None) if quiet else WaitingLines(stderr_line)
         try:
-            status = follow(node, session, rollouts, show, on_status=waiting)
+            status = follow(
+                node,
+                session,
+                rollouts,
+                show,
+                on_status=waiting,
+                journal=status.get("journal"),
+                resume=True,
+                gone_after=gone_after,
+                resume_timeout=resume_timeout,
+                note=note,
+            )
         except SessionLost as exc:
-            stderr_line(f"archery learn: {exc} {status.get('journal')}")
+            stderr_line(f"archery learn: {exc}")
             print(result_line(journal_counts(exc.status or status) | {"state": "lost"}))
             return 1
+        except RpcError as exc:  # the learner refused its status (e.g. access control)
+            stderr_line(f"archery learn: {exc}")
+            return for_error(exc.code)
         except KeyboardInterrupt:  # detaching leaves the session running
             stderr_line(f"archery learn: detached; session {session} goes on")
             print(result_line(journal_counts(status)))

@@ -7,10 +7,16 @@ journal; see `services.learner.transfer`), or follows a running one
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame"}`. Exit status 0 when the session finished (hit or budget; with
-`--require-hit`: 1 when it finished without a hit); 1 when it failed, the learner vanished (the
-message says how to resume) or is busy; 2 for bad input; 130 after Ctrl-C (the session is
-stopped after its current rollout and can be resumed).
+"report", "hit_frame"}`.
+
+Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
+that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
+asked once to resume it from its journal, and the session is followed on to its end; a
+session whose journal ended meanwhile gets the journal's final line. Exit status 0 when the
+session finished (hit or budget; with `--require-hit`: 1 when it finished without a hit); 1
+when it failed, could not be followed on (the message says how to go on: `--attach` while it
+may still run, `--resume` when it does not) or the learner is busy; 2 for bad input; 130 after
+Ctrl-C (the session is stopped after its current rollout and can be resumed).
 """
 
 from __future__ import annotations
@@ -41,6 +47,9 @@ from services.learner.config import SessionConfig
 __all__ = ["DEFAULTS", "build_parser", "main", "session_flags_given", "start_request"]
 
 DEFAULTS: dict[str, Any] = {"algo": "archer", "rollouts": 30, "seed": 0}
+# s: longer than `archery up` takes to restart a crashed learner or router (its back-off and the
+# start of a process), short enough that a learner gone for good is told soon.
+LOST_WAIT = 30.0
 # (flag, argparse dest) of the flags that describe a new session
 SESSION_FLAGS = (
     ("--algo", "algo"),
@@ -130,6 +139,12 @@ def build_parser() -> argparse.ArgumentParser:
         type=seconds,
         default=60.0,
         help="wait this long for the router to listen and the five services to be alive (s)",
+    )
+    parser.add_argument(
+        "--lost-wait",
+        type=seconds,
+        default=LOST_WAIT,
+        help="while following, wait this long for a vanished learner or router to come back (s)",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     parser.add_argument(
@@ -238,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     show = (lambda m: None) if args.quiet else _progress
     waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
+    note = None if args.quiet else attach.stderr_line
+    resume_timeout = args.wait + 30.0  # s: a resumed session's `start` waits for the services
     try:
         node = open_node(net, args.wait)
     except ArcheryError as exc:
@@ -246,7 +263,16 @@ def main(argv: list[str] | None = None) -> int:
     with node:
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         if args.attach:
-            return attach.attach(node, rollouts, args.attach, show, quiet=args.quiet)
+            return attach.attach(
+                node,
+                rollouts,
+                args.attach,
+                show,
+                quiet=args.quiet,
+                gone_after=args.lost_wait,
+                resume_timeout=resume_timeout,
+                note=note,
+            )
         try:
             node.wait_alive(SERVICES, timeout=args.wait)
             status = learner_call(node, "start", start, timeout=args.wait + 30)
@@ -257,12 +283,26 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quiet:
             print(f"session {session}: journal {status['journal']}", file=sys.stderr)
         try:
-            status = follow(node, session, rollouts, show, on_status=waiting)
+            status = follow(
+                node,
+                session,
+                rollouts,
+                show,
+                on_status=waiting,
+                journal=status["journal"],
+                resume=True,
+                gone_after=args.lost_wait,
+                resume_timeout=resume_timeout,
+                note=note,
+            )
         except SessionLost as exc:
-            print(f"archery learn: {exc} {status['journal']}", file=sys.stderr)
+            print(f"archery learn: {exc}", file=sys.stderr)
             status = attach.journal_counts(exc.status or status) | {"state": "lost"}
             print(result_line(status))
             return 1
+        except RpcError as exc:  # the learner refused its status (e.g. access control)
+            print(f"archery learn: {exc}", file=sys.stderr)
+            return for_error(exc.code)
         except KeyboardInterrupt:
             print("archery learn: stopping the session after its current rollout", file=sys.stderr)
             try:

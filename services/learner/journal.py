@@ -8,9 +8,10 @@ Lines are decoded with msgspec into those Structs (a line that does not fit is a
 naming the file, the line and the field) and encoded as they always were: compact JSON, UTF-8,
 no NaN, fields in their Struct's order, so a record decoded from a line encodes back to it.
 
-Each record is written with one `write`, then `flush` and `os.fsync`, so a record is either
-durable or (after a crash mid-write) a torn last line without its newline, which `read` ignores
-and `Journal.resume` cuts off before appending. `JournalState` replays the records and checks
+Each record is written unbuffered (all its bytes), then `os.fsync`ed, so a record is either
+durable or (after a crash or a full disk mid-write) a torn last line without its newline, which
+`read` ignores and `Journal.resume` cuts off before appending. A journal's `state` takes a
+record in only once it is durable. `JournalState` replays the records and checks
 what the types cannot: one header, one rollout at a time, each index proposed once and finished
 at most once, in order. `check_invariants` lists every breach of a whole journal at once (for
 fault drills and tests). Pure: no Zenoh.
@@ -18,6 +19,9 @@ fault drills and tests). Pure: no Zenoh.
 
 from __future__ import annotations
 
+import contextlib
+import errno
+import io
 import json
 import os
 import time
@@ -264,13 +268,38 @@ class JournalState:
         return header
 
     def apply(self, record: JournalRecord, where: str = "record") -> None:
-        """Check `record` against what came before and take it in (every check runs before
-        anything changes). Its fields' types are msgspec's to check (`read_records`,
-        `Journal.append`); these are the rules between records.
+        """Check `record` against what came before (`check`) and take it in.
+
+        Raises:
+            JournalError: it breaks a rule; the state is unchanged.
+        """
+        self.check(record, where)
+        if isinstance(record, ProposedRecord):
+            self.open = record
+            self.last_index = record.index
+        elif isinstance(record, DoneRecord):
+            self.done.append(record)
+            self.retry_theta = None
+            self.aborts_in_row = {}
+            self.open = None
+        elif isinstance(record, AbortedRecord):
+            self.retry_theta = list(record.retry_theta)
+            self.aborted.append(record)
+            self.aborts_in_row[record.code] = self.aborts_in_row.get(record.code, 0) + 1
+            self.open = None
+        elif isinstance(record, ResumedRecord):
+            self.aborts_in_row = {}  # a deliberate restart gets a fresh count of aborts
+        elif isinstance(record, EndRecord):
+            self.ended = record
+        self.records.append(record)
+
+    def check(self, record: JournalRecord, where: str = "record") -> None:
+        """Whether `record` may come next; changes nothing. Its fields' types are msgspec's to
+        check (`read_records`, `Journal.append`); these are the rules between records.
 
         Raises:
             JournalError: it breaks a rule (wrong session, index out of order, a rollout
-                finished twice, anything after the end …); the state is unchanged.
+                finished twice, anything after the end …); the message names it.
         """
         if not isinstance(record, SessionRecord):
             raise JournalError(
@@ -295,8 +324,6 @@ class JournalState:
                     f"{where}: rollout {index} proposed after rollout {self.last_index}; "
                     f"expected {self.last_index + 1}"
                 )
-            self.open = record
-            self.last_index = index
         elif isinstance(record, DoneRecord | AbortedRecord):
             index, theta = record.index, record.theta
             if self.open is None or self.open.index != index:
@@ -316,21 +343,8 @@ class JournalState:
                         f"{where}: done rollout number {record.rollout!r}, expected "
                         f"{len(self.done) + 1}"
                     )
-                self.done.append(record)
-                self.retry_theta = None
-                self.aborts_in_row = {}
-            else:
-                self.retry_theta = list(record.retry_theta)
-                self.aborted.append(record)
-                self.aborts_in_row[record.code] = self.aborts_in_row.get(record.code, 0) + 1
-            self.open = None
-        elif isinstance(record, ResumedRecord):
-            self.aborts_in_row = {}  # a deliberate restart gets a fresh count of aborts
-        elif isinstance(record, EndRecord):
-            if self.open is not None:
-                raise JournalError(f"{where}: end while rollout {self.open.index} is open")
-            self.ended = record
-        self.records.append(record)
+        elif isinstance(record, EndRecord) and self.open is not None:
+            raise JournalError(f"{where}: end while rollout {self.open.index} is open")
 
     def hit_at(self) -> int | None:
         """The done-rollout number (1-based) of the first hit, or None."""
@@ -354,7 +368,7 @@ class JournalState:
 
 
 class Journal:
-    """Appends records to one session's journal file, durably (write, flush, fsync per record).
+    """Appends records to one session's journal file, durably (each written whole, then fsynced).
 
     Build one with `create` (a new session) or `resume` (an existing file); `state` is kept in
     step with the file, and a record that would break the journal's rules is refused before
@@ -364,7 +378,8 @@ class Journal:
     def __init__(self, path: Path, state: JournalState) -> None:
         self.path = path
         self.state = state
-        self._file = open(path, "ab")  # noqa: SIM115 (kept open for the session)
+        # Unbuffered: a failed write leaves nothing behind to be flushed (and fail) again.
+        self._file = open(path, "ab", buffering=0)  # noqa: SIM115 (kept open for the session)
 
     @classmethod
     def create(cls, directory: Path, header: HeaderRecord) -> Journal:
@@ -428,11 +443,14 @@ class Journal:
 
     def append(self, record: JournalRecord) -> JournalRecord:
         """Check, write and fsync one record; returns it as written (stamped with this
-        journal's `session` and the wall time `t`, s since the epoch).
+        journal's `session` and the wall time `t`, s since the epoch). `state` takes the record
+        in only once it is durable, so it never counts a record the file lacks.
 
         Raises:
             JournalError: a field is missing or of the wrong type, or the record breaks the
-                journal's rules (nothing is written).
+                journal's rules (nothing is written); or the write or fsync failed (e.g. a
+                full disk; the message gives the system's reason): the journal is closed then,
+                its file possibly ending in a torn record that `resume` cuts off.
         """
         where = f"new {record.kind} record"
         if isinstance(record, SessionRecord):
@@ -441,28 +459,43 @@ class Journal:
         record = _decode(line, where)  # what is written is what a reader will decode
         if self._file.closed:
             raise JournalError(f"journal {self.path} is closed; resume it to append")
-        self.state.apply(record, where)  # checks before it changes anything
+        self.state.check(record, where)  # nothing is written when it breaks a rule
         try:
-            self._file.write(line)
-            self._file.flush()
+            _write_all(self._file, line)
             os.fsync(self._file.fileno())
         except OSError as exc:
-            self._file.close()  # the file may now hold a torn record: resume re-reads it
+            self.close()
             raise JournalError(
                 f"cannot write to journal {self.path}: {exc.strerror or exc}"
             ) from None
+        self.state.apply(record, where)
         return record
 
     def close(self) -> None:
-        """Close the file (idempotent)."""
+        """Close the file (idempotent; never raises: every record written was fsynced)."""
         if not self._file.closed:
-            self._file.close()
+            with contextlib.suppress(OSError):
+                self._file.close()
 
     def __enter__(self) -> Journal:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _write_all(file: io.RawIOBase, data: bytes) -> None:
+    """Write every byte of `data` to an unbuffered file (a write may take only part of it).
+
+    Raises:
+        OSError: the system refused a write (e.g. ENOSPC); the bytes before it stay written.
+    """
+    view = memoryview(data)
+    while view:
+        written = file.write(view)
+        if not written:
+            raise OSError(errno.EIO, f"a write took none of {len(view)} bytes")
+        view = view[written:]
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -180,20 +180,28 @@ class Session:
         except SessionFailed as exc:
             self._set("failed", exc.message)
             log.error("session %s failed: %s", self.session_id, exc.message)
-            self._record(StoppedRecord(reason="failed", cause=exc.message))
+            self._record_failure(exc.message)
         except JournalError as exc:
             self._set("failed", exc.message)
             log.error("session %s: journal failure: %s", self.session_id, exc.message)
         except RigError as exc:
             self._set("failed", exc.message)
             log.error("session %s failed to set up: %s", self.session_id, exc.message)
-            self._record(StoppedRecord(reason="failed", cause=exc.message))
+            self._record_failure(exc.message)
         except Exception as exc:  # a bug must not leave the session "running" forever
             log.exception("session %s failed", self.session_id)
             self._set("failed", f"internal error: {exc!r}")
         finally:
             self.journal.close()
         return self.status()
+
+    def _record_failure(self, cause: str) -> None:
+        """Journal the stopped record of a failure; a journal that cannot take it (e.g. a full
+        disk) leaves the session failed with its first cause (the error is logged)."""
+        try:
+            self._record(StoppedRecord(reason="failed", cause=cause))
+        except JournalError as exc:
+            log.error("session %s: the failure was not journaled: %s", self.session_id, exc.message)
 
     def _run(self, stop: threading.Event) -> None:
         config, state = self.config, self.journal.state
