@@ -144,11 +144,17 @@ def ports_main(argv: list[str] | None = None) -> int:
 
     def body(net: NetConfig) -> int:
         with open_node(net, args.wait) as node:
+            seen: set[str] = set()  # names whose tokens the wait saw arrive
             if args.wait:
                 pattern = ALIVE_EVERY_ROBOT if every else node.keys.alive_all()
                 with TokenSet(node.session, pattern) as alive:
                     alive.wait_for(bool, args.wait)
+                    seen = alive.present()
             robots = node.alive_robots(timeout=args.timeout)
+            if seen and not every:  # a query just after a token arrived may not list it yet
+                robots[args.robot] = robots.get(args.robot, set()) | seen
+            elif seen and not robots:
+                robots = node.alive_robots(timeout=args.timeout)
             if every and not robots:  # in secure mode the ACL lets one see one's robot only
                 own = node.alive(timeout=args.timeout)
                 robots = {node.keys.robot: own} if own else {}
