@@ -28,8 +28,8 @@ from pathlib import Path
 
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
+from benchmarks.trees import ROOT, env_for, tree_at
 
-ROOT = Path(__file__).resolve().parents[1]
 PRODUCT_BEFORE = ("protocol", "services", "sim")
 PRODUCT_AFTER = ("protocol", "mesh", "services", "apps", "sim")
 
@@ -99,17 +99,11 @@ print(json.dumps(out))
 """
 
 
-def _tree_before(commit: str, dest: Path) -> Path:
-    archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
-    return dest
-
-
 def _workload(tree: Path, calls: int, frames: int) -> dict[str, float]:
     run = subprocess.run(
         [sys.executable, "-c", WORKLOAD, str(calls), str(frames)],
         cwd=tree,
-        env=os.environ | {"PYTHONPATH": str(tree)},
+        env=env_for(tree),
         capture_output=True,
         text=True,
         timeout=600,
@@ -136,7 +130,7 @@ def _suite(tree: Path) -> float:
     run = subprocess.run(
         [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider"],
         cwd=tree,
-        env=os.environ | {"PYTHONPATH": str(tree)},
+        env=env_for(tree),
         capture_output=True,
         text=True,
         timeout=1800,
@@ -159,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
     print(f"- Machine: {os.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}")
     with tempfile.TemporaryDirectory() as tmp:
-        before = _tree_before(args.before, Path(tmp))
+        before = tree_at(args.before, Path(tmp))
         lines_before = _lines(before, PRODUCT_BEFORE)
         lines_after = _lines(ROOT, PRODUCT_AFTER)
         total_before = sum(lines_before.values()) - lines_before["files"]
