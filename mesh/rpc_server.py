@@ -24,6 +24,7 @@ from protocol.messages import (
     Message,
     RpcReply,
 )
+from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
@@ -56,7 +57,8 @@ def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
     """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
     text = str(exc)
     what, _, path = text.partition(" - at `")
-    path = path.rstrip("`") or "$"
+    what = cut(what, 2 * SHOWN_LIMIT)  # it may quote the request (an unknown field's name)
+    path = cut(path.rstrip("`"), SHOWN_LIMIT) or "$"
     if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
         inner, _, what = what.partition(" is ")
         path = path + inner[1:]
@@ -161,9 +163,9 @@ class RpcServer:
                     "the request map has no `type` field: an RpcRequest is a msgpack map "
                     "{type: 'RpcRequest', verb: str, args: map}"
                 ) from None
-            raise DecodeError(f"invalid RpcRequest: {exc}") from None
+            raise DecodeError(f"invalid RpcRequest: {cut(str(exc), 2 * SHOWN_LIMIT)}") from None
         except msgspec.DecodeError as exc:
-            raise DecodeError(f"payload is not msgpack: {exc}") from None
+            raise DecodeError(f"payload is not msgpack: {cut(str(exc))}") from None
         except RecursionError:
             raise DecodeError("the request nests too deep to decode") from None
         if not isinstance(request, _WireRequest):
@@ -178,7 +180,7 @@ class RpcServer:
         entry = self.handlers.get(request.verb)
         if entry is None:
             verbs = ", ".join(sorted(self.handlers))
-            message = f"{self.key} has no verb {request.verb!r}; verbs: {verbs}"
+            message = f"{self.key} has no verb {shown(request.verb)}; verbs: {verbs}"
             return self._error("unknown_verb", message, seq)
         try:
             verb = entry.verb
@@ -201,7 +203,7 @@ class RpcServer:
             return self._error(exc.code, exc.message, seq)
         except Exception as exc:
             log.exception("%s %s failed", self.key, request.verb)
-            return self._error("internal", f"{request.verb} failed: {exc!r}", seq)
+            return self._error("internal", f"{request.verb} failed: {shown(exc)}", seq)
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""

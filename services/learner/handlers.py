@@ -17,6 +17,7 @@ from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, BadRequest
 from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from protocol.messages import Rollout
+from protocol.text import shown
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
 from services.learner.config import LearnerServiceConfig, SessionConfig
@@ -105,7 +106,7 @@ class LearnerHandlers:
                 unknown = sorted(given - {"resume", "session"})
                 if unknown:
                     raise BadRequest(
-                        f"start with resume takes only resume and session, not {unknown[0]!r}"
+                        f"start with resume takes only resume and session, not {shown(unknown[0])}"
                     )
                 self._check_services()
                 wanted = request.session if isinstance(request.session, str) else None
