@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 import msgspec
 import zenoh
 
+from mesh.memory import note_payload
 from protocol.codec import MAX_PAYLOAD_BYTES, encode
 from protocol.errors import (
     ArcheryError,
@@ -133,6 +134,7 @@ class RpcServer:
             if item is _STOP:
                 return
             self._answer(*item)
+            del item  # the request is not kept while waiting for the next one
 
     def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
         try:
@@ -151,6 +153,7 @@ class RpcServer:
 
     def _request(self, query: zenoh.Query) -> _WireRequest:
         payload = query.payload.to_bytes() if query.payload is not None else b""
+        note_payload(len(payload))
         if len(payload) > MAX_PAYLOAD_BYTES:
             raise DecodeError(
                 f"request of {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes"
