@@ -153,3 +153,11 @@ def test_learn_sends_a_journal_found_here_as_an_absolute_path(
     assert here == {"resume": str(tmp_path / "runs" / "s1" / "journal.jsonl")}
     elsewhere = learn.start_request(parser.parse_args(["--resume", "s2/journal.jsonl"]))
     assert elsewhere == {"resume": "s2/journal.jsonl"}  # the learner's runs folder's to find
+
+
+def test_a_huge_path_is_quoted_short(learner: Node) -> None:
+    for field in FIELDS:
+        for path in ("x" * 10 * 1024 * 1024, "/" + "y" * 10 * 1024 * 1024):
+            error = _start(learner, {field: path})
+            assert error.code in ("bad_journal", "bad_request") and len(str(error)) < 1000
+    assert rpc_call(learner, learner.keys.learner_rpc(), "status", timeout=10) == {"state": "idle"}

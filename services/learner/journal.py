@@ -475,7 +475,7 @@ class Journal:
         state = JournalState.from_records(records, str(path))
         if session is not None and state.session != session:
             raise JournalError(
-                f"journal {path} belongs to session {state.session!r}, not {session!r}"
+                f"journal {path} belongs to session {shown(state.session)}, not {shown(session)}"
             )
         if state.ended is not None:
             raise JournalError(
