@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 import msgspec
 import zenoh
 
+from mesh.memory import note_payload
 from protocol.codec import MAX_PAYLOAD_BYTES, encode
 from protocol.errors import (
     ArcheryError,
@@ -25,6 +26,7 @@ from protocol.messages import (
     Message,
     RpcReply,
 )
+from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
@@ -57,7 +59,8 @@ def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
     """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
     text = str(exc)
     what, _, path = text.partition(" - at `")
-    path = path.rstrip("`") or "$"
+    what = cut(what, 2 * SHOWN_LIMIT)  # it may quote the request (an unknown field's name)
+    path = cut(path.rstrip("`"), SHOWN_LIMIT) or "$"
     if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field
         inner, _, what = what.partition(" is ")
         path = path + inner[1:]
@@ -139,6 +142,7 @@ class RpcServer:
             if item is _STOP:
                 return
             self._answer(*item)
+            del item  # the request is not kept while waiting for the next one
 
     def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
         try:
@@ -157,6 +161,7 @@ class RpcServer:
 
     def _request(self, query: zenoh.Query) -> _WireRequest:
         payload = query.payload.to_bytes() if query.payload is not None else b""
+        note_payload(len(payload))
         if len(payload) > MAX_PAYLOAD_BYTES:
             raise DecodeError(
                 f"request of {len(payload)} bytes exceeds the limit of {MAX_PAYLOAD_BYTES} bytes"
@@ -169,9 +174,9 @@ class RpcServer:
                     "the request map has no `type` field: an RpcRequest is a msgpack map "
                     "{type: 'RpcRequest', verb: str, args: map}"
                 ) from None
-            raise DecodeError(f"invalid RpcRequest: {exc}") from None
+            raise DecodeError(f"invalid RpcRequest: {cut(str(exc), 2 * SHOWN_LIMIT)}") from None
         except msgspec.DecodeError as exc:
-            raise DecodeError(f"payload is not msgpack: {exc}") from None
+            raise DecodeError(f"payload is not msgpack: {cut(str(exc))}") from None
         except RecursionError:
             raise DecodeError("the request nests too deep to decode") from None
         if not isinstance(request, _WireRequest):
@@ -186,7 +191,7 @@ class RpcServer:
         entry = self.handlers.get(request.verb)
         if entry is None:
             verbs = ", ".join(sorted(self.handlers))
-            message = f"{self.key} has no verb {request.verb!r}; verbs: {verbs}"
+            message = f"{self.key} has no verb {shown(request.verb)}; verbs: {verbs}"
             return self._error("unknown_verb", message, seq)
         try:
             verb = entry.verb
@@ -209,7 +214,7 @@ class RpcServer:
             return self._error(exc.code, exc.message, seq)
         except Exception as exc:
             log.exception("%s %s failed", self.key, request.verb)
-            return self._error("internal", f"{request.verb} failed: {exc!r}", seq)
+            return self._error("internal", f"{request.verb} failed: {shown(exc)}", seq)
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""

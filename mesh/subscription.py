@@ -13,6 +13,7 @@ from typing import Generic, TypeVar
 
 import zenoh
 
+from mesh.memory import note_payload
 from protocol.codec import decode
 from protocol.errors import (
     DecodeError,
@@ -64,8 +65,10 @@ class Subscription(Generic[M]):
         self._sub: zenoh.Subscriber | None = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        note_payload(len(payload))
         try:
-            message = decode(sample.payload.to_bytes(), self.message_type, view=True)
+            message = decode(payload, self.message_type, view=True)
         except DecodeError as exc:
             self.dropped += 1
             self.last_error = str(exc)

@@ -8,9 +8,11 @@ import msgspec
 
 from protocol.errors import DecodeError
 from protocol.messages import MESSAGE_TYPES, Array, Image, Message
+from protocol.text import SHOWN_LIMIT, cut, shown
 
 __all__ = [
     "MAX_PAYLOAD_BYTES",
+    "NESTED_TOO_DEEP",
     "ImageView",
     "decode",
     "encode",
@@ -22,6 +24,7 @@ __all__ = [
 M = TypeVar("M", bound=Message)
 
 MAX_PAYLOAD_BYTES = 64 * 1024 * 1024  # a 4K RGB frame is 25 MB; nothing legitimate is bigger
+NESTED_TOO_DEEP = "the payload nests too deep to decode (no message nests more than a few levels)"
 
 _encoder = msgspec.msgpack.Encoder()
 _any_decoder = msgspec.msgpack.Decoder(Union[tuple(MESSAGE_TYPES.values())])  # noqa: UP007
@@ -39,6 +42,13 @@ class ImageView(Image, frozen=True, tag="Image"):
 
 
 _view_decoders: dict[type, msgspec.msgpack.Decoder] = {Image: msgspec.msgpack.Decoder(ImageView)}
+
+
+def _why(exc: msgspec.ValidationError) -> str:
+    """msgspec's "what - at `path`", each part cut short: what may quote the payload (an
+    unknown field's name, a bad enum value), and a long one must not push the path out."""
+    what, at, path = str(exc).partition(" - at `")
+    return cut(what, 2 * SHOWN_LIMIT) + at + cut(path, SHOWN_LIMIT)
 
 
 def encode(message: Message) -> bytes:
@@ -62,9 +72,15 @@ def decode(
     """Decode and validate a payload, optionally requiring one message type; with `view`, an
     `Image` comes as an `ImageView` (its pixels a view of `payload`, not a copy).
 
+    Nesting is bounded: msgspec decodes nested arrays and maps by recursion, and a payload
+    nesting deeper than the interpreter's recursion limit allows (about 1,000 levels, less the
+    caller's own stack; no message of ours nests more than 5) is refused like any other bad
+    payload, not raised as a `RecursionError`. Whatever the error quotes of the payload (an
+    unknown field's name, a bad enum value) is cut short (`protocol.text.cut`).
+
     Raises:
         DecodeError: oversized, not msgpack, not a message (or not `expected`), a foreign schema
-            version, a NaN where a number is required; the message says which.
+            version, a NaN where a number is required, nested too deep; the message says which.
     """
     if len(payload) > max_bytes:
         raise DecodeError(f"payload of {len(payload)} bytes exceeds the limit of {max_bytes} bytes")
@@ -75,9 +91,11 @@ def decode(
         return decoder.decode(payload)
     except msgspec.ValidationError as exc:
         wanted = expected.__name__ if expected is not None else "message"
-        raise DecodeError(f"invalid {wanted}: {exc}") from None
+        raise DecodeError(f"invalid {wanted}: {_why(exc)}") from None
     except msgspec.DecodeError as exc:
-        raise DecodeError(f"payload is not msgpack: {exc}") from None
+        raise DecodeError(f"payload is not msgpack: {cut(str(exc))}") from None
+    except RecursionError:
+        raise DecodeError(NESTED_TOO_DEEP) from None
 
 
 def _jsonable(value: Any) -> Any:
@@ -108,9 +126,11 @@ def from_jsonable(obj: Any, message_type: type[M]) -> M:
         DecodeError: the data does not fit the type; the message names the field.
     """
     if not isinstance(obj, dict):
-        raise DecodeError(f"a {message_type.__name__} must be a JSON object, got {obj!r}")
+        raise DecodeError(f"a {message_type.__name__} must be a JSON object, got {shown(obj)}")
     data = {k: v for k, v in obj.items() if k != "type"}
     try:
         return msgspec.convert(data, message_type)
     except msgspec.ValidationError as exc:
-        raise DecodeError(f"invalid {message_type.__name__}: {exc}") from None
+        raise DecodeError(f"invalid {message_type.__name__}: {_why(exc)}") from None
+    except RecursionError:
+        raise DecodeError(NESTED_TOO_DEEP) from None

@@ -20,6 +20,7 @@ import msgspec.inspect
 import numpy as np
 
 from protocol.journal_records import RolloutRecord
+from protocol.text import shown
 
 __all__ = [
     "ALLOWED_DTYPES",
@@ -114,9 +115,11 @@ class Array(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
     def __post_init__(self) -> None:
         if self.dtype not in ALLOWED_DTYPES:
-            raise ValueError(f"array dtype {self.dtype!r} is not one of {ALLOWED_DTYPES}")
+            raise ValueError(f"array dtype {shown(self.dtype, 60)} is not one of {ALLOWED_DTYPES}")
         if any(n < 0 for n in self.shape) or len(self.shape) > 8:
-            raise ValueError(f"array shape {self.shape!r} must have ≤ 8 non-negative sizes")
+            raise ValueError(
+                f"array shape {shown(self.shape, 60)} must have ≤ 8 non-negative sizes"
+            )
         expected = math.prod(self.shape) * _ITEMSIZE[self.dtype]
         if expected != len(self.data):
             raise ValueError(
@@ -173,7 +176,7 @@ class JointState(Message, frozen=True):
     def validate(self) -> None:
         if not len(self.names) == len(self.position) == len(self.velocity):
             raise ValueError(
-                f"joint state of {self.part!r}: {len(self.names)} names, "
+                f"joint state of {shown(self.part, 60)}: {len(self.names)} names, "
                 f"{len(self.position)} positions and {len(self.velocity)} velocities differ"
             )
 
@@ -194,12 +197,12 @@ class JointCommand(Message, frozen=True):
     def validate(self) -> None:
         if not 1 <= self.batch <= MAX_BATCH:
             raise ValueError(
-                f"joint command for {self.part!r}: batch must be in 1..{MAX_BATCH}, "
+                f"joint command for {shown(self.part, 60)}: batch must be in 1..{MAX_BATCH}, "
                 f"got {self.batch}"
             )
         if self.names is not None and len(self.names) != len(self.position):
             raise ValueError(
-                f"joint command for {self.part!r}: {len(self.names)} names but "
+                f"joint command for {shown(self.part, 60)}: {len(self.names)} names but "
                 f"{len(self.position)} positions"
             )
 
@@ -234,7 +237,7 @@ class Image(Message, frozen=True):
     def validate(self) -> None:
         if self.encoding not in IMAGE_ENCODINGS:
             raise ValueError(
-                f"image encoding {self.encoding!r} is not one of {sorted(IMAGE_ENCODINGS)}"
+                f"image encoding {shown(self.encoding, 60)} is not one of {sorted(IMAGE_ENCODINGS)}"
             )
         if not (0 < self.width <= 16384 and 0 < self.height <= 16384):
             raise ValueError(f"image size {self.width}x{self.height} is outside 1..16384 px")

@@ -13,30 +13,17 @@ is cut short, so that a huge value cannot flood a log line or a reply.
 
 from __future__ import annotations
 
-import re
-import reprlib
-
 import numpy as np
+
+from protocol.text import shown
 
 __all__ = ["MAX_SHOWN", "finite_vector", "parse_vector"]
 
 MAX_SHOWN = 80  # characters of a rejected value quoted in a message, at most
 
-_REPR = reprlib.Repr()
-_REPR.maxlist = _REPR.maxtuple = 8
-_REPR.maxstring = _REPR.maxother = MAX_SHOWN
-_REPR.maxlevel = 2
 
-
-def _shown(value: object) -> str:
-    """A one-line repr of `value` of at most `MAX_SHOWN` characters (long items, lists and
-    arrays are elided with "...")."""
-    text = re.sub(r"\s*\n\s*", " ", _REPR.repr(value))  # numpy breaks long reprs in lines
-    return text if len(text) <= MAX_SHOWN else text[: MAX_SHOWN - 3] + "..."
-
-
-def _message(name: str, size: int, unit: str, numbers: str, shown: str) -> str:
-    return f"{name} must be a finite {size}-vector ({unit}): {size} {numbers}, got {shown}"
+def _message(name: str, size: int, unit: str, numbers: str, quoted: str) -> str:
+    return f"{name} must be a finite {size}-vector ({unit}): {size} {numbers}, got {quoted}"
 
 
 def _check_size(size: int) -> None:
@@ -81,7 +68,7 @@ def finite_vector(
         except OverflowError:  # an integer beyond the float range
             array = None
     if array is None or not np.all(np.isfinite(array)):
-        raise error(_message(name, size, unit, "finite numbers", _shown(value)))
+        raise error(_message(name, size, unit, "finite numbers", shown(value, MAX_SHOWN)))
     array.setflags(write=False)
     return array
 
@@ -115,4 +102,5 @@ def parse_vector(
             return finite_vector(flag, values, ValueError, size=size, unit=unit)
         except ValueError:
             pass
-    raise error(_message(flag, size, unit, "comma-separated finite numbers", _shown(text)))
+    numbers = "comma-separated finite numbers"
+    raise error(_message(flag, size, unit, numbers, shown(text, MAX_SHOWN)))

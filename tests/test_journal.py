@@ -29,9 +29,11 @@ from protocol.journal_records import (
     SessionRecord,
     StoppedRecord,
 )
+from services.learner import journal as journal_module
 from services.learner.algorithms.registry import make_learner, restore_learner
 from services.learner.journal import (
     JOURNAL_NAME,
+    MAX_JOURNAL_BYTES,
     Journal,
     JournalError,
     JournalState,
@@ -487,3 +489,37 @@ def test_each_record_kind_round_trips_byte_stable(tmp_path: Path) -> None:
         assert read_records(one)[0] == [record]  # encode → decode: the same record
     assert "θ".encode() in lines[6] and b"\\u" not in lines[6]
     assert b'"truth_r_m"' not in lines[4] and b'"cause"' not in lines[11]  # absent stays absent
+
+
+def test_only_a_regular_file_within_the_bound_is_read(tmp_path: Path) -> None:
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)  # opened without blocking, then refused
+    with pytest.raises(JournalError, match="is not a regular file"):
+        read_records(fifo)
+    with pytest.raises(JournalError, match="is not a regular file"):
+        read_records(Path("/dev/zero"))
+    huge = tmp_path / "huge.jsonl"
+    with open(huge, "wb") as f:
+        f.truncate(MAX_JOURNAL_BYTES + 1)  # sparse: no block written
+    with pytest.raises(JournalError, match=f"more than a journal may \\({MAX_JOURNAL_BYTES} "):
+        read_records(huge)
+    deep = tmp_path / "deep.jsonl"
+    nested = b"[" * 100_000 + b"]" * 100_000
+    deep.write_bytes(b'{"record": "header", "junk": ' + nested + b"}\n{}\n")
+    with pytest.raises(JournalError, match="line 1 nests too deep"):
+        read_records(deep)
+    deep.write_bytes(nested + b"\n{}\n")
+    with pytest.raises(JournalError, match="line 1 is not a journal record"):
+        read_records(deep)
+
+
+def test_a_journal_never_grows_past_the_bound(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    with Journal.create(tmp_path / "s1", _header()) as journal:
+        size = journal.path.stat().st_size
+        monkeypatch.setattr(journal_module, "MAX_JOURNAL_BYTES", size + 100)
+        journal.append(_proposed(1, [0.17, 0.0, -0.02]))  # under 100 bytes
+        with pytest.raises(JournalError, match=r"would pass \d+ bytes, the most a journal"):
+            _done(journal, 1, [0.17, 0.0, -0.02], 1)
+        assert read_records(journal.path)[0][-1].kind == "proposed"  # nothing written

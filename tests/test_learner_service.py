@@ -162,7 +162,7 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
             r"float in \[0.001, 0.25\]",
         ),
         ({"options": {"explore_std": -1}}, "bad_request", "explore_std"),
-        ({"resume": "/nonexistent/journal.jsonl"}, "bad_journal", "cannot read journal"),
+        ({"resume": "nonexistent/journal.jsonl"}, "bad_journal", "cannot read journal"),
         ({"resume": 3}, "bad_request", r"`\$.resume`.*resume must be str.*\(journal path\)"),
     ],
 )

@@ -122,7 +122,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--option", action="append", metavar="NAME=VALUE", help="learner option (repeatable)"
     )
     which = parser.add_mutually_exclusive_group()
-    which.add_argument("--resume", metavar="PATH", help="continue the session journaled at PATH")
+    which.add_argument(
+        "--resume",
+        metavar="PATH",
+        help="continue the session journaled at PATH, inside the learner's runs folder (a "
+        "relative PATH that does not exist here is taken from that folder)",
+    )
     which.add_argument(
         "--from",
         dest="from_",
@@ -175,7 +180,7 @@ def start_request(args: argparse.Namespace) -> dict[str, Any]:
                 f"--resume continues the session as it was journaled; it cannot honour "
                 f"{', '.join(given)} (leave them out, or start a new session)"
             )
-        return {"resume": args.resume}
+        return {"resume": _resume_path(args.resume)}
     algo = DEFAULTS["algo"] if args.algo is None else args.algo
     if algo not in ALGORITHMS:
         raise ConfigError(
@@ -198,6 +203,14 @@ def start_request(args: argparse.Namespace) -> dict[str, Any]:
     if args.from_:
         request["from_journal"] = _from_journal(args.from_, algo)
     return request
+
+
+def _resume_path(target: str) -> str:
+    """`--resume`'s journal as the learner is to read it: a path that exists here as an
+    absolute path (on this machine the learner's runs folder holds it), any other as given (the
+    learner, maybe elsewhere, takes a relative path from its runs folder)."""
+    path = Path(target)
+    return str(path.resolve()) if path.exists() else target
 
 
 def _from_journal(target: str, algo: str) -> str:

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from apps.capacity import check_robots
-from apps.up.child import die_with_parent
+from apps.up.child import spawn
 from apps.up.launch_config import MeshConfig, default_mesh, load_mesh
 from apps.up.launcher import Launcher, LaunchError, StartInterrupted
 from apps.up.restart_policy import POLICIES, describe_status
@@ -95,31 +95,40 @@ def build_parser() -> argparse.ArgumentParser:
 
 def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
     """An `archery record` child writing every stream of the first robot to `out` (its log
-    `LOGS/recorder.log`), started once it subscribes.
+    `LOGS/recorder.log`, rotated and bounded like the others'), started once it subscribes.
 
     Raises:
         LaunchError: it exited or did not subscribe within `timeout` s.
     """
     argv = ["record", "--out", out, "--connect", launcher.endpoint, "--robot", launcher.net.robot]
-    log = launcher.logs / "recorder.log"
-    with open(log, "wb") as sink:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", *argv, *launcher.secure],
-            stdin=subprocess.DEVNULL,
-            stdout=sink,
-            stderr=subprocess.STDOUT,
-            env=launcher.env,
-            start_new_session=True,
-            preexec_fn=die_with_parent,
-        )
+    output = launcher.output("recorder")
+    output.close()
+    for path in output.paths:  # this run's words only
+        path.unlink(missing_ok=True)
+    child = spawn(
+        "recorder",
+        [sys.executable, "-m", "apps.cli", *argv, *launcher.secure],
+        output,
+        launcher.env,
+    )
+    assert child.proc is not None
     deadline = time.monotonic() + timeout
-    while b"archery record: recording" not in log.read_bytes():
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            tail = log.read_text(errors="replace").strip().splitlines()[-1:]
+    while b"archery record: recording" not in _read(output.path):
+        if child.returncode is not None or time.monotonic() > deadline:
+            child.proc.kill()
+            child.proc.wait()
+            tail = child.tail().splitlines()[-1:]
             raise LaunchError(f"the recorder did not start: {' '.join(tail) or 'no output'}")
         time.sleep(0.05)
-    return proc
+    return child.proc
+
+
+def _read(path: Path) -> bytes:
+    """The bytes of a log file (b"" while it does not exist)."""
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        return b""
 
 
 def mesh_from_args(args: argparse.Namespace) -> MeshConfig:

@@ -8,16 +8,16 @@ its restart policy decides (`apps.up.restart_policy`), the router on its same en
 services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the learner first and
 the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
 period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
-`apps.up.launch_config`). Each child's output goes to `LOGS/<name>.log`; the children die with
-their parent. `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN` and one
-learner serving them all (`launch_config.default_mesh`).
+`apps.up.launch_config`). Each child's output goes through a pipe to `LOGS/<name>.log`, rotated
+through `<name>.log.1` and `<name>.log.2` at 8 MiB a file, so at most 24 MiB a child
+(`apps.up.logfile`); the children die with their parent. `--robots N` starts a fleet: N robot
+stacks under `ROBOT1` … `ROBOTN` and one learner serving them all (`launch_config.default_mesh`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-import shlex
 import shutil
 import signal
 import socket
@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from apps.up.child import Child, die_with_parent
+from apps.up.child import Child, spawn
 from apps.up.launch_config import (
     SERVICES,
     MeshConfig,
@@ -37,6 +37,7 @@ from apps.up.launch_config import (
     RouterSpec,
     ServiceSpec,
 )
+from apps.up.logfile import LOG_FILE_BYTES, LOG_FILES, RotatingLog
 from apps.up.restart_policy import RestartPolicy, describe_status
 from mesh.credentials import identity_folder
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
@@ -99,6 +100,9 @@ class Launcher:
             `robot`, `service_args` and `router`, and gives each child its restart policy.
         insecure_network: the router may listen beyond loopback in plain mode
             (`--insecure-network`).
+        log_bytes: bytes of one log file at most (`apps.up.logfile.LOG_FILE_BYTES`).
+        log_files: log files per child, rotated (`apps.up.logfile.LOG_FILES`): a child's logs
+            take at most `log_files × log_bytes` bytes.
     """
 
     def __init__(
@@ -112,6 +116,8 @@ class Launcher:
         *,
         mesh: MeshConfig | None = None,
         insecure_network: bool = False,
+        log_bytes: int = LOG_FILE_BYTES,
+        log_files: int = LOG_FILES,
     ) -> None:
         if mesh is None:
             args = {k: tuple(v) for k, v in (service_args or {}).items()}
@@ -135,6 +141,9 @@ class Launcher:
         self.specs = {spec.id: spec for spec in mesh.children()}
         self.with_router = mesh.router.start
         self.children: dict[str, Child] = {}
+        self.log_bytes = log_bytes
+        self.log_files = log_files
+        self._outputs: dict[str, RotatingLog] = {}  # by child name, kept across restarts
         self._stop: threading.Event | None = None  # set: stop starting (`up`)
         self.env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
 
@@ -143,22 +152,18 @@ class Launcher:
         return self.mesh.router.restart if name == "router" else self.specs[name].restart
 
     # -- starting -------------------------------------------------------------------------------
+    def output(self, name: str) -> RotatingLog:
+        """The rotating log `LOGS/NAME.log` of the child `name` (one per name: a restarted
+        child goes on writing to it)."""
+        if name not in self._outputs:
+            self.logs.mkdir(parents=True, exist_ok=True)
+            path = self.logs / f"{name}.log"
+            self._outputs[name] = RotatingLog(path, self.log_bytes, self.log_files)
+        return self._outputs[name]
+
     def _spawn(self, name: str, argv: list[str]) -> Child:
-        self.logs.mkdir(parents=True, exist_ok=True)
-        child = Child(name, [sys.executable, "-m", "apps.cli", *argv], self.logs / f"{name}.log")
-        with open(child.log, "ab") as log:
-            log.write(f"--- {time.strftime('%H:%M:%S')} {shlex.join(child.argv)}\n".encode())
-            log.flush()
-            child.proc = subprocess.Popen(
-                child.argv,
-                stdin=subprocess.DEVNULL,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env=self.env,
-                start_new_session=True,  # a terminal's Ctrl-C reaches only us; we stop them
-                preexec_fn=die_with_parent,
-            )
-        child.started = time.monotonic()
+        argv = [sys.executable, "-m", "apps.cli", *argv]
+        child = spawn(name, argv, self.output(name), self.env)
         self.children[name] = child
         return child
 
@@ -328,6 +333,7 @@ class Launcher:
         if child.proc is not None and child.proc.poll() is None:
             child.proc.send_signal(sig)
             child.proc.wait(30)
+        child.drain()
 
     def stop(self, names: Iterable[str], grace: float = 10.0) -> dict[str, int | None]:
         """SIGTERM the named children together, SIGKILL those still running after `grace` s.
@@ -348,6 +354,8 @@ class Launcher:
             except subprocess.TimeoutExpired:
                 child.proc.kill()
                 child.proc.wait(10)
+        for child in chosen:
+            child.drain()  # their last lines, into their logs
         return {c.name: c.returncode for c in chosen}
 
     def forget_identities(self) -> None:
@@ -374,3 +382,5 @@ class Launcher:
 
     def __exit__(self, *exc: object) -> None:
         self.stop_all()
+        for output in self._outputs.values():
+            output.close()

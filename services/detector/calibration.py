@@ -15,6 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from protocol.text import shown
 from services.detector.colour_model import ColourModel
 from services.detector.detect import WHITE_SIDE, downscale
 from services.detector.errors import CalibrationError
@@ -34,7 +35,7 @@ def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
         x, y = round(entry[0]), round(entry[1])
         if not (0 <= x < width and 0 <= y < height):
             raise CalibrationError(
-                f"{where}: point {entry} is outside the {width}x{height} image (x in "
+                f"{where}: point {shown(entry)} is outside the {width}x{height} image (x in "
                 f"0..{width - 1}, y in 0..{height - 1}); were the pixels marked on another image?"
             )
         mask[y, x] = 1
@@ -47,10 +48,12 @@ def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
             and rect[2] > 0
             and rect[3] > 0
         ):
-            raise CalibrationError(f"{where}: rect must be [x, y, w, h] with w, h > 0, got {rect}")
+            raise CalibrationError(
+                f"{where}: rect must be [x, y, w, h] with w, h > 0, got {shown(rect)}"
+            )
         x, y, w, h = (round(v) for v in rect)
         if x < 0 or y < 0 or x + w > width or y + h > height:
-            raise CalibrationError(f"{where}: rect {rect} leaves the {width}x{height} image")
+            raise CalibrationError(f"{where}: rect {shown(rect)} leaves the {width}x{height} image")
         mask[y : y + h, x : x + w] = 1
     elif isinstance(entry, dict) and "polygon" in entry:
         vertices = entry["polygon"]
@@ -63,17 +66,19 @@ def _entry_mask(entry: Any, shape: tuple[int, int], where: str) -> np.ndarray:
             )
         ):
             raise CalibrationError(
-                f"{where}: a polygon needs ≥ 3 [x, y] vertices, got {vertices!r}"
+                f"{where}: a polygon needs ≥ 3 [x, y] vertices, got {shown(vertices)}"
             )
         points = np.asarray(vertices, dtype=np.float64)
         if np.any(points < 0) or np.any(points > [width - 1, height - 1]):
-            raise CalibrationError(f"{where}: polygon {vertices} leaves the {width}x{height} image")
+            raise CalibrationError(
+                f"{where}: polygon {shown(vertices)} leaves the {width}x{height} image"
+            )
         cv2.fillPoly(mask, [np.round(points).astype(np.int32)], 1)
         if not mask.any():
-            raise CalibrationError(f"{where}: polygon {entry['polygon']} covers no pixel")
+            raise CalibrationError(f"{where}: polygon {shown(entry['polygon'])} covers no pixel")
     else:
         raise CalibrationError(
-            f"{where}: {entry!r} is not a point [x, y], {{'rect': [x, y, w, h]}} or "
+            f"{where}: {shown(entry)} is not a point [x, y], {{'rect': [x, y, w, h]}} or "
             f"{{'polygon': [[x, y], ...]}}"
         )
     return mask
@@ -112,7 +117,8 @@ def parse_pixels(data: Any, where: str = "calibration pixels") -> dict[str, list
     unknown = set(data) - {"target", "arrow", "note"}
     if unknown:
         raise CalibrationError(
-            f"{where}: unknown keys {sorted(unknown)}; valid: target, arrow (and a free 'note')"
+            f"{where}: unknown keys {shown(sorted(unknown))}; valid: target, arrow (and a free "
+            "'note')"
         )
     if "target" not in data:
         raise CalibrationError(f"{where}: no 'target' pixels; the target set is required")

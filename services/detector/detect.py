@@ -42,6 +42,7 @@ import cv2
 import numpy as np
 
 from protocol.errors import ConfigError
+from protocol.text import shown
 from services.detector.colour_model import ColourModel
 from services.detector.errors import ImageError
 from services.detector.rings import Ellipse
@@ -112,7 +113,7 @@ class DetectorSettings:
                 and low <= value <= high
             ):
                 raise ConfigError(
-                    f"detector setting {name} = {value!r} is outside [{low:g}, {high:g}]"
+                    f"detector setting {name} = {shown(value)} is outside [{low:g}, {high:g}]"
                 )
 
     @property

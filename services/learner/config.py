@@ -19,6 +19,7 @@ from mesh.netflags import NetConfig
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
+from protocol.text import shown
 from protocol.vectors import finite_vector
 from protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
 from protocol.verbs.learner import Bounds as StartBounds
@@ -74,7 +75,7 @@ SCENARIO_KEYS = ("theta0", "bounds", "hit_radius", "reset")
 
 def _integer(name: str, value: Any, low: int, high: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
-        raise BadRequest(f"{name} must be an integer in [{low}, {high}], got {value!r}")
+        raise BadRequest(f"{name} must be an integer in [{low}, {high}], got {shown(value)}")
     return value
 
 
@@ -115,23 +116,24 @@ class SessionConfig:
     def __post_init__(self) -> None:
         if self.algorithm not in ALGORITHMS:
             raise BadRequest(
-                f"unknown algorithm {self.algorithm!r}; valid algorithms: {', '.join(ALGORITHMS)}"
+                f"unknown algorithm {shown(self.algorithm)}; valid algorithms: "
+                f"{', '.join(ALGORITHMS)}"
             )
         _integer("rollouts", self.rollouts, 1, MAX_ROLLOUTS)
         _integer("seed", self.seed, 0, 2**32 - 1)
         _integer("max_aborts", self.max_aborts, 1, 1000)
         for name in ("until_hit", "reset"):
             if not isinstance(getattr(self, name), bool):
-                raise BadRequest(f"{name} must be true or false, got {getattr(self, name)!r}")
+                raise BadRequest(f"{name} must be true or false, got {shown(getattr(self, name))}")
         object.__setattr__(self, "theta0", _theta("scenario.theta0", self.theta0))
         radius = self.hit_radius
         if isinstance(radius, bool) or not isinstance(radius, int | float):
-            raise BadRequest(f"scenario.hit_radius must be a number (m), got {radius!r}")
+            raise BadRequest(f"scenario.hit_radius must be a number (m), got {shown(radius)}")
         if not (math.isfinite(radius) and 0.001 <= radius <= 0.25):
-            raise BadRequest(f"scenario.hit_radius must be in [0.001, 0.25] m, got {radius!r}")
+            raise BadRequest(f"scenario.hit_radius must be in [0.001, 0.25] m, got {shown(radius)}")
         object.__setattr__(self, "hit_radius", float(radius))
         if not isinstance(self.options, Mapping):
-            raise BadRequest(f"options must be a map of learner options, got {self.options!r}")
+            raise BadRequest(f"options must be a map of learner options, got {shown(self.options)}")
         if self.bounds is not None and not self.bounds.contains(np.array(self.theta0)):
             raise BadRequest(
                 f"scenario.theta0 {list(self.theta0)} m lies outside the bounds "
@@ -202,7 +204,7 @@ class SessionConfig:
         unknown = sorted(set(args) - set(START_ARGS))
         if unknown:
             raise BadRequest(
-                f"start has no argument {unknown[0]!r}; arguments: {', '.join(START_ARGS)}"
+                f"start has no argument {shown(unknown[0])}; arguments: {', '.join(START_ARGS)}"
             )
         scenario = args.get("scenario", {})
         if not isinstance(scenario, Mapping):
@@ -210,12 +212,13 @@ class SessionConfig:
         unknown = sorted(set(scenario) - set(SCENARIO_KEYS))
         if unknown:
             raise BadRequest(
-                f"scenario has no key {unknown[0]!r}; scenario keys: {', '.join(SCENARIO_KEYS)}"
+                f"scenario has no key {shown(unknown[0])}; scenario keys: "
+                f"{', '.join(SCENARIO_KEYS)}"
             )
         raw = scenario.get("bounds")
         if raw is not None and (not isinstance(raw, Mapping) or set(raw) != {"low", "high"}):
             raise BadRequest(
-                f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {raw!r}"
+                f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {shown(raw)}"
             )
         # Built without msgspec's checks, so that the values meet the same checks (and
         # messages) as on the learner: `from_start` and the config's own.

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import logging
 import threading
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -17,11 +16,13 @@ from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, BadRequest
 from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from protocol.messages import Rollout
+from protocol.text import shown
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
 from services.learner.config import LearnerServiceConfig, SessionConfig
 from services.learner.report import write_report
 from services.learner.rig import MeshRig
+from services.learner.runs_folder import journal_in_runs
 from services.learner.session import FINAL_STATES, Session
 from services.learner.transfer import load_source
 
@@ -83,7 +84,8 @@ class LearnerHandlers:
 
     def start(self, request: StartArgs) -> LearnerStatusReply:
         """Start a new session (from another session's learned model with `from_journal`) or
-        resume one (see the module docstring)."""
+        resume one (see the module docstring). Both paths must name journals inside the runs
+        folder (`services.learner.runs_folder`): anything else is a bad request."""
         given = {
             f for f in request.__struct_fields__ if not isinstance(getattr(request, f), UnsetType)
         }
@@ -105,11 +107,12 @@ class LearnerHandlers:
                 unknown = sorted(given - {"resume", "session"})
                 if unknown:
                     raise BadRequest(
-                        f"start with resume takes only resume and session, not {unknown[0]!r}"
+                        f"start with resume takes only resume and session, not {shown(unknown[0])}"
                     )
+                path = journal_in_runs(request.resume, self.config.runs, "resume")
                 self._check_services()
                 wanted = request.session if isinstance(request.session, str) else None
-                session = Session.resume(Path(request.resume), self.rig, wanted, **kw)
+                session = Session.resume(path, self.rig, wanted, **kw)
             else:
                 config = SessionConfig.from_start(request)
                 source = None

@@ -24,6 +24,7 @@ import errno
 import io
 import json
 import os
+import stat
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -48,9 +49,11 @@ from protocol.journal_records import (
     ResumedRecord,
     SessionRecord,
 )
+from protocol.text import SHOWN_LIMIT, cut, shown
 
 __all__ = [
     "JOURNAL_NAME",
+    "MAX_JOURNAL_BYTES",
     "Journal",
     "JournalError",
     "JournalState",
@@ -60,6 +63,15 @@ __all__ = [
 ]
 
 JOURNAL_NAME = "journal.jsonl"
+
+# The largest journal the learner reads or writes (bytes). Each done record carries the
+# learner's whole state, whose history grows by ~110 bytes per rollout, so a session of n
+# rollouts journals about 1.6 kB·n + 55 B·n² (measured with archer, power and cma: 0.7 MB
+# after 100 rollouts, 9.4 MB after 400): the paper's 10-30 rollouts take under 0.1 MB, and
+# 256 MiB holds about 2,000. Reading a journal takes a few times its size in memory, so a
+# bigger file (a huge or sparse one) is refused before it is read, and a session whose next
+# record would pass the bound fails instead of writing a journal it could not read back.
+MAX_JOURNAL_BYTES = 256 * 1024 * 1024
 _decoder: msgspec.json.Decoder[Any] = msgspec.json.Decoder(Union[RECORD_TYPES])  # noqa: UP007
 
 
@@ -99,7 +111,7 @@ def encode_record(record: JournalRecord) -> bytes:
 
 def _version_error(where: str, version: Any) -> JournalError:
     return JournalError(
-        f"{where} has journal version {version!r}; this learner reads version "
+        f"{where} has journal version {shown(version)}; this learner reads version "
         f"{JOURNAL_VERSION} only (finish it with the version that wrote it)"
     )
 
@@ -109,13 +121,19 @@ def _decode(line: bytes, where: str) -> JournalRecord:
 
     Raises:
         JournalError: the line is JSON but not a record (not an object, no known `record`
-            kind), or a field is missing or of the wrong type; the message says which.
+            kind, nested too deep), or a field is missing or of the wrong type; the message
+            says which.
         msgspec.DecodeError: the line is not JSON at all (the caller decides: torn or damaged).
     """
     try:
         record: JournalRecord = _decoder.decode(line)
+    except RecursionError:
+        raise JournalError(f"{where} nests too deep to be a journal record") from None
     except msgspec.ValidationError as exc:
-        loose = msgspec.json.decode(line)
+        try:
+            loose = msgspec.json.decode(line)
+        except RecursionError:
+            loose = None
         kind = loose.get("record") if isinstance(loose, dict) else None
         if kind not in RECORD_KINDS:
             raise JournalError(
@@ -124,7 +142,7 @@ def _decode(line: bytes, where: str) -> JournalRecord:
             ) from None
         if kind == "header" and loose.get("version") != JOURNAL_VERSION:
             raise _version_error(where, loose.get("version")) from None
-        raise JournalError(f"{where}: {kind} record: {exc}") from None
+        raise JournalError(f"{where}: {kind} record: {cut(str(exc), 2 * SHOWN_LIMIT)}") from None
     return record
 
 
@@ -134,15 +152,16 @@ def read_records(path: Path) -> tuple[list[JournalRecord], int]:
     A last line without its newline, or one that is not valid JSON, is a torn write and is left
     out (its bytes lie beyond the returned length). Any other bad line is an error.
 
+    The file is opened without blocking (a FIFO does not wedge the reader) and must be a
+    regular file of at most `MAX_JOURNAL_BYTES`, checked on the open file before reading.
+
     Raises:
-        JournalError: the file is missing or unreadable, or a line other than the last is not
-            JSON, or a line is no journal record or a record with a missing or mistyped field
-            (the message names the line and the field).
+        JournalError: the file is missing or unreadable, not a regular file, bigger than
+            `MAX_JOURNAL_BYTES`, or a line other than the last is not JSON, or a line is no
+            journal record or a record with a missing or mistyped field (the message names the
+            line and the field).
     """
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
+    data = _read_bounded(path)
     records: list[JournalRecord] = []
     good = 0
     lines = data.split(b"\n")
@@ -162,6 +181,48 @@ def read_records(path: Path) -> tuple[list[JournalRecord], int]:
         records.append(record)
         good += len(line) + 1
     return records, good
+
+
+def _open_regular(path: Path, flags: int) -> int:
+    """A descriptor of the regular file `path`, opened with `flags` and O_NONBLOCK (so that a
+    FIFO or a device cannot block the open) and checked on the open file.
+
+    Raises:
+        JournalError: it cannot be opened, is not a regular file or is bigger than
+            `MAX_JOURNAL_BYTES`.
+    """
+    try:
+        fd = os.open(path, flags | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
+    except OSError as exc:
+        raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            raise JournalError(f"journal {path} is not a regular file")
+        if info.st_size > MAX_JOURNAL_BYTES:
+            raise JournalError(
+                f"journal {path} holds {info.st_size} bytes, more than a journal may "
+                f"({MAX_JOURNAL_BYTES} bytes)"
+            )
+    except BaseException:
+        os.close(fd)
+        raise
+    return fd
+
+
+def _read_bounded(path: Path) -> bytes:
+    """The bytes of the regular file `path`, at most `MAX_JOURNAL_BYTES` (`_open_regular`)."""
+    fd = _open_regular(path, os.O_RDONLY)
+    try:
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_JOURNAL_BYTES + 1)
+    except OSError as exc:
+        raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
+    finally:
+        os.close(fd)
+    if len(data) > MAX_JOURNAL_BYTES:  # it grew while being read
+        raise JournalError(f"journal {path} holds more than {MAX_JOURNAL_BYTES} bytes")
+    return data
 
 
 def check_invariants(records: Sequence[JournalRecord], *, allow_open: bool = False) -> list[str]:
@@ -378,8 +439,10 @@ class Journal:
     def __init__(self, path: Path, state: JournalState) -> None:
         self.path = path
         self.state = state
+        fd = _open_regular(path, os.O_WRONLY | os.O_APPEND)
         # Unbuffered: a failed write leaves nothing behind to be flushed (and fail) again.
-        self._file = open(path, "ab", buffering=0)  # noqa: SIM115 (kept open for the session)
+        self._file = os.fdopen(fd, "ab", buffering=0)  # kept open for the session
+        self._size = os.fstat(fd).st_size  # bytes, kept within MAX_JOURNAL_BYTES
 
     @classmethod
     def create(cls, directory: Path, header: HeaderRecord) -> Journal:
@@ -427,19 +490,19 @@ class Journal:
         state = JournalState.from_records(records, str(path))
         if session is not None and state.session != session:
             raise JournalError(
-                f"journal {path} belongs to session {state.session!r}, not {session!r}"
+                f"journal {path} belongs to session {shown(state.session)}, not {shown(session)}"
             )
         if state.ended is not None:
             raise JournalError(
                 f"session {state.session!r} in {path} has ended ({state.ended.reason}); "
                 f"start a new session instead"
             )
-        if path.stat().st_size > good:
-            with open(path, "r+b") as f:
-                f.truncate(good)
-                f.flush()
-                os.fsync(f.fileno())
-        return cls(path, state)
+        journal = cls(path, state)
+        if journal._size > good:
+            os.ftruncate(journal._file.fileno(), good)
+            os.fsync(journal._file.fileno())
+            journal._size = good
+        return journal
 
     def append(self, record: JournalRecord) -> JournalRecord:
         """Check, write and fsync one record; returns it as written (stamped with this
@@ -447,10 +510,11 @@ class Journal:
         in only once it is durable, so it never counts a record the file lacks.
 
         Raises:
-            JournalError: a field is missing or of the wrong type, or the record breaks the
-                journal's rules (nothing is written); or the write or fsync failed (e.g. a
-                full disk; the message gives the system's reason): the journal is closed then,
-                its file possibly ending in a torn record that `resume` cuts off.
+            JournalError: a field is missing or of the wrong type, the record breaks the
+                journal's rules, or it would make the journal bigger than `MAX_JOURNAL_BYTES`
+                (nothing is written); or the write or fsync failed (e.g. a full disk; the
+                message gives the system's reason): the journal is closed then, its file
+                possibly ending in a torn record that `resume` cuts off.
         """
         where = f"new {record.kind} record"
         if isinstance(record, SessionRecord):
@@ -460,9 +524,15 @@ class Journal:
         if self._file.closed:
             raise JournalError(f"journal {self.path} is closed; resume it to append")
         self.state.check(record, where)  # nothing is written when it breaks a rule
+        if self._size + len(line) > MAX_JOURNAL_BYTES:
+            raise JournalError(
+                f"journal {self.path} would pass {MAX_JOURNAL_BYTES} bytes, the most a journal "
+                f"may hold (about 2,000 rollouts); start a new session"
+            )
         try:
             _write_all(self._file, line)
             os.fsync(self._file.fileno())
+            self._size += len(line)
         except OSError as exc:
             self.close()
             raise JournalError(

@@ -4,8 +4,10 @@ Ports (ROBOT = the robot prefix):
 
 * `ROBOT/learner/rpc:i`:
   - `start {algo?, rollouts?, seed?, until_hit?, scenario?: {theta0, bounds, hit_radius, reset},
-    options?}` starts a session (see `config.SessionConfig`), or `start {resume: PATH,
-    session?: ID}` continues the one journaled at PATH (a journal or its directory). Replies
+    options?, from_journal?: SESSION}` starts a session (see `config.SessionConfig`; from
+    another session's learned model with `from_journal`), or `start {resume: PATH, session?:
+    ID}` continues the one journaled at PATH (a journal or its directory). Every path lies
+    inside RUNS (a relative one is taken from there; `services.learner.runs_folder`). Replies
     at once with the session's status (its id, journal path); refused with code
     `service_missing` when the robot, camera, detector or controller is not alive, `busy`
     while a session runs (the message says how to follow it: `archery learn --attach ID`),

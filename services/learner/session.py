@@ -35,6 +35,7 @@ from protocol.journal_records import (
     ProposedRecord,
     StoppedRecord,
 )
+from protocol.text import shown
 from protocol.verbs.learner import LearnerStatusReply
 from services.learner.abort_policy import SERVICE_LOST, streak_failure
 from services.learner.algorithms.base import Learner
@@ -190,7 +191,7 @@ class Session:
             self._record_failure(exc.message)
         except Exception as exc:  # a bug must not leave the session "running" forever
             log.exception("session %s failed", self.session_id)
-            self._set("failed", f"internal error: {exc!r}")
+            self._set("failed", f"internal error: {shown(exc)}")
         finally:
             self.journal.close()
         return self.status()

@@ -1,7 +1,8 @@
 """Where a transferred session starts from: the last learner state of another session's journal.
 
 `archery learn --from SESSION` (verb `start` with `from_journal`) names a session id under the
-learner's runs directory, its directory or its journal file. The source must be a journal of
+learner's runs directory, its directory or its journal file, inside that directory
+(`services.learner.runs_folder`). The source must be a journal of
 this version, of the same algorithm, with at least one done rollout; everything is checked
 before the new session does any work.
 """
@@ -16,6 +17,7 @@ from protocol.errors import BadRequest
 from services.learner.algorithms.base import STATE_VERSION, LearnerError
 from services.learner.algorithms.registry import check_transfer
 from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from services.learner.runs_folder import journal_in_runs
 
 __all__ = ["TransferSource", "load_source"]
 
@@ -42,22 +44,26 @@ class TransferSource:
 
 
 def _journal_path(target: str, runs: Path | None) -> Path:
+    """The journal of `target`: inside `runs` by its rules (`runs_folder.journal_in_runs`), or,
+    without `runs` (a program's own path), a journal or its directory."""
+    if runs is not None:
+        return journal_in_runs(target, runs, "from_journal")
     path = Path(target)
-    if not path.exists() and runs is not None and not path.is_absolute():
-        path = runs / target
     if path.is_dir():
         path = path / JOURNAL_NAME
     if not path.is_file():
-        where = "" if runs is None else f" nor a session under {runs}"
-        raise JournalError(f"--from {target!r}: no such journal{where}")
+        raise JournalError(f"--from {target!r}: no such journal")
     return path
 
 
 def load_source(target: str, algorithm: str, runs: Path | None = None) -> TransferSource:
-    """The learned model of the session `target` (an id under `runs`, a directory or a journal).
+    """The learned model of the session `target`: with `runs` (the learner's runs folder, what
+    the `start` verb gives), an id, directory or journal inside it
+    (`runs_folder.journal_in_runs`); without, a directory or journal anywhere.
 
     Raises:
-        BadRequest: `algorithm` cannot start from another session.
+        BadRequest: `algorithm` cannot start from another session; with `runs`, a path
+            outside it, not a regular file or too big.
         JournalError: no such journal, a broken one or one of another version, another algorithm,
             or no done rollout.
     """

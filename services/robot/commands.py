@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from protocol.errors import BadRequest
+from protocol.text import shown
 
 __all__ = ["REJECTION_REASONS", "CommandRejected", "PartCounters", "PartLimits", "check_command"]
 
@@ -101,12 +102,13 @@ def check_command(
     if part is not None and part != where:
         raise CommandRejected(
             "wrong_part",
-            f"a command for part {part!r} arrived on {where}'s port; send it to "
-            f"the {part} port, or set part={where!r}",
+            f"a command for part {shown(part)} arrived on {where}'s port; send it to "
+            f"the {shown(part)} port, or set part={where!r}",
         )
     if not isinstance(position, list | tuple | np.ndarray):
         raise CommandRejected(
-            "wrong_length", f"{where} position must be a list of numbers (rad), got {position!r}"
+            "wrong_length",
+            f"{where} position must be a list of numbers (rad), got {shown(position)}",
         )
     values = list(position)
     if names is None:
@@ -128,28 +130,29 @@ def check_command(
         if unknown:
             raise CommandRejected(
                 "unknown_joint",
-                f"{where} has no joint {unknown[0]!r}; its joints: {', '.join(limits.names)}",
+                f"{where} has no joint {shown(unknown[0])}; its joints: {', '.join(limits.names)}",
             )
-        repeated = sorted({n for n in names if names.count(n) > 1})
+        repeated = sorted(n for n, times in Counter(names).items() if times > 1)  # O(n)
         if repeated:
             raise CommandRejected(
-                "duplicate_joint", f"{where}: joint {repeated[0]!r} is named more than once"
+                "duplicate_joint", f"{where}: joint {shown(repeated[0])} is named more than once"
             )
         index = [lookup[n] for n in names]
     odd = [v for v in values if isinstance(v, bool | np.bool_ | str | bytes)]
     if odd:  # numpy would read true as 1 rad and "0.1" as 0.1 rad
         raise CommandRejected(
-            "bad_value", f"{where} position must be numbers (rad), not {odd[0]!r}: got {values!r}"
+            "bad_value",
+            f"{where} position must be numbers (rad), not {shown(odd[0])}: got {shown(values)}",
         )
     try:
         wanted = np.array(values, dtype=float)
     except (TypeError, ValueError):
         raise CommandRejected(
-            "bad_value", f"{where} position must be numbers (rad), got {values!r}"
+            "bad_value", f"{where} position must be numbers (rad), got {shown(values)}"
         ) from None
     if wanted.ndim != 1 or not np.all(np.isfinite(wanted)):
         raise CommandRejected(
-            "bad_value", f"{where} position must be finite numbers (rad), got {values!r}"
+            "bad_value", f"{where} position must be finite numbers (rad), got {shown(values)}"
         )
     lower = np.array(limits.lower)[index]
     upper = np.array(limits.upper)[index]

@@ -36,6 +36,7 @@ import numpy as np
 
 from mesh.jobs import JobQueue
 from protocol.errors import ArcheryError, BadRequest
+from protocol.text import shown
 from protocol.vectors import finite_vector
 from protocol.verbs import robot as rv
 from protocol.verbs.robot import MAX_WIND
@@ -219,7 +220,7 @@ class SimLoop:
             BadRequest: the seed is not an integer >= 0. StateError: an arrow is in flight.
         """
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
-            raise BadRequest(f"seed must be an integer >= 0 or absent, got {seed!r}")
+            raise BadRequest(f"seed must be an integer >= 0 or absent, got {shown(seed)}")
         return self.call(lambda: self._reset(seed))
 
     def set_wind(self, wind: Any) -> list[float]:
@@ -233,7 +234,9 @@ class SimLoop:
         """
         vector = tuple(finite_vector("wind", wind, BadRequest, unit="m/s").tolist())
         if any(abs(v) > MAX_WIND for v in vector):
-            raise BadRequest(f"each wind component must be within ±{MAX_WIND:g} m/s, got {wind!r}")
+            raise BadRequest(
+                f"each wind component must be within ±{MAX_WIND:g} m/s, got {shown(wind)}"
+            )
         return self.call(lambda: self._set_wind(vector))
 
     def status(self) -> rv.ArcheryStatusReply:
@@ -284,7 +287,7 @@ class SimLoop:
 
     def _position_move(self, part: str, position: Any, names: Any) -> list[float]:
         if names is not None and not isinstance(names, list | tuple):
-            raise BadRequest(f"names must be a list of joint names, got {names!r}")
+            raise BadRequest(f"names must be a list of joint names, got {shown(names)}")
         targets, clamped = self._validate(part, position, names, None)
         self._streams.forget(part)
         return self._apply(part, targets, clamped)

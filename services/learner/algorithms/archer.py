@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
@@ -110,7 +111,7 @@ class Archer(Learner):
         self.explore_std = _std_option("explore_std (m)", explore_std, self.theta0.size)
         self.ridge = _finite_option("ridge (m²)", ridge, low=0.0)
         if not isinstance(safeguard, bool):
-            raise LearnerConfigError(f"safeguard must be True or False, got {safeguard!r}")
+            raise LearnerConfigError(f"safeguard must be True or False, got {shown(safeguard)}")
         self.safeguard = safeguard
         self.max_cond = _finite_option("max_cond", max_cond, low=1.0)
         self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0)
@@ -123,7 +124,7 @@ class Archer(Learner):
         self.window = _count_option("window", window, low=0)
         if 0 < self.window < self.n_best:
             raise LearnerConfigError(
-                f"window must be 0 (all rollouts) or >= n_best ({self.n_best}), got {window!r}"
+                f"window must be 0 (all rollouts) or >= n_best ({self.n_best}), got {shown(window)}"
             )
         self.exploration_rollouts = self.n_explore
         self._seeds: tuple[np.ndarray, np.ndarray] | None = None  # (θ, r) of another world

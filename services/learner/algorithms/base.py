@@ -10,6 +10,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from protocol.text import shown
 from protocol.vectors import finite_vector
 
 __all__ = [
@@ -55,9 +56,9 @@ def scalar_return(r: np.ndarray) -> float:
 def _finite_option(name: str, value: float, *, low: float, high: float = math.inf) -> float:
     """Validate a numeric option in [low, high] and return it as float."""
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise LearnerConfigError(f"{name} must be a finite number, got {value!r}")
+        raise LearnerConfigError(f"{name} must be a finite number, got {shown(value)}")
     if not low <= value <= high:
-        raise LearnerConfigError(f"{name} must be in [{low}, {high}], got {value!r}")
+        raise LearnerConfigError(f"{name} must be in [{low}, {high}], got {shown(value)}")
     return float(value)
 
 
@@ -67,17 +68,17 @@ def _std_option(name: str, value: float | Sequence[float], dim: int) -> np.ndarr
         array = np.broadcast_to(np.asarray(value, dtype=float), (dim,)).copy()
     except (TypeError, ValueError) as exc:
         raise LearnerConfigError(
-            f"{name} must be one number or {dim} numbers, got {value!r}"
+            f"{name} must be one number or {dim} numbers, got {shown(value)}"
         ) from exc
     if not np.all(np.isfinite(array)) or np.any(array < 0):
-        raise LearnerConfigError(f"{name} must be finite and >= 0, got {value!r}")
+        raise LearnerConfigError(f"{name} must be finite and >= 0, got {shown(value)}")
     return array
 
 
 def _count_option(name: str, value: int, *, low: int) -> int:
     """Validate an integer option >= low."""
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-        raise LearnerConfigError(f"{name} must be an integer >= {low}, got {value!r}")
+        raise LearnerConfigError(f"{name} must be an integer >= {low}, got {shown(value)}")
     return int(value)
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import cut, shown
 from services.learner.algorithms.archer import Archer
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
@@ -190,14 +191,14 @@ def make_learner(
     """
     if name not in ALGORITHMS:
         raise LearnerConfigError(
-            f"unknown algorithm {name!r}; valid algorithms: {', '.join(ALGORITHMS)}"
+            f"unknown algorithm {shown(name)}; valid algorithms: {', '.join(ALGORITHMS)}"
         )
     algorithm = ALGORITHMS[name]
     merged = {**algorithm.options, **options}
     try:
         return _build(algorithm.cls, theta0, rng, bounds, merged, model)
     except TypeError as exc:
-        raise LearnerConfigError(f"invalid option for {name!r}: {exc}") from exc
+        raise LearnerConfigError(f"invalid option for {name!r}: {cut(str(exc))}") from exc
 
 
 def _check_not_old_random(state: Mapping[str, Any]) -> None:
