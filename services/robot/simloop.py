@@ -19,7 +19,13 @@ stop for `config.watchdog` wall seconds (default 0.1) is held at its measured po
 loop wakes at that deadline, even in the middle of its wait for the next paced chunk, counts a
 `watchdog_trips` and publishes a `watchdog` WorldEvent naming the part. At rtf 1 the hold comes
 ~1 ms after the deadline and the joints stop within the servos' settling time; at rtf 0 see
-`watchdog` (the wall-clock timeout is then many simulated seconds).
+`watchdog` (the wall-clock timeout is then many simulated seconds). A command under another
+lease than the part's previous command (another client, `gate`) continues no stream.
+
+Ownership and rate (`gate`): the service screens every `command:i` payload before decoding it
+(`screen`: the part's running lease, the rate limit), so a refused or excess command is counted
+and dropped on the receiving thread and never becomes a job: a flood of them cannot make the
+loop fall behind. positionMove and setRefSpeeds check the lease too.
 """
 
 from __future__ import annotations
@@ -112,6 +118,7 @@ class SimLoop:
             part: PartGate(part, config.command_rate, config.command_burst) for part in world.parts
         }
         self._streams = StreamWatchdog(world.parts, config.watchdog)
+        self._stream_lease = {part: "" for part in world.parts}  # of the last stream command
         self._jobs = JobQueue(SimUnavailable, "the simulation thread")
         self._shot = 0
         self._landing_future: Future[rv.ReleaseReply] | None = None
@@ -363,6 +370,9 @@ class SimLoop:
             return
         overtakes = not self.world.motion_done(part)
         self._apply(part, targets, clamped)
+        if lease != self._stream_lease[part]:  # another client's: it continues no stream
+            self._stream_lease[part] = lease
+            self._streams.forget(part)
         self._streams.command(part, at, overtakes)
 
     def _position_move(self, part: str, position: Any, names: Any, lease: str = "") -> list[float]:
