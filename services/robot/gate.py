@@ -1,9 +1,9 @@
 """The gate in front of a part's commands: who may command it (a lease) and how often (a rate
 limit).
 
-It runs on whichever thread delivers a command (a Zenoh callback), before anything is queued
-for the simulation thread, so a refused or excess command costs a lock and a comparison, never a
-job: a flood cannot make the simulation loop fall behind.
+It runs on whichever thread delivers a command (a Zenoh callback), on the raw payload before it
+is decoded (`screen`), so a refused or excess command costs a lock and a byte search (~1 µs),
+never a decoding or a job: a flood cannot make the simulation loop fall behind.
 
 Ownership (wall clock): `claim` gives the claimer a lease, a random id that lasts `ttl` s unless
 renewed (`renew`). While a lease runs the part obeys only commands that carry its id; the others
