@@ -28,8 +28,9 @@ The calls of each service are those its code makes:
 * camera: calls `archery/rpc:i status` (which scene to render); serves `cam/rpc:i`;
 * detector: calls `cam/rpc:i grab, calibration`; serves `detector/rpc:i`; it does not
   subscribe to the frame stream;
-* controller: calls each part's `getLimits, setRefSpeeds`, publishes joint commands, reads the
-  joint states; serves the three cartesian controllers;
+* controller: calls each part's `getLimits, setRefSpeeds` and its lease verbs `claim,
+  renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
+  states; serves the three cartesian controllers;
 * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
   release` and the detector's `measure, frame`; serves `learner/rpc:i`;
 * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
@@ -113,7 +114,13 @@ def roles(robot: str) -> dict[str, Role]:
             publish=commands,
             subscribe=states,
             serve=tuple(verbs_key(key) for key in cartesian),
-            call=tuple(c for key in part_rpcs for c in _calls(key, "getLimits", "setRefSpeeds")),
+            call=tuple(
+                c
+                for key in part_rpcs
+                for c in _calls(
+                    key, "getLimits", "setRefSpeeds", "claim", "renewClaim", "dropClaim"
+                )
+            ),
         ),
         "learner": Role(
             publish=(k.learner_rollouts(),),

@@ -160,9 +160,11 @@ class Node(RpcClient, Liveliness):
         *,
         mode: str = "latest",
         callback: Callable[[M], None] | None = None,
+        admit: Callable[[bytes], bool] | None = None,
     ) -> Subscription[M]:
-        """Subscribe to a typed stream: mode "latest" (state) or "fifo" (lossless events)."""
-        sub = Subscription(self.session, key, message_type, mode, callback)
+        """Subscribe to a typed stream: mode "latest" (state) or "fifo" (lossless events);
+        `admit` screens raw payloads before they are decoded (see `Subscription`)."""
+        sub = Subscription(self.session, key, message_type, mode, callback, admit)
         self._register(key, "sub", message_type.__name__, sub)
         return sub
 

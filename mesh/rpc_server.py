@@ -21,7 +21,7 @@ from protocol.errors import (
     DecodeError,
     UpstreamLost,
 )
-from protocol.keys import verb_key, verbs_key
+from protocol.keys import verbs_key
 from protocol.messages import (
     Message,
     RpcReply,
@@ -124,8 +124,8 @@ class RpcServer:
             sent_to = str(query.key_expr).rsplit("/", 1)[-1]
             if request.verb != sent_to:  # access control grants by key: they must agree
                 request = DecodeError(
-                    f"the request names verb {request.verb!r} but was sent to "
-                    f"{verb_key(self.key, sent_to)}"
+                    f"the request names verb {shown(request.verb)} but was sent to "
+                    f"{self.key}/{shown(sent_to)}"
                 )
         if (
             isinstance(request, _WireRequest)

@@ -38,7 +38,9 @@ class Subscription(Generic[M]):
     `ImageView`: its pixels a read-only view of the received payload, not a copy. An optional
     callback runs on Zenoh's thread for each valid message, in order (keep it short); with a
     callback, a fifo subscription hands every message to it instead of queueing it for `get()`.
-    Invalid payloads are counted in `dropped` and logged.
+    Invalid payloads are counted in `dropped` and logged. An optional `admit` sees each raw
+    payload first, on Zenoh's thread: a payload it refuses (False) is neither decoded nor
+    counted here (`admit` keeps its own count), so a flood it screens out costs little.
     """
 
     def __init__(
@@ -48,6 +50,7 @@ class Subscription(Generic[M]):
         message_type: type[M],
         mode: str,
         callback: Callable[[M], None] | None,
+        admit: Callable[[bytes], bool] | None = None,
     ) -> None:
         if mode not in ("latest", "fifo"):
             raise ValueError(f"subscription mode {mode!r} is not 'latest' or 'fifo'")
@@ -58,6 +61,7 @@ class Subscription(Generic[M]):
         self.dropped = 0
         self.last_error = ""
         self._callback = callback
+        self._admit = admit
         self._latest: M | None = None
         self._latest_time = 0.0
         self._cond = threading.Condition()
@@ -67,6 +71,8 @@ class Subscription(Generic[M]):
     def _on_sample(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
         note_payload(len(payload))
+        if self._admit is not None and not self._admit(payload):
+            return
         try:
             message = decode(payload, self.message_type, view=True)
         except DecodeError as exc:

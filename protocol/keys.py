@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from protocol.errors import KeyNameError
 from protocol.parts import PARTS
 from protocol.robotspec import SERVICES
+from protocol.text import shown
 
 __all__ = [
     "ALIVE_EVERY_ROBOT",
@@ -26,6 +27,7 @@ __all__ = [
 
 DEFAULT_ROBOT = "icubSim"
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
+_VERB = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 
 
@@ -98,7 +100,15 @@ ALIVE_EVERY_ROBOT = "*/alive/*"  # the liveliness tokens of every service of eve
 def verb_key(rpc_key: str, verb: str) -> str:
     """The key a call of `verb` on the `rpc:i` port `rpc_key` is sent to: `RPC_KEY/VERB`, one
     key per verb, so that access control grants each verb on its own (a server answers
-    `verbs_key(rpc_key)`)."""
+    `verbs_key(rpc_key)`).
+
+    Raises:
+        KeyNameError: `verb` is not a verb name (a letter, then up to 63 letters, digits, `_`).
+    """
+    if not isinstance(verb, str) or not _VERB.match(verb):
+        raise KeyNameError(
+            f"{shown(verb)} is not a verb name (a letter, then up to 63 of [A-Za-z0-9_])"
+        )
     return f"{rpc_key}/{verb}"
 
 

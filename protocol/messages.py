@@ -25,6 +25,7 @@ from protocol.text import shown
 __all__ = [
     "ALLOWED_DTYPES",
     "MAX_BATCH",
+    "MAX_LEASE_ID",
     "MESSAGE_TYPES",
     "SCHEMA_VERSION",
     "Array",
@@ -46,6 +47,7 @@ __all__ = [
 
 SCHEMA_VERSION = 1
 MAX_BATCH = 16  # joint commands started together (one per part)
+MAX_LEASE_ID = 64  # characters of a lease id (`JointCommand.lease`)
 ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8", "|b1")
 IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
 _ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
@@ -187,18 +189,28 @@ class JointCommand(Message, frozen=True):
     `batch`: how many commands, this one included and one per part, the sender publishes back
     to back to start together: a robot at rest waits for all of them (at most its batch window)
     and starts them at one simulated time. 1 (default): start this one at once.
+
+    `lease`: the lease id the part's `claim` verb gave the sender ("" for none, the default, so
+    recordings made before leases still decode). While a client holds the part's lease the robot
+    obeys only commands that carry it; with no lease held it takes commands from anyone.
     """
 
     part: str
     position: list[float]
     names: list[str] | None = None
     batch: int = 1
+    lease: str = ""
 
     def validate(self) -> None:
         if not 1 <= self.batch <= MAX_BATCH:
             raise ValueError(
                 f"joint command for {shown(self.part, 60)}: batch must be in 1..{MAX_BATCH}, "
                 f"got {self.batch}"
+            )
+        if len(self.lease) > MAX_LEASE_ID:
+            raise ValueError(
+                f"joint command for {self.part!r}: a lease id has at most {MAX_LEASE_ID} "
+                f"characters, got {len(self.lease)}"
             )
         if self.names is not None and len(self.names) != len(self.position):
             raise ValueError(

@@ -39,6 +39,8 @@ __all__ = [
     "HIT_RADIUS",
     "HOME_POSTURE",
     "LEARNER",
+    "LEASE_TTL",
+    "LEASE_TTL_RANGE",
     "MAX_REFERENCE_SPEED",
     "MODEL_NAME",
     "NOMINAL_THETA",
@@ -126,6 +128,14 @@ HIT_RADIUS = 0.05
 #: The robot's upper bound for joint reference speeds (rad/s); the controller never asks for
 #: more. Up to this, commanded moves never pass the URDF joint limits in the simulator.
 MAX_REFERENCE_SPEED = 2.0
+
+# -- command ownership (wall s) ----------------------------------------------------------------
+#: How long a part's lease (the `claim` verb of `ROBOT/PART/rpc:i`) lasts unless renewed: a
+#: controller that dies mid-posture frees the arm this long after its last renewal at most. The
+#: controller claims with it and renews every quarter of it.
+LEASE_TTL = 2.0
+#: The lease durations a client may ask for: from a test's short lease to a hand user's session.
+LEASE_TTL_RANGE = (0.05, 600.0)
 
 # -- default waits (wall s) --------------------------------------------------------------------
 #: One RPC call to any service when the caller says nothing else.

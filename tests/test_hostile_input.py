@@ -21,7 +21,7 @@ from mesh import memory
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.codec import encode
-from protocol.errors import RpcError
+from protocol.errors import KeyNameError, RpcError
 from protocol.messages import JointCommand, JointState, RpcRequest
 from protocol.robotspec import ROBOT
 from protocol.text import SHOWN_LIMIT, shown
@@ -93,7 +93,7 @@ def test_a_deeply_nested_command_is_a_counted_drop(
     # An RPC whose args nest too deep is refused as a bad message, and the port still serves.
     head = msgspec.msgpack.encode({"type": "RpcRequest", "verb": "positionMove"})
     request = b"\x83" + head[1:] + msgspec.msgpack.encode("args") + b"\x81\xa1a" * DEEP + b"\x80"
-    reply = robot.request(counters, request, timeout=10)
+    reply = robot.request(counters, request, verb="positionMove", timeout=10)
     assert not reply.ok and reply.code == "bad_message" and "deep" in reply.message
     assert rpc_call(robot, counters, "counters")["undecodable"] == 2
     _no_tracebacks(caplog, capfd)
@@ -117,14 +117,19 @@ def test_huge_names_are_cut_short_in_replies_counters_and_logs(
     rejected = [r.getMessage() for r in caplog.records if "rejected command" in r.getMessage()]
     assert len(rejected) == 2
     # A verb, an argument's name, a joint name and a bad value of megabytes, over RPC.
+    with pytest.raises(KeyNameError) as refused:  # never sent: a verb name is a short word
+        robot.request(rpc, b"", verb=name)
+    assert len(str(refused.value)) < SHORT
     for verb, args, code in [
-        (name, {}, "unknown_verb"),
+        ("status", {}, "bad_message"),  # a payload naming another verb than its key
         ("positionMove", {name: 1}, "bad_request"),
         ("positionMove", {"position": [0.1], "names": [name]}, "bad_request"),
         ("setRefSpeeds", {"speeds": name}, "bad_request"),
     ]:
-        request = RpcRequest(verb=verb, args=args, seq=0, stamp=time.time())
-        reply = robot.request(rpc, encode(request), timeout=20)
+        request = RpcRequest(
+            verb=name if verb == "status" else verb, args=args, seq=0, stamp=time.time()
+        )
+        reply = robot.request(rpc, encode(request), verb=verb, timeout=20)
         assert not reply.ok and reply.code == code
         assert len(reply.message) < SHORT, reply.message[:SHORT]
     with pytest.raises(RpcError) as info:
@@ -182,7 +187,7 @@ def test_memory_goes_back_after_a_burst_of_big_requests(net: NetConfig) -> None:
             args = {"position": [0.0], "names": ["x" * HUGE]}  # 10 MB, refused: unknown joint
             request = encode(RpcRequest(verb="positionMove", args=args, seq=0, stamp=time.time()))
             for _ in range(50):
-                reply = node.request(rpc, request, timeout=30)
+                reply = node.request(rpc, request, verb="positionMove", timeout=30)
                 assert not reply.ok and reply.code == "bad_request"
             deadline = time.monotonic() + 60
             while (now := _rss_mb(robot.pid)) > before + 50:

@@ -109,12 +109,17 @@ def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, N
 
 
 def test_only_verbs_that_never_wait_are_non_blocking() -> None:
-    """Getters of in-memory settings and status are non-blocking; anything that moves, waits
-    for a frame, the simulation thread or a stream stays on the worker."""
+    """Getters of in-memory settings and status are non-blocking, and so are a part's lease
+    verbs (a lock held for a moment: a takeover never queues behind a move); anything that
+    moves, waits for a frame, the simulation thread or a stream stays on the worker."""
     inline = {(t.title, v.name) for t in TABLES for v in t if not v.blocking}
     assert inline == {
         ("robot controlboard", "getJointNames"),
         ("robot controlboard", "getLimits"),
+        ("robot controlboard", "claim"),
+        ("robot controlboard", "renewClaim"),
+        ("robot controlboard", "dropClaim"),
+        ("robot controlboard", "getClaim"),
         ("camera", "status"),
         ("detector", "status"),
         ("cartesian controller of one arm", "getTolerance"),

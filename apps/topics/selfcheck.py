@@ -39,8 +39,9 @@ ECHO_SERVICE = "echo"
 
 def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
     """A torso controlboard that moves nothing: the real verb table, answered from fixed joint
-    values; `positionMove` refuses a position list of the wrong length (an error reply) and
-    `counters` counts the commands received on `torso/command:i`."""
+    values; `positionMove` refuses a position list of the wrong length (an error reply),
+    `counters` counts the commands received on `torso/command:i`, and it keeps no leases (the
+    claim verbs answer `unknown_verb`, as a robot without them would)."""
     names = list(PARTS["torso"])
     zeros = [0.0] * len(names)
     speeds = [0.5] * len(names)
@@ -62,6 +63,11 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
         for name, value in zip(wanted, a.position, strict=True):
             targets[names.index(name)] = value
         return rv.TargetsReply(names=names, position=list(targets))
+
+    def no_leases(_: object) -> rv.LeaseReply:
+        raise ArcheryError(
+            "the sample torso keeps no leases: it takes commands from anyone", code="unknown_verb"
+        )
 
     def counters(_: NoArgs) -> rv.CountersReply:
         return rv.CountersReply(
@@ -99,6 +105,10 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
                 velocity=zeros,
                 sim_time=0.0,
             ),
+            "claim": no_leases,
+            "renewClaim": no_leases,
+            "dropClaim": no_leases,
+            "getClaim": lambda _: rv.ClaimReply(held=False, owner="", ttl=0.0, expires_in=0.0),
         }
     )
 

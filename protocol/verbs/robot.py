@@ -2,6 +2,12 @@
 
 Joint vectors are in YARP order, in rad (rad/s for speeds). Limits that depend on the loaded
 model (joint limits, joint names) are checked by the robot itself.
+
+Ownership: a client takes a part with `claim {owner, ttl?, takeover?}` and gets a lease id;
+while the lease lasts (`ttl` wall s from the claim or the latest `renewClaim`) the part obeys
+only commands that carry it (`JointCommand.lease`, and the `lease` argument of `positionMove`
+and `setRefSpeeds`); `dropClaim` ends it, and `getClaim` tells who holds the part (never the
+lease id). With no lease held a part takes commands from anyone.
 """
 
 from __future__ import annotations
@@ -10,8 +16,9 @@ from typing import Annotated, Any, Literal
 
 from msgspec import Meta
 
+from protocol.messages import MAX_LEASE_ID
 from protocol.parts import PARTS
-from protocol.robotspec import MAX_REFERENCE_SPEED
+from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, MAX_REFERENCE_SPEED
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = ["ARCHERY_VERBS", "MAX_WIND", "PART_VERBS"]
@@ -22,6 +29,27 @@ MAX_WIND = 50.0  # m/s, per axis
 Speed = Annotated[float, Meta(gt=0.0, le=MAX_REFERENCE_SPEED, description="rad/s")]
 Joints = Annotated[list[float], Meta(min_length=1, max_length=MAX_JOINTS, description="rad")]
 JointNames = Annotated[list[str], Meta(min_length=1, max_length=MAX_JOINTS)]
+LeaseId = Annotated[
+    str,
+    Meta(max_length=MAX_LEASE_ID, description='the id `claim` returned; "" for none'),
+]
+Owner = Annotated[
+    str,
+    Meta(
+        min_length=1,
+        max_length=64,
+        pattern=r"^[A-Za-z0-9_.:@-]+$",
+        description="who claims: a service or a person (letters, digits, _ . : @ -)",
+    ),
+]
+Ttl = Annotated[
+    float,
+    Meta(
+        ge=LEASE_TTL_RANGE[0],
+        le=LEASE_TTL_RANGE[1],
+        description=f"wall s the lease lasts unless renewed (default {LEASE_TTL:g})",
+    ),
+]
 
 
 # -- controlboard ---------------------------------------------------------------------------------
@@ -54,6 +82,7 @@ class MotionDoneReply(Reply, frozen=True):
 
 class SetRefSpeedsArgs(Args, frozen=True):
     speeds: Speed | Annotated[list[Speed], Meta(min_length=1, max_length=MAX_JOINTS)]
+    lease: LeaseId = ""
 
 
 class RefSpeedsReply(Reply, frozen=True):
@@ -64,6 +93,7 @@ class RefSpeedsReply(Reply, frozen=True):
 class PositionMoveArgs(Args, frozen=True):
     position: Joints
     names: JointNames | None = None
+    lease: LeaseId = ""
 
 
 class CountersReply(Reply, frozen=True):
@@ -85,6 +115,41 @@ class PartStatusReply(Reply, frozen=True):
     position: Annotated[list[float], Meta(description="rad")]
     velocity: Annotated[list[float], Meta(description="rad/s")]
     sim_time: Annotated[float, Meta(description="s")]
+
+
+class ClaimArgs(Args, frozen=True):
+    """`takeover`: take the part even from another owner whose lease still runs (the operator's
+    explicit override); without it such a claim is refused (`not_owner`). A claim by the owner
+    that holds the part (the same name, e.g. a restarted controller) replaces its lease."""
+
+    owner: Owner
+    ttl: Ttl = LEASE_TTL
+    takeover: bool = False
+
+
+class LeaseArgs(Args, frozen=True):
+    lease: Annotated[str, Meta(min_length=1, max_length=MAX_LEASE_ID)]
+
+
+class LeaseReply(Reply, frozen=True):
+    """A lease granted or renewed: its id (carry it in `JointCommand.lease`), its owner, its
+    duration and the wall time left; `took_over`: the owner whose running lease a takeover
+    ended ("" when none)."""
+
+    lease: str
+    owner: str
+    ttl: Annotated[float, Meta(description="wall s")]
+    expires_in: Annotated[float, Meta(description="wall s")]
+    took_over: str = ""
+
+
+class ClaimReply(Reply, frozen=True):
+    """Who holds the part now (never the lease id): `held` False when nobody does."""
+
+    held: bool
+    owner: str
+    ttl: Annotated[float, Meta(description="wall s; 0 when not held")]
+    expires_in: Annotated[float, Meta(description="wall s; 0 when not held")]
 
 
 PART_VERBS = VerbTable(
@@ -149,6 +214,35 @@ PART_VERBS = VerbTable(
             NoArgs,
             PartStatusReply,
             "names, motion done, counters and encoders",
+            reads=True,
+        ),
+        Verb(
+            "claim",
+            ClaimArgs,
+            LeaseReply,
+            "take the part: only commands with the lease id move it until the lease ends",
+            blocking=False,
+        ),
+        Verb(
+            "renewClaim",
+            LeaseArgs,
+            LeaseReply,
+            "extend the lease by its ttl from now (not_owner once it ended)",
+            blocking=False,
+        ),
+        Verb(
+            "dropClaim",
+            LeaseArgs,
+            ClaimReply,
+            "end the lease: the part takes commands from anyone again",
+            blocking=False,
+        ),
+        Verb(
+            "getClaim",
+            NoArgs,
+            ClaimReply,
+            "who holds the part, for how long",
+            blocking=False,
             reads=True,
         ),
     ),

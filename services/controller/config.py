@@ -7,7 +7,7 @@ from dataclasses import dataclass, field, replace
 
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
-from protocol.robotspec import ROBOT_TIMEOUT, STATE_MAX_AGE
+from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, ROBOT_TIMEOUT, STATE_MAX_AGE
 from services.controller.ik_types import IkSettings
 from services.controller.posture import PostureConfig
 
@@ -36,6 +36,9 @@ class ControllerConfig:
             within this of its target (rad).
         state_max_age: a robot joint state that arrived longer ago than this is stale, never
             used: the verbs reply `stale_state` (wall s; see `robotlink`).
+        lease_ttl: a move holds a lease on each part it commands (no other client moves the
+            part meanwhile); it lasts this long unless renewed (every quarter of it), so a
+            controller that dies frees the arm within it (wall s).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -62,6 +65,13 @@ class ControllerConfig:
     )
     state_max_age: float = flag(
         STATE_MAX_AGE, "a robot state older than this is stale", unit="wall s", low=0.05, high=60
+    )
+    lease_ttl: float = flag(
+        LEASE_TTL,
+        "a move's lease on each part it commands lasts this long unless renewed",
+        unit="wall s",
+        low=0.2,
+        high=LEASE_TTL_RANGE[1],
     )
 
     def __post_init__(self) -> None:

@@ -1,10 +1,15 @@
 """The controller's side of the robot's controlboards: joint states in, targets out, over the mesh.
 
-A move: clip the targets into the robot's software limits (from each part's `getLimits`), set
-each part's reference speeds so every joint covers its distance in the trajectory time
-(`setRefSpeeds`), publish one `JointCommand` per part back to back on `command:i` as one batch
-(the robot starts them at one simulated time), then wait until every part's `state:o` reports
-motion done within `joint_tolerance` of its targets.
+A move: clip the targets into the robot's software limits (from each part's `getLimits`), claim
+each part it moves (`claim` on `{part}/rpc:i`: a lease of `lease_ttl` wall s, so that the part
+obeys no other client during the move), set each part's reference speeds so every joint covers
+its distance in the trajectory time (`setRefSpeeds`), publish one `JointCommand` per part back to
+back on `command:i` as one batch carrying its lease (the robot starts them at one simulated
+time), then wait until every part's `state:o` reports motion done within `joint_tolerance` of its
+targets, renewing the leases every quarter of their ttl, and drop the leases at the end. A part
+held by another client (the operator's takeover) fails the move at once with `not_owner`; one
+taken over during the move ends it unreached, naming the new owner; the part keeps the targets
+it was last given. A robot without the lease verbs (`unknown_verb`) is moved without leases.
 
 Stale states: a joint state that arrived more than `state_max_age` wall seconds ago (0.5 by
 default; its arrival age on this host, immune to clock differences between hosts) is never
@@ -17,6 +22,7 @@ it as their error: the robot is frozen or lost.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Mapping
@@ -25,11 +31,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mesh.node import Node
-from protocol.errors import RpcError, RpcTimeout, StaleState
+from protocol.errors import ArcheryError, RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
-from protocol.robotspec import STATE_MAX_AGE
-from protocol.verbs.robot import PART_VERBS, SetRefSpeedsArgs
+from protocol.robotspec import CONTROLLER, LEASE_TTL, STATE_MAX_AGE
+from protocol.verbs.robot import PART_VERBS, ClaimArgs, LeaseArgs, SetRefSpeedsArgs
 from services.controller.cartesian import reference_speeds
 
 __all__ = ["MoveResult", "RobotLink"]
@@ -66,6 +72,9 @@ class RobotLink:
         joint_tolerance: a part counts as there when motion is done and every joint is within
             this of its target (rad).
         state_max_age: a joint state that arrived longer ago than this (wall s) is stale.
+        lease_ttl: the lease a move takes on each part it commands lasts this long unless
+            renewed (wall s); renewed every quarter of it.
+        owner: the name the leases are claimed under.
     """
 
     def __init__(
@@ -74,6 +83,8 @@ class RobotLink:
         robot_timeout: float,
         joint_tolerance: float,
         state_max_age: float = STATE_MAX_AGE,
+        lease_ttl: float = LEASE_TTL,
+        owner: str = CONTROLLER,
     ) -> None:
         keys = node.keys
         self._node = node
@@ -81,6 +92,8 @@ class RobotLink:
         self.robot_timeout = robot_timeout
         self.joint_tolerance = joint_tolerance
         self.state_max_age = state_max_age
+        self.lease_ttl = lease_ttl
+        self.owner = owner
         self.states = {p: node.subscribe(keys.state(p), JointState) for p in PARTS}
         self._commands = {p: node.publisher(keys.command(p), JointCommand) for p in PARTS}
         self._limits: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -140,15 +153,115 @@ class RobotLink:
                 self._limits[part] = (np.asarray(reply.min), np.asarray(reply.max))
             return self._limits[part]
 
+    # -- leases -------------------------------------------------------------------------------
+    def _claim(self, parts: tuple[str, ...]) -> dict[str, str]:
+        """Claim `parts` for this controller: {part: lease id} ("" for a robot without leases).
+
+        Raises:
+            ArcheryError (code `not_owner`): another client holds a part (the leases taken so
+                far are dropped).
+        """
+        leases: dict[str, str] = {}
+        for part in parts:
+            try:
+                reply = self._node.call_typed(
+                    self._keys.part_rpc(part),
+                    PART_VERBS["claim"],
+                    ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
+                    timeout=self.robot_timeout,
+                )
+            except RpcError as exc:
+                if exc.code == "unknown_verb":
+                    leases[part] = ""  # a robot that keeps no leases takes anyone's commands
+                    continue
+                self._drop(leases)
+                if exc.code == "not_owner":
+                    raise ArcheryError(
+                        f"cannot move {part}: {exc.message}", code="not_owner"
+                    ) from None
+                raise
+            leases[part] = reply.lease
+        return leases
+
+    def _renew(self, leases: dict[str, str]) -> str:
+        """Renew the leases (a lease that ran out meanwhile is claimed again, unless another
+        client took the part); "" if all are held, else why not. A renewal the robot does not
+        answer in time is tried again at the next renewal (its state streams tell if it is
+        lost)."""
+        for part, lease in leases.items():
+            if not lease:
+                continue
+            rpc = self._keys.part_rpc(part)
+            try:
+                self._node.call_typed(
+                    rpc,
+                    PART_VERBS["renewClaim"],
+                    LeaseArgs(lease=lease),
+                    timeout=self.robot_timeout,
+                )
+            except RpcTimeout:
+                continue
+            except RpcError as exc:
+                if exc.code != "not_owner":
+                    raise
+                try:
+                    reply = self._node.call_typed(
+                        rpc,
+                        PART_VERBS["claim"],
+                        ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
+                        timeout=self.robot_timeout,
+                    )
+                except RpcError as again:
+                    if again.code == "not_owner":
+                        return f"{part} was taken over during the move: {again.message}"
+                    raise
+                leases[part] = reply.lease
+        return ""
+
+    def _drop(self, leases: dict[str, str]) -> None:
+        """Drop the leases (best effort: one the robot does not drop runs out by itself)."""
+        for part, lease in leases.items():
+            if not lease:
+                continue
+            with contextlib.suppress(RpcError):  # taken over: nothing of ours to drop
+                self._node.call_typed(
+                    self._keys.part_rpc(part),
+                    PART_VERBS["dropClaim"],
+                    LeaseArgs(lease=lease),
+                    timeout=self.robot_timeout,
+                )
+
     def move(self, targets: Mapping[str, float], traj_time: float, timeout: float) -> MoveResult:
-        """Move the joints named in `targets` {joint: rad}; only their parts are commanded.
+        """Move the joints named in `targets` {joint: rad}; only their parts are commanded, under
+        a lease each (see the module docstring).
 
         Raises:
             RpcTimeout / RpcError: the robot's state or RPC does not answer (names the key).
             StaleState: a part's state stream went silent for longer than `state_max_age`.
+            ArcheryError (code `not_owner`): another client holds a part to be moved.
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
         current = self.posture(tuple(PARTS))
+        leases = self._claim(parts)
+        try:
+            result = self._move(targets, traj_time, timeout, parts, current, leases)
+        except (StaleState, RpcTimeout):
+            raise  # the robot is lost or frozen: its leases run out by themselves
+        except BaseException:
+            self._drop(leases)
+            raise
+        self._drop(leases)
+        return result
+
+    def _move(
+        self,
+        targets: Mapping[str, float],
+        traj_time: float,
+        timeout: float,
+        parts: tuple[str, ...],
+        current: Mapping[str, float],
+        leases: dict[str, str],
+    ) -> MoveResult:
         sent: dict[str, np.ndarray] = {}
         for part in parts:
             lower, upper = self.limits(part)
@@ -158,36 +271,56 @@ class RobotLink:
             self._node.call_typed(
                 self._keys.part_rpc(part),
                 PART_VERBS["setRefSpeeds"],
-                SetRefSpeedsArgs(speeds=reference_speeds(delta, traj_time).tolist()),
+                SetRefSpeedsArgs(
+                    speeds=reference_speeds(delta, traj_time).tolist(), lease=leases[part]
+                ),
                 timeout=self.robot_timeout,
             )
         marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in parts}
         start = time.monotonic()
         for part in parts:
             self._commands[part].put(
-                JointCommand(part=part, position=sent[part].tolist(), batch=len(parts))
+                JointCommand(
+                    part=part,
+                    position=sent[part].tolist(),
+                    batch=len(parts),
+                    lease=leases[part],
+                )
             )
         reason = ""
         tol = self.joint_tolerance
         done_at = 0.0  # sim s of the state that showed the last part there (load-independent)
+        renew_every = self.lease_ttl / 4
+        renew_at = time.monotonic() + renew_every
         for part in parts:
-            remaining = max(0.0, start + timeout - time.monotonic())
             goal = sent[part]
 
             def there(msg: JointState, goal: np.ndarray = goal) -> bool:
                 error = np.max(np.abs(np.asarray(msg.position) - goal))
                 return msg.motion_done and bool(error <= tol)
 
-            try:
-                arrived = self.states[part].wait_newer(
-                    remaining, there, after_seq=marks[part], max_age=self.state_max_age
+            while not reason:
+                now = time.monotonic()
+                remaining = max(0.0, start + timeout - now)
+                wait = (
+                    min(remaining, max(0.0, renew_at - now)) if any(leases.values()) else remaining
                 )
-                done_at = max(done_at, arrived.sim_time or 0.0)
-            except RpcTimeout:
-                reason = (
-                    f"{self.states[part].key} did not show motion done within {tol:g} rad of "
-                    f"the targets within {timeout:g} s"
-                )
+                try:
+                    arrived = self.states[part].wait_newer(
+                        wait, there, after_seq=marks[part], max_age=self.state_max_age
+                    )
+                    done_at = max(done_at, arrived.sim_time or 0.0)
+                    break
+                except RpcTimeout:
+                    if time.monotonic() >= start + timeout:
+                        reason = (
+                            f"{self.states[part].key} did not show motion done within {tol:g} "
+                            f"rad of the targets within {timeout:g} s"
+                        )
+                    else:
+                        reason = self._renew(leases)
+                        renew_at = time.monotonic() + renew_every
+            if reason:
                 break
         wall = time.monotonic() - start
         latest = {p: self.state(p) for p in PARTS}

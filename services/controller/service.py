@@ -7,7 +7,9 @@ Ports (ROBOT = the robot prefix):
 * `ROBOT/cartesianController/archery/rpc:i`: posture, setTrajTime, getTrajTime, status.
 
 It reads the robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i`
-(getLimits, setRefSpeeds); it never imports the robot's code. Positions are metres in
+(getLimits, setRefSpeeds, and claim, renewClaim, dropClaim: a move holds a lease on the parts it
+commands, `--lease-ttl` wall s unless renewed, see `robotlink`); it never imports the robot's
+code. Positions are metres in
 root_link, orientations iKin axis-angle [ax, ay, az, angle].
 
 A robot joint state that arrived more than `--state-max-age` wall s ago (default 0.5) is never
@@ -41,7 +43,13 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
     posture = ArcheryPosture(config.posture)
     with Node(CONTROLLER, config.net) as node:
         keys = node.keys
-        link = RobotLink(node, config.robot_timeout, config.joint_tolerance, config.state_max_age)
+        link = RobotLink(
+            node,
+            config.robot_timeout,
+            config.joint_tolerance,
+            config.state_max_age,
+            config.lease_ttl,
+        )
         motion = MotionLock()
         for arm in ARM_PARTS:
             controller = ArmController(arm, model, config, link, motion)

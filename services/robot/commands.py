@@ -11,14 +11,19 @@ Rules (the same for `command:i` messages and the `positionMove` RPC):
   command is rejected and nothing of it is applied; a value beyond a limit by at most
   `tolerance` is clamped onto the limit (the command is counted as `clamped`).
 
+Before these rules, the part's gate (`gate`) refuses a command from a client that does not hold
+the part's running lease (`not_owner`) and drops one over the part's rate limit
+(`rate_limited`); both are counted here with the others.
+
 Pure: no Zenoh, no MuJoCo. Units: radians.
 """
 
 from __future__ import annotations
 
 import math
+import threading
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -35,6 +40,8 @@ REJECTION_REASONS = (
     "duplicate_joint",
     "bad_value",
     "out_of_range",
+    "not_owner",
+    "rate_limited",
 )
 
 
@@ -172,9 +179,10 @@ def check_command(
     return targets, bool(np.any(clipped != wanted))
 
 
-@dataclass
 class PartCounters:
-    """What happened to a part's commands since the service started (owned by the sim thread).
+    """What happened to a part's commands since the service started. Thread-safe: the gate
+    counts its refusals on the thread that delivered the command, the simulation thread the
+    rest.
 
     Attributes:
         accepted: commands applied (stream and positionMove).
@@ -184,19 +192,40 @@ class PartCounters:
         last_rejection: the message of the latest refusal ("" if none).
     """
 
-    accepted: int = 0
-    clamped: int = 0
-    rejected: Counter[str] = field(default_factory=Counter)
-    watchdog_trips: int = 0
-    last_rejection: str = ""
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.accepted = 0
+        self.clamped = 0
+        self.rejected: Counter[str] = Counter()
+        self.watchdog_trips = 0
+        self.last_rejection = ""
+
+    def accept(self, clamped: bool) -> None:
+        """Count an applied command (`clamped`: a value of it was clamped onto a limit)."""
+        with self._lock:
+            self.accepted += 1
+            self.clamped += int(clamped)
+
+    def reject(self, reason: str, message: str) -> int:
+        """Count a refused command; returns how many were refused for `reason` so far."""
+        with self._lock:
+            self.rejected[reason] += 1
+            self.last_rejection = message
+            return self.rejected[reason]
+
+    def tripped(self) -> None:
+        """Count a watchdog hold."""
+        with self._lock:
+            self.watchdog_trips += 1
 
     def to_dict(self) -> dict[str, Any]:
         """Plain data for an RPC reply."""
-        return {
-            "accepted": self.accepted,
-            "clamped": self.clamped,
-            "rejected": sum(self.rejected.values()),
-            "rejected_by_reason": {r: self.rejected.get(r, 0) for r in REJECTION_REASONS},
-            "watchdog_trips": self.watchdog_trips,
-            "last_rejection": self.last_rejection,
-        }
+        with self._lock:
+            return {
+                "accepted": self.accepted,
+                "clamped": self.clamped,
+                "rejected": sum(self.rejected.values()),
+                "rejected_by_reason": {r: self.rejected.get(r, 0) for r in REJECTION_REASONS},
+                "watchdog_trips": self.watchdog_trips,
+                "last_rejection": self.last_rejection,
+            }

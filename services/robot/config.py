@@ -13,7 +13,13 @@ from sim.bow import BowError
 from sim.errors import SimError
 from sim.world import WorldConfig
 
-__all__ = ["RobotConfig", "add_arguments", "make_config"]
+__all__ = ["COMMAND_BURST", "COMMAND_RATE", "RobotConfig", "add_arguments", "make_config"]
+
+#: Commands per wall second a part's `command:i` admits in the long run: twice a 100 Hz
+#: teleoperation stream, while a flood's excess never reaches the simulation thread.
+COMMAND_RATE = 200.0
+#: Commands a part admits at once after a pause (a controller sends one per move).
+COMMAND_BURST = 50
 
 
 @dataclass(frozen=True)
@@ -37,6 +43,11 @@ class RobotConfig:
             an announced batch of commands (`JointCommand.batch`), to start them together; a
             batch complete before then starts at once.
         job_timeout: longest wait of an RPC for the simulation thread (wall s).
+        command_rate: each part's `command:i` admits at most this many commands per wall
+            second in the long run; the excess is dropped and counted (`rate_limited`), the
+            part keeping its last accepted targets (see `gate`); 0 switches the limit off.
+        command_burst: how many commands a part admits at once after a pause (the rate
+            limit's bucket).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -66,6 +77,16 @@ class RobotConfig:
     )
     job_timeout: float = flag(
         10.0, "longest wait of an RPC for the simulation thread", unit="wall s", low=0.1, high=600
+    )
+    command_rate: float = flag(
+        COMMAND_RATE,
+        "commands a part's command:i admits per second, the excess dropped; 0 = no limit",
+        unit="per wall s",
+        low=0,
+        high=1e6,
+    )
+    command_burst: int = flag(
+        COMMAND_BURST, "commands a part admits at once after a pause", low=1, high=1e6
     )
 
     def __post_init__(self) -> None:

@@ -44,6 +44,10 @@ class RobotHandlers:
             "positionMove": self.position_move,
             "counters": self.counters,
             "status": self.part_status,
+            "claim": self.claim,
+            "renewClaim": self.renew_claim,
+            "dropClaim": self.drop_claim,
+            "getClaim": self.get_claim,
         }
         return rv.PART_VERBS.bind({name: partial(verb, part) for name, verb in verbs.items()})
 
@@ -91,7 +95,7 @@ class RobotHandlers:
 
     def set_ref_speeds(self, part: str, args: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
         """Set the reference speeds (rad/s: one for all joints, or one per joint)."""
-        speeds = self._loop.set_ref_speeds(part, args.speeds)
+        speeds = self._loop.set_ref_speeds(part, args.speeds, args.lease)
         return rv.RefSpeedsReply(names=self._names(part), speeds=speeds)
 
     def get_ref_speeds(self, part: str, args: NoArgs) -> rv.RefSpeedsReply:
@@ -100,7 +104,7 @@ class RobotHandlers:
 
     def position_move(self, part: str, args: rv.PositionMoveArgs) -> rv.TargetsReply:
         """Validate and apply targets (rad) like a command; the part's targets after it."""
-        position = self._loop.position_move(part, args.position, args.names)
+        position = self._loop.position_move(part, args.position, args.names, args.lease)
         return rv.TargetsReply(names=self._names(part), position=position)
 
     def counters(self, part: str, args: NoArgs) -> rv.CountersReply:
@@ -119,6 +123,22 @@ class RobotHandlers:
             velocity=encoders.velocity,
             sim_time=encoders.sim_time,
         )
+
+    def claim(self, part: str, args: rv.ClaimArgs) -> rv.LeaseReply:
+        """Take the part for `ttl` wall s: only commands carrying the lease id move it."""
+        return self._loop.claim(part, args.owner, args.ttl, args.takeover)
+
+    def renew_claim(self, part: str, args: rv.LeaseArgs) -> rv.LeaseReply:
+        """Extend the running lease by its ttl (wall s) from now."""
+        return self._loop.renew_claim(part, args.lease)
+
+    def drop_claim(self, part: str, args: rv.LeaseArgs) -> rv.ClaimReply:
+        """End the lease: the part takes commands from anyone again."""
+        return self._loop.drop_claim(part, args.lease)
+
+    def get_claim(self, part: str, args: NoArgs) -> rv.ClaimReply:
+        """Who holds the part and for how long (wall s)."""
+        return self._loop.claim_state(part)
 
     # -- archery verbs -----------------------------------------------------------------------
     def nock(self, args: NoArgs) -> rv.NockReply:

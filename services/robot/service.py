@@ -3,9 +3,12 @@
 Ports (ROBOT = the robot prefix, e.g. icubSim):
 
 * `ROBOT/{torso,left_arm,right_arm}/state:o` JointState at `state_rate` per simulated second;
-* `ROBOT/{part}/command:i` JointCommand position targets (validated as in `commands`);
+* `ROBOT/{part}/command:i` JointCommand position targets (validated as in `commands`), from the
+  holder of the part's lease only while one runs, at most `--command-rate` per wall s (see
+  `gate`);
 * `ROBOT/{part}/rpc:i` controlboard verbs: getJointNames, getLimits, getPositions, getTargets,
-  checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status;
+  checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status, and the lease
+  verbs claim, renewClaim, dropClaim, getClaim;
 * `ROBOT/archery/rpc:i`: nock, release (replies after the landing), reset, status;
 * `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
 * `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset, and
@@ -18,10 +21,15 @@ where the RPC server checks every request before a handler sees it):
 * getJointNames → {names}; getLimits → {names, min, max, tolerance} (software limits);
   getPositions → {names, position, velocity, sim_time}; getTargets → {names, position};
   checkMotionDone → {done}; setRefSpeeds {speeds: number or list, rad/s} → {names, speeds};
-  getRefSpeeds → {names, speeds}; positionMove {position, names?} → {names, position} (the
-  part's targets after the move, validated as a command); counters → {accepted, clamped,
+  getRefSpeeds → {names, speeds}; positionMove {position, names?, lease?} → {names, position}
+  (the part's targets after the move, validated as a command); counters → {accepted, clamped,
   rejected, rejected_by_reason, watchdog_trips, last_rejection, streaming, undecodable};
   status → names, motion_done, counters and getPositions' fields.
+* claim {owner, ttl? (wall s, default 2), takeover?} → {lease, owner, ttl, expires_in,
+  took_over}; renewClaim {lease} → the same; dropClaim {lease} → getClaim's reply; getClaim →
+  {held, owner, ttl, expires_in}. While a lease runs, a command, positionMove or setRefSpeeds
+  without its id is refused (`not_owner`, counted with the command counters); with none held
+  the part takes commands from anyone.
 * nock → {shot, arrow, sim_time}; release → {shot, outcome, hit, reason, sim_time,
   release_sim_time, flight_time, theta} once the arrow has landed; reset {seed?} → {sim_time,
   seed, shot}; status → {sim_time, arrow, phase, shot, motion_done, seed, rtf, rates,
@@ -38,6 +46,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from functools import partial
 
 from mesh.node import Node
 from mesh.service import service_main
@@ -69,8 +78,9 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                     keys.command(part),
                     JointCommand,
                     callback=lambda msg, part=part: loop.command(  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
-                        part, msg.position, msg.names, msg.part, msg.batch
+                        part, msg.position, msg.names, msg.part, msg.batch, msg.lease
                     ),
+                    admit=partial(loop.screen, part),
                 )
                 for part in world.parts
             }

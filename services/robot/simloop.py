@@ -19,7 +19,13 @@ stop for `config.watchdog` wall seconds (default 0.1) is held at its measured po
 loop wakes at that deadline, even in the middle of its wait for the next paced chunk, counts a
 `watchdog_trips` and publishes a `watchdog` WorldEvent naming the part. At rtf 1 the hold comes
 ~1 ms after the deadline and the joints stop within the servos' settling time; at rtf 0 see
-`watchdog` (the wall-clock timeout is then many simulated seconds).
+`watchdog` (the wall-clock timeout is then many simulated seconds). A command under another
+lease than the part's previous command (another client, `gate`) continues no stream.
+
+Ownership and rate (`gate`): the service screens every `command:i` payload before decoding it
+(`screen`: the part's running lease, the rate limit), so a refused or excess command is counted
+and dropped on the receiving thread and never becomes a job: a flood of them cannot make the
+loop fall behind. positionMove and setRefSpeeds check the lease too.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ from protocol.verbs import robot as rv
 from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.config import RobotConfig
+from services.robot.gate import NOT_OWNER, NotOwner, PartGate
 from services.robot.pacing import MAX_IDLE_WAIT, Pacing
 from services.robot.sink import Sink
 from services.robot.watchdog import StreamWatchdog
@@ -108,7 +115,11 @@ class SimLoop:
             for part in world.parts
         }
         self._counters = {part: PartCounters() for part in world.parts}
+        self._gates = {
+            part: PartGate(part, config.command_rate, config.command_burst) for part in world.parts
+        }
         self._streams = StreamWatchdog(world.parts, config.watchdog)
+        self._stream_lease = {part: "" for part in world.parts}  # of the last stream command
         self._jobs = JobQueue(SimUnavailable, "the simulation thread")
         self._shot = 0
         self._landing_future: Future[rv.ReleaseReply] | None = None
@@ -137,19 +148,86 @@ class SimLoop:
         self._jobs.close(_SHUTTING_DOWN)
 
     # -- the public verbs (any thread) -------------------------------------------------------
+    def screen(self, part: str, payload: bytes) -> bool:
+        """Whether a raw `command:i` payload for `part` may go on to be decoded (any thread):
+        the part's gate refuses one without the running lease and drops one over the rate limit,
+        both counted (`not_owner`, `rate_limited`), before any decoding or job (see `gate`)."""
+        refused = self._gates[part].screen(payload)
+        if refused is None:
+            return True
+        self._refuse(part, *refused)
+        return False
+
     def command(
-        self, part: str, position: list[float], names: list[str] | None, said: str, batch: int = 1
+        self,
+        part: str,
+        position: list[float],
+        names: list[str] | None,
+        said: str,
+        batch: int = 1,
+        lease: str = "",
     ) -> None:
         """A `command:i` message for `part` (`said`: the part the message names; `batch`: how
-        many commands, this one included, start together); not awaited.
+        many commands, this one included, start together; `lease`: the lease id it carries);
+        not awaited. The service screens each payload first (`screen`: ownership, rate limit).
 
-        Rejections are counted and logged, never applied."""
+        A command without the running lease is refused here, on the calling thread; the others
+        go to the simulation thread. Rejections are counted and logged, never applied."""
+        refusal = self._gates[part].owner_refusal(lease)
+        if refusal is not None:
+            self._refuse(part, NOT_OWNER, refusal)
+            return
         received = time.monotonic()
-        self.submit(lambda: self._stream_command(part, position, names, said, received, batch))
+        self.submit(
+            lambda: self._stream_command(part, position, names, said, received, batch, lease)
+        )
 
-    def position_move(self, part: str, position: Any, names: Any = None) -> list[float]:
-        """Validate and apply targets (rad) like a command; returns the part's targets."""
-        return self.call(lambda: self._position_move(part, position, names))
+    def position_move(
+        self, part: str, position: Any, names: Any = None, lease: str = ""
+    ) -> list[float]:
+        """Validate and apply targets (rad) like a command; returns the part's targets.
+
+        Raises:
+            NotOwner: another client holds the part's lease (`lease` is not the running one).
+            CommandRejected: the targets break a rule (see `commands`)."""
+        return self.call(lambda: self._position_move(part, position, names, lease))
+
+    def claim(self, part: str, owner: str, ttl: float, takeover: bool = False) -> rv.LeaseReply:
+        """Give `owner` the lease of `part` for `ttl` wall s (see `gate`).
+
+        Raises:
+            NotOwner: another owner's lease runs and `takeover` is False."""
+        lease, took_over = self._gates[part].claim(owner, ttl, takeover)
+        return rv.LeaseReply(
+            lease=lease.id,
+            owner=lease.owner,
+            ttl=lease.ttl,
+            expires_in=lease.ttl,
+            took_over=took_over,
+        )
+
+    def renew_claim(self, part: str, lease_id: str) -> rv.LeaseReply:
+        """Extend `part`'s running lease `lease_id` by its ttl (wall s) from now.
+
+        Raises:
+            NotOwner: that lease ended, was dropped or was taken over."""
+        lease = self._gates[part].renew(lease_id)
+        return rv.LeaseReply(lease=lease.id, owner=lease.owner, ttl=lease.ttl, expires_in=lease.ttl)
+
+    def drop_claim(self, part: str, lease_id: str) -> rv.ClaimReply:
+        """End `part`'s lease `lease_id` (nothing if it had ended); who holds the part now.
+
+        Raises:
+            NotOwner: another client's lease runs."""
+        self._gates[part].drop(lease_id)
+        return self.claim_state(part)
+
+    def claim_state(self, part: str) -> rv.ClaimReply:
+        """Who holds `part` and for how long (wall s); never the lease id."""
+        lease, left = self._gates[part].holder()
+        if lease is None:
+            return rv.ClaimReply(held=False, owner="", ttl=0.0, expires_in=0.0)
+        return rv.ClaimReply(held=True, owner=lease.owner, ttl=lease.ttl, expires_in=left)
 
     def positions(self, part: str) -> rv.PositionsReply:
         """Encoders of `part`: positions (rad), velocities (rad/s), sim time (s)."""
@@ -171,8 +249,14 @@ class SimLoop:
         """True when `part` has reached its targets and settled."""
         return self.call(lambda: self.world.motion_done(part))
 
-    def set_ref_speeds(self, part: str, speeds: Any) -> list[float]:
-        """Set `part`'s reference speeds (rad/s; one number for every joint, or one per joint)."""
+    def set_ref_speeds(self, part: str, speeds: Any, lease: str = "") -> list[float]:
+        """Set `part`'s reference speeds (rad/s; one number for every joint, or one per joint).
+
+        Raises:
+            NotOwner: another client holds the part's lease (`lease` is not the running one)."""
+        refusal = self._gates[part].owner_refusal(lease)
+        if refusal is not None:
+            raise NotOwner(refusal)
         n = len(self.limits[part].names)
         if isinstance(speeds, int | float) and not isinstance(speeds, bool):
             speeds = [speeds] * n
@@ -243,27 +327,28 @@ class SimLoop:
         """Arrow state, sim time, shot count, counters, and the scene and world configs."""
         return self.call(self._status)
 
+    def _refuse(self, part: str, reason: str, message: str) -> None:
+        """Count a command the gate refused (any thread); logged sparingly (a flood is many)."""
+        n = self._counters[part].reject(reason, message)
+        if n <= 10 or n % 1000 == 0:
+            log.warning("refused command #%d on %s (%s): %s", n, part, reason, message)
+
     # -- jobs (simulation thread) ------------------------------------------------------------
     def _validate(
         self, part: str, position: Any, names: Any, said: str | None
     ) -> tuple[np.ndarray, bool]:
-        counters = self._counters[part]
         try:
             return check_command(
                 self.limits[part], self.world.joint_targets(part), position, names, said
             )
         except CommandRejected as exc:
-            counters.rejected[exc.reason] += 1
-            counters.last_rejection = exc.message
-            total = sum(counters.rejected.values())
-            if total <= 10 or total % 100 == 0:
-                log.warning("rejected command #%d on %s: %s", total, part, exc.message)
+            n = self._counters[part].reject(exc.reason, exc.message)
+            if n <= 10 or n % 100 == 0:
+                log.warning("rejected command #%d on %s (%s): %s", n, part, exc.reason, exc.message)
             raise
 
     def _apply(self, part: str, targets: np.ndarray, clamped: bool) -> list[float]:
-        counters = self._counters[part]
-        counters.accepted += 1
-        counters.clamped += int(clamped)
+        self._counters[part].accept(clamped)
         return self.world.set_joint_targets(part, targets).tolist()
 
     def _stream_command(
@@ -274,18 +359,30 @@ class SimLoop:
         said: str,
         at: float,
         batch: int = 1,
+        lease: str = "",
     ) -> None:
         self._batch_seen += 1
         self._batch_size = max(self._batch_size, batch)
+        refusal = self._gates[part].owner_refusal(lease)  # taken over while it was queued
+        if refusal is not None:
+            self._refuse(part, NOT_OWNER, refusal)
+            return
         try:
             targets, clamped = self._validate(part, position, names, said)
         except CommandRejected:
             return
         overtakes = not self.world.motion_done(part)
         self._apply(part, targets, clamped)
+        if lease != self._stream_lease[part]:  # another client's: it continues no stream
+            self._stream_lease[part] = lease
+            self._streams.forget(part)
         self._streams.command(part, at, overtakes)
 
-    def _position_move(self, part: str, position: Any, names: Any) -> list[float]:
+    def _position_move(self, part: str, position: Any, names: Any, lease: str = "") -> list[float]:
+        refusal = self._gates[part].owner_refusal(lease)
+        if refusal is not None:
+            self._refuse(part, NOT_OWNER, refusal)
+            raise NotOwner(refusal)
         if names is not None and not isinstance(names, list | tuple):
             raise BadRequest(f"names must be a list of joint names, got {shown(names)}")
         targets, clamped = self._validate(part, position, names, None)
@@ -363,12 +460,17 @@ class SimLoop:
             limit_tolerance=cfg.limit_tolerance,
             timestep=self._dt,
             counters={
-                p: self._counters[p].to_dict() | {"streaming": self._streams.streaming(p)}
+                p: self._counters[p].to_dict()
+                | {"streaming": self._streams.streaming(p), "owner": self._owner(p)}
                 for p in world.parts
             },
             scene=world.config.scene.to_dict(),
             world=world.config.to_dict(),
         )
+
+    def _owner(self, part: str) -> str:
+        lease, _ = self._gates[part].holder()
+        return lease.owner if lease is not None else ""
 
     # -- streams (simulation thread) ---------------------------------------------------------
     def _publish_joints(self) -> None:
@@ -396,7 +498,7 @@ class SimLoop:
         for part, age in self._streams.stale(now):
             if not self.world.motion_done(part):
                 held = self.world.hold(part)
-                self._counters[part].watchdog_trips += 1
+                self._counters[part].tripped()
                 tripped = True
                 reason = f"{part}: no command for {age:.3f} s mid-motion, held where it is"
                 log.warning("%s at %s", reason, np.round(held, 4).tolist())
