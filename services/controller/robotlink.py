@@ -6,7 +6,8 @@ obeys no other client during the move), set each part's reference speeds so ever
 its distance in the trajectory time (`setRefSpeeds`), publish one `JointCommand` per part back to
 back on `command:i` as one batch carrying its lease (the robot starts them at one simulated
 time), then wait until every part's `state:o` reports motion done within `joint_tolerance` of its
-targets, renewing the leases every quarter of their ttl, and drop the leases at the end. A part
+targets, renewing the leases every quarter of their ttl, and drop the leases at the end (in the
+background: the posture's reply does not wait for it). A part
 held by another client (the operator's takeover) fails the move at once with `not_owner`; one
 taken over during the move ends it unreached, naming the new owner; the part keeps the targets
 it was last given. A robot without the lease verbs (`unknown_verb`) is moved without leases.
@@ -26,6 +27,7 @@ import contextlib
 import threading
 import time
 from collections.abc import Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,6 +100,7 @@ class RobotLink:
         self._commands = {p: node.publisher(keys.command(p), JointCommand) for p in PARTS}
         self._limits: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         self._lock = threading.Lock()
+        self._drops = ThreadPoolExecutor(max_workers=1, thread_name_prefix="lease-drop")
 
     def state(self, part: str) -> JointState:
         """The newest joint state of `part` if fresh, else the next within `state_max_age`; the
@@ -219,11 +222,16 @@ class RobotLink:
         return ""
 
     def _drop(self, leases: dict[str, str]) -> None:
-        """Drop the leases (best effort: one the robot does not drop runs out by itself)."""
+        """Drop the leases on the dropping thread, without waiting (best effort: one the robot
+        does not drop runs out by itself, and this controller's next claim replaces its own):
+        the posture's reply does not wait for three more round trips."""
+        held = {part: lease for part, lease in leases.items() if lease}
+        if held:
+            self._drops.submit(self._drop_now, held)
+
+    def _drop_now(self, leases: dict[str, str]) -> None:
         for part, lease in leases.items():
-            if not lease:
-                continue
-            with contextlib.suppress(RpcError):  # taken over: nothing of ours to drop
+            with contextlib.suppress(RpcError):  # taken over, or the robot is gone
                 self._node.call_typed(
                     self._keys.part_rpc(part),
                     PART_VERBS["dropClaim"],
