@@ -28,12 +28,10 @@ import signal
 import subprocess
 import sys
 import tempfile
-from datetime import UTC, datetime
 from pathlib import Path
 
-from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from benchmarks.trees import ROOT, env_for, tree_at
+from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
 from mesh.router import free_tcp_endpoint, wait_for_endpoint
 
 RPC_WORKLOAD = r"""
@@ -174,24 +172,22 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 5:
         parser.error("--repeats must be at least 5")
-    print(f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
-    print(f"- Machine: {os.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}")
+    header()
     rpc: dict[str, list[float]] = {"before": [], "after": []}
     rollout: dict[str, list[float]] = {"before": [], "after": []}
     with tempfile.TemporaryDirectory() as tmp:
         before = tree_at(args.before, Path(tmp))
-        for k in range(args.repeats):
-            order = [("before", before), ("after", ROOT)]
-            for name, tree in order if k % 2 == 0 else order[::-1]:
-                rpc[name].append(_rpc(tree, args.calls))
-                with tempfile.TemporaryDirectory() as work:
-                    rollout[name].append(_session(tree, Path(work), args.rollouts, k))
-                print(
-                    f"  repeat {k + 1} {name}: rpc {rpc[name][-1]:.3f} ms, "
-                    f"{1e3 * rollout[name][-1]:.0f} ms per rollout",
-                    file=sys.stderr,
-                    flush=True,
-                )
+        trees = [("before", before), ("after", ROOT)]
+        for k, name, tree in interleaved(args.repeats, trees):
+            rpc[name].append(_rpc(tree, args.calls))
+            with tempfile.TemporaryDirectory() as work:
+                rollout[name].append(_session(tree, Path(work), args.rollouts, k))
+            print(
+                f"  repeat {k + 1} {name}: rpc {rpc[name][-1]:.3f} ms, "
+                f"{1e3 * rollout[name][-1]:.0f} ms per rollout",
+                file=sys.stderr,
+                flush=True,
+            )
     rpc_ratio = [a / b for a, b in zip(rpc["after"], rpc["before"], strict=True)]
     roll_ratio = [a / b for a, b in zip(rollout["after"], rollout["before"], strict=True)]
     ms = {n: [1e3 * v for v in values] for n, values in rollout.items()}

@@ -33,20 +33,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
-from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
+from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
 
 __all__ = ["main"]
 
-ROOT = Path(__file__).resolve().parents[1]
 #: name -> (flood, rtf, robot watchdog (wall s), when the flood starts)
 SCENARIOS = {
     "rival": ("rival", "1", "0.1", "mid"),
@@ -215,17 +212,11 @@ print(json.dumps(out))
 """
 
 
-def _tree_before(commit: str, dest: Path) -> Path:
-    archive = subprocess.run(["git", "archive", commit], cwd=ROOT, capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive.stdout, check=True)
-    return dest
-
-
 def _workload(tree: Path, scenario: str, count: int) -> dict[str, Any]:
     run = subprocess.run(
         [sys.executable, "-c", WORKLOAD, *SCENARIOS[scenario], str(count), FLOODER],
         cwd=tree,
-        env=os.environ | {"PYTHONPATH": str(tree)},
+        env=env_for(tree),
         capture_output=True,
         text=True,
         timeout=900,
@@ -268,18 +259,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--repeats must be at least 5")
     if not set(scenarios) <= set(SCENARIOS):
         parser.error(f"--scenarios must be among {', '.join(SCENARIOS)}")
-    print(f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
-    print(f"- Machine: {os.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}")
+    header()
     with tempfile.TemporaryDirectory() as tmp:
-        before = _tree_before(args.before, Path(tmp))
+        before = tree_at(args.before, Path(tmp))
         trees = [("after", ROOT)] if args.after_only else [("before", before), ("after", ROOT)]
         for scenario in scenarios:
             got: dict[str, list[dict[str, Any]]] = {name: [] for name, _ in trees}
-            for k in range(args.repeats):
-                for name, tree in trees if k % 2 == 0 else trees[::-1]:
-                    result = _workload(tree, scenario, args.count)
-                    got[name].append(result)
-                    print(f"  {scenario} {k + 1} {name}: {result}", file=sys.stderr, flush=True)
+            for k, name, tree in interleaved(args.repeats, trees):
+                result = _workload(tree, scenario, args.count)
+                got[name].append(result)
+                print(f"  {scenario} {k + 1} {name}: {result}", file=sys.stderr, flush=True)
             for name, results in got.items():
                 print(_summary(scenario, name, results, args.count), flush=True)
     return 0

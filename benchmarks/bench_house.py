@@ -18,17 +18,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
 import time
-from datetime import UTC, datetime
 from pathlib import Path
 
-from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from benchmarks.trees import ROOT, env_for, tree_at
+from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
 
 PRODUCT_BEFORE = ("protocol", "services", "sim")
 PRODUCT_AFTER = ("protocol", "mesh", "services", "apps", "sim")
@@ -150,8 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 5:
         parser.error("--repeats must be at least 5")
-    print(f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
-    print(f"- Machine: {os.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}")
+    header()
     with tempfile.TemporaryDirectory() as tmp:
         before = tree_at(args.before, Path(tmp))
         lines_before = _lines(before, PRODUCT_BEFORE)
@@ -165,13 +161,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         rpc: dict[str, list[float]] = {"before": [], "after": []}
         fps: dict[str, list[float]] = {"before": [], "after": []}
-        for k in range(args.repeats):
-            order = [("before", before), ("after", ROOT)]
-            for name, tree in order if k % 2 == 0 else order[::-1]:
-                got = _workload(tree, args.calls, args.frames)
-                rpc[name].append(got["rpc_ms"])
-                fps[name].append(got["fps"])
-                print(f"  repeat {k + 1} {name}: {got}", file=sys.stderr, flush=True)
+        for k, name, tree in interleaved(args.repeats, [("before", before), ("after", ROOT)]):
+            got = _workload(tree, args.calls, args.frames)
+            rpc[name].append(got["rpc_ms"])
+            fps[name].append(got["fps"])
+            print(f"  repeat {k + 1} {name}: {got}", file=sys.stderr, flush=True)
         rpc_ratio = [a / b for a, b in zip(rpc["after"], rpc["before"], strict=True)]
         fps_ratio = [b / a for a, b in zip(fps["after"], fps["before"], strict=True)]
         print(

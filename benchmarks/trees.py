@@ -6,9 +6,17 @@ from __future__ import annotations
 
 import os
 import subprocess
+import sys
+from collections.abc import Iterator, Sequence
+from datetime import UTC, datetime
 from pathlib import Path
+from typing import TypeVar
 
-__all__ = ["ROOT", "env_for", "tree_at"]
+from benchmarks.machine import cpu_model
+
+T = TypeVar("T")
+
+__all__ = ["ROOT", "env_for", "header", "interleaved", "tree_at"]
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -23,3 +31,17 @@ def tree_at(commit: str, dest: Path) -> Path:
 def env_for(tree: Path, **extra: str) -> dict[str, str]:
     """This process's environment with `tree`'s packages first on the path."""
     return os.environ | {"PYTHONPATH": str(tree), **extra}
+
+
+def header() -> None:
+    """Print the run's date and machine, the first lines of a comparison's report."""
+    print(f"- Date: {datetime.now(UTC):%Y-%m-%d %H:%M} UTC")
+    print(f"- Machine: {os.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}")
+
+
+def interleaved(repeats: int, trees: Sequence[tuple[str, T]]) -> Iterator[tuple[int, str, T]]:
+    """(repeat, name, tree) for `repeats` repeats of every tree, alternating which goes first,
+    so that a drift of the machine weighs on both alike."""
+    for k in range(repeats):
+        for name, tree in trees if k % 2 == 0 else list(trees)[::-1]:
+            yield k, name, tree

@@ -42,6 +42,7 @@ __all__ = [
     "MODES",
     "NetConfig",
     "add_network_args",
+    "listens",
     "open_session",
 ]
 
@@ -300,7 +301,7 @@ def open_session(net: NetConfig) -> zenoh.Session:
                 f"the same deployment ({net.secure}) running there (`archery router --secure "
                 f"{net.secure} --listen ENDPOINT`)?"
             ) from None
-        tls = [e for e in net.connect if e.startswith("tcp/") and _listens(e)]
+        tls = [e for e in net.connect if e.startswith("tcp/") and listens(e)]
         if tls:
             raise Unreachable(
                 f"cannot open a Zenoh {net.mode} session{listen} connecting to {where}: "
@@ -315,8 +316,9 @@ def open_session(net: NetConfig) -> zenoh.Session:
         ) from None
 
 
-def _listens(endpoint: str, timeout: float = 0.5) -> bool:
-    """Whether a TCP connection to a `tcp/HOST:PORT` endpoint is accepted (s to wait)."""
+def listens(endpoint: str, timeout: float = 0.5) -> bool:
+    """Whether a TCP connection to a `PROTO/HOST:PORT` endpoint (tcp, tls) is accepted now
+    (`timeout`: s to wait for it)."""
     host, _, port = endpoint.split("/", 1)[1].rpartition(":")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):

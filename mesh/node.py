@@ -25,7 +25,7 @@ import zenoh
 
 from mesh import instances
 from mesh.liveliness import Liveliness
-from mesh.netflags import NetConfig, open_session
+from mesh.netflags import NetConfig, listens, open_session
 from mesh.publisher import Publisher
 from mesh.router import wait_for_endpoint
 from mesh.rpc_client import RpcClient
@@ -231,16 +231,7 @@ def open_node(net: NetConfig, wait: float = 0.0, name: str | None = None) -> Nod
             return Node(name, net)
         except Unreachable:
             left = deadline - time.monotonic()
-            if left <= 0 or not net.connect or _listening(net.connect[0]):
+            if left <= 0 or not net.connect or listens(net.connect[0]):
                 raise
             with contextlib.suppress(ConfigError):  # then the session says why, once more
                 wait_for_endpoint(net.connect[0], left)
-
-
-def _listening(endpoint: str) -> bool:
-    """Whether the endpoint accepts a TCP connection now."""
-    try:
-        wait_for_endpoint(endpoint, 0.0)
-    except ConfigError:
-        return False
-    return True
