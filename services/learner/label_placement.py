@@ -53,9 +53,10 @@ def marker_discs(ax: Any) -> np.ndarray:
             offsets = np.asarray(artist.get_offsets(), dtype=float).reshape(-1, 2)
             if not len(offsets):
                 continue
-            sizes = np.broadcast_to(np.asarray(artist.get_sizes(), float), (len(offsets),))
-            widths = np.broadcast_to(np.asarray(artist.get_linewidths(), float), (len(offsets),))
-            radius = (np.sqrt(sizes) / 2 + widths / 2) * px_per_pt
+            count = len(offsets)
+            sizes = np.broadcast_to(np.asarray(artist.get_sizes(), dtype=np.float64), (count,))
+            widths = np.broadcast_to(np.asarray(artist.get_linewidth(), dtype=np.float64), (count,))
+            radius = (0.5 * np.sqrt(sizes) + 0.5 * widths) * px_per_pt
             points = artist.get_offset_transform().transform(offsets)
             rows.append(np.column_stack([points, radius]))
         elif isinstance(artist, Line2D) and artist.get_visible():

@@ -142,15 +142,15 @@ def report_figure(state: JournalState) -> Any:
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
         face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=0.6 if many else 0.9, zorder=1)
-    sizes = []
+    areas = []  # pt²
     for k in range(len(done)):
         x, y = r[k]
-        size = (90 if many else 130) if hits[k] else (28 if many else 55)
-        sizes.append(size)
+        area = (90 if many else 130) if hits[k] else (28 if many else 55)
+        areas.append(area)
         face.scatter(
             x,
             y,
-            s=size,
+            s=area,
             color=colours[k],
             zorder=3,
             marker="*" if hits[k] else "o",
@@ -284,7 +284,7 @@ def report_figure(state: JournalState) -> Any:
             Label(
                 str(done[k].rollout),
                 (float(r[k, 0]), float(r[k, 1])),
-                radius_px=0.5 * math.sqrt(sizes[k]) * px_per_pt,
+                radius_px=0.5 * math.sqrt(areas[k]) * px_per_pt,
                 fontsize=8 if many else 10,
                 weight="bold" if hits[k] else "normal",
             )
