@@ -23,12 +23,13 @@ import numpy as np
 import pytest
 
 from apps.dashboard.server import Dashboard, bind
-from apps.dashboard.watch import MeshWatch
+from apps.dashboard.watch import SCENE_INTEREST, MeshWatch
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.publisher import Publisher
 from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord, RolloutRecord
 from protocol.messages import Array, Image, JointState, Rollout, WorldState
+from protocol.verbs.camera import CAMERA_VERBS, SceneReply
 from protocol.verbs.detector import DETECTOR_VERBS, FrameReply
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
 from tests.rpc import some_verbs
@@ -522,4 +523,68 @@ def test_rates_come_from_the_publishers_counts_not_from_subscribing(net: NetConf
         finally:
             stop.set()
             thread.join(5)
+            watch.close()
+
+
+def test_the_frame_is_fetched_after_every_rollout(net: NetConfig) -> None:
+    with fake_learner(net, "s1", 10) as rollouts, Node(None, net) as node:
+        watch = MeshWatch(node)
+        try:
+            assert rollouts.wait_matched(30)
+            for k in range(1, 6):
+                rollouts.put(Rollout(record=_done("s1", k)))
+                deadline = time.monotonic() + 30
+                while watch.snapshot()["frame"]["rollout"] != k:
+                    assert time.monotonic() < deadline, watch.snapshot()["frame"]
+                    time.sleep(0.02)
+            assert watch.frame()[1] >= 5
+        finally:
+            watch.close()
+
+
+def test_the_scene_view_is_asked_for_only_while_a_page_wants_it(net: NetConfig) -> None:
+    calls: list[float] = []
+    jpeg = cv2.imencode(".jpg", np.zeros((36, 64, 3), np.uint8))[1].tobytes()
+
+    def scene(_: object) -> SceneReply:
+        calls.append(time.monotonic())
+        image = Image(width=64, height=36, encoding="jpeg", data=jpeg, sim_time=1.0)
+        return SceneReply(status="ok", image=image, period=0.2, renders=1, render_ms=1.0)
+
+    with Node("camera", net) as camera, Node(None, net) as node:
+        camera.serve(camera.keys.cam_rpc(), some_verbs(CAMERA_VERBS, {"scene": scene}))
+        camera.ready()
+        node.wait_alive(["camera"], timeout=30)
+        watch = MeshWatch(node, status_every=0.1)
+        try:
+            deadline = time.monotonic() + 2.0  # the status polls run; nobody wants the scene
+            while time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert not calls and watch.snapshot()["scene"]["status"] == "off"
+            watch.want_scene()  # a page shows the panel
+            deadline = time.monotonic() + 30
+            while watch.scene()[0] != jpeg:
+                assert time.monotonic() < deadline
+                time.sleep(0.02)
+            assert watch.snapshot()["scene"] | {"version": 1} == {
+                "version": 1,
+                "status": "ok",
+                "error": "",
+                "sim_time": 1.0,
+                "width": 64,
+                "height": 36,
+            }
+            # nobody asks again: the calls stop once SCENE_INTEREST s have passed
+            deadline = time.monotonic() + SCENE_INTEREST + 30
+            while watch.snapshot()["scene"]["status"] != "off":
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            stopped = len(calls)
+            assert stopped >= 2  # at the camera's period while wanted
+            assert all(b - a >= 0.19 for a, b in itertools.pairwise(calls))
+            settle = time.monotonic() + 1.0
+            while time.monotonic() < settle:
+                time.sleep(0.1)
+            assert len(calls) == stopped
+        finally:
             watch.close()
