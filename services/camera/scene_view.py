@@ -3,12 +3,19 @@
 
 Cost: nothing while nobody asks. The first `scene` request starts a thread that builds the
 view (the robot's meshes: a second model, a second GL context) at a lower CPU priority
-(`NICE`, on top of the camera's); it renders the newest world state the camera already follows
-(`ROBOT/world/state:o`: the whole qpos poses the robot), at most once per `period` s and only
-while requests keep coming: each request asks for the next view and gets the newest one at
-once (the verb never waits, so it never holds up a `grab` on the port's worker). After `idle` s
-without a request the thread frees the view and ends. The capture thread, which renders the
-target camera's frames for the detector, is never asked to do any of it.
+(`NICE`, on top of the camera's; the software renderer's threads, started from it, inherit
+it); it renders the newest world state the camera already follows (`ROBOT/world/state:o`: the
+whole qpos poses the robot), at most once per `period` s and only while requests keep coming:
+each request asks for the next view and gets the newest one at once (the verb never waits, so
+it never holds up a `grab` on the port's worker). After `idle` s without a request the thread
+frees the view and ends. The capture thread, which renders the target camera's frames for the
+detector, is never asked to do any of it.
+
+While watched it still keeps out of the learning loop's way where the loop waits on the CPU:
+no view is rendered while an arrow flies, while a `grab` waits for a frame, or after a
+landing until the camera has captured a frame since (the detector's measurement; at most
+`HOLD` s): a view rendered then would share the cores with the target frame the detector is
+waiting for. The view shows the robot drawing and aiming, and the arrow in the target.
 """
 
 from __future__ import annotations
@@ -28,14 +35,16 @@ from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Image
 from protocol.verbs.camera import SceneReply
 
-__all__ = ["IDLE", "NICE", "PERIOD", "SIZE", "SceneViews"]
+__all__ = ["HOLD", "IDLE", "NICE", "PERIOD", "SIZE", "SceneViews"]
 
 log = logging.getLogger("archery.camera")
 
 PERIOD = 1.0  # s: at least this long between two renders of the view
 IDLE = 30.0  # s without a request: the view is freed
 SIZE = (640, 360)  # px: width, height of a view (a dashboard panel)
-NICE = 5  # the render thread's niceness on top of the camera's
+NICE = 10  # the render thread's niceness on top of the camera's
+HOLD = 2.0  # s: after a landing, no view until the camera captured a frame, or this long
+RETRY = 0.1  # s: a view put off is tried again this much later
 JPEG_QUALITY = 85
 
 
@@ -66,6 +75,8 @@ class SceneViews:
         self._renders = 0
         self._render_ms: float | None = None
         self._error = ""
+        self._landing: tuple[int, float, int] | None = None  # shot, seen at (s), frames then
+        self.held = 0  # renders put off while the learning loop needed the CPU
 
     @property
     def running(self) -> bool:
@@ -133,7 +144,7 @@ class SceneViews:
                 if self._stop.is_set():
                     break
                 self._wanted.clear()
-                started = time.monotonic()
+                started, held = time.monotonic(), self.held
                 try:
                     shown = self._render(view, shown)
                 except ArcheryError as exc:  # a world state of another scene: build it again
@@ -141,8 +152,12 @@ class SceneViews:
                     view.close()
                     view = self._open()
                     shown = None
+                if self.held != held:  # put off: still wanted, tried again shortly
+                    self._wanted.set()
+                    self._stop.wait(RETRY)
+                    continue
                 self._stop.wait(max(0.0, started + self.period - time.monotonic()))
-        except (ArcheryError, ValueError, OSError) as exc:
+        except Exception as exc:  # the view stops; the camera's frames go on
             log.error("the scene view stopped: %s", exc)
             with self._lock:
                 self._error = str(exc)
@@ -151,6 +166,20 @@ class SceneViews:
                 self._thread = None
             view.close()
             log.info("scene view off")
+
+    def _loop_busy(self, state: Any) -> bool:
+        """Whether the learning loop waits on the CPU now: an arrow in flight, a grab waiting,
+        or a landing the camera has captured no frame since (for at most `HOLD` s)."""
+        store = self._capture.store
+        if state.phase == "flying" or store.waiting():
+            return True
+        if state.phase not in ("stuck", "missed"):
+            self._landing = None
+            return False
+        if self._landing is None or self._landing[0] != state.shot:
+            self._landing = (state.shot, time.monotonic(), store.count)
+        _, seen, frames = self._landing
+        return store.count == frames and time.monotonic() - seen < HOLD
 
     def _open(self) -> Any:
         from sim.scene_config import SceneConfig
@@ -170,6 +199,9 @@ class SceneViews:
         state = self._capture.world.latest()
         if state is None:
             return shown  # no world state yet: "starting"
+        if self._loop_busy(state):
+            self.held += 1
+            return shown
         qpos = state.qpos.to_numpy()
         key = np.ascontiguousarray(qpos, dtype=np.float64).tobytes()
         with self._lock:
