@@ -22,13 +22,10 @@ each session's CPU time per rollout of the camera, and the scene views the clien
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
-import threading
 import time
-import urllib.request
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -36,7 +33,7 @@ from apps.dashboard.watch import SCENE_INTEREST
 from apps.up.launch_config import SERVICES
 from benchmarks.bench_record import _per_rollout, mesh_launcher
 from benchmarks.machine import cpu_model
-from benchmarks.observers import POLL, cpu_seconds, stop
+from benchmarks.observers import PageClient, cpu_seconds, stop
 from benchmarks.spread import median_spread
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint
@@ -47,43 +44,6 @@ from tests.spawn import spawn
 __all__ = ["main"]
 
 CONDITIONS = ("closed", "open")
-
-
-class _Page:
-    """Polls the dashboard like its page, with the scene panel open or closed; counts what it
-    fetched."""
-
-    def __init__(self, url: str, scene: bool) -> None:
-        self.url, self.scene = url, scene
-        self.states = self.frames = self.scenes = self.errors = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="page", daemon=True)
-        self._thread.start()
-
-    def _get(self, path: str) -> bytes:
-        with urllib.request.urlopen(self.url + path, timeout=10) as response:
-            return response.read()
-
-    def _run(self) -> None:
-        frame = scene = 0
-        while not self._stop.wait(POLL):
-            try:
-                state = json.loads(self._get("api/state" + ("?scene=1" if self.scene else "")))
-                self.states += 1
-                if state["frame"]["version"] != frame:
-                    frame = state["frame"]["version"]
-                    self._get(f"api/frame.png?v={frame}")
-                    self.frames += 1
-                if self.scene and state["scene"]["version"] != scene:
-                    scene = state["scene"]["version"]
-                    self._get(f"api/scene.jpg?v={scene}")
-                    self.scenes += 1
-            except OSError:
-                self.errors += 1
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(15)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
             for i in range(args.repeats):
                 order = CONDITIONS if i % 2 == 0 else CONDITIONS[::-1]
                 for name in order:
-                    page = _Page(url, scene=name == "open")
+                    page = PageClient(url, scene=name == "open")
                     if name == "open":  # the view built (once, or after 30 s unasked): untimed
                         waited = time.monotonic()
                         while page.scenes == 0:

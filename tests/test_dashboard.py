@@ -1,5 +1,7 @@
-"""`archery dashboard`: its JSON endpoint (urllib) and the page in a real headless Chromium,
-against a fake learner (Rollout messages, `status`) and a fake detector (`frame`: a PNG)."""
+"""`archery dashboard`: its JSON endpoints (urllib) and the page in the system's headless
+Chromium (driven by Playwright: screenshots at rollouts 1, 10 and 60, what each panel shows,
+measured in the page), against a fake learner (Rollout messages, `status`), a fake detector
+(`frame`: a PNG) and the real camera service (the scene view of the whole robot)."""
 
 from __future__ import annotations
 
@@ -56,28 +58,6 @@ def _png() -> bytes:
 PNG = _png()
 
 
-@contextmanager
-def fake_services(net: NetConfig) -> Iterator[Publisher[Rollout]]:
-    """A fake learner (its rollout publisher is yielded; `status` answers) and a fake detector
-    (`frame` answers with PNG), both alive."""
-    with Node("learner", net) as learner, Node("detector", net) as detector:
-        learner.serve(
-            learner.keys.learner_rpc(),
-            some_verbs(
-                LEARNER_VERBS,
-                {"status": lambda _: LearnerStatusReply(state="running", session="s1", rollouts=3)},
-            ),
-        )
-        rollouts = learner.publisher(learner.keys.learner_rollouts(), Rollout, lossless=True)
-        learner.ready()
-        detector.serve(
-            detector.keys.detector_rpc(),
-            some_verbs(DETECTOR_VERBS, {"frame": lambda _: FrameReply(png=PNG, status="ok")}),
-        )
-        detector.ready()
-        yield rollouts
-
-
 def publish_shots(rollouts: Publisher[Rollout]) -> None:
     assert rollouts.wait_matched(30), "the dashboard does not subscribe to the rollouts"
     rollouts.put(Rollout(record=ProposedRecord(session="s1", index=1, theta=[0.1, 0.0, 0.0])))
@@ -132,7 +112,10 @@ def settled(state: dict[str, Any]) -> bool:
 
 
 def test_state_endpoint_and_files(net: NetConfig) -> None:
-    with fake_services(net) as rollouts, Dashboard(net, bind("127.0.0.1", 0)) as dash:
+    with (
+        fake_learner(net, "s1", 10, png=PNG) as rollouts,
+        Dashboard(net, bind("127.0.0.1", 0)) as dash,
+    ):
         publish_shots(rollouts)
         state = wait_state(dash.url, settled)
         assert state["robot"] == net.robot and state["session"] == "s1"
@@ -238,10 +221,13 @@ def _frame_png() -> bytes:
 
 
 @contextmanager
-def fake_learner(net: NetConfig, session: str, budget: int) -> Iterator[Publisher[Rollout]]:
-    """A learner that publishes what is put on the yielded publisher and answers `status`, and a
-    detector whose `frame` is a 1280×720 PNG, both alive under `net.robot`."""
-    png = _frame_png()
+def fake_learner(
+    net: NetConfig, session: str, budget: int, png: bytes | None = None
+) -> Iterator[Publisher[Rollout]]:
+    """A learner that publishes what is put on the yielded publisher and answers `status`
+    (running `session` of `budget` rollouts), and a detector whose `frame` is `png` (default a
+    1280×720 frame), both alive under `net.robot`."""
+    png = png or _frame_png()
     with Node("learner", net) as learner, Node("detector", net) as detector:
         status = LearnerStatusReply(state="running", session=session, rollouts=0, budget=budget)
         learner.serve(
