@@ -12,6 +12,7 @@ import pytest
 from apps.experiment.config import ExperimentConfig
 from apps.experiment.experiment import run_algorithm
 from apps.experiment.plots import convergence_figure, split_baselines, trajectories_figure
+from apps.experiment.plots_mesh import impacts_figure
 from services.learner.algorithms.registry import ALGORITHMS
 from sim.ballistic import BallisticWorld, Scenario
 
@@ -101,3 +102,16 @@ def test_fig5_scales_the_paper_learners_together_and_each_baseline_alone(
         for text in ax.texts:
             box = text.get_window_extent(renderer)
             assert not any(box.contains(x, y) for x, y in markers), text.get_text()
+
+
+def test_fig5_on_the_robot_scales_the_paper_learners_together(runs: dict, closing: list) -> None:
+    fig = impacts_figure(runs, _labels())
+    closing.append(fig)
+    panels = dict(zip(NAMES, fig.axes, strict=False))
+    assert panels["archer"].get_xlim() == panels["power"].get_xlim()
+    assert panels["archer"].get_ylim() == panels["power"].get_ylim()
+    reach = {name: panels[name].get_xlim()[1] for name in NAMES}
+    assert reach["random"] > 2 * reach["archer"]  # random search's impacts set only its own
+    for name, ax in panels.items():  # each panel holds its impacts
+        impacts = ax.collections[0].get_offsets()
+        assert abs(impacts).max() <= reach[name], name

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from sim.geometry import INNER_RING_RADIUS, TARGET_DIAMETER
 if TYPE_CHECKING:
     from apps.experiment.config import AlgorithmRun
 
-__all__ = ["plot_impacts"]
+__all__ = ["impacts_figure", "plot_impacts"]
 
 
 def plot_impacts(
@@ -25,6 +25,21 @@ def plot_impacts(
     session: int = 0,
     title: str = "",
 ) -> None:
+    """Fig. 5 of a run on the robot (`impacts_figure`) written to `path`."""
+    fig = impacts_figure(runs, labels, session=session, title=title)  # selects Agg first
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def impacts_figure(
+    runs: Mapping[str, AlgorithmRun],
+    labels: Mapping[str, str],
+    *,
+    session: int = 0,
+    title: str = "",
+) -> Any:
     """One panel per algorithm: every impact of session `session` (cm from the centre) on the
     target's rings, coloured by rollout, its first hit ringed in red. The paper's learners
     (ARCHER, PoWER) share one scale; each baseline's panel is scaled to its own impacts."""
@@ -70,5 +85,4 @@ def plot_impacts(
         fig.colorbar(shown, ax=axes[0].tolist(), label="rollout", shrink=0.8)
     heading = "Impacts on the target of one session per algorithm"
     fig.suptitle(heading + (f"\n{title}" if title else ""))
-    fig.savefig(path)
-    plt.close(fig)
+    return fig
