@@ -8,7 +8,8 @@ it); it renders the newest world state the camera already follows (`ROBOT/world/
 whole qpos poses the robot), at most once per `period` s and only while requests keep coming:
 each request asks for the next view and gets the newest one at once (the verb never waits, so
 it never holds up a `grab` on the port's worker). After `idle` s without a request the thread
-frees the view and ends. The capture thread, which renders the target camera's frames for the
+frees the view (some 0.5 GB with the robot's meshes and a second GL context, given back to
+the system) and ends. The capture thread, which renders the target camera's frames for the
 detector, is never asked to do any of it.
 
 While watched it still keeps out of the learning loop's way where the loop waits on the CPU:
@@ -31,6 +32,7 @@ import cv2
 import msgspec
 import numpy as np
 
+from mesh.memory import BIG_PAYLOAD, note_payload
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Image
 from protocol.verbs.camera import SceneReply
@@ -165,6 +167,8 @@ class SceneViews:
             with self._lock:  # a request from now on starts a new thread
                 self._thread = None
             view.close()
+            del view
+            note_payload(BIG_PAYLOAD)  # the model and its meshes freed: give the pages back
             log.info("scene view off")
 
     def _loop_busy(self, state: Any) -> bool:
