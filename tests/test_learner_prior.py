@@ -29,6 +29,8 @@ MISMATCHED = {
     "stiffer bow 420 N/m": Scenario(bow_stiffness=420.0),
     "softer bow 220 N/m": Scenario(bow_stiffness=220.0),
 }
+# The model's physical parameters (range, drag, side wind) held at the nominal ones.
+FIXED_PHYSICS = {"model_distance_std": 0.0, "model_drag_std": 0.0, "model_wind_std": 0.0}
 
 
 def _prior(seed: int = 0, **options: object) -> ArcherPrior:
@@ -68,14 +70,15 @@ def test_converges_on_worlds_the_model_gets_wrong(name: str) -> None:
 
 
 def test_a_far_wrong_model_still_converges() -> None:
-    # At 5 m the nominal 2.2 m model misses by 65 cm and its Jacobian is 2x too small.
+    # At 5 m the nominal 2.2 m model misses by 65 cm and its Jacobian is 2x too small: the
+    # fitted range mends both, and with the range held fixed the residual still converges.
     distances = _play(_prior(), BallisticWorld(Scenario(distance=5.0)), 10)
     assert distances[0] > 0.5
+    assert distances[1] < INNER_RING_RADIUS
+    assert np.all(distances[2:] < 0.01)
+    distances = _play(_prior(**FIXED_PHYSICS), BallisticWorld(Scenario(distance=5.0)), 10)
     assert np.any(distances[:4] < INNER_RING_RADIUS)
     assert np.all(distances[5:] < 0.01)
-
-
-FIXED_PHYSICS = {"model_distance_std": 0.0, "model_drag_std": 0.0, "model_wind_std": 0.0}
 
 
 @pytest.mark.parametrize("options", [FIXED_PHYSICS, {}], ids=["fixed physics", "fitted physics"])
@@ -193,6 +196,9 @@ def test_without_change_detection_the_stale_rollouts_slow_it_down() -> None:
         {"trust_radius": 0.5},
         {"model_stiffness": 0.0},
         {"model_distance": 0.1},
+        {"model_distance_std": -1.0},
+        {"model_drag_std": float("nan")},
+        {"model_wind_std": float("inf")},
     ],
 )
 def test_invalid_options_are_refused(options: dict) -> None:
