@@ -30,7 +30,12 @@ MISMATCHED = {
     "softer bow 220 N/m": Scenario(bow_stiffness=220.0),
 }
 # The model's physical parameters (range, drag, side wind) held at the nominal ones.
-FIXED_PHYSICS = {"model_distance_std": 0.0, "model_drag_std": 0.0, "model_wind_std": 0.0}
+FIXED_PHYSICS = {
+    "model_distance_std": 0.0,
+    "model_drag_std": 0.0,
+    "model_wind_std": 0.0,
+    "model_stiffness_std": 0.0,
+}
 
 
 def _prior(seed: int = 0, **options: object) -> ArcherPrior:

@@ -33,7 +33,12 @@ from tests.test_learner_service_session import FakeRig
 STIFF = Scenario(bow_stiffness=420.0)  # the learner's nominal model is a 300 N/m bow
 # archer-prior with its model's physical parameters held at the nominal ones: all it learns is
 # the residual (c, D).
-RESIDUAL_ONLY = {"model_distance_std": 0.0, "model_drag_std": 0.0, "model_wind_std": 0.0}
+RESIDUAL_ONLY = {
+    "model_distance_std": 0.0,
+    "model_drag_std": 0.0,
+    "model_wind_std": 0.0,
+    "model_stiffness_std": 0.0,
+}
 
 
 def _learned(name: str, scenario: Scenario, rollouts: int = 12, seed: int = 1, **options: float):

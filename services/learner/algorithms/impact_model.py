@@ -70,11 +70,15 @@ class BallisticModel:
     """The analytic ballistic model (`sim.ballistic`) of a nominal world: the target at
     `distance` (m), a bow of `stiffness` (N/m), air drag `drag` (1/m), no wind, no noise.
 
-    Its physical parameters p (a `PhysicalModel`) are (range (m), drag (1/m), side wind (m/s)):
-    where a shot lands says two numbers, so two causes are modelled, a vertical one (how far
-    the target is, how much the air slows the arrow) and a lateral one (a wind across the range,
-    which acts through the drag). Their prior is centred on (distance, drag, 0) with the stds
-    `distance_std`, `drag_std` and `wind_std`; a std of 0 holds that parameter fixed.
+    Its physical parameters p (a `PhysicalModel`) are (range (m), drag (1/m), side wind (m/s),
+    bow stiffness (N/m)), the causes of a miss: vertical ones (how far the target is, how much
+    the air slows the arrow, how fast the bow shoots) and a lateral one (a wind across the range,
+    which acts through the drag). Their prior, centred on (distance, drag, 0, stiffness) with
+    the stds `distance_std`, `drag_std`, `wind_std` and `stiffness_std` (a std of 0 holds that
+    parameter fixed), is the range of worlds the learner is built for; by default targets at
+    about 1 to 6 m, drag up to about 0.1/m, winds of a few m/s and a bow within about ±20 %.
+    One shot tells two numbers, so where several causes explain a miss alike the prior picks
+    the mix, and the second shot is as good as that mix is near the world's.
 
     Raises:
         LearnerConfigError: a parameter is not finite, out of range, or gives no world.
@@ -83,9 +87,10 @@ class BallisticModel:
     distance: float = TARGET_DISTANCE
     stiffness: float = Bow().stiffness
     drag: float = 0.0
-    distance_std: float = 1.0
+    distance_std: float = 2.0
     drag_std: float = 0.05
     wind_std: float = 5.0
+    stiffness_std: float = 60.0
     _world: BallisticWorld = field(init=False, repr=False, compare=False)
 
     #: The learner options that name the parameters (what `options` gives, `from_options` takes).
@@ -96,6 +101,7 @@ class BallisticModel:
         "model_distance_std",
         "model_drag_std",
         "model_wind_std",
+        "model_stiffness_std",
     )
     #: The options every saved learner has; learners saved before the fitted parameters had
     #: no std options, and their parameters stay fixed.
@@ -110,6 +116,7 @@ class BallisticModel:
             ("distance_std", 0.0, "m"),
             ("drag_std", 0.0, "1/m"),
             ("wind_std", 0.0, "m/s"),
+            ("stiffness_std", 0.0, "N/m"),
         ):
             value = _finite_option(f"model_{name} ({unit})", getattr(self, name), low=low)
             object.__setattr__(self, name, value)
@@ -123,7 +130,7 @@ class BallisticModel:
     def from_options(cls, **options: float) -> BallisticModel:
         """The model of the learner options `model_distance` (m), `model_stiffness` (N/m),
         `model_drag` (1/m) and the prior stds `model_distance_std` (m), `model_drag_std` (1/m),
-        `model_wind_std` (m/s); a missing one keeps its default."""
+        `model_wind_std` (m/s), `model_stiffness_std` (N/m); a missing one keeps its default."""
         names = {k: k.removeprefix("model_") for k in cls.OPTIONS}
         return cls(**{names[k]: v for k, v in options.items()})
 
@@ -133,18 +140,19 @@ class BallisticModel:
         return self._world.impacts(thetas).r
 
     def nominal(self) -> np.ndarray:
-        """p of the nominal world: (distance (m), drag (1/m), 0 m/s of side wind)."""
-        return np.array([self.distance, self.drag, 0.0])
+        """p of the nominal world: (distance (m), drag (1/m), 0 m/s of side wind, stiffness
+        (N/m))."""
+        return np.array([self.distance, self.drag, 0.0, self.stiffness])
 
     def parameter_std(self) -> np.ndarray:
-        """(distance_std (m), drag_std (1/m), wind_std (m/s))."""
-        return np.array([self.distance_std, self.drag_std, self.wind_std])
+        """(distance_std (m), drag_std (1/m), wind_std (m/s), stiffness_std (N/m))."""
+        return np.array([self.distance_std, self.drag_std, self.wind_std, self.stiffness_std])
 
     def parameter_bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """The ballistic world's limits: the target beyond the bow hand, drag ≤ 10/m, wind ≤
-        50 m/s."""
+        50 m/s, a bow of 1 to 1e5 N/m."""
         nearest = -float(BOW_HAND[0]) + 0.1
-        return np.array([nearest, 0.0, -MAX_WIND]), np.array([100.0, _MAX_DRAG, MAX_WIND])
+        return np.array([nearest, 0.0, -MAX_WIND, 1.0]), np.array([100.0, _MAX_DRAG, MAX_WIND, 1e5])
 
     def impacts_at(self, thetas: np.ndarray, params: np.ndarray) -> np.ndarray:
         """r (m) of each θ row (m) in the world of p = `params`; raises a ValueError where a θ
@@ -153,7 +161,7 @@ class BallisticModel:
 
     def options(self) -> dict[str, Any]:
         """{model_distance (m), model_stiffness (N/m), model_drag (1/m), model_distance_std (m),
-        model_drag_std (1/m), model_wind_std (m/s)}."""
+        model_drag_std (1/m), model_wind_std (m/s), model_stiffness_std (N/m)}."""
         values = (
             self.distance,
             self.stiffness,
@@ -161,14 +169,15 @@ class BallisticModel:
             self.distance_std,
             self.drag_std,
             self.wind_std,
+            self.stiffness_std,
         )
         return dict(zip(self.OPTIONS, values, strict=True))
 
     def _world_at(self, params: np.ndarray) -> BallisticWorld:
-        distance, drag, wind = (float(v) for v in params)
+        distance, drag, wind, stiffness = (float(v) for v in params)
         scenario = Scenario(
             distance=distance,
-            bow_stiffness=self.stiffness,
+            bow_stiffness=stiffness,
             drag=drag,
             wind=(0.0, wind if drag > 0 else 0.0, 0.0),
         )

@@ -43,13 +43,13 @@ class ArcherPrior(Learner):
     c (m) an offset and D (m of r per m of θ) a correction of the model's Jacobian.
 
     A model of physical parameters p (`impact_model.PhysicalModel`; the ballistic model's are
-    the range, the drag and a side wind) is first fitted to the rollouts: `params` is the
-    maximum a posteriori p under the model's prior (`model_fit.fit_parameters`), refitted after
-    every rollout that did not land where the learner predicted. So a miss is explained by the
-    physics that would cause it, and the next aim uses the Jacobian of that world: a linear
-    residual learned from one rollout cannot change the Jacobian, and the model's at the wrong
-    range or without the air is too weak on a far target (on a 5 m range with drag it left
-    the second arrow 15-30 cm off).
+    the range, the drag, a side wind and the bow's stiffness) is first fitted to the rollouts:
+    `params` is the maximum a posteriori p under the model's prior (`model_fit.fit_parameters`),
+    refitted after every rollout that did not land where the learner predicted. So a miss is
+    explained by the physics that would cause it, and the next aim uses the Jacobian of that
+    world: a linear residual learned from one rollout cannot change the Jacobian, and the
+    nominal model's (2.2 m, no air) is too weak on a far target (with drag and a side wind it
+    left the second arrow 12-70 cm off from 3 m on).
 
     (c, D) then takes what the fitted physics leaves: it has a Gaussian prior centred on 0
     (trust the model: std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a

@@ -64,8 +64,8 @@ class Algorithm:
 # power-metre: the same with ‖r‖ in metres, exp(−‖r‖/1 m). hill: best θ so far + noise (called
 # "random" before); random: uniform in the θ box.
 # archer-recent: ARCHER regressing on the N best of the 4 most recent rollouts (forgets a changed
-# world); archer-prior: the ballistic model, its range and air fitted to the rollouts, aims and a
-# Bayesian residual corrects it.
+# world); archer-prior: the ballistic model, its range, air and bow fitted to the rollouts, aims
+# and a Bayesian residual corrects it.
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
     {
         a.name: a
@@ -189,8 +189,8 @@ def make_learner(
     `model` is the physics an `archer-prior` learner aims with; by default the registry builds
     the nominal ballistic model (`impact_model.BallisticModel`) from its `model_distance` (m),
     `model_stiffness` (N/m) and `model_drag` (1/m) options, with the prior stds of the fitted
-    range, drag and side wind `model_distance_std` (m), `model_drag_std` (1/m) and
-    `model_wind_std` (m/s).
+    range, drag, side wind and bow `model_distance_std` (m), `model_drag_std` (1/m),
+    `model_wind_std` (m/s) and `model_stiffness_std` (N/m).
 
     Raises:
         LearnerConfigError: unknown name, invalid option or model.
