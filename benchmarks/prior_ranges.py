@@ -75,6 +75,7 @@ def range_rows(
     }
     run = subprocess.run(
         [sys.executable, "-c", WORKLOAD, json.dumps(spec)],
+        cwd=tree,  # `-c` puts the working folder first on the path
         env=env_for(tree),
         capture_output=True,
         text=True,
