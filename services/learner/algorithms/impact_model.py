@@ -24,6 +24,7 @@ __all__ = ["MODEL_DT", "BallisticModel", "ImpactModel", "PhysicalModel"]
 
 MODEL_DT = 0.04  # s, RK4 step of the model's flights with drag (≈ 1 µm off a 2 ms step at 5 m)
 _MAX_DRAG = 10.0  # 1/m, the ballistic world's own limit
+_CACHED_WORLDS = 64  # worlds kept per model (the fitted one and a fit's trial parameters)
 
 
 class ImpactModel(Protocol):
@@ -92,6 +93,9 @@ class BallisticModel:
     wind_std: float = 5.0
     stiffness_std: float = 60.0
     _world: BallisticWorld = field(init=False, repr=False, compare=False)
+    _worlds: dict[tuple[float, ...], BallisticWorld] = field(
+        init=False, repr=False, compare=False, default_factory=dict
+    )
 
     #: The learner options that name the parameters (what `options` gives, `from_options` takes).
     OPTIONS = (
@@ -174,7 +178,17 @@ class BallisticModel:
         return dict(zip(self.OPTIONS, values, strict=True))
 
     def _world_at(self, params: np.ndarray) -> BallisticWorld:
-        distance, drag, wind, stiffness = (float(v) for v in params)
+        key = tuple(float(v) for v in params)
+        world = self._worlds.get(key)
+        if world is None:
+            if len(self._worlds) >= _CACHED_WORLDS:
+                self._worlds.clear()
+            world = self._worlds[key] = self._new_world(*key)
+        return world
+
+    def _new_world(
+        self, distance: float, drag: float, wind: float, stiffness: float
+    ) -> BallisticWorld:
         scenario = Scenario(
             distance=distance,
             bow_stiffness=stiffness,
