@@ -49,7 +49,7 @@ class ArcherPrior(Learner):
     explained by the physics that would cause it, and the next aim uses the Jacobian of that
     world: a linear residual learned from one rollout cannot change the Jacobian, and the
     nominal model's (2.2 m, no air) is too weak on a far target (with drag and a side wind it
-    left the second arrow 12-70 cm off from 3 m on).
+    left the second arrow 7-70 cm off from 3 m on).
 
     (c, D) then takes what the fitted physics leaves: it has a Gaussian prior centred on 0
     (trust the model: std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a
