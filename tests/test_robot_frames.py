@@ -11,6 +11,7 @@ import base64
 import json
 import subprocess
 import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,6 +24,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from apps.topics.recording import DESCRIPTION_METADATA, Recorder, open_recording
 from apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames
+from mesh.instances import describe_all
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.codec import encode
@@ -192,8 +194,23 @@ def test_joint_states_scene_and_description_are_in_the_file(
     assert metadata[DESCRIPTION_METADATA]["tf"] == f"{ROBOT_KEY}/tf"
 
 
+def _until_tapped(node: Node) -> None:
+    """Call the robot's `status` until its tap publishes it (the recorder's subscription has
+    reached the robot), as its `describe` counts."""
+    key = f"{node.keys.robot}/archery/requests:o"
+    deadline = time.monotonic() + 30
+    while True:
+        rpc_call(node, node.keys.archery_rpc(), "status", timeout=30)
+        described = describe_all(node.session, node.keys)
+        if any(p.key == key and p.count for d in described.values() for p in d.ports):
+            return
+        assert time.monotonic() < deadline, "the robot never saw the recorder subscribe"
+
+
 @pytest.mark.slow
-def test_archery_record_of_a_running_robot_has_it_in_3d(net: NetConfig, tmp_path: Path) -> None:
+def test_archery_record_of_a_running_robot_has_it_in_3d_and_its_calls(
+    net: NetConfig, tmp_path: Path
+) -> None:
     path = tmp_path / "run.mcap"
     config = RobotConfig(net=net, world=WorldConfig(scene=SceneConfig(meshes=False)))
     flags = ["--connect", net.connect[0], "--robot", net.robot]
@@ -208,6 +225,7 @@ def test_archery_record_of_a_running_robot_has_it_in_3d(net: NetConfig, tmp_path
         try:
             assert recorder.stdout is not None
             assert "recording" in recorder.stdout.readline()  # subscribed: the mesh can go on
+            _until_tapped(node)
             for verb in ("nock", "release", "reset"):
                 rpc_call(node, node.keys.archery_rpc(), verb, timeout=30)
         finally:
@@ -228,6 +246,11 @@ def test_archery_record_of_a_running_robot_has_it_in_3d(net: NetConfig, tmp_path
         for i in range(1, model.nbody):
             got, _ = poses[model.body(i).name]
             assert np.linalg.norm(got - data.xpos[i]) <= 1e-3
+    # what the robot was asked and answered, on their own channels
+    asked = [m["verb"] for t, _, _, m in decoded if t == f"{net.robot}/archery/requests:o"]
+    answered = [m["ok"] for t, _, _, m in decoded if t == f"{net.robot}/archery/replies:o"]
+    assert asked[-3:] == ["nock", "release", "reset"] and set(asked[:-3]) == {"status"}
+    assert len(answered) == len(asked) and all(answered)
     info = subprocess.run(
         [sys.executable, "-m", "apps.cli", "info", str(path)],
         capture_output=True,
@@ -235,6 +258,7 @@ def test_archery_record_of_a_running_robot_has_it_in_3d(net: NetConfig, tmp_path
         timeout=60,
     )
     assert info.returncode == 0, info.stderr
-    for channel in ("tf", "joint_states", "robot_description/scene", "world/state:o"):
+    channels = ("tf", "joint_states", "robot_description/scene", "world/state:o")
+    for channel in (*channels, "archery/requests:o", "archery/replies:o"):
         assert f"{net.robot}/{channel} " in info.stdout, info.stdout
     assert DESCRIPTION_ATTACHMENT in info.stdout
