@@ -7,7 +7,8 @@ journal; see `services.learner.transfer`), or follows a running one
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame"}`.
+"report", "hit_frame", "video"}`; a hit is filmed into `shot.mp4` beside the journal when the
+journal is on this machine (`apps.film`; not with `--no-film`), else "video" is null.
 
 Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
 that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
