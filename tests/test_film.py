@@ -137,3 +137,84 @@ def test_the_demo_films_its_hit_and_the_replay_lands_where_the_journal_says(
         pass
     error = replay.landing_error_m()
     assert error is not None and error <= 0.002, error
+
+
+def _recorded_session(session: Path, tmp_path: Path) -> tuple[Path, int]:
+    """A recording of rollout 1 of the session: its learner records and the world states of
+    a move, a nock and a flight (simulated here); and the video frames they make at 10 fps."""
+    from apps.topics.recording import Recorder
+    from protocol.codec import encode
+    from protocol.journal_records import DoneRecord, ProposedRecord
+    from protocol.messages import Array, Rollout, WorldState
+    from sim.scene_config import SceneConfig
+    from sim.world import ArcheryWorld, WorldConfig
+
+    records = read_records(session / "journal.jsonl")[0]
+    done = next(r for r in records if isinstance(r, DoneRecord) and r.rollout == 1)
+    proposed = next(r for r in records if isinstance(r, ProposedRecord) and r.index == done.index)
+    path = tmp_path / "session.mcap"
+    recorder = Recorder(path, "icubSim", ["icubSim/**"])
+    ns = 1_000_000_000
+
+    def rollout(record: object, seq: int) -> None:
+        message = Rollout(record=record, seq=seq)  # type: ignore[arg-type]  # a journal record
+        recorder.put("icubSim/learner/rollout:o", encode(message), ns)
+
+    rollout(proposed, 1)
+    world = ArcheryWorld(WorldConfig(scene=SceneConfig(meshes=False)))
+    world.reset(0)
+    phases = ["idle"] * 10 + ["nocked"] * 3 + ["flying"] * 4 + ["stuck"]
+    for seq, phase in enumerate(phases, start=1):
+        ns += 10_000_000
+        world.step(0.1 if phase != "flying" else 0.02)
+        state = WorldState(
+            qpos=Array.from_numpy(world.qpos()), phase=phase, seq=seq, sim_time=world.sim_time
+        )
+        recorder.put("icubSim/world/state:o", encode(state), ns)
+    ns += 10_000_000
+    rollout(msgspec_structs_replace(done), 2)
+    ns += 10_000_000
+    late = WorldState(qpos=Array.from_numpy(world.qpos()), seq=99, sim_time=99.0)
+    recorder.put("icubSim/world/state:o", encode(late), ns)  # after the rollout: not filmed
+    recorder.close()
+    # each state for the sim time to the next at 10 fps: 10 idle states 0.1 s apart (1 frame
+    # each), 2 nocked (1 each), the last nocked 0.02 s before the release (under a frame: not
+    # shown), 3 flying 0.02 s apart slowed ten times (2 each), the last flying 0.1 s before it
+    # sticks (10), the stuck arrow held 1.5 s (15)
+    return path, 10 + 2 + 0 + 6 + 10 + 15
+
+
+def msgspec_structs_replace(done: object) -> object:
+    """A done record as the learner publishes it: without its learner state."""
+    import msgspec
+
+    return msgspec.structs.replace(done, learner_state=msgspec.UNSET)  # type: ignore[type-var]
+
+
+def test_a_rollout_is_filmed_as_a_recording_saw_it(session: Path, tmp_path: Path) -> None:
+    path, expected = _recorded_session(session, tmp_path)
+    result = film_session(session, 1, width=160, height=90, fps=10, quiet=True, recording=path)
+    codec, frames, _ = _video(result.video)
+    assert codec == "h264" and frames == result.frames == expected
+    # a rollout the recording does not cover: one line, exit status 2
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "apps.cli",
+            "film",
+            str(session),
+            "--rollout",
+            "2",
+            "--recording",
+            str(path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"archery film: {path} does not cover rollout 2 of session old-format (its "
+        f"learner/rollout:o records of attempt 3 are not in it)"
+    ]

@@ -1,7 +1,10 @@
 """`archery film SESSION [--rollout N]`: a video of one rollout, simulated again from the
 session's journal, seen by the third-person camera (`sim.scene_view`).
 
-SESSION is a session's folder or its `journal.jsonl`. Without `--rollout` it films the
+SESSION is a session's folder or its `journal.jsonl`. With `--recording FILE.mcap` (an
+`archery record` of the session) the rollout is filmed as the recording saw it: the robot's
+world states between the rollout's records on `learner/rollout:o`, the flight as sampled (world
+states at the robot's world rate of simulated time). Without `--rollout` it films the
 session's first hit into `shot.mp4` beside the journal; `--rollout N` films done rollout N into
 `rollout-N.mp4`. Each video has its contact sheet beside it (the same name, `.png`: six frames
 from the move to the impact). The posture move and the nock play at real time, the flight slowed
@@ -10,7 +13,8 @@ impact on, the measured r. A progress bar counts the frames on stderr; the video
 printed on stdout.
 
 Exit status 2 (one line on stderr): no such session, a journal of another version, a session
-without a hit and no `--rollout`, a rollout it does not have.
+without a hit and no `--rollout`, a rollout it does not have, a recording that does not cover
+the rollout (or is no recording).
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from apps.film.replay import FilmFrame, ShotReplay, load_rollout
+from apps.film.recorded import RecordedShot
+from apps.film.replay import FilmFrame, Rollout, ShotReplay, load_rollout
 from apps.film.video import ShotVideo, caption, contact_sheet
 from apps.progress import progress_bar
 from mesh.cliargs import ArgumentParser, count
@@ -50,11 +55,10 @@ def _cm(values: list[float]) -> str:
     return ", ".join(f"{100 * v:+.1f}" for v in values)
 
 
-def _lines(replay: ShotReplay, frame: FilmFrame, rollouts: int) -> list[str]:
-    done = replay.rollout.done
-    head = replay.rollout.header
+def _lines(rollout: Rollout, frame: FilmFrame) -> list[str]:
+    done, head = rollout.done, rollout.header
     lines = [
-        f"{head.algorithm} · rollout {done.rollout} of {rollouts} · {frame.phase} · "
+        f"{head.algorithm} · rollout {done.rollout} of {head.rollouts} · {frame.phase} · "
         f"t = {frame.sim_time:.2f} s",
         f"θ = ({_cm(done.theta)}) cm",
     ]
@@ -94,8 +98,10 @@ def film_session(
     height: int = 540,
     fps: int = 30,
     quiet: bool = False,
+    recording: Path | None = None,
 ) -> FilmResult:
-    """Film rollout `rollout` (its first hit if None) of the session at `session`.
+    """Film rollout `rollout` (its first hit if None) of the session at `session`: simulated
+    again from the journal, or as the MCAP `recording` saw it.
 
     Raises:
         ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.
@@ -111,7 +117,9 @@ def film_session(
     video_path = out or folder / f"{name}.mp4"
     sheet_path = video_path.with_suffix(".png")
     replay = ShotReplay(target)
-    rollouts = target.header.rollouts
+    source: ShotReplay | RecordedShot = replay
+    if recording is not None:
+        source = RecordedShot(recording, target.header.session, target.done)
     thumbs: list[tuple[str, object]] = []
     with (
         SceneView(replay.world.config.scene, width=width, height=height) as view,
@@ -119,14 +127,16 @@ def film_session(
         progress_bar(disable=quiet, transient=True) as bar,
     ):
         task = bar.add_task(f"filming rollout {target.done.rollout}", total=None)
-        for frame in replay.frames(fps):
-            image = caption(view.render(frame.qpos), _lines(replay, frame, rollouts))
+        for frame in source.frames(fps):
+            image = caption(view.render(frame.qpos), _lines(target, frame))
             video.add(image, frame.repeat)
             small = Image.fromarray(image).resize(SHEET_THUMB, Image.Resampling.BILINEAR)
             thumbs.append((frame.phase, np.asarray(small)))
             bar.advance(task, frame.repeat)
         frames = video.frames
     contact_sheet(_pick(thumbs)).save(sheet_path, optimize=True)  # type: ignore[arg-type]
+    if recording is not None:
+        return FilmResult(video_path, sheet_path, frames, None, True)
     return FilmResult(
         video_path, sheet_path, frames, replay.landing_error_m(), replay.recorded_world
     )
@@ -161,6 +171,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("session", type=Path, help="a session's folder or its journal.jsonl")
     parser.add_argument("--rollout", type=count, default=None, help="done rollout N (1-based)")
     parser.add_argument("--out", type=Path, default=None, help="the video (default: see above)")
+    parser.add_argument(
+        "--recording",
+        type=Path,
+        default=None,
+        metavar="FILE.mcap",
+        help="film the rollout as this recording of the session saw it (its world states)",
+    )
     parser.add_argument("--width", type=count, default=960, help="frame width (px, even)")
     parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
     parser.add_argument("--fps", type=count, default=30, help="video frames per second")
@@ -191,6 +208,7 @@ def main(argv: list[str] | None = None) -> int:
             width=args.width,
             height=args.height,
             fps=args.fps,
+            recording=args.recording,
         )
     except ArcheryError as exc:
         print(f"archery film: {exc}", file=sys.stderr)

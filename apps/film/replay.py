@@ -32,7 +32,7 @@ from sim.arrow import Landing
 from sim.errors import SimError
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["FilmFrame", "ShotReplay", "load_rollout"]
+__all__ = ["FilmFrame", "Rollout", "ShotReplay", "load_rollout"]
 
 SLOW_MOTION = 0.1  # the flight plays at this fraction of real time
 HOLD_NOCK_S = 0.4  # s of simulated time the nocked arrow is shown before the release
