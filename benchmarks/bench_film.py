@@ -39,6 +39,7 @@ from protocol.journal_records import DoneRecord
 from protocol.messages import Rollout
 from services.learner.journal import read_records
 from tests.rpc import rpc_call
+from tests.spawn import spawn
 
 __all__ = ["main"]
 
@@ -86,30 +87,10 @@ def _session(node: Node, rollouts: object, seed: int, budget: int) -> tuple[Path
 
 
 def _record(endpoint: str, robot: str, path: Path, transforms: bool) -> subprocess.Popen[str]:
-    flags = [] if transforms else ["--no-transforms"]
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "apps.cli",
-            "record",
-            "--out",
-            str(path),
-            *flags,
-            "--connect",
-            endpoint,
-            "--robot",
-            robot,
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
-    assert proc.stdout is not None
-    line = proc.stdout.readline()  # printed once it subscribes
-    if "recording" not in line:
-        raise RuntimeError(f"the recorder did not start: {line!r}")
-    return proc
+    """`archery record` of `ROBOT/**` into `path` (with the 3D records or not), subscribed."""
+    flags = () if transforms else ("--no-transforms",)
+    net = ("--connect", endpoint, "--robot", robot)
+    return spawn("record", "--out", str(path), *flags, *net, ready="archery record: recording")
 
 
 def _fixed_bytes(tmp: Path) -> int:

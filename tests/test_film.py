@@ -23,6 +23,7 @@ from apps.film.replay import ShotReplay, load_rollout
 from apps.film.video import caption
 from protocol.errors import BadRequest
 from services.learner.journal import read_records
+from tests.conftest import archery
 
 JOURNALS = Path(__file__).parent / "journals"
 
@@ -60,23 +61,8 @@ def test_a_rollout_is_filmed_as_h264_with_its_contact_sheet(session: Path) -> No
 def test_the_cli_films_the_first_hit_and_says_the_world_was_not_journaled(
     session: Path,
 ) -> None:
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "apps.cli",
-            "film",
-            str(session),
-            "--width",
-            "128",
-            "--height",
-            "72",
-            "--fps",
-            "8",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    done = archery(
+        "film", str(session), "--width", "128", "--height", "72", "--fps", "8", timeout=300
     )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(session / "shot.mp4")
@@ -197,22 +183,7 @@ def test_a_rollout_is_filmed_as_a_recording_saw_it(session: Path, tmp_path: Path
     codec, frames, _ = _video(result.video)
     assert codec == "h264" and frames == result.frames == expected
     # a rollout the recording does not cover: one line, exit status 2
-    done = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "apps.cli",
-            "film",
-            str(session),
-            "--rollout",
-            "2",
-            "--recording",
-            str(path),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = archery("film", str(session), "--rollout", "2", "--recording", str(path), timeout=120)
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         f"archery film: {path} does not cover rollout 2 of session old-format (its "
