@@ -40,7 +40,7 @@ def test_info_reads_a_complete_recording_from_its_summary(tmp_path: Path) -> Non
     torso = lines["icubSim/torso/state:o"].split()
     assert torso[1:5] == ["10", "msgs", "11.11", "Hz"] and "archery.JointState" in torso
     assert "(json, jsonschema)" in lines["icubSim/world/events:o"]
-    assert "schema_version=1" in text and f"Size:          {path.stat().st_size}" not in text
+    assert "schema_version=1" in text and f"({path.stat().st_size} bytes)" in text
 
 
 def test_a_cut_recording_prints_what_it_holds_then_exits_2(tmp_path: Path) -> None:
@@ -52,11 +52,7 @@ def test_a_cut_recording_prints_what_it_holds_then_exits_2(tmp_path: Path) -> No
     done = archery("info", str(cut))
     assert done.returncode == 2
     assert "cut short" in done.stdout and "Messages:" in done.stdout
-    assert (
-        done.stderr.strip().splitlines()
-        == [f"archery info: {cut} is cut short: its records stop being readable (EndOfFile)"]
-        or "cut short" in done.stderr
-    )
-    assert len(done.stderr.strip().splitlines()) == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"archery info: {cut} is cut short")
     ok = archery("info", str(path))
     assert ok.returncode == 0 and ok.stderr == "" and "Channels:      2" in ok.stdout
