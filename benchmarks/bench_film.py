@@ -62,7 +62,11 @@ print(full / frames, thin / frames)
 
 def _frame_cost(backend: str, frames: int) -> tuple[float, float] | str:
     """(s per full frame, s per lean frame) on `backend`, or why it could not render."""
-    env = os.environ | {"MUJOCO_GL": backend, "PYTHONPATH": str(Path(__file__).parents[1])}
+    env = os.environ | {
+        "MUJOCO_GL": backend,
+        "PYOPENGL_PLATFORM": backend,  # else the parent's EGL choice is inherited
+        "PYTHONPATH": str(Path(__file__).parents[1]),
+    }
     done = subprocess.run(
         [sys.executable, "-c", _FRAME_PROBE, str(frames)],
         capture_output=True,
@@ -104,22 +108,13 @@ def _fixed_bytes(tmp: Path) -> int:
     return path.stat().st_size - bare.stat().st_size
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the benchmark; exit status 0."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_film", description=__doc__)
-    parser.add_argument("--repeats", type=int, default=5, help="repeats of each figure (≥ 5)")
-    parser.add_argument("--rollouts", type=int, default=6, help="rollouts per recorded session")
-    parser.add_argument("--frames", type=int, default=10, help="frames per render probe")
-    args = parser.parse_args(argv)
-    tmp = Path(tempfile.mkdtemp(prefix="bench-film-"))
-    print(f"machine: {cpu_model()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d')}")
-
-    # 1. the recording's size per rollout, with and without the 3D records
+def _sizes(args: argparse.Namespace, tmp: Path) -> tuple[dict[bool, list[float]], Path]:
+    """Bytes per rollout of recorded sessions with and without the 3D records, and the last
+    session's journal."""
     launcher = mesh_launcher(tmp, "bench", tmp / "model.json")
     launcher.up(180)
     sizes: dict[bool, list[float]] = {True: [], False: []}
-    journal: Path | None = None
+    journal = tmp / "none"
     try:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
@@ -142,9 +137,13 @@ def main(argv: list[str] | None = None) -> int:
                 )
     finally:
         launcher.stop_all()
-    fixed = _fixed_bytes(tmp)
+    return sizes, journal
 
-    # 2. a scene frame's cost per backend, interleaved
+
+def _renders(
+    args: argparse.Namespace,
+) -> tuple[dict[str, list[tuple[float, float]]], dict[str, str]]:
+    """Per backend, (s per full frame, s per lean frame) of each repeat; why a backend failed."""
     cost: dict[str, list[tuple[float, float]]] = {"egl": [], "osmesa": []}
     failed: dict[str, str] = {}
     for i in range(args.repeats):
@@ -157,9 +156,11 @@ def main(argv: list[str] | None = None) -> int:
             else:
                 cost[backend].append(got)
         print(f"render repeat {i} done", flush=True)
+    return cost, failed
 
-    # 3. filming one shot
-    assert journal is not None
+
+def _films(args: argparse.Namespace, journal: Path, tmp: Path) -> tuple[list[float], float]:
+    """Seconds to film rollout 1 of `journal`, per repeat, and the video's length (s)."""
     films: list[float] = []
     seconds_of_video = 0.0
     for i in range(args.repeats):
@@ -168,40 +169,72 @@ def main(argv: list[str] | None = None) -> int:
         films.append(time.perf_counter() - start)
         seconds_of_video = result.frames / 30
         print(f"film {i}: {films[-1]:.1f} s", flush=True)
+    return films, seconds_of_video
 
-    print("\n--- bench_film")
-    print(f"time to film one shot (960×540, 30 fps, {seconds_of_video:.1f} s of video):")
-    print(
-        f"  {median_spread(films, '.1f', ' s')}; per second of video ×"
-        f"{median_spread([f / seconds_of_video for f in films], '.1f')}"
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit status 0."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_film", description=__doc__)
+    parser.add_argument("--repeats", type=int, default=5, help="repeats of each figure (≥ 5)")
+    parser.add_argument("--rollouts", type=int, default=6, help="rollouts per recorded session")
+    parser.add_argument("--frames", type=int, default=10, help="frames per render probe")
+    parser.add_argument(
+        "--parts",
+        default="size,render,film",
+        help="which figures: size, render, film (film alone films the test journal's rollout 1)",
     )
-    print(
-        "a scene frame with the robot's meshes (960×540) against the lean target frame "
-        "(1280×720, no meshes), ms per frame:"
-    )
-    for backend in ("egl", "osmesa"):
-        if backend in failed:
-            print(f"  {backend}: not available here ({failed[backend]})")
-            continue
-        full = [1e3 * f for f, _ in cost[backend]]
-        lean = [1e3 * t for _, t in cost[backend]]
-        ratio = [f / t for f, t in cost[backend]]
+    args = parser.parse_args(argv)
+    parts = set(args.parts.split(","))
+    tmp = Path(tempfile.mkdtemp(prefix="bench-film-"))
+    load = os.getloadavg()[0]
+    print(f"machine: {cpu_model()}, {os.cpu_count()} cores; {time.strftime('%Y-%m-%d %H:%M')}")
+    journal = Path(__file__).parents[1] / "tests" / "journals" / "old_format.jsonl"
+    if "size" in parts:
+        sizes, journal = _sizes(args, tmp)
+        fixed = _fixed_bytes(tmp)
+    if "render" in parts:
+        cost, failed = _renders(args)
+    if "film" in parts:
+        films, seconds_of_video = _films(args, journal, tmp)
+
+    print(f"\n--- bench_film (load average {load:.1f} at the start, {os.getloadavg()[0]:.1f} now)")
+    if "film" in parts:
+        print(f"time to film one shot (960×540, 30 fps, {seconds_of_video:.1f} s of video):")
         print(
-            f"  {backend}: full {median_spread(full, '.0f')}, lean {median_spread(lean, '.0f')}"
-            f", ratio ×{median_spread(ratio, '.1f')}"
+            f"  {median_spread(films, '.1f', ' s')}; per second of video ×"
+            f"{median_spread([f / seconds_of_video for f in films], '.1f')}"
         )
-    if cost["egl"] and cost["osmesa"]:
-        ratio = [o / e for (o, _), (e, _) in zip(cost["osmesa"], cost["egl"], strict=False)]
-        print(f"  osmesa against egl, full frame: ×{median_spread(ratio, '.1f')}")
-    per_with = [(s - fixed / args.rollouts) / 1e6 for s in sizes[True]]
-    per_without = [s / 1e6 for s in sizes[False]]
-    ratio = [w / o for w, o in zip(per_with, per_without, strict=True)]
-    print(f"recording size per rollout ({args.rollouts}-rollout sessions; MB):")
-    print(
-        f"  with the 3D records {median_spread(per_with, '.3f')} (plus {fixed / 1e6:.1f} MB "
-        f"once: URDF and meshes), without {median_spread(per_without, '.3f')}: "
-        f"×{median_spread(ratio, '.3f')}"
-    )
+    if "render" in parts:
+        print(
+            "a scene frame with the robot's meshes (960×540) against the lean target frame "
+            "(1280×720, no meshes), ms per frame:"
+        )
+        for backend in ("egl", "osmesa"):
+            if backend in failed:
+                print(f"  {backend}: not available here ({failed[backend]})")
+                continue
+            full = [1e3 * f for f, _ in cost[backend]]
+            lean = [1e3 * t for _, t in cost[backend]]
+            ratio = [f / t for f, t in cost[backend]]
+            print(
+                f"  {backend}: full {median_spread(full, '.0f')}, lean "
+                f"{median_spread(lean, '.0f')}, ratio ×{median_spread(ratio, '.1f')}"
+            )
+        if cost["egl"] and cost["osmesa"]:
+            pairs = zip(cost["osmesa"], cost["egl"], strict=False)
+            ratio = [o / e for (o, _), (e, _) in pairs]
+            print(f"  osmesa against egl, full frame: ×{median_spread(ratio, '.1f')}")
+    if "size" in parts:
+        per_with = [(s - fixed / args.rollouts) / 1e6 for s in sizes[True]]
+        per_without = [s / 1e6 for s in sizes[False]]
+        ratio = [w / o for w, o in zip(per_with, per_without, strict=True)]
+        print(f"recording size per rollout ({args.rollouts}-rollout sessions; MB):")
+        print(
+            f"  with the 3D records {median_spread(per_with, '.3f')} (plus {fixed / 1e6:.1f} MB "
+            f"once: URDF and meshes), without {median_spread(per_without, '.3f')}: "
+            f"×{median_spread(ratio, '.3f')}"
+        )
     return 0
 
 

@@ -105,7 +105,7 @@ def _robot_frames(node: Node, exprs: list[zenoh.KeyExpr]) -> FrameSource | None:
         return None
     scene = None
     try:
-        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_VERBS["status"], timeout=10)
+        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_VERBS["status"], timeout=3)
         scene = SceneConfig(**status.scene)
     except ArcheryError as exc:
         print(f"archery record: transforms for the default scene: {exc}", file=sys.stderr)
