@@ -7,10 +7,10 @@ world states between the rollout's records on `learner/rollout:o`, the flight as
 states at the robot's world rate of simulated time). Without `--rollout` it films the
 session's first hit into `shot.mp4` beside the journal; `--rollout N` films done rollout N into
 `rollout-N.mp4`. Each video has its contact sheet beside it (the same name, `.png`: six frames
-from the move to the impact). The posture move and the nock play at real time, the flight slowed
-down ten times; every frame is captioned with the phase, the simulated time, θ and, from the
-impact on, the measured r. A progress bar counts the frames on stderr; the video's path is
-printed on stdout.
+from the move to the impact). The posture move (the draw) and the nock play at real time, the
+release is held a moment, the flight slowed down ten times; every frame is captioned with the
+phase, the simulated time, θ and, from the impact on, the measured r. A progress bar counts the
+frames on stderr; the video's path is printed on stdout.
 
 Exit status 2 (one line on stderr): no such session, a journal of another version, a session
 without a hit and no `--rollout`, a rollout it does not have, a recording that does not cover
@@ -69,18 +69,18 @@ def _lines(rollout: Rollout, frame: FilmFrame) -> list[str]:
 
 
 def _pick(thumbs: list[tuple[str, object]]) -> list[object]:
-    """Six thumbnails: the start and middle of the move, the nock, two of the flight and the
-    impact (fewer phases: evenly spread)."""
+    """Six thumbnails: the start and end of the move, the release, two of the flight and the
+    impact (a film without these phases: six evenly spread)."""
     by_phase: dict[str, list[object]] = {}
     for phase, thumb in thumbs:
         by_phase.setdefault(phase.split(" ")[0], []).append(thumb)
-    move, nock = by_phase.get("posture", []), by_phase.get("nock", [])
+    move, release = by_phase.get("posture", []), by_phase.get("release", [])
     flight, impact = by_phase.get("flight", []), by_phase.get("impact", [])
-    if move and nock and len(flight) >= 2 and impact:
+    if move and release and len(flight) >= 2 and impact:
         return [
             move[0],
-            move[len(move) // 2],
-            nock[-1],
+            move[-1],
+            release[0],
             flight[len(flight) // 3],
             flight[(2 * len(flight)) // 3],
             impact[0],

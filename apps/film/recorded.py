@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from apps.film.replay import SLOW_MOTION, FilmFrame
+from apps.film.replay import POSTURE, SLOW_MOTION, FilmFrame
 from apps.topics.recording import Recording, from_record, open_recording
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import DoneRecord, ProposedRecord
@@ -21,7 +21,7 @@ from protocol.messages import Rollout, WorldState
 
 __all__ = ["RecordedShot"]
 
-_PHASES = {"idle": "posture", "nocked": "nock", "flying": "flight", "stuck": "impact"}
+_PHASES = {"idle": POSTURE, "nocked": "nock", "flying": "flight", "stuck": "impact"}
 _HOLD_IMPACT_S = 1.5  # s of video the last state is shown
 
 

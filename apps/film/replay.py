@@ -32,11 +32,13 @@ from sim.arrow import Landing
 from sim.errors import SimError
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["FilmFrame", "Rollout", "ShotReplay", "load_rollout"]
+__all__ = ["POSTURE", "FilmFrame", "Rollout", "ShotReplay", "load_rollout"]
 
 SLOW_MOTION = 0.1  # the flight plays at this fraction of real time
 HOLD_NOCK_S = 0.4  # s of simulated time the nocked arrow is shown before the release
+HOLD_RELEASE_S = 0.3  # s of video the arrow is shown at its release
 HOLD_IMPACT_S = 1.5  # s of video the landed arrow is shown
+POSTURE = "posture & draw"  # the move to θ's posture draws the string hand back to θ
 MAX_MOVE_S = 20.0  # s of simulated time a move may take before the replay gives up on it
 
 
@@ -162,8 +164,9 @@ class ShotReplay:
                 )
 
     def frames(self, fps: float) -> Iterator[FilmFrame]:
-        """The filmed rollout at `fps` video frames per second: the posture move and the nock at
-        real time, the flight slowed down to `SLOW_MOTION`, the landed arrow held."""
+        """The filmed rollout at `fps` video frames per second: the posture move (the draw: it
+        brings the string hand to θ from the bow hand) and the nock at real time, the release
+        held, the flight slowed down to `SLOW_MOTION`, the landed arrow held."""
         world = self.world
         world.reset(self.rollout.header.seed)
         if self.rollout.previous_theta is not None:
@@ -171,16 +174,17 @@ class ShotReplay:
             for _ in self._settle(0.05):
                 pass
         world.skip_shots(self.rollout.launches_before)
-        yield FilmFrame(world.qpos(), world.sim_time, "posture", repeat=round(0.5 * fps))
+        yield FilmFrame(world.qpos(), world.sim_time, POSTURE, repeat=round(0.5 * fps))
         self._move_to(self.theta)
         for t in self._settle(1.0 / fps):
-            yield FilmFrame(world.qpos(), t, "posture")
+            yield FilmFrame(world.qpos(), t, POSTURE)
         world.nock()
         world.step(world.timestep)
         for _ in range(max(1, round(HOLD_NOCK_S * fps))):
             yield FilmFrame(world.qpos(), world.sim_time, "nock")
             world.step(1.0 / fps)
         world.launch()
+        yield FilmFrame(world.qpos(), world.sim_time, "release", repeat=round(HOLD_RELEASE_S * fps))
         dt = SLOW_MOTION / fps
         while True:
             landing = world.step(dt)
