@@ -8,9 +8,10 @@ runs (the scene compiled from the robot's `SceneConfig`, `mj_kinematics`): the r
 pays nothing for them, and a recording of any robot of this version gets them. Derived
 channels, next to the recorded keys:
 
-* `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the scene (the iCub's
-  links as MuJoCo merges them, the bow, the arrow, the target) in its parent body's frame, the
-  root `world` being the iCub's `root_link` frame (x backward, y right, z up; m);
+* `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the compiled scene in
+  its parent body's frame: the iCub's moving links (its fixed links, the bow and the target are
+  merged into their parents, as in the simulator) and the arrow; the root `world` is the iCub's
+  `root_link` frame (x backward, y right, z up; m);
 * `ROBOT/joint_states` (`foxglove.JointStates`): per joint state, the part's joints (rad, rad/s);
   the JSON `PART/state:o` channel stays as it was;
 * `ROBOT/robot_description/scene` (`foxglove.SceneUpdate`, once at the start): one entity per
