@@ -23,15 +23,15 @@ import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from apps.film.recorded import RecordedShot
-from apps.film.replay import FilmFrame, Rollout, ShotReplay, load_rollout
-from apps.film.video import ShotVideo, caption, contact_sheet
 from apps.progress import progress_bar
 from mesh.cliargs import ArgumentParser, count
 from protocol.errors import ArcheryError
 from protocol.exit_status import BAD_INPUT, OK, for_error
+
+if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
+    from apps.film.replay import FilmFrame, Rollout
 
 __all__ = ["FilmResult", "film_hit", "film_session", "main"]
 
@@ -109,6 +109,9 @@ def film_session(
     import numpy as np
     from PIL import Image
 
+    from apps.film.recorded import RecordedShot
+    from apps.film.replay import ShotReplay, load_rollout
+    from apps.film.video import ShotVideo, caption, contact_sheet
     from sim.scene_view import SceneView
 
     target = load_rollout(session, rollout)
