@@ -33,7 +33,8 @@ The calls of each service are those its code makes:
   renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
   states; serves the three cartesian controllers;
 * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
-  release` and the detector's `measure, frame`; serves `learner/rpc:i`;
+  release, status` (its world, journaled for replaying a shot) and the detector's `measure,
+  frame`; serves `learner/rpc:i`;
 * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
   `replay`): every verb, the joint commands, every stream, every `describe` and `replace`;
 * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
@@ -138,7 +139,7 @@ def roles(robot: str) -> dict[str, Role]:
             serve=(verbs_key(k.learner_rpc()),),
             call=(
                 *_calls(k.cartesian_rpc("archery"), "status", "posture"),
-                *_calls(k.archery_rpc(), "reset", "nock", "release"),
+                *_calls(k.archery_rpc(), "reset", "nock", "release", "status"),
                 *_calls(k.detector_rpc(), "measure", "frame"),
             ),
         ),
