@@ -74,6 +74,14 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.report:main",
         "draw report.png beside session journals (a session's or an experiment's folder)",
     ),
+    "film": (
+        "apps.film.film:main",
+        "a video of a session's hit (or --rollout N), simulated again from its journal",
+    ),
+    "info": (
+        "apps.topics.info:main",
+        "an MCAP recording's duration, channels, counts, rates, schemas and size",
+    ),
     "dashboard": (
         "apps.dashboard.server:main",
         "a live view in the browser: frame, target face, distances, liveliness, rates",

@@ -4,7 +4,8 @@ It starts a router and the five services on this machine (as `archery up` does, 
 port), runs one session as `archery learn` does with a live table per rollout (θ, r, distance,
 hit), stops everything cleanly, and prints where the session's files are: `runs/<session>/`
 with `journal.jsonl`, `report.png` (impacts on the target face and distance per rollout) and
-`hit.png` (the camera frame of the final hit with the detector's overlay).
+`hit.png` (the camera frame of the final hit with the detector's overlay), and `shot.mp4` with
+its contact sheet `shot.png` (the hit seen from the side, `archery film`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
+from apps.film.film import film_hit
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
 from apps.up.launch_config import SERVICES
@@ -112,6 +114,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
     finally:
         with console.status("stopping the services …"):
             codes = launcher.stop_all()
+    final["video"] = film_hit(final)
     return _summary(console, final, wall, codes)
 
 
@@ -134,6 +137,7 @@ def _summary(
     console.print(f"  journal:   {final.get('journal')}")
     console.print(f"  report:    {final.get('report')}")
     console.print(f"  hit frame: {final.get('hit_frame')}")
+    console.print(f"  video:     {final.get('video')}")
     unclean = {n: c for n, c in codes.items() if c != 0}
     console.print(
         "services stopped cleanly" if not unclean else f"[yellow]unclean stops: {unclean}"

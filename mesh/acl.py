@@ -19,7 +19,8 @@ turns each into the Zenoh messages and directions it takes:
 * every service holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
   `ROBOT/alive/NAME/*`), serves and may call its own `ROBOT/describe/NAME` and
   `ROBOT/replace/NAME` (its next instance presents the same identity); every identity may watch
-  the robot's tokens (`wait_alive`, the replier check).
+  the robot's tokens (`wait_alive`, the replier check);
+* every server publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
 
 The calls of each service are those its code makes:
 
@@ -32,7 +33,8 @@ The calls of each service are those its code makes:
   renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
   states; serves the three cartesian controllers;
 * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
-  release` and the detector's `measure, frame`; serves `learner/rpc:i`;
+  release, status` (its world, journaled for replaying a shot) and the detector's `measure,
+  frame`; serves `learner/rpc:i`;
 * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
   `replay`): every verb, the joint commands, every stream, every `describe` and `replace`;
 * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
@@ -46,7 +48,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from protocol.keys import CARTESIAN_ARMS, Keys, verb_key, verbs_key
+from protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
 from protocol.parts import PARTS
 from protocol.verbs import TABLES
 
@@ -94,26 +96,35 @@ def roles(robot: str) -> dict[str, Role]:
     every_rpc = (*part_rpcs, k.archery_rpc(), k.cam_rpc(), k.detector_rpc(), *cartesian)
     every_verb = (*(verbs_key(key) for key in (*every_rpc, k.learner_rpc())),)
     describe_all = f"{robot}/describe/*"
+
+    def taps(*rpc_keys: str) -> tuple[str, ...]:
+        return tuple(key for rpc in rpc_keys for key in tap_keys(rpc) or ())
+
     return {
         "robot": Role(
-            publish=(*states, k.world_state(), k.world_events()),
+            publish=(
+                *states,
+                k.world_state(),
+                k.world_events(),
+                *taps(*part_rpcs, k.archery_rpc()),
+            ),
             subscribe=commands,
             serve=tuple(verbs_key(key) for key in (*part_rpcs, k.archery_rpc())),
         ),
         "camera": Role(
-            publish=(k.cam_frames(),),
+            publish=(k.cam_frames(), *taps(k.cam_rpc())),
             subscribe=(k.world_state(),),
             serve=(verbs_key(k.cam_rpc()),),
             call=_calls(k.archery_rpc(), "status"),  # which scene to render
         ),
         "detector": Role(
-            publish=(k.detector_hits(),),
+            publish=(k.detector_hits(), *taps(k.detector_rpc())),
             serve=(verbs_key(k.detector_rpc()),),
             # it grabs frames by RPC; the frame stream is for people
             call=_calls(k.cam_rpc(), "grab", "calibration"),
         ),
         "controller": Role(
-            publish=commands,
+            publish=(*commands, *taps(*cartesian)),
             subscribe=states,
             serve=tuple(verbs_key(key) for key in cartesian),
             call=tuple(
@@ -125,12 +136,12 @@ def roles(robot: str) -> dict[str, Role]:
             ),
         ),
         "learner": Role(
-            publish=(k.learner_rollouts(),),
+            publish=(k.learner_rollouts(), *taps(k.learner_rpc())),
             subscribe=(k.world_events(),),
             serve=(verbs_key(k.learner_rpc()),),
             call=(
                 *_calls(k.cartesian_rpc("archery"), "status", "posture"),
-                *_calls(k.archery_rpc(), "reset", "nock", "release"),
+                *_calls(k.archery_rpc(), "reset", "nock", "release", "status"),
                 *_calls(k.detector_rpc(), "measure", "frame"),
             ),
         ),

@@ -170,9 +170,13 @@ class Node(RpcClient, Liveliness):
 
     def serve(self, key: str, verbs: ServedVerbs) -> RpcServer:
         """Serve an `rpc:i` key: a verb table with its handlers bound (`VerbTable.bind`), whose
-        argument and reply schemas `describe` then carries."""
+        argument and reply schemas `describe` then carries, and its taps (`mesh.rpc_tap`)."""
         server = RpcServer(self.session, key, verbs)
         self._register(key, "rpc", "RpcRequest", server)
+        if server.tap is not None:  # its request and reply taps are ports too
+            for publisher in (server.tap.requests, server.tap.replies):
+                name = publisher.message_type.__name__
+                self._register(publisher.key, "pub", name, publisher)
         self._verbs[key] = sorted(server.handlers)
         self._interfaces[key] = verbs.table.schemas
         return server

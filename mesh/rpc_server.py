@@ -1,5 +1,6 @@
 """Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
-arguments, handled on a worker thread (or inline for non-blocking verbs), replied `RpcReply`.
+arguments, handled on a worker thread (or inline for non-blocking verbs), replied `RpcReply`;
+each handled call also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ import msgspec
 import zenoh
 
 from mesh.memory import note_payload
+from mesh.rpc_tap import RpcTap
 from protocol.codec import MAX_PAYLOAD_BYTES, encode
 from protocol.errors import (
     ArcheryError,
     DecodeError,
     UpstreamLost,
 )
-from protocol.keys import verbs_key
+from protocol.keys import tap_keys, verbs_key
 from protocol.messages import (
     Message,
     RpcReply,
@@ -106,6 +108,7 @@ class RpcServer:
         self._seq = itertools.count(1)
         self._counts = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.tap = RpcTap(session, key) if tap_keys(key) is not None else None
         self._queryable = session.declare_queryable(verbs_key(key), self._on_query)
         self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
         self._thread.start()
@@ -146,11 +149,19 @@ class RpcServer:
 
     def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
         try:
-            query.reply(query.key_expr, encode(self._handle(request, next(self._seq))))
+            reply = self._handle(request, next(self._seq))
+            payload = encode(reply)
+            query.reply(query.key_expr, payload)
         except Exception:
             log.exception("could not reply on %s", self.key)
+            return
         finally:
             query.drop()
+        if self.tap is not None:
+            if isinstance(request, _WireRequest):
+                self.tap.tap(request.verb, request.args, reply, len(payload))
+            else:
+                self.tap.tap(None, None, reply, len(payload))
 
     def _error(self, code: str, message: str, seq: int, service: str = "") -> RpcReply:
         with self._counts:
@@ -222,3 +233,5 @@ class RpcServer:
             self._queryable.undeclare()
             self._queue.put(_STOP)
             self._thread.join(timeout=5)
+            if self.tap is not None:
+                self.tap.close()

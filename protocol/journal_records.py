@@ -10,7 +10,9 @@ Kinds, in the order a session writes them:
 * `header` (first line, once): journal `version`, `created`, `session`, `algorithm`, `seed`,
   `rollouts` (budget of done rollouts), `options` (the learner's), `config` (the rest of the
   session settings), `controller_box` and `learner_state`, the learner before its first
-  proposal; `from` when the session started from another session's learned model.
+  proposal; `from` when the session started from another session's learned model; `rig`, what
+  replaying a shot needs: the robot's world parameters, its shot count before the session and
+  the controller's trajectory time (s).
 * `proposed` {index, theta}: attempt `index` (1, 2, …) is about to run θ (m).
 * `done` {index, rollout, theta, r_m, distance_m, hit, …, learner_state}: attempt `index`
   finished, the learner was told (θ, r) and `learner_state` is its state right after; `rollout`
@@ -21,10 +23,10 @@ Kinds, in the order a session writes them:
   (the session is over).
 
 Field order is the order of the lines on disk. A field that a line may lack (`controller_box`,
-`from`, an aborted record's `truth_r_m` and `detection`, a stopped record's `cause`, a published
-done record's `learner_state`) is `UNSET` when absent, so a record encodes back to its line.
-Which records may follow which (index order, one open attempt, the same θ) is the journal's
-business: these types say only what each record holds.
+`from`, `rig`, an aborted record's `truth_r_m` and `detection`, a stopped record's `cause`, a
+published done record's `learner_state`) is `UNSET` when absent, so a record encodes back to
+its line. Which records may follow which (index order, one open attempt, the same θ) is the
+journal's business: these types say only what each record holds.
 """
 
 from __future__ import annotations
@@ -83,6 +85,7 @@ class HeaderRecord(JournalRecord, frozen=True, kw_only=True, tag="header"):
     controller_box: dict[str, Any] | UnsetType = UNSET  # {"low", "high"} (m)
     learner_state: dict[str, Any]
     from_: dict[str, str] | UnsetType = msgspec.field(default=UNSET, name="from")
+    rig: dict[str, Any] | UnsetType = UNSET  # {"world", "shot", "traj_time"}: to replay a shot
 
 
 class SessionRecord(JournalRecord, frozen=True, kw_only=True):

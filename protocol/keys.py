@@ -22,6 +22,7 @@ __all__ = [
     "Keys",
     "PortSpec",
     "port_of",
+    "tap_keys",
     "validate_robot",
 ]
 
@@ -29,6 +30,15 @@ DEFAULT_ROBOT = "icubSim"
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
 _VERB = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+# The `rpc:i` ports' paths before `/rpc:i`, for their request and reply taps.
+_SERVERS = (
+    *PARTS,
+    "archery",
+    "cam",
+    "detector",
+    "learner",
+    *(f"cartesianController/{arm}" for arm in CARTESIAN_ARMS),
+)
 
 
 @dataclass(frozen=True)
@@ -44,6 +54,7 @@ class PortSpec:
         body = re.escape(self.pattern)
         body = body.replace(r"\{part\}", "(?P<part>" + "|".join(PARTS) + ")")
         body = body.replace(r"\{arm\}", "(?P<arm>" + "|".join(CARTESIAN_ARMS) + ")")
+        body = body.replace(r"\{server\}", "(?P<server>" + "|".join(_SERVERS) + ")")
         body = body.replace(r"\{service\}", r"(?P<service>[A-Za-z][A-Za-z0-9_\-]{0,63})")
         body = body.replace(r"\{instance\}", r"(?P<instance>[0-9a-f]{1,32})")
         return re.compile(r"^(?P<robot>[A-Za-z][A-Za-z0-9_\-]{0,63})/" + body + "$")
@@ -63,6 +74,9 @@ PORTS: tuple[PortSpec, ...] = (
     PortSpec("cartesianController/{arm}/rpc:i", "rpc", "RpcRequest"),
     PortSpec("learner/rollout:o", "events", "Rollout"),
     PortSpec("learner/rpc:i", "rpc", "RpcRequest"),
+    # what an `rpc:i` port was asked and answered, published while someone listens (`tap_keys`)
+    PortSpec("{server}/requests:o", "pub", "RpcRequest"),
+    PortSpec("{server}/replies:o", "pub", "RpcReply"),
     PortSpec("alive/{service}", "liveliness", "-"),
     PortSpec("alive/{service}/{instance}", "liveliness", "-"),
     PortSpec("describe/{service}", "rpc", "Describe"),
@@ -110,6 +124,16 @@ def verb_key(rpc_key: str, verb: str) -> str:
             f"{shown(verb)} is not a verb name (a letter, then up to 63 of [A-Za-z0-9_])"
         )
     return f"{rpc_key}/{verb}"
+
+
+def tap_keys(rpc_key: str) -> tuple[str, str] | None:
+    """The keys on which the server of the `rpc:i` port `rpc_key` publishes each request it
+    handles and each reply it sends (`ROBOT/SERVER/requests:o`, `ROBOT/SERVER/replies:o`), or
+    None for a key that is no `rpc:i` port of a verb table."""
+    head, _, last = rpc_key.rpartition("/")
+    if last != "rpc:i" or not head:
+        return None
+    return f"{head}/requests:o", f"{head}/replies:o"
 
 
 def verbs_key(rpc_key: str) -> str:

@@ -25,7 +25,7 @@ from protocol.vectors import finite_vector
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
 from sim.errors import CommandError, ConfigError, StateError
-from sim.geometry import TARGET_DIAMETER, target_centre
+from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
@@ -480,7 +480,7 @@ class ArcheryWorld:
             speed_noise=cfg.speed_noise,
             direction_noise=cfg.direction_noise,
         )
-        wind = np.asarray(cfg.wind) + cfg.wind_gust * rng.standard_normal(3)
+        wind = self._draw_wind()
         launch = Launch(
             position=bow,
             velocity=velocity,
@@ -502,6 +502,34 @@ class ArcheryWorld:
         self._arrow = ArrowState.FLYING
         self._hold_pose = None
         return launch
+
+    def _draw_wind(self) -> np.ndarray:
+        """The wind of a shot (m/s): the constant wind plus this shot's gust."""
+        cfg = self.config
+        return np.asarray(cfg.wind) + cfg.wind_gust * self._rng.standard_normal(3)
+
+    def skip_shots(self, count: int) -> None:
+        """Advance the shot noise as `count` launches would, without shooting: after
+        `reset(seed)` and `skip_shots(n)` the next launch draws the noise of shot n + 1 of a
+        world reset with the same seed (to replay one shot of a session).
+
+        Raises:
+            CommandError: count is not an integer >= 0.
+        """
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise CommandError(f"count must be an integer >= 0, got {count!r}")
+        cfg = self.config
+        bow, string = BOW_HAND, BOW_HAND + START_THETA
+        for _ in range(count):
+            launch_velocity(
+                bow,
+                string,
+                cfg.bow,
+                self._rng,
+                speed_noise=cfg.speed_noise,
+                direction_noise=cfg.direction_noise,
+            )
+            self._draw_wind()
 
     def release(self) -> Landing:
         """Release and simulate the flight to its end; the robot keeps moving meanwhile.

@@ -72,6 +72,9 @@ class FakeRig:
     def theta_box(self) -> Bounds:
         return BOX
 
+    def setup(self) -> dict[str, Any]:
+        return {"world": {}, "shot": 0, "traj_time": 1.0}
+
     def reset(self, seed: int) -> None:
         self.resets.append(seed)
 

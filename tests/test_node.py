@@ -176,6 +176,8 @@ def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
     assert {(p.key, p.kind, p.message) for p in info.ports} == {
         (server.keys.state("left_arm"), "pub", "JointState"),
         (server.keys.part_rpc("left_arm"), "rpc", "RpcRequest"),
+        (f"{server.keys.robot}/left_arm/requests:o", "pub", "RpcRequest"),
+        (f"{server.keys.robot}/left_arm/replies:o", "pub", "RpcReply"),
     }
     assert info.verbs[server.keys.part_rpc("left_arm")] == PART_VERBS.names()
     assert all(p.count == 0 for p in info.ports)

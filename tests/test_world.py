@@ -424,3 +424,31 @@ def test_landing_serialises_to_plain_data(
     assert data["r"] == landing.r.tolist()  # type: ignore[union-attr]  # a target landing has r
     assert data["launch"]["theta"] == landing.launch.theta.tolist()  # type: ignore[index]  # to_dict nests the launch dict
     json.dumps(data)
+
+
+def test_skipped_shots_draw_the_noise_their_launches_would(
+    model: mujoco.MjModel, postures: dict[str, dict[str, np.ndarray]]
+) -> None:
+    # three shots in a row, then the third again after skipping two: the same launch
+    config = {"wind_gust": 0.5, "speed_noise": 0.05, "direction_noise": 0.01}
+    world = _world(model, **config)
+    world.reset(11)
+    _go(world, postures["aim"])
+    launches = []
+    for _ in range(3):
+        world.nock()
+        launches.append(world.release().launch)
+    again = _world(model, **config)
+    again.reset(11)
+    _go(again, postures["aim"])
+    again.skip_shots(2)
+    again.nock()
+    third = again.release().launch
+    # the gust is drawn after the launch's own three numbers: equal gusts, equal stream
+    np.testing.assert_array_equal(third.wind, launches[2].wind)
+    assert not np.array_equal(launches[1].wind, launches[2].wind)
+    # the hands moved a little in the first world's flights: the velocities are close
+    np.testing.assert_allclose(third.velocity, launches[2].velocity, atol=0.01)
+    for bad in (-1, 1.5, True):
+        with pytest.raises(CommandError, match="count must be an integer >= 0"):
+            again.skip_shots(bad)  # type: ignore[arg-type]  # a wrong type on purpose

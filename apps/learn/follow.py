@@ -226,7 +226,7 @@ def _not_running(session: str, journal: str | None, running: str | None, asked: 
 def result_line(status: dict[str, Any]) -> str:
     """The one JSON line `archery learn` prints."""
     keys = ("session", "rollouts", "hit_at", "final_distance_m", "journal")
-    extra = ("status", "aborted", "report", "hit_frame")
+    extra = ("status", "aborted", "report", "hit_frame", "video")
     line = {k: status.get(k) for k in keys} | {k: status.get(k) for k in extra}
     line["status"] = status.get("state")
     return json.dumps(line)

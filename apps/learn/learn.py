@@ -7,7 +7,8 @@ journal; see `services.learner.transfer`), or follows a running one
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame"}`.
+"report", "hit_frame", "video"}`; a hit is filmed into `shot.mp4` beside the journal when the
+journal is on this machine (`apps.film`; not with `--no-film`), else "video" is null.
 
 Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
 that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
@@ -28,6 +29,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from apps.film.film import film_hit
 from apps.learn import attach
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
@@ -156,6 +158,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--require-hit",
         action="store_true",
         help="exit status 1 when the session finishes without a hit (containers, scripts)",
+    )
+    parser.add_argument(
+        "--no-film",
+        action="store_true",
+        help="do not film a hit into shot.mp4 beside the journal (see `archery film`)",
     )
     return parser
 
@@ -326,6 +333,8 @@ def main(argv: list[str] | None = None) -> int:
             print(result_line(attach.journal_counts(status)))
             return INTERRUPTED
     counts = attach.journal_counts(status)
+    if not args.no_film:
+        counts["video"] = film_hit(counts, quiet=args.quiet)
     print(result_line(counts))
     if status["state"] != "finished":
         print(

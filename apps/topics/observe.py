@@ -26,6 +26,7 @@ from apps.topics.recording import (
     CALIBRATION_ATTACHMENT,
     CALIBRATION_MEDIA_TYPE,
     COMPRESSIONS,
+    FrameSource,
     Recorder,
     Recording,
     open_recording,
@@ -48,6 +49,7 @@ from protocol.verbs.camera import (
     CameraStatusReply,
     GrabArgs,
 )
+from protocol.verbs.robot import ARCHERY_VERBS
 
 __all__ = ["hz_main", "record_main", "replay_main"]
 
@@ -87,6 +89,31 @@ def _calibration(node: Node, exprs: list[zenoh.KeyExpr]) -> dict[str, tuple[str,
     return {CALIBRATION_ATTACHMENT: (CALIBRATION_MEDIA_TYPE, msgspec.msgpack.encode(marks))}
 
 
+def _robot_frames(node: Node, exprs: list[zenoh.KeyExpr]) -> FrameSource | None:
+    """The 3D records' source (`apps.topics.robot_frames`) when a pattern records the robot's
+    world state, built for the scene the robot runs (its status's `scene`; the default scene
+    when the robot does not answer, said on stderr); None (one line on stderr) without MuJoCo."""
+    world = node.keys.world_state()
+    if not any(expr.includes(zenoh.KeyExpr(world)) for expr in exprs):
+        return None
+    try:
+        from apps.topics.robot_frames import RobotFrames
+        from sim.errors import SimError
+        from sim.scene_config import SceneConfig
+    except ImportError as exc:
+        print(f"archery record: no 3D records (transforms): {exc}", file=sys.stderr)
+        return None
+    scene = None
+    try:
+        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_VERBS["status"], timeout=3)
+        scene = SceneConfig(**status.scene)
+    except ArcheryError as exc:
+        print(f"archery record: transforms for the default scene: {exc}", file=sys.stderr)
+    except (SimError, TypeError) as exc:
+        print(f"archery record: transforms for the default scene: {exc}", file=sys.stderr)
+    return RobotFrames(node.keys.robot, scene)
+
+
 def record_main(argv: list[str] | None = None) -> int:
     """`archery record --out FILE.mcap [PATTERN ...]`: record streams until Ctrl-C."""
     parser = ArgumentParser(
@@ -105,6 +132,11 @@ def record_main(argv: list[str] | None = None) -> int:
         choices=sorted(COMPRESSIONS),
         default="lz4",
         help="of each chunk (default lz4: the cheapest on a busy machine)",
+    )
+    parser.add_argument(
+        "--no-transforms",
+        action="store_true",
+        help="leave out the robot's 3D records (its description, link transforms, joint states)",
     )
     parser.add_argument(
         "--flush-interval",
@@ -134,6 +166,7 @@ def record_main(argv: list[str] | None = None) -> int:
                 compression=args.compression,
                 flush_interval=args.flush_interval,
                 attachments=_calibration(node, exprs),
+                frames=None if args.no_transforms else _robot_frames(node, exprs),
             )
             received = [0]
             done = threading.Event()

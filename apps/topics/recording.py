@@ -38,7 +38,7 @@ import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Protocol
 
 import msgspec
 from mcap.exceptions import McapError
@@ -47,6 +47,7 @@ from mcap.records import Channel, Schema
 from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType, Writer
 
+from apps.topics.foxglove_records import DERIVED_SCHEMAS, schema_data
 from apps.topics.image_records import COMPRESSED, RAW, image_from_record, image_record, image_schema
 from apps.topics.json_image_records import json_image_from_record
 from mesh.patterns import stream_type
@@ -59,8 +60,11 @@ __all__ = [
     "CALIBRATION_ATTACHMENT",
     "CALIBRATION_MEDIA_TYPE",
     "COMPRESSIONS",
+    "DESCRIPTION_METADATA",
     "FORMAT",
     "PROFILE",
+    "Derived",
+    "FrameSource",
     "RecordStats",
     "Recorder",
     "Recording",
@@ -71,6 +75,32 @@ __all__ = [
 ]
 
 log = logging.getLogger("archery.recording")
+
+
+@dataclass(frozen=True)
+class Derived:
+    """One record a `FrameSource` derives: its channel's topic, its schema (one of
+    `DERIVED_SCHEMAS`, protobuf) and the protobuf bytes."""
+
+    topic: str
+    schema: str
+    data: bytes
+
+
+class FrameSource(Protocol):
+    """What the recorder needs of `apps.topics.robot_frames.RobotFrames` (which needs MuJoCo,
+    so it is passed in, not imported here)."""
+
+    def attachments(self) -> dict[str, tuple[str, bytes]]: ...
+
+    def metadata(self) -> dict[str, str]: ...
+
+    def scene_update(self, ns: int) -> Derived: ...
+
+    def derive(self, key: str, message: ArcheryMessage, ns: int) -> list[Derived]: ...
+
+
+DESCRIPTION_METADATA = "robot_description"
 
 PROFILE = "archery"
 COMPRESSIONS = {
@@ -144,6 +174,7 @@ class RecordStats:
     bytes: dict[str, int] = field(default_factory=dict)
     malformed: int = 0
     chunks: int = 0
+    derived: int = 0  # records derived from the messages (the robot's transforms, …)
     missing: int = 0  # messages never seen: gaps in a key's sequence numbers
     overflow: int = 0  # messages dropped because the writer fell `max_pending` bytes behind
 
@@ -168,6 +199,9 @@ class Recorder:
             counted in `stats.overflow` (never blocks the receiving thread).
         attachments: {name: (media type, data)} written as MCAP attachments before any
             message (e.g. `CALIBRATION_ATTACHMENT`, the camera's calibration frame and marks).
+        frames: derives the robot's 3D records (`apps.topics.robot_frames.RobotFrames`):
+            its description as an attachment and metadata, its scene written first, and the
+            records it derives from each message written after that message.
 
     Losses are counted, never guessed: `stats.missing` counts the gaps in each key's sequence
     numbers (messages dropped before they reached the recorder, or by the full queue).
@@ -184,6 +218,7 @@ class Recorder:
         flush_interval: float = 1.0,
         max_pending: int = 1 << 30,
         attachments: dict[str, tuple[str, bytes]] | None = None,
+        frames: FrameSource | None = None,
     ) -> None:
         self.path = Path(path)
         try:
@@ -205,12 +240,19 @@ class Recorder:
             },
         )
         now = time.time_ns()
-        for name, (media_type, data) in (attachments or {}).items():
+        attachments = dict(attachments or {})
+        if frames is not None:
+            self._writer.add_metadata(DESCRIPTION_METADATA, frames.metadata())
+            attachments |= frames.attachments()
+        for name, (media_type, data) in attachments.items():
             self._writer.add_attachment(now, now, name, media_type, data)
-        self._writer.flush()
         self.stats = RecordStats()
         self._schemas: dict[str, int] = {}
         self._channels: dict[tuple[str, str], int] = {}
+        self._frames = frames
+        if frames is not None:
+            self._add_derived(frames.scene_update(now), now)
+        self._writer.flush()
         self._queue: queue.SimpleQueue[tuple[str, bytes, int] | None] = queue.SimpleQueue()
         self._pending_bytes = 0
         self._max_pending = max_pending
@@ -247,6 +289,19 @@ class Recorder:
             self._channels[(key, schema_name)] = channel
         return channel
 
+    def _add_derived(self, record: Derived, log_ns: int) -> None:
+        channel = self._channels.get((record.topic, record.schema))
+        if channel is None:
+            schema_id = self._schemas.get(record.schema)
+            if schema_id is None:
+                data = schema_data(record.schema)
+                schema_id = self._writer.register_schema(record.schema, "protobuf", data)
+                self._schemas[record.schema] = schema_id
+            channel = self._writer.register_channel(record.topic, "protobuf", schema_id)
+            self._channels[(record.topic, record.schema)] = channel
+        self._writer.add_message(channel, log_time=log_ns, data=record.data, publish_time=log_ns)
+        self.stats.derived += 1
+
     def _write(self, key: str, payload: bytes, received_ns: int) -> None:
         with self._lock:
             self._pending_bytes -= len(payload)
@@ -274,6 +329,9 @@ class Recorder:
             publish_time=int(message.stamp * 1e9),
             sequence=message.seq & 0xFFFFFFFF,
         )
+        if self._frames is not None:
+            for record in self._frames.derive(key, message, int(message.stamp * 1e9)):
+                self._add_derived(record, received_ns)
         self._dirty = True
         self.stats.written[key] = self.stats.written.get(key, 0) + 1
         self.stats.bytes[key] = self.stats.bytes.get(key, 0) + len(payload)
@@ -378,6 +436,8 @@ class Recording:
                 schema, channel, record = item
                 if schema is None:
                     raise ConfigError(f"{self.path}: channel {channel.topic} has no schema")
+                if schema.name in DERIVED_SCHEMAS:
+                    continue  # derived by the recorder (3D records): no mesh message
                 message = from_record(schema.name, record.data, schema.encoding)
                 yield channel.topic, message, record.log_time
 

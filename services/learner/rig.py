@@ -186,6 +186,14 @@ class MeshRig:
         except LearnerConfigError as exc:
             raise RigError(f"the controller's status has no valid θ box: {exc}") from None
 
+    def setup(self) -> dict[str, Any]:
+        """What replaying a shot needs of the rig: the robot's world (`WorldConfig.to_dict`),
+        its shot count before the session and the controller's trajectory time (s)."""
+        robot, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_VERBS["status"])
+        key = self.keys.cartesian_rpc("archery")
+        controller, _ = self._call("controller", key, cv.ARCHERY_VERBS["status"])
+        return {"world": robot.world, "shot": robot.shot, "traj_time": controller.traj_time}
+
     def reset(self, seed: int) -> None:
         """Robot to the home posture, shot noise reseeded with `seed`."""
         reset = rv.ARCHERY_VERBS["reset"]

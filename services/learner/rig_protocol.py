@@ -72,6 +72,10 @@ class Rig(Protocol):
     def theta_box(self) -> Bounds:
         """The controller's θ box (m)."""
 
+    def setup(self) -> dict[str, Any]:
+        """The robot's world (`sim.world.WorldConfig.to_dict`), its shot count and the
+        controller's trajectory time (s): what replaying a shot needs, for the journal."""
+
     def reset(self, seed: int) -> None:
         """Robot to its home posture, shot noise reseeded."""
 

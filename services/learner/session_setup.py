@@ -88,6 +88,7 @@ def started_session(
         controller_box=box.to_dict(),
         learner_state=learner.state_dict(),
         from_=msgspec.UNSET if source is None else source.header(),
+        rig=rig.setup(),
     )
     return Journal.create(runs / session_id, header), learner
 

@@ -1,0 +1,1 @@
+"""`archery film`: a video of one shot, re-simulated from a session's journal."""

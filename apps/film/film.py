@@ -1,0 +1,236 @@
+"""`archery film SESSION [--rollout N]`: a video of one rollout, simulated again from the
+session's journal, seen by the third-person camera (`sim.scene_view`).
+
+SESSION is a session's folder or its `journal.jsonl`. With `--recording FILE.mcap` (an
+`archery record` of the session) the rollout is filmed as the recording saw it: the robot's
+world states between the rollout's records on `learner/rollout:o`, the flight as sampled (world
+states at the robot's world rate of simulated time). Without `--rollout` it films the
+session's first hit into `shot.mp4` beside the journal; `--rollout N` films done rollout N into
+`rollout-N.mp4`. Each video has its contact sheet beside it (the same name, `.png`: six frames
+from the move to the impact). The posture move (the draw) and the nock play at real time, the
+release is held a moment, the flight slowed down ten times; every frame is captioned with the
+phase, the simulated time, θ and, from the impact on, the measured r. A progress bar counts the
+frames on stderr; the video's path is printed on stdout.
+
+Exit status 2 (one line on stderr): no such session, a journal of another version, a session
+without a hit and no `--rollout`, a rollout it does not have, a recording that does not cover
+the rollout (or is no recording).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from apps.progress import progress_bar
+from mesh.cliargs import ArgumentParser, count
+from protocol.errors import ArcheryError
+from protocol.exit_status import BAD_INPUT, OK, for_error
+
+if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
+    from apps.film.replay import FilmFrame, Rollout
+
+__all__ = ["FilmResult", "film_hit", "film_session", "main"]
+
+SHEET_THUMB = (480, 270)  # px, one contact-sheet frame
+
+
+@dataclass(frozen=True)
+class FilmResult:
+    """What was filmed: the video and contact sheet written, the video's frames, the replayed
+    landing's distance from the journal's ground truth (m, None if unknown) and whether the
+    journal recorded the robot's world (else the default world was used)."""
+
+    video: Path
+    sheet: Path
+    frames: int
+    landing_error_m: float | None
+    recorded_world: bool
+
+
+def _cm(values: list[float]) -> str:
+    return ", ".join(f"{100 * v:+.1f}" for v in values)
+
+
+def _lines(rollout: Rollout, frame: FilmFrame) -> list[str]:
+    done, head = rollout.done, rollout.header
+    lines = [
+        f"{head.algorithm} · rollout {done.rollout} of {head.rollouts} · {frame.phase} · "
+        f"t = {frame.sim_time:.2f} s",
+        f"θ = ({_cm(done.theta)}) cm",
+    ]
+    if frame.phase == "impact":
+        hit = "  HIT" if done.hit else ""
+        lines.append(f"r = ({_cm(done.r_m)}) cm, |r| = {100 * done.distance_m:.1f} cm{hit}")
+    return lines
+
+
+def _pick(thumbs: list[tuple[str, object]]) -> list[object]:
+    """Six thumbnails: the start and end of the move, the release, two of the flight and the
+    impact (a film without these phases: six evenly spread)."""
+    by_phase: dict[str, list[object]] = {}
+    for phase, thumb in thumbs:
+        by_phase.setdefault(phase.split(" ")[0], []).append(thumb)
+    move, release = by_phase.get("posture", []), by_phase.get("release", [])
+    flight, impact = by_phase.get("flight", []), by_phase.get("impact", [])
+    if move and release and len(flight) >= 2 and impact:
+        return [
+            move[0],
+            move[-1],
+            release[0],
+            flight[len(flight) // 3],
+            flight[(2 * len(flight)) // 3],
+            impact[0],
+        ]
+    every = [t for _, t in thumbs]
+    return [every[round(i * (len(every) - 1) / 5)] for i in range(6)]
+
+
+def film_session(
+    session: Path,
+    rollout: int | None = None,
+    *,
+    out: Path | None = None,
+    width: int = 960,
+    height: int = 540,
+    fps: int = 30,
+    quiet: bool = False,
+    recording: Path | None = None,
+) -> FilmResult:
+    """Film rollout `rollout` (its first hit if None) of the session at `session`: simulated
+    again from the journal, or as the MCAP `recording` saw it.
+
+    Raises:
+        ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.
+    """
+    import numpy as np
+    from PIL import Image
+
+    from apps.film.recorded import RecordedShot
+    from apps.film.replay import ShotReplay, load_rollout
+    from apps.film.video import ShotVideo, caption, contact_sheet
+    from sim.scene_view import SceneView
+
+    target = load_rollout(session, rollout)
+    folder = session if session.is_dir() else session.parent
+    name = "shot" if rollout is None else f"rollout-{target.done.rollout}"
+    video_path = out or folder / f"{name}.mp4"
+    sheet_path = video_path.with_suffix(".png")
+    replay = ShotReplay(target)
+    source: ShotReplay | RecordedShot = replay
+    if recording is not None:
+        source = RecordedShot(recording, target.header.session, target.done)
+    thumbs: list[tuple[str, object]] = []
+    with (
+        SceneView(replay.world.config.scene, width=width, height=height) as view,
+        ShotVideo(video_path, width, height, fps) as video,
+        progress_bar(disable=quiet, transient=True) as bar,
+    ):
+        task = bar.add_task(f"filming rollout {target.done.rollout}", total=None)
+        for frame in source.frames(fps):
+            image = caption(view.render(frame.qpos), _lines(target, frame))
+            video.add(image, frame.repeat)
+            small = Image.fromarray(image).resize(SHEET_THUMB, Image.Resampling.BILINEAR)
+            thumbs.append((frame.phase, np.asarray(small)))
+            bar.advance(task, frame.repeat)
+        frames = video.frames
+    contact_sheet(_pick(thumbs)).save(sheet_path, optimize=True)  # type: ignore[arg-type]
+    if recording is not None:
+        return FilmResult(video_path, sheet_path, frames, None, True)
+    return FilmResult(
+        video_path, sheet_path, frames, replay.landing_error_m(), replay.recorded_world
+    )
+
+
+def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
+    """After a session: film its hit into `shot.mp4` beside its journal when it finished with a
+    hit and its journal is on this machine; the video's path, or None (why, on stderr, when a
+    hit could not be filmed)."""
+    journal = status.get("journal")
+    if status.get("state") != "finished" or status.get("hit_at") is None or not journal:
+        return None
+    if not Path(journal).is_file():
+        print(
+            f"archery: the journal {journal} is not on this machine (the learner's runs folder): "
+            f"film the hit where it is with `archery film SESSION`",
+            file=sys.stderr,
+        )
+        return None
+    try:
+        result = film_session(Path(journal), quiet=quiet)
+    except (ArcheryError, ImportError, OSError) as exc:
+        print(f"archery: the hit was not filmed: {exc}", file=sys.stderr)
+        return None
+    return str(result.video)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Film a rollout; exit status 0, or 2 on bad input (one line on stderr)."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    parser = ArgumentParser(prog="archery film", description=__doc__)
+    parser.add_argument("session", type=Path, help="a session's folder or its journal.jsonl")
+    parser.add_argument("--rollout", type=count, default=None, help="done rollout N (1-based)")
+    parser.add_argument("--out", type=Path, default=None, help="the video (default: see above)")
+    parser.add_argument(
+        "--recording",
+        type=Path,
+        default=None,
+        metavar="FILE.mcap",
+        help="film the rollout as this recording of the session saw it (its world states)",
+    )
+    parser.add_argument("--width", type=count, default=960, help="frame width (px, even)")
+    parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
+    parser.add_argument("--fps", type=count, default=30, help="video frames per second")
+    args = parser.parse_args(argv)
+    if (
+        args.width % 2
+        or args.height % 2
+        or not (64 <= args.width <= 3840)
+        or not (64 <= args.height <= 2160)
+    ):
+        print(
+            f"archery film: the frame size must be even, 64..3840 x 64..2160 px, got "
+            f"{args.width}x{args.height}",
+            file=sys.stderr,
+        )
+        return BAD_INPUT
+    if not 1 <= args.fps <= 120:
+        print(f"archery film: --fps must be in 1..120, got {args.fps}", file=sys.stderr)
+        return BAD_INPUT
+    if args.rollout is not None and args.rollout < 1:
+        print("archery film: --rollout counts from 1", file=sys.stderr)
+        return BAD_INPUT
+    try:
+        result = film_session(
+            args.session,
+            args.rollout,
+            out=args.out,
+            width=args.width,
+            height=args.height,
+            fps=args.fps,
+            recording=args.recording,
+        )
+    except ArcheryError as exc:
+        print(f"archery film: {exc}", file=sys.stderr)
+        return for_error(exc.code)
+    if not result.recorded_world:
+        print(
+            "archery film: the journal does not record the robot's world (an older learner): "
+            "filmed with the default world",
+            file=sys.stderr,
+        )
+    if result.landing_error_m is not None and result.landing_error_m > 0.01:
+        print(
+            f"archery film: the replayed arrow landed {100 * result.landing_error_m:.1f} cm "
+            f"from the journal's landing",
+            file=sys.stderr,
+        )
+    print(result.video)
+    return OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

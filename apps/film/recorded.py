@@ -1,0 +1,98 @@
+"""One rollout as an `archery record` recording saw it, as the states a film shows.
+
+The recording holds the learner's `learner/rollout:o` records (an attempt's `proposed` record
+opens it, its `done` record closes it) and the robot's `world/state:o` (its qpos, at the
+robot's world rate of simulated time, and one after each landing). The rollout's frames are the
+world states received between its proposed and done records, each shown for the simulated time
+to the next one; a state of the flight is slowed down like a replayed shot's, so the flight is
+as the recording sampled it. Times are seconds.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+from apps.film.replay import POSTURE, SLOW_MOTION, FilmFrame
+from apps.topics.recording import Recording, from_record, open_recording
+from protocol.errors import BadRequest, ConfigError
+from protocol.journal_records import DoneRecord, ProposedRecord
+from protocol.messages import Rollout, WorldState
+
+__all__ = ["RecordedShot"]
+
+_PHASES = {"idle": POSTURE, "nocked": "nock", "flying": "flight", "stuck": "impact"}
+_HOLD_IMPACT_S = 1.5  # s of video the last state is shown
+
+
+class RecordedShot:
+    """The world states of done rollout `done` of session `session` in the recording at `path`.
+
+    Raises:
+        ConfigError: not a recording this version reads.
+        BadRequest: the recording does not cover the rollout (no proposed or done record of
+            it, or no world state between them).
+    """
+
+    def __init__(self, path: Path, session: str, done: DoneRecord) -> None:
+        recording = open_recording(path)
+        robot = recording.metadata.get("robot", "")
+        opened = closed = None
+        states: list[tuple[int, WorldState]] = []
+        for key, message, log_time in _messages(recording, robot):
+            if isinstance(message, Rollout) and message.record.session == session:
+                record = message.record
+                if isinstance(record, ProposedRecord) and record.index == done.index:
+                    opened = log_time
+                elif isinstance(record, DoneRecord) and record.index == done.index:
+                    closed = log_time
+            elif isinstance(message, WorldState) and key.endswith("/world/state:o"):
+                states.append((log_time, message))
+        if opened is None or closed is None:
+            raise BadRequest(
+                f"{path} does not cover rollout {done.rollout} of session {session} (its "
+                f"learner/rollout:o records of attempt {done.index} are not in it)"
+            )
+        self.states = [s for t, s in states if opened <= t <= closed]
+        if not self.states:
+            raise BadRequest(
+                f"{path} holds no world state of rollout {done.rollout} of session {session}"
+            )
+
+    def frames(self, fps: float) -> Iterator[FilmFrame]:
+        """Each recorded state for the simulated time to the next (the flight slowed down)."""
+        for state, following in zip(self.states, [*self.states[1:], None], strict=True):
+            phase = _PHASES.get(state.phase, state.phase)
+            t = state.sim_time or 0.0
+            if following is None:
+                repeat = round(_HOLD_IMPACT_S * fps)
+            else:
+                dt = max(0.0, (following.sim_time or t) - t)
+                slow = SLOW_MOTION if phase == "flight" else 1.0
+                repeat = round(dt * fps / slow)
+            if phase == "flight":
+                phase = f"flight ×{SLOW_MOTION:g}"
+            if repeat:
+                yield FilmFrame(state.qpos.to_numpy(), t, phase, repeat=repeat)
+
+
+def _messages(recording: Recording, robot: str) -> Iterator[tuple[str, object, int]]:
+    """(key, message, log time) of the learner's rollouts and the robot's world states: from
+    the index of a complete file (no frame decoded), else every record of a cut one."""
+    topics = [f"{robot}/learner/rollout:o", f"{robot}/world/state:o"]
+    if not recording.complete:
+        for key, message, log_time in recording.messages(recover=True):
+            if key in topics:
+                yield key, message, log_time
+        return
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    with open(recording.path, "rb") as stream:
+        try:
+            for schema, channel, record in make_reader(stream).iter_messages(topics=topics):
+                if schema is not None:
+                    message = from_record(schema.name, record.data, schema.encoding)
+                    yield channel.topic, message, record.log_time
+        except (McapError, ValueError, EOFError) as exc:
+            raise ConfigError(f"{recording.path}: unreadable record ({exc})") from None

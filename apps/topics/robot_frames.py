@@ -1,0 +1,205 @@
+"""The robot in 3D for a recording: link poses, joint states and the scene's meshes, derived in
+the recorder from the streams it records.
+
+The robot service publishes its full generalized position on `world/state:o` (`WorldState.qpos`,
+30 Hz of simulated time) and each part's joints on `PART/state:o`. The recorder already
+receives them, so it derives the 3D records itself, with the very kinematics the simulator
+runs (the scene compiled from the robot's `SceneConfig`, `mj_kinematics`): the robot's loop
+pays nothing for them, and a recording of any robot of this version gets them. Derived
+channels, next to the recorded keys:
+
+* `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the compiled scene in
+  its parent body's frame: the iCub's moving links (its fixed links, the bow and the target are
+  merged into their parents, as in the simulator) and the arrow; the root `world` is the iCub's
+  `root_link` frame (x backward, y right, z up; m);
+* `ROBOT/joint_states` (`foxglove.JointStates`): per joint state, the part's joints (rad, rad/s);
+  the JSON `PART/state:o` channel stays as it was;
+* `ROBOT/robot_description/scene` (`foxglove.SceneUpdate`, once at the start): one entity per
+  body, locked to its frame, with the robot's meshes embedded (binary STL) and the props'
+  primitives, so Foxglove's 3D panel draws the robot without any file of this machine.
+
+The robot description itself (the URDF the robot runs, `icub-models`' file, its meshes as
+`package://iCub/` URIs) goes into the recording as an attachment, and the scene parameters as a
+metadata record.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from typing import Any
+
+import mujoco
+import numpy as np
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+from apps.topics.foxglove_records import (
+    FRAME_TRANSFORMS,
+    JOINT_STATES,
+    SCENE_UPDATE,
+    frame_transforms,
+    joint_states,
+    stamp,
+    stl_bytes,
+)
+from apps.topics.recording import Derived
+from protocol.messages import JointState, WorldState
+from protocol.messages import Message as ArcheryMessage
+from protocol.robotspec import MODEL_NAME
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
+
+__all__ = [
+    "DESCRIPTION_ATTACHMENT",
+    "RobotFrames",
+    "link_poses",
+]
+
+DESCRIPTION_ATTACHMENT = "robot_description.urdf"
+_DRAWN_GROUPS = (0, 1, 2)  # floor, robot, props; higher groups are markers
+
+
+def _urdf_text() -> str:
+    import icub_models
+
+    with open(icub_models.get_model_file(MODEL_NAME), encoding="utf-8") as file:
+        return file.read()
+
+
+def link_poses(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
+    """Every body's pose (bodies 1…) in its parent body's frame, from `data`'s kinematics:
+    translations (N, 3, m) and rotations (N, 4, w x y z)."""
+    parents = model.body_parentid[1:]
+    child_pos, child_quat = data.xpos[1:], data.xquat[1:]
+    parent_pos, parent_mat = data.xpos[parents], data.xmat[parents].reshape(-1, 3, 3)
+    translations = np.einsum("nji,nj->ni", parent_mat, child_pos - parent_pos)
+    rotations = np.empty((len(parents), 4))
+    inverse = np.empty(4)
+    for i, parent in enumerate(parents):
+        mujoco.mju_negQuat(inverse, data.xquat[parent])
+        mujoco.mju_mulQuat(rotations[i], inverse, child_quat[i])
+    return translations, rotations
+
+
+class RobotFrames:
+    """Derives the 3D records of one robot's recording (see the module docstring).
+
+    Args:
+        robot: the robot's key prefix.
+        scene: the scene the robot runs (its status's `scene`); the model is built with its
+            meshes (about a second).
+    """
+
+    def __init__(self, robot: str, scene: SceneConfig | None = None) -> None:
+        import dataclasses
+
+        self.scene = dataclasses.replace(scene or SceneConfig(), meshes=True)
+        self.model = build_scene(self.scene)
+        self.data = mujoco.MjData(self.model)
+        names = [self.model.body(i).name for i in range(self.model.nbody)]
+        names[0] = "world"
+        self.links: list[tuple[str, str]] = [
+            (names[p], names[b]) for b, p in enumerate(self.model.body_parentid) if b > 0
+        ]
+        self.frames = names
+        self.tf_topic = f"{robot}/tf"
+        self.joints_topic = f"{robot}/joint_states"
+        self.scene_topic = f"{robot}/robot_description/scene"
+        self._world_state = f"{robot}/world/state:o"
+
+    def attachments(self) -> dict[str, tuple[str, bytes]]:
+        """{name: (media type, data)}: the URDF the robot runs."""
+        return {DESCRIPTION_ATTACHMENT: ("application/xml", _urdf_text().encode())}
+
+    def metadata(self) -> dict[str, str]:
+        """The description's metadata record: model, mesh package, scene parameters, topics."""
+        return {
+            "model": MODEL_NAME,
+            "urdf_attachment": DESCRIPTION_ATTACHMENT,
+            "mesh_uris": "package://iCub/ = the icub-models package's share/iCub folder",
+            "scene": json.dumps(self.scene.to_dict()),
+            "tf": self.tf_topic,
+            "joint_states": self.joints_topic,
+            "scene_update": self.scene_topic,
+        }
+
+    def derive(self, key: str, message: ArcheryMessage, ns: int) -> list[Derived]:
+        """The records derived from one recorded message (none for most keys)."""
+        if isinstance(message, WorldState) and key == self._world_state:
+            qpos = message.qpos.to_numpy()
+            if qpos.shape != (self.model.nq,):
+                return []  # another scene: its poses cannot be computed with this model
+            return [Derived(self.tf_topic, FRAME_TRANSFORMS, self.transforms(qpos, ns))]
+        if isinstance(message, JointState):
+            data = joint_states(ns, message.names, message.position, message.velocity)
+            return [Derived(self.joints_topic, JOINT_STATES, data)]
+        return []
+
+    def transforms(self, qpos: np.ndarray, ns: int) -> bytes:
+        """The `foxglove.FrameTransforms` record of every body at `qpos`."""
+        self.data.qpos[:] = qpos
+        mujoco.mj_kinematics(self.model, self.data)
+        translations, rotations = link_poses(self.model, self.data)
+        return frame_transforms(ns, self.links, translations, rotations)
+
+    def scene_update(self, ns: int) -> Derived:
+        """The `foxglove.SceneUpdate` record: every drawn geom, on its body's frame."""
+        model = self.model
+        update = SceneUpdate()
+        entities: dict[int, Any] = {}
+        for g in range(model.ngeom):
+            kind = mujoco.mjtGeom(int(model.geom_type[g]))
+            if model.geom_group[g] not in _DRAWN_GROUPS or kind == mujoco.mjtGeom.mjGEOM_PLANE:
+                continue
+            body = int(model.geom_bodyid[g])
+            entity = entities.get(body)
+            if entity is None:
+                entity = update.entities.add(
+                    frame_id=self.frames[body], id=self.frames[body], frame_locked=True
+                )
+                stamp(entity.timestamp, ns)
+                entities[body] = entity
+            self._add_geom(entity, g)
+        return Derived(self.scene_topic, SCENE_UPDATE, update.SerializeToString())
+
+    def _add_geom(self, entity: object, g: int) -> None:
+        model = self.model
+        kind = mujoco.mjtGeom(int(model.geom_type[g]))
+        mat = model.geom_matid[g]
+        rgba = model.mat_rgba[mat] if mat >= 0 else model.geom_rgba[g]
+        size = model.geom_size[g]
+        if kind == mujoco.mjtGeom.mjGEOM_MESH:
+            mesh = model.geom_dataid[g]
+            vert = model.mesh_vert[
+                model.mesh_vertadr[mesh] : model.mesh_vertadr[mesh] + model.mesh_vertnum[mesh]
+            ]
+            face = model.mesh_face[
+                model.mesh_faceadr[mesh] : model.mesh_faceadr[mesh] + model.mesh_facenum[mesh]
+            ]
+            shape = entity.models.add(  # type: ignore[attr-defined]  # a SceneEntity
+                media_type="model/stl", data=stl_bytes(vert, face), override_color=True
+            )
+            shape.scale.x = shape.scale.y = shape.scale.z = 1.0
+        elif kind in (mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_CAPSULE):
+            shape = entity.cylinders.add()  # type: ignore[attr-defined]  # a SceneEntity
+            capsule = kind == mujoco.mjtGeom.mjGEOM_CAPSULE
+            shape.size.x = shape.size.y = 2 * size[0]
+            shape.size.z = 2 * size[1] + (2 * size[0] if capsule else 0.0)
+            shape.bottom_scale = shape.top_scale = 1.0
+        elif kind == mujoco.mjtGeom.mjGEOM_BOX:
+            shape = entity.cubes.add()  # type: ignore[attr-defined]  # a SceneEntity
+            shape.size.x, shape.size.y, shape.size.z = (2 * float(s) for s in size)
+        elif kind == mujoco.mjtGeom.mjGEOM_SPHERE:
+            shape = entity.spheres.add()  # type: ignore[attr-defined]  # a SceneEntity
+            shape.size.x = shape.size.y = shape.size.z = 2 * size[0]
+        else:
+            return
+        _pose(shape.pose, model.geom_pos[g], model.geom_quat[g])
+        shape.color.r, shape.color.g, shape.color.b, shape.color.a = map(float, rgba)
+
+
+def _pose(target: object, position: Sequence[float], quat: Sequence[float]) -> None:
+    """Set a protobuf `Pose` from a position (m) and a MuJoCo quaternion (w, x, y, z)."""
+    p, q = target.position, target.orientation  # type: ignore[attr-defined]  # a Pose
+    p.x, p.y, p.z = map(float, position)
+    q.w, q.x, q.y, q.z = map(float, quat)
