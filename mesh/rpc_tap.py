@@ -5,7 +5,9 @@ A server's tap publishes each request it handled (`RpcRequest`: the verb and its
 (`protocol.keys.tap_keys`), each with the tap's own sequence number. While no subscriber
 matches a tap key, nothing is decoded or encoded: the cost is one look at Zenoh's matching
 status per call. A reply bigger than `MAX_TAPPED_REPLY` bytes (a camera frame, a PNG) is
-published without its result, which says how many bytes were left out.
+published without its result, which says how many bytes were left out. A lease id (the
+`lease` field of arguments and results: a part's ownership token) is published as
+`REDACTED`, so that a listener learns who asked what, never a token that moves an arm.
 """
 
 from __future__ import annotations
@@ -20,9 +22,10 @@ from mesh.publisher import Publisher
 from protocol.keys import tap_keys
 from protocol.messages import RpcReply, RpcRequest
 
-__all__ = ["MAX_TAPPED_REPLY", "RpcTap"]
+__all__ = ["MAX_TAPPED_REPLY", "REDACTED", "RpcTap"]
 
 MAX_TAPPED_REPLY = 64 * 1024  # bytes of an encoded reply the tap publishes whole
+REDACTED = "(redacted)"  # what a tap publishes in place of a lease id
 log = logging.getLogger("archery.node")
 
 
@@ -52,10 +55,15 @@ class RpcTap:
                 plain: Any = {} if args is None else msgspec.msgpack.decode(args)
                 if not isinstance(plain, dict):
                     plain = {"args": plain}
+                if plain.get("lease"):
+                    plain = plain | {"lease": REDACTED}
                 self.requests.put(RpcRequest(verb=verb, args=plain))
             if self.replies.matching():
                 if size > MAX_TAPPED_REPLY:
                     reply = msgspec.structs.replace(reply, result={"omitted_bytes": size})
+                elif getattr(reply.result, "lease", None):
+                    result = msgspec.structs.replace(reply.result, lease=REDACTED)
+                    reply = msgspec.structs.replace(reply, result=result)
                 self.replies.put(reply)
         except Exception:
             log.exception("could not tap a call on %s", self.requests.key)

@@ -11,20 +11,23 @@ import pytest
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.rpc_server import RpcServer
-from mesh.rpc_tap import MAX_TAPPED_REPLY
+from mesh.rpc_tap import MAX_TAPPED_REPLY, REDACTED
 from protocol.keys import port_of, tap_keys
 from protocol.messages import RpcReply, RpcRequest
 from protocol.verbs.robot import PART_VERBS, LimitsReply, RefSpeedsReply
 from tests.rpc import rpc_call, some_verbs
 
 NAMES = ["a", "b"]
+LEASE = "a1b2c3d4e5f6a7b8"
 
 
 @pytest.fixture
 def served(net: NetConfig) -> Iterator[tuple[Node, Node, RpcServer]]:
     handlers = {
         "getLimits": lambda a: LimitsReply(names=NAMES, min=[-1, -1], max=[1, 1], tolerance=0.0),
-        "setRefSpeeds": lambda a: RefSpeedsReply(names=NAMES, speeds=[0.5, 0.5]),
+        "setRefSpeeds": lambda a: RefSpeedsReply(
+            names=NAMES, speeds=[0.5, 0.5], lease=LEASE if a.claim else ""
+        ),
     }
     with Node("server", net) as server, Node(None, net) as client:
         rpc = server.serve(server.keys.part_rpc("torso"), some_verbs(PART_VERBS, handlers))
@@ -105,3 +108,22 @@ def test_a_big_reply_is_tapped_without_its_result(served: tuple[Node, Node, RpcS
     rpc.tap.tap("grab", None, big, MAX_TAPPED_REPLY + 1)
     _, replies = taps.wait(0, 1)
     assert replies[0].result == {"omitted_bytes": MAX_TAPPED_REPLY + 1} and replies[0].ok
+
+
+def test_lease_ids_are_never_tapped(served: tuple[Node, Node, RpcServer]) -> None:
+    server, client, rpc = served
+    key = server.keys.part_rpc("torso")
+    taps = _Collected()
+    for port in ("requests:o", "replies:o"):
+        message = RpcRequest if port == "requests:o" else RpcReply
+        client.subscribe(f"{server.keys.robot}/torso/{port}", message, callback=taps.add)
+    assert rpc.tap is not None
+    assert rpc.tap.requests.wait_matched(10) and rpc.tap.replies.wait_matched(10)
+    took = rpc_call(client, key, "setRefSpeeds", {"speeds": 0.5, "claim": {"owner": "c"}})
+    assert took["lease"] == LEASE  # the caller gets its lease
+    rpc_call(client, key, "setRefSpeeds", {"speeds": 0.4, "lease": LEASE}, timeout=10)
+    requests, replies = taps.wait(2, 2)
+    assert requests[0].args["claim"] == {"owner": "c"}
+    assert requests[1].args == {"speeds": 0.4, "lease": REDACTED}
+    assert replies[0].result["lease"] == REDACTED
+    assert LEASE not in repr(requests) + repr(replies)
