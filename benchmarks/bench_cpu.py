@@ -148,6 +148,7 @@ def _window(
     (t0, cpu0), (t1, cpu1) = marks[FIRST], marks[LAST]
     rollouts = LAST - FIRST
     return {
+        "journal": str(journal),
         "wall_s": (t1 - t0) / rollouts,
         "cpu_s": {name: (cpu1[name] - cpu0[name]) / rollouts for name in procs},
         "timing_s": {
@@ -205,6 +206,33 @@ def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: 
         _stop(up)
 
 
+def _done(journal: str) -> list[dict[str, Any]]:
+    with open(journal, "rb") as f:
+        return [json.loads(line) for line in f if b'"record":"done"' in line]
+
+
+def _same(after: dict[str, Any], before: dict[str, Any]) -> dict[str, Any]:
+    """How the two trees' sessions of one seed compare, rollout by rollout (the first LAST):
+    θ proposed and the robot's true r (bit for bit), and the detector's r where the true r
+    is the same (largest difference, m)."""
+    pairs = list(zip(_done(after["journal"]), _done(before["journal"]), strict=False))[:LAST]
+    truth = [a["truth_r_m"] == b["truth_r_m"] for a, b in pairs]
+    return {
+        "rollouts": len(pairs),
+        "theta": sum(a["theta"] == b["theta"] for a, b in pairs),
+        "truth": sum(truth),
+        "first_truth_diff": next((i + 1 for i, t in enumerate(truth) if not t), None),
+        "max_dr_m": max(
+            (
+                max(abs(x - y) for x, y in zip(a["r_m"], b["r_m"], strict=True))
+                for (a, b), t in zip(pairs, truth, strict=True)
+                if t
+            ),
+            default=float("nan"),
+        ),
+    }
+
+
 def _total(run: dict[str, Any], names: tuple[str, ...] = MESH) -> float:
     return float(sum(run["cpu_s"][n] for n in names if n in run["cpu_s"]))
 
@@ -254,6 +282,24 @@ def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str
                 cells.append(f"{1e3 * statistics.median(values):.1f}" if values else "–")
             hits = statistics.median(r["hits"] for r in runs)
             print(f"| {tree} | {cond} | " + " | ".join(cells) + f" | {hits:g} |")
+    if "before" not in results:
+        return
+    print(
+        f"\nThe same seed on both trees (the first {LAST} rollouts of each repeat's sessions): "
+        "θ proposed and the robot's true r bit for bit, the detector's r where the true r is "
+        "the same:\n"
+    )
+    print("| condition | repeat | θ identical | true r identical | first that differs | max Δr |")
+    print("|---|---|---|---|---|---|")
+    for cond in conditions:
+        pairs = zip(results["after"][cond], results["before"][cond], strict=True)
+        for k, (a, b) in enumerate(pairs):
+            same = _same(a, b)
+            n = same["rollouts"]
+            print(
+                f"| {cond} | {k + 1} | {same['theta']}/{n} | {same['truth']}/{n} "
+                f"| {same['first_truth_diff'] or '–'} | {1e3 * same['max_dr_m']:.4f} mm |"
+            )
 
 
 def main(argv: list[str] | None = None) -> int:
