@@ -2,11 +2,12 @@
 with one figure of each run's report taken out and summed up per tree.
 
 Run `python -m benchmarks.alternate --before 0d1273b --repeats 5 --figure REGEX MODULE
-[ARGS...]`: `python -m benchmarks.MODULE ARGS...` runs `--repeats` times on each tree (the
-earlier one a `git archive`, each with its own code first on the path: `benchmarks.trees`),
-interleaved; REGEX (one group, a number) picks the figure out of each run's output. Prints each
-run's matching line, then per tree the figure's median [min, max] and the ratio of the medians
-(this tree / the earlier one); every run's whole output goes to `--out`.
+[ARGS...]`: `python -m benchmarks.MODULE ARGS...` runs `--repeats` times on each tree,
+interleaved (the earlier one a `git archive`; each run in its tree's folder, which `python -m`
+puts first on the path, and with its code first on PYTHONPATH: `benchmarks.trees`). REGEX (one
+group, a number) picks the figure out of each run's output. Prints each run's matching line,
+then per tree the figure's median [min, max] and the ratio of the medians (this tree / the
+earlier one); every run's whole output goes to `--out`.
 """
 
 from __future__ import annotations
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
     args = parser.parse_args(argv)
     figure = re.compile(args.figure)
-    out = Path(args.out)
+    out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     values: dict[str, list[float]] = {"before": [], "after": []}
     header()
@@ -47,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
             run = subprocess.run(
                 [sys.executable, "-m", f"benchmarks.{args.module}", *args.args],
                 env=env_for(tree),
-                cwd=ROOT,
+                cwd=tree,
                 capture_output=True,
                 text=True,
             )

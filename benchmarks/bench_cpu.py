@@ -176,6 +176,7 @@ def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: 
                         recorder=True,
                         dashboard=True,
                         env=env,
+                        cwd=out,
                     )
                 )
                 procs |= {n: psutil.Process(pid) for n, pid in observers.pids().items()}
