@@ -286,6 +286,22 @@ def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
         Session.resume(path, FakeRig())
 
 
+def test_a_resumed_session_draws_the_hit_its_journal_holds(tmp_path: Path) -> None:
+    # a learner killed right after a hit, resumed and stopped at once: the hit's frame is asked
+    config = SessionConfig(seed=1, until_hit=False, rollouts=30)
+    reference = _run(config, FakeRig(), tmp_path / "ref")
+    first = next(r for r in reference.journal.state.done if r.hit)
+    crashed = Session.create(config, FakeRig(crash_at=first.index + 1), tmp_path, session_id="s")
+    with pytest.raises(Crash):
+        crashed.run(threading.Event())
+    (tmp_path / "s" / "hit.png").unlink()  # as after SIGKILL: nothing ran on the way out
+    rig, stop = FakeRig(), threading.Event()
+    stop.set()
+    resumed = Session.resume(tmp_path / "s", rig, session="s")
+    assert resumed.run(stop).state == "stopped" and rig.calls == []
+    assert rig.framed == [first.shot] and (tmp_path / "s" / "hit.png").exists()
+
+
 def test_stop_then_resume(tmp_path: Path) -> None:
     stop = threading.Event()
     rig = FakeRig()

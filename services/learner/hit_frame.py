@@ -6,7 +6,9 @@ the frame's width, and the learner a PNG decode and encode: tens of ms of CPU, f
 the next hit replaces. So a hit only marks itself as the latest; its picture is asked of the
 detector (by the measurement's seq: the detector keeps its last `KEPT_FRAMES` measured frames)
 when the session ends, or earlier, before the detector would drop that frame (`SAVE_AFTER`
-attempts later, with room for measurements of other clients).
+attempts later, with room for measurements of other clients). A resumed session starts from the
+latest hit its journal holds, whose frame the detector may still keep (a learner restarted
+right after a hit).
 """
 
 from __future__ import annotations
@@ -17,9 +19,9 @@ from pathlib import Path
 from protocol.journal_records import DoneRecord
 from protocol.verbs.detector import KEPT_FRAMES
 from services.learner.errors import RigError
+from services.learner.journal import JournalState
 from services.learner.report import caption_png, hit_caption
-from services.learner.rig_protocol import Rig
-from services.learner.rollout_step import Measured
+from services.learner.rig_protocol import Measurement, Rig, Shot
 
 __all__ = ["SAVE_AFTER", "LatestHit"]
 
@@ -41,13 +43,23 @@ class LatestHit:
         self.directory = directory
         self.session_id = session_id
         self.path: Path | None = None  # hit.png once saved
-        self._pending: tuple[Measured, DoneRecord] | None = None
+        self._pending: tuple[Shot, Measurement, DoneRecord] | None = None
         self._attempts = 0  # attempts started since the pending hit
 
-    def hit(self, measured: Measured, record: DoneRecord) -> None:
-        """`record` is a hit (measured as `measured`): it replaces any earlier one unsaved."""
-        self._pending = (measured, record)
+    def hit(self, shot: Shot, measurement: Measurement, record: DoneRecord) -> None:
+        """`record` is a hit (`shot`, measured as `measurement`): it replaces any earlier one
+        unsaved."""
+        self._pending = (shot, measurement, record)
         self._attempts = 0
+
+    def resumed(self, state: JournalState) -> None:
+        """A resumed session: its journal's latest hit is pending, if the detector's reply
+        was journaled with it (its seq names the frame)."""
+        hits = [d for d in state.done if d.hit and d.detection is not None]
+        if hits:
+            done = hits[-1]
+            shot = Shot(done.shot or 0, 0.0, 0.0, done.outcome or "")
+            self.hit(shot, Measurement("ok", list(done.r_m), dict(done.detection or {})), done)
 
     def attempt(self) -> None:
         """An attempt starts (it may measure): save the pending hit's frame once `SAVE_AFTER`
@@ -62,9 +74,9 @@ class LatestHit:
         a frame the detector no longer has, or a file that cannot be written, is logged."""
         if self._pending is None:
             return
-        (measured, record), self._pending = self._pending, None
+        (shot, measurement, record), self._pending = self._pending, None
         try:
-            png = self.rig.hit_frame(measured.shot, measured.measurement)
+            png = self.rig.hit_frame(shot, measurement)
         except RigError as exc:
             log.warning("no frame of the hit of rollout %d: %s", record.rollout, exc.message)
             return

@@ -118,7 +118,9 @@ class Session:
         attempt left open is re-run with its θ (`session_setup.reopened_session`: its errors).
         """
         journal, learner, config = reopened_session(path, session)
-        return cls(journal, learner, config, rig, **kw)
+        resumed = cls(journal, learner, config, rig, **kw)
+        resumed.latest_hit.resumed(journal.state)
+        return resumed
 
     # -- status ---------------------------------------------------------------------------------
     @property
@@ -293,7 +295,7 @@ class Session:
         self.waits.recovered()
         timing = dict(record.timing or {})
         if record.hit:
-            self.latest_hit.hit(measured, record)
+            self.latest_hit.hit(measured.shot, measured.measurement, record)
         before = time.perf_counter()
         timing["rollout_s"] = before - attempt.started
         done = self.journal.append(msgspec.structs.replace(record, timing=timing))
