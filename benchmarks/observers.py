@@ -101,10 +101,21 @@ class Observers:
         out: the recorder's file.
         recorder: run `archery record` (every key of the robot).
         dashboard: run `archery dashboard` and a client polling it.
+        env: the observers' environment (default this process's), e.g. an earlier tree's.
+        cwd: their working folder (default this process's): `python -m` imports from it first,
+            so one outside any tree for an earlier tree's code.
     """
 
     def __init__(
-        self, endpoint: str, robot: str, out: Path, *, recorder: bool, dashboard: bool
+        self,
+        endpoint: str,
+        robot: str,
+        out: Path,
+        *,
+        recorder: bool,
+        dashboard: bool,
+        env: dict[str, str] | None = None,
+        cwd: Path | None = None,
     ) -> None:
         self.said: list[str] = []
         self._recorder: subprocess.Popen[str] | None = None
@@ -114,12 +125,24 @@ class Observers:
         try:
             if recorder:
                 self._recorder = spawn(
-                    "record", "--out", str(out), *flags, ready="archery record: recording"
+                    "record",
+                    "--out",
+                    str(out),
+                    *flags,
+                    ready="archery record: recording",
+                    env=env,
+                    cwd=cwd,
                 )
             if dashboard:
                 port = free_tcp_endpoint().rsplit(":", 1)[1]
                 self._dashboard = spawn(
-                    "dashboard", "--port", port, *flags, ready="archery dashboard: serving"
+                    "dashboard",
+                    "--port",
+                    port,
+                    *flags,
+                    ready="archery dashboard: serving",
+                    env=env,
+                    cwd=cwd,
                 )
                 self._client = PageClient(f"http://127.0.0.1:{port}/")
         except BaseException:

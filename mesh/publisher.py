@@ -49,16 +49,26 @@ class Publisher(Generic[M]):
 
     def put(self, message: M) -> M:
         """Stamp and publish `message`; returns the stamped copy that was sent."""
+        with self._lock:
+            stamped = self._stamped(message)
+            encode_into(stamped, self._buffer)
+            self._pub.put(self._buffer)
+        return stamped
+
+    def stamp(self, message: M) -> M:
+        """Stamp and count `message` as `put` does, without sending it: for a latest-wins
+        message that no subscriber matches (a camera frame only a `grab` wants), which would
+        be encoded, copied into Zenoh and dropped there."""
+        with self._lock:
+            return self._stamped(message)
+
+    def _stamped(self, message: M) -> M:
         if not isinstance(message, self.message_type):
             raise TypeError(
                 f"{self.key} carries {self.message_type.__name__}, got {type(message).__name__}"
             )
-        with self._lock:
-            self._seq += 1
-            stamped = msgspec.structs.replace(message, seq=self._seq, stamp=time.time())
-            encode_into(stamped, self._buffer)
-            self._pub.put(self._buffer)
-        return stamped
+        self._seq += 1
+        return msgspec.structs.replace(message, seq=self._seq, stamp=time.time())
 
     @property
     def count(self) -> int:

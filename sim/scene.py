@@ -68,6 +68,10 @@ class ScenePhysics:
         self._arrow_qpos = int(arrow.qposadr[0])
         self._arrow_dof = int(arrow.dofadr[0])
         self.arrow_mass = float(model.body_mass[self._arrow_body])
+        # views of the arrow's state in the data, read and written at every step of a flight
+        a, d = self._arrow_qpos, self._arrow_dof
+        self._tip, self._velocity = self.data.qpos[a : a + 3], self.data.qvel[d : d + 3]
+        self._force = self.data.xfrc_applied[self._arrow_body]
 
     # -- joints ---------------------------------------------------------------------------
     def _part(self, part: str) -> str:
@@ -150,11 +154,11 @@ class ScenePhysics:
 
     def arrow_tip(self) -> np.ndarray:
         """The arrow tip's position (m): the free joint's translation, exact after any step."""
-        return self.data.qpos[self._arrow_qpos : self._arrow_qpos + 3].copy()
+        return self._tip.copy()
 
     def arrow_velocity(self) -> np.ndarray:
         """The arrow's linear velocity (m/s)."""
-        return self.data.qvel[self._arrow_dof : self._arrow_dof + 3].copy()
+        return self._velocity.copy()
 
     def set_arrow_velocity(self, linear: np.ndarray, angular: np.ndarray | None = None) -> None:
         """Set the arrow's linear (m/s, world) and angular (rad/s, body frame) velocity."""
@@ -165,8 +169,8 @@ class ScenePhysics:
 
     def set_arrow_force(self, force: np.ndarray) -> None:
         """Apply `force` (N, world frame) at the arrow's centre of mass until changed."""
-        self.data.xfrc_applied[self._arrow_body, :3] = force
-        self.data.xfrc_applied[self._arrow_body, 3:] = 0.0
+        self._force[:3] = force
+        self._force[3:] = 0.0
 
     # -- time and integration ---------------------------------------------------------------
     @property

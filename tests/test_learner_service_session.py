@@ -23,6 +23,7 @@ from protocol.journal_records import (
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SessionConfig
 from services.learner.errors import RigError, ServiceLost
+from services.learner.hit_frame import SAVE_AFTER
 from services.learner.journal import JournalError, JournalState, read_records
 from services.learner.report import interruptions, write_report
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
@@ -57,6 +58,8 @@ class FakeRig:
         self.theta = np.zeros(3)
         self.shots = 0
         self.waits = 0
+        self.framed: list[int] = []  # the shots whose frame was asked for
+        self.frame_error = False
 
     def missing(self) -> list[str]:
         return sorted(self.gone)
@@ -110,6 +113,9 @@ class FakeRig:
         return (GAIN @ (self.theta - AIM)).tolist()
 
     def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
+        self.framed.append(shot.shot)
+        if self.frame_error:
+            raise RigError("no kept frame of measurement 3", code="bad_request")
         return cv2.imencode(".png", np.full((72, 128, 3), 90, np.uint8))[1].tobytes()
 
 
@@ -151,6 +157,37 @@ def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
     assert [r.kind for r in published] == [r.kind for r in records[1:]]
     assert isinstance(published[1], DoneRecord) and "journal_s" in (published[1].timing or {})
     assert (tmp_path / "s" / "hit.png").exists()
+
+
+def test_only_the_latest_hit_is_drawn_once(tmp_path: Path) -> None:
+    # past the hit: most rollouts hit, but a frame is asked for only where a hit is the
+    # session's last or would be dropped by the detector before the next hit
+    rig = FakeRig()
+    session = _run(SessionConfig(seed=1, rollouts=25, until_hit=False), rig, tmp_path)
+    done = [
+        r for r in read_records(tmp_path / "s" / "journal.jsonl")[0] if isinstance(r, DoneRecord)
+    ]
+    hits = [r for r in done if r.hit]
+    assert len(hits) > 10
+    expected = [
+        a.shot
+        for a, b in zip(hits, [*hits[1:], None], strict=True)
+        if b is None or b.index - a.index >= SAVE_AFTER
+    ]
+    assert rig.framed == expected and rig.framed[-1] == hits[-1].shot
+    assert session.hit_frame_path == tmp_path / "s" / "hit.png"
+    assert session.hit_frame_path.read_bytes().startswith(b"\x89PNG")
+
+
+def test_a_hit_frame_the_detector_lost_is_logged_and_the_session_goes_on(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    rig = FakeRig()
+    rig.frame_error = True
+    session = _run(SessionConfig(seed=1), rig, tmp_path)
+    assert session.status().ended == "hit" and len(rig.framed) == 1
+    assert session.hit_frame_path is None and not (tmp_path / "s" / "hit.png").exists()
+    assert "no frame of the hit of rollout" in caplog.text
 
 
 def test_budget_ends_without_hit(tmp_path: Path) -> None:
@@ -250,6 +287,22 @@ def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
     assert isinstance(records[-1], EndRecord)
     with pytest.raises(JournalError, match="has ended"):
         Session.resume(path, FakeRig())
+
+
+def test_a_resumed_session_draws_the_hit_its_journal_holds(tmp_path: Path) -> None:
+    # a learner killed right after a hit, resumed and stopped at once: the hit's frame is asked
+    config = SessionConfig(seed=1, until_hit=False, rollouts=30)
+    reference = _run(config, FakeRig(), tmp_path / "ref")
+    first = next(r for r in reference.journal.state.done if r.hit)
+    crashed = Session.create(config, FakeRig(crash_at=first.index + 1), tmp_path, session_id="s")
+    with pytest.raises(Crash):
+        crashed.run(threading.Event())
+    (tmp_path / "s" / "hit.png").unlink()  # as after SIGKILL: nothing ran on the way out
+    rig, stop = FakeRig(), threading.Event()
+    stop.set()
+    resumed = Session.resume(tmp_path / "s", rig, session="s")
+    assert resumed.run(stop).state == "stopped" and rig.calls == []
+    assert rig.framed == [first.shot] and (tmp_path / "s" / "hit.png").exists()
 
 
 def test_stop_then_resume(tmp_path: Path) -> None:

@@ -68,6 +68,22 @@ def test_latest_wins_stream(pair: tuple[Node, Node]) -> None:
     assert last.stamp > 0 and sub.age() < 5
 
 
+def test_a_stamped_message_counts_but_is_not_sent(pair: tuple[Node, Node]) -> None:
+    # what the camera does with a frame no subscriber wants: stamped and counted, never sent
+    server, client = pair
+    key = server.keys.state("torso")
+    pub = server.publisher(key, JointState)
+    sub = client.subscribe(key, JointState, mode="fifo")
+    assert pub.wait_matched(5)
+    kept = pub.stamp(_state(1))
+    assert kept.seq == 1 and kept.stamp > 0 and pub.count == 1
+    sent = pub.put(_state(2))
+    assert sent.seq == 2 and sub.get(timeout=5) == sent  # in order: the stamped one never came
+    with pytest.raises(TypeError, match="carries JointState, got WorldEvent"):
+        pub.stamp(WorldEvent(kind="reset", shot=0, sim_time=0.0))
+    assert pub.count == 2
+
+
 def test_events_are_lossless_and_ordered(pair: tuple[Node, Node]) -> None:
     server, client = pair
     key = server.keys.world_events()

@@ -8,7 +8,7 @@ from msgspec import Meta
 
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["DETECTOR_VERBS", "MAX_TIMEOUT"]
+__all__ = ["DETECTOR_VERBS", "KEPT_FRAMES", "MAX_TIMEOUT"]
 
 MAX_TIMEOUT = 120.0  # s
 
@@ -40,8 +40,19 @@ class CalibrateArgs(Args, frozen=True):
     ) = None
 
 
+#: The detector keeps the frames of its last KEPT_FRAMES measurements for `frame`.
+KEPT_FRAMES = 8
+
+
 class FrameArgs(Args, frozen=True):
     overlay: bool = True
+    seq: (
+        Annotated[
+            int,
+            Meta(ge=1, description="the measurement's seq (its reply's); absent: the last"),
+        ]
+        | None
+    ) = None
 
 
 class MeasureReply(Reply, frozen=True):
@@ -93,7 +104,7 @@ DETECTOR_VERBS = VerbTable(
             "frame",
             FrameArgs,
             FrameReply,
-            "the last measured frame as PNG (with overlay)",
+            "a recently measured frame as PNG (with overlay): the last, or that of `seq`",
             reads=True,
         ),
         Verb(

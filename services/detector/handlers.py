@@ -1,8 +1,13 @@
 """The detector's RPC verbs on `ROBOT/detector/rpc:i` (`protocol.verbs.detector`): measure,
-calibrate, frame, status; and the colour model they share (guarded by one lock)."""
+calibrate, frame, status; and the colour model they share (guarded by one lock).
+
+The frames of the last `KEPT_FRAMES` measurements are kept (by their detection's seq), so a
+client may ask for a measurement's picture later (`frame` with `seq`): the learner draws only
+the latest hit's, once, instead of every hit's."""
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import threading
@@ -63,7 +68,10 @@ class DetectorHandlers:
         self._calibrating = threading.Lock()
         self.detector: Detector | None = None
         self._model: ColourModel | None = None
-        self._last: tuple[np.ndarray, Detection, Detector] | None = None
+        # the last KEPT_FRAMES measured frames by their detection's seq, the newest last
+        self._kept: collections.OrderedDict[int, tuple[np.ndarray, Detection, Detector]] = (
+            collections.OrderedDict()
+        )
         self._measured = 0
         if config.model and Path(config.model).exists():
             self._set_model(ColourModel.load(config.model), save=False)
@@ -145,7 +153,6 @@ class DetectorHandlers:
         found = detector.detect(rgb)
         detect_s = time.perf_counter() - grabbed_at
         with self._lock:
-            self._last = (rgb, found, detector)
             self._measured += 1
         message = self._hits.put(
             DetectionMessage(
@@ -159,16 +166,28 @@ class DetectorHandlers:
                 sim_time=image.sim_time,
             )
         )
+        with self._lock:
+            self._kept[message.seq] = (rgb, found, detector)
+            while len(self._kept) > dv.KEPT_FRAMES:
+                self._kept.popitem(last=False)
         timing = {"grab_s": round(grabbed_at - started, 6), "detect_s": round(detect_s, 6)}
         return dv.MeasureReply(**msgspec.to_builtins(message), frame=image.frame, timing=timing)
 
     def frame(self, args: dv.FrameArgs) -> dv.FrameReply:
-        """The last measured frame as PNG, with the detection drawn when `overlay`."""
+        """The last measured frame (or that of the measurement `seq`, one of the last
+        `KEPT_FRAMES`) as PNG, with the detection drawn when `overlay`."""
         with self._lock:
-            last = self._last
-        if last is None:
-            raise BadRequest("no frame measured yet: call `measure` first")
-        rgb, found, detector = last
+            if not self._kept:
+                raise BadRequest("no frame measured yet: call `measure` first")
+            seq = next(reversed(self._kept)) if args.seq is None else args.seq
+            kept = self._kept.get(seq)
+            seqs = f"{next(iter(self._kept))}..{next(reversed(self._kept))}"
+        if kept is None:
+            raise BadRequest(
+                f"no kept frame of measurement {seq}: the detector keeps those of its last "
+                f"{dv.KEPT_FRAMES} measurements ({seqs})"
+            )
+        rgb, found, detector = kept
         if args.overlay:
             rgb = draw_overlay(rgb, found, detector.memberships(rgb))
         return dv.FrameReply(png=encode_png(rgb), status=found.status)

@@ -260,10 +260,12 @@ class MeshRig:
         return None if found is None or found.impact_m is None else list(found.impact_m)
 
     def hit_frame(self, shot: Shot, measurement: Measurement) -> bytes | None:
-        """The detector's last measured frame with its overlay (PNG): called right after the
-        hit's `measure`, before anything else is measured."""
+        """The frame `measurement` measured, with its overlay (PNG): one of the detector's last
+        `KEPT_FRAMES` measurements (by its seq; the last one when the reply names none)."""
         key = self.keys.detector_rpc()
-        result, _ = self._call("detector", key, dv.DETECTOR_VERBS["frame"], dv.FrameArgs())
+        seq = measurement.detection.get("seq")
+        args = dv.FrameArgs(seq=seq if isinstance(seq, int) and seq >= 1 else None)
+        result, _ = self._call("detector", key, dv.DETECTOR_VERBS["frame"], args)
         png = result.png
         if not png.startswith(b"\x89PNG"):
             log.warning("the detector's frame reply holds no PNG")

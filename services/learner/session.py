@@ -5,7 +5,8 @@ A rollout (attempt `index`): θ from the learner (or the retry θ an abort left)
 than the landing) → `tell(θ, r)` → journal `done` with the learner's state. Each step of an
 attempt is the pure `services.learner.rollout_step`; this module runs them: it journals and
 publishes each record, waits for lost services (`services.learner.service_wait`), keeps the
-session's phase and status, saves the frame of a hit and loops until the session ends. The
+session's phase and status, keeps the latest hit for its frame (`hit_frame`: saved once,
+when the session ends) and loops until the session ends. The
 services are reached through a `Rig` (`services.learner.rig_protocol`; the mesh in
 `services.learner.rig`, fakes in tests), so this module knows no Zenoh.
 
@@ -29,7 +30,6 @@ import msgspec
 import numpy as np
 
 from protocol.journal_records import (
-    DoneRecord,
     EndRecord,
     JournalRecord,
     ProposedRecord,
@@ -41,8 +41,8 @@ from services.learner.abort_policy import SERVICE_LOST, streak_failure
 from services.learner.algorithms.base import Learner
 from services.learner.config import SessionConfig
 from services.learner.errors import RigError, ServiceLost, SessionFailed
+from services.learner.hit_frame import LatestHit
 from services.learner.journal import Journal, JournalError
-from services.learner.report import caption_png, hit_caption
 from services.learner.rig_protocol import Rig
 from services.learner.rollout_step import (
     Attempt,
@@ -90,7 +90,7 @@ class Session:
         self.directory = journal.path.parent
         self.on_record = on_record
         self.service_wait = service_wait
-        self.hit_frame_path: Path | None = None
+        self.latest_hit = LatestHit(rig, self.directory, self.session_id)
         self.waits = ServiceWait(rig, service_wait, self._show_waiting, self.session_id)
         self._lock = threading.Lock()
         self._phase = "starting"
@@ -118,7 +118,9 @@ class Session:
         attempt left open is re-run with its θ (`session_setup.reopened_session`: its errors).
         """
         journal, learner, config = reopened_session(path, session)
-        return cls(journal, learner, config, rig, **kw)
+        resumed = cls(journal, learner, config, rig, **kw)
+        resumed.latest_hit.resumed(journal.state)
+        return resumed
 
     # -- status ---------------------------------------------------------------------------------
     @property
@@ -157,6 +159,11 @@ class Session:
             self._set("running")
 
     # -- the loop -------------------------------------------------------------------------------
+    @property
+    def hit_frame_path(self) -> Path | None:
+        """`hit.png` once the latest hit's frame is saved (at the latest when `run` ends)."""
+        return self.latest_hit.path
+
     def _record(self, record: JournalRecord) -> JournalRecord:
         """Journal `record`, then hand it to `on_record`."""
         record = self.journal.append(record)
@@ -193,6 +200,7 @@ class Session:
             log.exception("session %s failed", self.session_id)
             self._set("failed", f"internal error: {shown(exc)}")
         finally:
+            self.latest_hit.save()
             self.journal.close()
         return self.status()
 
@@ -249,6 +257,7 @@ class Session:
     def _attempt(self, stop: threading.Event) -> None:
         """One attempt: proposed (journaled unless a crash left it open), shot, then aborted
         or done (journaled), as `rollout_step` builds them."""
+        self.latest_hit.attempt()
         attempt = next_attempt(self.learner, self.journal.state)
         before = time.perf_counter()
         if attempt.rerun:
@@ -280,15 +289,13 @@ class Session:
             self.waits.until_alive(stop)
 
     def _done(self, attempt: Attempt, measured: Measured) -> None:
-        """Journal the done rollout (after saving the frame of a hit) and publish it with the
-        journal's time."""
+        """Journal the done rollout (a hit becomes the latest, whose frame is saved later) and
+        publish it with the journal's time."""
         record = done_record(self.learner, self.journal.state, self.config, attempt, measured)
         self.waits.recovered()
         timing = dict(record.timing or {})
-        if record.hit:  # the frame of the latest hit, taken before the next nock takes the arrow
-            before = time.perf_counter()
-            self._save_hit_frame(measured, record)
-            timing["hit_frame_s"] = time.perf_counter() - before
+        if record.hit:
+            self.latest_hit.hit(measured.shot, measured.measurement, record)
         before = time.perf_counter()
         timing["rollout_s"] = before - attempt.started
         done = self.journal.append(msgspec.structs.replace(record, timing=timing))
@@ -303,20 +310,3 @@ class Session:
             100 * record.distance_m,
             " HIT" if record.hit else "",
         )
-
-    def _save_hit_frame(self, measured: Measured, done: DoneRecord) -> None:
-        """`hit.png` beside the journal: the measured frame of the hit, captioned."""
-        try:
-            png = self.rig.hit_frame(measured.shot, measured.measurement)
-        except RigError as exc:
-            log.warning("no frame of the hit: %s", exc.message)
-            return
-        if png is None:
-            return
-        path = self.directory / "hit.png"
-        try:
-            path.write_bytes(caption_png(png, hit_caption(self.session_id, done)))
-        except (OSError, ValueError) as exc:
-            log.warning("could not save the hit frame: %s", exc)
-            return
-        self.hit_frame_path = path

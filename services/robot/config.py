@@ -32,8 +32,10 @@ class RobotConfig:
         seed: seed of the shot noise at start-up (`reset {"seed"}` reseeds); None: fresh entropy.
         rtf: real-time factor: 1.0 paces simulated time with the wall clock (for watching),
             0 runs as fast as possible and only while something moves (see `pacing`).
-        state_rate: joint state streams per simulated second (Hz).
-        world_rate: world state messages per simulated second (Hz); also one after each landing.
+        state_rate: joint state streams per simulated second (Hz); at rtf 0 also at most this
+            many per wall second.
+        world_rate: world state messages per simulated second (Hz; at rtf 0 also at most this
+            many per wall second); also one after each nock, release, landing and reset.
         watchdog: a command stream (commands overtaking unfinished moves) with no command for
             this long (wall s, from the last command's arrival) holds the part at its measured
             positions (`watchdog`); 0 switches it off.

@@ -1,8 +1,14 @@
 """When the simulation loop publishes and how fast simulated time runs.
 
 * Streams are scheduled in simulated time: joint states every 1/state_rate s, the world state
-  every 1/world_rate s. Physics advances in chunks that end on the next publication (at most
+  every 1/world_rate s. Physics advances in chunks that end on the next grid point (at most
   `MAX_CHUNK` s of sim time).
+* rtf 0: a moving world runs some 50× faster than the wall clock, so the grid would put out
+  thousands of states per wall second that no subscriber can use and every one pays for (the
+  robot, the router and each subscriber handle every message). A grid point then goes out only
+  once its stream's period has passed in wall time too (at most state_rate and world_rate per
+  wall second, as at rest); the chunks, and so the physics, stay those of the grid, and the
+  state that ends a motion goes out at once (the loop publishes it on coming to rest).
 * rtf > 0: simulated time advances at rtf × the wall clock; a simulation that falls more than
   `MAX_LAG` s behind re-anchors rather than racing to catch up.
 * At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams at their
@@ -55,7 +61,8 @@ class Pacing:
 
     def due(self, sim_time: float) -> tuple[bool, bool]:
         """After a chunk ending at `sim_time`: whether joint states and a world state are due
-        (each due publication moves its grid on)."""
+        (each grid point reached moves its grid on; at rtf 0 a grid point is due only once its
+        stream's period has passed in wall time since the stream's last publication)."""
         half = 0.5 * self.dt
         joints = sim_time >= self._next_state - half
         if joints:
@@ -63,6 +70,8 @@ class Pacing:
         world = sim_time >= self._next_world - half
         if world:
             self._next_world = max(self._next_world + self.world_period, sim_time + half)
+        if self.rtf == 0 and (joints or world):
+            joints, world = (a and b for a, b in zip((joints, world), self.beats(), strict=True))
         return joints, world
 
     # -- wall time ---------------------------------------------------------------------------
@@ -78,11 +87,13 @@ class Pacing:
         return anchor[0] + (sim_time - anchor[1]) / self.rtf
 
     def sent_joints(self) -> None:
-        """Joint states went out: the next idle repetition is one period (wall) away."""
+        """Joint states went out: the next idle repetition (and at rtf 0 the next grid point
+        that goes out) is one period (wall) away."""
         self._beat_state = time.monotonic() + self.state_period
 
     def sent_world(self) -> None:
-        """A world state went out: the next idle repetition is one period (wall) away."""
+        """A world state went out: the next idle repetition (and at rtf 0 the next grid point
+        that goes out) is one period (wall) away."""
         self._beat_world = time.monotonic() + self.world_period
 
     def idle_wait(self) -> float:

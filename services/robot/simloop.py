@@ -6,8 +6,9 @@ between physics chunks, never in the middle of one.
 
 Pacing (`pacing`): streams on a grid of simulated time, rtf × the wall clock when rtf > 0. At
 rtf 0 (default) the world runs as fast as possible while something moves (a part not done, or
-an arrow in flight) and not at all when everything is at rest: the thread then sleeps on its
-job queue and repeats the unchanged state on the streams at their rates in wall time. A command
+an arrow in flight), its streams' grid points going out at most at their rates in wall time
+too, and not at all when everything is at rest: the thread then sleeps on its job queue and
+repeats the unchanged state on the streams at their rates in wall time. A command
 that wakes the idle robot starts the motion at once, unless it announces a batch
 (`JointCommand.batch` > 1: a controller's three part commands): then the loop waits for the
 rest of the batch, at most `batch_window` wall seconds, and starts them at one simulated time,

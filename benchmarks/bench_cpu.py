@@ -1,0 +1,354 @@
+"""Benchmark of the CPU one rollout costs the whole mesh, as users run it, against an earlier
+tree in the same run.
+
+Run `python -m benchmarks.bench_cpu [--repeats 5] [--before 0d1273b] [--rollouts 42]`. Each
+repeat runs, for each tree (this one, "after", and `git archive BEFORE`, "before", alternating
+which goes first) and each condition (nothing watching; `archery record` and `archery dashboard`
+with a client polling the dashboard as its page does, `benchmarks.observers`):
+
+* `archery up` on a free loopback port (the robot at rtf 0, as `mesh.toml`), started as a user
+  does, with the tree's code first on the path (`benchmarks.trees.env_for`);
+* `archery learn --algo archer --no-until-hit --rollouts N --seed REPEAT`: an ARCHER session
+  that goes on past its hit, so the work of every hit (its frame) is in;
+* the kernel's CPU accounting (user + system, psutil) of the router, each of the five services
+  (and the observers), read when the journal holds its 10th done rollout and again at its 40th:
+  the start-up and the end-of-session report are left out. The journal is watched by reading
+  it as it grows (every `POLL` s).
+
+Prints, per tree and condition, the CPU ms per rollout summed over the router and the five
+services (median [min, max] over the repeats), its ratio after / before within each repeat, the
+wall time per rollout, the cores kept busy, the split per process, and the medians of the
+journal's per-rollout timings (where a rollout's wall time goes). Writes
+`runs/bench-cpu/bench.json`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import psutil
+
+from benchmarks.observers import Observers
+from benchmarks.spread import median_spread
+from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
+from mesh.router import free_tcp_endpoint
+
+__all__ = ["main"]
+
+ARCHERY = (sys.executable, "-m", "apps.cli")
+MESH = ("router", "robot", "controller", "camera", "detector", "learner")
+FIRST, LAST = 10, 40  # the window: from the 10th to the 40th journaled done rollout
+POLL = 0.005  # s between reads of the growing journal
+TIMINGS = ("posture_s", "release_s", "measure_s", "detector_grab_s", "hit_frame_s", "rollout_s")
+
+
+def _cpu(procs: dict[str, psutil.Process]) -> dict[str, float]:
+    """CPU seconds (user + system) each process has used so far."""
+    out = {}
+    for name, proc in procs.items():
+        times = proc.cpu_times()
+        out[name] = times.user + times.system
+    return out
+
+
+def _children(up: subprocess.Popen[str]) -> dict[str, psutil.Process]:
+    """`archery up`'s children by service (the router's is `router`)."""
+    out = {}
+    for child in psutil.Process(up.pid).children():
+        args = child.cmdline()
+        verb = args[args.index("apps.cli") + 1]
+        out[verb] = child
+    missing = set(MESH) - set(out)
+    if missing:
+        raise RuntimeError(f"archery up runs no {', '.join(sorted(missing))}")
+    return out
+
+
+def _start_up(env: dict[str, str], endpoint: str, out: Path) -> subprocess.Popen[str]:
+    """`archery up` on `endpoint` with the tree of `env`, returned once all are alive."""
+    up = subprocess.Popen(
+        [*ARCHERY, "up", "--listen", endpoint, "--logs", str(out / "logs"), "--runs", "runs"],
+        env=env,
+        cwd=out,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    assert up.stdout is not None
+    for line in up.stdout:
+        if "all alive" in line:
+            return up
+    up.wait()
+    raise RuntimeError(f"archery up ended with status {up.returncode} before all were alive")
+
+
+def _stop(proc: subprocess.Popen[str]) -> None:
+    """SIGINT a child and wait for it (SIGKILL after 60 s)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def _done_lines(path: Path, offset: int, count: int) -> tuple[int, int, list[dict[str, Any]]]:
+    """Read the complete lines of `path` from byte `offset`: the new offset, the done count
+    and the done records among them."""
+    with path.open("rb") as f:
+        f.seek(offset)
+        data = f.read()
+    end = data.rfind(b"\n") + 1
+    done = []
+    for line in data[:end].splitlines():
+        if b'"record":"done"' in line:
+            done.append(json.loads(line))
+    return offset + end, count + len(done), done
+
+
+def _window(
+    learn: subprocess.Popen[str], runs: Path, procs: dict[str, psutil.Process]
+) -> dict[str, Any]:
+    """Wait for the session's journal to hold its FIRST-th and LAST-th done rollouts; the CPU
+    seconds of each process and the wall seconds between them, and the window's done records."""
+    journal = None
+    while journal is None:
+        found = sorted(runs.glob("*/journal.jsonl"))
+        if found:
+            journal = found[0]
+        elif learn.poll() is not None:
+            raise RuntimeError(f"archery learn ended with status {learn.returncode}")
+        time.sleep(POLL)
+    offset, count, records = 0, 0, []
+    marks: dict[int, tuple[float, dict[str, float]]] = {}
+    while len(marks) < 2:
+        offset, count, done = _done_lines(journal, offset, count)
+        for mark in (FIRST, LAST):
+            if count >= mark and mark not in marks:
+                marks[mark] = (time.monotonic(), _cpu(procs))
+        if FIRST in marks:
+            records += done
+        if len(marks) < 2:
+            if learn.poll() is not None:
+                raise RuntimeError(f"the session ended after {count} rollouts")
+            time.sleep(POLL)
+    (t0, cpu0), (t1, cpu1) = marks[FIRST], marks[LAST]
+    rollouts = LAST - FIRST
+    return {
+        "journal": str(journal),
+        "wall_s": (t1 - t0) / rollouts,
+        "cpu_s": {name: (cpu1[name] - cpu0[name]) / rollouts for name in procs},
+        "timing_s": {
+            key: statistics.median(r["timing"][key] for r in records if key in r["timing"])
+            for key in TIMINGS
+            if any(key in r["timing"] for r in records)
+        },
+        "hits": sum(r["hit"] for r in records[1:]),
+    }
+
+
+def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: bool) -> Any:
+    """One mesh of the tree of `env`, one session, optionally watched; its window's figures."""
+    endpoint = free_tcp_endpoint()
+    up = _start_up(env, endpoint, out)
+    try:
+        procs = _children(up) | {"up": psutil.Process(up.pid)}
+        with contextlib.ExitStack() as stack:
+            if watched:
+                observers = stack.enter_context(
+                    Observers(
+                        endpoint,
+                        "icubSim",
+                        out / "session.mcap",
+                        recorder=True,
+                        dashboard=True,
+                        env=env,
+                        cwd=out,
+                    )
+                )
+                procs |= {n: psutil.Process(pid) for n, pid in observers.pids().items()}
+            session = ("--algo", "archer", "--no-until-hit", "--rollouts", str(rollouts))
+            learn = subprocess.Popen(
+                [
+                    *ARCHERY,
+                    "learn",
+                    "--connect",
+                    endpoint,
+                    "--quiet",
+                    *session,
+                    "--seed",
+                    str(seed),
+                ],
+                env=env,
+                cwd=out,
+                stdin=subprocess.DEVNULL,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                text=True,
+            )
+            try:
+                return _window(learn, out / "runs", procs)
+            finally:
+                _stop(learn)
+    finally:
+        _stop(up)
+
+
+def _done(journal: str) -> list[dict[str, Any]]:
+    with open(journal, "rb") as f:
+        return [json.loads(line) for line in f if b'"record":"done"' in line]
+
+
+def _same(after: dict[str, Any], before: dict[str, Any]) -> dict[str, Any]:
+    """How the two trees' sessions of one seed compare, rollout by rollout (the first LAST):
+    θ proposed and the robot's true r (bit for bit), and the detector's r where the true r
+    is the same (largest difference, m)."""
+    pairs = list(zip(_done(after["journal"]), _done(before["journal"]), strict=False))[:LAST]
+    truth = [a["truth_r_m"] == b["truth_r_m"] for a, b in pairs]
+    return {
+        "rollouts": len(pairs),
+        "theta": sum(a["theta"] == b["theta"] for a, b in pairs),
+        "truth": sum(truth),
+        "first_truth_diff": next((i + 1 for i, t in enumerate(truth) if not t), None),
+        "max_dr_m": max(
+            (
+                max(abs(x - y) for x, y in zip(a["r_m"], b["r_m"], strict=True))
+                for (a, b), t in zip(pairs, truth, strict=True)
+                if t
+            ),
+            default=float("nan"),
+        ),
+    }
+
+
+def _total(run: dict[str, Any], names: tuple[str, ...] = MESH) -> float:
+    return float(sum(run["cpu_s"][n] for n in names if n in run["cpu_s"]))
+
+
+def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str]) -> None:
+    conditions = list(results[trees[0]])
+    print("\nCPU per rollout, router + five services (ms; median [min, max] over repeats):\n")
+    print(
+        "| tree | condition | CPU ms/rollout | ratio after/before | wall ms/rollout | cores busy |"
+    )
+    print("|---|---|---|---|---|---|")
+    for cond in conditions:
+        for tree in trees:
+            runs = results[tree][cond]
+            cpu = [1e3 * _total(r) for r in runs]
+            wall = [1e3 * r["wall_s"] for r in runs]
+            busy = [_total(r) / r["wall_s"] for r in runs]
+            ratio = "–"
+            if tree == "after" and "before" in results:
+                before = results["before"][cond]
+                ratios = [_total(a) / _total(b) for a, b in zip(runs, before, strict=True)]
+                ratio = "×" + median_spread(ratios, ".3f")
+            print(
+                f"| {tree} | {cond} | {median_spread(cpu, '.1f')} | {ratio} "
+                f"| {median_spread(wall, '.0f')} | {median_spread(busy)} |"
+            )
+    for cond in conditions:
+        names = list(results[trees[0]][cond][0]["cpu_s"])
+        print(f"\nCPU ms per rollout per process, {cond} (median over repeats):\n")
+        print("| tree | " + " | ".join(names) + " |")
+        print("|---|" + "---|" * len(names))
+        for tree in trees:
+            runs = results[tree][cond]
+            cells = [f"{1e3 * statistics.median(r['cpu_s'][n] for r in runs):.1f}" for n in names]
+            print(f"| {tree} | " + " | ".join(cells) + " |")
+    print(
+        "\nWhere a rollout's wall time goes (journal timings, median of the runs' medians, ms):\n"
+    )
+    print("| tree | condition | " + " | ".join(TIMINGS) + " | hits in window |")
+    print("|---|---|" + "---|" * (len(TIMINGS) + 1))
+    for cond in conditions:
+        for tree in trees:
+            runs = results[tree][cond]
+            cells = []
+            for key in TIMINGS:
+                values = [r["timing_s"][key] for r in runs if key in r["timing_s"]]
+                cells.append(f"{1e3 * statistics.median(values):.1f}" if values else "–")
+            hits = statistics.median(r["hits"] for r in runs)
+            print(f"| {tree} | {cond} | " + " | ".join(cells) + f" | {hits:g} |")
+    if "before" not in results:
+        return
+    print(
+        f"\nThe same seed on both trees (the first {LAST} rollouts of each repeat's sessions): "
+        "θ proposed and the robot's true r bit for bit, the detector's r where the true r is "
+        "the same:\n"
+    )
+    print("| condition | repeat | θ identical | true r identical | first that differs | max Δr |")
+    print("|---|---|---|---|---|---|")
+    for cond in conditions:
+        pairs = zip(results["after"][cond], results["before"][cond], strict=True)
+        for k, (a, b) in enumerate(pairs):
+            same = _same(a, b)
+            n = same["rollouts"]
+            print(
+                f"| {cond} | {k + 1} | {same['theta']}/{n} | {same['truth']}/{n} "
+                f"| {same['first_truth_diff'] or '–'} | {1e3 * same['max_dr_m']:.4f} mm |"
+            )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit status 0."""
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_cpu", description=__doc__)
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats (≥ 5)")
+    parser.add_argument("--before", default="0d1273b", help="the earlier tree's commit")
+    parser.add_argument("--no-before", action="store_true", help="this tree only")
+    parser.add_argument("--no-observers", action="store_true", help="no watched condition")
+    parser.add_argument("--rollouts", type=int, default=LAST + 2, help=f"session budget (> {LAST})")
+    parser.add_argument("--out", default="runs/bench-cpu", help="output directory")
+    args = parser.parse_args(argv)
+    if args.rollouts <= LAST:
+        parser.error(f"--rollouts must be more than {LAST}")
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    base = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    trees = [("after", env_for(ROOT, **base))]
+    with tempfile.TemporaryDirectory(prefix="bench-cpu-") as tmp:
+        if not args.no_before:
+            before = tree_at(args.before, Path(tmp))
+            trees.insert(0, ("before", env_for(before, **base)))
+        conditions = [("none", False)] + ([] if args.no_observers else [("watched", True)])
+        results: dict[str, dict[str, list[dict[str, Any]]]] = {
+            name: {cond: [] for cond, _ in conditions} for name, _ in trees
+        }
+        header()
+        print(f"- Load before the run: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
+        for repeat, name, env in interleaved(args.repeats, trees):
+            for cond, watched in conditions:
+                run_dir = out / f"r{repeat}-{name}-{cond}-{time.time_ns()}"
+                run_dir.mkdir(parents=True)
+                run = _one_run(env, run_dir, repeat, args.rollouts, watched)
+                results[name][cond].append(run)
+                print(
+                    f"repeat {repeat + 1} {name} {cond}: {1e3 * _total(run):.1f} ms CPU, "
+                    f"{1e3 * run['wall_s']:.0f} ms wall per rollout",
+                    file=sys.stderr,
+                    flush=True,
+                )
+        print(f"- Load after the run: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    names = [name for name, _ in trees]
+    _report(results, names)
+    (out / "bench.json").write_text(
+        json.dumps({"config": vars(args), "results": results}, indent=2)
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
