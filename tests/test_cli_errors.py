@@ -137,11 +137,11 @@ CASES: list[tuple[str, int, str]] = [
     ("report {tmp}/missing", 2, "{tmp}/missing: no such file or folder"),
     ("report {tmp}", 2, "no journal.jsonl in it"),
     # film, info
-    ("film {tmp}/nohit", 2, "session old-format-from has no hit in its 0 rollouts"),
-    ("film {tmp}/session --rollout 99", 2, "--rollout 99 is not among them"),
-    ("film {tmp}/v9session", 2, "has journal version 9"),
+    ("film {tmp}/journals/nohit", 2, "session old-format-from has no hit in its 0 rollouts"),
+    ("film {tmp}/journals/session --rollout 99", 2, "--rollout 99 is not among them"),
+    ("film {tmp}/journals/v9session", 2, "has journal version 9"),
     ("film {tmp}/missing", 2, "cannot read journal {tmp}/missing"),
-    ("film {tmp}/session --width 99", 2, "the frame size must be even"),
+    ("film {tmp}/journals/session --width 99", 2, "the frame size must be even"),
     ("info {tmp}/file", 2, "is not an MCAP file"),
     ("info {tmp}/cut.mcap", 2, "cut short"),
     ("info {tmp}/missing.mcap", 2, "No such file or directory"),
@@ -235,15 +235,16 @@ def _recordings(tmp: Path) -> None:
 
 
 def _journals(tmp: Path) -> None:
-    """Session folders: nohit (no done rollout), session (6 rollouts), v9session (of journal
-    version 9)."""
+    """Session folders under journals/ (not under `tmp` itself, where `report` must find no
+    journal): nohit (no done rollout), session (6 rollouts), v9session (of journal version 9)."""
     journals = Path(__file__).parent / "journals"
     for name, source in (("nohit", "old_format_from.jsonl"), ("session", "old_format.jsonl")):
-        (tmp / name).mkdir()
-        (tmp / name / "journal.jsonl").write_bytes((journals / source).read_bytes())
-    (tmp / "v9session").mkdir()
+        (tmp / "journals" / name).mkdir(parents=True)
+        (tmp / "journals" / name / "journal.jsonl").write_bytes((journals / source).read_bytes())
+    (tmp / "journals" / "v9session").mkdir()
     text = (journals / "old_format.jsonl").read_text()
-    (tmp / "v9session" / "journal.jsonl").write_text(text.replace('"version":1', '"version":9', 1))
+    v9 = tmp / "journals" / "v9session" / "journal.jsonl"
+    v9.write_text(text.replace('"version":1', '"version":9', 1))
 
 
 @pytest.fixture(scope="module")
