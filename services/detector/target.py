@@ -23,12 +23,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.detector.pieces import joined_hull
 from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
 
 __all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
 
 _MEMBER = 96  # membership (0..255) of a pixel counted as target colour
 _CANDIDATES = 5  # largest regions examined
+_JOIN_BELOW = 0.75  # a best region less confident than this: its pieces are joined too
+_JOIN_SEEDS = 3  # largest regions whose neighbouring pieces are joined
 _MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
 _SAME_RING = 0.15  # components whose median radial positions differ less share a ring
 
@@ -68,6 +71,28 @@ def _fill(region: np.ndarray) -> np.ndarray:
     if contours:
         cv2.drawContours(filled, [max(contours, key=cv2.contourArea)], -1, 1, cv2.FILLED)
     return filled
+
+
+def _pieces_joined(disc: np.ndarray) -> np.ndarray | None:
+    """When a shaft cuts a ring's disc into pieces: their convex hull (`pieces.joined_hull`),
+    else None."""
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(disc, connectivity=8)
+    if count <= 2:
+        return None
+    areas = stats[:, cv2.CC_STAT_AREA]
+    return joined_hull(labels, areas, 1 + int(np.argmax(areas[1:])))
+
+
+def _agrees(ring: Ellipse, outer: Ellipse) -> bool:
+    """Whether an inner ring's ellipse can be one of the face whose outer ring is `outer`:
+    near its centre, smaller, of its shape and well supported."""
+    shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
+    return (
+        shift < 0.25 * outer.radius
+        and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
+        and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
+        and ring.support > 0.5
+    )
 
 
 def colour_groups(
@@ -124,17 +149,13 @@ def _inner_rings(
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
-        ring = fit_disc(_fill(disc))
-        if ring is None:
-            continue
-        shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
-        if (
-            shift < 0.25 * outer.radius
-            and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
-            and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
-            and ring.support > 0.5
-        ):
-            found.append(ring)
+        # the disc's largest piece, else (cut by a shaft) its pieces joined
+        for fill in (_fill, _pieces_joined):
+            filled = fill(disc)
+            ring = fit_disc(filled) if filled is not None else None
+            if ring is not None and _agrees(ring, outer):
+                found.append(ring)
+                break
     return found, shown
 
 
@@ -144,8 +165,8 @@ def _rings_factor(outer: Ellipse, validated: int) -> float:
     ellipse's centre unknown, so the trust falls with its axis ratio."""
     if validated >= 2:
         return 1.0
-    if validated == 1:
-        return 0.8
+    if validated == 1:  # its centre's perspective shift, unknown, grows with the obliquity
+        return 0.8 * _ramp(outer.ratio, 0.7, 0.9)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
@@ -269,8 +290,9 @@ def find_face(
     areas = [cv2.contourArea(outline) for outline in outlines]
     best: FaceFit | None = None
     pad = 2
+    smallest = max(20.0, min_fraction * member.size)
     for index in np.argsort(areas)[::-1][:_CANDIDATES]:
-        if areas[index] < max(20.0, min_fraction * member.size):
+        if areas[index] < smallest:
             break
         x, y, w, h = cv2.boundingRect(outlines[index])
         x0, y0 = max(0, x - pad), max(0, y - pad)
@@ -280,4 +302,19 @@ def find_face(
         fit = _examine(member, components, groups, region, (x0, y0), kernel, needed)
         if fit is not None and (best is None or fit.confidence > best.confidence):
             best = fit
+    if best is None or best.confidence < _JOIN_BELOW:  # a face cut into pieces by shafts?
+        count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
+        sizes = stats[:, cv2.CC_STAT_AREA]
+        for seed in 1 + np.argsort(sizes[1:])[::-1][:_JOIN_SEEDS]:
+            if sizes[seed] < smallest:
+                break
+            hull = joined_hull(labels, sizes, int(seed))
+            if hull is None:
+                continue
+            x, y, w, h = cv2.boundingRect(hull)
+            needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
+            region = np.ascontiguousarray(hull[y : y + h, x : x + w])
+            fit = _examine(member, components, groups, region, (x, y), kernel, needed)
+            if fit is not None and (best is None or fit.confidence > best.confidence):
+                best = fit
     return best
