@@ -24,7 +24,13 @@ import cv2
 import numpy as np
 
 from services.detector.pieces import joined_hull
-from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
+from services.detector.rings import (
+    Ellipse,
+    centre_spread,
+    fit_disc,
+    nested_centre,
+    radial_position,
+)
 
 __all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
 
@@ -34,6 +40,10 @@ _JOIN_BELOW = 0.75  # a best region less confident than this: its pieces are joi
 _JOIN_SEEDS = 3  # largest regions whose neighbouring pieces are joined
 _MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
 _SAME_RING = 0.15  # components whose median radial positions differ less share a ring
+_EDGE_INSIDE = 0.6  # least share of a disc's colours just inside its ellipse
+_EDGE_OUTSIDE = 0.35  # largest share of them just outside it
+_MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
+# outer radius) are not the face's
 
 
 @dataclass(frozen=True)
@@ -81,6 +91,18 @@ def _pieces_joined(disc: np.ndarray) -> np.ndarray | None:
         return None
     areas = stats[:, cv2.CC_STAT_AREA]
     return joined_hull(labels, areas, 1 + int(np.argmax(areas[1:])))
+
+
+def _edge(ring: Ellipse, points: np.ndarray, ours: np.ndarray) -> bool:
+    """Whether a fitted disc's ellipse is where its colours end: of the target-coloured
+    `points` (N, 2) just inside it most are the disc's (`ours`, N booleans), of those just
+    outside few (an ellipse fitted to a disc half hidden by arrows and fletchings cuts through
+    its colours)."""
+    rho = radial_position(ring, points)
+    inside, outside = (rho > 0.7) & (rho < 0.95), (rho > 1.08) & (rho < 1.3)
+    if inside.sum() < 10 or outside.sum() < 10:
+        return False
+    return bool(ours[inside].mean() >= _EDGE_INSIDE and ours[outside].mean() <= _EDGE_OUTSIDE)
 
 
 def _agrees(ring: Ellipse, outer: Ellipse) -> bool:
@@ -145,6 +167,11 @@ def _inner_rings(
         last = position
     found: list[Ellipse] = []
     chosen: list[int] = []
+    points = np.stack([xs, ys], axis=1)
+
+    def ours(chosen: list[int]) -> np.ndarray:
+        return np.isin(labels, chosen)
+
     for ring_components in rings[:-1]:
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
@@ -153,20 +180,26 @@ def _inner_rings(
         for fill in (_fill, _pieces_joined):
             filled = fill(disc)
             ring = fit_disc(filled) if filled is not None else None
-            if ring is not None and _agrees(ring, outer):
+            if ring is not None and _agrees(ring, outer) and _edge(ring, points, ours(chosen)):
                 found.append(ring)
                 break
     return found, shown
 
 
-def _rings_factor(outer: Ellipse, validated: int) -> float:
+def _seen(factors: dict[str, float]) -> float:
+    """How much of the outer ring was seen: its support times its share inside the image."""
+    return max(factors["support"] * factors["visible"], 1e-9)
+
+
+def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     """Trust from the inner rings that agree with the outer one: two or more make the centre
-    sure; with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
+    sure; a lone one as far as it is seen whole (arrows over the gold leave fits to what covers
+    it); with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
     ellipse's centre unknown, so the trust falls with its axis ratio."""
-    if validated >= 2:
+    if len(inner) >= 2:
         return 1.0
-    if validated == 1:  # its centre's perspective shift, unknown, grows with the obliquity
-        return 0.8 * _ramp(outer.ratio, 0.7, 0.9)
+    if len(inner) == 1:
+        return 0.8 * _ramp(inner[0].support, 0.6, 0.9)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
@@ -220,12 +253,18 @@ def _examine(
     shown: set[int] = set()
     n_colours = 0
     if components is not None and groups is not None:
-        if math.prod(factors.values()) < needed:
+        if math.prod(factors.values()) / _seen(factors) < needed:
             return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
         mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
-        factors["rings"] = _rings_factor(outer, len(rings))
+        if centre_spread([*rings, outer]) > _MAX_SPREAD:
+            rings = []  # not concentric as a face's rings are: fits to what covers the gold
+        if len(rings) >= 2:  # a face cut by the border: its inner rings say it is seen
+            inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
+            if inner > _seen(factors):
+                factors["support"], factors["visible"] = inner, 1.0
+        factors["rings"] = _rings_factor(outer, rings)
         # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
         n_colours = max(1, int(groups.max()) + 1)
         factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
@@ -251,9 +290,11 @@ def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
                 rings[-1] = ring
             continue
         rings.append(ring)
+    if centre_spread(rings) > _MAX_SPREAD:
+        return None
     owner = first if first.outer.radius >= second.outer.radius else second
     factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
-    factors["rings"] = _rings_factor(rings[-1], len(rings) - 1)
+    factors["rings"] = _rings_factor(rings[-1], rings[:-1])
     colours = first.colours | second.colours
     factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
