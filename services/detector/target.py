@@ -176,19 +176,25 @@ def _inner_rings(
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
-        # the disc's largest piece, else (cut by a shaft) its pieces joined
-        for fill in (_fill, _pieces_joined):
-            filled = fill(disc)
+        # the disc's largest piece or (cut by a shaft) its pieces joined, the better seen
+        best: Ellipse | None = None
+        for filled in (_fill(disc), _pieces_joined(disc)):
             ring = fit_disc(filled) if filled is not None else None
-            if ring is not None and _agrees(ring, outer) and _edge(ring, points, ours(chosen)):
-                found.append(ring)
-                break
+            if (
+                ring is not None
+                and (best is None or ring.support > best.support)
+                and _agrees(ring, outer)
+                and _edge(ring, points, ours(chosen))
+            ):
+                best = ring
+        if best is not None:
+            found.append(best)
     return found, shown
 
 
 def _seen(factors: dict[str, float]) -> float:
     """How much of the outer ring was seen: its support times its share inside the image."""
-    return max(factors["support"] * factors["visible"], 1e-9)
+    return factors["support"] * factors["visible"]
 
 
 def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
@@ -253,7 +259,8 @@ def _examine(
     shown: set[int] = set()
     n_colours = 0
     if components is not None and groups is not None:
-        if math.prod(factors.values()) / _seen(factors) < needed:
+        unseen = (v for k, v in factors.items() if k not in ("support", "visible"))
+        if math.prod(unseen) < needed:  # a face cut by the border may be seen by its rings
             return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
         mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
