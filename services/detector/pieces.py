@@ -2,12 +2,14 @@
 shafts and their shadows radiating from it. Each piece alone is a part of the disc (a half, a
 wedge) whose fitted ellipse is wrong; the pieces of one disc lie within the occluders' width of
 each other, so they are joined (transitively, from a seed piece) and their convex hull, which
-a convex disc equals, is fitted instead. All sizes are pixels of the mask.
+a convex disc equals, is fitted instead. All sizes are pixels of the mask the outlines come
+from.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -19,36 +21,61 @@ _LEAST = 0.02  # smallest piece joined, as a fraction of the seed's area
 _ROUNDS = 4  # joining rounds (pieces reached through pieces)
 
 
+def _boxes_near(boxes: np.ndarray, box: np.ndarray, gap: float) -> np.ndarray:
+    """Which of the (x0, y0, x1, y1) `boxes` (N, 4) come within `gap` px of `box`."""
+    dx = np.maximum(0, np.maximum(boxes[:, 0] - box[2], box[0] - boxes[:, 2]))
+    dy = np.maximum(0, np.maximum(boxes[:, 1] - box[3], box[1] - boxes[:, 3]))
+    return np.hypot(dx, dy) <= gap
+
+
 def joined_hull(
-    labels: np.ndarray, areas: np.ndarray, seed: int, gap_fraction: float = JOIN_GAP
+    outlines: Sequence[np.ndarray], areas: Sequence[float], seed: int, gap_fraction: float = JOIN_GAP
 ) -> np.ndarray | None:
-    """The filled convex hull (uint8 mask of `labels`' shape) of piece `seed` and the pieces
-    within `gap_fraction` × its equivalent diameter of it or of a piece already joined, or None
-    when no other piece joins it.
+    """The convex hull (an outline, (M, 1, 2) int32) of piece `seed` and of the pieces within
+    `gap_fraction` × its equivalent diameter of it or of a piece already joined, or None when
+    no other piece joins it.
 
     Args:
-        labels: connected-component labels of a mask (0: background).
-        areas: pixel count per label (index 0: the background's).
-        seed: the label to start from.
+        outlines: the pieces' outer contours (cv2.findContours).
+        areas: their areas (px²).
+        seed: the index of the piece to start from.
         gap_fraction: widest gap bridged, over the seed's equivalent diameter.
     """
-    gap = gap_fraction * math.sqrt(4.0 * float(areas[seed]) / math.pi)
-    big = areas >= _LEAST * areas[seed]
-    big[0] = False
-    group = np.zeros(len(areas), bool)
-    group[seed] = True
+    area = np.asarray(areas, dtype=np.float64)
+    gap = gap_fraction * math.sqrt(4.0 * area[seed] / math.pi)
+    rects = np.array([cv2.boundingRect(outline) for outline in outlines], dtype=np.int64)
+    boxes = np.concatenate([rects[:, :2], rects[:, :2] + rects[:, 2:]], axis=1)
+    open_ = area >= _LEAST * area[seed]
+    open_[seed] = False
+    group = [seed]
     for _ in range(_ROUNDS):
-        outside = np.where(group[labels], 0, 1).astype(np.uint8)
-        distance = cv2.distanceTransform(outside, cv2.DIST_L2, 3)
-        near = np.unique(labels[(distance <= gap) & (labels > 0)])
-        new = near[big[near] & ~group[near]]
-        if len(new) == 0:
+        box = np.array([*boxes[group, :2].min(axis=0), *boxes[group, 2:].max(axis=0)])
+        near = np.flatnonzero(open_ & _boxes_near(boxes, box, gap))
+        if len(near) == 0:
             break
-        group[new] = True
-    if group.sum() < 2:
+        # exact distances on a crop around the group: the group drawn, distances from it
+        margin = math.ceil(gap) + 1
+        x0, y0 = box[0] - margin, box[1] - margin
+        shape = (box[3] - box[1] + 2 * margin, box[2] - box[0] + 2 * margin)
+        outside = np.ones(shape, np.uint8)
+        cv2.drawContours(outside, [outlines[i] for i in group], -1, 0, cv2.FILLED,
+                         offset=(-int(x0), -int(y0)))  # fmt: skip
+        distance = cv2.distanceTransform(outside, cv2.DIST_L2, 3)
+        joined = []
+        for i in near:
+            points = outlines[i].reshape(-1, 2) - (x0, y0)
+            inside = (
+                (points[:, 0] >= 0) & (points[:, 1] >= 0)
+                & (points[:, 0] < shape[1]) & (points[:, 1] < shape[0])
+            )  # fmt: skip
+            points = points[inside]
+            if len(points) and distance[points[:, 1], points[:, 0]].min() <= gap:
+                joined.append(int(i))
+        if not joined:
+            break
+        group += joined
+        open_[joined] = False
+    if len(group) < 2:
         return None
-    ys, xs = np.nonzero(group[labels])
-    hull = cv2.convexHull(np.stack([xs, ys], axis=1).astype(np.int32))
-    filled = np.zeros(labels.shape, np.uint8)
-    cv2.drawContours(filled, [hull], -1, 1, cv2.FILLED)
-    return filled
+    points = np.concatenate([outlines[i].reshape(-1, 2) for i in group])
+    return cv2.convexHull(points.astype(np.int32))

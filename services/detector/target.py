@@ -84,13 +84,18 @@ def _fill(region: np.ndarray) -> np.ndarray:
 
 
 def _pieces_joined(disc: np.ndarray) -> np.ndarray | None:
-    """When a shaft cuts a ring's disc into pieces: their convex hull (`pieces.joined_hull`),
-    else None."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(disc, connectivity=8)
-    if count <= 2:
+    """When a shaft cuts a ring's disc into pieces: their convex hull filled
+    (`pieces.joined_hull`), else None."""
+    outlines, _ = cv2.findContours(disc, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if len(outlines) < 2:
         return None
-    areas = stats[:, cv2.CC_STAT_AREA]
-    return joined_hull(labels, areas, 1 + int(np.argmax(areas[1:])))
+    areas = [cv2.contourArea(outline) for outline in outlines]
+    hull = joined_hull(outlines, areas, int(np.argmax(areas)))
+    if hull is None:
+        return None
+    filled = np.zeros_like(disc)
+    cv2.drawContours(filled, [hull], -1, 1, cv2.FILLED)
+    return filled
 
 
 def _edge(ring: Ellipse, points: np.ndarray, ours: np.ndarray) -> bool:
@@ -351,18 +356,17 @@ def find_face(
         if fit is not None and (best is None or fit.confidence > best.confidence):
             best = fit
     if best is None or best.confidence < _JOIN_BELOW:  # a face cut into pieces by shafts?
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(closed, connectivity=8)
-        sizes = stats[:, cv2.CC_STAT_AREA]
-        for seed in 1 + np.argsort(sizes[1:])[::-1][:_JOIN_SEEDS]:
-            if sizes[seed] < smallest:
+        for seed in np.argsort(areas)[::-1][:_JOIN_SEEDS]:
+            if areas[seed] < smallest:
                 break
-            hull = joined_hull(labels, sizes, int(seed))
+            hull = joined_hull(outlines, areas, int(seed))
             if hull is None:
                 continue
             x, y, w, h = cv2.boundingRect(hull)
+            region = np.zeros((h + 2 * pad, w + 2 * pad), np.uint8)
+            cv2.drawContours(region, [hull], -1, 1, cv2.FILLED, offset=(pad - x, pad - y))
             needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
-            region = np.ascontiguousarray(hull[y : y + h, x : x + w])
-            fit = _examine(member, components, groups, region, (x, y), kernel, needed)
+            fit = _examine(member, components, groups, region, (x - pad, y - pad), kernel, needed)
             if fit is not None and (best is None or fit.confidence > best.confidence):
                 best = fit
     return best
