@@ -116,7 +116,8 @@ def _agrees(ring: Ellipse, outer: Ellipse) -> bool:
     shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
     return (
         shift < 0.25 * outer.radius
-        and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
+        # rings of a face: ≤ 2/3 of the next; the gold, the smallest, a third of the outer
+        and 0.25 < ring.radius / outer.radius < 0.8
         and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
         and ring.support > 0.5
     )
@@ -197,6 +198,17 @@ def _inner_rings(
     return found, shown
 
 
+def _concentric(rings: list[Ellipse], outer: Ellipse) -> list[Ellipse]:
+    """The inner rings less those that break the perspective model of concentric rings
+    (`rings.centre_spread`; fits to what covers the gold, a colour of no ring): the one whose
+    removal helps most, until the rest agree."""
+    rings = list(rings)
+    while len(rings) >= 2 and centre_spread([*rings, outer]) > _MAX_SPREAD:
+        spreads = [centre_spread([*rings[:i], *rings[i + 1 :], outer]) for i in range(len(rings))]
+        del rings[int(np.argmin(spreads))]
+    return rings
+
+
 def _seen(factors: dict[str, float]) -> float:
     """How much of the outer ring was seen: its support times its share inside the image."""
     return factors["support"] * factors["visible"]
@@ -210,7 +222,7 @@ def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     if len(inner) >= 2:
         return 1.0
     if len(inner) == 1:
-        return 0.8 * _ramp(inner[0].support, 0.6, 0.9)
+        return 0.8 * _ramp(inner[0].support, 0.7, 1.0)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
@@ -270,8 +282,7 @@ def _examine(
         mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
-        if centre_spread([*rings, outer]) > _MAX_SPREAD:
-            rings = []  # not concentric as a face's rings are: fits to what covers the gold
+        rings = _concentric(rings, outer)
         if len(rings) >= 2:  # a face cut by the border: its inner rings say it is seen
             inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
             if inner > _seen(factors):
