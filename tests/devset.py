@@ -4,7 +4,11 @@ calibration and use (light, camera, angle, arrows in the face, the face cut by t
 Scenes are drawn faces (a 10-ring face on a textured background, 110–1300 px across) and, when
 they are given, the shared photographs of real faces (`photo_scenes`). Each scene is calibrated
 once, from pixels marked inside its yellow, red and blue rings, and every change is applied to
-its picture with the true centre carried along. Everything is deterministic for a seed.
+its picture with the true centre carried along. Besides single changes, four kinds of face
+combine several (the misses of issue 28): cut by the border at a steep angle with arrows;
+filling a small picture with a thick shaft across the gold; in bright sun at an angle with many
+arrows, their fletchings and shadows; alone on a dark boss, seen from above, in other light.
+Everything is deterministic for a seed.
 
 Each case says what a detector must do (`expect`):
 - "visible": the centre must be found within 5 % of the blue ring's diameter;
@@ -259,9 +263,7 @@ def _tilt(
     return warped, (float(centre[0]), float(centre[1])), scene.diameter * scale
 
 
-def _arrows(
-    scene: Scene, count: int, rng: np.random.Generator, shadow: float = 0.0
-) -> np.ndarray:
+def _arrows(scene: Scene, count: int, rng: np.random.Generator, shadow: float = 0.0) -> np.ndarray:
     """`count` arrows stuck in and around the yellow: dark or metal shafts leaving the face
     obliquely, with coloured fletchings and nocks (px sizes from the ring diameter); with
     `shadow` > 0, each shaft casts a hard shadow (sunlight) that far off, in blue radii."""

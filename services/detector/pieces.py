@@ -29,7 +29,10 @@ def _boxes_near(boxes: np.ndarray, box: np.ndarray, gap: float) -> np.ndarray:
 
 
 def joined_hull(
-    outlines: Sequence[np.ndarray], areas: Sequence[float], seed: int, gap_fraction: float = JOIN_GAP
+    outlines: Sequence[np.ndarray],
+    areas: Sequence[float],
+    seed: int,
+    gap_fraction: float = JOIN_GAP,
 ) -> np.ndarray | None:
     """The convex hull (an outline, (M, 1, 2) int32) of piece `seed` and of the pieces within
     `gap_fraction` × its equivalent diameter of it or of a piece already joined, or None when

@@ -3,15 +3,19 @@ confidence that means something (below the threshold the face is reported as not
 
 The target's colour membership is thresholded, closed (ring lines, holes) and split into
 regions by their outer contours; each of the largest few is filled and its outer boundary
-fitted with a robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
-components are ordered by their radial position inside that ellipse (yellow, red, blue…) and
-the cumulative discs (yellow; yellow + red; …) are fitted too: concentric ellipses of one shape
-validate each other, and the centre is extrapolated from them (`rings.nested_centre`), which
-holds when arrows and fletchings cover part of the yellow. The confidence multiplies how much of
-the outer boundary was seen, how elliptic the region is, how well its colours match the
-calibration, how many inner rings agree and how many of the calibrated colours (ring groups of
-the GMM's components) the face shows; the factors' ranges were set on the development set
-(`tests.devset`) so that wrong centres score below 0.5.
+fitted with a robust ellipse (`rings.fit_disc`); when none is sure, the pieces of a face cut
+by shafts are joined too (`pieces.joined_hull`). With the target GMM's component of every
+pixel, the components are ordered by their radial position inside that ellipse (yellow, red,
+blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (from their pieces
+joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
+ellipses of one shape validate each other (rings off the perspective model are dropped), and
+the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
+fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary
+was seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how
+well its colours match the calibration, how many inner rings agree (a lone one as far as it is
+seen whole) and how many of the calibrated colours (ring groups of the GMM's components) the
+face shows; the factors' ranges were set on the development set (`tests.devset`) so that wrong
+centres score below 0.5.
 All positions are pixels of the downscaled map.
 """
 

@@ -3,9 +3,9 @@ white onto the calibration frame's (von Kries), so the UV colour model holds und
 
 The white is estimated from the frame itself: the median RGB of its bright, nearly grey pixels
 (a target face's paper, a wall; at least half as bright as the frame's brightest, so that a
-dark backdrop filling most of the frame is not taken for it), found iteratively so that a tinted white (warm light) is still
-recognised as white. Gains are clipped to a plausible range; a frame without such pixels has no
-estimate and is taken as it is.
+dark backdrop filling most of the frame is not taken for it), found iteratively so that a
+tinted white (warm light) is still recognised as white. Gains are clipped to a plausible
+range; a frame without such pixels has no estimate and is taken as it is.
 """
 
 from __future__ import annotations
