@@ -42,7 +42,7 @@ def test_a_disc_cut_by_a_thick_shaft_is_joined_into_its_hull() -> None:
 def test_pieces_farther_apart_than_the_gap_stay_apart() -> None:
     mask = np.zeros((200, 400), np.uint8)
     cv2.circle(mask, (100, 100), 50, 1, -1)
-    cv2.circle(mask, (300, 100), 50, 1, -1)  # 100 px apart: more than 0.2 of 100 px
+    cv2.circle(mask, (300, 100), 50, 1, -1)  # 100 px apart: more than 0.3 of 100 px
     outlines, areas = _pieces(mask)
     assert joined_hull(outlines, areas, 0) is None
     assert joined_hull(outlines, areas, 0, gap_fraction=1.1) is not None

@@ -16,7 +16,7 @@ import numpy as np
 
 __all__ = ["JOIN_GAP", "joined_hull"]
 
-JOIN_GAP = 0.2  # widest gap bridged between pieces, as a fraction of the seed's diameter
+JOIN_GAP = 0.3  # widest gap bridged between pieces, as a fraction of the seed's diameter
 _LEAST = 0.02  # smallest piece joined, as a fraction of the seed's area
 _ROUNDS = 4  # joining rounds (pieces reached through pieces)
 

@@ -46,6 +46,7 @@ _MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels
 _SAME_RING = 0.15  # components whose median radial positions differ less share a ring
 _EDGE_INSIDE = 0.6  # least share of a disc's colours just inside its ellipse
 _EDGE_OUTSIDE = 0.35  # largest share of them just outside it
+_EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are 1–2 px)
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -106,12 +107,15 @@ def _edge(ring: Ellipse, points: np.ndarray, ours: np.ndarray) -> bool:
     """Whether a fitted disc's ellipse is where its colours end: of the target-coloured
     `points` (N, 2) just inside it most are the disc's (`ours`, N booleans), of those just
     outside few (an ellipse fitted to a disc half hidden by arrows and fletchings cuts through
-    its colours)."""
+    its colours). A ring too small for bands of a few pixels passes; so does one with no
+    target colour just outside it."""
+    if ring.radius < _EDGE_MIN_RADIUS:
+        return True
     rho = radial_position(ring, points)
     inside, outside = (rho > 0.7) & (rho < 0.95), (rho > 1.08) & (rho < 1.3)
-    if inside.sum() < 10 or outside.sum() < 10:
+    if inside.sum() < 10 or ours[inside].mean() < _EDGE_INSIDE:
         return False
-    return bool(ours[inside].mean() >= _EDGE_INSIDE and ours[outside].mean() <= _EDGE_OUTSIDE)
+    return bool(outside.sum() < 10 or ours[outside].mean() <= _EDGE_OUTSIDE)
 
 
 def _agrees(ring: Ellipse, outer: Ellipse) -> bool:
