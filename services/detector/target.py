@@ -209,9 +209,14 @@ def _inner_rings(
 def _concentric(rings: list[Ellipse], outer: Ellipse) -> list[Ellipse]:
     """The inner rings less those that break the perspective model of concentric rings
     (`rings.centre_spread`; fits to what covers the gold, a colour of no ring): the one whose
-    removal helps most, until the rest agree."""
+    removal helps most, until the rest agree; of two, the one farther off the outer ring's
+    centre for its size."""
     rings = list(rings)
     while len(rings) >= 2 and centre_spread([*rings, outer]) > _MAX_SPREAD:
+        if len(rings) == 2:  # either alone fits the model: judge each against the outer ring
+            off = [math.dist(ring.centre, outer.centre) / ring.radius for ring in rings]
+            del rings[int(np.argmax(off))]
+            continue
         spreads = [centre_spread([*rings[:i], *rings[i + 1 :], outer]) for i in range(len(rings))]
         del rings[int(np.argmin(spreads))]
     return rings
@@ -230,7 +235,7 @@ def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     if len(inner) >= 2:
         return 1.0
     if len(inner) == 1:
-        return 0.8 * _ramp(inner[0].support, 0.7, 1.0)
+        return 0.8 * _ramp(inner[0].support, 0.75, 1.0)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
