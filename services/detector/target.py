@@ -47,6 +47,7 @@ _SAME_RING = 0.15  # components whose median radial positions differ less share 
 _EDGE_INSIDE = 0.6  # least share of a disc's colours just inside its ellipse
 _EDGE_OUTSIDE = 0.35  # largest share of them just outside it
 _EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are 1–2 px)
+_SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -234,8 +235,9 @@ def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     ellipse's centre unknown, so the trust falls with its axis ratio."""
     if len(inner) >= 2:
         return 1.0
-    if len(inner) == 1:
-        return 0.8 * _ramp(inner[0].support, 0.75, 1.0)
+    if len(inner) == 1:  # a small ring's support is limited by its pixels
+        low = 0.75 if inner[0].radius >= _SMALL_RING else 0.6
+        return 0.8 * _ramp(inner[0].support, low, low + 0.25)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
