@@ -65,7 +65,7 @@ def joined_hull(
                          offset=(-int(x0), -int(y0)))  # fmt: skip
         distance = cv2.distanceTransform(outside, cv2.DIST_L2, 3)
         joined = []
-        for i in near:
+        for i in near.tolist():
             points = outlines[i].reshape(-1, 2) - (x0, y0)
             inside = (
                 (points[:, 0] >= 0) & (points[:, 1] >= 0)
@@ -73,7 +73,7 @@ def joined_hull(
             )  # fmt: skip
             points = points[inside]
             if len(points) and distance[points[:, 1], points[:, 0]].min() <= gap:
-                joined.append(int(i))
+                joined.append(i)
         if not joined:
             break
         group += joined
