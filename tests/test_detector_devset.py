@@ -157,8 +157,13 @@ def test_warm_light_is_balanced_against_the_calibration_s_white() -> None:
     gains = detector.gains(warm.rgb)
     assert gains is not None
     red, _, blue = gains
-    assert blue > 1.2 > 0.9 > red  # warm light: blue boosted, red cut
+    assert blue > 1.2 > 1.0 > red  # warm light: blue boosted, red cut
+    # the paper's own colours give the true gains (its red saturates at 255 in warm light)
+    x, y = round(scene.centre[0] + 0.53 * scene.diameter / 0.6), round(scene.centre[1])
+    true = scene.rgb[y, x] / warm.rgb[y, x].astype(float)
+    assert gains == pytest.approx(true, abs=0.06)
     found = detector.detect(warm.rgb)
     assert found.target is not None and len(found.rings) == 3
-    assert found.gains is None or found.gains == pytest.approx(tuple(gains))
+    # the white is estimated on the detector's own downscaled copy: the same within 2 %
+    assert found.gains is None or found.gains == pytest.approx(tuple(gains), abs=0.02)
     assert math.dist(found.target.px, warm.centre) < 0.05 * warm.diameter
