@@ -1,11 +1,14 @@
 """Benchmark of archer-prior: rollouts to the 5 cm ring with the ballistic model as a prior.
 
-Run `python -m benchmarks.bench_prior [--sessions 40] [--robot-sessions 40]`. Three parts:
+Run `python -m benchmarks.bench_prior [--sessions 40] [--robot-sessions 40] [--before COMMIT]`.
+Four parts (`--parts`, default all):
 
 * the ballistic world, the paper's range and ranges whose physics differ from the learner's
   nominal model (2.2 m, 300 N/m bow, no drag): archer-prior, archer and power in the same run;
 * a changing world: the wind turns at rollout 30; rollouts to hit again for every algorithm
   (archer-recent is ARCHER choosing the N best among the 4 most recent rollouts);
+* ranges: archer-prior on targets from 1.5 to 5 m with drag and a side wind, one row per
+  distance, this tree beside the earlier commit `--before` (`benchmarks.prior_ranges`);
 * the MuJoCo iCub over the mesh (a router and the five services as child processes, as in
   `benchmarks.bench_loop`): one session per seed until the first hit, with archer-prior on its
   nominal model and on deliberately wrong ones (a 3 m target, a 40 % stiffer bow), archer and
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -30,6 +34,8 @@ import numpy as np
 from apps.experiment.config import AlgorithmRun, ExperimentConfig, WindChange
 from apps.experiment.experiment import run_algorithm, write_outputs
 from benchmarks.learning_mesh import learning_mesh, progress_bar
+from benchmarks.prior_ranges import AIRS, range_rows, range_table
+from benchmarks.trees import ROOT, header, tree_at
 from services.learner.algorithms.registry import ALGORITHMS
 from sim.ballistic import Scenario
 from tests.rpc import rpc_call
@@ -190,6 +196,36 @@ def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str
     return table, summary
 
 
+def _run_ranges(args: argparse.Namespace) -> tuple[list[str], list[str], dict[str, Any]]:
+    """The range tables of every air, this tree beside `args.before`."""
+    tables: list[str] = []
+    goals: list[str] = []
+    results: dict[str, Any] = {}
+    common = {
+        "sessions": args.range_sessions,
+        "rollouts": args.range_rollouts,
+        "seed": args.seed,
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        before = tree_at(args.before, Path(tmp))
+        for label, drag, wind in AIRS:
+            rows = {
+                name: range_rows(tree, drag=drag, wind=wind, **common)
+                for name, tree in ((args.before, before), ("this tree", ROOT))
+            }
+            table, met = range_table(
+                label,
+                (args.before, rows[args.before]),
+                rows["this tree"],
+                sessions=args.range_sessions,
+                budget=args.range_rollouts,
+            )
+            tables += [*table, ""]
+            goals += met
+            results[label] = rows
+    return tables, goals, results
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark, print the tables, write the figures and bench.json under --out."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_prior", description=__doc__)
@@ -201,9 +237,58 @@ def main(argv: list[str] | None = None) -> int:
         "--robot-sessions", type=int, default=40, help="robot sessions per learner (0: none)"
     )
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    parser.add_argument(
+        "--before", default="0d1273b", help="the earlier commit of the range tables' baseline"
+    )
+    parser.add_argument("--range-sessions", type=int, default=40, help="sessions per range")
+    parser.add_argument("--range-rollouts", type=int, default=20, help="budget per range session")
+    parser.add_argument(
+        "--parts",
+        default="scenarios,ranges,robot",
+        help="comma-separated parts to run: scenarios (with the wind change), ranges, robot",
+    )
     args = parser.parse_args(argv)
+    parts = set(args.parts.split(","))
+    unknown = parts - {"scenarios", "ranges", "robot"}
+    if unknown:
+        parser.error(f"--parts: unknown part(s) {', '.join(sorted(unknown))}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    header()
+    results: dict[str, Any] = {}
+    goals: list[str] = []
+    if "scenarios" in parts:
+        results, goals = _scenarios_part(args, out)
+    ranges: dict[str, Any] = {}
+    if "ranges" in parts:
+        range_tables, range_goals, ranges = _run_ranges(args)
+        print()
+        print("\n".join(range_tables))
+        print("\n".join(range_goals))
+        goals += range_goals
+    robot: dict[str, Any] = {}
+    if "robot" in parts and args.robot_sessions > 0:
+        robot_table, robot = _run_robot(args, out / "robot")
+        print()
+        print("\n".join(robot_table))
+    (out / "bench.json").write_text(
+        json.dumps(
+            {
+                "ballistic": results,
+                "ranges": ranges,
+                "goals": goals,
+                "robot": robot,
+                "labels": {n: ALGORITHMS[n].label for n in (*ALGORITHM_ORDER, "archer-recent")},
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+    return 0
+
+
+def _scenarios_part(args: argparse.Namespace, out: Path) -> tuple[dict[str, Any], list[str]]:
+    """Run and print the scenario tables and the wind change; (results, goal lines)."""
     table, change_table, results = _run_ballistic(args, out)
     print("\n".join(table))
     print()
@@ -225,24 +310,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     print()
     print("\n".join(goals))
-    robot: dict[str, Any] = {}
-    if args.robot_sessions > 0:
-        robot_table, robot = _run_robot(args, out / "robot")
-        print()
-        print("\n".join(robot_table))
-    (out / "bench.json").write_text(
-        json.dumps(
-            {
-                "ballistic": results,
-                "goals": goals,
-                "robot": robot,
-                "labels": {n: ALGORITHMS[n].label for n in (*ALGORITHM_ORDER, "archer-recent")},
-            },
-            indent=2,
-        )
-        + "\n"
-    )
-    return 0
+    return results, goals
 
 
 if __name__ == "__main__":

@@ -15,7 +15,7 @@ import psutil
 from mesh.router import free_tcp_endpoint
 from tests.spawn import spawn
 
-__all__ = ["CONDITIONS", "Observers", "cpu_seconds", "stop"]
+__all__ = ["CONDITIONS", "Observers", "PageClient", "cpu_seconds", "stop"]
 
 #: (name, with the recorder, with the dashboard), the unwatched baseline first.
 CONDITIONS = (
@@ -49,14 +49,18 @@ def cpu_seconds(pids: dict[str, int]) -> dict[str, float]:
     return out
 
 
-class _PageClient:
+class PageClient:
     """Polls `/api/state` every `POLL` s and fetches `/api/frame.png` whenever the frame's
-    version changes, like the dashboard's page in a browser; counts its requests."""
+    version changes, like the dashboard's page in a browser; with `scene`, as a page with its
+    scene panel open (`/api/state?scene=1`, `/api/scene.jpg` whenever the view's version
+    changes); counts its requests."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, scene: bool = False) -> None:
         self.url = url
+        self.scene = scene
         self.states = 0
         self.frames = 0
+        self.scenes = 0
         self.errors = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="page-client", daemon=True)
@@ -67,15 +71,19 @@ class _PageClient:
             return response.read()
 
     def _run(self) -> None:
-        version = 0
+        version = scene = 0
         while not self._stop.wait(POLL):
             try:
-                state = json.loads(self._get("api/state"))
+                state = json.loads(self._get("api/state" + ("?scene=1" if self.scene else "")))
                 self.states += 1
                 if state["frame"]["version"] != version:
                     version = state["frame"]["version"]
                     self._get(f"api/frame.png?v={version}")
                     self.frames += 1
+                if self.scene and state["scene"]["version"] != scene:
+                    scene = state["scene"]["version"]
+                    self._get(f"api/scene.jpg?v={scene}")
+                    self.scenes += 1
             except OSError:
                 self.errors += 1
 
@@ -101,7 +109,7 @@ class Observers:
         self.said: list[str] = []
         self._recorder: subprocess.Popen[str] | None = None
         self._dashboard: subprocess.Popen[str] | None = None
-        self._client: _PageClient | None = None
+        self._client: PageClient | None = None
         flags = ["--connect", endpoint, "--robot", robot]
         try:
             if recorder:
@@ -113,7 +121,7 @@ class Observers:
                 self._dashboard = spawn(
                     "dashboard", "--port", port, *flags, ready="archery dashboard: serving"
                 )
-                self._client = _PageClient(f"http://127.0.0.1:{port}/")
+                self._client = PageClient(f"http://127.0.0.1:{port}/")
         except BaseException:
             self.close()
             raise

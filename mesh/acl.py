@@ -36,7 +36,9 @@ The calls of each service are those its code makes:
 * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
   `replay`): every verb, the joint commands, every stream, every `describe` and `replace`;
 * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
-  `interface`, `dashboard`): every stream and the verbs that change nothing (`Verb.reads`).
+  `interface`, `dashboard`): every stream and the verbs that change nothing (`Verb.reads`),
+  among them the camera's `scene` (the dashboard's view of the whole robot); the detector,
+  which grabs frames, is not granted it.
 """
 
 from __future__ import annotations

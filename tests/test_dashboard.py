@@ -1,14 +1,16 @@
-"""`archery dashboard`: its JSON endpoint (urllib) and the page in a real headless Chromium,
-against a fake learner (Rollout messages, `status`) and a fake detector (`frame`: a PNG)."""
+"""`archery dashboard`: its JSON endpoints (urllib) and the page in the system's headless
+Chromium (driven by Playwright: screenshots at rollouts 1, 10 and 60, what each panel shows,
+measured in the page), against a fake learner (Rollout messages, `status`), a fake detector
+(`frame`: a PNG) and the real camera service (the scene view of the whole robot)."""
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
 import math
 import re
 import shutil
-import subprocess
-import tempfile
 import threading
 import time
 import urllib.error
@@ -23,17 +25,16 @@ import numpy as np
 import pytest
 
 from apps.dashboard.server import Dashboard, bind
-from apps.dashboard.watch import MeshWatch
+from apps.dashboard.watch import SCENE_INTEREST, MeshWatch
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.publisher import Publisher
-from mesh.router import free_tcp_endpoint
 from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord, RolloutRecord
-from protocol.messages import Image, JointState, Rollout
+from protocol.messages import Array, Image, JointState, Rollout, WorldState
+from protocol.verbs.camera import CAMERA_VERBS, SceneReply
 from protocol.verbs.detector import DETECTOR_VERBS, FrameReply
 from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
 from tests.rpc import some_verbs
-from tests.spawn import spawn
 
 CHROMIUM = "/usr/bin/chromium"
 # (r_m, status): two measured rollouts, one aborted, a hit last
@@ -55,28 +56,6 @@ def _png() -> bytes:
 
 
 PNG = _png()
-
-
-@contextmanager
-def fake_services(net: NetConfig) -> Iterator[Publisher[Rollout]]:
-    """A fake learner (its rollout publisher is yielded; `status` answers) and a fake detector
-    (`frame` answers with PNG), both alive."""
-    with Node("learner", net) as learner, Node("detector", net) as detector:
-        learner.serve(
-            learner.keys.learner_rpc(),
-            some_verbs(
-                LEARNER_VERBS,
-                {"status": lambda _: LearnerStatusReply(state="running", session="s1", rollouts=3)},
-            ),
-        )
-        rollouts = learner.publisher(learner.keys.learner_rollouts(), Rollout, lossless=True)
-        learner.ready()
-        detector.serve(
-            detector.keys.detector_rpc(),
-            some_verbs(DETECTOR_VERBS, {"frame": lambda _: FrameReply(png=PNG, status="ok")}),
-        )
-        detector.ready()
-        yield rollouts
 
 
 def publish_shots(rollouts: Publisher[Rollout]) -> None:
@@ -133,7 +112,10 @@ def settled(state: dict[str, Any]) -> bool:
 
 
 def test_state_endpoint_and_files(net: NetConfig) -> None:
-    with fake_services(net) as rollouts, Dashboard(net, bind("127.0.0.1", 0)) as dash:
+    with (
+        fake_learner(net, "s1", 10, png=PNG) as rollouts,
+        Dashboard(net, bind("127.0.0.1", 0)) as dash,
+    ):
         publish_shots(rollouts)
         state = wait_state(dash.url, settled)
         assert state["robot"] == net.robot and state["session"] == "s1"
@@ -156,6 +138,14 @@ def test_state_endpoint_and_files(net: NetConfig) -> None:
         assert get(dash.url + "static/..%2Fserver.py")[0] == 404
         assert get(dash.url + "static/server.py")[0] == 404
         assert get(dash.url + "nosuch")[0] == 404
+        assert get(dash.url + "api/nosuch")[0] == 404
+        assert get(dash.url + "api/scene.jpg")[0] == 404  # no page asked for the scene view
+        # a robot name the keys refuse: one clear error, and no watch of it
+        status, ctype, body = get(dash.url + "api/state?robot=no%20such")
+        assert (status, ctype) == (400, "application/json")
+        assert "invalid robot name 'no such'" in json.loads(body)["error"]
+        robots = json.loads(get(dash.url + "api/robots")[2])
+        assert robots == {"default": net.robot, "robots": [net.robot]}
         # a new session starts a fresh face
         done = DoneRecord(
             session="s2",
@@ -185,27 +175,213 @@ def test_no_frame_yet_is_404(net: NetConfig) -> None:
         assert "detector/rpc:i" in state["frame"]["error"]
 
 
-def _chromium(url: str, profile: Path, *extra: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [
-            CHROMIUM,
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-quic",
-            "--no-first-run",
-            "--disable-background-networking",
-            "--disable-component-update",
-            "--disable-sync",
-            f"--user-data-dir={profile}",
-            "--virtual-time-budget=5000",
-            *extra,
-            url,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        stdin=subprocess.DEVNULL,
+ROUND = re.compile(r"^-?\d+$")
+
+
+def _round_steps(labels: list[str]) -> None:
+    """Tick labels are whole numbers a constant step of 1, 2 or 5 × 10^k apart."""
+    assert labels and all(ROUND.match(t) for t in labels), labels
+    values = [int(t) for t in labels]
+    steps = {b - a for a, b in itertools.pairwise(values)}
+    assert len(steps) <= 1, values
+    for step in steps:
+        mantissa = step / 10 ** math.floor(math.log10(step))
+        assert mantissa in (1, 2, 5), values
+
+
+def _shot(k: int) -> tuple[list[float], bool]:
+    """Rollout k's r (m), spiralling in to the centre, and whether it hits."""
+    radius = 0.30 * math.exp(-k / 14) + 0.004
+    r = [radius * math.cos(1.3 * k), radius * math.sin(1.3 * k)]
+    return r, math.hypot(*r) < 0.05
+
+
+def _done(session: str, k: int) -> DoneRecord:
+    r, hit = _shot(k)
+    theta = [0.17 + 0.001 * k, 0.002 * k, -0.01]
+    return DoneRecord(
+        session=session,
+        index=k,
+        rollout=k,
+        theta=theta,
+        r_m=r,
+        distance_m=math.hypot(*r),
+        hit=hit,
+    )
+
+
+def _frame_png() -> bytes:
+    """A 1280×720 frame with an overlay text as the detector draws it."""
+    image = np.full((720, 1280, 3), (60, 140, 60), np.uint8)
+    cv2.circle(image, (640, 360), 200, (0, 220, 255), -1)
+    cv2.putText(image, "target", (600, 365), cv2.FONT_HERSHEY_SIMPLEX, 1.0, (0, 0, 0), 2)
+    ok, data = cv2.imencode(".png", image)
+    assert ok
+    return data.tobytes()
+
+
+@contextmanager
+def fake_learner(
+    net: NetConfig, session: str, budget: int, png: bytes | None = None
+) -> Iterator[Publisher[Rollout]]:
+    """A learner that publishes what is put on the yielded publisher and answers `status`
+    (running `session` of `budget` rollouts), and a detector whose `frame` is `png` (default a
+    1280×720 frame), both alive under `net.robot`."""
+    png = png or _frame_png()
+    with Node("learner", net) as learner, Node("detector", net) as detector:
+        status = LearnerStatusReply(state="running", session=session, rollouts=0, budget=budget)
+        learner.serve(
+            learner.keys.learner_rpc(), some_verbs(LEARNER_VERBS, {"status": lambda _: status})
+        )
+        rollouts = learner.publisher(learner.keys.learner_rollouts(), Rollout, lossless=True)
+        learner.ready()
+        detector.serve(
+            detector.keys.detector_rpc(),
+            some_verbs(DETECTOR_VERBS, {"frame": lambda _: FrameReply(png=png, status="ok")}),
+        )
+        detector.ready()
+        yield rollouts
+
+
+@contextmanager
+def real_camera(net: NetConfig) -> Iterator[None]:
+    """The camera service, rendering the scene view of the robot's initial pose (a world state
+    as the robot publishes it)."""
+    from services.camera.config import CameraConfig
+    from services.camera.service import run
+    from sim.model_build import build_scene
+    from sim.scene import ScenePhysics
+    from sim.scene_config import SceneConfig
+    from tests.conftest import serving
+
+    physics = ScenePhysics(build_scene(SceneConfig(meshes=False)))
+    physics.reset()
+    physics.forward()
+    state = WorldState(qpos=Array.from_numpy(physics.qpos()), phase="idle", sim_time=0.5)
+    with (
+        serving(run, CameraConfig(net=net, rate=1.0, robot_timeout=0.3)),
+        Node("robot", net) as robot,
+    ):
+        world = robot.publisher(robot.keys.world_state(), WorldState, lossless=True)
+        robot.ready()
+        assert world.wait_matched(30), "the camera does not follow the world states"
+        world.put(state)
+        yield
+
+
+@contextmanager
+def browser() -> Iterator[Any]:
+    """A page of a headless Chromium (the system's) driven by Playwright, 1280×900."""
+    sync_api = pytest.importorskip("playwright.sync_api")
+    with sync_api.sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=["--no-sandbox", "--disable-gpu"]
+        )
+        try:
+            yield chromium.new_page(viewport={"width": 1280, "height": 900})
+        finally:
+            chromium.close()
+
+
+# What each panel shows, measured in the page (CSS px and each SVG's own units).
+PANELS_JS = """() => {
+  const box = (e) => { const r = e.getBoundingClientRect();
+    return {x: r.x, y: r.y, w: r.width, h: r.height}; };
+  const frame = document.getElementById("frame");
+  const caption = document.getElementById("frame-caption");
+  const scene = document.getElementById("scene");
+  const plot = document.querySelector("#curve .plot-area").getBBox();
+  const texts = (id) => [...document.querySelectorAll(`#${id} text`)].map((t) => {
+    const b = t.getBBox(); return {text: t.textContent, cls: t.getAttribute("class"),
+      x: b.x, y: b.y, w: b.width, h: b.height}; });
+  const points = [...document.querySelectorAll("#curve .distance-point")].map((c) => ({
+    x: +c.getAttribute("cx"), y: +c.getAttribute("cy"), r: +c.getAttribute("r")}));
+  const bar = document.querySelector("#colourbar .colourbar").getBBox();
+  const impacts = [...document.querySelectorAll("#face .impact")].map((c) => ({
+    index: +c.dataset.index, fill: c.getAttribute("fill")}));
+  const cells = [...document.querySelectorAll("main > section")].map(box);
+  return {
+    viewport: window.innerWidth,
+    frame: {...box(frame), natural: frame.naturalWidth, rollout: frame.dataset.rollout},
+    caption: {...box(caption), text: caption.textContent, hidden: caption.hidden,
+      font: parseFloat(getComputedStyle(caption).fontSize)},
+    scene: {...box(scene), natural: scene.naturalWidth,
+      note: document.getElementById("scene-note").textContent},
+    plot: {x: plot.x, y: plot.y, w: plot.width, h: plot.height},
+    curveTexts: texts("curve"), faceTexts: texts("face"), barTexts: texts("colourbar"),
+    bar: {x: bar.x, y: bar.y, w: bar.width, h: bar.height},
+    points, impacts, cells,
+    robots: [...document.querySelectorAll("#robot-select option")].map((o) => o.value),
+    robot: document.getElementById("robot").textContent,
+    session: document.getElementById("session").textContent,
+  };
+}"""
+
+
+def _apart(a: dict[str, float], b: dict[str, float]) -> bool:
+    """Whether two boxes {x, y, w, h} do not overlap."""
+    return (
+        a["x"] + a["w"] <= b["x"]
+        or b["x"] + b["w"] <= a["x"]
+        or (a["y"] + a["h"] <= b["y"] or b["y"] + b["h"] <= a["y"])
+    )
+
+
+def _check_panels(page: Any, n: int, budget: int) -> dict[str, Any]:
+    """What the page shows after rollout `n`, checked panel by panel."""
+    shown = page.evaluate(PANELS_JS)
+    width = shown["viewport"]
+    # the frame of rollout n at full width, its caption readable over it
+    frame, caption = shown["frame"], shown["caption"]
+    assert frame["natural"] == 1280 and frame["rollout"] == str(n)
+    assert frame["w"] >= 0.9 * width, (frame, width)
+    assert not caption["hidden"] and caption["font"] >= 16
+    assert caption["text"].startswith(f"rollout {n} · θ (") and "‖r‖" in caption["text"]
+    assert caption["y"] >= frame["y"] and caption["y"] + caption["h"] <= frame["y"] + frame["h"]
+    assert caption["w"] >= 0.9 * frame["w"]
+    # the scene view: the camera's render of the whole robot
+    scene = shown["scene"]
+    assert scene["natural"] == 640 and scene["w"] >= 300, scene
+    assert "side camera" in scene["note"]
+    # the face: one impact per rollout, coloured by rollout on the colour bar's scale
+    impacts = shown["impacts"]
+    assert [i["index"] for i in impacts] == list(range(1, n + 1))
+    if n > 1:
+        assert impacts[0]["fill"] != impacts[-1]["fill"]
+    assert not shown["faceTexts"]  # no label on the face: the colour bar tells the order
+    bar_labels = [t["text"] for t in shown["barTexts"] if t["cls"] == "colour-tick"]
+    _round_steps(bar_labels)
+    assert int(bar_labels[-1]) <= budget and int(bar_labels[-1]) > budget / 2
+    for text in shown["barTexts"]:
+        assert _apart(text, shown["bar"]), text
+    # the curve: round ticks, every label outside the plot area, one point per rollout
+    texts = shown["curveTexts"]
+    _round_steps([t["text"] for t in texts if t["cls"] == "y-tick"])
+    _round_steps([t["text"] for t in texts if t["cls"] == "x-tick"])
+    assert any(t["cls"] == "hit-label" and t["text"] == "5 cm ring" for t in texts)
+    for text in texts:
+        assert _apart(text, shown["plot"]), text
+    assert len(shown["points"]) == n
+    for text in texts:
+        for p in shown["points"]:
+            disc = {"x": p["x"] - p["r"], "y": p["y"] - p["r"], "w": 2 * p["r"], "h": 2 * p["r"]}
+            assert _apart(text, disc), (text, p)
+    # no empty grid cell: the panels tile the page's two columns
+    cells = shown["cells"]
+    assert len(cells) == 6 and all(c["w"] > 0 and c["h"] > 0 for c in cells)
+    return shown
+
+
+def _wait_rollout(page: Any, n: int) -> None:
+    page.wait_for_function(
+        """n => {
+          const f = document.getElementById("frame"), s = document.getElementById("scene");
+          return f.dataset.rollout === String(n) && f.complete && f.naturalWidth > 0
+            && s.complete && s.naturalWidth > 0
+            && document.querySelectorAll("#face .impact").length === n;
+        }""",
+        arg=n,
+        timeout=90_000,
     )
 
 
@@ -213,40 +389,78 @@ def _chromium(url: str, profile: Path, *extra: str) -> subprocess.CompletedProce
 @pytest.mark.skipif(
     shutil.which(CHROMIUM) is None, reason=f"no Chromium at {CHROMIUM} (.ci/run installs it)"
 )
-def test_the_page_in_a_headless_browser(net: NetConfig, tmp_path: Path) -> None:
-    flags = ["--connect", net.connect[0], "--robot", net.robot]
-    with fake_services(net) as rollouts:
-        port = free_tcp_endpoint().rsplit(":", 1)[1]
-        proc = spawn("dashboard", "--port", port, *flags, ready="archery dashboard: serving")
-        url = f"http://127.0.0.1:{port}/"
-        try:
-            publish_shots(rollouts)
-            wait_state(url, settled)
-            with tempfile.TemporaryDirectory() as profile:
-                dom = _chromium(url, Path(profile), "--dump-dom")
-            assert dom.returncode == 0, dom.stderr
-            html = dom.stdout
-            shot = tmp_path / "dashboard.png"
-            with tempfile.TemporaryDirectory() as profile:
-                out = _chromium(
-                    url, Path(profile), f"--screenshot={shot}", "--window-size=1280,900"
-                )
-            assert out.returncode == 0 and shot.stat().st_size > 10_000, out.stderr
-        finally:
-            proc.terminate()
-            proc.wait(timeout=30)
-    for name in ("learner", "detector"):
+def test_the_page_at_rollouts_1_10_and_60(
+    net: NetConfig, tmp_path: Path, record_property: Callable[[str, object], None]
+) -> None:
+    """Screenshots at rollouts 1, 10 and 60 (printed and attached as test properties), and what
+    each panel shows then."""
+    budget = 60
+    with (
+        fake_learner(net, "s1", budget) as rollouts,
+        real_camera(net),
+        Dashboard(net, bind("127.0.0.1", 0)) as dash,
+        browser() as page,
+    ):
+        assert rollouts.wait_matched(30), "the dashboard does not subscribe to the rollouts"
+        page.goto(dash.url)
+        published = 0
+        for n in (1, 10, 60):
+            while published < n:
+                published += 1
+                rollouts.put(Rollout(record=_done("s1", published)))
+            _wait_rollout(page, n)
+            shot = tmp_path / f"dashboard-rollout-{n:02d}.png"
+            page.screenshot(path=str(shot), full_page=True)
+            print(f"screenshot at rollout {n}: {shot}")
+            record_property(f"screenshot_rollout_{n}", str(shot))
+            assert shot.stat().st_size > 50_000
+            _check_panels(page, n, budget)
+        html = page.content()
+    for name in ("learner", "detector", "camera", "robot"):
         assert f'data-service="{name}" data-alive="true"' in html, html
-    for name in ("robot", "camera", "controller"):
-        assert f'data-service="{name}" data-alive="false"' in html
-    assert html.count('class="impact"') == 3  # the aborted rollout has no impact
-    assert html.count('class="ring"') == 5
-    assert html.count('class="distance-point"') == 3
-    assert re.search(r'id="latest-distance">2\.2 cm<', html), html  # ‖(0.01, -0.02)‖
-    assert re.search(r'<img id="frame"[^>]*src="/api/frame.png\?v=\d+"', html), html
-    assert 'id="hit-count">1<' in html
+    assert 'data-service="controller" data-alive="false"' in html
     assert f'data-key="{net.robot}/learner/rollout:o"' in html
     assert 'class="ok"' in html  # the last poll succeeded
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    shutil.which(CHROMIUM) is None, reason=f"no Chromium at {CHROMIUM} (.ci/run installs it)"
+)
+def test_the_robot_selector_switches_between_the_robots_of_a_fleet(net: NetConfig) -> None:
+    other = dataclasses.replace(net, robot=net.robot + "b")
+    with (
+        fake_learner(net, "first", 20) as first,
+        fake_learner(other, "second", 20) as second,
+        Dashboard(net, bind("127.0.0.1", 0)) as dash,
+        browser() as page,
+    ):
+        assert first.wait_matched(30)
+        first.put(Rollout(record=_done("first", 1)))
+        page.goto(dash.url)
+        page.wait_for_function(
+            "n => document.querySelectorAll('#robot-select option').length === n",
+            arg=2,
+            timeout=60_000,
+        )
+        options = page.eval_on_selector_all("#robot-select option", "os => os.map(o => o.value)")
+        assert options == sorted([net.robot, other.robot])
+        assert page.input_value("#robot-select") == net.robot
+        page.wait_for_function(
+            "() => document.getElementById('session').textContent === 'session first'",
+            timeout=30_000,
+        )
+        page.select_option("#robot-select", other.robot)
+        assert second.wait_matched(30), "the dashboard does not follow the second robot"
+        for k in (1, 2):
+            second.put(Rollout(record=_done("second", k)))
+        page.wait_for_function(
+            """r => document.getElementById('robot').textContent === r
+              && document.getElementById('session').textContent === 'session second'
+              && document.querySelectorAll('#face .impact').length === 2""",
+            arg=other.robot,
+            timeout=30_000,
+        )
 
 
 def _rates(watch: MeshWatch, ready: Callable[[dict[str, float | None]], bool]) -> dict[str, Any]:
@@ -295,4 +509,68 @@ def test_rates_come_from_the_publishers_counts_not_from_subscribing(net: NetConf
         finally:
             stop.set()
             thread.join(5)
+            watch.close()
+
+
+def test_the_frame_is_fetched_after_every_rollout(net: NetConfig) -> None:
+    with fake_learner(net, "s1", 10) as rollouts, Node(None, net) as node:
+        watch = MeshWatch(node)
+        try:
+            assert rollouts.wait_matched(30)
+            for k in range(1, 6):
+                rollouts.put(Rollout(record=_done("s1", k)))
+                deadline = time.monotonic() + 30
+                while watch.snapshot()["frame"]["rollout"] != k:
+                    assert time.monotonic() < deadline, watch.snapshot()["frame"]
+                    time.sleep(0.02)
+            assert watch.frame()[1] >= 5
+        finally:
+            watch.close()
+
+
+def test_the_scene_view_is_asked_for_only_while_a_page_wants_it(net: NetConfig) -> None:
+    calls: list[float] = []
+    jpeg = cv2.imencode(".jpg", np.zeros((36, 64, 3), np.uint8))[1].tobytes()
+
+    def scene(_: object) -> SceneReply:
+        calls.append(time.monotonic())
+        image = Image(width=64, height=36, encoding="jpeg", data=jpeg, sim_time=1.0)
+        return SceneReply(status="ok", image=image, period=0.2, renders=1, render_ms=1.0)
+
+    with Node("camera", net) as camera, Node(None, net) as node:
+        camera.serve(camera.keys.cam_rpc(), some_verbs(CAMERA_VERBS, {"scene": scene}))
+        camera.ready()
+        node.wait_alive(["camera"], timeout=30)
+        watch = MeshWatch(node, status_every=0.1)
+        try:
+            deadline = time.monotonic() + 2.0  # the status polls run; nobody wants the scene
+            while time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert not calls and watch.snapshot()["scene"]["status"] == "off"
+            watch.want_scene()  # a page shows the panel
+            deadline = time.monotonic() + 30
+            while watch.scene()[0] != jpeg:
+                assert time.monotonic() < deadline
+                time.sleep(0.02)
+            assert watch.snapshot()["scene"] | {"version": 1} == {
+                "version": 1,
+                "status": "ok",
+                "error": "",
+                "sim_time": 1.0,
+                "width": 64,
+                "height": 36,
+            }
+            # nobody asks again: the calls stop once SCENE_INTEREST s have passed
+            deadline = time.monotonic() + SCENE_INTEREST + 30
+            while watch.snapshot()["scene"]["status"] != "off":
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            stopped = len(calls)
+            assert stopped >= 2  # at the camera's period while wanted
+            assert all(b - a >= 0.19 for a, b in itertools.pairwise(calls))
+            settle = time.monotonic() + 1.0
+            while time.monotonic() < settle:
+                time.sleep(0.1)
+            assert len(calls) == stopped
+        finally:
             watch.close()

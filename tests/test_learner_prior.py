@@ -29,6 +29,13 @@ MISMATCHED = {
     "stiffer bow 420 N/m": Scenario(bow_stiffness=420.0),
     "softer bow 220 N/m": Scenario(bow_stiffness=220.0),
 }
+# The model's physical parameters (range, drag, side wind) held at the nominal ones.
+FIXED_PHYSICS = {
+    "model_distance_std": 0.0,
+    "model_drag_std": 0.0,
+    "model_wind_std": 0.0,
+    "model_stiffness_std": 0.0,
+}
 
 
 def _prior(seed: int = 0, **options: object) -> ArcherPrior:
@@ -68,23 +75,30 @@ def test_converges_on_worlds_the_model_gets_wrong(name: str) -> None:
 
 
 def test_a_far_wrong_model_still_converges() -> None:
-    # At 5 m the nominal 2.2 m model misses by 65 cm and its Jacobian is 2x too small.
+    # At 5 m the nominal 2.2 m model misses by 65 cm and its Jacobian is 2x too small: the
+    # fitted range mends both, and with the range held fixed the residual still converges.
     distances = _play(_prior(), BallisticWorld(Scenario(distance=5.0)), 10)
     assert distances[0] > 0.5
+    assert distances[1] < INNER_RING_RADIUS
+    assert np.all(distances[2:] < 0.01)
+    distances = _play(_prior(**FIXED_PHYSICS), BallisticWorld(Scenario(distance=5.0)), 10)
     assert np.any(distances[:4] < INNER_RING_RADIUS)
     assert np.all(distances[5:] < 0.01)
 
 
-def test_the_data_override_the_prior_offset() -> None:
-    # A world that is the model plus a constant offset: the posterior offset c finds it.
+@pytest.mark.parametrize("options", [FIXED_PHYSICS, {}], ids=["fixed physics", "fitted physics"])
+def test_the_data_override_the_prior_offset(options: dict) -> None:
+    # A world that is the model plus a constant offset: with the physics held fixed the
+    # posterior offset c finds it; fitted, the physics explains part of it and c the rest.
     offset = np.array([0.2, -0.15])
     model = BallisticWorld()
-    learner = _prior()
+    learner = _prior(**options)
     for _ in range(6):
         theta = learner.ask()
         learner.tell(theta, model.impacts(theta[None]).r[0] + offset)
     c, _ = learner.correction()
-    assert c == pytest.approx(offset, abs=2e-3)
+    if options:
+        assert c == pytest.approx(offset, abs=2e-3)
     assert np.linalg.norm(model.impacts(learner.ask()[None]).r[0] + offset) < 1e-3
 
 
@@ -187,6 +201,9 @@ def test_without_change_detection_the_stale_rollouts_slow_it_down() -> None:
         {"trust_radius": 0.5},
         {"model_stiffness": 0.0},
         {"model_distance": 0.1},
+        {"model_distance_std": -1.0},
+        {"model_drag_std": float("nan")},
+        {"model_wind_std": float("inf")},
     ],
 )
 def test_invalid_options_are_refused(options: dict) -> None:

@@ -110,8 +110,9 @@ def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, N
 
 def test_only_verbs_that_never_wait_are_non_blocking() -> None:
     """Getters of in-memory settings and status are non-blocking, and so are a part's lease
-    verbs (a lock held for a moment: a takeover never queues behind a move); anything that
-    moves, waits for a frame, the simulation thread or a stream stays on the worker."""
+    verbs (a lock held for a moment: a takeover never queues behind a move), and the camera's
+    scene view (the newest view at once; its thread renders the next); anything that moves,
+    waits for a frame, the simulation thread or a stream stays on the worker."""
     inline = {(t.title, v.name) for t in TABLES for v in t if not v.blocking}
     assert inline == {
         ("robot controlboard", "getJointNames"),
@@ -121,6 +122,7 @@ def test_only_verbs_that_never_wait_are_non_blocking() -> None:
         ("robot controlboard", "dropClaim"),
         ("robot controlboard", "getClaim"),
         ("camera", "status"),
+        ("camera", "scene"),
         ("detector", "status"),
         ("cartesian controller of one arm", "getTolerance"),
         ("cartesian controller of one arm", "getTrajTime"),

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from protocol.journal_records import (
     AbortedRecord,
@@ -15,7 +17,7 @@ from protocol.journal_records import (
 )
 from services.learner.algorithms.registry import make_learner
 from services.learner.journal import Journal, JournalState, read_records
-from services.learner.report import Interruptions, interruptions, write_report
+from services.learner.report import Interruptions, interruptions, report_figure, write_report
 
 THETA = [0.17, 0.0, -0.02]  # m
 
@@ -97,3 +99,56 @@ def test_the_report_of_a_60_rollout_session_with_aborts_and_resumes_is_written(
     report = write_report(path)
     assert report == tmp_path / "s1" / "report.png"
     assert report.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and report.stat().st_size > 50_000
+
+
+def _marker_boxes(ax: Any) -> list[Any]:
+    """The display boxes (px) of every marker drawn in `ax`: each scatter point's and each line
+    marker's square of side `sqrt(size)` pt (the marker's extent), edge included."""
+    from matplotlib.collections import PathCollection
+    from matplotlib.lines import Line2D
+    from matplotlib.transforms import Bbox
+
+    px = ax.figure.dpi / 72.0
+    boxes = []
+    for artist in ax.get_children():
+        if isinstance(artist, PathCollection):
+            points = artist.get_offset_transform().transform(artist.get_offsets())
+            sizes = np.broadcast_to(artist.get_sizes(), (len(points),))
+            for (x, y), size in zip(points, sizes, strict=True):
+                half = 0.5 * np.sqrt(size) * px * 0.7  # the disc inside the marker's square
+                boxes.append(Bbox.from_extents(x - half, y - half, x + half, y + half))
+        elif isinstance(artist, Line2D) and artist.get_marker() not in ("", "None", None):
+            data = np.column_stack(artist.get_data()).astype(float)
+            for x, y in artist.get_transform().transform(data[np.isfinite(data).all(axis=1)]):
+                half = 0.5 * artist.get_markersize() * px * 0.7
+                boxes.append(Bbox.from_extents(x - half, y - half, x + half, y + half))
+    return boxes
+
+
+@pytest.mark.parametrize("rollouts", [8, 60])
+def test_no_number_of_the_report_lies_on_a_marker(tmp_path: Path, rollouts: int) -> None:
+    import matplotlib.pyplot as plt
+
+    aborts = {3: ["no_arrow"], 5: ["rig_error"]}
+    path = _journal(tmp_path / "s1", rollouts, aborts, resumes=(5,))
+    fig = report_figure(_state(path))
+    try:
+        renderer = fig.canvas.get_renderer()
+        face, curve = fig.axes[:2]
+        numbers = [t for t in face.texts if t.get_text().isdigit()]
+        assert {"1", str(rollouts)} <= {t.get_text() for t in numbers} or rollouts > 20
+        assert len(numbers) >= min(rollouts, 6), [t.get_text() for t in numbers]
+        assert {t.get_text() for t in curve.texts} == {"no_arrow", "rig_error"}
+        for ax in (face, curve):
+            markers = _marker_boxes(ax)
+            assert markers
+            boxes = [t.get_window_extent(renderer) for t in ax.texts]
+            for text, box in zip(ax.texts, boxes, strict=True):
+                covered = [m for m in markers if box.overlaps(m)]
+                assert not covered, (text.get_text(), box, covered[:3])
+            for i, box in enumerate(boxes):  # nor on each other
+                assert not any(box.overlaps(other) for other in boxes[i + 1 :])
+        legend = curve.get_legend().get_window_extent(renderer)
+        assert legend.y1 < curve.get_window_extent(renderer).y0  # under the plot, off the data
+    finally:
+        plt.close(fig)

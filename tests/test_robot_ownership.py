@@ -340,3 +340,29 @@ def test_a_dead_controller_s_lease_ends_by_itself(rig: Rig) -> None:
     rig.start_controller()
     rig.home()
     assert rig.posture()["reached"]
+
+
+def test_set_ref_speeds_claims_the_part_in_the_same_round_trip(rig: Rig) -> None:
+    rig.home()
+    n = len(PARTS[ARM])
+    took = rig.part(ARM, "setRefSpeeds", {"speeds": 0.3, "claim": {"owner": "tester"}})
+    assert took["speeds"] == [0.3] * n and took["lease"]
+    held = rig.part(ARM, "getClaim")
+    assert held["owner"] == "tester" and held["ttl"] == LEASE_TTL
+    with pytest.raises(RpcError, match="a lease or a claim, not both") as both:
+        rig.part(
+            ARM,
+            "setRefSpeeds",
+            {"speeds": 0.2, "lease": took["lease"], "claim": {"owner": "tester"}},
+        )
+    assert both.value.code == "bad_request"
+    with pytest.raises(RpcError, match="held by 'tester'") as refused:
+        rig.part(ARM, "setRefSpeeds", {"speeds": 0.1, "claim": {"owner": "someone"}})
+    assert refused.value.code == "not_owner"
+    assert rig.part(ARM, "getRefSpeeds")["speeds"] == [0.3] * n  # the refused call set nothing
+    rig.part(ARM, "dropClaim", {"lease": took["lease"]})
+    with pytest.raises(RpcError) as wrong:  # speeds of the wrong length: the new lease let go
+        rig.part(ARM, "setRefSpeeds", {"speeds": [0.1] * (n + 1), "claim": {"owner": "tester"}})
+    assert wrong.value.code == "bad_request"
+    assert rig.owner() == ""
+    assert rig.posture()["reached"]  # the controller claims and moves the arm as before

@@ -592,6 +592,7 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         ("learner", verb_key(K.cartesian_rpc("archery"), "setTrajTime")),
         (VIEWER, verb_key(K.cartesian_rpc("archery"), "posture")),
         (VIEWER, verb_key(K.learner_rpc(), "start")),
+        ("detector", verb_key(cam, "scene")),  # the scene view is for people
     ):
         assert (name, target) not in reached, (name, target)
     for name, target in (
@@ -599,6 +600,7 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         ("detector", verb_key(cam, "grab")),
         ("controller", verb_key(K.part_rpc("left_arm"), "setRefSpeeds")),
         (VIEWER, verb_key(det, "status")),
+        (VIEWER, verb_key(cam, "scene")),  # the dashboard's scene view
         (OPERATOR, verb_key(K.cartesian_rpc("archery"), "posture")),
     ):
         assert (name, target) in reached, (name, target)

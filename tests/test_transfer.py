@@ -31,12 +31,22 @@ from sim.ballistic import BallisticWorld, Scenario
 from tests.test_learner_service_session import FakeRig
 
 STIFF = Scenario(bow_stiffness=420.0)  # the learner's nominal model is a 300 N/m bow
+# archer-prior with its model's physical parameters held at the nominal ones: all it learns is
+# the residual (c, D).
+RESIDUAL_ONLY = {
+    "model_distance_std": 0.0,
+    "model_drag_std": 0.0,
+    "model_wind_std": 0.0,
+    "model_stiffness_std": 0.0,
+}
 
 
-def _learned(name: str, scenario: Scenario, rollouts: int = 12, seed: int = 1):
+def _learned(name: str, scenario: Scenario, rollouts: int = 12, seed: int = 1, **options: float):
     """A learner of `name` after `rollouts` rollouts in `scenario` (no observation noise)."""
     world = BallisticWorld(scenario)
-    learner = make_learner(name, np.array(scenario.start), rng=np.random.default_rng(seed))
+    learner = make_learner(
+        name, np.array(scenario.start), rng=np.random.default_rng(seed), **options
+    )
     for _ in range(rollouts):
         theta = learner.ask()
         learner.tell(theta, world.impacts(theta.reshape(1, -1)).r[0])
@@ -47,13 +57,16 @@ def _miss(scenario: Scenario, theta: np.ndarray) -> float:
     return float(np.linalg.norm(BallisticWorld(scenario).impacts(theta.reshape(1, -1)).r[0]))
 
 
-def test_prior_transfer_aims_with_the_learned_residual() -> None:
-    source = _learned("archer-prior", STIFF)
-    fresh = make_learner("archer-prior", np.array(STIFF.start), rng=np.random.default_rng(0))
-    seeded = transferred_learner(
-        make_learner("archer-prior", np.array(STIFF.start), rng=np.random.default_rng(0)),
-        source.state_dict(),
+def _fresh(**options: float):
+    return make_learner(
+        "archer-prior", np.array(STIFF.start), rng=np.random.default_rng(0), **options
     )
+
+
+def test_prior_transfer_aims_with_the_learned_residual() -> None:
+    source = _learned("archer-prior", STIFF, **RESIDUAL_ONLY)
+    fresh = _fresh(**RESIDUAL_ONLY)
+    seeded = transferred_learner(_fresh(**RESIDUAL_ONLY), source.state_dict())
     c, _ = source.correction()
     assert np.linalg.norm(c) > 0.02  # the stiffer bow shoots well off the nominal model
     theta_fresh, theta_seeded = fresh.ask(), seeded.ask()
@@ -64,12 +77,19 @@ def test_prior_transfer_aims_with_the_learned_residual() -> None:
     assert _miss(STIFF, theta_seeded) < 0.5 * _miss(STIFF, theta_fresh)
 
 
-def test_prior_transfer_is_widened_so_new_data_override_it() -> None:
+def test_prior_transfer_aims_with_the_learned_physics() -> None:
+    # The stiffer bow's arrows fly higher: the fitted physics explains them (a nearer target),
+    # and a session started from it aims with that world.
     source = _learned("archer-prior", STIFF)
-    seeded = transferred_learner(
-        make_learner("archer-prior", np.array(STIFF.start), rng=np.random.default_rng(0)),
-        source.state_dict(),
-    )
+    assert source.params is not None and not np.allclose(source.params, source.params_mean)
+    seeded = transferred_learner(_fresh(), source.state_dict())
+    assert np.array_equal(seeded.params_mean, source.params)
+    assert _miss(STIFF, seeded.ask()) < 0.2 * _miss(STIFF, _fresh().ask())
+
+
+def test_prior_transfer_is_widened_so_new_data_override_it() -> None:
+    source = _learned("archer-prior", STIFF, **RESIDUAL_ONLY)
+    seeded = transferred_learner(_fresh(**RESIDUAL_ONLY), source.state_dict())
     # The residual's variance where the source aimed: tight there, widened here.
     phi = np.concatenate([[1.0], source.best()[0] - source.theta0])
     assert phi @ seeded.posterior()[1] @ phi > 10 * phi @ source.posterior()[1] @ phi

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,7 +14,7 @@ from sim.geometry import INNER_RING_RADIUS, TARGET_DIAMETER
 if TYPE_CHECKING:
     from apps.experiment.config import AlgorithmRun
 
-__all__ = ["plot_impacts"]
+__all__ = ["impacts_figure", "plot_impacts"]
 
 
 def plot_impacts(
@@ -25,9 +25,27 @@ def plot_impacts(
     session: int = 0,
     title: str = "",
 ) -> None:
+    """Fig. 5 of a run on the robot (`impacts_figure`) written to `path`."""
+    fig = impacts_figure(runs, labels, session=session, title=title)  # selects Agg first
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def impacts_figure(
+    runs: Mapping[str, AlgorithmRun],
+    labels: Mapping[str, str],
+    *,
+    session: int = 0,
+    title: str = "",
+) -> Any:
     """One panel per algorithm: every impact of session `session` (cm from the centre) on the
-    target's rings, coloured by rollout, its first hit ringed in red."""
+    target's rings, coloured by rollout, its first hit ringed in red. The paper's learners
+    (ARCHER, PoWER) share one scale; each baseline's panel is scaled to its own impacts."""
     import matplotlib
+
+    from apps.experiment.plots import split_baselines
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -38,6 +56,8 @@ def plot_impacts(
     )
     face_cm = 100 * TARGET_DIAMETER / 2
     shown = None
+    paper, _ = split_baselines(names)
+    reaches: dict[str, float] = {}
     for ax, name in zip(axes[0], names, strict=True):
         run = runs[name]
         budget = run.thetas.shape[1]
@@ -51,16 +71,18 @@ def plot_impacts(
         if first_hit <= budget:
             ax.scatter(*impacts[first_hit - 1], s=150, facecolors="none", edgecolors="red", lw=1.6)
         ax.annotate("1", impacts[0], textcoords="offset points", xytext=(5, 5), fontsize=8)
-        reach = max(face_cm, float(np.abs(impacts).max()) + 5)
-        ax.set(xlim=(-reach, reach), ylim=(-reach, reach), aspect="equal")
+        reaches[name] = max(face_cm, float(np.abs(impacts).max()) + 5)
+        ax.set(aspect="equal")
         ax.set(xlabel="right of centre (cm)", ylabel="above centre (cm)")
         outcome = (
             f"first hit at rollout {first_hit} (red ring)" if first_hit <= budget else "no hit"
         )
         ax.set_title(f"{labels[name]}\nsession {session}: {outcome}")
+    for ax, name in zip(axes[0], names, strict=True):
+        reach = max(reaches[n] for n in (paper if name in paper else [name]))
+        ax.set(xlim=(-reach, reach), ylim=(-reach, reach))
     if shown is not None:
         fig.colorbar(shown, ax=axes[0].tolist(), label="rollout", shrink=0.8)
     heading = "Impacts on the target of one session per algorithm"
     fig.suptitle(heading + (f"\n{title}" if title else ""))
-    fig.savefig(path)
-    plt.close(fig)
+    return fig

@@ -1,15 +1,16 @@
-"""Verbs of the camera, `ROBOT/cam/rpc:i`: grab a fresh frame, calibration marks, status."""
+"""Verbs of the camera, `ROBOT/cam/rpc:i`: grab a fresh frame, calibration marks, the scene
+view (the whole robot from the side camera), status."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from msgspec import Meta
 
 from protocol.messages import Image
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["CAMERA_VERBS", "MAX_GRAB_TIMEOUT"]
+__all__ = ["CAMERA_VERBS", "MAX_GRAB_TIMEOUT", "SceneReply"]
 
 MAX_GRAB_TIMEOUT = 120.0  # s
 
@@ -26,6 +27,20 @@ class GrabArgs(Args, frozen=True):
 class CalibrationReply(Reply, frozen=True):
     image: Image
     pixels: Annotated[dict[str, list[list[float]]], Meta(description="{target, arrow}: [[x, y]…]")]
+
+
+class SceneReply(Reply, frozen=True):
+    """The newest third-person view the camera rendered (JPEG), and how it renders them.
+
+    `status` "starting": the view is being built (the first request of a while starts it), no
+    image yet; "ok": `image` is the newest view, rendered at most `period` s apart while views
+    are asked for."""
+
+    status: Literal["ok", "starting"]
+    period: Annotated[float, Meta(description="s: at least this long between two renders")]
+    renders: Annotated[int, Meta(description="views rendered since the camera started")]
+    render_ms: Annotated[float, Meta(description="ms: the last render and its encoding")] | None
+    image: Image | None = None
 
 
 class CameraStatusReply(Reply, frozen=True):
@@ -60,6 +75,14 @@ CAMERA_VERBS = VerbTable(
             NoArgs,
             CalibrationReply,
             "a frame and its target/arrow marks",
+            reads=True,
+        ),
+        Verb(
+            "scene",
+            NoArgs,
+            SceneReply,
+            "the newest view of the whole robot from the side camera (JPEG, a low rate)",
+            blocking=False,
             reads=True,
         ),
         Verb(

@@ -80,14 +80,33 @@ class MotionDoneReply(Reply, frozen=True):
     done: bool
 
 
+class ClaimArgs(Args, frozen=True):
+    """`takeover`: take the part even from another owner whose lease still runs (the operator's
+    explicit override); without it such a claim is refused (`not_owner`). A claim by the owner
+    that holds the part (the same name, e.g. a restarted controller) replaces its lease."""
+
+    owner: Owner
+    ttl: Ttl = LEASE_TTL
+    takeover: bool = False
+
+
 class SetRefSpeedsArgs(Args, frozen=True):
+    """`claim`: claim the part first, as the `claim` verb does, in the same round trip (the
+    reply carries the new lease; `lease` must then be empty): a move takes its lease and sets
+    its speeds with one call per part."""
+
     speeds: Speed | Annotated[list[Speed], Meta(min_length=1, max_length=MAX_JOINTS)]
     lease: LeaseId = ""
+    claim: ClaimArgs | None = None
 
 
-class RefSpeedsReply(Reply, frozen=True):
+class RefSpeedsReply(Reply, frozen=True, omit_defaults=True):
+    """`lease`: the lease a claiming call took (left out otherwise, and by a robot that keeps no
+    leases)."""
+
     names: list[str]
     speeds: Annotated[list[float], Meta(description="rad/s")]
+    lease: str = ""
 
 
 class PositionMoveArgs(Args, frozen=True):
@@ -115,16 +134,6 @@ class PartStatusReply(Reply, frozen=True):
     position: Annotated[list[float], Meta(description="rad")]
     velocity: Annotated[list[float], Meta(description="rad/s")]
     sim_time: Annotated[float, Meta(description="s")]
-
-
-class ClaimArgs(Args, frozen=True):
-    """`takeover`: take the part even from another owner whose lease still runs (the operator's
-    explicit override); without it such a claim is refused (`not_owner`). A claim by the owner
-    that holds the part (the same name, e.g. a restarted controller) replaces its lease."""
-
-    owner: Owner
-    ttl: Ttl = LEASE_TTL
-    takeover: bool = False
 
 
 class LeaseArgs(Args, frozen=True):

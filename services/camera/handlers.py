@@ -1,5 +1,6 @@
 """The camera's RPC verbs on `ROBOT/cam/rpc:i` (`protocol.verbs.camera`): grab, calibration,
-status. Frames come from the capture thread's store; work on the source runs on that thread."""
+scene, status. Frames come from the capture thread's store; work on the source runs on that
+thread; the scene view has its own thread (`services.camera.scene_view`)."""
 
 from __future__ import annotations
 
@@ -9,10 +10,17 @@ from protocol.errors import BadRequest
 from protocol.messages import Image
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs.camera import CAMERA_VERBS, CalibrationReply, CameraStatusReply, GrabArgs
+from protocol.verbs.camera import (
+    CAMERA_VERBS,
+    CalibrationReply,
+    CameraStatusReply,
+    GrabArgs,
+    SceneReply,
+)
 from services.camera.capture import Capture
 from services.camera.config import CameraConfig
 from services.camera.frames import FrameStore, Freshness
+from services.camera.scene_view import SceneViews
 
 __all__ = ["CALIBRATION_TIMEOUT", "CameraHandlers"]
 
@@ -22,16 +30,24 @@ CALIBRATION_TIMEOUT = 30.0  # wall s: a calibration frame is rendered on the cap
 class CameraHandlers:
     """One method per camera verb."""
 
-    def __init__(self, config: CameraConfig, capture: Capture, store: FrameStore) -> None:
+    def __init__(
+        self, config: CameraConfig, capture: Capture, store: FrameStore, views: SceneViews
+    ) -> None:
         self._config = config
         self._capture = capture
         self._store = store
+        self._views = views
         self._rendered = config.source.kind == "mujoco"
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cam/rpc:i`."""
         return CAMERA_VERBS.bind(
-            {"grab": self.grab, "calibration": self.calibration, "status": self.status}
+            {
+                "grab": self.grab,
+                "calibration": self.calibration,
+                "scene": self.scene,
+                "status": self.status,
+            }
         )
 
     def grab(self, args: GrabArgs) -> Image:
@@ -72,6 +88,11 @@ class CameraHandlers:
             return CalibrationReply(image=image, pixels=marks)
 
         return capture.jobs.call(job, timeout=CALIBRATION_TIMEOUT)
+
+    def scene(self, args: NoArgs) -> SceneReply:
+        """The newest view of the whole robot from the side camera (mujoco only); never waits:
+        it asks the scene view's thread for the next one."""
+        return self._views.reply()
 
     def status(self, args: NoArgs) -> CameraStatusReply:
         """Source, size, rate, encoding, frames, renders (and frames of an unchanged scene served

@@ -21,6 +21,11 @@ Verbs on `ROBOT/cam/rpc:i` (args → result):
   `timeout` (default 5 s).
 - `calibration {}` (mujoco only) → {"image": Image dict, "pixels": {"target": [[x, y]…],
   "arrow": [[x, y]…]}}: a frame with an arrow on the face and the pixels a user would mark.
+- `scene {}` (mujoco only) → {"status": "ok"|"starting", "image": a JPEG Image dict or None,
+  "period", "renders", "render_ms"}: the newest view of the whole robot, bow, arrow and target
+  from the scene's side camera, rendered on its own thread at most once per `period` s while
+  asked for, never waited for (`services.camera.scene_view`); nothing is built or rendered
+  while nobody asks.
 - `status {}` → source, size, rate, encoding, frames published, renders, reuses (frames of an
   unchanged view served from a kept render) and mean render time
   (ms), newest frame's sim time, the scene parameters and where they came from.
@@ -42,6 +47,7 @@ from services.camera.capture import Capture, capture_loop
 from services.camera.config import CameraConfig, add_arguments, make_config
 from services.camera.frames import FrameStore
 from services.camera.handlers import CameraHandlers
+from services.camera.scene_view import SceneViews
 
 __all__ = ["main", "run"]
 
@@ -55,7 +61,8 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
         pub = node.publisher(keys.cam_frames(), Image)
         store = FrameStore()
         capture = Capture(config, node, store)
-        node.serve(keys.cam_rpc(), CameraHandlers(config, capture, store).verbs())
+        views = SceneViews(capture)
+        node.serve(keys.cam_rpc(), CameraHandlers(config, capture, store, views).verbs())
         try:
             capture.open()
             node.ready()
@@ -69,6 +76,7 @@ def run(config: CameraConfig, stop: threading.Event) -> None:
             )
             capture_loop(capture, pub, stop)
         finally:
+            views.close()
             capture.close()
 
 

@@ -1,16 +1,18 @@
 """The controller's side of the robot's controlboards: joint states in, targets out, over the mesh.
 
 A move: clip the targets into the robot's software limits (from each part's `getLimits`), claim
-each part it moves (`claim` on `{part}/rpc:i`: a lease of `lease_ttl` wall s, so that the part
-obeys no other client during the move), set each part's reference speeds so every joint covers
-its distance in the trajectory time (`setRefSpeeds`), publish one `JointCommand` per part back to
-back on `command:i` as one batch carrying its lease (the robot starts them at one simulated
-time), then wait until every part's `state:o` reports motion done within `joint_tolerance` of its
-targets, renewing the leases every quarter of their ttl, and drop the leases at the end (in the
-background: the posture's reply does not wait for it). A part
-held by another client (the operator's takeover) fails the move at once with `not_owner`; one
+each part it moves and set its reference speeds so every joint covers its distance in the
+trajectory time, in one round trip per part (`setRefSpeeds` with `claim` on `{part}/rpc:i`: a
+lease of `lease_ttl` wall s, so that the part obeys no other client during the move), publish
+one `JointCommand` per part back to back on `command:i` as one batch carrying its lease (the
+robot starts them at one simulated time), then wait until every part's `state:o` reports motion
+done within `joint_tolerance` of its targets, renewing the leases every quarter of their ttl,
+and drop the leases at the end (in the background: the posture's reply does not wait for it). A
+part held by another client (the operator's takeover) fails the move at once with `not_owner`
+(the parts claimed before it are let go; their reference speeds stay set, nothing moved); one
 taken over during the move ends it unreached, naming the new owner; the part keeps the targets
-it was last given. A robot without the lease verbs (`unknown_verb`) is moved without leases.
+it was last given. A robot that keeps no leases (its `setRefSpeeds` returns no lease) is moved
+without them.
 
 Stale states: a joint state that arrived more than `state_max_age` wall seconds ago (0.5 by
 default; its arrival age on this host, immune to clock differences between hosts) is never
@@ -157,34 +159,29 @@ class RobotLink:
             return self._limits[part]
 
     # -- leases -------------------------------------------------------------------------------
-    def _claim(self, parts: tuple[str, ...]) -> dict[str, str]:
-        """Claim `parts` for this controller: {part: lease id} ("" for a robot without leases).
+    def _claim_with_speeds(self, part: str, speeds: np.ndarray) -> str:
+        """Claim `part` for this controller and set its reference speeds (rad/s) in one round
+        trip; the lease id ("" from a robot that keeps no leases: it takes anyone's commands).
 
         Raises:
-            ArcheryError (code `not_owner`): another client holds a part (the leases taken so
-                far are dropped).
+            ArcheryError (code `not_owner`): another client holds the part (the move drops the
+                leases it took so far).
         """
-        leases: dict[str, str] = {}
-        for part in parts:
-            try:
-                reply = self._node.call_typed(
-                    self._keys.part_rpc(part),
-                    PART_VERBS["claim"],
-                    ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
-                    timeout=self.robot_timeout,
-                )
-            except RpcError as exc:
-                if exc.code == "unknown_verb":
-                    leases[part] = ""  # a robot that keeps no leases takes anyone's commands
-                    continue
-                self._drop(leases)
-                if exc.code == "not_owner":
-                    raise ArcheryError(
-                        f"cannot move {part}: {exc.message}", code="not_owner"
-                    ) from None
-                raise
-            leases[part] = reply.lease
-        return leases
+        try:
+            reply = self._node.call_typed(
+                self._keys.part_rpc(part),
+                PART_VERBS["setRefSpeeds"],
+                SetRefSpeedsArgs(
+                    speeds=speeds.tolist(),
+                    claim=ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
+                ),
+                timeout=self.robot_timeout,
+            )
+        except RpcError as exc:
+            if exc.code == "not_owner":
+                raise ArcheryError(f"cannot move {part}: {exc.message}", code="not_owner") from None
+            raise
+        return reply.lease
 
     def _renew(self, leases: dict[str, str]) -> str:
         """Renew the leases (a lease that ran out meanwhile is claimed again, unless another
@@ -250,7 +247,7 @@ class RobotLink:
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
         current = self.posture(tuple(PARTS))
-        leases = self._claim(parts)
+        leases: dict[str, str] = {}
         try:
             result = self._move(targets, traj_time, timeout, parts, current, leases)
         except (StaleState, RpcTimeout):
@@ -276,14 +273,7 @@ class RobotLink:
             wanted = np.array([targets.get(j, current[j]) for j in PARTS[part]])
             sent[part] = np.clip(wanted, lower, upper)
             delta = sent[part] - np.array([current[j] for j in PARTS[part]])
-            self._node.call_typed(
-                self._keys.part_rpc(part),
-                PART_VERBS["setRefSpeeds"],
-                SetRefSpeedsArgs(
-                    speeds=reference_speeds(delta, traj_time).tolist(), lease=leases[part]
-                ),
-                timeout=self.robot_timeout,
-            )
+            leases[part] = self._claim_with_speeds(part, reference_speeds(delta, traj_time))
         marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in parts}
         start = time.monotonic()
         for part in parts:

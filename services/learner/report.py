@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.robotspec import HIT_RADIUS
 from services.learner.journal import JournalState, read_records
+from services.learner.label_placement import Label, place_labels
 
 __all__ = [
     "Interruptions",
@@ -17,6 +20,7 @@ __all__ = [
     "hit_caption",
     "interruptions",
     "plot_report",
+    "report_figure",
     "write_report",
 ]
 
@@ -101,11 +105,22 @@ def caption_png(png: bytes, lines: list[str]) -> bytes:
 
 
 def plot_report(state: JournalState, path: Path) -> None:
-    """`report.png`: left, where each rollout's arrow met the target face (measured r, coloured
-    by rollout, hits as stars; the robot's true impact as a hollow marker; numbered: the first
-    8, every 10th, the hits and the last); right, the distance to the centre per rollout,
-    measured and true, with the 5 cm ring, each aborted attempt (a red ×, between the rollouts
-    it fell between, with its code) and each resume of the session (a dotted line)."""
+    """`report.png` of `state` (`report_figure`) written to `path`."""
+    import matplotlib.pyplot as plt
+
+    fig = report_figure(state)
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def report_figure(state: JournalState) -> Any:
+    """The figure of `report.png`: left, where each rollout's arrow met the target face
+    (measured r, coloured by rollout, hits as stars; the robot's true impact as a hollow marker;
+    numbered: the hits, the first and the last, the first 8 and every 10th, each where it covers
+    no marker and no other number); right, the distance to the centre per rollout, measured and
+    true, with the 5 cm ring, each aborted attempt (a red ×, between the rollouts it fell
+    between, with its code) and each resume of the session (a dotted line); the legend under
+    the plot, off the data. The caller closes it (`matplotlib.pyplot.close`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -115,7 +130,7 @@ def plot_report(state: JournalState, path: Path) -> None:
     header = state.header
     radius = float(header.config.get("hit_radius_m", HIT_RADIUS))
     fig, (face, curve) = plt.subplots(
-        1, 2, figsize=(13, 6.2), dpi=110, gridspec_kw={"width_ratios": [1.0, 1.25]}
+        1, 2, figsize=(13, 6.8), dpi=110, gridspec_kw={"width_ratios": [1.0, 1.25]}
     )
     for ring in RINGS:
         face.add_patch(plt.Circle((0, 0), 100 * ring, fill=False, color="0.35", lw=1))
@@ -127,28 +142,21 @@ def plot_report(state: JournalState, path: Path) -> None:
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
         face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=0.6 if many else 0.9, zorder=1)
-    for k, d in enumerate(done):
+    areas = []  # pt²
+    for k in range(len(done)):
         x, y = r[k]
+        area = (90 if many else 130) if hits[k] else (28 if many else 55)
+        areas.append(area)
         face.scatter(
             x,
             y,
-            s=(90 if many else 130) if hits[k] else (28 if many else 55),
+            s=area,
             color=colours[k],
             zorder=3,
             marker="*" if hits[k] else "o",
             edgecolors="k",
             linewidths=0.6,
         )
-        number = d.rollout
-        if number <= LABELLED_FIRST or number % 10 == 0 or hits[k] or k == len(done) - 1:
-            face.annotate(
-                str(number),
-                (x, y),
-                textcoords="offset points",
-                xytext=(5, 4),
-                fontsize=8 if many else 10,
-                weight="bold" if hits[k] else "normal",
-            )
         true_r = truth[k]
         if true_r is not None:
             face.scatter(
@@ -224,6 +232,7 @@ def plot_report(state: JournalState, path: Path) -> None:
     stacked: dict[int, int] = {}
     codes = {code for _, code in marks.aborted}
     one_code = next(iter(codes)) if len(codes) == 1 else None  # then named once, in the legend
+    code_labels = []
     for i, (position, code) in enumerate(marks.aborted):
         level = stacked.get(position, 0)  # several aborts between the same two rollouts stack
         stacked[position] = level + 1
@@ -239,16 +248,15 @@ def plot_report(state: JournalState, path: Path) -> None:
             label=(f"aborted attempt ({one_code or 'code'})" if i == 0 else None),
         )
         if one_code is None:
-            curve.annotate(
-                code, (position + 0.5, y), textcoords="offset points", xytext=(5, -3), fontsize=7
-            )
+            code_labels.append(Label(code, (position + 0.5, y), radius_px=6.0, fontsize=7))
     curve.set_xlabel("rollout")
     curve.set_ylabel("distance of the arrow to the target centre (cm)")
     curve.set_xlim(0.5 if not marks.aborted else 0, max(len(done), 1) + 0.5)
     curve.set_ylim(0, top)
     curve.xaxis.get_major_locator().set_params(integer=True)
     curve.grid(alpha=0.3)
-    curve.legend(loc="upper right", fontsize=9)
+    # under the plot: a legend inside would cover the curve somewhere
+    curve.legend(loc="upper center", bbox_to_anchor=(0.5, -0.11), fontsize=9, ncol=3)
     summary = state.summary()
     hit_at = summary["hit_at"]
     outcome = f"hit at rollout {hit_at}" if hit_at else f"no hit in {len(done)} rollouts"
@@ -259,8 +267,32 @@ def plot_report(state: JournalState, path: Path) -> None:
     curve.set_title(f"distance per rollout: {outcome}{aborted}{resumed}")
     fig.suptitle(f"session {state.session}: {header.algorithm}, seed {header.seed}", fontsize=13)
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    # the numbers last, on the final layout: each where it covers no marker
+    px_per_pt = fig.dpi / 72.0
+    last = len(done) - 1
+    wanted = sorted(
+        (
+            k
+            for k, d in enumerate(done)
+            if d.rollout <= LABELLED_FIRST or d.rollout % 10 == 0 or hits[k] or k == last
+        ),
+        key=lambda k: (not hits[k], k not in (0, last), k),
+    )
+    place_labels(
+        face,
+        [
+            Label(
+                str(done[k].rollout),
+                (float(r[k, 0]), float(r[k, 1])),
+                radius_px=0.5 * math.sqrt(areas[k]) * px_per_pt,
+                fontsize=8 if many else 10,
+                weight="bold" if hits[k] else "normal",
+            )
+            for k in wanted
+        ],
+    )
+    place_labels(curve, code_labels)
+    return fig
 
 
 def write_report(journal: Path) -> Path:

@@ -11,6 +11,7 @@ from functools import partial
 from typing import Any
 
 from mesh.subscription import Subscription
+from protocol.errors import BadRequest
 from protocol.messages import JointCommand
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv
@@ -94,9 +95,22 @@ class RobotHandlers:
         return rv.MotionDoneReply(done=self._loop.motion_done(part))
 
     def set_ref_speeds(self, part: str, args: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
-        """Set the reference speeds (rad/s: one for all joints, or one per joint)."""
-        speeds = self._loop.set_ref_speeds(part, args.speeds, args.lease)
-        return rv.RefSpeedsReply(names=self._names(part), speeds=speeds)
+        """Set the reference speeds (rad/s: one for all joints, or one per joint), after
+        claiming the part when `claim` is given (a lease taken for speeds that are then refused
+        is dropped again)."""
+        if args.claim is None:
+            speeds = self._loop.set_ref_speeds(part, args.speeds, args.lease)
+            return rv.RefSpeedsReply(names=self._names(part), speeds=speeds)
+        if args.lease:
+            raise BadRequest("setRefSpeeds takes a lease or a claim, not both")
+        claim = args.claim
+        lease = self._loop.claim(part, claim.owner, claim.ttl, claim.takeover).lease
+        try:
+            speeds = self._loop.set_ref_speeds(part, args.speeds, lease)
+        except BaseException:
+            self._loop.drop_claim(part, lease)
+            raise
+        return rv.RefSpeedsReply(names=self._names(part), speeds=speeds, lease=lease)
 
     def get_ref_speeds(self, part: str, args: NoArgs) -> rv.RefSpeedsReply:
         """The reference speeds (rad/s)."""

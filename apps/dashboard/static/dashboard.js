@@ -1,10 +1,18 @@
-// The dashboard page: polls /api/state, draws the target face and the distance curve as SVG,
-// lists the services and port rates, and reloads the frame when the detector has a new one.
+// The dashboard page: polls /api/state for the chosen robot, shows the frame of each rollout
+// with a caption, the scene view while its panel is open, draws the target face (impacts
+// coloured by rollout, with a colour bar) and the distance curve as SVG, lists the services and
+// port rates, and offers the robots alive on the router.
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
 const POLL_MS = 500;
+const ROBOTS_MS = 5000;
+// viridis, 0 → 1: the colour of a rollout from the first to the last of the scale
+const VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e",
+  "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
+let robot = null; // null: the dashboard's own robot
 let frameVersion = 0;
+let sceneVersion = 0;
 
 function el(name, attrs, parent) {
   const node = document.createElementNS(SVG, name);
@@ -17,7 +25,45 @@ function cm(metres) {
   return (100 * metres).toFixed(1) + " cm";
 }
 
-function drawFace(state) {
+function signed(value) {
+  return (value >= 0 ? "+" : "−") + Math.abs(value).toFixed(1);
+}
+
+// Round ticks from lo to hi: steps of 1, 2 or 5 × 10^k (at least `minStep`), about `count`.
+function niceTicks(lo, hi, count, minStep = 0) {
+  if (!(hi > lo)) return [lo];
+  const raw = Math.max((hi - lo) / Math.max(count, 1), minStep);
+  const power = Math.pow(10, Math.floor(Math.log10(raw)));
+  const step = [1, 2, 5, 10].map((m) => m * power).find((s) => s >= raw);
+  const ticks = [];
+  for (let v = Math.ceil(lo / step - 1e-9) * step; v <= hi + 1e-9 * step; v += step) {
+    ticks.push(Number(v.toPrecision(12)));
+  }
+  return ticks;
+}
+
+// The smallest round number (1, 2 or 5 × 10^k) at or above `value`.
+function niceCeil(value) {
+  const power = Math.pow(10, Math.floor(Math.log10(value)));
+  return [1, 2, 5, 10].map((m) => m * power).find((s) => s >= value - 1e-9);
+}
+
+function viridis(t) {
+  const x = Math.min(Math.max(t, 0), 1) * (VIRIDIS.length - 1);
+  const i = Math.min(Math.floor(x), VIRIDIS.length - 2);
+  const [a, b] = [VIRIDIS[i], VIRIDIS[i + 1]].map((h) => [1, 3, 5].map((k) => parseInt(h.substr(k, 2), 16)));
+  const mix = a.map((c, k) => Math.round(c + (b[k] - c) * (x - i)));
+  return `rgb(${mix.join(", ")})`;
+}
+
+// The rollout numbers the colour scale spans: 1 to the session's budget (or the newest).
+function colourScale(state) {
+  const last = state.rollouts.length ? state.rollouts[state.rollouts.length - 1].index : 1;
+  const top = Math.max(state.learner.budget || 0, last, 2);
+  return { lo: 1, hi: top, colour: (index) => viridis((index - 1) / (top - 1)) };
+}
+
+function drawFace(state, scale) {
   const svg = document.getElementById("face");
   svg.replaceChildren();
   const done = state.rollouts.filter((r) => r.r_m);
@@ -32,66 +78,91 @@ function drawFace(state) {
   el("circle", { cx: 0, cy: 0, r: 100 * state.hit_radius_m, fill: "none", stroke: "#2e7d32",
     "stroke-width": 0.4, "stroke-dasharray": "1 0.6", class: "hit-ring" }, svg);
   const points = done.map((r) => [100 * r.r_m[0], -100 * r.r_m[1]]);
-  if (points.length > 1) {
-    el("polyline", { points: points.map((p) => p.join(",")).join(" "), fill: "none",
-      stroke: "#90a4ae", "stroke-width": 0.25 }, svg);
-  }
+  const dot = extent / 40; // cm: a marker's radius, the same on screen whatever the extent
   done.forEach((r, k) => {
     const last = k === done.length - 1;
-    const shade = done.length > 1 ? k / (done.length - 1) : 1;
-    const dot = el("circle", {
-      cx: points[k][0], cy: points[k][1], r: r.hit ? 1.3 : 0.9,
-      fill: `hsl(${190 + 110 * shade}, 90%, ${70 - 20 * shade}%)`,
-      stroke: last ? "#000" : "#fff", "stroke-width": last ? 0.4 : 0.2,
+    const marker = el("circle", {
+      cx: points[k][0], cy: points[k][1], r: (r.hit ? 1.5 : 1) * dot,
+      fill: scale.colour(r.index),
+      stroke: last ? "#000" : "#fff", "stroke-width": (last ? 0.4 : 0.15) * dot,
       class: "impact", "data-index": r.index,
-    }, svg);
-    el("title", {}, dot).textContent = `rollout ${r.index}: ${cm(r.distance_m)}${r.hit ? " (hit)" : ""}`;
+    }, svg); // in rollout order: the newest on top
+    el("title", {}, marker).textContent = `rollout ${r.index}: ${cm(r.distance_m)}${r.hit ? " (hit)" : ""}`;
   });
 }
 
-function drawCurve(state) {
+function drawColourbar(scale) {
+  const svg = document.getElementById("colourbar");
+  svg.replaceChildren();
+  const top = 12, bottom = 288, x = 4, w = 14;
+  const defs = el("defs", {}, svg);
+  const gradient = el("linearGradient", { id: "rollout-gradient", x1: 0, y1: 1, x2: 0, y2: 0 }, defs);
+  VIRIDIS.forEach((colour, k) => {
+    el("stop", { offset: k / (VIRIDIS.length - 1), "stop-color": colour }, gradient);
+  });
+  el("rect", { x, y: top, width: w, height: bottom - top, fill: "url(#rollout-gradient)",
+    stroke: "#555", "stroke-width": 0.5, class: "colourbar" }, svg);
+  const y = (index) => bottom - ((index - scale.lo) * (bottom - top)) / (scale.hi - scale.lo);
+  for (const tick of niceTicks(scale.lo, scale.hi, 5, 1)) {
+    if (tick < scale.lo) continue;
+    el("line", { x1: x + w, y1: y(tick), x2: x + w + 4, y2: y(tick), stroke: "#444" }, svg);
+    el("text", { x: x + w + 6, y: y(tick) + 4, "font-size": 11, class: "colour-tick" }, svg)
+      .textContent = tick;
+  }
+  el("text", { x: 58, y: (top + bottom) / 2, "font-size": 11, "text-anchor": "middle",
+    transform: `rotate(90 58 ${(top + bottom) / 2})` }, svg).textContent = "rollout";
+}
+
+function drawCurve(state, scale) {
   const svg = document.getElementById("curve");
   svg.replaceChildren();
-  const W = 520, H = 260, L = 48, R = 12, T = 12, B = 34;
+  // the plot area; every label sits in the margins around it, never over the data
+  const W = 960, H = 300, L = 56, R = 84, T = 12, B = 44;
   const done = state.rollouts.filter((r) => r.distance_m !== null);
   const ys = done.map((r) => 100 * r.distance_m);
-  const ymax = Math.max(100 * state.hit_radius_m * 1.5, ...ys, 1) * 1.1;
-  const first = done.length ? done[0].index : 0;
-  const span = Math.max(done.length ? done[done.length - 1].index - first : 1, 1);
-  const x = (k) => L + ((done[k].index - first) * (W - L - R)) / span;
+  const ymax = niceCeil(Math.max(100 * state.hit_radius_m * 2, ...ys) * 1.05);
+  const first = done.length ? Math.min(1, done[0].index) : 1;
+  const lastIndex = done.length ? done[done.length - 1].index : 10;
+  const xmax = Math.max(lastIndex, first + 4);
+  const x = (index) => L + ((index - first) * (W - L - R)) / (xmax - first);
   const y = (v) => T + (H - T - B) * (1 - v / ymax);
+  el("rect", { x: L, y: T, width: W - L - R, height: H - T - B, fill: "none",
+    class: "plot-area" }, svg);
+  for (const v of niceTicks(0, ymax, 5)) {
+    el("line", { x1: L, y1: y(v), x2: W - R, y2: y(v), stroke: "#e0e0e0" }, svg);
+    el("line", { x1: L - 4, y1: y(v), x2: L, y2: y(v), stroke: "#444" }, svg);
+    el("text", { x: L - 7, y: y(v) + 4, "text-anchor": "end", "font-size": 12,
+      class: "y-tick" }, svg).textContent = v;
+  }
+  for (const v of niceTicks(first, xmax, 8, 1)) { // rollouts are whole
+    if (v < first) continue;
+    el("line", { x1: x(v), y1: H - B, x2: x(v), y2: H - B + 4, stroke: "#444" }, svg);
+    el("text", { x: x(v), y: H - B + 17, "text-anchor": "middle", "font-size": 12,
+      class: "x-tick" }, svg).textContent = v;
+  }
   el("line", { x1: L, y1: H - B, x2: W - R, y2: H - B, stroke: "#444" }, svg);
   el("line", { x1: L, y1: T, x2: L, y2: H - B, stroke: "#444" }, svg);
-  for (let i = 0; i <= 4; i++) {
-    const v = (ymax * i) / 4;
-    el("line", { x1: L - 4, y1: y(v), x2: L, y2: y(v), stroke: "#444" }, svg);
-    el("text", { x: L - 6, y: y(v) + 4, "text-anchor": "end", "font-size": 11 }, svg)
-      .textContent = v.toFixed(0);
-  }
-  el("text", { x: 12, y: T + (H - T - B) / 2, "font-size": 11, "text-anchor": "middle",
-    transform: `rotate(-90 12 ${T + (H - T - B) / 2})` }, svg).textContent = "distance (cm)";
-  el("text", { x: L + (W - L - R) / 2, y: H - 6, "font-size": 11, "text-anchor": "middle" }, svg)
-    .textContent = "rollout";
+  el("text", { x: 14, y: T + (H - T - B) / 2, "font-size": 12, "text-anchor": "middle",
+    transform: `rotate(-90 14 ${T + (H - T - B) / 2})`, class: "axis-label" }, svg)
+    .textContent = "distance (cm)";
+  el("text", { x: L + (W - L - R) / 2, y: H - 6, "font-size": 12, "text-anchor": "middle",
+    class: "axis-label" }, svg).textContent = "rollout";
   const hy = y(100 * state.hit_radius_m);
   el("line", { x1: L, y1: hy, x2: W - R, y2: hy, stroke: "#c62828", "stroke-dasharray": "5 4",
     class: "hit-line" }, svg);
-  el("text", { x: W - R, y: hy - 4, "text-anchor": "end", "font-size": 11, fill: "#c62828" }, svg)
+  el("text", { x: W - R + 6, y: hy + 4, "text-anchor": "start", "font-size": 12,
+    fill: "#c62828", class: "hit-label" }, svg)
     .textContent = `${(100 * state.hit_radius_m).toFixed(0)} cm ring`;
   if (done.length > 1) {
-    el("polyline", { points: ys.map((v, k) => `${x(k)},${y(v)}`).join(" "), fill: "none",
-      stroke: "#1565c0", "stroke-width": 2, class: "distance-line" }, svg);
+    el("polyline", { points: done.map((r, k) => `${x(r.index)},${y(ys[k])}`).join(" "),
+      fill: "none", stroke: "#90a4ae", "stroke-width": 1.5, class: "distance-line" }, svg);
   }
-  ys.forEach((v, k) => {
-    el("circle", { cx: x(k), cy: y(v), r: done[k].hit ? 4 : 2.5,
-      fill: done[k].hit ? "#2e7d32" : "#1565c0", class: "distance-point" }, svg);
+  done.forEach((r, k) => {
+    const point = el("circle", { cx: x(r.index), cy: y(ys[k]), r: r.hit ? 5 : 3.5,
+      fill: scale.colour(r.index), stroke: r.hit ? "#2e7d32" : "#fff",
+      "stroke-width": r.hit ? 2 : 0.8, class: "distance-point" }, svg);
+    el("title", {}, point).textContent = `rollout ${r.index}: ${ys[k].toFixed(1)} cm`;
   });
-  if (done.length) {
-    const last = done[done.length - 1].index;
-    el("text", { x: L, y: H - B + 14, "font-size": 11, "text-anchor": "middle" }, svg)
-      .textContent = first;
-    el("text", { x: x(done.length - 1), y: H - B + 14, "font-size": 11, "text-anchor": "middle" },
-      svg).textContent = last;
-  }
 }
 
 function showServices(state) {
@@ -132,15 +203,71 @@ function showRates(state) {
   }
 }
 
+function query(extra) {
+  const params = new URLSearchParams(extra || {});
+  if (robot) params.set("robot", robot);
+  const text = params.toString();
+  return text ? `?${text}` : "";
+}
+
+function caption(row) {
+  const figure = document.getElementById("frame-caption");
+  figure.replaceChildren();
+  const theta = row.theta.map((v) => (100 * v).toFixed(1)).join(", ");
+  const parts = [`rollout ${row.index}`, `θ (${theta}) cm`];
+  if (row.r_m) {
+    parts.push(`r (${signed(100 * row.r_m[0])}, ${signed(100 * row.r_m[1])}) cm`);
+    parts.push(`‖r‖ ${cm(row.distance_m)}`);
+  } else {
+    parts.push(`aborted: ${row.cause || row.status}`);
+  }
+  figure.append(parts.join(" · "));
+  if (row.hit) {
+    const hit = document.createElement("span");
+    hit.className = "hit";
+    hit.textContent = " · HIT";
+    figure.append(hit);
+  }
+  figure.hidden = false;
+}
+
 function showFrame(state) {
   const note = document.getElementById("frame-note");
+  const img = document.getElementById("frame");
   if (state.frame.version !== frameVersion && state.frame.version > 0) {
     frameVersion = state.frame.version;
-    const img = document.getElementById("frame");
-    img.src = `/api/frame.png?v=${frameVersion}`;
+    img.src = `/api/frame.png${query({ v: frameVersion })}`;
     img.alt = `detector frame ${frameVersion}`;
+    const row = state.rollouts.find((r) => r.index === state.frame.rollout);
+    img.dataset.rollout = row ? row.index : "";
+    if (row) caption(row);
+    else document.getElementById("frame-caption").hidden = true;
   }
-  note.textContent = frameVersion ? `frame ${frameVersion}` : state.frame.error || "no frame measured yet";
+  note.textContent = frameVersion
+    ? (img.dataset.rollout ? `the detector's frame of rollout ${img.dataset.rollout}` : "the detector's last frame")
+    : state.frame.error || "no frame measured yet";
+}
+
+function sceneOpen() {
+  return document.getElementById("scene-details").open;
+}
+
+function showScene(state) {
+  const note = document.getElementById("scene-note");
+  const scene = state.scene;
+  if (!sceneOpen()) return;
+  if (scene.version !== sceneVersion && scene.version > 0) {
+    sceneVersion = scene.version;
+    const img = document.getElementById("scene");
+    img.src = `/api/scene.jpg${query({ v: sceneVersion })}`;
+    img.alt = `the robot, scene view ${sceneVersion}`;
+  }
+  if (scene.status === "unavailable") note.textContent = `no scene view: ${scene.error}`;
+  else if (!sceneVersion) note.textContent = "the camera is building the scene view…";
+  else {
+    const at = scene.sim_time === null || scene.sim_time === undefined ? "" : ` at ${scene.sim_time.toFixed(2)} s`;
+    note.textContent = `side camera, rendered by the camera service${at}`;
+  }
 }
 
 function show(state) {
@@ -152,17 +279,21 @@ function show(state) {
   document.getElementById("latest-distance").textContent = latest ? cm(latest.distance_m) : "–";
   document.getElementById("rollout-count").textContent = state.rollouts.length;
   document.getElementById("hit-count").textContent = done.filter((r) => r.hit).length;
-  drawFace(state);
-  drawCurve(state);
+  const scale = colourScale(state);
+  drawFace(state, scale);
+  drawColourbar(scale);
+  drawCurve(state, scale);
   showServices(state);
   showRates(state);
   showFrame(state);
+  showScene(state);
 }
 
 async function poll() {
   const connection = document.getElementById("connection");
   try {
-    const response = await fetch("/api/state", { cache: "no-store" });
+    const response = await fetch(`/api/state${query(sceneOpen() ? { scene: 1 } : {})}`,
+      { cache: "no-store" });
     if (!response.ok) throw new Error(`HTTP ${response.status}`);
     show(await response.json());
     connection.textContent = `updated ${new Date().toLocaleTimeString()}`;
@@ -174,4 +305,33 @@ async function poll() {
   setTimeout(poll, POLL_MS);
 }
 
+async function listRobots() {
+  try {
+    const response = await fetch("/api/robots", { cache: "no-store" });
+    if (response.ok) {
+      const { default: own, robots } = await response.json();
+      const select = document.getElementById("robot-select");
+      const chosen = robot || own;
+      const names = robots.includes(chosen) ? robots : [...robots, chosen].sort();
+      if ([...select.options].map((o) => o.value).join() !== names.join()) {
+        select.replaceChildren(...names.map((name) => new Option(name, name)));
+      }
+      select.value = chosen;
+      document.getElementById("robot-choice").dataset.robots = names.length;
+    }
+  } catch (err) {
+    // the state poll reports the connection
+  }
+  setTimeout(listRobots, ROBOTS_MS);
+}
+
+document.getElementById("robot-select").addEventListener("change", (event) => {
+  robot = event.target.value;
+  frameVersion = 0;
+  sceneVersion = 0;
+  for (const id of ["frame", "scene"]) document.getElementById(id).removeAttribute("src");
+  document.getElementById("frame-caption").hidden = true;
+});
+
+listRobots();
 poll();

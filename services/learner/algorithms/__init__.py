@@ -12,7 +12,7 @@ from services.learner.algorithms.base import (
     scalar_return,
 )
 from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
-from services.learner.algorithms.impact_model import BallisticModel, ImpactModel
+from services.learner.algorithms.impact_model import BallisticModel, ImpactModel, PhysicalModel
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.prior import ArcherPrior
 from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
@@ -31,6 +31,7 @@ __all__ = [
     "LearnerConfigError",
     "LearnerError",
     "ObservationError",
+    "PhysicalModel",
     "Power",
     "RandomSearch",
     "StateError",

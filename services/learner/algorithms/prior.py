@@ -7,14 +7,17 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
     Learner,
+    LearnerConfigError,
     StateError,
     _finite_option,
 )
-from services.learner.algorithms.impact_model import ImpactModel
+from services.learner.algorithms.impact_model import ImpactModel, PhysicalModel
+from services.learner.algorithms.model_fit import fit_parameters
 
 __all__ = ["ArcherPrior"]
 
@@ -35,10 +38,21 @@ class ArcherPrior(Learner):
 
     with r_model the injected `model` (`impact_model.ImpactModel`; the registry's default is
     the ballistic model of `sim.ballistic` with nominal parameters, `BallisticModel`, built
-    from the options `model_distance`, `model_stiffness`, `model_drag`, which the learner's
-    `options` include, so that a saved state restores it), c (m) an offset and D (m of r per m
-    of θ) a correction of the model's Jacobian. (c, D) has a Gaussian prior centred on 0 (trust
-    the model: std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a
+    from the options `model_distance`, `model_stiffness`, `model_drag` and the prior stds
+    `model_*_std`, which the learner's `options` include, so that a saved state restores it),
+    c (m) an offset and D (m of r per m of θ) a correction of the model's Jacobian.
+
+    A model of physical parameters p (`impact_model.PhysicalModel`; the ballistic model's are
+    the range, the drag, a side wind and the bow's stiffness) is first fitted to the rollouts:
+    `params` is the maximum a posteriori p under the model's prior (`model_fit.fit_parameters`),
+    refitted after every rollout that did not land where the learner predicted. So a miss is
+    explained by the physics that would cause it, and the next aim uses the Jacobian of that
+    world: a linear residual learned from one rollout cannot change the Jacobian, and the
+    nominal model's (2.2 m, no air) is too weak on a far target (with drag and a side wind it
+    left the second arrow 7-70 cm off from 3 m on).
+
+    (c, D) then takes what the fitted physics leaves: it has a Gaussian prior centred on 0
+    (trust the model: std `prior_offset_std` for c, `prior_gain_std` for each entry of D) and a
     Bayesian linear regression on the residuals r_i − r_model(θ_i) of the rollouts (observation
     noise std `noise_std`, each rollout weighted 2^(−age/half_life) when `half_life` > 0) gives
     its posterior mean; the data override the prior wherever they disagree with the model.
@@ -63,11 +77,12 @@ class ArcherPrior(Learner):
     wrong (surprise after surprise) the data correct it instead. `change_threshold` = 0 turns the
     detection off.
 
-    Transfer (`seed_from` a session in another world): the source's posterior of (c, D), moved
-    to this learner's θ0 (c' = c + D(θ0' − θ0_source)), becomes the prior, its covariance widened
-    by `TRANSFER_OFFSET_STD` (c) and `TRANSFER_GAIN_STD` (each entry of D) in quadrature: the
-    first proposal aims with the residual learned there, and a few rollouts here override it
-    wherever this world differs.
+    Transfer (`seed_from` a session in another world): the source's fitted p becomes the prior
+    mean of p, and its posterior of (c, D), moved to this learner's θ0
+    (c' = c + D(θ0' − θ0_source)), becomes the prior of (c, D), its covariance widened by
+    `TRANSFER_OFFSET_STD` (c) and `TRANSFER_GAIN_STD` (each entry of D) in quadrature: the
+    first proposal aims with the world and the residual learned there, and a few rollouts here
+    override them wherever this world differs.
 
     Args:
         theta0: the θ (m) the Gauss-Newton solve of the first rollout starts from.
@@ -137,6 +152,13 @@ class ArcherPrior(Learner):
         # Prior of (c, D) as rows [c; Dᵀ] (mean (d+1, 2), covariance (d+1, d+1)); a transfer sets
         # it, else it is centred on 0 with the prior stds.
         self._prior: tuple[np.ndarray, np.ndarray] | None = None
+        # The physical parameters p: their prior mean (the model's nominal ones, or a transferred
+        # fit) and the current fit; None for a model without them.
+        self.params_mean: np.ndarray | None = None
+        self.params: np.ndarray | None = None
+        if isinstance(model, PhysicalModel):
+            self.params_mean = np.asarray(model.nominal(), dtype=float)
+            self.params = self.params_mean.copy()
 
     def options(self) -> dict[str, Any]:
         """Constructor options as plain values, the model's (`ImpactModel.options`) first."""
@@ -157,19 +179,29 @@ class ArcherPrior(Learner):
 
     # -- the model ------------------------------------------------------------------------------
 
+    def model_impacts(self, thetas: np.ndarray) -> np.ndarray:
+        """r_model (m) of the θ rows (m): the model with the fitted parameters `params`.
+
+        Raises:
+            ValueError: the model cannot shoot a θ.
+        """
+        if self.params is not None and isinstance(self.model, PhysicalModel):
+            return np.asarray(self.model.impacts_at(thetas, self.params), dtype=float)
+        return np.asarray(self.model.impacts(thetas), dtype=float)
+
     def model_jacobian(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """(r_model(θ), dr_model/dθ) of the model (m, m/m); None where it cannot shoot."""
         d = theta.size
         batch = np.vstack([theta, theta + _JACOBIAN_STEP * np.eye(d)])
         try:
-            r = np.asarray(self.model.impacts(batch), dtype=float)
+            r = self.model_impacts(batch)
         except ValueError:
             return None
         return r[0], (r[1:] - r[0]).T / _JACOBIAN_STEP
 
     def _model_residual(self, theta: np.ndarray, r: np.ndarray) -> np.ndarray | None:
         try:
-            return r - np.asarray(self.model.impacts(theta.reshape(1, -1)), dtype=float)[0]
+            return r - self.model_impacts(theta.reshape(1, -1))[0]
         except ValueError:
             return None
 
@@ -189,12 +221,16 @@ class ArcherPrior(Learner):
             residual = self._residuals[i]
             if residual is None:
                 continue
-            weight = 1.0 if self.half_life == 0 else 2.0 ** (-(n - 1 - i) / self.half_life)
+            weight = self._weight(i, n)
             phi = np.concatenate([[1.0], self._thetas[i] - self.theta0])
             precision += weight * np.outer(phi, phi) / self.noise_std**2
             moment += weight * np.outer(phi, residual) / self.noise_std**2
         covariance = np.linalg.inv(precision)
         return covariance @ moment, covariance
+
+    def _weight(self, i: int, n: int) -> float:
+        """The weight of rollout i among the first n: 2^(−age/half_life), or 1."""
+        return 1.0 if self.half_life == 0 else 2.0 ** (-(n - 1 - i) / self.half_life)
 
     def correction(self, upto: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Posterior mean (c, D) of the residual r − r_model ≈ c + D(θ − θ0), from the remembered
@@ -260,6 +296,33 @@ class ArcherPrior(Learner):
         return theta
 
     def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
+        self._judge(theta, r, big_return)
+        if self.params is not None and not self.settled:
+            self._refit()
+
+    def _refit(self) -> None:
+        """Fit p to the remembered rollouts (from the last fit), then recompute every residual
+        against the model of the new p."""
+        assert isinstance(self.model, PhysicalModel) and self.params is not None
+        assert self.params_mean is not None
+        n = self.n_rollouts
+        kept = range(self.forget_before, n)
+        self.params = fit_parameters(
+            self.model,
+            np.array([self._thetas[i] for i in kept]),
+            np.array([self._rewards[i] for i in kept]),
+            np.array([self._weight(i, n) for i in kept]),
+            noise_std=self.noise_std,
+            mean=self.params_mean,
+            start=self.params,
+        )
+        self._residuals = [
+            self._model_residual(t, r) for t, r in zip(self._thetas, self._rewards, strict=True)
+        ]
+
+    def _judge(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
+        """Whether the rollout was a surprise (a changed world: forget the earlier ones), and the
+        trust radius after it."""
         self._residuals.append(self._model_residual(theta, r))
         n = self.n_rollouts
         earlier = range(self.forget_before, n - 1)
@@ -293,6 +356,14 @@ class ArcherPrior(Learner):
         shift[0, 1:] = self.theta0 - source.theta0
         widen = np.diag([TRANSFER_OFFSET_STD**2] + [TRANSFER_GAIN_STD**2] * d)
         self._prior = (shift @ mean, shift @ covariance @ shift.T + widen)
+        if self.params is not None and source.params is not None:
+            if source.params.shape != self.params.shape:
+                raise LearnerConfigError(
+                    f"the source's model has {source.params.size} physical parameters, this "
+                    f"one's {self.params.size}"
+                )
+            self.params_mean = source.params.copy()
+            self.params = source.params.copy()
 
     def _extra_state(self) -> dict[str, Any]:
         prior = None
@@ -304,6 +375,8 @@ class ArcherPrior(Learner):
             "changes": list(self.changes),
             "settled": self.settled,
             "prior": prior,
+            "params": None if self.params is None else self.params.tolist(),
+            "params_mean": None if self.params_mean is None else self.params_mean.tolist(),
         }
 
     def _load_extra_state(self, extra: dict[str, Any]) -> None:
@@ -331,6 +404,10 @@ class ArcherPrior(Learner):
         self.changes = changes
         self.settled = settled
         self._prior = _prior_of(extra.get("prior"), self.theta0.size)
+        if self.params is not None and self.params_mean is not None:
+            # A state saved before the parameters were fitted keeps the nominal ones.
+            self.params_mean = _params_of(extra.get("params_mean"), self.params_mean)
+            self.params = _params_of(extra.get("params"), self.params)
         # The residuals are a function of the history and the model: recompute them.
         self._residuals = [
             self._model_residual(t, r) for t, r in zip(self._thetas, self._rewards, strict=True)
@@ -355,3 +432,19 @@ def _prior_of(saved: Any, d: int) -> tuple[np.ndarray, np.ndarray] | None:
     if not np.allclose(covariance, covariance.T) or np.linalg.eigvalsh(covariance).min() <= 0:
         raise StateError("archer-prior prior covariance must be symmetric positive definite")
     return mean, covariance
+
+
+def _params_of(saved: Any, default: np.ndarray) -> np.ndarray:
+    """Saved physical parameters, checked against the model's count; `default` if none."""
+    if saved is None:
+        return default
+    try:
+        params = np.array(saved, dtype=float)
+    except (TypeError, ValueError) as exc:
+        raise StateError(f"archer-prior physical parameters are not numbers: {exc}") from exc
+    if params.shape != default.shape or not np.all(np.isfinite(params)):
+        raise StateError(
+            f"archer-prior physical parameters must be {default.size} finite numbers, "
+            f"got {shown(saved)}"
+        )
+    return params

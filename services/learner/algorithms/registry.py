@@ -64,7 +64,8 @@ class Algorithm:
 # power-metre: the same with ‖r‖ in metres, exp(−‖r‖/1 m). hill: best θ so far + noise (called
 # "random" before); random: uniform in the θ box.
 # archer-recent: ARCHER regressing on the N best of the 4 most recent rollouts (forgets a changed
-# world); archer-prior: the ballistic model aims and a Bayesian residual corrects it.
+# world); archer-prior: the ballistic model, its range, air and bow fitted to the rollouts, aims
+# and a Bayesian residual corrects it.
 ALGORITHMS: Mapping[str, Algorithm] = MappingProxyType(
     {
         a.name: a
@@ -160,11 +161,14 @@ def _build(
             raise LearnerConfigError(
                 f"give {cls.algorithm} a model or the options {', '.join(described)}, not both"
             )
-        if model is None and saved and len(described) < len(BallisticModel.OPTIONS):
-            raise LearnerConfigError(
-                f"this {cls.algorithm} learner aimed with a model of its own (its options do not "
-                f"describe the nominal one): pass that model to restore it"
-            )
+        if model is None and saved:
+            if any(k not in described for k in BallisticModel.NOMINAL_OPTIONS):
+                raise LearnerConfigError(
+                    f"this {cls.algorithm} learner aimed with a model of its own (its options do "
+                    f"not describe the nominal one): pass that model to restore it"
+                )
+            # Saved before the model's physical parameters were fitted: they stay fixed.
+            described = {k: 0.0 for k in BallisticModel.STD_OPTIONS} | described
         options["model"] = BallisticModel.from_options(**described) if model is None else model
     elif model is not None:
         raise LearnerConfigError(f"{cls.algorithm} aims with no physics model")
@@ -184,7 +188,9 @@ def make_learner(
 
     `model` is the physics an `archer-prior` learner aims with; by default the registry builds
     the nominal ballistic model (`impact_model.BallisticModel`) from its `model_distance` (m),
-    `model_stiffness` (N/m) and `model_drag` (1/m) options.
+    `model_stiffness` (N/m) and `model_drag` (1/m) options, with the prior stds of the fitted
+    range, drag, side wind and bow `model_distance_std` (m), `model_drag_std` (1/m),
+    `model_wind_std` (m/s) and `model_stiffness_std` (N/m).
 
     Raises:
         LearnerConfigError: unknown name, invalid option or model.
