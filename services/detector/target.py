@@ -47,7 +47,9 @@ _SAME_RING = 0.15  # components whose median radial positions differ less share 
 _EDGE_INSIDE = 0.6  # least share of a disc's colours just inside its ellipse
 _EDGE_OUTSIDE = 0.35  # largest share of them just outside it
 _EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are 1–2 px)
+_EDGE_POINTS = 3000  # about this many of the face's pixels judge the edges
 _SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
+_WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot better
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -182,18 +184,23 @@ def _inner_rings(
         last = position
     found: list[Ellipse] = []
     chosen: list[int] = []
-    points = np.stack([xs, ys], axis=1)
+    step = max(1, len(xs) // _EDGE_POINTS)  # the edge bands judged on a sample of the pixels
+    points, sampled = np.stack([xs, ys], axis=1)[::step], labels[::step]
 
     def ours(chosen: list[int]) -> np.ndarray:
-        return np.isin(labels, chosen)
+        return np.isin(sampled, chosen)
 
     for ring_components in rings[:-1]:
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
-        # the disc's largest piece or (cut by a shaft) its pieces joined, the better seen
+        # the disc's largest piece or, unless that is seen whole, its pieces joined (a shaft
+        # cuts it): the better seen
         best: Ellipse | None = None
-        for filled in (_fill(disc), _pieces_joined(disc)):
+        for fill in (_fill, _pieces_joined):
+            if best is not None and best.support >= _WHOLE:
+                break
+            filled = fill(disc)
             ring = fit_disc(filled) if filled is not None else None
             if (
                 ring is not None
