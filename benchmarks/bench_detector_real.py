@@ -1,7 +1,8 @@
 """The detector on the development set and the real photographs, against a baseline revision.
 
 The baseline (default: the `main` branch) is exported from git into a temporary folder, and
-its detector and CLI run in the same process and the same run as this tree's, interleaved:
+its detector (its whole detection core, as a package of its own) and CLI run in the same
+process and the same run as this tree's, interleaved:
 - the development set (`tests.devset`): per kind of change, the fraction of the
   visible cases whose centre is within 5 % of the blue ring's diameter, wrong centres reported
   with confidence ≥ 0.5, and faces mostly outside the image reported as seen;
@@ -19,12 +20,13 @@ from __future__ import annotations
 
 import argparse
 import collections
-import importlib.util
+import importlib
 import json
 import math
 import os
 import platform
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -73,15 +75,16 @@ def export_baseline(ref: str, into: Path) -> Path:
     return tree
 
 
-def load_module(path: Path, name: str) -> ModuleType:
-    """A module from a file, under its own name (its imports resolve in this tree)."""
-    spec = importlib.util.spec_from_file_location(name, path)
-    if spec is None or spec.loader is None:
-        raise SystemExit(f"cannot load {path}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+def load_baseline(tree: Path) -> ModuleType:
+    """The baseline's detection core as a package of its own, `baseline_detector` beside the
+    exported tree (its modules import each other, never this tree's), and its `detect` module.
+    """
+    package = tree.parent / "baseline_detector"
+    shutil.copytree(tree / "services" / "detector", package)
+    for path in package.glob("*.py"):
+        path.write_text(path.read_text().replace("services.detector.", "baseline_detector."))
+    sys.path.insert(0, str(tree.parent))
+    return importlib.import_module("baseline_detector.detect")
 
 
 def finders(model: ColourModel, legacy: ModuleType) -> dict[str, Find]:
@@ -236,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     goals: list[tuple[str, bool]] = []
     with tempfile.TemporaryDirectory() as folder:
         tree = export_baseline(args.baseline, Path(folder))
-        legacy = load_module(tree / "services" / "detector" / "detect.py", "baseline_detect")
+        legacy = load_baseline(tree)
         scenes = devset.drawn_scenes() + (devset.photo_scenes(PHOTOS) if PHOTOS.is_dir() else [])
         counts, frames = devset_figures(scenes, legacy)
         print(f"\n### Development set ({len(scenes)} scenes; baseline {args.baseline!r})\n")

@@ -4,7 +4,11 @@ calibration and use (light, camera, angle, arrows in the face, the face cut by t
 Scenes are drawn faces (a 10-ring face on a textured background, 110–1300 px across) and, when
 they are given, the shared photographs of real faces (`photo_scenes`). Each scene is calibrated
 once, from pixels marked inside its yellow, red and blue rings, and every change is applied to
-its picture with the true centre carried along. Everything is deterministic for a seed.
+its picture with the true centre carried along. Besides single changes, four kinds of face
+combine several (the misses of issue 28): cut by the border at a steep angle with arrows;
+filling a small picture with a thick shaft across the gold; in bright sun at an angle with many
+arrows, their fletchings and shadows; alone on a dark boss, seen from above, in other light.
+Everything is deterministic for a seed.
 
 Each case says what a detector must do (`expect`):
 - "visible": the centre must be found within 5 % of the blue ring's diameter;
@@ -217,9 +221,12 @@ def _jpeg(rgb: np.ndarray, quality: int) -> np.ndarray:
     return np.ascontiguousarray(cv2.imdecode(data, cv2.IMREAD_COLOR)[:, :, ::-1])
 
 
-def _tilt(scene: Scene, degrees: float, axis: str) -> tuple[np.ndarray, tuple[float, float], float]:
+def _tilt(
+    scene: Scene, degrees: float, axis: str, shift: float = 0.0
+) -> tuple[np.ndarray, tuple[float, float], float]:
     """The face turned by `degrees` about its vertical ("y") or horizontal ("x") axis through
-    its centre, seen by a pinhole camera of focal length = image width: image, centre, the
+    its centre, seen by a pinhole camera of focal length = image width, then the picture
+    moved `shift` px sideways (beyond the scene: dark): image, centre, the
     blue ring's equivalent diameter (px, √ of the imaged area's scale)."""
     height, width = scene.rgb.shape[:2]
     focal = float(width)
@@ -237,7 +244,8 @@ def _tilt(scene: Scene, degrees: float, axis: str) -> tuple[np.ndarray, tuple[fl
     camera = np.array([[focal, 0, principal[0]], [0, focal, principal[1]], [0, 0, 1]])
     plane = np.stack([rotation[:, 0], rotation[:, 1], [offset[0], offset[1], focal]], axis=1)
     to_plane = np.array([[1, 0, -scene.centre[0]], [0, 1, -scene.centre[1]], [0, 0, 1]])
-    homography = camera @ plane @ to_plane
+    moved = np.array([[1.0, 0.0, shift], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    homography = moved @ camera @ plane @ to_plane
     warped = cv2.warpPerspective(
         scene.rgb,
         homography,
@@ -255,22 +263,32 @@ def _tilt(scene: Scene, degrees: float, axis: str) -> tuple[np.ndarray, tuple[fl
     return warped, (float(centre[0]), float(centre[1])), scene.diameter * scale
 
 
-def _arrows(scene: Scene, count: int, rng: np.random.Generator) -> np.ndarray:
+def _arrows(scene: Scene, count: int, rng: np.random.Generator, shadow: float = 0.0) -> np.ndarray:
     """`count` arrows stuck in and around the yellow: dark or metal shafts leaving the face
-    obliquely, with coloured fletchings and nocks (px sizes from the ring diameter)."""
+    obliquely, with coloured fletchings and nocks (px sizes from the ring diameter); with
+    `shadow` > 0, each shaft casts a hard shadow (sunlight) that far off, in blue radii."""
     image = scene.rgb.copy()
     radius = scene.diameter / 2
     width = max(2, round(radius / 45))
+    arrows = []
     for _ in range(count):
         rho, phi = radius * rng.uniform(0.0, 0.36), rng.uniform(0, 2 * math.pi)
         tip = np.array(scene.centre) + rho * np.array([math.cos(phi), math.sin(phi)])
         heading = rng.uniform(0, 2 * math.pi)
         direction = np.array([math.cos(heading), math.sin(heading)])
         length = radius * rng.uniform(0.45, 0.9)
-        end = tip + length * direction
         shaft = (40, 40, 44) if rng.random() < 0.6 else (175, 175, 180)
-        cv2.line(image, _pt(tip), _pt(end), shaft, width, cv2.LINE_AA)
         colour = FLETCHING_COLOURS[int(rng.integers(len(FLETCHING_COLOURS)))]
+        arrows.append((tip, direction, length, shaft, colour))
+    if shadow:
+        dark = np.zeros(image.shape[:2], np.uint8)
+        away = shadow * radius * np.array([0.6, 0.8])
+        for tip, direction, length, _, _ in arrows:
+            cv2.line(dark, _pt(tip), _pt(tip + length * direction + away), 1, width, cv2.LINE_AA)
+        image = np.where(dark[:, :, None] > 0, _encode(_linear(image) * 0.3), image)
+    for tip, direction, length, shaft, colour in arrows:
+        end = tip + length * direction
+        cv2.line(image, _pt(tip), _pt(end), shaft, width, cv2.LINE_AA)
         normal = np.array([-direction[1], direction[0]])
         vane = radius * 0.09
         for side in (-1.0, 1.0):
@@ -312,6 +330,11 @@ CHANGES: dict[str, list[Any]] = {
     "shadow": [0.5, 0.25],
     "distractors": [3, 6],
     "combined": ["warm, tilted, arrows, JPEG", "dim, cold, noisy, blurred"],
+    # issue 28's four kinds of face, each at several settings
+    "cut, steep, arrows": [("y", 55, 0.6), ("y", -60, 0.75), ("x", 60, 0.5)],
+    "fills the frame": [0.8, 1.1, 1.4],
+    "sunlit, angled, arrows": [("y", 40, 12), ("x", -45, 16), ("y", -50, 20)],
+    "dark boss, from above": [(50, 3200, 0.7), (60, 7000, 1.3), (45, 4000, 0.45)],
 }
 
 
@@ -348,6 +371,92 @@ def _distractors(scene: Scene, count: int, rng: np.random.Generator) -> np.ndarr
     return image
 
 
+def _cut_steep(scene: Scene, level: tuple[str, float, float], rng: np.random.Generator) -> Case:
+    """Issue 28's first miss: arrows in the face, the face turned steeply (`level`: axis,
+    degrees) and cut by the left border, the centre `level[2]`·(the blue ring's imaged
+    half-width) inside (the gold, a third of the blue radius, stays in the frame)."""
+    axis, degrees, inside = level
+    step = Scene(scene.name, _arrows(scene, 5, rng), scene.centre, scene.diameter)
+    half_width = 0.5 * scene.diameter * (math.cos(math.radians(degrees)) if axis == "y" else 1.0)
+    image, centre, diameter = _tilt(step, degrees, axis, inside * half_width - scene.centre[0])
+    name = f"{degrees}° about {axis}, centre {inside} inside"
+    return Case(scene.name, "cut, steep, arrows", name, image, centre, diameter, "visible")
+
+
+def _fills_frame(scene: Scene, fill: float, rng: np.random.Generator) -> Case:
+    """Issue 28's second miss: a small picture (shorter side 400 px) the face fills beyond its
+    edges, the blue ring `fill` times the shorter side across, one thick arrow shaft lying
+    across the gold."""
+    side = 400
+    height, width = scene.rgb.shape[:2]
+    crop = min(scene.diameter / fill, float(min(height, width)))
+    scale = side / crop
+    offset = rng.uniform(-0.08, 0.08, 2) * side  # the centre a little off the middle
+    out_w, out_h = round(side * 4 / 3), side
+    matrix = np.array(
+        [
+            [scale, 0.0, out_w / 2 + offset[0] - scale * scene.centre[0]],
+            [0.0, scale, out_h / 2 + offset[1] - scale * scene.centre[1]],
+        ]
+    )
+    image = cv2.warpAffine(
+        scene.rgb, matrix, (out_w, out_h), flags=cv2.INTER_AREA, borderMode=cv2.BORDER_REPLICATE
+    )
+    centre = (out_w / 2 + float(offset[0]), out_h / 2 + float(offset[1]))
+    diameter = scene.diameter * scale
+    yellow = diameter / 3  # the gold's diameter, px
+    heading = rng.uniform(0, math.pi)
+    direction = np.array([math.cos(heading), math.sin(heading)])
+    near = np.array(centre) + rng.uniform(-0.25, 0.25) * yellow * direction[::-1] * [1, -1]
+    start, end = near - 2.5 * yellow * direction, near + 2.5 * yellow * direction
+    cv2.line(image, _pt(start), _pt(end), (48, 44, 40), max(3, round(0.14 * yellow)), cv2.LINE_AA)
+    return Case(scene.name, "fills the frame", f"{fill}", image, centre, diameter, "visible")
+
+
+def _glare(rgb: np.ndarray, centre: tuple[float, float], radius: float) -> np.ndarray:
+    """Sunlight's sheen on the paper: a soft bright patch of `radius` px beside `centre`,
+    washing colours towards white (linear light)."""
+    height, width = rgb.shape[:2]
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    spot = np.exp(-((x - centre[0] - radius) ** 2 + (y - centre[1] + radius) ** 2) / radius**2)
+    linear = _linear(rgb)
+    return _encode(linear + 0.3 * spot[:, :, None] * (1.0 - linear))
+
+
+def _sunlit(scene: Scene, level: tuple[str, float, int], rng: np.random.Generator) -> Case:
+    """Issue 28's third miss: a face in bright sun (×1.3 light at 6000 K, a sheen, the shafts'
+    hard shadows), turned by `level` degrees about its axis, with many arrows and fletchings;
+    the calibration is the scene's own, indoors: another picture of the same face."""
+    axis, degrees, count = level
+    step = _arrows(scene, count, rng, shadow=0.12)
+    bright = white_balance(_encode(_linear(step) * 1.3), 6000)
+    lit = Scene(scene.name, _glare(bright, scene.centre, 0.4 * scene.diameter), scene.centre,
+                scene.diameter)  # fmt: skip
+    image, centre, diameter = _tilt(lit, degrees, axis)
+    name = f"{degrees}° about {axis}, {count} arrows"
+    return Case(scene.name, "sunlit, angled, arrows", name, _jpeg(image, 85), centre, diameter,
+                "visible")  # fmt: skip
+
+
+def _dark_boss(scene: Scene, level: tuple[float, int, float], rng: np.random.Generator) -> Case:
+    """Issue 28's fourth miss: the round face alone on a dark boss (straw or foam, almost
+    black), seen from above (`level`: degrees about the horizontal axis), in other light than
+    the calibration's (`level`: kelvin, exposure)."""
+    degrees, kelvin, exposure = level
+    height, width = scene.rgb.shape[:2]
+    y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+    face = scene.diameter / 0.6 / 2  # the whole face's radius, px
+    outside = np.hypot(x - scene.centre[0], y - scene.centre[1]) > 1.02 * face
+    boss = _background((height, width), rng).astype(np.float32) * 0.28
+    image = scene.rgb.copy()
+    image[outside] = boss[outside].astype(np.uint8)
+    lit = white_balance(_encode(_linear(image) * exposure), kelvin)
+    seen, centre, diameter = _tilt(Scene(scene.name, lit, scene.centre, scene.diameter),
+                                   degrees, "x")  # fmt: skip
+    name = f"{degrees}° from above, {kelvin} K, ×{exposure}"
+    return Case(scene.name, "dark boss, from above", name, seen, centre, diameter, "visible")
+
+
 def _combined(scene: Scene, name: str, rng: np.random.Generator) -> Case:
     """Several changes at once: "warm, tilted, arrows, JPEG" (6 arrows, 40° about the
     vertical, 3200 K, quality 60) or "dim, cold, noisy, blurred" (×0.5, 7000 K, noise σ 10,
@@ -364,6 +473,14 @@ def _combined(scene: Scene, name: str, rng: np.random.Generator) -> Case:
     return Case(
         scene.name, "combined", name, np.ascontiguousarray(image), centre, diameter, "visible"
     )
+
+
+_MISSES = {
+    "cut, steep, arrows": _cut_steep,
+    "fills the frame": _fills_frame,
+    "sunlit, angled, arrows": _sunlit,
+    "dark boss, from above": _dark_boss,
+}
 
 
 def _apply(scene: Scene, kind: str, level: Any, rng: np.random.Generator) -> Case:
@@ -394,6 +511,8 @@ def _apply(scene: Scene, kind: str, level: Any, rng: np.random.Generator) -> Cas
         image = _distractors(scene, level, rng)
     elif kind == "combined":
         return _combined(scene, level, rng)
+    elif kind in _MISSES:
+        return _MISSES[kind](scene, level, rng)
     return Case(scene.name, kind, str(level), np.ascontiguousarray(image), centre, diameter, expect)
 
 

@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["Ellipse", "fit_disc", "nested_centre", "radial_position"]
+__all__ = ["Ellipse", "centre_spread", "fit_disc", "nested_centre", "radial_position"]
 
 _BINS = 36  # angular bins of the perimeter for `support`
 _MIN_POINTS = 8  # fewest boundary points for a fit
@@ -197,3 +197,17 @@ def nested_centre(ellipses: list[Ellipse]) -> tuple[float, float]:
     if np.hypot(*(c0 - inner.centre)) > 0.25 * inner.radius:
         return inner.centre
     return float(c0[0]), float(c0[1])
+
+
+def centre_spread(ellipses: list[Ellipse]) -> float:
+    """How far the ellipses' centres stray from the perspective model c(r) = c₀ + d·r² that
+    concentric rings follow: the largest distance of a centre from the fitted line (px) over
+    the largest radius; 0 for fewer than three ellipses (two always fit it)."""
+    if len(ellipses) < 3:
+        return 0.0
+    r2 = np.array([e.radius**2 for e in ellipses])
+    centres = np.array([e.centre for e in ellipses])
+    design = np.stack([np.ones_like(r2), r2 / r2.max()], axis=1)
+    solution, *_ = np.linalg.lstsq(design, centres, rcond=None)
+    misfit = np.hypot(*(centres - design @ solution).T)
+    return float(misfit.max()) / max(e.radius for e in ellipses)

@@ -3,15 +3,19 @@ confidence that means something (below the threshold the face is reported as not
 
 The target's colour membership is thresholded, closed (ring lines, holes) and split into
 regions by their outer contours; each of the largest few is filled and its outer boundary
-fitted with a robust ellipse (`rings.fit_disc`). With the target GMM's component of every pixel, the
-components are ordered by their radial position inside that ellipse (yellow, red, blue…) and
-the cumulative discs (yellow; yellow + red; …) are fitted too: concentric ellipses of one shape
-validate each other, and the centre is extrapolated from them (`rings.nested_centre`), which
-holds when arrows and fletchings cover part of the yellow. The confidence multiplies how much of
-the outer boundary was seen, how elliptic the region is, how well its colours match the
-calibration, how many inner rings agree and how many of the calibrated colours (ring groups of
-the GMM's components) the face shows; the factors' ranges were set on the development set
-(`tests.devset`) so that wrong centres score below 0.5.
+fitted with a robust ellipse (`rings.fit_disc`); when none is sure, the pieces of a face cut
+by shafts are joined too (`pieces.joined_hull`). With the target GMM's component of every
+pixel, the components are ordered by their radial position inside that ellipse (yellow, red,
+blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (from their pieces
+joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
+ellipses of one shape validate each other (rings off the perspective model are dropped), and
+the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
+fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary
+was seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how
+well its colours match the calibration, how many inner rings agree (a lone one as far as it is
+seen whole) and how many of the calibrated colours (ring groups of the GMM's components) the
+face shows; the factors' ranges were set on the development set (`tests.devset`) so that wrong
+centres score below 0.5.
 All positions are pixels of the downscaled map.
 """
 
@@ -23,14 +27,31 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
+from services.detector.pieces import joined_hull
+from services.detector.rings import (
+    Ellipse,
+    centre_spread,
+    fit_disc,
+    nested_centre,
+    radial_position,
+)
 
 __all__ = ["FaceFit", "colour_groups", "find_face", "merge_faces"]
 
 _MEMBER = 96  # membership (0..255) of a pixel counted as target colour
 _CANDIDATES = 5  # largest regions examined
+_JOIN_BELOW = 0.75  # a best region less confident than this: its pieces are joined too
+_JOIN_SEEDS = 3  # largest regions whose neighbouring pieces are joined
 _MIN_COMPONENT_SHARE = 0.03  # a GMM component with fewer of the region's pixels is no ring
 _SAME_RING = 0.15  # components whose median radial positions differ less share a ring
+_EDGE_INSIDE = 0.6  # least share of a disc's colours just inside its ellipse
+_EDGE_OUTSIDE = 0.35  # largest share of them just outside it
+_EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are 1–2 px)
+_EDGE_POINTS = 3000  # about this many of the face's pixels judge the edges
+_SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
+_WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot better
+_MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
+# outer radius) are not the face's
 
 
 @dataclass(frozen=True)
@@ -68,6 +89,49 @@ def _fill(region: np.ndarray) -> np.ndarray:
     if contours:
         cv2.drawContours(filled, [max(contours, key=cv2.contourArea)], -1, 1, cv2.FILLED)
     return filled
+
+
+def _pieces_joined(disc: np.ndarray) -> np.ndarray | None:
+    """When a shaft cuts a ring's disc into pieces: their convex hull filled
+    (`pieces.joined_hull`), else None."""
+    outlines, _ = cv2.findContours(disc, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if len(outlines) < 2:
+        return None
+    areas = [cv2.contourArea(outline) for outline in outlines]
+    hull = joined_hull(outlines, areas, int(np.argmax(areas)))
+    if hull is None:
+        return None
+    filled = np.zeros_like(disc)
+    cv2.drawContours(filled, [hull], -1, 1, cv2.FILLED)
+    return filled
+
+
+def _edge(ring: Ellipse, points: np.ndarray, ours: np.ndarray) -> bool:
+    """Whether a fitted disc's ellipse is where its colours end: of the target-coloured
+    `points` (N, 2) just inside it most are the disc's (`ours`, N booleans), of those just
+    outside few (an ellipse fitted to a disc half hidden by arrows and fletchings cuts through
+    its colours). A ring too small for bands of a few pixels passes; so does one with no
+    target colour just outside it."""
+    if ring.radius < _EDGE_MIN_RADIUS:
+        return True
+    rho = radial_position(ring, points)
+    inside, outside = (rho > 0.7) & (rho < 0.95), (rho > 1.08) & (rho < 1.3)
+    if inside.sum() < 10 or ours[inside].mean() < _EDGE_INSIDE:
+        return False
+    return bool(outside.sum() < 10 or ours[outside].mean() <= _EDGE_OUTSIDE)
+
+
+def _agrees(ring: Ellipse, outer: Ellipse) -> bool:
+    """Whether an inner ring's ellipse can be one of the face whose outer ring is `outer`:
+    near its centre, smaller, of its shape and well supported."""
+    shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
+    return (
+        shift < 0.25 * outer.radius
+        # rings of a face: ≤ 2/3 of the next; the gold, the smallest, a third of the outer
+        and 0.25 < ring.radius / outer.radius < 0.8
+        and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
+        and ring.support > 0.5
+    )
 
 
 def colour_groups(
@@ -120,32 +184,67 @@ def _inner_rings(
         last = position
     found: list[Ellipse] = []
     chosen: list[int] = []
+    step = max(1, len(xs) // _EDGE_POINTS)  # the edge bands judged on a sample of the pixels
+    points, sampled = np.stack([xs, ys], axis=1)[::step], labels[::step]
+
+    def ours(chosen: list[int]) -> np.ndarray:
+        return np.isin(sampled, chosen)
+
     for ring_components in rings[:-1]:
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
         disc = cv2.morphologyEx(disc, cv2.MORPH_CLOSE, kernel)
-        ring = fit_disc(_fill(disc))
-        if ring is None:
-            continue
-        shift = math.hypot(ring.centre[0] - outer.centre[0], ring.centre[1] - outer.centre[1])
-        if (
-            shift < 0.25 * outer.radius
-            and 0.12 < ring.radius / outer.radius < 0.8  # rings of a face: ≤ 2/3 of the next
-            and abs(ring.ratio - outer.ratio) < 0.15 + 0.5 * (1.0 - ring.support)
-            and ring.support > 0.5
-        ):
-            found.append(ring)
+        # the disc's largest piece or, unless that is seen whole, its pieces joined (a shaft
+        # cuts it): the better seen
+        best: Ellipse | None = None
+        for fill in (_fill, _pieces_joined):
+            if best is not None and best.support >= _WHOLE:
+                break
+            filled = fill(disc)
+            ring = fit_disc(filled) if filled is not None else None
+            if (
+                ring is not None
+                and (best is None or ring.support > best.support)
+                and _agrees(ring, outer)
+                and _edge(ring, points, ours(chosen))
+            ):
+                best = ring
+        if best is not None:
+            found.append(best)
     return found, shown
 
 
-def _rings_factor(outer: Ellipse, validated: int) -> float:
+def _concentric(rings: list[Ellipse], outer: Ellipse) -> list[Ellipse]:
+    """The inner rings less those that break the perspective model of concentric rings
+    (`rings.centre_spread`; fits to what covers the gold, a colour of no ring): the one whose
+    removal helps most, until the rest agree; of two, the one farther off the outer ring's
+    centre for its size."""
+    rings = list(rings)
+    while len(rings) >= 2 and centre_spread([*rings, outer]) > _MAX_SPREAD:
+        if len(rings) == 2:  # either alone fits the model: judge each against the outer ring
+            off = [math.dist(ring.centre, outer.centre) / ring.radius for ring in rings]
+            del rings[int(np.argmax(off))]
+            continue
+        spreads = [centre_spread([*rings[:i], *rings[i + 1 :], outer]) for i in range(len(rings))]
+        del rings[int(np.argmin(spreads))]
+    return rings
+
+
+def _seen(factors: dict[str, float]) -> float:
+    """How much of the outer ring was seen: its support times its share inside the image."""
+    return factors["support"] * factors["visible"]
+
+
+def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     """Trust from the inner rings that agree with the outer one: two or more make the centre
-    sure; with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
+    sure; a lone one as far as it is seen whole (arrows over the gold leave fits to what covers
+    it); with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
     ellipse's centre unknown, so the trust falls with its axis ratio."""
-    if validated >= 2:
+    if len(inner) >= 2:
         return 1.0
-    if validated == 1:
-        return 0.8
+    if len(inner) == 1:  # a small ring's support is limited by its pixels
+        low = 0.75 if inner[0].radius >= _SMALL_RING else 0.6
+        return 0.8 * _ramp(inner[0].support, low, low + 0.25)
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
@@ -199,12 +298,18 @@ def _examine(
     shown: set[int] = set()
     n_colours = 0
     if components is not None and groups is not None:
-        if math.prod(factors.values()) < needed:
+        unseen = (v for k, v in factors.items() if k not in ("support", "visible"))
+        if math.prod(unseen) < needed:  # a face cut by the border may be seen by its rings
             return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
         mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
-        factors["rings"] = _rings_factor(outer, len(rings))
+        rings = _concentric(rings, outer)
+        if len(rings) >= 2:  # a face cut by the border: its inner rings say it is seen
+            inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
+            if inner > _seen(factors):
+                factors["support"], factors["visible"] = inner, 1.0
+        factors["rings"] = _rings_factor(outer, rings)
         # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
         n_colours = max(1, int(groups.max()) + 1)
         factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
@@ -230,9 +335,11 @@ def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
                 rings[-1] = ring
             continue
         rings.append(ring)
+    if centre_spread(rings) > _MAX_SPREAD:
+        return None
     owner = first if first.outer.radius >= second.outer.radius else second
     factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
-    factors["rings"] = _rings_factor(rings[-1], len(rings) - 1)
+    factors["rings"] = _rings_factor(rings[-1], rings[:-1])
     colours = first.colours | second.colours
     factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
@@ -269,8 +376,9 @@ def find_face(
     areas = [cv2.contourArea(outline) for outline in outlines]
     best: FaceFit | None = None
     pad = 2
+    smallest = max(20.0, min_fraction * member.size)
     for index in np.argsort(areas)[::-1][:_CANDIDATES]:
-        if areas[index] < max(20.0, min_fraction * member.size):
+        if areas[index] < smallest:
             break
         x, y, w, h = cv2.boundingRect(outlines[index])
         x0, y0 = max(0, x - pad), max(0, y - pad)
@@ -280,4 +388,18 @@ def find_face(
         fit = _examine(member, components, groups, region, (x0, y0), kernel, needed)
         if fit is not None and (best is None or fit.confidence > best.confidence):
             best = fit
+    if best is None or best.confidence < _JOIN_BELOW:  # a face cut into pieces by shafts?
+        for seed in np.argsort(areas)[::-1][:_JOIN_SEEDS]:
+            if areas[seed] < smallest:
+                break
+            hull = joined_hull(outlines, areas, int(seed))
+            if hull is None:
+                continue
+            x, y, w, h = cv2.boundingRect(hull)
+            region = np.zeros((h + 2 * pad, w + 2 * pad), np.uint8)
+            cv2.drawContours(region, [hull], -1, 1, cv2.FILLED, offset=(pad - x, pad - y))
+            needed = needed_confidence if best is None else max(needed_confidence, best.confidence)
+            fit = _examine(member, components, groups, region, (x - pad, y - pad), kernel, needed)
+            if fit is not None and (best is None or fit.confidence > best.confidence):
+                best = fit
     return best

@@ -2,9 +2,10 @@
 white onto the calibration frame's (von Kries), so the UV colour model holds under other light.
 
 The white is estimated from the frame itself: the median RGB of its bright, nearly grey pixels
-(a target face's paper, a wall), found iteratively so that a tinted white (warm light) is still
-recognised as white. Gains are clipped to a plausible range; a frame without such pixels has no
-estimate and is taken as it is.
+(a target face's paper, a wall; at least half as bright as the frame's brightest, so that a
+dark backdrop filling most of the frame is not taken for it), found iteratively so that a
+tinted white (warm light) is still recognised as white. Gains are clipped to a plausible
+range; a frame without such pixels has no estimate and is taken as it is.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ MAX_GAIN = 4.0  # largest (and 1/smallest) gain per channel
 _GREY_SPREAD = 0.22  # (max − min) / max of a channel triple still called grey, after balance
 _MAX_TINT = 0.7  # (max − min) / max of the warmest or coldest white accepted (≈ 2500 K)
 _MIN_FRACTION = 0.01  # fewest white pixels, as a fraction of the frame
+_BRIGHT_SHARE = 0.5  # a white is at least this share of the frame's brightest luma (p99)
 
 
 def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
@@ -28,7 +30,10 @@ def estimate_white(rgb: np.ndarray) -> np.ndarray | None:
     """
     pixels = np.asarray(rgb, dtype=np.float32).reshape(-1, 3)
     luma = pixels @ np.array([0.299, 0.587, 0.114], np.float32)
-    bright = pixels[(luma >= np.percentile(luma, 60)) & (luma > 20)]
+    # the brighter part of the frame, but never much darker than its brightest (a white face
+    # on a dark boss is a small part of the frame: the boss must not pass for its white)
+    low, top = np.percentile(luma, [60, 99])
+    bright = pixels[(luma >= max(float(low), _BRIGHT_SHARE * float(top))) & (luma > 20)]
     if len(bright) < _MIN_FRACTION * len(pixels):
         return None
     # start from the bright pixels' median colour (grey world), so a strong tint is undone
