@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 os.environ.setdefault("MUJOCO_GL", "egl")
 
 import signal
@@ -18,6 +20,7 @@ from apps.topics.recording import CALIBRATION_ATTACHMENT, open_recording
 from benchmarks.bench_record import remeasure
 from mesh.netflags import NetConfig
 from mesh.node import Node
+from protocol.errors import RpcError
 from protocol.keys import Keys
 from protocol.messages import Detection, WorldState
 from services.detector.config import DetectorConfig
@@ -106,6 +109,9 @@ def test_replayed_frames_give_the_recorded_detections(
             assert worst <= 1e-3  # 1 mm
             status = rpc_call(node, fresh_keys.detector_rpc(), "status", timeout=10)
             assert status["calibrated"]
+            with pytest.raises(RpcError, match="a replay serves the recorded camera frames") as no:
+                rpc_call(node, fresh_keys.cam_rpc(), "scene", timeout=10)
+            assert no.value.code == "bad_request"
     finally:
         replay.send_signal(signal.SIGINT)
         out, err = replay.communicate(timeout=60)

@@ -48,6 +48,7 @@ from protocol.verbs.camera import (
     CalibrationReply,
     CameraStatusReply,
     GrabArgs,
+    SceneReply,
 )
 from protocol.verbs.robot import ARCHERY_VERBS
 
@@ -277,7 +278,15 @@ class _Frames:
                 scene_from="replay",
             )
 
-        return CAMERA_VERBS.bind({"grab": self.grab, "calibration": calibration, "status": status})
+        def scene(_: NoArgs) -> SceneReply:
+            raise BadRequest(
+                "a replay serves the recorded camera frames only: it has no view of the robot "
+                "(`archery film SESSION --recording FILE.mcap` films a recorded rollout)"
+            )
+
+        return CAMERA_VERBS.bind(
+            {"grab": self.grab, "calibration": calibration, "status": status, "scene": scene}
+        )
 
     def grab(self, grab: GrabArgs) -> Image:
         """The first frame (published so far, or within the timeout) with sim time ≥
