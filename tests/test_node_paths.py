@@ -13,6 +13,7 @@ import pytest
 
 from mesh.netflags import NetConfig
 from mesh.node import Node
+from mesh.rpc_server import RpcServer
 from protocol.errors import BadRequest, RpcError
 from protocol.messages import Array, Image
 from protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
@@ -39,7 +40,7 @@ def pair(net: NetConfig) -> Iterator[tuple[Node, Node]]:
         yield server, client
 
 
-def _serve(server: Node, key: str, release: threading.Event, entered: threading.Event) -> None:
+def _serve(server: Node, key: str, release: threading.Event, entered: threading.Event) -> RpcServer:
     def peek(args: WhoArgs) -> WhoReply:
         return WhoReply(thread=threading.current_thread().name, x=args.x)
 
@@ -49,7 +50,7 @@ def _serve(server: Node, key: str, release: threading.Event, entered: threading.
             raise BadRequest("never released")
         return WhoReply(thread=threading.current_thread().name)
 
-    server.serve(key, TABLE.bind({"peek": peek, "hold": hold}))
+    return server.serve(key, TABLE.bind({"peek": peek, "hold": hold}))
 
 
 def test_non_blocking_verbs_run_on_the_receive_path_blocking_ones_on_the_worker(
@@ -59,8 +60,7 @@ def test_non_blocking_verbs_run_on_the_receive_path_blocking_ones_on_the_worker(
     key = f"{server.keys.robot}/paths/rpc:i"
     release, entered = threading.Event(), threading.Event()
     release.set()
-    _serve(server, key, release, entered)
-    assert server._closables[-1].inline == frozenset({"peek"})
+    assert _serve(server, key, release, entered).inline == frozenset({"peek"})
     peeked = client.call_typed(key, PEEK, WhoArgs(x=1.5))
     held = client.call_typed(key, HOLD)
     assert peeked.x == 1.5
