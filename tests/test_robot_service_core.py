@@ -189,6 +189,34 @@ def test_rtf0_time_stands_still_at_rest_but_the_streams_go_on(start: Any) -> Non
     assert all(s[4] == 0.0 and s[3] for s in torso)
 
 
+def _torso_after(rec: Recorder, since: float, count: int, timeout: float = 10.0) -> list[float]:
+    """Wait for `count` torso states published after wall time `since`; their wall times."""
+    deadline = time.monotonic() + timeout
+    while True:
+        with rec.lock:
+            stamps = [s[0] for s in rec.states if s[1] == "torso" and s[0] > since]
+        if len(stamps) >= count:
+            return stamps[:count]
+        assert time.monotonic() < deadline, f"{len(stamps)} torso states of {count}"
+        time.sleep(0.005)
+
+
+def test_rtf0_at_rest_the_streams_fall_to_a_heartbeat_until_something_happens(start: Any) -> None:
+    loop, rec = start(state_rate=50.0, world_rate=25.0, rest_rate=2.0, rest_after=0.3)
+    first = _torso_after(rec, 0.0, 1)[0]  # the loop came to rest just before it
+    quiet = _torso_after(rec, first + 0.3, 3)
+    assert np.all(np.diff(quiet) >= 0.5 - 1e-3), np.diff(quiet)  # 2 Hz, not 50
+    with rec.lock:
+        worlds = [w[0] for w in rec.worlds if w[0] > first + 0.3]
+    assert np.all(np.diff(worlds) >= 0.5 - 1e-3), np.diff(worlds)
+    woken = time.monotonic()
+    loop.set_ref_speeds("torso", 0.2)  # no motion, but activity: full rates at once
+    lively = _torso_after(rec, woken, 5)
+    assert np.all(np.diff(lively) >= 0.02 - 1e-3)
+    assert lively[-1] - lively[0] < 4 * 0.5  # four heartbeats would take 2 s
+    assert loop.status().sim_time == 0.0
+
+
 def test_rtf0_moves_fast_and_streams_on_the_sim_time_grid_at_the_wall_rate(
     start: Any, posture: dict[str, np.ndarray]
 ) -> None:

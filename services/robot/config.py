@@ -36,6 +36,13 @@ class RobotConfig:
             many per wall second.
         world_rate: world state messages per simulated second (Hz; at rtf 0 also at most this
             many per wall second); also one after each nock, release, landing and reset.
+        rest_rate: at rtf 0, at rest (every part's motion done, no arrow in flight) and
+            `rest_after` wall s after the last activity, each state stream repeats its
+            unchanged state at this rate (Hz of wall time, a heartbeat; a slower stream keeps
+            its own rate) instead of its full rate; any command, move, nock, release or reset
+            brings the full rates back at once (see `pacing`).
+        rest_after: wall seconds after the last activity (a command, a move's end, a shot, a
+            reset) that a robot at rest keeps streaming at the full rates.
         watchdog: a command stream (commands overtaking unfinished moves) with no command for
             this long (wall s, from the last command's arrival) holds the part at its measured
             positions (`watchdog`); 0 switches it off.
@@ -60,6 +67,12 @@ class RobotConfig:
     )
     state_rate: float = flag(50.0, "joint states per sim s", unit="Hz", low=0.1, high=1000)
     world_rate: float = flag(30.0, "world states per sim s", unit="Hz", low=0.1, high=1000)
+    rest_rate: float = flag(
+        10.0, "state heartbeats per wall s once at rest", unit="Hz", low=0.1, high=1000
+    )
+    rest_after: float = flag(
+        1.0, "full-rate streams this long after the last activity", unit="wall s", low=0, high=60
+    )
     watchdog: float = flag(
         0.1, "stale command stream timeout, 0 = off", unit="wall s", low=0, high=60
     )

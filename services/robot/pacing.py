@@ -11,8 +11,12 @@
   state that ends a motion goes out at once (the loop publishes it on coming to rest).
 * rtf > 0: simulated time advances at rtf × the wall clock; a simulation that falls more than
   `MAX_LAG` s behind re-anchors rather than racing to catch up.
-* At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams at their
-  rates in wall time (*beats*), so subscribers still see a live robot.
+* At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams in wall time
+  (*beats*), so subscribers still see a live robot: at the streams' rates for `rest_after` wall
+  seconds after the last activity (`wake`: a command, a move, nock, release, reset, the end of a
+  motion), then at `rest_rate` (a heartbeat, 10 Hz by default: five beats within the
+  controller's 0.5 s freshness rule). Any activity brings the full rates back at
+  once: the next beat is then one full period after the last one, usually already due.
 """
 
 from __future__ import annotations
@@ -34,18 +38,37 @@ class Pacing:
         dt: the physics time step (s of sim time).
         state_rate, world_rate: joint states and world states per simulated second (Hz).
         rtf: real-time factor (> 0 for `wall_due`).
+        rest_rate: beats per wall second of each stream once at rest for `rest_after` (Hz; a
+            stream slower than this keeps its own rate); None: the streams' rates.
+        rest_after: wall seconds after the last activity (`wake`) that the beats keep the
+            streams' rates.
     """
 
-    def __init__(self, dt: float, state_rate: float, world_rate: float, rtf: float) -> None:
+    def __init__(
+        self,
+        dt: float,
+        state_rate: float,
+        world_rate: float,
+        rtf: float,
+        rest_rate: float | None = None,
+        rest_after: float = 0.0,
+    ) -> None:
         self.dt = dt
         self.rtf = rtf
         self.state_period = 1.0 / state_rate
         self.world_period = 1.0 / world_rate
+        rest_period = 0.0 if rest_rate is None else 1.0 / rest_rate
+        self._rest_periods = (
+            max(self.state_period, rest_period),
+            max(self.world_period, rest_period),
+        )
+        self.rest_after = rest_after
         self._max_chunk = max(1, round(MAX_CHUNK / dt))
         self._next_state = 0.0  # sim time of the next joint state publication
         self._next_world = 0.0
-        self._beat_state = 0.0  # wall time of the next idle repetition
-        self._beat_world = 0.0
+        self._sent_state = -math.inf  # wall time of the last publication
+        self._sent_world = -math.inf
+        self._lively_until = time.monotonic() + rest_after  # wall time the full-rate beats end
         self._anchor: tuple[float, float] | None = None  # (wall, sim) pair of the rtf schedule
 
     # -- sim time ----------------------------------------------------------------------------
@@ -71,7 +94,9 @@ class Pacing:
         if world:
             self._next_world = max(self._next_world + self.world_period, sim_time + half)
         if self.rtf == 0 and (joints or world):
-            joints, world = (a and b for a, b in zip((joints, world), self.beats(), strict=True))
+            now = time.monotonic()
+            joints = joints and now >= self._sent_state + self.state_period
+            world = world and now >= self._sent_world + self.world_period
         return joints, world
 
     # -- wall time ---------------------------------------------------------------------------
@@ -87,21 +112,33 @@ class Pacing:
         return anchor[0] + (sim_time - anchor[1]) / self.rtf
 
     def sent_joints(self) -> None:
-        """Joint states went out: the next idle repetition (and at rtf 0 the next grid point
-        that goes out) is one period (wall) away."""
-        self._beat_state = time.monotonic() + self.state_period
+        """Joint states went out: the next beat (and at rtf 0 the next grid point that goes
+        out) is one period (wall) away."""
+        self._sent_state = time.monotonic()
 
     def sent_world(self) -> None:
-        """A world state went out: the next idle repetition (and at rtf 0 the next grid point
-        that goes out) is one period (wall) away."""
-        self._beat_world = time.monotonic() + self.world_period
+        """A world state went out: the next beat (and at rtf 0 the next grid point that goes
+        out) is one period (wall) away."""
+        self._sent_world = time.monotonic()
+
+    def wake(self) -> None:
+        """Something happened (a command, a move, a shot, a reset): the beats keep the streams'
+        rates for `rest_after` wall seconds from now."""
+        self._lively_until = time.monotonic() + self.rest_after
+
+    def _beat_times(self) -> tuple[float, float, float]:
+        """Now, and the wall times of the next joint state and world state beats."""
+        now = time.monotonic()
+        lively = now < self._lively_until
+        state, world = (self.state_period, self.world_period) if lively else self._rest_periods
+        return now, self._sent_state + state, self._sent_world + world
 
     def idle_wait(self) -> float:
         """How long (wall s) the resting loop may sleep before its next beat or check."""
-        now = time.monotonic()
-        return min(MAX_IDLE_WAIT, self._beat_state - now, self._beat_world - now)
+        now, state, world = self._beat_times()
+        return min(MAX_IDLE_WAIT, state - now, world - now)
 
     def beats(self) -> tuple[bool, bool]:
-        """Whether a joint state and a world state repetition are due now (at rest)."""
-        now = time.monotonic()
-        return now >= self._beat_state, now >= self._beat_world
+        """Whether a joint state and a world state beat are due now (at rest)."""
+        now, state, world = self._beat_times()
+        return now >= state, now >= world

@@ -2,7 +2,11 @@
 
 Ports (ROBOT = the robot prefix, e.g. icubSim):
 
-* `ROBOT/{torso,left_arm,right_arm}/state:o` JointState at `state_rate` per simulated second;
+* `ROBOT/{torso,left_arm,right_arm}/state:o` JointState at `state_rate` per simulated second
+  (at rtf 0 at most that many per wall second); at rtf 0 and at rest (every motion done, no arrow
+  flying) at that rate per wall second for `rest_after` s after the last command, move, nock,
+  release or reset, then a heartbeat at `rest_rate` (10 Hz by default), full rate again at once
+  on any of them (see `pacing`);
 * `ROBOT/{part}/command:i` JointCommand position targets (validated as in `commands`), from the
   holder of the part's lease only while one runs, at most `--command-rate` per wall s (see
   `gate`);
@@ -10,7 +14,8 @@ Ports (ROBOT = the robot prefix, e.g. icubSim):
   checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status, and the lease
   verbs claim, renewClaim, dropClaim, getClaim;
 * `ROBOT/archery/rpc:i`: nock, release (replies after the landing), reset, status;
-* `ROBOT/world/state:o` WorldState at `world_rate` per simulated second and after each landing;
+* `ROBOT/world/state:o` WorldState at `world_rate` per simulated second (paced like the joint
+  states, the heartbeat at rest too) and after each nock, release, landing and reset;
 * `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset, and
   watchdog (a part's command stream stopped mid-motion for `--watchdog` wall s, default 0.1:
   the part is held at its measured positions, `watchdog_trips` counts it; see `watchdog`).
@@ -90,12 +95,15 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
             node.serve(keys.archery_rpc(), handlers.archery_verbs())
             node.ready()
             log.info(
-                "robot %r ready: rtf %g, seed %s, joint states %g Hz, world %g Hz (sim time)",
+                "robot %r ready: rtf %g, seed %s, joint states %g Hz, world %g Hz (sim time); "
+                "at rest %g Hz after %g s",
                 keys.robot,
                 config.rtf,
                 config.seed,
                 config.state_rate,
                 config.world_rate,
+                config.rest_rate,
+                config.rest_after,
             )
             stop.wait()
         finally:

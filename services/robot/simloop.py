@@ -8,7 +8,10 @@ Pacing (`pacing`): streams on a grid of simulated time, rtf × the wall clock wh
 rtf 0 (default) the world runs as fast as possible while something moves (a part not done, or
 an arrow in flight), its streams' grid points going out at most at their rates in wall time
 too, and not at all when everything is at rest: the thread then sleeps on its job queue and
-repeats the unchanged state on the streams at their rates in wall time. A command
+repeats the unchanged state on the streams in wall time, at their rates for `rest_after` wall
+seconds after the last activity (a command, positionMove, setRefSpeeds, nock, release, reset,
+wind, the end of a motion), then at `rest_rate` (a heartbeat, 10 Hz by default); any activity
+brings the full rates back at once. A command
 that wakes the idle robot starts the motion at once, unless it announces a batch
 (`JointCommand.batch` > 1: a controller's three part commands): then the loop waits for the
 rest of the batch, at most `batch_window` wall seconds, and starts them at one simulated time,
@@ -104,7 +107,14 @@ class SimLoop:
         self._sink = sink
         self._seed = seed
         self._dt = world.timestep
-        self._pacing = Pacing(self._dt, config.state_rate, config.world_rate, config.rtf)
+        self._pacing = Pacing(
+            self._dt,
+            config.state_rate,
+            config.world_rate,
+            config.rtf,
+            rest_rate=config.rest_rate,
+            rest_after=config.rest_after,
+        )
         self.limits = {
             part: PartLimits(
                 part=part,
@@ -261,7 +271,7 @@ class SimLoop:
         n = len(self.limits[part].names)
         if isinstance(speeds, int | float) and not isinstance(speeds, bool):
             speeds = [speeds] * n
-        return self.call(lambda: self.world.set_reference_speeds(part, speeds).tolist())
+        return self.call(lambda: self._set_ref_speeds(part, speeds))
 
     def ref_speeds(self, part: str) -> list[float]:
         """`part`'s reference speeds (rad/s)."""
@@ -362,6 +372,7 @@ class SimLoop:
         batch: int = 1,
         lease: str = "",
     ) -> None:
+        self._pacing.wake()
         self._batch_seen += 1
         self._batch_size = max(self._batch_size, batch)
         refusal = self._gates[part].owner_refusal(lease)  # taken over while it was queued
@@ -380,6 +391,7 @@ class SimLoop:
         self._streams.command(part, at, overtakes)
 
     def _position_move(self, part: str, position: Any, names: Any, lease: str = "") -> list[float]:
+        self._pacing.wake()
         refusal = self._gates[part].owner_refusal(lease)
         if refusal is not None:
             self._refuse(part, NOT_OWNER, refusal)
@@ -390,7 +402,12 @@ class SimLoop:
         self._streams.forget(part)
         return self._apply(part, targets, clamped)
 
+    def _set_ref_speeds(self, part: str, speeds: Any) -> list[float]:
+        self._pacing.wake()
+        return self.world.set_reference_speeds(part, speeds).tolist()
+
     def _nock(self) -> rv.NockReply:
+        self._pacing.wake()
         self.world.nock()
         t = self.world.sim_time
         self._sink.event("nocked", self._shot + 1, t)
@@ -401,6 +418,7 @@ class SimLoop:
         if self._landing_future is not None:
             raise StateError("a release is already waiting for its landing")
         self._launch = self.world.launch()
+        self._pacing.wake()
         self._shot += 1
         self._landing_future = Future()
         self._sink.event("released", self._shot, self.world.sim_time)
@@ -429,6 +447,7 @@ class SimLoop:
             future.set_result(reply)
 
     def _reset(self, seed: int | None) -> rv.ResetReply:
+        self._pacing.wake()
         self.world.reset(seed)
         if seed is not None:
             self._seed = seed
@@ -440,6 +459,7 @@ class SimLoop:
         return rv.ResetReply(sim_time=self.world.sim_time, seed=seed, shot=self._shot)
 
     def _set_wind(self, wind: tuple[float, float, float]) -> list[float]:
+        self._pacing.wake()
         self.world.config = replace(self.world.config, wind=wind)
         log.info("wind set to %s m/s", list(wind))
         return list(self.world.config.wind)
@@ -569,10 +589,12 @@ class SimLoop:
         return ran
 
     def _rest(self, stop: threading.Event) -> None:
-        """rtf 0 and nothing moves: sleep on the job queue, repeating the streams in wall time."""
+        """rtf 0 and nothing moves: sleep on the job queue, repeating the streams in wall time
+        (at the full rates for `rest_after` s after the last activity, then at `rest_rate`)."""
         if not self._idle:
             self._idle = True
             self._batch_seen, self._batch_size = 0, 0
+            self._pacing.wake()  # a motion just ended: full rates for a while yet
             self._publish_joints()  # the final state shows motion_done at once
             self._publish_world()
         if self._jobs.wait(self._pacing.idle_wait()):
