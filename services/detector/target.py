@@ -318,7 +318,8 @@ def _examine(
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
         rings = _concentric(rings, outer)
-        if len(rings) >= 2:  # a face cut by the border: its inner rings say it is seen
+        # a face cut by the border: its inner rings (or one seen whole) say it is seen
+        if len(rings) >= 2 or (rings and rings[0].support >= _WHOLE):
             inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
             if inner > _seen(factors):
                 factors["support"], factors["visible"] = inner, 1.0
