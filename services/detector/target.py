@@ -12,7 +12,7 @@ ellipses of one shape validate each other (rings off the perspective model are d
 the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
 fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary was
 seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how well
-its colours match the calibration (judged more leniently once two inner rings agree), how many inner
+its colours match the calibration (judged more leniently once inner rings agree), how many inner
 rings agree (a lone one as far as it is seen whole) and how many of the calibrated colours (ring
 groups of the GMM's components) the face shows; the factors' ranges were set on the development set
 (`tests.devset`) so that wrong centres score below 0.5.
@@ -50,7 +50,7 @@ _EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are
 _EDGE_POINTS = 3000  # about this many of the face's pixels judge the edges
 _SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
 _WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot better
-_RINGED_COLOUR = (0.1, 0.3)  # colour agreement ramp of a face with two inner rings or more
+_RINGED_COLOUR = (0.1, 0.3)  # colour agreement ramp of a face whose inner rings agree
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -253,9 +253,9 @@ def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
 def _colour_factor(agreement: float, inner: list[Ellipse]) -> float:
     """Trust from how well the face's colours match the calibration (`agreement`: mean
     membership 0..1 inside the outer ellipse); two inner rings or more that agree with the outer
-    one show the calibrated colours' layout, so lighter colours (light, JPEG, ring blends on a
-    small face) are trusted sooner."""
-    if len(inner) >= 2:
+    one, or one seen whole, show the calibrated colours' layout, so paler colours (sun, light,
+    JPEG, ring blends on a small face) are trusted sooner."""
+    if len(inner) >= 2 or (inner and inner[0].support >= _WHOLE):
         return _ramp(agreement, *_RINGED_COLOUR)
     return _ramp(agreement, 0.15, 0.5)
 
