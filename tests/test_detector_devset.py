@@ -37,7 +37,7 @@ KNOWN_MISSES = {
 # a 100 px face in a 2400×1800 frame is found by looking again at a finer scale, but its
 # calibration (120 marks on a 60 px disc, ring lines and blends included) is poor: of its 32
 # visible cases at most this many are missed (never wrong); the plain frame is always found
-MISSES_ALLOWED = {"drawn-100-in-2400": 10}
+MISSES_ALLOWED = {"drawn-100-in-2400": 5}
 # issue 28's four harder kinds (cut and steep with arrows, filling a small frame with a shaft
 # across the gold, sunlit and angled with many arrows, a dark boss from above): never wrong,
 # and of a scene's 12 such cases at most this many missed (reported as not seen). Sun with
@@ -47,15 +47,15 @@ MISSES_ALLOWED = {"drawn-100-in-2400": 10}
 HARD_KINDS = {"cut, steep, arrows", "fills the frame", "sunlit, angled, arrows",
               "dark boss, from above"}  # fmt: skip
 HARD_MISSES_ALLOWED = {
-    "drawn-110": 9,
+    "drawn-110": 6,
     "drawn-350": 4,
-    "drawn-650": 4,
+    "drawn-650": 3,
     "drawn-1300": 1,
-    "drawn-100-in-2400": 10,
+    "drawn-100-in-2400": 9,
     "target-1": 2,
     "target-2": 2,
-    "target-3": 2,
-    "target-4": 2,
+    "target-3": 1,
+    "target-4": 1,
 }
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"
 DRAWN = {scene.name: scene for scene in drawn_scenes()}

@@ -10,12 +10,12 @@ blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (fr
 joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
 ellipses of one shape validate each other (rings off the perspective model are dropped), and
 the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
-fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary
-was seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how
-well its colours match the calibration, how many inner rings agree (a lone one as far as it is
-seen whole) and how many of the calibrated colours (ring groups of the GMM's components) the
-face shows; the factors' ranges were set on the development set (`tests.devset`) so that wrong
-centres score below 0.5.
+fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary was
+seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how well
+its colours match the calibration (judged more leniently once inner rings agree), how many inner
+rings agree (a lone one as far as it is seen whole) and how many of the calibrated colours (ring
+groups of the GMM's components) the face shows; the factors' ranges were set on the development set
+(`tests.devset`) so that wrong centres score below 0.5.
 All positions are pixels of the downscaled map.
 """
 
@@ -50,6 +50,7 @@ _EDGE_MIN_RADIUS = 8.0  # px: a smaller ring's edge is not judged (its bands are
 _EDGE_POINTS = 3000  # about this many of the face's pixels judge the edges
 _SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
 _WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot better
+_RINGED_COLOUR = (0.1, 0.3)  # colour agreement ramp of a face whose inner rings agree
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -65,6 +66,7 @@ class FaceFit:
     factors: dict[str, float]
     colours: frozenset[int] = frozenset()  # the calibrated colours (ring groups) it shows
     n_colours: int = 0  # how many the calibration has
+    agreement: float = 0.0  # mean target membership (0..1) inside the outer ellipse
 
     @property
     def outer(self) -> Ellipse:
@@ -248,6 +250,16 @@ def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
     return 0.6 * _ramp(outer.ratio, 0.6, 0.9)
 
 
+def _colour_factor(agreement: float, inner: list[Ellipse]) -> float:
+    """Trust from how well the face's colours match the calibration (`agreement`: mean
+    membership 0..1 inside the outer ellipse); two inner rings or more that agree with the outer
+    one, or one seen whole, show the calibrated colours' layout, so paler colours (sun, light,
+    JPEG, ring blends on a small face) are trusted sooner."""
+    if len(inner) >= 2 or (inner and inner[0].support >= _WHOLE):
+        return _ramp(agreement, *_RINGED_COLOUR)
+    return _ramp(agreement, 0.15, 0.5)
+
+
 def _examine(
     member: np.ndarray,
     components: np.ndarray | None,
@@ -292,31 +304,34 @@ def _examine(
         # a one-pixel boundary error costs a disc of radius r about 4/r of IoU: small faces
         # are judged by what their pixels allow
         "elliptic": _ramp(iou + min(0.15, 2.0 / outer.radius), 0.75, 0.92),
-        "colour": _ramp(agreement, 0.15, 0.5),
+        "colour": _colour_factor(agreement, []),
     }
     rings: list[Ellipse] = []
     shown: set[int] = set()
     n_colours = 0
     if components is not None and groups is not None:
-        unseen = (v for k, v in factors.items() if k not in ("support", "visible"))
-        if math.prod(unseen) < needed:  # a face cut by the border may be seen by its rings
+        # the most its rings could make of it (a face cut by the border may be seen by them)
+        best_case = factors["elliptic"] * _colour_factor(agreement, [outer, outer])
+        if best_case < needed:
             return FaceFit(outer.centre, (outer,), 0.0, factors)  # the rings cannot save it
         mask = (box_member > _MEMBER).astype(np.uint8) & ellipse
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
         rings = _concentric(rings, outer)
-        if len(rings) >= 2:  # a face cut by the border: its inner rings say it is seen
+        # a face cut by the border: its inner rings (or one seen whole) say it is seen
+        if len(rings) >= 2 or (rings and rings[0].support >= _WHOLE):
             inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
             if inner > _seen(factors):
                 factors["support"], factors["visible"] = inner, 1.0
         factors["rings"] = _rings_factor(outer, rings)
+        factors["colour"] = _colour_factor(agreement, rings)
         # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
         n_colours = max(1, int(groups.max()) + 1)
         factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
     centre = nested_centre(list(ellipses))
-    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours)
+    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours, agreement)
 
 
 def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
@@ -340,12 +355,13 @@ def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
     owner = first if first.outer.radius >= second.outer.radius else second
     factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
     factors["rings"] = _rings_factor(rings[-1], rings[:-1])
+    factors["colour"] = _colour_factor(owner.agreement, rings[:-1])
     colours = first.colours | second.colours
     factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = tuple(rings)
     centre = nested_centre(rings)
-    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours)
+    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours, owner.agreement)
 
 
 def find_face(
