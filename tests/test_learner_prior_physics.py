@@ -12,31 +12,12 @@ from services.learner.algorithms import (
     BallisticModel,
     PhysicalModel,
     StateError,
-    make_learner,
     restore_learner,
 )
 from services.learner.algorithms.model_fit import fit_parameters
 from sim.ballistic import BallisticWorld, Scenario
-from sim.geometry import INNER_RING_RADIUS, START_THETA
-
-THETA0 = np.array(START_THETA)
-
-
-def _prior(**options: float) -> ArcherPrior:
-    learner = make_learner("archer-prior", THETA0, rng=np.random.default_rng(0), **options)
-    assert isinstance(learner, ArcherPrior)
-    return learner
-
-
-def _play(learner: ArcherPrior, world: BallisticWorld, rollouts: int) -> np.ndarray:
-    """Distances (m) of `rollouts` true impacts to the centre."""
-    distances = []
-    for _ in range(rollouts):
-        theta = learner.ask()
-        shot = world.step(theta)
-        learner.tell(theta, shot.r)
-        distances.append(float(np.linalg.norm(shot.r_true)))
-    return np.array(distances)
+from sim.geometry import INNER_RING_RADIUS
+from tests.test_learner_prior import THETA0, _play, _prior
 
 
 @pytest.mark.parametrize("distance", [1.5, 3.4, 5.0])
