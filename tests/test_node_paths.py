@@ -53,6 +53,13 @@ def _serve(server: Node, key: str, release: threading.Event, entered: threading.
     return server.serve(key, TABLE.bind({"peek": peek, "hold": hold}))
 
 
+def _reachable(server: Node, client: Node) -> None:
+    """Once the client sees the server alive: its token follows every port served before it,
+    so the router knows them all (a call sent sooner may find no queryable)."""
+    server.ready()
+    client.wait_alive(["server"], 10)
+
+
 def test_non_blocking_verbs_run_on_the_receive_path_blocking_ones_on_the_worker(
     pair: tuple[Node, Node],
 ) -> None:
@@ -61,6 +68,7 @@ def test_non_blocking_verbs_run_on_the_receive_path_blocking_ones_on_the_worker(
     release, entered = threading.Event(), threading.Event()
     release.set()
     assert _serve(server, key, release, entered).inline == frozenset({"peek"})
+    _reachable(server, client)
     peeked = client.call_typed(key, PEEK, WhoArgs(x=1.5))
     held = client.call_typed(key, HOLD)
     assert peeked.x == 1.5
@@ -75,6 +83,7 @@ def test_a_blocked_handler_never_stalls_a_non_blocking_verb(pair: tuple[Node, No
     release, entered = threading.Event(), threading.Event()
     _serve(server, key, release, entered)
     _serve(server, other, threading.Event(), threading.Event())
+    _reachable(server, client)
     held: list[WhoReply] = []
     caller = threading.Thread(target=lambda: held.append(client.call_typed(key, HOLD, timeout=15)))
     caller.start()
@@ -94,6 +103,7 @@ def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, N
     server, client = pair
     key = f"{server.keys.robot}/paths/rpc:i"
     _serve(server, key, threading.Event(), threading.Event())
+    _reachable(server, client)
     nan = msgspec.msgpack.encode({"type": "RpcRequest", "verb": "peek", "args": {"x": math.nan}})
     reply = client.request(key, nan, verb="peek")
     assert reply.code == "bad_request"
