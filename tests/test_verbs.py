@@ -246,6 +246,7 @@ def served(net: NetConfig) -> Iterator[tuple[Node, str, str]]:
         }
         server.serve(other_key, OTHER.bind(other))
         server.ready()
+        client.wait_alive(["verbs"], 10)  # its token follows both ports to the router
         yield client, key, other_key
 
 
