@@ -156,7 +156,8 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         after = status()
         assert (after["renders"], after["reuses"]) == (1, 1)
 
-        # a subscriber appears: frames flow at the rate, of the unchanged scene without renders
+        # a subscriber appears: frames flow (at the rest rate: the scene is unchanged) without
+        # renders
         frames = node.subscribe(keys.cam_frames(), Image, mode="fifo")
         got = [frames.get(timeout=10) for _ in range(3)]
         assert [f.frame for f in got] == sorted({f.frame for f in got})
@@ -174,6 +175,43 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         world.put(_state(physics.qpos(), 2.0))
         assert grab(after_sim_time=2.0).sim_time == 2.0
         assert status()["renders"] == 2
+
+
+def test_a_watched_unchanged_view_goes_out_at_the_rest_rate_and_a_change_at_once(
+    net: NetConfig, physics: ScenePhysics
+) -> None:
+    physics.reset()
+    physics.forward()
+    qpos = physics.qpos()
+    config = CameraConfig(net=net, rate=20.0, rest_rate=0.1, robot_timeout=0.3)
+    with serving(run, config), Node(None, net) as node:
+        keys = node.keys
+        node.wait_alive(["camera"], timeout=30)
+        world = node.publisher(keys.world_state(), WorldState)
+        assert world.wait_matched(5)
+        world.put(_state(qpos, 1.0))
+        frames = node.subscribe(keys.cam_frames(), Image, mode="fifo")
+        first = frames.get(timeout=10)  # a new subscriber gets a frame at once
+        while first.sim_time != 1.0:  # (one of the initial state may come first)
+            first = frames.get(timeout=10)
+        # the robot moving behind the camera: the same pixels, not sent again within 10 s;
+        # then an arrow on the face: that frame at once, the next one the subscriber gets
+        turned = qpos.copy()
+        turned[0] += 0.1
+        world.put(_state(turned, 1.5))
+        centre = physics.site_position(TARGET_CENTRE_SITE)
+        physics.set_arrow_pose(
+            centre + np.array([0.0, 0.05, 0.05]), arrow_quat(np.array([-1.0, 0, -0.05]))
+        )
+        world.put(_state(physics.qpos(), 2.0))
+        changed = frames.get(timeout=10)
+        assert changed.sim_time == 2.0 and changed.frame == first.frame + 1
+        assert changed.stamp - first.stamp < 1 / config.rest_rate
+        # a grab of the unchanged view is still served at once, and the subscriber gets it too
+        now = time.time()
+        grabbed = _image(rpc_call(node, keys.cam_rpc(), "grab", {"after_stamp": now}, timeout=10))
+        assert grabbed.stamp >= now and grabbed.sim_time == 2.0
+        assert frames.get(timeout=10).frame == grabbed.frame
 
 
 def test_calibration_marks_come_with_their_frame(net: NetConfig) -> None:

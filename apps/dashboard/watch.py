@@ -10,7 +10,8 @@ detector's frame with its overlay is drawn and PNG-encoded on the detector's wor
 fetched after each rollout, right after the detector measured it and while the robot moves to
 the next shot (a posture and a flight: the detector idles then), and never sooner than
 `1 / FRAME_DUTY` times the last fetch's duration after the one before, so watching takes at
-most that share of the detector's time however fast rollouts come. The scene view is asked of
+most that share of the detector's time however fast rollouts come, nor sooner than `FRAME_EVERY`
+s (the page's poll period: a page shows no more frames than it polls). The scene view is asked of
 the camera (`scene`, which never waits) only while a page showed interest in it within the
 last `SCENE_INTEREST` s, at the camera's own period; nobody looking, nothing is rendered.
 """
@@ -47,6 +48,7 @@ log = logging.getLogger("archery.dashboard")
 MAX_ROLLOUTS = 2000  # rollouts kept per session (a session's budget is at most 10 000)
 _RPC_TIMEOUT = 2.0  # s: frame and status calls
 FRAME_DUTY = 0.25  # the share of the detector's time the frame fetches may take at most
+FRAME_EVERY = 0.5  # s between frame fetches at least: the page's poll period (`POLL_MS`)
 SCENE_INTEREST = 3.0  # s: the scene view is fetched while a page asked for it this recently
 
 
@@ -100,7 +102,7 @@ class MeshWatch:
         *,
         robot: str | None = None,
         status_every: float = 2.0,
-        frame_every: float = 0.0,
+        frame_every: float = FRAME_EVERY,
     ) -> None:
         self.node = node
         self.keys = node.keys if robot is None else Keys(robot)

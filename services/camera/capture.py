@@ -8,11 +8,16 @@ until the robot answers); frames go out at the configured rate, and at once when
 `grab` can be served.
 
 Idle cost: frames are captured only while someone subscribes to the frames or a `grab` waits;
-otherwise the thread sleeps (a subscriber appearing wakes it). A world state that looks, to the
-camera, like one of the last few rendered (the same poses of everything movable in its view:
-`SceneRenderer.view_key`; the robot moving its arms behind the camera, or a scene reset to
-its empty target, changes nothing it sees) is not rendered again: the pixels would be the
-same, so that render goes out again with this capture's stamp and the new state's sim time.
+otherwise the thread sleeps (a subscriber appearing wakes it). While the view is unchanged (the
+frame due would carry the same render as the last one sent), frames go out at `rest_rate`, not
+at `rate`: a subscriber (a recording) is not sent megabytes of the same pixels ten times a
+second. A changed view, a waiting `grab` and a new subscriber get their frame at once.
+
+A world state that looks, to the camera, like one of the last few rendered (the same poses of
+everything movable in its view: `SceneRenderer.view_key`; the robot moving its arms behind the
+camera, or a scene reset to its empty target, changes nothing it sees) is not rendered again:
+the pixels would be the same, so that render goes out again with this capture's stamp and the
+new state's sim time.
 That keeps `grab`'s promise: a frame "captured after a stamp" shows the newest world state
 known at that time, as a fresh render of it would.
 """
@@ -78,6 +83,7 @@ class Capture:
         self._shown: collections.OrderedDict[bytes, np.ndarray] = collections.OrderedDict()
         self.errors = 0
         self.watched = False  # someone subscribes to the frames (the capture loop keeps it)
+        self.joined = False  # a subscriber appeared: it gets a frame at once
         self.world = None
         if config.source.kind == "mujoco":
             self.world = node.subscribe(node.keys.world_state(), WorldState, callback=self._woken)
@@ -90,6 +96,7 @@ class Capture:
     def watch(self, matching: bool) -> None:
         """Subscribers to the frames appeared (True) or all went (False)."""
         self.watched = matching
+        self.joined = self.joined or matching
         self.jobs.notify()
 
     def _robot_scene(self, timeout: float) -> Any:
@@ -237,19 +244,34 @@ def _needs_recapture(
 
 
 def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event) -> None:
-    """Publish at the configured rate while someone subscribes, and at once whenever a waiting
-    grab can be served; sleep otherwise."""
+    """Publish at the configured rate while someone subscribes (at `rest_rate` while the view is
+    unchanged), and at once whenever a waiting grab can be served; sleep otherwise."""
     store = capture.store
     period = 1.0 / capture.config.rate
+    rest_period = max(period, 1.0 / capture.config.rest_rate)
     next_due = 0.0
     last_seq: int | None = None
     cached: tuple[np.ndarray, float | None, float] | None = None  # pixels, sim time, captured
+    sent: np.ndarray | None = None  # the render the last frame sent carried
+    sent_at = 0.0  # monotonic s it was sent
+
+    def send(pixels: np.ndarray, sim_time: float | None, captured: float, now: float) -> None:
+        nonlocal sent, sent_at
+        capture.publish(pixels, sim_time, captured, pub)
+        sent, sent_at = pixels, now
+
+    def resting(pixels: np.ndarray, now: float) -> bool:
+        """The frame due shows the render last sent, sent less than `rest_period` ago."""
+        return pixels is sent and now - sent_at < rest_period
+
     stop_watching = pub.on_matching(capture.watch)
     try:
         while not stop.is_set():
             capture.jobs.drain()
             now = time.monotonic()
             watched = capture.watched = pub.matching()
+            if capture.joined:
+                capture.joined, sent = False, None  # a new subscriber: its first frame now
             due = watched and now >= next_due
             waiting = store.waiting()
             try:
@@ -262,14 +284,16 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                         captured = time.time()
                         pixels = capture.view(state.qpos.to_numpy())
                         cached = (pixels, state.sim_time, captured)
-                        capture.publish(pixels, state.sim_time, captured, pub)
+                        if waiting or not resting(pixels, now):
+                            send(pixels, state.sim_time, captured, now)
                         next_due = now + period
-                    elif due or _needs_recapture(waiting, cached):
+                    elif (recapture := _needs_recapture(waiting, cached)) or due:
                         if cached is None:  # no world state yet: the model's initial state
                             qpos = np.asarray(capture.renderer.model.qpos0)
                             cached = (capture.render(qpos), None, time.time())
-                        # the newest state is rendered already: the same pixels, captured now
-                        capture.publish(cached[0], cached[1], time.time(), pub)
+                        if recapture or not resting(cached[0], now):
+                            # the newest state is rendered already: the same pixels, captured now
+                            send(cached[0], cached[1], time.time(), now)
                         next_due = now + period
                 else:
                     wall = time.time()

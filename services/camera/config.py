@@ -25,6 +25,9 @@ class CameraConfig:
         source: where frames come from (`parse_source`).
         width, height: image size (px) of rendered frames, and asked of a device (`--size`).
         rate: frames published per wall second.
+        rest_rate: frames per wall second at most while a rendered view is unchanged (the
+            same pixels as the last frame sent: the robot's arms moving behind the camera, a
+            target at rest); a changed view, a `grab` and a new subscriber get a frame at once.
         encoding: rgb8 (raw), jpeg or png.
         robot_timeout: how long to wait for the robot's scene parameters at start (s).
     """
@@ -38,6 +41,13 @@ class CameraConfig:
     width: int = flag(1280, "image width", unit="px", low=16, high=4096, name="--size", cli=False)
     height: int = flag(720, "image height", unit="px", low=16, high=4096, name="--size", cli=False)
     rate: float = flag(10.0, "frames per second", unit="frames/s", low=0.1, high=120)
+    rest_rate: float = flag(
+        1.0,
+        "frames per second at most while the rendered view is unchanged",
+        unit="frames/s",
+        low=0.1,
+        high=120,
+    )
     encoding: str = flag("rgb8", "rgb8 (raw), jpeg or png (slow links)", choices=ENCODINGS)
     robot_timeout: float = flag(
         ROBOT_TIMEOUT,
