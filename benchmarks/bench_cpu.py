@@ -44,7 +44,7 @@ from benchmarks.spread import median_spread
 from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
 from mesh.router import free_tcp_endpoint
 
-__all__ = ["main"]
+__all__ = ["ARCHERY", "main", "start_up", "stop"]
 
 ARCHERY = (sys.executable, "-m", "apps.cli")
 MESH = ("router", "robot", "controller", "camera", "detector", "learner")
@@ -75,10 +75,21 @@ def _children(up: subprocess.Popen[str]) -> dict[str, psutil.Process]:
     return out
 
 
-def _start_up(env: dict[str, str], endpoint: str, out: Path) -> subprocess.Popen[str]:
-    """`archery up` on `endpoint` with the tree of `env`, returned once all are alive."""
+def start_up(env: dict[str, str], endpoint: str, out: Path, *more: str) -> subprocess.Popen[str]:
+    """`archery up` on `endpoint` with the tree of `env` (and the arguments `more`), returned
+    once all are alive."""
     up = subprocess.Popen(
-        [*ARCHERY, "up", "--listen", endpoint, "--logs", str(out / "logs"), "--runs", "runs"],
+        [
+            *ARCHERY,
+            "up",
+            "--listen",
+            endpoint,
+            "--logs",
+            str(out / "logs"),
+            "--runs",
+            "runs",
+            *more,
+        ],
         env=env,
         cwd=out,
         stdin=subprocess.DEVNULL,
@@ -94,7 +105,7 @@ def _start_up(env: dict[str, str], endpoint: str, out: Path) -> subprocess.Popen
     raise RuntimeError(f"archery up ended with status {up.returncode} before all were alive")
 
 
-def _stop(proc: subprocess.Popen[str]) -> None:
+def stop(proc: subprocess.Popen[str]) -> None:
     """SIGINT a child and wait for it (SIGKILL after 60 s)."""
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -163,7 +174,7 @@ def _window(
 def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: bool) -> Any:
     """One mesh of the tree of `env`, one session, optionally watched; its window's figures."""
     endpoint = free_tcp_endpoint()
-    up = _start_up(env, endpoint, out)
+    up = start_up(env, endpoint, out)
     try:
         procs = _children(up) | {"up": psutil.Process(up.pid)}
         with contextlib.ExitStack() as stack:
@@ -202,9 +213,9 @@ def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: 
             try:
                 return _window(learn, out / "runs", procs)
             finally:
-                _stop(learn)
+                stop(learn)
     finally:
-        _stop(up)
+        stop(up)
 
 
 def _done(journal: str) -> list[dict[str, Any]]:
