@@ -96,7 +96,7 @@ def convergence_figure(
     if band not in BANDS:
         raise ValueError(f"band must be one of {', '.join(BANDS)}, got {band!r}")
     plt = _pyplot()
-    from matplotlib.ticker import FuncFormatter, LogLocator
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     paper, baselines = split_baselines(runs)
     groups = [g for g in (paper, baselines) if g]
@@ -154,6 +154,7 @@ def convergence_figure(
             ax.set_ylim(max(0.5 * min(bottoms), 0.5), 1.6 * max(tops))
             ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
             ax.yaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+            ax.yaxis.set_minor_formatter(NullFormatter())  # the 1-2-5 majors are labels enough
         else:
             ax.set_ylim(0, top)
         ax.set_ylabel("distance to the centre (cm)")
