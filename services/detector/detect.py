@@ -245,10 +245,14 @@ class Detector:
         self._table = np.ascontiguousarray(both.T).ravel()
         loose = model.widened(FACE_SPREAD**2)
         face_table = np.ascontiguousarray(loose.tables()[0].T).ravel()
-        self._component_table = np.ascontiguousarray(loose.component_table().T).ravel()
+        component_table = np.ascontiguousarray(loose.component_table().T).ravel()
         self._groups = colour_groups(model.target.means, model.target.weights)
         # the face tables for frames whose chroma is scaled (exposure, gamma): first as is
         self._face_tables = [face_table] + [_chroma_scaled(face_table, a) for a in CHROMA_GAINS]
+        # and each scale's components (the ring colours of a pixel)
+        self._component_tables = [component_table] + [
+            _chroma_scaled(component_table, a) for a in CHROMA_GAINS
+        ]
         self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
         self.has_arrow_model = model.arrow is not None
 
@@ -347,9 +351,11 @@ class Detector:
         if any), with the face tables `first` … `tables` − 1 (as is, then other chroma
         scales)."""
         index = self._uv_index(np.ascontiguousarray(small))
-        components = self._component_table.take(index).reshape(small.shape[:2])
         best: FaceFit | None = None
-        for table in self._face_tables[first:tables]:
+        for table, component_table in zip(
+            self._face_tables[first:tables], self._component_tables[first:tables], strict=True
+        ):
+            components = component_table.take(index).reshape(small.shape[:2])
             fit = find_face(
                 table.take(index).reshape(small.shape[:2]),
                 components,

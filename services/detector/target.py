@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.detector.arcs import ring_from_arcs
 from services.detector.pieces import joined_hull
 from services.detector.rings import (
     Ellipse,
@@ -204,6 +205,16 @@ def _inner_rings(
                 break
             filled = fill(disc)
             ring = fit_disc(filled) if filled is not None else None
+            if (
+                ring is not None
+                and (best is None or ring.support > best.support)
+                and _agrees(ring, outer)
+                and _edge(ring, points, ours(chosen))
+            ):
+                best = ring
+        if best is None or best.support < _WHOLE:  # arrows cut it up: the arcs of its edge
+            rest = (mask & ~np.isin(components, chosen)).astype(np.uint8)
+            ring = ring_from_arcs(outer, disc, rest, kernel)
             if (
                 ring is not None
                 and (best is None or ring.support > best.support)
