@@ -67,6 +67,7 @@ ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
 FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
 FACE_SPREAD = 12.0  # UV levels: added standard deviation of the target colours for the face
 CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
+WASHED_GAINS = (1.0, 0.8, 0.65, 0.5)  # chroma scales of a face washed out in places by a sheen
 SURE = 0.75  # a face this confident is not searched for again under the white balance
 WHITE_SIDE = 64  # px: the shorter side of the copy the white is estimated on
 
@@ -253,6 +254,14 @@ class Detector:
         self._component_tables = [component_table] + [
             _chroma_scaled(component_table, a) for a in CHROMA_GAINS
         ]
+        # last, for a sheen washing part of the face: each colour at its best paler scale
+        washed = np.stack([_chroma_scaled(face_table, a) for a in WASHED_GAINS])
+        best = washed.argmax(axis=0)
+        self._face_tables.append(np.ascontiguousarray(washed.max(axis=0)))
+        components = np.stack([_chroma_scaled(component_table, a) for a in WASHED_GAINS])
+        self._component_tables.append(
+            np.ascontiguousarray(np.take_along_axis(components, best[None], axis=0)[0])
+        )
         self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
         self.has_arrow_model = model.arrow is not None
 

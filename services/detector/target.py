@@ -54,7 +54,7 @@ _WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot bett
 _RINGED_COLOUR = (0.1, 0.3)  # colour agreement ramp of a face whose inner rings agree
 _ELLIPTIC_IOU = 0.9  # a region overlapping its ellipse less is bridged across slits, judged again
 _SLIT = 0.2  # widest slit bridged, over the outer radius
-_SPACING = 0.06  # an inner ring's size may differ this much from k / (colours) of the outer one
+_SPACING = 0.1  # an inner ring's size may differ this much from k / (colours) of the outer one
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -251,8 +251,7 @@ def _spaced(ring: Ellipse, outer: Ellipse, n_colours: int) -> bool:
     its `n_colours` colours is k / n_colours of the outer one across (a lone ring of another
     size is a fit to what covers the face, or the outer ring was fitted inside its colours)."""
     share = ring.radius / outer.radius * n_colours
-    # a pixel of either radius is a fraction of the ring's width on a small face
-    return abs(share - round(share)) <= _SPACING * round(share) + n_colours / outer.radius
+    return abs(share - round(share)) <= _SPACING * round(share)
 
 
 def _seen(factors: dict[str, float]) -> float:
