@@ -12,25 +12,25 @@ fletchings in ring colours are outliers). All positions are pixels of the map th
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import cv2
 import numpy as np
 
-from services.detector.rings import Ellipse
+from services.detector.rings import Ellipse, perimeter_support, radial_position
 
 __all__ = ["ring_from_arcs"]
 
-_BINS = 36  # angular bins around the fitted circle for the support
 _FEWEST = 12  # fewest boundary points for a fit
 _TOLERANCES = (0.12, 0.07, 0.05)  # inlier band (fraction of the outer radius), loose → tight
 _MODE_BINS = 20  # histogram bins of the points' distances from the outer centre (over its radius)
 _CROSS = np.ones((3, 3), np.uint8)
 
 
-def _circle(points: np.ndarray, weights: np.ndarray) -> tuple[float, float, float] | None:
-    """Weighted algebraic circle fit (x² + y² + D x + E y + F = 0): centre and radius."""
-    design = np.column_stack([points, np.ones(len(points))]) * weights[:, None]
-    target = -(points**2).sum(axis=1) * weights
+def _circle(points: np.ndarray) -> tuple[float, float, float] | None:
+    """Algebraic circle fit (x² + y² + D x + E y + F = 0) to points (N, 2): centre, radius."""
+    design = np.column_stack([points, np.ones(len(points))])
+    target = -(points**2).sum(axis=1)
     solution, *_ = np.linalg.lstsq(design, target, rcond=None)
     cx, cy = -solution[0] / 2, -solution[1] / 2
     squared = cx * cx + cy * cy - solution[2]
@@ -54,7 +54,8 @@ def ring_from_arcs(
         kernel: how far apart (a structuring element) the two may be and still touch (the
             line printed between rings).
     """
-    touching = (disc & ~cv2.erode(disc, _CROSS)) & cv2.dilate(rest, kernel)
+    edge = cv2.subtract(disc, cv2.erode(disc, _CROSS))  # the disc's edge pixels
+    touching = cv2.bitwise_and(edge, cv2.dilate(rest, kernel))
     ys, xs = np.nonzero(touching)
     if len(xs) < _FEWEST:
         return None
@@ -65,27 +66,23 @@ def ring_from_arcs(
     counts, edges = np.histogram(distance, bins=_MODE_BINS, range=(0.0, 1.0))
     peak = int(np.argmax(counts))
     centre, radius = np.zeros(2), float(edges[peak] + edges[peak + 1]) / 2
-    keep = np.ones(len(local), bool)
     for tolerance in _TOLERANCES:
         keep = np.abs(np.hypot(*(local - centre).T) - radius) < tolerance
         if keep.sum() < _FEWEST:
             return None
-        fitted = _circle(local[keep], np.ones(int(keep.sum())))
+        fitted = _circle(local[keep])
         if fitted is None:
             return None
         centre, radius = np.array(fitted[:2]), fitted[2]
     keep = np.abs(np.hypot(*(local - centre).T) - radius) < _TOLERANCES[-1]
     if keep.sum() < _FEWEST or not 0.05 < radius < 1.0:
         return None
-    phase = np.arctan2(*(local[keep] - centre).T[::-1])
-    bins = np.floor((phase + math.pi) / (2 * math.pi) * _BINS).astype(int) % _BINS
-    support = len(np.unique(bins)) / _BINS
-    image_centre = outer.semi_axes_matrix() @ centre + np.asarray(outer.centre)
-    residual = float(np.sqrt(np.mean((np.hypot(*(local[keep] - centre).T) - radius) ** 2)))
-    return Ellipse(
-        (float(image_centre[0]), float(image_centre[1])),
+    middle = outer.semi_axes_matrix() @ centre + np.asarray(outer.centre)
+    ring = Ellipse(
+        (float(middle[0]), float(middle[1])),
         (outer.axes[0] * radius, outer.axes[1] * radius),
         outer.angle,
-        support,
-        residual * outer.radius,
     )
+    inliers = np.stack([xs, ys], axis=1)[keep].astype(np.float64)
+    residual = float(np.sqrt(np.mean((radial_position(ring, inliers) - 1.0) ** 2))) * ring.radius
+    return replace(ring, support=perimeter_support(ring, inliers), residual=residual)

@@ -13,8 +13,9 @@ centroid. So the centre comes from the face's geometry (`target.find_face`, `rin
 copy of the frame downscaled to `FACE_SIDE` px, the region of target colour is fitted with a
 robust ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
 concentric ellipses validate each other and give the centre extrapolated to radius 0. The
-frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`) and
-with its chroma scaled; rings found under different corrections are joined. The confidence
+frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`), with
+its chroma scaled and, last, with each colour taken at its best paler scale (a sheen of sun
+washes part of a face out); rings found under different corrections are joined. The confidence
 says how much of the face and of its colours was seen; below `min_target_confidence` the target
 is reported as not seen.
 

@@ -23,7 +23,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["Ellipse", "centre_spread", "fit_disc", "nested_centre", "radial_position"]
+__all__ = [
+    "Ellipse",
+    "centre_spread",
+    "fit_disc",
+    "nested_centre",
+    "perimeter_support",
+    "radial_position",
+]
 
 _BINS = 36  # angular bins of the perimeter for `support`
 _MIN_POINTS = 8  # fewest boundary points for a fit
@@ -108,8 +115,9 @@ def radial_position(ellipse: Ellipse, points: np.ndarray) -> np.ndarray:
     return np.hypot(local[:, 0], local[:, 1])
 
 
-def _support(ellipse: Ellipse, points: np.ndarray) -> float:
-    """Fraction of the perimeter's angular bins (eccentric anomaly) holding a point."""
+def perimeter_support(ellipse: Ellipse, points: np.ndarray) -> float:
+    """Fraction of the ellipse's perimeter, in angular bins (eccentric anomaly), holding one of
+    the points (N, 2) px."""
     inverse = np.linalg.inv(ellipse.semi_axes_matrix())
     local = (points - ellipse.centre) @ inverse.T
     phase = np.arctan2(local[:, 1], local[:, 0])
@@ -172,7 +180,7 @@ def fit_disc(
     rho = radial_position(ellipse, inliers)
     residual = float(np.sqrt(np.mean((rho - 1.0) ** 2))) * ellipse.radius
     return Ellipse(
-        ellipse.centre, ellipse.axes, ellipse.angle, _support(ellipse, inliers), residual
+        ellipse.centre, ellipse.axes, ellipse.angle, perimeter_support(ellipse, inliers), residual
     )
 
 

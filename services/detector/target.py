@@ -10,7 +10,11 @@ blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (fr
 joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
 ellipses of one shape validate each other (rings off the perspective model are dropped), and
 the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
-fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary was
+fletchings cover part of the yellow. A disc that arrows and their shadows cut up beyond both is
+fitted from the arcs where its colours meet the next ring's, in the outer ring's shape
+(`arcs.ring_from_arcs`). A region's shape is judged once slits (a shaft's shadow reaching the
+hidden gold) are bridged, and a lone inner ring only if its size is k/n of the outer ring's (the
+rings are of equal width). The confidence multiplies how much of the outer boundary was
 seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how well
 its colours match the calibration (judged more leniently once inner rings agree), how many inner
 rings agree (a lone one as far as it is seen whole) and how many of the calibrated colours (ring
