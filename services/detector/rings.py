@@ -184,13 +184,27 @@ def fit_disc(
     )
 
 
-def nested_centre(ellipses: list[Ellipse]) -> tuple[float, float]:
+def nested_centre(ellipses: list[Ellipse], side: float | None = None) -> tuple[float, float]:
     """The image of the common centre of concentric rings (px), from their ellipses.
 
     Each ellipse centre is displaced from it by an amount ∝ radius² (the perspective shift of a
     circle's centre), so the centres are fitted as c(r) = c₀ + d·r², weighted by support², and
-    c₀ returned. One ellipse: its centre; two: the inner one's (too few to extrapolate safely).
+    c₀ returned. One ellipse: its centre; two: the inner one's (too few to extrapolate safely),
+    unless they are farther apart than perspective can shift them (a circle of image radius r
+    is shifted by at most r²/(2f), and a camera's focal length f is at least half the image's
+    longer `side` px): the rest is fit noise, and the centre is moved towards the outer one's
+    by half of it.
     """
+    if len(ellipses) == 2 and side:
+        inner, outer = sorted(ellipses, key=lambda e: e.radius)
+        apart = math.dist(inner.centre, outer.centre)
+        perspective = outer.radius**2 / side
+        if apart > perspective:
+            share = 0.5 * (1.0 - perspective / apart)
+            return (
+                inner.centre[0] + share * (outer.centre[0] - inner.centre[0]),
+                inner.centre[1] + share * (outer.centre[1] - inner.centre[1]),
+            )
     if len(ellipses) < 3:
         inner = min(ellipses, key=lambda e: e.radius)
         return inner.centre

@@ -75,6 +75,7 @@ class FaceFit:
     colours: frozenset[int] = frozenset()  # the calibrated colours (ring groups) it shows
     n_colours: int = 0  # how many the calibration has
     agreement: float = 0.0  # mean target membership (0..1) inside the outer ellipse
+    side: int = 0  # px: the map's longer side (bounds the perspective shift of its rings)
 
     @property
     def outer(self) -> Ellipse:
@@ -374,8 +375,11 @@ def _examine(
         factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
-    centre = nested_centre(list(ellipses))
-    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours, agreement)
+    side = max(height, width)
+    centre = nested_centre(list(ellipses), side)
+    return FaceFit(
+        centre, ellipses, confidence, factors, frozenset(shown), n_colours, agreement, side
+    )
 
 
 def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
@@ -404,8 +408,10 @@ def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
     factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = tuple(rings)
-    centre = nested_centre(rings)
-    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours, owner.agreement)
+    centre = nested_centre(rings, owner.side)
+    return FaceFit(
+        centre, ellipses, confidence, factors, colours, first.n_colours, owner.agreement, owner.side
+    )
 
 
 def find_face(
