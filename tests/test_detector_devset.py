@@ -41,7 +41,8 @@ MISSES_ALLOWED = {"drawn-100-in-2400": 2}
 # across the gold, sunlit and angled with many arrows, a dark boss from above): never wrong,
 # and of a scene's 12 such cases at most this many missed (reported as not seen). The faces
 # 110 and 100 px across are too small for the steepest cut views and for a dark boss in warm
-# light; on the 350 px face twenty arrows at 50° in sun leave too little of the inner rings
+# light; twenty arrows at 50° in sun leave too little of the inner rings of the 100 and 350 px
+# faces
 HARD_KINDS = {"cut, steep, arrows", "fills the frame", "sunlit, angled, arrows",
               "dark boss, from above"}  # fmt: skip
 HARD_MISSES_ALLOWED = {
