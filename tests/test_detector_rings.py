@@ -110,3 +110,18 @@ def test_the_model_file_keeps_the_white_and_refuses_a_bad_one(tmp_path: Path) ->
     data["white_rgb"] = None  # a model from before white balance: read, no balance
     path.write_text(json.dumps(data))
     assert ColourModel.load(path).white_rgb is None
+
+
+def test_two_rings_farther_apart_than_perspective_allows_meet_halfway() -> None:
+    inner = Ellipse((100.0, 50.0), (20.0, 16.0), 0.0)
+    outer = Ellipse((103.0, 50.0), (30.0, 24.0), 0.0)  # 3 px apart, radius 13.4 px
+    assert nested_centre([inner, outer]) == inner.centre  # no image size: the inner one's
+    near = outer.radius**2 / 640  # the most a 640 px image's perspective shifts it: 0.28 px
+    centre = nested_centre([inner, outer], 640)
+    assert centre[1] == 50.0 and centre[0] == pytest.approx(100.0 + 0.5 * (3.0 - near))
+    # a face filling a quarter of the image: 3 px is what perspective does, the inner one's
+    large = [
+        Ellipse((100.0, 50.0), (160.0, 128.0), 0.0),
+        Ellipse((103.0, 50.0), (240.0, 192.0), 0.0),
+    ]
+    assert nested_centre(large, 640) == (100.0, 50.0)

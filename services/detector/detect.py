@@ -13,8 +13,9 @@ centroid. So the centre comes from the face's geometry (`target.find_face`, `rin
 copy of the frame downscaled to `FACE_SIDE` px, the region of target colour is fitted with a
 robust ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
 concentric ellipses validate each other and give the centre extrapolated to radius 0. The
-frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`) and
-with its chroma scaled; rings found under different corrections are joined. The confidence
+frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`), with
+its chroma scaled and, last, with each colour taken at its best paler scale (a sheen of sun
+washes part of a face out); rings found under different corrections are joined. The confidence
 says how much of the face and of its colours was seen; below `min_target_confidence` the target
 is reported as not seen.
 
@@ -67,6 +68,7 @@ ANALYSIS_SIDE = 240  # px: the block-averaged arrow map's shorter side
 FACE_SIDE = 360  # px: the downscaled frame's shorter side for the face and its rings
 FACE_SPREAD = 12.0  # UV levels: added standard deviation of the target colours for the face
 CHROMA_GAINS = (0.6, 1.5)  # chroma scales of the frame against the calibration also tried
+WASHED_GAINS = (1.0, 0.8, 0.65, 0.5)  # chroma scales of a face washed out in places by a sheen
 SURE = 0.75  # a face this confident is not searched for again under the white balance
 WHITE_SIDE = 64  # px: the shorter side of the copy the white is estimated on
 
@@ -245,10 +247,22 @@ class Detector:
         self._table = np.ascontiguousarray(both.T).ravel()
         loose = model.widened(FACE_SPREAD**2)
         face_table = np.ascontiguousarray(loose.tables()[0].T).ravel()
-        self._component_table = np.ascontiguousarray(loose.component_table().T).ravel()
+        component_table = np.ascontiguousarray(loose.component_table().T).ravel()
         self._groups = colour_groups(model.target.means, model.target.weights)
         # the face tables for frames whose chroma is scaled (exposure, gamma): first as is
         self._face_tables = [face_table] + [_chroma_scaled(face_table, a) for a in CHROMA_GAINS]
+        # and each scale's components (the ring colours of a pixel)
+        self._component_tables = [component_table] + [
+            _chroma_scaled(component_table, a) for a in CHROMA_GAINS
+        ]
+        # last, for a sheen washing part of the face: each colour at its best paler scale
+        washed = np.stack([_chroma_scaled(face_table, a) for a in WASHED_GAINS])
+        best = washed.argmax(axis=0)
+        self._face_tables.append(np.ascontiguousarray(washed.max(axis=0)))
+        components = np.stack([_chroma_scaled(component_table, a) for a in WASHED_GAINS])
+        self._component_tables.append(
+            np.ascontiguousarray(np.take_along_axis(components, best[None], axis=0)[0])
+        )
         self._white = None if model.white_rgb is None else np.asarray(model.white_rgb)
         self.has_arrow_model = model.arrow is not None
 
@@ -347,9 +361,11 @@ class Detector:
         if any), with the face tables `first` … `tables` − 1 (as is, then other chroma
         scales)."""
         index = self._uv_index(np.ascontiguousarray(small))
-        components = self._component_table.take(index).reshape(small.shape[:2])
         best: FaceFit | None = None
-        for table in self._face_tables[first:tables]:
+        for table, component_table in zip(
+            self._face_tables[first:tables], self._component_tables[first:tables], strict=True
+        ):
+            components = component_table.take(index).reshape(small.shape[:2])
             fit = find_face(
                 table.take(index).reshape(small.shape[:2]),
                 components,

@@ -23,7 +23,14 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["Ellipse", "centre_spread", "fit_disc", "nested_centre", "radial_position"]
+__all__ = [
+    "Ellipse",
+    "centre_spread",
+    "fit_disc",
+    "nested_centre",
+    "perimeter_support",
+    "radial_position",
+]
 
 _BINS = 36  # angular bins of the perimeter for `support`
 _MIN_POINTS = 8  # fewest boundary points for a fit
@@ -108,8 +115,9 @@ def radial_position(ellipse: Ellipse, points: np.ndarray) -> np.ndarray:
     return np.hypot(local[:, 0], local[:, 1])
 
 
-def _support(ellipse: Ellipse, points: np.ndarray) -> float:
-    """Fraction of the perimeter's angular bins (eccentric anomaly) holding a point."""
+def perimeter_support(ellipse: Ellipse, points: np.ndarray) -> float:
+    """Fraction of the ellipse's perimeter, in angular bins (eccentric anomaly), holding one of
+    the points (N, 2) px."""
     inverse = np.linalg.inv(ellipse.semi_axes_matrix())
     local = (points - ellipse.centre) @ inverse.T
     phase = np.arctan2(local[:, 1], local[:, 0])
@@ -172,17 +180,31 @@ def fit_disc(
     rho = radial_position(ellipse, inliers)
     residual = float(np.sqrt(np.mean((rho - 1.0) ** 2))) * ellipse.radius
     return Ellipse(
-        ellipse.centre, ellipse.axes, ellipse.angle, _support(ellipse, inliers), residual
+        ellipse.centre, ellipse.axes, ellipse.angle, perimeter_support(ellipse, inliers), residual
     )
 
 
-def nested_centre(ellipses: list[Ellipse]) -> tuple[float, float]:
+def nested_centre(ellipses: list[Ellipse], side: float | None = None) -> tuple[float, float]:
     """The image of the common centre of concentric rings (px), from their ellipses.
 
     Each ellipse centre is displaced from it by an amount ∝ radius² (the perspective shift of a
     circle's centre), so the centres are fitted as c(r) = c₀ + d·r², weighted by support², and
-    c₀ returned. One ellipse: its centre; two: the inner one's (too few to extrapolate safely).
+    c₀ returned. One ellipse: its centre; two: the inner one's (too few to extrapolate safely),
+    unless they are farther apart than perspective can shift them (a circle of image radius r
+    is shifted by at most r²/(2f), and a camera's focal length f is at least half the image's
+    longer `side` px): the rest is fit noise, and the centre is moved towards the outer one's
+    by half of it.
     """
+    if len(ellipses) == 2 and side:
+        inner, outer = sorted(ellipses, key=lambda e: e.radius)
+        apart = math.dist(inner.centre, outer.centre)
+        perspective = outer.radius**2 / side
+        if apart > perspective:
+            share = 0.5 * (1.0 - perspective / apart)
+            return (
+                inner.centre[0] + share * (outer.centre[0] - inner.centre[0]),
+                inner.centre[1] + share * (outer.centre[1] - inner.centre[1]),
+            )
     if len(ellipses) < 3:
         inner = min(ellipses, key=lambda e: e.radius)
         return inner.centre

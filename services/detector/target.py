@@ -10,7 +10,11 @@ blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (fr
 joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
 ellipses of one shape validate each other (rings off the perspective model are dropped), and
 the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
-fletchings cover part of the yellow. The confidence multiplies how much of the outer boundary was
+fletchings cover part of the yellow. A disc that arrows and their shadows cut up beyond both is
+fitted from the arcs where its colours meet the next ring's, in the outer ring's shape
+(`arcs.ring_from_arcs`). A region's shape is judged once slits (a shaft's shadow reaching the
+hidden gold) are bridged, and a lone inner ring only if its size is k/n of the outer ring's (the
+rings are of equal width). The confidence multiplies how much of the outer boundary was
 seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how well
 its colours match the calibration (judged more leniently once inner rings agree), how many inner
 rings agree (a lone one as far as it is seen whole) and how many of the calibrated colours (ring
@@ -27,6 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from services.detector.arcs import ring_from_arcs
 from services.detector.pieces import joined_hull
 from services.detector.rings import (
     Ellipse,
@@ -51,6 +56,9 @@ _EDGE_POINTS = 3000  # about this many of the face's pixels judge the edges
 _SMALL_RING = 20.0  # px: a lone inner ring this small is judged by a lower support
 _WHOLE = 0.95  # support of a ring fit that its disc's pieces joined cannot better
 _RINGED_COLOUR = (0.1, 0.3)  # colour agreement ramp of a face whose inner rings agree
+_ELLIPTIC_IOU = 0.9  # a region overlapping its ellipse less is bridged across slits, judged again
+_SLIT = 0.2  # widest slit bridged, over the outer radius
+_SPACING = 0.1  # an inner ring's size may differ this much from k / (colours) of the outer one
 _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective model (over the
 # outer radius) are not the face's
 
@@ -67,6 +75,7 @@ class FaceFit:
     colours: frozenset[int] = frozenset()  # the calibrated colours (ring groups) it shows
     n_colours: int = 0  # how many the calibration has
     agreement: float = 0.0  # mean target membership (0..1) inside the outer ellipse
+    side: int = 0  # px: the map's longer side (bounds the perspective shift of its rings)
 
     @property
     def outer(self) -> Ellipse:
@@ -211,6 +220,16 @@ def _inner_rings(
                 and _edge(ring, points, ours(chosen))
             ):
                 best = ring
+        if best is None or best.support < _WHOLE:  # arrows cut it up: the arcs of its edge
+            rest = (mask & ~np.isin(components, chosen)).astype(np.uint8)
+            ring = ring_from_arcs(outer, disc, rest, kernel)
+            if (
+                ring is not None
+                and (best is None or ring.support > best.support)
+                and _agrees(ring, outer)
+                and _edge(ring, points, ours(chosen))
+            ):
+                best = ring
         if best is not None:
             found.append(best)
     return found, shown
@@ -232,18 +251,28 @@ def _concentric(rings: list[Ellipse], outer: Ellipse) -> list[Ellipse]:
     return rings
 
 
+def _spaced(ring: Ellipse, outer: Ellipse, n_colours: int) -> bool:
+    """Whether an inner ring's size fits the face's rings of equal width: the disc of k of
+    its `n_colours` colours is k / n_colours of the outer one across (a lone ring of another
+    size is a fit to what covers the face, or the outer ring was fitted inside its colours)."""
+    share = ring.radius / outer.radius * n_colours
+    return abs(share - round(share)) <= _SPACING * round(share)
+
+
 def _seen(factors: dict[str, float]) -> float:
     """How much of the outer ring was seen: its support times its share inside the image."""
     return factors["support"] * factors["visible"]
 
 
-def _rings_factor(outer: Ellipse, inner: list[Ellipse]) -> float:
+def _rings_factor(outer: Ellipse, inner: list[Ellipse], n_colours: int) -> float:
     """Trust from the inner rings that agree with the outer one: two or more make the centre
     sure; a lone one as far as it is seen whole (arrows over the gold leave fits to what covers
     it); with none, an oblique view (a flat ellipse) leaves the perspective shift of the outer
     ellipse's centre unknown, so the trust falls with its axis ratio."""
     if len(inner) >= 2:
         return 1.0
+    if len(inner) == 1 and not _spaced(inner[0], outer, n_colours):
+        return 0.0
     if len(inner) == 1:  # a small ring's support is limited by its pixels
         low = 0.75 if inner[0].radius >= _SMALL_RING else 0.6
         return 0.8 * _ramp(inner[0].support, low, low + 0.25)
@@ -258,6 +287,27 @@ def _colour_factor(agreement: float, inner: list[Ellipse]) -> float:
     if len(inner) >= 2 or (inner and inner[0].support >= _WHOLE):
         return _ramp(agreement, *_RINGED_COLOUR)
     return _ramp(agreement, 0.15, 0.5)
+
+
+def _overlap(
+    filled_crop: np.ndarray, corner: tuple[int, int], ellipse: np.ndarray, box: tuple[int, int]
+) -> float:
+    """Intersection over union of a filled region (a crop of the map with its corner (x, y)
+    px) and an ellipse's mask (drawn in its box, whose corner is `box` (x, y) px)."""
+    x0, y0 = box
+    height, width = ellipse.shape
+    filled = np.zeros_like(ellipse)  # the filled region in the ellipse's box
+    cx, cy = corner
+    sx0, sy0 = max(x0, cx), max(y0, cy)
+    sx1 = min(x0 + width, cx + filled_crop.shape[1])
+    sy1 = min(y0 + height, cy + filled_crop.shape[0])
+    if sx1 > sx0 and sy1 > sy0:
+        filled[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = filled_crop[
+            sy0 - cy : sy1 - cy, sx0 - cx : sx1 - cx
+        ]
+    outside = np.count_nonzero(filled_crop) - np.count_nonzero(filled)
+    union = float(np.count_nonzero(ellipse | filled)) + outside
+    return float(np.count_nonzero(ellipse & filled)) / union
 
 
 def _examine(
@@ -285,17 +335,12 @@ def _examine(
     inside_image = float(ellipse.sum())
     if inside_image < 20:
         return None
-    filled = np.zeros_like(ellipse)  # the filled region in the ellipse's box
-    cx, cy = corner
-    sx0, sy0 = max(x0, cx), max(y0, cy)
-    sx1, sy1 = min(x1, cx + region.shape[1]), min(y1, cy + region.shape[0])
-    if sx1 > sx0 and sy1 > sy0:
-        filled[sy0 - y0 : sy1 - y0, sx0 - x0 : sx1 - x0] = filled_crop[
-            sy0 - cy : sy1 - cy, sx0 - cx : sx1 - cx
-        ]
-    outside = np.count_nonzero(filled_crop) - np.count_nonzero(filled)
-    union = float(np.count_nonzero(ellipse | filled)) + outside
-    iou = float(np.count_nonzero(ellipse & filled)) / union
+    iou = _overlap(filled_crop, corner, ellipse, (x0, y0))
+    if iou < _ELLIPTIC_IOU:  # a slit (a shaft's shadow) may open the hole left by the gold
+        slit = max(3, round(_SLIT * outer.radius) | 1)
+        bridge = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (slit, slit))
+        bridged = _fill(cv2.morphologyEx(region, cv2.MORPH_CLOSE, bridge))
+        iou = max(iou, _overlap(bridged, corner, ellipse, (x0, y0)))
     box_member = member[y0:y1, x0:x1]
     agreement = float(box_member[ellipse > 0].mean()) / 255.0
     factors = {
@@ -318,20 +363,23 @@ def _examine(
         found, shown = _inner_rings(local, mask, components[y0:y1, x0:x1], kernel, groups)
         rings = [ring.moved(x0, y0) for ring in found]
         rings = _concentric(rings, outer)
+        n_colours = max(1, int(groups.max()) + 1)
         # a face cut by the border: its inner rings (or one seen whole) say it is seen
         if len(rings) >= 2 or (rings and rings[0].support >= _WHOLE):
             inner = _ramp(min(ring.support for ring in rings), 0.55, 0.85)
             if inner > _seen(factors):
                 factors["support"], factors["visible"] = inner, 1.0
-        factors["rings"] = _rings_factor(outer, rings)
+        factors["rings"] = _rings_factor(outer, rings, n_colours)
         factors["colour"] = _colour_factor(agreement, rings)
         # a face showing fewer of the calibrated colours is a part of it (the yellow alone)
-        n_colours = max(1, int(groups.max()) + 1)
         factors["complete"] = _ramp(len(shown) / n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = (*sorted(rings, key=lambda e: e.radius), outer)
-    centre = nested_centre(list(ellipses))
-    return FaceFit(centre, ellipses, confidence, factors, frozenset(shown), n_colours, agreement)
+    side = max(height, width)
+    centre = nested_centre(list(ellipses), side)
+    return FaceFit(
+        centre, ellipses, confidence, factors, frozenset(shown), n_colours, agreement, side
+    )
 
 
 def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
@@ -354,14 +402,16 @@ def merge_faces(first: FaceFit, second: FaceFit) -> FaceFit | None:
         return None
     owner = first if first.outer.radius >= second.outer.radius else second
     factors = {k: v for k, v in owner.factors.items() if k not in ("rings", "complete")}
-    factors["rings"] = _rings_factor(rings[-1], rings[:-1])
+    factors["rings"] = _rings_factor(rings[-1], rings[:-1], first.n_colours)
     factors["colour"] = _colour_factor(owner.agreement, rings[:-1])
     colours = first.colours | second.colours
     factors["complete"] = _ramp(len(colours) / first.n_colours, 0.2, 1.0)
     confidence = math.prod(factors.values())
     ellipses = tuple(rings)
-    centre = nested_centre(rings)
-    return FaceFit(centre, ellipses, confidence, factors, colours, first.n_colours, owner.agreement)
+    centre = nested_centre(rings, owner.side)
+    return FaceFit(
+        centre, ellipses, confidence, factors, colours, first.n_colours, owner.agreement, owner.side
+    )
 
 
 def find_face(
