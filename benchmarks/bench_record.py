@@ -88,6 +88,7 @@ def _throughput(endpoint: str, tmp: Path, seconds: float) -> list[tuple[float, i
             net.robot,
             "--count",
             str(frames),
+            "--no-transforms",  # the frames alone: no scene record counted among them
             ready="archery record: recording",
         )
         sent = 0
