@@ -201,6 +201,16 @@ def _inner_rings(
     def ours(chosen: list[int]) -> np.ndarray:
         return np.isin(sampled, chosen)
 
+    def better(ring: Ellipse | None, best: Ellipse | None, chosen: list[int]) -> bool:
+        """A fit better supported than `best`, in the outer ring's shape and on the edge of
+        the colours `chosen`."""
+        return (
+            ring is not None
+            and (best is None or ring.support > best.support)
+            and _agrees(ring, outer)
+            and _edge(ring, points, ours(chosen))
+        )
+
     for ring_components in rings[:-1]:
         chosen += ring_components
         disc: np.ndarray = (mask & np.isin(components, chosen)).astype(np.uint8)
@@ -213,22 +223,12 @@ def _inner_rings(
                 break
             filled = fill(disc)
             ring = fit_disc(filled) if filled is not None else None
-            if (
-                ring is not None
-                and (best is None or ring.support > best.support)
-                and _agrees(ring, outer)
-                and _edge(ring, points, ours(chosen))
-            ):
+            if better(ring, best, chosen):
                 best = ring
         if best is None or best.support < _WHOLE:  # arrows cut it up: the arcs of its edge
             rest = (mask & ~np.isin(components, chosen)).astype(np.uint8)
             ring = ring_from_arcs(outer, disc, rest, kernel)
-            if (
-                ring is not None
-                and (best is None or ring.support > best.support)
-                and _agrees(ring, outer)
-                and _edge(ring, points, ours(chosen))
-            ):
+            if better(ring, best, chosen):
                 best = ring
         if best is not None:
             found.append(best)
