@@ -119,7 +119,11 @@ def test_up_starts_all_and_stops_cleanly_on_ctrl_c(tmp_path: Path) -> None:
         started = proc.stdout.readline() + proc.stdout.readline() + proc.stdout.readline()
         assert "all alive" in started and "recording to" in started, started
         with Node(None, net) as node:  # the camera's frames reach the recorder
-            node.subscribe(node.keys.cam_frames(), Image).wait_newer(30)
+            frames = node.subscribe(node.keys.cam_frames(), Image)
+            frames.wait_newer(30)
+            # and a later one (an unchanged view goes out at the camera's rest rate, 1/s): the
+            # recorder, subscribed since it started, has had the first well before Ctrl-C
+            frames.wait_newer(30)
         proc.send_signal(signal.SIGINT)
         try:
             out, err = proc.communicate(timeout=90)
