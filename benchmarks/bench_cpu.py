@@ -2,9 +2,10 @@
 tree in the same run.
 
 Run `python -m benchmarks.bench_cpu [--repeats 5] [--before 0d1273b] [--rollouts 42]`. Each
-repeat runs, for each tree (this one, "after", and `git archive BEFORE`, "before", alternating
-which goes first) and each condition (nothing watching; `archery record` and `archery dashboard`
-with a client polling the dashboard as its page does, `benchmarks.observers`):
+repeat runs, for each condition (nothing watching; `archery record` and `archery dashboard` with
+a client polling the dashboard as its page does, `benchmarks.observers`), both trees back to back
+(this one, "after", and `git archive BEFORE`, "before"; which goes first alternating, ABBA, so a
+drift of the machine weighs least on a pair's ratio):
 
 * `archery up` on a free loopback port (the robot at rtf 0, as `mesh.toml`), started as a user
   does, with the tree's code first on the path (`benchmarks.trees.env_for`);
@@ -34,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -41,7 +43,7 @@ import psutil
 
 from benchmarks.observers import Observers
 from benchmarks.spread import median_spread
-from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
+from benchmarks.trees import ROOT, env_for, header, tree_at
 from mesh.router import free_tcp_endpoint
 
 __all__ = ["ARCHERY", "main", "start_up", "stop"]
@@ -314,6 +316,22 @@ def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str
             )
 
 
+def _order(
+    repeats: int, conditions: int, trees: list[tuple[str, dict[str, str]]]
+) -> Iterator[tuple[int, int, str, dict[str, str]]]:
+    """(repeat, condition, tree name, env) in the order of the runs: per repeat, each condition
+    with the trees back to back (so a drift of the machine between a pair's runs is smallest),
+    which tree goes first alternating from pair to pair (ABBA), the conditions' order alternating
+    from repeat to repeat."""
+    pair = 0
+    for repeat in range(repeats):
+        order = range(conditions) if repeat % 2 == 0 else reversed(range(conditions))
+        for cond in order:
+            for name, env in trees if pair % 2 == 0 else trees[::-1]:
+                yield repeat, cond, name, env
+            pair += 1
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_cpu", description=__doc__)
@@ -340,18 +358,18 @@ def main(argv: list[str] | None = None) -> int:
         }
         header()
         print(f"- Load before the run: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
-        for repeat, name, env in interleaved(args.repeats, trees):
-            for cond, watched in conditions:
-                run_dir = out / f"r{repeat}-{name}-{cond}-{time.time_ns()}"
-                run_dir.mkdir(parents=True)
-                run = _one_run(env, run_dir, repeat, args.rollouts, watched)
-                results[name][cond].append(run)
-                print(
-                    f"repeat {repeat + 1} {name} {cond}: {1e3 * _total(run):.1f} ms CPU, "
-                    f"{1e3 * run['wall_s']:.0f} ms wall per rollout",
-                    file=sys.stderr,
-                    flush=True,
-                )
+        for repeat, cond_index, name, env in _order(args.repeats, len(conditions), trees):
+            cond, watched = conditions[cond_index]
+            run_dir = out / f"r{repeat}-{name}-{cond}-{time.time_ns()}"
+            run_dir.mkdir(parents=True)
+            run = _one_run(env, run_dir, repeat, args.rollouts, watched)
+            results[name][cond].append(run)
+            print(
+                f"repeat {repeat + 1} {name} {cond}: {1e3 * _total(run):.1f} ms CPU, "
+                f"{1e3 * run['wall_s']:.0f} ms wall per rollout",
+                file=sys.stderr,
+                flush=True,
+            )
         print(f"- Load after the run: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
     names = [name for name, _ in trees]
     _report(results, names)
