@@ -28,6 +28,7 @@ from sim.model_build import build_scene
 from sim.render import SceneRenderer, project
 from sim.scene import ScenePhysics
 from sim.scene_config import TARGET_CENTRE_SITE, SceneConfig
+from tests.camera_world import camera_with_world
 from tests.conftest import archery, serving
 from tests.rpc import rpc_call
 
@@ -184,12 +185,8 @@ def test_a_watched_unchanged_view_goes_out_at_the_rest_rate_and_a_change_at_once
     physics.forward()
     qpos = physics.qpos()
     config = CameraConfig(net=net, rate=20.0, rest_rate=0.1, robot_timeout=0.3)
-    with serving(run, config), Node(None, net) as node:
+    with camera_with_world(config, _state(qpos, 1.0)) as (node, world):
         keys = node.keys
-        node.wait_alive(["camera"], timeout=30)
-        world = node.publisher(keys.world_state(), WorldState)
-        assert world.wait_matched(5)
-        world.put(_state(qpos, 1.0))
         frames = node.subscribe(keys.cam_frames(), Image, mode="fifo")
         first = frames.get(timeout=10)  # a new subscriber gets a frame at once
         while first.sim_time != 1.0:  # (one of the initial state may come first)

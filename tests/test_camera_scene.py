@@ -30,6 +30,7 @@ from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
 from sim.scene_view import SceneView
+from tests.camera_world import camera_with_world
 from tests.conftest import serving
 
 THREAD = "camera-scene-view"
@@ -66,12 +67,8 @@ def test_the_view_shows_the_published_pose_at_a_low_rate_and_only_when_asked(
     net: NetConfig, qpos: np.ndarray
 ) -> None:
     config = CameraConfig(net=net, rate=10.0, robot_timeout=0.3)
-    with serving(run, config), Node(None, net) as node:
+    with camera_with_world(config, _state(qpos, 1.0)) as (node, world):
         keys = node.keys
-        node.wait_alive(["camera"], timeout=30)
-        world = node.publisher(keys.world_state(), WorldState)
-        assert world.wait_matched(5)
-        world.put(_state(qpos, 1.0))
 
         def scene() -> SceneReply:
             return node.call_typed(keys.cam_rpc(), CAMERA_VERBS["scene"], NoArgs(), timeout=5)
