@@ -305,6 +305,8 @@ def test_bad_sources_and_settings_are_refused(tmp_path: Path) -> None:
             parse_source(text)
     with pytest.raises(ConfigError, match="--rate"):
         CameraConfig(rate=0.0)
+    with pytest.raises(ConfigError, match="--rest-rate"):
+        CameraConfig(rest_rate=0.0)
     with pytest.raises(ConfigError, match="--encoding"):
         CameraConfig(encoding="bmp")
     with pytest.raises(ConfigError, match="--size"):
