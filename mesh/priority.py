@@ -1,7 +1,8 @@
 """A lower CPU priority for the observers: `archery dashboard` by default (on a busy machine
 it lags behind rather than slows the session it watches), `archery record --nice N` on request
-(a starved recorder makes the router drop latest-wins frames meant for it, so it keeps its
-priority unless told).
+(a starved recorder makes the router drop latest-wins frames meant for it, so its receiving
+threads keep their priority unless told; its writer thread, which decodes, compresses and writes
+what they queue, runs at `WRITER_NICE` on its own: `lower_thread_priority`).
 
 Linux keeps a niceness per thread: it is raised for every thread running (numpy's, say) and
 before the Zenoh session starts, so the threads started later inherit it. Raising it needs no
@@ -18,9 +19,16 @@ from pathlib import Path
 
 from mesh.cliargs import int_in
 
-__all__ = ["OBSERVER_NICE", "add_nice_arg", "lower_priority"]
+__all__ = [
+    "OBSERVER_NICE",
+    "WRITER_NICE",
+    "add_nice_arg",
+    "lower_priority",
+    "lower_thread_priority",
+]
 
 OBSERVER_NICE = 10
+WRITER_NICE = 10  # a recorder's writer thread, on top of its process's niceness
 
 
 def add_nice_arg(parser: argparse.ArgumentParser, default: int) -> None:
@@ -48,3 +56,15 @@ def lower_priority(increment: int) -> int:
         with contextlib.suppress(ProcessLookupError):  # a thread that just ended
             os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
     return os.getpriority(os.PRIO_PROCESS, me)
+
+
+def lower_thread_priority(increment: int, native_id: int | None = None) -> int | None:
+    """Raise the niceness of one thread only by `increment` (Linux keeps one per thread): the
+    calling thread, or the thread of `native_id` (`threading.Thread.native_id`) of this
+    process; returns its niceness now, or None where that cannot be done (not Linux)."""
+    tid = threading.get_native_id() if native_id is None else native_id
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+        return os.getpriority(os.PRIO_PROCESS, tid)
+    except OSError:
+        return None

@@ -58,9 +58,17 @@ class Publisher(Generic[M]):
     def stamp(self, message: M) -> M:
         """Stamp and count `message` as `put` does, without sending it: for a latest-wins
         message that no subscriber matches (a camera frame only a `grab` wants), which would
-        be encoded, copied into Zenoh and dropped there."""
+        be encoded, copied into Zenoh and dropped there; or one handed on before it is sent
+        (`send`)."""
         with self._lock:
             return self._stamped(message)
+
+    def send(self, stamped: M) -> None:
+        """Publish a message this publisher stamped (`stamp`) as it is: its seq and stamp are
+        kept (a camera frame a waiting `grab` got first, sent to the subscribers after)."""
+        with self._lock:
+            encode_into(stamped, self._buffer)
+            self._pub.put(self._buffer)
 
     def _stamped(self, message: M) -> M:
         if not isinstance(message, self.message_type):

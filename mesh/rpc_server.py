@@ -1,6 +1,7 @@
 """Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
-arguments, handled on a worker thread (or inline for non-blocking verbs), replied `RpcReply`;
-each handled call also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
+arguments, handled on a worker thread (or inline for non-blocking verbs; background verbs on a
+second worker at a lower CPU priority, `BACKGROUND_NICE`), replied `RpcReply`; each handled call
+also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import msgspec
 import zenoh
 
 from mesh.memory import note_payload
+from mesh.priority import lower_thread_priority
 from mesh.rpc_tap import RpcTap
 from protocol.codec import MAX_PAYLOAD_BYTES, encode
 from protocol.errors import (
@@ -38,6 +40,7 @@ A = TypeVar("A", bound=msgspec.Struct)
 log = logging.getLogger("archery.node")
 
 _STOP = object()
+BACKGROUND_NICE = 10  # the background verbs' worker, on top of the process's niceness
 
 
 class _WireRequest(Message, frozen=True, tag="RpcRequest"):
@@ -103,15 +106,33 @@ class RpcServer:
         self.inline = frozenset(
             name for name, entry in self.handlers.items() if not entry.verb.blocking
         )
+        self.background = frozenset(
+            name
+            for name, entry in self.handlers.items()
+            if entry.verb.background and entry.verb.blocking
+        )
         self.served = 0
         self.errors = 0
         self._seq = itertools.count(1)
         self._counts = threading.Lock()
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._later: queue.SimpleQueue[Any] = queue.SimpleQueue()  # the background verbs'
         self.tap = RpcTap(session, key) if tap_keys(key) is not None else None
+        self._threads = [
+            threading.Thread(target=self._work, args=(self._queue,), name=f"rpc {key}", daemon=True)
+        ]
+        if self.background:
+            self._threads.append(
+                threading.Thread(
+                    target=self._work,
+                    args=(self._later, BACKGROUND_NICE),
+                    name=f"rpc {key} background",
+                    daemon=True,
+                )
+            )
+        for thread in self._threads:
+            thread.start()
         self._queryable = session.declare_queryable(verbs_key(key), self._on_query)
-        self._thread = threading.Thread(target=self._work, name=f"rpc {key}", daemon=True)
-        self._thread.start()
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Zenoh's thread: decode the request once; answer it here unless its verb blocks."""
@@ -135,13 +156,16 @@ class RpcServer:
             and request.verb in self.handlers
             and request.verb not in self.inline
         ):
-            self._queue.put((query, request))
+            later = request.verb in self.background
+            (self._later if later else self._queue).put((query, request))
         else:
             self._answer(query, request)
 
-    def _work(self) -> None:
+    def _work(self, jobs: queue.SimpleQueue[Any], nice: int = 0) -> None:
+        if nice:
+            lower_thread_priority(nice)
         while True:
-            item = self._queue.get()
+            item = jobs.get()
             if item is _STOP:
                 return
             self._answer(*item)
@@ -229,9 +253,11 @@ class RpcServer:
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""
-        if self._thread.is_alive():
+        if self._threads[0].is_alive():
             self._queryable.undeclare()
             self._queue.put(_STOP)
-            self._thread.join(timeout=5)
+            self._later.put(_STOP)
+            for thread in self._threads:
+                thread.join(timeout=5)
             if self.tap is not None:
                 self.tap.close()

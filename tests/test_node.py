@@ -84,6 +84,20 @@ def test_a_stamped_message_counts_but_is_not_sent(pair: tuple[Node, Node]) -> No
     assert pub.count == 2
 
 
+def test_a_stamped_message_is_sent_later_with_its_own_seq_and_stamp(
+    pair: tuple[Node, Node],
+) -> None:
+    # what the camera does with a frame a grab waits for: stored first, sent to subscribers after
+    server, client = pair
+    key = server.keys.state("torso")
+    pub = server.publisher(key, JointState)
+    sub = client.subscribe(key, JointState, mode="fifo")
+    assert pub.wait_matched(5)
+    kept = pub.stamp(_state(1))
+    pub.send(kept)
+    assert sub.get(timeout=5) == kept and pub.count == 1
+
+
 def test_events_are_lossless_and_ordered(pair: tuple[Node, Node]) -> None:
     server, client = pair
     key = server.keys.world_events()

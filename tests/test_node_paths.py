@@ -1,9 +1,11 @@
 """Where the node does its work: non-blocking verbs on the receive path, blocking ones on the
-server's worker; the publisher's reused encode buffer; the cheap array checks."""
+server's worker, background ones on a second worker at a lower priority; the publisher's reused
+encode buffer; the cheap array checks."""
 
 from __future__ import annotations
 
 import math
+import os
 import threading
 from collections.abc import Iterator
 
@@ -13,7 +15,7 @@ import pytest
 
 from mesh.netflags import NetConfig
 from mesh.node import Node
-from mesh.rpc_server import RpcServer
+from mesh.rpc_server import BACKGROUND_NICE, RpcServer
 from protocol.errors import BadRequest, RpcError
 from protocol.messages import Array, Image
 from protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
@@ -29,9 +31,16 @@ class WhoReply(Reply, frozen=True):
     x: float = 0.0
 
 
+class NiceReply(Reply, frozen=True):
+    thread: str
+    nice: int  # the serving thread's niceness
+
+
 PEEK = Verb("peek", WhoArgs, WhoReply, "non-blocking", blocking=False)
 HOLD = Verb("hold", NoArgs, WhoReply, "blocks until released")
+DRAW = Verb("draw", NoArgs, NiceReply, "a picture for an observer", background=True)
 TABLE = VerbTable("paths", ("paths/rpc:i",), (PEEK, HOLD))
+LATER = VerbTable("later", ("later/rpc:i",), (HOLD, DRAW))
 
 
 @pytest.fixture
@@ -99,6 +108,41 @@ def test_a_blocked_handler_never_stalls_a_non_blocking_verb(pair: tuple[Node, No
     assert held and held[0].thread == f"rpc {key}"
 
 
+def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_blocked_one(
+    pair: tuple[Node, Node],
+) -> None:
+    server, client = pair
+    key = f"{server.keys.robot}/later/rpc:i"
+    release, entered = threading.Event(), threading.Event()
+
+    def hold(args: NoArgs) -> WhoReply:
+        entered.set()
+        if not release.wait(10):
+            raise BadRequest("never released")
+        return WhoReply(thread=threading.current_thread().name)
+
+    def draw(args: NoArgs) -> NiceReply:
+        me = threading.get_native_id()
+        return NiceReply(thread=threading.current_thread().name, nice=os.getpriority(0, me))
+
+    served = server.serve(key, LATER.bind({"hold": hold, "draw": draw}))
+    assert served.background == frozenset({"draw"}) and served.inline == frozenset()
+    _reachable(server, client)
+    held: list[WhoReply] = []
+    caller = threading.Thread(target=lambda: held.append(client.call_typed(key, HOLD, timeout=15)))
+    caller.start()
+    try:
+        assert entered.wait(5), "the blocking handler never started"
+        drawn = client.call_typed(key, DRAW, timeout=5.0)  # answered while the worker is busy
+        assert not held, "the blocking call returned before it was released"
+    finally:
+        release.set()
+        caller.join(15)
+    assert drawn.thread == f"rpc {key} background" and held[0].thread == f"rpc {key}"
+    mine = os.getpriority(0, threading.get_native_id())
+    assert drawn.nice == min(19, mine + BACKGROUND_NICE)
+
+
 def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, Node]) -> None:
     server, client = pair
     key = f"{server.keys.robot}/paths/rpc:i"
@@ -141,6 +185,13 @@ def test_only_verbs_that_never_wait_are_non_blocking() -> None:
         ("cartesian controller: archery posture", "status"),
         ("learner", "status"),
     }
+
+
+def test_only_pictures_for_observers_are_background_verbs() -> None:
+    """The detector's frame with its overlay (the dashboard's picture, a session's hit.png) is
+    the one verb whose work serves no rollout."""
+    later = {(t.title, v.name) for t in TABLES for v in t if v.background}
+    assert later == {("detector", "frame")}
 
 
 def test_the_reused_publish_buffer_never_mixes_frames(pair: tuple[Node, Node]) -> None:

@@ -51,6 +51,7 @@ from apps.topics.foxglove_records import DERIVED_SCHEMAS, schema_data
 from apps.topics.image_records import COMPRESSED, RAW, image_from_record, image_record, image_schema
 from apps.topics.json_image_records import json_image_from_record
 from mesh.patterns import stream_type
+from mesh.priority import WRITER_NICE, lower_thread_priority
 from protocol.codec import decode
 from protocol.errors import ConfigError, DecodeError
 from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Image
@@ -202,6 +203,10 @@ class Recorder:
         frames: derives the robot's 3D records (`apps.topics.robot_frames.RobotFrames`):
             its description as an attachment and metadata, its scene written first, and the
             records it derives from each message written after that message.
+        writer_nice: the writer thread's niceness on top of the process's (`put` runs on
+            the receiving threads, which keep theirs): on a busy machine the decoding,
+            compression and writing wait for idle CPU, with the queue (`max_pending`) holding
+            what arrived meanwhile, rather than slow the session recorded.
 
     Losses are counted, never guessed: `stats.missing` counts the gaps in each key's sequence
     numbers (messages dropped before they reached the recorder, or by the full queue).
@@ -219,6 +224,7 @@ class Recorder:
         max_pending: int = 1 << 30,
         attachments: dict[str, tuple[str, bytes]] | None = None,
         frames: FrameSource | None = None,
+        writer_nice: int = WRITER_NICE,
     ) -> None:
         self.path = Path(path)
         try:
@@ -263,6 +269,10 @@ class Recorder:
         self._closed = False
         self._thread = threading.Thread(target=self._work, name="recorder", daemon=True)
         self._thread.start()
+        # the writer thread's niceness (None: unchanged, or not Linux)
+        self.writer_niceness = (
+            lower_thread_priority(writer_nice, self._thread.native_id) if writer_nice else None
+        )
 
     def put(self, key: str, payload: bytes, received_ns: int | None = None) -> None:
         """Queue one payload received on `key` (any thread; never blocks)."""

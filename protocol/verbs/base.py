@@ -58,6 +58,11 @@ class Verb(Generic[A, R]):
 
     `reads=True` declares that the verb changes nothing (no motion, no setting, no session):
     the read-only `viewer` identity may call it (`mesh.acl`).
+
+    `background=True` declares a blocking verb whose work serves an observer (a picture for a
+    dashboard or a session's folder), not a rollout: the server runs it on a worker of its own
+    at a lower CPU priority (`mesh.rpc_server`), so it neither queues ahead of the port's other
+    verbs nor takes a core from them on a busy machine.
     """
 
     name: str
@@ -66,6 +71,7 @@ class Verb(Generic[A, R]):
     doc: str
     blocking: bool = True
     reads: bool = False
+    background: bool = False
 
     @functools.cached_property
     def args_decoder(self) -> msgspec.msgpack.Decoder[A]:

@@ -106,6 +106,7 @@ DETECTOR_VERBS = VerbTable(
             FrameReply,
             "a recently measured frame as PNG (with overlay): the last, or that of `seq`",
             reads=True,
+            background=True,
         ),
         Verb(
             "status",

@@ -177,11 +177,14 @@ class Capture:
     def publish(
         self, pixels: np.ndarray, sim_time: float | None, captured: float, pub: Any
     ) -> None:
-        """Encode, publish and store a frame whose capture started at wall time `captured`; a
-        frame no subscriber wants (only a `grab`) is stamped and stored, not sent."""
+        """Encode, stamp and store a frame whose capture started at wall time `captured`, then
+        send it to the subscribers, if any: a waiting `grab` gets it first (its reply goes out
+        while the subscribers' copy is sent)."""
         self.frame += 1
-        image = encode(pixels, self.config.encoding, frame=self.frame, sim_time=sim_time)
-        self.store.put(pub.put(image) if pub.matching() else pub.stamp(image), captured)
+        image = pub.stamp(encode(pixels, self.config.encoding, frame=self.frame, sim_time=sim_time))
+        self.store.put(image, captured)
+        if pub.matching():
+            pub.send(image)
 
     def render(self, qpos: np.ndarray) -> np.ndarray:
         """Render `qpos`; a qpos of another length rebuilds the scene from the robot's status."""

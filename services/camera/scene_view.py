@@ -21,9 +21,7 @@ waiting for. The view shows the robot drawing and aiming, and the arrow in the t
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import threading
 import time
 from typing import Any
@@ -33,6 +31,7 @@ import msgspec
 import numpy as np
 
 from mesh.memory import BIG_PAYLOAD, note_payload
+from mesh.priority import lower_thread_priority
 from protocol.errors import ArcheryError, BadRequest
 from protocol.messages import Image
 from protocol.verbs.camera import SceneReply
@@ -127,9 +126,7 @@ class SceneViews:
 
     # -- the render thread ----------------------------------------------------------------
     def _run(self) -> None:
-        with contextlib.suppress(OSError):  # a lower priority for this thread only (Linux)
-            me = threading.get_native_id()
-            os.setpriority(os.PRIO_PROCESS, me, os.getpriority(os.PRIO_PROCESS, me) + NICE)
+        lower_thread_priority(NICE)  # this thread only (Linux)
         try:
             view = self._open()
         except (ArcheryError, ValueError, TypeError, OSError) as exc:
