@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import msgspec
 import numpy as np
@@ -49,9 +49,8 @@ def pair(net: NetConfig) -> Iterator[tuple[Node, Node]]:
         yield server, client
 
 
-def _serve(server: Node, key: str, release: threading.Event, entered: threading.Event) -> RpcServer:
-    def peek(args: WhoArgs) -> WhoReply:
-        return WhoReply(thread=threading.current_thread().name, x=args.x)
+def _holder(release: threading.Event, entered: threading.Event) -> Callable[[NoArgs], WhoReply]:
+    """A handler that sets `entered` and returns once `release` is set (10 s at most)."""
 
     def hold(args: NoArgs) -> WhoReply:
         entered.set()
@@ -59,7 +58,14 @@ def _serve(server: Node, key: str, release: threading.Event, entered: threading.
             raise BadRequest("never released")
         return WhoReply(thread=threading.current_thread().name)
 
-    return server.serve(key, TABLE.bind({"peek": peek, "hold": hold}))
+    return hold
+
+
+def _serve(server: Node, key: str, release: threading.Event, entered: threading.Event) -> RpcServer:
+    def peek(args: WhoArgs) -> WhoReply:
+        return WhoReply(thread=threading.current_thread().name, x=args.x)
+
+    return server.serve(key, TABLE.bind({"peek": peek, "hold": _holder(release, entered)}))
 
 
 def _reachable(server: Node, client: Node) -> None:
@@ -115,17 +121,11 @@ def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_b
     key = f"{server.keys.robot}/later/rpc:i"
     release, entered = threading.Event(), threading.Event()
 
-    def hold(args: NoArgs) -> WhoReply:
-        entered.set()
-        if not release.wait(10):
-            raise BadRequest("never released")
-        return WhoReply(thread=threading.current_thread().name)
-
     def draw(args: NoArgs) -> NiceReply:
         me = threading.get_native_id()
         return NiceReply(thread=threading.current_thread().name, nice=os.getpriority(0, me))
 
-    served = server.serve(key, LATER.bind({"hold": hold, "draw": draw}))
+    served = server.serve(key, LATER.bind({"hold": _holder(release, entered), "draw": draw}))
     assert served.background == frozenset({"draw"}) and served.inline == frozenset()
     _reachable(server, client)
     held: list[WhoReply] = []
