@@ -4,6 +4,7 @@ encode buffer; the cheap array checks."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import threading
@@ -75,6 +76,24 @@ def _reachable(server: Node, client: Node) -> None:
     client.wait_alive(["server"], 10)
 
 
+@contextlib.contextmanager
+def _held_call(
+    client: Node, key: str, release: threading.Event, entered: threading.Event
+) -> Iterator[list[WhoReply]]:
+    """A `hold` call on `key` from another thread, in its handler while the block runs (the
+    list gets its reply once the block ended and released it)."""
+    held: list[WhoReply] = []
+    caller = threading.Thread(target=lambda: held.append(client.call_typed(key, HOLD, timeout=15)))
+    caller.start()
+    try:
+        assert entered.wait(5), "the blocking handler never started"
+        yield held
+        assert not held, "the blocking call returned before it was released"
+    finally:
+        release.set()
+        caller.join(15)
+
+
 def test_non_blocking_verbs_run_on_the_receive_path_blocking_ones_on_the_worker(
     pair: tuple[Node, Node],
 ) -> None:
@@ -99,18 +118,10 @@ def test_a_blocked_handler_never_stalls_a_non_blocking_verb(pair: tuple[Node, No
     _serve(server, key, release, entered)
     _serve(server, other, threading.Event(), threading.Event())
     _reachable(server, client)
-    held: list[WhoReply] = []
-    caller = threading.Thread(target=lambda: held.append(client.call_typed(key, HOLD, timeout=15)))
-    caller.start()
-    try:
-        assert entered.wait(5), "the blocking handler never started"
+    with _held_call(client, key, release, entered) as held:
         # the same port's worker is busy: the non-blocking verb is answered anyway, promptly
         for port in (key, other):
             assert client.call_typed(port, PEEK, WhoArgs(x=2.0), timeout=2.0).x == 2.0
-        assert not held, "the blocking call returned before it was released"
-    finally:
-        release.set()
-        caller.join(15)
     assert held and held[0].thread == f"rpc {key}"
 
 
@@ -128,17 +139,9 @@ def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_b
     served = server.serve(key, LATER.bind({"hold": _holder(release, entered), "draw": draw}))
     assert served.background == frozenset({"draw"}) and served.inline == frozenset()
     _reachable(server, client)
-    held: list[WhoReply] = []
-    caller = threading.Thread(target=lambda: held.append(client.call_typed(key, HOLD, timeout=15)))
-    caller.start()
-    try:
-        assert entered.wait(5), "the blocking handler never started"
+    with _held_call(client, key, release, entered) as held:
         drawn = client.call_typed(key, DRAW, timeout=5.0)  # answered while the worker is busy
-        assert not held, "the blocking call returned before it was released"
-    finally:
-        release.set()
-        caller.join(15)
-    assert drawn.thread == f"rpc {key} background" and held[0].thread == f"rpc {key}"
+    assert held and drawn.thread == f"rpc {key} background" and held[0].thread == f"rpc {key}"
     mine = os.getpriority(0, threading.get_native_id())
     assert drawn.nice == min(19, mine + BACKGROUND_NICE)
 
