@@ -17,23 +17,22 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.subscription import Subscription
 from protocol.errors import RpcError
-from protocol.messages import JointCommand, JointState
+from protocol.messages import JointState
 from protocol.parts import PARTS
 from protocol.robotspec import CONTROLLER, ROBOT, STATE_MAX_AGE
-from protocol.verbs import ServedVerbs
-from protocol.verbs import robot as rv
 from services.controller import service as controller_service
 from services.controller.config import ControllerConfig
 from services.learner.errors import ServiceLost
 from services.learner.rig import MeshRig
 from tests.conftest import serving
-from tests.rpc import rpc_call, some_verbs
+from tests.fake_parts import FakeRobot
+from tests.rpc import rpc_call
 
 THETA = [0.17, 0.03, -0.03]
 MOTION_TIMEOUT = 20.0  # wall s: the posture's own timeout, far beyond the stale limit
 
 
-class FrozenRobot:
+class FrozenRobot(FakeRobot):
     """Publishes every part's joint state at 50 Hz (at rest, or moving once commanded) until
     `freeze` is set; serves getLimits and setRefSpeeds. With `freeze_on_command`, the streams
     stop a few states after the first command: a robot frozen mid-motion."""
@@ -41,31 +40,9 @@ class FrozenRobot:
     def __init__(self, node: Node, freeze_on_command: bool = False) -> None:
         self.node = node
         self.freeze = threading.Event()
-        self.commanded = threading.Event()
         self.sent_after_command = 0
         self._freeze_on_command = freeze_on_command
-        keys = node.keys
-        self._pubs = {p: node.publisher(keys.state(p), JointState) for p in PARTS}
-        for part in PARTS:
-            node.subscribe(keys.command(part), JointCommand, callback=self._on_command)
-            node.serve(keys.part_rpc(part), self._verbs(part))
-        node.ready()
-        self._thread = threading.Thread(target=self._publish, daemon=True)
-        self._thread.start()
-
-    def _verbs(self, part: str) -> ServedVerbs:
-        names = list(PARTS[part])
-        n = len(names)
-        limits = rv.LimitsReply(names=names, min=[-3.0] * n, max=[3.0] * n, tolerance=0.01)
-
-        def speeds(a: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
-            given = a.speeds if isinstance(a.speeds, list) else [a.speeds] * n
-            return rv.RefSpeedsReply(names=names, speeds=given)
-
-        return some_verbs(rv.PART_VERBS, {"getLimits": lambda a: limits, "setRefSpeeds": speeds})
-
-    def _on_command(self, command: JointCommand) -> None:
-        self.commanded.set()
+        super().__init__(node)
 
     def _publish(self) -> None:
         while not self.freeze.wait(0.02):
@@ -88,7 +65,7 @@ class FrozenRobot:
 
     def close(self) -> None:
         self.freeze.set()
-        self._thread.join(5)
+        self._join()
 
 
 @pytest.fixture

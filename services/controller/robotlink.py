@@ -6,7 +6,9 @@ trajectory time, in one round trip per part (`setRefSpeeds` with `claim` on `{pa
 lease of `lease_ttl` wall s, so that the part obeys no other client during the move), publish
 one `JointCommand` per part back to back on `command:i` as one batch carrying its lease (the
 robot starts them at one simulated time), then wait until every part's `state:o` reports motion
-done within `joint_tolerance` of its targets, renewing the leases every quarter of their ttl,
+done, the moved ones within `joint_tolerance` of their targets, in states of one simulated time
+(the whole robot at rest: at rtf 0 the robot steps until then, and the next job, a nock or a
+release, must not land while it still settles), renewing the leases every quarter of their ttl,
 and drop the leases at the end (in the background: the posture's reply does not wait for it). A
 part held by another client (the operator's takeover) fails the move at once with `not_owner`
 (the parts claimed before it are let go; their reference speeds stay set, nothing moved); one
@@ -274,7 +276,15 @@ class RobotLink:
             sent[part] = np.clip(wanted, lower, upper)
             delta = sent[part] - np.array([current[j] for j in PARTS[part]])
             leases[part] = self._claim_with_speeds(part, reference_speeds(delta, traj_time))
-        marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in parts}
+        marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in PARTS}
+        # a simulated robot's states from before it took the commands show its old rest, which
+        # may lie within the tolerance of targets a small step away: only states of a later
+        # simulated time count (it steps at least once for any command; a real robot's states
+        # carry no simulated time)
+        before = max(
+            (s.sim_time for p in PARTS if (s := self.states[p].latest()) and s.sim_time),
+            default=None,
+        )
         start = time.monotonic()
         for part in parts:
             self._commands[part].put(
@@ -287,39 +297,62 @@ class RobotLink:
             )
         reason = ""
         tol = self.joint_tolerance
-        done_at = 0.0  # sim s of the state that showed the last part there (load-independent)
+        done_at = 0.0  # sim s of the states that showed the robot there (load-independent)
         renew_every = self.lease_ttl / 4
         renew_at = time.monotonic() + renew_every
-        for part in parts:
-            goal = sent[part]
+        while not reason:
+            # every part, moved or not, at rest (the moved ones at their targets) ...
+            for part in PARTS:
+                goal = sent.get(part)
 
-            def there(msg: JointState, goal: np.ndarray = goal) -> bool:
-                error = np.max(np.abs(np.asarray(msg.position) - goal))
-                return msg.motion_done and bool(error <= tol)
+                def there(msg: JointState, goal: np.ndarray | None = goal) -> bool:
+                    if before is not None and msg.sim_time is not None and msg.sim_time <= before:
+                        return False
+                    if goal is None:
+                        return msg.motion_done
+                    error = np.max(np.abs(np.asarray(msg.position) - goal))
+                    return msg.motion_done and bool(error <= tol)
 
-            while not reason:
-                now = time.monotonic()
-                remaining = max(0.0, start + timeout - now)
-                wait = (
-                    min(remaining, max(0.0, renew_at - now)) if any(leases.values()) else remaining
-                )
-                try:
-                    arrived = self.states[part].wait_newer(
-                        wait, there, after_seq=marks[part], max_age=self.state_max_age
+                while not reason:
+                    now = time.monotonic()
+                    remaining = max(0.0, start + timeout - now)
+                    wait = (
+                        min(remaining, max(0.0, renew_at - now))
+                        if any(leases.values())
+                        else remaining
                     )
-                    done_at = max(done_at, arrived.sim_time or 0.0)
-                    break
-                except RpcTimeout:
-                    if time.monotonic() >= start + timeout:
-                        reason = (
-                            f"{self.states[part].key} did not show motion done within {tol:g} "
-                            f"rad of the targets within {timeout:g} s"
+                    try:
+                        self.states[part].wait_newer(
+                            wait, there, after_seq=marks[part], max_age=self.state_max_age
                         )
-                    else:
-                        reason = self._renew(leases)
-                        renew_at = time.monotonic() + renew_every
-            if reason:
-                break
+                        break
+                    except RpcTimeout:
+                        if time.monotonic() >= start + timeout:
+                            reason = (
+                                f"{self.states[part].key} did not show motion done within "
+                                f"{tol:g} rad of the targets within {timeout:g} s"
+                                if goal is not None
+                                else f"{self.states[part].key} (not moved) did not come to "
+                                f"rest within {timeout:g} s"
+                            )
+                        else:
+                            reason = self._renew(leases)
+                            renew_at = time.monotonic() + renew_every
+            # ... in states of one simulated time: the whole robot at rest at once (a part
+            # shown done before another settled may move again; at rtf 0 the robot steps on
+            # until all rest, so a reply sooner would race its settling)
+            if not reason:
+                now_states = {p: self.states[p].latest() for p in PARTS}
+                times = {m.sim_time for m in now_states.values() if m is not None}
+                if len(times) == 1 and all(
+                    m is not None
+                    and m.motion_done
+                    and (p not in sent or np.max(np.abs(np.asarray(m.position) - sent[p])) <= tol)
+                    for p, m in now_states.items()
+                ):
+                    done_at = float(times.pop() or 0.0)
+                    break
+                marks = {p: (m.seq if m is not None else 0) for p, m in now_states.items()}
         wall = time.monotonic() - start
         latest = {p: self.state(p) for p in PARTS}
         measured = {

@@ -606,6 +606,15 @@ class SimLoop:
                     stop,
                     until=lambda: self._batch_seen >= self._batch_size,
                 )
+                if self._batch_seen < self._batch_size:
+                    log.warning(
+                        "a batch of %d commands started with %d of them after %g s (wall): the "
+                        "rest will start later, at a simulated time that depends on the wall "
+                        "clock (same-seed runs part here)",
+                        self._batch_size,
+                        self._batch_seen,
+                        self.config.batch_window,
+                    )
             return
         joints, world = self._pacing.beats()
         if joints:

@@ -1,0 +1,60 @@
+"""The controlboards of a fake robot on the mesh: every part's `getLimits` and `setRefSpeeds`
+served (limits ±3 rad, no leases), its commands handed to a callback, its state publishers."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from mesh.node import Node
+from mesh.publisher import Publisher
+from protocol.messages import JointCommand, JointState
+from protocol.parts import PARTS
+from protocol.verbs import ServedVerbs
+from protocol.verbs import robot as rv
+from tests.rpc import some_verbs
+
+
+def part_verbs(part: str) -> ServedVerbs:
+    """`getLimits` (±3 rad) and `setRefSpeeds` (the speeds given, no lease) of `part`."""
+    names = list(PARTS[part])
+    n = len(names)
+    limits = rv.LimitsReply(names=names, min=[-3.0] * n, max=[3.0] * n, tolerance=0.01)
+
+    def speeds(a: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
+        given = a.speeds if isinstance(a.speeds, list) else [a.speeds] * n
+        return rv.RefSpeedsReply(names=names, speeds=given)
+
+    return some_verbs(rv.PART_VERBS, {"getLimits": lambda a: limits, "setRefSpeeds": speeds})
+
+
+def serve_parts(
+    node: Node, on_command: Callable[[JointCommand], None]
+) -> dict[str, Publisher[JointState]]:
+    """Serve every part's verbs and commands on `node` (ready once it returns); its state
+    publishers by part."""
+    keys = node.keys
+    pubs = {p: node.publisher(keys.state(p), JointState) for p in PARTS}
+    for part in PARTS:
+        node.subscribe(keys.command(part), JointCommand, callback=on_command)
+        node.serve(keys.part_rpc(part), part_verbs(part))
+    node.ready()
+    return pubs
+
+
+class FakeRobot:
+    """A fake robot's controlboards (`serve_parts`) and its publishing thread, which runs
+    `_publish` (a subclass's; set its own fields before calling this constructor);
+    `commanded` is set by the first command."""
+
+    def __init__(self, node: Node) -> None:
+        self.commanded = threading.Event()
+        self._pubs = serve_parts(node, lambda command: self.commanded.set())
+        self._thread = threading.Thread(target=self._publish, daemon=True)
+        self._thread.start()
+
+    def _publish(self) -> None:
+        raise NotImplementedError
+
+    def _join(self) -> None:
+        self._thread.join(5)
