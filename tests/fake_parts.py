@@ -15,29 +15,35 @@ from protocol.verbs import robot as rv
 from tests.rpc import some_verbs
 
 
-def part_verbs(part: str) -> ServedVerbs:
-    """`getLimits` (±3 rad) and `setRefSpeeds` (the speeds given, no lease) of `part`."""
+def part_verbs(part: str, speeds_set: list[list[float]] | None = None) -> ServedVerbs:
+    """`getLimits` (±3 rad) and `setRefSpeeds` (the speeds given, no lease; each call's
+    appended to `speeds_set`) of `part`."""
     names = list(PARTS[part])
     n = len(names)
     limits = rv.LimitsReply(names=names, min=[-3.0] * n, max=[3.0] * n, tolerance=0.01)
 
     def speeds(a: rv.SetRefSpeedsArgs) -> rv.RefSpeedsReply:
         given = a.speeds if isinstance(a.speeds, list) else [a.speeds] * n
+        if speeds_set is not None:
+            speeds_set.append(given)
         return rv.RefSpeedsReply(names=names, speeds=given)
 
     return some_verbs(rv.PART_VERBS, {"getLimits": lambda a: limits, "setRefSpeeds": speeds})
 
 
 def serve_parts(
-    node: Node, on_command: Callable[[JointCommand], None]
+    node: Node,
+    on_command: Callable[[JointCommand], None],
+    speeds_set: dict[str, list[list[float]]] | None = None,
 ) -> dict[str, Publisher[JointState]]:
-    """Serve every part's verbs and commands on `node` (ready once it returns); its state
-    publishers by part."""
+    """Serve every part's verbs and commands on `node` (ready once it returns; the speeds
+    each part is set recorded in `speeds_set`); its state publishers by part."""
     keys = node.keys
     pubs = {p: node.publisher(keys.state(p), JointState) for p in PARTS}
     for part in PARTS:
         node.subscribe(keys.command(part), JointCommand, callback=on_command)
-        node.serve(keys.part_rpc(part), part_verbs(part))
+        recorded = None if speeds_set is None else speeds_set.setdefault(part, [])
+        node.serve(keys.part_rpc(part), part_verbs(part, recorded))
     node.ready()
     return pubs
 
@@ -49,7 +55,8 @@ class FakeRobot:
 
     def __init__(self, node: Node) -> None:
         self.commanded = threading.Event()
-        self._pubs = serve_parts(node, lambda command: self.commanded.set())
+        self.speeds_set: dict[str, list[list[float]]] = {}  # by part, each setRefSpeeds call's
+        self._pubs = serve_parts(node, lambda command: self.commanded.set(), self.speeds_set)
         self._thread = threading.Thread(target=self._publish, daemon=True)
         self._thread.start()
 

@@ -7,7 +7,8 @@ plays a scripted timeline of states, one state of every part per beat."""
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
+from typing import Protocol
 
 import pytest
 
@@ -29,25 +30,27 @@ AT_REST: dict[str, tuple[float, bool]] = {p: (0.0, True) for p in PARTS}
 
 
 class ScriptedRobot(FakeRobot):
-    """Publishes every part's joint state every 10 ms: the rest at `REST` until a command
-    arrives, then `after_command` (the old rest a few more times first, as a robot that has
-    not taken the commands yet), then its last beat for ever."""
+    """Publishes every part's joint state every 10 ms: `before` (by default the rest at `REST`;
+    its last beat until a command arrives), then `after_command` (the old rest a few more times
+    first, as a robot that has not taken the commands yet), then its last beat for ever."""
 
-    def __init__(self, node: Node, after_command: list[Beat]) -> None:
-        self.beats = [(REST, AT_REST)] * 5 + after_command
+    def __init__(
+        self, node: Node, after_command: list[Beat], before: list[Beat] | None = None
+    ) -> None:
+        self.before = before or [(REST, AT_REST)]
+        self.beats = [self.before[-1]] * 5 + after_command
         self._stop = threading.Event()
         super().__init__(node)
 
     def _publish(self) -> None:
-        i = 0
+        i, j = 0, 0
         while not self._stop.wait(0.01):
-            sim_time, parts = (
-                self.beats[min(i, len(self.beats) - 1)]
-                if self.commanded.is_set()
-                else (REST, AT_REST)
-            )
             if self.commanded.is_set():
+                sim_time, parts = self.beats[min(i, len(self.beats) - 1)]
                 i += 1
+            else:
+                sim_time, parts = self.before[min(j, len(self.before) - 1)]
+                j += 1
             for part, pub in self._pubs.items():
                 offset, done = parts[part]
                 n = len(PARTS[part])
@@ -67,13 +70,21 @@ class ScriptedRobot(FakeRobot):
         self._join()
 
 
+class Start(Protocol):
+    def __call__(
+        self, after_command: list[Beat], before: list[Beat] | None = None
+    ) -> tuple[RobotLink, ScriptedRobot]: ...
+
+
 @pytest.fixture
-def link(net: NetConfig) -> Iterator[Callable[[list[Beat]], tuple[RobotLink, ScriptedRobot]]]:
+def link(net: NetConfig) -> Iterator[Start]:
     with Node(ROBOT, net) as robot_node, Node(None, net) as node:
         robots: list[ScriptedRobot] = []
 
-        def start(after_command: list[Beat]) -> tuple[RobotLink, ScriptedRobot]:
-            robot = ScriptedRobot(robot_node, after_command)
+        def start(
+            after_command: list[Beat], before: list[Beat] | None = None
+        ) -> tuple[RobotLink, ScriptedRobot]:
+            robot = ScriptedRobot(robot_node, after_command, before)
             robots.append(robot)
             node.wait_alive([ROBOT], 10)
             return RobotLink(node, robot_timeout=5.0, joint_tolerance=TOL), robot
@@ -90,7 +101,7 @@ def _moved(
 
 
 def test_the_old_rest_within_tolerance_of_the_targets_does_not_end_the_move(
-    link: Callable[[list[Beat]], tuple[RobotLink, ScriptedRobot]],
+    link: Start,
 ) -> None:
     robot_link, robot = link(
         [(REST + 0.02, _moved(STEP / 2, False)), (REST + 0.04, _moved(STEP, True))]
@@ -102,7 +113,7 @@ def test_the_old_rest_within_tolerance_of_the_targets_does_not_end_the_move(
 
 
 def test_a_move_ends_only_once_every_part_rests_at_one_simulated_time(
-    link: Callable[[list[Beat]], tuple[RobotLink, ScriptedRobot]],
+    link: Start,
 ) -> None:
     # the arms are there at REST + 0.04 while the torso (not moved) still settles from it
     robot_link, _ = link(
@@ -116,3 +127,19 @@ def test_a_move_ends_only_once_every_part_rests_at_one_simulated_time(
     result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
     assert result.reached, result.reason
     assert result.sim_time == REST + 0.06
+
+
+def test_a_move_starts_from_the_robot_at_rest_not_from_a_state_while_it_settles(
+    link: Start,
+) -> None:
+    # still settling 3 mrad away from where it comes to rest: the speeds come from the rest
+    settling = [
+        (REST - 0.02 * (9 - k), _moved(0.003, False, torso=(0.003, False))) for k in range(8)
+    ]
+    robot_link, robot = link(
+        [(REST + 0.02, _moved(0.05, True))], before=[*settling, (REST, AT_REST)]
+    )
+    targets = {j: 0.05 for p in ("left_arm", "right_arm") for j in PARTS[p]}
+    result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
+    assert result.reached, result.reason
+    assert robot.speeds_set["left_arm"][-1] == pytest.approx([0.05] * 7)  # 50 mrad in 1 s

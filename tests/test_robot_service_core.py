@@ -88,9 +88,11 @@ def test_bad_commands_are_rejected_with_a_reason(
 
 
 class Recorder:
-    """A sink that keeps everything the loop publishes, with the wall time it arrived."""
+    """A sink that keeps everything the loop publishes, with the wall time it arrived; each
+    joint state takes `latency` wall s to go out (a slow link)."""
 
     def __init__(self) -> None:
+        self.latency = 0.0
         self.states: list[tuple[float, str, list[float], bool, float]] = []
         self.worlds: list[tuple[float, str, int, float]] = []
         self.events: list[tuple[str, int, float, list[float] | None, str]] = []
@@ -106,6 +108,7 @@ class Recorder:
         sim_time: float,
     ) -> None:
         assert names == PARTS[part] and len(position) == len(velocity) == len(names)
+        time.sleep(self.latency)
         with self.lock:
             self.states.append((time.monotonic(), part, position, motion_done, sim_time))
 
@@ -393,3 +396,22 @@ def test_a_release_after_a_batched_move_waits_for_no_batch(
     t0 = time.monotonic()
     loop.release()
     assert time.monotonic() - t0 < 0.9  # a flight takes ~5 ms here, never the batch window
+
+
+def test_at_rtf0_a_release_replies_once_the_robot_rests_with_its_rest_published(
+    start: Any, posture: dict[str, np.ndarray]
+) -> None:
+    # a reply sooner would let the next command start at a simulated time, or from a
+    # posture, of the wall clock's choosing: same-seed sessions would part
+    loop, rec = start()
+    _go(loop, posture)
+    loop.nock()
+    rec.latency = 0.02  # the rest's states take a while to go out: the reply waits for them
+    reply = loop.release()
+    with rec.lock:  # what was published by the time the reply came
+        last = {part: s for s in rec.states if (part := s[1])}
+    assert loop.call(lambda: loop.world.motion_done())  # at rest, not stepping: the reply waited
+    resting = loop.call(lambda: loop.world.sim_time)
+    assert reply.sim_time <= resting
+    # the states of that rest, every part done at one simulated time, went out before the reply
+    assert {s[4] for s in last.values()} == {resting} and all(s[3] for s in last.values())

@@ -44,7 +44,9 @@ from protocol.robotspec import CONTROLLER, LEASE_TTL, STATE_MAX_AGE
 from protocol.verbs.robot import PART_VERBS, ClaimArgs, LeaseArgs, SetRefSpeedsArgs
 from services.controller.cartesian import reference_speeds
 
-__all__ = ["MoveResult", "RobotLink"]
+__all__ = ["REST_WAIT", "MoveResult", "RobotLink"]
+
+REST_WAIT = 1.0  # wall s a move waits for the robot to rest before it starts from its posture
 
 
 @dataclass(frozen=True)
@@ -132,6 +134,45 @@ class RobotLink:
             msg = self.state(part)
             out.update(zip(msg.names, msg.position, strict=True))
         return out
+
+    def rested_posture(self, wait: float) -> dict[str, float] | None:
+        """The measured posture of every part once the whole robot rests: fresh states of one
+        simulated time, each showing motion done (waiting up to `wait` s for them); None if it
+        does not rest by then (a move then starts from the newest states, `posture`).
+
+        A simulated robot that still settles (after a landing, say) steps on until it rests;
+        a move started from a state before that would start at a simulated time, and from a
+        posture, that depend on the wall clock."""
+        deadline = time.monotonic() + wait
+        while True:
+            latest = {p: self.states[p].latest() for p in PARTS}
+            if (
+                all(
+                    m is not None and m.motion_done and self.states[p].age() <= self.state_max_age
+                    for p, m in latest.items()
+                )
+                and len({m.sim_time for m in latest.values() if m is not None}) == 1
+            ):
+                return {
+                    name: value
+                    for m in latest.values()
+                    if m is not None
+                    for name, value in zip(m.names, m.position, strict=True)
+                }
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            # the first part not shown at rest (or not at the others' time): its next state
+            part = next(
+                (p for p, m in latest.items() if m is None or not m.motion_done), next(iter(PARTS))
+            )
+            mark = latest[part]
+            try:
+                self.states[part].wait_newer(
+                    min(remaining, self.state_max_age), after_seq=mark.seq if mark else -1
+                )
+            except RpcTimeout:
+                return None
 
     def fresh_posture(self) -> dict[str, float] | None:
         """The measured posture of every part if all their states are fresh (see
@@ -248,7 +289,7 @@ class RobotLink:
             ArcheryError (code `not_owner`): another client holds a part to be moved.
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
-        current = self.posture(tuple(PARTS))
+        current = self.rested_posture(REST_WAIT) or self.posture(tuple(PARTS))
         leases: dict[str, str] = {}
         try:
             result = self._move(targets, traj_time, timeout, parts, current, leases)

@@ -50,7 +50,9 @@ class RobotConfig:
             rejected (rad).
         batch_window: at rtf 0, the longest wait (wall s) of a robot at rest for the rest of
             an announced batch of commands (`JointCommand.batch`), to start them together; a
-            batch complete before then starts at once.
+            batch complete before then starts at once, so the window costs its length only
+            when a batch stays incomplete (a sender that died mid-batch); a busy machine can
+            hold a controller's three commands tens of ms apart.
         job_timeout: longest wait of an RPC for the simulation thread (wall s).
         command_rate: each part's `command:i` admits at most this many commands per wall
             second in the long run; the excess is dropped and counted (`rate_limited`), the
@@ -84,7 +86,7 @@ class RobotConfig:
         high=0.5,
     )
     batch_window: float = flag(
-        0.05,
+        0.5,
         "at rtf 0, longest wait for the rest of an announced command batch",
         unit="wall s",
         low=0,

@@ -15,8 +15,11 @@ brings the full rates back at once. A command
 that wakes the idle robot starts the motion at once, unless it announces a batch
 (`JointCommand.batch` > 1: a controller's three part commands): then the loop waits for the
 rest of the batch, at most `batch_window` wall seconds, and starts them at one simulated time,
-which keeps same-seed runs identical. A move of one simulated second then takes ~10-20
-ms of wall time. A world state also goes out right after each nock, release, landing and reset.
+which keeps same-seed runs identical; for the same reason a release replies only once the
+robot also rests after the shot (the arms settle for a few simulated ms after the landing, and a
+command arriving meanwhile would start at a simulated time of the wall clock's choosing). A move
+of one simulated second then takes ~10-20 ms of wall time. A world state also goes out right
+after each nock, release, landing and reset.
 
 Watchdog (`watchdog`): a streaming part (commands overtaking unfinished moves) whose commands
 stop for `config.watchdog` wall seconds (default 0.1) is held at its measured positions: the
@@ -139,6 +142,8 @@ class SimLoop:
         # commands (and the largest batch they announced) since the loop last came to rest
         self._batch_seen = 0
         self._batch_size = 0
+        # at rtf 0, a landing's reply kept until the robot rests (`_landed`)
+        self._settling: tuple[Future[rv.ReleaseReply], rv.ReleaseReply] | None = None
 
     # -- jobs (any thread) -----------------------------------------------------------------
     def submit(self, func: Callable[[], T]) -> Future[T]:
@@ -293,7 +298,8 @@ class SimLoop:
         return self.call(self._nock)
 
     def release(self, timeout: float | None = None) -> rv.ReleaseReply:
-        """Release the nocked arrow and return once it has landed (see `_landed` for the reply).
+        """Release the nocked arrow and return once it has landed (see `_landed` for the reply;
+        at rtf 0, once the robot also rests after the shot).
 
         Raises:
             StateError: no arrow is nocked. SimUnavailable: no landing within `timeout` wall s.
@@ -443,7 +449,15 @@ class SimLoop:
             theta=launch.theta.tolist(),
         )
         future, self._landing_future = self._landing_future, None
-        if future is not None:
+        if future is None:
+            return
+        if self.config.rtf == 0:
+            # the arms may still settle from the shot (the loop steps on until they rest), and
+            # the states of the rest are not out yet: a reply now would let the next command
+            # land at a simulated time, or start from a posture, of the wall clock's choosing,
+            # so it goes out once the robot rests and has published that (`_rest`)
+            self._settling = (future, reply)
+        else:
             future.set_result(reply)
 
     def _reset(self, seed: int | None) -> rv.ResetReply:
@@ -564,6 +578,9 @@ class SimLoop:
             future, self._landing_future = self._landing_future, None
             if future is not None and not future.done():
                 future.set_exception(SimUnavailable("the robot stopped before the arrow landed"))
+            settling, self._settling = self._settling, None
+            if settling is not None and not settling[0].done():
+                settling[0].set_result(settling[1])  # landed; the robot stopped while settling
 
     def _sleep_until(
         self, due: float, stop: threading.Event, until: Callable[[], bool] | None = None
@@ -597,6 +614,9 @@ class SimLoop:
             self._pacing.wake()  # a motion just ended: full rates for a while yet
             self._publish_joints()  # the final state shows motion_done at once
             self._publish_world()
+            settling, self._settling = self._settling, None
+            if settling is not None:
+                settling[0].set_result(settling[1])  # the release's reply, now at rest
         if self._jobs.wait(self._pacing.idle_wait()):
             self._jobs.drain()
             if self._moving() and self._batch_seen < self._batch_size:
