@@ -296,6 +296,14 @@ def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str
                 cells.append(f"{1e3 * statistics.median(values):.1f}" if values else "–")
             hits = statistics.median(r["hits"] for r in runs)
             print(f"| {tree} | {cond} | " + " | ".join(cells) + f" | {hits:g} |")
+    if len(conditions) == 2:
+        print(
+            f"\nThe same seed on one tree, watched against not (the first {LAST} rollouts of "
+            "each repeat's two sessions: the rtf-0 physics must not depend on the load):\n"
+        )
+        _same_table(
+            [(tree, results[tree][conditions[1]], results[tree][conditions[0]]) for tree in trees]
+        )
     if "before" not in results:
         return
     print(
@@ -303,15 +311,19 @@ def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str
         "θ proposed and the robot's true r bit for bit, the detector's r where the true r is "
         "the same:\n"
     )
-    print("| condition | repeat | θ identical | true r identical | first that differs | max Δr |")
+    _same_table([(cond, results["after"][cond], results["before"][cond]) for cond in conditions])
+
+
+def _same_table(groups: list[tuple[str, list[dict[str, Any]], list[dict[str, Any]]]]) -> None:
+    """Print, per group (a label and two runs per repeat), how the runs of a repeat compare."""
+    print("| runs | repeat | θ identical | true r identical | first that differs | max Δr |")
     print("|---|---|---|---|---|---|")
-    for cond in conditions:
-        pairs = zip(results["after"][cond], results["before"][cond], strict=True)
-        for k, (a, b) in enumerate(pairs):
+    for label, first, second in groups:
+        for k, (a, b) in enumerate(zip(first, second, strict=True)):
             same = _same(a, b)
             n = same["rollouts"]
             print(
-                f"| {cond} | {k + 1} | {same['theta']}/{n} | {same['truth']}/{n} "
+                f"| {label} | {k + 1} | {same['theta']}/{n} | {same['truth']}/{n} "
                 f"| {same['first_truth_diff'] or '–'} | {1e3 * same['max_dr_m']:.4f} mm |"
             )
 
