@@ -2,7 +2,8 @@
 it lags behind rather than slows the session it watches), `archery record --nice N` on request
 (a starved recorder makes the router drop latest-wins frames meant for it, so its receiving
 threads keep their priority unless told; its writer thread, which decodes, compresses and writes
-what they queue, runs at `WRITER_NICE` on its own: `lower_thread_priority`).
+what they queue, runs at `WRITER_NICE` and in the SCHED_IDLE class on its own:
+`lower_thread_priority`).
 
 Linux keeps a niceness per thread: it is raised for every thread running (numpy's, say) and
 before the Zenoh session starts, so the threads started later inherit it. Raising it needs no
@@ -58,13 +59,19 @@ def lower_priority(increment: int) -> int:
     return os.getpriority(os.PRIO_PROCESS, me)
 
 
-def lower_thread_priority(increment: int, native_id: int | None = None) -> int | None:
+def lower_thread_priority(
+    increment: int, native_id: int | None = None, idle: bool = False
+) -> int | None:
     """Raise the niceness of one thread only by `increment` (Linux keeps one per thread): the
     calling thread, or the thread of `native_id` (`threading.Thread.native_id`) of this
-    process; returns its niceness now, or None where that cannot be done (not Linux)."""
+    process; with `idle`, also put it in Linux's SCHED_IDLE class, where it runs only on a core
+    nothing else wants (a worker behind a queue: the queue holds what arrives meanwhile).
+    Returns its niceness now, or None where that cannot be done (not Linux)."""
     tid = threading.get_native_id() if native_id is None else native_id
     try:
         os.setpriority(os.PRIO_PROCESS, tid, os.getpriority(os.PRIO_PROCESS, tid) + increment)
+        if idle and hasattr(os, "SCHED_IDLE"):
+            os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
         return os.getpriority(os.PRIO_PROCESS, tid)
     except OSError:
         return None

@@ -1,7 +1,7 @@
 """Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
 arguments, handled on a worker thread (or inline for non-blocking verbs; background verbs on a
-second worker at a lower CPU priority, `BACKGROUND_NICE`), replied `RpcReply`; each handled call
-also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
+second worker at a lower CPU priority, `BACKGROUND_NICE` and SCHED_IDLE), replied `RpcReply`;
+each handled call also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ class RpcServer:
 
     def _work(self, jobs: queue.SimpleQueue[Any], nice: int = 0) -> None:
         if nice:
-            lower_thread_priority(nice)
+            lower_thread_priority(nice, idle=True)
         while True:
             item = jobs.get()
             if item is _STOP:

@@ -35,6 +35,7 @@ class WhoReply(Reply, frozen=True):
 class NiceReply(Reply, frozen=True):
     thread: str
     nice: int  # the serving thread's niceness
+    policy: int  # and its scheduling class
 
 
 PEEK = Verb("peek", WhoArgs, WhoReply, "non-blocking", blocking=False)
@@ -134,7 +135,11 @@ def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_b
 
     def draw(args: NoArgs) -> NiceReply:
         me = threading.get_native_id()
-        return NiceReply(thread=threading.current_thread().name, nice=os.getpriority(0, me))
+        return NiceReply(
+            thread=threading.current_thread().name,
+            nice=os.getpriority(os.PRIO_PROCESS, me),
+            policy=os.sched_getscheduler(me),
+        )
 
     served = server.serve(key, LATER.bind({"hold": _holder(release, entered), "draw": draw}))
     assert served.background == frozenset({"draw"}) and served.inline == frozenset()
@@ -143,7 +148,7 @@ def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_b
         drawn = client.call_typed(key, DRAW, timeout=5.0)  # answered while the worker is busy
     assert held and drawn.thread == f"rpc {key} background" and held[0].thread == f"rpc {key}"
     mine = os.getpriority(0, threading.get_native_id())
-    assert drawn.nice == min(19, mine + BACKGROUND_NICE)
+    assert drawn.nice == min(19, mine + BACKGROUND_NICE) and drawn.policy == os.SCHED_IDLE
 
 
 def test_non_blocking_verbs_are_validated_like_blocking_ones(pair: tuple[Node, Node]) -> None:

@@ -373,12 +373,13 @@ def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
     assert frames.grab(GrabArgs(after_sim_time=0.5, after_stamp=15.0, timeout=0.1)) is shots[1]
 
 
-def _thread_niceness(pid: int) -> list[int]:
-    """The niceness of each thread of process `pid`."""
-    return [
-        int((task / "stat").read_text().rsplit(")", 1)[1].split()[16])
-        for task in Path(f"/proc/{pid}/task").iterdir()
-    ]
+def _thread_niceness(pid: int) -> list[tuple[int, int]]:
+    """The niceness and the scheduling policy of each thread of process `pid`."""
+    out = []
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        fields = (task / "stat").read_text().rsplit(")", 1)[1].split()
+        out.append((int(fields[16]), int(fields[38])))
+    return out
 
 
 @pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="needs Linux's /proc")
@@ -388,10 +389,10 @@ def test_the_recorder_runs_at_a_lower_priority_when_told(net: NetConfig, tmp_pat
         recorder = _recording(tmp_path / "n.mcap", net, f"{net.robot}/**", *flag)
         try:
             niceness = _thread_niceness(recorder.pid)
-            # one thread, the writer, waits for idle CPU; every other one, Zenoh's receiving
-            # threads too, has the process's niceness
-            writer = min(19, expected + WRITER_NICE)
-            assert sorted(niceness) == [expected] * (len(niceness) - 1) + [writer]
+            # one thread, the writer, waits for idle CPU (SCHED_IDLE); every other one, Zenoh's
+            # receiving threads too, has the process's niceness and class
+            writer = (min(19, expected + WRITER_NICE), os.SCHED_IDLE)
+            assert sorted(niceness) == [(expected, os.SCHED_OTHER)] * (len(niceness) - 1) + [writer]
         finally:
             recorder.send_signal(signal.SIGINT)
             recorder.communicate(timeout=30)

@@ -203,10 +203,11 @@ class Recorder:
         frames: derives the robot's 3D records (`apps.topics.robot_frames.RobotFrames`):
             its description as an attachment and metadata, its scene written first, and the
             records it derives from each message written after that message.
-        writer_nice: the writer thread's niceness on top of the process's (`put` runs on
-            the receiving threads, which keep theirs): on a busy machine the decoding,
-            compression and writing wait for idle CPU, with the queue (`max_pending`) holding
-            what arrived meanwhile, rather than slow the session recorded.
+        writer_nice: the writer thread's niceness on top of the process's, in the SCHED_IDLE
+            class (`put` runs on the receiving threads, which keep theirs; 0: the writer
+            keeps them too): on a busy machine the decoding, compression and writing wait for
+            idle CPU, with the queue (`max_pending`) holding what arrived meanwhile, rather
+            than slow the session recorded.
 
     Losses are counted, never guessed: `stats.missing` counts the gaps in each key's sequence
     numbers (messages dropped before they reached the recorder, or by the full queue).
@@ -271,7 +272,9 @@ class Recorder:
         self._thread.start()
         # the writer thread's niceness (None: unchanged, or not Linux)
         self.writer_niceness = (
-            lower_thread_priority(writer_nice, self._thread.native_id) if writer_nice else None
+            lower_thread_priority(writer_nice, self._thread.native_id, idle=True)
+            if writer_nice
+            else None
         )
 
     def put(self, key: str, payload: bytes, received_ns: int | None = None) -> None:
