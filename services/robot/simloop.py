@@ -564,6 +564,8 @@ class SimLoop:
                 self._watchdog(time.monotonic())
                 if self.config.rtf == 0:
                     if self._moving():
+                        if self._idle:  # at rest until now: start an announced batch whole
+                            self._await_batch(stop)
                         self._idle = False
                         self._advance(self._pacing.chunk(self.world.sim_time))
                     else:
@@ -605,6 +607,26 @@ class SimLoop:
                 ran = self._jobs.drain() or ran
         return ran
 
+    def _await_batch(self, stop: threading.Event) -> None:
+        """A motion starts at rest: let the rest of its announced batch arrive first (at most
+        `batch_window` wall s), so that its commands start at one simulated time."""
+        if self._batch_seen >= self._batch_size:
+            return
+        self._sleep_until(
+            time.monotonic() + self.config.batch_window,
+            stop,
+            until=lambda: self._batch_seen >= self._batch_size,
+        )
+        if self._batch_seen < self._batch_size:
+            log.warning(
+                "a batch of %d commands started with %d of them after %g s (wall): the rest will "
+                "start later, at a simulated time that depends on the wall clock (same-seed runs "
+                "part here)",
+                self._batch_size,
+                self._batch_seen,
+                self.config.batch_window,
+            )
+
     def _rest(self, stop: threading.Event) -> None:
         """rtf 0 and nothing moves: sleep on the job queue, repeating the streams in wall time
         (at the full rates for `rest_after` s after the last activity, then at `rest_rate`)."""
@@ -618,23 +640,7 @@ class SimLoop:
             if settling is not None:
                 settling[0].set_result(settling[1])  # the release's reply, now at rest
         if self._jobs.wait(self._pacing.idle_wait()):
-            self._jobs.drain()
-            if self._moving() and self._batch_seen < self._batch_size:
-                # Let the rest of the announced batch arrive, to start them together.
-                self._sleep_until(
-                    time.monotonic() + self.config.batch_window,
-                    stop,
-                    until=lambda: self._batch_seen >= self._batch_size,
-                )
-                if self._batch_seen < self._batch_size:
-                    log.warning(
-                        "a batch of %d commands started with %d of them after %g s (wall): the "
-                        "rest will start later, at a simulated time that depends on the wall "
-                        "clock (same-seed runs part here)",
-                        self._batch_size,
-                        self._batch_seen,
-                        self.config.batch_window,
-                    )
+            self._jobs.drain()  # a command that starts a motion: `run` awaits its batch
             return
         joints, world = self._pacing.beats()
         if joints:
