@@ -3,6 +3,7 @@ served (limits ±3 rad, no leases), its commands handed to a callback, its state
 
 from __future__ import annotations
 
+import abc
 import threading
 from collections.abc import Callable
 
@@ -48,7 +49,7 @@ def serve_parts(
     return pubs
 
 
-class FakeRobot:
+class FakeRobot(abc.ABC):
     """A fake robot's controlboards (`serve_parts`) and its publishing thread, which runs
     `_publish` (a subclass's; set its own fields before calling this constructor);
     `commanded` is set by the first command."""
@@ -60,8 +61,9 @@ class FakeRobot:
         self._thread = threading.Thread(target=self._publish, daemon=True)
         self._thread.start()
 
+    @abc.abstractmethod
     def _publish(self) -> None:
-        raise NotImplementedError
+        """Publish the joint states until the fake robot is closed (the thread's body)."""
 
     def _join(self) -> None:
         self._thread.join(5)

@@ -49,6 +49,22 @@ __all__ = ["REST_WAIT", "MoveResult", "RobotLink"]
 REST_WAIT = 1.0  # wall s a move waits for the robot to rest before it starts from its posture
 
 
+def _at_rest(
+    states: Mapping[str, JointState | None], goals: Mapping[str, np.ndarray], tol: float
+) -> bool:
+    """Every part's state shows motion done, all of one simulated time, each part of `goals`
+    within `tol` rad of its targets: the whole robot at rest (there)."""
+    if any(m is None or not m.motion_done for m in states.values()):
+        return False
+    if len({m.sim_time for m in states.values() if m is not None}) != 1:
+        return False
+    return all(
+        np.max(np.abs(np.asarray(m.position) - goals[p])) <= tol
+        for p, m in states.items()
+        if m is not None and p in goals
+    )
+
+
 @dataclass(frozen=True)
 class MoveResult:
     """How a move ended.
@@ -146,13 +162,8 @@ class RobotLink:
         deadline = time.monotonic() + wait
         while True:
             latest = {p: self.states[p].latest() for p in PARTS}
-            if (
-                all(
-                    m is not None and m.motion_done and self.states[p].age() <= self.state_max_age
-                    for p, m in latest.items()
-                )
-                and len({m.sim_time for m in latest.values() if m is not None}) == 1
-            ):
+            fresh = all(self.states[p].age() <= self.state_max_age for p in PARTS)
+            if fresh and _at_rest(latest, {}, self.joint_tolerance):
                 return {
                     name: value
                     for m in latest.values()
@@ -384,14 +395,8 @@ class RobotLink:
             # until all rest, so a reply sooner would race its settling)
             if not reason:
                 now_states = {p: self.states[p].latest() for p in PARTS}
-                times = {m.sim_time for m in now_states.values() if m is not None}
-                if len(times) == 1 and all(
-                    m is not None
-                    and m.motion_done
-                    and (p not in sent or np.max(np.abs(np.asarray(m.position) - sent[p])) <= tol)
-                    for p, m in now_states.items()
-                ):
-                    done_at = float(times.pop() or 0.0)
+                if _at_rest(now_states, sent, tol):
+                    done_at = max((m.sim_time or 0.0) for m in now_states.values() if m)
                     break
                 marks = {p: (m.seq if m is not None else 0) for p, m in now_states.items()}
         wall = time.monotonic() - start
