@@ -143,3 +143,12 @@ def test_a_move_starts_from_the_robot_at_rest_not_from_a_state_while_it_settles(
     result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
     assert result.reached, result.reason
     assert robot.speeds_set["left_arm"][-1] == pytest.approx([0.05] * 7)  # 50 mrad in 1 s
+
+
+def test_a_part_that_never_rests_fails_the_move_naming_its_key(link: Start) -> None:
+    # the torso (not moved) never shows motion done: the move ends unreached at its timeout
+    robot_link, _ = link([(REST + 0.02, _moved(STEP, True, torso=(0.001, False)))])
+    targets = {j: STEP for p in ("left_arm", "right_arm") for j in PARTS[p]}
+    result = robot_link.move(targets, traj_time=1.0, timeout=0.5)
+    assert not result.reached
+    assert "torso/state:o (not moved) did not come to rest within 0.5 s" in result.reason
