@@ -18,7 +18,13 @@ algorithm × `--rollouts` rollouts, the same work for every N; then everything i
 * CPU s per rollout per process: user + system CPU time (psutil) of each child over the run, and
   of this process (the learner), divided by the run's rollouts; per service, summed over the
   robots (what one rollout costs that service, wherever it ran);
-* where a rollout's time goes: medians of the journal's per-rollout timings.
+* where a rollout's time goes: medians of the journal's per-rollout timings;
+* the bound: the ratio N would reach keeping min(N, cores) cores busy at its measured CPU per
+  rollout, min(N, cores) / (cores N = 1 keeps busy) × (N = 1's CPU per rollout / N's): the work
+  a rollout needs and the parallelism one robot already has fix it, whatever the scheduling;
+* the machine: `benchmarks.machine.core_scaling` in each repeat, what two CPU-bound processes
+  get done together over one alone (2.0 on two idle cores of their own; the host's other
+  guests and the cores' shared caches take from it).
 
 The baseline is N = 1 (one robot, today's mesh). Prints Markdown tables; writes
 `runs/bench-fleet/bench.json`.
@@ -56,7 +62,7 @@ from apps.up.launch_config import (
     fleet_prefixes,
 )
 from apps.up.launcher import Launcher
-from benchmarks.machine import cpu_model
+from benchmarks.machine import core_scaling, cpu_model
 from benchmarks.spread import median_spread
 from mesh.netflags import NetConfig
 from mesh.router import free_tcp_endpoint
@@ -174,8 +180,11 @@ def main(argv: list[str] | None = None) -> int:
     )
     out = Path(args.out)
     results: dict[int, list[dict[str, Any]]] = {n: [] for n in sizes}
+    scaling: list[float] = []
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
+    cores = len(os.sched_getaffinity(0))
     for repeat in range(args.repeats):
+        scaling.append(core_scaling(min(2, cores), 1.5))
         for n in sizes:
             run = _one_run(n, config, out / f"r{repeat}-n{n}-{time.time_ns()}", args.pin)
             results[n].append(run)
@@ -195,18 +204,26 @@ def main(argv: list[str] | None = None) -> int:
     )
     print(
         f"| N robots | rollouts/s: median [min, max] | ratio to N={sizes[0]} "
-        "| CPU s/rollout, all | cores busy |"
+        "| CPU s/rollout, all | cores busy | bound: ratio at min(N, cores) busy |"
     )
-    print("|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|")
     for n in sizes:
         rates = [r["rollouts_per_s"] for r in results[n]]
         ratios = [r / b for r, b in zip(rates, base, strict=True)]
         total = [r["cpu_s_per_rollout_all"] for r in results[n]]
         busy = [r["cores_busy"] for r in results[n]]
+        bound = [
+            min(n, cores) / one["cores_busy"] * one["cpu_s_per_rollout_all"] / total_n
+            for one, total_n in zip(results[sizes[0]], total, strict=True)
+        ]
         print(
             f"| {n} | {median_spread(rates)} | {median_spread(ratios)} "
-            f"| {median_spread(total, '.3f')} | {median_spread(busy)} |"
+            f"| {median_spread(total, '.3f')} | {median_spread(busy)} | {median_spread(bound)} |"
         )
+    print(
+        f"\nThe machine, in the same repeats: two CPU-bound processes together do "
+        f"{median_spread(scaling)}× the work of one (`core_scaling`; 2.0 on two idle cores)."
+    )
     services = list(results[sizes[0]][0]["cpu_s_per_rollout"])
     print("\nCPU per rollout per service (median over repeats; the stack's summed over robots):\n")
     _median_table(results, "cpu_s_per_rollout", services, " ms")
@@ -214,7 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     _median_table(results, "timing_median_s", TIMINGS, "")
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(
-        json.dumps({"started": started, "config": vars(args), "results": results}, indent=2)
+        json.dumps(
+            {"started": started, "config": vars(args), "results": results, "core_scaling": scaling},
+            indent=2,
+        )
     )
     return 0
 

@@ -15,6 +15,7 @@ import functools
 import math
 from typing import Any, Literal
 
+import lz4.block
 import msgspec
 import msgspec.inspect
 import numpy as np
@@ -49,7 +50,9 @@ SCHEMA_VERSION = 1
 MAX_BATCH = 16  # joint commands started together (one per part)
 MAX_LEASE_ID = 64  # characters of a lease id (`JointCommand.lease`)
 ALLOWED_DTYPES = ("|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<i8", "<f4", "<f8", "|b1")
-IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "jpeg": 0, "png": 0}
+#: encoding: channels of its raw pixels in `data` (0: compressed bytes). rgb8_lz4: rgb8 pixels
+#: in one LZ4 block, lossless (a rendered 1280x720 frame: 2.7 MB in ~55 kB, 0.5 ms each way).
+IMAGE_ENCODINGS = {"rgb8": 3, "bgr8": 3, "mono8": 1, "rgb8_lz4": 0, "jpeg": 0, "png": 0}
 _ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
 _FLOATS = ("<f4", "<f8")
 
@@ -238,7 +241,8 @@ class WorldEvent(Message, frozen=True):
 
 
 class Image(Message, frozen=True):
-    """An image: raw pixels (rgb8, bgr8, mono8; row-major) or compressed bytes (jpeg, png)."""
+    """An image: raw pixels (rgb8, bgr8, mono8; row-major), rgb8 pixels in an LZ4 block
+    (rgb8_lz4: lossless, the camera's default) or compressed bytes (jpeg, png)."""
 
     width: int
     height: int
@@ -262,15 +266,45 @@ class Image(Message, frozen=True):
 
     @classmethod
     def from_numpy(cls, pixels: np.ndarray, encoding: str = "rgb8", **fields: Any) -> Image:
-        """Wrap an HxWx3 (rgb8/bgr8) or HxW (mono8) uint8 array."""
+        """Wrap an HxWx3 (rgb8/bgr8/rgb8_lz4) or HxW (mono8) uint8 array; rgb8_lz4 compresses
+        the rgb8 pixels into one LZ4 block."""
         if pixels.dtype != np.uint8 or pixels.ndim not in (2, 3):
             raise ValueError(f"pixels must be a uint8 HxW or HxWx3 array, got {pixels.dtype}")
         height, width = pixels.shape[:2]
-        data = np.ascontiguousarray(pixels).tobytes()
+        if encoding == "rgb8_lz4":
+            data = lz4.block.compress(np.ascontiguousarray(pixels), store_size=False)
+        else:
+            data = np.ascontiguousarray(pixels).tobytes()
         return cls(width=width, height=height, encoding=encoding, data=data, **fields)
 
+    def unpacked(self) -> Image:
+        """This image with raw pixels: an rgb8_lz4 image as rgb8 (the same pixels), any other
+        as it is.
+
+        Raises:
+            ValueError: the LZ4 block does not decode to width × height × 3 bytes.
+        """
+        if self.encoding != "rgb8_lz4":
+            return self
+        size = self.width * self.height * 3
+        try:
+            data = lz4.block.decompress(self.data, uncompressed_size=size)
+        except lz4.block.LZ4BlockError as exc:
+            raise ValueError(f"rgb8_lz4 image data does not decode: {exc}") from None
+        if len(data) != size:
+            raise ValueError(
+                f"rgb8_lz4 image of {self.width}x{self.height} decodes to {len(data)} bytes, "
+                f"not {size}"
+            )
+        return msgspec.structs.replace(self, encoding="rgb8", data=data)
+
     def to_numpy(self) -> np.ndarray:
-        """Pixels as uint8: HxWx3 in RGB order for colour encodings, HxW for mono8."""
+        """Pixels as uint8: HxWx3 in RGB order for colour encodings, HxW for mono8.
+
+        Raises:
+            ValueError: compressed data that does not decode."""
+        if self.encoding == "rgb8_lz4":
+            return self.unpacked().to_numpy()
         if self.encoding in ("jpeg", "png"):
             import cv2
 

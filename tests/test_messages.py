@@ -101,6 +101,31 @@ def test_arrays_and_images_travel_as_typed_binary() -> None:
     assert np.array_equal(image.to_numpy(), rgb)
 
 
+def test_an_lz4_image_carries_the_same_pixels_in_fewer_bytes() -> None:
+    rgb = np.zeros((72, 128, 3), np.uint8)  # a rendered frame's flat colours
+    rgb[20:50, 30:90] = (210, 40, 30)
+    rgb[::7, ::5] = np.random.default_rng(1).integers(0, 255, (11, 26, 3), dtype=np.uint8)
+    packed = Image.from_numpy(rgb, "rgb8_lz4", frame=2)
+    assert len(packed.data) < rgb.nbytes / 4
+    image = decode(encode(packed), Image)
+    assert image.encoding == "rgb8_lz4" and np.array_equal(image.to_numpy(), rgb)
+    raw = image.unpacked()
+    assert raw.encoding == "rgb8" and raw.data == rgb.tobytes() and raw.frame == 2
+    plain = Image.from_numpy(rgb)
+    assert plain.unpacked() is plain
+    # a block that is not LZ4, or decodes to another size than width × height × 3
+    for data, match in (
+        (b"\xff" * 40, "rgb8_lz4 image data does not decode"),
+        (
+            Image.from_numpy(rgb[:36], "rgb8_lz4").data,
+            "of 128x72 decodes to 13824 bytes, not 27648",
+        ),
+    ):
+        bad = decode(encode(msgspec.structs.replace(packed, data=data)), Image)
+        with pytest.raises(ValueError, match=match):
+            bad.to_numpy()
+
+
 def test_wrong_type_is_rejected_with_the_expected_name() -> None:
     with pytest.raises(DecodeError, match="invalid JointState"):
         decode(encode(RpcRequest(verb="x")), JointState)

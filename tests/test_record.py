@@ -112,6 +112,22 @@ def test_a_record_holds_the_very_bytes_that_were_published() -> None:
                 assert record.format == message.encoding
 
 
+def test_an_lz4_frame_is_recorded_as_the_raw_pixels_it_carries() -> None:
+    rgb = np.zeros((48, 64, 3), np.uint8)
+    rgb[10:20, 5:30] = (200, 30, 40)
+    packed = Image.from_numpy(rgb, "rgb8_lz4", frame=5, sim_time=2.0, seq=3, stamp=time.time())
+    schema, data = to_record(decode(encode(packed), Image))
+    record = RawImage.FromString(data)  # Foxglove's raw image: no LZ4 there
+    assert schema == "foxglove.RawImage" and record.encoding == "rgb8"
+    assert record.data == rgb.tobytes() and record.step == 64 * 3
+    back = from_record(schema, data)
+    assert isinstance(back, Image) and np.array_equal(back.to_numpy(), rgb)
+    assert (back.frame, back.sim_time, back.seq) == (5, 2.0, 3)
+    broken = msgspec.structs.replace(packed, data=packed.data[:-3])
+    with pytest.raises(ValueError, match="rgb8_lz4 image"):
+        to_record(broken)
+
+
 def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> None:
     path = tmp_path / "r.mcap"
     recorder = Recorder(path, "icubSim", ["icubSim/**"], chunk_size=1024)

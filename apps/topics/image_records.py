@@ -93,7 +93,13 @@ def image_schema(name: str) -> bytes:
 
 
 def image_record(image: Image) -> tuple[str, bytes]:
-    """(schema name, protobuf bytes) of a frame: the pixels copied once, as they are."""
+    """(schema name, protobuf bytes) of a frame: the pixels copied once, as they are (an
+    rgb8_lz4 frame's as rgb8: Foxglove's raw image knows no LZ4, the recording's chunks are
+    compressed anyway).
+
+    Raises:
+        ValueError: an rgb8_lz4 frame whose data does not decode."""
+    image = image.unpacked()
     sec = max(0, int(image.stamp))
     nsec = min(999_999_999, max(0, round((image.stamp - sec) * 1e9)))
     common: dict[str, Any] = {

@@ -50,9 +50,10 @@ KEPT_RENDERS = 4  # renders kept for reuse by view key (2.7 MB each at 1280×720
 
 
 def encode(pixels: np.ndarray, encoding: str, **fields: Any) -> Image:
-    """RGB pixels (H, W, 3) as an `Image`: raw (rgb8) or compressed (jpeg, png)."""
-    if encoding == "rgb8":
-        return Image.from_numpy(pixels, **fields)
+    """RGB pixels (H, W, 3) as an `Image`: raw (rgb8), lossless LZ4 (rgb8_lz4) or compressed
+    (jpeg, png)."""
+    if encoding in ("rgb8", "rgb8_lz4"):
+        return Image.from_numpy(pixels, encoding, **fields)
     ok, data = cv2.imencode(".jpg" if encoding == "jpeg" else ".png", pixels[:, :, ::-1])
     if not ok:
         raise ConfigError(f"{encoding} encoding of a {pixels.shape} frame failed")
