@@ -1,10 +1,12 @@
 """Benchmark of `archery record`, `archery dashboard` and `archery replay`.
 
-Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 8] [--rtf 0]`. It prints:
+Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 30] [--rtf 0]`. It prints:
 
 * the observers' cost: per-rollout wall time of learning sessions on one mesh (`archery up`'s
   Launcher, robot at rtf 0 by default, or 1: the wall-clock pace of a watched session) under
-  four conditions, interleaved in a rotating order `--repeats` times: nothing watching; a
+  four conditions, interleaved in a rotating order `--repeats` times (ARCHER sessions that do not
+  stop at the hit: every session runs its `--rollouts`, and the median of their rollouts' wall
+  times is the session's figure): nothing watching; a
   recorder of `ROBOT/**`; the dashboard with a client polling it as its page does (`/api/state`
   every 0.5 s, `/api/frame.png` whenever the frame's version changes); both. Per condition, the
   median over repeats of its ratio to the same repeat's unwatched session, and the spread (min,
@@ -54,8 +56,9 @@ __all__ = ["main", "mesh_launcher", "remeasure"]
 
 
 def _per_rollout(node: Node, rollouts: Any, seed: int, budget: int) -> tuple[float, Path]:
-    """One session of `budget` rollouts: its median wall time per rollout (s) and journal."""
-    request = {"algo": "archer", "seed": seed, "rollouts": budget}
+    """One session of `budget` rollouts (it goes on after a hit): its median wall time per
+    rollout (s) and journal."""
+    request = {"algo": "archer", "seed": seed, "rollouts": budget, "until_hit": False}
     session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
     journal = Path(final["journal"])
@@ -229,7 +232,7 @@ def main(argv: list[str] | None = None) -> int:
     os.environ.setdefault("MUJOCO_GL", "egl")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_record", description=__doc__)
     parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions (≥ 5)")
-    parser.add_argument("--rollouts", type=int, default=8, help="rollouts per session")
+    parser.add_argument("--rollouts", type=int, default=30, help="rollouts per session")
     parser.add_argument("--seconds", type=float, default=5.0, help="per offered frame rate")
     parser.add_argument(
         "--rtf",
@@ -244,8 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     launcher = mesh_launcher(tmp, "bench", model, args.rtf)
     launcher.up(180)
     endpoint = launcher.endpoint
-    times: dict[str, list[float]] = {name: [] for name, _, _ in CONDITIONS}
-    cpu: dict[str, list[dict[str, float]]] = {name: [] for name, _, _ in CONDITIONS}
+    times: dict[str, list[float]] = {name: [] for name, *_ in CONDITIONS}
+    cpu: dict[str, list[dict[str, float]]] = {name: [] for name, *_ in CONDITIONS}
     mesh = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
     last, journal = tmp / "session.mcap", tmp / "none"
     try:
@@ -255,9 +258,14 @@ def main(argv: list[str] | None = None) -> int:
             _per_rollout(node, rollouts, 1000, args.rollouts)  # warm-up (calibration): untimed
             for i in range(args.repeats):
                 k = i % len(CONDITIONS)
-                for name, recorder, dashboard in CONDITIONS[k:] + CONDITIONS[:k]:
+                for name, recorder, dashboard, spinner in CONDITIONS[k:] + CONDITIONS[:k]:
                     with Observers(
-                        endpoint, "bench", last, recorder=recorder, dashboard=dashboard
+                        endpoint,
+                        "bench",
+                        last,
+                        recorder=recorder,
+                        dashboard=dashboard,
+                        spinner=spinner,
                     ) as observers:
                         pids = mesh | observers.pids()
                         before = cpu_seconds(pids)
@@ -274,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
                 base = times["none"][-1]
                 print(
                     f"repeat {i}: "
-                    + ", ".join(f"{n} ×{times[n][-1] / base:.3f}" for n, _, _ in CONDITIONS[1:]),
+                    + ", ".join(f"{n} ×{times[n][-1] / base:.3f}" for n, *_ in CONDITIONS[1:]),
                     flush=True,
                 )
         print("recorder throughput (1280×720 rgb8, lz4):", flush=True)
@@ -290,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         f"interleaved repeats of {args.rollouts}-rollout sessions; median ms without: "
         f"{statistics.median(times['none']) * 1e3:.0f})"
     )
-    for name, _, _ in CONDITIONS[1:]:
+    for name, *_ in CONDITIONS[1:]:
         ratios = [a / b for a, b in zip(times[name], times["none"], strict=True)]
         print(
             f"  {name}: median ratio ×{statistics.median(ratios):.3f} "
@@ -298,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{statistics.median(times[name]) * 1e3:.0f} ms)"
         )
     print("CPU time per rollout (ms of CPU; median over repeats) of the mesh and the observers:")
-    for name, _, _ in CONDITIONS:
+    for name, *_ in CONDITIONS:
         parts = {n: statistics.median(run.get(n, 0.0) for run in cpu[name]) for n in cpu[name][0]}
         total = statistics.median(sum(run.values()) for run in cpu[name])
         shown = ", ".join(f"{n} {v * 1e3:.1f}" for n, v in parts.items())

@@ -1,11 +1,14 @@
 """The observers whose cost `bench_record` measures: `archery record` and `archery dashboard`
-with a client that polls the dashboard as its page does."""
+with a client that polls the dashboard as its page does; and, for reference, a spinner: a
+process that only burns the CPU nobody else wants (a busy loop in Linux's SCHED_IDLE class),
+what any work beside the mesh costs it on this machine at the lowest priority there is."""
 
 from __future__ import annotations
 
 import json
 import signal
 import subprocess
+import sys
 import threading
 import urllib.request
 from pathlib import Path
@@ -17,13 +20,17 @@ from tests.spawn import spawn
 
 __all__ = ["CONDITIONS", "Observers", "PageClient", "cpu_seconds", "stop"]
 
-#: (name, with the recorder, with the dashboard), the unwatched baseline first.
+#: (name, with the recorder, with the dashboard, with the spinner), the unwatched baseline first.
 CONDITIONS = (
-    ("none", False, False),
-    ("recorder", True, False),
-    ("dashboard", False, True),
-    ("both", True, True),
+    ("none", False, False, False),
+    ("recorder", True, False, False),
+    ("dashboard", False, True, False),
+    ("both", True, True, False),
+    ("idle spinner", False, False, True),
 )
+#: the spinner's program: itself in SCHED_IDLE (it runs only on a core nothing else wants, and
+#: yields it at once to any other thread), then a busy loop
+SPIN = "import os\nos.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))\nwhile True: pass"
 POLL = 0.5  # s: the page's poll period (`POLL_MS` in the dashboard's script)
 
 
@@ -101,6 +108,7 @@ class Observers:
         out: the recorder's file.
         recorder: run `archery record` (every key of the robot).
         dashboard: run `archery dashboard` and a client polling it.
+        spinner: run the spinner (`SPIN`; not one of `pids`: its CPU is all there is).
         env: the observers' environment (default this process's), e.g. an earlier tree's.
         cwd: their working folder (default this process's): `python -m` imports from it first,
             so one outside any tree for an earlier tree's code.
@@ -114,15 +122,19 @@ class Observers:
         *,
         recorder: bool,
         dashboard: bool,
+        spinner: bool = False,
         env: dict[str, str] | None = None,
         cwd: Path | None = None,
     ) -> None:
         self.said: list[str] = []
         self._recorder: subprocess.Popen[str] | None = None
         self._dashboard: subprocess.Popen[str] | None = None
+        self._spinner: subprocess.Popen[bytes] | None = None
         self._client: PageClient | None = None
         flags = ["--connect", endpoint, "--robot", robot]
         try:
+            if spinner:
+                self._spinner = subprocess.Popen([sys.executable, "-c", SPIN])
             if recorder:
                 self._recorder = spawn(
                     "record",
@@ -156,6 +168,10 @@ class Observers:
 
     def close(self) -> None:
         """Stop what runs; the recorder's and the client's summaries go to `said`."""
+        if self._spinner is not None:
+            spinner, self._spinner = self._spinner, None
+            spinner.kill()
+            spinner.wait()
         if self._client is not None:
             client, self._client = self._client, None
             client.close()
