@@ -128,6 +128,21 @@ def test_an_lz4_frame_is_recorded_as_the_raw_pixels_it_carries() -> None:
         to_record(broken)
 
 
+def test_a_frame_that_does_not_unpack_is_counted_malformed_and_the_rest_kept(
+    tmp_path: Path,
+) -> None:
+    rgb = np.full((48, 64, 3), 90, np.uint8)
+    good = Image.from_numpy(rgb, "rgb8_lz4", seq=1, stamp=1.0)
+    broken = msgspec.structs.replace(good, data=b"\xff" * 12, seq=2, stamp=2.0)
+    recorder = Recorder(tmp_path / "x.mcap", "icubSim", ["icubSim/**"])
+    for image in (good, broken, msgspec.structs.replace(good, seq=3, stamp=3.0)):
+        recorder.put("icubSim/cam/target:o", encode(image))
+    stats = recorder.close()
+    assert stats.malformed == 1 and stats.written == {"icubSim/cam/target:o": 2}
+    kept = [m for _, m, _ in open_recording(tmp_path / "x.mcap").messages()]
+    assert [m.seq for m in kept] == [1, 3] and all(m.encoding == "rgb8" for m in kept)
+
+
 def test_the_file_is_chunked_indexed_and_tells_its_schemas(tmp_path: Path) -> None:
     path = tmp_path / "r.mcap"
     recorder = Recorder(path, "icubSim", ["icubSim/**"], chunk_size=1024)

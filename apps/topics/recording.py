@@ -333,7 +333,13 @@ class Recorder:
         if last is not None and message.seq > last + 1:
             self.stats.missing += message.seq - last - 1
         self._seqs[key] = message.seq  # a lower seq: its sender restarted
-        schema_name, data = to_record(message)
+        try:
+            schema_name, data = to_record(message)
+        except ValueError as exc:  # an rgb8_lz4 frame whose block does not decode
+            self.stats.malformed += 1
+            if self.stats.malformed <= 10:
+                log.warning("skipped a malformed message on %s: %s", key, exc)
+            return
         channel = self._channel(key, schema_name, message)
         self._writer.add_message(
             channel,
