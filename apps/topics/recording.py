@@ -315,6 +315,12 @@ class Recorder:
         self._writer.add_message(channel, log_time=log_ns, data=record.data, publish_time=log_ns)
         self.stats.derived += 1
 
+    def _malformed(self, key: str, exc: Exception) -> None:
+        """Count a message skipped as malformed; log the first ten."""
+        self.stats.malformed += 1
+        if self.stats.malformed <= 10:
+            log.warning("skipped a malformed message on %s: %s", key, exc)
+
     def _write(self, key: str, payload: bytes, received_ns: int) -> None:
         with self._lock:
             self._pending_bytes -= len(payload)
@@ -325,9 +331,7 @@ class Recorder:
         try:
             message = decode(payload, message_type)
         except DecodeError as exc:
-            self.stats.malformed += 1
-            if self.stats.malformed <= 10:
-                log.warning("skipped a malformed message on %s: %s", key, exc)
+            self._malformed(key, exc)
             return
         last = self._seqs.get(key)
         if last is not None and message.seq > last + 1:
@@ -336,9 +340,7 @@ class Recorder:
         try:
             schema_name, data = to_record(message)
         except ValueError as exc:  # an rgb8_lz4 frame whose block does not decode
-            self.stats.malformed += 1
-            if self.stats.malformed <= 10:
-                log.warning("skipped a malformed message on %s: %s", key, exc)
+            self._malformed(key, exc)
             return
         channel = self._channel(key, schema_name, message)
         self._writer.add_message(
