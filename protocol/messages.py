@@ -272,6 +272,8 @@ class Image(Message, frozen=True):
             raise ValueError(f"pixels must be a uint8 HxW or HxWx3 array, got {pixels.dtype}")
         height, width = pixels.shape[:2]
         if encoding == "rgb8_lz4":
+            if pixels.shape[2:] != (3,):
+                raise ValueError(f"rgb8_lz4 packs HxWx3 pixels, got shape {pixels.shape}")
             data = lz4.block.compress(np.ascontiguousarray(pixels), store_size=False)
         else:
             data = np.ascontiguousarray(pixels).tobytes()

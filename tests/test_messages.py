@@ -113,6 +113,8 @@ def test_an_lz4_image_carries_the_same_pixels_in_fewer_bytes() -> None:
     assert raw.encoding == "rgb8" and raw.data == rgb.tobytes() and raw.frame == 2
     plain = Image.from_numpy(rgb)
     assert plain.unpacked() is plain
+    with pytest.raises(ValueError, match=r"rgb8_lz4 packs HxWx3 pixels, got shape \(72, 128\)"):
+        Image.from_numpy(rgb[:, :, 0], "rgb8_lz4")
     # a block that is not LZ4, or decodes to another size than width × height × 3
     for data, match in (
         (b"\xff" * 40, "rgb8_lz4 image data does not decode"),
