@@ -21,7 +21,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from apps.film.film import film_hit
+from apps.film.film import film_hit, hit_video
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
 from apps.up.launch_config import SERVICES
@@ -114,8 +114,12 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
     finally:
         with console.status("stopping the services …"):
             codes = launcher.stop_all()
-    final["video"] = film_hit(final)
-    return _summary(console, final, wall, codes)
+    video = hit_video(final)
+    final["video"] = None if video is None else str(video)
+    outcome = _summary(console, final, wall, codes)  # the result first: filming cannot lose it
+    if video is not None and film_hit(final):
+        console.print(f"  filmed:    {video}")
+    return outcome
 
 
 def _summary(
@@ -142,7 +146,7 @@ def _summary(
     console.print(
         "services stopped cleanly" if not unclean else f"[yellow]unclean stops: {unclean}"
     )
-    print(result_line(final))
+    print(result_line(final), flush=True)
     return 0 if final.get("state") == "finished" and hit_at is not None and not unclean else 1
 
 

@@ -29,11 +29,12 @@ from apps.progress import progress_bar
 from mesh.cliargs import ArgumentParser, count
 from protocol.errors import ArcheryError
 from protocol.exit_status import BAD_INPUT, OK, for_error
+from protocol.text import cut
 
 if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
     from apps.film.replay import FilmFrame, Rollout
 
-__all__ = ["FilmResult", "film_hit", "film_session", "main"]
+__all__ = ["FilmResult", "film_hit", "film_session", "hit_video", "main"]
 
 SHEET_THUMB = (480, 270)  # px, one contact-sheet frame
 
@@ -145,10 +146,10 @@ def film_session(
     )
 
 
-def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
-    """After a session: film its hit into `shot.mp4` beside its journal when it finished with a
-    hit and its journal is on this machine; the video's path, or None (why, on stderr, when a
-    hit could not be filmed)."""
+def hit_video(status: dict[str, Any]) -> Path | None:
+    """Where `film_hit` writes the video of a finished session's hit (`shot.mp4` beside its
+    journal), or None when there is nothing to film here: no hit, or the journal is not on
+    this machine (then why, on stderr)."""
     journal = status.get("journal")
     if status.get("state") != "finished" or status.get("hit_at") is None or not journal:
         return None
@@ -159,10 +160,24 @@ def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
             file=sys.stderr,
         )
         return None
+    return Path(journal).parent / "shot.mp4"
+
+
+def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
+    """Film a finished session's hit into `hit_video(status)`; the video's path, or None.
+
+    Filming comes after the session's result: any failure here (a rendering backend that does
+    not start, a missing extra, a full disk, a bug) is one warning line on stderr, never an
+    exception that would lose the result or change the session's exit status.
+    """
+    path = hit_video(status)
+    if path is None:
+        return None
     try:
-        result = film_session(Path(journal), quiet=quiet)
-    except (ArcheryError, ImportError, OSError) as exc:
-        print(f"archery: the hit was not filmed: {exc}", file=sys.stderr)
+        result = film_session(Path(status["journal"]), quiet=quiet)
+    except Exception as exc:  # any failure: the session's result stands
+        why = str(exc) if isinstance(exc, ArcheryError) else f"{type(exc).__name__}: {exc}"
+        print(f"archery: warning: the hit was not filmed: {cut(why)}", file=sys.stderr)
         return None
     return str(result.video)
 

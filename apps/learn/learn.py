@@ -7,8 +7,10 @@ journal; see `services.learner.transfer`), or follows a running one
 `learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
 on stdout (its counts read from the session's journal):
 `{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame", "video"}`; a hit is filmed into `shot.mp4` beside the journal when the
-journal is on this machine (`apps.film`; not with `--no-film`), else "video" is null.
+"report", "hit_frame", "video"}`; then a hit is filmed into `shot.mp4` beside the journal when
+the journal is on this machine (`apps.film`; not with `--no-film`): "video" is that path, else
+null. Filming comes after the line: a failure there is one warning on stderr and leaves the exit
+status that of the session.
 
 Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
 that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
@@ -29,7 +31,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from apps.film.film import film_hit
+from apps.film.film import film_hit, hit_video
 from apps.learn import attach
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
@@ -333,9 +335,11 @@ def main(argv: list[str] | None = None) -> int:
             print(result_line(attach.journal_counts(status)))
             return INTERRUPTED
     counts = attach.journal_counts(status)
-    if not args.no_film:
-        counts["video"] = film_hit(counts, quiet=args.quiet)
-    print(result_line(counts))
+    video = None if args.no_film else hit_video(counts)
+    counts["video"] = None if video is None else str(video)
+    print(result_line(counts), flush=True)  # the result first: nothing after it can lose it
+    if video is not None and film_hit(counts, quiet=args.quiet) and not args.quiet:
+        print(f"archery learn: the hit filmed into {video}", file=sys.stderr)
     if status["state"] != "finished":
         print(
             f"archery learn: session {status['state']}: {status.get('cause', '')}", file=sys.stderr
