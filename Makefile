@@ -1,11 +1,11 @@
 # One command per job: `make demo` runs the main job, `make test` the test suite, `make compose`
-# the containers.
+# the containers. Nothing is exported: every command runs as it would from a plain shell (the
+# product picks its rendering backend itself).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-export MUJOCO_GL ?= egl
 
-.PHONY: setup demo test compose lint format bench drills clean
+.PHONY: setup demo test compose lint format bench bench-smoke wheel-check drills clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,15 @@ format: setup
 
 bench: setup
 	$(PY) -m benchmarks.run
+
+# Every benchmark at its smallest budget: they still run against today's code.
+bench-smoke: setup
+	$(PY) -m benchmarks.run --smoke
+
+# The wheel as a user installs it: built, installed with [all] into a fresh venv outside the
+# checkout (not editable), `archery demo` run from another folder in a bare environment.
+wheel-check: setup
+	$(PY) -m tests.wheel_check
 
 drills: setup
 	$(VENV)/bin/archery drill
