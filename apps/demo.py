@@ -11,7 +11,6 @@ its contact sheet `shot.png` (the hit seen from the side, `archery film`).
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 import time
 from pathlib import Path
@@ -21,7 +20,7 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from apps.film.film import film_hit, hit_video
+from apps.film.film import film_hit, film_ready, hit_video
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
 from apps.up.launch_config import SERVICES
@@ -159,7 +158,6 @@ def _positive(text: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; exit status 0 when the ring was hit and everything stopped cleanly."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
     parser = ArgumentParser(prog="archery demo", description=__doc__)
     parser.add_argument(
         "--algo", default="archer", choices=ALGORITHMS, help="the learner (default archer)"
@@ -180,6 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.endpoint:
             NetConfig(connect=(), listen=(args.endpoint,), mode="router")
         check_writable_dir(Path(args.runs), "--runs", create=True)
+        film_ready()  # the hit is filmed: a backend that cannot start fails now, not then
     except ConfigError as exc:
         print(f"archery demo: {exc}", file=sys.stderr)
         return 2

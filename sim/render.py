@@ -19,15 +19,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import mujoco
 import numpy as np
 
 from sim.arrow import arrow_quat
 from sim.errors import ConfigError
+from sim.gl_backend import renderer_ready
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import (
@@ -91,6 +89,7 @@ class SceneRenderer:
         self.data = mujoco.MjData(self.model)
         self.camera = camera
         self.width, self.height = width, height
+        renderer_ready()  # MuJoCo opens its context with the backend sim.gl_backend picked
         self._renderer = mujoco.Renderer(self.model, height=height, width=width)
         self._option = mujoco.MjvOption()
         if lean:

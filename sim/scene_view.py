@@ -13,9 +13,6 @@ watches it. Like that renderer it reproduces any state of a robot running the sa
 from __future__ import annotations
 
 import dataclasses
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 import numpy as np
 

@@ -19,7 +19,7 @@ the rollout (or is no recording).
 
 from __future__ import annotations
 
-import os
+import importlib.util
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,7 +34,7 @@ from protocol.text import cut
 if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
     from apps.film.replay import FilmFrame, Rollout
 
-__all__ = ["FilmResult", "film_hit", "film_session", "hit_video", "main"]
+__all__ = ["FilmResult", "film_hit", "film_ready", "film_session", "hit_video", "main"]
 
 SHEET_THUMB = (480, 270)  # px, one contact-sheet frame
 
@@ -146,6 +146,22 @@ def film_session(
     )
 
 
+def film_ready() -> None:
+    """The preflight of a verb that films a hit after its session (`learn`, `demo`): the
+    rendering backend starts (`sim.gl_backend.check`), so that a broken one fails before the
+    session, not after it. Where MuJoCo is not installed (a learner-only install) there is
+    nothing to check: filming then says it needs `archery[film]`.
+
+    Raises:
+        RenderBackendError: MuJoCo is installed and no rendering backend starts.
+    """
+    if importlib.util.find_spec("mujoco") is None:
+        return
+    from sim.gl_backend import check
+
+    check()
+
+
 def hit_video(status: dict[str, Any]) -> Path | None:
     """Where `film_hit` writes the video of a finished session's hit (`shot.mp4` beside its
     journal), or None when there is nothing to film here: no hit, or the journal is not on
@@ -184,7 +200,6 @@ def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Film a rollout; exit status 0, or 2 on bad input (one line on stderr)."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
     parser = ArgumentParser(prog="archery film", description=__doc__)
     parser.add_argument("session", type=Path, help="a session's folder or its journal.jsonl")
     parser.add_argument("--rollout", type=count, default=None, help="done rollout N (1-based)")
@@ -200,6 +215,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
     parser.add_argument("--fps", type=count, default=30, help="video frames per second")
     args = parser.parse_args(argv)
+    from sim.gl_backend import RenderBackendError, check
+
+    try:
+        check()
+    except RenderBackendError as exc:
+        print(f"archery film: {exc}", file=sys.stderr)
+        return BAD_INPUT
     if (
         args.width % 2
         or args.height % 2

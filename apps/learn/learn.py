@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from apps.film.film import film_hit, hit_video
+from apps.film.film import film_hit, film_ready, hit_video
 from apps.learn import attach
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
@@ -270,6 +270,8 @@ def main(argv: list[str] | None = None) -> int:
         if "resume" not in request:  # the learner's own checks, then the verb's types
             SessionConfig.from_request(request)
         start = start_args(request)
+        if not args.no_film and not args.attach:  # the hit is filmed here, after the session
+            film_ready()
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2

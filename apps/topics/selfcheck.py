@@ -7,6 +7,7 @@ real process to kill.
 
 from __future__ import annotations
 
+import importlib.util
 import statistics
 import subprocess
 import sys
@@ -151,6 +152,15 @@ def _check(results: list[bool], label: str, func: Callable[[], str]) -> None:
     results.append(ok)
 
 
+def _rendering() -> str:
+    """The backend frames are rendered with here (`sim.gl_backend.check`), or why none."""
+    if importlib.util.find_spec("mujoco") is None:
+        return "skipped: MuJoCo is not installed here (archery[robot])"
+    from sim.gl_backend import check
+
+    return f"MUJOCO_GL={check()}"
+
+
 def _selfcheck(net: NetConfig, timeout: float) -> bool:
     argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     for endpoint in net.connect:
@@ -218,6 +228,7 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
             print(f"mesh self-check on {', '.join(net.connect)} (robot {net.robot!r})")
             for label, func in (
+                ("rendering backend starts", _rendering),
                 ("service appears by liveliness", alive),
                 ("describe lists its ports", describe),
                 ("state stream (latest wins)", stream),

@@ -83,10 +83,16 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> CameraConfig:
     """Build the config from parsed flags.
 
     Raises:
-        ConfigError: an invalid value; the message names the flag and what is valid.
+        ConfigError: an invalid value; the message names the flag and what is valid; for
+            rendered frames, a rendering backend that does not start (`sim.gl_backend.check`).
     """
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise ConfigError(f"--size {args.size!r} is not WIDTHxHEIGHT, e.g. 1280x720") from None
-    return config_from_args(CameraConfig, args, net=net, width=width, height=height)
+    config = config_from_args(CameraConfig, args, net=net, width=width, height=height)
+    if config.source.kind == "mujoco":  # a backend that cannot start: exit 2 before serving
+        from sim.gl_backend import check
+
+        check()
+    return config
