@@ -1,9 +1,18 @@
-"""Shared fixtures: a real Zenoh router on a free loopback port, per-test robot prefixes."""
+"""Shared fixtures: a real Zenoh router on a free loopback port, per-test robot prefixes.
+
+The suite runs in what a user's shell has: the rendering variables a harness or a developer's
+shell may carry are removed before anything is imported, so the product picks its backend
+itself (`sim.gl_backend`) in every test and every child process, as it does for a user.
+"""
 
 from __future__ import annotations
 
-import itertools
 import os
+
+for _variable in ("MUJOCO_GL", "PYOPENGL_PLATFORM"):
+    os.environ.pop(_variable, None)
+
+import itertools
 import subprocess
 import sys
 import threading

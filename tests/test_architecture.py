@@ -166,3 +166,48 @@ def test_no_module_re_exports_another_modules_names() -> None:
         if exported & imported:
             shims.append(f"{name}: {sorted(exported & imported)}")
     assert not shims, "\n".join(shims)
+
+
+RENDERING_VARIABLES = ("MUJOCO_GL", "PYOPENGL_PLATFORM")
+
+
+def _names_a_rendering_variable(path: Path) -> bool:
+    """Whether the module's code (not its docstrings or comments) holds a rendering variable's
+    name as a string: the only way to set, read or remove it."""
+    tree = ast.parse(path.read_text())
+    docstrings = {
+        id(node.body[0].value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
+        and node.body
+        and isinstance(node.body[0], ast.Expr)
+        and isinstance(node.body[0].value, ast.Constant)
+    }
+    return any(
+        isinstance(node, ast.Constant)
+        and isinstance(node.value, str)
+        and id(node) not in docstrings
+        and any(variable in node.value for variable in RENDERING_VARIABLES)
+        for node in ast.walk(tree)
+    )
+
+
+def test_the_rendering_backend_is_picked_in_one_place() -> None:
+    """`sim.gl_backend` alone reads and sets MUJOCO_GL and PYOPENGL_PLATFORM; every MuJoCo
+    renderer is made by `sim.render.SceneRenderer` (which readies the backend first)."""
+    for name, path in MODULES.items():
+        if name != "sim.gl_backend":
+            assert not _names_a_rendering_variable(path), name
+        if name != "sim.render":
+            text = path.read_text()
+            assert not re.search(r"\bmujoco\.(Renderer|GLContext)\b", text), name
+
+
+def test_no_test_sets_the_rendering_variables() -> None:
+    """The suite runs in what a user's shell has: conftest removes the rendering variables
+    before anything is imported, and no test module sets them; the one exception is the test of
+    the backend's choice, which gives them to a child process as a user's shell would."""
+    allowed = {"conftest.py", "test_gl_backend.py", "test_architecture.py"}
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        if path.name not in allowed:
+            assert not _names_a_rendering_variable(path), path.name

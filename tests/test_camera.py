@@ -3,10 +3,6 @@ a sim time or a wall stamp, the folder and device sources, bad requests and sett
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import threading
 import time
 from pathlib import Path

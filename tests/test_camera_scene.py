@@ -3,10 +3,6 @@ camera, of the world state the robot publishes, at a low rate, and nothing while
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import threading
 import time
 from collections.abc import Callable

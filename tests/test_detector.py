@@ -3,10 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 from collections.abc import Iterator
 from dataclasses import dataclass
 

@@ -3,10 +3,6 @@ the test publishes from a simulated shot: measure, calibrate, the hit stream, ba
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import math
 import threading
 from collections.abc import Iterator

@@ -4,7 +4,6 @@ broken invariant fail), the flags, and the quick drills against real processes."
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import pytest
@@ -20,9 +19,6 @@ from protocol.journal_records import (
     JournalRecord,
     ProposedRecord,
 )
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 
 THETA = [0.17, 0.0, -0.02]
 HEADER = HeaderRecord(

@@ -27,7 +27,6 @@ from services.learner.journal import read_records
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 pytestmark = pytest.mark.slow
 
 

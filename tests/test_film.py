@@ -4,10 +4,6 @@ the demo films its hit, and the replayed arrow lands where the journal says it d
 from __future__ import annotations
 
 import json
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import shutil
 import subprocess
 import sys

@@ -7,7 +7,6 @@ continues after being killed (`--resume`)."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -30,7 +29,6 @@ from services.learner.journal import check_invariants, read_records
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 pytestmark = pytest.mark.slow
 
 STACK = tuple(s for s in SERVICES if s != "learner")

@@ -6,7 +6,6 @@ service keeps serving, and it gives the memory of a burst back."""
 from __future__ import annotations
 
 import logging
-import os
 import subprocess
 import sys
 import time
@@ -176,7 +175,6 @@ def test_memory_goes_back_after_a_burst_of_big_requests(net: NetConfig) -> None:
         stdin=subprocess.DEVNULL,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        env=os.environ | {"MUJOCO_GL": "egl"},
     )
     try:
         with Node(None, net) as node:

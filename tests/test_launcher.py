@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -19,8 +18,6 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint, open_router, wait_for_endpoint
 from protocol.errors import ConfigError
 from protocol.messages import Image
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def test_launcher_starts_watches_and_stops(tmp_path: Path) -> None:
@@ -87,7 +84,6 @@ def _up(endpoint: str, tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        env=os.environ | {"MUJOCO_GL": "egl"},
     )
 
 

@@ -45,7 +45,6 @@ from tests.conftest import serving
 from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 ROUTER_OUTAGE = 3.0  # s the supervisor waits before it restarts a killed router
 
 

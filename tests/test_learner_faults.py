@@ -49,8 +49,6 @@ from tests.conftest import serving
 from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 
 class FaultRig(FakeRig):
     """A FakeRig whose services vanish on cue and come back only when `back` is set.

@@ -8,7 +8,6 @@ no listener on any interface, no connection to an address it was not given.
 from __future__ import annotations
 
 import contextlib
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,8 +18,6 @@ import pytest
 from apps.up.launch_config import SERVICES
 from apps.up.launcher import Launcher
 from mesh.router import free_tcp_endpoint
-
-os.environ.setdefault("MUJOCO_GL", "egl")
 
 
 def _sockets(pid: int) -> list[psutil._common.pconn]:

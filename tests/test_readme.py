@@ -114,8 +114,6 @@ def test_a_readme_block_runs_and_prints_what_it_says(
         "TLS": tls,
         "PYTHON": sys.executable,
         "MESH_VERBS": " ".join(MESH_VERBS),
-        "MUJOCO_GL": "egl",
-        "PYTHONPATH": str(README.parent),
     }
     proc = subprocess.Popen(
         ["bash", "-c", WRAPPER + body],

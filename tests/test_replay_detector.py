@@ -3,18 +3,13 @@ across a reset of the simulated clock."""
 
 from __future__ import annotations
 
-import os
-
-import pytest
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import signal
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from apps.topics.recording import CALIBRATION_ATTACHMENT, open_recording
 from benchmarks.bench_record import remeasure

@@ -3,10 +3,6 @@ robot description, read back as a generic MCAP reader (Foxglove) reads them."""
 
 from __future__ import annotations
 
-import os
-
-os.environ.setdefault("MUJOCO_GL", "egl")
-
 import base64
 import json
 import subprocess

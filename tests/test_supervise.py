@@ -29,7 +29,6 @@ from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from protocol.errors import ConfigError
 from tests.rpc import rpc_call
 
-os.environ.setdefault("MUJOCO_GL", "egl")
 ROBOT = "sup1"
 
 

@@ -158,7 +158,7 @@ def _rendering() -> str:
         return "skipped: MuJoCo is not installed here (archery[robot])"
     from sim.gl_backend import check
 
-    return f"MUJOCO_GL={check()}"
+    return f"{check()} (MuJoCo renders offscreen)"
 
 
 def _selfcheck(net: NetConfig, timeout: float) -> bool:

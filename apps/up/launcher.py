@@ -145,7 +145,7 @@ class Launcher:
         self.log_files = log_files
         self._outputs: dict[str, RotatingLog] = {}  # by child name, kept across restarts
         self._stop: threading.Event | None = None  # set: stop starting (`up`)
-        self.env = os.environ | {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+        self.env = dict(os.environ)  # each child picks its rendering backend (sim.gl_backend)
 
     def policy(self, name: str) -> RestartPolicy:
         """The restart policy of a child (`router` or a service's id)."""
