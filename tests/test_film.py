@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from apps.film.film import SHEET_THUMB, film_session
+from apps.film.film import SHEET_THUMB, film_hit, film_session, hit_video
 from apps.film.replay import ShotReplay, load_rollout
 from apps.film.video import caption
 from protocol.errors import BadRequest
@@ -75,6 +75,20 @@ def test_the_cli_films_the_first_hit_and_says_the_world_was_not_journaled(
         r for r in read_records(session / "journal.jsonl")[0] if getattr(r, "hit", False)
     )
     assert load_rollout(session, None).done == first_hit
+
+
+def test_a_hit_that_cannot_be_filmed_is_one_warning(
+    session: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """After a session, filming fails as one warning line and returns None (the session's
+    result stands): here the video's path is taken by a folder."""
+    status = {"state": "finished", "hit_at": 1, "journal": str(session / "journal.jsonl")}
+    assert hit_video(status) == session / "shot.mp4"
+    (session / "shot.mp4").mkdir()
+    assert film_hit(status, quiet=True) is None
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("archery: warning: the hit was not filmed:")
+    assert hit_video({"state": "finished", "hit_at": None, "journal": status["journal"]}) is None
 
 
 def test_a_session_without_a_hit_names_the_flag() -> None:

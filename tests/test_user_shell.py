@@ -50,7 +50,8 @@ def test_up_then_learn_in_a_plain_shell_hits_and_films(tmp_path: Path) -> None:
             cwd=folder,
             env=env,
             stdin=subprocess.DEVNULL,
-            capture_output=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,  # one stream: what comes before what
             text=True,
             timeout=600,
         )
@@ -61,14 +62,18 @@ def test_up_then_learn_in_a_plain_shell_hits_and_films(tmp_path: Path) -> None:
         except subprocess.TimeoutExpired:
             up.kill()
             up_out, up_err = up.communicate()
-    assert learn.returncode == 0, learn.stderr[-4000:]
-    assert "Traceback" not in learn.stderr, learn.stderr[-4000:]
-    result = json.loads(learn.stdout.strip().splitlines()[-1])
+    output = learn.stdout
+    assert learn.returncode == 0, output[-4000:]
+    assert "Traceback" not in output and "warning" not in output, output[-4000:]
+    lines = output.splitlines()
+    (at,) = [i for i, line in enumerate(lines) if line.startswith("{")]
+    result = json.loads(lines[at])
     assert result["hit_at"] is not None, result
     video = folder / result["video"]  # relative paths are the shell's: its folder
     assert video == (folder / result["journal"]).parent / "shot.mp4"
-    assert video.is_file() and video.stat().st_size > 10_000, learn.stderr[-2000:]
+    assert video.is_file() and video.stat().st_size > 10_000, output[-2000:]
     assert video.is_relative_to(folder)  # the learner's runs folder: where `up` was started
-    assert "warning" not in learn.stderr, learn.stderr[-2000:]
+    (filmed,) = [i for i, line in enumerate(lines) if "the hit filmed into" in line]
+    assert at < filmed  # the result line first: filming cannot lose it
     assert up.returncode == 0, up_err[-4000:]
     assert "all stopped cleanly" in up_out, up_out[-2000:]

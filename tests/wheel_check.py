@@ -1,0 +1,160 @@
+"""`make wheel-check`: the package as a user installs it, checked end to end.
+
+1. The wheel is built from the checkout (`pip wheel --no-deps`).
+2. Every file of the five product packages that git tracks is inside it (a module or a page
+   missing from the wheel would work in the checkout and fail for a user).
+3. It is installed with `[all]` into a fresh virtual environment outside the checkout, not
+   editable.
+4. From another folder, with only PATH, HOME and LANG in the environment, the installed
+   `archery` imports from that environment (never the checkout) and `archery demo` runs to a
+   hit, its JSON result line printed and the hit filmed.
+
+Each step prints its time; the folder is removed afterwards unless a step failed (then its path
+is printed). Exit status 0 when every step passes, 1 otherwise.
+
+    python -m tests.wheel_check [--keep]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+CHECKOUT = Path(__file__).resolve().parents[1]
+PACKAGES = ("protocol", "mesh", "services", "apps", "sim")
+
+
+class CheckFailed(Exception):
+    """A step of the check failed; the message says which and why."""
+
+
+def _step(title: str, argv: list[str], *, timeout: float, **kwargs: object) -> str:
+    """Run one step, print its time; its stdout. Raises CheckFailed with its output's end."""
+    print(f"wheel-check: {title} …", flush=True)
+    start = time.monotonic()
+    try:
+        proc = subprocess.run(
+            argv,
+            stdin=subprocess.DEVNULL,
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            **kwargs,  # type: ignore[arg-type]
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise CheckFailed(f"{title}: no end within {timeout:.0f} s") from exc
+    took = time.monotonic() - start
+    if proc.returncode != 0:
+        tail = (proc.stdout[-3000:] + "\n" + proc.stderr[-3000:]).strip()
+        raise CheckFailed(f"{title}: exit status {proc.returncode} after {took:.0f} s\n{tail}")
+    print(f"wheel-check: {title}: ok in {took:.1f} s", flush=True)
+    return proc.stdout
+
+
+def _tracked_package_files() -> set[str]:
+    """The files of the product packages that git tracks, as paths inside the wheel."""
+    out = subprocess.run(
+        ["git", "ls-files", *PACKAGES],
+        cwd=CHECKOUT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    return {line for line in out.splitlines() if line.strip()}
+
+
+def _check_contents(wheel: Path) -> None:
+    names = set(zipfile.ZipFile(wheel).namelist())
+    missing = sorted(_tracked_package_files() - names)
+    if missing:
+        raise CheckFailed(
+            f"{len(missing)} file(s) of the packages are not in {wheel.name}: "
+            + ", ".join(missing[:20])
+        )
+    print(f"wheel-check: {wheel.name} holds every tracked package file ({len(names)} files)")
+
+
+def check(folder: Path) -> None:
+    """The whole check in `folder` (outside the checkout). Raises CheckFailed."""
+    dist, venv, home, elsewhere = (folder / n for n in ("dist", "venv", "home", "elsewhere"))
+    for path in (home, elsewhere):
+        path.mkdir(parents=True)
+    python = sys.executable
+    _step(
+        "build the wheel",
+        [python, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(CHECKOUT)],
+        timeout=600,
+    )
+    wheels = sorted(dist.glob("archery-*.whl"))
+    if len(wheels) != 1:
+        raise CheckFailed(f"expected one archery wheel in {dist}, found {wheels}")
+    _check_contents(wheels[0])
+    _step("create a fresh virtual environment", [python, "-m", "venv", str(venv)], timeout=300)
+    _step(
+        "install the wheel with [all]",
+        [str(venv / "bin" / "pip"), "install", "-q", f"{wheels[0]}[all]"],
+        timeout=1800,
+    )
+    env = {"PATH": f"{venv / 'bin'}:/usr/local/bin:/usr/bin:/bin", "HOME": str(home)}
+    env["LANG"] = "C.UTF-8"
+    where = _step(
+        "import from the installed package",
+        ["python", "-c", "import apps, sim; print(apps.__file__); print(sim.__file__)"],
+        timeout=120,
+        cwd=elsewhere,
+        env=env,
+    )
+    for line in where.split():
+        if not Path(line).is_relative_to(venv) or Path(line).is_relative_to(CHECKOUT):
+            raise CheckFailed(f"the package was imported from {line}, not from {venv}")
+    out = _step(
+        "archery demo from another folder in a bare environment",
+        ["archery", "demo"],
+        timeout=900,
+        cwd=elsewhere,
+        env=env,
+    )
+    result = json.loads(out.strip().splitlines()[-1])
+    if result.get("hit_at") is None:
+        raise CheckFailed(f"the demo did not hit: {result}")
+    video = elsewhere / str(result.get("video"))
+    if not video.is_file() or video.stat().st_size == 0:
+        raise CheckFailed(f"the demo's hit was not filmed: {video} is missing")
+    print(
+        f"wheel-check: the installed demo hit at rollout {result['hit_at']} "
+        f"({result['rollouts']} rollouts), filmed into {video.name}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the check; exit status 0 when every step passes."""
+    parser = argparse.ArgumentParser(prog="python -m tests.wheel_check", description=__doc__)
+    parser.add_argument("--keep", action="store_true", help="keep the folder afterwards")
+    args = parser.parse_args(argv)
+    folder = Path(tempfile.mkdtemp(prefix="archery-wheel-check-"))
+    if folder.is_relative_to(CHECKOUT):
+        print(f"wheel-check: {folder} is inside the checkout", file=sys.stderr)
+        return 1
+    start = time.monotonic()
+    try:
+        check(folder)
+    except CheckFailed as exc:
+        print(f"wheel-check: FAILED: {exc}\n(the folder is kept: {folder})", file=sys.stderr)
+        return 1
+    print(f"wheel-check: passed in {time.monotonic() - start:.0f} s")
+    if args.keep:
+        print(f"wheel-check: the folder is kept: {folder}")
+    else:
+        shutil.rmtree(folder, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
