@@ -21,6 +21,11 @@ services (median [min, max] over the repeats), its ratio after / before within e
 wall time per rollout, the cores kept busy, the split per process, and the medians of the
 journal's per-rollout timings (where a rollout's wall time goes). Writes
 `runs/bench-cpu/bench.json`.
+
+`--smoke` runs the same path at its smallest budget: this tree only (no `git archive`), one
+repeat of both conditions (watched and not), sessions of 5 rollouts whose window runs from the
+2nd to the 4th done rollout; the rendering backend is left to the product (`MUJOCO_GL` is
+passed on only when set); everything it writes goes to a temporary folder, removed at the end.
 """
 
 from __future__ import annotations
@@ -51,6 +56,7 @@ __all__ = ["ARCHERY", "main", "start_up", "stop"]
 ARCHERY = (sys.executable, "-m", "apps.cli")
 MESH = ("router", "robot", "controller", "camera", "detector", "learner")
 FIRST, LAST = 10, 40  # the window: from the 10th to the 40th journaled done rollout
+SMOKE_WINDOW = (2, 4)  # the smoke run's window
 POLL = 0.005  # s between reads of the growing journal
 TIMINGS = ("posture_s", "release_s", "measure_s", "detector_grab_s", "hit_frame_s", "rollout_s")
 
@@ -133,10 +139,15 @@ def _done_lines(path: Path, offset: int, count: int) -> tuple[int, int, list[dic
 
 
 def _window(
-    learn: subprocess.Popen[str], runs: Path, procs: dict[str, psutil.Process]
+    learn: subprocess.Popen[str],
+    runs: Path,
+    procs: dict[str, psutil.Process],
+    window: tuple[int, int] = (FIRST, LAST),
 ) -> dict[str, Any]:
-    """Wait for the session's journal to hold its FIRST-th and LAST-th done rollouts; the CPU
-    seconds of each process and the wall seconds between them, and the window's done records."""
+    """Wait for the session's journal to hold its `window[0]`-th and `window[1]`-th done
+    rollouts (FIRST and LAST by default); the CPU seconds of each process and the wall seconds
+    between them, and the window's done records."""
+    first, last = window
     journal = None
     while journal is None:
         found = sorted(runs.glob("*/journal.jsonl"))
@@ -149,17 +160,17 @@ def _window(
     marks: dict[int, tuple[float, dict[str, float]]] = {}
     while len(marks) < 2:
         offset, count, done = _done_lines(journal, offset, count)
-        for mark in (FIRST, LAST):
+        for mark in (first, last):
             if count >= mark and mark not in marks:
                 marks[mark] = (time.monotonic(), _cpu(procs))
-        if FIRST in marks:
+        if first in marks:
             records += done
         if len(marks) < 2:
             if learn.poll() is not None:
                 raise RuntimeError(f"the session ended after {count} rollouts")
             time.sleep(POLL)
-    (t0, cpu0), (t1, cpu1) = marks[FIRST], marks[LAST]
-    rollouts = LAST - FIRST
+    (t0, cpu0), (t1, cpu1) = marks[first], marks[last]
+    rollouts = last - first
     return {
         "journal": str(journal),
         "wall_s": (t1 - t0) / rollouts,
@@ -173,8 +184,16 @@ def _window(
     }
 
 
-def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: bool) -> Any:
-    """One mesh of the tree of `env`, one session, optionally watched; its window's figures."""
+def _one_run(
+    env: dict[str, str],
+    out: Path,
+    seed: int,
+    rollouts: int,
+    watched: bool,
+    window: tuple[int, int] = (FIRST, LAST),
+) -> Any:
+    """One mesh of the tree of `env`, one session, optionally watched; its window's figures
+    (`window`: the first and last done rollout of the window)."""
     endpoint = free_tcp_endpoint()
     up = start_up(env, endpoint, out)
     try:
@@ -213,7 +232,7 @@ def _one_run(env: dict[str, str], out: Path, seed: int, rollouts: int, watched: 
                 text=True,
             )
             try:
-                return _window(learn, out / "runs", procs)
+                return _window(learn, out / "runs", procs, window)
             finally:
                 stop(learn)
     finally:
@@ -225,11 +244,11 @@ def _done(journal: str) -> list[dict[str, Any]]:
         return [json.loads(line) for line in f if b'"record":"done"' in line]
 
 
-def _same(after: dict[str, Any], before: dict[str, Any]) -> dict[str, Any]:
-    """How the two trees' sessions of one seed compare, rollout by rollout (the first LAST):
+def _same(after: dict[str, Any], before: dict[str, Any], last: int = LAST) -> dict[str, Any]:
+    """How the two trees' sessions of one seed compare, rollout by rollout (the first `last`):
     θ proposed and the robot's true r (bit for bit), and the detector's r where the true r
     is the same (largest difference, m)."""
-    pairs = list(zip(_done(after["journal"]), _done(before["journal"]), strict=False))[:LAST]
+    pairs = list(zip(_done(after["journal"]), _done(before["journal"]), strict=False))[:last]
     truth = [a["truth_r_m"] == b["truth_r_m"] for a, b in pairs]
     return {
         "rollouts": len(pairs),
@@ -251,7 +270,10 @@ def _total(run: dict[str, Any], names: tuple[str, ...] = MESH) -> float:
     return float(sum(run["cpu_s"][n] for n in names if n in run["cpu_s"]))
 
 
-def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str]) -> None:
+def _report(
+    results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str], last: int = LAST
+) -> None:
+    """Print the tables; `last`: the window's last done rollout (the rollouts compared)."""
     conditions = list(results[trees[0]])
     print("\nCPU per rollout, router + five services (ms; median [min, max] over repeats):\n")
     print(
@@ -298,29 +320,35 @@ def _report(results: dict[str, dict[str, list[dict[str, Any]]]], trees: list[str
             print(f"| {tree} | {cond} | " + " | ".join(cells) + f" | {hits:g} |")
     if len(conditions) == 2:
         print(
-            f"\nThe same seed on one tree, watched against not (the first {LAST} rollouts of "
+            f"\nThe same seed on one tree, watched against not (the first {last} rollouts of "
             "each repeat's two sessions: the rtf-0 physics must not depend on the load):\n"
         )
         _same_table(
-            [(tree, results[tree][conditions[1]], results[tree][conditions[0]]) for tree in trees]
+            [(tree, results[tree][conditions[1]], results[tree][conditions[0]]) for tree in trees],
+            last,
         )
     if "before" not in results:
         return
     print(
-        f"\nThe same seed on both trees (the first {LAST} rollouts of each repeat's sessions): "
+        f"\nThe same seed on both trees (the first {last} rollouts of each repeat's sessions): "
         "θ proposed and the robot's true r bit for bit, the detector's r where the true r is "
         "the same:\n"
     )
-    _same_table([(cond, results["after"][cond], results["before"][cond]) for cond in conditions])
+    _same_table(
+        [(cond, results["after"][cond], results["before"][cond]) for cond in conditions], last
+    )
 
 
-def _same_table(groups: list[tuple[str, list[dict[str, Any]], list[dict[str, Any]]]]) -> None:
-    """Print, per group (a label and two runs per repeat), how the runs of a repeat compare."""
+def _same_table(
+    groups: list[tuple[str, list[dict[str, Any]], list[dict[str, Any]]]], last: int = LAST
+) -> None:
+    """Print, per group (a label and two runs per repeat), how the runs of a repeat compare
+    (their first `last` rollouts)."""
     print("| runs | repeat | θ identical | true r identical | first that differs | max Δr |")
     print("|---|---|---|---|---|---|")
     for label, first, second in groups:
         for k, (a, b) in enumerate(zip(first, second, strict=True)):
-            same = _same(a, b)
+            same = _same(a, b, last)
             n = same["rollouts"]
             print(
                 f"| {label} | {k + 1} | {same['theta']}/{n} | {same['truth']}/{n} "
@@ -353,14 +381,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-observers", action="store_true", help="no watched condition")
     parser.add_argument("--rollouts", type=int, default=LAST + 2, help=f"session budget (> {LAST})")
     parser.add_argument("--out", default="runs/bench-cpu", help="output directory")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"smallest budget: this tree only, 1 repeat, {SMOKE_WINDOW[1] + 1}-rollout "
+        "sessions, output in a temporary folder (overrides the flags above)",
+    )
     args = parser.parse_args(argv)
-    if args.rollouts <= LAST:
-        parser.error(f"--rollouts must be more than {LAST}")
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
-    base = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    window = SMOKE_WINDOW if args.smoke else (FIRST, LAST)
+    if args.smoke:
+        args.repeats, args.no_before, args.rollouts = 1, True, window[1] + 1
+    if args.rollouts <= window[1]:
+        parser.error(f"--rollouts must be more than {window[1]}")
+    base: dict[str, str] = {}  # smoke: the product picks its rendering backend
+    if not args.smoke:
+        base = {"MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     trees = [("after", env_for(ROOT, **base))]
     with tempfile.TemporaryDirectory(prefix="bench-cpu-") as tmp:
+        if args.smoke:
+            args.out = str(Path(tmp) / "out")
+        out = Path(args.out).resolve()
+        out.mkdir(parents=True, exist_ok=True)
         if not args.no_before:
             before = tree_at(args.before, Path(tmp))
             trees.insert(0, ("before", env_for(before, **base)))
@@ -374,7 +415,7 @@ def main(argv: list[str] | None = None) -> int:
             cond, watched = conditions[cond_index]
             run_dir = out / f"r{repeat}-{name}-{cond}-{time.time_ns()}"
             run_dir.mkdir(parents=True)
-            run = _one_run(env, run_dir, repeat, args.rollouts, watched)
+            run = _one_run(env, run_dir, repeat, args.rollouts, watched, window)
             results[name][cond].append(run)
             print(
                 f"repeat {repeat + 1} {name} {cond}: {1e3 * _total(run):.1f} ms CPU, "
@@ -383,11 +424,11 @@ def main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
         print(f"- Load after the run: {', '.join(f'{v:.2f}' for v in os.getloadavg())}")
-    names = [name for name, _ in trees]
-    _report(results, names)
-    (out / "bench.json").write_text(
-        json.dumps({"config": vars(args), "results": results}, indent=2)
-    )
+        names = [name for name, _ in trees]
+        _report(results, names, window[1])
+        (out / "bench.json").write_text(
+            json.dumps({"config": vars(args), "results": results}, indent=2)
+        )
     return 0
 
 

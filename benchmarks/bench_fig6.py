@@ -15,6 +15,11 @@ Prints per tree the wall time (median [min, max] over repeats), the ratio this /
 repeat, rollouts/s, CPU s per rollout, and the rollouts to hit per algorithm (the same seed on
 both trees: the learners' figures should agree). Writes `runs/bench-fig6/bench.json`; each run's
 figures are in its `--out` folder (`fig6.png`, `summary.json`).
+
+`--smoke` runs the same path at its smallest budget: one repeat, one robot, one ARCHER session
+of 4 rollouts (its exploration phase and one learned rollout), the earlier tree being
+`git archive HEAD` (this tree's last commit, so that the comparison runs without the history of
+a shallow clone); everything it writes goes to a temporary folder, removed at the end.
 """
 
 from __future__ import annotations
@@ -103,25 +108,42 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rollouts", type=int, default=60, help="rollouts per session")
     parser.add_argument("--algo", default="archer,power,cma,hill,random", help="algorithms")
     parser.add_argument("--out", default="runs/bench-fig6", help="output directory")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest budget: 1 repeat, 1 robot, 1 archer session of 4 rollouts, before = HEAD, "
+        "output in a temporary folder (overrides the flags above)",
+    )
     args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bench-fig6-") as tmp:
+        if args.smoke:
+            args.before, args.repeats, args.robots = "HEAD", 1, 1
+            args.sessions, args.rollouts, args.algo = 1, 4, "archer"
+            args.out = str(Path(tmp) / "out")
+        return _run(args, Path(tmp))
+
+
+def _run(args: argparse.Namespace, tmp: Path) -> int:
+    """Both trees' runs (the earlier one extracted under `tmp`) and the report."""
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     results: dict[str, list[dict[str, Any]]] = {"after": [], "before": []}
-    with tempfile.TemporaryDirectory(prefix="bench-fig6-") as tmp:
-        trees = [("after", ROOT), ("before", tree_at(args.before, Path(tmp)))]
-        for repeat, name, tree in interleaved(args.repeats, trees):
-            run_dir = out / f"{name}-{repeat}"
-            run_dir.mkdir(parents=True, exist_ok=True)
-            run = _one_run(env_for(tree), run_dir, args)
-            results[name].append(run)
-            print(
-                f"repeat {repeat + 1}, {name}: {run['wall_s']:.1f} s, "
-                f"{run['rollouts'] / run['wall_s']:.2f} rollouts/s, "
-                f"CPU {run['cpu_s'] / run['rollouts'] * 1000:.1f} ms/rollout, "
-                f"to hit {run['to_hit']}",
-                file=sys.stderr,
-                flush=True,
-            )
+    before = tmp / "before"
+    before.mkdir()
+    trees = [("after", ROOT), ("before", tree_at(args.before, before))]
+    for repeat, name, tree in interleaved(args.repeats, trees):
+        run_dir = out / f"{name}-{repeat}"
+        run_dir.mkdir(parents=True, exist_ok=True)
+        run = _one_run(env_for(tree), run_dir, args)
+        results[name].append(run)
+        print(
+            f"repeat {repeat + 1}, {name}: {run['wall_s']:.1f} s, "
+            f"{run['rollouts'] / run['wall_s']:.2f} rollouts/s, "
+            f"CPU {run['cpu_s'] / run['rollouts'] * 1000:.1f} ms/rollout, "
+            f"to hit {run['to_hit']}",
+            file=sys.stderr,
+            flush=True,
+        )
     header()
     print(
         f"- `archery up --robots {args.robots}` and `archery experiment --world mesh` "
