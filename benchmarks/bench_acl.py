@@ -16,7 +16,13 @@ first:
 Figures: the medians and after/before ratios per repeat (goal ≤ 1.05× for both).
 
     MUJOCO_GL=egl .venv/bin/python -m benchmarks.bench_acl [--repeats 5] [--calls 2000]
-        [--rollouts 12] [--before COMMIT]
+        [--rollouts 12] [--before COMMIT] [--smoke]
+
+`--smoke` runs the same path at its smallest budget: one repeat per tree, 50 timed round trips
+(after the workload's 200 unmeasured ones), a secure session of 4 rollouts, the code before
+being `git archive HEAD` (this tree's last commit, so that the comparison runs without the
+history of a shallow clone); the session's hit is not filmed (`archery learn --no-film`), the
+rendering backend is left to the product (`MUJOCO_GL` is passed on only when set).
 """
 
 from __future__ import annotations
@@ -116,9 +122,14 @@ def _cli(*argv: str) -> list[str]:
     return [sys.executable, "-m", "apps.cli", *argv]
 
 
-def _session(tree: Path, work: Path, rollouts: int, seed: int) -> float:
-    """Wall time per rollout (s) of a secure session on a fresh `archery up --secure`."""
-    env = env_for(tree, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+def _session(tree: Path, work: Path, rollouts: int, seed: int, smoke: bool = False) -> float:
+    """Wall time per rollout (s) of a secure session on a fresh `archery up --secure`. `smoke`:
+    the rendering backend left to the product (else MUJOCO_GL is egl when unset), the hit not
+    filmed."""
+    if smoke:
+        env, film = env_for(tree), ["--no-film"]
+    else:
+        env, film = env_for(tree, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl")), []
     deploy, runs = work / "deploy", work / "runs"
     subprocess.run(
         _cli("keys", "init", str(deploy)), cwd=tree, env=env, check=True, capture_output=True
@@ -146,6 +157,7 @@ def _session(tree: Path, work: Path, rollouts: int, seed: int) -> float:
                 "--seed",
                 str(seed),
                 *LEARN_FLAGS,
+                *film,
             ],
             cwd=tree,
             env=env,
@@ -173,8 +185,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calls", type=int, default=2000, help="RPC round trips per repeat")
     parser.add_argument("--rollouts", type=int, default=12, help="rollouts per session")
     parser.add_argument("--before", default="3dac023", help="the commit before per-verb access")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest budget: 1 repeat, 50 calls, 4 rollouts, before = HEAD (overrides the "
+        "flags above)",
+    )
     args = parser.parse_args(argv)
-    if args.repeats < 5:
+    if args.smoke:
+        args.repeats, args.calls, args.rollouts, args.before = 1, 50, 4, "HEAD"
+    elif args.repeats < 5:
         parser.error("--repeats must be at least 5")
     header()
     rpc: dict[str, list[float]] = {"before": [], "after": []}
@@ -185,7 +205,8 @@ def main(argv: list[str] | None = None) -> int:
         for k, name, tree in interleaved(args.repeats, trees):
             rpc[name].append(_rpc(tree, args.calls))
             with tempfile.TemporaryDirectory() as work:
-                rollout[name].append(_session(tree, Path(work), args.rollouts, k))
+                session = _session(tree, Path(work), args.rollouts, k, args.smoke)
+                rollout[name].append(session)
             print(
                 f"  repeat {k + 1} {name}: rpc {rpc[name][-1]:.3f} ms, "
                 f"{1e3 * rollout[name][-1]:.0f} ms per rollout",

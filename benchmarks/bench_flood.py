@@ -26,7 +26,11 @@ simulated second: an unhindered arm at rtf 1 shows gaps of ~20 ms. Goal: ≤ 0.5
 8.7–30.3 s before).
 
     .venv/bin/python -m benchmarks.bench_flood [--repeats 5] [--count 50000] [--before COMMIT]
-        [--scenarios rival,rival-rtf0,replay] [--after-only]
+        [--scenarios rival,rival-rtf0,replay] [--after-only] [--smoke]
+
+`--smoke` runs the same workload at its smallest budget: every scenario once, on this tree only
+(`--after-only`; the code before, `git archive HEAD`, is extracted but not run), with a flood of
+500 commands (about 20 s: the rtf-1 postures take 2 s each).
 """
 
 from __future__ import annotations
@@ -253,9 +257,18 @@ def main(argv: list[str] | None = None) -> int:
         "--scenarios", default=",".join(SCENARIOS), help=f"among {', '.join(SCENARIOS)}"
     )
     parser.add_argument("--after-only", action="store_true", help="skip the code before")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest budget: 1 repeat of every scenario, 500 commands, this tree only "
+        "(overrides the flags above)",
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.repeats, args.count, args.before, args.after_only = 1, 500, "HEAD", True
+        args.scenarios = ",".join(SCENARIOS)
     scenarios = [s for s in args.scenarios.split(",") if s]
-    if args.repeats < 5:
+    if args.repeats < 5 and not args.smoke:
         parser.error("--repeats must be at least 5")
     if not set(scenarios) <= set(SCENARIOS):
         parser.error(f"--scenarios must be among {', '.join(SCENARIOS)}")
