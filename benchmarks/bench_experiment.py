@@ -1,4 +1,15 @@
-"""Benchmark of the simulation experiment: every learner on the paper's range and harder ones."""
+"""Benchmark of the simulation experiment: every learner on the paper's range and harder ones.
+
+Run `python -m benchmarks.bench_experiment [--sessions 40] [--rollouts 60] [--seed 0] [--out DIR]
+[--smoke]`. For each scenario, every algorithm runs `--sessions` sessions of `--rollouts`
+rollouts in the ballistic world; it prints the table (rollouts to hit, hit rate, final distance,
+wall time in s) and the goals, writes each scenario's figures and bench.json under `--out`, and
+times `archery experiment` with the defaults as a fresh process.
+
+`--smoke` runs the same path at its smallest budget: every scenario and algorithm, one session
+of 8 rollouts (CMA-ES's exploration phase and one learned rollout), the timed command likewise;
+its figures and bench.json go to a temporary folder, removed at the end.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +18,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -92,10 +104,24 @@ def main(argv: list[str] | None = None) -> int:
     """Run the benchmark, print the table, write figures and bench.json under --out."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_experiment")
     parser.add_argument("--out", default="runs/bench-experiment", help="output directory")
-    parser.add_argument("--sessions", type=int, default=40)
-    parser.add_argument("--rollouts", type=int, default=60)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sessions", type=int, default=40, help="sessions per algorithm")
+    parser.add_argument("--rollouts", type=int, default=60, help="rollouts per session")
+    parser.add_argument("--seed", type=int, default=0, help="the experiment's seed")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest budget: 1 session of 8 rollouts, output in a temporary folder "
+        "(overrides --sessions, --rollouts, --out)",
+    )
     args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bench-experiment-") as tmp:
+        if args.smoke:
+            args.sessions, args.rollouts, args.out = 1, 8, tmp
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Every scenario and algorithm, the timed command; the table, goals and bench.json."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 

@@ -28,6 +28,11 @@ algorithm × `--rollouts` rollouts, the same work for every N; then everything i
 
 The baseline is N = 1 (one robot, today's mesh). Prints Markdown tables; writes
 `runs/bench-fleet/bench.json`.
+
+`--smoke` runs the same path at its smallest budget: one repeat of N = 1 and N = 2 (so that a
+fleet's prefixes and work queue run), two ARCHER sessions of 4 rollouts (its exploration phase
+and one learned rollout) per N, `core_scaling` over 0.2 s; bench.json and the logs go to a
+temporary folder, removed at the end.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ import json
 import os
 import statistics
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Sequence
@@ -168,7 +174,22 @@ def main(argv: list[str] | None = None) -> int:
         action="store_true",
         help="one core per robot stack (stack i on core i mod the cores): scaling per core",
     )
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="smallest budget: 1 repeat of N = 1, 2, 2 archer sessions of 4 rollouts, output in "
+        "a temporary folder (overrides the flags above but --pin)",
+    )
     args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="bench-fleet-") as tmp:
+        if args.smoke:
+            args.robots, args.repeats, args.sessions, args.rollouts = "1,2", 1, 2, 4
+            args.algos, args.out = "archer", tmp
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    """Every repeat and fleet size; the tables and bench.json."""
     sizes = [int(x) for x in args.robots.split(",")]
     config = mesh_experiment_config(
         ExperimentConfig(
@@ -184,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())
     cores = len(os.sched_getaffinity(0))
     for repeat in range(args.repeats):
-        scaling.append(core_scaling(min(2, cores), 1.5))
+        scaling.append(core_scaling(min(2, cores), 0.2 if args.smoke else 1.5))
         for n in sizes:
             run = _one_run(n, config, out / f"r{repeat}-n{n}-{time.time_ns()}", args.pin)
             results[n].append(run)
