@@ -13,7 +13,9 @@ A router process, one service holding its instance token, and one client session
 Reported per arrangement: the queries that came back without the token (summed over repeats,
 and per repeat as median [min, max]), and the wall time of those empty answers (ms).
 
-Run: `.venv/bin/python -m benchmarks.bench_liveliness [--queries N] [--repeats R]`
+Run: `.venv/bin/python -m benchmarks.bench_liveliness [--queries N] [--repeats R]`.
+`--smoke`: 1 repeat of 5 queries per arrangement (seconds; the counts are noise), on the same
+router, service and client sessions.
 """
 
 from __future__ import annotations
@@ -75,7 +77,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("--queries", type=int, default=500, help="queries per repeat")
     parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats (≥ 5)")
+    parser.add_argument(
+        "--smoke", action="store_true", help="1 repeat of 5 queries: runs every arrangement"
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.queries, args.repeats = 5, 1
     print(f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC; {os.cpu_count()} CPUs, {cpu_model()}")
     zenoh_version = importlib.metadata.version("eclipse-zenoh")
     print(f"python {platform.python_version()}, eclipse-zenoh {zenoh_version}")

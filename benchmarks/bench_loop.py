@@ -16,7 +16,9 @@ inside the 5 cm ring (measured by the detector) or at the budget. From the journ
 * rollouts to the ring per algorithm: median, quartiles, sessions that hit, and how far the
   detector's r is from the robot's ground truth.
 
-Writes `runs/bench-loop/bench.json`; prints the tables.
+Writes `runs/bench-loop/bench.json`; prints the tables. `--smoke`: one ARCHER session of 2
+rollouts on the same whole mesh (tens of seconds, most of it the mesh's start-up; its figures
+are noise), the journals and bench.json in a temporary directory, removed after.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import os
 import platform
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -47,6 +50,7 @@ from tests.rpc import rpc_call
 __all__ = ["main"]
 
 BUDGET = {"archer": 30, "power": 60}
+SMOKE_BUDGET = 2  # rollouts of the smoke run's one session: one rollout-to-rollout time
 
 
 def _session(node: Node, rollouts: Any, algo: str, seed: int, budget: int) -> dict[str, Any]:
@@ -98,8 +102,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=10, help="sessions per algorithm")
     parser.add_argument("--algos", default="archer,power", help="comma-separated algorithms")
     parser.add_argument("--out", default="runs/bench-loop", help="output directory")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="one archer session of 2 rollouts, output in a temporary directory: no figures",
+    )
     args = parser.parse_args(argv)
-    out = Path(args.out)
+    if args.smoke:
+        with tempfile.TemporaryDirectory(prefix="bench-loop-") as tmp:
+            return _run(args.algos.split(",")[:1], 1, Path(tmp), budget=SMOKE_BUDGET)
+    return _run(args.algos.split(","), args.seeds, Path(args.out))
+
+
+def _run(algos: list[str], seeds: int, out: Path, budget: int | None = None) -> int:
+    """Sessions of every algorithm in `algos` for seeds 0 … seeds − 1 (each to its `BUDGET`,
+    or to `budget` rollouts); the tables printed, bench.json under `out`."""
     launcher = Launcher(
         free_tcp_endpoint(), "bench", out / "logs", {"learner": ["--runs", str(out)]}
     )
@@ -111,9 +128,9 @@ def main(argv: list[str] | None = None) -> int:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)
-            for algo in args.algos.split(","):
-                for seed in range(args.seeds):
-                    final = _session(node, rollouts, algo, seed, BUDGET.get(algo, 60))
+            for algo in algos:
+                for seed in range(seeds):
+                    final = _session(node, rollouts, algo, seed, budget or BUDGET.get(algo, 60))
                     sessions.setdefault(algo, []).append(final)
                     print(
                         f"{algo} seed {seed}: {final['state']} {final.get('ended')}, hit at "
@@ -166,8 +183,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     summary: dict[str, Any] = {}
     for algo, finals in sessions.items():
-        budget = BUDGET.get(algo, 60)
-        to_hit = [f["hit_at"] if f["hit_at"] is not None else budget + 1 for f in finals]
+        limit = budget or BUDGET.get(algo, 60)
+        to_hit = [f["hit_at"] if f["hit_at"] is not None else limit + 1 for f in finals]
         q1, med, q3 = np.percentile(to_hit, [25, 50, 75])
         hits = sum(f["hit_at"] is not None for f in finals)
         aborted = sum(f["aborted"] for f in finals)

@@ -13,19 +13,26 @@ enough that machine noise (a shared 2-core machine) hits both sides alike.
 - Streams: N = 1, 2, 4 camera streams at once through the router (N publisher/subscriber
   pairs, each publisher on its own thread at full speed, 1280×720); aggregate frames/s.
 - RPC: round trips with a trivial handler and with a 1 ms handler (`time.sleep(0.001)` on
-  both sides). The raw queryable replies the request's payload (the same bytes as the
-  protocol's request); the protocol serves a typed verb (`Node.call_typed` against
-  `Node.serve`): the trivial echo is a non-blocking verb, the 1 ms one blocking (it runs on
-  the server's worker thread). Figures: median and p99 of the repeat's calls.
+  both sides), on the keys of the protocol's calls: a call of VERB on the port PORT asks
+  `PORT/VERB` and the server answers `PORT/*` (`protocol.keys.verb_key`, `verbs_key`), the
+  raw querier and queryable alike. The raw queryable replies the request's payload (the same
+  bytes as the protocol's request); the protocol serves a typed verb (`Node.call_typed`
+  against `Node.serve`): the trivial one is a non-blocking verb, the 1 ms one blocking (it
+  runs on the server's worker thread). Figures: median and p99 of the repeat's calls (ms).
 - Secure: the same frames and RPC figures over a router in secure mode (mutual TLS with a
   fresh `archery keys init` deployment, the router enforcing its ACL), protocol-over-secure
   against raw-over-secure, with the deployment's identities (camera → operator, learner →
-  detector) on their ACL-granted keys.
+  detector) on their ACL-granted keys: the frames on `ROBOT/cam/target:o`, the calls on two
+  verbs the ACL grants the learner on `ROBOT/detector/rpc:i` (`measure`, `frame`: served by
+  the benchmark's trivial and 1 ms handlers), so both sides pass the same per-verb rules.
 
 Goals (median over repeats): frames ≤ 1.15×, RPC median ≤ 1.2×, RPC p99 ≤ 1.5×.
 
 Run: `python -m benchmarks.bench_mesh [--repeats 5] [--blocks 4] [--frames 40] [--calls 300]
-[--slow-calls 60] [--no-secure]`
+[--slow-calls 60] [--no-secure]`. `--smoke` runs every part (plain and secure, 1 and 2
+streams) once at its smallest budget: 1 repeat of 2 blocks per side, 2 frames per stream, 5
+trivial and 2 slow calls per block, no 4-stream case; its ratios are noise, not figures (it
+writes nothing; nothing does).
 """
 
 from __future__ import annotations
@@ -48,12 +55,14 @@ import zenoh
 
 from apps.progress import progress_bar
 from benchmarks.machine import cpu_model
+from mesh.acl import roles
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
 from mesh.publisher import Publisher
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
+from protocol.keys import verb_key, verbs_key
 from protocol.messages import Image, RpcRequest
 from protocol.verbs import Args, Reply, Verb, VerbTable
 
@@ -72,9 +81,24 @@ class EchoReply(Reply, frozen=True):
     theta: list[float]
 
 
-ECHO = Verb("echo", EchoArgs, EchoReply, "reply θ at once", blocking=False)
-WORK = Verb("work", EchoArgs, EchoReply, "sleep 1 ms, then reply θ")
-TABLE = VerbTable("bench", ("bench/rpc:i",), (ECHO, WORK))
+PLAIN_VERBS = ("echo", "work")  # (trivial, 1 ms) verb names on the plain router
+
+
+def _verbs(trivial: str, slow: str) -> tuple[Verb, Verb, VerbTable]:
+    """The trivial verb (non-blocking: θ at once), the 1 ms one (blocking) and their table."""
+    fast = Verb(trivial, EchoArgs, EchoReply, "reply θ at once", blocking=False)
+    work = Verb(slow, EchoArgs, EchoReply, "sleep 1 ms, then reply θ")
+    return fast, work, VerbTable("bench", ("bench/rpc:i",), (fast, work))
+
+
+def granted_verbs(caller: str, port: str) -> tuple[str, str]:
+    """Two verbs the secure router's ACL (`mesh.acl.roles`) lets `caller` call on the `rpc:i`
+    port `port`: the secure figures' (trivial, 1 ms) verbs, on the same `PORT/VERB` keys as
+    the product's calls."""
+    names = [c.rpartition("/")[2] for c in roles(ROBOT)[caller].call if c.startswith(f"{port}/")]
+    if len(names) < 2:
+        raise RuntimeError(f"the ACL grants {caller} fewer than two verbs on {port}: {names}")
+    return names[0], names[1]
 
 
 def _echo(args: EchoArgs) -> EchoReply:
@@ -197,17 +221,22 @@ def _frame_block(streams: list[_Stream], frames: int) -> float:
 
 # -- rpc ------------------------------------------------------------------------------------------
 class RawRpc:
-    """A raw queryable replying the request's payload (after `delay` s) and a raw querier."""
+    """A raw queryable replying the request's payload (after `delay` s) and a raw querier, on
+    the keys of the protocol's calls: the queryable answers `PORT/*` (`verbs_key`), the querier
+    asks `PORT/VERB` (`verb_key`), the keys the secure router's ACL grants per verb."""
 
-    def __init__(self, a: zenoh.Session, b: zenoh.Session, key: str, delay: float) -> None:
+    def __init__(
+        self, a: zenoh.Session, b: zenoh.Session, port: str, verb: str, delay: float
+    ) -> None:
         self.delay = delay
-        self.payload = encode(RpcRequest(verb="echo", args={"theta": THETA}, stamp=time.time()))
-        self._queryable = b.declare_queryable(key, self._on_query)
-        self._querier = a.declare_querier(key, timeout=5.0)
+        self.payload = encode(RpcRequest(verb=verb, args={"theta": THETA}, stamp=time.time()))
+        target = verb_key(port, verb)
+        self._queryable = b.declare_queryable(verbs_key(port), self._on_query)
+        self._querier = a.declare_querier(target, timeout=5.0)
         deadline = time.monotonic() + 10
         while not self._ok():
             if time.monotonic() > deadline:
-                raise RuntimeError(f"no raw queryable answers {key}")
+                raise RuntimeError(f"no raw queryable answers {target}")
             time.sleep(0.01)
 
     def _on_query(self, query: zenoh.Query) -> None:
@@ -236,13 +265,17 @@ class RawRpc:
 
 
 class NodeRpc:
-    """`Node.call_typed` against `Node.serve` of the echo (non-blocking) or work (1 ms) verb."""
+    """`Node.call_typed` against `Node.serve` of the trivial (non-blocking) or the 1 ms
+    (blocking) verb of `names` (trivial, 1 ms)."""
 
-    def __init__(self, client: Node, server: Node, key: str, delay: float) -> None:
+    def __init__(
+        self, client: Node, server: Node, key: str, delay: float, names: tuple[str, str]
+    ) -> None:
         self.client, self.key = client, key
-        self.verb = WORK if delay else ECHO
+        fast, work, table = _verbs(*names)
+        self.verb = work if delay else fast
         self.args = EchoArgs(theta=THETA)
-        self._server = server.serve(key, TABLE.bind({"echo": _echo, "work": _work}))
+        self._server = server.serve(key, table.bind({fast.name: _echo, work.name: _work}))
         deadline = time.monotonic() + 10
         while True:
             try:
@@ -471,12 +504,15 @@ def run_plain(plan: Plan, streams: list[int], tick: Callable[[], None]) -> list[
             median = Figure(f"RPC {label} median (ms)", "ms", GOALS["median"])
             p99 = Figure(f"RPC {label} p99 (ms)", "ms", GOALS["p99"])
             key = f"{ROBOT}/rpc{int(delay * 1e3)}"
+            verb = PLAIN_VERBS[1 if delay else 0]
             measure_rpc(
                 median,
                 p99,
-                lambda key=key, delay=delay: RawRpc(mesh.raw_a, mesh.raw_b, f"{key}/raw", delay),
+                lambda key=key, delay=delay, verb=verb: RawRpc(
+                    mesh.raw_a, mesh.raw_b, f"{key}/raw", verb, delay
+                ),
                 lambda key=key, delay=delay: NodeRpc(
-                    mesh.node_a, mesh.node_b, f"{key}/ours", delay
+                    mesh.node_a, mesh.node_b, f"{key}/ours", delay, PLAIN_VERBS
                 ),
                 plan,
                 calls,
@@ -517,17 +553,21 @@ def run_secure(plan: Plan, tick: Callable[[], None]) -> list[Figure]:
             rpc = _secure_mesh(endpoint, deployment, "learner", "detector")
             meshes.append(rpc)
             rpc_key = rpc.node_a.keys.detector_rpc()  # learner calls, detector serves
+            names = granted_verbs("learner", rpc_key)
             for delay, calls, label in (
                 (0.0, plan.calls, "trivial"),
                 (0.001, plan.slow_calls, "1 ms"),
             ):
                 median = Figure(f"secure RPC {label} median", "ms", GOALS["median"])
                 p99 = Figure(f"secure RPC {label} p99", "ms", GOALS["p99"])
+                verb = names[1 if delay else 0]
                 measure_rpc(
                     median,
                     p99,
-                    lambda delay=delay: RawRpc(rpc.raw_a, rpc.raw_b, rpc_key, delay),
-                    lambda delay=delay: NodeRpc(rpc.node_a, rpc.node_b, rpc_key, delay),
+                    lambda delay=delay, verb=verb: RawRpc(
+                        rpc.raw_a, rpc.raw_b, rpc_key, verb, delay
+                    ),
+                    lambda delay=delay: NodeRpc(rpc.node_a, rpc.node_b, rpc_key, delay, names),
                     plan,
                     calls,
                     tick,
@@ -573,8 +613,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.add_argument(flag, type=int, default=default, help=what)
     parser.add_argument("--streams", default="1,2,4", help="simultaneous stream counts")
     parser.add_argument("--no-secure", action="store_true", help="skip the secure-mode figures")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="every part once at its smallest budget (seconds; ratios are noise, not figures)",
+    )
     args = parser.parse_args(argv)
-    if args.repeats < 5:
+    if args.smoke:
+        args.repeats, args.blocks, args.frames, args.calls, args.slow_calls = 1, 2, 2, 5, 2
+        args.streams = "1,2"
+    elif args.repeats < 5:
         parser.error("--repeats must be at least 5")
     if args.blocks < 2 or args.frames < 2 or args.calls < 2 or args.slow_calls < 2:
         parser.error("--blocks, --frames, --calls and --slow-calls must be at least 2")
@@ -600,6 +648,8 @@ def main(argv: list[str] | None = None) -> int:
         f"loopback (plain tcp/, secure tls/ + ACL)"
     )
     report(figures)
+    if args.smoke:
+        print("smoke run: the smallest budget, the ratios are noise and no figures")
     return 0
 
 
