@@ -7,6 +7,9 @@ gives, per scale, the median rollouts to hit [quartiles] and the hit rate of see
 `archery experiment` shows), the median of the five seeds' medians with their range, and its
 ratio to the paper's 19 and to s = 1 m (‖r‖ in metres, the baseline). The goal: the default
 scale (`services.learner.algorithms.power.DEFAULT_RETURN_SCALE`) is within 19 ± 3.
+
+`--smoke`: every scale on 1 seed of 2 sessions × 20 rollouts (seconds; its figures are noise),
+bench.json in a temporary directory, removed after.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import argparse
 import json
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -67,8 +71,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=5, help="master seeds (repeats, >= 5)")
     parser.add_argument("--sessions", type=int, default=40)
     parser.add_argument("--rollouts", type=int, default=60)
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="every scale, 1 seed of 2 sessions × 20 rollouts, output in a temporary directory",
+    )
     args = parser.parse_args(argv)
-    out = Path(args.out)
+    if args.smoke:
+        args.seeds, args.sessions, args.rollouts = 1, 2, 20
+        with tempfile.TemporaryDirectory(prefix="bench-power-scale-") as tmp:
+            return _run(args, Path(tmp))
+    return _run(args, Path(args.out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
+    """The sweep of `args`; the table and goal printed, bench.json under `out`."""
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     results = sweep(SCALES, args.seeds, args.sessions, args.rollouts)

@@ -17,6 +17,13 @@ Four parts (`--parts`, default all):
 
 Writes summary.json, curves.csv and the figures of each ballistic part, and bench.json, under
 --out; prints the tables.
+
+`--smoke` runs every part at its smallest budget, its figures noise: the scenarios and the
+wind change on 1 session of 31 rollouts (the change at rollout 30, one rollout after it; the
+plots of the first scenario alone), the ranges on 1 session of 2 rollouts per distance against
+the `--before` tree (still extracted and run: the comparison path), and one robot session of 2
+rollouts per robot learner on the whole mesh; everything it writes goes to a temporary
+directory, removed after.
 """
 
 from __future__ import annotations
@@ -64,6 +71,7 @@ ROBOT_VARIANTS: tuple[tuple[str, str, dict[str, Any]], ...] = (
     ("power", "power", {}),
 )
 ROBOT_BUDGET = {"archer-prior": 30, "archer": 30, "power": 60}
+SMOKE_ROBOT_BUDGET = 2  # rollouts of a robot session in the smoke run
 
 
 def _slug(name: str) -> str:
@@ -114,12 +122,13 @@ def _run_ballistic(
     results: dict[str, Any] = {}
     with progress_bar(disable=args.no_progress) as bar:
         task = bar.add_task("ballistic", total=total)
-        for scenario_name, config in configs:
+        for index, (scenario_name, config) in enumerate(configs):
             runs: dict[str, AlgorithmRun] = {}
             for name in config.algorithms:
                 bar.update(task, description=f"{scenario_name[:24]:>24}: {name:>13}")
                 runs[name] = run_algorithm(config, name, lambda: bar.advance(task))
-            summary = write_outputs(out / _slug(scenario_name), config, runs)
+            figures = not args.smoke or index == 0  # the smoke run plots the first alone
+            summary = write_outputs(out / _slug(scenario_name), config, runs, figures=figures)
             results[scenario_name] = summary
             for name, run in runs.items():
                 a = summary["algorithms"][name]
@@ -143,13 +152,13 @@ def _run_ballistic(
 
 
 def _robot_session(
-    node: Any, rollouts: Any, algo: str, options: dict[str, Any], seed: int
+    node: Any, rollouts: Any, algo: str, options: dict[str, Any], seed: int, budget: int
 ) -> dict[str, Any]:
     from apps.learn.follow import follow
     from protocol.journal_records import DoneRecord
     from services.learner.journal import read_records
 
-    request = {"algo": algo, "seed": seed, "rollouts": ROBOT_BUDGET[algo], "options": options}
+    request = {"algo": algo, "seed": seed, "rollouts": budget, "options": options}
     start = time.perf_counter()
     session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
     final = follow(node, session, rollouts, lambda m: None, poll=0.2)
@@ -159,6 +168,11 @@ def _robot_session(
     return final
 
 
+def _budget(args: argparse.Namespace, algo: str) -> int:
+    """A robot session's rollout budget: `ROBOT_BUDGET`'s, or the smoke run's."""
+    return SMOKE_ROBOT_BUDGET if args.smoke else ROBOT_BUDGET[algo]
+
+
 def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str, Any]]:
     finals: dict[str, list[dict[str, Any]]] = {}
     with learning_mesh(out) as (node, rollouts), progress_bar(disable=args.no_progress) as bar:
@@ -166,7 +180,7 @@ def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str
         for label, algo, options in ROBOT_VARIANTS:
             bar.update(task, description=f"robot: {label}")
             for seed in range(args.robot_sessions):
-                final = _robot_session(node, rollouts, algo, options, seed)
+                final = _robot_session(node, rollouts, algo, options, seed, _budget(args, algo))
                 finals.setdefault(label, []).append(final)
                 bar.advance(task)
     table = [
@@ -177,7 +191,7 @@ def _run_robot(args: argparse.Namespace, out: Path) -> tuple[list[str], dict[str
     summary: dict[str, Any] = {}
     for label, algo, _ in ROBOT_VARIANTS:
         runs = finals[label]
-        budget = ROBOT_BUDGET[algo]
+        budget = _budget(args, algo)
         to_hit = np.array([f["hit_at"] if f["hit_at"] is not None else budget + 1 for f in runs])
         first = np.array([f["first_r_cm"] for f in runs if f["first_r_cm"] is not None])
         hits = sum(f["hit_at"] is not None for f in runs)
@@ -247,12 +261,28 @@ def main(argv: list[str] | None = None) -> int:
         default="scenarios,ranges,robot",
         help="comma-separated parts to run: scenarios (with the wind change), ranges, robot",
     )
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="every part at its smallest budget, output in a temporary directory: no figures",
+    )
     args = parser.parse_args(argv)
     parts = set(args.parts.split(","))
     unknown = parts - {"scenarios", "ranges", "robot"}
     if unknown:
         parser.error(f"--parts: unknown part(s) {', '.join(sorted(unknown))}")
-    out = Path(args.out)
+    if args.smoke:
+        args.sessions, args.rollouts = 1, CHANGE.at + 1
+        args.range_sessions, args.range_rollouts = 1, 2
+        args.robot_sessions = 1
+        with tempfile.TemporaryDirectory(prefix="bench-prior-") as tmp:
+            return _run(args, parts, Path(tmp))
+    return _run(args, parts, Path(args.out))
+
+
+def _run(args: argparse.Namespace, parts: set[str], out: Path) -> int:
+    """The `parts` of the benchmark at the budgets of `args`; the tables printed, the figures
+    and bench.json under `out`."""
     out.mkdir(parents=True, exist_ok=True)
     header()
     results: dict[str, Any] = {}
