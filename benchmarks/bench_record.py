@@ -21,6 +21,10 @@ Run `python -m benchmarks.bench_record [--repeats 5] [--rollouts 30] [--rtf 0]`.
   fresh detector loaded with the mesh detector's colour model; every detection measured again
   (its frame found by sim time and stamp) and compared with the r the learner journaled; max
   |Δr|.
+
+`--smoke`: every part at its smallest budget, its figures noise: 1 repeat (each condition
+once) of 2-rollout sessions on the same whole mesh, 0.5 s per offered frame rate, and the
+replay of the last recorded session; in a temporary directory, removed after.
 """
 
 from __future__ import annotations
@@ -241,8 +245,21 @@ def main(argv: list[str] | None = None) -> int:
         help="the robot's real-time factor: 0 = as fast as possible (default), 1 = wall-clock "
         "pace, as when a session is watched",
     )
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="1 repeat of 2-rollout sessions, 0.5 s per rate, in a temporary directory",
+    )
     args = parser.parse_args(argv)
-    tmp = Path(tempfile.mkdtemp(prefix="bench-record-"))
+    if args.smoke:
+        args.repeats, args.rollouts, args.seconds = 1, 2, 0.5
+        with tempfile.TemporaryDirectory(prefix="bench-record-") as tmp:
+            return _run(args, Path(tmp))
+    return _run(args, Path(tempfile.mkdtemp(prefix="bench-record-")))
+
+
+def _run(args: argparse.Namespace, tmp: Path) -> int:
+    """The benchmark at the budgets of `args`, its files under `tmp`; the report printed."""
     model = tmp / "model.json"
     launcher = mesh_launcher(tmp, "bench", model, args.rtf)
     launcher.up(180)

@@ -11,6 +11,8 @@ releases and waits for the landing event. Figures (wall time unless said otherwi
 * simulated seconds per wall second during the posture moves;
 * ‖θ − θ_measured‖ of the postures;
 * a cheap controlboard RPC round trip (getPositions).
+
+`--smoke`: 2 rollouts on the same router and services (seconds; its figures are noise).
 """
 
 from __future__ import annotations
@@ -94,7 +96,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rollouts", type=int, default=50, help="rollouts to time")
     parser.add_argument("--seed", type=int, default=0, help="seed of the θ draws")
+    parser.add_argument("--smoke", action="store_true", help="2 rollouts: every part, no figures")
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.rollouts = 2
     endpoint = free_tcp_endpoint()
     net = NetConfig(connect=(endpoint,), robot="bench")
     with open_router(endpoint):

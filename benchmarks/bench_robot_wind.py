@@ -14,6 +14,10 @@ after `setWind`) with the hit's shot (its `done` record in the journal) and coun
 released under the old wind as a delay ("late shots"), moving the change one rollout on.
 
 Writes bench.json under --out and prints the table.
+
+`--smoke`: one session per learner on the same whole mesh, `SMOKE_BEFORE` rollouts to the first
+hit and `SMOKE_AFTER` after the change (tens of seconds, most of it the mesh's start-up; its
+figures are noise), bench.json in a temporary directory, removed after.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -36,6 +41,7 @@ WIND = (0.0, 15.0, 0.0)  # m/s: moves a centred shot ~10 cm sideways on the targ
 ALGORITHMS = ("archer-prior", "archer-recent", "archer", "power")
 BEFORE = {"archer-prior": 30, "archer-recent": 30, "archer": 30, "power": 60}  # to the first hit
 AFTER = 30  # rollouts under the new wind to hit again
+SMOKE_BEFORE, SMOKE_AFTER = 5, 3  # the smoke run's budgets (rollouts)
 
 
 def _quartiles(values: np.ndarray) -> str:
@@ -43,7 +49,11 @@ def _quartiles(values: np.ndarray) -> str:
     return f"{median:g} [{q1:g}, {q3:g}]"
 
 
-def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
+def _session(
+    node: Any, rollouts: Any, algo: str, seed: int, before: int, after: int
+) -> dict[str, Any]:
+    """One session of `algo`: up to `before` rollouts to the first hit, the wind changed after
+    it, then up to `after` rollouts to hit again."""
     from apps.learn.follow import follow
     from protocol.journal_records import DoneRecord
     from services.learner.journal import read_records
@@ -81,7 +91,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
                 late = now - shot
                 state.update(first_hit=index, change_at=index + 1 + late, late_shots=late)
                 state["truth_cm_hit"] = truth
-            elif index >= BEFORE[algo]:
+            elif index >= before:
                 stop()
         elif index >= state["change_at"]:
             if index == state["change_at"]:
@@ -89,10 +99,10 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
             if record.hit and state["rehit_at"] is None:
                 state["rehit_at"] = index
                 stop()
-            elif index >= state["change_at"] + AFTER - 1:
+            elif index >= state["change_at"] + after - 1:
                 stop()
 
-    request = {"algo": algo, "seed": seed, "rollouts": BEFORE[algo] + AFTER + 2}
+    request = {"algo": algo, "seed": seed, "rollouts": before + after + 2}
     request["until_hit"] = False
     start = time.perf_counter()
     started = rpc_call(node, learner, "start", request, timeout=60)
@@ -105,7 +115,7 @@ def _session(node: Any, rollouts: Any, algo: str, seed: int) -> dict[str, Any]:
     if state["rehit_at"] is not None:
         state["rehit"] = state["rehit_at"] - state["change_at"] + 1
     else:
-        state["rehit"] = None if state["first_hit"] is None else AFTER + 1
+        state["rehit"] = None if state["first_hit"] is None else after + 1
     return state
 
 
@@ -117,17 +127,34 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", default="runs/bench-robot-wind", help="output directory")
     parser.add_argument("--sessions", type=int, default=10, help="sessions per learner")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help=f"1 session per learner, {SMOKE_BEFORE} + {SMOKE_AFTER} rollouts, output in a "
+        "temporary directory: no figures",
+    )
     args = parser.parse_args(argv)
-    out = Path(args.out).resolve()
-    out.mkdir(parents=True, exist_ok=True)
+    if args.smoke:
+        args.sessions = 1
+        with tempfile.TemporaryDirectory(prefix="bench-robot-wind-") as tmp:
+            before = dict.fromkeys(ALGORITHMS, SMOKE_BEFORE)
+            return _run(args, Path(tmp).resolve(), before, SMOKE_AFTER)
+    return _run(args, Path(args.out).resolve(), BEFORE, AFTER)
 
+
+def _run(args: argparse.Namespace, out: Path, before: dict[str, int], after: int) -> int:
+    """`args.sessions` sessions per learner (`before` rollouts to the first hit per learner,
+    `after` after the change); the table printed, bench.json under `out`."""
+    out.mkdir(parents=True, exist_ok=True)
     runs: dict[str, list[dict[str, Any]]] = {}
     with learning_mesh(out) as (node, rollouts), progress_bar(disable=args.no_progress) as bar:
         task = bar.add_task("robot wind", total=len(ALGORITHMS) * args.sessions)
         for algo in ALGORITHMS:
             bar.update(task, description=f"robot wind: {algo}")
             for seed in range(args.sessions):
-                runs.setdefault(algo, []).append(_session(node, rollouts, algo, seed))
+                runs.setdefault(algo, []).append(
+                    _session(node, rollouts, algo, seed, before[algo], after)
+                )
                 bar.advance(task)
 
     wind = ", ".join(f"{w:g}" for w in WIND)
@@ -136,10 +163,10 @@ def main(argv: list[str] | None = None) -> int:
         f"wind turns to {wind} m/s: median [q1, q3] | sessions hitting again | late shots |",
         "|---|---|---|---|---|",
     ]
-    summary: dict[str, Any] = {"wind": list(WIND), "after": AFTER, "learners": {}}
+    summary: dict[str, Any] = {"wind": list(WIND), "after": after, "learners": {}}
     for algo in ALGORITHMS:
         sessions = runs[algo]
-        first = np.array([s["first_hit"] or BEFORE[algo] + 1 for s in sessions])
+        first = np.array([s["first_hit"] or before[algo] + 1 for s in sessions])
         changed = [s for s in sessions if s["first_hit"] is not None]
         rehit = np.array([s["rehit"] for s in changed]) if changed else np.array([np.nan])
         again = sum(s["rehit_at"] is not None for s in changed)
