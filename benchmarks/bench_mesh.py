@@ -54,8 +54,8 @@ import numpy as np
 import zenoh
 
 from apps.progress import progress_bar
+from benchmarks.echo_verbs import granted_verbs
 from benchmarks.machine import cpu_model
-from mesh.acl import roles
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
@@ -91,11 +91,11 @@ def _verbs(trivial: str, slow: str) -> tuple[Verb, Verb, VerbTable]:
     return fast, work, VerbTable("bench", ("bench/rpc:i",), (fast, work))
 
 
-def granted_verbs(caller: str, port: str) -> tuple[str, str]:
-    """Two verbs the secure router's ACL (`mesh.acl.roles`) lets `caller` call on the `rpc:i`
-    port `port`: the secure figures' (trivial, 1 ms) verbs, on the same `PORT/VERB` keys as
-    the product's calls."""
-    names = [c.rpartition("/")[2] for c in roles(ROBOT)[caller].call if c.startswith(f"{port}/")]
+def _granted_pair(caller: str, port: str) -> tuple[str, str]:
+    """Two verbs the secure router's ACL lets `caller` call on the `rpc:i` port `port`
+    (`echo_verbs.granted_verbs`): the secure figures' (trivial, 1 ms) verbs, on the same
+    `PORT/VERB` keys as the product's calls."""
+    names = granted_verbs(ROBOT, caller, port)
     if len(names) < 2:
         raise RuntimeError(f"the ACL grants {caller} fewer than two verbs on {port}: {names}")
     return names[0], names[1]
@@ -553,7 +553,7 @@ def run_secure(plan: Plan, tick: Callable[[], None]) -> list[Figure]:
             rpc = _secure_mesh(endpoint, deployment, "learner", "detector")
             meshes.append(rpc)
             rpc_key = rpc.node_a.keys.detector_rpc()  # learner calls, detector serves
-            names = granted_verbs("learner", rpc_key)
+            names = _granted_pair("learner", rpc_key)
             for delay, calls, label in (
                 (0.0, plan.calls, "trivial"),
                 (0.001, plan.slow_calls, "1 ms"),

@@ -13,7 +13,9 @@ protocol layer (`Node.call` answered by `Node.serve`, `Image` frames published a
 Interleaved repeats; per repeat the RPC round trip median and p99 (ms) and 1280×720 frames/s;
 reported as the median over repeats of routed/direct, with the spread (min–max).
 
-Run: `python -m benchmarks.bench_routing [--calls 2000] [--frames 200] [--repeats 5]`
+Run: `python -m benchmarks.bench_routing [--calls 2000] [--frames 200] [--repeats 5]`.
+`--smoke`: 1 repeat of 5 calls and 2 frames per topology, both topologies on the same router
+(seconds; its ratios are noise).
 """
 
 from __future__ import annotations
@@ -92,10 +94,15 @@ def _pairs(router: str) -> dict[str, tuple[Node, Node]]:
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark and print the table of ratios."""
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_routing", description=__doc__)
-    parser.add_argument("--calls", type=int, default=2000)
-    parser.add_argument("--frames", type=int, default=200)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--calls", type=int, default=2000, help="RPC calls per repeat")
+    parser.add_argument("--frames", type=int, default=200, help="1280×720 frames per repeat")
+    parser.add_argument("--repeats", type=int, default=5, help="interleaved repeats")
+    parser.add_argument(
+        "--smoke", action="store_true", help="1 repeat of 5 calls and 2 frames: no figures"
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.calls, args.frames, args.repeats = 5, 2, 1
     router = free_tcp_endpoint()
     proc = spawn_router(router)
     figures: dict[str, dict[str, list[float]]] = {

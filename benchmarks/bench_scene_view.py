@@ -17,6 +17,10 @@ Per condition: the median over each session's rollouts of the wall time per roll
 consecutive done records, the first left out); the figure is the median over repeats of the
 open session's time against the same repeat's closed one, with its spread (min, max). Also
 each session's CPU time per rollout of the camera, and the scene views the client received.
+
+`--smoke`: 1 repeat (each condition once) of 2-rollout sessions with the robot at rtf 0, on the
+same mesh and dashboard (tens of seconds; its figures are noise), in a temporary directory,
+removed after.
 """
 
 from __future__ import annotations
@@ -55,9 +59,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions (≥ 5)")
     parser.add_argument("--rollouts", type=int, default=8, help="rollouts per session")
     parser.add_argument("--rtf", type=float, default=1.0, help="the robot's real-time factor")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="1 repeat of 2-rollout sessions at rtf 0, in a temporary directory: no figures",
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.repeats, args.rollouts, args.rtf = 1, 2, 0.0
+        with tempfile.TemporaryDirectory(prefix="bench-scene-view-") as tmp:
+            return _run(args, Path(tmp))
+    return _run(args, Path(tempfile.mkdtemp(prefix="bench-scene-view-")))
+
+
+def _run(args: argparse.Namespace, tmp: Path) -> int:
+    """The benchmark at the budgets of `args`, the mesh's files under `tmp`; the report printed."""
     started = datetime.now(UTC)
-    tmp = Path(tempfile.mkdtemp(prefix="bench-scene-view-"))
     launcher = mesh_launcher(tmp, "bench", tmp / "model.json", args.rtf)
     launcher.up(180)
     endpoint = launcher.endpoint

@@ -7,9 +7,11 @@ and reported as the median over repeats of secure/plain, with the spread (min–
 
 1. Through two routers (`archery router`), with the deployment's identities in secure mode,
    over the protocol layer: the learner calls `ROBOT/detector/rpc:i` served by the detector
-   (`Node.call` answered by `Node.serve`; RPC round-trip median and p99, ms), and the camera
-   streams lossless 1280×720 `Image` frames on `ROBOT/cam/target:o` to the operator (what
-   `archery view` reads), which decodes them (frames/s). Goals: ≤1.3× latency, ≥0.8×
+   (`Node.call` answered by `Node.serve`; RPC round-trip median and p99, ms; an echo of θ
+   under the first verb the ACL grants the learner there, `echo_verbs.granted_verbs`, so the
+   call passes the per-verb rules on its `PORT/VERB` key, plain and secure alike), and the
+   camera streams lossless 1280×720 `Image` frames on `ROBOT/cam/target:o` to the operator
+   (what `archery view` reads), which decodes them (frames/s). Goals: ≤1.3× latency, ≥0.8×
    throughput.
 2. Two whole meshes (`apps.up.launcher.Launcher`: a router and the five services as child
    processes, each service with its own identity in secure mode), one plain and one secure,
@@ -20,7 +22,9 @@ and reported as the median over repeats of secure/plain, with the spread (min–
    / rollouts. Goal: ≤1.1×.
 
 Run: `python -m benchmarks.bench_secure [--calls 2000] [--frames 200] [--repeats 5]
-[--sessions 7] [--rollouts 5]`
+[--sessions 7] [--rollouts 5]`. `--smoke`: both parts at their smallest budget, 1 repeat of 5
+calls and 2 frames, and 1 session of 1 rollout per mesh after the warm-up ones (tens of
+seconds, most of it the two meshes' start-up; its ratios are noise).
 """
 
 from __future__ import annotations
@@ -39,7 +43,7 @@ from apps.learn.follow import follow
 from apps.progress import progress_bar
 from apps.up.launch_config import SERVICES
 from apps.up.launcher import Launcher
-from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
+from benchmarks.echo_verbs import ECHO_ARGS, granted_verbs, named_echo
 from benchmarks.machine import cpu_model
 from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig
@@ -67,7 +71,8 @@ class Mesh:
         self.nodes = [node(n) for n in ("learner", "detector", "camera", "operator")]
         self.learner, self.detector, self.camera, self.operator = self.nodes
         self.key = self.detector.keys.detector_rpc()
-        self.detector.serve(self.key, echo_verbs())
+        self.verb, served = named_echo(granted_verbs(ROBOT, "learner", self.key)[0])
+        self.detector.serve(self.key, served)
         self.frames = 0
         self._cond = threading.Condition()
         self.operator.subscribe(
@@ -81,7 +86,7 @@ class Mesh:
         deadline = time.monotonic() + 10
         while True:  # the queryable must be known at the router first
             try:
-                self.learner.call_typed(self.key, ECHO, ECHO_ARGS, timeout=1.0)
+                self.learner.call_typed(self.key, self.verb, ECHO_ARGS, timeout=1.0)
                 break
             except Exception:
                 if time.monotonic() > deadline:
@@ -97,7 +102,7 @@ class Mesh:
         times = []
         for _ in range(calls):
             t0 = time.perf_counter()
-            self.learner.call_typed(self.key, ECHO, ECHO_ARGS)
+            self.learner.call_typed(self.key, self.verb, ECHO_ARGS)
             times.append((time.perf_counter() - t0) * 1e3)
         return times
 
@@ -172,7 +177,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5, help="repeats of the RPC and frames")
     parser.add_argument("--sessions", type=int, default=7, help="sessions per mesh (≥5)")
     parser.add_argument("--rollouts", type=int, default=5, help="rollouts per session")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="1 repeat of 5 calls and 2 frames, 1 session of 1 rollout per mesh: no figures",
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.calls, args.frames, args.repeats, args.sessions, args.rollouts = 5, 2, 1, 1, 1
     if args.sessions < 1 or args.repeats < 1 or args.rollouts < 1:
         parser.error("--repeats, --sessions and --rollouts must be at least 1")
     rgb = np.random.default_rng(0).integers(0, 255, (HEIGHT, WIDTH, 3), np.uint8)

@@ -6,6 +6,9 @@ stiffer bow (420 N/m) start either from scratch or from the 2.2 m session of the
 (`ExperimentConfig.transfer`, what `archery experiment --from DIR` does). A last pair learns with
 the stiff bow at 2.2 m, where archer-prior's model is wrong, and transfers to the stiff bow at
 3 m. Prints the table; writes bench.json under --out.
+
+`--smoke`: every pair, start and learner on 2 sessions of 10 rollouts (seconds; its figures are
+noise), bench.json in a temporary directory, removed after.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -51,7 +55,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sessions", type=int, default=40)
     parser.add_argument("--rollouts", type=int, default=60, help="budget of every session")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="2 sessions of 10 rollouts, output in a temporary directory: no figures",
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.sessions, args.rollouts = 2, 10
+        with tempfile.TemporaryDirectory(prefix="bench-transfer-") as tmp:
+            return _run(args, Path(tmp))
+    return _run(args, Path(args.out))
+
+
+def _run(args: argparse.Namespace, out: Path) -> int:
+    """Every pair at the budgets of `args`; the table printed, bench.json under `out`."""
     table = [
         "| learned at | new world | algorithm | start | first shot ‖r‖ (cm): median "
         "| rollouts to hit: median [q1, q3] | sessions hit |",
@@ -95,7 +113,6 @@ def main(argv: list[str] | None = None) -> int:
                     }
                 )
     print("\n".join(table))
-    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "bench.json").write_text(json.dumps(results, indent=2) + "\n")
     return 0

@@ -8,6 +8,8 @@ Struct and decodes the reply into its Struct (`Node.call_typed`). Repeats interl
 so machine noise hits both alike; the goal is typed ≤ 1.05× plain.
 
     python -m benchmarks.bench_verbs [--calls 2000] [--repeats 7]
+
+`--smoke`: 1 repeat of 5 calls per path after a warm-up of 5 (seconds; its ratios are noise).
 """
 
 from __future__ import annotations
@@ -73,9 +75,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_verbs", description=__doc__)
     parser.add_argument("--calls", type=int, default=2000, help="calls per path and repeat")
     parser.add_argument("--repeats", type=int, default=7, help="interleaved repeats (≥ 5)")
+    parser.add_argument(
+        "--smoke", action="store_true", help="1 repeat of 5 calls per path: no figures"
+    )
     args = parser.parse_args(argv)
-    if args.repeats < 5:
+    if args.smoke:
+        args.calls, args.repeats = 5, 1
+    elif args.repeats < 5:
         parser.error("--repeats must be at least 5")
+    warm_up = 5 if args.smoke else 200
     endpoint = free_tcp_endpoint()
     router = spawn_router(endpoint)
     net = NetConfig(connect=(endpoint,), robot="bench")
@@ -89,8 +97,8 @@ def main(argv: list[str] | None = None) -> int:
                 typed_key,
                 TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}),
             )
-            _plain(client, plain_key, 200)  # warm up both paths
-            _typed(client, typed_key, 200)
+            _plain(client, plain_key, warm_up)  # warm up both paths
+            _typed(client, typed_key, warm_up)
             for r in range(args.repeats):
                 if r % 2:  # alternate which path goes first
                     typed = _typed(client, typed_key, args.calls)

@@ -3,9 +3,18 @@ every verb of the mesh (what the RPC benchmarks time)."""
 
 from __future__ import annotations
 
+from mesh.acl import roles
 from protocol.verbs import Args, Reply, ServedVerbs, Verb, VerbTable
 
-__all__ = ["ECHO", "ECHO_ARGS", "ThetaArgs", "ThetaReply", "echo_verbs"]
+__all__ = [
+    "ECHO",
+    "ECHO_ARGS",
+    "ThetaArgs",
+    "ThetaReply",
+    "echo_verbs",
+    "granted_verbs",
+    "named_echo",
+]
 
 
 class ThetaArgs(Args, frozen=True):
@@ -24,3 +33,25 @@ _TABLE = VerbTable("benchmark echo", ("bench/rpc:i",), (ECHO,))
 def echo_verbs() -> ServedVerbs:
     """The echo table, bound: what a benchmark's server node serves."""
     return _TABLE.bind({"echo": lambda a: ThetaReply(theta=a.theta)})
+
+
+def named_echo(name: str) -> tuple[Verb, ServedVerbs]:
+    """The echo under the verb name `name` (e.g. one the secure router's ACL grants the caller:
+    `granted_verbs`): the verb to call, and its table bound, what the server node serves."""
+    verb = Verb(name, ThetaArgs, ThetaReply, "returns θ")
+    table = VerbTable("benchmark echo", ("bench/rpc:i",), (verb,))
+    return verb, table.bind({name: lambda a: ThetaReply(theta=a.theta)})
+
+
+def granted_verbs(robot: str, caller: str, port: str) -> list[str]:
+    """The verbs the secure router's ACL (`mesh.acl.roles` of robot prefix `robot`) lets the
+    identity `caller` call on the `rpc:i` port `port` (its calls travel on `PORT/VERB`), in
+    the order the ACL lists them.
+
+    Raises:
+        RuntimeError: it grants `caller` none there.
+    """
+    names = [c.rpartition("/")[2] for c in roles(robot)[caller].call if c.startswith(f"{port}/")]
+    if not names:
+        raise RuntimeError(f"the ACL grants {caller} no verb on {port}")
+    return names
