@@ -17,7 +17,7 @@ from pathlib import Path
 __all__ = ["MODULES", "main"]
 
 HERE = Path(__file__).parent
-MODULES = sorted(p.stem for p in HERE.glob("bench_*.py")) + ["drill_router"]
+MODULES = [*sorted(p.stem for p in HERE.glob("bench_*.py")), "drill_router"]
 
 
 def main(argv: list[str] | None = None) -> int:
