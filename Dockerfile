@@ -14,7 +14,7 @@ ENV PYTHONUNBUFFERED=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_ROOT_USER_ACTION=igno
 RUN useradd --uid 1000 --user-group --create-home --home-dir /home/archery archery \
     && mkdir -p /app/runs && chown archery:archery /app/runs
 WORKDIR /app
-COPY pyproject.toml docker/requirements.py docker/install.sh /build/
+COPY pyproject.toml docker/requirements.py docker/prune_models.py docker/install.sh /build/
 RUN --mount=type=secret,id=pip-ca sh /build/install.sh
 
 # The project itself, as a wheel (only its code: every dependency is installed above).

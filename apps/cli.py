@@ -9,6 +9,7 @@ import logging
 import os
 import sys
 
+from apps.waits import interrupted_line
 from mesh.cliargs import ArgumentParser
 from mesh.logs import DEFAULT_SPEC, add_log_args, configure
 from protocol.errors import ConfigError
@@ -152,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
     """Run `archery VERB ...`; returns the verb's exit status.
 
     A closed stdout (`archery read KEY | head -1`) ends the verb quietly, as Unix tools do;
-    Ctrl-C outside a verb's own handling ends it with status 130 and no traceback.
+    Ctrl-C outside a verb's own handling (e.g. in a wait) ends it with status 130, one line
+    on stderr and no traceback.
     """
     args = list(sys.argv[1:] if argv is None else argv)
     if not args:
@@ -189,6 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     except BrokenPipeError:
         return _reader_gone()
     except KeyboardInterrupt:
+        print(interrupted_line(verb), file=sys.stderr, flush=True)
         return INTERRUPTED
 
 

@@ -117,7 +117,9 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
     final["video"] = None if video is None else str(video)
     outcome = _summary(console, final, wall, codes)  # the result first: filming cannot lose it
     if video is not None and film_hit(final):
-        console.print(f"  filmed:    {video}")
+        print(
+            f"archery demo: the hit filmed into {video}", file=sys.stderr
+        )  # stdout ends with the result
     return outcome
 
 

@@ -19,6 +19,8 @@ rm -rf "$site"/cmeel.prefix/include "$site"/cmeel.prefix/lib/cmake "$site"/cmeel
 # test suites of NumPy and SciPy run no process of the mesh.
 rm -rf "$site"/mujoco/experimental "$site"/numpy/*/tests "$site"/numpy/tests \
     "$site"/scipy/tests "$site"/scipy/*/tests "$site"/scipy/*/*/tests
+# Of icub-models, only the model the project loads (protocol.robotspec.MODEL_NAME) and its meshes.
+python3 /build/prune_models.py iCubGazeboV2_5
 # Symbol tables that some wheels leave in their own extension modules (Zenoh's alone holds
 # 10 MB): binutils is installed for this step and removed in it, so no layer keeps it. Libraries
 # a wheel grafted in (`*.libs/`) are left as they are, and so is every file of an earlier layer

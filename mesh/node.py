@@ -24,7 +24,7 @@ import msgspec
 import zenoh
 
 from mesh import instances
-from mesh.liveliness import Liveliness
+from mesh.liveliness import Liveliness, OnWait
 from mesh.netflags import NetConfig, listens, open_session
 from mesh.publisher import Publisher
 from mesh.router import wait_for_endpoint
@@ -220,16 +220,25 @@ class Node(RpcClient, Liveliness):
         )
 
 
-def open_node(net: NetConfig, wait: float = 0.0, name: str | None = None) -> Node:
+def open_node(
+    net: NetConfig, wait: float = 0.0, name: str | None = None, on_wait: OnWait | None = None
+) -> Node:
     """A node on the mesh, waiting up to `wait` s for the router to listen (`archery up &` or
     `archery router &` followed at once by a tool). Only while nothing listens: a router that
     listens yet refuses the session (another deployment's certificate) fails at once.
+
+    Args:
+        wait: the limit (s); 0: no wait.
+        on_wait: called once with "the router at ENDPOINT" and `wait` the moment the wait
+            begins (nothing listens yet); never when the router answers at once
+            (`mesh.liveliness.OnWait`: the mesh layer never prints).
 
     Raises:
         Unreachable: no router listens at the endpoint after `wait` s.
         ConfigError: other bad settings (e.g. a missing deployment file).
     """
     deadline = time.monotonic() + wait
+    announced = False
     while True:
         try:
             return Node(name, net)
@@ -237,5 +246,8 @@ def open_node(net: NetConfig, wait: float = 0.0, name: str | None = None) -> Nod
             left = deadline - time.monotonic()
             if left <= 0 or not net.connect or listens(net.connect[0]):
                 raise
+            if on_wait is not None and not announced:
+                on_wait(f"the router at {net.connect[0]}", wait)
+                announced = True
             with contextlib.suppress(ConfigError):  # then the session says why, once more
                 wait_for_endpoint(net.connect[0], left)

@@ -13,9 +13,10 @@ __all__ = ["shutdown_on_signals"]
 log = logging.getLogger("archery.node")
 
 
-def shutdown_on_signals() -> threading.Event:
-    """An event set by SIGINT or SIGTERM, so a service can end cleanly with exit status 0."""
-    stop = threading.Event()
+def shutdown_on_signals(stop: threading.Event | None = None) -> threading.Event:
+    """An event set by SIGINT or SIGTERM from now on (`stop`, or a new one), so a service can
+    end cleanly with exit status 0."""
+    stop = threading.Event() if stop is None else stop
     instances.set_stop_event(stop)
 
     def handle(signum: int, frame: object) -> None:

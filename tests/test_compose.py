@@ -319,3 +319,10 @@ def test_make_compose_names_what_is_missing_besides_the_client(tmp_path: Path) -
     assert dead.returncode == 1
     (line,) = dead.stderr.splitlines()
     assert line.startswith("make compose: no Docker engine answers (") and "start dockerd" in line
+
+
+def test_the_images_keep_the_icub_model_the_project_loads() -> None:
+    from protocol.robotspec import MODEL_NAME
+
+    install = (ROOT / "docker" / "install.sh").read_text()
+    assert f"prune_models.py {MODEL_NAME}\n" in install

@@ -28,6 +28,7 @@ from tests.containers import (
     build_images,
     copy_context,
     engine_problem,
+    image_size,
     journal_records,
     journals,
     missing_secret,
@@ -35,6 +36,8 @@ from tests.containers import (
 )
 
 pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800)]
+
+IMAGE_LIMIT = 800_000_000  # bytes: the most one image may take, as `docker images` counts it
 
 # What each image must import: every module of its process's packages. Left out on purpose: the
 # recording modules (`record`/`replay` run on a host, `archery[record]`) and tests.postures (a
@@ -89,6 +92,17 @@ def base() -> str:
 def images(base: str) -> dict[str, float]:
     """Every image, built once for the module (seconds per target; cached layers are reused)."""
     return build_images(base)
+
+
+def test_every_image_is_within_the_size_limit(images: dict[str, float]) -> None:
+    sizes = {f"archery-{t}:latest": image_size(f"archery-{t}:latest") for t in TARGETS}
+    print("image sizes: " + ", ".join(f"{tag} {size / 1e6:.0f} MB" for tag, size in sizes.items()))
+    over = [
+        f"{tag} is {size / 1e6:.0f} MB, over the {IMAGE_LIMIT / 1e6:.0f} MB limit"
+        for tag, size in sizes.items()
+        if size > IMAGE_LIMIT
+    ]
+    assert not over, "; ".join(over)
 
 
 def test_each_image_imports_its_process_and_runs_unprivileged(images: dict[str, float]) -> None:

@@ -209,8 +209,9 @@ def test_bad_robot_and_no_robot_are_one_line(fleet: dict[str, Launcher], tmp_pat
     )  # fmt: skip
     assert unknown.returncode == 2
     assert unknown.stderr.strip().splitlines() == [
+        "archery experiment: waiting up to 5 s for robots nosuch to be alive (Ctrl-C to stop)",
         "archery experiment: error: --robots: no robot 'nosuch' alive after 5 s; alive: "
-        "icubSim1, icubSim2"
+        "icubSim1, icubSim2",
     ]
     alone = free_tcp_endpoint()
     router = subprocess.Popen(
@@ -226,7 +227,10 @@ def test_bad_robot_and_no_robot_are_one_line(fleet: dict[str, Launcher], tmp_pat
         router.wait(30)
     assert none.returncode == 1
     lines = none.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("archery experiment: no robot alive on the mesh")
+    assert (
+        lines[0] == "archery experiment: waiting up to 5 s for a robot on the mesh (Ctrl-C to stop)"
+    )
+    assert len(lines) == 2 and lines[1].startswith("archery experiment: no robot alive on the mesh")
 
 
 def test_a_robot_killed_mid_experiment_costs_no_session(

@@ -173,7 +173,8 @@ def test_follow_resumes_the_session_a_restarted_learner_does_not_run(
         assert final["session"] == first and final["state"] == "finished"
         assert final["rollouts"] == 3 and len(seen) == 6  # proposed and done, each rollout
         assert notes == [
-            f"  the learner runs no session (restarted?): asking it to resume session {first}",
+            f"  the learner runs no session (restarted?): asking it to resume session {first}; "
+            "waiting up to 60 s for it (Ctrl-C to stop)",
             f"  session {first} resumed from its journal: 0 of 3 rollouts done",
         ]
         # The learner runs another session: the session runs nowhere.

@@ -177,7 +177,7 @@ def test_view_saves_the_next_image(net: NetConfig, tmp_path: Path) -> None:
 def test_router_verb_and_selfcheck() -> None:
     out = archery("selfcheck", timeout=120)
     assert out.returncode == 0, out.stdout + out.stderr
-    assert "8 passed, 0 failed" in out.stdout
+    assert "9 passed, 0 failed" in out.stdout
     bad = archery("router", "--listen", "localhost:1")
     assert bad.returncode == 2 and "not a Zenoh endpoint" in bad.stderr
 

@@ -121,7 +121,10 @@ def check(folder: Path) -> None:
         cwd=elsewhere,
         env=env,
     )
-    result = json.loads(out.strip().splitlines()[-1])
+    try:
+        result = json.loads(out.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        raise CheckFailed(f"the demo's last line is not its JSON result:\n{out[-2000:]}") from None
     if result.get("hit_at") is None:
         raise CheckFailed(f"the demo did not hit: {result}")
     video = elsewhere / str(result.get("video"))

@@ -291,6 +291,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="continue the experiment cut short in DIR (its --out), with the flags it ran with",
     )
     mesh.add_argument(
+        "--wait",
+        default="5",
+        metavar="S",
+        help="s to wait at the start for the robots to be alive (default 5)",
+    )
+    mesh.add_argument(
         "--robot-wait",
         default="10",
         metavar="S",

@@ -44,6 +44,8 @@ from apps.experiment.mesh_out import (
     session_records,
 )
 from apps.progress import progress_bar
+from apps.waits import announce
+from mesh.liveliness import OnWait
 from mesh.logs import DEFAULT_SPEC
 from mesh.netflags import NetConfig
 from mesh.signals import shutdown_on_signals
@@ -293,6 +295,7 @@ def run_mesh_experiment(
     *,
     progress: bool = True,
     on_start: Callable[[list[str]], None] | None = None,
+    on_wait: OnWait | None = None,
 ) -> tuple[ExperimentConfig, dict[str, AlgorithmRun]]:
     """Run (or continue) every session of `config` not finished in `out` on the fleet, with a
     progress bar on stderr; then read every session back from its journal.
@@ -303,6 +306,8 @@ def run_mesh_experiment(
     Args:
         stop: set it (e.g. on SIGINT) to stop after the running rollouts (resumable).
         on_start: called with the robots used, once they are found.
+        on_wait: called once if the robots are not alive at the start, as that wait begins
+            (`open_fleet`).
 
     Raises:
         ConfigError: a named robot is not alive.
@@ -311,7 +316,7 @@ def run_mesh_experiment(
         ExperimentError: a session failed again and again on live robots.
     """
     with open_fleet(
-        settings.net, settings.robots, settings.start_timeout, settings.rpc_timeout
+        settings.net, settings.robots, settings.start_timeout, settings.rpc_timeout, on_wait
     ) as fleet:
         config = replace(config, bounds=fleet_box(fleet))
         work = _Experiment(config, out, settings)
@@ -442,19 +447,29 @@ def run_from_args(
     settings = MeshSettings(
         NetConfig.from_args(args),
         robots,
+        start_timeout=_seconds(args.wait, "--wait"),
         robot_wait=_seconds(args.robot_wait, "--robot-wait"),
     )
     prepare_out(out, config, resume=args.resume is not None)
-    stop = shutdown_on_signals()
+    # Until the robots are found, Ctrl-C ends the wait at once (exit status 130, no session
+    # started); from then on it stops after the running rollouts (resumable).
+    stop = threading.Event()
     if args.log_level == DEFAULT_SPEC:
         # A line per rollout or abort of every robot would bury the bar; the journals hold them.
         logging.getLogger("archery.learner").setLevel(logging.ERROR)
 
     def started(prefixes: list[str]) -> None:
+        shutdown_on_signals(stop)
         print(f"archery experiment: robots {', '.join(prefixes)}", file=sys.stderr, flush=True)
 
     return run_mesh_experiment(
-        config, out, settings, stop, progress=not args.no_progress, on_start=started
+        config,
+        out,
+        settings,
+        stop,
+        progress=not args.no_progress,
+        on_start=started,
+        on_wait=announce("experiment"),
     )
 
 

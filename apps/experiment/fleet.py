@@ -16,6 +16,7 @@ from dataclasses import dataclass
 
 import zenoh
 
+from mesh.liveliness import OnWait
 from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError
@@ -115,18 +116,32 @@ def alive_now(session: zenoh.Session, timeout: float = 5.0) -> list[str]:
 
 @contextmanager
 def open_fleet(
-    net: NetConfig, robots: Sequence[str] | None, timeout: float = 5.0, rpc_timeout: float = 20.0
+    net: NetConfig,
+    robots: Sequence[str] | None,
+    timeout: float = 5.0,
+    rpc_timeout: float = 20.0,
+    on_wait: OnWait | None = None,
 ) -> Iterator[list[FleetRobot]]:
     """One Zenoh session to the mesh and a `FleetRobot` per robot: those named in `robots`
     (each must be alive within `timeout` s), or every robot stack alive (None).
+
+    `on_wait(what, timeout)` is called once, as the wait begins, when the robots wanted are not
+    all alive at once (`mesh.liveliness.OnWait`).
 
     Raises:
         ConfigError: a named robot is not alive.
         NoRobot: no robot is named and none is alive.
     """
     with open_session(net.with_identity("operator")) as session:
+        wanted = set(robots or ())
+        if on_wait is not None:  # asked before subscribing: the tokens stream in one by one
+            now = set(alive_now(session, max(0.01, min(1.0, timeout))))
+            if not now or not wanted <= now:
+                absent = ", ".join(sorted(wanted - now))
+                on_wait(
+                    f"robots {absent} to be alive" if wanted else "a robot on the mesh", timeout
+                )
         with StackWatch(session) as watch:
-            wanted = set(robots or ())
             seen = watch.wait_for(lambda alive: bool(alive) and wanted <= set(alive), timeout)
             # The tokens stream in one by one: a query's answer is the whole set at once.
             found = sorted(set(seen) | set(alive_now(session, timeout)))

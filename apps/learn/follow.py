@@ -11,6 +11,10 @@ Following outlives the faults the mesh lives through, every wait bounded by `gon
   where this process can read it, says whether it had ended (its final status is then the
   journal's); else, with `resume`, the learner is asked once to `start {resume: JOURNAL,
   session: ID}` and the session is followed on.
+
+Each of these waits is one `note` line the moment it is seen to begin, with its limit
+(`apps.waits.waiting_for`), e.g. "  the learner does not answer; waiting up to 30 s for it
+(Ctrl-C to stop)".
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ from pathlib import Path
 from typing import Any
 
 from apps.learn.client import learner_call, start_args
+from apps.waits import waiting_for
 from mesh.node import Node
 from protocol.errors import ArcheryError, RpcError, RpcTimeout
 from protocol.journal_records import StoppedRecord
@@ -129,7 +134,7 @@ def follow(
             if silent > gone_after:
                 raise SessionLost(_silence(node, session, journal, silent), last) from None
             if silent >= SILENT_NOTE and not noted:
-                say(f"  the learner does not answer; waiting up to {gone_after:g} s for it")
+                say(f"  the learner does not answer; {waiting_for('it', gone_after)}")
                 noted = True
             continue
         if noted:
@@ -151,7 +156,10 @@ def follow(
         if running is not None or not resume or asked or not journal:
             raise SessionLost(_not_running(session, journal, running, asked), last)
         asked = True
-        say(f"  the learner runs no session (restarted?): asking it to resume session {session}")
+        say(
+            f"  the learner runs no session (restarted?): asking it to resume session {session}; "
+            f"{waiting_for('it', resume_timeout)}"
+        )
         request = start_args({"resume": journal, "session": session})
         try:
             resumed = learner_call(node, "start", request, timeout=resume_timeout)

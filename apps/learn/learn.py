@@ -12,6 +12,12 @@ the journal is on this machine (`apps.film`; not with `--no-film`): "video" is t
 null. Filming comes after the line: a failure there is one warning on stderr and leaves the exit
 status that of the session.
 
+Every wait says on stderr, the moment it begins, what it waits for and for how long at most
+(`apps.waits`; not with `--quiet`, which keeps every progress line off): the router while
+nothing listens at `--connect` (up to `--wait` s), the services not alive yet (up to `--wait`
+s), and the learner resuming a `--resume` session (up to `--wait` + 30 s), e.g.
+`archery learn: waiting up to 60 s for the services: robot, camera (Ctrl-C to stop)`.
+
 Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
 that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
 asked once to resume it from its journal, and the session is followed on to its end; a
@@ -35,6 +41,7 @@ from apps.film.film import film_hit, film_ready, hit_video
 from apps.learn import attach
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
+from apps.waits import announce
 from mesh.cliargs import ArgumentParser, loads_finite, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import open_node
@@ -278,9 +285,10 @@ def main(argv: list[str] | None = None) -> int:
     show = (lambda m: None) if args.quiet else _progress
     waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
     note = None if args.quiet else attach.stderr_line
+    on_wait = None if args.quiet else announce("learn")
     resume_timeout = args.wait + 30.0  # s: a resumed session's `start` waits for the services
     try:
-        node = open_node(net, args.wait)
+        node = open_node(net, args.wait, on_wait=on_wait)
     except ArcheryError as exc:
         print(f"archery learn: {exc}", file=sys.stderr)
         return for_error(exc.code)
@@ -298,8 +306,10 @@ def main(argv: list[str] | None = None) -> int:
                 note=note,
             )
         try:
-            node.wait_alive(SERVICES, timeout=args.wait)
-            status = learner_call(node, "start", start, timeout=args.wait + 30)
+            node.wait_alive(SERVICES, timeout=args.wait, on_wait=on_wait)
+            if "resume" in request and on_wait is not None:  # it reads and replays the journal
+                on_wait(f"the learner to resume the session of {request['resume']}", resume_timeout)
+            status = learner_call(node, "start", start, timeout=resume_timeout)
         except RpcError as exc:
             print(f"archery learn: {exc}", file=sys.stderr)
             return for_error(exc.code)

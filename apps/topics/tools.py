@@ -13,6 +13,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from apps.waits import announce, interrupted_line
 from mesh.acl import VIEWER
 from mesh.cliargs import (
     ArgumentParser,
@@ -74,6 +75,7 @@ def _run(prog: str, check: Callable[[], Any], body: Callable[[Any], int]) -> int
         print(f"archery {prog}: {exc}", file=sys.stderr)
         return for_error(exc.code)
     except KeyboardInterrupt:
+        print(interrupted_line(prog), file=sys.stderr, flush=True)
         return INTERRUPTED
 
 
@@ -87,7 +89,9 @@ def _stream_type(key: str) -> type[Message]:
 def alive_main(argv: list[str] | None = None) -> int:
     """`archery alive [NAME…] [--wait N]`: a health check. Exit 0 when the router answers and
     every named service of the robot holds its liveliness token now (or, with `--wait`, within
-    N s); 1 (one line on stderr) when not."""
+    N s); 1 (one line on stderr) when not. With `--wait`, a wait that begins (no router listens
+    yet, or a named service is not alive yet) says so at once on stderr with its limit
+    (`apps.waits`)."""
     parser = _parser("alive", "exit 0 when the router answers and the named services are alive")
     parser.add_argument("names", nargs="*", metavar="NAME", help="services that must be alive")
     parser.add_argument(
@@ -100,11 +104,10 @@ def alive_main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     def body(net: NetConfig) -> int:
-        with open_node(net, args.wait) as node:
+        on_wait = announce("alive")
+        with open_node(net, args.wait, on_wait=on_wait) as node:
             if args.wait:  # the tokens seen by the subscription decide (no second query)
-                with TokenSet(node.session, node.keys.alive_all()) as alive:
-                    alive.wait_for(lambda now: set(args.names) <= now, args.wait)
-                    missing = sorted(set(args.names) - alive.present())
+                missing = sorted(node.missing_after(args.names, args.wait, on_wait))
             else:
                 missing = sorted(set(args.names) - node.alive(timeout=args.timeout))
             if missing:
@@ -120,7 +123,9 @@ def alive_main(argv: list[str] | None = None) -> int:
 
 def ports_main(argv: list[str] | None = None) -> int:
     """`archery ports`: live services and their ports (like `yarp name list`): of every robot
-    on the router, grouped by robot prefix (a fleet: `ROBOT1`, `ROBOT2`, …), or of `--robot`."""
+    on the router, grouped by robot prefix (a fleet: `ROBOT1`, `ROBOT2`, …), or of `--robot`.
+    With `--wait N`, a wait that begins (no router listens yet, or no service is alive yet)
+    says so at once on stderr with its limit (`apps.waits`)."""
     parser = _parser("ports", "list live services and their ports")
     parser.set_defaults(robot=None)  # None: every robot alive on the router
     parser.add_argument("--json", action="store_true", help="one JSON object per service")
@@ -143,11 +148,16 @@ def ports_main(argv: list[str] | None = None) -> int:
         return NetConfig.from_args(namespace).with_identity(VIEWER)
 
     def body(net: NetConfig) -> int:
-        with open_node(net, args.wait) as node:
+        on_wait = announce("ports")
+        with open_node(net, args.wait, on_wait=on_wait) as node:
             seen: set[str] = set()  # names whose tokens the wait saw arrive
             if args.wait:
                 pattern = ALIVE_EVERY_ROBOT if every else node.keys.alive_all()
+                waits = not _any_alive(node, every, args.timeout)  # asked before subscribing
                 with TokenSet(node.session, pattern) as alive:
+                    if waits and not alive.present():
+                        where = "any robot" if every else f"robot {args.robot!r}"
+                        on_wait(f"a service of {where} to come alive", args.wait)
                     alive.wait_for(bool, args.wait)
                     seen = alive.present()
             robots = node.alive_robots(timeout=args.timeout)
@@ -179,6 +189,14 @@ def ports_main(argv: list[str] | None = None) -> int:
         return 0
 
     return _run("ports", check, body)
+
+
+def _any_alive(node: Node, every: bool, timeout: float) -> bool:
+    """Whether a service is alive now (of any robot with `every`, else of the node's robot), by
+    one query (a liveliness subscription's history streams in one token at a time; a query
+    made just after subscribing may miss them: ask before)."""
+    limit = max(0.01, min(1.0, timeout))
+    return bool(node.alive_robots(timeout=limit) if every else node.alive(timeout=limit))
 
 
 def _print_service(node: Node, keys: Keys, name: str, args: argparse.Namespace) -> None:

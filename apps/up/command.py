@@ -1,6 +1,11 @@
 """`archery up`, the command: its flags, the mesh they describe, the optional recorder, and the
 truthful last line and exit status once everything stopped.
 
+While it starts, stdout says what it starts and stderr, as each wait begins, what it waits for
+and its limit (`apps.waits`): the router to listen (`launcher.ROUTER_START` s), then the services
+to be alive (`--timeout` s), e.g. `archery up: waiting up to 90 s for the services: robot,
+camera, detector, controller, learner (Ctrl-C to stop)`.
+
 The processes themselves are started, watched and stopped by `apps.up.launcher.Launcher` and
 supervised by `apps.up.supervisor.Supervisor`; see `apps.up.launcher` for what `up` runs.
 """
@@ -20,6 +25,7 @@ from apps.up.launch_config import MeshConfig, default_mesh, load_mesh
 from apps.up.launcher import Launcher, LaunchError, StartInterrupted
 from apps.up.restart_policy import POLICIES, describe_status
 from apps.up.supervisor import GiveUp, Supervisor
+from apps.waits import announce
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
 from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
 from mesh.signals import shutdown_on_signals
@@ -229,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         stop = shutdown_on_signals()
         where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
         print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
-        took = launcher.up(args.timeout, stop=stop)
+        took = launcher.up(args.timeout, stop=stop, on_wait=announce("up"))
         recorder = None
         if args.record is not None:
             try:

@@ -2,7 +2,8 @@
 
 It starts `archery router --listen ENDPOINT` and `archery robot|camera|detector|controller|
 learner --connect ENDPOINT --robot NAME` (each with `python -m apps.cli`, so this module
-imports no service), waits until every service is alive by liveliness, and then supervises
+imports no service), waits until every service is alive by liveliness (each wait said as it
+begins, with its limit, by the caller's `on_wait`: `apps.waits`), and then supervises
 them (`apps.up.supervisor`): a child that exits is restarted, left down or ends everything as
 its restart policy decides (`apps.up.restart_policy`), the router on its same endpoint (the
 services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the learner first and
@@ -40,12 +41,20 @@ from apps.up.launch_config import (
 from apps.up.logfile import LOG_FILE_BYTES, LOG_FILES, RotatingLog
 from apps.up.restart_policy import RestartPolicy, describe_status
 from mesh.credentials import identity_folder
+from mesh.liveliness import OnWait
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
 from mesh.node import Node
 from mesh.router import wait_for_endpoint
 from protocol.errors import ArcheryError, ConfigError, RpcTimeout
 
-__all__ = ["INTERRUPT_GRACE", "STOP_ORDER", "LaunchError", "Launcher", "StartInterrupted"]
+__all__ = [
+    "INTERRUPT_GRACE",
+    "ROUTER_START",
+    "STOP_ORDER",
+    "LaunchError",
+    "Launcher",
+    "StartInterrupted",
+]
 
 STOP_ORDER = ("learner", "detector", "camera", "controller", "robot")
 
@@ -63,6 +72,7 @@ class StartInterrupted(LaunchError):
 
 
 INTERRUPT_GRACE = 2.0  # s a child stopped during start-up gets before SIGKILL
+ROUTER_START = 15.0  # s the router may take to listen
 
 
 def _check_free(endpoint: str) -> None:
@@ -167,18 +177,27 @@ class Launcher:
         self.children[name] = child
         return child
 
-    def start_router(self, timeout: float = 15.0, *, restart: bool = False) -> None:
+    def start_router(
+        self,
+        timeout: float = ROUTER_START,
+        *,
+        restart: bool = False,
+        on_wait: OnWait | None = None,
+    ) -> None:
         """Start the router and wait until it listens.
 
         Args:
             timeout: how long to wait (s).
             restart: a restart by the supervisor: no check that the port is free (the router
                 says so itself, exit status 2), and a failure stops only the new router.
+            on_wait: called once, as the wait begins, with what it waits for and `timeout`.
         """
         if not restart:
             _check_free(self.endpoint)
         argv = ["router", "--listen", self.endpoint, *self._identity("router")]
         child = self._spawn("router", argv + self._insecure)
+        if on_wait is not None:
+            on_wait(f"the router to listen on {self.endpoint}", timeout)
         deadline = time.monotonic() + timeout
         while child.returncode is None:
             self._check_stop()
@@ -229,6 +248,7 @@ class Launcher:
         timeout: float = 90.0,
         services: Iterable[str] | None = None,
         stop: threading.Event | None = None,
+        on_wait: OnWait | None = None,
     ) -> float:
         """Start the router (if asked) and the services; wait until all are alive.
 
@@ -237,6 +257,9 @@ class Launcher:
             services: the ids of the services to start (default: all of the mesh).
             stop: set by Ctrl-C/SIGTERM: start no more, stop what started (within
                 `INTERRUPT_GRACE` s each) and raise `StartInterrupted`.
+            on_wait: called as each wait begins, with what it waits for and its limit (s):
+                the router to listen (`ROUTER_START` s), then the services started
+                (`timeout` s); see `apps.waits`.
 
         Returns:
             Seconds until all were alive.
@@ -250,10 +273,12 @@ class Launcher:
         self._stop = stop
         try:
             if self.with_router:
-                self.start_router()
+                self.start_router(on_wait=on_wait)
             for name in names:
                 self._check_stop()
                 self.start(name)
+            if on_wait is not None and names:
+                on_wait(f"the services: {', '.join(names)}", timeout)
             self.wait_alive(names, timeout)
         except StartInterrupted:
             self.stop(list(self.children), INTERRUPT_GRACE)  # all at once: no order to keep
