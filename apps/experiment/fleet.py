@@ -137,7 +137,7 @@ def open_fleet(
         if on_wait is not None:  # asked before subscribing: the tokens stream in one by one
             now = set(alive_now(session, max(0.01, min(1.0, timeout))))
             if not now or not wanted <= now:
-                absent = ", ".join(sorted(wanted - now))
+                names = ", ".join(sorted(wanted - now))
                 on_wait(
                     f"robots {absent} to be alive" if wanted else "a robot on the mesh", timeout
                 )
