@@ -138,9 +138,7 @@ def open_fleet(
             now = set(alive_now(session, max(0.01, min(1.0, timeout))))
             if not now or not wanted <= now:
                 names = ", ".join(sorted(wanted - now))
-                on_wait(
-                    f"robots {absent} to be alive" if wanted else "a robot on the mesh", timeout
-                )
+                on_wait(f"robots {names} to be alive" if wanted else "a robot on the mesh", timeout)
         with StackWatch(session) as watch:
             seen = watch.wait_for(lambda alive: bool(alive) and wanted <= set(alive), timeout)
             # The tokens stream in one by one: a query's answer is the whole set at once.
