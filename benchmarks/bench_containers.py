@@ -4,7 +4,11 @@
 against the same fleet on one network.
 
     .venv/bin/python -m benchmarks.bench_containers [--repeats 5] [--rollouts 20]
-        [--before COMMIT] [--parts build,up,rollout,fleet]
+        [--before COMMIT] [--parts build,sizes,up,rollout,fleet] [--smoke]
+
+`sizes` builds the images with the build cache and reports each image's size against the
+limit `make compose` enforces; `--smoke` is `sizes` and one 7-rollout session in containers
+and on `archery up` (minutes once the images are cached; nothing recorded).
 
 Needs a Docker engine (as `make compose` does); images are tagged archery-*:latest, the image
 of before archery-before:bench.
@@ -29,6 +33,7 @@ from benchmarks.spread import median_spread
 from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from tests.containers import (
     CA_BUNDLES,
+    IMAGE_LIMIT,
     ROOT,
     TARGETS,
     Compose,
@@ -189,6 +194,17 @@ def _fleet(runs: Path, one_network: bool, sessions: int, rollouts: int) -> float
     return done / seconds
 
 
+def _sizes_line() -> str:
+    """Every image's size against the limit (`tests.containers.IMAGE_LIMIT`)."""
+    sizes = {t: image_size(f"archery-{t}:latest") for t in TARGETS}
+    largest = max(sizes, key=sizes.__getitem__)
+    return (
+        "- Image sizes: "
+        + ", ".join(f"{t} {s / 1e6:.0f} MB" for t, s in sizes.items())
+        + f"; largest {largest} {sizes[largest] / 1e6:.0f} MB (limit {IMAGE_LIMIT / 1e6:.0f} MB)"
+    )
+
+
 def _measure_up(runs: Path, repeats: int, quiet: bool) -> str:
     """`docker-compose up` to the demo's hit, fresh containers and stopped ones, interleaved."""
     fresh, warm = [], []
@@ -271,10 +287,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--parts",
         default="build,up,rollout,fleet",
-        help="what to measure (default build,up,rollout,fleet)",
+        help="what to measure (default build,up,rollout,fleet; also: sizes)",
     )
     parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument(
+        "--smoke", action="store_true", help="sizes, and one 7-rollout session of each kind"
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.parts, args.repeats, args.rollouts = "sizes,rollout", 1, 7
     problem = engine_problem()
     if problem:
         print(f"bench_containers: {problem}", file=sys.stderr)
@@ -313,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
             + ", ".join(f"{t} {s / 1e6:.0f} MB" for t, s in sizes.items())
             + f"; largest {max(sizes.values()) / 1e6:.0f} MB"
         )
+    if "sizes" in parts:
+        build_images(base)  # with the build cache: only what changed is built again
+        lines.append(_sizes_line())
     with tempfile.TemporaryDirectory() as tmp:
         runs = Path(tmp)
         if "up" in parts:

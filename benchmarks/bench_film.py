@@ -1,6 +1,8 @@
 """Benchmark of `archery film` and of the recording's 3D records.
 
-Run `python -m benchmarks.bench_film [--repeats 5] [--rollouts 6]`. It prints:
+Run `python -m benchmarks.bench_film [--repeats 5] [--rollouts 6] [--smoke]` (`--smoke`: one
+repeat of each part, 2-rollout sessions, 2 frames per render probe; seconds, nothing recorded).
+It prints:
 
 * the time to film one shot (`film_session`, 960×540 at 30 fps, H.264): seconds per film and
   per second of video, `--repeats` times;
@@ -174,7 +176,6 @@ def _films(args: argparse.Namespace, journal: Path, tmp: Path) -> tuple[list[flo
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
     parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_film", description=__doc__)
     parser.add_argument("--repeats", type=int, default=5, help="repeats of each figure (≥ 5)")
     parser.add_argument("--rollouts", type=int, default=6, help="rollouts per recorded session")
@@ -184,7 +185,12 @@ def main(argv: list[str] | None = None) -> int:
         default="size,render,film",
         help="which figures: size, render, film (film alone films the test journal's rollout 1)",
     )
+    parser.add_argument(
+        "--smoke", action="store_true", help="one repeat of each part at its smallest (seconds)"
+    )
     args = parser.parse_args(argv)
+    if args.smoke:
+        args.repeats, args.rollouts, args.frames = 1, 2, 2
     parts = set(args.parts.split(","))
     tmp = Path(tempfile.mkdtemp(prefix="bench-film-"))
     load = os.getloadavg()[0]

@@ -25,6 +25,7 @@ from pathlib import Path
 from tests.composefile import read_compose
 
 __all__ = [
+    "IMAGE_LIMIT",
     "OFFICIAL_BASE",
     "STANDIN_BASE",
     "TARGETS",
@@ -45,6 +46,7 @@ TARGETS = ("router", "robot", "camera", "detector", "controller", "learner")
 OFFICIAL_BASE = "python:3.11-slim-bookworm"
 STANDIN_BASE = "archery-base:bookworm"
 CA_BUNDLES = ("/etc/ssl/certs/ca-certificates.crt",)
+IMAGE_LIMIT = 800_000_000  # bytes: the most one image may take, as `docker images` counts it
 REQUIRED = "ARCHERY_CONTAINERS"  # =required: a missing engine fails the tests instead of skipping
 
 

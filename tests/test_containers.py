@@ -20,6 +20,7 @@ import pytest
 
 from tests.composefile import read_compose
 from tests.containers import (
+    IMAGE_LIMIT,
     REQUIRED,
     ROOT,
     TARGETS,
@@ -36,8 +37,6 @@ from tests.containers import (
 )
 
 pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800)]
-
-IMAGE_LIMIT = 800_000_000  # bytes: the most one image may take, as `docker images` counts it
 
 # What each image must import: every module of its process's packages. Left out on purpose: the
 # recording modules (`record`/`replay` run on a host, `archery[record]`) and tests.postures (a
