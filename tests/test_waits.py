@@ -142,3 +142,16 @@ def test_a_mesh_experiment_says_it_waits_for_robots(net: NetConfig, tmp_path: Pa
     assert line.endswith("(Ctrl-C to stop)"), line
     status, rest = experiment.interrupt()
     assert status == 130 and rest == ["archery experiment: interrupted (Ctrl-C)"], rest
+
+
+def test_a_mesh_experiment_waits_for_the_router_then_fails_with_status_1(tmp_path: Path) -> None:
+    dead = _dead()
+    experiment = Waiting(
+        "experiment", "--world", "mesh", "--connect", dead, "--wait", "1", "--no-progress",
+        "--out", str(tmp_path / "exp"),
+    )  # fmt: skip
+    assert experiment.line_with("waiting") == (
+        f"archery experiment: waiting up to 1 s for the router at {dead} (Ctrl-C to stop)"
+    )
+    status, rest = experiment.finish()
+    assert status == 1 and len(rest) == 1 and dead in rest[0], rest

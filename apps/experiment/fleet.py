@@ -8,6 +8,7 @@ linked to each other, the learner sees them all through the router it connects t
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 from collections.abc import Callable, Iterator, Sequence
@@ -17,8 +18,9 @@ from dataclasses import dataclass
 import zenoh
 
 from mesh.liveliness import OnWait
-from mesh.netflags import NetConfig, open_session
+from mesh.netflags import NetConfig, listens, open_session
 from mesh.node import Node
+from mesh.router import wait_for_endpoint
 from protocol.errors import ArcheryError, ConfigError
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.rig_protocol import Measurement, Shot
@@ -125,13 +127,20 @@ def open_fleet(
     """One Zenoh session to the mesh and a `FleetRobot` per robot: those named in `robots`
     (each must be alive within `timeout` s), or every robot stack alive (None).
 
-    `on_wait(what, timeout)` is called once, as the wait begins, when the robots wanted are not
-    all alive at once (`mesh.liveliness.OnWait`).
+    `on_wait(what, timeout)` is called once as each wait begins: while no router listens at the
+    endpoint (up to `timeout` s), and when the robots wanted are not all alive at once
+    (`mesh.liveliness.OnWait`).
 
     Raises:
         ConfigError: a named robot is not alive.
         NoRobot: no robot is named and none is alive.
     """
+    endpoint = net.connect[0] if net.connect else None
+    if endpoint is not None and not listens(endpoint):  # `archery up &` just started
+        if on_wait is not None:
+            on_wait(f"the router at {endpoint}", timeout)
+        with contextlib.suppress(ConfigError):  # then the session says why
+            wait_for_endpoint(endpoint, timeout)
     with open_session(net.with_identity("operator")) as session:
         wanted = set(robots or ())
         if on_wait is not None:  # asked before subscribing: the tokens stream in one by one
