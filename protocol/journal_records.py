@@ -14,19 +14,23 @@ Kinds, in the order a session writes them:
   replaying a shot needs: the robot's world parameters, its shot count before the session and
   the controller's trajectory time (s).
 * `proposed` {index, theta}: attempt `index` (1, 2, …) is about to run θ (m).
-* `done` {index, rollout, theta, r_m, distance_m, hit, …, learner_state}: attempt `index`
-  finished, the learner was told (θ, r) and `learner_state` is its state right after; `rollout`
-  counts done rollouts (1-based).
+* `done` {index, rollout, theta, r_m, distance_m, hit, …}: attempt `index` finished and the
+  learner was told (θ, r); `rollout` counts done rollouts (1-based). Version 1 journals also
+  kept the learner's whole state in each done record (`learner_state`), which grew with the
+  session; version 2 keeps it in checkpoints.
+* `checkpoint` {rollout, learner_state}: the learner's state after `rollout` done rollouts,
+  without its history (the θ and r of the done records before it: `told` counts them), written
+  every `CHECKPOINT_EVERY` rollouts and when the session stops or ends.
 * `aborted` {index, theta, code, cause, retry_theta}: attempt `index` ended without a
   measurement (the learner was not told); the next attempt runs `retry_theta` (m).
-* `resumed` {after}, `stopped` {reason, cause} (paused, resumable) and `end` {reason, summary}
-  (the session is over).
+* `resumed` {after, skipped}, `stopped` {reason, cause} (paused, resumable) and `end` {reason,
+  summary} (the session is over).
 
 Field order is the order of the lines on disk. A field that a line may lack (`controller_box`,
-`from`, `rig`, an aborted record's `truth_r_m` and `detection`, a stopped record's `cause`, a
-published done record's `learner_state`) is `UNSET` when absent, so a record encodes back to
-its line. Which records may follow which (index order, one open attempt, the same θ) is the
-journal's business: these types say only what each record holds.
+`from`, `rig`, an aborted record's `truth_r_m` and `detection`, a resumed record's `skipped`, a
+stopped record's `cause`, a done record's `learner_state`) is `UNSET` when absent, so a record
+encodes back to its line. Which records may follow which (index order, one open attempt, the
+same θ) is the journal's business: these types say only what each record holds.
 """
 
 from __future__ import annotations
@@ -37,10 +41,13 @@ import msgspec
 from msgspec import UNSET, Meta, UnsetType
 
 __all__ = [
+    "CHECKPOINT_EVERY",
     "JOURNAL_VERSION",
+    "READ_VERSIONS",
     "RECORD_KINDS",
     "RECORD_TYPES",
     "AbortedRecord",
+    "CheckpointRecord",
     "DoneRecord",
     "EndRecord",
     "HeaderRecord",
@@ -52,7 +59,9 @@ __all__ = [
     "StoppedRecord",
 ]
 
-JOURNAL_VERSION = 1
+JOURNAL_VERSION = 2  # what this code writes
+READ_VERSIONS = (1, 2)  # what it reads and resumes (1: a learner state in every done record)
+CHECKPOINT_EVERY = 100  # done rollouts between two checkpoints of a session
 
 Index = Annotated[int, Meta(ge=1, description="attempt or rollout number, 1-based")]
 Theta = Annotated[list[float], Meta(min_length=1, description="m")]
@@ -113,8 +122,8 @@ class DoneRecord(SessionRecord, frozen=True, kw_only=True, tag="done"):
         shot, outcome: the robot's shot number and what it says of the shot.
         truth_r_m, truth_distance_m: the robot's ground-truth r and ‖r‖ (m), for plots only.
         detection: the detector's reply (plain data); timing: the rollout's steps (s).
-        learner_state: the learner right after it was told; left out of a published record
-            (only the journal keeps it).
+        learner_state: version 1 journals only: the learner right after it was told (left out
+            of a published record); version 2 writes checkpoints instead.
     """
 
     index: Index
@@ -152,10 +161,21 @@ class AbortedRecord(SessionRecord, frozen=True, kw_only=True, tag="aborted"):
         return f"[{self.code}] {self.cause}"
 
 
+class CheckpointRecord(SessionRecord, frozen=True, kw_only=True, tag="checkpoint"):
+    """The learner's state after `rollout` done rollouts (`Learner.checkpoint_state`: its
+    history left out, rebuilt from the done records before it)."""
+
+    rollout: Annotated[int, Meta(ge=0)]
+    learner_state: dict[str, Any]
+
+
 class ResumedRecord(SessionRecord, frozen=True, kw_only=True, tag="resumed"):
-    """The session was continued from its journal after attempt `after` (0: before any)."""
+    """The session was continued from its journal after attempt `after` (0: before any);
+    `skipped` names checkpoints that could not be restored (the state was rebuilt from an
+    earlier one)."""
 
     after: Annotated[int, Meta(ge=0)]
+    skipped: str | UnsetType = UNSET
 
 
 class StoppedRecord(SessionRecord, frozen=True, kw_only=True, tag="stopped"):
@@ -179,6 +199,7 @@ RECORD_TYPES: tuple[type[JournalRecord], ...] = (
     ProposedRecord,
     DoneRecord,
     AbortedRecord,
+    CheckpointRecord,
     ResumedRecord,
     StoppedRecord,
     EndRecord,

@@ -20,6 +20,7 @@ from msgspec import UNSET
 from protocol.journal_records import (
     JOURNAL_VERSION,
     AbortedRecord,
+    CheckpointRecord,
     DoneRecord,
     EndRecord,
     HeaderRecord,
@@ -30,7 +31,7 @@ from protocol.journal_records import (
     StoppedRecord,
 )
 from services.learner import journal as journal_module
-from services.learner.algorithms.registry import make_learner, restore_learner
+from services.learner.algorithms.registry import make_learner
 from services.learner.journal import (
     JOURNAL_NAME,
     MAX_JOURNAL_BYTES,
@@ -41,6 +42,7 @@ from services.learner.journal import (
     encode_record,
     read_records,
 )
+from services.learner.replay import rebuild_learner
 
 
 def _learner() -> Any:
@@ -204,7 +206,7 @@ def test_rules_refuse_before_writing(tmp_path: Path) -> None:
             _done_record(1, [0.17, 0.0, -0.02], 1, r_m=[float("nan"), 0], learner_state=state),
             "NaN",
         ),
-        (_done_record(1, [0.17, 0.0, -0.02], 1, learner_state=UNSET), "without a learner_state"),
+        (CheckpointRecord(rollout=0, learner_state={}), "checkpoint while rollout 1 is open"),
         (
             AbortedRecord(index=1, theta=[0.17, 0.0, -0.02], code="", cause="x", retry_theta=[1.0]),
             r"new aborted record: aborted record: .* at `\$\.code`",
@@ -279,12 +281,12 @@ def test_learner_state_restores_the_next_proposal(tmp_path: Path) -> None:
                 r_m=r.tolist(),
                 distance_m=float(np.linalg.norm(r)),
                 hit=False,
-                learner_state=learner.state_dict(),
             )
         )
     journal.close()
     state = Journal.resume(journal.path).state
-    restored = restore_learner(state.learner_state)
+    restored, skipped = rebuild_learner(state)
+    assert skipped == []
     np.testing.assert_array_equal(restored.ask(), learner.ask())
 
 
@@ -416,8 +418,10 @@ def test_a_line_of_no_known_kind_is_not_a_record(tmp_path: Path) -> None:
 
 def test_a_header_of_another_version_says_so_even_when_its_fields_differ(tmp_path: Path) -> None:
     path = tmp_path / JOURNAL_NAME
-    path.write_text(json.dumps({"record": "header", "version": 2, "session": "s"}) + "\n")
-    with pytest.raises(JournalError, match="has journal version 2; this learner reads version 1"):
+    path.write_text(json.dumps({"record": "header", "version": 3, "session": "s"}) + "\n")
+    with pytest.raises(
+        JournalError, match="has journal version 3; this learner reads versions 1 and 2"
+    ):
         read_records(path)
 
 

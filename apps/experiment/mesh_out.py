@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from msgspec import UnsetType
 
 from apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
 from protocol.errors import ArcheryError
@@ -17,7 +16,8 @@ from protocol.journal_records import DoneRecord, EndRecord, JournalRecord, Sessi
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.config import SessionConfig
-from services.learner.journal import JOURNAL_NAME, read_records
+from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from services.learner.replay import rebuild_learner
 
 __all__ = [
     "PLAN_NAME",
@@ -160,9 +160,10 @@ def runs_from_journals(config: ExperimentConfig, out: Path) -> dict[str, Algorit
             r_true[s] = [d.truth_r_m or d.r_m for d in done]
             stamps = [r.t for r in records if isinstance(r, SessionRecord)]
             wall += stamps[-1] - stamps[0]
-            state = done[-1].learner_state
-            if isinstance(state, UnsetType):
-                raise FleetFailure(f"session {path.parent.name}: no learner state in {path}")
-            states.append(state)
+            try:  # the checkpoint at its end, told its history
+                learner, _ = rebuild_learner(JournalState.from_records(records, str(path)))
+            except JournalError as exc:
+                raise FleetFailure(f"session {path.parent.name}: {exc}") from None
+            states.append(learner.state_dict())
         runs[name] = AlgorithmRun(name, thetas, r_obs, r_true, wall, tuple(states))
     return runs

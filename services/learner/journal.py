@@ -38,9 +38,11 @@ from msgspec import UnsetType
 from protocol.errors import ArcheryError
 from protocol.journal_records import (
     JOURNAL_VERSION,
+    READ_VERSIONS,
     RECORD_KINDS,
     RECORD_TYPES,
     AbortedRecord,
+    CheckpointRecord,
     DoneRecord,
     EndRecord,
     HeaderRecord,
@@ -50,10 +52,13 @@ from protocol.journal_records import (
     SessionRecord,
 )
 from protocol.text import SHOWN_LIMIT, cut, shown
+from protocol.verbs.learner import MAX_ROLLOUTS
 
 __all__ = [
     "JOURNAL_NAME",
     "MAX_JOURNAL_BYTES",
+    "ROLLOUT_BYTES",
+    "Checkpoint",
     "Journal",
     "JournalError",
     "JournalState",
@@ -64,14 +69,18 @@ __all__ = [
 
 JOURNAL_NAME = "journal.jsonl"
 
-# The largest journal the learner reads or writes (bytes). Each done record carries the
-# learner's whole state, whose history grows by ~110 bytes per rollout, so a session of n
-# rollouts journals about 1.6 kB·n + 55 B·n² (measured with archer, power and cma: 0.7 MB
-# after 100 rollouts, 9.4 MB after 400): the paper's 10-30 rollouts take under 0.1 MB, and
-# 256 MiB holds about 2,000. Reading a journal takes a few times its size in memory, so a
-# bigger file (a huge or sparse one) is refused before it is read, and a session whose next
-# record would pass the bound fails instead of writing a journal it could not read back.
-MAX_JOURNAL_BYTES = 256 * 1024 * 1024
+# What one done rollout adds to a journal (bytes): its proposed and done records (about 1.7 kB
+# with the detector's reply and the steps' timing, whatever the session's length: no record
+# holds the history) and its share of the checkpoints (a learner's state without its history,
+# about 1 kB, every `CHECKPOINT_EVERY` rollouts; CMA-ES's grows by 2 bytes per rollout).
+ROLLOUT_BYTES = 4096
+# The largest journal the learner reads or writes (bytes): `MAX_ROLLOUTS` rollouts of
+# `ROLLOUT_BYTES` with a margin of 6 for aborted attempts (about 1 kB each, both records), so a
+# session within its budget never reaches it (`Journal.room_for` says so before a session
+# starts). Reading a journal takes a few times its size in memory, so a bigger file (a huge or
+# sparse one) is refused before it is read, and a record that would pass the bound is refused
+# instead of writing a journal that could not be read back.
+MAX_JOURNAL_BYTES = 6 * MAX_ROLLOUTS * ROLLOUT_BYTES
 _decoder: msgspec.json.Decoder[Any] = msgspec.json.Decoder(Union[RECORD_TYPES])  # noqa: UP007
 
 
@@ -110,9 +119,10 @@ def encode_record(record: JournalRecord) -> bytes:
 
 
 def _version_error(where: str, version: Any) -> JournalError:
+    readable = " and ".join(str(v) for v in READ_VERSIONS)
     return JournalError(
-        f"{where} has journal version {shown(version)}; this learner reads version "
-        f"{JOURNAL_VERSION} only (finish it with the version that wrote it)"
+        f"{where} has journal version {shown(version)}; this learner reads versions {readable} "
+        f"only (finish it with the version that wrote it)"
     )
 
 
@@ -140,7 +150,7 @@ def _decode(line: bytes, where: str) -> JournalRecord:
                 f"{where} is not a journal record (a JSON object whose 'record' is one of "
                 f"{', '.join(RECORD_KINDS)})"
             ) from None
-        if kind == "header" and loose.get("version") != JOURNAL_VERSION:
+        if kind == "header" and loose.get("version") not in READ_VERSIONS:
             raise _version_error(where, loose.get("version")) from None
         raise JournalError(f"{where}: {kind} record: {cut(str(exc), 2 * SHOWN_LIMIT)}") from None
     return record
@@ -267,6 +277,16 @@ def check_invariants(records: Sequence[JournalRecord], *, allow_open: bool = Fal
     return violations
 
 
+@dataclass(frozen=True)
+class Checkpoint:
+    """A learner state a journal holds: after `rollout` done rollouts, whole (the header's, a
+    version 1 done record's) or without its history (a checkpoint record's); `where` names it."""
+
+    rollout: int
+    state: dict[str, Any]
+    where: str
+
+
 @dataclass
 class JournalState:
     """What a journal says so far, checked record by record (`apply`).
@@ -281,6 +301,7 @@ class JournalState:
         aborts_in_row: aborted records since the last done or resumed record, by code.
         ended: the end record, once the session is over.
         records: every record applied, in order.
+        checkpoints: the learner states the journal holds, oldest first (the header's first).
     """
 
     header: HeaderRecord
@@ -292,6 +313,9 @@ class JournalState:
     aborts_in_row: dict[str, int] = field(default_factory=dict)
     ended: EndRecord | None = None
     records: list[JournalRecord] = field(default_factory=list)
+    checkpoints: list[Checkpoint] = field(default_factory=list)
+    _first_hit: int | None = None
+    _best: DoneRecord | None = None
 
     @property
     def session(self) -> str:
@@ -299,11 +323,9 @@ class JournalState:
         return self.header.session
 
     @property
-    def learner_state(self) -> dict[str, Any]:
-        """The learner's state after the last done rollout (the header's before any)."""
-        state = self.done[-1].learner_state if self.done else self.header.learner_state
-        assert not isinstance(state, UnsetType)  # `apply` takes no done record without it
-        return dict(state)
+    def checkpointed(self) -> int:
+        """Done rollouts the latest checkpoint follows (0: only the header's state)."""
+        return self.checkpoints[-1].rollout if self.checkpoints else 0
 
     @classmethod
     def from_records(cls, records: Sequence[JournalRecord], where: str = "journal") -> JournalState:
@@ -314,8 +336,10 @@ class JournalState:
         """
         if not records:
             raise JournalError(f"{where} is empty: no header record")
-        state = cls(header=cls._check_header(records[0], where))
-        state.records.append(records[0])
+        header = cls._check_header(records[0], where)
+        state = cls(header=header)
+        state.records.append(header)
+        state.checkpoints.append(Checkpoint(0, header.learner_state, f"{where} header"))
         for number, record in enumerate(records[1:], start=2):
             state.apply(record, f"{where} record {number}")
         return state
@@ -324,7 +348,7 @@ class JournalState:
     def _check_header(header: JournalRecord, where: str) -> HeaderRecord:
         if not isinstance(header, HeaderRecord):
             raise JournalError(f"{where} does not start with a header record")
-        if header.version != JOURNAL_VERSION:
+        if header.version not in READ_VERSIONS:
             raise _version_error(where, header.version)
         return header
 
@@ -343,6 +367,14 @@ class JournalState:
             self.retry_theta = None
             self.aborts_in_row = {}
             self.open = None
+            if record.hit and self._first_hit is None:
+                self._first_hit = record.rollout
+            if self._best is None or record.distance_m < self._best.distance_m:
+                self._best = record
+            if not isinstance(record.learner_state, UnsetType):  # version 1: every done record
+                self.checkpoints.append(Checkpoint(record.rollout, record.learner_state, where))
+        elif isinstance(record, CheckpointRecord):
+            self.checkpoints.append(Checkpoint(record.rollout, record.learner_state, where))
         elif isinstance(record, AbortedRecord):
             self.retry_theta = list(record.retry_theta)
             self.aborted.append(record)
@@ -396,20 +428,30 @@ class JournalState:
                 raise JournalError(
                     f"{where}: rollout {index} {kind} with θ {theta}, proposed {self.open.theta}"
                 )
-            if isinstance(record, DoneRecord):
-                if isinstance(record.learner_state, UnsetType):
-                    raise JournalError(f"{where}: done record without a learner_state")
-                if record.rollout != len(self.done) + 1:
-                    raise JournalError(
-                        f"{where}: done rollout number {record.rollout!r}, expected "
-                        f"{len(self.done) + 1}"
-                    )
+            if isinstance(record, DoneRecord) and record.rollout != len(self.done) + 1:
+                raise JournalError(
+                    f"{where}: done rollout number {record.rollout!r}, expected "
+                    f"{len(self.done) + 1}"
+                )
+        elif isinstance(record, CheckpointRecord):
+            if self.open is not None:
+                raise JournalError(f"{where}: checkpoint while rollout {self.open.index} is open")
+            if record.rollout != len(self.done):
+                raise JournalError(
+                    f"{where}: checkpoint after rollout {record.rollout}, but {len(self.done)} "
+                    f"are done"
+                )
         elif isinstance(record, EndRecord) and self.open is not None:
             raise JournalError(f"{where}: end while rollout {self.open.index} is open")
 
+    @property
+    def best(self) -> DoneRecord | None:
+        """The done rollout with the smallest ‖r‖ (the first of equals), or None."""
+        return self._best
+
     def hit_at(self) -> int | None:
         """The done-rollout number (1-based) of the first hit, or None."""
-        return next((d.rollout for d in self.done if d.hit), None)
+        return self._first_hit
 
     def summary(self) -> dict[str, Any]:
         """Counts and results so far, as plain values (distances in m)."""
@@ -423,7 +465,7 @@ class JournalState:
             "aborted": len(self.aborted),
             "hit_at": self.hit_at(),
             "final_distance_m": None if last is None else last.distance_m,
-            "best_distance_m": min((d.distance_m for d in self.done), default=None),
+            "best_distance_m": None if self._best is None else self._best.distance_m,
             "ended": None if self.ended is None else self.ended.reason,
         }
 
@@ -527,7 +569,8 @@ class Journal:
         if self._size + len(line) > MAX_JOURNAL_BYTES:
             raise JournalError(
                 f"journal {self.path} would pass {MAX_JOURNAL_BYTES} bytes, the most a journal "
-                f"may hold (about 2,000 rollouts); start a new session"
+                f"may hold ({MAX_ROLLOUTS} rollouts with room for aborted attempts); start a "
+                f"new session"
             )
         try:
             _write_all(self._file, line)
@@ -540,6 +583,26 @@ class Journal:
             ) from None
         self.state.apply(record, where)
         return record
+
+    @property
+    def size(self) -> int:
+        """The journal's bytes so far."""
+        return self._size
+
+    def room_for(self, rollouts: int) -> None:
+        """Check, before a session (re)starts, that `rollouts` more done rollouts fit in the
+        journal at `ROLLOUT_BYTES` each.
+
+        Raises:
+            JournalError: they would not; nothing is written.
+        """
+        need = self._size + rollouts * ROLLOUT_BYTES
+        if need > MAX_JOURNAL_BYTES:
+            raise JournalError(
+                f"journal {self.path} holds {self._size} bytes; {rollouts} more rollouts would "
+                f"take it to about {need}, past the {MAX_JOURNAL_BYTES} a journal may hold; "
+                f"start a new session"
+            )
 
     def close(self) -> None:
         """Close the file (idempotent; never raises: every record written was fsynced)."""

@@ -141,7 +141,7 @@ def aborted_record(
 ) -> tuple[AbortedRecord, AbortDecision]:
     """The aborted record of a failed attempt, with the θ the abort policy picks for the next
     one, and the policy's decision (whether to wait for the services, or fail)."""
-    best = min(state.done, key=lambda d: d.distance_m) if state.done else None
+    best = state.best
     redraw = learner.redraw((config.seed, attempt.index)) if failed.code == NO_ARROW else None
     decision = after_abort(
         failed.code,
@@ -178,8 +178,8 @@ def done_record(
     measured: Measured,
 ) -> DoneRecord:
     """Tell the learner (θ, r) and return the done record: the next done-rollout number, r,
-    return, ‖r‖ and hit, the ground truth, the detector's reply, the timing of the steps (s)
-    and the learner's state right after."""
+    return, ‖r‖ and hit, the ground truth, the detector's reply and the timing of the steps (s)
+    (the learner's state goes into the journal's checkpoints, `session`)."""
     told = time.perf_counter()
     big_return = learner.tell(attempt.theta, np.array(measured.r_m))
     timing = (
@@ -206,5 +206,4 @@ def done_record(
         truth_distance_m=None if truth is None else planar_distance(truth),
         detection=measured.measurement.detection,
         timing=timing,
-        learner_state=learner.state_dict(),
     )

@@ -2,7 +2,9 @@
 
 A rollout (attempt `index`): θ from the learner (or the retry θ an abort left) → journal
 `proposed` → controller posture → robot nock and release → detector measure (a frame newer
-than the landing) → `tell(θ, r)` → journal `done` with the learner's state. Each step of an
+than the landing) → `tell(θ, r)` → journal `done`; every `CHECKPOINT_EVERY` done rollouts, and
+before the session stops or ends, a `checkpoint` of the learner's state (without its history:
+a record's size never grows with the session). Each step of an
 attempt is the pure `services.learner.rollout_step`; this module runs them: it journals and
 publishes each record, waits for lost services (`services.learner.service_wait`), keeps the
 session's phase and status, keeps the latest hit for its frame (`hit_frame`: saved once,
@@ -30,6 +32,8 @@ import msgspec
 import numpy as np
 
 from protocol.journal_records import (
+    CHECKPOINT_EVERY,
+    CheckpointRecord,
     EndRecord,
     JournalRecord,
     ProposedRecord,
@@ -208,6 +212,7 @@ class Session:
         """Journal the stopped record of a failure; a journal that cannot take it (e.g. a full
         disk) leaves the session failed with its first cause (the error is logged)."""
         try:
+            self._checkpoint()
             self._record(StoppedRecord(reason="failed", cause=cause))
         except JournalError as exc:
             log.error("session %s: the failure was not journaled: %s", self.session_id, exc.message)
@@ -222,6 +227,7 @@ class Session:
         while not stop.is_set():
             reason = self._finished()
             if reason is not None:
+                self._checkpoint()
                 self._record(EndRecord(reason=reason, summary=state.summary()))
                 self._set("finished", reason)
                 log.info("session %s finished: %s", self.session_id, reason)
@@ -235,8 +241,20 @@ class Session:
                 raise SessionFailed(failure)
             self._set("running")
             self._attempt(stop)
+        self._checkpoint()
         self._record(StoppedRecord(reason="stop requested"))
         self._set("stopped", "stop requested")
+
+    def _checkpoint(self) -> None:
+        """Journal the learner's state (without its history) unless the latest checkpoint
+        already follows the last done rollout."""
+        state = self.journal.state
+        if state.checkpointed < len(state.done) and state.open is None:
+            self._record(
+                CheckpointRecord(
+                    rollout=len(state.done), learner_state=self.learner.checkpoint_state()
+                )
+            )
 
     def _finished(self) -> str | None:
         state = self.journal.state
@@ -301,6 +319,8 @@ class Session:
         done = self.journal.append(msgspec.structs.replace(record, timing=timing))
         timing = timing | {"journal_s": time.perf_counter() - before}
         self._published(msgspec.structs.replace(done, timing=timing))
+        if record.rollout % CHECKPOINT_EVERY == 0:
+            self._checkpoint()
         log.info(
             "rollout %d (attempt %d): θ %s → r %s, %.1f cm%s",
             record.rollout,

@@ -5,6 +5,7 @@ journaled). The runner is `services.learner.session.Session`; θ is in m.
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -14,17 +15,16 @@ import numpy as np
 from protocol.errors import BadRequest
 from protocol.journal_records import HeaderRecord, ResumedRecord
 from services.learner.algorithms.base import Learner, LearnerError
-from services.learner.algorithms.registry import (
-    make_learner,
-    restore_learner,
-    transferred_learner,
-)
+from services.learner.algorithms.registry import make_learner, transferred_learner
 from services.learner.config import SessionConfig
 from services.learner.journal import JOURNAL_NAME, Journal, JournalError
+from services.learner.replay import rebuild_learner
 from services.learner.rig_protocol import Rig
 from services.learner.transfer import TransferSource
 
 __all__ = ["new_session_id", "reopened_session", "started_session"]
+
+log = logging.getLogger("archery.learner")
 
 
 def new_session_id(algorithm: str, seed: int) -> str:
@@ -99,11 +99,14 @@ def reopened_session(
     """The journal (`resumed` appended), restored learner and settings of the session
     journaled at `path` (a journal file or its directory).
 
-    The learner is restored from the last done rollout's state, so asked again it proposes
-    exactly what it proposed before.
+    The learner is rebuilt from the latest checkpoint and the done rollouts after it
+    (`services.learner.replay`), so asked again it proposes exactly what an uninterrupted
+    session would have; checkpoints that did not restore are named in the `resumed` record.
 
     Raises:
-        JournalError: unreadable journal, another session or version, an ended session.
+        JournalError: unreadable journal, another session or version, an ended session, a
+            journal changed by hand (a rollout the learner would not have proposed), or no
+            room in the journal for the rollouts left.
     """
     path = Path(path)
     if path.is_dir():
@@ -111,9 +114,16 @@ def reopened_session(
     journal = Journal.resume(path, session)
     try:
         config = SessionConfig.from_header(journal.state.header)
-        learner = restore_learner(journal.state.learner_state)
+        learner, skipped = rebuild_learner(journal.state)
+        journal.room_for(config.rollouts - len(journal.state.done))
     except (KeyError, TypeError, ValueError) as exc:
         journal.close()
+        if isinstance(exc, JournalError):
+            raise
         raise JournalError(f"journal {path} cannot restore its session: {exc}") from None
-    journal.append(ResumedRecord(after=journal.state.last_index))
+    note: str | msgspec.UnsetType = msgspec.UNSET
+    if skipped:
+        note = "; ".join(skipped)
+        log.warning("session %s: checkpoints skipped: %s", journal.state.session, note)
+    journal.append(ResumedRecord(after=journal.state.last_index, skipped=note))
     return journal, learner, config

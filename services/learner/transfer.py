@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 from protocol.errors import BadRequest
-from services.learner.algorithms.base import STATE_VERSION, LearnerError
+from services.learner.algorithms.base import LearnerError
 from services.learner.algorithms.registry import check_transfer
 from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from services.learner.replay import rebuild_learner
 from services.learner.runs_folder import journal_in_runs
 
 __all__ = ["TransferSource", "load_source"]
@@ -82,10 +83,5 @@ def load_source(target: str, algorithm: str, runs: Path | None = None) -> Transf
         )
     if not state.done:
         raise JournalError(f"--from {path}: session {state.session} has no done rollout")
-    learner_state = state.learner_state
-    if learner_state.get("version") != STATE_VERSION:
-        raise JournalError(
-            f"--from {path}: learner state version {learner_state.get('version')!r}; this "
-            f"learner reads version {STATE_VERSION}"
-        )
+    learner_state = rebuild_learner(state)[0].state_dict()
     return TransferSource(state.session, path.resolve(), source_algorithm, learner_state)

@@ -25,6 +25,7 @@ __all__ = [
     "rng_from_state",
     "rng_state",
     "scalar_return",
+    "with_history",
 ]
 
 STATE_VERSION = 1
@@ -171,6 +172,28 @@ def _unplain(value: Any) -> Any:
             return np.array([_unplain(x) for x in value["__array__"]], dtype=value["dtype"])
         return {k: _unplain(v) for k, v in value.items()}
     return value
+
+
+def with_history(
+    checkpoint: dict[str, Any],
+    thetas: Sequence[Sequence[float]],
+    rewards: Sequence[Sequence[float]],
+) -> dict[str, Any]:
+    """A whole state (`Learner.state_dict`) from a `checkpoint_state` and the θ (m) and r (m)
+    of the rollouts it was told, in order; a whole state is returned as it is.
+
+    Raises:
+        StateError: the checkpoint is not a dict, or counts another number of rollouts.
+    """
+    if not isinstance(checkpoint, dict):
+        raise StateError(f"a learner state must be a dict, got {type(checkpoint).__name__}")
+    if "told" not in checkpoint:
+        return checkpoint
+    told = checkpoint["told"]
+    if isinstance(told, bool) or not isinstance(told, int) or told != len(thetas):
+        raise StateError(f"the checkpoint counts {shown(told)} rollouts told, not {len(thetas)}")
+    state = {k: v for k, v in checkpoint.items() if k != "told"}
+    return state | {"thetas": list(thetas), "rewards": list(rewards)}
 
 
 def rng_state(rng: np.random.Generator) -> dict[str, Any]:
@@ -328,6 +351,18 @@ class Learner(ABC):
 
     def state_dict(self) -> dict[str, Any]:
         """The whole state as plain values (JSON and msgpack friendly)."""
+        return self._state() | {
+            "thetas": [t.tolist() for t in self._thetas],
+            "rewards": [r.tolist() for r in self._rewards],
+        }
+
+    def checkpoint_state(self) -> dict[str, Any]:
+        """The state without its history, whose size does not grow with it: `told` counts the
+        rollouts told, whose θ and r a journal's done records hold (`with_history` puts them
+        back)."""
+        return self._state() | {"told": self.n_rollouts}
+
+    def _state(self) -> dict[str, Any]:
         return {
             "version": STATE_VERSION,
             "algorithm": self.algorithm,
@@ -335,8 +370,6 @@ class Learner(ABC):
             "theta0": self.theta0.tolist(),
             "bounds": self.bounds.to_dict(),
             "rng": rng_state(self.rng),
-            "thetas": [t.tolist() for t in self._thetas],
-            "rewards": [r.tolist() for r in self._rewards],
             "pending": None if self._pending is None else self._pending.tolist(),
             "extra": self._extra_state(),
         }
