@@ -6,8 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from msgspec import UNSET
 import pytest
+from msgspec import UNSET
 
 from protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
