@@ -212,6 +212,25 @@ def rng_from_state(state: dict[str, Any]) -> np.random.Generator:
     return np.random.Generator(bit_generator)
 
 
+class _Rows:
+    """Rows of floats appended one at a time into an array that doubles when full (amortised
+    O(1) per row), read as one array without rebuilding it from the rows."""
+
+    def __init__(self, width: int) -> None:
+        self._data = np.empty((16, width))
+        self._n = 0
+
+    def append(self, row: np.ndarray) -> None:
+        if self._n == len(self._data):
+            self._data = np.concatenate([self._data, np.empty_like(self._data)])
+        self._data[self._n] = row
+        self._n += 1
+
+    def array(self) -> np.ndarray:
+        """A copy of the rows so far, (n, width)."""
+        return self._data[: self._n].copy()
+
+
 class Learner(ABC):
     """The ask/tell protocol: `ask()` proposes θ (m), `tell(θ, r)` records the reward vector r (m).
 
@@ -258,6 +277,8 @@ class Learner(ABC):
         self._thetas: list[np.ndarray] = []
         self._rewards: list[np.ndarray] = []
         self._returns: list[float] = []
+        # The same history as arrays, grown in place: reading it costs no rebuild from the lists
+        self._rows = _Rows(self.theta0.size + 3)  # θ (m), r (m), R per rollout
         self._pending: np.ndarray | None = None
 
     # -- the protocol ---------------------------------------------------------------------------
@@ -302,6 +323,7 @@ class Learner(ABC):
         self._thetas.append(theta)
         self._rewards.append(r)
         self._returns.append(big_return)
+        self._rows.append(np.concatenate([theta, r, [big_return]]))
         self._pending = None
         self._update(theta, r, big_return)
         return big_return
@@ -316,17 +338,18 @@ class Learner(ABC):
     @property
     def thetas(self) -> np.ndarray:
         """(n, d) θ of every rollout told so far (m)."""
-        return np.array(self._thetas).reshape(-1, self.theta0.size)
+        return self._rows.array()[:, : self.theta0.size]
 
     @property
     def rewards(self) -> np.ndarray:
         """(n, 2) reward vectors r of every rollout (m)."""
-        return np.array(self._rewards).reshape(-1, 2)
+        d = self.theta0.size
+        return self._rows.array()[:, d : d + 2]
 
     @property
     def returns(self) -> np.ndarray:
         """(n,) scalar returns R = exp(−‖r‖)."""
-        return np.array(self._returns, dtype=float)
+        return self._rows.array()[:, -1]
 
     def ranked(self) -> np.ndarray:
         """Rollout indices sorted by return, best first (ties: earlier first); Eq. 4's ind(k)."""
@@ -412,6 +435,9 @@ class Learner(ABC):
         self._thetas = thetas
         self._rewards = rewards
         self._returns = [scalar_return(r) for r in rewards]
+        self._rows = _Rows(d + 3)
+        for theta, r, big_return in zip(thetas, rewards, self._returns, strict=True):
+            self._rows.append(np.concatenate([theta, r, [big_return]]))
         self._pending = pending
         self._load_extra_state(state["extra"])
 
