@@ -152,3 +152,54 @@ def test_no_number_of_the_report_lies_on_a_marker(tmp_path: Path, rollouts: int)
         assert legend.y1 < curve.get_window_extent(renderer).y0  # under the plot, off the data
     finally:
         plt.close(fig)
+
+
+def test_a_long_session_reads_at_a_glance(tmp_path: Path) -> None:
+    """3,000 rollouts (and aborts): one collection of markers per kind, a few numbers only."""
+    learner = make_learner("archer", np.array(THETA), rng=np.random.default_rng(3))
+    records: list[Any] = [
+        HeaderRecord(
+            session="s1",
+            algorithm="archer",
+            seed=3,
+            rollouts=3000,
+            options=learner.options(),
+            config={"hit_radius_m": 0.05},
+            learner_state=learner.state_dict(),
+        )
+    ]
+    rng = np.random.default_rng(0)
+    index = 0
+    for k in range(1, 3001):
+        if k % 97 == 0:  # an aborted attempt now and then
+            index += 1
+            records.append(ProposedRecord(session="s1", index=index, theta=THETA))
+            records.append(
+                AbortedRecord(
+                    session="s1", index=index, theta=THETA, code="no_arrow", cause="x",
+                    retry_theta=THETA,
+                )
+            )  # fmt: skip
+        index += 1
+        r = rng.normal(0.0, 0.08, 2)
+        distance = float(np.linalg.norm(r))
+        records.append(ProposedRecord(session="s1", index=index, theta=THETA))
+        records.append(
+            DoneRecord(
+                session="s1", index=index, rollout=k, theta=THETA, r_m=r.tolist(),
+                distance_m=distance, hit=distance < 0.05, truth_r_m=r.tolist(),
+                truth_distance_m=distance,
+            )
+        )  # fmt: skip
+    state = JournalState.from_records(records)
+    assert sum(d.hit for d in state.done) > 100  # many hits: only the first few are numbered
+    fig = report_figure(state)
+    face, curve = fig.axes[:2]
+    assert 3 <= len(face.texts) <= 3 + 5
+    assert len(face.collections) <= 3  # measured, hits, true: not one per rollout
+    assert len(curve.texts) == 0  # one code: named in the legend, not at each cross
+    fig.savefig(tmp_path / "report.png")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    assert (tmp_path / "report.png").stat().st_size > 10_000

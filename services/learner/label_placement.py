@@ -82,18 +82,24 @@ def overlaps_disc(box: Any, discs: np.ndarray) -> bool:
     return bool((np.hypot(discs[:, 0] - nearest_x, discs[:, 1] - nearest_y) < discs[:, 2]).any())
 
 
-def place_labels(ax: Any, labels: Sequence[Label], renderer: Any | None = None) -> list[Any]:
+def place_labels(
+    ax: Any, labels: Sequence[Label], renderer: Any | None = None, *, over_markers: bool = False
+) -> list[Any]:
     """Annotate `ax` with each label where it covers no marker and no other label; returns the
-    annotations placed (labels with no free place are skipped)."""
+    annotations placed (labels with no free place are skipped). `over_markers`: where markers
+    cover the plot (thousands of rollouts), a label may lie on them, on a white box, and misses
+    only the other labels."""
     renderer = renderer or ax.figure.canvas.get_renderer()
-    discs = marker_discs(ax)
+    discs = np.empty((0, 3)) if over_markers else marker_discs(ax)
     frame = ax.get_window_extent(renderer)
     taken: list[Any] = []
     placed = []
     px_per_pt = ax.figure.dpi / 72.0
     for label in labels:
         for reach in (1.0, 2.2):
-            spot = _first_free(ax, label, reach, px_per_pt, renderer, discs, frame, taken)
+            spot = _first_free(
+                ax, label, reach, px_per_pt, renderer, discs, frame, taken, over_markers
+            )
             if spot is not None:
                 annotation, box = spot
                 taken.append(box)
@@ -111,6 +117,7 @@ def _first_free(
     discs: np.ndarray,
     frame: Any,
     taken: list[Any],
+    boxed: bool = False,
 ) -> tuple[Any, Any] | None:
     """The first annotation of `label` at `reach` that is free, with its box; None if none."""
     distance_pt = reach * (label.radius_px + _GAP_PX) / px_per_pt
@@ -127,6 +134,9 @@ def _first_free(
             ha="left" if dx > 0 else "right" if dx < 0 else "center",
             va="bottom" if dy > 0 else "top" if dy < 0 else "center",
             zorder=6,
+            bbox={"boxstyle": "round,pad=0.15", "fc": "white", "alpha": 0.85, "lw": 0}
+            if boxed
+            else None,
         )
         box = annotation.get_window_extent(renderer)
         inside = (

@@ -28,6 +28,8 @@ FACE_RADIUS = 0.25  # m, the target face (sim.geometry.TARGET_DIAMETER / 2)
 RINGS = (0.25, 0.15, 0.10, HIT_RADIUS)  # m
 LABELLED_FIRST = 8  # the face numbers the first rollouts, then every 10th, hits and the last
 MANY = 20  # above this many rollouts the markers and labels get smaller
+LONG = 200  # above this many, the face numbers only the first, the best, the last and hits
+LONG_HITS = 5  # the first hits numbered in a long session
 
 
 @dataclass(frozen=True)
@@ -117,7 +119,8 @@ def report_figure(state: JournalState) -> Any:
     """The figure of `report.png`: left, where each rollout's arrow met the target face
     (measured r, coloured by rollout, hits as stars; the robot's true impact as a hollow marker;
     numbered: the hits, the first and the last, the first 8 and every 10th, each where it covers
-    no marker and no other number); right, the distance to the centre per rollout, measured and
+    no marker and no other number; past `LONG` rollouts only the first, the best, the last and
+    the first `LONG_HITS` hits); right, the distance to the centre per rollout, measured and
     true, with the 5 cm ring, each aborted attempt (a red ×, between the rollouts it fell
     between, with its code) and each resume of the session (a dotted line); the legend under
     the plot, off the data. The caller closes it (`matplotlib.pyplot.close`)."""
@@ -141,33 +144,34 @@ def report_figure(state: JournalState) -> Any:
     many = len(done) > MANY
     colours = plt.get_cmap("viridis")(np.linspace(0, 0.9, max(len(done), 1)))
     if len(done):
-        face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=0.6 if many else 0.9, zorder=1)
-    areas = []  # pt²
-    for k in range(len(done)):
-        x, y = r[k]
-        area = (90 if many else 130) if hits[k] else (28 if many else 55)
-        areas.append(area)
-        face.scatter(
-            x,
-            y,
-            s=area,
-            color=colours[k],
-            zorder=3,
-            marker="*" if hits[k] else "o",
-            edgecolors="k",
-            linewidths=0.6,
-        )
-        true_r = truth[k]
-        if true_r is not None:
+        width = 0.9 if not many else 0.6 if len(done) <= LONG else 0.25
+        face.plot(r[:, 0], r[:, 1], "-", color="0.7", lw=width, zorder=1)
+    # pt²; one collection per kind of marker, however many rollouts (later ones on top)
+    areas = np.where(hits, 90 if many else 130, 28 if many else 55)
+    for kind, marker in ((~hits, "o"), (hits, "*")):
+        if kind.any():
             face.scatter(
-                100 * true_r[0],
-                100 * true_r[1],
-                s=40,
-                facecolors="none",
-                edgecolors=colours[k],
-                zorder=2,
-                linewidths=1.2,
+                r[kind, 0],
+                r[kind, 1],
+                s=areas[kind],
+                c=colours[kind],
+                zorder=3,
+                marker=marker,
+                edgecolors="k",
+                linewidths=0.3 if len(done) > LONG else 0.6,
             )
+    known = np.array([t is not None for t in truth], dtype=bool)
+    if known.any():
+        true_r = 100 * np.array([t for t in truth if t is not None]).reshape(-1, 2)
+        face.scatter(
+            true_r[:, 0],
+            true_r[:, 1],
+            s=40,
+            facecolors="none",
+            edgecolors=colours[known],
+            zorder=2,
+            linewidths=1.2,
+        )
     limit = max(100 * FACE_RADIUS + 3, float(np.abs(r).max()) + 4 if len(done) else 0)
     face.set_xlim(-limit, limit)
     face.set_ylim(-limit, limit)
@@ -196,13 +200,14 @@ def report_figure(state: JournalState) -> Any:
     lines = [(measured, "o-", "tab:blue", 2.0, 6.0, "measured by the detector")]
     if np.isfinite(true).any():
         lines.append((true, "s--", "tab:gray", 1.2, 5.0, "true (robot's ground truth)"))
+    long = len(done) > LONG  # thousands of points: thin lines, no markers but the hits'
     for values, style, colour, width, size, label in lines:
         curve.plot(
             n,
             values,
-            style,
+            style.replace("o", "").replace("s", "") if long else style,
             color=colour,
-            lw=0.75 * width if many else width,
+            lw=0.5 if long else 0.75 * width if many else width,
             ms=0.6 * size if many else size,
             mfc=None if style == "o-" else "none",
             label=label,
@@ -211,7 +216,7 @@ def report_figure(state: JournalState) -> Any:
         curve.scatter(
             n[hits],
             measured[hits],
-            s=150 if many else 220,
+            s=40 if long else 150 if many else 220,
             marker="*",
             color="gold",
             edgecolors="k",
@@ -232,23 +237,26 @@ def report_figure(state: JournalState) -> Any:
     stacked: dict[int, int] = {}
     codes = {code for _, code in marks.aborted}
     one_code = next(iter(codes)) if len(codes) == 1 else None  # then named once, in the legend
-    code_labels = []
-    for i, (position, code) in enumerate(marks.aborted):
+    code_labels, crosses = [], []
+    for position, code in marks.aborted:
         level = stacked.get(position, 0)  # several aborts between the same two rollouts stack
         stacked[position] = level + 1
         y = top * (0.03 + 0.05 * level)
+        crosses.append((position + 0.5, y))
+        if one_code is None and len(marks.aborted) <= LONG:
+            code_labels.append(Label(code, (position + 0.5, y), radius_px=6.0, fontsize=7))
+    if crosses:
+        x, y = np.array(crosses).T
         curve.scatter(
-            position + 0.5,
+            x,
             y,
             marker="x",
-            s=60,
+            s=60 if len(crosses) <= LONG else 20,
             color="red",
-            linewidths=2,
+            linewidths=2 if len(crosses) <= LONG else 1,
             zorder=5,
-            label=(f"aborted attempt ({one_code or 'code'})" if i == 0 else None),
+            label=f"aborted attempt ({one_code or 'code'})",
         )
-        if one_code is None:
-            code_labels.append(Label(code, (position + 0.5, y), radius_px=6.0, fontsize=7))
     curve.set_xlabel("rollout")
     curve.set_ylabel("distance of the arrow to the target centre (cm)")
     curve.set_xlim(0.5 if not marks.aborted else 0, max(len(done), 1) + 0.5)
@@ -270,14 +278,16 @@ def report_figure(state: JournalState) -> Any:
     # the numbers last, on the final layout: each where it covers no marker
     px_per_pt = fig.dpi / 72.0
     last = len(done) - 1
-    wanted = sorted(
-        (
+    if len(done) > LONG:  # a number every 10th would be hundreds: the colour tells the order
+        best = int(np.argmin(measured))
+        numbered = {0, best, last, *np.flatnonzero(hits)[:LONG_HITS].tolist()}
+    else:
+        numbered = {
             k
             for k, d in enumerate(done)
             if d.rollout <= LABELLED_FIRST or d.rollout % 10 == 0 or hits[k] or k == last
-        ),
-        key=lambda k: (not hits[k], k not in (0, last), k),
-    )
+        }
+    wanted = sorted(numbered, key=lambda k: (not hits[k], k not in (0, last), k))
     place_labels(
         face,
         [
@@ -290,6 +300,7 @@ def report_figure(state: JournalState) -> Any:
             )
             for k in wanted
         ],
+        over_markers=len(done) > LONG,
     )
     place_labels(curve, code_labels)
     return fig
