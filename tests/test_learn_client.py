@@ -97,7 +97,7 @@ def test_a_full_disk_fails_the_session_with_the_journals_error(
     records = read_records(journal.path)[0]
     # the status counts what the file holds, no more: one rollout done, attempt 2 open or not
     assert status.rollouts == _done(records) == 1
-    assert journal.state.records == records
+    assert journal.state.records == records[-1:]  # it keeps only the last in memory
     assert not journal.path.read_bytes().endswith(b"\n")  # a torn last record, cut off on resume
     assert check_invariants(records, allow_open=True) == []
     assert not isinstance(records[-1], StoppedRecord)  # the failure could not be journaled

@@ -132,6 +132,12 @@ def _check_each_once(path: Path) -> None:
     assert finished == proposed
 
 
+def _journaled(session: Session) -> JournalState:
+    """Everything the session's journal file holds (a running session keeps only the last
+    records in memory)."""
+    return JournalState.from_records(read_records(session.journal.path)[0])
+
+
 def _run(config: SessionConfig, rig: FakeRig, runs: Path, **kw: Any) -> Session:
     session = Session.create(config, rig, runs, session_id="s", **kw)
     session.run(threading.Event())
@@ -256,7 +262,7 @@ def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None
         assert retry.theta == a.theta == a.retry_theta
     assert rig.waits == 2
     assert session.status().ended == "hit"
-    marks = interruptions(session.journal.state)  # where report.png marks them
+    marks = interruptions(_journaled(session))  # where report.png marks them
     assert [code for _, code in marks.aborted] == ["service_lost", "service_lost"]
     assert [p for p, _ in marks.aborted] == [
         sum(1 for r in records[: records.index(a)] if isinstance(r, DoneRecord)) for a in aborted
@@ -267,7 +273,7 @@ def test_lost_service_aborts_waits_and_reruns_same_theta(tmp_path: Path) -> None
 def test_resume_after_crash_is_exact(tmp_path: Path) -> None:
     config = SessionConfig(seed=5, until_hit=False, rollouts=8)
     reference = _run(config, FakeRig(), tmp_path / "ref")
-    ref_thetas = [r.theta for r in reference.journal.state.done]
+    ref_thetas = [r.theta for r in _journaled(reference).done]
 
     crashed = Session.create(config, FakeRig(crash_at=4), tmp_path / "run", session_id="s")
     with pytest.raises(Crash):
@@ -293,7 +299,7 @@ def test_a_resumed_session_draws_the_hit_its_journal_holds(tmp_path: Path) -> No
     # a learner killed right after a hit, resumed and stopped at once: the hit's frame is asked
     config = SessionConfig(seed=1, until_hit=False, rollouts=30)
     reference = _run(config, FakeRig(), tmp_path / "ref")
-    first = next(r for r in reference.journal.state.done if r.hit)
+    first = next(r for r in _journaled(reference).done if r.hit)
     crashed = Session.create(config, FakeRig(crash_at=first.index + 1), tmp_path, session_id="s")
     with pytest.raises(Crash):
         crashed.run(threading.Event())
@@ -319,7 +325,7 @@ def test_stop_then_resume(tmp_path: Path) -> None:
         SessionConfig(seed=3, until_hit=False, rollouts=4), rig, tmp_path, "s", on_record=on_record
     )
     assert session.run(stop).state == "stopped"
-    assert len(session.journal.state.done) == 2
+    assert len(_journaled(session).done) == 2
     resumed = Session.resume(tmp_path / "s", FakeRig())
     assert resumed.run(threading.Event()).ended == "budget"
     _check_each_once(tmp_path / "s" / "journal.jsonl")
@@ -349,7 +355,7 @@ def test_rig_error_aborts_and_retries(tmp_path: Path) -> None:
             return super().shoot()
 
     session = _run(SessionConfig(seed=1), Busy(), tmp_path)
-    aborted = session.journal.state.aborted
+    aborted = _journaled(session).aborted
     assert [a.code for a in aborted] == ["rpc_error"] and "busy" in aborted[0].cause
     assert session.status().ended == "hit"
 

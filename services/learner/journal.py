@@ -302,6 +302,11 @@ class JournalState:
         ended: the end record, once the session is over.
         records: every record applied, in order.
         checkpoints: the learner states the journal holds, oldest first (the header's first).
+        n_done, n_aborted: how many done and aborted records it holds.
+
+    A session's own journal (`Journal`) calls `forget_history` once the learner is built:
+    from then on `done`, `aborted`, `records` and `checkpoints` keep only their last item, so
+    that a running session's memory does not grow with its length (the file holds them all).
     """
 
     header: HeaderRecord
@@ -314,8 +319,11 @@ class JournalState:
     ended: EndRecord | None = None
     records: list[JournalRecord] = field(default_factory=list)
     checkpoints: list[Checkpoint] = field(default_factory=list)
+    n_done: int = 0
+    n_aborted: int = 0
     _first_hit: int | None = None
     _best: DoneRecord | None = None
+    _keep: bool = True
 
     @property
     def session(self) -> str:
@@ -364,6 +372,7 @@ class JournalState:
             self.last_index = record.index
         elif isinstance(record, DoneRecord):
             self.done.append(record)
+            self.n_done += 1
             self.retry_theta = None
             self.aborts_in_row = {}
             self.open = None
@@ -378,6 +387,7 @@ class JournalState:
         elif isinstance(record, AbortedRecord):
             self.retry_theta = list(record.retry_theta)
             self.aborted.append(record)
+            self.n_aborted += 1
             self.aborts_in_row[record.code] = self.aborts_in_row.get(record.code, 0) + 1
             self.open = None
         elif isinstance(record, ResumedRecord):
@@ -385,6 +395,18 @@ class JournalState:
         elif isinstance(record, EndRecord):
             self.ended = record
         self.records.append(record)
+        if not self._keep:
+            self._trim()
+
+    def forget_history(self) -> None:
+        """Keep only the last done, aborted and checkpoint records and the last record from now
+        on (the counts, the best rollout and the first hit stay whole)."""
+        self._keep = False
+        self._trim()
+
+    def _trim(self) -> None:
+        for items in (self.done, self.aborted, self.records, self.checkpoints):
+            del items[:-1]
 
     def check(self, record: JournalRecord, where: str = "record") -> None:
         """Whether `record` may come next; changes nothing. Its fields' types are msgspec's to
@@ -428,17 +450,17 @@ class JournalState:
                 raise JournalError(
                     f"{where}: rollout {index} {kind} with θ {theta}, proposed {self.open.theta}"
                 )
-            if isinstance(record, DoneRecord) and record.rollout != len(self.done) + 1:
+            if isinstance(record, DoneRecord) and record.rollout != self.n_done + 1:
                 raise JournalError(
                     f"{where}: done rollout number {record.rollout!r}, expected "
-                    f"{len(self.done) + 1}"
+                    f"{self.n_done + 1}"
                 )
         elif isinstance(record, CheckpointRecord):
             if self.open is not None:
                 raise JournalError(f"{where}: checkpoint while rollout {self.open.index} is open")
-            if record.rollout != len(self.done):
+            if record.rollout != self.n_done:
                 raise JournalError(
-                    f"{where}: checkpoint after rollout {record.rollout}, but {len(self.done)} "
+                    f"{where}: checkpoint after rollout {record.rollout}, but {self.n_done} "
                     f"are done"
                 )
         elif isinstance(record, EndRecord) and self.open is not None:
@@ -461,8 +483,8 @@ class JournalState:
             "algorithm": self.header.algorithm,
             "seed": self.header.seed,
             "budget": self.header.rollouts,
-            "rollouts": len(self.done),
-            "aborted": len(self.aborted),
+            "rollouts": self.n_done,
+            "aborted": self.n_aborted,
             "hit_at": self.hit_at(),
             "final_distance_m": None if last is None else last.distance_m,
             "best_distance_m": None if self._best is None else self._best.distance_m,

@@ -193,7 +193,7 @@ def done_record(
     truth = measured.truth_r_m
     return DoneRecord(
         index=attempt.index,
-        rollout=len(state.done) + 1,
+        rollout=state.n_done + 1,
         theta=attempt.theta.tolist(),
         theta_measured=measured.posture.theta_measured,
         r_m=measured.r_m,

@@ -124,6 +124,7 @@ class Session:
         journal, learner, config = reopened_session(path, session)
         resumed = cls(journal, learner, config, rig, **kw)
         resumed.latest_hit.resumed(journal.state)
+        journal.state.forget_history()  # the learner is rebuilt: keep only what comes next
         return resumed
 
     # -- status ---------------------------------------------------------------------------------
@@ -249,10 +250,10 @@ class Session:
         """Journal the learner's state (without its history) unless the latest checkpoint
         already follows the last done rollout."""
         state = self.journal.state
-        if state.checkpointed < len(state.done) and state.open is None:
+        if state.checkpointed < state.n_done and state.open is None:
             self._record(
                 CheckpointRecord(
-                    rollout=len(state.done), learner_state=self.learner.checkpoint_state()
+                    rollout=state.n_done, learner_state=self.learner.checkpoint_state()
                 )
             )
 
@@ -260,7 +261,7 @@ class Session:
         state = self.journal.state
         if self.config.until_hit and state.hit_at() is not None:
             return "hit"
-        if len(state.done) >= self.config.rollouts:
+        if state.n_done >= self.config.rollouts:
             return "budget"
         return None
 

@@ -90,7 +90,9 @@ def started_session(
         from_=msgspec.UNSET if source is None else source.header(),
         rig=rig.setup(),
     )
-    return Journal.create(runs / session_id, header), learner
+    journal = Journal.create(runs / session_id, header)
+    journal.state.forget_history()  # a running session keeps only what it needs next
+    return journal, learner
 
 
 def reopened_session(
@@ -115,7 +117,7 @@ def reopened_session(
     try:
         config = SessionConfig.from_header(journal.state.header)
         learner, skipped = rebuild_learner(journal.state)
-        journal.room_for(config.rollouts - len(journal.state.done))
+        journal.room_for(config.rollouts - journal.state.n_done)
     except (KeyError, TypeError, ValueError) as exc:
         journal.close()
         if isinstance(exc, JournalError):
