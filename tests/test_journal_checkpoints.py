@@ -20,9 +20,17 @@ from protocol.journal_records import (
     DoneRecord,
     ResumedRecord,
 )
+from protocol.verbs.learner import MAX_ROLLOUTS
+from services.learner import journal as journal_module
 from services.learner.algorithms.registry import restore_learner
 from services.learner.config import SessionConfig
-from services.learner.journal import JOURNAL_NAME, ROLLOUT_BYTES, JournalError, read_records
+from services.learner.journal import (
+    JOURNAL_NAME,
+    MAX_JOURNAL_BYTES,
+    ROLLOUT_BYTES,
+    JournalError,
+    read_records,
+)
 from services.learner.session import Session
 from tests.test_learner_service_session import Crash, FakeRig
 
@@ -186,3 +194,18 @@ def test_a_version_1_journal_resumes_from_its_last_done_state(tmp_path: Path) ->
     assert new[0].theta == expected and len(new) == 3
     assert all(isinstance(r.learner_state, UnsetType) for r in new)
     assert [r.rollout for r in records if isinstance(r, CheckpointRecord)] == [9]
+
+
+def test_a_resume_that_would_pass_the_bound_is_refused_before_it_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    assert MAX_JOURNAL_BYTES >= 4 * MAX_ROLLOUTS * ROLLOUT_BYTES  # a whole budget, with margin
+    config = SessionConfig(rollouts=50, until_hit=False, seed=1)
+    with pytest.raises(Crash):
+        Session.create(config, FakeRig(crash_at=4), tmp_path, session_id="s").run(threading.Event())
+    path = tmp_path / "s" / JOURNAL_NAME
+    before = path.read_bytes()
+    monkeypatch.setattr(journal_module, "MAX_JOURNAL_BYTES", len(before) + 10 * ROLLOUT_BYTES)
+    with pytest.raises(JournalError, match="47 more rollouts would take it to about"):
+        Session.resume(path, FakeRig())
+    assert path.read_bytes() == before  # refused before anything was written
