@@ -452,8 +452,7 @@ class JournalState:
                 )
             if isinstance(record, DoneRecord) and record.rollout != self.n_done + 1:
                 raise JournalError(
-                    f"{where}: done rollout number {record.rollout!r}, expected "
-                    f"{self.n_done + 1}"
+                    f"{where}: done rollout number {record.rollout!r}, expected {self.n_done + 1}"
                 )
         elif isinstance(record, CheckpointRecord):
             if self.open is not None:

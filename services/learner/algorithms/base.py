@@ -227,8 +227,11 @@ class _Rows:
         self._n += 1
 
     def array(self) -> np.ndarray:
-        """A copy of the rows so far, (n, width)."""
-        return self._data[: self._n].copy()
+        """The rows so far, (n, width): a read-only view, no copy (a row never changes once
+        appended)."""
+        view = self._data[: self._n]
+        view.flags.writeable = False
+        return view
 
 
 class Learner(ABC):
