@@ -297,11 +297,14 @@ def _print_times(
             at = min(args.resume_at, run["done"] - min(100, run["done"] // 2))
             cuts[name] = (at, _cut(Path(run["journal"]), at, tmp / f"cut-{name}-{algo}.jsonl"))
             times[name] = {"resume": [], "report": []}
+        refused: dict[str, str] = {}
         for _, name, env in interleaved(args.repeats, list(envs.items())):
             at, cut = cuts[name]
-            times[name]["resume"].append(
-                float(_run_out([sys.executable, "-c", _RESUME, str(cut)], env))
-            )
+            try:  # run in `tmp`: `python -c` puts its folder first on the path
+                took = _run_out([sys.executable, "-c", _RESUME, str(cut)], env, tmp)
+                times[name]["resume"].append(float(took))
+            except RuntimeError as exc:  # e.g. a journal too big to take the rollouts left
+                refused[name] = str(exc).strip().splitlines()[-1][:300]
             report = tmp / f"report-{name}-{algo}"
             shutil.rmtree(report, ignore_errors=True)
             report.mkdir()
@@ -315,6 +318,9 @@ def _print_times(
             )
         for name in envs:
             at, _ = cuts[name]
+            if name in refused:
+                print(f"- {algo} on {name}: resume after {at} rollouts refused: {refused[name]}")
+                times[name]["resume"] = [float("nan")]
             print(
                 f"- {algo} on {name}: resume after {at} rollouts "
                 f"{median_spread(times[name]['resume'], '.2f', ' s')} (goal ≤ 5 s); `archery "
@@ -323,8 +329,8 @@ def _print_times(
             )
 
 
-def _run_out(argv: list[str], env: dict[str, str]) -> str:
-    run = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=1800)
+def _run_out(argv: list[str], env: dict[str, str], cwd: Path) -> str:
+    run = subprocess.run(argv, env=env, cwd=cwd, capture_output=True, text=True, timeout=1800)
     if run.returncode != 0:
         raise RuntimeError(f"failed: {run.stderr[-1000:]}")
     return run.stdout.strip().splitlines()[-1]
