@@ -172,11 +172,16 @@ def test_follow_resumes_the_session_a_restarted_learner_does_not_run(
         )
         assert final["session"] == first and final["state"] == "finished"
         assert final["rollouts"] == 3 and len(seen) == 6  # proposed and done, each rollout
-        assert notes == [
+        assert notes[0] == (
             f"  the learner runs no session (restarted?): asking it to resume session {first}; "
-            "waiting up to 60 s for it (Ctrl-C to stop)",
-            f"  session {first} resumed from its journal: 0 of 3 rollouts done",
-        ]
+            "waiting up to 60 s for it (Ctrl-C to stop)"
+        )
+        # the count is the status after the resume: on a loaded machine the fast fake rig may
+        # have finished a rollout already
+        assert re.fullmatch(
+            rf"  session {first} resumed from its journal: [0-3] of 3 rollouts done", notes[1]
+        ), notes
+        assert len(notes) == 2, notes
         # The learner runs another session: the session runs nowhere.
         with pytest.raises(SessionLost) as lost:
             follow(node, second, rollouts, lambda m: None, journal=second_journal, resume=True)
