@@ -5,7 +5,8 @@ CLI tools) gets exactly the flows its job needs, and everything else is denied
 (`default_permission: deny`). The router enforces the rules on its own links: `ingress` is what
 an identity sends to the router, `egress` what the router forwards to it. A denied message is
 dropped silently at the router: the sender's `put` or `declare_*` still succeeds, the receiver
-never sees it (a caller is told "denied by access control", `mesh.rpc_client`).
+never sees it (a caller whose rules do not grant its call is told "denied by access control",
+`mesh.rpc_client`, which asks `granted`).
 
 Access is per verb: a call of VERB on an `rpc:i` port goes to the key `PORT/VERB`
 (`protocol.keys.verb_key`) and a server answers `PORT/*`, so a rule can grant one verb and not
@@ -48,11 +49,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import zenoh
+
 from protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
 from protocol.parts import PARTS
 from protocol.verbs import TABLES
 
-__all__ = ["OPERATOR", "TOOLS", "VIEWER", "Role", "roles", "rules", "server_of"]
+__all__ = ["OPERATOR", "TOOLS", "VIEWER", "Role", "granted", "roles", "rules", "server_of"]
 
 OPERATOR = "operator"  # the tools that move the robot
 VIEWER = "viewer"  # the tools that only look
@@ -236,3 +239,14 @@ def server_of(robot: str, key: str) -> str | None:
     """The identity that serves the `rpc:i` key `key` of robot `robot`, or None."""
     served = verbs_key(key)
     return next((name for name, role in roles(robot).items() if served in role.serve), None)
+
+
+def granted(robot: str, identity: str, call: str) -> bool:
+    """Whether the rules let `identity` make the call on key `call` (`PORT/VERB`) of robot
+    `robot`: an identity the rules do not name is granted nothing."""
+    role = roles(robot).get(identity)
+    if role is None:
+        return False
+    own = () if identity in TOOLS else (f"{robot}/replace/{identity}",)
+    target = zenoh.KeyExpr(call)
+    return any(zenoh.KeyExpr(expr).includes(target) for expr in (*role.call, *own))

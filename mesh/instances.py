@@ -10,16 +10,17 @@ mesh anyone can, so the check only guards against mistakes (a stray or duplicate
 against an attacker.
 
 Before a service declares any port, `claim` looks for a live instance of its name: if there is
-one, the new one refuses to start (`DuplicateService`, exit status 2) naming the pid and host
-of the live one (from its `describe` reply), unless `replace`. With `replace`, the live
-instance is asked to stop by a `ReplaceRequest` on its own key `ROBOT/replace/NAME` (never by
-a message to another port): it stops only when the request comes from a process of its own
-host, alive, whose command line runs `NAME` with `--replace` (`accept_replace`); anything else
-is refused and logged. In secure mode the router lets only NAME's own identity and the operator
-send it. A service run by `service_main` stops as on SIGTERM, cleanly, and the new one waits
-until its tokens are gone; a process that cannot stop that way keeps running (logged on both
-sides) and the new one starts anyway after `timeout`, so two instances then run until the old
-one is stopped.
+one, the new one refuses to start (`DuplicateService`, exit status 2) naming the pid and host of
+the live one (from its `describe` reply), unless `replace`. With `replace`, the live instance is
+asked to stop by a `ReplaceRequest` on its own key `ROBOT/replace/NAME` (never by a message to
+another port): it stops only when the request comes from a process of its own host, alive, whose
+command line runs `NAME` with `--replace`, and carries the token the live instance wrote to its
+runtime folder, which only the same user can read (`mesh.runtime`; `accept_replace`); anything
+else is refused and logged, and the service runs on. In secure mode the router lets only NAME's
+own identity and the operator send it. A service run by `service_main` stops as on SIGTERM,
+cleanly, and the new one waits until its tokens are gone; a process that cannot stop that way
+keeps running (logged on both sides) and the new one starts anyway after `timeout`, so two
+instances then run until the old one is stopped.
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from pathlib import Path
 
 import zenoh
 
+from mesh.runtime import ReplaceToken, read_token
 from mesh.tokens import TokenSet
 from protocol.codec import decode, encode
 from protocol.errors import DecodeError, DuplicateService
@@ -116,10 +118,10 @@ def describe_all(
     return out
 
 
-def accept_replace(name: str, payload: bytes, host: str | None = None) -> str:
+def accept_replace(name: str, payload: bytes, token: ReplaceToken, host: str | None = None) -> str:
     """Check a `ReplaceRequest` for the live instance of `name`: "" when it may stop, else why
     not. It must come from this host, from a live process whose command line runs `name`
-    with `--replace` (`/proc/PID/cmdline`)."""
+    with `--replace` (`/proc/PID/cmdline`), and carry this instance's `token`."""
     try:
         request = decode(payload, ReplaceRequest)
     except DecodeError as exc:
@@ -133,6 +135,11 @@ def accept_replace(name: str, payload: bytes, host: str | None = None) -> str:
         return f"no process {request.pid} on this host"
     if name.encode() not in argv or b"--replace" not in argv:
         return f"process {request.pid} does not run {name} with --replace"
+    if not token.matches(request.proof):
+        return (
+            f"process {request.pid} did not show this instance's token (only a process of "
+            f"the same user can read it from its runtime folder)"
+        )
     return ""
 
 
@@ -185,10 +192,12 @@ def claim(
             f"this one with --replace to make the live one stop"
         )
     log.warning("replacing the live %s: %s", name, where)
-    request = ReplaceRequest(service=name, host=host, pid=os.getpid())
-    for reply in session.get(keys.replace(name), payload=encode(request), timeout=5.0):
-        if reply.err is not None:
-            log.warning("the live %s refused: %s", name, reply.err.payload.to_string()[:300])
+    for zid in sorted(others):  # each instance proves its own token
+        proof = read_token(keys.robot, name, zid)
+        request = ReplaceRequest(service=name, host=host, pid=os.getpid(), proof=proof)
+        for reply in session.get(keys.replace(name), payload=encode(request), timeout=5.0):
+            if reply.err is not None:
+                log.warning("the live %s refused: %s", name, reply.err.payload.to_string()[:300])
     start = time.monotonic()
     left = _wait_gone(session, keys, name, others, timeout)
     if left:

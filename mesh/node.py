@@ -30,6 +30,7 @@ from mesh.publisher import Publisher
 from mesh.router import wait_for_endpoint
 from mesh.rpc_client import RpcClient
 from mesh.rpc_server import RpcServer
+from mesh.runtime import ReplaceToken
 from mesh.subscription import Subscription
 from protocol.codec import encode
 from protocol.errors import ConfigError, Unreachable
@@ -79,6 +80,9 @@ class Node(RpcClient, Liveliness):
         self._watch: instances.InstanceWatch | None = None
         if name is not None:
             instances.claim(self.session, self.keys, name, net.replace)
+            self._replace_token = ReplaceToken(
+                self.keys.robot, name, instances.zid_of(self.session)
+            )
             self._describe = self.session.declare_queryable(
                 self.keys.describe(name), self._on_describe
             )
@@ -131,6 +135,7 @@ class Node(RpcClient, Liveliness):
         if self.name is not None:
             quietly("describe queryable", self._describe.undeclare)
             quietly("replace queryable", self._replace.undeclare)
+            quietly("replace token", self._replace_token.close)
         for item in reversed(self._closables):
             quietly(type(item).__name__, item.close)
         for key, querier in self._queriers.items():
@@ -205,7 +210,7 @@ class Node(RpcClient, Liveliness):
         """A new instance asks this one to stop (`mesh.instances`): stop if it may."""
         name = self.name or ""
         payload = query.payload.to_bytes() if query.payload is not None else b""
-        refused = instances.accept_replace(name, payload)
+        refused = instances.accept_replace(name, payload, self._replace_token)
         if refused:
             log.warning("refused a request to make way for another %s: %s", name, refused)
             query.reply_err(f"refused: {refused}".encode())

@@ -1,7 +1,9 @@
 """Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
 arguments, handled on a worker thread (or inline for non-blocking verbs; background verbs on a
-second worker at a lower CPU priority, `BACKGROUND_NICE` and SCHED_IDLE), replied `RpcReply`;
-each handled call also goes to the port's tap (`mesh.rpc_tap`) for whoever listens.
+second worker at a lower CPU priority, `BACKGROUND_NICE` and SCHED_IDLE; waiting verbs each on a
+thread of their own, at most `MAX_WAITING` per port), replied `RpcReply`; each handled call also
+goes to the port's tap (`mesh.rpc_tap`) for whoever listens. No request is worked on after its
+caller has given up (`RpcRequest.wait`): a handler reads what is left with `caller_left`.
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ import logging
 import queue
 import threading
 import time
-from typing import Any, TypeVar
+from typing import Annotated, Any, TypeVar
 
 import msgspec
 import zenoh
@@ -22,11 +24,14 @@ from mesh.rpc_tap import RpcTap
 from protocol.codec import MAX_PAYLOAD_BYTES, encode
 from protocol.errors import (
     ArcheryError,
+    Busy,
     DecodeError,
+    RpcTimeout,
     UpstreamLost,
 )
 from protocol.keys import tap_keys, verbs_key
 from protocol.messages import (
+    MAX_CALLER_WAIT,
     Message,
     RpcReply,
 )
@@ -34,13 +39,22 @@ from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
-__all__ = ["RpcServer", "bad_args_message"]
+__all__ = ["MAX_WAITING", "RpcServer", "bad_args_message", "caller_left"]
 
 A = TypeVar("A", bound=msgspec.Struct)
 log = logging.getLogger("archery.node")
 
 _STOP = object()
 BACKGROUND_NICE = 10  # the background verbs' worker, on top of the process's niceness
+MAX_WAITING = 16  # requests of waiting verbs (`Verb.waits`) one port works on at a time
+_call = threading.local()  # the caller's deadline (monotonic s) of the request being handled
+
+
+def caller_left() -> float | None:
+    """Seconds until the caller of the request this thread handles gives up (≤ 0: it has), or
+    None when its caller did not say (`RpcRequest.wait`) or no request is being handled."""
+    deadline: float | None = getattr(_call, "deadline", None)
+    return None if deadline is None else deadline - time.monotonic()
 
 
 class _WireRequest(Message, frozen=True, tag="RpcRequest"):
@@ -49,6 +63,12 @@ class _WireRequest(Message, frozen=True, tag="RpcRequest"):
 
     verb: str
     args: msgspec.Raw = msgspec.Raw(b"\x80")  # an empty map
+    wait: Annotated[float, msgspec.Meta(gt=0.0, le=MAX_CALLER_WAIT)] | None = None
+
+    def deadline(self, arrived: float) -> float | None:
+        """The monotonic time at which its caller gives up, for a request that arrived at
+        `arrived` (monotonic s); None when the caller did not say."""
+        return None if self.wait is None else arrived + self.wait
 
 
 class _Untaken(msgspec.Struct, frozen=True, tag="-", tag_field="type"):
@@ -111,6 +131,12 @@ class RpcServer:
             for name, entry in self.handlers.items()
             if entry.verb.background and entry.verb.blocking
         )
+        self.waits = frozenset(
+            name
+            for name, entry in self.handlers.items()
+            if entry.verb.waits and entry.verb.blocking
+        )
+        self._slots = threading.BoundedSemaphore(MAX_WAITING)  # the waiting verbs' threads
         self.served = 0
         self.errors = 0
         self._seq = itertools.count(1)
@@ -136,8 +162,9 @@ class RpcServer:
 
     def _on_query(self, query: zenoh.Query) -> None:
         """Zenoh's thread: decode the request once; answer it here unless its verb blocks."""
+        arrived = time.monotonic()
         try:
-            request: _WireRequest | DecodeError = self._request(query)
+            request: _WireRequest | ArcheryError = self._request(query)
         except DecodeError as exc:
             request = exc
         except Exception:
@@ -156,10 +183,32 @@ class RpcServer:
             and request.verb in self.handlers
             and request.verb not in self.inline
         ):
+            if request.verb in self.waits:
+                self._start_waiting(query, request, arrived)
+                return
             later = request.verb in self.background
-            (self._later if later else self._queue).put((query, request))
+            (self._later if later else self._queue).put((query, request, arrived))
         else:
-            self._answer(query, request)
+            self._answer(query, request, arrived)
+
+    def _start_waiting(self, query: zenoh.Query, request: _WireRequest, arrived: float) -> None:
+        """A waiting verb's request on a thread of its own, or `busy` at once when
+        `MAX_WAITING` of them are in hand already."""
+        if not self._slots.acquire(blocking=False):
+            busy = Busy(
+                f"{self.key} {request.verb}: busy, {MAX_WAITING} requests of its waiting verbs "
+                f"are in hand (the most it takes at a time); try again later"
+            )
+            self._answer(query, busy, arrived)
+            return
+
+        def wait() -> None:
+            try:
+                self._answer(query, request, arrived)
+            finally:
+                self._slots.release()
+
+        threading.Thread(target=wait, name=f"rpc {self.key} {request.verb}", daemon=True).start()
 
     def _work(self, jobs: queue.SimpleQueue[Any], nice: int = 0) -> None:
         if nice:
@@ -171,9 +220,11 @@ class RpcServer:
             self._answer(*item)
             del item  # the request is not kept while waiting for the next one
 
-    def _answer(self, query: zenoh.Query, request: _WireRequest | DecodeError) -> None:
+    def _answer(
+        self, query: zenoh.Query, request: _WireRequest | ArcheryError, arrived: float
+    ) -> None:
         try:
-            reply = self._handle(request, next(self._seq))
+            reply = self._handle(request, next(self._seq), arrived)
             payload = encode(reply)
             query.reply(query.key_expr, payload)
         except Exception:
@@ -218,16 +269,26 @@ class RpcServer:
             raise DecodeError("the request's `type` is not 'RpcRequest'")
         return request
 
-    def _handle(self, request: _WireRequest | DecodeError, seq: int) -> RpcReply:
+    def _handle(self, request: _WireRequest | ArcheryError, seq: int, arrived: float) -> RpcReply:
         with self._counts:
             self.served += 1
         if isinstance(request, DecodeError):
             return self._error(request.code, f"bad request on {self.key}: {request}", seq)
+        if isinstance(request, ArcheryError):
+            return self._error(request.code, request.message, seq)
         entry = self.handlers.get(request.verb)
         if entry is None:
             verbs = ", ".join(sorted(self.handlers))
             message = f"{self.key} has no verb {shown(request.verb)}; verbs: {verbs}"
             return self._error("unknown_verb", message, seq)
+        deadline = request.deadline(arrived)
+        if deadline is not None and deadline <= time.monotonic():
+            message = (
+                f"{self.key} {request.verb}: not handled, its caller gave up waiting "
+                f"({request.wait:g} s) before its turn came"
+            )
+            return self._error(RpcTimeout.code, message, seq)
+        _call.deadline = deadline
         try:
             verb = entry.verb
             try:
@@ -250,6 +311,8 @@ class RpcServer:
         except Exception as exc:
             log.exception("%s %s failed", self.key, request.verb)
             return self._error("internal", f"{request.verb} failed: {shown(exc)}", seq)
+        finally:
+            _call.deadline = None
 
     def close(self) -> None:
         """Stop serving (pending requests get no reply and time out at the caller)."""

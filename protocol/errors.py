@@ -5,6 +5,7 @@ from __future__ import annotations
 __all__ = [
     "ArcheryError",
     "BadRequest",
+    "Busy",
     "ConfigError",
     "DecodeError",
     "DuplicateService",
@@ -67,6 +68,13 @@ class BadRequest(ArcheryError, ValueError):
     """An RPC request whose arguments are invalid; raised by handlers, sent back as an error."""
 
     code = "bad_request"
+
+
+class Busy(ArcheryError):
+    """A server refused a request at once because as many of its kind as it takes wait
+    already (a bound on what waiting requests may hold); the caller may try again later."""
+
+    code = "busy"
 
 
 class RpcError(ArcheryError):

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import lz4.block
 import msgspec
 import msgspec.inspect
 import numpy as np
+from msgspec import Meta
 
 from protocol.journal_records import RolloutRecord
 from protocol.text import shown
@@ -26,6 +27,7 @@ from protocol.text import shown
 __all__ = [
     "ALLOWED_DTYPES",
     "MAX_BATCH",
+    "MAX_CALLER_WAIT",
     "MAX_LEASE_ID",
     "MESSAGE_TYPES",
     "SCHEMA_VERSION",
@@ -345,11 +347,17 @@ class Rollout(Message, frozen=True):
             _check_finite(getattr(self.record, name), f"record.{name}")
 
 
+MAX_CALLER_WAIT = 3600.0  # s: the longest a caller may say it waits for a reply
+
+
 class RpcRequest(Message, frozen=True):
-    """A request to an `rpc:i` port: a verb and its arguments."""
+    """A request to an `rpc:i` port: a verb, its arguments and how long its caller waits for the
+    reply (s; None: not said). A server never works on a request after its caller has given up
+    (`mesh.rpc_server`)."""
 
     verb: str
     args: dict[str, Any] = {}
+    wait: Annotated[float, Meta(gt=0.0, le=MAX_CALLER_WAIT)] | None = None
 
 
 class RpcReply(Message, frozen=True):
@@ -388,12 +396,14 @@ class Describe(Message, frozen=True):
 
 class ReplaceRequest(Message, frozen=True):
     """A new instance of a service, started with `--replace`, asks the live one to stop. The
-    live one stops only for a process of its own host that runs `archery NAME … --replace`:
-    `pid` must be alive there and its command line say so."""
+    live one stops only for a process of its own host that runs `archery NAME … --replace`
+    (`pid` must be alive there and its command line say so) and that read the live one's token
+    from its runtime folder (`proof`, `mesh.runtime`: only the same user can)."""
 
     service: str
     host: str
     pid: int
+    proof: Annotated[str, Meta(max_length=128)] = ""
 
 
 MESSAGE_TYPES: dict[str, type[Message]] = {

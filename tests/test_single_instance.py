@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import socket
+import stat
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -16,6 +17,7 @@ import zenoh
 from mesh.instances import InstanceWatch, live_instances, zid_of
 from mesh.netflags import NetConfig, open_session
 from mesh.node import Node
+from mesh.runtime import runtime_dir
 from protocol.codec import encode
 from protocol.errors import DuplicateService
 from protocol.messages import Describe, ReplaceRequest
@@ -175,3 +177,41 @@ def test_no_message_but_a_local_replacement_stops_a_service(net: NetConfig, spaw
     first.terminate()
     assert first.wait(10) == 0
     assert first.stderr.read().count("refused a request to make way") == 4
+
+
+def test_a_decoy_with_the_right_command_line_cannot_stop_a_service(net: NetConfig, spawn) -> None:
+    """A process that only looks like a replacement (`… detector --replace` in its command line,
+    running nothing of ours) is refused without the live instance's token; the token lives in a
+    folder and file only the service's user may read, and goes when the service stops."""
+    first = spawn()
+    decoy = subprocess.Popen(
+        [sys.executable, "-c", "import sys; sys.stdin.read()", NAME, "--replace"],
+        stdin=subprocess.PIPE,
+    )
+    try:
+        with Node(None, net) as node:
+            node.wait_alive([NAME], 30)
+            (zid,) = live_instances(node.session, node.keys, NAME)
+            token = runtime_dir() / net.robot / NAME / zid
+            assert stat.S_IMODE(token.stat().st_mode) == 0o600
+            assert stat.S_IMODE(token.parent.stat().st_mode) == 0o700
+            errors = []
+            for proof in ("", "0" * 64):
+                request = ReplaceRequest(
+                    service=NAME, host=socket.gethostname(), pid=decoy.pid, proof=proof
+                )
+                for reply in node.session.get(
+                    node.keys.replace(NAME), payload=encode(request), timeout=5
+                ):
+                    assert reply.err is not None
+                    errors.append(reply.err.payload.to_string())
+            assert len(errors) == 2, errors
+            assert all("did not show this instance's token" in e for e in errors), errors
+            assert first.poll() is None and _instance_pids(node) == {first.pid}
+    finally:
+        decoy.stdin.close()  # type: ignore[union-attr]
+        decoy.wait(10)
+    first.terminate()
+    assert first.wait(10) == 0
+    assert first.stderr.read().count("did not show this instance's token") == 2
+    assert not token.exists()

@@ -63,6 +63,12 @@ class Verb(Generic[A, R]):
     dashboard or a session's folder), not a rollout: the server runs it on a worker of its own
     at a lower CPU priority (`mesh.rpc_server`), so it neither queues ahead of the port's other
     verbs nor takes a core from them on a busy machine.
+
+    `waits=True` declares a blocking verb that waits for something to happen in the world (a
+    fresh frame) for up to a timeout its caller gives: the server runs each such request on a
+    thread of its own beside the port's worker, never on it, at most `MAX_WAITING` of them per
+    port at a time (the excess refused at once with `busy`), and the handler never waits past
+    its caller's own timeout (`mesh.rpc_server.caller_left`).
     """
 
     name: str
@@ -72,6 +78,7 @@ class Verb(Generic[A, R]):
     blocking: bool = True
     reads: bool = False
     background: bool = False
+    waits: bool = False
 
     @functools.cached_property
     def args_decoder(self) -> msgspec.msgpack.Decoder[A]:

@@ -67,8 +67,9 @@ CAMERA_VERBS = VerbTable(
             "grab",
             GrabArgs,
             Image,
-            "the first frame fresher than the given times (default 5 s)",
+            "the first frame fresher than the given times (default 5 s, at most 120 s)",
             reads=True,
+            waits=True,
         ),
         Verb(
             "calibration",

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import time
 
+from mesh.rpc_server import caller_left
 from protocol.errors import BadRequest
 from protocol.messages import Image
 from protocol.robotspec import CALL_TIMEOUT
@@ -56,11 +57,26 @@ class CameraHandlers:
         With neither stamp, a frame captured after this request arrived: never the newest frame
         kept from before (nobody watching, it may show a shot of long ago). A device or folder
         frame has no sim time: there `after_sim_time` also means "captured after this request
-        arrived"."""
+        arrived". It never waits past its caller's own timeout, and a stamp that no frame can
+        reach within the timeout is refused at once.
+
+        Raises:
+            BadRequest: `after_stamp` lies beyond the timeout (no frame can be captured then).
+            RpcTimeout: no such frame within the timeout.
+        """
         timeout = CALL_TIMEOUT if args.timeout is None else args.timeout
+        left = caller_left()
+        if left is not None:
+            timeout = max(0.0, min(timeout, left))
         after_sim_time, after_stamp = args.after_sim_time, args.after_stamp
+        now = time.time()
+        if after_stamp is not None and after_stamp > now + timeout:
+            raise BadRequest(
+                f"grab: after_stamp is {after_stamp - now:.3g} s ahead of the camera's clock, "
+                f"beyond the timeout of {timeout:g} s: no frame can be captured in time"
+            )
         if after_sim_time is None and after_stamp is None:
-            after_stamp = time.time()
+            after_stamp = now
         elif not self._rendered and after_sim_time is not None:
             after_sim_time, after_stamp = None, max(after_stamp or 0.0, time.time())
         want = Freshness(after_sim_time=after_sim_time, after_stamp=after_stamp)

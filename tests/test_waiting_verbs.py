@@ -1,0 +1,127 @@
+"""A waiting verb (the camera's `grab`) cannot stall a port: it never holds the port's worker,
+at most `MAX_WAITING` wait at a time (the excess refused `busy` at once), a stamp no frame can
+reach is refused at once, and nothing waits past its caller's own timeout."""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import pytest
+
+from mesh.acl import OPERATOR, VIEWER, granted
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from mesh.rpc_server import MAX_WAITING
+from protocol.errors import RpcError, RpcTimeout
+from protocol.keys import Keys, verb_key
+from protocol.verbs import NoArgs
+from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
+from services.camera.config import CameraConfig
+from services.camera.service import run
+from tests.conftest import serving
+
+GRAB = CAMERA_VERBS["grab"]
+STATUS = CAMERA_VERBS["status"]
+NEVER = 1e9  # s of sim time: a world state no test publishes
+
+
+def _camera(net: NetConfig) -> CameraConfig:
+    return CameraConfig(net=net, rate=5.0, robot_timeout=0.3, width=320, height=180)
+
+
+def _grab_error(node: Node, args: GrabArgs, timeout: float) -> RpcError | None:
+    try:
+        node.call_typed(node.keys.cam_rpc(), GRAB, args, timeout=timeout)
+    except RpcError as exc:
+        return exc
+    return None
+
+
+def test_a_stamp_beyond_the_timeout_is_refused_at_once(net: NetConfig) -> None:
+    with serving(run, _camera(net)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        start = time.monotonic()
+        far = GrabArgs(after_stamp=time.time() + 3600.0, timeout=60.0)
+        error = _grab_error(node, far, timeout=60.0)
+        took = time.monotonic() - start
+        assert error is not None and error.code == "bad_request", error
+        assert "ahead of the camera's clock" in error.message
+        assert took < 10.0  # not the 60 s the grab asked for
+
+
+def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: NetConfig) -> None:
+    with serving(run, _camera(net)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        key = node.keys.cam_rpc()
+        never = GrabArgs(after_sim_time=NEVER, timeout=10.0)  # a world state that never comes
+        probe = GrabArgs(after_sim_time=NEVER, timeout=0.5)
+        with ThreadPoolExecutor(MAX_WAITING) as pool:
+            pending = [pool.submit(_grab_error, node, never, 10.0) for _ in range(MAX_WAITING)]
+            # once every slot is taken, the next waiting request is refused `busy` at once
+            deadline = time.monotonic() + 8.0
+            while True:
+                start = time.monotonic()
+                error = _grab_error(node, probe, 2.0)
+                assert error is not None and error.code in ("busy", "timeout"), error
+                if error.code == "busy" or time.monotonic() > deadline:
+                    break
+            assert error.code == "busy", error
+            assert time.monotonic() - start < 1.0
+            assert "try again later" in error.message
+            # the port's blocking verbs still run: a calibration frame is rendered meanwhile
+            start = time.monotonic()
+            marks = node.call_typed(key, CAMERA_VERBS["calibration"], NoArgs(), timeout=30.0)
+            assert marks.image.width == 320
+            assert time.monotonic() - start < 8.0
+            assert node.call_typed(key, STATUS, NoArgs(), timeout=5.0).source == "mujoco"
+            ends = [future.result() for future in pending]
+        # each pending grab ended at its timeout (or was refused when a probe held its slot)
+        assert all(e is not None and e.code in ("timeout", "busy") for e in ends), ends
+        assert sum(e is not None and e.code == "timeout" for e in ends) >= MAX_WAITING - 1
+
+
+def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:
+    with serving(run, _camera(net)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        never = GrabArgs(after_sim_time=NEVER, timeout=120.0)
+        # every slot taken by callers that give up after 1 s though their grabs ask for 120 s
+        with ThreadPoolExecutor(MAX_WAITING) as pool:
+            gone = list(pool.map(lambda _: _grab_error(node, never, 1.0), range(MAX_WAITING)))
+        assert all(isinstance(e, RpcTimeout) for e in gone), gone
+        # their slots come free within seconds, not 120 s: a waiting grab is taken again
+        deadline = time.monotonic() + 10.0
+        while True:
+            error = _grab_error(node, GrabArgs(after_sim_time=NEVER, timeout=1.0), 5.0)
+            assert error is not None
+            if error.code != "busy" or time.monotonic() > deadline:
+                break
+        assert error.code == "timeout", error
+        # and a plain grab gets its frame
+        image = node.call_typed(node.keys.cam_rpc(), GRAB, GrabArgs(timeout=20.0), timeout=20.0)
+        assert image.width == 320
+
+
+@pytest.mark.parametrize(
+    ("identity", "verb", "allowed"),
+    [
+        (VIEWER, "grab", True),
+        (VIEWER, "calibration", True),
+        (OPERATOR, "grab", True),
+        ("detector", "grab", True),
+        ("learner", "grab", False),
+        ("stranger", "grab", False),
+    ],
+)
+def test_granted_follows_the_rules_a_timeout_is_not_called_denied(
+    identity: str, verb: str, allowed: bool
+) -> None:
+    keys = Keys("icubSim")
+    assert granted("icubSim", identity, verb_key(keys.cam_rpc(), verb)) is allowed
+
+
+def test_granted_for_moving_verbs() -> None:
+    keys = Keys("icubSim")
+    assert not granted("icubSim", VIEWER, verb_key(keys.archery_rpc(), "release"))
+    assert granted("icubSim", "learner", verb_key(keys.archery_rpc(), "release"))
+    assert granted("icubSim", OPERATOR, verb_key(keys.archery_rpc(), "release"))
