@@ -32,7 +32,9 @@ The calls of each service are those its code makes:
   subscribe to the frame stream;
 * controller: calls each part's `getLimits, setRefSpeeds` and its lease verbs `claim,
   renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
-  states; serves the three cartesian controllers;
+  states; serves the three cartesian controllers; `claim` and `setRefSpeeds` name their caller
+  (`PORT/VERB~IDENTITY`, `Verb.names_caller`) and each identity is granted only its own name
+  there, so a lease's owner is the identity the router authenticated;
 * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
   release, status` (its world, journaled for replaying a shot) and the detector's `measure,
   frame`; serves `learner/rpc:i`;
@@ -46,6 +48,7 @@ The calls of each service are those its code makes:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,7 +56,7 @@ import zenoh
 
 from protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
 from protocol.parts import PARTS
-from protocol.verbs import TABLES
+from protocol.verbs import TABLES, names_caller
 
 __all__ = ["OPERATOR", "TOOLS", "VIEWER", "Role", "granted", "roles", "rules", "server_of"]
 
@@ -103,7 +106,7 @@ def roles(robot: str) -> dict[str, Role]:
     def taps(*rpc_keys: str) -> tuple[str, ...]:
         return tuple(key for rpc in rpc_keys for key in tap_keys(rpc) or ())
 
-    return {
+    every = {
         "robot": Role(
             publish=(
                 *states,
@@ -159,6 +162,18 @@ def roles(robot: str) -> dict[str, Role]:
         # interface): every stream and the verbs that change nothing.
         VIEWER: Role(subscribe=(f"{robot}/**",), call=(*_reading_calls(robot), describe_all)),
     }
+    return {name: _naming_calls(name, role) for name, role in every.items()}
+
+
+def _naming_calls(name: str, role: Role) -> Role:
+    """`role` with each call of a verb that names its caller (`Verb.names_caller`) made on the
+    key that names `name`, the only one the router lets it use."""
+
+    def named(call: str) -> str:
+        head, _, verb = call.rpartition("/")
+        return verb_key(head, verb, name) if names_caller(head, verb) else call
+
+    return dataclasses.replace(role, call=tuple(named(call) for call in role.call))
 
 
 def _port_of_call(call: str) -> str:

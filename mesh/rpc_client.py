@@ -30,6 +30,7 @@ from protocol.messages import (
     RpcRequest,
 )
 from protocol.robotspec import CALL_TIMEOUT
+from protocol.verbs import names_caller
 from protocol.verbs.base import Verb
 
 __all__ = ["RpcClient", "reply_error"]
@@ -59,6 +60,13 @@ class RpcClient:
     _rpc_seq: Iterator[int]
     _rpc_lock: threading.Lock
     _watch: instances.InstanceWatch | None
+
+    @property
+    def identity(self) -> str:
+        """Whose certificate this node presents in secure mode (`--identity`, else the
+        service's name, else `operator`), and the name its calls give where a verb names its
+        caller."""
+        return self.net.identity or self.name or OPERATOR
 
     def call_typed(
         self,
@@ -132,7 +140,7 @@ class RpcClient:
         """Send a request payload for `verb` to `KEY/VERB` (`protocol.keys.verb_key`: one key
         per verb, so the router's access control can grant each verb on its own) and return
         the first accepted reply's payload bytes."""
-        target = verb_key(key, verb)
+        target = verb_key(key, verb, self.identity if names_caller(key, verb) else None)
         querier = self._queriers.get((target, timeout))
         if querier is None:
             with self._rpc_lock:
@@ -158,7 +166,7 @@ class RpcClient:
                 f"{expect_service!r} instance ({', '.join(live) or 'none alive'}); rejected"
             )
         waited = time.monotonic() - start
-        denied = self._denied(key, verb)
+        denied = self._denied(key, verb, target)
         if denied is not None:
             raise RpcError(denied, code="denied")
         if waited < timeout * 0.5:
@@ -171,7 +179,7 @@ class RpcClient:
             f"(`archery ports` lists the live services)"
         )
 
-    def _denied(self, key: str, verb: str) -> str | None:
+    def _denied(self, key: str, verb: str, target: str) -> str | None:
         """In secure mode, when the service serving `key` is alive yet nothing replied: the
         router dropped the request, which only its access control does; the message says so.
         None otherwise (plain mode, or the service is not alive)."""
@@ -180,8 +188,8 @@ class RpcClient:
         server = server_of(self.keys.robot, key)
         if server is None or not instances.live_instances(self.session, self.keys, server):
             return None
-        identity = self.name or OPERATOR
-        if granted(self.keys.robot, identity, verb_key(key, verb)):
+        identity = self.identity
+        if granted(self.keys.robot, identity, target):
             return None  # the rules let it through: the server is slow, stuck or busy
         return (
             f"{key} {verb}: denied by access control: the {server} is alive, but the router "

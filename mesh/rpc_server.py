@@ -29,7 +29,7 @@ from protocol.errors import (
     RpcTimeout,
     UpstreamLost,
 )
-from protocol.keys import tap_keys, verbs_key
+from protocol.keys import split_verb, tap_keys, verbs_key
 from protocol.messages import (
     MAX_CALLER_WAIT,
     Message,
@@ -39,7 +39,7 @@ from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
-__all__ = ["MAX_WAITING", "RpcServer", "bad_args_message", "caller_left"]
+__all__ = ["MAX_WAITING", "RpcServer", "bad_args_message", "caller", "caller_left"]
 
 A = TypeVar("A", bound=msgspec.Struct)
 log = logging.getLogger("archery.node")
@@ -47,7 +47,15 @@ log = logging.getLogger("archery.node")
 _STOP = object()
 BACKGROUND_NICE = 10  # the background verbs' worker, on top of the process's niceness
 MAX_WAITING = 16  # requests of waiting verbs (`Verb.waits`) one port works on at a time
-_call = threading.local()  # the caller's deadline (monotonic s) of the request being handled
+_call = threading.local()  # of the request being handled: its caller's deadline and name
+
+
+def caller() -> str | None:
+    """The identity the request this thread handles names as its caller (`Verb.names_caller`:
+    in secure mode the router lets each identity name only itself), or None when it names
+    none."""
+    name: str | None = getattr(_call, "caller", None)
+    return name
 
 
 def caller_left() -> float | None:
@@ -173,7 +181,7 @@ class RpcServer:
             return
         if isinstance(request, _WireRequest):
             sent_to = str(query.key_expr).rsplit("/", 1)[-1]
-            if request.verb != sent_to:  # access control grants by key: they must agree
+            if request.verb != split_verb(sent_to)[0]:  # access control grants by key
                 request = DecodeError(
                     f"the request names verb {shown(request.verb)} but was sent to "
                     f"{self.key}/{shown(sent_to)}"
@@ -223,6 +231,7 @@ class RpcServer:
     def _answer(
         self, query: zenoh.Query, request: _WireRequest | ArcheryError, arrived: float
     ) -> None:
+        _call.caller = split_verb(str(query.key_expr).rsplit("/", 1)[-1])[1]
         try:
             reply = self._handle(request, next(self._seq), arrived)
             payload = encode(reply)
@@ -232,6 +241,7 @@ class RpcServer:
             return
         finally:
             query.drop()
+            _call.caller = None
         if self.tap is not None:
             if isinstance(request, _WireRequest):
                 self.tap.tap(request.verb, request.args, reply, len(payload))

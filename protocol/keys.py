@@ -22,6 +22,7 @@ __all__ = [
     "Keys",
     "PortSpec",
     "port_of",
+    "split_verb",
     "tap_keys",
     "validate_robot",
 ]
@@ -30,6 +31,7 @@ DEFAULT_ROBOT = "icubSim"
 CARTESIAN_ARMS = ("left_arm", "right_arm", "archery")
 _VERB = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+CALLER_MARK = "~"  # between a verb and its caller's identity in a call's key
 # The `rpc:i` ports' paths before `/rpc:i`, for their request and reply taps.
 _SERVERS = (
     *PARTS,
@@ -111,19 +113,33 @@ def port_of(key: str) -> PortSpec:
 ALIVE_EVERY_ROBOT = "*/alive/*"  # the liveliness tokens of every service of every robot
 
 
-def verb_key(rpc_key: str, verb: str) -> str:
+def verb_key(rpc_key: str, verb: str, caller: str | None = None) -> str:
     """The key a call of `verb` on the `rpc:i` port `rpc_key` is sent to: `RPC_KEY/VERB`, one
     key per verb, so that access control grants each verb on its own (a server answers
-    `verbs_key(rpc_key)`).
+    `verbs_key(rpc_key)`); `RPC_KEY/VERB~CALLER` for a verb that names its caller
+    (`Verb.names_caller`), so that access control, granting each identity only its own name,
+    vouches for who calls.
 
     Raises:
-        KeyNameError: `verb` is not a verb name (a letter, then up to 63 letters, digits, `_`).
+        KeyNameError: `verb` is not a verb name (a letter, then up to 63 letters, digits, `_`),
+            or `caller` not an identity name.
     """
     if not isinstance(verb, str) or not _VERB.match(verb):
         raise KeyNameError(
             f"{shown(verb)} is not a verb name (a letter, then up to 63 of [A-Za-z0-9_])"
         )
-    return f"{rpc_key}/{verb}"
+    if caller is None:
+        return f"{rpc_key}/{verb}"
+    if not _NAME.match(caller):
+        raise KeyNameError(f"{shown(caller)} is not an identity name")
+    return f"{rpc_key}/{verb}{CALLER_MARK}{caller}"
+
+
+def split_verb(chunk: str) -> tuple[str, str | None]:
+    """(verb, caller or None) of the last chunk of a call's key (`verb_key`); the caller is
+    None when the chunk names none or names it badly."""
+    verb, mark, caller = chunk.partition(CALLER_MARK)
+    return verb, caller if mark and _NAME.match(caller) else None
 
 
 def tap_keys(rpc_key: str) -> tuple[str, str] | None:

@@ -42,13 +42,18 @@ from protocol.codec import encode
 from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
 from protocol.keys import Keys, verb_key, verbs_key
 from protocol.messages import Image, RpcReply
-from protocol.verbs import TABLES, table_for_key
+from protocol.verbs import TABLES, names_caller, table_for_key
 from protocol.verbs.camera import CAMERA_VERBS
 from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
+from protocol.verbs.robot import PART_VERBS, ClaimArgs
 from services.learner.errors import RigError
 from services.learner.rig import MeshRig
 from services.learner.rig_protocol import Shot
-from tests.conftest import archery
+from services.robot.config import RobotConfig
+from services.robot.service import run as run_robot
+from sim.scene_config import SceneConfig
+from sim.world import WorldConfig
+from tests.conftest import archery, serving
 from tests.rpc import rpc_call, some_verbs
 
 ROBOT = "secbot"
@@ -507,6 +512,35 @@ def test_a_call_the_access_control_denies_says_so(endpoint: str, deployment: Pat
     assert "identity 'learner'" in str(denied.value)
 
 
+def test_a_stuck_call_the_rules_grant_is_a_timeout_and_a_denial_names_the_identity(
+    endpoint: str, deployment: Path
+) -> None:
+    """A call the rules grant that gets no reply in time (the server is stuck) is a timeout,
+    never "denied"; a call they deny names the identity the node presented (`--identity`)."""
+    release = threading.Event()
+
+    def stuck(_: Any) -> Any:
+        release.wait(30)
+        raise RpcError("released", code="rpc_error")
+
+    try:
+        with Node("detector", net_as(endpoint, "detector", deployment)) as detector:
+            detector.serve(K.detector_rpc(), some_verbs(DETECTOR_VERBS, {"status": stuck}))
+            detector.ready()
+            viewer_net = net_as(endpoint, VIEWER, deployment)
+            with Node(None, viewer_net) as viewer:
+                viewer.wait_alive(["detector"], timeout=10)
+                with pytest.raises(RpcError) as slow:
+                    viewer.call_typed(K.detector_rpc(), DETECTOR_VERBS["status"], timeout=1)
+                with pytest.raises(RpcError) as denied:
+                    viewer.call_typed(K.detector_rpc(), DETECTOR_VERBS["calibrate"], timeout=1)
+    finally:
+        release.set()
+    assert slow.value.code == "timeout" and "denied" not in str(slow.value), slow.value
+    assert denied.value.code == "denied", denied.value
+    assert "identity 'viewer'" in str(denied.value)
+
+
 def test_a_plain_client_meeting_a_secure_router_is_told_so(endpoint: str) -> None:
     plain = NetConfig(connect=(endpoint.replace("tls/", "tcp/"),), robot=ROBOT)
     with pytest.raises(Unreachable, match="does not answer plain Zenoh: a secure router") as err:
@@ -569,7 +603,21 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         if "status" in verbs[key]
     ):
         assert time.monotonic() < deadline
-    calls = [(name, verb_key(key, v)) for name in callers for key in ports for v in verbs[key]]
+    calls = [
+        (name, verb_key(key, v, name if names_caller(key, v) else None))
+        for name in callers
+        for key in ports
+        for v in verbs[key]
+    ]
+    # a verb that names its caller, naming another: only the operator may
+    left_claim = verb_key(K.part_rpc("left_arm"), "claim", OPERATOR)
+    impostors = [
+        ("controller", left_claim),
+        ("learner", left_claim),
+        (VIEWER, left_claim),
+        ("controller", verb_key(K.part_rpc("left_arm"), "claim")),  # naming no caller
+    ]
+    calls += impostors
 
     def call(item: tuple[str, str]) -> None:
         name, target = item
@@ -593,12 +641,15 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         (VIEWER, verb_key(K.cartesian_rpc("archery"), "posture")),
         (VIEWER, verb_key(K.learner_rpc(), "start")),
         ("detector", verb_key(cam, "scene")),  # the scene view is for people
+        *impostors,
     ):
         assert (name, target) not in reached, (name, target)
     for name, target in (
         ("learner", verb_key(arch, "release")),
         ("detector", verb_key(cam, "grab")),
-        ("controller", verb_key(K.part_rpc("left_arm"), "setRefSpeeds")),
+        ("controller", verb_key(K.part_rpc("left_arm"), "setRefSpeeds", "controller")),
+        ("controller", verb_key(K.part_rpc("left_arm"), "claim", "controller")),
+        (OPERATOR, left_claim),
         (VIEWER, verb_key(det, "status")),
         (VIEWER, verb_key(cam, "scene")),  # the dashboard's scene view
         (OPERATOR, verb_key(K.cartesian_rpc("archery"), "posture")),
@@ -609,3 +660,34 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
 def _grants_call(allowed: tuple[str, ...], target: str) -> bool:
     """Whether one of the role's call keys (a verb key, or `KEY/*`) covers `target`."""
     return any(a == target or (a.endswith("/*") and target.startswith(a[:-1])) for a in allowed)
+
+
+def test_a_lease_belongs_to_the_identity_that_claims_it_only_the_operator_takes_over(
+    endpoint: str, deployment: Path
+) -> None:
+    """Secure mode: a claim's `owner` text is not who owns the lease, the identity the router
+    authenticated is; the controller cannot take the operator's part (naming itself
+    "operator" or asking for a takeover), the operator can."""
+    claim, get_claim = PART_VERBS["claim"], PART_VERBS["getClaim"]
+    robot_net = net_as(endpoint, "robot", deployment)
+    world = WorldConfig(scene=SceneConfig(meshes=False))
+    with (
+        serving(run_robot, RobotConfig(net=robot_net, world=world)),
+        Node(None, net_as(endpoint, OPERATOR, deployment)) as operator,
+        Node(None, net_as(endpoint, "controller", deployment)) as controller,
+    ):
+        operator.wait_alive(["robot"], timeout=60)
+        key = K.part_rpc("left_arm")
+        held = operator.call_typed(key, claim, ClaimArgs(owner="someone", ttl=30.0))
+        assert held.owner == OPERATOR  # not the text it wrote
+        for args in (ClaimArgs(owner=OPERATOR, ttl=30.0), ClaimArgs(owner="x", takeover=True)):
+            with pytest.raises(RpcError) as refused:
+                controller.call_typed(key, claim, args)
+            assert refused.value.code == "not_owner", refused.value
+        assert "only the operator takes a part over" in refused.value.message
+        assert operator.call_typed(key, get_claim).owner == OPERATOR
+        # the controller's own claim once the part is free, and the operator's takeover
+        free = K.part_rpc("right_arm")
+        assert controller.call_typed(free, claim, ClaimArgs(owner=OPERATOR)).owner == "controller"
+        took = operator.call_typed(free, claim, ClaimArgs(owner=OPERATOR, takeover=True))
+        assert took.owner == OPERATOR and took.took_over == "controller"

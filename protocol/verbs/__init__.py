@@ -15,6 +15,7 @@ __all__ = [
     "ServedVerbs",
     "Verb",
     "VerbTable",
+    "names_caller",
     "table_for_key",
 ]
 
@@ -42,3 +43,13 @@ def table_for_key(key: str) -> VerbTable:
         ports = ", ".join(f"ROBOT/{p}" for p in _BY_PORT)
         raise KeyNameError(f"no verb table for {key!r}; typed rpc:i keys: {ports}")
     return table
+
+
+def names_caller(key: str, verb: str) -> bool:
+    """Whether a call of `verb` on the `rpc:i` key `key` names its caller (`Verb.names_caller`);
+    False for a key or verb no table declares."""
+    _, _, port = key.partition("/")
+    table = _BY_PORT.get(port)
+    if table is None or verb not in table.names():
+        return False
+    return table[verb].names_caller

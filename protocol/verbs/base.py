@@ -69,6 +69,11 @@ class Verb(Generic[A, R]):
     thread of its own beside the port's worker, never on it, at most `MAX_WAITING` of them per
     port at a time (the excess refused at once with `busy`), and the handler never waits past
     its caller's own timeout (`mesh.rpc_server.caller_left`).
+
+    `names_caller=True` declares a verb whose server must know who calls (a claim of a part: the
+    lease's owner): a call goes to `PORT/VERB~IDENTITY` (`protocol.keys.verb_key`), and in
+    secure mode the router grants each identity only its own name there (`mesh.acl`), so the
+    name the server reads (`mesh.rpc_server.caller`) is vouched for.
     """
 
     name: str
@@ -79,6 +84,7 @@ class Verb(Generic[A, R]):
     reads: bool = False
     background: bool = False
     waits: bool = False
+    names_caller: bool = False
 
     @functools.cached_property
     def args_decoder(self) -> msgspec.msgpack.Decoder[A]:

@@ -7,7 +7,9 @@ Ownership: a client takes a part with `claim {owner, ttl?, takeover?}` and gets 
 while the lease lasts (`ttl` wall s from the claim or the latest `renewClaim`) the part obeys
 only commands that carry it (`JointCommand.lease`, and the `lease` argument of `positionMove`
 and `setRefSpeeds`); `dropClaim` ends it, and `getClaim` tells who holds the part (never the
-lease id). With no lease held a part takes commands from anyone.
+lease id). With no lease held a part takes commands from anyone. In secure mode the owner is
+the caller's identity, vouched for by the router (`claim` and `setRefSpeeds` name their caller:
+`Verb.names_caller`), not the `owner` it writes, and only the `operator` takes a part over.
 """
 
 from __future__ import annotations
@@ -83,7 +85,9 @@ class MotionDoneReply(Reply, frozen=True):
 class ClaimArgs(Args, frozen=True):
     """`takeover`: take the part even from another owner whose lease still runs (the operator's
     explicit override); without it such a claim is refused (`not_owner`). A claim by the owner
-    that holds the part (the same name, e.g. a restarted controller) replaces its lease."""
+    that holds the part (the same name, e.g. a restarted controller) replaces its lease. In
+    secure mode the owner is the caller's identity (`owner` is not used) and only the operator
+    may take over."""
 
     owner: Owner
     ttl: Ttl = LEASE_TTL
@@ -203,6 +207,7 @@ PART_VERBS = VerbTable(
             SetRefSpeedsArgs,
             RefSpeedsReply,
             "reference speeds: one for every joint, or one per joint",
+            names_caller=True,  # it may claim the part
         ),
         Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds", reads=True),
         Verb(
@@ -231,6 +236,7 @@ PART_VERBS = VerbTable(
             LeaseReply,
             "take the part: only commands with the lease id move it until the lease ends",
             blocking=False,
+            names_caller=True,  # the lease's owner
         ),
         Verb(
             "renewClaim",

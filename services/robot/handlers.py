@@ -10,11 +10,14 @@ from collections.abc import Callable, Mapping
 from functools import partial
 from typing import Any
 
+from mesh.acl import OPERATOR
+from mesh.rpc_server import caller
 from mesh.subscription import Subscription
 from protocol.errors import BadRequest
 from protocol.messages import JointCommand
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv
+from services.robot.gate import NotOwner
 from services.robot.simloop import SimLoop
 
 __all__ = ["RobotHandlers"]
@@ -26,11 +29,39 @@ class RobotHandlers:
     Args:
         loop: the simulation loop the verbs run on.
         commands: each part's `command:i` subscription (its undecodable count is a counter).
+        secure: the mesh runs in secure mode: a lease's owner is the identity its claim names
+            (`mesh.rpc_server.caller`, vouched for by the router), and only the operator takes
+            a part over.
     """
 
-    def __init__(self, loop: SimLoop, commands: Mapping[str, Subscription[JointCommand]]) -> None:
+    def __init__(
+        self,
+        loop: SimLoop,
+        commands: Mapping[str, Subscription[JointCommand]],
+        secure: bool = False,
+    ) -> None:
         self._loop = loop
         self._commands = commands
+        self._secure = secure
+
+    def _owner(self, claim: rv.ClaimArgs) -> str:
+        """Who a claim's lease belongs to: in secure mode the caller's identity, else the
+        `owner` it gives.
+
+        Raises:
+            BadRequest: secure mode, and the call names no caller.
+            NotOwner: secure mode, and a takeover by another identity than the operator.
+        """
+        if not self._secure:
+            return claim.owner
+        who = caller()
+        if who is None:
+            raise BadRequest(
+                "a claim must name its caller in secure mode (sent to PORT/VERB~IDENTITY)"
+            )
+        if claim.takeover and who != OPERATOR:
+            raise NotOwner(f"only the {OPERATOR} takes a part over, not {who!r}")
+        return who
 
     def part_verbs(self, part: str) -> ServedVerbs:
         """The verbs of `ROBOT/{part}/rpc:i`."""
@@ -104,7 +135,7 @@ class RobotHandlers:
         if args.lease:
             raise BadRequest("setRefSpeeds takes a lease or a claim, not both")
         claim = args.claim
-        lease = self._loop.claim(part, claim.owner, claim.ttl, claim.takeover).lease
+        lease = self._loop.claim(part, self._owner(claim), claim.ttl, claim.takeover).lease
         try:
             speeds = self._loop.set_ref_speeds(part, args.speeds, lease)
         except BaseException:
@@ -140,7 +171,7 @@ class RobotHandlers:
 
     def claim(self, part: str, args: rv.ClaimArgs) -> rv.LeaseReply:
         """Take the part for `ttl` wall s: only commands carrying the lease id move it."""
-        return self._loop.claim(part, args.owner, args.ttl, args.takeover)
+        return self._loop.claim(part, self._owner(args), args.ttl, args.takeover)
 
     def renew_claim(self, part: str, args: rv.LeaseArgs) -> rv.LeaseReply:
         """Extend the running lease by its ttl (wall s) from now."""

@@ -89,7 +89,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                 )
                 for part in world.parts
             }
-            handlers = RobotHandlers(loop, commands)
+            handlers = RobotHandlers(loop, commands, secure=config.net.secure is not None)
             for part in world.parts:
                 node.serve(keys.part_rpc(part), handlers.part_verbs(part))
             node.serve(keys.archery_rpc(), handlers.archery_verbs())
