@@ -1,7 +1,7 @@
 """The router's access control for one robot, generated from the port and verb tables.
 
-Every identity (a certificate common name: the five services, `operator` and `viewer` for the
-CLI tools) gets exactly the flows its job needs, and everything else is denied
+Every identity (a certificate common name: the five services, `operator`, `viewer` and
+`replay` for the CLI tools) gets exactly the flows its job needs, and everything else is denied
 (`default_permission: deny`). The router enforces the rules on its own links: `ingress` is what
 an identity sends to the router, `egress` what the router forwards to it. A denied message is
 dropped silently at the router: the sender's `put` or `declare_*` still succeeds, the receiver
@@ -19,8 +19,8 @@ turns each into the Zenoh messages and directions it takes:
 * call K: `query` in; `reply` and `declare_queryable` out on the port (`PORT/*`);
 * every service holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
   `ROBOT/alive/NAME/*`), serves and may call its own `ROBOT/describe/NAME` and
-  `ROBOT/replace/NAME` (its next instance presents the same identity); every identity may watch
-  the robot's tokens (`wait_alive`, the replier check);
+  `ROBOT/replace/NAME` (its next instance presents the same identity); every identity but
+  `replay` may watch the robot's tokens (`wait_alive`, the replier check);
 * every server publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
 
 The calls of each service are those its code makes:
@@ -38,12 +38,17 @@ The calls of each service are those its code makes:
 * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
   release, status` (its world, journaled for replaying a shot) and the detector's `measure,
   frame`; serves `learner/rpc:i`;
-* operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`, and
-  `replay`): every verb, the joint commands, every stream, every `describe` and `replace`;
+* operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`):
+  every verb, the joint commands, every stream, every `describe` and `replace`;
 * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
   `interface`, `dashboard`): every stream and the verbs that change nothing (`Verb.reads`),
   among them the camera's `scene` (the dashboard's view of the whole robot); the detector,
-  which grabs frames, is not granted it.
+  which grabs frames, is not granted it;
+* replay (`archery replay`, which publishes a recording again, a file anyone may have
+  crafted): publishes the robot's output streams (`protocol.keys.OUTPUT_PORTS`: joint states,
+  the world's state and events, the camera's frames, detections, rollouts) and, for
+  `--serve-grab`, serves the camera's verbs (and publishes their taps); nothing else: no
+  joint command, no call, no subscription, no watch of the liveliness tokens.
 """
 
 from __future__ import annotations
@@ -58,11 +63,22 @@ from protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
 from protocol.parts import PARTS
 from protocol.verbs import TABLES, names_caller
 
-__all__ = ["OPERATOR", "TOOLS", "VIEWER", "Role", "granted", "roles", "rules", "server_of"]
+__all__ = [
+    "OPERATOR",
+    "REPLAY",
+    "TOOLS",
+    "VIEWER",
+    "Role",
+    "granted",
+    "roles",
+    "rules",
+    "server_of",
+]
 
 OPERATOR = "operator"  # the tools that move the robot
 VIEWER = "viewer"  # the tools that only look
-TOOLS = (OPERATOR, VIEWER)  # identities of tools: no token, serve nothing
+REPLAY = "replay"  # `archery replay`: the robot's output streams, the camera's verbs
+TOOLS = (OPERATOR, VIEWER, REPLAY)  # identities of tools: no token, describe or replace
 
 
 @dataclass(frozen=True)
@@ -73,6 +89,7 @@ class Role:
     subscribe: tuple[str, ...] = ()
     serve: tuple[str, ...] = ()
     call: tuple[str, ...] = ()
+    watch: bool = True  # may watch the robot's liveliness tokens (`wait_alive`)
 
 
 def _calls(key: str, *verbs: str) -> tuple[str, ...]:
@@ -161,6 +178,13 @@ def roles(robot: str) -> dict[str, Role]:
         # The tools that only look (ports, read, hz, record, view, dashboard, alive,
         # interface): every stream and the verbs that change nothing.
         VIEWER: Role(subscribe=(f"{robot}/**",), call=(*_reading_calls(robot), describe_all)),
+        # A replay (its file may be crafted): the robot's output streams, and for --serve-grab
+        # the camera's verbs (after the camera, which `server_of` names as their server).
+        REPLAY: Role(
+            publish=(*k.output_streams(), *taps(k.cam_rpc())),
+            serve=(verbs_key(k.cam_rpc()),),
+            watch=False,
+        ),
     }
     return {name: _naming_calls(name, role) for name, role in every.items()}
 
@@ -208,15 +232,18 @@ def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
         out.append(_rule(f"{name}-serve", ["declare_queryable", "reply"], "ingress", serve))
         out.append(_rule(f"{name}-serve-queries", ["query"], "egress", serve))
     call = (*role.call, *own) if name not in TOOLS else role.call
-    out.append(_rule(f"{name}-call", ["query"], "ingress", call))
-    # the replies come on the verb's key; the server's queryable is declared on every verb of
-    # its port (`verbs_key`), which the caller learns of whole
-    ports = tuple(dict.fromkeys(_port_of_call(c) for c in call))
-    out.append(_rule(f"{name}-call-replies", ["reply", "declare_queryable"], "egress", ports))
+    if call:
+        out.append(_rule(f"{name}-call", ["query"], "ingress", call))
+        # the replies come on the verb's key; the server's queryable is declared on every verb
+        # of its port (`verbs_key`), which the caller learns of whole
+        ports = tuple(dict.fromkeys(_port_of_call(c) for c in call))
+        out.append(_rule(f"{name}-call-replies", ["reply", "declare_queryable"], "egress", ports))
     alive = f"{robot}/alive/**"
     if name not in TOOLS:
         tokens = (f"{robot}/alive/{name}", f"{robot}/alive/{name}/*")
         out.append(_rule(f"{name}-token", ["liveliness_token"], "ingress", tokens))
+    if not role.watch:
+        return out
     out.append(
         _rule(
             f"{name}-watch",

@@ -18,9 +18,11 @@ from protocol.text import shown
 __all__ = [
     "ALIVE_EVERY_ROBOT",
     "DEFAULT_ROBOT",
+    "OUTPUT_PORTS",
     "PORTS",
     "Keys",
     "PortSpec",
+    "output_port",
     "port_of",
     "split_verb",
     "tap_keys",
@@ -85,6 +87,14 @@ PORTS: tuple[PortSpec, ...] = (
     PortSpec("replace/{service}", "rpc", "ReplaceRequest"),
 )
 _REGEXES = tuple((spec, spec.regex()) for spec in PORTS)
+_TAPS = ("{server}/requests:o", "{server}/replies:o")
+# What the robot's mesh puts out, as `archery record` records it and `archery replay` may
+# publish it again: every stream and event port (joint states, the world's state and events,
+# the camera's frames, detections, rollouts) but the RPC taps, which tell what a caller asked.
+# Never an input (`command:i`), an `rpc:i` port, liveliness or another robot's key.
+OUTPUT_PORTS: tuple[PortSpec, ...] = tuple(
+    spec for spec in PORTS if spec.kind in ("pub", "events") and spec.pattern not in _TAPS
+)
 
 
 def validate_robot(robot: str) -> str:
@@ -108,6 +118,15 @@ def port_of(key: str) -> PortSpec:
             return spec
     patterns = ", ".join("ROBOT/" + spec.pattern for spec in PORTS)
     raise KeyNameError(f"unknown key {key!r}; valid keys: {patterns}")
+
+
+def output_port(key: str, robot: str) -> PortSpec | None:
+    """The output port (of `OUTPUT_PORTS`) the full key `key` of robot `robot` belongs to, or
+    None: an input, an `rpc:i` port, a tap, a key of another robot or of Zenoh's admin space
+    (`@/...`), a wildcard, or no key at all."""
+    if not isinstance(key, str) or key not in Keys(robot).output_streams():
+        return None
+    return port_of(key)
 
 
 ALIVE_EVERY_ROBOT = "*/alive/*"  # the liveliness tokens of every service of every robot
@@ -226,6 +245,15 @@ class Keys:
     def learner_rpc(self) -> str:
         """Learner RPC: start, stop, status."""
         return f"{self.robot}/learner/rpc:i"
+
+    def output_streams(self) -> tuple[str, ...]:
+        """Every key of this robot's output ports (`OUTPUT_PORTS`), one per part where the port
+        is a part's, e.g. `icubSim/left_arm/state:o`, `icubSim/world/events:o`."""
+        return tuple(
+            f"{self.robot}/{spec.pattern.format(part=part)}"
+            for spec in OUTPUT_PORTS
+            for part in (PARTS if "{part}" in spec.pattern else ("",))
+        )
 
     def alive(self, service: str) -> str:
         """Liveliness token of a service (like a YARP name server entry)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import shutil
+import signal
 import stat
 import subprocess
 import threading
@@ -25,12 +26,13 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from mesh.acl import OPERATOR, VIEWER, roles, rules, server_of
+from mesh.acl import OPERATOR, REPLAY, VIEWER, roles, rules, server_of
 from mesh.credentials import (
     CA_CERT,
     CA_KEY,
     IDENTITIES,
     Authority,
+    identity_folder,
     init_deployment,
     issue,
     write_identity,
@@ -43,7 +45,7 @@ from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
 from protocol.keys import Keys, verb_key, verbs_key
 from protocol.messages import Image, RpcReply
 from protocol.verbs import TABLES, names_caller, table_for_key
-from protocol.verbs.camera import CAMERA_VERBS
+from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
 from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
 from protocol.verbs.robot import PART_VERBS, ClaimArgs
 from services.learner.errors import RigError
@@ -55,6 +57,8 @@ from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery, serving
 from tests.rpc import rpc_call, some_verbs
+from tests.spawn import spawn
+from tests.test_replay_bounds import command, craft, event, frame
 
 ROBOT = "secbot"
 K = Keys(ROBOT)
@@ -301,6 +305,91 @@ def test_only_controller_and_operator_command_the_joints(session_as: Callable) -
     assert b"camera-command" not in at_robot.payloads()
     assert b"camera-command" not in everything.payloads()
     assert everything.wait_for(b"controller-2")  # the operator sees commands
+
+
+def test_the_replay_identity_publishes_the_robots_output_streams_only(
+    session_as: Callable,
+) -> None:
+    """What a crafted recording would make a replay send, sent by hand as `replay`: the router
+    drops its joint command and its subscription, while its state and frames go through."""
+    robot, camera, replay, operator = map(session_as, ("robot", "camera", REPLAY, OPERATOR))
+    key = K.command("left_arm")
+    at_robot, everything, at_replay = Inbox(), Inbox(), Inbox()
+    robot.declare_subscriber(key, at_robot)
+    operator.declare_subscriber(f"{ROBOT}/**", everything)
+    replay.declare_subscriber(f"{ROBOT}/**", at_replay)  # denied: a replay reads nothing
+    put_until_received(replay, K.state("torso"), everything, b"state-1")
+    put_until_received(operator, key, at_robot, b"operator-1")  # the robot listens
+    replay.put(key, b"replay-command")  # denied at the router: put() itself succeeds
+    replay.put(K.part_rpc("left_arm"), b"replay-rpc")
+    replay.put("other/left_arm/command:i", b"replay-other")
+    replay.put(K.cam_frames(), b"frame-1")  # the controls, same sender, after them
+    operator.put(key, b"operator-2")
+    camera.put(K.cam_frames(), b"frame-2")
+    assert everything.wait_for(b"frame-1") and at_robot.wait_for(b"operator-2")
+    assert everything.wait_for(b"frame-2")
+    assert b"replay-command" not in at_robot.payloads()
+    for denied in (b"replay-command", b"replay-rpc", b"replay-other"):
+        assert denied not in everything.payloads()
+    # its own puts reach its own subscriber in the session; nobody else's reach it
+    assert not {b"operator-1", b"operator-2", b"frame-2"} & set(at_replay.payloads())
+
+
+def test_replay_presents_its_own_identity_and_serves_the_detector_its_grab(
+    endpoint: str, deployment: Path, session_as: Callable, tmp_path: Path
+) -> None:
+    """`archery replay --secure` with a folder that holds the `replay` identity only: it runs as
+    that identity by default, replays a crafted file's frames and events but not its joint
+    command, and answers the detector's `grab` (`--serve-grab`)."""
+    path = craft(
+        tmp_path / "crafted.mcap",
+        ROBOT,
+        [
+            (K.command("left_arm"), command()),
+            (K.cam_frames(), frame(1)),
+            (K.command("left_arm"), command()),
+            (K.world_events(), event(99)),
+        ],
+    )
+    own = identity_folder(deployment, REPLAY, tmp_path / "ids")
+    assert sorted(p.name for p in own.iterdir()) == ["ca.pem", "replay.key", "replay.pem"]
+    robot, operator = session_as("robot"), session_as(OPERATOR)
+    everything = Inbox()
+    operator.declare_subscriber(f"{ROBOT}/**", everything)
+    put_until_received(robot, K.world_state(), everything, b"probe")
+    replay = spawn(
+        "replay",
+        str(path),
+        "--serve-grab",
+        "--rate",
+        "100",
+        "--connect",
+        endpoint,
+        "--secure",
+        str(own),
+        ready="archery replay: serving grab on",
+    )
+    try:
+        deadline = time.monotonic() + 10
+        while K.world_events() not in [k for k, _ in everything.items]:  # the control, last
+            assert time.monotonic() < deadline, everything.items
+            time.sleep(0.05)
+        assert K.command("left_arm") not in [k for k, _ in everything.items]
+        with Node("detector", net_as(endpoint, "detector", deployment)) as detector:
+            got = detector.call_typed(
+                K.cam_rpc(), CAMERA_VERBS["grab"], GrabArgs(after_sim_time=0.0), timeout=10
+            )
+        assert got.frame == 1
+    finally:
+        replay.send_signal(signal.SIGINT)
+        out, err = replay.communicate(timeout=30)
+    assert replay.returncode == 0, err
+    assert "published 2 messages on 2 keys (2 messages on 1 channels skipped" in out
+    assert [line for line in err.splitlines() if "archery replay" in line] == [
+        f"archery replay: skipped channel {K.command('left_arm')!r}: not an output stream of "
+        f"robot {ROBOT!r} (a replay publishes only the robot's state:o, world, camera frame and "
+        "event streams)"
+    ]
 
 
 def test_frames_reach_the_operator_only(session_as: Callable) -> None:
@@ -594,7 +683,7 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         owner = server_of(ROBOT, key)
         assert owner is not None, key
         session_as(owner).declare_queryable(verbs_key(key), record)
-    callers = ("robot", "camera", "detector", "controller", "learner", OPERATOR, VIEWER)
+    callers = ("robot", "camera", "detector", "controller", "learner", OPERATOR, VIEWER, REPLAY)
     sessions = {name: session_as(name) for name in callers}
     deadline = time.monotonic() + 10  # every queryable has reached the router
     while any(

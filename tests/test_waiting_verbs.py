@@ -88,7 +88,8 @@ def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:
         # every slot taken by callers that give up after 1 s though their grabs ask for 120 s
         with ThreadPoolExecutor(MAX_WAITING) as pool:
             gone = list(pool.map(lambda _: _grab_error(node, never, 1.0), range(MAX_WAITING)))
-        assert all(isinstance(e, RpcTimeout) for e in gone), gone
+        # (the caller's own timeout, or the camera's reply that it stopped at that time)
+        assert all(e is not None and e.code == RpcTimeout.code for e in gone), gone
         # their slots come free within seconds, not 120 s: a waiting grab is taken again
         deadline = time.monotonic() + 10.0
         while True:

@@ -2,10 +2,13 @@
 
 `record` subscribes to key patterns (default `ROBOT/**`: every stream of the robot) and writes
 each message into an MCAP file (`apps.topics.recording` says why the format is what it is).
-`replay` publishes a recording back with its original timing (or `--rate` times faster); with
-`--serve-grab` it also answers the camera's `grab` verb from the frames it replays, so a fresh
-detector can measure them. `hz` prints each matching key's message rate and bandwidth (like
-`ros2 topic hz` and `bw`).
+`replay` publishes a recording back with its original timing (or `--rate` times faster), and
+only what a replay may publish, whatever the file holds (it may have been crafted): the recorded
+robot's output streams (`protocol.keys.OUTPUT_PORTS`), each carrying its port's message type,
+under the robot prefix it is told; in secure mode it presents the `replay` identity, which the
+router lets do just that (`mesh.acl`). With `--serve-grab` it also answers the camera's `grab`
+verb from the frames it replays, so a fresh detector can measure them. `hz` prints each matching
+key's message rate and bandwidth (like `ros2 topic hz` and `bw`).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from apps.topics.recording import (
     Recording,
     open_recording,
 )
-from mesh.acl import VIEWER
+from mesh.acl import REPLAY, VIEWER
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
@@ -39,8 +42,10 @@ from mesh.patterns import check_pattern, stream_type
 from mesh.priority import add_nice_arg, lower_priority
 from mesh.signals import shutdown_on_signals
 from protocol.codec import encode
-from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
-from protocol.messages import Image
+from protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
+from protocol.keys import output_port, validate_robot
+from protocol.messages import Image, Message
+from protocol.text import shown
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.camera import (
     CAMERA_VERBS,
@@ -326,18 +331,66 @@ class _Frames:
                 self._cond.wait(left)
 
 
-def _remap(key: str, robot: str | None) -> str:
-    return key if robot is None else robot + "/" + key.split("/", 1)[1]
+class _Channels:
+    """Which of a recording's channels a replay publishes, and as which key.
+
+    A channel is published when it is an output stream of the recorded robot (its key
+    `SOURCE/...` one of `protocol.keys.OUTPUT_PORTS`) and holds that port's message type; it goes
+    out as `TARGET/...`. Any other (a `command:i`, an `rpc:i`, a tap, another robot's key, Zenoh's
+    admin space `@/...`) is skipped: counted, and named once on stderr.
+
+    Args:
+        source: the robot prefix the recording's keys carry (the recording's robot).
+        target: the robot prefix to publish under (`--robot`; default the recording's).
+    """
+
+    def __init__(self, source: str, target: str) -> None:
+        self.source = source
+        self.target = target
+        self._decided: dict[tuple[str, str], str | None] = {}  # (key, type) -> out key or None
+        self.skipped = 0  # messages
+        self.skipped_channels = 0
+
+    def out_key(self, key: str, message: Message) -> str | None:
+        """The key to publish `message` of channel `key` on, or None: skip it (said once per
+        channel on stderr)."""
+        kind = type(message).__name__
+        decided = self._decided.get((key, kind), "")
+        if decided == "":
+            decided = self._decide(key, kind)
+            self._decided[(key, kind)] = decided
+        if decided is None:
+            self.skipped += 1
+        return decided
+
+    def _decide(self, key: str, kind: str) -> str | None:
+        port = output_port(key, self.source)
+        if port is None:
+            why = f"not an output stream of robot {self.source!r}"
+        elif port.message != kind:
+            why = f"it holds {kind} messages, not the port's {port.message}"
+        else:
+            return f"{self.target}/{key.split('/', 1)[1]}"
+        self.skipped_channels += 1
+        print(
+            f"archery replay: skipped channel {shown(key)}: {why} (a replay publishes only the "
+            f"robot's state:o, world, camera frame and event streams)",
+            file=sys.stderr,
+            flush=True,
+        )
+        return None
 
 
 def replay_main(argv: list[str] | None = None) -> int:
     """`archery replay FILE.mcap [--rate R] [--keys PATTERN]`: publish a recording again."""
     parser = ArgumentParser(
         prog="archery replay",
-        description="publish a recording's messages again with their original timing",
+        description="publish a recording's messages again with their original timing: the "
+        "recorded robot's output streams only (state:o, world, camera frames, events), under "
+        "--robot (default: the recording's robot); in secure mode as the identity `replay`",
     )
     add_network_args(parser, default_mode="client")
-    parser.set_defaults(robot=None)  # None: the keys as recorded
+    parser.set_defaults(robot=None)  # None: the recording's robot
     parser.add_argument("file", help="an MCAP file written by `archery record`")
     parser.add_argument("--rate", type=seconds, default=1.0, help="speed factor (default 1)")
     parser.add_argument("--keys", help="replay only the keys matching this pattern")
@@ -353,12 +406,12 @@ def replay_main(argv: list[str] | None = None) -> int:
         "after_stamp in the recording's clocks), and keep answering after the end until Ctrl-C",
     )
     args = parser.parse_args(argv)
-    robot = args.robot
     try:
         recording = open_recording(args.file)
-        if robot is None:
-            args.robot = _rec_robot(recording)
-        net = NetConfig.from_args(args)
+        source = _rec_robot(recording)
+        if args.robot is None:
+            args.robot = source
+        net = NetConfig.from_args(args).with_identity(REPLAY)
         if not recording.complete and not args.recover:
             raise ConfigError(
                 f"{args.file!r} is cut short (no summary: was the recorder killed?); "
@@ -374,15 +427,29 @@ def replay_main(argv: list[str] | None = None) -> int:
             if args.serve_grab:
                 node.serve(node.keys.cam_rpc(), frames.verbs(_recorded_marks(recording)))
                 print(f"archery replay: serving grab on {node.keys.cam_rpc()}", flush=True)
-            published, keys = _publish(node, recording, args, only, robot, frames, stop)
+            channels = _Channels(source, net.robot)
+            published, keys = _publish(node, recording, args, only, channels, frames, stop)
+            skipped = (
+                f" ({channels.skipped} messages on {channels.skipped_channels} channels skipped: "
+                f"not the robot's output streams)"
+                if channels.skipped_channels
+                else ""
+            )
             print(
-                f"archery replay: published {published} messages on {len(keys)} keys",
+                f"archery replay: published {published} messages on {len(keys)} keys{skipped}",
                 flush=True,
             )
             if args.serve_grab:
                 stop.wait()
     except ArcheryError as exc:
         return _fail("replay", exc, 1)
+    if channels.skipped_channels and not published:
+        print(
+            f"archery replay: nothing replayed: {args.file!r} holds none of the robot's output "
+            f"streams",
+            file=sys.stderr,
+        )
+        return 2
     return 0
 
 
@@ -402,7 +469,18 @@ def _recorded_marks(recording: Recording) -> CalibrationReply | None:
 
 
 def _rec_robot(recording: Recording) -> str:
-    return recording.metadata.get("robot") or "icubSim"
+    """The robot prefix the recording's keys carry (its metadata; `icubSim` when it has none).
+
+    Raises:
+        ConfigError: the metadata names no valid robot prefix.
+    """
+    robot = recording.metadata.get("robot") or "icubSim"
+    try:
+        return validate_robot(robot)
+    except KeyNameError:
+        raise ConfigError(
+            f"{str(recording.path)!r} names no valid robot (its metadata says {shown(robot)})"
+        ) from None
 
 
 def _publish(
@@ -410,10 +488,13 @@ def _publish(
     recording: Recording,
     args: Any,
     only: zenoh.KeyExpr | None,
-    robot: str | None,
+    channels: _Channels,
     frames: _Frames,
     stop: threading.Event,
 ) -> tuple[int, set[str]]:
+    """Publish the recording's messages that `only` selects (None: all) and `channels` lets
+    through, in their recorded timing (`args.rate` times faster); the frames also go to
+    `frames` (for `--serve-grab`). Returns (messages published, keys published on)."""
     publishers: dict[str, zenoh.Publisher] = {}
     start = time.monotonic()
     first: int | None = None
@@ -422,13 +503,15 @@ def _publish(
         for key, message, log_time in recording.messages(recover=args.recover):
             if stop.is_set():
                 break
-            if only is not None and not only.includes(zenoh.KeyExpr(key)):
+            if only is not None and not _selects(only, key):
+                continue
+            out = channels.out_key(key, message)
+            if out is None:
                 continue
             first = log_time if first is None else first
             due = start + (log_time - first) / 1e9 / args.rate
             if stop.wait(max(0.0, due - time.monotonic())):
                 break
-            out = _remap(key, robot)
             pub = publishers.get(out)
             if pub is None:
                 pub = node.session.declare_publisher(
@@ -445,6 +528,14 @@ def _publish(
         for pub in publishers.values():
             pub.undeclare()
     return published, set(publishers)
+
+
+def _selects(only: zenoh.KeyExpr, key: str) -> bool:
+    """Whether the `--keys` pattern covers the recorded key (False for no valid key)."""
+    try:
+        return bool(only.includes(zenoh.KeyExpr(key)))
+    except zenoh.ZError:
+        return False
 
 
 # -- hz -------------------------------------------------------------------------------------------
