@@ -40,6 +40,7 @@ from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node
 from mesh.patterns import check_pattern, stream_type
 from mesh.priority import add_nice_arg, lower_priority
+from mesh.rpc_server import caller_left
 from mesh.signals import shutdown_on_signals
 from protocol.codec import encode
 from protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
@@ -294,8 +295,8 @@ class _Frames:
         )
 
     def grab(self, grab: GrabArgs) -> Image:
-        """The first frame (published so far, or within the timeout) with sim time ≥
-        `after_sim_time` and stamp ≥ `after_stamp`.
+        """The first frame (published so far, or within the timeout, never past its caller's
+        own) with sim time ≥ `after_sim_time` and stamp ≥ `after_stamp`.
 
         Raises:
             RpcTimeout: no such frame published within the timeout.
@@ -310,7 +311,9 @@ class _Frames:
                 return True
             return image.sim_time is not None and image.sim_time >= grab.after_sim_time
 
-        deadline = time.monotonic() + min(timeout, MAX_GRAB_TIMEOUT)
+        left = caller_left()  # never past the caller's own timeout
+        wait = min(timeout, MAX_GRAB_TIMEOUT, max(0.0, left) if left is not None else timeout)
+        deadline = time.monotonic() + wait
         with self._cond:
             while True:
                 found = next((image for image in self._frames if fits(image)), None)
