@@ -70,7 +70,7 @@ with tempfile.TemporaryDirectory() as tmp:
         handlers["getLimits"] = lambda _: limits
         with Node("robot", net("robot")) as server, Node("controller", net("controller")) as client:
             key = server.keys.part_rpc("left_arm")
-            server.serve(key, PART_VERBS.bind(handlers))
+            server.serve(key, PART_VERBS.bind_names(handlers))
             server.ready()
             client.wait_alive(["robot"], 30)
             verb = PART_VERBS["getLimits"]

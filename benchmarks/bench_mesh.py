@@ -275,7 +275,7 @@ class NodeRpc:
         fast, work, table = _verbs(*names)
         self.verb = work if delay else fast
         self.args = EchoArgs(theta=THETA)
-        self._server = server.serve(key, table.bind({fast.name: _echo, work.name: _work}))
+        self._server = server.serve(key, table.bind_names({fast.name: _echo, work.name: _work}))
         deadline = time.monotonic() + 10
         while True:
             try:

@@ -91,11 +91,15 @@ def main(argv: list[str] | None = None) -> int:
     per_repeat: list[tuple[list[float], list[float]]] = []
     try:
         with Node("bench_server", net) as server, Node(None, net) as client:
-            served = TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)})
+            served = TABLE.bind_names(
+                {"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}
+            )
             server.serve(plain_key, served)
             server.serve(
                 typed_key,
-                TABLE.bind({"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}),
+                TABLE.bind_names(
+                    {"aim": lambda a: AimReply(theta=a.theta, time=1.0, reached=True)}
+                ),
             )
             _plain(client, plain_key, warm_up)  # warm up both paths
             _typed(client, typed_key, warm_up)

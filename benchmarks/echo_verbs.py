@@ -32,7 +32,7 @@ _TABLE = VerbTable("benchmark echo", ("bench/rpc:i",), (ECHO,))
 
 def echo_verbs() -> ServedVerbs:
     """The echo table, bound: what a benchmark's server node serves."""
-    return _TABLE.bind({"echo": lambda a: ThetaReply(theta=a.theta)})
+    return _TABLE.bind_names({"echo": lambda a: ThetaReply(theta=a.theta)})
 
 
 def named_echo(name: str) -> tuple[Verb, ServedVerbs]:
@@ -40,7 +40,7 @@ def named_echo(name: str) -> tuple[Verb, ServedVerbs]:
     `granted_verbs`): the verb to call, and its table bound, what the server node serves."""
     verb = Verb(name, ThetaArgs, ThetaReply, "returns θ")
     table = VerbTable("benchmark echo", ("bench/rpc:i",), (verb,))
-    return verb, table.bind({name: lambda a: ThetaReply(theta=a.theta)})
+    return verb, table.bind_names({name: lambda a: ThetaReply(theta=a.theta)})
 
 
 def granted_verbs(robot: str, caller: str, port: str) -> list[str]:

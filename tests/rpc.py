@@ -57,4 +57,4 @@ def some_verbs(table: VerbTable, handlers: dict[str, Callable[[Any], Any]]) -> S
 
         return refuse
 
-    return table.bind({n: handlers.get(n, unserved(n)) for n in table.names()})
+    return table.bind_names({n: handlers.get(n, unserved(n)) for n in table.names()})

@@ -330,7 +330,7 @@ def _fake_controller(node: Node, release: threading.Event, calls: list[list[floa
         raise RpcError("not in this test", code="unsupported")
 
     verbs = {"posture": posture, "status": status, "setTrajTime": status, "getTrajTime": status}
-    node.serve(node.keys.cartesian_rpc("archery"), cv.ARCHERY_VERBS.bind(verbs))
+    node.serve(node.keys.cartesian_rpc("archery"), cv.ARCHERY_VERBS.bind_names(verbs))
     node.ready()
 
 

@@ -130,7 +130,7 @@ def test_rpc_ok_error_and_recovery(pair: tuple[Node, Node]) -> None:
         raise ZeroDivisionError("division by zero")
 
     verbs = {"release": release, "crash": crash, "measure": crash}
-    server.serve(key, TEST_VERBS.bind(verbs))
+    server.serve(key, TEST_VERBS.bind_names(verbs))
     server.ready()
     client.wait_alive(["server"], 10)
     call = functools.partial(rpc_call, client, key)

@@ -67,7 +67,7 @@ def _serve(server: Node, key: str, release: threading.Event, entered: threading.
     def peek(args: WhoArgs) -> WhoReply:
         return WhoReply(thread=threading.current_thread().name, x=args.x)
 
-    return server.serve(key, TABLE.bind({"peek": peek, "hold": _holder(release, entered)}))
+    return server.serve(key, TABLE.bind_names({"peek": peek, "hold": _holder(release, entered)}))
 
 
 def _reachable(server: Node, client: Node) -> None:
@@ -141,7 +141,7 @@ def test_a_background_verb_runs_on_its_own_worker_at_a_lower_priority_beside_a_b
             policy=os.sched_getscheduler(me),
         )
 
-    served = server.serve(key, LATER.bind({"hold": _holder(release, entered), "draw": draw}))
+    served = server.serve(key, LATER.bind_names({"hold": _holder(release, entered), "draw": draw}))
     assert served.background == frozenset({"draw"}) and served.inline == frozenset()
     _reachable(server, client)
     with _held_call(client, key, release, entered) as held:

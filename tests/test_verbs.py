@@ -239,12 +239,12 @@ def served(net: NetConfig) -> Iterator[tuple[Node, str, str]]:
             "posture": unused,
             "status": lambda a: "not a reply",
         }
-        server.serve(key, cv.ARCHERY_VERBS.bind(handlers))
+        server.serve(key, cv.ARCHERY_VERBS.bind_names(handlers))
         other = {
             "getTrajTime": lambda a: SoonReply(time="soon"),
             "echo": lambda a: cv.TrajTimeReply(time=a.time),
         }
-        server.serve(other_key, OTHER.bind(other))
+        server.serve(other_key, OTHER.bind_names(other))
         server.ready()
         client.wait_alive(["verbs"], 10)  # its token follows both ports to the router
         yield client, key, other_key

@@ -49,14 +49,18 @@ from protocol.messages import Image, Message
 from protocol.text import shown
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.camera import (
+    CALIBRATION,
     CAMERA_VERBS,
+    GRAB,
     MAX_GRAB_TIMEOUT,
+    SCENE,
+    STATUS,
     CalibrationReply,
     CameraStatusReply,
     GrabArgs,
     SceneReply,
 )
-from protocol.verbs.robot import ARCHERY_VERBS
+from protocol.verbs.robot import ARCHERY_STATUS
 
 __all__ = ["hz_main", "record_main", "replay_main"]
 
@@ -89,7 +93,7 @@ def _calibration(node: Node, exprs: list[zenoh.KeyExpr]) -> dict[str, tuple[str,
     if not any(expr.includes(zenoh.KeyExpr(frames)) for expr in exprs):
         return {}
     try:
-        marks = node.call_typed(node.keys.cam_rpc(), CAMERA_VERBS["calibration"], timeout=30)
+        marks = node.call_typed(node.keys.cam_rpc(), CALIBRATION, timeout=30)
     except ArcheryError as exc:
         print(f"archery record: no calibration marks recorded: {exc}", file=sys.stderr)
         return {}
@@ -112,7 +116,7 @@ def _robot_frames(node: Node, exprs: list[zenoh.KeyExpr]) -> FrameSource | None:
         return None
     scene = None
     try:
-        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_VERBS["status"], timeout=3)
+        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS, timeout=3)
         scene = SceneConfig(**status.scene)
     except ArcheryError as exc:
         print(f"archery record: transforms for the default scene: {exc}", file=sys.stderr)
@@ -291,7 +295,10 @@ class _Frames:
             )
 
         return CAMERA_VERBS.bind(
-            {"grab": self.grab, "calibration": calibration, "status": status, "scene": scene}
+            GRAB.to(self.grab),
+            CALIBRATION.to(calibration),
+            STATUS.to(status),
+            SCENE.to(scene),
         )
 
     def grab(self, grab: GrabArgs) -> Image:

@@ -82,7 +82,7 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
             undecodable=commands.dropped,
         )
 
-    return rv.PART_VERBS.bind(
+    return rv.PART_VERBS.bind_names(
         {
             "getJointNames": lambda _: rv.JointNamesReply(names=names),
             "getLimits": lambda _: rv.LimitsReply(

@@ -107,6 +107,11 @@ class Verb(Generic[A, R]):
         )
         return msgspec.msgpack.Decoder(typed)
 
+    def to(self, handler: Callable[[A], R]) -> BoundVerb[A, R]:
+        """This verb served by `handler`, which takes its `Args` and returns its `Reply` (mypy
+        checks both where the handler is bound)."""
+        return BoundVerb(self, handler)
+
     def schema(self) -> dict[str, Any]:
         """{"doc", "args", "reply"}: the doc and JSON schemas of the argument and reply types."""
         return {
@@ -163,21 +168,36 @@ class VerbTable:
         """The verb names, sorted."""
         return sorted(self._by_name)
 
-    def bind(self, handlers: Mapping[str, Callable[[Any], Any]]) -> ServedVerbs:
-        """Bind a handler to every verb (by name).
+    def bind(self, *bound: BoundVerb[Any, Any]) -> ServedVerbs:
+        """Bind a handler to every verb, each as `VERB.to(handler)` (typed per verb).
 
         Raises:
-            ValueError: a verb has no handler, or a handler has no verb.
+            ValueError: a verb has no handler, is bound twice, or is not of this table.
         """
-        missing = sorted(set(self._by_name) - set(handlers))
+        by_name = {b.verb.name: b for b in bound}
+        foreign = sorted(b.verb.name for b in bound if self._by_name.get(b.verb.name) is not b.verb)
+        missing = sorted(set(self._by_name) - set(by_name))
+        if foreign or missing or len(by_name) != len(bound):
+            raise ValueError(
+                f"{self.title}: handlers must match the verbs exactly; "
+                f"missing {missing}, not verbs {foreign}"
+            )
+        return ServedVerbs(self, by_name)
+
+    def bind_names(self, handlers: Mapping[str, Callable[[Any], Any]]) -> ServedVerbs:
+        """Bind a handler to every verb by name, untyped (a fake serving any table in a test).
+
+        Raises:
+            ValueError: as `bind`, or a name is no verb of this table.
+        """
         extra = sorted(set(handlers) - set(self._by_name))
-        if missing or extra:
+        if extra:
+            missing = sorted(set(self._by_name) - set(handlers))
             raise ValueError(
                 f"{self.title}: handlers must match the verbs exactly; "
                 f"missing {missing}, not verbs {extra}"
             )
-        bound = {name: BoundVerb(self._by_name[name], h) for name, h in handlers.items()}
-        return ServedVerbs(self, bound)
+        return self.bind(*(self._by_name[name].to(h) for name, h in handlers.items()))
 
     @functools.cached_property
     def schemas(self) -> dict[str, dict[str, Any]]:

@@ -59,40 +59,48 @@ class CameraStatusReply(Reply, frozen=True):
     scene_from: str
 
 
+GRAB = Verb(
+    "grab",
+    GrabArgs,
+    Image,
+    "the first frame fresher than the given times (default 5 s, at most 120 s)",
+    reads=True,
+    waits=True,
+)
+
+CALIBRATION = Verb(
+    "calibration",
+    NoArgs,
+    CalibrationReply,
+    "a frame and its target/arrow marks",
+    reads=True,
+)
+
+SCENE = Verb(
+    "scene",
+    NoArgs,
+    SceneReply,
+    "the newest view of the whole robot from the side camera (JPEG, a low rate)",
+    blocking=False,
+    reads=True,
+)
+
+STATUS = Verb(
+    "status",
+    NoArgs,
+    CameraStatusReply,
+    "source, size, rate, frames, render time",
+    blocking=False,
+    reads=True,
+)
+
 CAMERA_VERBS = VerbTable(
     "camera",
     ("cam/rpc:i",),
     (
-        Verb(
-            "grab",
-            GrabArgs,
-            Image,
-            "the first frame fresher than the given times (default 5 s, at most 120 s)",
-            reads=True,
-            waits=True,
-        ),
-        Verb(
-            "calibration",
-            NoArgs,
-            CalibrationReply,
-            "a frame and its target/arrow marks",
-            reads=True,
-        ),
-        Verb(
-            "scene",
-            NoArgs,
-            SceneReply,
-            "the newest view of the whole robot from the side camera (JPEG, a low rate)",
-            blocking=False,
-            reads=True,
-        ),
-        Verb(
-            "status",
-            NoArgs,
-            CameraStatusReply,
-            "source, size, rate, frames, render time",
-            blocking=False,
-            reads=True,
-        ),
+        GRAB,
+        CALIBRATION,
+        SCENE,
+        STATUS,
     ),
 )

@@ -94,27 +94,35 @@ class DetectorStatusReply(Reply, frozen=True):
     measured: int
 
 
+MEASURE = Verb("measure", MeasureArgs, MeasureReply, "detect target and arrow in a fresh frame")
+
+CALIBRATE = Verb("calibrate", CalibrateArgs, CalibrateReply, "fit the colour model from pixels")
+
+FRAME = Verb(
+    "frame",
+    FrameArgs,
+    FrameReply,
+    "a recently measured frame as PNG (with overlay): the last, or that of `seq`",
+    reads=True,
+    background=True,
+)
+
+STATUS = Verb(
+    "status",
+    NoArgs,
+    DetectorStatusReply,
+    "colour model, settings, frames measured",
+    blocking=False,
+    reads=True,
+)
+
 DETECTOR_VERBS = VerbTable(
     "detector",
     ("detector/rpc:i",),
     (
-        Verb("measure", MeasureArgs, MeasureReply, "detect target and arrow in a fresh frame"),
-        Verb("calibrate", CalibrateArgs, CalibrateReply, "fit the colour model from pixels"),
-        Verb(
-            "frame",
-            FrameArgs,
-            FrameReply,
-            "a recently measured frame as PNG (with overlay): the last, or that of `seq`",
-            reads=True,
-            background=True,
-        ),
-        Verb(
-            "status",
-            NoArgs,
-            DetectorStatusReply,
-            "colour model, settings, frames measured",
-            blocking=False,
-            reads=True,
-        ),
+        MEASURE,
+        CALIBRATE,
+        FRAME,
+        STATUS,
     ),
 )

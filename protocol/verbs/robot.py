@@ -165,101 +165,129 @@ class ClaimReply(Reply, frozen=True):
     expires_in: Annotated[float, Meta(description="wall s; 0 when not held")]
 
 
+GET_JOINT_NAMES = Verb(
+    "getJointNames",
+    NoArgs,
+    JointNamesReply,
+    "the part's joint names, in YARP order",
+    blocking=False,
+    reads=True,
+)
+
+GET_LIMITS = Verb(
+    "getLimits",
+    NoArgs,
+    LimitsReply,
+    "software joint limits (rad) and clamp tolerance",
+    blocking=False,
+    reads=True,
+)
+
+GET_POSITIONS = Verb(
+    "getPositions",
+    NoArgs,
+    PositionsReply,
+    "encoders: positions, velocities, sim time",
+    reads=True,
+)
+
+GET_TARGETS = Verb(
+    "getTargets", NoArgs, TargetsReply, "the current (clamped) position targets", reads=True
+)
+
+CHECK_MOTION_DONE = Verb(
+    "checkMotionDone",
+    NoArgs,
+    MotionDoneReply,
+    "True once every joint has settled",
+    reads=True,
+)
+
+SET_REF_SPEEDS = Verb(
+    "setRefSpeeds",
+    SetRefSpeedsArgs,
+    RefSpeedsReply,
+    "reference speeds: one for every joint, or one per joint",
+    names_caller=True,  # it may claim the part
+)
+
+GET_REF_SPEEDS = Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds", reads=True)
+
+POSITION_MOVE = Verb(
+    "positionMove",
+    PositionMoveArgs,
+    TargetsReply,
+    "move to targets, validated like a command (names: a subset of joints)",
+)
+
+COUNTERS = Verb(
+    "counters",
+    NoArgs,
+    CountersReply,
+    "command counters: accepted, clamped, rejected",
+    reads=True,
+)
+
+PART_STATUS = Verb(
+    "status",
+    NoArgs,
+    PartStatusReply,
+    "names, motion done, counters and encoders",
+    reads=True,
+)
+
+CLAIM = Verb(
+    "claim",
+    ClaimArgs,
+    LeaseReply,
+    "take the part: only commands with the lease id move it until the lease ends",
+    blocking=False,
+    names_caller=True,  # the lease's owner
+)
+
+RENEW_CLAIM = Verb(
+    "renewClaim",
+    LeaseArgs,
+    LeaseReply,
+    "extend the lease by its ttl from now (not_owner once it ended)",
+    blocking=False,
+)
+
+DROP_CLAIM = Verb(
+    "dropClaim",
+    LeaseArgs,
+    ClaimReply,
+    "end the lease: the part takes commands from anyone again",
+    blocking=False,
+)
+
+GET_CLAIM = Verb(
+    "getClaim",
+    NoArgs,
+    ClaimReply,
+    "who holds the part, for how long",
+    blocking=False,
+    reads=True,
+)
+
 PART_VERBS = VerbTable(
     "robot controlboard",
     tuple(f"{part}/rpc:i" for part in PARTS),
     (
-        Verb(
-            "getJointNames",
-            NoArgs,
-            JointNamesReply,
-            "the part's joint names, in YARP order",
-            blocking=False,
-            reads=True,
-        ),
-        Verb(
-            "getLimits",
-            NoArgs,
-            LimitsReply,
-            "software joint limits (rad) and clamp tolerance",
-            blocking=False,
-            reads=True,
-        ),
-        Verb(
-            "getPositions",
-            NoArgs,
-            PositionsReply,
-            "encoders: positions, velocities, sim time",
-            reads=True,
-        ),
-        Verb(
-            "getTargets", NoArgs, TargetsReply, "the current (clamped) position targets", reads=True
-        ),
-        Verb(
-            "checkMotionDone",
-            NoArgs,
-            MotionDoneReply,
-            "True once every joint has settled",
-            reads=True,
-        ),
-        Verb(
-            "setRefSpeeds",
-            SetRefSpeedsArgs,
-            RefSpeedsReply,
-            "reference speeds: one for every joint, or one per joint",
-            names_caller=True,  # it may claim the part
-        ),
-        Verb("getRefSpeeds", NoArgs, RefSpeedsReply, "the reference speeds", reads=True),
-        Verb(
-            "positionMove",
-            PositionMoveArgs,
-            TargetsReply,
-            "move to targets, validated like a command (names: a subset of joints)",
-        ),
-        Verb(
-            "counters",
-            NoArgs,
-            CountersReply,
-            "command counters: accepted, clamped, rejected",
-            reads=True,
-        ),
-        Verb(
-            "status",
-            NoArgs,
-            PartStatusReply,
-            "names, motion done, counters and encoders",
-            reads=True,
-        ),
-        Verb(
-            "claim",
-            ClaimArgs,
-            LeaseReply,
-            "take the part: only commands with the lease id move it until the lease ends",
-            blocking=False,
-            names_caller=True,  # the lease's owner
-        ),
-        Verb(
-            "renewClaim",
-            LeaseArgs,
-            LeaseReply,
-            "extend the lease by its ttl from now (not_owner once it ended)",
-            blocking=False,
-        ),
-        Verb(
-            "dropClaim",
-            LeaseArgs,
-            ClaimReply,
-            "end the lease: the part takes commands from anyone again",
-            blocking=False,
-        ),
-        Verb(
-            "getClaim",
-            NoArgs,
-            ClaimReply,
-            "who holds the part, for how long",
-            blocking=False,
-            reads=True,
-        ),
+        GET_JOINT_NAMES,
+        GET_LIMITS,
+        GET_POSITIONS,
+        GET_TARGETS,
+        CHECK_MOTION_DONE,
+        SET_REF_SPEEDS,
+        GET_REF_SPEEDS,
+        POSITION_MOVE,
+        COUNTERS,
+        PART_STATUS,
+        CLAIM,
+        RENEW_CLAIM,
+        DROP_CLAIM,
+        GET_CLAIM,
     ),
 )
 
@@ -322,25 +350,35 @@ class ArcheryStatusReply(Reply, frozen=True):
     world: dict[str, Any]
 
 
+NOCK = Verb("nock", NoArgs, NockReply, "put a fresh arrow on the bow")
+
+RELEASE = Verb("release", NoArgs, ReleaseReply, "release the arrow; replies once it has landed")
+
+RESET = Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed")
+
+SET_WIND = Verb(
+    "setWind",
+    SetWindArgs,
+    WindReply,
+    "the constant wind (m/s, root frame) of the following shots; the wind now in force",
+)
+
+ARCHERY_STATUS = Verb(
+    "status",
+    NoArgs,
+    ArcheryStatusReply,
+    "arrow, phase, counters, scene and world",
+    reads=True,
+)
+
 ARCHERY_VERBS = VerbTable(
     "robot archery",
     ("archery/rpc:i",),
     (
-        Verb("nock", NoArgs, NockReply, "put a fresh arrow on the bow"),
-        Verb("release", NoArgs, ReleaseReply, "release the arrow; replies once it has landed"),
-        Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed"),
-        Verb(
-            "setWind",
-            SetWindArgs,
-            WindReply,
-            "the constant wind (m/s, root frame) of the following shots; the wind now in force",
-        ),
-        Verb(
-            "status",
-            NoArgs,
-            ArcheryStatusReply,
-            "arrow, phase, counters, scene and world",
-            reads=True,
-        ),
+        NOCK,
+        RELEASE,
+        RESET,
+        SET_WIND,
+        ARCHERY_STATUS,
     ),
 )

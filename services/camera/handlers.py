@@ -11,6 +11,7 @@ from protocol.errors import BadRequest
 from protocol.messages import Image
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import camera as cv
 from protocol.verbs.camera import (
     CAMERA_VERBS,
     CalibrationReply,
@@ -43,12 +44,10 @@ class CameraHandlers:
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cam/rpc:i`."""
         return CAMERA_VERBS.bind(
-            {
-                "grab": self.grab,
-                "calibration": self.calibration,
-                "scene": self.scene,
-                "status": self.status,
-            }
+            cv.GRAB.to(self.grab),
+            cv.CALIBRATION.to(self.calibration),
+            cv.SCENE.to(self.scene),
+            cv.STATUS.to(self.status),
         )
 
     def grab(self, args: GrabArgs) -> Image:

@@ -89,7 +89,7 @@ class ArmController:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cartesianController/ARM/rpc:i` (`protocol.verbs.controller`)."""
-        return cv.ARM_VERBS.bind(
+        return cv.ARM_VERBS.bind_names(
             {
                 "askForPose": self.ask_for_pose,
                 "goToPose": self.go_to_pose,
@@ -205,7 +205,7 @@ class ArcheryController:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of the archery key (`protocol.verbs.controller`)."""
-        return cv.ARCHERY_VERBS.bind(
+        return cv.ARCHERY_VERBS.bind_names(
             {
                 "posture": self.posture,
                 "setTrajTime": self.set_traj_time,

@@ -26,7 +26,7 @@ from protocol.messages import Image
 from protocol.robotspec import CAMERA
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import detector as dv
-from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
+from protocol.verbs.camera import CALIBRATION, GRAB, GrabArgs
 from services.detector.calibration import fit_from_marks, parse_pixels
 from services.detector.colour_model import ColourModel
 from services.detector.config import DetectorConfig
@@ -37,8 +37,6 @@ from services.detector.overlay import draw_overlay, encode_png
 __all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
 
 log = logging.getLogger("archery.detector")
-GRAB = CAMERA_VERBS["grab"]
-CALIBRATION = CAMERA_VERBS["calibration"]
 GRAB_GRACE = 1.0  # wall s a grab's reply may take beyond the grab's own timeout
 CALIBRATION_GRACE = 30.0  # wall s the camera may take to render its calibration frame
 
@@ -79,12 +77,10 @@ class DetectorHandlers:
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/detector/rpc:i`."""
         return dv.DETECTOR_VERBS.bind(
-            {
-                "measure": self.measure,
-                "calibrate": self.calibrate,
-                "frame": self.frame,
-                "status": self.status,
-            }
+            dv.MEASURE.to(self.measure),
+            dv.CALIBRATE.to(self.calibrate),
+            dv.FRAME.to(self.frame),
+            dv.STATUS.to(self.status),
         )
 
     def _set_model(self, model: ColourModel, *, save: bool) -> None:

@@ -59,7 +59,9 @@ class LearnerHandlers:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
-        return LEARNER_VERBS.bind({"start": self.start, "stop": self.stop, "status": self.status})
+        return LEARNER_VERBS.bind_names(
+            {"start": self.start, "stop": self.stop, "status": self.status}
+        )
 
     def _publish(self, record: JournalRecord) -> None:
         message = rollout_message(record)

@@ -81,11 +81,11 @@ class RobotHandlers:
             "dropClaim": self.drop_claim,
             "getClaim": self.get_claim,
         }
-        return rv.PART_VERBS.bind({name: partial(verb, part) for name, verb in verbs.items()})
+        return rv.PART_VERBS.bind_names({name: partial(verb, part) for name, verb in verbs.items()})
 
     def archery_verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/archery/rpc:i`."""
-        return rv.ARCHERY_VERBS.bind(
+        return rv.ARCHERY_VERBS.bind_names(
             {
                 "nock": self.nock,
                 "release": self.release,
