@@ -206,7 +206,9 @@ def _port_of_call(call: str) -> str:
     return verbs_key(head) if head.endswith("rpc:i") else call
 
 
-def _rule(rule_id: str, messages: list[str], flow: str, key_exprs: tuple[str, ...]) -> dict:
+def _rule(
+    rule_id: str, messages: list[str], flow: str, key_exprs: tuple[str, ...]
+) -> dict[str, Any]:
     return {
         "id": rule_id,
         "messages": messages,

@@ -99,7 +99,7 @@ def _move_stdout_to_stderr() -> None:
     _stdout_moved = True
 
 
-class _StderrHandler(logging.StreamHandler):
+class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]  # generic in typeshed only
     """Writes to whatever `sys.stderr` is when a record is emitted (not the stream of the moment
     logging was configured, which may since have been closed or replaced)."""
 

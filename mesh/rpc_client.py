@@ -110,11 +110,12 @@ class RpcClient:
             ) from None
         if not reply.ok:
             raise reply_error(f"{key} {verb.name}", reply)
-        if reply.result is None:
+        result = reply.result
+        if not isinstance(result, verb.reply):  # None: an ok without a result
             raise RpcError(
                 f"{key} {verb.name} replied ok without a {verb.reply.__name__}", code="bad_reply"
             )
-        return reply.result
+        return result
 
     def request(
         self,

@@ -66,7 +66,7 @@ class Subscription(Generic[M]):
         self._latest_time = 0.0
         self._cond = threading.Condition()
         self._queue: queue.Queue[M] = queue.Queue()
-        self._sub: zenoh.Subscriber | None = session.declare_subscriber(key, self._on_sample)
+        self._sub: zenoh.Subscriber[None] | None = session.declare_subscriber(key, self._on_sample)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()

@@ -28,7 +28,7 @@ NESTED_TOO_DEEP = "the payload nests too deep to decode (no message nests more t
 
 _encoder = msgspec.msgpack.Encoder()
 _any_decoder = msgspec.msgpack.Decoder(Union[tuple(MESSAGE_TYPES.values())])  # noqa: UP007
-_decoders: dict[type, msgspec.msgpack.Decoder] = {
+_decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {
     cls: msgspec.msgpack.Decoder(cls) for cls in MESSAGE_TYPES.values()
 }
 
@@ -41,7 +41,9 @@ class ImageView(Image, frozen=True, tag="Image"):
     data: memoryview  # type: ignore[assignment]  # Image's bytes, as a zero-copy view
 
 
-_view_decoders: dict[type, msgspec.msgpack.Decoder] = {Image: msgspec.msgpack.Decoder(ImageView)}
+_view_decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {
+    Image: msgspec.msgpack.Decoder(ImageView)
+}
 
 
 def _why(exc: msgspec.ValidationError) -> str:
@@ -88,7 +90,8 @@ def decode(
     if expected is not None:
         decoder = (view and _view_decoders.get(expected)) or _decoders.get(expected, _any_decoder)
     try:
-        return decoder.decode(payload)
+        message: M = decoder.decode(payload)
+        return message
     except msgspec.ValidationError as exc:
         wanted = expected.__name__ if expected is not None else "message"
         raise DecodeError(f"invalid {wanted}: {_why(exc)}") from None
@@ -116,7 +119,8 @@ def _jsonable(value: Any) -> Any:
 
 def to_jsonable(message: Message) -> dict[str, Any]:
     """A JSON-friendly dict of a message: arrays as nested lists, raw bytes summarised."""
-    return _jsonable(message)
+    jsonable: dict[str, Any] = _jsonable(message)
+    return jsonable
 
 
 def from_jsonable(obj: Any, message_type: type[M]) -> M:

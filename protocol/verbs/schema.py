@@ -43,7 +43,8 @@ def type_text(s: dict[str, Any], defs: dict[str, Any] | None = None) -> str:
     """One schema as a short type with its constraints and unit, e.g. `float in [0.05, 60] (s)`."""
     defs = defs or {}
     if "$ref" in s:
-        return s["$ref"].rsplit("/", 1)[-1]
+        ref: str = s["$ref"]
+        return ref.rsplit("/", 1)[-1]
     if "anyOf" in s:
         return " | ".join(type_text(x, defs) for x in s["anyOf"])
     unit = f" ({s['description']})" if "description" in s else ""

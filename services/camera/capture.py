@@ -200,7 +200,7 @@ class Capture:
             self._shown.clear()
             self.open()
         started = time.perf_counter()
-        pixels = self.renderer.render(qpos)
+        pixels: np.ndarray = self.renderer.render(qpos)
         self.renders += 1
         self.render_seconds += time.perf_counter() - started
         return pixels

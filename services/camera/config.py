@@ -90,7 +90,7 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> CameraConfig:
         width, height = (int(v) for v in args.size.lower().split("x"))
     except ValueError:
         raise ConfigError(f"--size {args.size!r} is not WIDTHxHEIGHT, e.g. 1280x720") from None
-    config = config_from_args(CameraConfig, args, net=net, width=width, height=height)
+    config: CameraConfig = config_from_args(CameraConfig, args, net=net, width=width, height=height)
     if config.source.kind == "mujoco":  # a backend that cannot start: exit 2 before serving
         from sim.gl_backend import check
 

@@ -217,7 +217,8 @@ class ColourModel:
                 self.target.weights, self.target.means, self.target.covariances, strict=True
             )
         ]
-        return np.argmax(np.stack(single), axis=0).astype(np.uint8)
+        labels: np.ndarray = np.argmax(np.stack(single), axis=0).astype(np.uint8)
+        return labels
 
     def tables(self) -> tuple[np.ndarray, np.ndarray]:
         """Membership of the target and of the arrow for every 8-bit (U, V): uint8 (256, 256).

@@ -83,7 +83,10 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> DetectorConfig:
                 ColourModel.load(args.model)
             except ModelFileError as exc:
                 raise ConfigError(f"--model {args.model}: {exc}") from None
-    return config_from_args(DetectorConfig, args, net=net, settings=settings_from_args(args))
+    config: DetectorConfig = config_from_args(
+        DetectorConfig, args, net=net, settings=settings_from_args(args)
+    )
+    return config
 
 
 def add_settings_arguments(parser: argparse.ArgumentParser) -> None:

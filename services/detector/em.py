@@ -46,7 +46,8 @@ def _log_densities(points: np.ndarray, means: np.ndarray, covariances: np.ndarra
     dx = points[:, None, 0] - means[None, :, 0]
     dy = points[:, None, 1] - means[None, :, 1]
     mahal = (d * dx * dx - 2 * b * dx * dy + a * dy * dy) / det
-    return -0.5 * (mahal + np.log(det)) - _LOG_2PI
+    densities: np.ndarray = -0.5 * (mahal + np.log(det)) - _LOG_2PI
+    return densities
 
 
 def _seed_labels(points: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:

@@ -25,7 +25,8 @@ def _boxes_near(boxes: np.ndarray, box: np.ndarray, gap: float) -> np.ndarray:
     """Which of the (x0, y0, x1, y1) `boxes` (N, 4) come within `gap` px of `box`."""
     dx = np.maximum(0, np.maximum(boxes[:, 0] - box[2], box[0] - boxes[:, 2]))
     dy = np.maximum(0, np.maximum(boxes[:, 1] - box[3], box[1] - boxes[:, 3]))
-    return np.hypot(dx, dy) <= gap
+    near: np.ndarray = np.hypot(dx, dy) <= gap
+    return near
 
 
 def joined_hull(

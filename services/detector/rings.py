@@ -91,7 +91,8 @@ class Ellipse:
         """A = R diag(a, b) Rᵀ (px), which maps the unit disc onto the ellipse."""
         t = math.radians(self.angle)
         rotation = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
-        return rotation @ np.diag([self.axes[0] / 2, self.axes[1] / 2]) @ rotation.T
+        shape: np.ndarray = rotation @ np.diag([self.axes[0] / 2, self.axes[1] / 2]) @ rotation.T
+        return shape
 
     def to_dict(self) -> dict[str, Any]:
         """JSON form (px, degrees)."""

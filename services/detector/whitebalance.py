@@ -58,7 +58,10 @@ def white_gains(reference: np.ndarray | None, white: np.ndarray | None) -> np.nd
     """Per-channel gains (3,) that map `white` onto `reference`, or None if either is unknown."""
     if reference is None or white is None or np.any(np.asarray(white) <= 0):
         return None
-    return np.clip(np.asarray(reference, float) / np.asarray(white, float), 1 / MAX_GAIN, MAX_GAIN)
+    gains: np.ndarray = np.clip(
+        np.asarray(reference, float) / np.asarray(white, float), 1 / MAX_GAIN, MAX_GAIN
+    )
+    return gains
 
 
 def apply_gains(rgb: np.ndarray, gains: np.ndarray) -> np.ndarray:
