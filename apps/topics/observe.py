@@ -22,6 +22,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from apps.topics.read_limits import add_max_bytes_arg
 from apps.topics.recording import (
     CALIBRATION_ATTACHMENT,
     CALIBRATION_MEDIA_TYPE,
@@ -40,6 +41,7 @@ from mesh.priority import add_nice_arg, lower_priority
 from mesh.signals import shutdown_on_signals
 from protocol.codec import encode
 from protocol.errors import ArcheryError, BadRequest, ConfigError, RpcTimeout
+from protocol.exit_status import for_error
 from protocol.messages import Image
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs.camera import (
@@ -352,10 +354,11 @@ def replay_main(argv: list[str] | None = None) -> int:
         help="answer ROBOT/cam/rpc:i grab with the replayed frames (after_sim_time and "
         "after_stamp in the recording's clocks), and keep answering after the end until Ctrl-C",
     )
+    add_max_bytes_arg(parser)
     args = parser.parse_args(argv)
     robot = args.robot
     try:
-        recording = open_recording(args.file)
+        recording = open_recording(args.file, max_bytes=args.max_bytes)
         if robot is None:
             args.robot = _rec_robot(recording)
         net = NetConfig.from_args(args)
@@ -381,8 +384,8 @@ def replay_main(argv: list[str] | None = None) -> int:
             )
             if args.serve_grab:
                 stop.wait()
-    except ArcheryError as exc:
-        return _fail("replay", exc, 1)
+    except ArcheryError as exc:  # a malformed record found while publishing: bad input, 2
+        return _fail("replay", exc, for_error(exc.code))
     return 0
 
 
@@ -426,7 +429,7 @@ def _publish(
                 continue
             first = log_time if first is None else first
             due = start + (log_time - first) / 1e9 / args.rate
-            if stop.wait(max(0.0, due - time.monotonic())):
+            if stop.wait(min(max(0.0, due - time.monotonic()), threading.TIMEOUT_MAX)):
                 break
             out = _remap(key, robot)
             pub = publishers.get(out)
