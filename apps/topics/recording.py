@@ -26,6 +26,10 @@ Crash safety: the recorder closes a chunk at least every `flush_interval` s and 
 holds `chunk_size` bytes, and hands each closed chunk to the OS at once; a recorder killed with
 SIGKILL leaves a file without a summary whose complete chunks all read back
 (`read_messages(..., recover=True)`): at most the chunk in progress is lost.
+
+Reading goes through `apps.topics.mcap_reader`: one chunk decompressed at a time, record and
+chunk sizes, the decompressed total and every time checked before use (`Recording.max_bytes`,
+the verbs' `--max-bytes`, sets the total's cap); a malformed file is one `ConfigError` line.
 """
 
 from __future__ import annotations
