@@ -296,3 +296,16 @@ def test_names_from_the_file_are_printed_with_their_escapes_shown(tmp_path: Path
     text = render(read_info(path))
     assert ESC not in text
     assert printable("plain/key:o") == "plain/key:o" and printable("a\tb\n") == "a\\x09b\\x0a"
+
+
+def test_a_record_above_the_cap_is_refused_unread(tmp_path: Path) -> None:
+    path = _recording(tmp_path / "big.mcap", summary=False)
+    head = path.read_bytes()[: -len(MAGIC) - 29 - 13]  # up to its data end record
+    big = MAX_RECORD_BYTES + (1 << 20)
+    with open(path, "wb") as stream:  # a sparse file: the record's zeros take no disk
+        stream.write(head + struct.pack("<BQ", 0x09, big))
+        stream.truncate(len(head) + 9 + big)
+    status, stdout, stderr, rss = _run("info", str(path))
+    line = _one_line(stderr)
+    assert status == 2 and "holds 257 MiB, above the 256 MiB one record may" in line, line
+    assert "Metadata:      1" in stdout and rss < RSS_LIMIT_MIB

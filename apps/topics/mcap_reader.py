@@ -165,12 +165,12 @@ class McapFile:
                 raise CutShort(
                     f"the record at byte {pos} claims {length} bytes; {max(left, 0)} are left"
                 )
-            if length > MAX_RECORD_BYTES:
+            parse = opcode in _PARSED or (open_chunks and opcode in (Opcode.CHUNK, Opcode.MESSAGE))
+            if length > MAX_RECORD_BYTES and (parse or crc is not None):  # to be read: capped
                 raise BadRecording(
                     f"the record at byte {pos} holds {size_text(length)}, above the "
                     f"{size_text(MAX_RECORD_BYTES)} one record may"
                 )
-            parse = opcode in _PARSED or (open_chunks and opcode in (Opcode.CHUNK, Opcode.MESSAGE))
             if not parse and crc is None:
                 stream.seek(length, 1)
                 yield Skipped(opcode, pos, length)
