@@ -13,9 +13,10 @@ Each repeat runs, in a rotating order, on both files:
   decompressed and decoded (frames included), and the key filter, which matches nothing,
   publishes none of them (so the figure is the reader's, not Zenoh's queues).
 
-Each run's peak RSS is the child's own (`os.wait4`'s `ru_maxrss`). Per command it prints the
-large file's peak and the small file's, each median [min, max] over the repeats, their ratio
-(per repeat), and the large peak as a share of the large file's size.
+Each run's peak RSS is the command's own (`tests.peak_rss`: `ru_maxrss` from `os.wait4`, the
+command forked from a small launcher, as Linux carries a parent's peak into its children).
+Per command it prints the large file's peak and the small file's, each median [min, max] over
+the repeats, their ratio (per repeat), and the large peak as a share of the large file's size.
 
     python -m benchmarks.bench_recording_memory [--gib 1] [--repeats 5]
 
@@ -29,10 +30,7 @@ import argparse
 import os
 import platform
 import shutil
-import subprocess
-import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -44,6 +42,7 @@ from benchmarks.spread import median_spread
 from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
 from protocol.messages import Image
+from tests.peak_rss import run_with_peak
 
 __all__ = ["main"]
 
@@ -76,31 +75,14 @@ def _cut_copy(path: Path, cut: Path) -> None:
     os.truncate(cut, max(len(b"\x89MCAP0\r\n"), path.stat().st_size - (1 << 20)))
 
 
-def _peak_mib(args: list[str], expect: int, timeout: float = 1800.0) -> tuple[float, float]:
+def _peak_mib(args: list[str], expect: int) -> tuple[float, float]:
     """(peak RSS in MiB, wall s) of `archery ARGS` in a child that must end with `expect`."""
     start = time.perf_counter()
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *args],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        stdin=subprocess.DEVNULL,
-    )
-    result: list[tuple[int, int, os.struct_rusage]] = []
-    waiter = threading.Thread(target=lambda: result.append(os.wait4(proc.pid, 0)))
-    waiter.start()
-    waiter.join(timeout)
-    if not result:
-        proc.kill()
-        waiter.join()
-        raise RuntimeError(f"archery {' '.join(args)} still ran after {timeout} s")
+    done = run_with_peak(*args, timeout=1800.0)
     wall = time.perf_counter() - start
-    status = os.waitstatus_to_exitcode(result[0][1])
-    err = proc.stderr.read().decode() if proc.stderr else ""
-    if proc.stderr:
-        proc.stderr.close()
-    if status != expect or "Traceback" in err:
-        raise RuntimeError(f"archery {' '.join(args)} ended {status}: {err.strip()[-500:]}")
-    return result[0][2].ru_maxrss / 1024, wall  # ru_maxrss: KiB on Linux
+    if done.status != expect or "Traceback" in done.stderr:
+        raise RuntimeError(f"archery {' '.join(args)} ended {done.status}: {done.stderr[-500:]}")
+    return done.peak_mib, wall
 
 
 def main(argv: list[str] | None = None) -> int:
