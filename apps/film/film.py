@@ -26,6 +26,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from apps.progress import progress_bar
+from apps.topics.read_limits import add_max_bytes_arg
 from mesh.cliargs import ArgumentParser, count
 from protocol.errors import ArcheryError
 from protocol.exit_status import BAD_INPUT, OK, for_error
@@ -100,9 +101,11 @@ def film_session(
     fps: int = 30,
     quiet: bool = False,
     recording: Path | None = None,
+    max_bytes: int | None = None,
 ) -> FilmResult:
     """Film rollout `rollout` (its first hit if None) of the session at `session`: simulated
-    again from the journal, or as the MCAP `recording` saw it.
+    again from the journal, or as the MCAP `recording` saw it (`max_bytes`: the cap on what
+    its chunks decompress to in all, `apps.topics.read_limits.total_cap`).
 
     Raises:
         ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.
@@ -123,7 +126,7 @@ def film_session(
     replay = ShotReplay(target)
     source: ShotReplay | RecordedShot = replay
     if recording is not None:
-        source = RecordedShot(recording, target.header.session, target.done)
+        source = RecordedShot(recording, target.header.session, target.done, max_bytes=max_bytes)
     thumbs: list[tuple[str, object]] = []
     with (
         SceneView(replay.world.config.scene, width=width, height=height) as view,
@@ -211,6 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         metavar="FILE.mcap",
         help="film the rollout as this recording of the session saw it (its world states)",
     )
+    add_max_bytes_arg(parser)
     parser.add_argument("--width", type=count, default=960, help="frame width (px, even)")
     parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
     parser.add_argument("--fps", type=count, default=30, help="video frames per second")
@@ -249,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             height=args.height,
             fps=args.fps,
             recording=args.recording,
+            max_bytes=args.max_bytes,
         )
     except ArcheryError as exc:
         print(f"archery film: {exc}", file=sys.stderr)

@@ -14,8 +14,8 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from apps.film.replay import POSTURE, SLOW_MOTION, FilmFrame
-from apps.topics.recording import Recording, from_record, open_recording
-from protocol.errors import BadRequest, ConfigError
+from apps.topics.recording import Recording, open_recording
+from protocol.errors import BadRequest
 from protocol.journal_records import DoneRecord, ProposedRecord
 from protocol.messages import Rollout, WorldState
 
@@ -26,7 +26,8 @@ _HOLD_IMPACT_S = 1.5  # s of video the last state is shown
 
 
 class RecordedShot:
-    """The world states of done rollout `done` of session `session` in the recording at `path`.
+    """The world states of done rollout `done` of session `session` in the recording at `path`
+    (`max_bytes`: the cap on what its chunks decompress to in all, as `open_recording`'s).
 
     Raises:
         ConfigError: not a recording this version reads.
@@ -34,8 +35,10 @@ class RecordedShot:
             it, or no world state between them).
     """
 
-    def __init__(self, path: Path, session: str, done: DoneRecord) -> None:
-        recording = open_recording(path)
+    def __init__(
+        self, path: Path, session: str, done: DoneRecord, *, max_bytes: int | None = None
+    ) -> None:
+        recording = open_recording(path, max_bytes=max_bytes)
         robot = recording.metadata.get("robot", "")
         opened = closed = None
         states: list[tuple[int, WorldState]] = []
@@ -77,22 +80,8 @@ class RecordedShot:
 
 
 def _messages(recording: Recording, robot: str) -> Iterator[tuple[str, object, int]]:
-    """(key, message, log time) of the learner's rollouts and the robot's world states: from
-    the index of a complete file (no frame decoded), else every record of a cut one."""
-    topics = [f"{robot}/learner/rollout:o", f"{robot}/world/state:o"]
-    if not recording.complete:
-        for key, message, log_time in recording.messages(recover=True):
-            if key in topics:
-                yield key, message, log_time
-        return
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    with open(recording.path, "rb") as stream:
-        try:
-            for schema, channel, record in make_reader(stream).iter_messages(topics=topics):
-                if schema is not None:
-                    message = from_record(schema.name, record.data, schema.encoding)
-                    yield channel.topic, message, record.log_time
-        except (McapError, ValueError, EOFError) as exc:
-            raise ConfigError(f"{recording.path}: unreadable record ({exc})") from None
+    """(key, message, log time) of the learner's rollouts and the robot's world states (no
+    other message decoded), chunk by chunk within the reader's bounds; a file cut short is
+    read as far as its complete records go."""
+    topics = {f"{robot}/learner/rollout:o", f"{robot}/world/state:o"}
+    yield from recording.messages(recover=not recording.complete, topics=topics)

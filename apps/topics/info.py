@@ -4,22 +4,21 @@ It prints the file's size, profile and library, its duration, start and end, the
 then one line per channel (topic, schema and its encoding, message count, mean rate over the
 recording) and the attachments and metadata records. A complete file is read from its summary
 (its end) alone, so even a large recording answers at once. A file cut short (a killed
-recorder: no summary) is read record by record as far as it goes; what was read is printed,
-then one line on stderr says where it stops, and the exit status is 2, as for a file that is no
-MCAP at all. Any MCAP file is described, not only archery recordings.
+recorder: no summary) is read record by record, one chunk decompressed at a time within the
+bounds of `apps.topics.mcap_reader` (`--max-bytes` sets the cap on the decompressed total), as
+far as it goes; what was read is printed, then one line on stderr says where it stops (or what
+is malformed), and the exit status is 2, as for a file that is no MCAP at all. Any MCAP file is
+described, not only archery recordings; text from the file is printed with its control
+characters escaped.
 """
 
 from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
 
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 from mcap.records import (
     Attachment,
     Channel,
@@ -28,15 +27,13 @@ from mcap.records import (
     Metadata,
     Schema,
 )
-from mcap.stream_reader import StreamReader
 
+from apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile
+from apps.topics.read_limits import add_max_bytes_arg, printable
 from mesh.cliargs import ArgumentParser
 from protocol.exit_status import BAD_INPUT, OK
 
 __all__ = ["RecordingInfo", "main", "read_info"]
-
-_MAGIC = b"\x89MCAP0\r\n"
-_READ_ERRORS = (McapError, EOFError, ValueError, AssertionError, KeyError, OSError)
 
 
 @dataclass
@@ -78,16 +75,20 @@ class RecordingInfo:
         self.end_ns = log_time if self.end_ns is None else max(self.end_ns, log_time)
 
 
-def _from_summary(info: RecordingInfo, stream: IO[bytes]) -> bool:
-    """Fill `info` from the file's summary; False when it has none (a file cut short)."""
+def _from_summary(info: RecordingInfo, reader: McapFile) -> bool:
+    """Fill `info` from the file's summary; False when it has none (a file cut short) or it
+    does not read (the records are scanned then, and say where they stop)."""
     try:
-        reader = make_reader(stream)
-        header = reader.get_header()
-        summary = reader.get_summary()
+        header = reader.header()
+        summary = reader.summary()
         if summary is None or summary.statistics is None:
             return False
-        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-    except _READ_ERRORS:
+        metadata = {}
+        for index in summary.metadata_indexes:
+            record = reader.record_at(index.offset)
+            if isinstance(record, Metadata):
+                metadata[record.name] = dict(record.metadata)
+    except (BadRecording, OSError):
         return False
     stats = summary.statistics
     info.profile, info.library = header.profile, header.library
@@ -102,14 +103,11 @@ def _from_summary(info: RecordingInfo, stream: IO[bytes]) -> bool:
     return True
 
 
-def _records(stream: IO[bytes]) -> Iterator[Any]:
-    yield from StreamReader(stream, skip_magic=False, record_size_limit=None).records
-
-
-def _scan(info: RecordingInfo, stream: IO[bytes]) -> None:
-    """Fill `info` record by record, as far as the file reads; `stopped` says why it ends."""
+def _scan(info: RecordingInfo, reader: McapFile) -> None:
+    """Fill `info` record by record, chunk by chunk, as far as the file reads; `stopped` says
+    why it ends."""
     try:
-        for record in _records(stream):
+        for record in reader.records():
             if isinstance(record, Header):
                 info.profile, info.library = record.profile, record.library
             elif isinstance(record, Schema):
@@ -124,16 +122,21 @@ def _scan(info: RecordingInfo, stream: IO[bytes]) -> None:
                 info.attachments.append((record.name, record.media_type, len(record.data)))
             elif isinstance(record, Metadata):
                 info.metadata[record.name] = dict(record.metadata)
-    except _READ_ERRORS as exc:
-        info.stopped = (
-            f"cut short: its records stop being readable ({str(exc) or type(exc).__name__})"
-        )
+    except CutShort as exc:
+        info.stopped = f"cut short: {exc}"
+        return
+    except BadRecording as exc:
+        info.stopped = f"unreadable: {exc}"
+        return
+    except OSError as exc:
+        info.stopped = f"unreadable: {exc.strerror}"
         return
     info.stopped = "cut short: it has no summary (a recorder that did not finish)"
 
 
-def read_info(path: Path) -> RecordingInfo:
-    """What the MCAP file at `path` holds.
+def read_info(path: Path, *, max_bytes: int | None = None) -> RecordingInfo:
+    """What the MCAP file at `path` holds (`max_bytes`: the cap on what its chunks decompress
+    to in all, `apps.topics.read_limits.total_cap`).
 
     Raises:
         ValueError: no such file, or not an MCAP file (one line saying which).
@@ -141,14 +144,12 @@ def read_info(path: Path) -> RecordingInfo:
     try:
         size = path.stat().st_size
         with open(path, "rb") as stream:
-            if stream.read(len(_MAGIC)) != _MAGIC:
+            if stream.read(len(MAGIC)) != MAGIC:
                 raise ValueError(f"{str(path)!r} is not an MCAP file (no MCAP magic at its start)")
             info = RecordingInfo(path, size)
-            stream.seek(0)
-            if not _from_summary(info, stream):
-                stream.seek(0)
+            if not _from_summary(info, McapFile(stream, size, max_bytes=max_bytes)):
                 info = RecordingInfo(path, size)
-                _scan(info, stream)
+                _scan(info, McapFile(stream, size, max_bytes=max_bytes))
     except IsADirectoryError:
         raise ValueError(f"{str(path)!r} is a folder, not an MCAP file") from None
     except OSError as exc:
@@ -179,29 +180,33 @@ def render(info: RecordingInfo) -> str:
         f"File:          {info.path}",
         f"Size:          {_size(info.size)} ({info.size} bytes)"
         + ("" if info.complete else ", cut short"),
-        f"Storage:       mcap, profile {info.profile or '–'}, library {info.library or '–'}",
+        f"Storage:       mcap, profile {printable(info.profile) or '–'}, "
+        f"library {printable(info.library) or '–'}",
         f"Duration:      {duration:.3f} s",
         f"Start:         {_when(info.start_ns)}",
         f"End:           {_when(info.end_ns)}",
         f"Messages:      {info.messages}",
         f"Channels:      {len(info.channels)}",
     ]
-    width = max((len(c.topic) for c in info.channels.values()), default=0)
+    topics = {cid: printable(c.topic) for cid, c in info.channels.items()}
+    width = max((len(topic) for topic in topics.values()), default=0)
     for cid, channel in sorted(info.channels.items(), key=lambda kv: kv[1].topic):
         name, encoding = info.schemas.get(channel.schema_id, ("(no schema)", ""))
         count = info.counts.get(cid, 0)
         rate = f"{count / duration:9.2f} Hz" if duration > 0 else "        – Hz"
+        encodings = printable(channel.message_encoding) + (
+            ", " + printable(encoding) if encoding else ""
+        )
         lines.append(
-            f"  {channel.topic.ljust(width)}  {count:8d} msgs {rate}  {name} "
-            f"({channel.message_encoding}{', ' + encoding if encoding else ''})"
+            f"  {topics[cid].ljust(width)}  {count:8d} msgs {rate}  {printable(name)} ({encodings})"
         )
     lines.append(f"Attachments:   {len(info.attachments)}")
     for name, media, size in info.attachments:
-        lines.append(f"  {name}  {media}  {_size(size)}")
+        lines.append(f"  {printable(name)}  {printable(media)}  {_size(size)}")
     lines.append(f"Metadata:      {len(info.metadata)}")
     for name, values in info.metadata.items():
         shown = ", ".join(f"{k}={v}" for k, v in values.items())
-        lines.append(f"  {name}: {shown[:200]}")
+        lines.append(f"  {printable(name)}: {printable(shown[:200])}")
     return "\n".join(lines)
 
 
@@ -209,9 +214,10 @@ def main(argv: list[str] | None = None) -> int:
     """Describe one MCAP file; exit status 2 for a non-MCAP or truncated file."""
     parser = ArgumentParser(prog="archery info", description=__doc__)
     parser.add_argument("file", type=Path, help="an MCAP file (.mcap)")
+    add_max_bytes_arg(parser)
     args = parser.parse_args(argv)
     try:
-        info = read_info(args.file)
+        info = read_info(args.file, max_bytes=args.max_bytes)
     except ValueError as exc:
         print(f"archery info: {exc}", file=sys.stderr)
         return BAD_INPUT

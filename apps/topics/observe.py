@@ -25,6 +25,7 @@ from typing import Any
 import msgspec
 import zenoh
 
+from apps.topics.read_limits import add_max_bytes_arg
 from apps.topics.recording import (
     CALIBRATION_ATTACHMENT,
     CALIBRATION_MEDIA_TYPE,
@@ -44,6 +45,7 @@ from mesh.rpc_server import caller_left
 from mesh.signals import shutdown_on_signals
 from protocol.codec import encode
 from protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
+from protocol.exit_status import for_error
 from protocol.keys import output_port, validate_robot
 from protocol.messages import Image, Message
 from protocol.text import shown
@@ -415,9 +417,10 @@ def replay_main(argv: list[str] | None = None) -> int:
         help="answer ROBOT/cam/rpc:i grab with the replayed frames (after_sim_time and "
         "after_stamp in the recording's clocks), and keep answering after the end until Ctrl-C",
     )
+    add_max_bytes_arg(parser)
     args = parser.parse_args(argv)
     try:
-        recording = open_recording(args.file)
+        recording = open_recording(args.file, max_bytes=args.max_bytes)
         source = _rec_robot(recording)
         if args.robot is None:
             args.robot = source
@@ -451,8 +454,8 @@ def replay_main(argv: list[str] | None = None) -> int:
             )
             if args.serve_grab:
                 stop.wait()
-    except ArcheryError as exc:
-        return _fail("replay", exc, 1)
+    except ArcheryError as exc:  # a malformed record found while publishing: bad input, 2
+        return _fail("replay", exc, for_error(exc.code))
     if channels.skipped_channels and not published:
         print(
             f"archery replay: nothing replayed: {args.file!r} holds none of the robot's output "
@@ -520,7 +523,7 @@ def _publish(
                 continue
             first = log_time if first is None else first
             due = start + (log_time - first) / 1e9 / args.rate
-            if stop.wait(max(0.0, due - time.monotonic())):
+            if stop.wait(min(max(0.0, due - time.monotonic()), threading.TIMEOUT_MAX)):
                 break
             pub = publishers.get(out)
             if pub is None:

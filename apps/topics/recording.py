@@ -26,6 +26,10 @@ Crash safety: the recorder closes a chunk at least every `flush_interval` s and 
 holds `chunk_size` bytes, and hands each closed chunk to the OS at once; a recorder killed with
 SIGKILL leaves a file without a summary whose complete chunks all read back
 (`read_messages(..., recover=True)`): at most the chunk in progress is lost.
+
+Reading goes through `apps.topics.mcap_reader`: one chunk decompressed at a time, record and
+chunk sizes, the decompressed total and every time checked before use (`Recording.max_bytes`,
+the verbs' `--max-bytes`, sets the total's cap); a malformed file is one `ConfigError` line.
 """
 
 from __future__ import annotations
@@ -35,21 +39,20 @@ import logging
 import queue
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Protocol
 
 import msgspec
-from mcap.exceptions import McapError
-from mcap.reader import NonSeekingReader, make_reader
-from mcap.records import Channel, Schema
+from mcap.records import Attachment, Channel, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType, Writer
 
 from apps.topics.foxglove_records import DERIVED_SCHEMAS, schema_data
 from apps.topics.image_records import COMPRESSED, RAW, image_from_record, image_record, image_schema
 from apps.topics.json_image_records import json_image_from_record
+from apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile, printable
 from mesh.patterns import stream_type
 from mesh.priority import WRITER_NICE, lower_thread_priority
 from protocol.codec import decode
@@ -109,7 +112,6 @@ COMPRESSIONS = {
     "lz4": CompressionType.LZ4,
     "none": CompressionType.NONE,
 }
-_MAGIC = b"\x89MCAP0\r\n"
 CALIBRATION_ATTACHMENT = "camera-calibration"  # the camera's `calibration` reply, encoded
 CALIBRATION_MEDIA_TYPE = "application/msgpack"
 FORMAT = "2"  # recording format: 2 = frames as protobuf; 1 (no `format` metadata) = as JSON
@@ -410,12 +412,20 @@ class Recording:
         complete: it has its summary and footer (False: cut short, e.g. a killed recorder).
         metadata: the `archery` metadata record.
         message_count: messages in it (complete files only; else None).
+        max_bytes: the cap on what its chunks decompress to in all (bytes;
+            `apps.topics.read_limits.total_cap`: None, the default; 0, none).
     """
 
     path: Path
     complete: bool
     metadata: dict[str, str]
     message_count: int | None
+    max_bytes: int | None = None
+
+    def _open(self, stream: IO[bytes]) -> McapFile:
+        return McapFile(
+            stream, self.path.stat().st_size, max_bytes=self.max_bytes, validate_crcs=True
+        )
 
     def attachment(self, name: str) -> bytes | None:
         """The data of the attachment `name` (the first of that name), or None.
@@ -425,85 +435,113 @@ class Recording:
         """
         with open(self.path, "rb") as stream:
             try:
-                for attachment in make_reader(stream).iter_attachments():
-                    if attachment.name == name:
-                        return bytes(attachment.data)
-            except (McapError, EOFError, ValueError, AssertionError) as exc:
+                for record in self._open(stream).records(open_chunks=False):
+                    if isinstance(record, Attachment) and record.name == name:
+                        return bytes(record.data)
+            except CutShort:
+                return None  # a file cut short: the attachments it holds come first
+            except (BadRecording, OSError) as exc:
                 raise ConfigError(f"{self.path}: unreadable attachment ({exc})") from None
         return None
 
-    def messages(self, *, recover: bool = False) -> Iterator[tuple[str, ArcheryMessage, int]]:
-        """(key, message, log time ns) in file order (the order they were received).
+    def messages(
+        self, *, recover: bool = False, topics: Collection[str] | None = None
+    ) -> Iterator[tuple[str, ArcheryMessage, int]]:
+        """(key, message, log time ns) in file order (the order they were received), one chunk
+        decompressed at a time (`apps.topics.mcap_reader` says within which bounds).
 
         Args:
             recover: for a file cut short: yield what its complete records hold, then stop.
+            topics: only the messages of these keys (the others are not decoded); None: all.
 
         Raises:
             ConfigError: the file is cut short and `recover` is not set, or a record is
-                corrupt.
+                corrupt or above a cap (one line).
+            DecodeError: a message that does not decode as its schema says.
         """
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
         with open(self.path, "rb") as stream:
-            reader = NonSeekingReader(stream, validate_crcs=True, record_size_limit=None)
-            it = reader.iter_messages(log_time_order=False)
+            records = self._open(stream).records()
             while True:
                 try:
-                    item: tuple[Schema | None, Channel, McapMessage] = next(it)
+                    record = next(records)
                 except StopIteration:
                     return
-                except (McapError, EOFError, ValueError, OSError) as exc:
+                except CutShort as exc:
                     if recover:
                         return
+                    raise ConfigError(
+                        f"{self.path}: unreadable record (cut short: {exc})"
+                    ) from None
+                except (BadRecording, OSError) as exc:
                     raise ConfigError(f"{self.path}: unreadable record ({exc})") from None
-                schema, channel, record = item
-                if schema is None:
-                    raise ConfigError(f"{self.path}: channel {channel.topic} has no schema")
-                if schema.name in DERIVED_SCHEMAS:
-                    continue  # derived by the recorder (3D records): no mesh message
-                message = from_record(schema.name, record.data, schema.encoding)
-                yield channel.topic, message, record.log_time
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, McapMessage):
+                    channel = channels.get(record.channel_id)
+                    if channel is None:
+                        raise ConfigError(
+                            f"{self.path}: a message on channel {record.channel_id}, which no "
+                            f"channel record before it declares"
+                        )
+                    if topics is not None and channel.topic not in topics:
+                        continue
+                    schema = schemas.get(channel.schema_id)
+                    if schema is None:
+                        raise ConfigError(
+                            f"{self.path}: channel {printable(channel.topic)} has no schema"
+                        )
+                    if schema.name in DERIVED_SCHEMAS:
+                        continue  # derived by the recorder (3D records): no mesh message
+                    message = from_record(schema.name, record.data, schema.encoding)
+                    yield channel.topic, message, record.log_time
 
 
-def open_recording(path: str | Path) -> Recording:
+def open_recording(path: str | Path, *, max_bytes: int | None = None) -> Recording:
     """Check that `path` is an MCAP recording of this schema version.
 
+    Args:
+        max_bytes: the cap on what its chunks decompress to in all, when read (bytes; None:
+            `apps.topics.read_limits.total_cap`'s default; 0: none).
+
     Raises:
-        ConfigError: no such file, not MCAP, not an archery recording, or another schema
-            version; one line saying which.
+        ConfigError: no such file, not MCAP, not an archery recording, another schema
+            version, or a header or summary that does not read; one line saying which.
     """
     path = Path(path)
     try:
         with open(path, "rb") as stream:
-            head = stream.read(len(_MAGIC))
-            if head != _MAGIC:
+            head = stream.read(len(MAGIC))
+            if head != MAGIC:
                 raise ConfigError(f"{str(path)!r} is not an MCAP file (no MCAP magic at its start)")
-            stream.seek(0)
-            metadata, profile = _head_metadata(stream, path)
-            stream.seek(0)
-            complete, count = _summary(stream)
+            reader = McapFile(stream, path.stat().st_size)
+            metadata, profile = _head_metadata(reader, path)
+            complete, count = _summary(reader, path)
     except OSError as exc:
         raise ConfigError(f"{str(path)!r}: {exc.strerror}") from None
     if profile != PROFILE or metadata is None:
         raise ConfigError(
-            f"{str(path)!r} is an MCAP file but not an archery recording (profile {profile!r})"
+            f"{str(path)!r} is an MCAP file but not an archery recording "
+            f"(profile {printable(profile)!r})"
         )
     version = metadata.get("schema_version", "?")
     if version != str(SCHEMA_VERSION):
         raise ConfigError(
-            f"{str(path)!r} was recorded with message schema version {version}; this version of "
-            f"archery replays version {SCHEMA_VERSION} only"
+            f"{str(path)!r} was recorded with message schema version {printable(version)}; this "
+            f"version of archery replays version {SCHEMA_VERSION} only"
         )
-    return Recording(path, complete, metadata, count)
+    return Recording(path, complete, metadata, count, max_bytes)
 
 
-def _head_metadata(stream: IO[bytes], path: Path) -> tuple[dict[str, str] | None, str]:
+def _head_metadata(reader: McapFile, path: Path) -> tuple[dict[str, str] | None, str]:
     """The `archery` metadata record and the header's profile, read from the file's start (the
     recorder writes them before any message)."""
-    from mcap.records import Header, Metadata
-    from mcap.stream_reader import StreamReader
-
     profile = ""
     try:
-        for record in StreamReader(stream, skip_magic=False, record_size_limit=None).records:
+        for record in reader.records(open_chunks=False):
             if isinstance(record, Header):
                 profile = record.profile
             elif isinstance(record, Metadata):
@@ -511,17 +549,21 @@ def _head_metadata(stream: IO[bytes], path: Path) -> tuple[dict[str, str] | None
                     return dict(record.metadata), profile
             else:
                 break
-    except (McapError, EOFError, ValueError) as exc:
+    except BadRecording as exc:
         raise ConfigError(f"{str(path)!r}: a corrupt MCAP header ({exc})") from None
     return None, profile
 
 
-def _summary(stream: IO[bytes]) -> tuple[bool, int | None]:
-    """(has a readable summary and footer, its message count)."""
+def _summary(reader: McapFile, path: Path) -> tuple[bool, int | None]:
+    """(has a readable summary and footer, its message count).
+
+    Raises:
+        ConfigError: a summary that is there but does not read.
+    """
     try:
-        summary = make_reader(stream).get_summary()
-    except (McapError, EOFError, ValueError, AssertionError, OSError):
-        return False, None
+        summary = reader.summary()
+    except BadRecording as exc:
+        raise ConfigError(f"{str(path)!r}: a corrupt MCAP summary ({exc})") from None
     if summary is None or summary.statistics is None:
         return False, None
     return True, summary.statistics.message_count
