@@ -1,41 +1,65 @@
-"""The liveliness tokens under one key expression, kept current: who is alive, and waiting
-for a condition on that set (by liveliness events, never by polling)."""
+"""The liveliness tokens under one key expression, kept current: who is alive, since when a
+token is gone, and waiting for a condition on that set (by liveliness events, never by
+polling). The one liveliness tracker of the project."""
 
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 
 import zenoh
 
-__all__ = ["TokenSet"]
+__all__ = ["TokenSet", "last_segment"]
+
+
+def last_segment(key: str) -> str:
+    """A token's key's last segment (a service name, an instance id)."""
+    return key.rsplit("/", 1)[-1]
 
 
 class TokenSet:
-    """The last key segments (service names, instance ids…) of the live tokens matching
-    `key_expr`. Use as a context manager, or `close()` it.
+    """The names of the live tokens matching `key_expr`: by default their keys' last segments
+    (service names, instance ids…). Use as a context manager, or `close()` it.
 
     Args:
         session: the Zenoh session to subscribe with.
         key_expr: e.g. `ROBOT/alive/*` (service names) or `ROBOT/alive/NAME/*` (instances).
         history: also receive the tokens declared before the subscription.
+        name: a token's name from its key (`last_segment`; `str` keeps whole keys).
     """
 
-    def __init__(self, session: zenoh.Session, key_expr: str, history: bool = True) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        history: bool = True,
+        name: Callable[[str], str] = last_segment,
+    ) -> None:
         self._present: set[str] = set()
+        self._gone_at: dict[str, float] = {}  # name -> monotonic s its token went
+        self._name = name
         self._cond = threading.Condition()
         self._sub: zenoh.Subscriber[None] | None = session.liveliness().declare_subscriber(
             key_expr, self._on_token, history=history
         )
 
     def _on_token(self, sample: zenoh.Sample) -> None:
-        segment = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = self._name(str(sample.key_expr))
         with self._cond:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._present.add(segment)
+                self._present.add(name)
+                self._gone_at.pop(name, None)
             else:
-                self._present.discard(segment)
+                self._present.discard(name)
+                self._gone_at[name] = time.monotonic()
             self._cond.notify_all()
+
+    def gone_for(self, name: str) -> float | None:
+        """Seconds since `name`'s token went (None: alive, or not seen going)."""
+        with self._cond:
+            gone = self._gone_at.get(name)
+        return None if gone is None else time.monotonic() - gone
 
     def present(self) -> set[str]:
         """The segments alive now (a copy)."""

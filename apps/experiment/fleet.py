@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -21,6 +20,7 @@ from mesh.liveliness import OnWait
 from mesh.netflags import NetConfig, listens, open_session
 from mesh.node import Node
 from mesh.router import wait_for_endpoint
+from mesh.tokens import TokenSet
 from protocol.errors import ArcheryError, ConfigError
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.rig_protocol import Measurement, Shot
@@ -74,40 +74,26 @@ def robot_stacks(tokens: set[str]) -> list[str]:
 
 
 class StackWatch:
-    """The robot stacks alive on the mesh, kept current by liveliness events. Use as a context
-    manager."""
+    """The robot stacks alive on the mesh, kept current by liveliness events (a
+    `mesh.tokens.TokenSet` of whole keys). Use as a context manager."""
 
     def __init__(self, session: zenoh.Session) -> None:
-        self._keys: set[str] = set()
-        self._cond = threading.Condition()
-        self._sub = session.liveliness().declare_subscriber(
-            _ALIVE_ALL, self._on_token, history=True
-        )
-
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._keys.add(str(sample.key_expr))
-            else:
-                self._keys.discard(str(sample.key_expr))
-            self._cond.notify_all()
+        self._tokens = TokenSet(session, _ALIVE_ALL, name=str)
 
     def robots(self) -> list[str]:
         """The prefixes of the robot stacks alive now, sorted."""
-        with self._cond:
-            return robot_stacks(self._keys)
+        return robot_stacks(self._tokens.present())
 
     def wait_for(self, predicate: Callable[[list[str]], bool], timeout: float) -> list[str]:
         """Wait up to `timeout` s until `predicate(robots)` holds; the robots alive then."""
-        with self._cond:
-            self._cond.wait_for(lambda: predicate(robot_stacks(self._keys)), timeout=timeout)
-            return robot_stacks(self._keys)
+        self._tokens.wait_for(lambda keys: predicate(robot_stacks(keys)), timeout)
+        return self.robots()
 
     def __enter__(self) -> StackWatch:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self._sub.undeclare()
+        self._tokens.close()
 
 
 def alive_now(session: zenoh.Session, timeout: float = 5.0) -> list[str]:
