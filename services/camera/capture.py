@@ -230,6 +230,16 @@ class Capture:
             self.reader.close()
 
 
+def _serves(waiting: list[Freshness], sim_time: float | None, wall: float) -> bool:
+    """True if a frame of a world state at `sim_time` (s) captured at `wall` (s) would serve
+    one of the `waiting` grabs."""
+    return any(
+        (want.after_sim_time is None or (sim_time is not None and sim_time >= want.after_sim_time))
+        and (want.after_stamp is None or want.after_stamp <= wall)
+        for want in waiting
+    )
+
+
 def _needs_recapture(
     waiting: list[Freshness], cached: tuple[np.ndarray, float | None, float] | None
 ) -> bool:
@@ -282,13 +292,17 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                 if capture.world is not None:
                     state = capture.world.latest()
                     new = state is not None and state.seq != last_seq
-                    if state is not None and new and (due or waiting):
+                    # only a grab this state can serve asks for its render (one waiting for a
+                    # later sim time, or a stamp to come, does not: it must not make the camera
+                    # render every state meanwhile)
+                    wanted = state is not None and _serves(waiting, state.sim_time, time.time())
+                    if state is not None and new and (due or wanted):
                         capture.recheck_scene()
                         last_seq = state.seq
                         captured = time.time()
                         pixels = capture.view(state.qpos.to_numpy())
                         cached = (pixels, state.sim_time, captured)
-                        if waiting or not resting(pixels, now):
+                        if wanted or not resting(pixels, now):
                             send(pixels, state.sim_time, captured, now)
                         next_due = now + period
                     elif (recapture := _needs_recapture(waiting, cached)) or due:
