@@ -1,22 +1,17 @@
-"""The exception hierarchy of the MuJoCo simulation, under the project's `ArcheryError`."""
+"""The exception hierarchy of the MuJoCo simulation, under the project's `ArcheryError` (an
+invalid parameter is the project's `protocol.errors.ConfigError`)."""
 
 from __future__ import annotations
 
 from protocol import errors as project
 
-__all__ = ["CommandError", "ConfigError", "SceneError", "SimError", "StateError"]
+__all__ = ["CommandError", "SceneError", "SimError", "StateError"]
 
 
 class SimError(project.ArcheryError):
     """Base of every error raised by the MuJoCo simulation (sim.scene, sim.arrow, sim.world)."""
 
     code = "sim_error"
-
-
-class ConfigError(SimError, project.ConfigError):
-    """An invalid scene or world parameter; the message names it and its valid range."""
-
-    code = "bad_config"
 
 
 class SceneError(SimError, RuntimeError):

@@ -28,7 +28,7 @@ import os
 import sys
 from typing import Any
 
-from sim.errors import ConfigError
+from protocol.errors import ConfigError
 
 __all__ = ["HEADLESS", "RenderBackendError", "check", "renderer_ready", "select"]
 

@@ -23,8 +23,8 @@ import math
 import mujoco
 import numpy as np
 
+from protocol.errors import ConfigError
 from sim.arrow import arrow_quat
-from sim.errors import ConfigError
 from sim.gl_backend import renderer_ready
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics

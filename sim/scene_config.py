@@ -11,10 +11,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+from protocol.errors import ConfigError
 from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
 from protocol.vectors import finite_vector
 from sim.bow import Bow
-from sim.errors import ConfigError
 from sim.geometry import TARGET_DISTANCE
 
 __all__ = [

@@ -32,7 +32,7 @@ class SceneView:
         camera: a camera name of the scene; the side camera sees robot, flight and target.
 
     Raises:
-        sim.errors.ConfigError: an unknown camera or an image size out of range.
+        ConfigError: an unknown camera or an image size out of range.
         sim.errors.SceneError: the robot's model files are missing.
     """
 
@@ -66,7 +66,7 @@ class SceneView:
         """An RGB uint8 image (height, width, 3) of the scene at `qpos`.
 
         Raises:
-            sim.errors.ConfigError: qpos of the wrong length (another scene configuration).
+            ConfigError: qpos of the wrong length (another scene configuration).
         """
         return self._renderer.render(qpos)
 

@@ -19,12 +19,13 @@ from enum import StrEnum
 import mujoco
 import numpy as np
 
+from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import MAX_REFERENCE_SPEED, home_of
 from protocol.vectors import finite_vector
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
-from sim.errors import CommandError, ConfigError, StateError
+from sim.errors import CommandError, StateError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics

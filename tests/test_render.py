@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from sim.errors import ConfigError
+from protocol.errors import ConfigError
 from sim.render import SceneRenderer, calibration_frame, project
 from sim.scene import ScenePhysics
 from sim.scene_config import ARROW_TIP_SITE, RING_COLOURS, TARGET_CENTRE_SITE, SceneConfig

@@ -10,9 +10,10 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
+from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import MODEL_NAME, home_of
-from sim.errors import CommandError, ConfigError, SceneError
+from sim.errors import CommandError, SceneError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics

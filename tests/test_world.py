@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from protocol.errors import ArcheryError, BadRequest
+from protocol.errors import ArcheryError, BadRequest, ConfigError
 from sim.arrow import Landing, Outcome, drag_acceleration
 from sim.bow import Bow
-from sim.errors import CommandError, ConfigError, SimError, StateError
+from sim.errors import CommandError, SimError, StateError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.errors import BadRequest
+from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
 from protocol.parts import PARTS
 from services.controller.cartesian import reference_speeds
@@ -124,7 +124,7 @@ class ShotReplay:
         self.recorded_world = bool(rig.get("world"))
         try:
             config = WorldConfig.from_dict(rig["world"]) if rig.get("world") else WorldConfig()
-        except SimError as exc:
+        except (SimError, ConfigError) as exc:
             raise BadRequest(f"the journal's world parameters are not valid: {exc}") from None
         self.traj_time = float(rig.get("traj_time", ControllerConfig().traj_time))
         self.world = ArcheryWorld(config)

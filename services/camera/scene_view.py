@@ -195,7 +195,7 @@ class SceneViews:
         view gets a new stamp); returns the qpos (bytes) the kept view shows.
 
         Raises:
-            sim.errors.ConfigError: the state's qpos is of another scene.
+            ConfigError: the state's qpos is of another scene.
         """
         state = self._capture.world.latest()
         if state is None:

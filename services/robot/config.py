@@ -139,6 +139,6 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
         wind = tuple(parse_vector("--wind", args.wind, ConfigError, unit="m/s").tolist())
     try:
         world = replace(base, bow=bow, wind=wind, drag=args.drag)
-    except SimError as exc:
+    except (SimError, ConfigError) as exc:
         raise ConfigError(f"invalid world setting: {exc}") from None
     return config_from_args(RobotConfig, args, net=net, world=world)
