@@ -230,7 +230,7 @@ def _threads_settle(baseline: int) -> int:
 
 
 def test_half_open_connections_time_out_and_cannot_take_every_thread(net: NetConfig) -> None:
-    with Dashboard(net, bind("127.0.0.1", 0, request_timeout=3.0)) as dash:
+    with Dashboard(net, bind("127.0.0.1", 0, request_timeout=8.0)) as dash:
         assert request(dash, "/api/state")[0] == 200
         baseline = threading.active_count()
         idle = [socket.create_connection(bound(dash), timeout=30) for _ in range(200)]
@@ -238,14 +238,14 @@ def test_half_open_connections_time_out_and_cannot_take_every_thread(net: NetCon
             # the page still answers at once: an idle connection gives way to it
             started = time.monotonic()
             status, _, _ = request(dash, "/api/state")
-            assert status == 200 and time.monotonic() - started < 2.5
+            assert status == 200 and time.monotonic() - started < 5.0  # before any timeout
             assert _threads_settle(baseline) <= MAX_CONNECTIONS + 2
             assert dash.server.connections()[0] <= MAX_CONNECTIONS
             # every half-open connection is closed: for a new one, or after its timeout
             started = time.monotonic()
             for connection in idle:
                 assert connection.recv(1) == b""
-            assert time.monotonic() - started < 3.0 + 10
+            assert time.monotonic() - started < 8.0 + 10
         finally:
             for connection in idle:
                 connection.close()
