@@ -6,34 +6,49 @@ it), the target face with each rollout's impact coloured by rollout, the distanc
 curve, each service's liveliness and each stream port's rate; on a fleet, a selector switches
 between the robots alive on the router.
 
-Design: a small page served by the package itself. A standard-library `ThreadingHTTPServer`
-serves three files (`static/`: HTML, CSS and a short script that draws the face and the curve
-as SVG), a JSON endpoint (`/api/state?robot=R[&scene=1]`) the page polls twice a second (with
-`scene=1` while its scene panel is open), the frame as PNG (`/api/frame.png?robot=R`), the
-scene view as JPEG (`/api/scene.jpg?robot=R`) and the robots alive (`/api/robots`). Why: no
-extra dependency (no web framework, no Rerun), nothing fetched from a CDN so it works offline
-and behind a firewall, and any plain browser (or `curl`, or a headless Chromium in the tests)
-can read it. The mesh side (`watch.MeshWatch`, one per robot looked at, at most
-`MAX_ROBOTS`) is an anonymous node: it subscribes to the rollouts, and calls only the learner's
-`status`, the detector's `frame` and, while a page shows it, the camera's `scene`, so watching
-never disturbs a session.
+Design: a small page served by the package itself. A standard-library threading HTTP server
+(`guard.GuardedServer`) serves three files (`static/`: HTML, CSS and a short script that draws
+the face and the curve as SVG), a JSON endpoint (`/api/state?robot=R`) the page polls twice a
+second, the frame as PNG (`/api/frame.png?robot=R`), the scene view as JPEG
+(`/api/scene.jpg?robot=R`) and the robots alive (`/api/robots`). Why: no extra dependency (no
+web framework, no Rerun), nothing fetched from a CDN so it works offline and behind a firewall,
+and any plain browser (or `curl`, or a headless Chromium in the tests) can read it.
+
+As a web app on this machine must, it answers only requests whose `Host` is its own address
+(421 otherwise: a page of another site cannot read the camera through DNS rebinding), closes a
+connection whose request does not come within `guard.REQUEST_TIMEOUT` s and serves at most
+`guard.MAX_CONNECTIONS` at once. A GET changes nothing: what changes what is watched is a POST
+carrying the page's token (`TOKEN_HEADER`, a random one per server, sent with every answer;
+a page of another site cannot read it, nor send a header of its own without this server's
+consent): `/api/watch?robot=R` follows a robot alive on the router (404 for one that is not),
+`/api/scene?robot=R` says the page shows the scene view (the page posts it with each poll
+while its scene panel is open).
+
+The mesh side (`watch.MeshWatch`, one per robot followed, at most `MAX_ROBOTS`; another
+robot's is closed once no page polled it for `WATCH_IDLE` s) is an anonymous node: it
+subscribes to the rollouts, and calls only the learner's `status`, the detector's `frame` and,
+while a page shows it, the camera's `scene`, so watching never disturbs a session.
 """
 
 from __future__ import annotations
 
 import errno
+import hmac
 import ipaddress
 import json
 import logging
+import secrets
 import socket
 import sys
 import threading
+import time
 from http import HTTPStatus
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from http.server import BaseHTTPRequestHandler
 from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
 from apps.dashboard.watch import MeshWatch
 from mesh.acl import VIEWER
 from mesh.cliargs import ArgumentParser, int_in
@@ -45,12 +60,28 @@ from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import for_error
 from protocol.keys import validate_robot
 
-__all__ = ["DEFAULT_PORT", "MAX_ROBOTS", "Dashboard", "main"]
+__all__ = [
+    "DEFAULT_PORT",
+    "MAX_ROBOTS",
+    "TOKEN_HEADER",
+    "WATCH_IDLE",
+    "Dashboard",
+    "NotWatched",
+    "main",
+]
 
 log = logging.getLogger("archery.dashboard")
 
 DEFAULT_PORT = 8765
 MAX_ROBOTS = 32  # robots one dashboard follows at most (a watch each)
+WATCH_IDLE = 30.0  # s: a watch of another robot that no page polled this long is closed
+TOKEN_HEADER = "X-Dashboard-Token"  # the page's token: on every answer, required on each POST
+_MAX_BODY = 1024  # B: a POST's body at most (the page sends none)
+_POSTS = ("/api/watch", "/api/scene")
+_WRONG_HOST = (
+    b"this dashboard answers only to its own address (Host localhost, 127.0.0.1 or the "
+    b"--host address, with its port)\n"
+)
 _TYPES = {".html": "text/html", ".js": "text/javascript", ".css": "text/css"}
 _PAGES = {"/": "index.html", "/index.html": "index.html"}
 
@@ -63,8 +94,7 @@ def _static(name: str) -> bytes | None:
     return path.read_bytes() if path.is_file() else None
 
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
+class _Server(GuardedServer):
     dashboard: Dashboard
 
 
@@ -72,17 +102,37 @@ class _Handler(BaseHTTPRequestHandler):
     server: _Server
     server_version = "archery-dashboard"
 
+    def setup(self) -> None:
+        super().setup()
+        self.connection.settimeout(self.server.request_timeout)  # each read, then closed
+
     def log_message(self, format: str, *args: Any) -> None:
         log.debug("%s " + format, self.address_string(), *args)
+
+    def parse_request(self) -> bool:
+        """The request line and headers read; nothing is answered to a `Host` not allowed."""
+        if not super().parse_request() or not self.server.started(self.connection):
+            return False
+        if not self.server.allows(self.headers.get("Host")):
+            self._send(HTTPStatus.MISDIRECTED_REQUEST, _WRONG_HOST, "text/plain")
+            return False
+        return True
 
     def _send(self, status: int, body: bytes, ctype: str) -> None:
         self.send_response(status)
         self.send_header("Content-Type", ctype)
         self.send_header("Content-Length", str(len(body)))
         self.send_header("Cache-Control", "no-store")
+        self.send_header("X-Content-Type-Options", "nosniff")
+        dashboard = getattr(self.server, "dashboard", None)
+        if status != HTTPStatus.MISDIRECTED_REQUEST and dashboard is not None:
+            self.send_header(TOKEN_HEADER, dashboard.token)
         self.end_headers()
         if self.command != "HEAD":
             self.wfile.write(body)
+
+    def _text(self, status: int, line: str) -> None:
+        self._send(status, (line + "\n").encode(), "text/plain; charset=utf-8")
 
     def do_HEAD(self) -> None:
         self.do_GET()
@@ -90,6 +140,9 @@ class _Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         url = urlsplit(self.path)
         path, query = url.path, parse_qs(url.query)
+        if path in _POSTS:
+            self._text(HTTPStatus.METHOD_NOT_ALLOWED, f"{path} changes what is watched: POST it")
+            return
         if path.startswith("/api/"):
             self._api(path, query)
             return
@@ -103,6 +156,53 @@ class _Handler(BaseHTTPRequestHandler):
         ctype = _TYPES.get("." + name.rsplit(".", 1)[-1], "application/octet-stream")
         self._send(HTTPStatus.OK, content, ctype + "; charset=utf-8")
 
+    def do_POST(self) -> None:
+        """`/api/watch?robot=R` (follow a robot alive on the router) and `/api/scene?robot=R`
+        (a page shows the scene view), each with the page's token in `TOKEN_HEADER`."""
+        url = urlsplit(self.path)
+        dashboard = self.server.dashboard
+        if not self._drain_body():
+            return
+        if url.path not in _POSTS:
+            self._text(HTTPStatus.NOT_FOUND, "not found")
+            return
+        token = self.headers.get(TOKEN_HEADER, "")
+        origin = self.headers.get("Origin")
+        if not hmac.compare_digest(token.encode(), dashboard.token.encode()):
+            self._text(HTTPStatus.FORBIDDEN, f"no valid {TOKEN_HEADER}: POST from the page only")
+            return
+        if origin is not None and not self.server.allows(urlsplit(origin).netloc):
+            self._text(HTTPStatus.FORBIDDEN, "a page of another site may not POST here")
+            return
+        robot = parse_qs(url.query).get("robot", [None])[0]
+        try:
+            if url.path == "/api/watch":
+                watch = dashboard.follow(robot)
+            else:
+                watch = dashboard.watch(robot)
+                watch.want_scene()
+        except NotWatched as exc:
+            self._text(HTTPStatus.NOT_FOUND, str(exc))
+            return
+        except ArcheryError as exc:
+            self._text(HTTPStatus.BAD_REQUEST, str(exc))
+            return
+        body = json.dumps({"robot": watch.keys.robot}).encode()
+        self._send(HTTPStatus.OK, body, "application/json")
+
+    def _drain_body(self) -> bool:
+        """Read a POST's body (nothing is expected of it); False when it is too long (413)."""
+        try:
+            length = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            length = -1
+        if not 0 <= length <= _MAX_BODY:
+            self.close_connection = True
+            self._text(HTTPStatus.REQUEST_ENTITY_TOO_LARGE, f"a body of {_MAX_BODY} B at most")
+            return False
+        self.rfile.read(length)
+        return True
+
     def _api(self, path: str, query: dict[str, list[str]]) -> None:
         dashboard = self.server.dashboard
         if path == "/api/robots":
@@ -112,12 +212,11 @@ class _Handler(BaseHTTPRequestHandler):
         try:
             watch = dashboard.watch(query.get("robot", [None])[0])
         except ArcheryError as exc:
+            status = HTTPStatus.NOT_FOUND if isinstance(exc, NotWatched) else HTTPStatus.BAD_REQUEST
             body = json.dumps({"error": str(exc)}).encode()
-            self._send(HTTPStatus.BAD_REQUEST, body, "application/json")
+            self._send(status, body, "application/json")
             return
         if path == "/api/state":
-            if query.get("scene") == ["1"]:
-                watch.want_scene()
             body = json.dumps(watch.snapshot(), allow_nan=False).encode()
             self._send(HTTPStatus.OK, body, "application/json")
         elif path in ("/api/frame.png", "/api/scene.jpg"):
@@ -144,8 +243,15 @@ def _check_host(host: str) -> str:
         ) from None
 
 
-def bind(host: str, port: int) -> _Server:
-    """The HTTP server listening on `host:port` (port 0: a free one), not serving yet.
+def bind(
+    host: str,
+    port: int,
+    *,
+    request_timeout: float = REQUEST_TIMEOUT,
+    max_connections: int = MAX_CONNECTIONS,
+) -> _Server:
+    """The HTTP server listening on `host:port` (port 0: a free one), not serving yet; a
+    connection's request may take `request_timeout` s, `max_connections` are served at once.
 
     Raises:
         ConfigError: the port is taken, or the address is not this machine's.
@@ -156,7 +262,12 @@ def bind(host: str, port: int) -> _Server:
         {"address_family": socket.AF_INET6 if ":" in host else socket.AF_INET},
     )
     try:
-        return server_class((host, port), _Handler)
+        return server_class(
+            (host, port),
+            _Handler,
+            request_timeout=request_timeout,
+            max_connections=max_connections,
+        )
     except OSError as exc:
         if exc.errno == errno.EADDRINUSE:
             raise ConfigError(
@@ -166,24 +277,38 @@ def bind(host: str, port: int) -> _Server:
         raise ConfigError(f"--host {host} --port {port}: cannot listen: {exc.strerror}") from None
 
 
+class NotWatched(ArcheryError):
+    """A robot the dashboard does not follow (a page POSTs `/api/watch` first), or one that is
+    not alive on the router (nothing to follow)."""
+
+    code = "not_watched"
+
+
 class Dashboard:
     """The server and the mesh watches together (the node's robot's, and each other robot's
-    once a page asks for it); a context manager (tests use it directly)."""
+    a page chose, while it is alive on the router and a page polls it); a context manager
+    (tests use it directly). `token` is what the page sends with each POST."""
 
-    def __init__(self, net: NetConfig, server: _Server) -> None:
+    def __init__(self, net: NetConfig, server: _Server, *, watch_idle: float = WATCH_IDLE) -> None:
         self.server = server
         try:
             self.node = Node(None, net)
         except BaseException:
             self.server.server_close()
             raise
+        self.token = secrets.token_urlsafe(24)
+        self.watch_idle = watch_idle
         self._lock = threading.Lock()
         self._watches = {net.robot: MeshWatch(self.node)}
+        self._polled: dict[str, float] = {}  # robot -> monotonic s of its last poll (not ours)
+        self._stop = threading.Event()
         self.server.dashboard = self
         self._thread = threading.Thread(
             target=self.server.serve_forever, name="dashboard-http", daemon=True
         )
         self._thread.start()
+        self._reaper = threading.Thread(target=self._reap, name="dashboard-reap", daemon=True)
+        self._reaper.start()
 
     @property
     def url(self) -> str:
@@ -192,14 +317,46 @@ class Dashboard:
         shown = f"[{host}]" if ":" in host else host
         return f"http://{shown}:{port}/"
 
+    def _robot(self, robot: str | None) -> str:
+        return self.node.keys.robot if robot is None else validate_robot(robot)
+
     def watch(self, robot: str | None = None) -> MeshWatch:
-        """The watch of `robot` (None: the dashboard's own robot), started on first use.
+        """The watch of `robot` (None: the dashboard's own robot), as a page polls it: a watch
+        polled within `watch_idle` s stays open.
 
         Raises:
             KeyNameError: not a robot name.
+            NotWatched: the dashboard does not follow `robot` (`follow` starts a watch).
+        """
+        robot = self._robot(robot)
+        with self._lock:
+            watch = self._watches.get(robot)
+            if watch is None:
+                raise NotWatched(
+                    f"robot {robot!r} is not watched: choose it in the page (POST /api/watch)"
+                )
+            if robot in self._polled:
+                self._polled[robot] = time.monotonic()
+            return watch
+
+    def follow(self, robot: str | None) -> MeshWatch:
+        """The watch of `robot`, started when it is alive on the router (a service of it has its
+        liveliness token); closed again once no page polled it for `watch_idle` s.
+
+        Raises:
+            KeyNameError: not a robot name.
+            NotWatched: no service of `robot` is alive on the router.
             ConfigError: `MAX_ROBOTS` robots are watched already.
         """
-        robot = self.node.keys.robot if robot is None else validate_robot(robot)
+        robot = self._robot(robot)
+        with self._lock:
+            watch = self._watches.get(robot)
+            if watch is not None:
+                if robot in self._polled:
+                    self._polled[robot] = time.monotonic()
+                return watch
+        if robot not in self.node.alive_robots(timeout=1.0):
+            raise NotWatched(f"robot {robot!r} has no service alive on the router")
         with self._lock:
             watch = self._watches.get(robot)
             if watch is None:
@@ -209,19 +366,40 @@ class Dashboard:
                         f"`archery dashboard --robot {robot}` for more"
                     )
                 watch = self._watches[robot] = MeshWatch(self.node, robot=robot)
+            self._polled[robot] = time.monotonic()
             return watch
+
+    def watched(self) -> list[str]:
+        """The robots watched now, sorted."""
+        with self._lock:
+            return sorted(self._watches)
+
+    def _reap(self) -> None:
+        """Close each watch (but the dashboard's own robot's) no page polled for `watch_idle` s."""
+        while not self._stop.wait(min(1.0, self.watch_idle / 4)):
+            now = time.monotonic()
+            with self._lock:
+                idle = [r for r, t in self._polled.items() if now - t > self.watch_idle]
+                closing = [self._watches.pop(r) for r in idle]
+                for robot in idle:
+                    del self._polled[robot]
+            for robot, watch in zip(idle, closing, strict=True):
+                log.info(
+                    "robot %s: no page polled it for %g s, not watched", robot, self.watch_idle
+                )
+                watch.close()
 
     def robots(self) -> dict[str, Any]:
         """{"default": the dashboard's robot, "robots": every robot with a live service on the
         router and every robot watched, sorted}."""
         alive = set(self.node.alive_robots(timeout=1.0))
-        with self._lock:
-            watched = set(self._watches)
-        return {"default": self.node.keys.robot, "robots": sorted(alive | watched)}
+        return {"default": self.node.keys.robot, "robots": sorted(alive | set(self.watched()))}
 
     def close(self) -> None:
+        self._stop.set()
         self.server.shutdown()
         self.server.server_close()
+        self._reaper.join(timeout=10)
         with self._lock:
             watches = list(self._watches.values())
         for watch in watches:

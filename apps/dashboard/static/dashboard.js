@@ -1,18 +1,22 @@
 // The dashboard page: polls /api/state for the chosen robot, shows the frame of each rollout
 // with a caption, the scene view while its panel is open, draws the target face (impacts
 // coloured by rollout, with a colour bar) and the distance curve as SVG, lists the services and
-// port rates, and offers the robots alive on the router.
+// port rates, and offers the robots alive on the router. GETs change nothing on the server: the
+// page POSTs (with the server's token) the robot it follows and, with each poll while the scene
+// panel is open, that it shows the scene view.
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
 const POLL_MS = 500;
 const ROBOTS_MS = 5000;
+const TOKEN_HEADER = "X-Dashboard-Token"; // the server's token, required on the page's POSTs
 // viridis, 0 → 1: the colour of a rollout from the first to the last of the scale
 const VIRIDIS = ["#440154", "#482878", "#3e4989", "#31688e", "#26828e",
   "#1f9e89", "#35b779", "#6ece58", "#b5de2b", "#fde725"];
 let robot = null; // null: the dashboard's own robot
 let frameVersion = 0;
 let sceneVersion = 0;
+let token = null; // from the header of the server's answers
 
 function el(name, attrs, parent) {
   const node = document.createElementNS(SVG, name);
@@ -289,11 +293,30 @@ function show(state) {
   showScene(state);
 }
 
+// A GET of the dashboard's: the token the server sends with every answer is kept for POSTs.
+async function get(path) {
+  const response = await fetch(path, { cache: "no-store" });
+  token = response.headers.get(TOKEN_HEADER) || token;
+  return response;
+}
+
+// A POST of the page's own (`/api/watch`, `/api/scene`) for the chosen robot, with the token.
+async function post(path) {
+  if (!token) await get("/api/robots");
+  return fetch(`${path}${query()}`,
+    { method: "POST", cache: "no-store", headers: { [TOKEN_HEADER]: token || "" } });
+}
+
 async function poll() {
   const connection = document.getElementById("connection");
   try {
-    const response = await fetch(`/api/state${query(sceneOpen() ? { scene: 1 } : {})}`,
-      { cache: "no-store" });
+    if (sceneOpen()) await post("/api/scene"); // the camera renders it while the panel is open
+    let response = await get(`/api/state${query()}`);
+    if (response.status === 404 && robot) { // a robot chosen but not followed (yet, or any more)
+      const watch = await post("/api/watch");
+      if (!watch.ok) throw new Error(`robot ${robot}: ${(await watch.text()).trim()}`);
+      response = await get(`/api/state${query()}`);
+    }
     if (!response.ok) throw new Error(`HTTP ${response.status}`);
     show(await response.json());
     connection.textContent = `updated ${new Date().toLocaleTimeString()}`;
@@ -307,7 +330,7 @@ async function poll() {
 
 async function listRobots() {
   try {
-    const response = await fetch("/api/robots", { cache: "no-store" });
+    const response = await get("/api/robots");
     if (response.ok) {
       const { default: own, robots } = await response.json();
       const select = document.getElementById("robot-select");
@@ -331,6 +354,7 @@ document.getElementById("robot-select").addEventListener("change", (event) => {
   sceneVersion = 0;
   for (const id of ["frame", "scene"]) document.getElementById(id).removeAttribute("src");
   document.getElementById("frame-caption").hidden = true;
+  post("/api/watch").catch(() => {}); // the state poll reports a failure
 });
 
 listRobots();
