@@ -47,6 +47,7 @@ from mesh.credentials import init_deployment
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, spawn_router
+from protocol.verbs.robot import GET_LIMITS
 from protocol.verbs.robot import PART_VERBS, LimitsReply
 
 calls = int(sys.argv[1])
@@ -73,7 +74,7 @@ with tempfile.TemporaryDirectory() as tmp:
             server.serve(key, PART_VERBS.bind_names(handlers))
             server.ready()
             client.wait_alive(["robot"], 30)
-            verb = PART_VERBS["getLimits"]
+            verb = GET_LIMITS
             deadline = time.monotonic() + 30
             while True:  # the queryable has reached the router
                 try:

@@ -30,7 +30,7 @@ from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
 from mesh.node import Node
 from protocol.errors import RpcError
-from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
+from protocol.verbs.camera import GRAB, GrabArgs
 from tests.rpc import rpc_call
 
 __all__ = ["HOLD", "PENDING", "main"]
@@ -55,7 +55,7 @@ class Pending:
             thread.start()
 
     def _keep(self) -> None:
-        key, grab = self._node.keys.cam_rpc(), CAMERA_VERBS["grab"]
+        key, grab = self._node.keys.cam_rpc(), GRAB
         args = GrabArgs(after_sim_time=NEVER, timeout=HOLD)
         while not self._stop.is_set():
             with self._lock:

@@ -17,7 +17,7 @@ from mesh.node import Node
 from protocol.errors import BadRequest, RpcError
 from protocol.messages import Array, WorldState
 from protocol.verbs.base import NoArgs
-from protocol.verbs.camera import CAMERA_VERBS, SceneReply
+from protocol.verbs.camera import SCENE, STATUS, SceneReply
 from services.camera.config import CameraConfig
 from services.camera.scene_view import SIZE, SceneViews
 from services.camera.service import run
@@ -67,7 +67,7 @@ def test_the_view_shows_the_published_pose_at_a_low_rate_and_only_when_asked(
         keys = node.keys
 
         def scene() -> SceneReply:
-            return node.call_typed(keys.cam_rpc(), CAMERA_VERBS["scene"], NoArgs(), timeout=5)
+            return node.call_typed(keys.cam_rpc(), SCENE, NoArgs(), timeout=5)
 
         # nobody asked yet: no thread, no view, no render
         assert not _view_threads()
@@ -110,7 +110,7 @@ def test_the_view_shows_the_published_pose_at_a_low_rate_and_only_when_asked(
         renders = scene().renders - before
         assert asked > 3 * renders and renders <= took / first.period + 1, (renders, took)
         # the capture thread rendered no target frame for it
-        assert node.call_typed(keys.cam_rpc(), CAMERA_VERBS["status"], timeout=5).renders == 0
+        assert node.call_typed(keys.cam_rpc(), STATUS, timeout=5).renders == 0
 
 
 def _fake_capture(world: Any, kind: str = "mujoco") -> SimpleNamespace:
@@ -172,7 +172,7 @@ def test_the_verb_over_the_mesh_refuses_a_folder_camera(net: NetConfig, tmp_path
     with serving(run, config), Node(None, net) as node:
         node.wait_alive(["camera"], timeout=30)
         with pytest.raises(RpcError, match="only by the mujoco source") as refused:
-            node.call_typed(node.keys.cam_rpc(), CAMERA_VERBS["scene"], NoArgs(), timeout=5)
+            node.call_typed(node.keys.cam_rpc(), SCENE, NoArgs(), timeout=5)
         assert refused.value.code == "bad_request"
 
 

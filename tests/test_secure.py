@@ -45,9 +45,10 @@ from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
 from protocol.keys import Keys, verb_key, verbs_key
 from protocol.messages import Image, RpcReply
 from protocol.verbs import TABLES, names_caller, table_for_key
-from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
-from protocol.verbs.detector import DETECTOR_VERBS, MeasureReply
-from protocol.verbs.robot import PART_VERBS, ClaimArgs
+from protocol.verbs import camera as cam_verbs
+from protocol.verbs.camera import CAMERA_VERBS, GRAB, GrabArgs
+from protocol.verbs.detector import CALIBRATE, DETECTOR_VERBS, STATUS, MeasureReply
+from protocol.verbs.robot import CLAIM, GET_CLAIM, ClaimArgs
 from services.learner.errors import RigError
 from services.learner.rig import MeshRig
 from services.learner.rig_protocol import Shot
@@ -376,9 +377,7 @@ def test_replay_presents_its_own_identity_and_serves_the_detector_its_grab(
             time.sleep(0.05)
         assert K.command("left_arm") not in [k for k, _ in everything.items]
         with Node("detector", net_as(endpoint, "detector", deployment)) as detector:
-            got = detector.call_typed(
-                K.cam_rpc(), CAMERA_VERBS["grab"], GrabArgs(after_sim_time=0.0), timeout=10
-            )
+            got = detector.call_typed(K.cam_rpc(), GRAB, GrabArgs(after_sim_time=0.0), timeout=10)
         assert got.frame == 1
     finally:
         replay.send_signal(signal.SIGINT)
@@ -595,7 +594,7 @@ def test_a_call_the_access_control_denies_says_so(endpoint: str, deployment: Pat
         with Node("learner", net_as(endpoint, "learner", deployment)) as learner:
             learner.wait_alive(["camera"], timeout=10)
             with pytest.raises(RpcError) as denied:
-                learner.call_typed(K.cam_rpc(), CAMERA_VERBS["status"], timeout=3)
+                learner.call_typed(K.cam_rpc(), cam_verbs.STATUS, timeout=3)
     assert denied.value.code == "denied"
     assert "denied by access control: the camera is alive" in str(denied.value)
     assert "identity 'learner'" in str(denied.value)
@@ -620,9 +619,9 @@ def test_a_stuck_call_the_rules_grant_is_a_timeout_and_a_denial_names_the_identi
             with Node(None, viewer_net) as viewer:
                 viewer.wait_alive(["detector"], timeout=10)
                 with pytest.raises(RpcError) as slow:
-                    viewer.call_typed(K.detector_rpc(), DETECTOR_VERBS["status"], timeout=1)
+                    viewer.call_typed(K.detector_rpc(), STATUS, timeout=1)
                 with pytest.raises(RpcError) as denied:
-                    viewer.call_typed(K.detector_rpc(), DETECTOR_VERBS["calibrate"], timeout=1)
+                    viewer.call_typed(K.detector_rpc(), CALIBRATE, timeout=1)
     finally:
         release.set()
     assert slow.value.code == "timeout" and "denied" not in str(slow.value), slow.value
@@ -757,7 +756,7 @@ def test_a_lease_belongs_to_the_identity_that_claims_it_only_the_operator_takes_
     """Secure mode: a claim's `owner` text is not who owns the lease, the identity the router
     authenticated is; the controller cannot take the operator's part (naming itself
     "operator" or asking for a takeover), the operator can."""
-    claim, get_claim = PART_VERBS["claim"], PART_VERBS["getClaim"]
+    claim, get_claim = CLAIM, GET_CLAIM
     robot_net = net_as(endpoint, "robot", deployment)
     world = WorldConfig(scene=SceneConfig(meshes=False))
     with (

@@ -16,13 +16,13 @@ from mesh.rpc_server import MAX_WAITING
 from protocol.errors import RpcError, RpcTimeout
 from protocol.keys import Keys, verb_key
 from protocol.verbs import NoArgs
-from protocol.verbs.camera import CAMERA_VERBS, GrabArgs
+from protocol.verbs.camera import CALIBRATION, GRAB, STATUS, GrabArgs
 from services.camera.config import CameraConfig
 from services.camera.service import run
 from tests.conftest import serving
 
-GRAB = CAMERA_VERBS["grab"]
-STATUS = CAMERA_VERBS["status"]
+GRAB = GRAB
+STATUS = STATUS
 NEVER = 1e9  # s of sim time: a world state no test publishes
 
 
@@ -71,7 +71,7 @@ def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: Ne
             assert "try again later" in error.message
             # the port's blocking verbs still run: a calibration frame is rendered meanwhile
             start = time.monotonic()
-            marks = node.call_typed(key, CAMERA_VERBS["calibration"], NoArgs(), timeout=30.0)
+            marks = node.call_typed(key, CALIBRATION, NoArgs(), timeout=30.0)
             assert marks.image.width == 320
             assert time.monotonic() - start < 8.0
             assert node.call_typed(key, STATUS, NoArgs(), timeout=5.0).source == "mujoco"

@@ -36,8 +36,8 @@ from protocol.keys import Keys
 from protocol.messages import Rollout
 from protocol.robotspec import HIT_RADIUS, SERVICES
 from protocol.verbs.base import NoArgs
-from protocol.verbs.camera import CAMERA_VERBS
-from protocol.verbs.detector import DETECTOR_VERBS, FrameArgs
+from protocol.verbs.camera import SCENE
+from protocol.verbs.detector import FRAME, FrameArgs
 from protocol.verbs.learner import LEARNER_VERBS
 from sim.scene_config import RING_COLOURS
 
@@ -226,7 +226,7 @@ class MeshWatch:
         try:
             reply = self.node.call_typed(
                 self.keys.detector_rpc(),
-                DETECTOR_VERBS["frame"],
+                FRAME,
                 FrameArgs(overlay=True),
                 timeout=_RPC_TIMEOUT,
             )
@@ -244,9 +244,7 @@ class MeshWatch:
         """Ask the camera for its newest scene view (a call that never waits there)."""
         period = 1.0
         try:
-            reply = self.node.call_typed(
-                self.keys.cam_rpc(), CAMERA_VERBS["scene"], NoArgs(), timeout=_RPC_TIMEOUT
-            )
+            reply = self.node.call_typed(self.keys.cam_rpc(), SCENE, NoArgs(), timeout=_RPC_TIMEOUT)
         except ArcheryError as exc:
             with self._lock:
                 self._scene = self._scene | {"status": "unavailable", "error": str(exc)}

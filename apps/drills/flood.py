@@ -23,7 +23,7 @@ from apps.drills.verdict import DrillResult
 from protocol.codec import encode
 from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
 from protocol.messages import JointCommand, JointState
-from protocol.verbs.robot import PART_VERBS
+from protocol.verbs.robot import COUNTERS
 
 __all__ = ["PART", "flood", "flood_drill"]
 
@@ -71,7 +71,7 @@ def flood(mesh: DrillMesh, count: int, seed: int) -> dict[str, int]:
 def counted(mesh: DrillMesh) -> dict[str, int]:
     """The robot's command counters of the left arm: accepted, rejected, undecodable."""
     assert mesh.node is not None
-    reply = mesh.node.call_typed(mesh.node.keys.part_rpc(PART), PART_VERBS["counters"], timeout=10)
+    reply = mesh.node.call_typed(mesh.node.keys.part_rpc(PART), COUNTERS, timeout=10)
     return {
         "accepted": reply.accepted,
         "rejected": reply.rejected,

@@ -191,7 +191,7 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
                 times = []
                 for _ in range(200):
                     t0 = time.perf_counter()
-                    reply = node.call_typed(rpc, rv.PART_VERBS["getJointNames"], timeout=timeout)
+                    reply = node.call_typed(rpc, rv.GET_JOINT_NAMES, timeout=timeout)
                     times.append((time.perf_counter() - t0) * 1e3)
                     assert reply.names == list(PARTS["torso"])
                 return f"200 round trips, median {statistics.median(times):.3f} ms"
@@ -199,7 +199,7 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
             def rpc_error() -> str:
                 try:
                     wrong = rv.PositionMoveArgs(position=[0.1])  # the torso has 3 joints
-                    node.call_typed(rpc, rv.PART_VERBS["positionMove"], wrong, timeout=timeout)
+                    node.call_typed(rpc, rv.POSITION_MOVE, wrong, timeout=timeout)
                 except RpcError as exc:
                     assert exc.code == "bad_request", exc.code
                     return f"error reply [{exc.code}]"
@@ -210,7 +210,7 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
                     rpc, b"\xc1 not msgpack", verb="getJointNames", timeout=timeout
                 )
                 assert not reply.ok and reply.code == "bad_message", reply
-                still = node.call_typed(rpc, rv.PART_VERBS["getJointNames"], timeout=timeout)
+                still = node.call_typed(rpc, rv.GET_JOINT_NAMES, timeout=timeout)
                 assert still.names == list(PARTS["torso"])
                 return f"rejected [{reply.code}], still serving"
 

@@ -43,7 +43,7 @@ from protocol.keys import ALIVE_EVERY_ROBOT, DEFAULT_ROBOT, Keys, port_of
 from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
 from protocol.robotspec import CALL_TIMEOUT
 from protocol.verbs import Verb, table_for_key
-from protocol.verbs.robot import PART_VERBS
+from protocol.verbs.robot import COUNTERS
 
 __all__ = ["alive_main", "ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
@@ -349,7 +349,7 @@ def _command_total(counters: dict[str, Any]) -> int:
 
 def _counters(node: Node, rpc_key: str, timeout: float) -> dict[str, Any]:
     """The command counters of the part whose `rpc:i` is `rpc_key`, as plain data."""
-    reply = node.call_typed(rpc_key, PART_VERBS["counters"], timeout=timeout)
+    reply = node.call_typed(rpc_key, COUNTERS, timeout=timeout)
     counters: dict[str, Any] = msgspec.to_builtins(reply)
     return counters
 

@@ -106,7 +106,7 @@ class Capture:
 
         try:
             status = self.node.call_typed(
-                self.node.keys.archery_rpc(), robot_verbs.ARCHERY_VERBS["status"], timeout=timeout
+                self.node.keys.archery_rpc(), robot_verbs.ARCHERY_STATUS, timeout=timeout
             )
             return SceneConfig(**status.scene)
         except (RpcError, KeyError, TypeError, ValueError) as exc:
