@@ -7,7 +7,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from sim.errors import ConfigError
+from protocol.errors import ConfigError
 from sim.render import SceneRenderer, project
 from sim.scene_config import SIDE_CAMERA, SceneConfig
 from sim.scene_view import SceneView
