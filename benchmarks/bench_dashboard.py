@@ -163,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
         f"connections the dashboard held with the idle ones open: {median_spread(held, '.0f')}; "
         f"idle connections it closed (for new ones): {closed}"
     )
-    print("each figure: median over repeats of the repeat's median [min, max]; goal ratio < 2×")
+    print("each figure: median over repeats of the repeat's median [min, max]")
     return 0
 
 
