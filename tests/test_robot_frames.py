@@ -88,12 +88,13 @@ def _world_poses(transforms: Any) -> dict[str, tuple[np.ndarray, np.ndarray]]:
 def test_link_poses_rebuilt_from_the_file_match_the_simulators(
     frames: RobotFrames, tmp_path: Path
 ) -> None:
-    # The simulator moves to the archery posture, nocks and shoots; every 20 ms its qpos is
-    # recorded as the robot publishes it, and its own link poses are kept to compare with.
+    # The simulator moves to the joint positions that aim START_THETA, nocks and shoots; every
+    # 20 ms its qpos is recorded as the robot publishes it, and its own link poses are kept to
+    # compare with.
     world = ArcheryWorld(WorldConfig(scene=SceneConfig(meshes=False)))
     world.reset(3)
-    posture = archery_posture(world.model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
-    for part, q in posture.items():
+    aim_joints = archery_posture(world.model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
+    for part, q in aim_joints.items():
         world.set_joint_targets(part, q)
     path = tmp_path / "robot.mcap"
     recorder = Recorder(path, ROBOT_KEY, [f"{ROBOT_KEY}/**"], frames=frames)

@@ -1,6 +1,7 @@
 """The gate of a part's commands without the mesh: leases (claim, renew, drop, expiry,
 takeover), the raw-payload screen and the rate limit, on a clock the test moves; then the
-simulation loop's use of it (commands, positionMove, setRefSpeeds, counters)."""
+simulation loop's use of it (commands, positionMove, setRefSpeeds, counters), each command's
+lease checked once where it arrives."""
 
 from __future__ import annotations
 
@@ -12,12 +13,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol.codec import encode
+from protocol.codec import decode, encode
 from protocol.messages import JointCommand
 from protocol.parts import PARTS
+from protocol.verbs import robot as rv
 from services.robot.commands import REJECTION_REASONS
 from services.robot.config import RobotConfig
 from services.robot.gate import NOT_OWNER, RATE_LIMITED, NotOwner, PartGate
+from services.robot.handlers import RobotHandlers
 from services.robot.simloop import SimLoop
 from sim.scene_config import SceneConfig
 from sim.world import ArcheryWorld, WorldConfig
@@ -190,33 +193,81 @@ def _wait_counted(sim: SimLoop, part: str, total: int) -> dict[str, Any]:
     raise AssertionError(f"{part}: fewer than {total} commands counted: {sim.counters(part)}")
 
 
+def _receive(sim: SimLoop, command: JointCommand) -> bool:
+    """What the service's `command:i` subscription does with a message: screen its raw payload
+    (the lease's one check), then decode it and hand it to the loop; whether it passed."""
+    payload = encode(command)
+    if not sim.leases.screen(command.part, payload):
+        return False
+    msg = decode(payload, JointCommand)
+    sim.command(msg.part, msg.position, msg.names, msg.part, msg.batch, msg.lease)
+    return True
+
+
 def test_the_loop_obeys_only_the_holder_while_a_lease_runs(loop: SimLoop) -> None:
-    lease = loop.claim("torso", "controller", 5.0)
-    assert loop.claim_state("torso").owner == "controller"
-    payload = encode(JointCommand(part="torso", position=[0.0, 0.0, 0.1]))
-    assert not loop.screen("torso", payload)  # refused before decoding
-    loop.command("torso", [0.0, 0.0, 0.1], None, "torso", lease="forged")  # decoded, exact
-    loop.command("torso", [0.0, 0.0, 0.2], None, "torso", lease=lease.lease)
+    handlers = RobotHandlers(loop, {})
+    lease = loop.leases.claim("torso", "controller", 5.0)
+    assert loop.leases.holder("torso").owner == "controller"
+    assert not _receive(loop, JointCommand(part="torso", position=[0.0, 0.0, 0.1]))
+    forged = JointCommand(part="torso", position=[0.0, 0.0, 0.1], lease="forged")
+    assert not _receive(loop, forged)  # refused before decoding
+    assert _receive(loop, JointCommand(part="torso", position=[0.0, 0.0, 0.2], lease=lease.lease))
     counted = _wait_counted(loop, "torso", 3)
     assert counted["accepted"] == 1 and counted[NOT_OWNER] == 2
     np.testing.assert_allclose(loop.targets("torso"), [0.0, 0.0, 0.2])
     with pytest.raises(NotOwner, match="held by 'controller'"):
-        loop.position_move("torso", [0.0, 0.0, 0.3])
+        handlers.position_move("torso", rv.PositionMoveArgs(position=[0.0, 0.0, 0.3]))
     with pytest.raises(NotOwner, match="held by 'controller'"):
-        loop.set_ref_speeds("torso", 1.0)
-    assert loop.position_move("torso", [0.0, 0.0, 0.3], lease=lease.lease) == [0.0, 0.0, 0.3]
-    assert loop.set_ref_speeds("torso", 1.0, lease=lease.lease) == [1.0] * 3
+        handlers.set_ref_speeds("torso", rv.SetRefSpeedsArgs(speeds=1.0))
+    move = rv.PositionMoveArgs(position=[0.0, 0.0, 0.3], lease=lease.lease)
+    assert handlers.position_move("torso", move).position == [0.0, 0.0, 0.3]
+    speeds = rv.SetRefSpeedsArgs(speeds=1.0, lease=lease.lease)
+    assert handlers.set_ref_speeds("torso", speeds).speeds == [1.0] * 3
     assert loop.counters("torso").rejected_by_reason[NOT_OWNER] == 3  # the positionMove too
     assert "held by 'controller'" in loop.counters("torso").last_rejection
     assert loop.status().counters["torso"]["owner"] == "controller"
-    loop.drop_claim("torso", lease.lease)
-    assert loop.position_move("torso", [0.0, 0.0, 0.0]) == [0.0, 0.0, 0.0]  # anyone again
+    loop.leases.drop("torso", lease.lease)
+    anyone = rv.PositionMoveArgs(position=[0.0, 0.0, 0.0])
+    assert handlers.position_move("torso", anyone).position == [0.0, 0.0, 0.0]  # anyone again
     assert loop.status().counters["torso"]["owner"] == ""
+
+
+def test_a_command_s_lease_is_checked_once_where_it_arrives(
+    loop: SimLoop, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    lease = loop.leases.claim("torso", "controller", 5.0).lease
+    consulted: list[str] = []
+    running = PartGate._current
+
+    def counted(gate: PartGate, now: float) -> Any:
+        consulted.append(gate.part)
+        return running(gate, now)
+
+    monkeypatch.setattr(PartGate, "_current", counted)
+    assert _receive(loop, JointCommand(part="torso", position=[0.0, 0.0, 0.2], lease=lease))
+    assert _wait_counted(loop, "torso", 1)["accepted"] == 1
+    assert consulted == ["torso"]  # at the screen, not again on its way to the simulation
+    move = rv.PositionMoveArgs(position=[0.0, 0.0, 0.3], lease=lease)
+    assert RobotHandlers(loop, {}).position_move("torso", move).position == [0.0, 0.0, 0.3]
+    assert consulted == ["torso"] * 2  # a positionMove: by its handler, once
+
+
+def test_the_running_id_outside_a_payload_s_lease_field_does_not_pass() -> None:
+    gate, _ = _gate()
+    lease, _ = gate.claim("controller", 2.0)
+    elsewhere = (
+        JointCommand(part="left_arm", position=[0.0], names=[lease.id]),  # its lease ""
+        JointCommand(part="left_arm", position=[0.0] * 7, lease=lease.id + "0"),
+    )
+    for command in elsewhere:
+        reason, message = gate.screen(encode(command)) or ("", "")
+        assert reason == NOT_OWNER and "held by 'controller'" in message
+    assert gate.screen(_payload(lease.id)) is None
 
 
 def test_the_loop_drops_commands_over_the_rate_limit(loop: SimLoop) -> None:
     payload = encode(JointCommand(part="left_arm", position=[0.0] * len(PARTS["left_arm"])))
-    admitted = sum(loop.screen("left_arm", payload) for _ in range(1000))
+    admitted = sum(loop.leases.screen("left_arm", payload) for _ in range(1000))
     assert 3 <= admitted < 20  # the burst, and what 1000/s refilled meanwhile
     counters = loop.counters("left_arm")
     assert counters.rejected_by_reason[RATE_LIMITED] == 1000 - admitted

@@ -2,10 +2,10 @@
 `archery controller` as child processes, the rival publishers and the flooder in others (the
 test's node, `tests.flooder`, `archery rpc` and `archery write`).
 
-A posture at rtf 1 runs TRAJ_TIME wall seconds, so a rival or a flood that starts once the arm
-moves lands while the controller holds the lease. The stall of a flooded posture is the longest
-wall-clock gap between two states of the left arm that bring it closer to its targets (the
-states come every 20 ms).
+A move to θ (the controller's `posture` verb) at rtf 1 runs TRAJ_TIME wall seconds, so a rival
+or a flood that starts once the arm moves lands while the controller holds the lease. The stall
+of a flooded move is the longest wall-clock gap between two states of the left arm that bring it
+closer to its targets (the states come every 20 ms).
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ class Rig:
         _until(at_home, "the arm at home")
         self.states.clear()
 
-    def posture(self) -> dict[str, Any]:
+    def move_to_theta(self) -> dict[str, Any]:
         return dict(
             rpc_call(
                 self.node,
@@ -102,13 +102,13 @@ class Rig:
             )
         )
 
-    def posture_soon(self) -> Callable[[], dict[str, Any]]:
-        """Start a posture on a thread; returns the call that waits for its reply."""
+    def move_to_theta_soon(self) -> Callable[[], dict[str, Any]]:
+        """Start a move to θ on a thread; returns the call that waits for its reply."""
         result: dict[str, Any] = {}
 
         def run() -> None:
             try:
-                result["reply"] = self.posture()
+                result["reply"] = self.move_to_theta()
             except BaseException as exc:
                 result["error"] = exc
 
@@ -202,10 +202,10 @@ def _arm_targets(reply: dict[str, Any]) -> np.ndarray:
     return np.array([reply["q"][j] for j in PARTS[ARM]])
 
 
-def test_a_rival_publisher_during_a_posture_changes_nothing_and_is_counted(rig: Rig) -> None:
+def test_a_rival_publisher_during_a_move_changes_nothing_and_is_counted(rig: Rig) -> None:
     rig.home()
     before = rig.counters()
-    reply = rig.posture_soon()
+    reply = rig.move_to_theta_soon()
     _until(lambda: rig.owner() == CONTROLLER, "the controller's lease on the arm")
     rival = rig.node.publisher(rig.node.keys.command(ARM), JointCommand, lossless=True)
     assert rival.wait_matched(WAIT)
@@ -227,12 +227,12 @@ def test_a_rival_publisher_during_a_posture_changes_nothing_and_is_counted(rig: 
     _until(lambda: rig.owner() == "", "the controller dropping its lease")
 
 
-def test_a_flood_of_50000_commands_stalls_a_posture_by_at_most_half_a_second(
+def test_a_flood_of_50000_commands_stalls_a_move_by_at_most_half_a_second(
     rig: Rig, flooder: Callable[[], float]
 ) -> None:
     rig.home()
     before = rig.counters()
-    reply = rig.posture_soon()
+    reply = rig.move_to_theta_soon()
     _until(lambda: _moving(rig), "the arm moving")
     flood_s = flooder()
     done = reply()
@@ -293,11 +293,11 @@ def test_a_lease_that_is_not_renewed_ends_and_frees_the_part(rig: Rig) -> None:
     _until(lambda: rig.counters()["accepted"] > before["accepted"], "the command accepted")
 
 
-def test_the_operator_takes_the_arm_over_mid_posture(rig: Rig) -> None:
+def test_the_operator_takes_the_arm_over_mid_move(rig: Rig) -> None:
     rig.home()
     flags = ["--connect", rig.net.connect[0], "--robot", rig.net.robot]
     rpc_key, key = f"{rig.net.robot}/{ARM}/rpc:i", f"{rig.net.robot}/{ARM}/command:i"
-    reply = rig.posture_soon()
+    reply = rig.move_to_theta_soon()
     _until(lambda: rig.owner() == CONTROLLER, "the controller's lease on the arm")
     claim = '{"owner": "operator", "takeover": true, "ttl": 120}'
     took = archery("rpc", rpc_key, "claim", claim, *flags)
@@ -309,7 +309,7 @@ def test_the_operator_takes_the_arm_over_mid_posture(rig: Rig) -> None:
     assert "left_arm was taken over during the move" in done["reason"], done["reason"]
     assert "held by 'operator'" in done["reason"]
     with pytest.raises(RpcError, match=r"cannot move left_arm: .* is held by 'operator'") as busy:
-        rig.posture()
+        rig.move_to_theta()
     assert busy.value.code == "not_owner"
     home = json.dumps({"part": ARM, "position": list(home_of(ARM))})
     refused = archery("write", key, home, *flags)
@@ -320,12 +320,12 @@ def test_the_operator_takes_the_arm_over_mid_posture(rig: Rig) -> None:
     assert accepted.returncode == 0, accepted.stderr
     free = rig.part(ARM, "dropClaim", {"lease": lease["lease"]})
     assert free == {"held": False, "owner": "", "ttl": 0.0, "expires_in": 0.0}
-    assert rig.posture()["reached"]  # the controller's again
+    assert rig.move_to_theta()["reached"]  # the controller's again
 
 
 def test_a_dead_controller_s_lease_ends_by_itself(rig: Rig) -> None:
     rig.home()
-    reply = rig.posture_soon()
+    reply = rig.move_to_theta_soon()
     _until(lambda: rig.owner() == CONTROLLER, "the controller's lease on the arm")
     held = rig.part(ARM, "getClaim")
     assert held["ttl"] == LEASE_TTL and held["expires_in"] <= LEASE_TTL
@@ -339,7 +339,7 @@ def test_a_dead_controller_s_lease_ends_by_itself(rig: Rig) -> None:
     rig.node.wait_gone(CONTROLLER, WAIT)
     rig.start_controller()
     rig.home()
-    assert rig.posture()["reached"]
+    assert rig.move_to_theta()["reached"]
 
 
 def test_set_ref_speeds_claims_the_part_in_the_same_round_trip(rig: Rig) -> None:
@@ -365,4 +365,4 @@ def test_set_ref_speeds_claims_the_part_in_the_same_round_trip(rig: Rig) -> None
         rig.part(ARM, "setRefSpeeds", {"speeds": [0.1] * (n + 1), "claim": {"owner": "tester"}})
     assert wrong.value.code == "bad_request"
     assert rig.owner() == ""
-    assert rig.posture()["reached"]  # the controller claims and moves the arm as before
+    assert rig.move_to_theta()["reached"]  # the controller claims and moves the arm as before

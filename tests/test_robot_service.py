@@ -33,11 +33,11 @@ from tests.postures import archery_posture
 from tests.rpc import rpc_call
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
-Posture = dict[str, np.ndarray]
+Joints = dict[str, np.ndarray]  # joint positions (rad) per part
 
 
 @pytest.fixture(scope="module")
-def posture() -> Posture:
+def aim_joints() -> Joints:
     model: mujoco.MjModel = build_scene(WORLD.scene)
     return archery_posture(model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
 
@@ -63,7 +63,7 @@ class Client:
     def archery(self, verb: str, args: dict[str, Any] | None = None) -> Any:
         return rpc_call(self.node, self.keys.archery_rpc(), verb, args, timeout=20)
 
-    def command(self, targets: Posture) -> None:
+    def command(self, targets: Joints) -> None:
         for part, values in targets.items():
             self.commands[part].put(  # one batch: the parts start at one sim time
                 JointCommand(part=part, position=np.asarray(values).tolist(), batch=len(targets))
@@ -79,7 +79,7 @@ class Client:
         }
 
     def wait_reached(
-        self, targets: Posture, after: dict[str, int], tolerance: float = 2e-3, timeout: float = 20
+        self, targets: Joints, after: dict[str, int], tolerance: float = 2e-3, timeout: float = 20
     ) -> None:
         for part, values in targets.items():
             wanted = np.asarray(values)
@@ -90,7 +90,7 @@ class Client:
 
             self.states[part].wait_newer(timeout, there, after_seq=after[part])
 
-    def move(self, targets: Posture, reached: Posture | None = None) -> None:
+    def move(self, targets: Joints, reached: Joints | None = None) -> None:
         """Command `targets` on command:i and wait for the states to show `reached` (default:
         the targets), motion done."""
         after = self.settle()
@@ -136,10 +136,12 @@ def test_state_streams_carry_each_part_s_joints(robot: Callable[..., Client]) ->
     assert world.phase == "idle" and world.qpos.to_numpy().shape == (24,)
 
 
-def test_a_commanded_posture_is_reached(robot: Callable[..., Client], posture: Posture) -> None:
+def test_commanded_joint_positions_are_reached(
+    robot: Callable[..., Client], aim_joints: Joints
+) -> None:
     client = robot()
-    client.move(posture)
-    for part, values in posture.items():
+    client.move(aim_joints)
+    for part, values in aim_joints.items():
         assert client.part(part, "checkMotionDone") == {"done": True}
         np.testing.assert_allclose(client.part(part, "getTargets")["position"], values)
         np.testing.assert_allclose(client.part(part, "getPositions")["position"], values, atol=1e-3)
@@ -173,7 +175,7 @@ def test_targets_beyond_a_limit_by_less_than_the_tolerance_are_clamped(
 
 
 def test_bad_commands_are_rejected_counted_and_the_sim_keeps_running(
-    robot: Callable[..., Client], posture: Posture
+    robot: Callable[..., Client], aim_joints: Joints
 ) -> None:
     client = robot()
     arm = client.commands["left_arm"]
@@ -188,7 +190,7 @@ def test_bad_commands_are_rejected_counted_and_the_sim_keeps_running(
         arm.put(msg)
     nan = {"type": "JointCommand", "schema": 1, "part": "left_arm", "position": [math.nan] * 7}
     client.node.session.put(key, msgspec.msgpack.encode(nan))
-    client.move(posture)  # the good command still goes through
+    client.move(aim_joints)  # the good command still goes through
     counters = client.part("left_arm", "counters")
     by_reason = counters["rejected_by_reason"]
     assert counters["rejected"] == 4 and counters["accepted"] == 1
@@ -197,7 +199,7 @@ def test_bad_commands_are_rejected_counted_and_the_sim_keeps_running(
     assert counters["undecodable"] == 1  # NaN never decodes
     assert "wrong_part" not in counters["last_rejection"] and "torso" in counters["last_rejection"]
     np.testing.assert_allclose(
-        client.part("left_arm", "getTargets")["position"], posture["left_arm"]
+        client.part("left_arm", "getTargets")["position"], aim_joints["left_arm"]
     )
 
 
@@ -231,10 +233,10 @@ def test_release_without_an_arrow_is_an_error_reply(robot: Callable[..., Client]
 
 
 def test_a_shot_gives_events_with_the_ground_truth(
-    robot: Callable[..., Client], posture: Posture
+    robot: Callable[..., Client], aim_joints: Joints
 ) -> None:
     client = robot()
-    client.move(posture)
+    client.move(aim_joints)
     assert client.archery("nock")["shot"] == 1
     reply = client.archery("release")
     assert not {"r", "point", "impact_m"} & set(reply)
@@ -253,11 +255,11 @@ def test_a_shot_gives_events_with_the_ground_truth(
     assert status["scene"] == WORLD.scene.to_dict() | {"camera_pos": list(WORLD.scene.camera_pos)}
 
 
-def shoot(client: Client, posture: Posture, seed: int) -> list[float]:
+def shoot(client: Client, aim_joints: Joints, seed: int) -> list[float]:
     """The true impact (m, on the target plane) of a shot with launch noise seeded by `seed`,
     checking the events on the way: reset, nocked, released, then the landing."""
     client.archery("reset", {"seed": seed})
-    client.move(posture)
+    client.move(aim_joints)
     client.archery("nock")
     client.archery("release")
     events = [client.event() for _ in range(4)]
@@ -267,17 +269,17 @@ def shoot(client: Client, posture: Posture, seed: int) -> list[float]:
 
 
 def test_the_same_seed_gives_the_same_impact(
-    robot: Callable[..., Client], posture: Posture
+    robot: Callable[..., Client], aim_joints: Joints
 ) -> None:
     client = robot()
-    impacts = [shoot(client, posture, seed) for seed in (5, 5, 6)]
+    impacts = [shoot(client, aim_joints, seed) for seed in (5, 5, 6)]
     assert impacts[0] == impacts[1]  # bit for bit
     assert impacts[2] != impacts[0]  # another seed, other launch noise
 
 
 def test_reset_waits_for_a_flight_to_land(robot: Callable[..., Client]) -> None:
     client = robot(rtf=1.0)
-    client.archery("nock")  # from the home posture: a 0.38 s flight sideways to the ground
+    client.archery("nock")  # from the home joint positions: a 0.38 s flight sideways to the ground
     replies: dict[str, Any] = {}
     thread = threading.Thread(target=lambda: replies.update(release=client.archery("release")))
     thread.start()

@@ -140,7 +140,7 @@ def model() -> mujoco.MjModel:
 
 
 @pytest.fixture(scope="module")
-def posture(model: mujoco.MjModel) -> dict[str, np.ndarray]:
+def aim_joints(model: mujoco.MjModel) -> dict[str, np.ndarray]:
     return archery_posture(model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
 
 
@@ -176,9 +176,9 @@ def _wait_moved(loop: SimLoop, timeout: float = 20.0) -> float:
     return time.monotonic() - t0
 
 
-def _go(loop: SimLoop, posture: dict[str, np.ndarray]) -> None:
-    for part, values in posture.items():
-        loop.command(part, values.tolist(), None, part, batch=len(posture))
+def _go(loop: SimLoop, joints: dict[str, np.ndarray]) -> None:
+    for part, values in joints.items():
+        loop.command(part, values.tolist(), None, part, batch=len(joints))
     _wait_moved(loop)
 
 
@@ -221,11 +221,11 @@ def test_rtf0_at_rest_the_streams_fall_to_a_heartbeat_until_something_happens(st
 
 
 def test_rtf0_moves_fast_and_streams_on_the_sim_time_grid_at_the_wall_rate(
-    start: Any, posture: dict[str, np.ndarray]
+    start: Any, aim_joints: dict[str, np.ndarray]
 ) -> None:
     loop, rec = start(state_rate=50.0, world_rate=25.0)
     t0 = time.monotonic()
-    _go(loop, posture)
+    _go(loop, aim_joints)
     wall = time.monotonic() - t0
     sim = loop.status().sim_time
     assert sim > 1.0 and wall < sim / 5, (sim, wall)  # far faster than real time
@@ -284,7 +284,7 @@ def test_a_single_move_outlives_the_watchdog(start: Any) -> None:
 
 def test_reset_is_refused_during_a_flight(start: Any) -> None:
     loop, rec = start(rtf=1.0)
-    loop.nock()  # from the home posture: a 0.38 s flight sideways to the ground
+    loop.nock()  # from the home joint positions: a 0.38 s flight sideways to the ground
     result: dict[str, Any] = {}
     thread = threading.Thread(target=lambda: result.update(msgspec.to_builtins(loop.release())))
     thread.start()
@@ -302,10 +302,10 @@ def test_reset_is_refused_during_a_flight(start: Any) -> None:
 
 
 def test_a_landing_is_published_at_once_and_the_reply_has_no_ground_truth(
-    start: Any, posture: dict[str, np.ndarray]
+    start: Any, aim_joints: dict[str, np.ndarray]
 ) -> None:
     loop, rec = start(world_rate=1.0)
-    _go(loop, posture)
+    _go(loop, aim_joints)
     loop.nock()
     reply = msgspec.to_builtins(loop.release())
     assert not {"r", "point", "impact_m", "velocity"} & set(reply)
@@ -362,12 +362,12 @@ def _first_motion(rec: Recorder, rest: dict[str, list[float]]) -> dict[str, floa
 
 
 def test_an_announced_batch_starts_together_even_when_its_commands_trickle_in(
-    start: Any, posture: dict[str, np.ndarray]
+    start: Any, aim_joints: dict[str, np.ndarray]
 ) -> None:
     loop, rec = start(batch_window=1.0)
-    rest = {part: loop.positions(part).position for part in posture}
-    for part, values in posture.items():
-        loop.command(part, values.tolist(), None, part, batch=len(posture))
+    rest = {part: loop.positions(part).position for part in aim_joints}
+    for part, values in aim_joints.items():
+        loop.command(part, values.tolist(), None, part, batch=len(aim_joints))
         time.sleep(0.05)  # a move at rtf 0 covers a simulated second in ~20 ms of wall time
     _wait_moved(loop)
     starts = _first_motion(rec, rest)
@@ -388,10 +388,10 @@ def test_an_incomplete_batch_starts_when_the_window_ends(start: Any) -> None:
 
 
 def test_a_release_after_a_batched_move_waits_for_no_batch(
-    start: Any, posture: dict[str, np.ndarray]
+    start: Any, aim_joints: dict[str, np.ndarray]
 ) -> None:
     loop, _ = start(batch_window=1.0)
-    _go(loop, posture)
+    _go(loop, aim_joints)
     loop.nock()
     t0 = time.monotonic()
     loop.release()
@@ -399,12 +399,12 @@ def test_a_release_after_a_batched_move_waits_for_no_batch(
 
 
 def test_at_rtf0_a_release_replies_once_the_robot_rests_with_its_rest_published(
-    start: Any, posture: dict[str, np.ndarray]
+    start: Any, aim_joints: dict[str, np.ndarray]
 ) -> None:
-    # a reply sooner would let the next command start at a simulated time, or from a
-    # posture, of the wall clock's choosing: same-seed sessions would part
+    # a reply sooner would let the next command start at a simulated time, or from joint
+    # positions, of the wall clock's choosing: same-seed sessions would part
     loop, rec = start()
-    _go(loop, posture)
+    _go(loop, aim_joints)
     loop.nock()
     rec.latency = 0.02  # the rest's states take a while to go out: the reply waits for them
     reply = loop.release()

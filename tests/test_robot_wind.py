@@ -9,28 +9,28 @@ import numpy as np
 import pytest
 
 from protocol.errors import RpcError
-from tests.test_robot_service import Client, Posture, posture, robot, shoot  # noqa: F401
+from tests.test_robot_service import Client, Joints, aim_joints, robot, shoot  # noqa: F401
 
 WIND = [0.0, 10.0, 0.0]  # m/s along +y: r[0] of the impact is along +y
 
 
 def test_set_wind_moves_the_impact_downwind(
     robot: Callable[..., Client],  # noqa: F811
-    posture: Posture,  # noqa: F811
+    aim_joints: Joints,  # noqa: F811
 ) -> None:
     client = robot()
     assert client.archery("status")["world"]["wind"] == [0.0, 0.0, 0.0]
-    calm = np.asarray(shoot(client, posture, 3))
+    calm = np.asarray(shoot(client, aim_joints, 3))
     assert client.archery("setWind", {"wind": WIND}) == {"wind": WIND}
     assert client.archery("status")["world"]["wind"] == WIND
     windy = np.asarray(
-        shoot(client, posture, 3)
+        shoot(client, aim_joints, 3)
     )  # same seed: the same launch, only the wind differs
     shift = windy - calm
     assert shift[0] > 0.03 and abs(shift[1]) < shift[0]  # downwind, mostly sideways
     assert client.archery("setWind", {"wind": [0, 0, 0]}) == {"wind": [0.0, 0.0, 0.0]}
     np.testing.assert_array_equal(
-        np.asarray(shoot(client, posture, 3)), calm
+        np.asarray(shoot(client, aim_joints, 3)), calm
     )  # back to the calm impact
 
 

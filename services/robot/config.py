@@ -141,4 +141,5 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
         world = replace(base, bow=bow, wind=wind, drag=args.drag)
     except (SimError, ConfigError) as exc:
         raise ConfigError(f"invalid world setting: {exc}") from None
-    return config_from_args(RobotConfig, args, net=net, world=world)
+    config: RobotConfig = config_from_args(RobotConfig, args, net=net, world=world)
+    return config

@@ -3,7 +3,8 @@ limit).
 
 It runs on whichever thread delivers a command (a Zenoh callback), on the raw payload before it
 is decoded (`screen`), so a refused or excess command costs a lock and a byte search (~1 µs),
-never a decoding or a job: a flood cannot make the simulation loop fall behind.
+never a decoding or a job: a flood cannot make the simulation loop fall behind. It is the one
+check of a command's lease (`leases`): what passes is not checked again.
 
 Ownership (wall clock): `claim` gives the claimer a lease, a random id that lasts `ttl` s unless
 renewed (`renew`). While a lease runs the part obeys only commands that carry its id; the others
@@ -32,9 +33,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import msgspec
+
 from protocol.errors import ArcheryError
 
-__all__ = ["NOT_OWNER", "RATE_LIMITED", "Lease", "NotOwner", "PartGate"]
+__all__ = ["NOT_OWNER", "RATE_LIMITED", "Lease", "NotOwner", "PartGate", "lease_field"]
 
 NOT_OWNER = "not_owner"
 RATE_LIMITED = "rate_limited"
@@ -68,6 +71,11 @@ class Lease:
 
 def _new_id() -> str:
     return secrets.token_hex(8)
+
+
+def lease_field(lease_id: str) -> bytes:
+    """A `JointCommand`'s lease field as msgpack writes it: the key "lease", then the id."""
+    return msgspec.msgpack.encode("lease") + msgspec.msgpack.encode(lease_id)
 
 
 class PartGate:
@@ -105,7 +113,7 @@ class PartGate:
             f"{part} takes at most {rate:g} commands/s (bursts of {burst}): this one was "
             "dropped; the part keeps its last accepted targets"
         )
-        # the running lease, its id as bytes (sought in raw payloads) and the refusal message
+        # the running lease, its lease field's bytes (sought in raw payloads), the refusal message
         self._lease: Lease | None = None
         self._token = b""
         self._not_owner = ""
@@ -116,7 +124,7 @@ class PartGate:
         if lease is None:
             self._token, self._not_owner = b"", ""
         else:
-            self._token = lease.id.encode()
+            self._token = lease_field(lease.id)
             self._not_owner = (
                 f"{self.part} is held by {lease.owner!r}: only commands that carry its lease "
                 "move it (claim the part with takeover to take it over)"
@@ -226,9 +234,10 @@ class PartGate:
         """Whether a raw `command:i` payload may go on to be decoded: None if it may, else
         (reason, message), `not_owner` or `rate_limited`. Cheap: a flood goes through here.
 
-        While a lease runs, the payload must hold the lease's id (msgpack writes a string's
-        bytes as they are, so a search finds it without decoding); the decoded command's lease
-        is checked exactly afterwards (`owner_refusal`). Then the rate limit."""
+        While a lease runs, the payload must hold the lease field with the running id (msgpack
+        writes a map's key and a string's bytes as they are, so a search finds the field
+        without decoding): the command's lease is checked here, exactly, and nowhere else.
+        Then the rate limit."""
         now = self._clock()
         with self._lock:
             held = self._lease is not None and self._current(now) is not None

@@ -1,4 +1,5 @@
-"""The robot's RPC verbs (`protocol.verbs.robot`): one method per verb, served from `SimLoop`.
+"""The robot's RPC handlers: one method per verb of `protocol.verbs.robot` (the tables, with
+the README's), served from `SimLoop` and its lease gate (`leases`).
 
 Part verbs take the part first (bound per `ROBOT/{part}/rpc:i` key by `part_verbs`); joint
 vectors are in YARP order (rad, rad/s), times in s of simulated time.
@@ -129,17 +130,19 @@ class RobotHandlers:
         """Set the reference speeds (rad/s: one for all joints, or one per joint), after
         claiming the part when `claim` is given (a lease taken for speeds that are then refused
         is dropped again)."""
+        leases = self._loop.leases
         if args.claim is None:
-            speeds = self._loop.set_ref_speeds(part, args.speeds, args.lease)
+            leases.check(part, args.lease, counted=False)
+            speeds = self._loop.set_ref_speeds(part, args.speeds)
             return rv.RefSpeedsReply(names=self._names(part), speeds=speeds)
         if args.lease:
             raise BadRequest("setRefSpeeds takes a lease or a claim, not both")
         claim = args.claim
-        lease = self._loop.claim(part, self._owner(claim), claim.ttl, claim.takeover).lease
+        lease = leases.claim(part, self._owner(claim), claim.ttl, claim.takeover).lease
         try:
-            speeds = self._loop.set_ref_speeds(part, args.speeds, lease)
+            speeds = self._loop.set_ref_speeds(part, args.speeds)  # under the lease just taken
         except BaseException:
-            self._loop.drop_claim(part, lease)
+            leases.drop(part, lease)
             raise
         return rv.RefSpeedsReply(names=self._names(part), speeds=speeds, lease=lease)
 
@@ -149,7 +152,8 @@ class RobotHandlers:
 
     def position_move(self, part: str, args: rv.PositionMoveArgs) -> rv.TargetsReply:
         """Validate and apply targets (rad) like a command; the part's targets after it."""
-        position = self._loop.position_move(part, args.position, args.names, args.lease)
+        self._loop.leases.check(part, args.lease)
+        position = self._loop.position_move(part, args.position, args.names)
         return rv.TargetsReply(names=self._names(part), position=position)
 
     def counters(self, part: str, args: NoArgs) -> rv.CountersReply:
@@ -171,19 +175,19 @@ class RobotHandlers:
 
     def claim(self, part: str, args: rv.ClaimArgs) -> rv.LeaseReply:
         """Take the part for `ttl` wall s: only commands carrying the lease id move it."""
-        return self._loop.claim(part, self._owner(args), args.ttl, args.takeover)
+        return self._loop.leases.claim(part, self._owner(args), args.ttl, args.takeover)
 
     def renew_claim(self, part: str, args: rv.LeaseArgs) -> rv.LeaseReply:
         """Extend the running lease by its ttl (wall s) from now."""
-        return self._loop.renew_claim(part, args.lease)
+        return self._loop.leases.renew(part, args.lease)
 
     def drop_claim(self, part: str, args: rv.LeaseArgs) -> rv.ClaimReply:
         """End the lease: the part takes commands from anyone again."""
-        return self._loop.drop_claim(part, args.lease)
+        return self._loop.leases.drop(part, args.lease)
 
     def get_claim(self, part: str, args: NoArgs) -> rv.ClaimReply:
         """Who holds the part and for how long (wall s)."""
-        return self._loop.claim_state(part)
+        return self._loop.leases.holder(part)
 
     # -- archery verbs -----------------------------------------------------------------------
     def nock(self, args: NoArgs) -> rv.NockReply:
@@ -195,7 +199,7 @@ class RobotHandlers:
         return self._loop.release()
 
     def reset(self, args: rv.ResetArgs) -> rv.ResetReply:
-        """Home posture at sim time 0, the arrow stowed; reseeded when `seed` is given."""
+        """Home joint positions at sim time 0, the arrow stowed; reseeded when `seed` is given."""
         return self._loop.reset(args.seed)
 
     def set_wind(self, args: rv.SetWindArgs) -> rv.WindReply:

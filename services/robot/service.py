@@ -1,50 +1,10 @@
 """`archery robot`: the simulated iCub's controlboards and archery verbs on the mesh.
 
-Ports (ROBOT = the robot prefix, e.g. icubSim):
-
-* `ROBOT/{torso,left_arm,right_arm}/state:o` JointState at `state_rate` per simulated second
-  (at rtf 0 at most that many per wall second); at rtf 0 and at rest (every motion done, no arrow
-  flying) at that rate per wall second for `rest_after` s after the last command, move, nock,
-  release or reset, then a heartbeat at `rest_rate` (10 Hz by default), full rate again at once
-  on any of them (see `pacing`);
-* `ROBOT/{part}/command:i` JointCommand position targets (validated as in `commands`), from the
-  holder of the part's lease only while one runs, at most `--command-rate` per wall s (see
-  `gate`);
-* `ROBOT/{part}/rpc:i` controlboard verbs: getJointNames, getLimits, getPositions, getTargets,
-  checkMotionDone, setRefSpeeds, getRefSpeeds, positionMove, counters, status, and the lease
-  verbs claim, renewClaim, dropClaim, getClaim;
-* `ROBOT/archery/rpc:i`: nock, release (replies after the landing), reset, status;
-* `ROBOT/world/state:o` WorldState at `world_rate` per simulated second (paced like the joint
-  states, the heartbeat at rest too) and after each nock, release, landing and reset;
-* `ROBOT/world/events:o` WorldEvent, lossless: nocked, released, landed / missed, reset, and
-  watchdog (a part's command stream stopped mid-motion for `--watchdog` wall s, default 0.1:
-  the part is held at its measured positions, `watchdog_trips` counts it; see `watchdog`).
-
-Verbs (args → result; joint vectors in YARP order, rad; the types are in `protocol.verbs.robot`,
-where the RPC server checks every request before a handler sees it):
-
-* getJointNames → {names}; getLimits → {names, min, max, tolerance} (software limits);
-  getPositions → {names, position, velocity, sim_time}; getTargets → {names, position};
-  checkMotionDone → {done}; setRefSpeeds {speeds: number or list, rad/s} → {names, speeds};
-  getRefSpeeds → {names, speeds}; positionMove {position, names?, lease?} → {names, position}
-  (the part's targets after the move, validated as a command); counters → {accepted, clamped,
-  rejected, rejected_by_reason, watchdog_trips, last_rejection, streaming, undecodable};
-  status → names, motion_done, counters and getPositions' fields.
-* claim {owner, ttl? (wall s, default 2), takeover?} → {lease, owner, ttl, expires_in,
-  took_over}; renewClaim {lease} → the same; dropClaim {lease} → getClaim's reply; getClaim →
-  {held, owner, ttl, expires_in}. While a lease runs, a command, positionMove or setRefSpeeds
-  without its id is refused (`not_owner`, counted with the command counters); with none held
-  the part takes commands from anyone.
-* nock → {shot, arrow, sim_time}; release → {shot, outcome, hit, reason, sim_time,
-  release_sim_time, flight_time, theta} once the arrow has landed; reset {seed?} → {sim_time,
-  seed, shot}; status → {sim_time, arrow, phase, shot, motion_done, seed, rtf, rates,
-  watchdog, limit_tolerance, timestep, counters, scene (SceneConfig.to_dict()), world
-  (WorldConfig.to_dict())}.
-
-Requests on one key are served one at a time, so a release holds `archery/rpc:i` until its
-landing and a reset sent meanwhile is answered after it (the world itself refuses a reset during
-a flight). The ground-truth impact r is only in the landed / missed events (tests and plots);
-the release reply tells the outcome, never r. The simulation runs on its own thread (`simloop`).
+`run` wires the simulation (`simloop`) to its ports: each part's `command:i` subscription,
+screened raw by the lease gate (`leases`) before decoding, and the verb handlers (`handlers`).
+The ports are listed in the README ("Names on the mesh"), the verbs in
+`protocol.verbs.robot` (`archery interface KEY` prints them); ARCHITECTURE.md places the robot in
+the life of one rollout.
 """
 
 from __future__ import annotations
@@ -85,7 +45,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                     callback=lambda msg, part=part: loop.command(  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
                         part, msg.position, msg.names, msg.part, msg.batch, msg.lease
                     ),
-                    admit=partial(loop.screen, part),
+                    admit=partial(loop.leases.screen, part),  # the one check of its lease
                 )
                 for part in world.parts
             }
