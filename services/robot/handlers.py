@@ -7,9 +7,7 @@ vectors are in YARP order (rad, rad/s), times in s of simulated time.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from functools import partial
-from typing import Any
+from collections.abc import Mapping
 
 from mesh.acl import OPERATOR
 from mesh.rpc_server import caller
@@ -66,34 +64,31 @@ class RobotHandlers:
 
     def part_verbs(self, part: str) -> ServedVerbs:
         """The verbs of `ROBOT/{part}/rpc:i`."""
-        verbs: dict[str, Callable[[str, Any], Any]] = {
-            "getJointNames": self.get_joint_names,
-            "getLimits": self.get_limits,
-            "getPositions": self.get_positions,
-            "getTargets": self.get_targets,
-            "checkMotionDone": self.check_motion_done,
-            "setRefSpeeds": self.set_ref_speeds,
-            "getRefSpeeds": self.get_ref_speeds,
-            "positionMove": self.position_move,
-            "counters": self.counters,
-            "status": self.part_status,
-            "claim": self.claim,
-            "renewClaim": self.renew_claim,
-            "dropClaim": self.drop_claim,
-            "getClaim": self.get_claim,
-        }
-        return rv.PART_VERBS.bind_names({name: partial(verb, part) for name, verb in verbs.items()})
+        return rv.PART_VERBS.bind(
+            rv.GET_JOINT_NAMES.to(lambda a: self.get_joint_names(part, a)),
+            rv.GET_LIMITS.to(lambda a: self.get_limits(part, a)),
+            rv.GET_POSITIONS.to(lambda a: self.get_positions(part, a)),
+            rv.GET_TARGETS.to(lambda a: self.get_targets(part, a)),
+            rv.CHECK_MOTION_DONE.to(lambda a: self.check_motion_done(part, a)),
+            rv.SET_REF_SPEEDS.to(lambda a: self.set_ref_speeds(part, a)),
+            rv.GET_REF_SPEEDS.to(lambda a: self.get_ref_speeds(part, a)),
+            rv.POSITION_MOVE.to(lambda a: self.position_move(part, a)),
+            rv.COUNTERS.to(lambda a: self.counters(part, a)),
+            rv.PART_STATUS.to(lambda a: self.part_status(part, a)),
+            rv.CLAIM.to(lambda a: self.claim(part, a)),
+            rv.RENEW_CLAIM.to(lambda a: self.renew_claim(part, a)),
+            rv.DROP_CLAIM.to(lambda a: self.drop_claim(part, a)),
+            rv.GET_CLAIM.to(lambda a: self.get_claim(part, a)),
+        )
 
     def archery_verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/archery/rpc:i`."""
-        return rv.ARCHERY_VERBS.bind_names(
-            {
-                "nock": self.nock,
-                "release": self.release,
-                "reset": self.reset,
-                "setWind": self.set_wind,
-                "status": self.archery_status,
-            }
+        return rv.ARCHERY_VERBS.bind(
+            rv.NOCK.to(self.nock),
+            rv.RELEASE.to(self.release),
+            rv.RESET.to(self.reset),
+            rv.SET_WIND.to(self.set_wind),
+            rv.ARCHERY_STATUS.to(self.archery_status),
         )
 
     def _names(self, part: str) -> list[str]:
