@@ -323,7 +323,9 @@ class Image(Message, frozen=True):
 
 
 class Detection(Message, frozen=True):
-    """Target centre and arrow tip in an image (px) and the reward vector r (m)."""
+    """Target centre and arrow tip in an image (px: column, row) and the reward vector r (m):
+    arrow − centre on the target plane, r[0] to the robot's right, r[1] up (the paper's
+    r = m_T − m_A in pixels, re-expressed in metres); `status` "ok" when both were found."""
 
     frame_stamp: float
     status: Literal["ok", "no_target", "no_arrow"]

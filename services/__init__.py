@@ -1,1 +1,1 @@
-"""The five archery services (robot, camera, detector, controller, learner) and the launcher."""
+"""The five archery services: robot, camera, detector, controller, learner (ARCHITECTURE.md)."""

@@ -67,7 +67,17 @@ class MeasureReply(Reply, frozen=True):
     arrow_px: list[float] | None
     target_confidence: float
     arrow_confidence: float
-    r_m: Annotated[list[float], Meta(min_length=2, max_length=2, description="m")] | None
+    r_m: (
+        Annotated[
+            list[float],
+            Meta(
+                min_length=2,
+                max_length=2,
+                description="m: arrow − centre on the target plane, [right, up]",
+            ),
+        ]
+        | None
+    )
     frame: int
     timing: Annotated[dict[str, float], Meta(description="s")]
 

@@ -1,27 +1,7 @@
-"""`archery detector`: the GMM colour detector on the mesh (`ROBOT/detector/rpc:i`, `hit:o`).
-
-Verbs on `ROBOT/detector/rpc:i` (args → result):
-- `measure {"after_sim_time": s, "after_stamp": s, "timeout": s}` → grabs a camera frame newer
-  than those stamps (`cam/rpc:i grab` with the same args, so it never sees the scene before the
-  landing; a camera that does not answer is the error `upstream_lost` naming `camera`), detects,
-  publishes the `Detection` on `ROBOT/detector/hit:o` (lossless) and replies
-  with it as a dict: `status` ("ok", "no_target", "no_arrow"), `r_m` = arrow − centre on the
-  target plane (m; r[0] to the robot's right, r[1] up; the paper's r = m_T − m_A in pixels,
-  re-expressed), `target_px`, `arrow_px` (column, row), confidences, the frame's `sim_time`
-  and `frame_stamp`, plus `frame` (the camera's frame number) and `timing` {grab_s, detect_s}.
-- `calibrate {"pixels": {"target": […], "arrow": […]}, "after_sim_time": s, "after_stamp": s}`
-  fits the colour model on a camera frame (newer than the stamps) from the given pixels
-  (PIXELS.json form), or, without `pixels`, on the camera's own `calibration` frame and marks
-  (the simulated camera provides them); saved to `--model` when given. → the model summary
-  (components and BIC per object) and the pixel counts.
-- `frame {"overlay": true}` → {"png": bytes, "status": s}: the last measured frame, with the
-  detection and the filtered pixels drawn as in the paper's Fig. 9.
-- `status {}` → calibrated or not, the model summary, the settings, measurements so far.
-
-Without `--model`, or with a model file that does not exist yet, the detector calibrates itself
-from the camera's `calibration` marks as soon as the camera is alive (`--no-auto-calibrate`
-turns that off).
-"""
+"""`archery detector`: the GMM colour detector on the mesh: the verbs of
+`ROBOT/detector/rpc:i` (`protocol.verbs.detector`; the README's tables) and each measurement on
+`ROBOT/detector/hit:o`. Without `--model` (or with one not made yet) it calibrates itself from
+the camera's `calibration` marks once the camera is alive (`--no-auto-calibrate`: not)."""
 
 from __future__ import annotations
 
