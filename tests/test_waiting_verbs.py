@@ -56,8 +56,17 @@ def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: Ne
         key = node.keys.cam_rpc()
         never = GrabArgs(after_sim_time=NEVER, timeout=10.0)  # a world state that never comes
         probe = GrabArgs(after_sim_time=NEVER, timeout=0.5)
+
+        def pending_grab() -> RpcError | None:
+            """A grab kept waiting: sent again while a probe holds the slot it needs."""
+            while True:
+                error = _grab_error(node, never, 10.0)
+                if error is None or error.code != "busy":
+                    return error
+                time.sleep(0.05)
+
         with ThreadPoolExecutor(MAX_WAITING) as pool:
-            pending = [pool.submit(_grab_error, node, never, 10.0) for _ in range(MAX_WAITING)]
+            pending = [pool.submit(pending_grab) for _ in range(MAX_WAITING)]
             # once every slot is taken, the next waiting request is refused `busy` at once
             deadline = time.monotonic() + 8.0
             while True:
@@ -76,9 +85,8 @@ def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: Ne
             assert time.monotonic() - start < 8.0
             assert node.call_typed(key, STATUS, NoArgs(), timeout=5.0).source == "mujoco"
             ends = [future.result() for future in pending]
-        # each pending grab ended at its timeout (or was refused when a probe held its slot)
-        assert all(e is not None and e.code in ("timeout", "busy") for e in ends), ends
-        assert sum(e is not None and e.code == "timeout" for e in ends) >= MAX_WAITING - 1
+        # each pending grab ended at its timeout
+        assert all(e is not None and e.code == "timeout" for e in ends), ends
 
 
 def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:

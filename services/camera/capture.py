@@ -296,6 +296,9 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                     # later sim time, or a stamp to come, does not: it must not make the camera
                     # render every state meanwhile)
                     wanted = state is not None and _serves(waiting, state.sim_time, time.time())
+                    # the kept render is of the newest state (a newer one not rendered yet
+                    # must not be stood in for by an older render)
+                    newest = state is None or state.seq == last_seq
                     if state is not None and new and (due or wanted):
                         capture.recheck_scene()
                         last_seq = state.seq
@@ -305,7 +308,7 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                         if wanted or not resting(pixels, now):
                             send(pixels, state.sim_time, captured, now)
                         next_due = now + period
-                    elif (recapture := _needs_recapture(waiting, cached)) or due:
+                    elif (recapture := newest and _needs_recapture(waiting, cached)) or due:
                         if cached is None:  # no world state yet: the model's initial state
                             qpos = np.asarray(capture.renderer.model.qpos0)
                             cached = (capture.render(qpos), None, time.time())
