@@ -57,24 +57,16 @@ def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: Ne
         never = GrabArgs(after_sim_time=NEVER, timeout=10.0)  # a world state that never comes
         probe = GrabArgs(after_sim_time=NEVER, timeout=0.5)
 
-        def pending_grab() -> RpcError | None:
-            """A grab kept waiting: sent again while a probe holds the slot it needs."""
-            while True:
-                error = _grab_error(node, never, 10.0)
-                if error is None or error.code != "busy":
-                    return error
-                time.sleep(0.05)
-
         with ThreadPoolExecutor(MAX_WAITING) as pool:
-            pending = [pool.submit(pending_grab) for _ in range(MAX_WAITING)]
+            pending = [pool.submit(_grab_error, node, never, 10.0) for _ in range(MAX_WAITING)]
             # once every slot is taken, the next waiting request is refused `busy` at once
             deadline = time.monotonic() + 8.0
-            while True:
-                start = time.monotonic()
-                error = _grab_error(node, probe, 2.0)
-                assert error is not None and error.code in ("busy", "timeout"), error
-                if error.code == "busy" or time.monotonic() > deadline:
-                    break
+            while node.call_typed(key, STATUS, NoArgs(), timeout=5.0).waiting < MAX_WAITING:
+                assert time.monotonic() < deadline, "the pending grabs are not all waiting"
+                time.sleep(0.02)
+            start = time.monotonic()
+            error = _grab_error(node, probe, 2.0)
+            assert error is not None, error
             assert error.code == "busy", error
             assert time.monotonic() - start < 1.0
             assert "try again later" in error.message
@@ -98,14 +90,13 @@ def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:
             gone = list(pool.map(lambda _: _grab_error(node, never, 1.0), range(MAX_WAITING)))
         # (the caller's own timeout, or the camera's reply that it stopped at that time)
         assert all(e is not None and e.code == RpcTimeout.code for e in gone), gone
-        # their slots come free within seconds, not 120 s: a waiting grab is taken again
-        deadline = time.monotonic() + 10.0
-        while True:
-            error = _grab_error(node, GrabArgs(after_sim_time=NEVER, timeout=1.0), 5.0)
-            assert error is not None
-            if error.code != "busy" or time.monotonic() > deadline:
-                break
-        assert error.code == "timeout", error
+        # none waits on: their slots are free within seconds, not 120 s
+        key, deadline = node.keys.cam_rpc(), time.monotonic() + 10.0
+        while node.call_typed(key, STATUS, NoArgs(), timeout=5.0).waiting:
+            assert time.monotonic() < deadline, "grabs wait on after their callers gave up"
+            time.sleep(0.02)
+        error = _grab_error(node, GrabArgs(after_sim_time=NEVER, timeout=1.0), 5.0)
+        assert error is not None and error.code == "timeout", error
         # and a plain grab gets its frame
         image = node.call_typed(node.keys.cam_rpc(), GRAB, GrabArgs(timeout=20.0), timeout=20.0)
         assert image.width == 320

@@ -57,6 +57,7 @@ class CameraStatusReply(Reply, frozen=True):
     latest_sim_time: float | None
     scene: dict[str, Any] | None
     scene_from: str
+    waiting: Annotated[int, Meta(description="grabs waiting for their frame now")] = 0
 
 
 GRAB = Verb(

@@ -129,4 +129,5 @@ class CameraHandlers:
             latest_sim_time=latest.sim_time if latest else None,
             scene=capture.scene,
             scene_from=capture.scene_from,
+            waiting=len(self._store.waiting()),
         )
