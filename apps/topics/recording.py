@@ -362,7 +362,12 @@ class Recorder:
     def _work(self) -> None:
         last_flush = time.monotonic()
         while True:
-            timeout = max(0.0, last_flush + self._flush_interval - time.monotonic())
+            # nothing unflushed: wait for the next message, not for a flush due (no busy loop)
+            timeout = (
+                max(0.0, last_flush + self._flush_interval - time.monotonic())
+                if self._dirty
+                else None
+            )
             try:
                 item = self._queue.get(timeout=timeout)
             except queue.Empty:
