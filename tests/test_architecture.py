@@ -211,3 +211,14 @@ def test_no_test_sets_the_rendering_variables() -> None:
     for path in sorted((ROOT / "tests").rglob("*.py")):
         if path.name not in allowed:
             assert not _names_a_rendering_variable(path), path.name
+
+
+def test_every_file_the_map_names_exists() -> None:
+    """ARCHITECTURE.md's paths (the life of one θ above all) name files that exist."""
+    text = (ROOT / "ARCHITECTURE.md").read_text()
+    # (a path with a capital is a pattern, e.g. `protocol/verbs/NAME.py`)
+    pattern = r"`((?:protocol|mesh|services|sim|apps|tests|benchmarks)/[a-z0-9_/]+\.py)`"
+    named = set(re.findall(pattern, text))
+    assert len(named) > 20
+    missing = sorted(path for path in named if not (ROOT / path).is_file())
+    assert not missing, f"ARCHITECTURE.md names files that do not exist: {missing}"
