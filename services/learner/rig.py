@@ -37,7 +37,6 @@ from typing import Any, TypeVar
 
 import msgspec
 import numpy as np
-import zenoh
 
 from mesh.node import Node
 from mesh.tokens import TokenSet
@@ -81,15 +80,9 @@ class MeshRig:
         self.timeout = timeout
         self._truth: OrderedDict[int, tuple[float, WorldEvent]] = OrderedDict()
         self._truth_cond = threading.Condition()
-        self._lost_at: dict[str, float] = {}  # service -> monotonic time its token went
-        self._lost_lock = threading.Lock()
         node.subscribe(self.keys.world_events(), WorldEvent, mode="fifo", callback=self._on_event)
-        # Undeclared with the node's session.
-        self._liveliness = node.session.liveliness().declare_subscriber(
-            self.keys.alive_all(), self._on_token, history=True
-        )
-        # Who is alive, kept from liveliness events: a query per check would time out on a
-        # loaded machine and report every service missing.
+        # Who is alive and since when one went, kept from liveliness events: a query per check
+        # would time out on a loaded machine and report every service missing.
         self._tokens = TokenSet(node.session, self.keys.alive_all())
 
     def _on_event(self, event: WorldEvent) -> None:
@@ -101,14 +94,6 @@ class MeshRig:
             while len(self._truth) > _TRUTH_KEPT:
                 self._truth.popitem(last=False)
             self._truth_cond.notify_all()
-
-    def _on_token(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
-        with self._lost_lock:
-            if sample.kind == zenoh.SampleKind.DELETE:
-                self._lost_at[name] = time.monotonic()
-            else:
-                self._lost_at.pop(name, None)
 
     def _call(
         self, service: str, key: str, verb: Verb[Any, R], args: msgspec.Struct | None = None
@@ -152,9 +137,7 @@ class MeshRig:
 
     def lost_ago(self, service: str) -> float | None:
         """Seconds since `service`'s liveliness token went (None: not seen going)."""
-        with self._lost_lock:
-            lost = self._lost_at.get(service)
-        return None if lost is None else time.monotonic() - lost
+        return self._tokens.gone_for(service)
 
     def wait_services(self, timeout: float, stop: threading.Event) -> bool:
         """Wait until every service is alive (True) or `stop` is set (False).
