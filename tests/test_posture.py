@@ -12,11 +12,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from apps.experiment.config import ExperimentConfig
 from protocol.direction import NoArrowDirection, arrow_direction
 from protocol.verbs.controller import THETA_MAX, THETA_MIN, PostureArgs
 from services.controller.errors import ConfigError, JointError, TargetError
 from services.controller.ik_types import IkSettings
 from services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
+from services.learner.algorithms.base import DEFAULT_BOUNDS
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -109,10 +111,13 @@ def test_a_malformed_theta_is_refused_where_the_request_is_decoded() -> None:
 
 
 def test_the_theta_box_is_defined_once() -> None:
-    """The posture's default box is the contract's θ box (`protocol.verbs.controller`)."""
+    """The posture's default box is the contract's θ box (`protocol.verbs.controller`), and so
+    is the box of learners built without a controller (the analytic experiment world)."""
     config = PostureConfig()
     assert config.theta_min.tolist() == list(THETA_MIN)
     assert config.theta_max.tolist() == list(THETA_MAX)
+    for bounds in (DEFAULT_BOUNDS, ExperimentConfig().bounds):
+        assert (bounds.low, bounds.high) == (THETA_MIN, THETA_MAX)
 
 
 # ------------------------------------------------------------------------------------- posture
