@@ -116,11 +116,13 @@ class RpcServer:
     nor held up behind a blocking verb of the same port; it may run while a blocking handler
     does. Requests that reach no handler (undecodable, unknown verb) are answered there too.
 
-    This is the one place a request is validated: for a typed verb table (`ServedVerbs`) the
-    request's args are decoded straight into the verb's `Args` type, and anything that does not
-    fit (wrong type, out of range, NaN, unknown or missing field) is answered `bad_request`
-    naming the verb, the field and what is allowed; the handler gets the typed args and returns
-    the verb's `Reply`. An `ArcheryError` becomes an error reply
+    A request's form is validated here, once: for a typed verb table (`ServedVerbs`) the
+    request's args are decoded straight into the verb's `Args` type, whose fields carry the
+    constraints (type, size, range, finite), and anything that does not fit (wrong type, out of
+    range, NaN, unknown or missing field) is answered `bad_request` naming the verb, the field
+    and what is allowed; the handler gets the typed args, which its core does not check again
+    (only what depends on the service's own state or configuration, such as the controller's θ
+    box), and returns the verb's `Reply`. An `ArcheryError` becomes an error reply
     with its code, any other exception an "internal" error; a payload that is not a request (not
     msgpack, no `type` tag, nested too deep) `bad_message`. The server keeps serving.
     """

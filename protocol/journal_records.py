@@ -14,7 +14,8 @@ Kinds, in the order a session writes them:
   replaying a shot needs: the robot's world parameters, its shot count before the session and
   the controller's trajectory time (s).
 * `proposed` {index, theta}: attempt `index` (1, 2, …) is about to run θ (m).
-* `done` {index, rollout, theta, r_m, distance_m, hit, …}: attempt `index` finished and the
+* `done` {index, rollout, theta, theta_measured, theta_launched, r_m, distance_m, hit, …}:
+  attempt `index` finished (θ proposed, reached by the controller, launched by the robot) and the
   learner was told (θ, r); `rollout` counts done rollouts (1-based). Version 1 journals also
   kept the learner's whole state in each done record (`learner_state`), which grew with the
   session; version 2 keeps it in checkpoints.
@@ -28,7 +29,8 @@ Kinds, in the order a session writes them:
 
 Field order is the order of the lines on disk. A field that a line may lack (`controller_box`,
 `from`, `rig`, an aborted record's `truth_r_m` and `detection`, a resumed record's `skipped`, a
-stopped record's `cause`, a done record's `learner_state`) is `UNSET` when absent, so a record
+stopped record's `cause`, a done record's `theta_launched` and `learner_state`) is `UNSET` when
+absent, so a record
 encodes back to its line. Which records may follow which (index order, one open attempt, the
 same θ) is the journal's business: these types say only what each record holds.
 """
@@ -116,7 +118,10 @@ class DoneRecord(SessionRecord, frozen=True, kw_only=True, tag="done"):
     """Attempt `index` was measured and the learner told: done rollout number `rollout`.
 
     Attributes:
-        theta: θ run (m); theta_measured: θ the controller reached (m).
+        theta: θ proposed and run (m); theta_measured: θ the controller reached (m);
+            theta_launched: θ the arrow was launched with (m, the robot's release reply;
+            absent from journals written before it was recorded, or when the rig did not
+            tell it).
         r_m: the measured r (m) on the target plane; ret: the return R = exp(−‖r‖/s).
         distance_m: ‖r‖ (m); hit: ‖r‖ below the session's hit radius.
         shot, outcome: the robot's shot number and what it says of the shot.
@@ -130,6 +135,7 @@ class DoneRecord(SessionRecord, frozen=True, kw_only=True, tag="done"):
     rollout: Index
     theta: Theta
     theta_measured: Vector | None = None
+    theta_launched: Vector | UnsetType = UNSET
     r_m: Theta
     ret: float | None = None
     distance_m: Annotated[float, Meta(ge=0, description="m")]

@@ -32,6 +32,7 @@ from enum import StrEnum
 import mujoco
 import numpy as np
 
+from protocol.direction import arrow_direction
 from sim.bow import Bow
 from sim.errors import StateError
 from sim.scene import ScenePhysics
@@ -170,13 +171,10 @@ def launch_velocity(
     is tilted by direction_noise·N(0, 1) radians about each of two axes perpendicular to it.
 
     Raises:
-        StateError: the hands coincide, so there is no direction to shoot in.
+        NoArrowDirection: the hands coincide, so there is no direction to shoot in.
     """
     theta = np.asarray(string_hand, dtype=float) - np.asarray(bow_hand, dtype=float)
-    norm = float(np.linalg.norm(theta))
-    if norm < 1e-9:
-        raise StateError(f"the hands coincide (θ = {theta} m): no direction to shoot in")
-    direction = -theta / norm
+    direction = arrow_direction(theta)
     speed = bow.launch_speed(theta)
     if rng is not None:
         # Always draw the same three numbers, so the stream does not depend on the settings.

@@ -25,8 +25,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from protocol.direction import NoArrowDirection
 from protocol.vectors import finite_vector
-from sim.bow import Bow, BowError
+from sim.bow import Bow
 from sim.geometry import BOW_HAND, INNER_RING_RADIUS, START_THETA, TARGET_DISTANCE, target_centre
 
 __all__ = [
@@ -221,7 +222,7 @@ class BallisticWorld:
         for i, theta in enumerate(thetas):
             try:
                 velocities[i] = self._bow.launch_velocity(theta)
-            except BowError as exc:
+            except NoArrowDirection as exc:
                 raise ShotError(str(exc)) from exc
             if self._bow.draw(theta) <= 0.0:
                 raise ShotError(

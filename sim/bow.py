@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.vectors import finite_vector
+from protocol.direction import arrow_direction
 
 __all__ = ["Bow", "BowError"]
 
@@ -56,13 +56,11 @@ class Bow:
         return self.draw(theta) * math.sqrt(self.efficiency * self.stiffness / self.arrow_mass)
 
     def launch_velocity(self, theta: np.ndarray) -> np.ndarray:
-        """Launch velocity vector (m/s) along −θ/‖θ‖, in θ's frame.
+        """Launch velocity vector (m/s) along −θ/‖θ‖ (`protocol.direction.arrow_direction`), in
+        θ's frame, for θ a finite 3-vector (m).
 
         Raises:
-            BowError: θ is not a finite 3-vector or the hands coincide.
+            NoArrowDirection: the hands coincide (‖θ‖ ≈ 0).
         """
-        theta = finite_vector("θ", theta, BowError, unit="m")
-        norm = float(np.linalg.norm(theta))
-        if norm < 1e-9:
-            raise BowError("the string hand is on the bow hand (‖θ‖ = 0): no arrow direction")
-        return -theta / norm * self.launch_speed(theta)
+        velocity: np.ndarray = arrow_direction(theta) * self.launch_speed(theta)
+        return velocity

@@ -473,7 +473,7 @@ class ArcheryWorld:
         """Release the string: the arrow starts flying; advance it with `step`.
 
         Raises:
-            StateError: no arrow is nocked, or the hands coincide.
+            StateError: no arrow is nocked. NoArrowDirection: the hands coincide.
         """
         if self._arrow is not ArrowState.NOCKED:
             raise StateError(
@@ -548,7 +548,7 @@ class ArcheryWorld:
             The landing: hit with r on the target face, or a miss with its reason.
 
         Raises:
-            StateError: no arrow is nocked, or the hands coincide.
+            StateError: no arrow is nocked. NoArrowDirection: the hands coincide.
         """
         self.launch()
         while True:

@@ -365,6 +365,8 @@ def test_an_old_format_journal_decodes_unchanged(
     assert size == len(data) and {r.kind for r in records} == kinds
     # every line encodes back to its very bytes (fields, order, float digits, no spaces)
     assert b"".join(encode_record(r) for r in records) == data
+    # written before done records held the launched θ: it reads as absent, and stays so
+    assert all(r.theta_launched is UNSET for r in records if isinstance(r, DoneRecord))
     state = JournalState.from_records(records, str(path))
     assert {k: state.summary()[k] for k in summary} == summary
     assert check_invariants(records, allow_open=state.ended is None) == []
@@ -441,6 +443,7 @@ def _every_kind() -> list[JournalRecord]:
             theta,
             1,
             theta_measured=[0.1700000001, 0.006, -0.026],
+            theta_launched=[0.1700000002, 0.006, -0.026],
             r_m=[6.201199994393392e-05, -1e-7],  # floats Python writes with an exponent
             ret=0.999,
             distance_m=1e-7,

@@ -144,6 +144,9 @@ def test_archer_session_over_the_mesh(mesh: Node, tmp_path: Path) -> None:
         assert record.truth_r_m is not None
         assert np.linalg.norm(np.subtract(record.r_m, record.truth_r_m)) < 0.02
         assert np.linalg.norm(np.subtract(record.theta, record.theta_measured)) < 1e-3
+        # the θ the arrow left with, as the robot's release reply told it
+        assert isinstance(record.theta_launched, list)
+        assert np.linalg.norm(np.subtract(record.theta_launched, record.theta_measured)) < 5e-3
         assert record.timing["posture_s"] > 0 and record.timing["detector_detect_s"] > 0
     assert done[-1].hit and done[-1].distance_m < 0.05
     idle = rpc_call(mesh, keys.learner_rpc(), "status", timeout=10)

@@ -33,6 +33,7 @@ BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.
 GAIN = np.array([[-1.0, -11.0, -1.1], [2.3, -4.0, -11.8]])
 AIM = np.array([0.16, 0.0, -0.018])
+LAUNCH_OFFSET = np.array([2e-4, -1e-4, 5e-5])  # m: the hands at release, a little off the posture
 
 
 class Crash(BaseException):
@@ -60,6 +61,7 @@ class FakeRig:
         self.waits = 0
         self.framed: list[int] = []  # the shots whose frame was asked for
         self.frame_error = False
+        self.launched: list[list[float]] = []  # the θ (m) of each shot's release
 
     def missing(self) -> list[str]:
         return sorted(self.gone)
@@ -90,7 +92,9 @@ class FakeRig:
     def shoot(self) -> Shot:
         self.calls.append("shoot")
         self.shots += 1
-        return Shot(self.shots, 1.0, 0.0, "target", {"release_s": 0.01})
+        launched = (self.theta + LAUNCH_OFFSET).tolist()  # the hands at the release
+        self.launched.append(launched)
+        return Shot(self.shots, 1.0, 0.0, "target", {"release_s": 0.01}, theta_launched=launched)
 
     def _r(self) -> np.ndarray:
         noise = np.random.default_rng(abs(hash(tuple(np.round(self.theta, 9))))).normal(0, 0.003, 2)
@@ -160,6 +164,12 @@ def test_archer_hits_and_journals_every_rollout(tmp_path: Path) -> None:
     done = [r for r in records if isinstance(r, DoneRecord)]
     assert done[-1].hit and done[-1].distance_m < 0.05
     assert all(r.truth_r_m is not None for r in done)
+    # θ proposed, reached by the controller and launched by the robot, each as its rig said
+    proposed = {r.index: r.theta for r in records if isinstance(r, ProposedRecord)}
+    assert [r.theta for r in done] == [proposed[r.index] for r in done]
+    assert [r.theta_measured for r in done] == [r.theta for r in done]
+    assert [r.theta_launched for r in done] == rig.launched
+    assert all(r.theta_launched != r.theta for r in done)
     assert [r.kind for r in published] == [r.kind for r in records[1:]]
     assert isinstance(published[1], DoneRecord) and "journal_s" in (published[1].timing or {})
     assert (tmp_path / "s" / "hit.png").exists()

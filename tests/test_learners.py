@@ -223,7 +223,10 @@ def test_cma_draws_only_from_the_injected_generator() -> None:
 
 
 def test_hill_climber_explores_around_the_best_so_far() -> None:
-    learner = HillClimber(np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001)
+    wide = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))  # around every θ told
+    learner = HillClimber(
+        np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001, bounds=wide
+    )
     learner.tell([0.2, 0.05, 0.0], [0.5, 0.5])
     learner.tell([0.25, -0.05, 0.0], [0.01, 0.0])
     learner.tell([0.15, 0.0, 0.05], [0.3, 0.0])

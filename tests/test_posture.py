@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import itertools
+import math
 
+import msgspec
 import numpy as np
 import pinocchio as pin
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from apps.experiment.config import ExperimentConfig
+from protocol.direction import NoArrowDirection, arrow_direction
+from protocol.verbs.controller import THETA_MAX, THETA_MIN, PostureArgs
 from services.controller.errors import ConfigError, JointError, TargetError
 from services.controller.ik_types import IkSettings
-from services.controller.posture import (
-    ArcheryPosture,
-    PostureConfig,
-    arrow_direction,
-    hand_orientations,
-)
+from services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
+from services.learner.algorithms.base import DEFAULT_BOUNDS
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -89,14 +90,34 @@ def test_hand_orientations_follow_the_paper(theta: np.ndarray) -> None:
 
 
 def test_orientation_inputs_are_checked() -> None:
-    with pytest.raises(TargetError, match="string hand on the bow hand"):
-        arrow_direction([0.0, 0.0, 0.0])
+    with pytest.raises(NoArrowDirection, match="string hand on the bow hand"):
+        hand_orientations(np.zeros(3))
     with pytest.raises(TargetError, match="vertical arrow"):
-        hand_orientations([0.0, 0.0, 0.2])
-    with pytest.raises(TargetError, match="finite"):
-        hand_orientations([np.nan, 0.0, 0.0])
-    with pytest.raises(TargetError, match="3-vector"):
-        arrow_direction([0.1, 0.0])
+        hand_orientations(np.array([0.0, 0.0, 0.2]))
+
+
+def test_a_malformed_theta_is_refused_where_the_request_is_decoded() -> None:
+    """θ's size and finiteness are the contract's (`PostureArgs`), checked once on decoding:
+    the posture core takes the decoded θ as it is."""
+    for theta, why in (
+        ([0.17, math.nan, -0.03], "finite"),
+        ([0.17, math.inf, -0.03], "finite"),
+        ([0.17, 0.03], "length"),
+        ([0.17, 0.03, -0.03, 0.0], "length"),
+    ):
+        with pytest.raises(msgspec.ValidationError, match=why):
+            msgspec.convert({"theta": theta}, PostureArgs)
+    assert msgspec.convert({"theta": [0.17, 0.03, -0.03]}, PostureArgs).theta == [0.17, 0.03, -0.03]
+
+
+def test_the_theta_box_is_defined_once() -> None:
+    """The posture's default box is the contract's θ box (`protocol.verbs.controller`), and so
+    is the box of learners built without a controller (the analytic experiment world)."""
+    config = PostureConfig()
+    assert config.theta_min.tolist() == list(THETA_MIN)
+    assert config.theta_max.tolist() == list(THETA_MAX)
+    for bounds in (DEFAULT_BOUNDS, ExperimentConfig().bounds):
+        assert (bounds.low, bounds.high) == (THETA_MIN, THETA_MAX)
 
 
 # ------------------------------------------------------------------------------------- posture
@@ -133,7 +154,7 @@ def test_warm_started_path_through_the_box(posture: ArcheryPosture) -> None:
         q = result.q
 
 
-def test_theta_outside_the_box_or_malformed_is_rejected(posture: ArcheryPosture) -> None:
+def test_theta_outside_the_box_is_rejected(posture: ArcheryPosture) -> None:
     config = posture.config
     for axis in range(3):
         low = config.nominal_theta.copy()
@@ -144,10 +165,6 @@ def test_theta_outside_the_box_or_malformed_is_rejected(posture: ArcheryPosture)
         high[axis] = config.theta_max[axis] + 1e-3
         with pytest.raises(TargetError, match="outside the configured box"):
             posture.solve(high)
-    with pytest.raises(TargetError, match="finite"):
-        posture.solve([0.17, np.nan, -0.03])
-    with pytest.raises(TargetError, match="3-vector"):
-        posture.solve([[0.17, 0.03, -0.03]])
     with pytest.raises(JointError, match="unknown joint"):
         posture.solve(config.nominal_theta, q0={"neck_yaw": 0.0})
 

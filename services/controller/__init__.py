@@ -15,7 +15,6 @@ from services.controller.posture import (
     ArcheryPosture,
     PostureConfig,
     PostureResult,
-    arrow_direction,
     hand_orientations,
 )
 
@@ -37,7 +36,6 @@ __all__ = [
     "PostureResult",
     "TargetError",
     "TargetsResult",
-    "arrow_direction",
     "hand_orientations",
     "load_arms_model",
 ]

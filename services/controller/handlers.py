@@ -244,14 +244,11 @@ class ArcheryController:
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
         current = self._link.posture()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
-        result = self._posture.solve(theta, q0=q0)
+        result = self._posture.solve_checked(theta, q0=q0)
         targets = {j: float(result.q[j]) for j in self._posture.joints}
         with self._motion.hold(timeout):
             move = self._link.move(targets, self.traj_time, timeout)
-        solver = self._posture.solver
-        left, _ = solver.hand_pose(move.measured, "left_arm")
-        right, _ = solver.hand_pose(move.measured, "right_arm")
-        measured = right - left
+        measured = self._posture.theta_at(move.measured)
         return cv.PostureReply(
             q=dict(move.targets),
             theta=theta.tolist(),

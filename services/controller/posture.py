@@ -21,16 +21,18 @@ bow hand's absolute position comes next; orientations and a rest posture are the
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
+from protocol.direction import arrow_direction
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
 from protocol.vectors import finite_vector
+from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.controller.errors import ConfigError, TargetError
 from services.controller.ik import IkSolver
 from services.controller.ik_types import (
@@ -45,31 +47,21 @@ __all__ = [
     "ArcheryPosture",
     "PostureConfig",
     "PostureResult",
-    "arrow_direction",
     "hand_orientations",
 ]
 
 _UP = np.array([0.0, 0.0, 1.0])
 
 
-def arrow_direction(theta: Any) -> np.ndarray:
-    """Unit arrow direction −θ/‖θ‖ (root frame) for θ = p_string − p_bow (m).
+def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Desired rotations (root frame) of the left and right hand frames for θ, a finite
+    3-vector (m).
+
+    See the module docstring for the axes.
 
     Raises:
-        TargetError: θ is not a finite 3-vector, or the hands coincide.
-    """
-    th = finite_vector("θ", theta, TargetError)
-    norm = float(np.linalg.norm(th))
-    if norm < 1e-6:
-        raise TargetError(f"θ = {th.tolist()} m puts the string hand on the bow hand: no arrow")
-    return -th / norm
-
-
-def hand_orientations(theta: Any) -> tuple[np.ndarray, np.ndarray]:
-    """Desired rotations (root frame) of the left and right hand frames for θ (m).
-
-    See the module docstring for the axes. Raises TargetError for a malformed θ or an arrow
-    within 1° of vertical (where "bow vertical" has no meaning).
+        TargetError: an arrow within 1° of vertical (where "bow vertical" has no meaning).
+        NoArrowDirection: the hands coincide (θ = 0; never in the θ box).
     """
     a = arrow_direction(theta)
     b = _UP - (_UP @ a) * a
@@ -91,10 +83,8 @@ class PostureConfig:
     Attributes:
         bow_hand: nominal left-hand position (m, root frame).
         theta_min, theta_max: per-axis bounds of θ (m); θ outside raises TargetError. The
-            default box (x 0.12..0.24, y −0.02..0.06, z −0.07..0.01; ‖θ‖ 0.12..0.26 m, arrow
-            within 38° of −x) was verified reachable on a 9×9×9 grid from the reference
-            posture, relative position within the 0.1 mm IK tolerance (worst 0.03 mm);
-            tests/test_posture.py checks corners, centre, random points and a warm path.
+            default is the θ box of `protocol.verbs.controller` (`THETA_MIN`, `THETA_MAX`),
+            the one definition of it.
         nominal_theta: θ (m) of the reference posture (rest posture and default warm start).
         use_torso: move the torso with the arms (True) or hold it at the start posture.
         reference_starts: start postures tried when searching the reference posture, ≥ 1.
@@ -105,8 +95,8 @@ class PostureConfig:
     """
 
     bow_hand: Any = BOW_HAND
-    theta_min: Any = (0.12, -0.02, -0.07)
-    theta_max: Any = (0.24, 0.06, 0.01)
+    theta_min: Any = THETA_MIN
+    theta_max: Any = THETA_MAX
     nominal_theta: Any = NOMINAL_THETA
     use_torso: bool = True
     reference_starts: int = 24
@@ -193,9 +183,15 @@ class ArcheryPosture:
         self.reference: np.ndarray = self._search_reference()
         self.reference.setflags(write=False)
 
-    def check_theta(self, theta: Any) -> np.ndarray:
-        """θ as a read-only array, or TargetError naming θ and the configured box."""
-        th = finite_vector("θ", theta, TargetError)
+    def check_theta(self, theta: Sequence[float] | np.ndarray) -> np.ndarray:
+        """θ, 3 finite numbers (m; as `PostureArgs` decodes them), as a read-only array inside
+        the configured box: the controller's one check of the box.
+
+        Raises:
+            TargetError: θ outside the configured box (the message names θ and the box).
+        """
+        th = np.array(theta, dtype=float)
+        th.setflags(write=False)
         cfg = self.config
         if np.any(th < cfg.theta_min) or np.any(th > cfg.theta_max):
             raise TargetError(
@@ -204,17 +200,29 @@ class ArcheryPosture:
             )
         return th
 
-    def solve(self, theta: Any, *, q0: JointValues | None = None) -> PostureResult:
-        """The posture for θ (m), warm-started from q0 (the current posture; default the
-        reference posture).
+    def solve(
+        self, theta: Sequence[float] | np.ndarray, *, q0: JointValues | None = None
+    ) -> PostureResult:
+        """The posture for θ, 3 finite numbers (m), warm-started from q0 (the current posture;
+        default the reference posture).
 
         Raises:
-            TargetError: θ malformed or outside the configured box. JointError: bad q0.
+            TargetError: θ outside the configured box. JointError: bad q0.
         """
-        th = self.check_theta(theta)
+        return self.solve_checked(self.check_theta(theta), q0=q0)
+
+    def solve_checked(self, theta: np.ndarray, *, q0: JointValues | None = None) -> PostureResult:
+        """`solve` for a θ that `check_theta` returned (not checked again)."""
         start = self.reference if q0 is None else self.model.vector(q0, default=self.reference)
-        res = self._solve(th, start)
-        return self._result(th, res)
+        res = self._solve(theta, start)
+        return self._result(theta, res)
+
+    def theta_at(self, q: JointValues | np.ndarray) -> np.ndarray:
+        """θ = x_string − x_bow (m) of the hands at the posture q (forward kinematics)."""
+        x_left, _ = self.solver.hand_pose(q, BOW_ARM)
+        x_right, _ = self.solver.hand_pose(q, STRING_ARM)
+        theta: np.ndarray = x_right - x_left
+        return theta
 
     # ------------------------------------------------------------------------------- internals
 
@@ -261,7 +269,7 @@ class ArcheryPosture:
         arrays = [achieved, x_left]
         left_aa = np.asarray(pin.log3(r_left))
         right_aa = np.asarray(pin.log3(r_right))
-        direction = -achieved / np.linalg.norm(achieved)
+        direction = arrow_direction(achieved)
         for arr in (*arrays, left_aa, right_aa, direction):
             arr.setflags(write=False)
         return PostureResult(

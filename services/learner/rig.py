@@ -199,7 +199,8 @@ class MeshRig:
         )
 
     def shoot(self) -> Shot:
-        """Nock and release; returns when the arrow has landed."""
+        """Nock and release; returns when the arrow has landed, with the θ it was launched
+        with (the release reply's)."""
         key = self.keys.archery_rpc()
         before = time.time()
         _, nock = self._call("robot", key, rv.ARCHERY_VERBS["nock"])
@@ -210,6 +211,7 @@ class MeshRig:
             stamp=before,
             outcome=result.outcome,
             timing={"nock_s": nock, "release_s": release, "flight_sim_s": result.flight_time},
+            theta_launched=list(result.theta),
         )
 
     def measure(self, shot: Shot) -> Measurement:

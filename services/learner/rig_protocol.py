@@ -33,13 +33,16 @@ class PostureResult:
 class Shot:
     """A released arrow, landed: the robot's shot number, landing sim time (s), the wall time
     (s since the epoch) just before the arrow was nocked (a frame captured later and rendered
-    at or after the landing shows this arrow), and what the robot says for the log."""
+    at or after the landing shows this arrow), what the robot says for the log, and the θ (m)
+    the arrow was launched with (the hands at the release, from the robot's reply; None when
+    the rig does not know it)."""
 
     shot: int
     sim_time: float
     stamp: float
     outcome: str
     timing: dict[str, float] = field(default_factory=dict)
+    theta_launched: list[float] | None = None
 
 
 @dataclass(frozen=True)

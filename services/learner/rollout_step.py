@@ -196,6 +196,9 @@ def done_record(
         rollout=state.n_done + 1,
         theta=attempt.theta.tolist(),
         theta_measured=measured.posture.theta_measured,
+        theta_launched=(
+            UNSET if measured.shot.theta_launched is None else measured.shot.theta_launched
+        ),
         r_m=measured.r_m,
         ret=float(big_return),
         distance_m=distance,

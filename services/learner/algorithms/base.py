@@ -12,6 +12,7 @@ import numpy as np
 
 from protocol.text import shown
 from protocol.vectors import finite_vector
+from protocol.verbs.controller import THETA_MAX, THETA_MIN
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -139,10 +140,10 @@ class Bounds:
             ) from exc
 
 
-# The string hand sits 10-30 cm behind the bow hand (the draw stays above the 8 cm brace
-# height, so every θ in the box launches the arrow forward) and within 12 cm sideways and
-# vertically.
-DEFAULT_BOUNDS = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))
+#: The controller's θ box (`protocol.verbs.controller`, its one definition), for learners built
+#: without a controller (the analytic experiment world, tests). A session on the mesh reads the
+#: box from the controller's `status` instead.
+DEFAULT_BOUNDS = Bounds(low=THETA_MIN, high=THETA_MAX)
 
 
 def _plain(value: Any) -> Any:
