@@ -12,7 +12,7 @@ from services.learner.algorithms import (
     BallisticModel,
     Bounds,
     LearnerConfigError,
-    StateError,
+    RestoreError,
     make_learner,
     restore_learner,
 )
@@ -258,7 +258,7 @@ def test_an_injected_model_is_the_one_it_aims_with() -> None:
     assert np.array_equal(built.ask(), theta)  # the same as the registry builds it
     learner.tell(theta, model.impacts(theta)[0] + 0.01)  # the world is 1 cm off the model
     # The state does not describe this model: restoring it needs the model again.
-    with pytest.raises(StateError, match="model of its own"):
+    with pytest.raises(RestoreError, match="model of its own"):
         restore_learner(learner.state_dict())
     restored = restore_learner(learner.state_dict(), model=model)
     assert np.array_equal(restored.ask(), learner.ask())

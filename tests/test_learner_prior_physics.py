@@ -11,7 +11,7 @@ from services.learner.algorithms import (
     ArcherPrior,
     BallisticModel,
     PhysicalModel,
-    StateError,
+    RestoreError,
     restore_learner,
 )
 from services.learner.algorithms.model_fit import fit_parameters
@@ -134,5 +134,5 @@ def test_bad_saved_parameters_are_refused(params: object, message: str) -> None:
     _play(learner, BallisticWorld(), 1)
     state = learner.state_dict()
     state["extra"]["params"] = params
-    with pytest.raises(StateError, match=message):
+    with pytest.raises(RestoreError, match=message):
         restore_learner(state)

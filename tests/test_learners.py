@@ -23,7 +23,7 @@ from services.learner.algorithms import (
     LearnerError,
     ObservationError,
     RandomSearch,
-    StateError,
+    RestoreError,
     make_learner,
     restore_learner,
     scalar_return,
@@ -153,7 +153,7 @@ def test_bad_observations_are_refused_and_change_nothing(
 
 
 def test_learner_errors_form_one_hierarchy() -> None:
-    for error in (LearnerConfigError, ObservationError, StateError):
+    for error in (LearnerConfigError, ObservationError, RestoreError):
         assert issubclass(error, LearnerError) and issubclass(error, ValueError)
 
 
@@ -184,15 +184,15 @@ def test_restore_refuses_broken_states() -> None:
     learner = _learner("archer")
     _play(learner, _world(), 3)
     state = learner.state_dict()
-    with pytest.raises(StateError, match="'nope'"):
+    with pytest.raises(RestoreError, match="'nope'"):
         restore_learner({**state, "algorithm": "nope"})
-    with pytest.raises(StateError, match="version 99"):
+    with pytest.raises(RestoreError, match="version 99"):
         restore_learner({**state, "version": 99})
-    with pytest.raises(StateError, match="2-vectors r"):
+    with pytest.raises(RestoreError, match="2-vectors r"):
         restore_learner({**state, "rewards": [[0.1, 0.2, 0.3]] * 3})
-    with pytest.raises(StateError, match="random generator"):
+    with pytest.raises(RestoreError, match="random generator"):
         restore_learner({**state, "rng": {"bit_generator": "Nope"}})
-    with pytest.raises(StateError, match="cannot be loaded into"):
+    with pytest.raises(RestoreError, match="cannot be loaded into"):
         make_learner("power", np.array(START_THETA), rng=np.random.default_rng(0)).load_state_dict(
             state
         )
@@ -200,7 +200,7 @@ def test_restore_refuses_broken_states() -> None:
     _play(cma, _world(), 3)
     broken = cma.state_dict()
     broken["extra"]["events"] = "pu"
-    with pytest.raises(StateError, match="one 'u' per told rollout"):
+    with pytest.raises(RestoreError, match="one 'u' per told rollout"):
         restore_learner(broken)
 
 
@@ -279,6 +279,6 @@ def test_a_state_saved_when_random_named_the_hill_climber_is_refused() -> None:
     _play(hill, _world(), 3)
     old = json.loads(json.dumps(hill.state_dict()))
     old["algorithm"] = "random"  # what the hill climber wrote under its former name
-    with pytest.raises(StateError, match=r"'random' named the hill climber.*now 'hill'"):
+    with pytest.raises(RestoreError, match=r"'random' named the hill climber.*now 'hill'"):
         restore_learner(old)
     assert restore_learner(hill.state_dict()).algorithm == "hill"

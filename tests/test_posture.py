@@ -14,8 +14,9 @@ from hypothesis import strategies as st
 
 from apps.experiment.config import ExperimentConfig
 from protocol.direction import NoArrowDirection, arrow_direction
+from protocol.errors import ConfigError
 from protocol.verbs.controller import THETA_MAX, THETA_MIN, PostureArgs
-from services.controller.errors import ConfigError, JointError, TargetError
+from services.controller.errors import JointError, TargetError
 from services.controller.ik_types import IkSettings
 from services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
 from services.learner.algorithms.base import DEFAULT_BOUNDS

@@ -15,7 +15,7 @@ from apps.experiment.config import ExperimentConfig, Transfer
 from apps.experiment.experiment import run_algorithm
 from protocol.errors import BadRequest
 from protocol.journal_records import HeaderRecord
-from services.learner.algorithms.base import LearnerConfigError, StateError
+from services.learner.algorithms.base import LearnerConfigError, RestoreError
 from services.learner.algorithms.registry import (
     TRANSFER_ALGORITHMS,
     check_transfer,
@@ -166,9 +166,9 @@ def test_unsupported_algorithms_are_refused() -> None:
     with pytest.raises(LearnerConfigError, match="cannot start from another session"):
         power.seed_from(_learned("power", STIFF, rollouts=3))
     archer = make_learner("archer", np.array(STIFF.start), rng=np.random.default_rng(0))
-    with pytest.raises(StateError, match="'archer-prior', not 'archer'"):
+    with pytest.raises(RestoreError, match="'archer-prior', not 'archer'"):
         transferred_learner(archer, _learned("archer-prior", STIFF, rollouts=3).state_dict())
-    with pytest.raises(StateError, match="seeds need N = 3"):
+    with pytest.raises(RestoreError, match="seeds need N = 3"):
         transferred_learner(archer, _learned("archer", STIFF, rollouts=2).state_dict())
     used = make_learner("archer-prior", np.array(STIFF.start), rng=np.random.default_rng(0))
     used.ask()

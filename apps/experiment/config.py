@@ -242,7 +242,7 @@ class ExperimentConfig:
         transferred learner of `session`, with `transfer`).
 
         Raises:
-            StateError: the transferred state cannot seed it.
+            RestoreError: the transferred state cannot seed it.
         """
         options: dict[str, Any] = {}
         if self.power_scale is not None and ALGORITHMS[name].cls is Power:

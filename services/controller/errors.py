@@ -4,19 +4,13 @@ from __future__ import annotations
 
 from protocol import errors as project
 
-__all__ = ["ConfigError", "ControllerError", "JointError", "TargetError"]
+__all__ = ["ControllerError", "JointError", "TargetError"]
 
 
 class ControllerError(project.ArcheryError, ValueError):
     """Base of the controller's errors; each message names the bad value and what is valid."""
 
     code = "controller_error"
-
-
-class ConfigError(ControllerError, project.ConfigError):
-    """An invalid solver or posture setting (weight, tolerance, covariance, bounds)."""
-
-    code = "bad_config"
 
 
 class JointError(ControllerError, project.BadRequest):

@@ -16,13 +16,12 @@ from typing import Any, cast
 
 import numpy as np
 
-from protocol.errors import ArcheryError, BadRequest
+from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.parts import PARTS
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import controller as cv
 from services.controller.cartesian import axis_angle, ik_reply, rotation_vector
 from services.controller.config import ControllerConfig
-from services.controller.errors import ConfigError
 from services.controller.ik import IkSolver
 from services.controller.model import ArmsModel
 from services.controller.posture import ArcheryPosture

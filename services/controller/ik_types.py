@@ -16,8 +16,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from protocol.errors import ConfigError
 from protocol.vectors import finite_vector
-from services.controller.errors import ConfigError, TargetError
+from services.controller.errors import TargetError
 from services.controller.model import check_arm
 
 __all__ = [

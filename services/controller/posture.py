@@ -29,11 +29,12 @@ import numpy as np
 import pinocchio as pin
 
 from protocol.direction import arrow_direction
+from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
 from protocol.vectors import finite_vector
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
-from services.controller.errors import ConfigError, TargetError
+from services.controller.errors import TargetError
 from services.controller.ik import IkSolver
 from services.controller.ik_types import (
     IkSettings,

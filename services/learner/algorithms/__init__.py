@@ -8,7 +8,7 @@ from services.learner.algorithms.base import (
     LearnerConfigError,
     LearnerError,
     ObservationError,
-    StateError,
+    RestoreError,
     scalar_return,
 )
 from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
@@ -34,7 +34,7 @@ __all__ = [
     "PhysicalModel",
     "Power",
     "RandomSearch",
-    "StateError",
+    "RestoreError",
     "make_learner",
     "restore_learner",
     "scalar_return",

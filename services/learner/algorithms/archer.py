@@ -14,7 +14,7 @@ from services.learner.algorithms.base import (
     Bounds,
     Learner,
     LearnerConfigError,
-    StateError,
+    RestoreError,
     _count_option,
     _finite_option,
     _std_option,
@@ -261,9 +261,9 @@ class Archer(Learner):
         try:
             radius = float(extra["trust_radius"])
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"ARCHER state needs a 'trust_radius' (m): {exc}") from exc
+            raise RestoreError(f"ARCHER state needs a 'trust_radius' (m): {exc}") from exc
         if not np.isfinite(radius) or not self.min_step <= radius <= self.max_step:
-            raise StateError(
+            raise RestoreError(
                 f"ARCHER trust_radius {radius!r} m is outside [{self.min_step}, {self.max_step}]"
             )
         self.trust_radius = radius
@@ -274,10 +274,10 @@ class Archer(Learner):
             thetas = np.array(seeds["thetas"], dtype=float)
             rewards = np.array(seeds["rewards"], dtype=float)
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"ARCHER seeds need 'thetas' and 'rewards' (m): {exc}") from exc
+            raise RestoreError(f"ARCHER seeds need 'thetas' and 'rewards' (m): {exc}") from exc
         shape = (self.n_best, self.theta0.size)
         if thetas.shape != shape or rewards.shape != (self.n_best, 2):
-            raise StateError(
+            raise RestoreError(
                 f"ARCHER seeds must be {self.n_best} θ {self.theta0.size}-vectors and "
                 f"{self.n_best} r 2-vectors"
             )

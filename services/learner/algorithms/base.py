@@ -22,7 +22,7 @@ __all__ = [
     "LearnerConfigError",
     "LearnerError",
     "ObservationError",
-    "StateError",
+    "RestoreError",
     "rng_from_state",
     "rng_state",
     "scalar_return",
@@ -45,7 +45,7 @@ class ObservationError(LearnerError):
     """A θ or reward vector given to `tell` with the wrong shape or a non-finite value."""
 
 
-class StateError(LearnerError):
+class RestoreError(LearnerError):
     """A saved state that cannot be restored into this learner."""
 
 
@@ -135,7 +135,7 @@ class Bounds:
         try:
             return cls(low=tuple(data["low"]), high=tuple(data["high"]))
         except (KeyError, TypeError) as exc:
-            raise StateError(
+            raise RestoreError(
                 f"bounds must be {{'low': [...], 'high': [...]}}, got {data!r}"
             ) from exc
 
@@ -161,7 +161,7 @@ def _plain(value: Any) -> Any:
         return float(value)
     if isinstance(value, str):
         return value
-    raise StateError(f"cannot store a value of type {type(value).__name__} in a learner state")
+    raise RestoreError(f"cannot store a value of type {type(value).__name__} in a learner state")
 
 
 def _unplain(value: Any) -> Any:
@@ -184,15 +184,15 @@ def with_history(
     of the rollouts it was told, in order; a whole state is returned as it is.
 
     Raises:
-        StateError: the checkpoint is not a dict, or counts another number of rollouts.
+        RestoreError: the checkpoint is not a dict, or counts another number of rollouts.
     """
     if not isinstance(checkpoint, dict):
-        raise StateError(f"a learner state must be a dict, got {type(checkpoint).__name__}")
+        raise RestoreError(f"a learner state must be a dict, got {type(checkpoint).__name__}")
     if "told" not in checkpoint:
         return checkpoint
     told = checkpoint["told"]
     if isinstance(told, bool) or not isinstance(told, int) or told != len(thetas):
-        raise StateError(f"the checkpoint counts {shown(told)} rollouts told, not {len(thetas)}")
+        raise RestoreError(f"the checkpoint counts {shown(told)} rollouts told, not {len(thetas)}")
     state = {k: v for k, v in checkpoint.items() if k != "told"}
     return state | {"thetas": list(thetas), "rewards": list(rewards)}
 
@@ -209,7 +209,7 @@ def rng_from_state(state: dict[str, Any]) -> np.random.Generator:
         bit_generator = getattr(np.random, raw["bit_generator"])()
         bit_generator.state = raw
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise StateError(f"not a saved random generator state: {state!r}") from exc
+        raise RestoreError(f"not a saved random generator state: {state!r}") from exc
     return np.random.Generator(bit_generator)
 
 
@@ -405,22 +405,22 @@ class Learner(ABC):
         """Replace this learner's state by a saved one (from `state_dict`).
 
         Raises:
-            StateError: the state is malformed, from another algorithm or another θ dimension.
+            RestoreError: the state is malformed, from another algorithm or another θ dimension.
         """
         if not isinstance(state, dict):
-            raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+            raise RestoreError(f"a learner state must be a dict, got {type(state).__name__}")
         missing = {"version", "algorithm", "rng", "thetas", "rewards", "pending", "extra"} - set(
             state
         )
         if missing:
-            raise StateError(f"learner state lacks {sorted(missing)}")
+            raise RestoreError(f"learner state lacks {sorted(missing)}")
         if state["version"] != STATE_VERSION:
-            raise StateError(
+            raise RestoreError(
                 f"learner state version {state['version']!r} is not supported; "
                 f"this code reads version {STATE_VERSION}"
             )
         if state["algorithm"] != self.algorithm:
-            raise StateError(
+            raise RestoreError(
                 f"state of algorithm {state['algorithm']!r} cannot be loaded into a "
                 f"{self.algorithm!r} learner"
             )
@@ -430,11 +430,11 @@ class Learner(ABC):
             rewards = [np.array(r, dtype=float) for r in state["rewards"]]
             pending = None if state["pending"] is None else np.array(state["pending"], dtype=float)
         except (TypeError, ValueError) as exc:
-            raise StateError(f"learner state has non-numeric history: {exc}") from exc
+            raise RestoreError(f"learner state has non-numeric history: {exc}") from exc
         if len(thetas) != len(rewards) or any(t.shape != (d,) for t in thetas):
-            raise StateError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
+            raise RestoreError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
         if any(r.shape != (2,) for r in rewards) or (pending is not None and pending.shape != (d,)):
-            raise StateError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
+            raise RestoreError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
         self.rng = rng_from_state(state["rng"])
         self._thetas = thetas
         self._rewards = rewards

@@ -12,7 +12,7 @@ from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
     Learner,
-    StateError,
+    RestoreError,
     _count_option,
     _finite_option,
     _std_option,
@@ -119,9 +119,9 @@ class CmaEs(Learner):
         try:
             rng0, events = extra["rng0"], str(extra["events"])
         except (KeyError, TypeError) as exc:
-            raise StateError(f"CMA-ES state needs 'rng0' and 'events': {exc}") from exc
+            raise RestoreError(f"CMA-ES state needs 'rng0' and 'events': {exc}") from exc
         if set(events) - {"p", "u"} or events.count("u") != self.n_rollouts:
-            raise StateError(
+            raise RestoreError(
                 f"CMA-ES events {events!r} must be 'p'/'u' letters, one 'u' per told rollout "
                 f"({self.n_rollouts})"
             )
@@ -135,7 +135,7 @@ class CmaEs(Learner):
             else:
                 self._update(*next(told))
         if rng_state(self.rng) != saved_final:
-            raise StateError(
+            raise RestoreError(
                 "replaying the CMA-ES history did not reproduce the saved generator state "
                 "(was it saved by another version of the cma package?)"
             )
@@ -189,9 +189,9 @@ class HillClimber(Learner):
         try:
             std = np.array(extra[HILL_STATE_MARK], dtype=float)
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"hill-climber state needs 'std' (m): {exc}") from exc
+            raise RestoreError(f"hill-climber state needs 'std' (m): {exc}") from exc
         if std.shape != self.theta0.shape:
-            raise StateError(f"hill-climber 'std' must have {self.theta0.size} components")
+            raise RestoreError(f"hill-climber 'std' must have {self.theta0.size} components")
         self.std = std
 
 

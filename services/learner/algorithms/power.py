@@ -11,7 +11,7 @@ from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
     Bounds,
     Learner,
-    StateError,
+    RestoreError,
     _count_option,
     _finite_option,
     _std_option,
@@ -113,7 +113,7 @@ class Power(Learner):
             mean = np.array(extra["mean"], dtype=float)
             variance = np.array(extra["variance"], dtype=float)
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(f"PoWER state needs 'mean' and 'variance' vectors: {exc}") from exc
+            raise RestoreError(f"PoWER state needs 'mean' and 'variance' vectors: {exc}") from exc
         if mean.shape != self.theta0.shape or variance.shape != self.theta0.shape:
-            raise StateError(f"PoWER state vectors must have {self.theta0.size} components")
+            raise RestoreError(f"PoWER state vectors must have {self.theta0.size} components")
         self.mean, self.variance = mean, variance

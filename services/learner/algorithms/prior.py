@@ -13,7 +13,7 @@ from services.learner.algorithms.base import (
     Bounds,
     Learner,
     LearnerConfigError,
-    StateError,
+    RestoreError,
     _finite_option,
 )
 from services.learner.algorithms.impact_model import ImpactModel, PhysicalModel
@@ -386,21 +386,21 @@ class ArcherPrior(Learner):
             changes = [int(i) for i in extra["changes"]]
             settled = extra["settled"]
         except (KeyError, TypeError, ValueError) as exc:
-            raise StateError(
+            raise RestoreError(
                 "archer-prior state needs 'trust_radius', 'forget_before', 'changes', "
                 f"'settled': {exc}"
             ) from exc
         if not math.isfinite(radius) or not self.min_step <= radius <= self.max_step:
-            raise StateError(
+            raise RestoreError(
                 f"archer-prior trust_radius {radius!r} m is outside "
                 f"[{self.min_step}, {self.max_step}]"
             )
         if not 0 <= forget <= max(self.n_rollouts - 1, 0):
-            raise StateError(f"archer-prior forget_before {forget} is outside the history")
+            raise RestoreError(f"archer-prior forget_before {forget} is outside the history")
         self.trust_radius = radius
         self.forget_before = forget
         if not isinstance(settled, bool):
-            raise StateError(f"archer-prior 'settled' must be true or false, got {settled!r}")
+            raise RestoreError(f"archer-prior 'settled' must be true or false, got {settled!r}")
         self.changes = changes
         self.settled = settled
         self._prior = _prior_of(extra.get("prior"), self.theta0.size)
@@ -422,15 +422,15 @@ def _prior_of(saved: Any, d: int) -> tuple[np.ndarray, np.ndarray] | None:
         mean = np.array(saved["mean"], dtype=float)
         covariance = np.array(saved["covariance"], dtype=float)
     except (KeyError, TypeError, ValueError) as exc:
-        raise StateError(f"archer-prior prior needs 'mean' and 'covariance': {exc}") from exc
+        raise RestoreError(f"archer-prior prior needs 'mean' and 'covariance': {exc}") from exc
     if mean.shape != (d + 1, 2) or covariance.shape != (d + 1, d + 1):
-        raise StateError(
+        raise RestoreError(
             f"archer-prior prior must be a ({d + 1}, 2) mean and a ({d + 1}, {d + 1}) covariance"
         )
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(covariance))):
-        raise StateError("archer-prior prior holds a non-finite value")
+        raise RestoreError("archer-prior prior holds a non-finite value")
     if not np.allclose(covariance, covariance.T) or np.linalg.eigvalsh(covariance).min() <= 0:
-        raise StateError("archer-prior prior covariance must be symmetric positive definite")
+        raise RestoreError("archer-prior prior covariance must be symmetric positive definite")
     return mean, covariance
 
 
@@ -441,9 +441,9 @@ def _params_of(saved: Any, default: np.ndarray) -> np.ndarray:
     try:
         params = np.array(saved, dtype=float)
     except (TypeError, ValueError) as exc:
-        raise StateError(f"archer-prior physical parameters are not numbers: {exc}") from exc
+        raise RestoreError(f"archer-prior physical parameters are not numbers: {exc}") from exc
     if params.shape != default.shape or not np.all(np.isfinite(params)):
-        raise StateError(
+        raise RestoreError(
             f"archer-prior physical parameters must be {default.size} finite numbers, "
             f"got {shown(saved)}"
         )

@@ -16,7 +16,7 @@ from services.learner.algorithms.base import (
     Bounds,
     Learner,
     LearnerConfigError,
-    StateError,
+    RestoreError,
 )
 from services.learner.algorithms.baselines import (
     HILL_STATE_MARK,
@@ -216,12 +216,12 @@ def _check_not_old_random(state: Mapping[str, Any]) -> None:
     that the earlier version that wrote it can finish it.
 
     Raises:
-        StateError: it is such a state.
+        RestoreError: it is such a state.
     """
     extra = state.get("extra")
     hill_extra = isinstance(extra, Mapping) and HILL_STATE_MARK in extra
     if state.get("algorithm") == "random" and hill_extra:
-        raise StateError(
+        raise RestoreError(
             "this learner state was saved when 'random' named the hill climber (best θ so far "
             "+ noise), which is now 'hill'; 'random' is now uniform search, so it is not resumed "
             "as either: finish it with the version that wrote it, or start a new 'hill' session"
@@ -237,14 +237,14 @@ def restore_learner(state: Mapping[str, Any], *, model: ImpactModel | None = Non
     another algorithm (`_check_not_old_random`).
 
     Raises:
-        StateError: the state is malformed, names an unknown algorithm, or is an old "random".
+        RestoreError: the state is malformed, names an unknown algorithm, or is an old "random".
     """
     if not isinstance(state, Mapping):
-        raise StateError(f"a learner state must be a dict, got {type(state).__name__}")
+        raise RestoreError(f"a learner state must be a dict, got {type(state).__name__}")
     _check_not_old_random(state)
     algorithm = state.get("algorithm")
     if algorithm not in LEARNER_CLASSES:
-        raise StateError(
+        raise RestoreError(
             f"learner state names algorithm {algorithm!r}; known: {', '.join(LEARNER_CLASSES)}"
         )
     assert isinstance(algorithm, str)  # one of LEARNER_CLASSES' names
@@ -259,7 +259,7 @@ def restore_learner(state: Mapping[str, Any], *, model: ImpactModel | None = Non
             saved=True,
         )
     except (KeyError, TypeError, LearnerConfigError) as exc:
-        raise StateError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc
+        raise RestoreError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc
     learner.load_state_dict(dict(state))
     return learner
 
@@ -268,15 +268,15 @@ def transferred_learner(learner: Learner, source_state: Mapping[str, Any]) -> Le
     """`learner` (fresh) seeded with what the saved learner `source_state` learned.
 
     Raises:
-        StateError: the source state is malformed, of another algorithm, or cannot seed it.
+        RestoreError: the source state is malformed, of another algorithm, or cannot seed it.
     """
     if source_state.get("algorithm") != learner.algorithm:
-        raise StateError(
+        raise RestoreError(
             f"the source learner is {source_state.get('algorithm')!r}, not {learner.algorithm!r}"
         )
     source = restore_learner(source_state)
     try:
         learner.seed_from(source)
     except LearnerConfigError as exc:
-        raise StateError(f"cannot start from the source learner: {exc}") from None
+        raise RestoreError(f"cannot start from the source learner: {exc}") from None
     return learner
