@@ -13,7 +13,9 @@ Access is per verb: a call of VERB on an `rpc:i` port goes to the key `PORT/VERB
 its neighbours. A role is the keys it publishes, subscribes to, serves and calls; `_grants`
 turns each into the Zenoh messages and directions it takes:
 
-* publish K: `put` in, `declare_subscriber` out (the publisher learns who listens);
+* publish K: `put` in, `declare_subscriber` out on K and on `ROBOT/**` (the publisher learns
+  who listens, also a listener of the whole robot: a publisher that hears of no subscriber
+  drops what it puts);
 * subscribe K: `declare_subscriber` in, `put` out;
 * serve K: `declare_queryable` in, `query` out, `reply` in;
 * call K: `query` in; `reply` and `declare_queryable` out on the port (`PORT/*`);
@@ -222,7 +224,11 @@ def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     if role.publish:
         out.append(_rule(f"{name}-publish", ["put"], "ingress", role.publish))
-        out.append(_rule(f"{name}-publish-match", ["declare_subscriber"], "egress", role.publish))
+        # a publisher learns of the subscribers that match it, also those declared on a wider
+        # key expression (`ROBOT/**`: a recorder's, a replay's listener): without that
+        # declaration it takes its key for unwatched and drops what it puts
+        matching = (*role.publish, f"{robot}/**")
+        out.append(_rule(f"{name}-publish-match", ["declare_subscriber"], "egress", matching))
     if role.subscribe:
         out.append(_rule(f"{name}-subscribe", ["declare_subscriber"], "ingress", role.subscribe))
         out.append(_rule(f"{name}-subscribe-data", ["put"], "egress", role.subscribe))

@@ -191,7 +191,12 @@ def test_the_replay_identity_may_publish_the_output_streams_and_serve_the_camera
         "replay-serve-queries",
     }
     keys = {key for r in granted for key in r["key_exprs"]}
-    assert not [key for key in keys if "command:i" in key or "/alive" in key or "**" in key]
+    assert not [key for key in keys if "command:i" in key or "/alive" in key]
+    # `**` only where it learns of its subscribers (a recorder's `ROBOT/**` among them)
+    wide = {r["id"] for r in granted if any("**" in key for key in r["key_exprs"])}
+    assert wide == {"replay-publish-match"}
+    (match,) = [r for r in granted if r["id"] == "replay-publish-match"]
+    assert match["messages"] == ["declare_subscriber"] and match["flows"] == ["egress"]
 
 
 # -- over the mesh ---------------------------------------------------------------------------

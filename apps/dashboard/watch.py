@@ -35,10 +35,10 @@ from protocol.journal_records import DoneRecord, ProposedRecord
 from protocol.keys import Keys
 from protocol.messages import Rollout
 from protocol.robotspec import HIT_RADIUS, SERVICES
+from protocol.verbs import learner as learner_verbs
 from protocol.verbs.base import NoArgs
 from protocol.verbs.camera import SCENE
 from protocol.verbs.detector import FRAME, FrameArgs
-from protocol.verbs.learner import LEARNER_VERBS
 from sim.scene_config import RING_COLOURS
 
 __all__ = ["FRAME_DUTY", "MAX_ROLLOUTS", "SCENE_INTEREST", "MeshWatch"]
@@ -201,7 +201,7 @@ class MeshWatch:
         try:
             reply = self.node.call_typed(
                 self.keys.learner_rpc(),
-                LEARNER_VERBS["status"],
+                learner_verbs.STATUS,
                 NoArgs(),
                 timeout=_RPC_TIMEOUT,
             )

@@ -11,7 +11,7 @@ import msgspec
 from mesh.node import Node
 from mesh.rpc_server import bad_args_message
 from protocol.errors import BadRequest
-from protocol.verbs.learner import LEARNER_VERBS, StartArgs
+from protocol.verbs.learner import LEARNER_VERBS, START, StartArgs
 
 __all__ = ["learner_call", "start_args"]
 
@@ -25,7 +25,7 @@ def start_args(request: dict[str, Any]) -> StartArgs:
     try:
         return msgspec.convert(request, StartArgs)
     except msgspec.ValidationError as exc:
-        raise BadRequest(bad_args_message(LEARNER_VERBS["start"], exc)) from None
+        raise BadRequest(bad_args_message(START, exc)) from None
 
 
 def learner_call(

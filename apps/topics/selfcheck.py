@@ -30,8 +30,8 @@ from protocol.exit_status import for_error
 from protocol.messages import Describe, JointCommand, JointState, WorldEvent
 from protocol.parts import PARTS
 from protocol.verbs import NoArgs, ServedVerbs
+from protocol.verbs import learner as learner_verbs
 from protocol.verbs import robot as rv
-from protocol.verbs.learner import LEARNER_VERBS
 
 __all__ = ["ECHO_SERVICE", "main", "run_echo"]
 
@@ -216,7 +216,7 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
             def missing() -> str:
                 try:
-                    node.call_typed(keys.learner_rpc(), LEARNER_VERBS["status"], timeout=1.0)
+                    node.call_typed(keys.learner_rpc(), learner_verbs.STATUS, timeout=1.0)
                 except RpcError as exc:
                     return str(exc)[:60] + "…"
                 raise AssertionError("a timeout was expected")

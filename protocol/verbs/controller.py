@@ -118,50 +118,67 @@ class DofReply(Reply, frozen=True):
     joints: list[str]
 
 
-_TRAJ = (
-    Verb("setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"),
-    Verb(
-        "getTrajTime",
-        NoArgs,
-        TrajTimeReply,
-        "trajectory time of the next moves",
-        blocking=False,
-        reads=True,
-    ),
+SET_TRAJ_TIME = Verb(
+    "setTrajTime", SetTrajTimeArgs, TrajTimeReply, "set the trajectory time of next moves"
+)
+GET_TRAJ_TIME = Verb(
+    "getTrajTime",
+    NoArgs,
+    TrajTimeReply,
+    "trajectory time of the next moves",
+    blocking=False,
+    reads=True,
+)
+_TRAJ = (SET_TRAJ_TIME, GET_TRAJ_TIME)  # both tables serve them
+
+ASK_FOR_POSE = Verb(
+    "askForPose",
+    AskForPoseArgs,
+    AskForPoseReply,
+    "solve IK for a pose, without moving",
+    reads=True,
+)
+
+GO_TO_POSE = Verb(
+    "goToPose", GoToPoseArgs, GoToPoseReply, "solve IK and move there; replies when done"
+)
+
+GET_POSE = Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)", reads=True)
+
+SET_TOLERANCE = Verb("setTolerance", SetToleranceArgs, ToleranceReply, "IK position tolerance")
+
+GET_TOLERANCE = Verb(
+    "getTolerance",
+    NoArgs,
+    ToleranceReply,
+    "IK position tolerance",
+    blocking=False,
+    reads=True,
+)
+
+SET_DOF = Verb("setDOF", SetDofArgs, DofReply, "solve and move the torso with the arm, or hold it")
+
+GET_DOF = Verb(
+    "getDOF",
+    NoArgs,
+    DofReply,
+    "whether the torso moves, and the moving joints",
+    blocking=False,
+    reads=True,
 )
 
 ARM_VERBS = VerbTable(
     "cartesian controller of one arm",
     ("cartesianController/left_arm/rpc:i", "cartesianController/right_arm/rpc:i"),
     (
-        Verb(
-            "askForPose",
-            AskForPoseArgs,
-            AskForPoseReply,
-            "solve IK for a pose, without moving",
-            reads=True,
-        ),
-        Verb("goToPose", GoToPoseArgs, GoToPoseReply, "solve IK and move there; replies when done"),
-        Verb("getPose", NoArgs, PoseReply, "the hand pose now (forward kinematics)", reads=True),
-        Verb("setTolerance", SetToleranceArgs, ToleranceReply, "IK position tolerance"),
-        Verb(
-            "getTolerance",
-            NoArgs,
-            ToleranceReply,
-            "IK position tolerance",
-            blocking=False,
-            reads=True,
-        ),
+        ASK_FOR_POSE,
+        GO_TO_POSE,
+        GET_POSE,
+        SET_TOLERANCE,
+        GET_TOLERANCE,
         *_TRAJ,
-        Verb("setDOF", SetDofArgs, DofReply, "solve and move the torso with the arm, or hold it"),
-        Verb(
-            "getDOF",
-            NoArgs,
-            DofReply,
-            "whether the torso moves, and the moving joints",
-            blocking=False,
-            reads=True,
-        ),
+        SET_DOF,
+        GET_DOF,
     ),
 )
 
@@ -201,19 +218,23 @@ class ArcheryStatusReply(Reply, frozen=True):
     joints: list[str]
 
 
+POSTURE = Verb("posture", PostureArgs, PostureReply, "move both arms to the posture for θ")
+
+STATUS = Verb(
+    "status",
+    NoArgs,
+    ArcheryStatusReply,
+    "θ box, bow hand, joints, trajectory time",
+    blocking=False,
+    reads=True,
+)
+
 ARCHERY_VERBS = VerbTable(
     "cartesian controller: archery posture",
     ("cartesianController/archery/rpc:i",),
     (
-        Verb("posture", PostureArgs, PostureReply, "move both arms to the posture for θ"),
+        POSTURE,
         *_TRAJ,
-        Verb(
-            "status",
-            NoArgs,
-            ArcheryStatusReply,
-            "θ box, bow hand, joints, trajectory time",
-            blocking=False,
-            reads=True,
-        ),
+        STATUS,
     ),
 )

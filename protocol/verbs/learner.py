@@ -74,19 +74,25 @@ class LearnerStatusReply(Reply, frozen=True):
     stopping: bool | UnsetType = UNSET
 
 
+START = Verb("start", StartArgs, LearnerStatusReply, "start a session, or resume a journal")
+
+STOP = Verb("stop", NoArgs, LearnerStatusReply, "stop the session after its current rollout")
+
+STATUS = Verb(
+    "status",
+    NoArgs,
+    LearnerStatusReply,
+    "the running or last session's status",
+    blocking=False,
+    reads=True,
+)
+
 LEARNER_VERBS = VerbTable(
     "learner",
     ("learner/rpc:i",),
     (
-        Verb("start", StartArgs, LearnerStatusReply, "start a session, or resume a journal"),
-        Verb("stop", NoArgs, LearnerStatusReply, "stop the session after its current rollout"),
-        Verb(
-            "status",
-            NoArgs,
-            LearnerStatusReply,
-            "the running or last session's status",
-            blocking=False,
-            reads=True,
-        ),
+        START,
+        STOP,
+        STATUS,
     ),
 )

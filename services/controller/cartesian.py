@@ -57,7 +57,8 @@ def reference_speeds(delta: np.ndarray, traj_time: float) -> np.ndarray:
     """Per-joint reference speeds (rad/s) that cover |Δq| (rad) in `traj_time` (s), kept in
     [MIN_REFERENCE_SPEED, MAX_REFERENCE_SPEED] (a move too large for T takes longer)."""
     speeds = np.abs(np.asarray(delta, dtype=float)) / traj_time
-    return np.clip(speeds, MIN_REFERENCE_SPEED, MAX_REFERENCE_SPEED)
+    result: np.ndarray = np.clip(speeds, MIN_REFERENCE_SPEED, MAX_REFERENCE_SPEED)
+    return result
 
 
 def ik_reply(result: IkResult, joints: Iterable[str]) -> dict[str, Any]:

@@ -107,4 +107,7 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> ControllerConfig:
         base.posture.ik, position_tolerance=args.tolerance, limit_margin=args.limit_margin
     )
     posture = replace(base.posture, ik=posture_ik, use_torso=args.use_torso)
-    return config_from_args(ControllerConfig, args, net=net, ik=ik, posture=posture)
+    result: ControllerConfig = config_from_args(
+        ControllerConfig, args, net=net, ik=ik, posture=posture
+    )
+    return result

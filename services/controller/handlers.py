@@ -88,18 +88,16 @@ class ArmController:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cartesianController/ARM/rpc:i` (`protocol.verbs.controller`)."""
-        return cv.ARM_VERBS.bind_names(
-            {
-                "askForPose": self.ask_for_pose,
-                "goToPose": self.go_to_pose,
-                "getPose": self.get_pose,
-                "setTolerance": self.set_tolerance,
-                "getTolerance": lambda a: self._tolerance(),
-                "setTrajTime": self.set_traj_time,
-                "getTrajTime": lambda a: cv.TrajTimeReply(time=self.traj_time),
-                "setDOF": self.set_dof,
-                "getDOF": lambda a: self._dof(),
-            }
+        return cv.ARM_VERBS.bind(
+            cv.ASK_FOR_POSE.to(self.ask_for_pose),
+            cv.GO_TO_POSE.to(self.go_to_pose),
+            cv.GET_POSE.to(self.get_pose),
+            cv.SET_TOLERANCE.to(self.set_tolerance),
+            cv.GET_TOLERANCE.to(lambda a: self._tolerance()),
+            cv.SET_TRAJ_TIME.to(self.set_traj_time),
+            cv.GET_TRAJ_TIME.to(lambda a: cv.TrajTimeReply(time=self.traj_time)),
+            cv.SET_DOF.to(self.set_dof),
+            cv.GET_DOF.to(lambda a: self._dof()),
         )
 
     def _chain(self) -> tuple[str, ...]:
@@ -204,13 +202,11 @@ class ArcheryController:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of the archery key (`protocol.verbs.controller`)."""
-        return cv.ARCHERY_VERBS.bind_names(
-            {
-                "posture": self.posture,
-                "setTrajTime": self.set_traj_time,
-                "getTrajTime": lambda a: cv.TrajTimeReply(time=self.traj_time),
-                "status": lambda a: self._status(),
-            }
+        return cv.ARCHERY_VERBS.bind(
+            cv.POSTURE.to(self.posture),
+            cv.SET_TRAJ_TIME.to(self.set_traj_time),
+            cv.GET_TRAJ_TIME.to(lambda a: cv.TrajTimeReply(time=self.traj_time)),
+            cv.STATUS.to(lambda a: self._status()),
         )
 
     def _status(self) -> cv.ArcheryStatusReply:

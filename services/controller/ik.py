@@ -73,7 +73,8 @@ _MAX_DAMPING = 1e6
 def _sqrt_psd(mat: np.ndarray) -> np.ndarray:
     """S with SᵀS = mat for a symmetric positive semi-definite matrix."""
     vals, vecs = np.linalg.eigh(mat)
-    return (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
+    result: np.ndarray = (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
+    return result
 
 
 @dataclass

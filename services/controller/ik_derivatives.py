@@ -26,7 +26,8 @@ def orientation_residual_jacobian(
     target: np.ndarray, rotation: np.ndarray, angular_jacobian: np.ndarray
 ) -> np.ndarray:
     """∂eₙ/∂q = −Jlog(R̂Rᵀ)·J_ω, for J_ω the hand's angular Jacobian in root axes (3×n)."""
-    return -np.asarray(pin.Jlog3(target @ rotation.T)) @ angular_jacobian
+    result: np.ndarray = -np.asarray(pin.Jlog3(target @ rotation.T)) @ angular_jacobian
+    return result
 
 
 def position_hessian_contraction(weights: np.ndarray, jacobian: np.ndarray) -> np.ndarray:
@@ -44,7 +45,8 @@ def position_hessian_contraction(weights: np.ndarray, jacobian: np.ndarray) -> n
         ]
     )
     pairs = (wx @ jacobian[3:]).T @ jacobian[:3]
-    return np.where(_upper_mask(pairs.shape[0]), pairs, pairs.T)
+    result: np.ndarray = np.where(_upper_mask(pairs.shape[0]), pairs, pairs.T)
+    return result
 
 
 @functools.lru_cache(maxsize=8)

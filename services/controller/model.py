@@ -130,7 +130,8 @@ class ArmsModel:
 
     def clip(self, q: np.ndarray) -> np.ndarray:
         """`q` (rad, `JOINT_NAMES` order) clipped into the URDF joint limits."""
-        return np.clip(q, self.lower, self.upper)
+        result: np.ndarray = np.clip(q, self.lower, self.upper)
+        return result
 
     def to_pinocchio(self, q: np.ndarray) -> np.ndarray:
         """Reorder a `JOINT_NAMES` vector into Pinocchio's configuration order."""

@@ -41,7 +41,16 @@ from protocol.errors import ArcheryError, RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
 from protocol.robotspec import CONTROLLER, LEASE_TTL, STATE_MAX_AGE
-from protocol.verbs.robot import PART_VERBS, ClaimArgs, LeaseArgs, SetRefSpeedsArgs
+from protocol.verbs.robot import (
+    CLAIM,
+    DROP_CLAIM,
+    GET_LIMITS,
+    RENEW_CLAIM,
+    SET_REF_SPEEDS,
+    ClaimArgs,
+    LeaseArgs,
+    SetRefSpeedsArgs,
+)
 from services.controller.cartesian import reference_speeds
 
 __all__ = ["REST_WAIT", "MoveResult", "RobotLink"]
@@ -202,7 +211,7 @@ class RobotLink:
         with self._lock:
             if part not in self._limits:
                 reply = self._node.call_typed(
-                    self._keys.part_rpc(part), PART_VERBS["getLimits"], timeout=self.robot_timeout
+                    self._keys.part_rpc(part), GET_LIMITS, timeout=self.robot_timeout
                 )
                 if list(reply.names) != list(PARTS[part]):
                     raise RpcError(
@@ -224,7 +233,7 @@ class RobotLink:
         try:
             reply = self._node.call_typed(
                 self._keys.part_rpc(part),
-                PART_VERBS["setRefSpeeds"],
+                SET_REF_SPEEDS,
                 SetRefSpeedsArgs(
                     speeds=speeds.tolist(),
                     claim=ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
@@ -249,7 +258,7 @@ class RobotLink:
             try:
                 self._node.call_typed(
                     rpc,
-                    PART_VERBS["renewClaim"],
+                    RENEW_CLAIM,
                     LeaseArgs(lease=lease),
                     timeout=self.robot_timeout,
                 )
@@ -261,7 +270,7 @@ class RobotLink:
                 try:
                     reply = self._node.call_typed(
                         rpc,
-                        PART_VERBS["claim"],
+                        CLAIM,
                         ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
                         timeout=self.robot_timeout,
                     )
@@ -285,7 +294,7 @@ class RobotLink:
             with contextlib.suppress(RpcError):  # taken over, or the robot is gone
                 self._node.call_typed(
                     self._keys.part_rpc(part),
-                    PART_VERBS["dropClaim"],
+                    DROP_CLAIM,
                     LeaseArgs(lease=lease),
                     timeout=self.robot_timeout,
                 )

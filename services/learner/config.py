@@ -315,4 +315,5 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> LearnerServiceConfi
         ConfigError: an invalid value; the message names the flag and its valid range.
     """
     check_writable_dir(Path(args.runs), "--runs", create=True)
-    return config_from_args(LearnerServiceConfig, args, net=net)
+    result: LearnerServiceConfig = config_from_args(LearnerServiceConfig, args, net=net)
+    return result

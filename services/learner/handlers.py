@@ -18,7 +18,14 @@ from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, P
 from protocol.messages import Rollout
 from protocol.text import shown
 from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply, StartArgs
+from protocol.verbs.learner import (
+    LEARNER_VERBS,
+    START,
+    STATUS,
+    STOP,
+    LearnerStatusReply,
+    StartArgs,
+)
 from services.learner.config import LearnerServiceConfig, SessionConfig
 from services.learner.report import write_report
 from services.learner.rig import MeshRig
@@ -59,9 +66,7 @@ class LearnerHandlers:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
-        return LEARNER_VERBS.bind_names(
-            {"start": self.start, "stop": self.stop, "status": self.status}
-        )
+        return LEARNER_VERBS.bind(START.to(self.start), STOP.to(self.stop), STATUS.to(self.status))
 
     def _publish(self, record: JournalRecord) -> None:
         message = rollout_message(record)

@@ -163,7 +163,7 @@ class MeshRig:
     def theta_box(self) -> Bounds:
         """The controller's θ box (m), from its `status`."""
         key = self.keys.cartesian_rpc("archery")
-        status, _ = self._call("controller", key, cv.ARCHERY_VERBS["status"])
+        status, _ = self._call("controller", key, cv.STATUS)
         try:
             return Bounds(low=tuple(status.theta_min), high=tuple(status.theta_max))
         except LearnerConfigError as exc:
@@ -172,21 +172,21 @@ class MeshRig:
     def setup(self) -> dict[str, Any]:
         """What replaying a shot needs of the rig: the robot's world (`WorldConfig.to_dict`),
         its shot count before the session and the controller's trajectory time (s)."""
-        robot, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_VERBS["status"])
+        robot, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
         key = self.keys.cartesian_rpc("archery")
-        controller, _ = self._call("controller", key, cv.ARCHERY_VERBS["status"])
+        controller, _ = self._call("controller", key, cv.STATUS)
         return {"world": robot.world, "shot": robot.shot, "traj_time": controller.traj_time}
 
     def reset(self, seed: int) -> None:
         """Robot to the home posture, shot noise reseeded with `seed`."""
-        reset = rv.ARCHERY_VERBS["reset"]
+        reset = rv.RESET
         self._call("robot", self.keys.archery_rpc(), reset, rv.ResetArgs(seed=int(seed)))
 
     def posture(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done."""
         key = self.keys.cartesian_rpc("archery")
         args = cv.PostureArgs(theta=[float(x) for x in theta])
-        result, wall = self._call("controller", key, cv.ARCHERY_VERBS["posture"], args)
+        result, wall = self._call("controller", key, cv.POSTURE, args)
         return PostureResult(
             reached=result.reached,
             reason=result.reason,
@@ -203,8 +203,8 @@ class MeshRig:
         with (the release reply's)."""
         key = self.keys.archery_rpc()
         before = time.time()
-        _, nock = self._call("robot", key, rv.ARCHERY_VERBS["nock"])
-        result, release = self._call("robot", key, rv.ARCHERY_VERBS["release"])
+        _, nock = self._call("robot", key, rv.NOCK)
+        result, release = self._call("robot", key, rv.RELEASE)
         return Shot(
             shot=result.shot,
             sim_time=result.sim_time,
@@ -223,7 +223,7 @@ class MeshRig:
             after_stamp=shot.stamp,
             timeout=max(0.5, self.timeout - 2.0),  # the detector answers before we give up
         )
-        result, wall = self._call("detector", key, dv.DETECTOR_VERBS["measure"], args)
+        result, wall = self._call("detector", key, dv.MEASURE, args)
         if result.status == "ok" and result.r_m is None:
             raise RigError(f"{key} measure replied ok without r_m", code="bad_reply")
         timing = {"measure_s": wall} | {f"detector_{k}": v for k, v in result.timing.items()}
@@ -250,7 +250,7 @@ class MeshRig:
         key = self.keys.detector_rpc()
         seq = measurement.detection.get("seq")
         args = dv.FrameArgs(seq=seq if isinstance(seq, int) and seq >= 1 else None)
-        result, _ = self._call("detector", key, dv.DETECTOR_VERBS["frame"], args)
+        result, _ = self._call("detector", key, dv.FRAME, args)
         png = result.png
         if not png.startswith(b"\x89PNG"):
             log.warning("the detector's frame reply holds no PNG")

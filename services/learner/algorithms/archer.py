@@ -151,7 +151,8 @@ class Archer(Learner):
         if self._seeds is not None and n < self.n_best:
             seed_thetas, seed_rewards = self._seeds
             if n == 0:
-                return seed_thetas[0].copy()  # the other world's best θ
+                result: np.ndarray = seed_thetas[0].copy()  # the other world's best θ
+                return result
             # Seeds of another world: only their differences (the local gain) carry over.
             top = int(self._recent_ranked(n)[0])
             return self._step(
@@ -176,9 +177,10 @@ class Archer(Learner):
         # Eq. 5: weights W with r_{1,T} = W U.
         weights, ill_conditioned = self._weights(u, r_1t)
         # Eq. 6: θ̂_{1,T} = Σ_i w_i θ_{1,i+1}.
-        step = weights @ theta_1i
+        step: np.ndarray = weights @ theta_1i
         if not self.safeguard:
-            return theta_1 + step
+            unguarded: np.ndarray = theta_1 + step
+            return unguarded
         # Safeguard 1: limit the extrapolation to the trust radius.
         norm = float(np.linalg.norm(step))
         if norm > self.trust_radius:
@@ -190,7 +192,8 @@ class Archer(Learner):
             gain = _largest_singular(u) / max(_largest_singular(theta_1i), 1e-12)
             needed = float(np.linalg.norm(r_1t)) / gain if gain > 0 else self.fallback_std
             step = step + min(self.fallback_std, needed) * self.rng.standard_normal(theta_1.size)
-        return theta_1 + step
+        guarded: np.ndarray = theta_1 + step
+        return guarded
 
     def _recent_ranked(self, end: int) -> np.ndarray:
         """Indices of the rollouts before `end` that the window keeps, best first."""

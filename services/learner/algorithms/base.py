@@ -118,7 +118,8 @@ class Bounds:
 
     def clip(self, theta: np.ndarray) -> np.ndarray:
         """θ (m) clipped into the box."""
-        return np.clip(theta, self.low, self.high)
+        result: np.ndarray = np.clip(theta, self.low, self.high)
+        return result
 
     def contains(self, theta: np.ndarray) -> bool:
         """True if θ (m) lies inside the box (bounds included)."""
@@ -199,7 +200,8 @@ def with_history(
 
 def rng_state(rng: np.random.Generator) -> dict[str, Any]:
     """A Generator's bit_generator.state as plain values (128-bit ints become hex strings)."""
-    return _plain(rng.bit_generator.state)
+    result: dict[str, Any] = _plain(rng.bit_generator.state)
+    return result
 
 
 def rng_from_state(state: dict[str, Any]) -> np.random.Generator:

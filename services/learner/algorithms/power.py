@@ -89,7 +89,10 @@ class Power(Learner):
 
     def _propose(self) -> np.ndarray:
         # Exploration: θ_k = θ_n + ε, ε ~ N(0, diag(variance)).
-        return self.mean + np.sqrt(self.variance) * self.rng.standard_normal(self.mean.size)
+        result: np.ndarray = self.mean + np.sqrt(self.variance) * self.rng.standard_normal(
+            self.mean.size
+        )
+        return result
 
     def _update(self, theta: np.ndarray, r: np.ndarray, big_return: float) -> None:
         # Eq. 4: ind(k), the k-th best of all past rollouts by return; keep the σ best.

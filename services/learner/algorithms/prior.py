@@ -201,7 +201,8 @@ class ArcherPrior(Learner):
 
     def _model_residual(self, theta: np.ndarray, r: np.ndarray) -> np.ndarray | None:
         try:
-            return r - self.model_impacts(theta.reshape(1, -1))[0]
+            result: np.ndarray | None = r - self.model_impacts(theta.reshape(1, -1))[0]
+            return result
         except ValueError:
             return None
 
@@ -245,7 +246,8 @@ class ArcherPrior(Learner):
         if evaluated is None:
             return None
         c, dmat = self.correction()
-        return evaluated[0] + c + dmat @ (theta - self.theta0)
+        result: np.ndarray | None = evaluated[0] + c + dmat @ (theta - self.theta0)
+        return result
 
     # -- the algorithm --------------------------------------------------------------------------
 
