@@ -12,7 +12,6 @@ import numpy as np
 
 from protocol.text import shown
 from protocol.vectors import finite_vector
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
 
 __all__ = [
     "DEFAULT_BOUNDS",
@@ -141,10 +140,11 @@ class Bounds:
             ) from exc
 
 
-#: The controller's θ box (`protocol.verbs.controller`, its one definition), for learners built
-#: without a controller (the analytic experiment world, tests). A session on the mesh reads the
-#: box from the controller's `status` instead.
-DEFAULT_BOUNDS = Bounds(low=THETA_MIN, high=THETA_MAX)
+#: The search box of learners built without a controller: the analytic world of `archery
+#: experiment` (a point bow, no arms: wider than the iCub's reach) and tests. A session on the
+#: robot searches the controller's θ box instead (`protocol.verbs.controller.THETA_MIN/MAX`,
+#: its one definition), read from the controller's `status`.
+DEFAULT_BOUNDS = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))
 
 
 def _plain(value: Any) -> Any:
