@@ -15,6 +15,7 @@ from pathlib import Path
 
 import psutil
 
+from apps.dashboard.server import TOKEN_HEADER
 from mesh.router import free_tcp_endpoint
 from tests.spawn import spawn
 
@@ -59,8 +60,8 @@ def cpu_seconds(pids: dict[str, int]) -> dict[str, float]:
 class PageClient:
     """Polls `/api/state` every `POLL` s and fetches `/api/frame.png` whenever the frame's
     version changes, like the dashboard's page in a browser; with `scene`, as a page with its
-    scene panel open (`/api/state?scene=1`, `/api/scene.jpg` whenever the view's version
-    changes); counts its requests."""
+    scene panel open (a POST of `/api/scene` with the page's token before each poll,
+    `/api/scene.jpg` whenever the view's version changes); counts its requests."""
 
     def __init__(self, url: str, scene: bool = False) -> None:
         self.url = url
@@ -69,19 +70,34 @@ class PageClient:
         self.frames = 0
         self.scenes = 0
         self.errors = 0
+        self._token = ""  # the dashboard's, from its answers' `TOKEN_HEADER`
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="page-client", daemon=True)
         self._thread.start()
 
     def _get(self, path: str) -> bytes:
         with urllib.request.urlopen(self.url + path, timeout=10) as response:
-            return response.read()
+            self._token = response.headers.get(TOKEN_HEADER, self._token)
+            body: bytes = response.read()
+            return body
+
+    def _want_scene(self) -> None:
+        """Ask for the scene view as the page does while its panel is open."""
+        if not self._token:
+            self._get("api/robots")
+        request = urllib.request.Request(
+            self.url + "api/scene", method="POST", headers={TOKEN_HEADER: self._token}
+        )
+        with urllib.request.urlopen(request, timeout=10) as response:
+            response.read()
 
     def _run(self) -> None:
         version = scene = 0
         while not self._stop.wait(POLL):
             try:
-                state = json.loads(self._get("api/state" + ("?scene=1" if self.scene else "")))
+                if self.scene:
+                    self._want_scene()
+                state = json.loads(self._get("api/state"))
                 self.states += 1
                 if state["frame"]["version"] != version:
                     version = state["frame"]["version"]
