@@ -70,7 +70,8 @@ out = {}
 with open_router(endpoint):
     net = NetConfig(connect=(endpoint,), robot="bench")
     with Node("bench_server", net) as server, Node(None, net) as client:
-        echo = TABLE.bind_names({"aim": lambda a: AimReply(theta=a.theta, reached=True)})
+        by_name = getattr(TABLE, "bind_names", TABLE.bind)  # before the typed binding: bind
+        echo = by_name({"aim": lambda a: AimReply(theta=a.theta, reached=True)})
         server.serve("bench/bench/rpc:i", echo)
         args = Aim(theta=[0.17, 0.03, -0.03])
         for _ in range(200):
