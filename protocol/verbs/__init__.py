@@ -29,6 +29,13 @@ TABLES: tuple[VerbTable, ...] = (
     learner.LEARNER_VERBS,
 )
 _BY_PORT = {port: table for table in TABLES for port in table.ports}
+_NAMING_CALLER = frozenset(
+    (port, verb.name)
+    for table in TABLES
+    for port in table.ports
+    for verb in table
+    if verb.names_caller
+)
 
 
 def table_for_key(key: str) -> VerbTable:
@@ -48,8 +55,4 @@ def table_for_key(key: str) -> VerbTable:
 def names_caller(key: str, verb: str) -> bool:
     """Whether a call of `verb` on the `rpc:i` key `key` names its caller (`Verb.names_caller`);
     False for a key or verb no table declares."""
-    _, _, port = key.partition("/")
-    table = _BY_PORT.get(port)
-    if table is None or verb not in table.names():
-        return False
-    return table[verb].names_caller
+    return (key.partition("/")[2], verb) in _NAMING_CALLER
