@@ -9,7 +9,6 @@ replay has arrived (the replay publishes in file order over one session)."""
 from __future__ import annotations
 
 import json
-import threading
 import time
 from pathlib import Path
 
@@ -34,6 +33,7 @@ from protocol.messages import (
     WorldEvent,
 )
 from tests.conftest import archery
+from tests.inbox import Inbox
 
 ROBOT = "craftbot"
 
@@ -106,36 +106,13 @@ SKIPPED = 8  # channels of `crafted_records` a replay skips
 ALLOWED = 4  # keys of `crafted_records` a replay publishes
 
 
-class Inbox:
-    """Samples received by one subscriber (but those on its probe key), with a wait."""
-
-    def __init__(self, probe: str) -> None:
-        self.probe = probe
-        self.items: list[tuple[str, bytes]] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._cond.notify_all()
-
-    def wait_for(self, key: str, n: int = 1, timeout: float = 10.0) -> bool:
-        """Whether `n` samples on `key` have arrived (waiting up to `timeout` s)."""
-        with self._cond:
-            return self._cond.wait_for(lambda: self.received(key).count(key) >= n, timeout)
-
-    def received(self, probe: str = "") -> list[str]:
-        """The keys received, in order (the probe's only when `probe` names it)."""
-        return [k for k, _ in self.items if k != self.probe or k == probe]
-
-
 def listening(session: zenoh.Session, prober: zenoh.Session, pattern: str, probe: str) -> Inbox:
     """A subscriber of `session` on `pattern` that has reached the router: a probe that
     `prober` published on `probe` (covered by `pattern`) has arrived."""
     inbox = Inbox(probe)
     session.declare_subscriber(pattern, inbox)
     deadline = time.monotonic() + 10
-    while not inbox.wait_for(probe, timeout=0.1):
+    while not inbox.wait_for_key(probe, timeout=0.1):
         assert time.monotonic() < deadline, f"the subscription to {pattern} never took"
         prober.put(probe, b"probe")
     return inbox
@@ -213,7 +190,7 @@ def test_a_crafted_file_publishes_only_the_robots_output_streams(
         other = listening(node.session, prober.session, "other/**", "other/world/state:o")
         status, out, err = _replay(path, net)
         assert status == 0, err
-        assert mine.wait_for(k.world_events(), n=2)  # the control, published last
+        assert mine.wait_for_key(k.world_events(), n=2)  # the control, published last
     events = [decode(p, WorldEvent) for key, p in mine.items if key == k.world_events()]
     assert [e.shot for e in events] == [1, 99]
     assert sorted(set(mine.received())) == sorted(
@@ -241,7 +218,7 @@ def test_a_replay_under_another_prefix_takes_no_other_robots_key(
         inbox = listening(node.session, prober.session, f"{target.robot}/**", target.world_state())
         status, out, err = _replay(path, net, "--robot", target.robot)
         assert status == 0, err
-        assert inbox.wait_for(target.world_events(), n=2)  # the control, published last
+        assert inbox.wait_for_key(target.world_events(), n=2)  # the control, published last
     torso = [p for key, p in inbox.items if key == target.state("torso")]
     assert len(torso) == 1  # the recorded robot's torso, not other/'s
     assert target.command("left_arm") not in inbox.received()

@@ -57,6 +57,7 @@ from services.robot.service import run as run_robot
 from sim.scene_config import SceneConfig
 from sim.world import WorldConfig
 from tests.conftest import archery, serving
+from tests.inbox import Inbox
 from tests.rpc import rpc_call, some_verbs
 from tests.spawn import spawn
 from tests.test_replay_bounds import command, craft, event, frame
@@ -121,26 +122,6 @@ def session_as(endpoint: str, deployment: Path) -> Iterator[Callable[[str], zeno
     yield open_as
     for session in opened:
         session.close()
-
-
-class Inbox:
-    """Samples received by one subscriber, with a wait on a condition."""
-
-    def __init__(self) -> None:
-        self.items: list[tuple[str, bytes]] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, sample: zenoh.Sample) -> None:
-        with self._cond:
-            self.items.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._cond.notify_all()
-
-    def wait_for(self, payload: bytes, timeout: float = 10.0) -> bool:
-        with self._cond:
-            return self._cond.wait_for(lambda: payload in self.payloads(), timeout)
-
-    def payloads(self) -> list[bytes]:
-        return [p for _, p in self.items]
 
 
 def put_until_received(pub: zenoh.Session, key: str, inbox: Inbox, payload: bytes) -> None:
