@@ -136,7 +136,7 @@ def test_the_learner_takes_a_stale_robot_as_lost(net: NetConfig, mesh: Node) -> 
         rig = MeshRig(mesh, timeout=10)
         rig.services = (ROBOT, CONTROLLER)  # the only services of this mesh
         with pytest.raises(ServiceLost) as lost:
-            rig.posture(np.array(THETA))
+            rig.move_to(np.array(THETA))
         robot.close()
     assert lost.value.service == ROBOT
     assert "stale" in str(lost.value)

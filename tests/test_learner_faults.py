@@ -86,8 +86,8 @@ class FaultRig(FakeRig):
         self.gone.clear()
         return True
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
-        result = super().posture(theta)
+    def move_to(self, theta: np.ndarray) -> PostureResult:
+        result = super().move_to(theta)
         service = self.lose_in.pop((self.attempts, "posture"), None)
         if service is not None:  # vanishes once the posture is reached, before the shot
             self._lose(service)
@@ -341,10 +341,10 @@ def test_a_late_reply_never_reaches_the_next_call(net: NetConfig) -> None:
         node.wait_alive(["controller"], timeout=30)
         rig = MeshRig(node, timeout=0.5)
         with pytest.raises(ServiceLost) as lost:
-            rig.posture(np.array([0.1, 0.0, 0.0]))
+            rig.move_to(np.array([0.1, 0.0, 0.0]))
         assert lost.value.service == "controller"
         release.set()  # the first reply is sent now, after the abort
-        second = rig.posture(np.array([0.2, 0.01, -0.02]))
+        second = rig.move_to(np.array([0.2, 0.01, -0.02]))
         assert calls == [[0.1, 0.0, 0.0], [0.2, 0.01, -0.02]]
         assert second.theta_measured == [0.2, 0.01, -0.02]  # its own reply, not the late one
 
@@ -371,10 +371,10 @@ class GatedRig(FakeRig):
         super().__init__()
         self.gate = threading.Event()
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
+    def move_to(self, theta: np.ndarray) -> PostureResult:
         if self.attempts == 2:
             self.gate.wait(60)
-        return super().posture(theta)
+        return super().move_to(theta)
 
 
 @pytest.fixture

@@ -83,7 +83,7 @@ class FakeRig:
     def reset(self, seed: int) -> None:
         self.resets.append(seed)
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
+    def move_to(self, theta: np.ndarray) -> PostureResult:
         self.attempts += 1
         self.calls.append("posture")
         self.theta = np.array(theta)

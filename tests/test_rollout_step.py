@@ -66,10 +66,10 @@ class Rig(FakeRig):
         super().__init__()
         self.fail = fail
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
+    def move_to(self, theta: np.ndarray) -> PostureResult:
         if "posture" in self.fail:
             return PostureResult(False, "too slow", list(theta))
-        return super().posture(theta)
+        return super().move_to(theta)
 
     def shoot(self) -> Shot:
         if "shoot" in self.fail:

@@ -112,7 +112,7 @@ class ArmController:
         """{"xd": [x, y, z] m, "od"?: [ax, ay, az, angle]} → the solution, without moving.
 
         Warm-started from the robot's posture when its states are fresh, else from home."""
-        q0 = self._link.fresh_posture()
+        q0 = self._link.fresh_joints()
         result = self._solve(args, q0)
         return cv.AskForPoseReply(
             **ik_reply(result, self._chain()), warm_start="home" if q0 is None else "robot"
@@ -124,7 +124,7 @@ class ArmController:
         The reply adds "reached" (False after `timeout` s, with the reason), the measured hand
         position "x_measured" (m) and its distance to xd "position_error_measured_m"."""
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
-        current = self._link.posture()
+        current = self._link.joint_angles()
         result = self._solve(args, current)
         moving = PARTS[self.arm] if not self.torso else self._chain()
         with self._motion.hold(timeout):
@@ -143,7 +143,7 @@ class ArmController:
 
     def get_pose(self, args: NoArgs) -> cv.PoseReply:
         """The hand pose now, by forward kinematics of the robot's joint states."""
-        q = self._link.posture()
+        q = self._link.joint_angles()
         x, rotation = self._solver.hand_pose(q, self.arm)
         return cv.PoseReply(
             x=x.tolist(),
@@ -237,7 +237,7 @@ class ArcheryController:
         """
         theta = self._posture.check_theta(args.theta)
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
-        current = self._link.posture()  # the robot must be there before anything is solved
+        current = self._link.joint_angles()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
         result = self._posture.solve_checked(theta, q0=q0)
         targets = {j: float(result.q[j]) for j in self._posture.joints}

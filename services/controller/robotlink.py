@@ -152,7 +152,7 @@ class RobotLink:
                 f"{self.robot_timeout:g} s; is `archery robot --robot {self._keys.robot}` running?"
             ) from None
 
-    def posture(self, parts: tuple[str, ...] = tuple(PARTS)) -> dict[str, float]:
+    def joint_angles(self, parts: tuple[str, ...] = tuple(PARTS)) -> dict[str, float]:
         """The measured joint angles {joint: rad} of `parts` (fresh states, see `state`)."""
         out: dict[str, float] = {}
         for part in parts:
@@ -160,7 +160,7 @@ class RobotLink:
             out.update(zip(msg.names, msg.position, strict=True))
         return out
 
-    def rested_posture(self, wait: float) -> dict[str, float] | None:
+    def rested_joints(self, wait: float) -> dict[str, float] | None:
         """The measured posture of every part once the whole robot rests: fresh states of one
         simulated time, each showing motion done (waiting up to `wait` s for them); None if it
         does not rest by then (a move then starts from the newest states, `posture`).
@@ -194,7 +194,7 @@ class RobotLink:
             except RpcTimeout:
                 return None
 
-    def fresh_posture(self) -> dict[str, float] | None:
+    def fresh_joints(self) -> dict[str, float] | None:
         """The measured posture of every part if all their states are fresh (see
         `state_max_age`), else None."""
         out: dict[str, float] = {}
@@ -309,7 +309,7 @@ class RobotLink:
             ArcheryError (code `not_owner`): another client holds a part to be moved.
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
-        current = self.rested_posture(REST_WAIT) or self.posture(tuple(PARTS))
+        current = self.rested_joints(REST_WAIT) or self.joint_angles(tuple(PARTS))
         leases: dict[str, str] = {}
         try:
             result = self._move(targets, traj_time, timeout, parts, current, leases)

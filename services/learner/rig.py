@@ -182,7 +182,7 @@ class MeshRig:
         reset = rv.RESET
         self._call("robot", self.keys.archery_rpc(), reset, rv.ResetArgs(seed=int(seed)))
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
+    def move_to(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done."""
         key = self.keys.cartesian_rpc("archery")
         args = cv.PostureArgs(theta=[float(x) for x in theta])

@@ -82,7 +82,7 @@ class Rig(Protocol):
     def reset(self, seed: int) -> None:
         """Robot to its home posture, shot noise reseeded."""
 
-    def posture(self, theta: np.ndarray) -> PostureResult:
+    def move_to(self, theta: np.ndarray) -> PostureResult:
         """Move to the archery posture for θ (m) and wait until the motion is done."""
 
     def shoot(self) -> Shot:

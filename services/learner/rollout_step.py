@@ -111,7 +111,7 @@ def shoot(rig: Rig, theta: np.ndarray) -> Measured | Failed:
     """Posture for θ (m), release and measure; a failed call, an unreached posture, a service
     missing before the release or a refused frame is `Failed`."""
     try:
-        posture = rig.posture(theta)
+        posture = rig.move_to(theta)
         if not posture.reached:
             return Failed("not_reached", f"posture not reached: {posture.reason}")
         missing = rig.missing()
