@@ -181,27 +181,29 @@ class RpcServer:
             log.exception("could not read a request on %s", self.key)
             query.drop()
             return
-        if isinstance(request, _WireRequest):
-            sent_to = str(query.key_expr).rsplit("/", 1)[-1]
-            if request.verb != split_verb(sent_to)[0]:  # access control grants by key
-                request = DecodeError(
-                    f"the request names verb {shown(request.verb)} but was sent to "
-                    f"{self.key}/{shown(sent_to)}"
-                )
+        sent_to = str(query.key_expr).rsplit("/", 1)[-1]
+        verb, named = split_verb(sent_to)
+        if isinstance(request, _WireRequest) and request.verb != verb:  # ACL grants by key
+            request = DecodeError(
+                f"the request names verb {shown(request.verb)} but was sent to "
+                f"{self.key}/{shown(sent_to)}"
+            )
         if (
             isinstance(request, _WireRequest)
             and request.verb in self.handlers
             and request.verb not in self.inline
         ):
             if request.verb in self.waits:
-                self._start_waiting(query, request, arrived)
+                self._start_waiting(query, request, arrived, named)
                 return
             later = request.verb in self.background
-            (self._later if later else self._queue).put((query, request, arrived))
+            (self._later if later else self._queue).put((query, request, arrived, named))
         else:
-            self._answer(query, request, arrived)
+            self._answer(query, request, arrived, named)
 
-    def _start_waiting(self, query: zenoh.Query, request: _WireRequest, arrived: float) -> None:
+    def _start_waiting(
+        self, query: zenoh.Query, request: _WireRequest, arrived: float, named: str | None
+    ) -> None:
         """A waiting verb's request on a thread of its own, or `busy` at once when
         `MAX_WAITING` of them are in hand already."""
         if not self._slots.acquire(blocking=False):
@@ -209,12 +211,12 @@ class RpcServer:
                 f"{self.key} {request.verb}: busy, {MAX_WAITING} requests of its waiting verbs "
                 f"are in hand (the most it takes at a time); try again later"
             )
-            self._answer(query, busy, arrived)
+            self._answer(query, busy, arrived, named)
             return
 
         def wait() -> None:
             try:
-                self._answer(query, request, arrived)
+                self._answer(query, request, arrived, named)
             finally:
                 self._slots.release()
 
@@ -231,9 +233,15 @@ class RpcServer:
             del item  # the request is not kept while waiting for the next one
 
     def _answer(
-        self, query: zenoh.Query, request: _WireRequest | ArcheryError, arrived: float
+        self,
+        query: zenoh.Query,
+        request: _WireRequest | ArcheryError,
+        arrived: float,
+        named: str | None,
     ) -> None:
-        _call.caller = split_verb(str(query.key_expr).rsplit("/", 1)[-1])[1]
+        """Handle `request` (arrived at monotonic `arrived` s, its key naming caller `named`),
+        reply, and tap the call."""
+        _call.caller = named
         try:
             reply = self._handle(request, next(self._seq), arrived)
             payload = encode(reply)
