@@ -83,6 +83,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.topics.info:main",
         "an MCAP recording's duration, channels, counts, rates, schemas and size",
     ),
+    "foxglove": (
+        "apps.foxglove.command:main",
+        "a live Foxglove WebSocket server: the robot in 3D, the camera, the learning curve",
+    ),
     "dashboard": (
         "apps.dashboard.server:main",
         "a live view in the browser: frame, target face, distances, liveliness, rates",

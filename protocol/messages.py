@@ -325,7 +325,8 @@ class Image(Message, frozen=True):
 class Detection(Message, frozen=True):
     """Target centre and arrow tip in an image (px: column, row) and the reward vector r (m):
     arrow − centre on the target plane, r[0] to the robot's right, r[1] up (the paper's
-    r = m_T − m_A in pixels, re-expressed in metres); `status` "ok" when both were found."""
+    r = m_T − m_A in pixels, re-expressed in metres); `status` "ok" when both were found;
+    `rings` the target's fitted ring ellipses (px), inner to outer, for viewers."""
 
     frame_stamp: float
     status: Literal["ok", "no_target", "no_arrow"]
@@ -334,6 +335,20 @@ class Detection(Message, frozen=True):
     target_confidence: float = 0.0
     arrow_confidence: float = 0.0
     r_m: list[float] | None = None
+    rings: (
+        list[
+            Annotated[
+                list[float],
+                Meta(
+                    min_length=5,
+                    max_length=5,
+                    description="a fitted ring ellipse: centre column, centre row, full axis "
+                    "lengths (px) and angle (degrees, OpenCV's convention)",
+                ),
+            ]
+        ]
+        | None
+    ) = None
 
 
 class Rollout(Message, frozen=True):

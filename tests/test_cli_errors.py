@@ -191,6 +191,12 @@ CASES: list[tuple[str, int, str]] = [
     ("hz {robot}/torso/state:o --duration 0.3 {net}", 1, "no message on {robot}/torso/state:o"),
     ("read {robot}/torso/state:o --field nosuch {net}", 2, "JointState has no field 'nosuch'"),
     ("read {robot}/nosuch/** {net}", 2, "matches no stream port"),
+    # foxglove
+    ("foxglove --port {busy} {net}", 2, "--port {busy}: already in use on 127.0.0.1"),
+    ("foxglove --host 192.0.2.1 --port 0 {net}", 2, "not an address of this machine"),
+    ("foxglove --port 70000 {net}", 2, "--port 70000: give a port number from 0 to 65535"),
+    ("foxglove --port 0 --wait 1 --connect {dead}", 1, "{dead}"),
+    ("foxglove --layout {tmp}/layout.txt", 2, "ending in .json"),
     # dashboard
     ("dashboard --port {busy} {net}", 2, "--port {busy}: address 127.0.0.1:{busy} is in use"),
     ("dashboard --host nohost --port 0 {net}", 2, "--host 'nohost' is not an IP address"),

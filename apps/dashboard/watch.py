@@ -26,9 +26,9 @@ from typing import Any
 
 import msgspec
 
+from apps.port_rates import PortRates, stream_counts
 from mesh.instances import describe_all
 from mesh.node import Node
-from mesh.patterns import stream_type
 from mesh.tokens import TokenSet
 from protocol.errors import ArcheryError
 from protocol.journal_records import DoneRecord, ProposedRecord
@@ -58,37 +58,6 @@ def _hex(rgba: tuple[float, ...]) -> str:
 
 #: The target face as the camera sees it: (outer radius m, colour), innermost first.
 FACE = [{"radius_m": r, "colour": _hex(rgba)} for r, rgba in RING_COLOURS]
-
-
-class _Rates:
-    """Each stream port's rate from its publisher's message count, as the describe polls
-    report it: the count's rise between two polls over the time between them (messages/s)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._counts: dict[str, tuple[float, int]] = {}  # key -> (when, count reported)
-        self._rates: dict[str, float | None] = {}  # None: one report so far
-
-    def update(self, counts: dict[str, int]) -> None:
-        """One poll's counts {key: messages sent}; a key it lacks has lost its publisher."""
-        now = time.monotonic()
-        with self._lock:
-            for key in self._rates.keys() - counts.keys():
-                self._rates[key] = 0.0
-                self._counts.pop(key, None)
-            for key, total in counts.items():
-                last = self._counts.get(key)
-                self._counts[key] = (now, total)
-                if last is None or total < last[1] or now <= last[0]:  # new, or restarted
-                    self._rates[key] = None
-                else:
-                    self._rates[key] = (total - last[1]) / (now - last[0])
-
-    def table(self) -> list[dict[str, Any]]:
-        """Each stream port seen, with its rate (Hz; None until a second poll)."""
-        with self._lock:
-            rates = sorted(self._rates.items())
-        return [{"key": k, "hz": None if v is None else round(v, 2)} for k, v in rates]
 
 
 class MeshWatch:
@@ -125,7 +94,7 @@ class MeshWatch:
         self._frame_wanted = threading.Event()
         self._wake = threading.Event()  # a rollout, a page wanting the scene, or close()
         self._stop = threading.Event()
-        self._rates = _Rates()
+        self._rates = PortRates()
         self._rollout_index: int | None = None  # the newest finished rollout
         keys = self.keys
         self._alive = TokenSet(node.session, keys.alive_all())
@@ -211,14 +180,7 @@ class MeshWatch:
         with self._lock:
             self._status = status
         described = describe_all(self.node.session, self.keys, timeout=_RPC_TIMEOUT)
-        self._rates.update(
-            {
-                port.key: port.count
-                for describe in described.values()
-                for port in describe.ports
-                if port.kind in ("pub", "events") and stream_type(port.key) is not None
-            }
-        )
+        self._rates.update(stream_counts(described))
 
     def _fetch_frame(self, rollout: int | None) -> bool:
         """Fetch the detector's frame (of the measurement of `rollout`, the newest finished

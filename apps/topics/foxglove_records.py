@@ -1,5 +1,6 @@
-"""Foxglove's 3D schemas as protobuf records: frame transforms, joint states and a scene of
-meshes and primitives, with the schema data (a `FileDescriptorSet`) an MCAP channel carries.
+"""Foxglove's schemas as protobuf records: frame transforms, joint states, a scene of meshes and
+primitives, image annotations and logs, with the schema data (a `FileDescriptorSet`) a channel
+carries.
 
 Poses are metres and unit quaternions (x, y, z, w, Foxglove's order); times are ns since the
 epoch. The messages are Foxglove's own (`foxglove-schemas-protobuf`), unextended.
@@ -13,7 +14,9 @@ from typing import Any
 
 import numpy as np
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
+from foxglove_schemas_protobuf.Log_pb2 import Log
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from google.protobuf import descriptor_pb2
 from google.protobuf.descriptor import FileDescriptor
@@ -21,7 +24,9 @@ from google.protobuf.descriptor import FileDescriptor
 __all__ = [
     "DERIVED_SCHEMAS",
     "FRAME_TRANSFORMS",
+    "IMAGE_ANNOTATIONS",
     "JOINT_STATES",
+    "LOG",
     "SCENE_UPDATE",
     "frame_transforms",
     "joint_states",
@@ -33,12 +38,16 @@ __all__ = [
 FRAME_TRANSFORMS = "foxglove.FrameTransforms"
 JOINT_STATES = "foxglove.JointStates"
 SCENE_UPDATE = "foxglove.SceneUpdate"
+IMAGE_ANNOTATIONS = "foxglove.ImageAnnotations"  # the live bridge's, no recording's
+LOG = "foxglove.Log"
 #: Schemas of the records a recorder derives (no mesh message has them: a replay skips them).
 DERIVED_SCHEMAS = frozenset({FRAME_TRANSFORMS, JOINT_STATES, SCENE_UPDATE})
 _CLASSES: dict[str, Any] = {
     FRAME_TRANSFORMS: FrameTransforms,
     JOINT_STATES: JointStates,
     SCENE_UPDATE: SceneUpdate,
+    IMAGE_ANNOTATIONS: ImageAnnotations,
+    LOG: Log,
 }
 
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import mujoco
@@ -53,17 +54,27 @@ __all__ = [
     "DESCRIPTION_ATTACHMENT",
     "RobotFrames",
     "link_poses",
+    "mesh_root",
+    "urdf_text",
 ]
 
 DESCRIPTION_ATTACHMENT = "robot_description.urdf"
 _DRAWN_GROUPS = (0, 1, 2)  # floor, robot, props; higher groups are markers
 
 
-def _urdf_text() -> str:
+def urdf_text() -> str:
+    """The robot description the robot runs: icub-models' URDF of `MODEL_NAME`."""
     import icub_models
 
     with open(icub_models.get_model_file(MODEL_NAME), encoding="utf-8") as file:
         return file.read()
+
+
+def mesh_root() -> Path:
+    """The folder the description's `package://iCub/` URIs name (icub-models' `share/iCub`)."""
+    import icub_models
+
+    return Path(icub_models.get_model_file(MODEL_NAME)).parents[2]
 
 
 def link_poses(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
@@ -109,7 +120,7 @@ class RobotFrames:
 
     def attachments(self) -> dict[str, tuple[str, bytes]]:
         """{name: (media type, data)}: the URDF the robot runs."""
-        return {DESCRIPTION_ATTACHMENT: ("application/xml", _urdf_text().encode())}
+        return {DESCRIPTION_ATTACHMENT: ("application/xml", urdf_text().encode())}
 
     def metadata(self) -> dict[str, str]:
         """The description's metadata record: model, mesh package, scene parameters, topics."""

@@ -159,6 +159,7 @@ class DetectorHandlers:
                 target_confidence=found.target.confidence if found.target else 0.0,
                 arrow_confidence=found.arrow.confidence if found.arrow else 0.0,
                 r_m=list(found.r_m) if found.r_m else None,
+                rings=[[*e.centre, *e.axes, e.angle] for e in found.rings] or None,
                 sim_time=image.sim_time,
             )
         )
@@ -167,7 +168,9 @@ class DetectorHandlers:
             while len(self._kept) > dv.KEPT_FRAMES:
                 self._kept.popitem(last=False)
         timing = {"grab_s": round(grabbed_at - started, 6), "detect_s": round(detect_s, 6)}
-        return dv.MeasureReply(**msgspec.to_builtins(message), frame=image.frame, timing=timing)
+        fields = msgspec.to_builtins(message)
+        del fields["rings"]  # the hits stream's, for viewers: the reply keeps its fields
+        return dv.MeasureReply(**fields, frame=image.frame, timing=timing)
 
     def frame(self, args: dv.FrameArgs) -> dv.FrameReply:
         """The last measured frame (or that of the measurement `seq`, one of the last

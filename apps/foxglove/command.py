@@ -1,0 +1,156 @@
+"""`archery foxglove`: its flags, the checks of where it listens, and the run until Ctrl-C."""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import socket
+import sys
+from pathlib import Path
+
+from apps.waits import announce
+from mesh.cliargs import ArgumentParser, check_writable_dir, seconds
+from mesh.netflags import NetConfig, add_network_args
+from protocol.errors import ArcheryError, ConfigError
+from protocol.exit_status import BAD_INPUT, FAILURE, OK
+
+__all__ = ["check_listen", "main"]
+
+DEFAULT_PORT = 8765  # Foxglove's usual WebSocket port
+DEFAULT_WAIT = 30.0  # s: for the router and the robot
+
+
+def check_listen(host: str, port: int) -> None:
+    """Raise ConfigError (one line) unless a server can listen on `host`:`port`: the host must
+    name this machine and the port be free (0: any free port)."""
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except socket.gaierror as exc:
+        raise ConfigError(f"--host {host!r}: not a host name or address ({exc.strerror})") from None
+    family, kind, proto, _, address = infos[0]
+    with socket.socket(family, kind, proto) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(address)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise ConfigError(
+                    f"--port {port}: already in use on {host} (choose another, or 0 for any)"
+                ) from None
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise ConfigError(
+                    f"--host {host!r}: not an address of this machine (a server listens only "
+                    "on its own addresses, e.g. 127.0.0.1)"
+                ) from None
+            raise ConfigError(f"--host {host!r} --port {port}: cannot listen: {exc}") from None
+
+
+def build_parser() -> ArgumentParser:
+    """The flags of `archery foxglove`."""
+    parser = ArgumentParser(
+        prog="archery foxglove",
+        description="a live Foxglove WebSocket server that follows a running mesh: the iCub in "
+        "3D, the camera with the detector's marks, the learning curve and the world's events "
+        "(open ws://HOST:PORT in the Foxglove app)",
+    )
+    add_network_args(parser, default_mode="client")
+    parser.add_argument("--host", default="127.0.0.1", help="where to listen (default 127.0.0.1)")
+    parser.add_argument(
+        "--port", type=int, default=DEFAULT_PORT, help=f"(default {DEFAULT_PORT}; 0: any free)"
+    )
+    parser.add_argument(
+        "--jpeg", action="store_true", help="send the camera's frames as JPEG (less bandwidth)"
+    )
+    parser.add_argument(
+        "--operator",
+        action="store_true",
+        help="let clients call the learner's status/start/stop and the robot's reset, and set "
+        "the wind (in secure mode: as the operator identity); default read-only",
+    )
+    parser.add_argument(
+        "--layout",
+        metavar="FILE.json",
+        help="write the bridge's Foxglove layout to this file (import it once) and exit",
+    )
+    parser.add_argument(
+        "--wait",
+        type=seconds,
+        default=DEFAULT_WAIT,
+        help=f"wait this long for the router and the robot (s, default {DEFAULT_WAIT:g})",
+    )
+    return parser
+
+
+def _write_layout(path: str) -> int:
+    from apps.foxglove.layout import layout
+
+    try:
+        if not path.endswith(".json"):
+            raise ConfigError(f"--layout {path!r}: give a file name ending in .json")
+        check_writable_dir(Path(path).parent, f"--layout {path!r}: folder", create=False)
+    except ConfigError as exc:
+        print(f"archery foxglove: {exc}", file=sys.stderr)
+        return BAD_INPUT
+    Path(path).write_text(layout().to_json() + "\n", encoding="utf-8")
+    print(f"archery foxglove: wrote the layout to {path} (import it in the Foxglove app)")
+    return OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`archery foxglove`: serve the mesh to Foxglove clients until Ctrl-C or SIGTERM."""
+    args = build_parser().parse_args(argv)
+    if args.layout is not None:
+        return _write_layout(args.layout)
+    from mesh.acl import OPERATOR, VIEWER
+
+    try:
+        if not 0 <= args.port <= 65535:
+            raise ConfigError(f"--port {args.port}: give a port number from 0 to 65535")
+        check_listen(args.host, args.port)
+        net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
+        if args.operator and net.secure and net.identity != OPERATOR:
+            raise ConfigError(
+                f"--operator in secure mode runs as identity {OPERATOR!r}, not {net.identity!r}"
+            )
+    except ArcheryError as exc:
+        print(f"archery foxglove: {exc}", file=sys.stderr)
+        return BAD_INPUT
+    try:
+        return _serve(args, net)
+    except ArcheryError as exc:
+        print(f"archery foxglove: {exc}", file=sys.stderr)
+        return FAILURE
+
+
+def _serve(args: argparse.Namespace, net: NetConfig) -> int:
+    from apps.foxglove.bridge import Bridge
+    from apps.topics.robot_frames import RobotFrames, mesh_root, urdf_text
+    from mesh.node import open_node
+    from mesh.signals import shutdown_on_signals
+    from protocol.verbs.robot import ARCHERY_STATUS
+    from sim.scene_config import SceneConfig
+
+    on_wait = announce("foxglove")
+    stop = shutdown_on_signals()
+    with open_node(net, args.wait, on_wait=on_wait) as node:
+        node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
+        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
+        frames = RobotFrames(node.keys.robot, SceneConfig(**status.scene))
+        bridge = Bridge(
+            node,
+            frames,
+            urdf_text(),
+            mesh_root(),
+            host=args.host,
+            port=args.port,
+            jpeg=args.jpeg,
+            operator=args.operator,
+        )
+        try:
+            mode = "operator" if args.operator else "read-only"
+            where = f"ws://{args.host}:{bridge.port}"
+            print(f"archery foxglove: serving {node.keys.robot} on {where} ({mode})", flush=True)
+            stop.wait()
+        finally:
+            bridge.close()
+    return OK

@@ -1,0 +1,272 @@
+"""The bridge's feeds: what each live topic follows of the mesh, started when a client first
+subscribes to the topic and stopped when the last one leaves (a topic nobody watches costs the
+mesh nothing: no subscription, so no publisher sends for it and the camera renders nothing)."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import foxglove
+
+from apps.foxglove.marks import event_log, image_marks, rollout_record
+from apps.port_rates import PortRates, stream_counts
+from apps.topics.image_records import image_record
+from apps.topics.robot_frames import RobotFrames
+from mesh.instances import describe_all
+from mesh.node import Node
+from mesh.subscription import Subscription
+from mesh.tokens import TokenSet
+from protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
+from protocol.parts import PARTS
+
+__all__ = ["Feeds", "jpeg_record"]
+
+log = logging.getLogger("archery.foxglove")
+
+SERVICES_EVERY = 1.0  # s: how often the services' liveliness and port rates are sent
+STATIC_EVERY = 10.0  # s: how often the description and the scene are sent again while watched
+RESEND_GAP = 1.0  # s: the least time between two sendings of the description or the scene
+JPEG_QUALITY = 85
+_WAIT = 0.5  # s: how long a worker waits for a newer message before it looks at its stop flag
+
+Stop = Callable[[], None]
+
+
+def jpeg_record(image: Image) -> bytes:
+    """A frame as a `foxglove.CompressedImage` JPEG record (the bridge's `--jpeg`)."""
+    import cv2
+    from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+    from apps.topics.foxglove_records import stamp
+    from apps.topics.image_records import FRAME_ID
+
+    rgb = image.unpacked().to_numpy()
+    ok, data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+    if not ok:
+        raise ValueError("the frame did not encode as JPEG")
+    record = CompressedImage(frame_id=FRAME_ID, format="jpeg", data=data.tobytes())
+    stamp(record.timestamp, round(image.stamp * 1e9))
+    return record.SerializeToString()
+
+
+class Feeds:
+    """Starts and stops the feed of each topic (`start(topic)` returns its stop), logging what
+    it derives on the topic's channel.
+
+    Args:
+        node: the bridge's node on the mesh.
+        channels: {topic: channel} (`apps.foxglove.channels.open_channels`).
+        frames: the robot's 3D records (`apps.topics.robot_frames`), the recorder's own.
+        urdf: the robot description the robot runs (URDF text).
+        jpeg: send the camera's frames as JPEG.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        channels: dict[str, foxglove.Channel],
+        frames: RobotFrames,
+        urdf: str,
+        *,
+        jpeg: bool = False,
+    ) -> None:
+        self.node = node
+        self.keys = node.keys
+        self.channels = channels
+        self.frames = frames
+        self.urdf = urdf
+        self.jpeg = jpeg
+        self.sent: dict[str, int] = dict.fromkeys(channels, 0)  # messages logged per topic
+        self._count = threading.Lock()
+        self._scene_data: bytes | None = None
+        self._wanted: dict[str, threading.Event] = {}  # static topic -> a newcomer wants it
+        self._starts: dict[str, Callable[[], Stop]] = {
+            "/tf": self._tf,
+            "/joint_states": self._joints,
+            "/robot_description": self._description,
+            "/scene": self._scene,
+            "/camera/image": self._camera,
+            "/camera/annotations": lambda: self._events(
+                self.keys.detector_hits(), Detection, "/camera/annotations", self._marks
+            ),
+            "/learner/rollouts": lambda: self._events(
+                self.keys.learner_rollouts(), Rollout, "/learner/rollouts", self._rollout
+            ),
+            "/world/events": lambda: self._events(
+                self.keys.world_events(), WorldEvent, "/world/events", self._event
+            ),
+            "/mesh/services": self._services,
+        }
+
+    def start(self, topic: str) -> Stop:
+        """Start following what `topic` shows; returns the function that stops it."""
+        return self._starts[topic]()
+
+    def _log(self, topic: str, data: bytes | dict[str, Any], ns: int | None = None) -> None:
+        channel = self.channels[topic]
+        channel.log(data, log_time=ns if ns is not None else time.time_ns())
+        with self._count:
+            self.sent[topic] += 1
+
+    # -- the robot's description: to each newcomer, and again while watched ------------------
+
+    def _repeat(self, topic: str, data: Callable[[], bytes | dict[str, Any]]) -> Stop:
+        """Send `data()` now, when a newcomer asks (`resend`) and every `STATIC_EVERY` s until
+        stopped, never twice within `RESEND_GAP` s. A message goes to every watcher (the SDK
+        has no per-client send), so newcomers arriving together share one sending, and a client
+        whose queue overflowed with camera frames still gets it."""
+        stop, wanted = threading.Event(), threading.Event()
+        self._wanted[topic] = wanted
+        wanted.set()
+
+        def work() -> None:
+            while True:
+                wanted.wait(STATIC_EVERY)
+                if stop.is_set():
+                    return
+                wanted.clear()
+                self._log(topic, data())
+                if stop.wait(RESEND_GAP):
+                    return
+
+        thread = threading.Thread(target=work, name=f"foxglove {topic}", daemon=True)
+        thread.start()
+
+        def close() -> None:
+            stop.set()
+            wanted.set()
+            thread.join(5)
+            self._wanted.pop(topic, None)
+
+        return close
+
+    def _description(self) -> Stop:
+        return self._repeat("/robot_description", lambda: {"data": self.urdf})
+
+    def _scene(self) -> Stop:
+        return self._repeat("/scene", self.scene)
+
+    def scene(self) -> bytes:
+        """The scene's `foxglove.SceneUpdate` (built once: a few MB of meshes)."""
+        if self._scene_data is None:
+            self._scene_data = self.frames.scene_update(time.time_ns()).data
+        return self._scene_data
+
+    def resend(self, topic: str) -> None:
+        """Send a static topic (`/robot_description`, `/scene`) again soon, for a newcomer."""
+        wanted = self._wanted.get(topic)
+        if wanted is not None:
+            wanted.set()
+
+    # -- streams --------------------------------------------------------------------------------
+
+    def _latest(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
+        """Follow a state stream on a thread of its own: the newest message only, so a slow
+        client or a busy bridge skips states instead of queueing them."""
+        sub: Subscription[Any] = Subscription(self.node.session, key, kind, "latest", None)
+        stop = threading.Event()
+
+        def work() -> None:
+            seq = -1
+            while not stop.is_set():
+                message = sub.latest()
+                if message is None or message.seq == seq:
+                    try:
+                        message = sub.wait_newer(_WAIT, after_seq=seq)
+                    except Exception:  # nothing newer yet: look at the stop flag again
+                        continue
+                seq = message.seq
+                try:
+                    each(message)
+                except Exception:
+                    log.exception("%s: could not send message seq %d", name, seq)
+
+        thread = threading.Thread(target=work, name=f"foxglove {name}", daemon=True)
+        thread.start()
+
+        def close() -> None:
+            stop.set()
+            sub.close()
+            thread.join(5 * _WAIT)
+
+        return close
+
+    def _events(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
+        """Follow an event stream: every message, converted on arrival (they are small)."""
+        sub: Subscription[Any] = Subscription(self.node.session, key, kind, "fifo", each)
+        return sub.close
+
+    def _tf(self) -> Stop:
+        key = self.keys.world_state()
+
+        def each(state: WorldState) -> None:
+            ns = round(state.stamp * 1e9)
+            for record in self.frames.derive(key, state, ns):
+                self._log("/tf", record.data, ns)
+
+        return self._latest(key, WorldState, "/tf", each)
+
+    def _joints(self) -> Stop:
+        stops = []
+        for part in PARTS:
+            key = self.keys.state(part)
+
+            def each(state: JointState, key: str = key) -> None:
+                ns = round(state.stamp * 1e9)
+                for record in self.frames.derive(key, state, ns):
+                    self._log("/joint_states", record.data, ns)
+
+            stops.append(self._events(key, JointState, "/joint_states", each))
+
+        def close() -> None:
+            for stop in stops:
+                stop()
+
+        return close
+
+    def _camera(self) -> Stop:
+        def each(image: Image) -> None:
+            data = jpeg_record(image) if self.jpeg else image_record(image)[1]
+            self._log("/camera/image", data, round(image.stamp * 1e9))
+
+        return self._latest(self.keys.cam_frames(), Image, "/camera/image", each)
+
+    def _marks(self, detection: Detection) -> None:
+        self._log("/camera/annotations", image_marks(detection), round(detection.stamp * 1e9))
+
+    def _rollout(self, rollout: Rollout) -> None:
+        record = rollout_record(rollout)
+        if record is not None:
+            self._log("/learner/rollouts", record, round(rollout.stamp * 1e9))
+
+    def _event(self, event: WorldEvent) -> None:
+        self._log("/world/events", event_log(event, self.keys.robot), round(event.stamp * 1e9))
+
+    def _services(self) -> Stop:
+        """The live services and each stream port's rate, every `SERVICES_EVERY` s."""
+        stop = threading.Event()
+        alive = TokenSet(self.node.session, self.keys.alive_all())
+        rates = PortRates()
+
+        def work() -> None:
+            while not stop.is_set():
+                started = time.monotonic()
+                described = describe_all(self.node.session, self.keys, timeout=SERVICES_EVERY)
+                rates.update(stream_counts(described))
+                names = sorted(alive.present())
+                self._log("/mesh/services", {"alive": names, "ports": rates.table()})
+                stop.wait(max(0.0, SERVICES_EVERY - (time.monotonic() - started)))
+
+        thread = threading.Thread(target=work, name="foxglove /mesh/services", daemon=True)
+        thread.start()
+
+        def close() -> None:
+            stop.set()
+            thread.join(5 * SERVICES_EVERY)
+            alive.close()
+
+        return close

@@ -1,0 +1,131 @@
+// Drives Foxglove's own client (@foxglove/ws-protocol) against a live server and prints what it
+// saw as JSON lines on stdout, for tests/test_foxglove.py:
+//   node client.mjs URL [--want TOPIC ...] [--call SERVICE JSON | --call-unadvertised JSON]
+//     [--set-wind X,Y,Z] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]]
+// {"serverInfo": …} first, then {"channels": […]} once every wanted topic is advertised, one
+// {"message": {topic, schemaName, encoding, data (base64)}} per wanted topic (its first), the
+// service call's {"response": …} or {"failure": …}, the parameter's {"parameters": …} and
+// {"status": …} lines; exits 0 when all came, 1 on a timeout or a closed connection.
+import wsProtocol from "@foxglove/ws-protocol";
+const { FoxgloveClient } = wsProtocol;
+import { WebSocket } from "ws";
+
+const args = process.argv.slice(2);
+const url = args[0];
+const want = [];
+let call = null;
+let wind = null;
+let timeout = 30;
+let crowd = 0;
+const crowdSkips = [];
+for (let i = 1; i < args.length; i++) {
+  if (args[i] === "--want") want.push(args[++i]);
+  else if (args[i] === "--call") call = { name: args[++i], body: args[++i] };
+  else if (args[i] === "--call-unadvertised") call = { raw: true, body: args[++i] };
+  else if (args[i] === "--set-wind") wind = args[++i].split(",").map(Number);
+  else if (args[i] === "--timeout") timeout = Number(args[++i]);
+  else if (args[i] === "--crowd") crowd = Number(args[++i]);
+  else if (args[i] === "--crowd-skip") crowdSkips.push(args[++i]);
+}
+const out = (o) => process.stdout.write(JSON.stringify(o) + "\n");
+// exit once stdout has taken every line (a pipe is written asynchronously)
+const finish = (code) => process.stdout.write("", () => process.exit(code));
+const protocols = [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"];
+if (crowd > 0) {
+  // --crowd N: N clients at once, each subscribing to every channel but the skipped ones, then
+  // all gone (half of
+  // them in the middle of a message: the socket destroyed without a close handshake)
+  let ready = 0;
+  const sockets = [];
+  for (let i = 0; i < crowd; i++) {
+    const ws = new WebSocket(url, protocols);
+    sockets.push(ws);
+    const c = new FoxgloveClient({ ws });
+    c.on("advertise", (list) => {
+      for (const ch of list) if (!crowdSkips.includes(ch.topic)) c.subscribe(ch.id);
+      if (++ready === crowd) {
+        sockets.forEach((s, j) => (j % 2 ? s.terminate() : s.close()));
+        out({ crowd: ready });
+        finish(0);
+      }
+    });
+    c.on("error", () => {});
+  }
+  setTimeout(() => {
+    out({ timeout: { crowd: ready } });
+    finish(1);
+  }, timeout * 1000);
+} else {
+  run();
+}
+function run() {
+const client = new FoxgloveClient({ ws: new WebSocket(url, protocols) });
+const channels = new Map();
+const subs = new Map();
+const got = new Set();
+let pending = (call ? 1 : 0) + (wind ? 1 : 0);
+let services = [];
+const done = () => {
+  if (got.size === want.length && pending === 0) {
+    client.close();
+    finish(0);
+  }
+};
+setTimeout(() => {
+  out({ timeout: { missing: want.filter((t) => !got.has(t)), pending } });
+  finish(1);
+}, timeout * 1000);
+client.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
+client.on("close", () => {
+  out({ closed: true });
+  finish(1);
+});
+client.on("serverInfo", (info) => out({ serverInfo: info }));
+client.on("status", (s) => out({ status: s }));
+client.on("advertise", (list) => {
+  for (const c of list) channels.set(c.id, c);
+  const topics = new Set([...channels.values()].map((c) => c.topic));
+  if (!want.every((t) => topics.has(t))) return;
+  out({ channels: [...channels.values()].map((c) => ({ topic: c.topic, encoding: c.encoding, schemaName: c.schemaName, schemaEncoding: c.schemaEncoding })) });
+  for (const c of channels.values()) {
+    if (want.includes(c.topic) && ![...subs.values()].includes(c.id)) subs.set(client.subscribe(c.id), c.id);
+  }
+  if (wind) client.setParameters([{ name: "wind", value: wind, type: "float64_array" }], "set");
+  if (call && call.raw) {
+    // no service advertised (a read-only server): ask anyway, the server must refuse
+    client.sendServiceCallRequest({ serviceId: 1, callId: 1, encoding: "json", data: new DataView(new TextEncoder().encode(call.body).buffer) });
+  }
+  done();
+});
+client.on("advertiseServices", (list) => {
+  services = services.concat(list);
+  out({ services: list.map((s) => s.name) });
+  if (!call) return;
+  const service = list.find((s) => s.name === call.name);
+  if (!service) return;
+  client.sendServiceCallRequest({ serviceId: service.id, callId: 1, encoding: "json", data: new DataView(new TextEncoder().encode(call.body).buffer) });
+});
+client.on("serviceCallResponse", (r) => {
+  out({ response: new TextDecoder().decode(r.data) });
+  pending--;
+  done();
+});
+client.on("serviceCallFailure", (f) => {
+  out({ failure: f.message });
+  pending--;
+  done();
+});
+client.on("parameterValues", (p) => {
+  out({ parameters: p.parameters });
+  pending--;
+  done();
+});
+client.on("message", ({ subscriptionId, data }) => {
+  const c = channels.get(subs.get(subscriptionId));
+  if (!c || got.has(c.topic)) return;
+  got.add(c.topic);
+  const bytes = Buffer.from(data.buffer, data.byteOffset, data.byteLength);
+  out({ message: { topic: c.topic, schemaName: c.schemaName, encoding: c.encoding, data: bytes.toString("base64") } });
+  done();
+});
+}
