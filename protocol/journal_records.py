@@ -63,10 +63,9 @@ class HeaderRecord(JournalRecord, frozen=True, kw_only=True, tag="header"):
     `version` and `created` (UTC, ISO 8601) are filled in by the journal that writes it.
     `rollouts` is the budget of done rollouts, `options` the learner's options, `config` the
     rest of the session settings, `controller_box` the controller's θ box and `learner_state`
-    the learner before its first proposal. Only some lines have `from` (the session started
-    from another session's learned model) and `rig`, what replaying a shot needs: the robot's
-    world parameters, its shot count before the session and the controller's trajectory time
-    (s).
+    the learner before its first proposal. `from` is there when the session started from
+    another session's learned model; `rig` holds what replaying a shot needs: the robot's world
+    parameters, its shot count before the session and the controller's trajectory time (s).
     """
 
     version: int = JOURNAL_VERSION
