@@ -26,7 +26,12 @@ def stream_counts(described: Mapping[str, Describe]) -> dict[str, int]:
 
 class PortRates:
     """Each stream port's rate from its publisher's message count, as the describe polls
-    report it: the count's rise between two polls over the time between them (messages/s)."""
+    report it: the count's rise between two polls over the time between them (messages/s).
+
+    Why counts (`PortInfo.count` in each service's `describe`) rather than subscribing to the
+    streams: a subscriber would have the router forward every joint state and, for the
+    camera's frames, make the camera render 1280×720 frames for nothing but a count.
+    """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

@@ -1,17 +1,10 @@
 """The one line a program prints when it begins to wait, and the one line of a Ctrl-C.
 
 Every wait of a program says what it waits for and for how long at most, on stderr, the moment
-it begins (not once it is over), e.g.
-
-    archery learn: waiting up to 60 s for the router at tcp/127.0.0.1:7447 (Ctrl-C to stop)
-    archery learn: waiting up to 60 s for the services: robot, camera (Ctrl-C to stop)
-
-The mesh layer never prints: what waits there (`mesh.node.open_node`, `Node.wait_alive`,
-`Node.missing_after`) takes an `on_wait(what, limit)` callback (`mesh.liveliness.OnWait`: what
-is waited for, a noun phrase, and the limit in s), called once when a wait actually begins
-(nothing to wait for: no call); `announce(PROG)` is that callback for `archery PROG`. The
-programs' own waits (the services `archery up` starts, the robots of an experiment, a resumed
-session's start) print through `announce` too, so every waiting line is worded here.
+it begins (not once it is over): `waiting_line` words it. The mesh layer never prints: what
+waits there takes an `on_wait(what, limit)` callback, and `announce(PROG)` is that callback for
+`archery PROG`; the programs' own waits print through `announce` too, so every waiting line is
+worded here.
 """
 
 from __future__ import annotations
@@ -31,13 +24,22 @@ def waiting_for(what: str, limit: float) -> str:
 
 
 def waiting_line(prog: str, what: str, limit: float) -> str:
-    """The waiting line of `archery PROG` (see the module docstring); `limit` in s."""
+    """The waiting line of `archery PROG`; `limit` in s. E.g. `archery learn: waiting up to
+    60 s for the router at tcp/127.0.0.1:7447 (Ctrl-C to stop)`, `archery learn: waiting up to
+    60 s for the services: robot, camera (Ctrl-C to stop)`."""
     return f"archery {prog}: {waiting_for(what, limit)}"
 
 
 def announce(prog: str) -> OnWait:
     """The `on_wait(what, limit)` callback that prints the waiting line of `archery PROG` on
-    stderr at once (flushed)."""
+    stderr at once (flushed).
+
+    What waits in the mesh layer (`mesh.node.open_node`, `Node.wait_alive`,
+    `Node.missing_after`) takes such a callback (`mesh.liveliness.OnWait`: what is waited for,
+    a noun phrase, and the limit in s), called once when a wait actually begins (nothing to
+    wait for: no call). The programs' own waits (the services `archery up` starts, the robots
+    of an experiment, a resumed session's start) print through it too.
+    """
 
     def on_wait(what: str, limit: float) -> None:
         print(waiting_line(prog, what, limit), file=sys.stderr, flush=True)

@@ -1,56 +1,11 @@
 """The router's access control for one robot, generated from the port and verb tables.
 
-Every identity (a certificate common name: the five services, `operator`, `viewer` and
-`replay` for the CLI tools) gets exactly the flows its job needs, and everything else is denied
-(`default_permission: deny`). The router enforces the rules on its own links: `ingress` is what
-an identity sends to the router, `egress` what the router forwards to it. A denied message is
-dropped silently at the router: the sender's `put` or `declare_*` still succeeds, the receiver
-never sees it (a caller whose rules do not grant its call is told "denied by access control",
-`mesh.rpc_client`, which asks `granted`).
-
-Access is per verb: a call of VERB on an `rpc:i` port goes to the key `PORT/VERB`
-(`protocol.keys.verb_key`) and a server answers `PORT/*`, so a rule can grant one verb and not
-its neighbours. A role is the keys it publishes, subscribes to, serves and calls; `_grants`
-turns each into the Zenoh messages and directions it takes:
-
-* publish K: `put` in, `declare_subscriber` out on K and on `ROBOT/**` (the publisher learns
-  who listens, also a listener of the whole robot: a publisher that hears of no subscriber
-  drops what it puts);
-* subscribe K: `declare_subscriber` in, `put` out;
-* serve K: `declare_queryable` in, `query` out, `reply` in;
-* call K: `query` in; `reply` and `declare_queryable` out on the port (`PORT/*`);
-* every service holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
-  `ROBOT/alive/NAME/*`), serves and may call its own `ROBOT/describe/NAME` and
-  `ROBOT/replace/NAME` (its next instance presents the same identity); every identity but
-  `replay` may watch the robot's tokens (`wait_alive`, the replier check);
-* every server publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
-
-The calls of each service are those its code makes:
-
-* robot: publishes joint states, the scene and world events; takes joint commands; serves the
-  joint RPCs and `archery/rpc:i`; calls nothing;
-* camera: calls `archery/rpc:i status` (which scene to render); serves `cam/rpc:i`;
-* detector: calls `cam/rpc:i grab, calibration`; serves `detector/rpc:i`; it does not
-  subscribe to the frame stream;
-* controller: calls each part's `getLimits, setRefSpeeds` and its lease verbs `claim,
-  renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
-  states; serves the three cartesian controllers; `claim` and `setRefSpeeds` name their caller
-  (`PORT/VERB~IDENTITY`, `Verb.names_caller`) and each identity is granted only its own name
-  there, so a lease's owner is the identity the router authenticated;
-* learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
-  release, status` (its world, journaled for replaying a shot) and the detector's `measure,
-  frame`; serves `learner/rpc:i`;
-* operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`):
-  every verb, the joint commands, every stream, every `describe` and `replace`;
-* viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
-  `interface`, `dashboard`): every stream and the verbs that change nothing (`Verb.reads`),
-  among them the camera's `scene` (the dashboard's view of the whole robot); the detector,
-  which grabs frames, is not granted it;
-* replay (`archery replay`, which publishes a recording again, a file anyone may have
-  crafted): publishes the robot's output streams (`protocol.keys.OUTPUT_PORTS`: joint states,
-  the world's state and events, the camera's frames, detections, rollouts) and, for
-  `--serve-grab`, serves the camera's verbs (and publishes their taps); nothing else: no
-  joint command, no call, no subscription, no watch of the liveliness tokens.
+Default deny: every identity (a certificate common name: the five services, and `operator`,
+`viewer` and `replay` for the CLI tools) gets exactly the flows its job needs, per verb (a call
+of VERB goes to the key `PORT/VERB`, `protocol.keys.verb_key`, and a server answers `PORT/*`),
+so a rule can grant one verb and not its neighbours. `roles` says what each identity
+publishes, subscribes to, serves and calls, `_grants` turns a role into the router's rules and
+`rules` is the whole policy; README.md, 'Secure mode', tells the roles in prose.
 """
 
 from __future__ import annotations
@@ -112,7 +67,39 @@ def _reading_calls(robot: str) -> tuple[str, ...]:
 
 def roles(robot: str) -> dict[str, Role]:
     """The role of every identity of a deployment for robot prefix `robot`: per verb, exactly
-    the calls its job makes (the keys `protocol.keys.verb_key` gives)."""
+    the calls its job makes (the keys `protocol.keys.verb_key` gives).
+
+    The calls of each service are those its code makes:
+
+    * robot: publishes joint states, the world's state and events; takes joint commands;
+      serves the joint RPCs and `archery/rpc:i`; calls nothing;
+    * camera: follows the world's state; calls `archery/rpc:i status` (which scene to
+      render); serves `cam/rpc:i`;
+    * detector: calls `cam/rpc:i grab, calibration`; serves `detector/rpc:i`; it does not
+      subscribe to the frame stream;
+    * controller: calls each part's `getLimits, setRefSpeeds` and its lease verbs `claim,
+      renewClaim, dropClaim` (one owner per arm), publishes joint commands, reads the joint
+      states; serves the three cartesian controllers; `claim` and `setRefSpeeds` name their
+      caller (`PORT/VERB~IDENTITY`, `Verb.names_caller`) and each identity is granted only its
+      own name there (`_naming_calls`), so a lease's owner is the identity the router
+      authenticated;
+    * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
+      release, status` (its world, journaled for replaying a shot) and the detector's
+      `measure, frame`; follows the world's events; serves `learner/rpc:i`;
+    * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`):
+      every verb, the joint commands, every stream, every `describe` and `replace`;
+    * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
+      `interface`, `dashboard`): every stream and the verbs that change nothing
+      (`Verb.reads`), among them the camera's `scene` (the dashboard's view of the whole
+      robot); the detector, which grabs frames, is not granted it;
+    * replay (`archery replay`, which publishes a recording again, a file anyone may have
+      crafted): publishes the robot's output streams (`protocol.keys.OUTPUT_PORTS`: joint
+      states, the world's state and events, the camera's frames, detections, rollouts) and,
+      for `--serve-grab`, serves the camera's verbs (and publishes their taps); nothing else:
+      no joint command, no call, no subscription, no watch of the liveliness tokens.
+
+    Every server also publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
+    """
     k = Keys(robot)
     states = tuple(k.state(p) for p in PARTS)
     commands = tuple(k.command(p) for p in PARTS)
@@ -221,6 +208,21 @@ def _rule(
 
 
 def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
+    """The router's rules for identity `name` with `role`: the Zenoh messages and directions
+    (`ingress`: what the identity sends to the router, `egress`: what the router forwards to
+    it) each of its keys takes.
+
+    * publish K: `put` in, `declare_subscriber` out on K and on `ROBOT/**` (the publisher
+      learns who listens, also a listener of the whole robot: a publisher that hears of no
+      subscriber drops what it puts);
+    * subscribe K: `declare_subscriber` in, `put` out;
+    * serve K: `declare_queryable` in, `query` out, `reply` in;
+    * call K: `query` in; `reply` and `declare_queryable` out on the port (`PORT/*`);
+    * every service holds liveliness tokens only under its own name (`ROBOT/alive/NAME`,
+      `ROBOT/alive/NAME/*`), serves and may call its own `ROBOT/describe/NAME` and
+      `ROBOT/replace/NAME` (its next instance presents the same identity); every identity but
+      `replay` may watch the robot's tokens (`wait_alive`, the replier check).
+    """
     out: list[dict[str, Any]] = []
     if role.publish:
         out.append(_rule(f"{name}-publish", ["put"], "ingress", role.publish))
@@ -267,7 +269,12 @@ def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
 def rules(robot: str) -> dict[str, Any]:
     """The `access_control` section of the router's Zenoh config for robot prefix `robot`:
     default deny, one subject per identity (matched by certificate common name), one policy
-    granting that identity its role's flows."""
+    granting that identity its role's flows.
+
+    The router enforces the rules on its own links. A denied message is dropped silently
+    there: the sender's `put` or `declare_*` still succeeds, the receiver never sees it (a
+    caller whose rules do not grant its call is told "denied by access control" by
+    `mesh.rpc_client`, which asks `granted`)."""
     all_rules: list[dict[str, Any]] = []
     subjects: list[dict[str, Any]] = []
     policies: list[dict[str, Any]] = []

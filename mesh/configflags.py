@@ -1,18 +1,10 @@
 """A service's config fields that are also its command-line flags, each described once.
 
 A frozen config dataclass declares its settable fields with `flag(default, help, unit=…,
-low=…, high=…)`. From that one declaration:
-
-* `add_config_args(parser, Config)` adds `--state-rate` for `state_rate` (the option may be
-  renamed with `name=`), typed from the field's annotation, with the field's default and a
-  help text that states the unit, the valid range and the default; a bool field becomes a
-  switch (`--no-NAME` when its default is True);
-* `config_from_args(Config, args, **fixed)` builds the config from the parsed flags (running a
-  field's `parse` on its text) plus the values the flags do not give (`net=…`, nested configs);
-* `check_bounds(self)`, called in `__post_init__`, checks every field against its declaration
-  (numbers in range, integers, choices, types of nested configs) and raises `ConfigError`
-  naming the flag and what is valid, so a config built in code is checked like one built from
-  flags.
+low=…, high=…)`. From that one declaration `add_config_args` adds the flags (typed, with help
+texts stating the unit, the valid range and the default), `config_from_args` builds the config
+from the parsed flags, and `check_bounds`, called in `__post_init__`, checks every field, so a
+config built in code is checked like one built from flags.
 """
 
 from __future__ import annotations
@@ -169,7 +161,10 @@ def _help(spec: FlagSpec, default: Any) -> str:
 
 
 def add_config_args(parser: argparse.ArgumentParser, cls: type) -> None:
-    """Add a flag for every `flag` field of the dataclass `cls` (see the module docstring)."""
+    """Add a flag for every `flag` field of the dataclass `cls`: `--state-rate` for
+    `state_rate` (the option may be renamed with `name=`), typed from the field's annotation,
+    with the field's default and a help text that states the unit, the valid range and the
+    default; a bool field becomes a switch (`--no-NAME` when its default is True)."""
     for f, kind, _ in _fields(cls):
         spec = _spec(f)
         if spec is None or not spec.cli:
@@ -192,7 +187,8 @@ def add_config_args(parser: argparse.ArgumentParser, cls: type) -> None:
 
 
 def config_from_args(cls: type, args: argparse.Namespace, **fixed: Any) -> Any:
-    """The config `cls` from parsed flags (`add_config_args`) and the `fixed` values.
+    """The config `cls` from parsed flags (`add_config_args`) and the `fixed` values (those
+    the flags do not give: `net=…`, nested configs); a field's `parse` runs on its text.
 
     Raises:
         ConfigError: a bad value; the message names the flag and what is valid.
@@ -243,7 +239,8 @@ def _checked(label: str, value: Any, kind: type | None, spec: FlagSpec | None) -
 
 
 def check_bounds(config: Any) -> None:
-    """Check every field of the dataclass instance `config` (call it in `__post_init__`).
+    """Check every field of the dataclass instance `config` (call it in `__post_init__`)
+    against its declaration, so a config built in code is checked like one built from flags.
 
     Numbers must lie in their declared range (floats are stored as float), integers be
     integers, text be one of its choices, bools be bools and nested configs of their

@@ -1,26 +1,12 @@
 """One live instance per service name, and replies only from that instance.
 
 A service's node, once ready, holds two liveliness tokens: `ROBOT/alive/NAME` (the service is
-up) and `ROBOT/alive/NAME/ZID`, where ZID is its session's Zenoh id (`session.info.zid()`).
-Every Zenoh reply carries the id of the session that sent it (`reply.replier_id.zid`), so a
+up) and `ROBOT/alive/NAME/ZID`, where ZID is its session's Zenoh id (`session.info.zid()`). A
 client that expects an answer from NAME accepts it only if the replier holds NAME's instance
-token (`InstanceWatch`); anything else is `WrongReplier` (code `wrong_replier`). With the
-router's access control (`--secure`) only NAME's certificate may hold those tokens; on a plain
-mesh anyone can, so the check only guards against mistakes (a stray or duplicate service), not
-against an attacker.
-
-Before a service declares any port, `claim` looks for a live instance of its name: if there is
-one, the new one refuses to start (`DuplicateService`, exit status 2) naming the pid and host of
-the live one (from its `describe` reply), unless `replace`. With `replace`, the live instance is
-asked to stop by a `ReplaceRequest` on its own key `ROBOT/replace/NAME` (never by a message to
-another port): it stops only when the request comes from a process of its own host, alive, whose
-command line runs `NAME` with `--replace`, and carries the token the live instance wrote to its
-runtime folder, which only the same user can read (`mesh.runtime`; `accept_replace`); anything
-else is refused and logged, and the service runs on. In secure mode the router lets only NAME's
-own identity and the operator send it. A service run by `service_main` stops as on SIGTERM,
-cleanly, and the new one waits until its tokens are gone; a process that cannot stop that way
-keeps running (logged on both sides) and the new one starts anyway after `timeout`, so two
-instances then run until the old one is stopped.
+token (`InstanceWatch`); anything else is `WrongReplier` (code `wrong_replier`). Before a
+service declares any port, `claim` refuses to start a second live instance of its name or, with
+`replace`, asks the live one to stop (`accept_replace`). README.md, 'Secure mode', tells both
+from the user's side.
 """
 
 from __future__ import annotations
@@ -168,6 +154,19 @@ def claim(
 ) -> None:
     """Make sure no other instance of `name` is alive before this one declares its ports.
 
+    If one is alive, this one refuses to start (`DuplicateService`, exit status 2) naming the
+    pid and host of the live one (from its `describe` reply), unless `replace`. With
+    `replace`, the live instance is asked to stop by a `ReplaceRequest` on its own key
+    `ROBOT/replace/NAME` (never by a message to another port): it stops only when the request
+    comes from a process of its own host, alive, whose command line runs `NAME` with
+    `--replace`, and carries the token the live instance wrote to its runtime folder, which
+    only the same user can read (`mesh.runtime`; `accept_replace`); anything else is refused
+    and logged, and the service runs on. In secure mode the router lets only NAME's own
+    identity and the operator send it. A service run by `service_main` stops as on SIGTERM,
+    cleanly, and the new one waits until its tokens are gone; a process that cannot stop that
+    way keeps running (logged on both sides) and the new one starts anyway after `timeout` s,
+    so two instances then run until the old one is stopped.
+
     Raises:
         DuplicateService: one is alive (and `replace` is off); the message names its pid and
             host.
@@ -215,6 +214,11 @@ def claim(
 class InstanceWatch:
     """Which session holds each service's instance token, kept current by liveliness
     subscribers (one per service name, declared on first use).
+
+    Every Zenoh reply carries the id of the session that sent it (`reply.replier_id.zid`),
+    which is checked against these holders. With the router's access control (`--secure`)
+    only NAME's certificate may hold NAME's tokens; on a plain mesh anyone can, so the check
+    only guards against mistakes (a stray or duplicate service), not against an attacker.
 
     A subscriber's history (the tokens declared before it) arrives a moment after it is
     declared, and a liveliness query made in that moment may come back empty although the

@@ -1,21 +1,9 @@
 """Logging of every process: ours and Zenoh's, on stderr only, with one `--log-level` flag.
 
 Stdout carries data (the JSON lines of `learn`, `read`, `rpc`...), so every log line, Python's
-and Zenoh's, goes to stderr, without ANSI colour codes unless stderr is a terminal.
-
-The level is a `RUST_LOG`-style spec: a default level, then `TARGET=LEVEL` items separated by
-commas, e.g. `info`, `debug`, `info,zenoh=debug`, `warn,archery.robot=debug`. The default
-level is that of our loggers (`archery.*`); other Python libraries log their warnings and
-errors only, unless a target names them (`info,OpenGL=debug`). Targets starting with `zenoh`
-set the level of Zenoh's own (Rust) logs; any other target is a Python logger name.
-Zenoh logs at `error` unless the spec names it or its default is
-`debug`, `trace` or `off`. A `RUST_LOG` variable in the environment, when set, still wins for
-Zenoh's logs, as Zenoh documents. Zenoh's logger can be set up once per process: the first
-`configure` decides.
-
-Zenoh's logger writes to the process's file descriptor 1. To keep it off stdout, the first
-call of `configure` in a process moves descriptor 1 to stderr and gives Python's `sys.stdout`
-a descriptor of its own on the original stdout: `print` still writes data there.
+and Zenoh's, goes to stderr, without ANSI colour codes unless stderr is a terminal. The level is
+a `RUST_LOG`-style spec (`configure` says how it is read, and how Zenoh's logger is kept off
+stdout).
 """
 
 from __future__ import annotations
@@ -116,7 +104,21 @@ class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]  # generi
 
 
 def configure(spec: str = DEFAULT_SPEC) -> None:
-    """Set up this process's logging from a `--log-level` spec (see the module docstring).
+    """Set up this process's logging from a `--log-level` spec.
+
+    The spec is a default level, then `TARGET=LEVEL` items separated by commas, e.g. `info`,
+    `debug`, `info,zenoh=debug`, `warn,archery.robot=debug`. The default level is that of our
+    loggers (`archery.*`); other Python libraries log their warnings and errors only, unless a
+    target names them (`info,OpenGL=debug`). Targets starting with `zenoh` set the level of
+    Zenoh's own (Rust) logs; any other target is a Python logger name. Zenoh logs at `error`
+    unless the spec names it or its default is `debug`, `trace` or `off`. A `RUST_LOG`
+    variable in the environment, when set, still wins for Zenoh's logs, as Zenoh documents.
+    Zenoh's logger can be set up once per process: the first `configure` decides.
+
+    Zenoh's logger writes to the process's file descriptor 1. To keep it off stdout, the first
+    call of `configure` in a process that sets Zenoh's logger up moves descriptor 1 to stderr
+    and gives Python's `sys.stdout` a descriptor of its own on the original stdout: `print`
+    still writes data there.
 
     Raises:
         ConfigError: the spec is malformed.

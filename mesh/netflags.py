@@ -1,20 +1,10 @@
 """The network flags of every process (--connect, --listen, --mode, --robot); the Zenoh config.
 
-Every process listens and connects only where it is told. By default a process is a Zenoh
-client of the router it is given: it opens no listening socket and links to nothing else. In
-every mode multicast scouting and gossip are
-off, and a peer's listen endpoints are set explicitly (none by default; a Zenoh peer would
-otherwise listen on every interface and connect to whatever addresses other peers gossip). So
-every process reaches the mesh through the router it is given, all traffic meets there
-(containers do not carry multicast, and parallel test runs must never meet), and nothing opens
-a socket on any address but the ones on the command line. Shared-memory transport is off too:
-it was reported to drop large messages under CPU stalls.
-
-With `--secure DIR` (a deployment made by `archery keys init DIR`) every link is mutual TLS:
-endpoints must be `tls/...`, the process presents the certificate of its identity (the
-service's name, `operator` for the tools, `router` for the router; `--identity NAME` overrides
-it), verifies the other end against the deployment's CA, and a router enforces the access
-control of `DIR/acl.json5`.
+Every process listens and connects only where it is told: by default a Zenoh client of the
+router it is given, with multicast scouting, gossip and shared memory off (the docstring of
+`NetConfig.zenoh_config` says why), and with `--secure DIR` mutual TLS on every link
+(`NetConfig._tls_config`). README.md, 'The `archery` command', tells the flags, and 'Secure
+mode' the secure deployment.
 """
 
 from __future__ import annotations
@@ -144,6 +134,11 @@ class NetConfig:
         return str(path.resolve())
 
     def _tls_config(self, config: zenoh.Config) -> None:
+        """Mutual TLS on every link, for `--secure DIR` (a deployment made by `archery keys init
+        DIR`): endpoints must be `tls/...`, the process presents the certificate of its
+        identity (the service's name, `operator`, `viewer` or `replay` for the tools, `router`
+        for the router; `--identity NAME` overrides it), verifies the other end against the
+        deployment's CA, and a router enforces the access control of `DIR/acl.json5`."""
         if self.identity is None:
             raise ConfigError("--secure needs an identity (--identity NAME)")
         ca = self._credential("ca.pem")
@@ -206,7 +201,18 @@ class NetConfig:
         )
 
     def zenoh_config(self) -> zenoh.Config:
-        """The Zenoh configuration for these settings."""
+        """The Zenoh configuration for these settings.
+
+        By default a process is a Zenoh client of the router it is given: it opens no listening
+        socket and links to nothing else. In every mode multicast scouting and gossip are off,
+        and a peer's listen endpoints are set explicitly (none by default; a Zenoh peer would
+        otherwise listen on every interface and connect to whatever addresses other peers
+        gossip). So every process reaches the mesh through the router it is given, all traffic
+        meets there (containers do not carry multicast, and parallel test runs must never
+        meet), and nothing opens a socket on any address but the ones on the command line.
+        Shared-memory transport is off too: it was reported to drop large messages under CPU
+        stalls.
+        """
         config = zenoh.Config()
         config.insert_json5("mode", json.dumps(self.mode))
         config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))

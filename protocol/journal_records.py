@@ -3,36 +3,12 @@
 A journal (`services.learner.journal`) is JSON lines, one record a line; the record's kind is
 its `record` field (the tag), so a line reads `{"record":"proposed","session":…,"t":…,…}`. The
 same Structs are what the learner builds, what the journal encodes and decodes, and (proposed,
-done and aborted) what `protocol.messages.Rollout` carries on `learner/rollout:o`.
-
-Kinds, in the order a session writes them:
-
-* `header` (first line, once): journal `version`, `created`, `session`, `algorithm`, `seed`,
-  `rollouts` (budget of done rollouts), `options` (the learner's), `config` (the rest of the
-  session settings), `controller_box` and `learner_state`, the learner before its first
-  proposal; `from` when the session started from another session's learned model; `rig`, what
-  replaying a shot needs: the robot's world parameters, its shot count before the session and
-  the controller's trajectory time (s).
-* `proposed` {index, theta}: attempt `index` (1, 2, …) is about to run θ (m).
-* `done` {index, rollout, theta, theta_measured, theta_launched, r_m, distance_m, hit, …}:
-  attempt `index` finished (θ proposed, reached by the controller, launched by the robot) and the
-  learner was told (θ, r); `rollout` counts done rollouts (1-based). Version 1 journals also
-  kept the learner's whole state in each done record (`learner_state`), which grew with the
-  session; version 2 keeps it in checkpoints.
-* `checkpoint` {rollout, learner_state}: the learner's state after `rollout` done rollouts,
-  without its history (the θ and r of the done records before it: `told` counts them), written
-  every `CHECKPOINT_EVERY` rollouts and when the session stops or ends.
-* `aborted` {index, theta, code, cause, retry_theta}: attempt `index` ended without a
-  measurement (the learner was not told); the next attempt runs `retry_theta` (m).
-* `resumed` {after, skipped}, `stopped` {reason, cause} (paused, resumable) and `end` {reason,
-  summary} (the session is over).
-
-Field order is the order of the lines on disk. A field that a line may lack (`controller_box`,
-`from`, `rig`, an aborted record's `truth_r_m` and `detection`, a resumed record's `skipped`, a
-stopped record's `cause`, a done record's `theta_launched` and `learner_state`) is `UNSET` when
-absent, so a record
-encodes back to its line. Which records may follow which (index order, one open attempt, the
-same θ) is the journal's business: these types say only what each record holds.
+done and aborted) what `protocol.messages.Rollout` carries on `learner/rollout:o`. A session
+writes a header, then per attempt proposed and done or aborted, checkpoints, and resumed,
+stopped or end; each record's class says what it holds. Field order is the order of the lines
+on disk; a field a line may lack is `UNSET` when absent, so a record encodes back to its line.
+Which records may follow which (index order, one open attempt, the same θ) is the journal's
+business: these types say only what each record holds.
 """
 
 from __future__ import annotations
@@ -75,14 +51,21 @@ class JournalRecord(msgspec.Struct, frozen=True, kw_only=True, tag_field="record
 
     @property
     def kind(self) -> str:
-        """The record's kind: header, proposed, done, aborted, resumed, stopped or end."""
+        """The record's kind: header, proposed, done, aborted, checkpoint, resumed, stopped or
+        end."""
         return str(type(self).__struct_config__.tag)
 
 
 class HeaderRecord(JournalRecord, frozen=True, kw_only=True, tag="header"):
-    """The first line of a journal: what the session is, and its learner before any proposal.
+    """The first line of a journal, written once: what the session is, and its learner before
+    any proposal.
 
     `version` and `created` (UTC, ISO 8601) are filled in by the journal that writes it.
+    `rollouts` is the budget of done rollouts, `options` the learner's options, `config` the
+    rest of the session settings, `controller_box` the controller's θ box and `learner_state`
+    the learner before its first proposal. `from` is there when the session started from
+    another session's learned model; `rig` holds what replaying a shot needs: the robot's world
+    parameters, its shot count before the session and the controller's trajectory time (s).
     """
 
     version: int = JOURNAL_VERSION
@@ -115,7 +98,8 @@ class ProposedRecord(SessionRecord, frozen=True, kw_only=True, tag="proposed"):
 
 
 class DoneRecord(SessionRecord, frozen=True, kw_only=True, tag="done"):
-    """Attempt `index` was measured and the learner told: done rollout number `rollout`.
+    """Attempt `index` was measured and the learner told: done rollout number `rollout`
+    (1-based, done rollouts only).
 
     Attributes:
         theta: θ proposed and run (m); theta_measured: θ the controller reached (m);
@@ -169,7 +153,10 @@ class AbortedRecord(SessionRecord, frozen=True, kw_only=True, tag="aborted"):
 
 class CheckpointRecord(SessionRecord, frozen=True, kw_only=True, tag="checkpoint"):
     """The learner's state after `rollout` done rollouts (`Learner.checkpoint_state`: its
-    history left out, rebuilt from the done records before it)."""
+    history, the θ and r of the done records before it, left out and rebuilt from them; its
+    `told` counts them). Written every `CHECKPOINT_EVERY` done rollouts and when the session
+    stops or ends, so no record grows with the session (version 1 journals kept the whole
+    state in each done record instead)."""
 
     rollout: Annotated[int, Meta(ge=0)]
     learner_state: dict[str, Any]
@@ -186,7 +173,7 @@ class ResumedRecord(SessionRecord, frozen=True, kw_only=True, tag="resumed"):
 
 class StoppedRecord(SessionRecord, frozen=True, kw_only=True, tag="stopped"):
     """The session paused, resumable: `reason` (stop requested, failed) and, when it failed,
-    the `cause`."""
+    the `cause`. A session that is over ends with an `EndRecord` instead."""
 
     reason: str
     cause: str | UnsetType = UNSET

@@ -4,19 +4,10 @@ Services may import only `protocol/` (and, for robot and camera, `sim/`), so wha
 simulated robot, the controller, the detector and the learner must agree on lives here: the
 service names, the URDF model, which hand holds the bow and the names of the hand frames, the
 home posture, the nominal archery geometry (θ, the bow hand, the hit radius), the joint speed
-bound and the default waits between services.
+bound, command ownership and the default waits between services.
 
 Frame and units: the iCub `root_link` frame (x backward, y to the robot's right, z up; the robot
 faces −x), metres, radians, seconds (wall clock unless said otherwise).
-
-The home posture. The simulated robot (`sim.scene`, `sim.world`) starts every session here and
-tunes its joint servos at it, so it is the posture the running system is actually in before the
-first move. The controller used to keep its own copy, iCub's customary (−30°, 30°, 0°, 45°) arm
-posture; there it only seeds the IK (the default warm start, the rest posture q̂ of Eq. 9 and the
-first start of the archery reference-posture search), never a posture the robot is sent to. The
-simulator's value wins: the controller's seed now equals the robot's real starting posture.
-`tests/test_robotspec.py` checks that MuJoCo and Pinocchio put the hand frames at the same place
-at this posture.
 """
 
 from __future__ import annotations
@@ -84,8 +75,15 @@ STRING_HAND_FRAME = HAND_FRAMES[STRING_ARM]
 # front, inside every joint's limits.
 _ARM_HOME = (-0.5, 0.4, 0.0, 0.9, 0.0, 0.0, 0.0)
 
-#: The home posture, joint name → angle (rad): torso straight, both arms at `_ARM_HOME`. See the
-#: module docstring for why this value (the simulator's) is the one.
+#: The home posture, joint name → angle (rad): torso straight, both arms at `_ARM_HOME`. The
+#: simulated robot (`sim.scene`, `sim.world`) starts every session here and tunes its joint
+#: servos at it, so it is the posture the running system is actually in before the first move.
+#: The controller used to keep its own copy, iCub's customary (−30°, 30°, 0°, 45°) arm posture;
+#: there it only seeds the IK (the default warm start, the rest posture q̂ of Eq. 9 and the
+#: first start of the archery reference-posture search), never a posture the robot is sent to.
+#: The simulator's value wins: the controller's seed now equals the robot's real starting
+#: posture. `tests/test_robotspec.py` checks that MuJoCo and Pinocchio put the hand frames at
+#: the same place at this posture.
 HOME_POSTURE: Mapping[str, float] = MappingProxyType(
     {name: 0.0 for name in PARTS["torso"]}
     | {

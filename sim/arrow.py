@@ -1,25 +1,10 @@
 """The arrow's shot in the MuJoCo scene: launch from the hands, drag, impact, the Landing result.
 
-Launch: the arrow's tip leaves from the bow hand (the simulated `l_hand_dh_frame` site) along the
-direction from the string hand to the bow hand, −θ/‖θ‖ for θ = p_string − p_bow, with the speed
-of `sim.bow.Bow` for the actual θ, optionally perturbed by seeded speed and direction noise.
-
-Flight: the arrow is a free MuJoCo body under gravity. Air drag is an explicit force at its
-centre of mass, written to `xfrc_applied` before every physics step (MuJoCo's own fluid model is
-switched off in the scene):
-
-    a_drag = −K·‖v − w‖·(v − w)      K in 1/m, v the arrow's and w the wind's velocity (m/s),
-
-the same law as the analytic model of `sim.ballistic`. The arrow does not rotate in flight. Its
-velocity starts half a step back (a leapfrog start), which makes MuJoCo's semi-implicit Euler
-exact for the drag-free parabola and second-order accurate with drag.
-
-Impact: after every step the tip's path over that step is tested against the target plane
-x = −distance and the floor z = −root_height; the crossing is interpolated inside the step, so
-the reported point does not depend on how far the arrow moved in one step. At the plane, a tip
-within the face radius is a hit; one outside it is a miss that is still reported on the plane
-(like the paper's arrows put back on the wall at their impact point). The arrow is then frozen
-there, pointing along its velocity. The result r = tip − centre on the plane, r[0] along +y (the
+The arrow's tip leaves from the bow hand (the simulated `l_hand_dh_frame` site) along −θ/‖θ‖
+for θ = p_string − p_bow, at the speed of `sim.bow.Bow` (`launch_velocity`), flies as a free
+MuJoCo body under gravity and the drag law of the analytic model `sim.ballistic`
+(`ArrowFlight`), and lands where its tip's path crosses the target plane or the floor
+(`ArrowFlight.after_step`). The result r = tip − centre on the plane, r[0] along +y (the
 robot's right) and r[1] along +z (up), in metres, is the shot's ground truth.
 """
 
@@ -192,6 +177,16 @@ def launch_velocity(
 class ArrowFlight:
     """One arrow's flight in a scene, from launch to landing; call around every physics step.
 
+    The arrow is a free MuJoCo body under gravity. Air drag is an explicit force at its centre
+    of mass, written to `xfrc_applied` before every physics step (`before_step`; MuJoCo's own
+    fluid model is switched off in the scene):
+
+        a_drag = −K·‖v − w‖·(v − w)      K in 1/m, v the arrow's and w the wind's velocity (m/s),
+
+    the same law as the analytic model of `sim.ballistic`. The arrow does not rotate in flight.
+    Its velocity starts half a step back (a leapfrog start), which makes MuJoCo's semi-implicit
+    Euler exact for the drag-free parabola and second-order accurate with drag.
+
     Args:
         physics: the scene's physics queries.
         launch: the release state; the arrow is placed and given its velocity here.
@@ -250,7 +245,15 @@ class ArrowFlight:
                 self.physics.set_arrow_force(np.zeros(3))
 
     def after_step(self) -> Landing | None:
-        """Check the step's path for an impact; on one, freeze the arrow there and return it."""
+        """Check the step's path for an impact; on one, freeze the arrow there and return it.
+
+        The tip's path over the step is tested against the target plane x = `plane_x`
+        (−distance) and the floor z = `floor_z` (−root_height); the crossing is interpolated
+        inside the step, so the reported point does not depend on how far the arrow moved in
+        one step. At the plane, a tip within the face radius is a hit; one outside it is a miss
+        that is still reported on the plane (like the paper's arrows put back on the wall at
+        their impact point). The arrow is then frozen there, pointing along its velocity.
+        """
         if self.landing is not None:
             return None
         physics = self.physics

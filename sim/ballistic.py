@@ -1,21 +1,14 @@
 """The paper's analytic archery world (Section IV): a ballistic arrow from the bow hand to a target.
 
 Frame and units: the iCub `root_link` frame of `sim.geometry` (x backward, y right, z up), metres,
-seconds. A policy parameter θ = p_string − p_bow (m) is turned into a launch velocity by the
-linear-spring bow of `sim.bow` (speed d·sqrt(η·k/m) for the draw d = ‖θ‖ − brace height, direction
-−θ/‖θ‖); the arrow starts at `BOW_HAND` and flies under gravity and, optionally, quadratic air drag
+seconds. θ = p_string − p_bow (m) gives a launch velocity by the linear-spring bow of `sim.bow`;
+the arrow starts at `BOW_HAND` and flies under gravity and, optionally, quadratic air drag
 relative to a constant wind,
 
     a = g − K·‖v − w‖·(v − w)        (K in 1/m, w in m/s),
 
-until it meets the target plane x = −distance. Without drag the flight has a closed form; with
-drag it is integrated with fixed-step RK4 and the plane crossing is found by cubic Hermite
-interpolation inside the last step. The observed reward vector is r = arrow − centre on the
-target plane (r[0] along +y, r[1] along +z, metres) plus optional Gaussian observation noise.
-
-The world is Gymnasium-like: `reset(seed)` seeds the observation noise, `step(θ)` fires one arrow,
-and the same seed gives the same numbers bit for bit. The physics (`impacts`, `trajectory`) is
-pure and vectorised over many θ at once; only `observe` draws random numbers.
+until it meets the target plane x = −distance (`BallisticWorld.impacts`). The observed reward
+r = arrow − centre on that plane (r[0] along +y, r[1] along +z, m) has optional Gaussian noise.
 """
 
 from __future__ import annotations
@@ -178,6 +171,10 @@ class Shot:
 class BallisticWorld:
     """The simulated range: shoot θ, observe r.
 
+    Gymnasium-like: `reset(seed)` seeds the observation noise, `step(θ)` fires one arrow, and
+    the same seed gives the same numbers bit for bit. The physics (`impacts`, `trajectory`) is
+    pure and vectorised over many θ at once; only `observe` draws random numbers.
+
     Args:
         scenario: the range's parameters.
         dt: RK4 step (s) when drag is on.
@@ -212,7 +209,8 @@ class BallisticWorld:
     # -- physics (pure) -------------------------------------------------------------------------
 
     def launch(self, thetas: np.ndarray) -> np.ndarray:
-        """Launch velocities (n, 3) in m/s for θ rows (n, 3) in metres.
+        """Launch velocities (n, 3) in m/s for θ rows (n, 3) in metres: the bow's speed
+        d·sqrt(η·k/m) for the draw d = ‖θ‖ − brace height, along −θ/‖θ‖.
 
         Raises:
             ShotError: a θ is not a finite 3-vector or gives no draw (‖θ‖ <= brace height).
@@ -233,6 +231,9 @@ class BallisticWorld:
 
     def impacts(self, thetas: np.ndarray) -> Impacts:
         """True impacts on the target plane for θ rows (n, 3) in metres (no observation noise).
+
+        Without drag the flight has a closed form; with drag it is integrated with fixed-step
+        RK4 and the plane crossing is found by cubic Hermite interpolation inside the last step.
 
         Raises:
             ShotError: a θ cannot be shot or its arrow never reaches the target plane.

@@ -4,21 +4,9 @@
 MuJoCo reads `MUJOCO_GL` once, when `mujoco` is first imported, and PyOpenGL reads
 `PYOPENGL_PLATFORM` when `OpenGL` is first imported; a process that imports either before the
 variables are set renders through GLFW, which needs a display (`mujoco.FatalError: an OpenGL
-platform library has not been loaded into this process`). So:
-
-- `select()` runs when the `sim` package is imported, before any of its modules imports
-  `mujoco`: with `MUJOCO_GL` unset it picks the first headless backend whose libraries load,
-  EGL (GPU or Mesa's llvmpipe) then OSMesa, and sets both variables for this process and its
-  children. A `MUJOCO_GL` the user set is kept (`egl`, `osmesa`, `glfw`, `glx`; `disable`
-  turns rendering off).
-- `renderer_ready()` runs before every MuJoCo renderer is made (`sim.render.SceneRenderer`):
-  should `mujoco` have been imported before `sim` (a user's script, a test importing `mujoco`
-  first), it points MuJoCo's renderer at the selected backend's context class, so the import
-  order does not matter.
-- `check()` is the preflight of every verb that renders (camera, film, demo, learn's film,
-  record's scene view, selfcheck): it opens and frees a small context, once per process, and
-  raises `RenderBackendError` (one line: the variable, what was tried, what to install) before
-  any session starts, instead of a traceback after it.
+platform library has not been loaded into this process`). So `select()` runs when the `sim`
+package is imported, `renderer_ready()` before every MuJoCo renderer is made, and `check()` is
+the preflight of every verb that renders; each one's docstring says what it does.
 """
 
 from __future__ import annotations
@@ -74,7 +62,14 @@ def select() -> str | None:
     """The backend this process renders with; sets `MUJOCO_GL` (and `PYOPENGL_PLATFORM` for
     EGL and OSMesa) in `os.environ` when they are unset. None: rendering is off
     (`MUJOCO_GL=disable`), or `MUJOCO_GL` is unset and no headless backend's libraries load
-    (physics still runs; `check()` says what to install)."""
+    (physics still runs; `check()` says what to install).
+
+    It runs when the `sim` package is imported, before any of its modules imports `mujoco`:
+    with `MUJOCO_GL` unset it picks the first headless backend whose libraries load, EGL (GPU
+    or Mesa's llvmpipe) then OSMesa, and sets both variables for this process and its children.
+    A `MUJOCO_GL` the user set is kept (`egl`, `osmesa`, `glfw`, `glx`; `disable` turns
+    rendering off).
+    """
     given = os.environ.get("MUJOCO_GL", "").strip().lower()
     if given in _OFF:
         return None
@@ -113,6 +108,11 @@ def renderer_ready() -> None:
     """Make sure MuJoCo's renderer opens its context with the selected backend, whatever was
     imported first.
 
+    It runs before every MuJoCo renderer is made (`sim.render.SceneRenderer`): should `mujoco`
+    have been imported before `sim` (a user's script, a test importing `mujoco` first), it
+    points MuJoCo's renderer at the selected backend's context class, so the import order does
+    not matter.
+
     Raises:
         RenderBackendError: rendering is off or has no backend (`check` explains), or the
             variables disagree.
@@ -140,6 +140,10 @@ def _failure(backend: str, picked: bool, exc: BaseException) -> RenderBackendErr
 def check() -> str:
     """Open and free a 16×16 context with the selected backend (once per process); the
     backend's name.
+
+    The preflight of every verb that renders (camera, film, demo, learn's film, record's scene
+    view, selfcheck): it raises `RenderBackendError` (one line: the variable, what was tried,
+    what to install) before any session starts, instead of a traceback after it.
 
     Raises:
         RenderBackendError: rendering is off, no backend's libraries load, or the backend does

@@ -5,11 +5,7 @@ Frame: the MuJoCo world frame *is* the iCub `root_link` frame of `sim.geometry` 
 y right, z up; metres). The URDF's root link is welded to the world, and the floor is the plane
 z = −root_height below it, so every position the physics reports is already in the frame the
 controller, the learner and the reward use. The robot faces −x; the target face is the plane
-x = −target_distance.
-
-One position servo per controlled joint, its stiffness and damping tuned from the joint's
-inertia at the home posture (`protocol.robotspec.HOME_POSTURE`), so every joint settles like a
-critically damped system of the same bandwidth. Contact is disabled globally.
+x = −target_distance. Contact is disabled globally; the servos are tuned by `_tune_servos`.
 """
 
 from __future__ import annotations
@@ -40,7 +36,9 @@ def _add_servos(spec: mujoco.MjSpec) -> None:
 
 
 def _tune_servos(model: mujoco.MjModel, config: SceneConfig) -> None:
-    """Set kp = I·ω² and kv = 2ζ·I·ω − (joint damping), with I the joint's inertia at home."""
+    """Set kp = I·ω² and kv = 2ζ·I·ω − (joint damping), with I the joint's inertia at home
+    (`protocol.robotspec.HOME_POSTURE`), so every joint settles alike: a second-order system of
+    bandwidth ω (rad/s) and damping ratio ζ (1 by default: critically damped)."""
     data = mujoco.MjData(model)
     for name, value in HOME_POSTURE.items():
         data.qpos[model.joint(name).qposadr[0]] = value

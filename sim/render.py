@@ -2,16 +2,9 @@
 calibration marks.
 
 The target camera sees the target, its stand, the floor and, after a shot, the arrow; the robot
-is behind it. So the renderer builds the scene without the robot's meshes (they change no qpos),
-hides the robot's geom group, and turns off shadows, reflections, the skybox and multisampling:
-a 1280×720 frame then costs a fraction of the default settings on a software GL (Mesa llvmpipe
-with EGL). One renderer (one GL context) is reused for every frame; use it from the thread that
-created it.
-
-`calibration_frame` plays the paper's user for the simulated camera: it places an arrow on the
-face, renders the frame and returns the pixels a user would mark inside the coloured rings and
-on the tip — points of the scene projected through the camera (`project`), kept only where the
-segmentation shows that object.
+is behind it, so the lean renderer (`SceneRenderer`) leaves out what changes no pixel of that
+view. `calibration_frame` plays the paper's user for the simulated camera: it places an arrow
+on the face, renders the frame and returns the pixels a user would mark.
 """
 
 from __future__ import annotations
@@ -57,6 +50,12 @@ CALIBRATION_ARROW_R = (0.06, 0.19)  # m, where the calibration arrow sits (right
 
 class SceneRenderer:
     """Renders `camera` of the scene built from `config`, for any qpos.
+
+    With `lean` (the default), it builds the scene without the robot's meshes (they change no
+    qpos), hides the robot's geom group, and turns off shadows, reflections, the skybox and
+    multisampling: a 1280×720 frame then costs a fraction of the default settings on a
+    software GL (Mesa llvmpipe with EGL). One renderer (one GL context) is reused for every
+    frame; use it from the thread that created it.
 
     Args:
         config: the robot's scene parameters (the same model, so the same qpos layout).
@@ -174,8 +173,9 @@ def calibration_frame(
     """A frame with an arrow on the face, and marks {"target": [[x, y]…], "arrow": [[x, y]…]}.
 
     Target marks lie inside the first `coloured_rings` rings (yellow, red, blue), away from ring
-    borders; arrow marks on the visible rim of the tip's disc. The renderer's data is left at
-    the calibration state.
+    borders; arrow marks on the visible rim of the tip's disc: points of the scene projected
+    through the camera (`project`), kept only where the segmentation shows that object. The
+    renderer's data is left at the calibration state.
 
     Raises:
         ConfigError: qpos of the wrong length, or `coloured_rings` outside 1..5.

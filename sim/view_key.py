@@ -2,15 +2,11 @@
 
 The lean renderer draws no shadows and no reflections, so a body outside the camera's view
 frustum changes no pixel. The key of a qpos is the pose of every movable element that is drawn
-(a geom or site of a visible group on a body that moves) and whose bounding sphere reaches into
-the frustum, with its index; everything else in the scene is static. So the target camera's
-frames while the robot moves its arms behind it, or after a reset, share one key and one
-render. The test is conservative (the near and far planes are ignored, spheres are padded): an
-element that might be seen counts as seen, so equal keys always mean equal images.
-
-A drawn spatial tendon (the bow's string) counts as seen when the sphere around its sites and
-wrap geoms reaches into the frustum. Where the test cannot be sure (a moving camera or light,
-skins or flexes, shadows or reflections on), the key is the whole qpos.
+and whose bounding sphere reaches into the frustum (`ViewKey.key`); everything else in the scene
+is static. So the target camera's frames while the robot moves its arms behind it, or after a
+reset, share one key and one render. The test is conservative (the near and far planes are
+ignored, spheres are padded): an element that might be seen counts as seen, so equal keys
+always mean equal images.
 """
 
 from __future__ import annotations
@@ -125,7 +121,12 @@ class ViewKey:
         return seen
 
     def key(self, qpos: np.ndarray) -> bytes:
-        """The key of `qpos` (the model's length)."""
+        """The key of `qpos` (the model's length): the pose of every movable element that is
+        drawn (a geom or site of a visible group on a body that moves) and whose bounding sphere
+        reaches into the frustum, with its index. A drawn spatial tendon (the bow's string)
+        counts as seen when the sphere around its sites and wrap geoms reaches into the
+        frustum. Where the test cannot be sure (a moving camera or light, skins or flexes,
+        shadows or reflections on: `exact`), the key is the whole qpos."""
         if self.exact:
             return np.asarray(qpos, np.float64).tobytes()
         data = self.data

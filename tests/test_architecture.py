@@ -222,3 +222,25 @@ def test_every_file_the_map_names_exists() -> None:
     assert len(named) > 20
     missing = sorted(path for path in named if not (ROOT / path).is_file())
     assert not missing, f"ARCHITECTURE.md names files that do not exist: {missing}"
+
+
+MODULE_DOCSTRING_LINES = 12
+
+
+def test_every_module_opens_with_a_short_docstring() -> None:
+    """Every product module opens with a docstring of a few lines that says what it holds (at
+    most 12, its first and last line counted); the details go to the docstrings of the classes
+    and functions they explain, the tables to README.md and ARCHITECTURE.md."""
+    missing = []
+    too_long = []
+    for path in sorted(MODULES.values()):
+        shown = str(path.relative_to(ROOT))
+        docstring = ast.get_docstring(ast.parse(path.read_text()), clean=False)
+        if docstring is None or not docstring.strip():
+            missing.append(shown)
+        elif (lines := docstring.count("\n") + 1) > MODULE_DOCSTRING_LINES:
+            too_long.append(f"{shown} ({lines} lines)")
+    assert not missing, f"modules without a docstring: {', '.join(missing)}"
+    assert not too_long, (
+        f"module docstrings over {MODULE_DOCSTRING_LINES} lines: {', '.join(too_long)}"
+    )

@@ -1,15 +1,12 @@
 """The dashboard's HTTP server with the guards a web app on this machine needs.
 
-- The `Host` allow-list (`host_allowed`): a page of another site whose name an attacker makes
-  resolve to this machine (DNS rebinding) reaches the dashboard with that name in its `Host`
-  header; only the names the dashboard is reached by directly are answered: `localhost`,
-  `127.0.0.1`, `[::1]` and the bound address, each with the bound port (bound to every
-  interface, `0.0.0.0` or `::`: any IP address with the port). A name cannot be rebound.
+- The `Host` allow-list (`host_allowed`): only the names the dashboard is reached by directly
+  are answered, so a page of another site rebound to this machine (DNS rebinding) gets nothing.
 - An idle timeout (`REQUEST_TIMEOUT`): a connection that does not send its request in time is
   closed, so a half-open connection does not hold a thread and a socket for ever.
 - A cap on the connections served at once (`MAX_CONNECTIONS`, a thread each): a new connection
-  over it closes the oldest one still waiting for its request (an idle connection gives way to
-  one that asks), or, when every one is busy answering, gets 503 at once.
+  over it closes the oldest one still waiting for its request, or, when every one is busy
+  answering, gets 503 at once (`GuardedServer.process_request`).
 """
 
 from __future__ import annotations
@@ -59,7 +56,11 @@ def _split_host(header: str) -> tuple[str, int | None, bool] | None:
 def host_allowed(header: str | None, bound: str, port: int) -> bool:
     """Whether a request whose `Host` header is `header` may be answered by a server bound to
     address `bound`, port `port`: `localhost`, `127.0.0.1`, `[::1]` or `bound` (bound to every
-    interface: any IP address), with `port` (without one: only when `port` is 80)."""
+    interface: any IP address), with `port` (without one: only when `port` is 80).
+
+    A page of another site whose name an attacker makes resolve to this machine (DNS
+    rebinding) reaches the dashboard with that name in its `Host` header; only the names the
+    dashboard is reached by directly are answered. A name cannot be rebound."""
     split = _split_host(header) if header else None
     if split is None:
         return False
@@ -116,6 +117,9 @@ class GuardedServer(ThreadingHTTPServer):
             return len(self._open), sum(self._open.values())
 
     def process_request(self, request: Any, client_address: Any) -> None:
+        """Serve a new connection on a thread of its own; over `max_connections`, close the
+        oldest one still waiting for its request (an idle connection gives way to one that
+        asks), or, when every one is busy answering, answer 503 at once."""
         evicted = None
         with self._lock:
             full = len(self._open) >= self.max_connections

@@ -1,33 +1,9 @@
 """`archery dashboard`: a live view of a learning session in the browser.
 
-The page shows the camera frame of each rollout with the detector's overlay and a caption
-(rollout, θ, r), the scene view (the whole robot from the side camera, while the page shows
-it), the target face with each rollout's impact coloured by rollout, the distance-per-rollout
-curve, each service's liveliness and each stream port's rate; on a fleet, a selector switches
-between the robots alive on the router.
-
-Design: a small page served by the package itself. A standard-library threading HTTP server
-(`guard.GuardedServer`) serves three files (`static/`: HTML, CSS and a short script that draws
-the face and the curve as SVG), a JSON endpoint (`/api/state?robot=R`) the page polls twice a
-second, the frame as PNG (`/api/frame.png?robot=R`), the scene view as JPEG
-(`/api/scene.jpg?robot=R`) and the robots alive (`/api/robots`). Why: no extra dependency (no
-web framework, no Rerun), nothing fetched from a CDN so it works offline and behind a firewall,
-and any plain browser (or `curl`, or a headless Chromium in the tests) can read it.
-
-As a web app on this machine must, it answers only requests whose `Host` is its own address
-(421 otherwise: a page of another site cannot read the camera through DNS rebinding), closes a
-connection whose request does not come within `guard.REQUEST_TIMEOUT` s and serves at most
-`guard.MAX_CONNECTIONS` at once. A GET changes nothing: what changes what is watched is a POST
-carrying the page's token (`TOKEN_HEADER`, a random one per server, sent with every answer;
-a page of another site cannot read it, nor send a header of its own without this server's
-consent): `/api/watch?robot=R` follows a robot alive on the router (404 for one that is not),
-`/api/scene?robot=R` says the page shows the scene view (the page posts it with each poll
-while its scene panel is open).
-
-The mesh side (`watch.MeshWatch`, one per robot followed, at most `MAX_ROBOTS`; another
-robot's is closed once no page polled it for `WATCH_IDLE` s) is an anonymous node: it
-subscribes to the rollouts, and calls only the learner's `status`, the detector's `frame` and,
-while a page shows it, the camera's `scene`, so watching never disturbs a session.
+A small page served by the package itself (`_Handler`: its endpoints, and why no web
+framework) through the guarded HTTP server of `apps.dashboard.guard`; the mesh side is one
+`apps.dashboard.watch.MeshWatch` per robot followed (`Dashboard`). What the page shows: README.md,
+'The `archery` command', under `archery dashboard`.
 """
 
 from __future__ import annotations
@@ -99,6 +75,24 @@ class _Server(GuardedServer):
 
 
 class _Handler(BaseHTTPRequestHandler):
+    """The dashboard's requests.
+
+    A standard-library threading HTTP server (`guard.GuardedServer`) serves three files
+    (`static/`: HTML, CSS and a short script that draws the face and the curve as SVG), a JSON
+    endpoint (`/api/state?robot=R`) the page polls twice a second, the frame as PNG
+    (`/api/frame.png?robot=R`), the scene view as JPEG (`/api/scene.jpg?robot=R`) and the
+    robots alive (`/api/robots`). Why: no extra dependency (no web framework, no Rerun),
+    nothing fetched from a CDN so it works offline and behind a firewall, and any plain browser
+    (or `curl`, or a headless Chromium in the tests) can read it.
+
+    As a web app on this machine must, it answers only requests whose `Host` is its own
+    address (421 otherwise: a page of another site cannot read the camera through DNS
+    rebinding), closes a connection whose request does not come within
+    `guard.REQUEST_TIMEOUT` s and serves at most `guard.MAX_CONNECTIONS` at once. A GET
+    changes nothing: what changes what is watched is a POST carrying the page's token
+    (`do_POST`).
+    """
+
     server: _Server
     server_version = "archery-dashboard"
 
@@ -157,8 +151,11 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(HTTPStatus.OK, content, ctype + "; charset=utf-8")
 
     def do_POST(self) -> None:
-        """`/api/watch?robot=R` (follow a robot alive on the router) and `/api/scene?robot=R`
-        (a page shows the scene view), each with the page's token in `TOKEN_HEADER`."""
+        """`/api/watch?robot=R` (follow a robot alive on the router; 404 for one that is not)
+        and `/api/scene?robot=R` (a page shows the scene view: the page posts it with each poll
+        while its scene panel is open), each with the page's token in `TOKEN_HEADER`: a random
+        one per server, sent with every answer; a page of another site cannot read it, nor
+        send a header of its own without this server's consent."""
         url = urlsplit(self.path)
         dashboard = self.server.dashboard
         if not self._drain_body():
@@ -287,7 +284,14 @@ class NotWatched(ArcheryError):
 class Dashboard:
     """The server and the mesh watches together (the node's robot's, and each other robot's
     a page chose, while it is alive on the router and a page polls it); a context manager
-    (tests use it directly). `token` is what the page sends with each POST."""
+    (tests use it directly). `token` is what the page sends with each POST.
+
+    The mesh side is an anonymous node with one `MeshWatch` per robot followed, at most
+    `MAX_ROBOTS`; another robot's is closed once no page polled it for `WATCH_IDLE` s. A watch
+    subscribes to the rollouts, watches the liveliness tokens and calls only the learner's
+    `status`, each service's `describe` (its ports' message counts), the detector's `frame`
+    and, while a page shows it, the camera's `scene`, so watching never disturbs a session.
+    """
 
     def __init__(self, net: NetConfig, server: _Server, *, watch_idle: float = WATCH_IDLE) -> None:
         self.server = server

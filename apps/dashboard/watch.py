@@ -2,18 +2,9 @@
 port's rate, the learner's rollouts and status, the detector's last measured frame and, while a
 page shows it, the camera's scene view (the whole robot from the side camera).
 
-Watching costs the session little: the rates come from the publishers' own message counts
-(`PortInfo.count` in each service's `describe`, polled with the learner's status), not from
-subscribing to the streams: a subscriber would have the router forward every joint state and,
-for the camera's frames, make the camera render 1280×720 frames for nothing but a count. The
-detector's frame with its overlay is drawn and PNG-encoded on the detector's worker: it is
-fetched after each rollout, right after the detector measured it and while the robot moves to
-the next shot (a posture and a flight: the detector idles then), and never sooner than
-`1 / FRAME_DUTY` times the last fetch's duration after the one before, so watching takes at
-most that share of the detector's time however fast rollouts come, nor sooner than `FRAME_EVERY`
-s (the page's poll period: a page shows no more frames than it polls). The scene view is asked of
-the camera (`scene`, which never waits) only while a page showed interest in it within the
-last `SCENE_INTEREST` s, at the camera's own period; nobody looking, nothing is rendered.
+Watching costs the session little: the rates come from the publishers' own message counts, not
+from subscribing to the streams (`apps.port_rates`), the detector's frame is fetched at most a share of
+the detector's time (`MeshWatch._work`), and the scene view only while a page shows it.
 """
 
 from __future__ import annotations
@@ -132,7 +123,19 @@ class MeshWatch:
 
     def _work(self) -> None:
         """Fetch the frame when a rollout asks for it, the scene view while a page wants it and
-        the learner's status every `status_every` s; calls never run on Zenoh's threads."""
+        the learner's status every `status_every` s; calls never run on Zenoh's threads.
+
+        The detector's frame with its overlay is drawn and PNG-encoded on the detector's
+        worker: it is fetched after each rollout, right after the detector measured it and
+        while the robot moves to the next shot (a posture and a flight: the detector idles
+        then), and never sooner than `1 / FRAME_DUTY` times the last fetch's duration after
+        the one before, so watching takes at most that share of the detector's time however
+        fast rollouts come, nor sooner than `frame_every` s (`FRAME_EVERY`, the page's poll
+        period: a page shows no more frames than it polls). The scene view is asked of the
+        camera (`scene`, which never waits) only while a page showed interest in it within the
+        last `SCENE_INTEREST` s, at the camera's own period; nobody looking, nothing is
+        rendered.
+        """
         next_status = 0.0
         while not self._stop.is_set():
             now = time.monotonic()

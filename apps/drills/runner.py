@@ -1,42 +1,10 @@
 """`archery drill`: fault drills against real processes on loopback, and their table.
 
-Each drill starts (or reuses) a mesh as `archery up` runs it: a router and the five services as
-child processes under `up`'s supervisor (`apps.drills.mesh`), runs a learning session on
-it, injects one fault, and judges the outcome from the session's journal
-(`apps.drills.verdict`): a drill passes when every journal keeps its invariants
-(`check_invariants`), no rollout was lost or duplicated, and the drill's own checks hold. The
-drills (see each family's module):
-
-* `kill-SERVICE`: SIGKILL of each service mid-session (`apps.drills.kill`);
-* `freeze-SERVICE`: SIGSTOP of each service for 12 s (beyond the 10 s Zenoh lease), then
-  SIGCONT (`apps.drills.freeze`);
-* `router-2s`, `router-15s`: the router SIGKILLed and restarted 2 s / 15 s later
-  (`apps.drills.router`);
-* `order-0` … `order-5`: the router started in each position among the services
-  (`apps.drills.order`);
-* `flood-20000`: 20,000 valid and invalid joint commands on `ROBOT/left_arm/command:i`
-  (`apps.drills.flood`);
-* `kill-learner-x20`: the learner SIGKILLed 20 times at seeded random points, resumed each time.
-
-`--quick` runs kill-camera, kill-detector, router-2s, flood-2000 and kill-learner-x3 (about a
-minute). Times are wall-clock seconds (`time.time()`, the clock of the journal records' `t`):
-
-* **time to detect**: from the fault (the signal sent) to the first sign that the mesh noticed
-  it: the service's liveliness token going on the router (the learner's rig dates the loss by
-  the same tokens), `up`'s supervisor reporting the exit, the learner's status listing the
-  service in `waiting_for`, or a `service_lost` abort in the journal, whichever came first
-  (the learner's own reaction, its status or journal, is in the notes and `--json`). The router
-  and the learner: the supervisor's report or their token.
-* **time to recover**: from the service's return (its liveliness token back: the restarted
-  process, or the frozen one reconnected after SIGCONT; the router listening again; the end of
-  the flood; the last process started for the start-order drills) to the session's next done
-  rollout (the journal's `t`). For repeated kills, the worst of them.
-* **rollouts lost / duplicated**: see `apps.drills.verdict`.
-
-Goals (noted when missed, not verdicts): a crash noticed within 1 s, a freeze within the lease
-+ 1 s, the session going on within 5 s of the service's return.
-
-Exit status 0 when every drill passed, 1 otherwise, 2 for bad flags.
+Each drill starts (or reuses) a mesh as `archery up` runs it (`apps.drills.mesh`), runs a
+learning session on it, injects one fault and judges the outcome from the session's journal
+(`apps.drills.verdict`). The drills are listed by `_catalogue`, how their times to detect and
+recover are measured by `render`, and the goals beside `DETECT_GOALS`. Exit status 0 when
+every drill passed, 1 otherwise, 2 for bad flags.
 """
 
 from __future__ import annotations
@@ -67,6 +35,8 @@ from protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DRILLS", "QUICK", "Drill", "Drills", "main", "render", "run_drills"]
 
+# Goals (noted when missed, not verdicts), in s: a crash noticed within 1 s, a freeze within
+# the lease + 1 s, the session going on within 5 s of the service's return.
 DETECT_GOALS = {"kill": 1.0, "freeze": LEASE + 1.0}
 RECOVER_GOAL = 5.0
 
@@ -117,6 +87,20 @@ class Drill:
 
 
 def _catalogue() -> dict[str, Drill]:
+    """Every drill by name (see each family's module):
+
+    * `kill-SERVICE`: SIGKILL of each service mid-session (`apps.drills.kill`);
+    * `freeze-SERVICE`: SIGSTOP of each service for 12 s (beyond the 10 s Zenoh lease), then
+      SIGCONT (`apps.drills.freeze`);
+    * `router-2s`, `router-15s`: the router SIGKILLed and restarted 2 s / 15 s later
+      (`apps.drills.router`);
+    * `order-0` … `order-5`: the router started in each position among the services
+      (`apps.drills.order`);
+    * `flood-20000`, `flood-2000`: 20,000 (2,000) valid and invalid joint commands on
+      `ROBOT/left_arm/command:i` (`apps.drills.flood`);
+    * `kill-learner-x20`, `kill-learner-x3`: the learner SIGKILLed 20 (3) times at seeded
+      random points, resumed each time.
+    """
     drills: list[Drill] = []
     for service in SERVICES:
         if service == "learner":
@@ -157,6 +141,7 @@ def _catalogue() -> dict[str, Drill]:
 
 
 DRILLS = _catalogue()
+# `--quick`: about a minute
 QUICK = ("kill-camera", "kill-detector", "router-2s", "flood-2000", "kill-learner-x3")
 FULL = tuple(n for n in DRILLS if n not in ("flood-2000", "kill-learner-x3"))
 
@@ -208,7 +193,21 @@ def _seconds(value: float | None) -> str:
 
 
 def render(results: Sequence[DrillResult]) -> Table:
-    """The results as a rich table."""
+    """The results as a rich table. Times are wall-clock seconds (`time.time()`, the clock of
+    the journal records' `t`):
+
+    * **detect**: from the fault (the signal sent) to the first sign that the mesh noticed it:
+      the service's liveliness token going on the router (the learner's rig dates the loss by
+      the same tokens), `up`'s supervisor reporting the exit, the learner's status listing the
+      service in `waiting_for`, or a `service_lost` abort in the journal, whichever came first
+      (the learner's own reaction, its status or journal, is in the notes and `--json`). The
+      router and the learner: the supervisor's report or their token.
+    * **recover**: from the service's return (its liveliness token back: the restarted
+      process, or the frozen one reconnected after SIGCONT; the router listening again; the
+      end of the flood; the last process started for the start-order drills) to the
+      session's next done rollout (the journal's `t`). For repeated kills, the worst of them.
+    * **lost** / **dup**: rollouts lost and duplicated, see `apps.drills.verdict`.
+    """
     table = Table(title="archery drill", show_lines=False)
     for column, justify in (
         ("drill", "left"),

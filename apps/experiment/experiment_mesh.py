@@ -5,16 +5,9 @@ Every (algorithm, session) pair is one learning session of the learner (`Session
 closed loop and journal as `archery learn`), journaled in `OUT/sessions/ALGO-sNN/journal.jsonl`
 with the learner seed of the ballistic world's session NN, the robot's default start θ and θ
 box, and the whole rollout budget (no stop at the first hit, so Fig. 6 has every rollout).
-
-The sessions wait in one work queue; each robot of the fleet takes the next one as soon as it
-is free, so a fast robot does more. A robot whose stack is lost (any of its robot, camera,
-detector or controller gone for `robot_wait` s) gives its session back to the queue, where the
-next free robot resumes it from its journal: the learner is restored from the last done
-rollout and an attempt left open is run again, so an attempt counts once and no session is
-lost. The lost robot takes work again once its stack is back. An experiment cut short (Ctrl-C,
-a crash, no robot left) continues with `--resume OUT`: finished sessions are read back from
-their journals, the others resume where they stopped. Pure wiring: the sessions' maths is in
-`services.learner.session` and the algorithms.
+`_Experiment` shares them out among the robots and survives a lost robot; README.md, 'A fleet
+of robots', tells the rest. Pure wiring: the sessions' maths is in `services.learner.session`
+and the algorithms.
 """
 
 from __future__ import annotations
@@ -148,7 +141,17 @@ class _Queue:
 
 
 class _Experiment:
-    """The workers (one thread per robot) over one queue, and their counters."""
+    """The workers (one thread per robot) over one queue, and their counters.
+
+    The sessions wait in one work queue; each robot of the fleet takes the next one as soon as
+    it is free, so a fast robot does more. A robot whose stack is lost (any of its robot,
+    camera, detector or controller gone for `robot_wait` s) gives its session back to the
+    queue, where the next free robot resumes it from its journal: the learner is restored from
+    the last done rollout and an attempt left open is run again, so an attempt counts once and
+    no session is lost. The lost robot takes work again once its stack is back. An experiment
+    cut short (Ctrl-C, a crash, no robot left) continues with `--resume OUT`: finished sessions
+    are read back from their journals, the others resume where they stopped.
+    """
 
     def __init__(self, config: ExperimentConfig, out: Path, settings: MeshSettings) -> None:
         self.config = config

@@ -1,20 +1,13 @@
 """`archery film SESSION [--rollout N]`: a video of one rollout, simulated again from the
 session's journal, seen by the third-person camera (`sim.scene_view`).
 
-SESSION is a session's folder or its `journal.jsonl`. With `--recording FILE.mcap` (an
-`archery record` of the session) the rollout is filmed as the recording saw it: the robot's
-world states between the rollout's records on `learner/rollout:o`, the flight as sampled (world
-states at the robot's world rate of simulated time). Without `--rollout` it films the
-session's first hit into `shot.mp4` beside the journal; `--rollout N` films done rollout N into
-`rollout-N.mp4`. Each video has its contact sheet beside it (the same name, `.png`: six frames
-from the move to the impact). The posture move (the draw) and the nock play at real time, the
-release is held a moment, the flight slowed down ten times; every frame is captioned with the
-phase, the simulated time, θ and, from the impact on, the measured r. A progress bar counts the
-frames on stderr; the video's path is printed on stdout.
-
-Exit status 2 (one line on stderr): no such session, a journal of another version, a session
-without a hit and no `--rollout`, a rollout it does not have, a recording that does not cover
-the rollout (or is no recording).
+SESSION is a session's folder or its `journal.jsonl`; with `--recording FILE.mcap` (an `archery
+record` of the session) the rollout is filmed as the recording saw it. Without `--rollout` it
+films the session's first hit into `shot.mp4` beside the journal; `--rollout N` films done
+rollout N into `rollout-N.mp4`; each video has its contact sheet beside it (`.png`), and its
+path is printed on stdout. Exit status 2 (one line on stderr): no such session, a journal of
+another version, a session without a hit and no `--rollout`, a rollout it does not have, a
+recording that does not cover the rollout (or is no recording).
 """
 
 from __future__ import annotations
@@ -106,6 +99,14 @@ def film_session(
     """Film rollout `rollout` (its first hit if None) of the session at `session`: simulated
     again from the journal, or as the MCAP `recording` saw it (`max_bytes`: the cap on what
     its chunks decompress to in all, `apps.topics.read_limits.total_cap`).
+
+    From a recording, the rollout is the robot's world states between the rollout's records on
+    `learner/rollout:o`, the flight as sampled (world states at the robot's world rate of
+    simulated time). The posture move (the draw) and the nock play at real time, the release is
+    held a moment, the flight slowed down ten times; every frame is captioned with the phase,
+    the simulated time, θ and, from the impact on, the measured r. The contact sheet holds six
+    frames from the move to the impact; unless `quiet`, a progress bar counts the frames on
+    stderr.
 
     Raises:
         ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.

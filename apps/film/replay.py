@@ -3,13 +3,9 @@
 The journal holds what the shot depended on: the session's seed (the robot was reset with it
 before the first rollout), each attempt's θ, the robot's shot number, and in its header's `rig`
 the robot's world parameters (scene, bow, wind, noise) and shot count and the controller's
-trajectory time. `ShotReplay` rebuilds that world, moves the robot to the previous attempt's
-posture unfilmed, advances the shot noise past the session's earlier launches, then yields the
-filmed rollout: the move to the posture for θ (solved as the controller solves it), the nock,
-the release and flight (slowed down) and the arrow on the target. A journal without `rig` (an
-older learner) is replayed with the default world, and says so.
-
-Times are simulated seconds; positions metres in the root frame.
+trajectory time. `ShotReplay` rebuilds that world and yields the filmed rollout; a journal
+without `rig` (an older learner) is replayed with the default world, and says so. Times are
+simulated seconds; positions metres in the root frame.
 """
 
 from __future__ import annotations
@@ -108,6 +104,11 @@ def load_rollout(path: Path, rollout: int | None) -> Rollout:
 
 class ShotReplay:
     """The rollout simulated again: `frames(fps)` yields what a film of it shows.
+
+    It rebuilds the journal's world, moves the robot to the previous attempt's posture
+    unfilmed, advances the shot noise past the session's earlier launches, then yields the
+    filmed rollout: the move to the posture for θ (solved as the controller solves it), the
+    nock, the release and flight (slowed down) and the arrow on the target.
 
     Args:
         rollout: the rollout and its session's header (`load_rollout`).

@@ -1,20 +1,9 @@
 """Following a session from outside the learner: its rollouts as they are published, its status
 until it ends, and the one JSON line `archery learn` prints of it.
 
-Following outlives the faults the mesh lives through, every wait bounded by `gone_after`:
-
-* the learner or the router not answering (a learner being restarted by `archery up`, a router
-  outage) is waited for; on giving up, the message says which it was and how to go on: a
-  vanished router or a silent learner may still run the session (`archery learn --attach`), a
-  learner gone from the mesh does not (`archery learn --resume`);
-* a learner that answers without the session (restarted, it runs none): the session's journal,
-  where this process can read it, says whether it had ended (its final status is then the
-  journal's); else, with `resume`, the learner is asked once to `start {resume: JOURNAL,
-  session: ID}` and the session is followed on.
-
-Each of these waits is one `note` line the moment it is seen to begin, with its limit
-(`apps.waits.waiting_for`), e.g. "  the learner does not answer; waiting up to 30 s for it
-(Ctrl-C to stop)".
+Following outlives the faults the mesh lives through, every wait bounded by `gone_after` and
+said the moment it begins (`apps.waits.waiting_for`); `follow` says what it waits for and how
+it goes on.
 """
 
 from __future__ import annotations
@@ -99,6 +88,18 @@ def follow(
     """Hand each `Rollout` of `session` to `on_rollout` (and each status polled to `on_status`)
     until the session ends; its final status (the learner's, or its journal's when the
     learner no longer runs it and the journal says it ended).
+
+    * the learner or the router not answering (a learner being restarted by `archery up`, a
+      router outage) is waited for; on giving up, the message says which it was and how to go
+      on: a vanished router or a silent learner may still run the session (`archery learn
+      --attach`), a learner gone from the mesh does not (`archery learn --resume`);
+    * a learner that answers without the session (restarted, it runs none): the session's
+      journal, where this process can read it, says whether it had ended (its final status is
+      then the journal's); else, with `resume`, the learner is asked once to `start {resume:
+      JOURNAL, session: ID}` and the session is followed on.
+
+    Each of these waits is one `note` line the moment it is seen to begin, with its limit,
+    e.g. "  the learner does not answer; waiting up to 30 s for it (Ctrl-C to stop)".
 
     Args:
         poll: how long to wait for rollouts between two status calls (s).

@@ -2,30 +2,11 @@
 
 It asks the learner service to `start` (or `--resume`) a session, or to start one from another
 session's learned model (`--from SESSION`: its id under the learner's runs directory, or its
-journal; see `services.learner.transfer`), or follows a running one
-(`--attach SESSION`, `apps.learn.attach`), shows each rollout as it is published on
-`learner/rollout:o` and what a waiting session waits for, and ends by printing one JSON line
-on stdout (its counts read from the session's journal):
-`{"session", "rollouts", "hit_at", "final_distance_m", "journal", "status", "aborted",
-"report", "hit_frame", "video"}`; then a hit is filmed into `shot.mp4` beside the journal when
-the journal is on this machine (`apps.film`; not with `--no-film`): "video" is that path, else
-null. Filming comes after the line: a failure there is one warning on stderr and leaves the exit
-status that of the session.
-
-Every wait says on stderr, the moment it begins, what it waits for and for how long at most
-(`apps.waits`; not with `--quiet`, which keeps every progress line off): the router while
-nothing listens at `--connect` (up to `--wait` s), the services not alive yet (up to `--wait`
-s), and the learner resuming a `--resume` session (up to `--wait` + 30 s), e.g.
-`archery learn: waiting up to 60 s for the services: robot, camera (Ctrl-C to stop)`.
-
-Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
-that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session is
-asked once to resume it from its journal, and the session is followed on to its end; a
-session whose journal ended meanwhile gets the journal's final line. Exit status 0 when the
-session finished (hit or budget; with `--require-hit`: 1 when it finished without a hit); 1
-when it failed, could not be followed on (the message says how to go on: `--attach` while it
-may still run, `--resume` when it does not) or the learner is busy; 2 for bad input; 130 after
-Ctrl-C (the session is stopped after its current rollout and can be resumed).
+journal; see `services.learner.transfer`), or follows a running one (`--attach SESSION`,
+`apps.learn.attach`), shows each rollout as it is published on `learner/rollout:o` and what a
+waiting session waits for, and ends by printing one JSON line on stdout. `main` says what it
+prints, what it waits for and its exit statuses; following through faults is
+`apps.learn.follow`'s.
 """
 
 from __future__ import annotations
@@ -264,7 +245,32 @@ def _progress(message: Rollout) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run `archery learn`; see the module docstring for the exit statuses."""
+    """Run `archery learn`; its exit status.
+
+    The one JSON line on stdout (its counts read from the session's journal,
+    `apps.learn.follow.result_line`): `{"session", "rollouts", "hit_at", "final_distance_m",
+    "journal", "status", "aborted", "report", "hit_frame", "video"}`; then a hit is filmed
+    into `shot.mp4` beside the journal when the journal is on this machine (`apps.film`; not
+    with `--no-film`): "video" is that path, else null. Filming comes after the line: a
+    failure there is one warning on stderr and leaves the exit status that of the session.
+
+    Every wait says on stderr, the moment it begins, what it waits for and for how long at
+    most (`apps.waits`; not with `--quiet`, which keeps every progress line off): the router
+    while nothing listens at `--connect` (up to `--wait` s), the services not alive yet (up to
+    `--wait` s), and the learner resuming a `--resume` session (up to `--wait` + 30 s), e.g.
+    `archery learn: waiting up to 60 s for the services: robot, camera (Ctrl-C to stop)`.
+
+    Following survives the faults `archery up` mends (`apps.learn.follow`): a learner or router
+    that vanishes is waited for up to `--lost-wait` s; a learner restarted without the session
+    is asked once to resume it from its journal, and the session is followed on to its end; a
+    session whose journal ended meanwhile gets the journal's final line.
+
+    Exit status 0 when the session finished (hit or budget; with `--require-hit`: 1 when it
+    finished without a hit); 1 when it failed, could not be followed on (the message says how
+    to go on: `--attach` while it may still run, `--resume` when it does not) or the learner is
+    busy; 2 for bad input; 130 after Ctrl-C (the session is stopped after its current rollout
+    and can be resumed).
+    """
     args = build_parser().parse_args(argv)
     try:
         net = NetConfig.from_args(args)

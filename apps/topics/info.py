@@ -2,14 +2,12 @@
 
 It prints the file's size, profile and library, its duration, start and end, the message count,
 then one line per channel (topic, schema and its encoding, message count, mean rate over the
-recording) and the attachments and metadata records. A complete file is read from its summary
-(its end) alone, so even a large recording answers at once. A file cut short (a killed
-recorder: no summary) is read record by record, one chunk decompressed at a time within the
-bounds of `apps.topics.mcap_reader` (`--max-bytes` sets the cap on the decompressed total), as
-far as it goes; what was read is printed, then one line on stderr says where it stops (or what
-is malformed), and the exit status is 2, as for a file that is no MCAP at all. Any MCAP file is
-described, not only archery recordings; text from the file is printed with its control
-characters escaped.
+recording) and the attachments and metadata records. A file cut short (a killed recorder: no
+summary) is read record by record within the bounds of `apps.topics.mcap_reader`
+(`--max-bytes` sets the cap on the decompressed total), as far as it goes; what was read is
+printed, then one line on stderr says where it stops (or what is malformed), and the exit
+status is 2, as for a file that is no MCAP at all. Any MCAP file is described, not only archery
+recordings; text from the file is printed with its control characters escaped.
 """
 
 from __future__ import annotations
@@ -137,6 +135,10 @@ def _scan(info: RecordingInfo, reader: McapFile) -> None:
 def read_info(path: Path, *, max_bytes: int | None = None) -> RecordingInfo:
     """What the MCAP file at `path` holds (`max_bytes`: the cap on what its chunks decompress
     to in all, `apps.topics.read_limits.total_cap`).
+
+    A complete file is read from its summary (its end) alone, so even a large recording answers
+    at once; a file cut short is read record by record, one chunk decompressed at a time, as
+    far as it goes (`stopped` says where and why it stops).
 
     Raises:
         ValueError: no such file, or not an MCAP file (one line saying which).

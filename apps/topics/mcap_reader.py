@@ -2,25 +2,9 @@
 replay` and `archery film --recording`.
 
 A file is read one record at a time and a chunk is decompressed only when its turn comes, so
-what a reader holds is one record and one chunk's records, never the file. Every length and time
-the file claims is checked before it is used:
-
-- A record's length against the bytes left in the file (or in its chunk): a file that ends
-  inside a record is `CutShort` (a killed recorder), anything else that does not parse is a
-  `BadRecording`.
-- One record as stored (a chunk's compressed bytes, an attachment) and one chunk's
-  uncompressed bytes: at most `MAX_RECORD_BYTES` (256 MiB; the recorder closes a chunk at
-  4 MiB, and a 3840 x 2160 rgb8 frame is 24 MiB). A chunk's claimed uncompressed size is
-  checked before it is decompressed; decompression stops one byte past the claim, and what
-  comes out must be exactly the claim, so a chunk that lies cannot make more.
-- The whole decompressed total: at most `total_cap(file size, max_bytes)` bytes, by default
-  the greater of `MAX_TOTAL_BYTES` (1 GiB) and `MAX_EXPANSION` (64) times the file's size (a
-  recording compresses a few times; 19 kB of zeros that claim gigabytes do not pass); the
-  verbs' `--max-bytes` sets it.
-- Times (a message's log and publish time, a chunk's, an attachment's, the statistics'): ns
-  since the epoch as an int64, at most `MAX_TIME_NS` (2262-04-11).
-
-The limits (module constants) and `printable`, how text read from a file is shown, live in
+what a reader holds is one record and one chunk's records, never the file; every length and
+time the file claims is checked before it is used (`McapFile` lists the bounds). The limits
+(module constants) and `printable`, how text read from a file is shown, live in
 `apps.topics.read_limits`.
 """
 
@@ -112,6 +96,21 @@ def _check_time(ns: int, what: str, offset: int) -> None:
 
 class McapFile:
     """The records of one MCAP file, read with the module's bounds.
+
+    - A record's length against the bytes left in the file (or in its chunk): a file that ends
+      inside a record is `CutShort` (a killed recorder), anything else that does not parse is
+      a `BadRecording`.
+    - One record as stored (a chunk's compressed bytes, an attachment) and one chunk's
+      uncompressed bytes: at most `MAX_RECORD_BYTES` (256 MiB; the recorder closes a chunk at
+      4 MiB, and a 3840 x 2160 rgb8 frame is 24 MiB). A chunk's claimed uncompressed size is
+      checked before it is decompressed; decompression stops one byte past the claim, and what
+      comes out must be exactly the claim, so a chunk that lies cannot make more.
+    - The whole decompressed total: at most `total_cap(file size, max_bytes)` bytes, by default
+      the greater of `MAX_TOTAL_BYTES` (1 GiB) and `MAX_EXPANSION` (64) times the file's size
+      (a recording compresses a few times; 19 kB of zeros that claim gigabytes do not pass);
+      the verbs' `--max-bytes` sets it.
+    - Times (a message's log and publish time, a chunk's, an attachment's, the statistics'):
+      ns since the epoch as an int64, at most `MAX_TIME_NS` (2262-04-11).
 
     Args:
         stream: the file, open for reading in binary (seekable).

@@ -1,35 +1,10 @@
 """Recordings of the mesh as MCAP files: what `archery record` writes and `archery replay` reads.
 
-The format, chosen so that a replay is exact, the Foxglove app and the `mcap` CLI read it, and
-writing a camera frame costs a copy of its pixels and little else:
-
-- One MCAP channel per Zenoh key (the topic is the key, e.g. `icubSim/cam/target:o`), chunked
-  (lz4 by default; zstd or none on request), with message and chunk indexes, statistics and
-  summary offsets.
-- Camera frames use Foxglove's well-known schemas as protobuf, `foxglove.RawImage` (rgb8, bgr8,
-  mono8) or `foxglove.CompressedImage` (jpeg, png), with the fields of `Image` Foxglove has no
-  place for added (`apps.topics.image_records`): the pixels are written as raw bytes, and
-  Foxglove's Image panel shows them.
-- Every other message is JSON (message encoding `json`) with its own type's JSON schema
-  (`msgspec.json.schema`, schema encoding `jsonschema`), named `archery.TYPE`. msgspec writes
-  floats in their shortest round-trip form, so decoding the JSON into the message type and
-  encoding it as msgpack gives back the very bytes that were published (`tests/test_record.py`
-  checks this, frames included): no float or field is lost.
-- The header's profile is `archery`; a metadata record `archery` holds the message schema
-  version, the recording format, the robot, the key patterns and the start time. A replay
-  refuses another message schema version. Recordings of the first format (frames as JSON with
-  base64 pixels) are still read.
-- A message's log time is when the recorder received it, its publish time the sender's stamp,
-  its sequence the sender's seq.
-
-Crash safety: the recorder closes a chunk at least every `flush_interval` s and whenever it
-holds `chunk_size` bytes, and hands each closed chunk to the OS at once; a recorder killed with
-SIGKILL leaves a file without a summary whose complete chunks all read back
-(`read_messages(..., recover=True)`): at most the chunk in progress is lost.
-
-Reading goes through `apps.topics.mcap_reader`: one chunk decompressed at a time, record and
-chunk sizes, the decompressed total and every time checked before use (`Recording.max_bytes`,
-the verbs' `--max-bytes`, sets the total's cap); a malformed file is one `ConfigError` line.
+The format is chosen so that a replay is exact, the Foxglove app and the `mcap` CLI read it, and
+writing a camera frame costs a copy of its pixels and little else: one MCAP channel per Zenoh
+key, frames as Foxglove's protobuf images, every other message as JSON with its type's JSON
+schema (`Recorder` says it field by field; README.md, 'The `archery` command', under `archery
+record`). Reading goes through `Recording` and the bounded reader `apps.topics.mcap_reader`.
 """
 
 from __future__ import annotations
@@ -135,7 +110,10 @@ _json = msgspec.json.Encoder()
 
 def to_record(message: ArcheryMessage) -> tuple[str, bytes]:
     """(schema name, bytes) of one message as the recording stores it: a frame as protobuf,
-    anything else as JSON."""
+    anything else as JSON (schema `archery.TYPE`). msgspec writes floats in their shortest
+    round-trip form, so decoding the JSON into the message type and encoding it as msgpack
+    gives back the very bytes that were published (`tests/test_record.py` checks this, frames
+    included): no float or field is lost."""
     if isinstance(message, Image):
         return image_record(message)
     return f"archery.{type(message).__name__}", _json.encode(message)
@@ -189,6 +167,29 @@ class RecordStats:
 
 class Recorder:
     """Writes messages arriving on any thread (`put`) into an MCAP file from its own thread.
+
+    The format:
+
+    - One MCAP channel per Zenoh key (the topic is the key, e.g. `icubSim/cam/target:o`),
+      chunked (lz4 by default; zstd or none on request), with message and chunk indexes,
+      statistics and summary offsets.
+    - Camera frames use Foxglove's well-known schemas as protobuf, `foxglove.RawImage` (rgb8,
+      bgr8, mono8) or `foxglove.CompressedImage` (jpeg, png), with the fields of `Image`
+      Foxglove has no place for added (`apps.topics.image_records`): the pixels are written
+      as raw bytes, and Foxglove's Image panel shows them.
+    - Every other message is JSON (message encoding `json`) with its own type's JSON schema
+      (`msgspec.json.schema`, schema encoding `jsonschema`), named `archery.TYPE`
+      (`to_record`).
+    - The header's profile is `archery`; a metadata record `archery` holds the message schema
+      version, the recording format (`FORMAT`), the robot, the key patterns and the start
+      time. A replay refuses another message schema version (`open_recording`).
+    - A message's log time is when the recorder received it, its publish time the sender's
+      stamp, its sequence the sender's seq.
+
+    Crash safety: the writer closes a chunk at least every `flush_interval` s and whenever it
+    holds `chunk_size` bytes, and hands each closed chunk to the OS at once; a recorder killed
+    with SIGKILL leaves a file without a summary whose complete chunks all read back
+    (`Recording.messages(recover=True)`): at most the chunk in progress is lost.
 
     Args:
         path: the file to write (replaced if it exists).
@@ -411,6 +412,11 @@ def _mcap_version() -> str:
 @dataclass
 class Recording:
     """An MCAP file checked for being a recording this version of the mesh can replay.
+
+    Reading goes through `apps.topics.mcap_reader`: one chunk decompressed at a time, record
+    and chunk sizes, the decompressed total and every time checked before use (`max_bytes`,
+    the verbs' `--max-bytes`, sets the total's cap); a malformed file is one `ConfigError`
+    line. Recordings of the first format (frames as JSON with base64 pixels) are still read.
 
     Attributes:
         path: the file.

@@ -4,23 +4,9 @@ the recorder from the streams it records.
 The robot service publishes its full generalized position on `world/state:o` (`WorldState.qpos`,
 30 Hz of simulated time) and each part's joints on `PART/state:o`. The recorder already
 receives them, so it derives the 3D records itself, with the very kinematics the simulator
-runs (the scene compiled from the robot's `SceneConfig`, `mj_kinematics`): the robot's loop
-pays nothing for them, and a recording of any robot of this version gets them. Derived
-channels, next to the recorded keys:
-
-* `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the compiled scene in
-  its parent body's frame: the iCub's moving links (its fixed links, the bow and the target are
-  merged into their parents, as in the simulator) and the arrow; the root `world` is the iCub's
-  `root_link` frame (x backward, y right, z up; m);
-* `ROBOT/joint_states` (`foxglove.JointStates`): per joint state, the part's joints (rad, rad/s);
-  the JSON `PART/state:o` channel stays as it was;
-* `ROBOT/robot_description/scene` (`foxglove.SceneUpdate`, once at the start): one entity per
-  body, locked to its frame, with the robot's meshes embedded (binary STL) and the props'
-  primitives, so Foxglove's 3D panel draws the robot without any file of this machine.
-
-The robot description itself (the URDF the robot runs, `icub-models`' file, its meshes as
-`package://iCub/` URIs) goes into the recording as an attachment, and the scene parameters as a
-metadata record.
+runs: the robot's loop pays nothing for them, and a recording of any robot of this version gets
+them. `RobotFrames` lists the derived channels; README.md, 'The `archery` command', under
+`archery record`, tells them from the user's side.
 """
 
 from __future__ import annotations
@@ -93,7 +79,23 @@ def link_poses(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, 
 
 
 class RobotFrames:
-    """Derives the 3D records of one robot's recording (see the module docstring).
+    """Derives the 3D records of one robot's recording, with the scene compiled from the
+    robot's `SceneConfig` and `mj_kinematics`. Derived channels, next to the recorded keys:
+
+    * `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the compiled
+      scene in its parent body's frame: the iCub's moving links (its fixed links, the bow and
+      the target are merged into their parents, as in the simulator) and the arrow; the root
+      `world` is the iCub's `root_link` frame (x backward, y right, z up; m);
+    * `ROBOT/joint_states` (`foxglove.JointStates`): per joint state, the part's joints (rad,
+      rad/s); the JSON `PART/state:o` channel stays as it was;
+    * `ROBOT/robot_description/scene` (`foxglove.SceneUpdate`, once at the start): one entity
+      per body, locked to its frame, with the robot's meshes embedded (binary STL) and the
+      props' primitives, so Foxglove's 3D panel draws the robot without any file of this
+      machine.
+
+    The robot description itself (the URDF the robot runs, `icub-models`' file, its meshes as
+    `package://iCub/` URIs) goes into the recording as an attachment (`attachments`), and the
+    scene parameters as a metadata record (`metadata`).
 
     Args:
         robot: the robot's key prefix.

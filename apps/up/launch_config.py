@@ -1,28 +1,10 @@
 """The launch description of `archery up`: which services, for which robots, with which
 arguments and restart policies, and the router's endpoint.
 
-`archery up --config mesh.toml` reads it from a TOML file (see the repository's `mesh.toml`,
-which equals the built-in default, `default_mesh()`):
-
-    [router]
-    endpoint = "tcp/127.0.0.1:7447"   # where the router listens and every service connects
-    start = true                      # false: connect to a router that runs already
-    restart = "on-failure"            # a mode, or a table {mode, budget, window, backoff, ...}
-
-    [restart]                         # the default restart policy of every child
-    mode = "on-failure"               # always | on-failure | never
-    budget = 5                        # restarts allowed within `window` s
-
-    [robots.icubSim]                  # one table per robot prefix
-    services = ["robot", "controller", "camera", "detector", "learner"]
-    args = { robot = ["--seed", "1"] } # optional: extra arguments for this robot only
-
-    [services.robot]                  # per service: arguments and restart policy
-    args = ["--seed", "0", "--rtf", "0"]
-    restart = "always"
-
-Every error (an unknown key, a bad policy, an unknown service, a bad endpoint or robot prefix)
-is a `ConfigError` of one line naming the key.
+`archery up --config mesh.toml` reads it from a TOML file: the repository's `mesh.toml`, which
+equals the built-in default (`default_mesh()`), shows every table and key with its meaning, as
+does README.md, 'Learning over the mesh'. Every error (an unknown key, a bad policy, an unknown
+service, a bad endpoint or robot prefix) is a `ConfigError` of one line naming the key.
 """
 
 from __future__ import annotations

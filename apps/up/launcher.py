@@ -3,16 +3,11 @@
 It starts `archery router --listen ENDPOINT` and `archery robot|camera|detector|controller|
 learner --connect ENDPOINT --robot NAME` (each with `python -m apps.cli`, so this module
 imports no service), waits until every service is alive by liveliness (each wait said as it
-begins, with its limit, by the caller's `on_wait`: `apps.waits`), and then supervises
-them (`apps.up.supervisor`): a child that exits is restarted, left down or ends everything as
-its restart policy decides (`apps.up.restart_policy`), the router on its same endpoint (the
-services reconnect to it by themselves). Ctrl-C or SIGTERM stops them all, the learner first and
-the router last, each with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace
-period. The mesh is the built-in default or a launch description (`--config mesh.toml`,
-`apps.up.launch_config`). Each child's output goes through a pipe to `LOGS/<name>.log`, rotated
-through `<name>.log.1` and `<name>.log.2` at 8 MiB a file, so at most 24 MiB a child
-(`apps.up.logfile`); the children die with their parent. `--robots N` starts a fleet: N robot
-stacks under `ROBOT1` … `ROBOTN` and one learner serving them all (`launch_config.default_mesh`).
+begins, by the caller's `on_wait`: `apps.waits`), and then supervises them
+(`apps.up.supervisor`, `apps.up.restart_policy`; `Launcher` tells how they stop, and where their
+output goes). The mesh is the built-in default or a launch description (`--config mesh.toml`,
+`apps.up.launch_config`); `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN`
+and one learner serving them all (`launch_config.default_mesh`).
 """
 
 from __future__ import annotations
@@ -96,6 +91,14 @@ def _check_free(endpoint: str) -> None:
 
 class Launcher:
     """Starts, watches and stops the router and the services. Use as a context manager.
+
+    A child that exits is restarted, left down or ends everything as its restart policy
+    decides, the router on its same endpoint (the services reconnect to it by themselves).
+    Ctrl-C or SIGTERM stops them all (`stop_all`), the learner first and the router last, each
+    with SIGTERM (a clean stop, exit status 0) and SIGKILL after a grace period. Each child's
+    output goes through a pipe to `LOGS/<name>.log`, rotated through `<name>.log.1` and
+    `<name>.log.2` at 8 MiB a file, so at most 24 MiB a child (`apps.up.logfile`); the children
+    die with their parent (`apps.up.child`).
 
     Args:
         endpoint: where the router listens and the services connect (`tcp/HOST:PORT`).

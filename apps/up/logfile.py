@@ -2,14 +2,9 @@
 `NAME.log.1`, … `NAME.log.{files-1}` (the oldest).
 
 `archery up`'s children write to a pipe; one thread per child (`pump`) copies what comes out into
-the child's `RotatingLog`. When the live file would pass `file_bytes`, it becomes `NAME.log.1`
-(the older ones move up one and the oldest is dropped) and a new `NAME.log` begins, at a line's
-end where one falls within the bound. So a child's logs never take more than
-`files × file_bytes` on disk (by default 3 × 8 MiB = 24 MiB: the last tens of thousands of
-lines), however much it writes, and the journals that share the disk keep their room.
-
-The pump never stops reading: when the disk refuses a write, that output is dropped (and
-counted), so a child never blocks on a full pipe. A restarted child writes to the same
+the child's `RotatingLog`, so a child's logs never take more than `files × file_bytes` on disk
+(by default 3 × 8 MiB = 24 MiB: the last tens of thousands of lines), however much it writes,
+and the journals that share the disk keep their room. A restarted child writes to the same
 `RotatingLog` as the one before it.
 """
 
@@ -33,7 +28,11 @@ def _rotated(path: Path, index: int) -> Path:
 
 class RotatingLog:
     """Appends a child's output to `path`, rotating it through `files` files of at most
-    `file_bytes` bytes each (thread-safe; see the module docstring).
+    `file_bytes` bytes each (thread-safe).
+
+    When the live file would pass `file_bytes`, it becomes `NAME.log.1` (the older ones move up
+    one and the oldest is dropped) and a new `NAME.log` begins, at a line's end where one falls
+    within the bound.
 
     Args:
         path: the live file, `LOGS/NAME.log`.
@@ -150,7 +149,9 @@ def read_tail(path: Path, lines: int = 12, files: int = LOG_FILES) -> str:
 
 def pump(source: int, log: RotatingLog, name: str) -> threading.Thread:
     """Start a thread that copies everything read from the descriptor `source` (a child's
-    pipe) into `log` until end of file, then closes `source`."""
+    pipe) into `log` until end of file, then closes `source`. The pump never stops reading:
+    when the disk refuses a write, that output is dropped (and counted,
+    `RotatingLog.dropped`), so a child never blocks on a full pipe."""
 
     def run() -> None:
         try:

@@ -1,15 +1,9 @@
 """Verbs of the simulated robot: the controlboards `ROBOT/{part}/rpc:i` and `ROBOT/archery/rpc:i`.
 
 Joint vectors are in YARP order, in rad (rad/s for speeds). Limits that depend on the loaded
-model (joint limits, joint names) are checked by the robot itself.
-
-Ownership: a client takes a part with `claim {owner, ttl?, takeover?}` and gets a lease id;
-while the lease lasts (`ttl` wall s from the claim or the latest `renewClaim`) the part obeys
-only commands that carry it (`JointCommand.lease`, and the `lease` argument of `positionMove`
-and `setRefSpeeds`); `dropClaim` ends it, and `getClaim` tells who holds the part (never the
-lease id). With no lease held a part takes commands from anyone. In secure mode the owner is
-the caller's identity, vouched for by the router (`claim` and `setRefSpeeds` name their caller:
-`Verb.names_caller`), not the `owner` it writes, and only the `operator` takes a part over.
+model (joint limits, joint names) are checked by the robot itself. A client takes a part with
+`claim` and gets a lease id that its commands carry (the comment above `CLAIM` tells the rules;
+README.md, 'Names on the mesh', tells them from the user's side).
 """
 
 from __future__ import annotations
@@ -236,6 +230,14 @@ PART_STATUS = Verb(
     reads=True,
 )
 
+# Ownership: a client takes a part with `claim {owner, ttl?, takeover?}` and gets a lease id;
+# while the lease lasts (`ttl` wall s from the claim or the latest `renewClaim`) the part obeys
+# only commands that carry it (`JointCommand.lease`, and the `lease` argument of `positionMove`
+# and `setRefSpeeds`); `dropClaim` ends it, and `getClaim` tells who holds the part (never the
+# lease id). With no lease held a part takes commands from anyone. In secure mode the owner is
+# the caller's identity, vouched for by the router (`claim` and `setRefSpeeds` name their
+# caller: `Verb.names_caller`), not the `owner` it writes, and only the `operator` takes a part
+# over.
 CLAIM = Verb(
     "claim",
     ClaimArgs,

@@ -4,22 +4,8 @@ frames, encodes and publishes them, and runs the work RPC handlers hand it (`job
 GL contexts and devices belong to the thread that opened them, so everything that touches the
 source runs here. A rendered frame follows the robot's world states on `ROBOT/world/state:o`
 with a model built from the scene the robot reports (`archery/rpc:i status`; the default scene
-until the robot answers); frames go out at the configured rate, and at once when a waiting
-`grab` can be served.
-
-Idle cost: frames are captured only while someone subscribes to the frames or a `grab` waits;
-otherwise the thread sleeps (a subscriber appearing wakes it). While the view is unchanged (the
-frame due would carry the same render as the last one sent), frames go out at `rest_rate`, not
-at `rate`: a subscriber (a recording) is not sent megabytes of the same pixels ten times a
-second. A changed view, a waiting `grab` and a new subscriber get their frame at once.
-
-A world state that looks, to the camera, like one of the last few rendered (the same poses of
-everything movable in its view: `SceneRenderer.view_key`; the robot moving its arms behind the
-camera, or a scene reset to its empty target, changes nothing it sees) is not rendered again:
-the pixels would be the same, so that render goes out again with this capture's stamp and the
-new state's sim time.
-That keeps `grab`'s promise: a frame "captured after a stamp" shows the newest world state
-known at that time, as a fresh render of it would.
+until the robot answers). `capture_loop` says when frames go out (only while someone wants
+them), `Capture.view` when a render is reused rather than made again.
 """
 
 from __future__ import annotations
@@ -206,7 +192,16 @@ class Capture:
         return pixels
 
     def view(self, qpos: np.ndarray) -> np.ndarray:
-        """The pixels of `qpos`: a kept render of the same view key, else a new render."""
+        """The pixels of `qpos`: a kept render of the same view key, else a new render.
+
+        A world state that looks, to the camera, like one of the last few rendered (the same
+        poses of everything movable in its view: `SceneRenderer.view_key`; the robot moving its
+        arms behind the camera, or a scene reset to its empty target, changes nothing it sees)
+        is not rendered again: the pixels would be the same, so that render goes out again with
+        this capture's stamp and the new state's sim time. That keeps `grab`'s promise: a frame
+        "captured after a stamp" shows the newest world state known at that time, as a fresh
+        render of it would.
+        """
         if qpos.shape != (self.renderer.nq,):
             return self.render(qpos)  # rebuilds the scene
         key = self.renderer.view_key(qpos)
@@ -259,7 +254,15 @@ def _needs_recapture(
 
 def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event) -> None:
     """Publish at the configured rate while someone subscribes (at `rest_rate` while the view is
-    unchanged), and at once whenever a waiting grab can be served; sleep otherwise."""
+    unchanged), and at once whenever a waiting grab can be served; sleep otherwise.
+
+    Idle cost: frames are captured only while someone subscribes to the frames or a `grab`
+    waits; otherwise the thread sleeps (a subscriber appearing wakes it). While the view is
+    unchanged (the frame due would carry the same render as the last one sent), frames go out
+    at `rest_rate`, not at `rate`: a subscriber (a recording) is not sent megabytes of the same
+    pixels ten times a second. A changed view, a waiting `grab` and a new subscriber get their
+    frame at once.
+    """
     store = capture.store
     period = 1.0 / capture.config.rate
     rest_period = max(period, 1.0 / capture.config.rest_rate)

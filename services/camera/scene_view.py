@@ -1,22 +1,10 @@
 """The scene view: the whole robot, bow, arrow and target seen from the scene's side camera
 (`sim.scene_view`), rendered on request at a low rate for people watching (the dashboard).
 
-Cost: nothing while nobody asks. The first `scene` request starts a thread that builds the
-view (the robot's meshes: a second model, a second GL context) at a lower CPU priority
-(`NICE`, on top of the camera's; the software renderer's threads, started from it, inherit
-it); it renders the newest world state the camera already follows (`ROBOT/world/state:o`: the
-whole qpos poses the robot), at most once per `period` s and only while requests keep coming:
-each request asks for the next view and gets the newest one at once (the verb never waits, so
-it never holds up a `grab` on the port's worker). After `idle` s without a request the thread
-frees the view (some 0.5 GB with the robot's meshes and a second GL context, given back to
-the system) and ends. The capture thread, which renders the target camera's frames for the
-detector, is never asked to do any of it.
-
-While watched it still keeps out of the learning loop's way where the loop waits on the CPU:
-no view is rendered while an arrow flies, while a `grab` waits for a frame, or after a
-landing until the camera has captured a frame since (the detector's measurement; at most
-`HOLD` s): a view rendered then would share the cores with the target frame the detector is
-waiting for. The view shows the robot drawing and aiming, and the arrow in the target.
+Cost: nothing while nobody asks; while watched, a thread of its own at a lower CPU priority
+renders the newest world state the camera already follows, at most once per `PERIOD` s, and
+keeps out of the learning loop's way (`SceneViews` says how). The capture thread, which renders
+the target camera's frames for the detector, is never asked to do any of it.
 """
 
 from __future__ import annotations
@@ -51,6 +39,23 @@ JPEG_QUALITY = 85
 
 class SceneViews:
     """The scene view of one camera service: `reply()` serves the `scene` verb.
+
+    The first `scene` request starts a thread that builds the view (the robot's meshes: a
+    second model, a second GL context) at a lower CPU priority (`NICE`, on top of the camera's;
+    the software renderer's threads, started from it, inherit it); it renders the newest world
+    state the camera already follows (`ROBOT/world/state:o`: the whole qpos poses the robot),
+    at most once per `period` s and only while requests keep coming: each request asks for the
+    next view and gets the newest one at once (the verb never waits, so it never holds up a
+    `grab` on the port's worker). After `idle` s without a request the thread frees the view
+    (some 0.5 GB with the robot's meshes and a second GL context, given back to the system)
+    and ends.
+
+    While watched it still keeps out of the learning loop's way where the loop waits on the
+    CPU: no view is rendered while an arrow flies, while a `grab` waits for a frame, or after a
+    landing until the camera has captured a frame since (the detector's measurement; at most
+    `HOLD` s): a view rendered then would share the cores with the target frame the detector
+    is waiting for (`_loop_busy`). The view shows the robot drawing and aiming, and the arrow
+    in the target.
 
     Args:
         capture: the camera's capture state (`services.camera.capture.Capture`): its world

@@ -1,26 +1,14 @@
 """Inverse kinematics of iCub's arms as in the paper's Eq. 9: hard position, soft orientation/rest.
 
-For one hand (or several hands at once) the solver computes
+For one hand (or several hands at once) `IkSolver` computes
 
     q* = argmin  w1·Σ_hands eₙ(q)ᵀ Σn eₙ(q)  +  w2·(q̂ − q)ᵀ Σq (q̂ − q)
          s.t.    (x̂ − x(q))ᵀ Σx (x̂ − x(q)) < ε    and    q_min ≤ q ≤ q_max,
 
 where eₙ(q) = log(R̂ · R(q)ᵀ) is the axis-angle (rad, root axes) of the rotation still needed: the
-well-defined form of the paper's n̂ − n(q), equal to it for small errors.
-
-Method: a small SQP. Each iteration solves a box-constrained QP in the joint step (`qp.py`): the
-linearised position rows are (regularised) equalities, so the position has priority over
-orientation and rest posture; the Hessian is Gauss–Newton for the cost plus the constraint
-curvature ν·∂²x/∂q² (from the multipliers ν), which restores fast convergence along the
-constraint. Steps are globalised by a per-joint trust region and Levenberg–Marquardt damping
-driven by an exact-penalty merit, with a second-order correction against the Maratos effect.
-All derivatives are analytic (Pinocchio Jacobians). The hand is driven to x̂ itself, the centre of
-the ε-ball, rather than to its surface: the cost given up is about ‖ν‖·√ε (≈ 1e-5 here).
-If the start posture leads nowhere feasible, seeded random restarts follow; an unreachable
-target returns the posture closest to it with `reachable=False`.
-
-The settings, targets, results and resolved tasks are in `services.controller.ik_types`, the
-orientation and curvature derivatives in `services.controller.ik_derivatives`.
+well-defined form of the paper's n̂ − n(q), equal to it for small errors. The method, a small SQP,
+is told at `IkSolver._run`; the settings, targets and results are in `services.controller.ik_types`,
+the orientation and curvature derivatives in `services.controller.ik_derivatives`.
 """
 
 from __future__ import annotations
@@ -182,7 +170,9 @@ class IkSolver:
         """Solve Eq. 9 with several hands at once, moving only `joints` (names).
 
         Position targets are hard constraints (each with the tolerance of the settings),
-        orientation targets and the rest posture are the cost.
+        orientation targets and the rest posture are the cost. If the start posture leads
+        nowhere feasible, seeded random restarts follow; an unreachable target returns the
+        posture closest to it with `reachable=False`.
 
         Raises:
             TargetError: no position target. JointError: unknown joint names or bad q0/rest.
@@ -339,7 +329,18 @@ class IkSolver:
         ori_tasks: list[OrientationTask],
         q_rest: np.ndarray,
     ) -> tuple[np.ndarray, int, _Eval]:
-        """SQP iterations from q (Pinocchio order); returns (q, iterations, evaluation at q)."""
+        """SQP iterations from q (Pinocchio order); returns (q, iterations, evaluation at q).
+
+        Each iteration solves a box-constrained QP in the joint step (`qp.py`): the linearised
+        position rows are (regularised) equalities, so the position has priority over
+        orientation and rest posture; the Hessian is Gauss–Newton for the cost plus the
+        constraint curvature ν·∂²x/∂q² (from the multipliers ν), which restores fast
+        convergence along the constraint. Steps are globalised by a per-joint trust region and
+        Levenberg–Marquardt damping driven by an exact-penalty merit, with a second-order
+        correction against the Maratos effect. All derivatives are analytic (Pinocchio
+        Jacobians). The hand is driven to x̂ itself, the centre of the ε-ball, rather than to
+        its surface: the cost given up is about ‖ν‖·√ε (≈ 1e-5 here).
+        """
         s = self.settings
         lower = self._lower[active]
         upper = self._upper[active]

@@ -1,21 +1,11 @@
 """The archery posture: both hands' poses from θ (string hand relative to bow hand), solved by IK.
 
-Conventions (root_link frame: x backward, y to the robot's right, z up; the robot faces −x):
-
-* θ = p_string − p_bow (m): the right (string) hand's position relative to the left (bow) hand.
-  The arrow flies from the string hand through the bow hand: direction a = −θ/‖θ‖.
-* The bow lies in the vertical plane that contains the arrow ("zero roll"); its axis is
-  b = the unit vertical with its component along a removed.
-* Hand frames (`l_hand_dh_frame`, `r_hand_dh_frame`, found from the URDF's hand meshes): +x runs
-  from the wrist towards the fingers, −y points to the thumb side, and z is normal to the palm:
-  the palm faces −z on the left hand and +z on the right hand.
-* Bow (left) hand: palm perpendicular to the arrow and facing the target (z_L = −a), bow grip
-  vertical across the palm with the thumb up (y_L = −b), so x_L = y_L × z_L.
-* String (right) hand: fingers along the arrow (x_R = a), thumb up (y_R = −b), so the palm faces
-  the bow hand (z_R = x_R × y_R).
-
-The relative position is what the learner controls, so it is the highest-priority constraint; the
-bow hand's absolute position comes next; orientations and a rest posture are the Eq. 9 cost.
+θ = p_string − p_bow (m; root_link frame: x backward, y to the robot's right, z up; the robot
+faces −x) is the right (string) hand's position relative to the left (bow) hand; the arrow flies
+from the string hand through the bow hand, along a = −θ/‖θ‖, and the hands' orientations follow
+from it (`hand_orientations`). The relative position is what the learner controls, so it is the
+highest-priority constraint; the bow hand's absolute position comes next; orientations and a
+rest posture are the Eq. 9 cost.
 """
 
 from __future__ import annotations
@@ -58,7 +48,17 @@ def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Desired rotations (root frame) of the left and right hand frames for θ, a finite
     3-vector (m).
 
-    See the module docstring for the axes.
+    Conventions (root_link frame):
+
+    * The bow lies in the vertical plane that contains the arrow ("zero roll"); its axis is
+      b = the unit vertical with its component along a = −θ/‖θ‖ removed.
+    * Hand frames (`l_hand_dh_frame`, `r_hand_dh_frame`, found from the URDF's hand meshes): +x
+      runs from the wrist towards the fingers, −y points to the thumb side, and z is normal to
+      the palm: the palm faces −z on the left hand and +z on the right hand.
+    * Bow (left) hand: palm perpendicular to the arrow and facing the target (z_L = −a), bow
+      grip vertical across the palm with the thumb up (y_L = −b), so x_L = y_L × z_L.
+    * String (right) hand: fingers along the arrow (x_R = a), thumb up (y_R = −b), so the palm
+      faces the bow hand (z_R = x_R × y_R).
 
     Raises:
         TargetError: an arrow within 1° of vertical (where "bow vertical" has no meaning).

@@ -1,28 +1,10 @@
 """The controller's side of the robot's controlboards: joint states in, targets out, over the mesh.
 
-A move: clip the targets into the robot's software limits (from each part's `getLimits`), claim
-each part it moves and set its reference speeds so every joint covers its distance in the
-trajectory time, in one round trip per part (`setRefSpeeds` with `claim` on `{part}/rpc:i`: a
-lease of `lease_ttl` wall s, so that the part obeys no other client during the move), publish
-one `JointCommand` per part back to back on `command:i` as one batch carrying its lease (the
-robot starts them at one simulated time), then wait until every part's `state:o` reports motion
-done, the moved ones within `joint_tolerance` of their targets, in states of one simulated time
-(the whole robot at rest: at rtf 0 the robot steps until then, and the next job, a nock or a
-release, must not land while it still settles), renewing the leases every quarter of their ttl,
-and drop the leases at the end (in the background: the posture's reply does not wait for it). A
-part held by another client (the operator's takeover) fails the move at once with `not_owner`
-(the parts claimed before it are let go; their reference speeds stay set, nothing moved); one
-taken over during the move ends it unreached, naming the new owner; the part keeps the targets
-it was last given. A robot that keeps no leases (its `setRefSpeeds` returns no lease) is moved
-without them.
-
-Stale states: a joint state that arrived more than `state_max_age` wall seconds ago (0.5 by
-default; its arrival age on this host, immune to clock differences between hosts) is never
-used: not as the measured posture, not as an IK seed, not for a motion-done check. Reading one
-waits at most `state_max_age` more for a newer state, then raises `StaleState` (code
-`stale_state`, naming the key and the age); a move whose part's stream goes silent for longer
-than `state_max_age` raises it at once instead of waiting for its timeout. The RPC verbs reply
-it as their error: the robot is frozen or lost.
+`RobotLink.move` moves the parts under a lease each and waits until the whole robot rests at
+the targets (its docstring tells a move step by step); `RobotLink.state` is the one reader of
+joint states and never hands out a stale one: a state that arrived more than `state_max_age`
+wall seconds ago raises `StaleState` (code `stale_state`), which the RPC verbs reply as their
+error (the robot is frozen or lost).
 """
 
 from __future__ import annotations
@@ -136,6 +118,11 @@ class RobotLink:
     def state(self, part: str) -> JointState:
         """The newest joint state of `part` if fresh, else the next within `state_max_age`; the
         first state up to `robot_timeout`.
+
+        A joint state that arrived more than `state_max_age` wall seconds ago (0.5 by default;
+        its arrival age on this host, immune to clock differences between hosts) is never used:
+        not as the measured posture, not as an IK seed, not for a motion-done check. Reading one
+        waits at most `state_max_age` more for a newer state, then raises `StaleState`.
 
         Raises:
             StaleState: the newest state is stale and no newer one came (names key and age).
@@ -301,7 +288,29 @@ class RobotLink:
 
     def move(self, targets: Mapping[str, float], traj_time: float, timeout: float) -> MoveResult:
         """Move the joints named in `targets` {joint: rad}; only their parts are commanded, under
-        a lease each (see the module docstring).
+        a lease each.
+
+        A move: start from the robot at rest (waiting up to `REST_WAIT` s for it), clip the
+        targets into the robot's software limits (from each part's `getLimits`), claim each part
+        it moves and set its reference speeds so every joint covers its distance in the
+        trajectory time `traj_time`, in one round trip per part (`setRefSpeeds` with `claim` on
+        `{part}/rpc:i`: a lease of `lease_ttl` wall s, so that the part obeys no other client
+        during the move), publish one `JointCommand` per part back to back on `command:i` as
+        one batch carrying its lease (the robot starts them at one simulated time), then wait
+        until every part's `state:o` reports motion done, the moved ones within
+        `joint_tolerance` of their targets, in states of one simulated time (the whole robot at
+        rest: at rtf 0 the robot steps until then, and the next job, a nock or a release, must
+        not land while it still settles), renewing the leases every quarter of their ttl, and
+        drop the leases at the end (in the background: the posture's reply does not wait for
+        it; a robot lost or frozen lets them run out by themselves).
+
+        A part held by another client (the operator's takeover) fails the move at once with
+        `not_owner` (the parts claimed before it are let go; their reference speeds stay set,
+        nothing moved); one taken over during the move ends it unreached, naming the new owner;
+        the part keeps the targets it was last given. A robot that keeps no leases (its
+        `setRefSpeeds` returns no lease) is moved without them. A part whose state stream goes
+        silent for longer than `state_max_age` raises `StaleState` at once instead of waiting
+        for the timeout.
 
         Raises:
             RpcTimeout / RpcError: the robot's state or RPC does not answer (names the key).

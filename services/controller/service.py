@@ -1,20 +1,13 @@
 """`archery controller`: iKin-like cartesian controllers and the archery posture on the mesh.
 
-Ports (ROBOT = the robot prefix):
-
-* `ROBOT/cartesianController/{left_arm,right_arm}/rpc:i`: askForPose, goToPose, getPose,
-  setTolerance, getTolerance, setTrajTime, getTrajTime, setDOF, getDOF (see `handlers`);
-* `ROBOT/cartesianController/archery/rpc:i`: posture, setTrajTime, getTrajTime, status.
-
-It reads the robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i`
-(getLimits, setRefSpeeds, and claim, renewClaim, dropClaim: a move holds a lease on the parts it
-commands, `--lease-ttl` wall s unless renewed, see `robotlink`); it never imports the robot's
-code. Positions are metres in
-root_link, orientations iKin axis-angle [ax, ay, az, angle].
-
-A robot joint state that arrived more than `--state-max-age` wall s ago (default 0.5) is never
-used: the verbs reply `stale_state` naming the key and the age (the robot is frozen or lost),
-also when the states stop in the middle of a move (see `robotlink`).
+It serves `ROBOT/cartesianController/{left_arm,right_arm}/rpc:i` and
+`ROBOT/cartesianController/archery/rpc:i` (their verbs: the tables of
+`protocol.verbs.controller`, bound in `handlers`; README.md, 'Names on the mesh'), reads the
+robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i` (getLimits,
+setRefSpeeds and the lease verbs, `--lease-ttl` wall s: `robotlink`); it never imports the
+robot's code. Positions are metres in root_link, orientations iKin axis-angle [ax, ay, az,
+angle]. A joint state that arrived more than `--state-max-age` wall s ago (default 0.5) is never
+used: the verbs reply `stale_state` naming the key and the age (the robot is frozen or lost).
 """
 
 from __future__ import annotations

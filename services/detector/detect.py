@@ -1,34 +1,10 @@
 """Detection of the target centre m_T and the arrow tip m_A in a frame, and r in metres.
 
-The paper's Eq. 7 estimates an object's centre as a likelihood-weighted sum of pixel positions.
-As printed it divides each pixel's term by that pixel's own total likelihood S_xy, which gives
-every pixel the weight 1 (the centre of the whole image, whatever it shows). We implement what
-the method means: a weighted centroid m = Σ w(x) x / Σ w(x), normalised over the image, with
-w(x) the pixel's membership of the object's colour model (`eq7_centroid` is that plain form).
-
-Real photographs break the plain version: arrow holes and ring lines punch gaps in the target,
-distractors share its colours (a yellow logo letter, a pin), a tight colour cluster (yellow)
-outweighs a broad one (blue), light changes move the colours, and an oblique view shifts a
-centroid. So the centre comes from the face's geometry (`target.find_face`, `rings`): on a
-copy of the frame downscaled to `FACE_SIDE` px, the region of target colour is fitted with a
-robust ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
-concentric ellipses validate each other and give the centre extrapolated to radius 0. The
-frame is looked at as it is, white-balanced to the calibration's white (`whitebalance`), with
-its chroma scaled and, last, with each colour taken at its best paler scale (a sheen of sun
-washes part of a face out); rings found under different corrections are joined. The confidence
-says how much of the face and of its colours was seen; below `min_target_confidence` the target
-is reported as not seen.
-
-The arrow tip m_A is the plain weighted centroid (Eq. 7) of arrow membership at full
-resolution, over the strongest arrow-coloured blob.
-
-Reward vector: the paper writes r = m_T − m_A in image terms. The mesh's convention is the
-arrow's offset from the centre, r[0] to the robot's right and r[1] up, in metres on the target
-plane; the camera looks at the face from the robot's side, so image columns grow to the right
-and rows grow downwards. Hence r = M (m_A − m_T) with the image-row sign flipped, where M maps
-pixels to metres: the outer ring (a disc of known diameter D on the face, imaged as the ellipse
-A·(unit disc), A = R diag(a, b) Rᵀ in px) gives M = (D/2) A⁻¹, which also undoes the
-foreshortening of an oblique view.
+The paper's Eq. 7 as printed weights every pixel alike (`eq7_centroid` says why and what is
+kept of it); the centre comes from the geometry of the face instead (`services.detector.target`,
+`rings`: `Detector.detect`), the tip from Eq. 7's weighted centroid (`Detector._find_arrow`),
+and r from both with the face's known size (`Detector.from_fit`, which states the reward's
+convention). README.md, 'Seeing the hit: the colour detector on real photos', tells the method.
 """
 
 from __future__ import annotations
@@ -199,7 +175,14 @@ def check_image(rgb: Any) -> np.ndarray:
 
 def eq7_centroid(weights: np.ndarray) -> tuple[float, float] | None:
     """The plain Eq. 7 centre Σ w(x) x / Σ w(x) over the image (px: column, row), or None if
-    Σ w = 0."""
+    Σ w = 0.
+
+    The paper's Eq. 7 estimates an object's centre as a likelihood-weighted sum of pixel
+    positions. As printed it divides each pixel's term by that pixel's own total likelihood
+    S_xy, which gives every pixel the weight 1 (the centre of the whole image, whatever it
+    shows). This is what the method means: a weighted centroid normalised over the image, with
+    w(x) the pixel's membership of the object's colour model.
+    """
     moments = cv2.moments(np.asarray(weights, dtype=np.float32))
     if moments["m00"] <= 0:
         return None
@@ -291,9 +274,19 @@ class Detector:
     def detect(self, rgb: np.ndarray) -> Detection:
         """Detect in an RGB uint8 image (H, W, 3).
 
+        Real photographs break the plain Eq. 7 centroid: arrow holes and ring lines punch gaps
+        in the target, distractors share its colours (a yellow logo letter, a pin), a tight
+        colour cluster (yellow) outweighs a broad one (blue), light changes move the colours,
+        and an oblique view shifts a centroid. So the centre comes from the face's geometry
+        (`target.find_face`, `rings`): the region of target colour is fitted with a robust
+        ellipse, the model's Gaussians (one colour per ring) give the nested ring discs, whose
+        concentric ellipses validate each other and give the centre extrapolated to radius 0.
+        The confidence says how much of the face and of its colours was seen; below
+        `min_target_confidence` the target is reported as not seen.
+
         The face is searched on a copy downscaled to `FACE_SIDE` px (shorter side), as the frame
-        is and under colour corrections; in a large image where none is seen, again at twice
-        the resolution (until the copy is within 2.5× of the image).
+        is and under colour corrections (`_search`); in a large image where none is seen, again
+        at twice the resolution (until the copy is within 2.5× of the image).
 
         Raises:
             ImageError: not an RGB uint8 image with sides of 32..8192 px.
@@ -320,7 +313,13 @@ class Detector:
 
     def _search(self, small: np.ndarray) -> tuple[FaceFit | None, np.ndarray | None]:
         """The face in a downscaled frame, as it is and under colour corrections, and the
-        white-balance gains it was found with (None: as it is)."""
+        white-balance gains it was found with (None: as it is).
+
+        The frame is looked at as it is, white-balanced to the calibration's white
+        (`whitebalance`), with its chroma scaled and, last, with each colour taken at its best
+        paler scale (a sheen of sun washes part of a face out); rings found under different
+        corrections are joined (`merge_faces`).
+        """
         fits: list[tuple[FaceFit, np.ndarray | None]] = []
 
         def best() -> FaceFit | None:
@@ -381,7 +380,16 @@ class Detector:
         return best
 
     def from_fit(self, fit: FaceFit | None, factor: float, arrow_m: np.ndarray | None) -> Detection:
-        """The detection from a face fit on a map `factor` times smaller than the frame."""
+        """The detection from a face fit on a map `factor` times smaller than the frame.
+
+        Reward vector: the paper writes r = m_T − m_A in image terms. The mesh's convention is
+        the arrow's offset from the centre, r[0] to the robot's right and r[1] up, in metres on
+        the target plane; the camera looks at the face from the robot's side, so image columns
+        grow to the right and rows grow downwards. Hence r = M (m_A − m_T) with the image-row
+        sign flipped, where M maps pixels to metres: the outer ring (a disc of known diameter D
+        on the face, imaged as the ellipse A·(unit disc), A = R diag(a, b) Rᵀ in px) gives
+        M = (D/2) A⁻¹, which also undoes the foreshortening of an oblique view.
+        """
         arrow = self._find_arrow(arrow_m) if arrow_m is not None else None
         s = self.settings
         if fit is None or fit.confidence < s.min_target_confidence:
@@ -404,6 +412,9 @@ class Detector:
         return Detection(target, arrow, (float(face[0]), float(-face[1])), metres, "ok", rings)
 
     def _find_arrow(self, membership: np.ndarray) -> Seen | None:
+        """The arrow tip m_A: the plain weighted centroid (Eq. 7) of arrow membership at full
+        resolution, over the strongest arrow-coloured blob (None: none strong enough, or one too
+        large for a tip)."""
         s = self.settings
         height, width = membership.shape
         block = max(1, min(height, width) // ANALYSIS_SIDE)

@@ -1,17 +1,10 @@
 """Ring geometry: robust ellipse fits to the boundaries of the target's nested colour discs.
 
 A target face is concentric circles; any view of it (oblique, perspective) images each as an
-ellipse. The outer boundary of a filled disc region is fitted with `cv2.fitEllipse` on the
-points of its convex hull (arrow shafts and holes notch a disc inwards: the hull removes the
-notches), then refitted on the inliers only (fletchings and distractors touching the disc bulge
-outwards: they leave the inliers). Points on the image border belong to no ring and are dropped,
-so a face cut by the border is fitted from the arc that is visible, and `support` (the fraction
-of the perimeter that has inliers) says how much of the ring was seen.
-
-Under perspective the centres of the ring ellipses are not the image of the face's centre: each
-is displaced along one line by an amount that grows with the ring's radius squared. The centre
-is therefore extrapolated to radius 0 from the nested ellipses (`nested_centre`).
-All coordinates are pixels (x: column, y: row) of the image the masks come from.
+ellipse. `fit_disc` fits a disc's outer boundary robustly (its docstring says against what);
+under perspective the centres of the ring ellipses are not the image of the face's centre, so
+`nested_centre` extrapolates it to radius 0 from the nested ellipses. All coordinates are pixels
+(x: column, y: row) of the image the masks come from.
 """
 
 from __future__ import annotations
@@ -139,6 +132,13 @@ def fit_disc(
     filled: np.ndarray, offset: tuple[int, int] = (0, 0), shape: tuple[int, int] | None = None
 ) -> Ellipse | None:
     """Robust ellipse fit to the outer boundary of a filled region (uint8 mask, nonzero inside).
+
+    The boundary is fitted with `cv2.fitEllipse` on the points of its convex hull (arrow shafts
+    and holes notch a disc inwards: the hull removes the notches), then refitted on the inliers
+    only (fletchings and distractors touching the disc bulge outwards: they leave the inliers).
+    Points on the image border belong to no ring and are dropped, so a face cut by the border
+    is fitted from the arc that is visible, and `support` (the fraction of the perimeter that
+    has inliers) says how much of the ring was seen.
 
     Args:
         filled: the region, possibly a crop of a larger image.

@@ -1,26 +1,10 @@
 """The target face in a downscaled membership map: its region, ring ellipses, centre and a
 confidence that means something (below the threshold the face is reported as not seen).
 
-The target's colour membership is thresholded, closed (ring lines, holes) and split into
-regions by their outer contours; each of the largest few is filled and its outer boundary
-fitted with a robust ellipse (`rings.fit_disc`); when none is sure, the pieces of a face cut
-by shafts are joined too (`pieces.joined_hull`). With the target GMM's component of every
-pixel, the components are ordered by their radial position inside that ellipse (yellow, red,
-blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (from their pieces
-joined when a shaft cuts them): an inner ring must end where its colours end, and concentric
-ellipses of one shape validate each other (rings off the perspective model are dropped), and
-the centre is extrapolated from them (`rings.nested_centre`), which holds when arrows and
-fletchings cover part of the yellow. A disc that arrows and their shadows cut up beyond both is
-fitted from the arcs where its colours meet the next ring's, in the outer ring's shape
-(`arcs.ring_from_arcs`). A region's shape is judged once slits (a shaft's shadow reaching the
-hidden gold) are bridged, and a lone inner ring only if its size is k/n of the outer ring's (the
-rings are of equal width). The confidence multiplies how much of the outer boundary was
-seen (or, for a face cut by the border, of its inner rings), how elliptic the region is, how well
-its colours match the calibration (judged more leniently once inner rings agree), how many inner
-rings agree (a lone one as far as it is seen whole) and how many of the calibrated colours (ring
-groups of the GMM's components) the face shows; the factors' ranges were set on the development set
-(`tests.devset`) so that wrong centres score below 0.5.
-All positions are pixels of the downscaled map.
+`find_face` tells the method: the region of target colour fitted with a robust ellipse, the
+nested ring discs of the target GMM's colours fitted inside it and the centre extrapolated from
+them (`rings`); `FaceFit` tells what its confidence multiplies. All positions are pixels of
+the downscaled map.
 """
 
 from __future__ import annotations
@@ -66,7 +50,15 @@ _MAX_SPREAD = 0.03  # rings whose centres stray farther from the perspective mod
 @dataclass(frozen=True)
 class FaceFit:
     """A face found in the map: centre (px), its ring ellipses inner → outer (px; the last is
-    the outer boundary of the coloured rings), confidence 0..1 and its factors."""
+    the outer boundary of the coloured rings), confidence 0..1 and its factors.
+
+    The confidence multiplies how much of the outer boundary was seen (or, for a face cut by
+    the border, of its inner rings), how elliptic the region is, how well its colours match the
+    calibration (judged more leniently once inner rings agree), how many inner rings agree (a
+    lone one as far as it is seen whole) and how many of the calibrated colours (ring groups of
+    the GMM's components) the face shows; the factors' ranges were set on the development set
+    (`tests.devset`) so that wrong centres score below 0.5.
+    """
 
     centre: tuple[float, float]
     ellipses: tuple[Ellipse, ...]
@@ -424,6 +416,21 @@ def find_face(
     needed_confidence: float = 0.0,
 ) -> FaceFit | None:
     """The most confident face in a membership map (uint8 0..255, downscaled), or None.
+
+    The target's colour membership is thresholded, closed (ring lines, holes) and split into
+    regions by their outer contours; each of the largest few is filled and its outer boundary
+    fitted with a robust ellipse (`rings.fit_disc`); when none is sure, the pieces of a face
+    cut by shafts are joined too (`pieces.joined_hull`). With the target GMM's component of
+    every pixel, the components are ordered by their radial position inside that ellipse
+    (yellow, red, blue…) and the cumulative discs (yellow; yellow + red; …) are fitted too (from
+    their pieces joined when a shaft cuts them): an inner ring must end where its colours end,
+    and concentric ellipses of one shape validate each other (rings off the perspective model
+    are dropped), and the centre is extrapolated from them (`rings.nested_centre`), which holds
+    when arrows and fletchings cover part of the yellow. A disc that arrows and their shadows
+    cut up beyond both is fitted from the arcs where its colours meet the next ring's, in the
+    outer ring's shape (`arcs.ring_from_arcs`). A region's shape is judged once slits (a
+    shaft's shadow reaching the hidden gold) are bridged, and a lone inner ring only if its
+    size is k/n of the outer ring's (the rings are of equal width).
 
     Args:
         member: target membership per pixel.

@@ -1,24 +1,9 @@
 """What a learning session does after an aborted attempt: a pure policy, no I/O.
 
 An attempt aborts when it ends without a measurement; the learner is not told and the attempt
-is not counted as a rollout. After each abort, by its code:
-
-* `service_lost` (a service did not answer or vanished, or a service's upstream did): wait until
-  every service is alive again, then re-run the same θ. Waiting out a lost service is not a
-  failure of the attempts: these aborts do not count towards `max_aborts` (the session bounds
-  the wait by time instead, `service_wait`).
-* `rpc_error`, `bad_reply` or any service error code, `not_reached` (the posture was not reached
-  in time), `no_target` (the detector sees no target: camera or lighting, not θ): re-run the
-  same θ.
-* `no_arrow` (no arrow on the target face: θ missed it): no r is invented; the next attempt runs
-  halfway from θ back towards the best θ so far (θ0 before any rollout), clipped into the θ box;
-  or, for a learner whose proposals ignore the rewards (uniform random search, `redraw`), a θ
-  drawn afresh.
-
-A `no_arrow` whose back-off θ is θ itself (θ is θ0, or the best θ, with nothing better known)
-fails the session at once: re-running it would miss again. Independently of the code,
-`max_aborts` aborts in a row, `service_lost` aside, fail the session (`streak_failure`). θ is in
-metres.
+is not counted as a rollout. `after_abort` picks the next attempt's θ (m) by the abort's code,
+`streak_failure` fails the session after `max_aborts` aborts in a row (`service_lost` aside).
+README.md, 'Learning over the mesh', tells the codes from the user's side.
 """
 
 from __future__ import annotations
@@ -72,7 +57,21 @@ def after_abort(
     bounds: Bounds,
     redraw: Sequence[float] | np.ndarray | None = None,
 ) -> AbortDecision:
-    """The decision after an attempt at `theta` (m) aborted with `code` (see the module table).
+    """The decision after an attempt at `theta` (m) aborted with `code`:
+
+    * `service_lost` (a service did not answer or vanished, or a service's upstream did): wait
+      until every service is alive again, then re-run the same θ. Waiting out a lost service is
+      not a failure of the attempts: these aborts do not count towards `max_aborts` (the
+      session bounds the wait by time instead, `service_wait`).
+    * `rpc_error`, `bad_reply` or any service error code, `not_reached` (the posture was not
+      reached in time), `no_target` (the detector sees no target: camera or lighting, not θ):
+      re-run the same θ.
+    * `no_arrow` (no arrow on the target face: θ missed it): no r is invented; the next attempt
+      runs halfway from θ back towards the best θ so far (θ0 before any rollout), clipped into
+      the θ box; or, for a learner whose proposals ignore the rewards (uniform random search,
+      `redraw`), a θ drawn afresh. A `no_arrow` whose back-off θ is θ itself (θ is θ0, or the
+      best θ, with nothing better known) fails the session at once: re-running it would miss
+      again.
 
     Args:
         code: the abort's code.

@@ -91,8 +91,18 @@ class LearnerHandlers:
 
     def start(self, request: StartArgs) -> LearnerStatusReply:
         """Start a new session (from another session's learned model with `from_journal`) or
-        resume one (see the module docstring). Both paths must name journals inside the runs
-        folder (`services.learner.runs_folder`): anything else is a bad request."""
+        resume one; reply at once with the session's status (its id, journal path).
+
+        `start {algo?, rollouts?, seed?, until_hit?, scenario?: {theta0, bounds, hit_radius,
+        reset}, options?, from_journal?: SESSION}` starts a session (see
+        `config.SessionConfig`); `start {resume: PATH, session?: ID}` continues the one
+        journaled at PATH (a journal or its directory). Both paths must name journals inside
+        the runs folder (a relative one is taken from there; `services.learner.runs_folder`):
+        anything else is a bad request. Refused with code `service_missing` when the robot,
+        camera, detector or controller is not alive, `busy` while a session runs (the message
+        says how to follow it: `archery learn --attach ID`), `bad_request` or `bad_journal`
+        for bad arguments; nothing journaled is touched then.
+        """
         given = {
             f for f in request.__struct_fields__ if not isinstance(getattr(request, f), UnsetType)
         }
@@ -171,7 +181,8 @@ class LearnerHandlers:
             return self._status_of(self._session, stopping=True)
 
     def status(self, args: NoArgs) -> LearnerStatusReply:
-        """The running (or last) session's status, or {"state": "idle"}."""
+        """The running (or last) session's status (state starting, waiting, running,
+        reporting, finished, stopped or failed), or {"state": "idle"}."""
         session = self._session
         return LearnerStatusReply(state="idle") if session is None else self._status_of(session)
 

@@ -1,19 +1,12 @@
 """The crash-proof journal of a learning session: JSON lines, appended and fsynced one by one.
 
-A journal is one file, `runs/<session>/journal.jsonl`. Every line is one record of
-`protocol.journal_records` (header, proposed, done, aborted, resumed, stopped, end), a JSON
-object whose `record` field names its kind; every record after the header carries the `session`
-id and its wall time `t` (s since the epoch), which the journal stamps when it appends it.
-Lines are decoded with msgspec into those Structs (a line that does not fit is a `JournalError`
-naming the file, the line and the field) and encoded as they always were: compact JSON, UTF-8,
-no NaN, fields in their Struct's order, so a record decoded from a line encodes back to it.
-
-Each record is written unbuffered (all its bytes), then `os.fsync`ed, so a record is either
-durable or (after a crash or a full disk mid-write) a torn last line without its newline, which
-`read` ignores and `Journal.resume` cuts off before appending. A journal's `state` takes a
-record in only once it is durable. `JournalState` replays the records and checks
-what the types cannot: one header, one rollout at a time, each index proposed once and finished
-at most once, in order. `check_invariants` lists every breach of a whole journal at once (for
+A journal is one file, `runs/<session>/journal.jsonl`; every line is one record of
+`protocol.journal_records`, decoded with msgspec and encoded as it always was
+(`encode_record`). Each record is written unbuffered, then fsynced (`Journal.append`), so it
+is either durable or a torn last line without its newline, which `read_records` ignores and
+`Journal.resume` cuts off before appending. `JournalState` replays the records and checks what
+the types cannot: one header, one rollout at a time, each index proposed once and finished at
+most once, in order. `check_invariants` lists every breach of a whole journal at once (for
 fault drills and tests). Pure: no Zenoh.
 """
 
@@ -99,7 +92,7 @@ def _plain(value: Any) -> Any:
 
 def encode_record(record: JournalRecord) -> bytes:
     """One record as its journal line: compact JSON (UTF-8, fields in the Struct's order, no
-    NaN), newline included.
+    NaN), newline included, so a record decoded from a line encodes back to it.
 
     Raises:
         JournalError: the record holds NaN or infinity, or a value JSON cannot hold.

@@ -1,30 +1,10 @@
 """The other services as one session sees them, over the mesh: the session's `Rig` on a Node.
 
-Calls, in a rollout's order (ROBOT = the robot prefix):
-
-* `ROBOT/cartesianController/archery/rpc:i posture {theta}` (and `status` for the θ box);
-* `ROBOT/archery/rpc:i nock`, then `release` (replies once the arrow has landed), `reset {seed}`;
-* `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}` for
-  the picture of a hit with the detection drawn on it;
-* `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
-
-Every call is typed (`protocol.verbs`): its reply is decoded into the verb's reply type. A call
-that gets no reply becomes `ServiceLost` naming the service; an error reply, or a reply that does
-not match its type, `RigError` with the service's code (`bad_reply`) and message; a reply from
-any session but the service's live instance `RigError` with code `wrong_replier`
-(`Node.call_typed(expect_service=...)`).
-
-A service that replies it could not do its work because a service it calls is lost is not an
-error of its own: `upstream_lost` (the detector when the camera does not answer) becomes
-`ServiceLost` naming the upstream service, and so does a `timeout` error reply (the service's own
-call timed out: the controller's robot, the detector's camera; `UPSTREAM`), a `stale_state` reply
-(the controller's robot states stopped: the robot is frozen or lost), or any error reply
-while some service is not alive (that one is named).
-
-Each reply belongs to its own Zenoh query: a reply that comes after its call gave up is dropped,
-never handed to a later call. The ground truth of a shot is taken only from an event received
-after that shot was nocked, so a restarted robot's shot numbers never pick up an old event.
-Liveliness is watched all along, so `lost_ago` tells how long ago a service vanished.
+`MeshRig` makes the calls of a rollout (ARCHITECTURE.md, 'The life of one rollout'), every one
+typed (`protocol.verbs`), and maps what goes wrong to `ServiceLost` (a service, or the service
+it calls, is lost) or `RigError` (`MeshRig._call` says which). Each reply belongs to its own
+Zenoh query: a reply that comes after its call gave up is dropped, never handed to a later
+call. Liveliness is watched all along, so `lost_ago` tells how long ago a service vanished.
 """
 
 from __future__ import annotations
@@ -67,6 +47,15 @@ R = TypeVar("R", bound=msgspec.Struct)
 class MeshRig:
     """The robot, camera, detector and controller over `node`'s session.
 
+    Calls, in a rollout's order (ROBOT = the robot prefix):
+
+    * `ROBOT/cartesianController/archery/rpc:i posture {theta}` (and `status` for the θ box);
+    * `ROBOT/archery/rpc:i nock`, then `release` (replies once the arrow has landed),
+      `reset {seed}`;
+    * `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}`
+      for the picture of a hit with the detection drawn on it;
+    * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
+
     Args:
         node: the learner's node.
         timeout: longest wait for a reply (wall s).
@@ -98,8 +87,21 @@ class MeshRig:
     def _call(
         self, service: str, key: str, verb: Verb[Any, R], args: msgspec.Struct | None = None
     ) -> tuple[R, float]:
-        """(typed reply, wall s) of one call; ServiceLost or RigError (with the service's code,
-        or `bad_reply` for a reply that does not match the verb's type) when it fails."""
+        """(typed reply, wall s) of one call; ServiceLost or RigError when it fails.
+
+        A call that gets no reply becomes `ServiceLost` naming the service; an error reply, or a
+        reply that does not match its type, `RigError` with the service's code (`bad_reply`)
+        and message; a reply from any session but the service's live instance `RigError` with
+        code `wrong_replier` (`Node.call_typed(expect_service=...)`).
+
+        A service that replies it could not do its work because a service it calls is lost is
+        not an error of its own: `upstream_lost` (the detector when the camera does not answer)
+        becomes `ServiceLost` naming the upstream service, and so does a `timeout` error reply
+        (the service's own call timed out: the controller's robot, the detector's camera;
+        `UPSTREAM`), a `stale_state` reply (the controller's robot states stopped: the robot is
+        frozen or lost), or any error reply while some service is not alive (that one is
+        named; `_lost_behind`).
+        """
         start = time.perf_counter()
         try:
             result = self.node.call_typed(
@@ -232,8 +234,8 @@ class MeshRig:
 
     def truth(self, shot: Shot) -> list[float] | None:
         """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none): only
-        an event received after the shot's nock, never one of an earlier robot instance's shot
-        of the same number."""
+        an event received after the shot's nock, so a restarted robot's shot numbers never pick
+        up an old event of an earlier instance's shot of the same number."""
 
         def event() -> WorldEvent | None:
             received, found = self._truth.get(shot.shot, (0.0, None))

@@ -3,16 +3,9 @@
 outcome. No threads, no waiting, no journal: the runner (`services.learner.session`) journals
 and publishes each record, waits for lost services and saves the frame of a hit.
 
-An attempt (`index`, 1-based, aborted attempts included) runs θ from the learner, or the retry
-θ an abort left; an attempt a crash left open re-runs its journaled θ (the learner is asked
-anyway, so its generator is where the first run left it). The shot ends `Measured` (the
-detector's r) or `Failed` with an abort code: `not_reached` (the posture was not reached in
-time), `service_lost` (a service lost during a call, or missing before the release: no arrow
-is released then), `rpc_error`, `wrong_replier` and the other service error codes,
-`no_target`, `no_arrow`. A measured attempt tells the learner (θ, r) and becomes a done record;
-a failed one becomes an aborted record (the learner is not told) with the θ the abort policy
-(`services.learner.abort_policy`) picks for the next attempt, and that policy's decision (go on,
-wait for the services, or fail). θ, r and distances are in m, times in s.
+An attempt ends `Measured` (tells the learner (θ, r), becomes a done record: `done_record`) or
+`Failed` with an abort code (`shoot` lists them; becomes an aborted record, the learner not
+told: `aborted_record`). θ, r and distances are in m, times in s.
 """
 
 from __future__ import annotations
@@ -92,7 +85,11 @@ class Failed:
 
 def next_attempt(learner: Learner, state: JournalState) -> Attempt:
     """The attempt after what the journal says so far: the open one again, or the next index
-    with the learner's proposal (the retry θ instead, after an abort)."""
+    with the learner's proposal (the retry θ instead, after an abort).
+
+    An attempt (`index`, 1-based, aborted attempts included) runs θ from the learner, or the
+    retry θ an abort left; an attempt a crash left open re-runs its journaled θ (the learner is
+    asked anyway, so its generator is where the first run left it)."""
     start = time.perf_counter()
     proposal = learner.ask()  # asked even when its θ is not run: the generator moves on alike
     if state.open is not None:  # left open by a crash: the learner was never told
@@ -109,7 +106,12 @@ def next_attempt(learner: Learner, state: JournalState) -> Attempt:
 
 def shoot(rig: Rig, theta: np.ndarray) -> Measured | Failed:
     """Posture for θ (m), release and measure; a failed call, an unreached posture, a service
-    missing before the release or a refused frame is `Failed`."""
+    missing before the release or a refused frame is `Failed`.
+
+    The abort codes: `not_reached` (the posture was not reached in time), `service_lost` (a
+    service lost during a call, or missing before the release: no arrow is released then),
+    `rpc_error`, `wrong_replier` and the other service error codes, `no_target`, `no_arrow`.
+    """
     try:
         posture = rig.move_to(theta)
         if not posture.reached:
@@ -139,8 +141,9 @@ def shoot(rig: Rig, theta: np.ndarray) -> Measured | Failed:
 def aborted_record(
     learner: Learner, state: JournalState, config: SessionConfig, attempt: Attempt, failed: Failed
 ) -> tuple[AbortedRecord, AbortDecision]:
-    """The aborted record of a failed attempt, with the θ the abort policy picks for the next
-    one, and the policy's decision (whether to wait for the services, or fail)."""
+    """The aborted record of a failed attempt, with the θ the abort policy
+    (`services.learner.abort_policy`) picks for the next one, and the policy's decision (go on,
+    wait for the services, or fail)."""
     best = state.best
     redraw = learner.redraw((config.seed, attempt.index)) if failed.code == NO_ARROW else None
     decision = after_abort(

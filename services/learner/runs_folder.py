@@ -2,21 +2,9 @@
 
 `start` takes paths from whoever reaches the learner's port: `resume` (a journal or its session
 directory) and `from_journal` (a session id, its directory or its journal). `journal_in_runs`
-resolves each one inside the learner's `--runs` folder, by these rules:
-
-* a relative path is taken from the runs folder (a session id is its directory there);
-* the path must lie inside the runs folder both as written (`..` may not leave it) and once
-  every symlink is followed (a symlink inside may not lead out): an absolute path too;
-* a directory stands for its journal, `DIR/journal.jsonl`, checked the same way;
-* the journal must be a regular file (not a FIFO, device, socket or directory) of at most
-  `MAX_JOURNAL_BYTES`.
-
-A path that breaks a rule is a `BadRequest` naming the rule. One outside the runs folder is
-refused with the same words whether it exists or not (nothing outside is opened or stat'ed; the
-reply tells nothing about the learner's other files). A journal inside the folder that does not
-exist is a `JournalError` ("cannot read journal …"). Nothing here opens the file: reading it
-(`journal.read_records`) opens it without blocking and checks it again on the descriptor, so a
-file swapped for a FIFO in between cannot wedge the learner either.
+resolves each one inside the learner's `--runs` folder by the rules its docstring lists; a path
+that breaks one is a `BadRequest` naming the rule, and the reply tells nothing about the
+learner's other files.
 """
 
 from __future__ import annotations
@@ -38,8 +26,21 @@ def _inside(path: Path, folders: tuple[Path, ...]) -> bool:
 
 
 def journal_in_runs(target: str, runs: Path, what: str) -> Path:
-    """The journal `target` names, resolved inside the runs folder `runs` (see the module's
-    rules), as a path under `runs` as the learner was given it.
+    """The journal `target` names, resolved inside the runs folder `runs`, as a path under
+    `runs` as the learner was given it. The rules:
+
+    * a relative path is taken from the runs folder (a session id is its directory there);
+    * the path must lie inside the runs folder both as written (`..` may not leave it) and once
+      every symlink is followed (a symlink inside may not lead out): an absolute path too;
+    * a directory stands for its journal, `DIR/journal.jsonl`, checked the same way;
+    * the journal must be a regular file (not a FIFO, device, socket or directory) of at most
+      `MAX_JOURNAL_BYTES`.
+
+    One outside the runs folder is refused with the same words whether it exists or not
+    (nothing outside is opened or stat'ed). A journal inside the folder that does not exist is
+    a `JournalError` ("cannot read journal …"). Nothing here opens the file: reading it
+    (`journal.read_records`) opens it without blocking and checks it again on the descriptor,
+    so a file swapped for a FIFO in between cannot wedge the learner either.
 
     Args:
         target: the path (or session id) the request gave.

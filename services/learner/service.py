@@ -1,27 +1,9 @@
 """`archery learner`: runs learning sessions over the mesh, one rollout at a time, journaled.
 
-Ports (ROBOT = the robot prefix):
-
-* `ROBOT/learner/rpc:i`:
-  - `start {algo?, rollouts?, seed?, until_hit?, scenario?: {theta0, bounds, hit_radius, reset},
-    options?, from_journal?: SESSION}` starts a session (see `config.SessionConfig`; from
-    another session's learned model with `from_journal`), or `start {resume: PATH, session?:
-    ID}` continues the one journaled at PATH (a journal or its directory). Every path lies
-    inside RUNS (a relative one is taken from there; `services.learner.runs_folder`). Replies
-    at once with the session's status (its id, journal path); refused with code
-    `service_missing` when the robot, camera, detector or controller is not alive, `busy`
-    while a session runs (the message says how to follow it: `archery learn --attach ID`),
-    `bad_request` or `bad_journal` for bad arguments; nothing journaled
-    is touched then.
-  - `stop` ends the running session after its current rollout (resumable); `status` → the
-    running or last session's status (state idle, starting, waiting, running, reporting,
-    finished, stopped or failed).
-* `ROBOT/learner/rollout:o` (events): a `Rollout` per journal record of a rollout (proposed,
-  done, aborted), in order.
-
-With `--fleet P2,P3`, one learner process serves the same ports under each of those robot
-prefixes too, and runs a session on each robot at once.
-
+It serves `ROBOT/learner/rpc:i` (`start`, `stop`, `status`: `services.learner.handlers`) and
+publishes each journal record of a rollout on `ROBOT/learner/rollout:o`; README.md, 'Learning
+over the mesh', tells the verbs. With `--fleet P2,P3`, one learner process serves the same
+ports under each of those robot prefixes too, and runs a session on each robot at once.
 Sessions go to `RUNS/<session>/journal.jsonl`; when one ends, `report.png` (and `hit.png`, the
 frame of the latest hit with the detection drawn) are written beside it.
 """

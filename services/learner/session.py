@@ -1,22 +1,12 @@
-"""One learning session, rollout by rollout, journaled: the closed loop of DESIGN.md in order.
+"""One learning session, rollout by rollout, journaled: the closed loop, in order.
 
 A rollout (attempt `index`): θ from the learner (or the retry θ an abort left) → journal
 `proposed` → controller posture → robot nock and release → detector measure (a frame newer
-than the landing) → `tell(θ, r)` → journal `done`; every `CHECKPOINT_EVERY` done rollouts, and
-before the session stops or ends, a `checkpoint` of the learner's state (without its history:
-a record's size never grows with the session). Each step of an
-attempt is the pure `services.learner.rollout_step`; this module runs them: it journals and
-publishes each record, waits for lost services (`services.learner.service_wait`), keeps the
-session's phase and status, keeps the latest hit for its frame (`hit_frame`: saved once,
-when the session ends) and loops until the session ends. The
-services are reached through a `Rig` (`services.learner.rig_protocol`; the mesh in
-`services.learner.rig`, fakes in tests), so this module knows no Zenoh.
-
-Aborts (journal `aborted`; the learner is not told, attempts are not rollouts) are followed as
-the pure policy of `services.learner.abort_policy` says; after `max_aborts` aborts in a row
-(`service_lost` aside) the session fails with the last cause, resumably. A lost service is
-waited for within the session, in phase `waiting`, for at most `service_wait` s. The
-ground-truth impact (the robot's event) is logged beside each rollout for plots only.
+than the landing) → `tell(θ, r)` → journal `done` (ARCHITECTURE.md, 'The life of one
+rollout'). Each step of an attempt is the pure `services.learner.rollout_step`; this module
+runs them (`Session.run` says what that takes). The services are reached through a `Rig`
+(`services.learner.rig_protocol`; the mesh in `services.learner.rig`, fakes in tests), so this
+module knows no Zenoh.
 """
 
 from __future__ import annotations
@@ -184,6 +174,20 @@ class Session:
 
     def run(self, stop: threading.Event) -> LearnerStatusReply:
         """Run rollouts until the hit (with until_hit), the budget, `stop`, or a failure.
+
+        It journals and publishes each record, waits for lost services
+        (`services.learner.service_wait`), keeps the session's phase and status, keeps the
+        latest hit for its frame (`hit_frame`: saved once, when the session ends) and loops
+        until the session ends. Every `CHECKPOINT_EVERY` done rollouts, and before the session
+        stops or ends, it journals a `checkpoint` of the learner's state (without its history:
+        a record's size never grows with the session).
+
+        Aborts (journal `aborted`; the learner is not told, attempts are not rollouts) are
+        followed as the pure policy of `services.learner.abort_policy` says; after `max_aborts`
+        aborts in a row (`service_lost` aside) the session fails with the last cause,
+        resumably. A lost service is waited for within the session, in phase `waiting`, for at
+        most `service_wait` s. The ground-truth impact (the robot's event) is logged beside
+        each rollout for plots only.
 
         Returns:
             `status()` at the end.

@@ -1,19 +1,9 @@
 """Validation of joint position commands for one controlboard part, and its counters.
 
-Rules (the same for `command:i` messages and the `positionMove` RPC):
-
-* the command's part must be the port's part (`wrong_part`);
-* without names, one value per joint of the part, in YARP order (`wrong_length`); with names,
-  each must be a joint of the part, at most once (`unknown_joint`, `duplicate_joint`), and the
-  joints not named keep their current targets;
-* every value must be a finite number (`bad_value`; the codec already drops NaN on the wire);
-* a value beyond a software limit by more than `tolerance` rad is `out_of_range`: the whole
-  command is rejected and nothing of it is applied; a value beyond a limit by at most
-  `tolerance` is clamped onto the limit (the command is counted as `clamped`).
-
-Before these rules, the part's gate (`gate`) refuses a command from a client that does not hold
+The same rules hold for `command:i` messages and the `positionMove` RPC (`check_command` lists
+them); before them, the part's gate (`gate`) refuses a command from a client that does not hold
 the part's running lease (`not_owner`) and drops one over the part's rate limit
-(`rate_limited`); both are counted here with the others.
+(`rate_limited`); both are counted here with the others (`PartCounters`).
 
 Pure: no Zenoh, no MuJoCo. Units: radians.
 """
@@ -93,6 +83,18 @@ def check_command(
     part: str | None = None,
 ) -> tuple[np.ndarray, bool]:
     """Validate a command and return (the part's new targets in YARP order (rad), clamped?).
+
+    Rules (the same for `command:i` messages and the `positionMove` RPC):
+
+    * the command's part must be the port's part (`wrong_part`);
+    * without names, one value per joint of the part, in YARP order (`wrong_length`); with
+      names, each must be a joint of the part, at most once (`unknown_joint`,
+      `duplicate_joint`), and the joints not named keep their current targets;
+    * every value must be a finite number (`bad_value`; the codec already drops NaN on the
+      wire);
+    * a value beyond a software limit by more than `tolerance` rad is `out_of_range`: the whole
+      command is rejected and nothing of it is applied; a value beyond a limit by at most
+      `tolerance` is clamped onto the limit (the command is counted as `clamped`).
 
     Args:
         limits: the part's names, limits and clamp tolerance.

@@ -2,25 +2,10 @@
 limit).
 
 It runs on whichever thread delivers a command (a Zenoh callback), on the raw payload before it
-is decoded (`screen`), so a refused or excess command costs a lock and a byte search (~1 µs),
-never a decoding or a job: a flood cannot make the simulation loop fall behind. It is the one
-check of a command's lease (`leases`): what passes is not checked again.
-
-Ownership (wall clock): `claim` gives the claimer a lease, a random id that lasts `ttl` s unless
-renewed (`renew`). While a lease runs the part obeys only commands that carry its id; the others
-are refused (`not_owner`), counted and never applied. A lease that is not renewed ends by itself,
-so a client that died frees the part. Another client's claim is refused while the lease runs,
-unless it asks for a takeover (the operator's explicit override); a claim by the owner that holds
-the part (the same name: a restarted controller) replaces its lease. With no lease held, a part
-takes commands from anyone (`archery write` by hand, a teleoperation client). When a lease ends,
-is dropped or taken over, the part keeps its last accepted targets: nothing moves by itself.
-
-Rate limit (wall clock): a token bucket per part, `burst` commands at once, refilled at `rate`
-per second. A command over the limit is dropped and counted (`rate_limited`); the part keeps its
-last accepted targets. The owner check comes first, so another client's flood never uses up the
-owner's budget. Rate 0 switches the limit off.
-
-Pure: no Zenoh, no MuJoCo. Times are monotonic wall seconds.
+is decoded (`PartGate.screen`), so a refused or excess command costs a lock and a byte search
+(~1 µs), never a decoding or a job: a flood cannot make the simulation loop fall behind. It is
+the one check of a command's lease: what passes is not checked again. `PartGate` tells the
+lease's rules. Pure: no Zenoh, no MuJoCo. Times are monotonic wall seconds.
 """
 
 from __future__ import annotations
@@ -80,6 +65,16 @@ def lease_field(lease_id: str) -> bytes:
 
 class PartGate:
     """The lease and the command budget of one part; every method may be called from any thread.
+
+    Ownership (wall clock): `claim` gives the claimer a lease, a random id that lasts `ttl` s
+    unless renewed (`renew`). While a lease runs the part obeys only commands that carry its
+    id; the others are refused (`not_owner`), counted and never applied. A lease that is not
+    renewed ends by itself, so a client that died frees the part. Another client's claim is
+    refused while the lease runs, unless it asks for a takeover (the operator's explicit
+    override); a claim by the owner that holds the part (the same name: a restarted
+    controller) replaces its lease. With no lease held, a part takes commands from anyone
+    (`archery write` by hand, a teleoperation client). When a lease ends, is dropped or taken
+    over, the part keeps its last accepted targets: nothing moves by itself.
 
     Args:
         part: the controlboard part, e.g. "left_arm" (for messages).
@@ -237,7 +232,12 @@ class PartGate:
         While a lease runs, the payload must hold the lease field with the running id (msgpack
         writes a map's key and a string's bytes as they are, so a search finds the field
         without decoding): the command's lease is checked here, exactly, and nowhere else.
-        Then the rate limit."""
+
+        Then the rate limit (wall clock): a token bucket, `burst` commands at once, refilled at
+        `rate` per second. A command over the limit is dropped (`rate_limited`, counted by the
+        caller); the part keeps its last accepted targets. The owner check comes first, so
+        another client's flood never uses up the owner's budget. Rate 0 switches the limit off.
+        """
         now = self._clock()
         with self._lock:
             held = self._lease is not None and self._current(now) is not None

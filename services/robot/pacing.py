@@ -1,22 +1,10 @@
 """When the simulation loop publishes and how fast simulated time runs.
 
-* Streams are scheduled in simulated time: joint states every 1/state_rate s, the world state
-  every 1/world_rate s. Physics advances in chunks that end on the next grid point (at most
-  `MAX_CHUNK` s of sim time).
-* rtf 0: a moving world runs some 50× faster than the wall clock, so the grid would put out
-  thousands of states per wall second that no subscriber can use and every one pays for (the
-  robot, the router and each subscriber handle every message). A grid point then goes out only
-  once its stream's period has passed in wall time too (at most state_rate and world_rate per
-  wall second, as at rest); the chunks, and so the physics, stay those of the grid, and the
-  state that ends a motion goes out at once (the loop publishes it on coming to rest).
-* rtf > 0: simulated time advances at rtf × the wall clock; a simulation that falls more than
-  `MAX_LAG` s behind re-anchors rather than racing to catch up.
-* At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams in wall time
-  (*beats*), so subscribers still see a live robot: at the streams' rates for `rest_after` wall
-  seconds after the last activity (`wake`: a command, a move, nock, release, reset, the end of a
-  motion), then at `rest_rate` (a heartbeat, 10 Hz by default: five beats within the
-  controller's 0.5 s freshness rule). Any activity brings the full rates back at
-  once: the next beat is then one full period after the last one, usually already due.
+Streams are scheduled in simulated time: joint states every 1/state_rate s, the world state
+every 1/world_rate s, and physics advances in chunks that end on the next grid point (`chunk`).
+At rtf 0 a grid point goes out only once its stream's period has passed in wall time too
+(`due`); at rtf > 0 simulated time follows the wall clock (`wall_due`); at rest the unchanged
+state is repeated in wall time (`beats`). Each method's docstring says why.
 """
 
 from __future__ import annotations
@@ -78,14 +66,23 @@ class Pacing:
         self._next_world = sim_time + self.world_period
 
     def chunk(self, sim_time: float) -> int:
-        """Steps up to the next scheduled publication (at least 1, at most `MAX_CHUNK`)."""
+        """Steps up to the next scheduled publication (at least 1, at most `MAX_CHUNK` s of sim
+        time)."""
         ahead = min(self._next_state, self._next_world) - sim_time
         return min(self._max_chunk, max(1, math.ceil(ahead / self.dt - 1e-6)))
 
     def due(self, sim_time: float) -> tuple[bool, bool]:
         """After a chunk ending at `sim_time`: whether joint states and a world state are due
         (each grid point reached moves its grid on; at rtf 0 a grid point is due only once its
-        stream's period has passed in wall time since the stream's last publication)."""
+        stream's period has passed in wall time since the stream's last publication).
+
+        Why at rtf 0: a moving world runs some 50× faster than the wall clock, so the grid would
+        put out thousands of states per wall second that no subscriber can use and every one
+        pays for (the robot, the router and each subscriber handle every message). A grid point
+        then goes out at most state_rate and world_rate times per wall second, as at rest; the
+        chunks, and so the physics, stay those of the grid, and the state that ends a motion
+        goes out at once (the loop publishes it on coming to rest).
+        """
         half = 0.5 * self.dt
         joints = sim_time >= self._next_state - half
         if joints:
@@ -101,7 +98,9 @@ class Pacing:
 
     # -- wall time ---------------------------------------------------------------------------
     def wall_due(self, sim_time: float, steps: int) -> float:
-        """The wall time (monotonic s) at which `steps` more steps from `sim_time` are due."""
+        """The wall time (monotonic s) at which `steps` more steps from `sim_time` are due:
+        simulated time advances at rtf × the wall clock; a simulation that falls more than
+        `MAX_LAG` s behind re-anchors rather than racing to catch up."""
         now = time.monotonic()
         anchor = self._anchor
         if anchor is None or sim_time < anchor[1] or now - self._wall(anchor, sim_time) > MAX_LAG:
@@ -139,6 +138,15 @@ class Pacing:
         return min(MAX_IDLE_WAIT, state - now, world - now)
 
     def beats(self) -> tuple[bool, bool]:
-        """Whether a joint state and a world state beat are due now (at rest)."""
+        """Whether a joint state and a world state beat are due now (at rest).
+
+        At rest (rtf 0 and nothing moves) the unchanged state is repeated on the streams in
+        wall time (*beats*), so subscribers still see a live robot: at the streams' rates for
+        `rest_after` wall seconds after the last activity (`wake`: a command, a move, nock,
+        release, reset, the end of a motion), then at `rest_rate` (a heartbeat, 10 Hz by
+        default: five beats within the controller's 0.5 s freshness rule). Any activity brings
+        the full rates back at once: the next beat is then one full period after the last one,
+        usually already due.
+        """
         now, state, world = self._beat_times()
         return now >= state, now >= world
