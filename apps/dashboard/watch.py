@@ -2,9 +2,9 @@
 port's rate, the learner's rollouts and status, the detector's last measured frame and, while a
 page shows it, the camera's scene view (the whole robot from the side camera).
 
-Watching costs the session little: the rates come from the publishers' own message counts, not
-from subscribing to the streams (`apps.port_rates`), the detector's frame is fetched at most a share of
-the detector's time (`MeshWatch._work`), and the scene view only while a page shows it.
+Watching costs the session little: the rates come from the publishers' own message counts
+(`apps.port_rates`), not from subscribing to the streams; the detector's frame is fetched at most
+a share of the detector's time (`MeshWatch._work`), and the scene view only while a page shows it.
 """
 
 from __future__ import annotations
