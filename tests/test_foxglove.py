@@ -363,3 +363,28 @@ def test_the_wind_is_checked_before_the_robot_is_asked() -> None:
     ):
         with pytest.raises(ValueError, match=why):
             operator.set_wind(value)
+
+
+def test_up_serves_foxglove_beside_the_services(tmp_path: Path) -> None:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    up = subprocess.Popen(
+        [sys.executable, "-m", "apps.cli", "up", "--listen", free_tcp_endpoint(), "--robot",
+         "foxup", "--logs", str(tmp_path / "logs"), "--runs", str(tmp_path / "runs"),
+         "--foxglove", str(port)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert up.stdout is not None
+        lines = [up.stdout.readline() for _ in range(3)]
+        serving = f"archery up: serving Foxglove on ws://127.0.0.1:{port}"
+        assert any(line.startswith(serving) for line in lines), lines
+        seen = _client(f"ws://127.0.0.1:{port}", "--want", "/mesh/services")
+        assert "foxup" in _of(seen, "serverInfo")[0]["name"]
+    finally:
+        up.send_signal(2)  # Ctrl-C
+        up.communicate(timeout=60)
+    assert up.returncode == 0

@@ -1,5 +1,5 @@
-"""`archery up`, the command: its flags, the mesh they describe, the optional recorder, and the
-truthful last line and exit status once everything stopped.
+"""`archery up`, the command: its flags, the mesh they describe, the optional recorder and Foxglove
+server, and the truthful last line and exit status once everything stopped.
 
 While it starts, stdout says what it starts and stderr, as each wait begins, what it waits for
 and its limit (`apps.waits`): the router to listen (`launcher.ROUTER_START` s), then the services
@@ -33,7 +33,7 @@ from protocol.errors import ConfigError
 from protocol.exit_status import INTERRUPTED
 from protocol.keys import DEFAULT_ROBOT
 
-__all__ = ["build_parser", "main", "mesh_from_args", "start_recorder"]
+__all__ = ["build_parser", "main", "mesh_from_args", "start_observer", "start_recorder"]
 
 DESCRIPTION = "a router and all five services as supervised child processes of one command"
 
@@ -96,35 +96,58 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.mcap",
         help="record the whole run (every stream of the robot) into this MCAP file",
     )
+    parser.add_argument(
+        "--foxglove",
+        metavar="PORT",
+        type=int,
+        nargs="?",
+        const=8765,
+        help="serve the first robot live to the Foxglove app on 127.0.0.1:PORT (default 8765; "
+        "read-only, see `archery foxglove`)",
+    )
     return parser
 
 
 def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
     """An `archery record` child writing every stream of the first robot to `out` (its log
-    `LOGS/recorder.log`, rotated and bounded like the others'), started once it subscribes.
+    `LOGS/recorder.log`), started once it subscribes.
 
     Raises:
         LaunchError: it exited or did not subscribe within `timeout` s.
     """
-    argv = ["record", "--out", out, "--connect", launcher.endpoint, "--robot", launcher.net.robot]
-    output = launcher.output("recorder")
+    argv = ["record", "--out", out]
+    return start_observer(launcher, "recorder", argv, b"archery record: recording", timeout)
+
+
+def start_observer(
+    launcher: Launcher, name: str, argv: list[str], ready: bytes, timeout: float = 30.0
+) -> subprocess.Popen[bytes]:
+    """An `archery ARGV…` child that follows the first robot (the recorder, the Foxglove
+    server), its log `LOGS/NAME.log` rotated and bounded like the others', returned once its
+    log holds `ready`.
+
+    Raises:
+        LaunchError: it exited or did not get ready within `timeout` s.
+    """
+    connect = ["--connect", launcher.endpoint, "--robot", launcher.net.robot]
+    output = launcher.output(name)
     output.close()
     for path in output.paths:  # this run's words only
         path.unlink(missing_ok=True)
     child = spawn(
-        "recorder",
-        [sys.executable, "-m", "apps.cli", *argv, *launcher.secure],
+        name,
+        [sys.executable, "-m", "apps.cli", *argv, *connect, *launcher.secure],
         output,
         launcher.env,
     )
     assert child.proc is not None
     deadline = time.monotonic() + timeout
-    while b"archery record: recording" not in _read(output.path):
+    while ready not in _read(output.path):
         if child.returncode is not None or time.monotonic() > deadline:
             child.proc.kill()
             child.proc.wait()
             tail = child.tail().splitlines()[-1:]
-            raise LaunchError(f"the recorder did not start: {' '.join(tail) or 'no output'}")
+            raise LaunchError(f"the {name} did not start: {' '.join(tail) or 'no output'}")
         time.sleep(0.05)
     return child.proc
 
@@ -236,14 +259,25 @@ def main(argv: list[str] | None = None) -> int:
         where = f"a router on {launcher.endpoint}" if launcher.with_router else "no router"
         print(f"archery up: starting {where} and {', '.join(launcher.specs)} …", flush=True)
         took = launcher.up(args.timeout, stop=stop, on_wait=announce("up"))
-        recorder = None
-        if args.record is not None:
-            try:
-                recorder = start_recorder(launcher, args.record)
-            except LaunchError:
-                launcher.stop_all()
-                raise
-            print(f"archery up: recording to {args.record}", flush=True)
+        observers: list[tuple[str, subprocess.Popen[bytes]]] = []
+        try:
+            if args.record is not None:
+                observers.append(("the recorder", start_recorder(launcher, args.record)))
+                print(f"archery up: recording to {args.record}", flush=True)
+            if args.foxglove is not None:
+                argv = ["foxglove", "--port", str(args.foxglove)]
+                ready = b"archery foxglove: serving"
+                observers.append(
+                    ("the Foxglove server", start_observer(launcher, "foxglove", argv, ready))
+                )
+                where = f"ws://127.0.0.1:{args.foxglove}"
+                print(f"archery up: serving Foxglove on {where}", flush=True)
+        except LaunchError:
+            for _, observer in observers:
+                observer.terminate()
+                observer.wait(60)
+            launcher.stop_all()
+            raise
     except StartInterrupted as exc:
         print(f"archery up: {exc}", file=sys.stderr)
         return INTERRUPTED
@@ -265,10 +299,8 @@ def main(argv: list[str] | None = None) -> int:
         launcher, report=lambda line: print(f"archery up: {line}", file=sys.stderr, flush=True)
     )
     outcome = supervisor.run(stop)
-    if recorder is not None:
-        recorder.terminate()
-        if recorder.wait(60) != 0:
-            print(
-                f"archery up: the recorder ended with status {recorder.returncode}", file=sys.stderr
-            )
+    for name, observer in observers:
+        observer.terminate()
+        if observer.wait(60) != 0:
+            print(f"archery up: {name} ended with status {observer.returncode}", file=sys.stderr)
     return _final(launcher, supervisor, outcome)
