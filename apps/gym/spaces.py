@@ -70,7 +70,7 @@ def checked_action(action: object, space: spaces.Box) -> tuple[np.ndarray, bool]
     if bad.size:
         i = int(bad[0])
         raise ValueError(
-            f"action {theta.tolist()} m holds {theta[i]!r} at index {i}: θ must be finite; "
+            f"action {theta.tolist()} m holds {float(theta[i])!r} at index {i}: θ must be finite; "
             "nothing was moved"
         )
     clipped = np.clip(theta, space.low, space.high)
