@@ -4,16 +4,19 @@ at rtf 0. A few shots per test."""
 
 from __future__ import annotations
 
+import json
 import signal
 import time
 import warnings
 from collections.abc import Iterator
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
+from apps.compare.compare import main as compare_main
 from apps.gym.aim_robot import AimRobotEnv, RobotUnavailable, ServiceLostError
 from apps.up.launch_config import default_mesh
 from apps.up.launcher import Launcher
@@ -160,3 +163,15 @@ def test_a_process_forked_after_zenoh_ran_says_so_instead_of_hanging(
         finally:
             envs.close(terminate=True)
     assert "Zenoh does not survive fork" in capfd.readouterr().err
+
+
+def test_compare_on_the_icub_with_a_short_budget(
+    mesh: Launcher, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    argv = ["--world", "mesh", "--connect", mesh.endpoint, "--robot", ROBOTS[1]]
+    argv += ["--sessions", "1", "--rollouts", "3", "--methods", "archer,ngopt"]
+    assert compare_main([*argv, "--out", str(tmp_path), "--no-progress"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["run"]["env"] == "archery/AimRobot-v0"
+    assert list(summary["methods"]) == ["archer", "ngopt"]
+    assert (tmp_path / "fig6.png").is_file() and "archer" in capsys.readouterr().out
