@@ -71,6 +71,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.experiment.experiment:main",
         "run the paper's simulation experiment (the ballistic world, or the robots of a fleet)",
     ),
+    "compare": (
+        "apps.compare.compare:main",
+        "ARCHER and PoWER against pycma and nevergrad through the Gymnasium environment",
+    ),
     "report": (
         "apps.report:main",
         "draw report.png beside session journals (a session's or an experiment's folder)",

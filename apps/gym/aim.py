@@ -1,0 +1,213 @@
+"""`archery/Aim-v0`: the paper's analytic world (`sim.ballistic`) as a Gymnasium environment.
+
+One step is one shot: the action θ (m, `apps.gym.spaces`) is shot at the target and the
+observation is where it landed (r, m) and the θ shot; the reward is −‖r‖ (m). Every scenario
+option of `archery experiment` is a `make` keyword of the same name and unit: `distance` (m),
+`wind` (m/s, root frame), `drag` (1/m), `noise` (m, the std of the observation noise on r),
+`bow_stiffness` (N/m), `start` (θ at the start of an episode, m) and `wind_change`
+(`"AT:VX,VY,VZ"` or `(AT, (VX, VY, VZ))`: the wind from the episode's shot AT on, m/s).
+
+An episode ends at a hit, the true ‖r‖ under the innermost ring's 5 cm as `archery experiment`
+counts it (`terminated`; `until_hit=False`: never), or after `budget` shots (`truncated`,
+default 60). `reset(seed=S, options={"session": K})` seeds the observation noise exactly as
+`archery experiment --seed S` seeds its session K (K defaults to 0), so an episode is
+reproduced bit for bit and the project's learners given the experiment's learner seed
+(`apps.gym.agent`) shoot exactly the rollouts of the experiment.
+
+`info` after a step: `r` (m, observed), `distance` (‖r‖, m), `hit`, `theta` (the θ shot, m),
+`theta_measured` (the same here: the analytic world has no arms), `confidence` (1.0: r needs no
+detection here), `clipped` (the action lay outside the box and was clipped), `shots` (this
+episode's), and the ground truth `r_true` and `true_distance` (m).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import replace
+from typing import Any, cast
+
+import gymnasium as gym
+import numpy as np
+
+from apps.experiment.config import WindChange
+from apps.gym.spaces import action_space, checked_action, observation, observation_space
+from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds
+from sim.ballistic import BallisticWorld, Scenario, ScenarioError
+from sim.geometry import INNER_RING_RADIUS
+
+__all__ = ["DEFAULT_BUDGET", "AimEnv", "episode_budget", "session_of", "wind_change_of"]
+
+DEFAULT_BUDGET = 60  # shots per episode, as the paper's sessions
+
+
+def episode_budget(budget: object) -> int:
+    """`budget` (shots per episode) checked: an integer >= 1.
+
+    Raises:
+        ValueError: it is not one.
+    """
+    if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or budget < 1:
+        raise ValueError(f"budget must be an integer >= 1 (shots per episode), got {budget!r}")
+    return int(budget)
+
+
+def session_of(options: dict[str, Any] | None) -> int:
+    """The session K of `reset(options={"session": K})` (0 without one).
+
+    Raises:
+        ValueError: K is not an integer >= 0.
+    """
+    session = (options or {}).get("session", 0)
+    if isinstance(session, bool) or not isinstance(session, int | np.integer) or session < 0:
+        raise ValueError(f"options['session'] must be an integer >= 0, got {session!r}")
+    return int(session)
+
+
+def wind_change_of(value: object, budget: int) -> WindChange | None:
+    """A `wind_change` keyword (`"AT:VX,VY,VZ"`, `(AT, (VX, VY, VZ))`, a `WindChange` or None)
+    checked against the episode's budget: AT in [2, budget], the wind in m/s.
+
+    Raises:
+        ValueError: malformed, or AT outside the budget.
+    """
+    if value is None or isinstance(value, WindChange):
+        change = value
+    elif isinstance(value, str):
+        change = WindChange.parse(value)
+    else:
+        try:
+            at, wind = cast(tuple[int, Sequence[float]], value)
+            vx, vy, vz = (float(w) for w in wind)
+            change = WindChange(int(at), (vx, vy, vz))
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"wind_change must be 'AT:VX,VY,VZ' or (AT, (VX, VY, VZ)), got {value!r}"
+            ) from None
+    if change is not None and not 2 <= change.at <= budget:
+        raise ValueError(f"wind_change shot {change.at} must be in [2, {budget}] (the budget)")
+    return change
+
+
+class AimEnv(gym.Env[np.ndarray, np.ndarray]):
+    """The analytic archery range: shoot θ (m), observe r (m); see the module docstring.
+
+    Args:
+        distance, wind, drag, noise, bow_stiffness, start: the scenario (`sim.ballistic.Scenario`,
+            the units of `archery experiment`'s flags); None keeps its default.
+        wind_change: the wind from a shot of the episode on (None: no change).
+        budget: shots per episode before it is truncated.
+        until_hit: end the episode at the first hit (`terminated`).
+        bounds: the θ box (m, `(low, high)` or a `Bounds`); default `archery experiment`'s,
+            `services.learner.algorithms.base.DEFAULT_BOUNDS` (the analytic world has no arms).
+        render_mode: None (nothing to render).
+
+    Raises:
+        ValueError (`sim.ballistic.ScenarioError` for the scenario): a bad keyword, named.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (Gymnasium's class attribute)
+
+    def __init__(
+        self,
+        *,
+        distance: float | None = None,
+        wind: Sequence[float] | None = None,
+        drag: float | None = None,
+        noise: float | None = None,
+        bow_stiffness: float | None = None,
+        start: Sequence[float] | None = None,
+        wind_change: object = None,
+        budget: int = DEFAULT_BUDGET,
+        until_hit: bool = True,
+        bounds: Bounds | tuple[Sequence[float], Sequence[float]] | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if render_mode is not None:
+            raise ValueError(
+                f"archery/Aim-v0 renders nothing: render_mode must be None, got {render_mode!r}"
+            )
+        given = {
+            "distance": distance,
+            "wind": None if wind is None else tuple(wind),
+            "drag": drag,
+            "noise": noise,
+            "bow_stiffness": bow_stiffness,
+            "start": None if start is None else tuple(start),
+        }
+        self.scenario = Scenario(**{k: v for k, v in given.items() if v is not None})  # type: ignore[arg-type]
+        self.budget = episode_budget(budget)
+        self.until_hit = bool(until_hit)
+        self.wind_change = wind_change_of(wind_change, self.budget)
+        if bounds is None:
+            self.bounds = DEFAULT_BOUNDS
+        elif isinstance(bounds, Bounds):
+            self.bounds = bounds
+        else:
+            low, high = bounds
+            self.bounds = Bounds(low=tuple(low), high=tuple(high))
+        if not self.bounds.contains(np.array(self.scenario.start)):
+            raise ScenarioError(
+                f"start θ {list(self.scenario.start)} m lies outside the θ box "
+                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}",
+                "start",
+            )
+        self.world = BallisticWorld(self.scenario)
+        changed = self.world
+        if self.wind_change is not None:
+            changed = BallisticWorld(replace(self.scenario, wind=self.wind_change.wind))
+        self._changed = changed
+        self.action_space: gym.spaces.Box = action_space(self.bounds)
+        self.observation_space: gym.spaces.Box = observation_space(self.bounds)
+        self.render_mode = render_mode
+        self._start = np.array(self.scenario.start, dtype=np.float64)
+        self._shots = 0
+        self._seeded = False
+        self._obs = observation(np.zeros(2), self._start)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """A new episode: no shot yet, θ at the start; with `seed` (and `options["session"]`),
+        the observation noise of `archery experiment --seed SEED`'s session."""
+        session = session_of(options)
+        super().reset(seed=seed)
+        if seed is not None or not self._seeded:
+            master = seed if seed is not None else int(self.np_random.integers(2**63))
+            self.world.reset(np.random.SeedSequence(master, spawn_key=(session, 0)))
+            self._seeded = True
+        self._shots = 0
+        self._obs = observation(np.zeros(2), self._start)
+        return self._obs.copy(), {"shots": 0, "theta": self._start.copy()}
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Shoot θ = `action` (m, clipped into the box); see the module docstring.
+
+        Raises:
+            ValueError: the action holds a NaN or an infinity, or is not 3 numbers.
+        """
+        theta, clipped = checked_action(action, self.action_space)
+        self._shots += 1
+        changed = self.wind_change is not None and self._shots >= self.wind_change.at
+        impacts = (self._changed if changed else self.world).impacts(theta.reshape(1, -1))
+        r_true = impacts.r[0]
+        r = self.world.observe(r_true)
+        distance = math.hypot(float(r[0]), float(r[1]))
+        true_distance = math.hypot(float(r_true[0]), float(r_true[1]))
+        hit = true_distance < INNER_RING_RADIUS
+        self._obs = observation(r, theta)
+        info = {
+            "r": r.copy(),
+            "distance": distance,
+            "hit": hit,
+            "theta": theta.copy(),
+            "theta_measured": theta.copy(),
+            "confidence": 1.0,
+            "clipped": clipped,
+            "shots": self._shots,
+            "r_true": r_true.copy(),
+            "true_distance": true_distance,
+        }
+        terminated = self.until_hit and hit
+        truncated = not terminated and self._shots >= self.budget
+        return self._obs.copy(), -distance, terminated, truncated, info

@@ -1,0 +1,77 @@
+"""The spaces of the archery task as Gymnasium sees it, and the one check of an action.
+
+Action: θ, the string hand's position relative to the bow hand, a `Box` of shape (3,) in metres
+(float64): the θ box of the world (the controller's on the iCub, `archery experiment`'s on the
+analytic world).
+
+Observation: a `Box` of shape (5,), float64, metres: `[r_y, r_z, θ_x, θ_y, θ_z]`, the last
+measured r (the arrow's offset from the centre on the target plane: r[0] to the robot's right,
+r[1] up; unbounded) and the last θ shot (inside the action box). After `reset`, before any shot,
+r is (0, 0) and θ the episode's start θ (`info["shots"]` is 0 then).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from gymnasium import spaces
+
+from services.learner.algorithms.base import Bounds
+
+__all__ = [
+    "OBSERVATION_FIELDS",
+    "action_space",
+    "checked_action",
+    "observation",
+    "observation_space",
+]
+
+#: What each component of an observation is (all in metres).
+OBSERVATION_FIELDS = ("r_y", "r_z", "theta_x", "theta_y", "theta_z")
+
+
+def action_space(bounds: Bounds) -> spaces.Box:
+    """θ's box (m) as a float64 `Box`."""
+    return spaces.Box(
+        low=np.array(bounds.low, dtype=np.float64),
+        high=np.array(bounds.high, dtype=np.float64),
+        dtype=np.float64,
+    )
+
+
+def observation_space(bounds: Bounds) -> spaces.Box:
+    """The observation's `Box`: r (m) unbounded, θ (m) in `bounds`."""
+    low = np.array([-math.inf, -math.inf, *bounds.low], dtype=np.float64)
+    high = np.array([math.inf, math.inf, *bounds.high], dtype=np.float64)
+    return spaces.Box(low=low, high=high, dtype=np.float64)
+
+
+def observation(r: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """`[r_y, r_z, θ_x, θ_y, θ_z]` (m) from r (2,) and θ (3,)."""
+    return np.concatenate([np.asarray(r, dtype=np.float64), np.asarray(theta, dtype=np.float64)])
+
+
+def checked_action(action: object, space: spaces.Box) -> tuple[np.ndarray, bool]:
+    """(θ to shoot, whether it was clipped) for an agent's action: a finite 3-vector in metres,
+    clipped into `space` (Gymnasium's convention for continuous boxes) and never sent raw.
+
+    Raises:
+        ValueError: the action is not 3 numbers, or holds a NaN or an infinity (named), before
+            anything moves.
+    """
+    try:
+        theta = np.array(action, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"action must be 3 numbers (θ in m), got {action!r}") from None
+    if theta.shape != space.shape:
+        raise ValueError(f"action must be 3 numbers (θ in m), got {theta.size}: {action!r}")
+    bad = np.flatnonzero(~np.isfinite(theta))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(
+            f"action {theta.tolist()} m holds {float(theta[i])!r} at index {i}: θ must be finite; "
+            "nothing was moved"
+        )
+    clipped = np.clip(theta, space.low, space.high)
+    return clipped, bool(np.any(clipped != theta))
