@@ -2,15 +2,7 @@
 environment with the archery task's interface (`apps.gym.spaces`): θ from the learner's `ask`,
 one `step` per shot, `tell(θ shot, r measured)` from the step's `info`.
 
-Seeds: `run_learner(env, name, seed=S, session=K)` resets the environment with `seed=S,
-options={"session": K}` and gives the learner the generator `archery experiment --seed S` gives
-session K, so on `archery/Aim-v0` it shoots exactly that session's rollouts. Pass `rng` for
-another convention (`archery learn --seed S` seeds its learner with `default_rng(S)`).
-
-A shot the environment could not measure (`info["r"]` None: no arrow on the target face) is
-handled as a learning session does (`services.learner.abort_policy`): the learner is not told,
-and the next shot backs off halfway towards the best θ so far (or the learner's own redraw).
-"""
+The details: `run_learner`'s docstring."""
 
 from __future__ import annotations
 
@@ -89,6 +81,16 @@ def run_learner(
 
     Raises:
         LearnerError: unknown learner or bad options; whatever `env.step` raises.
+
+    Seeds: `run_learner(env, name, seed=S, session=K)` resets the environment with `seed=S,
+    options={"session": K}` and gives the learner the generator `archery experiment --seed S` gives
+    session K, so on `archery/Aim-v0` it shoots exactly that session's rollouts. Pass `rng` for
+    another convention (`archery learn --seed S` seeds its learner with `default_rng(S)`).
+
+    A shot the environment could not measure (`info["r"]` None: no arrow on the target face) is
+    handled as a learning session does (`services.learner.abort_policy`): the learner is not told,
+    and the next shot backs off halfway towards the best θ so far (or the learner's own redraw).
+
     """
     observation, _ = env.reset(seed=seed, options={"session": session})
     bounds = bounds_of(env.action_space)

@@ -1,24 +1,6 @@
 """`archery/Aim-v0`: the paper's analytic world (`sim.ballistic`) as a Gymnasium environment.
 
-One step is one shot: the action θ (m, `apps.gym.spaces`) is shot at the target and the
-observation is where it landed (r, m) and the θ shot; the reward is −‖r‖ (m). Every scenario
-option of `archery experiment` is a `make` keyword of the same name and unit: `distance` (m),
-`wind` (m/s, root frame), `drag` (1/m), `noise` (m, the std of the observation noise on r),
-`bow_stiffness` (N/m), `start` (θ at the start of an episode, m) and `wind_change`
-(`"AT:VX,VY,VZ"` or `(AT, (VX, VY, VZ))`: the wind from the episode's shot AT on, m/s).
-
-An episode ends at a hit, the true ‖r‖ under the innermost ring's 5 cm as `archery experiment`
-counts it (`terminated`; `until_hit=False`: never), or after `budget` shots (`truncated`,
-default 60). `reset(seed=S, options={"session": K})` seeds the observation noise exactly as
-`archery experiment --seed S` seeds its session K (K defaults to 0), so an episode is
-reproduced bit for bit and the project's learners given the experiment's learner seed
-(`apps.gym.agent`) shoot exactly the rollouts of the experiment.
-
-`info` after a step: `r` (m, observed), `distance` (‖r‖, m), `hit`, `theta` (the θ shot, m),
-`theta_measured` (the same here: the analytic world has no arms), `confidence` (1.0: r needs no
-detection here), `clipped` (the action lay outside the box and was clipped), `shots` (this
-episode's), and the ground truth `r_true` and `true_distance` (m).
-"""
+The details: `AimEnv`'s docstring."""
 
 from __future__ import annotations
 
@@ -90,7 +72,7 @@ def wind_change_of(value: object, budget: int) -> WindChange | None:
 
 
 class AimEnv(gym.Env[np.ndarray, np.ndarray]):
-    """The analytic archery range: shoot θ (m), observe r (m); see the module docstring.
+    """The analytic archery range: shoot θ (m), observe r (m).
 
     Args:
         distance, wind, drag, noise, bow_stiffness, start: the scenario (`sim.ballistic.Scenario`,
@@ -104,6 +86,26 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
 
     Raises:
         ValueError (`sim.ballistic.ScenarioError` for the scenario): a bad keyword, named.
+
+    One step is one shot: the action θ (m, `apps.gym.spaces`) is shot at the target and the
+    observation is where it landed (r, m) and the θ shot; the reward is −‖r‖ (m). Every scenario
+    option of `archery experiment` is a `make` keyword of the same name and unit: `distance` (m),
+    `wind` (m/s, root frame), `drag` (1/m), `noise` (m, the std of the observation noise on r),
+    `bow_stiffness` (N/m), `start` (θ at the start of an episode, m) and `wind_change`
+    (`"AT:VX,VY,VZ"` or `(AT, (VX, VY, VZ))`: the wind from the episode's shot AT on, m/s).
+
+    An episode ends at a hit, the true ‖r‖ under the innermost ring's 5 cm as `archery experiment`
+    counts it (`terminated`; `until_hit=False`: never), or after `budget` shots (`truncated`,
+    default 60). `reset(seed=S, options={"session": K})` seeds the observation noise exactly as
+    `archery experiment --seed S` seeds its session K (K defaults to 0), so an episode is
+    reproduced bit for bit and the project's learners given the experiment's learner seed
+    (`apps.gym.agent`) shoot exactly the rollouts of the experiment.
+
+    `info` after a step: `r` (m, observed), `distance` (‖r‖, m), `hit`, `theta` (the θ shot, m),
+    `theta_measured` (the same here: the analytic world has no arms), `confidence` (1.0: r needs no
+    detection here), `clipped` (the action lay outside the box and was clipped), `shots` (this
+    episode's), and the ground truth `r_true` and `true_distance` (m).
+
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (Gymnasium's class attribute)
@@ -181,7 +183,7 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         return self._obs.copy(), {"shots": 0, "theta": self._start.copy()}
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        """Shoot θ = `action` (m, clipped into the box); see the module docstring.
+        """Shoot θ = `action` (m, clipped into the box).
 
         Raises:
             ValueError: the action holds a NaN or an infinity, or is not 3 numbers.

@@ -1,43 +1,6 @@
 """`archery/AimRobot-v0`: the MuJoCo iCub over a running mesh as a Gymnasium environment.
 
-One step is one shot through the rig the learner service uses (`services.learner.rig`: the
-controller's `posture` for θ, the robot's `nock` and `release`, the detector's `measure`; the
-steps of `services.learner.rollout_step.shoot`), so the observation's r is the detector's,
-never the robot's ground truth, which goes in `info` only (`r_true`). The action box is the
-controller's θ box, read from its `status` when the environment is made; the spaces are
-`apps.gym.spaces`'. The reward is −‖r‖ (m).
-
-Keywords:
-
-* `endpoint`: the router (default `tcp/127.0.0.1:7447`); `secure`: a deployment's folder
-  (`archery keys init`) and `identity` (default `operator`);
-* `robot`: the prefix (default `icubSim`), or several, as a list or separated by commas (the
-  `icubSim1` … of `archery up --robots N`): the environment drives the first one no other
-  environment on this machine drives (`apps.gym.robot_claim`), so `make_vec(...,
-  vectorization_mode="async", vector_kwargs={"context": "spawn"})` gives each process its own
-  robot (Zenoh does not survive `fork`: the processes are spawned, and a forked one says so);
-* `start`: θ at the start (m; default the sessions' θ0); `budget`: shots per episode (default
-  60); `until_hit`; `hit_radius` (m, default 5 cm: a measured ‖r‖ below it is a hit, as
-  `archery learn` counts it);
-* `wait`: s to wait for the router, the robot and its services (default 10); `rpc_timeout`: s
-  per call (default 20);
-* `miss_distance`: m, the reward's distance for a shot whose arrow the detector does not see on
-  the face (default the face's radius, 25 cm).
-
-`reset(seed=S)` moves the robot home and reseeds its shot noise with S (as `archery learn
---seed S` does), after waiting up to `wait` s for every service to be alive. `info` after a
-step: `r` (m, measured; None when the detector saw no arrow), `distance` (m; `miss_distance`
-then), `hit`, `theta` (the θ sent, m), `theta_measured` (the θ the arrow was launched with,
-from the hands, m), `confidence` (the detection's: the lower of the target's and the arrow's),
-`clipped`, `shots`, `status` (`ok` or `no_arrow`), `robot`, and the robot's ground truth
-`r_true` (m, None if unknown).
-
-Errors: no router or no robot within `wait` s: the waiting line on stderr when the wait begins,
-then `RobotUnavailable` naming the endpoint and robot; a service lost during a step:
-`ServiceLostError` naming it (after `rpc_timeout` s), and the next `reset` works once it is
-back; a posture not reached or a frame without the target: `ShotNotMeasured` with the
-learner's abort code.
-"""
+The details: `AimRobotEnv`'s docstring."""
 
 from __future__ import annotations
 
@@ -121,6 +84,45 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     Raises:
         ValueError: a bad keyword, named.
         RobotUnavailable: no router or robot within `wait` s.
+
+    One step is one shot through the rig the learner service uses (`services.learner.rig`: the
+    controller's `posture` for θ, the robot's `nock` and `release`, the detector's `measure`; the
+    steps of `services.learner.rollout_step.shoot`), so the observation's r is the detector's,
+    never the robot's ground truth, which goes in `info` only (`r_true`). The action box is the
+    controller's θ box, read from its `status` when the environment is made; the spaces are
+    `apps.gym.spaces`'. The reward is −‖r‖ (m).
+
+    Keywords:
+
+    * `endpoint`: the router (default `tcp/127.0.0.1:7447`); `secure`: a deployment's folder
+      (`archery keys init`) and `identity` (default `operator`);
+    * `robot`: the prefix (default `icubSim`), or several, as a list or separated by commas (the
+      `icubSim1` … of `archery up --robots N`): the environment drives the first one no other
+      environment on this machine drives (`apps.gym.robot_claim`), so `make_vec(...,
+      vectorization_mode="async", vector_kwargs={"context": "spawn"})` gives each process its own
+      robot (Zenoh does not survive `fork`: the processes are spawned, and a forked one says so);
+    * `start`: θ at the start (m; default the sessions' θ0); `budget`: shots per episode (default
+      60); `until_hit`; `hit_radius` (m, default 5 cm: a measured ‖r‖ below it is a hit, as
+      `archery learn` counts it);
+    * `wait`: s to wait for the router, the robot and its services (default 10); `rpc_timeout`: s
+      per call (default 20);
+    * `miss_distance`: m, the reward's distance for a shot whose arrow the detector does not see on
+      the face (default the face's radius, 25 cm).
+
+    `reset(seed=S)` moves the robot home and reseeds its shot noise with S (as `archery learn
+    --seed S` does), after waiting up to `wait` s for every service to be alive. `info` after a
+    step: `r` (m, measured; None when the detector saw no arrow), `distance` (m; `miss_distance`
+    then), `hit`, `theta` (the θ sent, m), `theta_measured` (the θ the arrow was launched with,
+    from the hands, m), `confidence` (the detection's: the lower of the target's and the arrow's),
+    `clipped`, `shots`, `status` (`ok` or `no_arrow`), `robot`, and the robot's ground truth
+    `r_true` (m, None if unknown).
+
+    Errors: no router or no robot within `wait` s: the waiting line on stderr when the wait begins,
+    then `RobotUnavailable` naming the endpoint and robot; a service lost during a step:
+    `ServiceLostError` naming it (after `rpc_timeout` s), and the next `reset` works once it is
+    back; a posture not reached or a frame without the target: `ShotNotMeasured` with the
+    learner's abort code.
+
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (Gymnasium's class attribute)
