@@ -1,7 +1,7 @@
 // Drives Foxglove's own client (@foxglove/ws-protocol) against a live server and prints what it
 // saw as JSON lines on stdout, for tests/test_foxglove.py:
 //   node client.mjs URL [--want TOPIC ...] [--call SERVICE JSON | --call-unadvertised JSON]
-//     [--set-wind X,Y,Z] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]]
+//     [--set-wind X,Y,Z] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]] [--watch]
 // {"serverInfo": …} first, then {"channels": […]} once every wanted topic is advertised, one
 // {"message": {topic, schemaName, encoding, data (base64)}} per wanted topic (its first), the
 // service call's {"response": …} or {"failure": …}, the parameter's {"parameters": …} and
@@ -17,6 +17,7 @@ let call = null;
 let wind = null;
 let timeout = 30;
 let crowd = 0;
+let watch = false;
 const crowdSkips = [];
 for (let i = 1; i < args.length; i++) {
   if (args[i] === "--want") want.push(args[++i]);
@@ -25,13 +26,37 @@ for (let i = 1; i < args.length; i++) {
   else if (args[i] === "--set-wind") wind = args[++i].split(",").map(Number);
   else if (args[i] === "--timeout") timeout = Number(args[++i]);
   else if (args[i] === "--crowd") crowd = Number(args[++i]);
+  else if (args[i] === "--watch") watch = true;
   else if (args[i] === "--crowd-skip") crowdSkips.push(args[++i]);
 }
 const out = (o) => process.stdout.write(JSON.stringify(o) + "\n");
 // exit once stdout has taken every line (a pipe is written asynchronously)
 const finish = (code) => process.stdout.write("", () => process.exit(code));
 const protocols = [FoxgloveClient.SUPPORTED_SUBPROTOCOL, "foxglove.sdk.v1"];
-if (crowd > 0) {
+if (watch) {
+  // --watch: subscribe to every channel and count what arrives per topic (messages, bytes)
+  // until SIGTERM or SIGINT, then print {"counts": {topic: [messages, bytes]}, "seconds": S}
+  const started = Date.now();
+  const counts = {};
+  const c = new FoxgloveClient({ ws: new WebSocket(url, protocols) });
+  const topics = new Map();
+  c.on("advertise", (list) => {
+    for (const ch of list) topics.set(c.subscribe(ch.id), ch.topic);
+    out({ watching: list.length });
+  });
+  c.on("message", ({ subscriptionId, data }) => {
+    const topic = topics.get(subscriptionId);
+    const n = counts[topic] || [0, 0];
+    counts[topic] = [n[0] + 1, n[1] + data.byteLength];
+  });
+  c.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
+  const report = () => {
+    out({ counts, seconds: (Date.now() - started) / 1000 });
+    finish(0);
+  };
+  process.on("SIGTERM", report);
+  process.on("SIGINT", report);
+} else if (crowd > 0) {
   // --crowd N: N clients at once, each subscribing to every channel but the skipped ones, then
   // all gone (half of
   // them in the middle of a message: the socket destroyed without a close handshake)
