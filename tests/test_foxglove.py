@@ -16,10 +16,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import cv2
 import mujoco
 import numpy as np
 import psutil
 import pytest
+from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
@@ -118,6 +120,28 @@ class Mesh:
         self.up.wait(60)
 
 
+def _client_while_learning(mesh: Mesh, url: str, *args: str) -> list[dict[str, Any]]:
+    """Run Foxglove's client against `url` while the mesh learns, session after session, until
+    the client has all it wants; its JSON lines."""
+    lines: list[dict[str, Any]] = []
+    failed: list[BaseException] = []
+
+    def watch() -> None:
+        try:
+            lines.extend(_client(url, *args, timeout=120))
+        except BaseException as exc:  # re-raised below, in the test's thread
+            failed.append(exc)
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    while watcher.is_alive():
+        mesh.learn(1)
+        watcher.join(timeout=0.1)
+    if failed:
+        raise failed[0]
+    return lines
+
+
 @pytest.fixture(scope="module")
 def mesh(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Mesh]:
     running = Mesh(tmp_path_factory.mktemp("foxglove"))
@@ -163,28 +187,12 @@ def test_a_client_sees_every_channel_and_decodes_a_message_on_each(mesh: Mesh) -
             callback=lambda m: worlds.__setitem__(round(m.stamp * 1e9), m),
         )
     )
-    lines: list[dict[str, Any]] = []
-    failed: list[BaseException] = []
     wants = [arg for topic in TOPICS for arg in ("--want", topic.name)]
-
-    def watch() -> None:
-        try:
-            lines.extend(_client(url, *wants, timeout=120))
-        except BaseException as exc:  # re-raised below, in the test's thread
-            failed.append(exc)
-
-    watcher = threading.Thread(target=watch)
-    watcher.start()
     try:
-        while watcher.is_alive():  # rollouts until the client has a message on every channel
-            mesh.learn(2)
-            watcher.join(timeout=0.1)
+        lines = _client_while_learning(mesh, url, *wants)
     finally:
-        watcher.join()
         for sub in subs:
             sub.close()
-    if failed:
-        raise failed[0]
     info = _of(lines, "serverInfo")[0]
     assert "read-only" in info["name"] and "services" not in info["capabilities"]
     advertised = {c["topic"]: c for c in _of(lines, "channels")[0]}
@@ -388,3 +396,14 @@ def test_up_serves_foxglove_beside_the_services(tmp_path: Path) -> None:
         up.send_signal(2)  # Ctrl-C
         up.communicate(timeout=60)
     assert up.returncode == 0
+
+
+def test_jpeg_frames_decode_to_the_camera_size(mesh: Mesh) -> None:
+    _, url = mesh.bridge("--jpeg")
+    lines = _client_while_learning(mesh, url, "--want", "/camera/image")
+    channel = next(c for c in _of(lines, "channels")[0] if c["topic"] == "/camera/image")
+    assert channel["schemaName"] == "foxglove.CompressedImage"
+    image = CompressedImage.FromString(base64.b64decode(_of(lines, "message")[0]["data"]))
+    assert image.format == "jpeg"
+    pixels = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
+    assert pixels.shape == (720, 1280, 3)
