@@ -5,7 +5,8 @@ For each real-time factor (1: the wall-clock pace of a watched session; 0: as fa
 a whole mesh (`archery up`'s Launcher) runs ARCHER sessions of the same seed per repeat under two
 conditions, interleaved (the order alternating): nothing watching, and `archery foxglove` with
 Foxglove's own client (tests/foxglove_client, `--watch`) subscribed to every channel. It prints,
-per rtf: the rollouts of the two sessions of a repeat compared (θ and r of every rollout); the
+per rtf: the rollouts of the two sessions of a repeat compared (θ and r of every rollout), and
+of two unwatched sessions of one seed (the control: whether the pace itself repeats); the
 wall time per rollout (median of a session's rollouts) and its ratio watched/none per repeat
 (goal ≤ 1.05× at rtf 1); the bridge's CPU per rollout and its share of a core; and the frames the
 client received per second against the camera's published rate over the same session.
@@ -113,6 +114,13 @@ def _one_rtf(rtf: float, repeats: int, rollouts: int, tmp: Path) -> dict[str, An
             feed = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
             node.wait_alive(SERVICES, timeout=30)
             _per_rollout(node, feed, 1000, 2)  # warm-up (calibration): untimed
+            # the control: two unwatched sessions of one seed, whether this pace repeats itself
+            control = [_rollouts(_per_rollout(node, feed, 999, rollouts)[1]) for _ in range(2)]
+            print(
+                f"  rtf {rtf:g} control: two unwatched sessions of one seed "
+                f"{'identical' if control[0] == control[1] else 'DIFFER'}",
+                flush=True,
+            )
             for i in range(repeats):
                 row: dict[str, Any] = {"repeat": i}
                 order = ("none", "watched") if i % 2 == 0 else ("watched", "none")
@@ -160,7 +168,7 @@ def _one_rtf(rtf: float, repeats: int, rollouts: int, tmp: Path) -> dict[str, An
                 rows.append(row)
     finally:
         launcher.stop_all()
-    return {"rtf": rtf, "rows": rows}
+    return {"rtf": rtf, "rows": rows, "control": control[0] == control[1]}
 
 
 def _report(result: dict[str, Any], rollouts: int) -> None:
@@ -175,6 +183,8 @@ def _report(result: dict[str, Any], rollouts: int) -> None:
     camera = [r["watched"]["camera_fps"] for r in rows]
     print(f"rtf {rtf:g} ({len(rows)} interleaved repeats of {rollouts}-rollout ARCHER sessions):")
     print(f"  rollouts identical watched and not (θ and r, every rollout): {same}/{len(rows)}")
+    control = "identical" if result["control"] else "NOT identical"
+    print(f"  control, two unwatched sessions of one seed: {control}")
     print(
         f"  wall ms per rollout: none {median_spread(none_ms, '.0f')}, watched "
         f"{median_spread(watched_ms, '.0f')}; ratio per repeat ×{median_spread(ratios, '.3f')}"
