@@ -1,8 +1,9 @@
 """Benchmark of the task as a Gymnasium environment (`apps.gym`).
 
 Run `python -m benchmarks.bench_gym [--repeats 5] [--steps 3000] [--sessions 40]
-[--robot-shots 12] [--smoke]`. Three figures, each over `--repeats` interleaved repeats
-(the order of the two conditions alternating), median [min, max]:
+[--robot-shots 12] [--only steps|learners|robot] [--smoke]`. Three figures, each over
+`--repeats` interleaved repeats (the order of the two conditions alternating), median [min,
+max]:
 
 1. Steps per second of `archery/Aim-v0` in one process (`gymnasium.make`, with Gymnasium's
    order and passive checks, and the bare `AimEnv`) against calling the ballistic model
@@ -54,6 +55,7 @@ from tests.rpc import rpc_call
 __all__ = ["main"]
 
 METHODS = ("archer", "power", "pycma", "ngopt")
+PARTS = ("steps", "learners", "robot")
 
 
 def _order(k: int, pair: tuple[str, str]) -> tuple[str, str]:
@@ -207,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=3000, help="shots per step-rate repeat")
     parser.add_argument("--sessions", type=int, default=40, help="sessions per learner")
     parser.add_argument("--robot-shots", type=int, default=12, help="shots per robot repeat")
+    parser.add_argument(
+        "--only", choices=PARTS, action="append", help="run only this part (repeatable)"
+    )
     parser.add_argument("--smoke", action="store_true", help="every part at its smallest budget")
     args = parser.parse_args(argv)
     if args.smoke:
@@ -216,9 +221,13 @@ def main(argv: list[str] | None = None) -> int:
         f"{cpu_model()}, Python {platform.python_version()}: `python -m benchmarks.bench_gym "
         f"{' '.join(sys.argv[1:] if argv is None else argv)}`"
     )
-    _step_rates(args.repeats, args.steps)
-    _learners(args.repeats, args.sessions, 8 if args.smoke else 60)
-    _robot(args.repeats, args.robot_shots)
+    parts = args.only or PARTS
+    if "steps" in parts:
+        _step_rates(args.repeats, args.steps)
+    if "learners" in parts:
+        _learners(args.repeats, args.sessions, 8 if args.smoke else 60)
+    if "robot" in parts:
+        _robot(args.repeats, args.robot_shots)
     return 0
 
 
