@@ -149,7 +149,8 @@ def test_make_vec_gives_each_process_its_own_robot_of_the_fleet(mesh: Launcher) 
 def test_a_process_forked_after_zenoh_ran_says_so_instead_of_hanging(
     mesh: Launcher, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    with pytest.raises(Exception):  # noqa: B017 (the worker's error, as Gymnasium reports it)
+    # the worker raises at once and exits; the parent sees its pipe closed
+    with pytest.raises((ConnectionError, EOFError)):
         envs = gym.make_vec(
             ROBOT,
             num_envs=2,
