@@ -109,6 +109,17 @@ def test_no_mesh_is_the_waiting_line_then_a_clear_error(capfd: pytest.CaptureFix
     assert line in err
 
 
+def test_a_robot_not_on_the_mesh_is_the_waiting_line_then_a_clear_error(
+    mesh: Launcher, capfd: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(RobotUnavailable, match=r"no robot 'nobody' ready .* alive: icubSim1"):
+        gym.make(ROBOT, endpoint=mesh.endpoint, robot="nobody", wait=1.0)
+    line = "archery/AimRobot-v0: waiting up to 1 s for robots nobody to be alive (Ctrl-C to stop)"
+    assert line in capfd.readouterr().err
+    with pytest.raises(ValueError, match="tls/"):  # a secure deployment needs a TLS endpoint
+        gym.make(ROBOT, endpoint=mesh.endpoint, secure="/nowhere")
+
+
 def test_a_service_lost_in_a_step_is_named_and_the_next_reset_works(mesh: Launcher) -> None:
     env = _env(mesh, rpc_timeout=3.0, wait=30.0)
     detector = mesh.children[f"detector@{ROBOTS[0]}"].proc

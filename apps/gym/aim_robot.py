@@ -42,6 +42,7 @@ learner's abort code.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import sys
@@ -158,11 +159,13 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             )
         global _zenoh_opened
         _zenoh_opened = True
-        self._claim = claim_robot(robot_names(robot))
+        names = robot_names(robot)
+        net = NetConfig(connect=(endpoint,), robot=names[0], secure=secure, identity=identity)
+        self._claim = claim_robot(names)
         self.robot = self._claim.robot
         self._stack = contextlib.ExitStack()
         self._stack.callback(self._claim.release)
-        net = NetConfig(connect=(endpoint,), robot=self.robot, secure=secure, identity=identity)
+        net = dataclasses.replace(net, robot=self.robot)
         try:
             fleet = self._stack.enter_context(
                 open_fleet(net, [self.robot], self.wait, self.rpc_timeout, self._on_wait)
@@ -171,9 +174,10 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             self.bounds = self.rig.theta_box()
         except (ArcheryError, RigError) as exc:
             self._stack.close()
+            why = str(exc).removeprefix("--robots: ")  # open_fleet's words for its flag
             raise RobotUnavailable(
                 f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} within "
-                f"{self.wait:g} s ({exc}); start one with `archery up`"
+                f"{self.wait:g} s ({why}); start one with `archery up`"
             ) from None
         except BaseException:
             self._stack.close()
