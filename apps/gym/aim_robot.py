@@ -19,8 +19,8 @@ Keywords:
 * `start`: θ at the start (m; default the sessions' θ0); `budget`: shots per episode (default
   60); `until_hit`; `hit_radius` (m, default 5 cm: a measured ‖r‖ below it is a hit, as
   `archery learn` counts it);
-* `wait`: s to wait for the router, the robot and its services (default 10); `rpc_timeout`: s
-  per call (default 20);
+* `wait`: s to wait for the router, then as long for the robot's services (default 10);
+  `rpc_timeout`: s per call (default 20);
 * `miss_distance`: m, the reward's distance for a shot whose arrow the detector does not see on
   the face (default the face's radius, 25 cm).
 
@@ -53,19 +53,20 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.experiment.fleet import open_fleet
 from apps.gym.aim import DEFAULT_BUDGET, episode_budget
 from apps.gym.registration import AIM_ROBOT_ID
 from apps.gym.robot_claim import claim_robot, robot_names
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
 from apps.waits import waiting_for
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
+from mesh.node import open_node
 from protocol.errors import ArcheryError
 from protocol.keys import DEFAULT_ROBOT
 from protocol.robotspec import HIT_RADIUS, THETA0
 from protocol.vectors import finite_vector
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
 from services.learner.errors import RigError, ServiceLost
+from services.learner.rig import SERVICES, MeshRig
 from services.learner.rollout_step import Failed, planar_distance, shoot
 from sim.geometry import TARGET_DIAMETER
 
@@ -167,17 +168,17 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._stack.callback(self._claim.release)
         net = dataclasses.replace(net, robot=self.robot)
         try:
-            fleet = self._stack.enter_context(
-                open_fleet(net, [self.robot], self.wait, self.rpc_timeout, self._on_wait)
-            )
-            self.rig = fleet[0].rig
+            node = open_node(net.with_identity("operator"), self.wait, on_wait=self._on_wait)
+            self._stack.callback(node.close)
+            node.wait_alive(SERVICES, self.wait, on_wait=self._on_wait)
+            self.rig = MeshRig(node, self.rpc_timeout)
+            self._stack.callback(self.rig.close)
             self.bounds = self.rig.theta_box()
         except (ArcheryError, RigError) as exc:
             self._stack.close()
-            why = str(exc).removeprefix("--robots: ")  # open_fleet's words for its flag
             raise RobotUnavailable(
-                f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} within "
-                f"{self.wait:g} s ({why}); start one with `archery up`"
+                f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} ({exc}); start "
+                "one with `archery up`"
             ) from None
         except BaseException:
             self._stack.close()
