@@ -60,7 +60,7 @@ from apps.gym.spaces import action_space, checked_action, observation, observati
 from apps.waits import waiting_for
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
 from mesh.node import open_node
-from protocol.errors import ArcheryError
+from protocol.errors import ArcheryError, ConfigError, Unreachable
 from protocol.keys import DEFAULT_ROBOT
 from protocol.robotspec import HIT_RADIUS, THETA0
 from protocol.vectors import finite_vector
@@ -121,8 +121,9 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     docstring for the keywords.
 
     Raises:
-        ValueError: a bad keyword, named.
-        RobotUnavailable: no router or robot within `wait` s.
+        ValueError: a bad keyword, named (`protocol.errors.ConfigError` for a network setting).
+        RobotUnavailable: no router or robot within `wait` s, or a router that refuses the
+            session.
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (Gymnasium's class attribute)
@@ -176,6 +177,8 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             self.bounds = self.rig.theta_box()
         except (ArcheryError, RigError) as exc:
             self._stack.close()
+            if isinstance(exc, ConfigError) and not isinstance(exc, Unreachable):
+                raise  # a bad setting (say, a deployment's missing file): bad input
             raise RobotUnavailable(
                 f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} ({exc}); start "
                 "one with `archery up`"
