@@ -160,6 +160,12 @@ CASES: list[tuple[str, int, str]] = [
     ("experiment --wind-change 20:0,1,0", 2, "drag"),
     ("experiment --from /no/such", 2, "'/no/such'"),
     ("experiment --from {tmp} --algo power", 2, "learners.json"),
+    ("compare --out {tmp}/file", 2, "'{tmp}/file'"),
+    ("compare --methods archer,bogus --out {tmp}/c", 2, "'archer,bogus'"),
+    ("compare --sessions 0 --out {tmp}/c", 2, "got '0'"),
+    ("compare --drag 0.05 --wind-change 1:0,1,0 --out {tmp}/c", 2, "shot 1"),
+    ("compare --noise nan --out {tmp}/c", 2, "'nan'"),
+    ("compare --world mesh --connect {dead} --wait 0.5 --out {tmp}/c", 1, "{dead}"),
     # services: refused at start
     ("learner --runs /proc/nope {net}", 2, "'/proc/nope'"),
     ("learner --rpc-timeout nan {net}", 2, "nan"),

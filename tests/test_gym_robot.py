@@ -109,6 +109,17 @@ def test_no_mesh_is_the_waiting_line_then_a_clear_error(capfd: pytest.CaptureFix
     assert line in err
 
 
+def test_a_robot_not_on_the_mesh_is_the_waiting_line_then_a_clear_error(
+    mesh: Launcher, capfd: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(RobotUnavailable, match=r"no robot 'nobody' ready .* not alive after 1 s"):
+        gym.make(ROBOT, endpoint=mesh.endpoint, robot="nobody", wait=1.0)
+    err = capfd.readouterr().err
+    assert "archery/AimRobot-v0: waiting up to 1 s for the services: " in err
+    with pytest.raises(ValueError, match="tls/"):  # a secure deployment needs a TLS endpoint
+        gym.make(ROBOT, endpoint=mesh.endpoint, secure="/nowhere")
+
+
 def test_a_service_lost_in_a_step_is_named_and_the_next_reset_works(mesh: Launcher) -> None:
     env = _env(mesh, rpc_timeout=3.0, wait=30.0)
     detector = mesh.children[f"detector@{ROBOTS[0]}"].proc
@@ -149,7 +160,8 @@ def test_make_vec_gives_each_process_its_own_robot_of_the_fleet(mesh: Launcher) 
 def test_a_process_forked_after_zenoh_ran_says_so_instead_of_hanging(
     mesh: Launcher, capfd: pytest.CaptureFixture[str]
 ) -> None:
-    with pytest.raises(Exception):  # noqa: B017 (the worker's error, as Gymnasium reports it)
+    # the worker raises at once and exits; the parent sees its pipe closed
+    with pytest.raises((ConnectionError, EOFError)):
         envs = gym.make_vec(
             ROBOT,
             num_envs=2,

@@ -5,6 +5,7 @@ The details: `AimRobotEnv`'s docstring."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 import os
 import sys
@@ -15,19 +16,20 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.experiment.fleet import open_fleet
 from apps.gym.aim import DEFAULT_BUDGET, episode_budget
 from apps.gym.registration import AIM_ROBOT_ID
 from apps.gym.robot_claim import claim_robot, robot_names
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
 from apps.waits import waiting_for
 from mesh.netflags import DEFAULT_ROUTER, NetConfig
-from protocol.errors import ArcheryError
+from mesh.node import open_node
+from protocol.errors import ArcheryError, ConfigError, Unreachable
 from protocol.keys import DEFAULT_ROBOT
 from protocol.robotspec import HIT_RADIUS, THETA0
 from protocol.vectors import finite_vector
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
 from services.learner.errors import RigError, ServiceLost
+from services.learner.rig import SERVICES, MeshRig
 from services.learner.rollout_step import Failed, planar_distance, shoot
 from sim.geometry import TARGET_DIAMETER
 
@@ -78,12 +80,12 @@ def _positive(name: str, value: float, unit: str) -> float:
 
 
 class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
-    """The iCub over the mesh: shoot θ (m), observe the detector's r (m); see the module
-    docstring for the keywords.
+    """The iCub over the mesh: shoot θ (m), observe the detector's r (m).
 
     Raises:
-        ValueError: a bad keyword, named.
-        RobotUnavailable: no router or robot within `wait` s.
+        ValueError: a bad keyword, named (`protocol.errors.ConfigError` for a network setting).
+        RobotUnavailable: no router or robot within `wait` s, or a router that refuses the
+            session.
 
     One step is one shot through the rig the learner service uses (`services.learner.rig`: the
     controller's `posture` for θ, the robot's `nock` and `release`, the detector's `measure`; the
@@ -104,8 +106,8 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     * `start`: θ at the start (m; default the sessions' θ0); `budget`: shots per episode (default
       60); `until_hit`; `hit_radius` (m, default 5 cm: a measured ‖r‖ below it is a hit, as
       `archery learn` counts it);
-    * `wait`: s to wait for the router, the robot and its services (default 10); `rpc_timeout`: s
-      per call (default 20);
+    * `wait`: s to wait for the router, then as long for the robot's services (default 10);
+      `rpc_timeout`: s per call (default 20);
     * `miss_distance`: m, the reward's distance for a shot whose arrow the detector does not see on
       the face (default the face's radius, 25 cm).
 
@@ -122,7 +124,6 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     `ServiceLostError` naming it (after `rpc_timeout` s), and the next `reset` works once it is
     back; a posture not reached or a frame without the target: `ShotNotMeasured` with the
     learner's abort code.
-
     """
 
     metadata: dict[str, Any] = {"render_modes": []}  # noqa: RUF012 (Gymnasium's class attribute)
@@ -160,22 +161,27 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             )
         global _zenoh_opened
         _zenoh_opened = True
-        self._claim = claim_robot(robot_names(robot))
+        names = robot_names(robot)
+        net = NetConfig(connect=(endpoint,), robot=names[0], secure=secure, identity=identity)
+        self._claim = claim_robot(names)
         self.robot = self._claim.robot
         self._stack = contextlib.ExitStack()
         self._stack.callback(self._claim.release)
-        net = NetConfig(connect=(endpoint,), robot=self.robot, secure=secure, identity=identity)
+        net = dataclasses.replace(net, robot=self.robot)
         try:
-            fleet = self._stack.enter_context(
-                open_fleet(net, [self.robot], self.wait, self.rpc_timeout, self._on_wait)
-            )
-            self.rig = fleet[0].rig
+            node = open_node(net.with_identity("operator"), self.wait, on_wait=self._on_wait)
+            self._stack.callback(node.close)
+            node.wait_alive(SERVICES, self.wait, on_wait=self._on_wait)
+            self.rig = MeshRig(node, self.rpc_timeout)
+            self._stack.callback(self.rig.close)
             self.bounds = self.rig.theta_box()
         except (ArcheryError, RigError) as exc:
             self._stack.close()
+            if isinstance(exc, ConfigError) and not isinstance(exc, Unreachable):
+                raise  # a bad setting (say, a deployment's missing file): bad input
             raise RobotUnavailable(
-                f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} within "
-                f"{self.wait:g} s ({exc}); start one with `archery up`"
+                f"{AIM_ROBOT_ID}: no robot {self.robot!r} ready at {endpoint} ({exc}); start "
+                "one with `archery up`"
             ) from None
         except BaseException:
             self._stack.close()
