@@ -197,10 +197,6 @@ CASES: list[tuple[str, int, str]] = [
     ("hz {robot}/torso/state:o --duration 0.3 {net}", 1, "no message on {robot}/torso/state:o"),
     ("read {robot}/torso/state:o --field nosuch {net}", 2, "JointState has no field 'nosuch'"),
     ("read {robot}/nosuch/** {net}", 2, "matches no stream port"),
-    # compare
-    ("compare --methods bogus --sessions 1 --out {tmp}/c", 2, "--methods 'bogus'"),
-    ("compare --sessions 0 --out {tmp}/c", 2, "--sessions needs an integer >= 1"),
-    ("compare --world mesh --connect {dead} --wait 1 --out {tmp}/c", 1, "{dead}"),
     # foxglove
     ("foxglove --port {busy} {net}", 2, "--port {busy}: already in use on 127.0.0.1"),
     ("foxglove --host 192.0.2.1 --port 0 {net}", 2, "not an address of this machine"),
