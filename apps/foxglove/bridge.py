@@ -31,7 +31,7 @@ __all__ = ["Bridge", "asset"]
 log = logging.getLogger("archery.foxglove")
 
 #: Messages the server queues per client before it drops the oldest: a client that reads slower
-#: than the camera sends holds at most this many frames (2.8 MB each, raw; JPEG ~0.1 MB) in the
+#: than the camera sends holds at most this many frames (2.8 MB each when raw) in the
 #: server. The SDK sizes its control queue alike: a client whose queue of replies fills is dropped.
 BACKLOG = 16
 MAX_ASSET_BYTES = 64 << 20  # a mesh file the client may fetch (the iCub's largest: ~2 MB)
