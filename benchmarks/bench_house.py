@@ -74,6 +74,14 @@ with open_router(endpoint):
         echo = by_name({"aim": lambda a: AimReply(theta=a.theta, reached=True)})
         server.serve("bench/bench/rpc:i", echo)
         args = Aim(theta=[0.17, 0.03, -0.03])
+        ready = time.monotonic() + 10  # until the router has the server's queryable
+        while True:
+            try:
+                client.call_typed("bench/bench/rpc:i", AIM, args)
+                break
+            except Exception:
+                if time.monotonic() > ready:
+                    raise
         for _ in range(200):
             client.call_typed("bench/bench/rpc:i", AIM, args)
         times = []
