@@ -407,3 +407,15 @@ def test_jpeg_frames_decode_to_the_camera_size(mesh: Mesh) -> None:
     assert image.format == "jpeg"
     pixels = cv2.imdecode(np.frombuffer(image.data, np.uint8), cv2.IMREAD_COLOR)
     assert pixels.shape == (720, 1280, 3)
+
+
+def test_in_secure_mode_only_the_operator_identity_operates(tmp_path: Path) -> None:
+    deployment = tmp_path / "secrets"
+    made = archery("keys", "init", str(deployment))
+    assert made.returncode == 0, made.stderr
+    done = archery(
+        "foxglove", "--secure", str(deployment), "--identity", "viewer", "--operator",
+        "--connect", "tls/127.0.0.1:9", "--port", "0",
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert "--operator in secure mode runs as identity 'operator', not 'viewer'" in done.stderr
