@@ -27,6 +27,7 @@ import numpy as np
 
 from apps.compare.optimizers import OPTIMIZERS, run_optimizer
 from apps.experiment.censored import count_stats, format_counts, format_mean
+from apps.experiment.config import CURVE_COLUMNS as EXPERIMENT_COLUMNS
 from apps.experiment.config import AlgorithmRun, ExperimentError, number
 from apps.gym.agent import run_learner
 from apps.gym.aim_robot import RobotUnavailable, ServiceLostError, ShotNotMeasured
@@ -48,19 +49,8 @@ DEFAULT_METHODS = ("archer", "power", "pycma", "ngopt")
 #: (sessions, rollouts) per method when not given: the paper's on the analytic world, a short
 #: run on the iCub.
 DEFAULT_BUDGETS = {"ballistic": (40, 60), "mesh": (3, 10)}
-CURVE_COLUMNS = (
-    "method",
-    "session",
-    "rollout",
-    "theta_x",
-    "theta_y",
-    "theta_z",
-    "r_x",
-    "r_y",
-    "r_true_x",
-    "r_true_y",
-    "distance",
-)
+#: curves.csv: the experiment's columns, each row's method first.
+CURVE_COLUMNS = ("method", *EXPERIMENT_COLUMNS[1:])
 Advance = Callable[[], None]
 
 
