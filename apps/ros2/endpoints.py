@@ -72,7 +72,11 @@ class RosPublisher:
         if endpoint.qos.transient_local:
             cache = zenoh.ext.CacheConfig(endpoint.qos.depth)
             self._pub = zenoh.ext.declare_advanced_publisher(
-                session, endpoint.key(), cache=cache, publisher_detection=True
+                session,
+                endpoint.key(),
+                cache=cache,
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers
+                publisher_detection=True,
             )
         else:
             congestion = zenoh.CongestionControl.DROP
