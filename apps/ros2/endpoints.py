@@ -74,8 +74,10 @@ class RosPublisher:
             self._pub = zenoh.ext.declare_advanced_publisher(
                 session,
                 endpoint.key(),
-                cache=cache,
-                sample_miss_detection=zenoh.ext.MissDetectionConfig(),  # sequence numbers
+                cache=cache,  # sequenced by number: the mesh's sessions keep no timestamps
+                sample_miss_detection=zenoh.ext.MissDetectionConfig(
+                    heartbeat=None, sporadic_heartbeat=None
+                ),
                 publisher_detection=True,
             )
         else:
