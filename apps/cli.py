@@ -91,6 +91,14 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.foxglove.command:main",
         "a live Foxglove WebSocket server: the robot in 3D, the camera, the learning curve",
     ),
+    "ros2": (
+        "apps.ros2.command:main",
+        "the robot on the ROS 2 graph through rmw_zenoh's wire format (joint states, TF, camera)",
+    ),
+    "export": (
+        "apps.ros2.export:main",
+        "a recording as a ROS 2 bag (--ros2 OUT: MCAP, CDR) of the topics `archery ros2` sends",
+    ),
     "dashboard": (
         "apps.dashboard.server:main",
         "a live view in the browser: frame, target face, distances, liveliness, rates",

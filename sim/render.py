@@ -36,6 +36,7 @@ __all__ = [
     "ROBOT_GEOM_GROUP",
     "SceneRenderer",
     "calibration_frame",
+    "focal_length",
     "project",
 ]
 
@@ -149,6 +150,12 @@ class SceneRenderer:
             self._renderer = None
 
 
+def focal_length(height: int, fovy: float) -> float:
+    """The focal length (px) of a pinhole camera `height` px high with a vertical field of view
+    of `fovy` degrees."""
+    return 0.5 * height / math.tan(0.5 * math.radians(fovy))
+
+
 def project(renderer: SceneRenderer, points: np.ndarray) -> np.ndarray:
     """Pixel coordinates (column, row) of world points (N, 3, m) in the renderer's camera.
 
@@ -160,8 +167,7 @@ def project(renderer: SceneRenderer, points: np.ndarray) -> np.ndarray:
     pos = data.cam_xpos[cam]
     rot = data.cam_xmat[cam].reshape(3, 3)  # columns: camera x (right), y (up), z (backwards)
     local = (np.asarray(points, dtype=float) - pos) @ rot
-    fovy = math.radians(float(model.cam_fovy[cam]))
-    focal = 0.5 * renderer.height / math.tan(0.5 * fovy)
+    focal = focal_length(renderer.height, float(model.cam_fovy[cam]))
     column = 0.5 * renderer.width + focal * local[:, 0] / -local[:, 2] - 0.5
     row = 0.5 * renderer.height - focal * local[:, 1] / -local[:, 2] - 0.5
     return np.stack([column, row], axis=1)

@@ -12,13 +12,13 @@ from typing import Any
 
 import foxglove
 
+from apps.follow import Stop, follow_events, follow_latest
 from apps.foxglove.marks import event_log, image_marks, rollout_record
 from apps.port_rates import PortRates, stream_counts
 from apps.topics.image_records import image_record
 from apps.topics.robot_frames import RobotFrames
 from mesh.instances import describe_all
 from mesh.node import Node
-from mesh.subscription import Subscription
 from mesh.tokens import TokenSet
 from protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
 from protocol.parts import PARTS
@@ -31,9 +31,6 @@ SERVICES_EVERY = 1.0  # s: how often the services' liveliness and port rates are
 STATIC_EVERY = 10.0  # s: how often the description and the scene are sent again while watched
 RESEND_GAP = 1.0  # s: the least time between two sendings of the description or the scene
 JPEG_QUALITY = 85
-_WAIT = 0.5  # s: how long a worker waits for a newer message before it looks at its stop flag
-
-Stop = Callable[[], None]
 
 
 def jpeg_record(image: Image) -> bytes:
@@ -165,40 +162,10 @@ class Feeds:
     # -- streams --------------------------------------------------------------------------------
 
     def _latest(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        """Follow a state stream on a thread of its own: the newest message only, so a slow
-        client or a busy bridge skips states instead of queueing them."""
-        sub: Subscription[Any] = Subscription(self.node.session, key, kind, "latest", None)
-        stop = threading.Event()
-
-        def work() -> None:
-            seq = -1
-            while not stop.is_set():
-                message = sub.latest()
-                if message is None or message.seq == seq:
-                    try:
-                        message = sub.wait_newer(_WAIT, after_seq=seq)
-                    except Exception:  # nothing newer yet: look at the stop flag again
-                        continue
-                seq = message.seq
-                try:
-                    each(message)
-                except Exception:
-                    log.exception("%s: could not send message seq %d", name, seq)
-
-        thread = threading.Thread(target=work, name=f"foxglove {name}", daemon=True)
-        thread.start()
-
-        def close() -> None:
-            stop.set()
-            sub.close()
-            thread.join(5 * _WAIT)
-
-        return close
+        return follow_latest(self.node.session, key, kind, name, each, log)
 
     def _events(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        """Follow an event stream: every message, converted on arrival (they are small)."""
-        sub: Subscription[Any] = Subscription(self.node.session, key, kind, "fifo", each)
-        return sub.close
+        return follow_events(self.node.session, key, kind, each)
 
     def _tf(self) -> Stop:
         key = self.keys.world_state()

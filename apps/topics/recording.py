@@ -455,6 +455,25 @@ class Recording:
                 raise ConfigError(f"{self.path}: unreadable attachment ({exc})") from None
         return None
 
+    def leading_metadata(self, name: str) -> dict[str, str] | None:
+        """The metadata record `name` among those the recorder writes before any message (the
+        robot description's: `DESCRIPTION_METADATA`), or None.
+
+        Raises:
+            ConfigError: the file's first records cannot be read.
+        """
+        with open(self.path, "rb") as stream:
+            try:
+                for record in self._open(stream).records(open_chunks=False):
+                    if isinstance(record, Metadata):
+                        if record.name == name:
+                            return dict(record.metadata)
+                    elif not isinstance(record, Header):
+                        return None
+            except (BadRecording, OSError) as exc:
+                raise ConfigError(f"{self.path}: unreadable metadata ({exc})") from None
+        return None
+
     def messages(
         self, *, recover: bool = False, topics: Collection[str] | None = None
     ) -> Iterator[tuple[str, ArcheryMessage, int]]:

@@ -34,7 +34,7 @@ from protocol.messages import JointState, WorldState
 from protocol.messages import Message as ArcheryMessage
 from protocol.robotspec import MODEL_NAME
 from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
+from sim.scene_config import TARGET_CAMERA, SceneConfig
 
 __all__ = [
     "DESCRIPTION_ATTACHMENT",
@@ -148,12 +148,30 @@ class RobotFrames:
             return [Derived(self.joints_topic, JOINT_STATES, data)]
         return []
 
-    def transforms(self, qpos: np.ndarray, ns: int) -> bytes:
-        """The `foxglove.FrameTransforms` record of every body at `qpos`."""
+    def poses(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Every body's pose at `qpos` (`self.model.nq` values) in its parent's frame, in the
+        order of `self.links`: translations (N, 3, m) and rotations (N, 4, w x y z). The one
+        derivation of the robot's transforms: the recorder's, the Foxglove bridge's and the
+        ROS 2 node's `/tf`."""
         self.data.qpos[:] = qpos
         mujoco.mj_kinematics(self.model, self.data)
-        translations, rotations = link_poses(self.model, self.data)
+        return link_poses(self.model, self.data)
+
+    def transforms(self, qpos: np.ndarray, ns: int) -> bytes:
+        """The `foxglove.FrameTransforms` record of every body at `qpos`."""
+        translations, rotations = self.poses(qpos)
         return frame_transforms(ns, self.links, translations, rotations)
+
+    def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The target camera's optical frame (z forward, x right, y down, as ROS 2's image
+        frames) in `world`: translation (3, m) and rotation (4, w x y z). The camera is fixed in
+        the world, so its pose does not depend on the robot's joints."""
+        mujoco.mj_kinematics(self.model, self.data)
+        cam = self.model.camera(TARGET_CAMERA).id
+        optical = self.data.cam_xmat[cam].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
+        rotation = np.empty(4)
+        mujoco.mju_mat2Quat(rotation, optical.reshape(-1))
+        return self.data.cam_xpos[cam].copy(), rotation
 
     def scene_update(self, ns: int) -> Derived:
         """The `foxglove.SceneUpdate` record: every drawn geom, on its body's frame."""

@@ -1,5 +1,5 @@
-"""`archery up`, the command: its flags, the mesh they describe, the optional recorder and Foxglove
-server, and the truthful last line and exit status once everything stopped.
+"""`archery up`, the command: its flags, the mesh they describe, the optional recorder, Foxglove
+server and ROS 2 node, and the truthful last line and exit status once everything stopped.
 
 While it starts, stdout says what it starts and stderr, as each wait begins, what it waits for
 and its limit (`apps.waits`): the router to listen (`launcher.ROUTER_START` s), then the services
@@ -104,6 +104,15 @@ def build_parser() -> argparse.ArgumentParser:
         const=8765,
         help="serve the first robot live to the Foxglove app on 127.0.0.1:PORT (default 8765; "
         "read-only, see `archery foxglove`)",
+    )
+    parser.add_argument(
+        "--ros2",
+        metavar="DOMAIN",
+        type=int,
+        nargs="?",
+        const=0,
+        help="put the first robot on the ROS 2 graph of DOMAIN (default 0) through the mesh's "
+        "router (read-only, see `archery ros2`)",
     )
     return parser
 
@@ -241,6 +250,10 @@ def main(argv: list[str] | None = None) -> int:
             check_writable_dir(
                 Path(args.record).parent, f"--record {args.record!r}: folder", create=False
             )
+        if args.ros2 is not None and not 0 <= args.ros2 <= 232:
+            raise ConfigError(f"--ros2 {args.ros2}: give a ROS 2 domain id from 0 to 232")
+        if args.ros2 is not None and args.secure:
+            raise ConfigError("--ros2 and --secure: the access control grants no ROS 2 keys")
         if mesh.router.start:  # the router's listen endpoint, checked before anything starts
             NetConfig(
                 connect=(),
@@ -272,6 +285,11 @@ def main(argv: list[str] | None = None) -> int:
                 )
                 where = f"ws://127.0.0.1:{args.foxglove}"
                 print(f"archery up: serving Foxglove on {where}", flush=True)
+            if args.ros2 is not None:
+                argv = ["ros2", "--domain", str(args.ros2)]
+                ready = b"archery ros2: on the ROS 2 graph"
+                observers.append(("the ROS 2 node", start_observer(launcher, "ros2", argv, ready)))
+                print(f"archery up: on the ROS 2 graph (domain {args.ros2})", flush=True)
         except LaunchError:
             for _, observer in observers:
                 observer.terminate()

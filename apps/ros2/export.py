@@ -1,0 +1,135 @@
+"""`archery export FILE.mcap --ros2 OUT`: a recording as a ROS 2 bag (rosbag2, MCAP storage,
+CDR) of the topics the live node publishes (`apps.ros2.graph.TOPICS`, converted by the same
+`apps.ros2.convert`), each message at the time it was recorded; the robot description and
+`/tf_static` once, at the first message's time."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from mesh.cliargs import ArgumentParser
+from protocol.errors import ArcheryError, ConfigError, DecodeError
+from protocol.exit_status import BAD_INPUT, FAILURE, OK
+
+__all__ = ["build_parser", "export", "main"]
+
+
+def build_parser() -> ArgumentParser:
+    """The flags of `archery export`."""
+    parser = ArgumentParser(
+        prog="archery export",
+        description="convert an `archery record` recording for other tools: --ros2 OUT writes "
+        "a ROS 2 bag (MCAP, CDR) of the topics `archery ros2` publishes",
+    )
+    parser.add_argument("recording", metavar="FILE.mcap", help="a recording of `archery record`")
+    parser.add_argument(
+        "--ros2", metavar="OUT", required=True, help="the ROS 2 bag to write (a new folder)"
+    )
+    parser.add_argument("--namespace", help="the topics' namespace (default /ROBOT)")
+    return parser
+
+
+def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int]:
+    """Write the ROS 2 bag `out` of the recording `path`; {topic: messages written}.
+
+    Raises:
+        ConfigError: an unreadable recording, an existing `out`, a bad namespace.
+    """
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    from apps.ros2 import convert, typestore
+    from apps.ros2.graph import TOPICS
+    from apps.ros2.wire import check_name
+    from apps.topics.image_records import FRAME_ID
+    from apps.topics.recording import DESCRIPTION_METADATA, open_recording
+    from apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames, urdf_text
+    from protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
+    from sim.render import focal_length
+    from sim.scene_config import SceneConfig
+
+    if out.exists():
+        raise ConfigError(f"--ros2 {str(out)!r}: already exists (give a new folder)")
+    recording = open_recording(path)
+    robot = recording.metadata.get("robot", "")
+    try:
+        prefix = check_name(namespace or f"/{robot}", "--namespace")
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+    described = recording.leading_metadata(DESCRIPTION_METADATA) or {}
+    scene = SceneConfig(**json.loads(described["scene"])) if "scene" in described else SceneConfig()
+    frames = RobotFrames(robot, scene)
+    urdf = recording.attachment(DESCRIPTION_ATTACHMENT)
+    counts: dict[str, int] = {}
+
+    def name(topic: str) -> str:
+        return topic if topic.startswith("/") else f"{prefix.rstrip('/')}/{topic}"
+
+    with Writer(out, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        store = typestore.messages()
+        connections = {
+            t.name: writer.add_connection(name(t.name), t.ros_type, typestore=store) for t in TOPICS
+        }
+        types = {t.name: t.ros_type for t in TOPICS}
+
+        def write(topic: str, message: Any, ns: int) -> None:
+            if message is None:
+                return
+            data = typestore.serialize(message, types[topic])
+            writer.write(connections[topic], ns, data)
+            counts[name(topic)] = counts.get(name(topic), 0) + 1
+
+        first = True
+        for key, message, ns in recording.messages(recover=not recording.complete):
+            if first:
+                first = False
+                seconds = ns / 1e9
+                text = urdf.decode() if urdf is not None else urdf_text()
+                write("robot_description", convert.description(text), ns)
+                t, q = frames.camera_pose()
+                tf = convert.tf_message(seconds, [("world", FRAME_ID)], t[None, :], q[None, :])
+                write("/tf_static", tf, ns)
+            if isinstance(message, JointState):
+                write("joint_states", convert.joint_state(message), ns)
+            elif isinstance(message, WorldState) and key == f"{robot}/world/state:o":
+                qpos = message.qpos.to_numpy()
+                if qpos.shape == (frames.model.nq,):
+                    translations, rotations = frames.poses(qpos)
+                    links = frames.links
+                    write(
+                        "/tf", convert.tf_message(message.stamp, links, translations, rotations), ns
+                    )
+            elif isinstance(message, Image):
+                image = convert.image(message, FRAME_ID)
+                focal = focal_length(image.height, scene.camera_fovy)
+                info = convert.camera_info(
+                    message.stamp, FRAME_ID, image.width, image.height, focal
+                )
+                write("camera/image_raw", image, ns)
+                write("camera/camera_info", info, ns)
+            elif isinstance(message, Rollout):
+                write("learner/rollout", convert.rollout(message), ns)
+            elif isinstance(message, WorldEvent):
+                write("world/landing", convert.landing(message), ns)
+    return counts
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`archery export FILE.mcap --ros2 OUT`; exit 2 for a bad recording or output."""
+    args: argparse.Namespace = build_parser().parse_args(argv)
+    try:
+        counts = export(Path(args.recording), Path(args.ros2), args.namespace)
+    except (ConfigError, DecodeError) as exc:
+        print(f"archery export: {exc}", file=sys.stderr)
+        return BAD_INPUT
+    except ArcheryError as exc:
+        print(f"archery export: {exc}", file=sys.stderr)
+        return FAILURE
+    total = sum(counts.values())
+    print(f"archery export: wrote {total} messages on {len(counts)} topics to {args.ros2}")
+    for topic, n in sorted(counts.items()):
+        print(f"  {topic}: {n}")
+    return OK

@@ -1,0 +1,368 @@
+"""The node on the ROS 2 graph: its topics (the table below, README.md tells each beside its
+YARP port), the feeds that follow the mesh while a ROS 2 subscriber matches, the parts'
+commands and, with an operator, the archery services. Bad input is dropped and counted
+(`Ros2Node.counts`) or refused with a clear log line; nothing moves for it."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import msgspec
+import zenoh
+
+from apps.follow import Stop, follow_events, follow_latest
+from apps.ros2 import convert, typestore
+from apps.ros2.endpoints import Counts, RosPublisher
+from apps.ros2.wire import Attachment, AttachmentError, Endpoint, Kind, NodeId, Qos, check_name
+from apps.topics.image_records import FRAME_ID
+from apps.topics.robot_frames import RobotFrames
+from mesh.instances import zid_of
+from mesh.node import Node
+from protocol.errors import ArcheryError
+from protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
+from protocol.parts import PARTS
+from protocol.robotspec import CALL_TIMEOUT, RPC_TIMEOUT
+from protocol.verbs import robot as rv
+from protocol.verbs.base import Verb
+from sim.render import focal_length
+
+__all__ = ["NODE_NAME", "SERVICES", "TOPICS", "Ros2Node", "Topic"]
+
+log = logging.getLogger("archery.ros2")
+
+NODE_NAME = "archery"
+SERVICES: dict[str, Verb[Any, Any]] = {"reset": rv.RESET, "nock": rv.NOCK, "release": rv.RELEASE}
+_STREAM = Qos(depth=10)
+_LATCHED = Qos(depth=1, transient_local=True)
+_SENSOR = Qos(depth=5, best_effort=True)
+
+
+@dataclass(frozen=True)
+class Topic:
+    """A published topic: its name (relative: under the namespace; absolute: as it is), type,
+    QoS and the feed that fills it (None: sent once at the start, transient local)."""
+
+    name: str
+    ros_type: str
+    qos: Qos
+    feed: str | None
+
+
+TOPICS = (
+    Topic("joint_states", "sensor_msgs/msg/JointState", _STREAM, "joints"),
+    Topic("/tf", "tf2_msgs/msg/TFMessage", _STREAM, "tf"),
+    Topic("/tf_static", "tf2_msgs/msg/TFMessage", _LATCHED, None),
+    Topic("robot_description", "std_msgs/msg/String", _LATCHED, None),
+    Topic("camera/image_raw", "sensor_msgs/msg/Image", _SENSOR, "camera"),
+    Topic("camera/camera_info", "sensor_msgs/msg/CameraInfo", _SENSOR, "camera"),
+    Topic("learner/rollout", convert.FLOAT_COMMAND, _STREAM, "rollouts"),
+    Topic("world/landing", "geometry_msgs/msg/PointStamped", _STREAM, "landings"),
+)
+#: Each part's command topics (under `NAMESPACE/PART/`) and their types.
+COMMANDS = {"command": convert.FLOAT_COMMAND, "joint_trajectory": convert.TRAJECTORY_COMMAND}
+
+
+class Ros2Node:
+    """The robot of `node` on the ROS 2 graph of `domain`, until `close()`.
+
+    Args:
+        node: a node on the mesh (its session carries the ROS 2 entities; its robot's keys).
+        frames: the robot's 3D records (`RobotFrames`, the recorder's own transforms).
+        urdf: the robot description's text.
+        camera_fovy: the target camera's vertical field of view (degrees).
+        domain: the ROS 2 domain id (0…232).
+        namespace: the node's namespace, e.g. `/icubSim`.
+        operator: serve reset, nock and release; without it each call is refused.
+    """
+
+    def __init__(
+        self,
+        node: Node,
+        frames: RobotFrames,
+        urdf: str,
+        camera_fovy: float,
+        *,
+        domain: int = 0,
+        namespace: str = "/icubSim",
+        operator: bool = False,
+    ) -> None:
+        self.node = node
+        self.keys = node.keys
+        self.frames = frames
+        self.camera_fovy = camera_fovy
+        self.operator = operator
+        self.namespace = check_name(namespace, "--namespace")
+        self.ros = NodeId(domain, zid_of(node.session), 0, self.namespace, NODE_NAME)
+        self.counts = Counts()
+        self._next_id = 0
+        self._lock = threading.Lock()
+        self._closables: list[Any] = []
+        self._matched: dict[str, int] = {}  # feed -> topics of it someone subscribes to
+        self._stops: dict[str, Stop] = {}
+        self._changes: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
+        self._work: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._feeds: dict[str, Callable[[], Stop]] = {
+            "joints": self._joints,
+            "tf": self._tf,
+            "camera": self._camera,
+            "rollouts": lambda: self._events(self.keys.learner_rollouts(), Rollout, self._rollout),
+            "landings": lambda: self._events(self.keys.world_events(), WorldEvent, self._landing),
+        }
+        self._threads = [
+            threading.Thread(target=self._follow, name="ros2 feeds", daemon=True),
+            threading.Thread(target=self._worker, name="ros2 calls", daemon=True),
+        ]
+        for thread in self._threads:
+            thread.start()
+        session = node.session
+        self._closables.append(session.liveliness().declare_token(self.ros.token()))
+        self.publishers: dict[str, RosPublisher] = {}
+        for topic in TOPICS:
+            self.publishers[topic.name] = self._publisher(topic)
+        self.publishers["/tf_static"].publish(self._static_tf())
+        self.publishers["robot_description"].publish(convert.description(urdf))
+        for part in PARTS:
+            for leaf, ros_type in COMMANDS.items():
+                self._subscribe(part, leaf, ros_type)
+        for name in SERVICES:
+            self._serve(name)
+
+    # -- names and entities ---------------------------------------------------------------------
+    def name(self, relative: str) -> str:
+        """The fully qualified name of a topic or service (`/tf` stays as it is)."""
+        if relative.startswith("/"):
+            return relative
+        return f"{self.namespace.rstrip('/')}/{relative}"
+
+    def endpoint(self, kind: Kind, relative: str, ros_type: str, qos: Qos) -> Endpoint:
+        """A new entity of this node (the next entity id)."""
+        with self._lock:
+            self._next_id += 1
+            entity = self._next_id
+        name = self.name(relative)
+        hash_ = typestore.type_hash(ros_type)
+        return Endpoint(self.ros, entity, kind, name, typestore.dds_type_name(ros_type), hash_, qos)
+
+    def _publisher(self, topic: Topic) -> RosPublisher:
+        endpoint = self.endpoint(Kind.PUBLISHER, topic.name, topic.ros_type, topic.qos)
+        feed = topic.feed
+        on_match = None if feed is None else (lambda on: self._changes.put((feed, on)))
+        publisher = RosPublisher(self.node.session, endpoint, topic.ros_type, self.counts, on_match)
+        self._closables.append(publisher)
+        return publisher
+
+    # -- feeds: started at a topic's first subscriber, stopped after its last -------------------
+    def _follow(self) -> None:
+        while True:
+            change = self._changes.get()
+            if change is None:
+                return
+            feed, on = change
+            before = self._matched.get(feed, 0)
+            after = max(0, before + (1 if on else -1))
+            self._matched[feed] = after
+            try:
+                if before == 0 and after == 1:
+                    self._stops[feed] = self._feeds[feed]()
+                    log.info("feed %s started (a ROS 2 subscriber matched)", feed)
+                elif before == 1 and after == 0 and feed in self._stops:
+                    self._stops.pop(feed)()
+                    log.info("feed %s stopped (no ROS 2 subscriber left)", feed)
+            except Exception:
+                log.exception("feed %s: could not follow its subscribers' change", feed)
+
+    def _events(self, key: str, kind: type[Any], each: Callable[[Any], None]) -> Stop:
+        return follow_events(self.node.session, key, kind, each)
+
+    def _send(self, topic: str, message: Any) -> None:
+        if message is not None:
+            self.publishers[topic].publish(message)
+
+    def _joints(self) -> Stop:
+        stops = [
+            self._events(
+                self.keys.state(part),
+                JointState,
+                lambda state: self._send("joint_states", convert.joint_state(state)),
+            )
+            for part in PARTS
+        ]
+
+        def close() -> None:
+            for stop in stops:
+                stop()
+
+        return close
+
+    def _tf(self) -> Stop:
+        def each(state: WorldState) -> None:
+            qpos = state.qpos.to_numpy()
+            if qpos.shape != (self.frames.model.nq,):
+                return  # another scene: its poses cannot be computed with this model
+            translations, rotations = self.frames.poses(qpos)
+            message = convert.tf_message(state.stamp, self.frames.links, translations, rotations)
+            self._send("/tf", message)
+
+        return follow_latest(
+            self.node.session, self.keys.world_state(), WorldState, "/tf", each, log
+        )
+
+    def _camera(self) -> Stop:
+        def each(frame: Image) -> None:
+            message = convert.image(frame, FRAME_ID)
+            focal = focal_length(message.height, self.camera_fovy)
+            info = convert.camera_info(frame.stamp, FRAME_ID, message.width, message.height, focal)
+            self._send("camera/image_raw", message)
+            self._send("camera/camera_info", info)
+
+        key = self.keys.cam_frames()
+        return follow_latest(self.node.session, key, Image, "camera/image_raw", each, log)
+
+    def _rollout(self, rollout: Rollout) -> None:
+        self._send("learner/rollout", convert.rollout(rollout))
+
+    def _landing(self, event: WorldEvent) -> None:
+        self._send("world/landing", convert.landing(event))
+
+    def _static_tf(self) -> Any:
+        """`/tf_static`: the camera's optical frame in `world` (the image's `frame_id`)."""
+        translation, rotation = self.frames.camera_pose()
+        return convert.tf_message(
+            time.time(), [("world", FRAME_ID)], translation[None, :], rotation[None, :]
+        )
+
+    # -- commands ----------------------------------------------------------------------------
+    def _subscribe(self, part: str, leaf: str, ros_type: str) -> None:
+        endpoint = self.endpoint(Kind.SUBSCRIPTION, f"{part}/{leaf}", ros_type, _STREAM)
+        session = self.node.session
+
+        def each(sample: zenoh.Sample) -> None:
+            message = self._received(endpoint.name, ros_type, sample)
+            if message is None:
+                return
+            try:
+                names, position = convert.command_targets(part, ros_type, message)
+            except convert.CommandError as exc:
+                self._refuse(endpoint.name, str(exc))
+                return
+            self._work.put(lambda: self._move(endpoint.name, part, names, position))
+
+        self._closables.append(session.declare_subscriber(endpoint.key(), each))
+        self._closables.append(session.liveliness().declare_token(endpoint.token()))
+
+    def _received(self, name: str, ros_type: str, sample: zenoh.Sample) -> Any | None:
+        """The message of a received sample, or None (dropped and counted)."""
+        try:
+            attachment = sample.attachment
+            Attachment.decode(None if attachment is None else attachment.to_bytes())
+        except AttachmentError as exc:
+            self._drop(name, "attachment", str(exc))
+            return None
+        try:
+            return typestore.deserialize(sample.payload.to_bytes(), ros_type)
+        except Exception as exc:  # rosbags raises a few kinds for bytes that are no message
+            self._drop(name, "cdr", f"not a CDR {ros_type}: {exc}")
+            return None
+
+    def _drop(self, name: str, reason: str, why: str) -> None:
+        self.counts.add(f"dropped {reason}")
+        log.warning("%s: dropped a sample: %s", name, why)
+
+    def _refuse(self, name: str, why: str) -> None:
+        self.counts.add("refused")
+        log.error("%s: refused, nothing moves: %s", name, why)
+
+    def _move(self, name: str, part: str, names: list[str] | None, position: list[float]) -> None:
+        args = rv.PositionMoveArgs(position=position, names=names)
+        try:
+            self.node.call_typed(
+                self.keys.part_rpc(part), rv.POSITION_MOVE, args, timeout=CALL_TIMEOUT
+            )
+        except ArcheryError as exc:
+            self._refuse(name, f"the robot says: {exc}")
+            return
+        self.counts.add("commands")
+
+    # -- services ------------------------------------------------------------------------------
+    def _serve(self, name: str) -> None:
+        endpoint = self.endpoint(Kind.SERVICE, name, typestore.TRIGGER, _STREAM)
+        verb = SERVICES[name]
+        session = self.node.session
+
+        def each(query: zenoh.Query) -> None:
+            attachment = query.attachment
+            try:
+                request = Attachment.decode(None if attachment is None else attachment.to_bytes())
+            except AttachmentError as exc:
+                self._drop(endpoint.name, "attachment", str(exc))
+                query.reply_err(f"{endpoint.name}: {exc}".encode())
+                return
+            if not self.operator:
+                why = f"{endpoint.name}: archery ros2 runs without --operator: nothing was done"
+                self._refuse(endpoint.name, "a call without the operator")
+                self._answer(query, request, endpoint.key(), False, why)
+                return
+            self._work.put(lambda: self._call(query, request, endpoint, verb))
+
+        self._closables.append(session.declare_queryable(endpoint.key(), each, complete=True))
+        if self.operator:
+            self._closables.append(session.liveliness().declare_token(endpoint.token()))
+
+    def _call(
+        self, query: zenoh.Query, request: Attachment, endpoint: Endpoint, verb: Verb[Any, Any]
+    ) -> None:
+        try:
+            reply = self.node.call_typed(self.keys.archery_rpc(), verb, timeout=RPC_TIMEOUT)
+        except ArcheryError as exc:
+            self._refuse(endpoint.name, f"the robot says: {exc}")
+            self._answer(query, request, endpoint.key(), False, f"{verb.name}: {exc}")
+            return
+        self.counts.add("services")
+        text = msgspec.json.encode(reply).decode()
+        self._answer(query, request, endpoint.key(), True, f"{verb.name}: {text}")
+
+    def _answer(
+        self, query: zenoh.Query, request: Attachment, key: str, ok: bool, text: str
+    ) -> None:
+        """Reply `Trigger_Response(ok, text)`, its attachment echoing the request's sequence
+        number and GID with a new timestamp (as rmw_zenoh's services do)."""
+        response = typestore.new(f"{typestore.TRIGGER}_Response", success=ok, message=text)
+        data = typestore.serialize(response, f"{typestore.TRIGGER}_Response")
+        attachment = Attachment(request.sequence, time.time_ns(), request.gid).encode()
+        try:
+            query.reply(key, data, attachment=attachment)
+        finally:
+            query.drop()
+
+    def _worker(self) -> None:
+        while True:
+            job = self._work.get()
+            if job is None:
+                return
+            try:
+                job()
+            except Exception:
+                log.exception("a command or service call failed")
+
+    def close(self) -> None:
+        """Stop the feeds and undeclare every entity (tokens first)."""
+        self._changes.put(None)
+        self._work.put(None)
+        for thread in self._threads:
+            thread.join(CALL_TIMEOUT)
+        for stop in self._stops.values():
+            stop()
+        self._stops.clear()
+        tokens = [c for c in self._closables if isinstance(c, zenoh.LivelinessToken)]
+        others = [c for c in self._closables if not isinstance(c, zenoh.LivelinessToken)]
+        for item in [*tokens, *reversed(others)]:
+            try:
+                (item.close if isinstance(item, RosPublisher) else item.undeclare)()
+            except Exception as exc:  # closing goes on whatever one part raises
+                log.debug("%s not undeclared: %s", type(item).__name__, exc)

@@ -1,0 +1,430 @@
+"""`archery up --ros2` and the ROS 2 node against an rmw_zenoh client that is not ours
+(zenoh-ros2-sdk, its types given from rosbags: it never clones anything) and zenoh-ext's advanced
+subscriber (what rmw_zenoh's transient local subscriptions are), beside a real mesh; then
+`archery export --ros2` of the run's recording, read back by rosbags."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import git
+import numpy as np
+import pytest
+import zenoh
+import zenoh.ext
+import zenoh_ros2_sdk
+from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
+from zenoh_ros2_sdk import (
+    ROS2Publisher,
+    ROS2ServiceClient,
+    ROS2Subscriber,
+    ZenohSession,
+    get_service_names_and_types,
+    get_topic_info,
+    get_topic_names_and_types,
+)
+
+from apps.ros2 import typestore
+from apps.ros2.graph import TOPICS, Ros2Node
+from apps.ros2.wire import Attachment, data_key
+from apps.topics.recording import open_recording
+from apps.topics.robot_frames import RobotFrames, urdf_text
+from mesh.netflags import NetConfig, open_session
+from mesh.node import open_node
+from mesh.router import free_tcp_endpoint
+from mesh.subscription import Subscription
+from protocol.messages import Image, JointState
+from protocol.parts import PARTS
+from protocol.robotspec import SERVICES
+from protocol.verbs import robot as rv
+from sim.scene_config import SceneConfig
+from tests.conftest import archery
+
+ROBOT = "rostwo"
+NS = f"/{ROBOT}"
+WAIT = 60.0  # s: the longest a condition is waited for
+
+
+def _until(condition: Callable[[], Any], what: str, timeout: float = WAIT) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"not within {timeout:g} s: {what}")
+
+
+def _definition(ros_type: str) -> str:
+    return typestore.messages().generate_msgdef(ros_type, ros_version=2)[0]
+
+
+class Mesh:
+    """`archery up --ros2 --record` on a free port, a node on it, an SDK session on it."""
+
+    def __init__(self, tmp: Path) -> None:
+        self.endpoint = free_tcp_endpoint()
+        self.recording = tmp / "run.mcap"
+        self.up = subprocess.Popen(
+            [sys.executable, "-m", "apps.cli", "up", "--listen", self.endpoint, "--robot", ROBOT,
+             "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs"), "--ros2",
+             "--record", str(self.recording)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )  # fmt: skip
+        assert self.up.stdout is not None
+        for line in self.up.stdout:
+            if line.startswith("archery up: all alive"):
+                break
+        self.net = NetConfig(connect=(self.endpoint,), robot=ROBOT)
+        self.node = open_node(self.net, 60)
+        self.node.wait_alive(SERVICES, timeout=120)
+        self.host, port = self.endpoint.split("/", 1)[1].rsplit(":", 1)
+        self.port = int(port)
+        self.sdk = _sdk_session(self.net)
+
+    def stop(self) -> None:
+        if self.up.poll() is None:
+            self.up.terminate()
+            self.up.communicate(timeout=120)
+
+    def close(self) -> None:
+        self.sdk.session.close()
+        ZenohSession._instance = None
+        self.node.close()
+        self.stop()
+
+
+def _sdk_session(net: NetConfig) -> ZenohSession:
+    """The SDK's shared session, opened on the mesh's own terms (a client of the loopback router
+    only) instead of its default peer configuration."""
+    sdk = ZenohSession.__new__(ZenohSession)
+    sdk.session = open_session(net)
+    sdk.store = get_typestore(Stores.EMPTY)
+    sdk._registered_types = {}
+    sdk._node_counter = 0
+    sdk._entity_counter = 0
+    sdk._lock = threading.Lock()
+    sdk.session_id = str(sdk.session.info.zid())
+    sdk.liveliness = sdk.session.liveliness()
+    ZenohSession._instance = sdk
+    return sdk
+
+
+@pytest.fixture(scope="module")
+def mesh(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Mesh]:
+    running = Mesh(tmp_path_factory.mktemp("ros2"))
+    try:
+        yield running
+    finally:
+        running.close()
+
+
+@pytest.fixture(autouse=True)
+def _no_clone(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The SDK clones message repositories when it lacks a type: fail instead."""
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError(f"zenoh-ros2-sdk tried to fetch message definitions: {args}")
+
+    monkeypatch.setattr(zenoh_ros2_sdk._cache, "clone_to_cache", refuse)
+    monkeypatch.setattr(zenoh_ros2_sdk.message_registry, "clone_to_cache", refuse)
+    monkeypatch.setattr(git.Repo, "clone_from", refuse)
+
+
+@pytest.fixture
+def operator(mesh: Mesh) -> Iterator[Ros2Node]:
+    """A node with the operator's services, on domain 1 (the `up` child's is on domain 0)."""
+    status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+    scene = SceneConfig(**status.scene)
+    node = Ros2Node(
+        mesh.node, RobotFrames(ROBOT, scene), urdf_text(), scene.camera_fovy, domain=1,
+        namespace=NS, operator=True,
+    )  # fmt: skip
+    try:
+        yield node
+    finally:
+        node.close()
+
+
+def _subscriber(mesh: Mesh, topic: str, ros_type: str, got: list[Any], domain: int = 0) -> Any:
+    return ROS2Subscriber(
+        topic, ros_type, got.append, msg_definition=_definition(ros_type),
+        type_hash=typestore.type_hash(ros_type), domain_id=domain, router_ip=mesh.host,
+        router_port=mesh.port,
+    )  # fmt: skip
+
+
+def test_the_sdk_discovers_the_node_and_its_topics(mesh: Mesh) -> None:
+    def listed() -> dict[str, list[str]]:
+        found = get_topic_names_and_types(0, mesh.host, mesh.port, timeout=1.0)
+        return {name: types for name, types in found if name.startswith((NS, "/tf"))}
+
+    expected = {
+        (t.name if t.name.startswith("/") else f"{NS}/{t.name}"): t.ros_type for t in TOPICS
+    }
+    topics = _until(lambda: (lambda f: f if set(expected) <= set(f) else None)(listed()), "topics")
+    for name, ros_type in expected.items():
+        assert topics[name] == [ros_type]
+    info = get_topic_info(f"{NS}/joint_states", 0, mesh.host, mesh.port, 1.0, verbose=True)
+    publisher = info.publishers[0]
+    assert (publisher.node_name, publisher.node_namespace) == ("archery", NS)
+    assert publisher.type_hash == typestore.type_hash("sensor_msgs/msg/JointState")
+    # read-only: no service on the graph, and a call is refused with a clear answer
+    services = get_service_names_and_types(0, mesh.host, mesh.port, timeout=1.0)
+    assert not [name for name, _ in services if name.startswith(NS)]
+
+
+def test_every_token_carries_the_hash_rosbags_computes(mesh: Mesh) -> None:
+    replies = mesh.sdk.session.liveliness().get(f"@ros2_lv/0/*/*/*/*/%/%{ROBOT}/archery/**")
+    tokens = [str(reply.ok.key_expr) for reply in replies if reply.ok is not None]
+    assert tokens
+    endpoints = [token.split("/") for token in tokens if token.split("/")[5] != "NN"]
+    assert len(endpoints) == len(tokens) - 1
+    for chunks in endpoints:
+        package, kind, rest = chunks[10].split("::", 2)
+        ros_type = f"{package}/{kind}/{rest.removeprefix('dds_::').removesuffix('_')}"
+        assert chunks[11] == typestore.type_hash(ros_type), chunks
+
+
+def test_joint_states_equal_the_robots(mesh: Mesh) -> None:
+    received: list[Any] = []
+    sub = _subscriber(mesh, f"{NS}/joint_states", "sensor_msgs/msg/JointState", received)
+    states: dict[int, JointState] = {}
+    mesh_subs = [
+        Subscription(
+            mesh.node.session,
+            mesh.node.keys.state(part),
+            JointState,
+            "fifo",
+            lambda s: states.__setitem__(round(s.stamp * 1e9), s),
+        )
+        for part in PARTS
+    ]
+    try:
+
+        def matched() -> list[tuple[Any, JointState]]:
+            pairs = []
+            for message in list(received):
+                ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+                if ns in states:
+                    pairs.append((message, states[ns]))
+            return pairs if len({s.part for _, s in pairs}) == len(PARTS) else []
+
+        pairs = _until(matched, "a joint state of every part, as the robot sent it")
+    finally:
+        sub.close()
+        for s in mesh_subs:
+            s.close()
+    for message, state in pairs:
+        assert list(message.name) == state.names == list(PARTS[state.part])
+        np.testing.assert_array_equal(message.position, state.position)
+        np.testing.assert_array_equal(message.velocity, state.velocity)
+
+
+def test_an_image_equals_the_cameras_frame(mesh: Mesh) -> None:
+    received: list[Any] = []
+    sub = _subscriber(mesh, f"{NS}/camera/image_raw", "sensor_msgs/msg/Image", received)
+    frames: dict[int, np.ndarray] = {}
+    camera = Subscription(
+        mesh.node.session, mesh.node.keys.cam_frames(), Image, "fifo",
+        lambda f: frames.__setitem__(round(f.stamp * 1e9), f.unpacked().to_numpy().copy()),
+    )  # fmt: skip
+    try:
+
+        def matched() -> tuple[Any, np.ndarray] | None:
+            for message in list(received):
+                ns = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec
+                if ns in frames:
+                    return message, frames[ns]
+            return None
+
+        message, pixels = _until(matched, "a frame of the camera")
+    finally:
+        sub.close()
+        camera.close()
+    assert message.encoding == "rgb8"
+    assert (message.height, message.width, message.step) == (
+        pixels.shape[0], pixels.shape[1], pixels.shape[1] * 3,
+    )  # fmt: skip
+    np.testing.assert_array_equal(message.data.reshape(pixels.shape), pixels)
+
+
+def test_the_description_reaches_a_late_transient_local_subscriber(mesh: Mesh) -> None:
+    """As rmw_zenoh's transient local subscription does: zenoh-ext's advanced subscriber asks
+    the publisher's cache for what it sent before."""
+    ros_type = "std_msgs/msg/String"
+    key = (
+        f"0/{ROBOT}/robot_description/{typestore.dds_type_name(ros_type)}/"
+        f"{typestore.type_hash(ros_type)}"
+    )
+    got: list[zenoh.Sample] = []
+    history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1)
+    sub = zenoh.ext.declare_advanced_subscriber(mesh.sdk.session, key, got.append, history=history)
+    try:
+        _until(lambda: got, "the robot description")
+    finally:
+        sub.undeclare()
+    Attachment.decode(got[0].attachment.to_bytes() if got[0].attachment else None)
+    assert typestore.deserialize(got[0].payload.to_bytes(), ros_type).data == urdf_text()
+
+
+def test_a_reset_without_the_operator_is_refused(mesh: Mesh) -> None:
+    client = ROS2ServiceClient(
+        f"{NS}/reset", typestore.TRIGGER,
+        request_definition="uint8 structure_needs_at_least_one_member",
+        response_definition="bool success\nstring message",
+        type_hash=typestore.type_hash(typestore.TRIGGER), router_ip=mesh.host,
+        router_port=mesh.port, timeout=20,
+    )  # fmt: skip
+    try:
+        status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+        reply = client.call(structure_needs_at_least_one_member=0)
+    finally:
+        client.close()
+    assert reply is not None and not reply.success
+    assert "without --operator" in reply.message
+    after = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+    assert after.sim_time >= status.sim_time  # not reset to 0 (the robot's clock went on)
+
+
+def test_a_command_moves_the_part_and_reset_is_served(mesh: Mesh, operator: Ros2Node) -> None:
+    keys = mesh.node.keys
+    before = mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_TARGETS)
+    target = [before.position[0] + 0.1, *before.position[1:]]
+    ros_type = "std_msgs/msg/Float64MultiArray"
+    pub = ROS2Publisher(
+        f"{NS}/torso/command", ros_type, msg_definition=_definition(ros_type),
+        type_hash=typestore.type_hash(ros_type), domain_id=1, router_ip=mesh.host,
+        router_port=mesh.port,
+    )  # fmt: skip
+    try:
+        layout = typestore.new("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
+
+        def moved() -> bool:
+            pub.publish(layout=layout, data=np.array(target))
+            now = mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_TARGETS)
+            return abs(now.position[0] - target[0]) < 1e-9
+
+        _until(moved, "the torso's target from a ROS 2 command")
+    finally:
+        pub.close()
+    state = _until(
+        lambda: (lambda s: s if abs(s.position[0] - target[0]) < 0.01 else None)(
+            mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_POSITIONS)
+        ),
+        "the torso at its target",
+    )
+    assert abs(state.position[0] - target[0]) < 0.01
+    client = ROS2ServiceClient(
+        f"{NS}/reset", typestore.TRIGGER,
+        request_definition="uint8 structure_needs_at_least_one_member",
+        response_definition="bool success\nstring message",
+        type_hash=typestore.type_hash(typestore.TRIGGER), domain_id=1, router_ip=mesh.host,
+        router_port=mesh.port, timeout=30,
+    )  # fmt: skip
+    try:
+        reply = _until(lambda: client.call(structure_needs_at_least_one_member=0), "a reply")
+    finally:
+        client.close()
+    assert reply.success and reply.message.startswith("reset:")
+    home = mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_TARGETS)
+    assert abs(home.position[0] - before.position[0]) < 1e-6
+    assert operator.counts.snapshot().get("services") == 1
+
+
+def _put(mesh: Mesh, key: str, payload: bytes, attachment: bytes | None) -> None:
+    mesh.sdk.session.put(key, payload, attachment=attachment)
+
+
+def test_bad_input_is_dropped_or_refused_and_nothing_moves(mesh: Mesh, operator: Ros2Node) -> None:
+    keys = mesh.node.keys
+    ros_type = "std_msgs/msg/Float64MultiArray"
+    key = data_key(
+        1,
+        f"{NS}/left_arm/command",
+        typestore.dds_type_name(ros_type),
+        typestore.type_hash(ros_type),
+    )
+    before = mesh.node.call_typed(keys.part_rpc("left_arm"), rv.GET_TARGETS)
+    gid = bytes(range(16))
+    good = Attachment(1, time.time_ns(), gid).encode()
+    layout = typestore.new("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0)
+
+    def command(values: list[float]) -> bytes:
+        message = typestore.new(ros_type, layout=layout, data=np.array(values, dtype=np.float64))
+        return typestore.serialize(message, ros_type)
+
+    target = [v + 0.05 for v in before.position]
+    _put(mesh, key, command(target), None)  # no attachment
+    _put(mesh, key, command(target), good[:20])  # cut short
+    _put(mesh, key, b"\x00\x01\x00\x00\xff\xff", good)  # not CDR of the type
+    _put(mesh, key, command(target[:3]), good)  # the wrong count
+    _put(mesh, key, command([float("nan"), *target[1:]]), good)  # NaN
+    _until(
+        lambda: (
+            operator.counts.snapshot().get("dropped attachment") == 2
+            and operator.counts.snapshot().get("dropped cdr") == 1
+            and operator.counts.snapshot().get("refused") == 2
+        ),
+        f"the drops and refusals counted ({operator.counts.snapshot()})",
+    )
+    lease = mesh.node.call_typed(
+        keys.part_rpc("left_arm"), rv.CLAIM, rv.ClaimArgs(owner="someone", ttl=60.0)
+    )
+    try:
+        _put(mesh, key, command(target), good)  # while another owns the part
+        _until(lambda: operator.counts.snapshot().get("refused") == 3, "a refusal by the robot")
+    finally:
+        mesh.node.call_typed(
+            keys.part_rpc("left_arm"), rv.DROP_CLAIM, rv.LeaseArgs(lease=lease.lease)
+        )
+    after = mesh.node.call_typed(keys.part_rpc("left_arm"), rv.GET_TARGETS)
+    assert after.position == before.position
+    assert operator.counts.snapshot().get("commands") is None
+
+
+def test_nothing_of_the_mesh_stays_when_the_node_stops(mesh: Mesh) -> None:
+    status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+    scene = SceneConfig(**status.scene)
+    node = Ros2Node(
+        mesh.node, RobotFrames(ROBOT, scene), "", scene.camera_fovy, domain=2, namespace=NS
+    )
+    assert list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**"))
+    node.close()
+    _until(lambda: not list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**")), "no token left")
+
+
+def test_export_writes_a_bag_rosbags_reads_message_for_message(mesh: Mesh, tmp_path: Path) -> None:
+    """Last: it stops the mesh, so that the recording is complete."""
+    mesh.stop()
+    out = tmp_path / "bag"
+    done = archery("export", str(mesh.recording), "--ros2", str(out), timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    recording = open_recording(mesh.recording)
+    expected: dict[str, int] = {}
+    for key, _, _ in recording.messages():
+        if key.endswith("/state:o") and "/world/" not in key:
+            expected[f"{NS}/joint_states"] = expected.get(f"{NS}/joint_states", 0) + 1
+        elif key.endswith("/cam/target:o"):
+            expected[f"{NS}/camera/image_raw"] = expected.get(f"{NS}/camera/image_raw", 0) + 1
+    store = typestore.messages()
+    counts: dict[str, int] = {}
+    with Reader(out) as reader:
+        for connection, _, data in reader.messages():
+            message = store.deserialize_cdr(data, connection.msgtype)
+            assert message is not None
+            counts[connection.topic] = counts.get(connection.topic, 0) + 1
+    for topic, n in expected.items():
+        assert counts[topic] == n, topic
+    assert counts["/tf_static"] == counts[f"{NS}/robot_description"] == 1
+    assert counts["/tf"] > 0
+    assert counts[f"{NS}/camera/camera_info"] == counts[f"{NS}/camera/image_raw"]
