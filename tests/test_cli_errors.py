@@ -197,6 +197,11 @@ CASES: list[tuple[str, int, str]] = [
     ("hz {robot}/torso/state:o --duration 0.3 {net}", 1, "no message on {robot}/torso/state:o"),
     ("read {robot}/torso/state:o --field nosuch {net}", 2, "JointState has no field 'nosuch'"),
     ("read {robot}/nosuch/** {net}", 2, "matches no stream port"),
+    # ros2, export
+    ("ros2 --domain 233 {net}", 2, "--domain 233: give a ROS 2 domain id from 0 to 232"),
+    ("ros2 --wait 1 --connect {dead}", 1, "{dead}"),
+    ("export {tmp}/none.mcap --ros2 {tmp}/bag", 2, "No such file or directory"),
+    ("export README.md --ros2 {tmp}/bag2", 2, "is not an MCAP file"),
     # foxglove
     ("foxglove --port {busy} {net}", 2, "--port {busy}: already in use on 127.0.0.1"),
     ("foxglove --host 192.0.2.1 --port 0 {net}", 2, "not an address of this machine"),
