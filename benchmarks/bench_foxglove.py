@@ -28,14 +28,12 @@ import time
 from pathlib import Path
 from typing import Any
 
-import psutil
-
 from apps.port_rates import stream_counts
 from apps.up.launch_config import SERVICES
 from benchmarks.bench_record import _per_rollout, mesh_launcher
-from benchmarks.machine import cpu_model
 from benchmarks.observers import cpu_seconds
 from benchmarks.spread import median_spread
+from benchmarks.trees import header
 from mesh.instances import describe_all
 from mesh.node import Node
 from protocol.journal_records import DoneRecord
@@ -217,10 +215,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     tmp = Path(tempfile.mkdtemp(prefix="bench-foxglove-"))
     try:
-        print(f"- Date: {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}")
-        print(
-            f"- Machine: {psutil.cpu_count()} cores, {cpu_model()}, Python {sys.version.split()[0]}"
-        )
+        header()
         print(f"- Load before the run: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
         plan = [(0.0, 1, 2)] if args.smoke else [
             (1.0, args.repeats, args.rollouts_rtf1), (0.0, args.repeats, args.rollouts_rtf0),

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -20,7 +19,6 @@ import zenoh
 import zenoh.ext
 import zenoh_ros2_sdk
 from rosbags.rosbag2 import Reader
-from rosbags.typesys import Stores, get_typestore
 from zenoh_ros2_sdk import (
     ROS2Publisher,
     ROS2ServiceClient,
@@ -36,7 +34,7 @@ from apps.ros2.graph import TOPICS, Ros2Node
 from apps.ros2.wire import Attachment, data_key
 from apps.topics.recording import open_recording
 from apps.topics.robot_frames import RobotFrames, urdf_text
-from mesh.netflags import NetConfig, open_session
+from mesh.netflags import NetConfig
 from mesh.node import open_node
 from mesh.router import free_tcp_endpoint
 from mesh.subscription import Subscription
@@ -46,6 +44,7 @@ from protocol.robotspec import SERVICES
 from protocol.verbs import robot as rv
 from sim.scene_config import SceneConfig
 from tests.conftest import archery
+from tests.ros2_sdk import sdk_session
 
 ROBOT = "rostwo"
 NS = f"/{ROBOT}"
@@ -89,7 +88,7 @@ class Mesh:
         self.node.wait_alive(SERVICES, timeout=120)
         self.host, port = self.endpoint.split("/", 1)[1].rsplit(":", 1)
         self.port = int(port)
-        self.sdk = _sdk_session(self.net)
+        self.sdk = sdk_session(self.net)
 
     def stop(self) -> None:
         if self.up.poll() is None:
@@ -101,22 +100,6 @@ class Mesh:
         ZenohSession._instance = None
         self.node.close()
         self.stop()
-
-
-def _sdk_session(net: NetConfig) -> ZenohSession:
-    """The SDK's shared session, opened on the mesh's own terms (a client of the loopback router
-    only) instead of its default peer configuration."""
-    sdk = ZenohSession.__new__(ZenohSession)
-    sdk.session = open_session(net)
-    sdk.store = get_typestore(Stores.EMPTY)
-    sdk._registered_types = {}
-    sdk._node_counter = 0
-    sdk._entity_counter = 0
-    sdk._lock = threading.Lock()
-    sdk.session_id = str(sdk.session.info.zid())
-    sdk.liveliness = sdk.session.liveliness()
-    ZenohSession._instance = sdk
-    return sdk
 
 
 @pytest.fixture(scope="module")

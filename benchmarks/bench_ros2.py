@@ -1,0 +1,220 @@
+"""Benchmark of `archery ros2`: what the node on the ROS 2 graph costs a session, and what an
+rmw_zenoh subscriber that is not ours (zenoh-ros2-sdk) receives of it.
+
+Run `python -m benchmarks.bench_ros2 [--repeats 5] [--rollouts-rtf1 8] [--rollouts-rtf0 30]`.
+For each real-time factor (1 and 0) a whole mesh (`archery up`'s Launcher) runs ARCHER sessions
+of one seed per repeat under two conditions, interleaved (the order alternating): nothing else,
+and `archery ros2` with a zenoh-ros2-sdk subscriber to its joint states and its camera image.
+It prints, per rtf: the rollouts of the two sessions of a repeat compared (θ and r), the wall
+time per rollout and its ratio with/without (goal ≤ 1.05× at rtf 1), the node's CPU per
+rollout and its share of a core, and the joint states and frames the subscriber received per
+second against the rates the mesh's publishers report (their own counts).
+
+`--smoke`: 1 repeat of 2-rollout sessions at rtf 0 only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from zenoh_ros2_sdk import ROS2Subscriber, ZenohSession
+
+from apps.port_rates import stream_counts
+from apps.ros2 import typestore
+from apps.ros2.command import READY
+from apps.up.launch_config import SERVICES
+from benchmarks.bench_foxglove import _rollouts
+from benchmarks.bench_record import _per_rollout, mesh_launcher
+from benchmarks.observers import cpu_seconds
+from benchmarks.spread import median_spread
+from benchmarks.trees import header
+from mesh.instances import describe_all
+from mesh.node import Node
+from protocol.messages import Rollout
+from protocol.parts import PARTS
+from tests.ros2_sdk import sdk_session
+
+__all__ = ["main"]
+
+ROBOT = "benchros"
+#: what the subscriber counts: (topic under the namespace, ROS 2 type)
+COUNTED = (
+    ("joint_states", "sensor_msgs/msg/JointState"),
+    ("camera/image_raw", "sensor_msgs/msg/Image"),
+)
+
+
+class WithNode:
+    """`archery ros2` on the mesh and a zenoh-ros2-sdk subscriber counting what it receives."""
+
+    def __init__(self, endpoint: str, net: Any) -> None:
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "apps.cli", "ros2", "--connect", endpoint, "--robot", ROBOT],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline()
+        if not line.startswith(READY):
+            self.proc.kill()
+            raise RuntimeError(f"the node did not start: {line!r}")
+        self.sdk = sdk_session(net)
+        host, port = endpoint.split("/", 1)[1].rsplit(":", 1)
+        self.counts = dict.fromkeys((topic for topic, _ in COUNTED), 0)
+        self._lock = threading.Lock()
+        self.subs = []
+        for topic, ros_type in COUNTED:
+
+            def count(_: Any, topic: str = topic) -> None:
+                with self._lock:
+                    self.counts[topic] += 1
+
+            definition = typestore.messages().generate_msgdef(ros_type, ros_version=2)[0]
+            subscriber = ROS2Subscriber(
+                f"/{ROBOT}/{topic}", ros_type, count, msg_definition=definition,
+                type_hash=typestore.type_hash(ros_type), domain_id=0, router_ip=host,
+                router_port=int(port),
+            )  # fmt: skip
+            self.subs.append(subscriber)
+        self.started = time.monotonic()
+
+    def received(self) -> tuple[dict[str, int], float]:
+        """{topic: messages received} and the seconds since the subscription began."""
+        with self._lock:
+            return dict(self.counts), time.monotonic() - self.started
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.close()
+        self.sdk.session.close()
+        ZenohSession._instance = None
+        self.proc.send_signal(signal.SIGINT)
+        self.proc.communicate(timeout=60)
+
+
+def _published(node: Node) -> dict[str, int]:
+    """Joint states (all parts) and camera frames published so far (the publishers' counts)."""
+    counts = stream_counts(describe_all(node.session, node.keys, timeout=5))
+    return {
+        "joint_states": sum(counts.get(node.keys.state(part), 0) for part in PARTS),
+        "camera/image_raw": counts.get(node.keys.cam_frames(), 0),
+    }
+
+
+def _one_rtf(rtf: float, repeats: int, rollouts: int, tmp: Path) -> dict[str, Any]:
+    launcher = mesh_launcher(tmp / f"rtf{rtf:g}", ROBOT, tmp / f"model-{rtf:g}.json", rtf)
+    launcher.up(180)
+    mesh = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
+    rows: list[dict[str, Any]] = []
+    try:
+        with Node(None, launcher.net) as node:
+            feed = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+            node.wait_alive(SERVICES, timeout=30)
+            _per_rollout(node, feed, 1000, 2)  # warm-up (calibration): untimed
+            for i in range(repeats):
+                row: dict[str, Any] = {}
+                for condition in ("none", "node") if i % 2 == 0 else ("node", "none"):
+                    extra = (
+                        WithNode(launcher.endpoint, launcher.net) if condition == "node" else None
+                    )
+                    try:
+                        pids = dict(mesh) | ({"node": extra.proc.pid} if extra else {})
+                        sent0, cpu0, t0 = _published(node), cpu_seconds(pids), time.monotonic()
+                        got0 = extra.received()[0] if extra else {}
+                        per_rollout, journal = _per_rollout(node, feed, i, rollouts)
+                        wall = time.monotonic() - t0
+                        cpu1, sent1 = cpu_seconds(pids), _published(node)
+                        got1 = extra.received()[0] if extra else {}
+                    finally:
+                        if extra is not None:
+                            extra.close()
+                    row[condition] = {
+                        "per_rollout": per_rollout,
+                        "rollouts": _rollouts(journal),
+                        "sent": {k: (sent1[k] - sent0[k]) / wall for k in sent1},
+                    }
+                    if extra is not None:
+                        row[condition]["got"] = {k: (got1[k] - got0[k]) / wall for k in got1}
+                        row[condition]["cpu"] = (cpu1["node"] - cpu0["node"]) / rollouts
+                        row[condition]["core"] = (cpu1["node"] - cpu0["node"]) / wall
+                ratio = row["node"]["per_rollout"] / row["none"]["per_rollout"]
+                same = row["node"]["rollouts"] == row["none"]["rollouts"]
+                got, sent = row["node"]["got"], row["node"]["sent"]
+                print(
+                    f"  rtf {rtf:g} repeat {i}: ×{ratio:.3f} wall per rollout, rollouts "
+                    f"{'identical' if same else 'DIFFER'}, joint states {got['joint_states']:.0f}/"
+                    f"{sent['joint_states']:.0f} per s, frames {got['camera/image_raw']:.1f}/"
+                    f"{sent['camera/image_raw']:.1f} per s",
+                    flush=True,
+                )
+                rows.append(row)
+    finally:
+        launcher.stop_all()
+    return {"rtf": rtf, "rows": rows}
+
+
+def _report(result: dict[str, Any], rollouts: int) -> None:
+    rows, rtf = result["rows"], result["rtf"]
+    ratios = [r["node"]["per_rollout"] / r["none"]["per_rollout"] for r in rows]
+    same = sum(r["node"]["rollouts"] == r["none"]["rollouts"] for r in rows)
+    print(f"rtf {rtf:g} ({len(rows)} interleaved repeats of {rollouts}-rollout ARCHER sessions):")
+    print(f"  rollouts identical with the node and without (θ and r): {same}/{len(rows)}")
+    none_ms = [r["none"]["per_rollout"] * 1e3 for r in rows]
+    node_ms = [r["node"]["per_rollout"] * 1e3 for r in rows]
+    print(
+        f"  wall ms per rollout: without {median_spread(none_ms, '.0f')}, with "
+        f"{median_spread(node_ms, '.0f')}; ratio per repeat ×{median_spread(ratios, '.3f')}"
+    )
+    cpu = [r["node"]["cpu"] * 1e3 for r in rows]
+    core = [r["node"]["core"] for r in rows]
+    print(
+        f"  the node: {median_spread(cpu, '.1f')} ms CPU per rollout, "
+        f"{median_spread(core, '.3f')} of a core"
+    )
+    for topic, _ in COUNTED:
+        got = [r["node"]["got"][topic] for r in rows]
+        sent = [r["node"]["sent"][topic] for r in rows]
+        print(
+            f"  {topic}: {median_spread(got, '.1f')}/s received against "
+            f"{median_spread(sent, '.1f')}/s published"
+        )
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmark; exit status 0."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_ros2", description=__doc__)
+    parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions per rtf (≥ 5)")
+    parser.add_argument("--rollouts-rtf1", type=int, default=8, help="rollouts per session, rtf 1")
+    parser.add_argument("--rollouts-rtf0", type=int, default=30, help="rollouts per session, rtf 0")
+    parser.add_argument("--smoke", action="store_true", help="1 repeat of 2 rollouts at rtf 0")
+    args = parser.parse_args(argv)
+    tmp = Path(tempfile.mkdtemp(prefix="bench-ros2-"))
+    try:
+        header()
+        print(f"- Load before the run: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        plan = [(0.0, 1, 2)] if args.smoke else [
+            (1.0, args.repeats, args.rollouts_rtf1), (0.0, args.repeats, args.rollouts_rtf0),
+        ]  # fmt: skip
+        results = [(_one_rtf(rtf, n, k, tmp), k) for rtf, n, k in plan]
+        print("\n--- bench_ros2")
+        for result, k in results:
+            _report(result, k)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
