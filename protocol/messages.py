@@ -93,6 +93,17 @@ def finite_fields(cls: type[msgspec.Struct]) -> tuple[str, ...]:
     return tuple(f.name for f in info.fields if _may_hold_float(f.type))
 
 
+def check_finite_fields(struct: msgspec.Struct, prefix: str = "") -> None:
+    """Raise ValueError naming the field (`prefix` + its name) where a non-finite float hides in
+    `struct`; a field that is None or a finite float costs no call (the common case of every
+    message's stamps, on every send and receive)."""
+    for name in finite_fields(type(struct)):
+        value = getattr(struct, name)
+        if value is None or (type(value) is float and math.isfinite(value)):
+            continue
+        _check_finite(value, prefix + name)
+
+
 def _check_finite(value: Any, where: str) -> None:
     """Raise ValueError if a non-finite float hides anywhere in `value`."""
     if isinstance(value, float):
@@ -163,8 +174,7 @@ class Message(msgspec.Struct, frozen=True, kw_only=True, tag=True, tag_field="ty
                 f"{type(self).__name__} has schema version {self.schema}; this node speaks "
                 f"version {SCHEMA_VERSION} (update the sender or this node)"
             )
-        for name in finite_fields(type(self)):
-            _check_finite(getattr(self, name), name)
+        check_finite_fields(self)
         self.validate()
 
     def validate(self) -> None:

@@ -19,7 +19,7 @@ from typing import Any, Generic, TypeVar
 
 import msgspec
 
-from protocol.messages import _check_finite, finite_fields
+from protocol.messages import check_finite_fields
 
 __all__ = ["Args", "BoundVerb", "NoArgs", "Reply", "ServedVerbs", "Verb", "VerbTable"]
 
@@ -28,8 +28,7 @@ class Args(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True
     """Base of every verb's arguments: unknown fields are refused, floats must be finite."""
 
     def __post_init__(self) -> None:
-        for name in finite_fields(type(self)):
-            _check_finite(getattr(self, name), f"$.{name}")
+        check_finite_fields(self, "$.")
 
 
 class NoArgs(Args, frozen=True):
@@ -40,8 +39,7 @@ class Reply(msgspec.Struct, frozen=True, kw_only=True):
     """Base of every verb's reply: floats must be finite."""
 
     def __post_init__(self) -> None:
-        for name in finite_fields(type(self)):
-            _check_finite(getattr(self, name), f"$.{name}")
+        check_finite_fields(self, "$.")
 
 
 A = TypeVar("A", bound=msgspec.Struct)
