@@ -16,28 +16,23 @@ client received per second against the camera's published rate over the same ses
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from apps.port_rates import stream_counts
-from apps.up.launch_config import SERVICES
-from benchmarks.bench_record import _per_rollout, mesh_launcher
+from benchmarks.bench_record import _per_rollout
 from benchmarks.observers import cpu_seconds
+from benchmarks.paced_runs import paced_mesh, run_paced
 from benchmarks.spread import median_spread
-from benchmarks.trees import header
 from mesh.instances import describe_all
 from mesh.node import Node
 from protocol.journal_records import DoneRecord
-from protocol.messages import Rollout
 from services.learner.journal import read_records
 
 __all__ = ["main"]
@@ -103,69 +98,59 @@ def _frames_published(node: Node) -> int:
 
 
 def _one_rtf(rtf: float, repeats: int, rollouts: int, tmp: Path) -> dict[str, Any]:
-    launcher = mesh_launcher(tmp / f"rtf{rtf:g}", "benchfox", tmp / f"model-{rtf:g}.json", rtf)
-    launcher.up(180)
-    mesh = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
     rows: list[dict[str, Any]] = []
-    try:
-        with Node(None, launcher.net) as node:
-            feed = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-            node.wait_alive(SERVICES, timeout=30)
-            _per_rollout(node, feed, 1000, 2)  # warm-up (calibration): untimed
-            # the control: two unwatched sessions of one seed, whether this pace repeats itself
-            control = [_rollouts(_per_rollout(node, feed, 999, rollouts)[1]) for _ in range(2)]
+    with paced_mesh(tmp, "benchfox", rtf) as paced:
+        launcher, node, feed, mesh = paced.launcher, paced.node, paced.feed, paced.pids
+        # the control: two unwatched sessions of one seed, whether this pace repeats itself
+        control = [_rollouts(_per_rollout(node, feed, 999, rollouts)[1]) for _ in range(2)]
+        print(
+            f"  rtf {rtf:g} control: two unwatched sessions of one seed "
+            f"{'identical' if control[0] == control[1] else 'DIFFER'}",
+            flush=True,
+        )
+        for i in range(repeats):
+            row: dict[str, Any] = {"repeat": i}
+            order = ("none", "watched") if i % 2 == 0 else ("watched", "none")
+            for condition in order:
+                watched = Watched(launcher.endpoint, "benchfox") if condition == "watched" else None
+                try:
+                    pids = dict(mesh)
+                    if watched is not None:
+                        pids["bridge"] = watched.bridge.pid
+                    frames0, cpu0, t0 = (
+                        _frames_published(node),
+                        cpu_seconds(pids),
+                        time.monotonic(),
+                    )
+                    per_rollout, journal = _per_rollout(node, feed, i, rollouts)
+                    wall = time.monotonic() - t0
+                    cpu1, frames1 = cpu_seconds(pids), _frames_published(node)
+                    got = watched.counts() if watched is not None else None
+                finally:
+                    if watched is not None:
+                        watched.close()
+                row[condition] = {
+                    "per_rollout": per_rollout,
+                    "rollouts": _rollouts(journal),
+                    "cpu": {n: (cpu1[n] - cpu0[n]) / rollouts for n in pids},
+                    "wall": wall,
+                    "camera_fps": (frames1 - frames0) / wall,
+                }
+                if got is not None:
+                    images = got["counts"].get("/camera/image", [0, 0])[0]
+                    row[condition]["client_fps"] = images / got["seconds"]
+                    row[condition]["bridge_core"] = (cpu1["bridge"] - cpu0["bridge"]) / wall
+                    row[condition]["counts"] = got["counts"]
+            ratio = row["watched"]["per_rollout"] / row["none"]["per_rollout"]
+            same = row["watched"]["rollouts"] == row["none"]["rollouts"]
             print(
-                f"  rtf {rtf:g} control: two unwatched sessions of one seed "
-                f"{'identical' if control[0] == control[1] else 'DIFFER'}",
+                f"  rtf {rtf:g} repeat {i}: ×{ratio:.3f} wall per rollout, rollouts "
+                f"{'identical' if same else 'DIFFER'}, client "
+                f"{row['watched']['client_fps']:.1f} frames/s (camera "
+                f"{row['watched']['camera_fps']:.1f})",
                 flush=True,
             )
-            for i in range(repeats):
-                row: dict[str, Any] = {"repeat": i}
-                order = ("none", "watched") if i % 2 == 0 else ("watched", "none")
-                for condition in order:
-                    watched = (
-                        Watched(launcher.endpoint, "benchfox") if condition == "watched" else None
-                    )
-                    try:
-                        pids = dict(mesh)
-                        if watched is not None:
-                            pids["bridge"] = watched.bridge.pid
-                        frames0, cpu0, t0 = (
-                            _frames_published(node),
-                            cpu_seconds(pids),
-                            time.monotonic(),
-                        )
-                        per_rollout, journal = _per_rollout(node, feed, i, rollouts)
-                        wall = time.monotonic() - t0
-                        cpu1, frames1 = cpu_seconds(pids), _frames_published(node)
-                        got = watched.counts() if watched is not None else None
-                    finally:
-                        if watched is not None:
-                            watched.close()
-                    row[condition] = {
-                        "per_rollout": per_rollout,
-                        "rollouts": _rollouts(journal),
-                        "cpu": {n: (cpu1[n] - cpu0[n]) / rollouts for n in pids},
-                        "wall": wall,
-                        "camera_fps": (frames1 - frames0) / wall,
-                    }
-                    if got is not None:
-                        images = got["counts"].get("/camera/image", [0, 0])[0]
-                        row[condition]["client_fps"] = images / got["seconds"]
-                        row[condition]["bridge_core"] = (cpu1["bridge"] - cpu0["bridge"]) / wall
-                        row[condition]["counts"] = got["counts"]
-                ratio = row["watched"]["per_rollout"] / row["none"]["per_rollout"]
-                same = row["watched"]["rollouts"] == row["none"]["rollouts"]
-                print(
-                    f"  rtf {rtf:g} repeat {i}: ×{ratio:.3f} wall per rollout, rollouts "
-                    f"{'identical' if same else 'DIFFER'}, client "
-                    f"{row['watched']['client_fps']:.1f} frames/s (camera "
-                    f"{row['watched']['camera_fps']:.1f})",
-                    flush=True,
-                )
-                rows.append(row)
-    finally:
-        launcher.stop_all()
+            rows.append(row)
     return {"rtf": rtf, "rows": rows, "control": control[0] == control[1]}
 
 
@@ -199,34 +184,12 @@ def _report(result: dict[str, Any], rollouts: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    parser = argparse.ArgumentParser(
-        prog="python -m benchmarks.bench_foxglove", description=__doc__
-    )
-    parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions per rtf (≥ 5)")
-    parser.add_argument("--rollouts-rtf1", type=int, default=8, help="rollouts per session, rtf 1")
-    parser.add_argument("--rollouts-rtf0", type=int, default=30, help="rollouts per session, rtf 0")
-    parser.add_argument("--smoke", action="store_true", help="1 repeat of 2 rollouts at rtf 0")
-    args = parser.parse_args(argv)
     if shutil.which("node") is None:
         print(
             "bench_foxglove: Node is not installed (Foxglove's client runs on it)", file=sys.stderr
         )
         return 1
-    tmp = Path(tempfile.mkdtemp(prefix="bench-foxglove-"))
-    try:
-        header()
-        print(f"- Load before the run: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
-        plan = [(0.0, 1, 2)] if args.smoke else [
-            (1.0, args.repeats, args.rollouts_rtf1), (0.0, args.repeats, args.rollouts_rtf0),
-        ]  # fmt: skip
-        results = [(_one_rtf(rtf, n, k, tmp), k) for rtf, n, k in plan]
-        print("\n--- bench_foxglove")
-        for result, k in results:
-            _report(result, k)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return 0
+    return run_paced("bench_foxglove", __doc__, argv, _one_rtf, _report)
 
 
 if __name__ == "__main__":

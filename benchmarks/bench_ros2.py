@@ -15,13 +15,9 @@ second against the rates the mesh's publishers report (their own counts).
 
 from __future__ import annotations
 
-import argparse
-import os
-import shutil
 import signal
 import subprocess
 import sys
-import tempfile
 import threading
 import time
 from pathlib import Path
@@ -32,15 +28,13 @@ from zenoh_ros2_sdk import ROS2Subscriber, ZenohSession
 from apps.port_rates import stream_counts
 from apps.ros2 import typestore
 from apps.ros2.command import READY
-from apps.up.launch_config import SERVICES
 from benchmarks.bench_foxglove import _rollouts
-from benchmarks.bench_record import _per_rollout, mesh_launcher
+from benchmarks.bench_record import _per_rollout
 from benchmarks.observers import cpu_seconds
+from benchmarks.paced_runs import paced_mesh, run_paced
 from benchmarks.spread import median_spread
-from benchmarks.trees import header
 from mesh.instances import describe_all
 from mesh.node import Node
-from protocol.messages import Rollout
 from protocol.parts import PARTS
 from tests.ros2_sdk import sdk_session
 
@@ -113,54 +107,44 @@ def _published(node: Node) -> dict[str, int]:
 
 
 def _one_rtf(rtf: float, repeats: int, rollouts: int, tmp: Path) -> dict[str, Any]:
-    launcher = mesh_launcher(tmp / f"rtf{rtf:g}", ROBOT, tmp / f"model-{rtf:g}.json", rtf)
-    launcher.up(180)
-    mesh = {name: c.proc.pid for name, c in launcher.children.items() if c.proc is not None}
     rows: list[dict[str, Any]] = []
-    try:
-        with Node(None, launcher.net) as node:
-            feed = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-            node.wait_alive(SERVICES, timeout=30)
-            _per_rollout(node, feed, 1000, 2)  # warm-up (calibration): untimed
-            for i in range(repeats):
-                row: dict[str, Any] = {}
-                for condition in ("none", "node") if i % 2 == 0 else ("node", "none"):
-                    extra = (
-                        WithNode(launcher.endpoint, launcher.net) if condition == "node" else None
-                    )
-                    try:
-                        pids = dict(mesh) | ({"node": extra.proc.pid} if extra else {})
-                        sent0, cpu0, t0 = _published(node), cpu_seconds(pids), time.monotonic()
-                        got0 = extra.received()[0] if extra else {}
-                        per_rollout, journal = _per_rollout(node, feed, i, rollouts)
-                        wall = time.monotonic() - t0
-                        cpu1, sent1 = cpu_seconds(pids), _published(node)
-                        got1 = extra.received()[0] if extra else {}
-                    finally:
-                        if extra is not None:
-                            extra.close()
-                    row[condition] = {
-                        "per_rollout": per_rollout,
-                        "rollouts": _rollouts(journal),
-                        "sent": {k: (sent1[k] - sent0[k]) / wall for k in sent1},
-                    }
+    with paced_mesh(tmp, ROBOT, rtf) as paced:
+        launcher, node, feed, mesh = paced.launcher, paced.node, paced.feed, paced.pids
+        for i in range(repeats):
+            row: dict[str, Any] = {}
+            for condition in ("none", "node") if i % 2 == 0 else ("node", "none"):
+                extra = WithNode(launcher.endpoint, launcher.net) if condition == "node" else None
+                try:
+                    pids = dict(mesh) | ({"node": extra.proc.pid} if extra else {})
+                    sent0, cpu0, t0 = _published(node), cpu_seconds(pids), time.monotonic()
+                    got0 = extra.received()[0] if extra else {}
+                    per_rollout, journal = _per_rollout(node, feed, i, rollouts)
+                    wall = time.monotonic() - t0
+                    cpu1, sent1 = cpu_seconds(pids), _published(node)
+                    got1 = extra.received()[0] if extra else {}
+                finally:
                     if extra is not None:
-                        row[condition]["got"] = {k: (got1[k] - got0[k]) / wall for k in got1}
-                        row[condition]["cpu"] = (cpu1["node"] - cpu0["node"]) / rollouts
-                        row[condition]["core"] = (cpu1["node"] - cpu0["node"]) / wall
-                ratio = row["node"]["per_rollout"] / row["none"]["per_rollout"]
-                same = row["node"]["rollouts"] == row["none"]["rollouts"]
-                got, sent = row["node"]["got"], row["node"]["sent"]
-                print(
-                    f"  rtf {rtf:g} repeat {i}: ×{ratio:.3f} wall per rollout, rollouts "
-                    f"{'identical' if same else 'DIFFER'}, joint states {got['joint_states']:.0f}/"
-                    f"{sent['joint_states']:.0f} per s, frames {got['camera/image_raw']:.1f}/"
-                    f"{sent['camera/image_raw']:.1f} per s",
-                    flush=True,
-                )
-                rows.append(row)
-    finally:
-        launcher.stop_all()
+                        extra.close()
+                row[condition] = {
+                    "per_rollout": per_rollout,
+                    "rollouts": _rollouts(journal),
+                    "sent": {k: (sent1[k] - sent0[k]) / wall for k in sent1},
+                }
+                if extra is not None:
+                    row[condition]["got"] = {k: (got1[k] - got0[k]) / wall for k in got1}
+                    row[condition]["cpu"] = (cpu1["node"] - cpu0["node"]) / rollouts
+                    row[condition]["core"] = (cpu1["node"] - cpu0["node"]) / wall
+            ratio = row["node"]["per_rollout"] / row["none"]["per_rollout"]
+            same = row["node"]["rollouts"] == row["none"]["rollouts"]
+            got, sent = row["node"]["got"], row["node"]["sent"]
+            print(
+                f"  rtf {rtf:g} repeat {i}: ×{ratio:.3f} wall per rollout, rollouts "
+                f"{'identical' if same else 'DIFFER'}, joint states {got['joint_states']:.0f}/"
+                f"{sent['joint_states']:.0f} per s, frames {got['camera/image_raw']:.1f}/"
+                f"{sent['camera/image_raw']:.1f} per s",
+                flush=True,
+            )
+            rows.append(row)
     return {"rtf": rtf, "rows": rows}
 
 
@@ -193,27 +177,7 @@ def _report(result: dict[str, Any], rollouts: int) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Run the benchmark; exit status 0."""
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    parser = argparse.ArgumentParser(prog="python -m benchmarks.bench_ros2", description=__doc__)
-    parser.add_argument("--repeats", type=int, default=5, help="pairs of sessions per rtf (≥ 5)")
-    parser.add_argument("--rollouts-rtf1", type=int, default=8, help="rollouts per session, rtf 1")
-    parser.add_argument("--rollouts-rtf0", type=int, default=30, help="rollouts per session, rtf 0")
-    parser.add_argument("--smoke", action="store_true", help="1 repeat of 2 rollouts at rtf 0")
-    args = parser.parse_args(argv)
-    tmp = Path(tempfile.mkdtemp(prefix="bench-ros2-"))
-    try:
-        header()
-        print(f"- Load before the run: {', '.join(f'{x:.2f}' for x in os.getloadavg())}")
-        plan = [(0.0, 1, 2)] if args.smoke else [
-            (1.0, args.repeats, args.rollouts_rtf1), (0.0, args.repeats, args.rollouts_rtf0),
-        ]  # fmt: skip
-        results = [(_one_rtf(rtf, n, k, tmp), k) for rtf, n, k in plan]
-        print("\n--- bench_ros2")
-        for result, k in results:
-            _report(result, k)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return 0
+    return run_paced("bench_ros2", __doc__, argv, _one_rtf, _report)
 
 
 if __name__ == "__main__":
