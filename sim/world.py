@@ -439,6 +439,11 @@ class ArcheryWorld:
         return self._arrow
 
     @property
+    def arrow_falling(self) -> bool:
+        """True while a dropped arrow falls (it lies still once on the floor)."""
+        return self._arrow is ArrowState.DROPPED and self._hold_pose is None
+
+    @property
     def landing(self) -> Landing | None:
         """The last shot's landing since the last reset, if any."""
         return self._landing

@@ -1,0 +1,149 @@
+"""`archery robot --shot whole` over a real router: the scripted whole shot driven on the
+parts' `command:i` ports and the archery verbs (grasp, nock, release), and its failures as
+error replies with their codes."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import mujoco
+import numpy as np
+import pytest
+
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from protocol.errors import RpcError
+from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
+from services.robot.config import RobotConfig
+from services.robot.service import run
+from sim.geometry import BOW_HAND, START_THETA
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
+from sim.shot_script import ShotStep, plan_whole_shot
+from sim.world import ArcheryWorld, WorldConfig
+from tests.postures import archery_posture
+from tests.test_robot_service import Client
+
+WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
+Joints = dict[str, np.ndarray]
+
+
+@pytest.fixture(scope="module")
+def model() -> mujoco.MjModel:
+    return build_scene(WHOLE.scene)
+
+
+@pytest.fixture(scope="module")
+def aim(model: mujoco.MjModel) -> Joints:
+    return archery_posture(model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
+
+
+@pytest.fixture
+def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
+    """start(world) runs the robot service in a thread and returns a connected client."""
+    stops: list[tuple[threading.Event, threading.Thread, Node]] = []
+
+    def start(world: WorldConfig = WHOLE) -> Client:
+        stop = threading.Event()
+        thread = threading.Thread(
+            target=run, args=(RobotConfig(net=net, world=world), stop), daemon=True
+        )
+        thread.start()
+        node = Node(None, net)
+        stops.append((stop, thread, node))
+        node.wait_alive([ROBOT], 30)
+        return Client(node)
+
+    yield start
+    for stop, thread, node in stops:
+        node.close()
+        stop.set()
+        thread.join(10)
+        assert not thread.is_alive()
+
+
+def _plan(model: mujoco.MjModel, aim: Joints, **offsets: Any) -> list[ShotStep]:
+    """The script, planned on a world of the same scene standing in the archery posture."""
+    world = ArcheryWorld(WHOLE, model=model)
+    for part, values in aim.items():
+        world.physics.set_joint_positions(part, values)
+    return plan_whole_shot(world, START_THETA, **offsets)
+
+
+def _arms(step: ShotStep) -> Joints:
+    arms = {STRING_ARM: step.right_arm}
+    if step.left_arm is not None:
+        arms[BOW_ARM] = step.left_arm
+    return arms
+
+
+def _drive(client: Client, steps: list[ShotStep], until: str) -> None:
+    """Move the arms on command:i through the steps and call their actions, up to the action
+    of step `until`."""
+    for step in steps:
+        client.move(_arms(step))
+        if step.name == until:
+            return
+        if step.action is not None:
+            client.archery(step.action)
+
+
+def test_the_whole_shot_over_the_mesh(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    assert client.archery("status")["scene"]["shot"] == "whole"
+    client.move(aim)
+    steps = _plan(model, aim)
+    _drive(client, steps, until="reach")
+    grasped = client.archery("grasp")
+    assert grasped["arrow"] == "grasped" and grasped["distance"] <= grasped["tolerance"]
+    client.move(_arms(steps[2]))  # lift
+    client.move(_arms(steps[3]))  # carry
+    assert client.archery("nock")["arrow"] == "nocked"
+    client.move(_arms(steps[4]))  # draw
+    released = client.archery("release")
+    assert released["flight_time"] > 0.05
+    assert released["outcome"] in {"target", "outside_face", "ground"}
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_a_grasp_off_the_shaft_is_refused_and_the_arrow_stays(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    client.move(aim)
+    tolerance = WHOLE.grasp_tolerance
+    steps = _plan(model, aim, grasp_offset=np.array([0.0, 0.0, 1.5 * tolerance]))
+    _drive(client, steps, until="reach")
+    with pytest.raises(RpcError) as missed:
+        client.archery("grasp")
+    assert missed.value.code == "grasp_missed"
+    assert client.archery("status")["arrow"] == "stowed"
+
+
+def test_a_missed_nock_and_a_dropped_arrow_are_error_replies(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    client.move(aim)
+    offset = np.array([0.0, 0.0, 1.5 * WHOLE.nock_tolerance])
+    _drive(client, _plan(model, aim, nock_offset=offset), until="carry")
+    with pytest.raises(RpcError) as missed:
+        client.archery("nock")
+    assert missed.value.code == "nock_missed"
+    assert client.archery("status")["arrow"] == "grasped"
+    with pytest.raises(RpcError) as dropped:
+        client.archery("release")
+    assert dropped.value.code == "arrow_dropped"
+    assert client.archery("status")["arrow"] == "dropped"
+
+
+def test_grasp_is_refused_under_the_posture_shot(robot: Callable[..., Client]) -> None:
+    client = robot(WorldConfig(scene=SceneConfig(meshes=False)))
+    with pytest.raises(RpcError) as refused:
+        client.archery("grasp")
+    assert refused.value.code == "bad_state"
+    assert client.archery("nock")["arrow"] == "nocked"  # the posture shot as before
