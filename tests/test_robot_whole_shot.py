@@ -4,6 +4,7 @@ error replies with their codes."""
 
 from __future__ import annotations
 
+import argparse
 import threading
 from collections.abc import Callable, Iterator
 from typing import Any
@@ -16,13 +17,14 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.errors import RpcError
 from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
-from services.robot.config import RobotConfig
+from services.robot.config import RobotConfig, add_arguments, make_config
 from services.robot.service import run
 from sim.geometry import BOW_HAND, START_THETA
 from sim.model_build import build_scene
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep, plan_whole_shot
 from sim.world import ArcheryWorld, WorldConfig
+from tests.conftest import archery
 from tests.postures import archery_posture
 from tests.test_robot_service import Client
 
@@ -147,3 +149,13 @@ def test_grasp_is_refused_under_the_posture_shot(robot: Callable[..., Client]) -
         client.archery("grasp")
     assert refused.value.code == "bad_state"
     assert client.archery("nock")["arrow"] == "nocked"  # the posture shot as before
+
+
+def test_the_shot_flag_picks_the_scene() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for flags, shot in (([], "posture"), (["--shot", "whole"], "whole")):
+        config = make_config(parser.parse_args(flags), NetConfig())
+        assert config.world.scene.shot == shot
+    result = archery("robot", "--shot", "bow", timeout=60)
+    assert result.returncode == 2 and "--shot" in result.stderr
