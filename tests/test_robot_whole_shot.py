@@ -7,14 +7,18 @@ from __future__ import annotations
 import argparse
 import threading
 from collections.abc import Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 import pytest
 
+from apps.demonstrate import Recorder
+from apps.demonstrate import main as demonstrate
 from mesh.netflags import NetConfig
 from mesh.node import Node
+from protocol.demonstration import MIN_SAMPLES, encode_demonstration
 from protocol.errors import RpcError
 from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
 from services.robot.config import RobotConfig, add_arguments, make_config
@@ -44,14 +48,14 @@ def aim(model: mujoco.MjModel) -> Joints:
 
 @pytest.fixture
 def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
-    """start(world) runs the robot service in a thread and returns a connected client."""
+    """start(world, **config) runs the robot service in a thread and returns a connected
+    client."""
     stops: list[tuple[threading.Event, threading.Thread, Node]] = []
 
-    def start(world: WorldConfig = WHOLE) -> Client:
+    def start(world: WorldConfig = WHOLE, **overrides: Any) -> Client:
         stop = threading.Event()
-        thread = threading.Thread(
-            target=run, args=(RobotConfig(net=net, world=world), stop), daemon=True
-        )
+        config = RobotConfig(net=net, world=world, **overrides)
+        thread = threading.Thread(target=run, args=(config, stop), daemon=True)
         thread.start()
         node = Node(None, net)
         stops.append((stop, thread, node))
@@ -159,3 +163,29 @@ def test_the_shot_flag_picks_the_scene() -> None:
         assert config.world.scene.shot == shot
     result = archery("robot", "--shot", "bow", timeout=60)
     assert result.returncode == 2 and "--shot" in result.stderr
+
+
+def test_a_demonstration_is_recorded_while_the_arms_are_driven(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints, tmp_path: Path
+) -> None:
+    # at rtf 0 the states are also paced per wall second: a faster stream samples the movement
+    client = robot(state_rate=500.0)
+    client.move(aim)
+    recorder = Recorder(client.node, "whole", made="the scripted whole shot of sim.shot_script")
+    try:
+        assert recorder.wait_started(10)
+        _drive(client, _plan(model, aim), until="")  # every step and its action
+        assert recorder.wait_ended(30)
+        demo = recorder.demonstration()
+    finally:
+        recorder.close()
+    kinds = [event.kind for event in demo.events]
+    assert kinds[:2] == ["nocked", "released"] and kinds[2] in {"landed", "missed"}
+    assert len(demo.samples) >= MIN_SAMPLES
+    final = demo.samples[-1]
+    assert final.t >= demo.events[1].t  # the arms until the landing
+    moved = np.abs(np.asarray(final.right_arm) - np.asarray(demo.samples[0].right_arm))
+    assert np.max(moved) > 0.1  # the right arm drew
+    path = tmp_path / "demo.json"
+    path.write_bytes(encode_demonstration(demo))
+    assert demonstrate(["--check", str(path)]) == 0
