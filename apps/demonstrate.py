@@ -1,7 +1,7 @@
 """`archery demonstrate`: record a demonstration of the whole shot, or check one.
 
 `--out DEMO.json` follows a running robot while an operator drives its arms (the parts'
-`command:i` ports: a scripted teacher, `archery write`) and its archery verbs, and writes
+`command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
 both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
 once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file: its
 form, and every angle within the simulated robot's joint limits. A bad file or flag: one line
@@ -17,6 +17,8 @@ import threading
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from apps.waits import announce, interrupted_line
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args
@@ -31,11 +33,12 @@ from protocol.demonstration import (
     encode_demonstration,
     parse_demonstration,
 )
-from protocol.errors import ArcheryError
+from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
 from protocol.messages import JointState, WorldEvent
 from protocol.parts import ARM_PARTS, PARTS
-from protocol.robotspec import ROBOT
+from protocol.robotspec import NOMINAL_THETA, ROBOT
+from protocol.vectors import parse_vector
 from protocol.verbs.robot import ARCHERY_STATUS
 
 __all__ = ["Recorder", "joint_limits", "main"]
@@ -173,10 +176,26 @@ def _check(path: Path) -> int:
     return OK
 
 
+def _teach(node: Node, theta: np.ndarray, timeout: float) -> None:
+    """Drive the robot through the scripted whole shot (`apps.teacher`)."""
+    from apps.teacher import Teacher
+
+    teacher = Teacher(node, timeout)
+    try:
+        teacher.teach(theta)
+    finally:
+        teacher.close()
+
+
 def _record(args: argparse.Namespace) -> int:
     out: Path = args.out
     if not out.parent.is_dir():
         print(f"archery {PROG}: --out {out}: no folder {out.parent}", file=sys.stderr)
+        return BAD_INPUT
+    try:
+        theta = parse_vector("--theta", args.theta, ConfigError, unit="m")
+    except ConfigError as exc:
+        print(f"archery {PROG}: {exc.message}", file=sys.stderr)
         return BAD_INPUT
     net = NetConfig.from_args(args)
     on_wait = announce(PROG)
@@ -189,6 +208,8 @@ def _record(args: argparse.Namespace) -> int:
                 print(f"archery {PROG}: no joint state within {args.wait:g} s", file=sys.stderr)
                 return FAILURE
             print(f"archery {PROG}: recording until the arrow lands", file=sys.stderr, flush=True)
+            if args.teach:
+                _teach(node, theta, args.wait)
             if not recorder.wait_ended(args.timeout):
                 print(
                     f"archery {PROG}: no shot ended within {args.timeout:g} s; nothing written",
@@ -227,6 +248,17 @@ def main(argv: list[str] | None = None) -> int:
         "--wait", type=seconds, default=30.0, help="wall s to wait for the robot and its states"
     )
     parser.add_argument("--made", default="", help="how it is made, written into the file")
+    parser.add_argument(
+        "--teach",
+        action="store_true",
+        help="with --out: drive the arms through the scripted whole shot while recording",
+    )
+    parser.add_argument(
+        "--theta",
+        default=",".join(f"{v:g}" for v in NOMINAL_THETA),
+        metavar="X,Y,Z",
+        help="with --teach: draw the string hand to bow hand + θ (m)",
+    )
     args = parser.parse_args(argv)
     if args.check is not None:
         return _check(args.check)

@@ -23,13 +23,14 @@ from sim.scene_config import ARROW_NOCK_SITE, BOW_HAND_SITE, GRASP_SITE
 from sim.whole_props import NOCK_GRIP
 from sim.world import ArcheryWorld
 
-__all__ = ["APPROACH_HEIGHT", "NOCK_SHIFT", "ShotStep", "plan_whole_shot"]
+__all__ = ["APPROACH_HEIGHT", "NOCK_SHIFT", "ShotStep", "plan_aim", "plan_whole_shot"]
 
 APPROACH_HEIGHT = 0.06  # m, the hand comes down onto the arrow and lifts it by this much
 #: m, how far the bow hand comes toward the right hand for the nock (the string's rest point
 #: in the archery posture is beyond the right arm's reach)
 NOCK_SHIFT = np.array([0.1, 0.15, -0.1])
 _LIMB_TIPS = ("bow_top", "bow_bottom")
+_AXIS_LENGTH = 0.1  # m
 _SHIFT_WEIGHT, _TURN_WEIGHT = 0.5, 0.2  # how much the bow hand and its turn may give way
 
 Action = Literal["grasp", "nock", "release"] | None
@@ -120,6 +121,57 @@ def plan_whole_shot(
     steps.append(ShotStep("draw", draw, bow_posture.copy()))
     steps.append(ShotStep("hold", draw.copy(), action="release"))
     return steps
+
+
+def plan_aim(world: ArcheryWorld, bow_hand: np.ndarray, theta: np.ndarray) -> ShotStep:
+    """Both arms' archery posture: the bow hand at `bow_hand` (m), its grip vertical (thumb up)
+    and its back toward the string hand, which is at `bow_hand` + `theta` (m); from the
+    world's current posture, the torso as it is.
+
+    Raises:
+        CommandError: the hands cannot be there.
+    """
+    physics = world.physics
+    model = physics.model
+    bow_hand = np.asarray(bow_hand, dtype=float)
+    theta = np.asarray(theta, dtype=float)
+    limits = {part: world.joint_limits(part) for part in (STRING_ARM, BOW_ARM)}
+    start = {part: world.joint_positions(part) for part in (STRING_ARM, BOW_ARM)}
+    site = model.site(BOW_HAND_SITE)
+    body = model.body(int(site.bodyid[0])).name
+    rot = np.empty(9)
+    mujoco.mju_quat2Mat(rot, model.site_quat[site.id])
+    axes = rot.reshape(3, 3)
+    down, back = np.array([0.0, 0.0, -1.0]), theta / np.linalg.norm(theta)
+    string = model.site(GRASP_SITE)
+    arms = reach(
+        physics,
+        [
+            PointTarget(body, model.site_pos[site.id].copy(), bow_hand),
+            # the orientation, by two points an arm's length of the hand away (soft)
+            PointTarget(
+                body,
+                model.site_pos[site.id] + _AXIS_LENGTH * axes[:, 1],
+                bow_hand + _AXIS_LENGTH * down,
+                _TURN_WEIGHT,
+            ),
+            PointTarget(
+                body,
+                model.site_pos[site.id] + _AXIS_LENGTH * axes[:, 2],
+                bow_hand + _AXIS_LENGTH * back,
+                _TURN_WEIGHT,
+            ),
+            PointTarget(
+                model.body(int(string.bodyid[0])).name,
+                model.site_pos[string.id].copy(),
+                bow_hand + theta,
+            ),
+        ],
+        (BOW_ARM, STRING_ARM),
+        start,
+        limits,
+    )
+    return ShotStep("aim", arms[STRING_ARM], arms[BOW_ARM])
 
 
 def _in_body_frame(

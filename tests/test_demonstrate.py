@@ -3,12 +3,14 @@ out-of-limits one, or a missing one, is refused with one line naming what is wro
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Any
 
 import msgspec
 import pytest
 
+from apps import demonstrate as demonstrate_module
 from apps.demonstrate import joint_limits, main
 from protocol.demonstration import FORMAT, MIN_DURATION, MIN_SAMPLES
 from protocol.exit_status import BAD_INPUT, OK
@@ -88,3 +90,11 @@ def test_recording_into_a_missing_folder_is_bad_input(
     assert main(["--out", str(tmp_path / "none" / "demo.json")]) == BAD_INPUT
     err = capsys.readouterr().err
     assert "no folder" in err and err.count("\n") == 1
+
+
+def test_the_shipped_demonstration_passes(capsys: pytest.CaptureFixture[str]) -> None:
+    shipped = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
+    assert main(["--check", str(shipped)]) == OK
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["shot"] == "whole" and summary["samples"] >= MIN_SAMPLES
+    assert summary["events"][:2] == ["nocked", "released"]

@@ -16,10 +16,11 @@ import pytest
 
 from apps.demonstrate import Recorder
 from apps.demonstrate import main as demonstrate
+from apps.teacher import Teacher
 from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.demonstration import MIN_SAMPLES, encode_demonstration
-from protocol.errors import RpcError
+from protocol.errors import ConfigError, RpcError
 from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
 from services.robot.config import RobotConfig, add_arguments, make_config
 from services.robot.service import run
@@ -189,3 +190,23 @@ def test_a_demonstration_is_recorded_while_the_arms_are_driven(
     path = tmp_path / "demo.json"
     path.write_bytes(encode_demonstration(demo))
     assert demonstrate(["--check", str(path)]) == 0
+
+
+def test_the_teacher_drives_the_whole_shot(robot: Callable[..., Client]) -> None:
+    client = robot()
+    teacher = Teacher(client.node, timeout=20)
+    try:
+        teacher.teach(START_THETA)
+    finally:
+        teacher.close()
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_the_teacher_refuses_a_posture_robot(robot: Callable[..., Client]) -> None:
+    client = robot(WorldConfig(scene=SceneConfig(meshes=False)))
+    teacher = Teacher(client.node, timeout=20)
+    try:
+        with pytest.raises(ConfigError, match="--shot whole"):
+            teacher.teach(START_THETA)
+    finally:
+        teacher.close()
