@@ -45,7 +45,7 @@ __all__ = ["Recorder", "joint_limits", "main"]
 
 PROG = "demonstrate"
 _SHOT_ENDS = ("landed", "missed")
-_EVENTS = ("nocked", "released", *_SHOT_ENDS)
+_EVENTS = ("grasped", "nocked", "released", *_SHOT_ENDS)
 
 
 class Recorder:

@@ -60,7 +60,7 @@ class DemoEvent(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     """A shot event of the robot's `world/events:o` at time t (s)."""
 
     t: float
-    kind: Literal["nocked", "released", "landed", "missed"]
+    kind: Literal["grasped", "nocked", "released", "landed", "missed"]
 
 
 class Demonstration(msgspec.Struct, frozen=True, forbid_unknown_fields=True):

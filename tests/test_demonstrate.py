@@ -97,4 +97,4 @@ def test_the_shipped_demonstration_passes(capsys: pytest.CaptureFixture[str]) ->
     assert main(["--check", str(shipped)]) == OK
     summary = json.loads(capsys.readouterr().out)
     assert summary["shot"] == "whole" and summary["samples"] >= MIN_SAMPLES
-    assert summary["events"][:2] == ["nocked", "released"]
+    assert summary["events"][:3] == ["grasped", "nocked", "released"]

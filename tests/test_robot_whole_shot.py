@@ -181,10 +181,10 @@ def test_a_demonstration_is_recorded_while_the_arms_are_driven(
     finally:
         recorder.close()
     kinds = [event.kind for event in demo.events]
-    assert kinds[:2] == ["nocked", "released"] and kinds[2] in {"landed", "missed"}
+    assert kinds[:3] == ["grasped", "nocked", "released"] and kinds[3] in {"landed", "missed"}
     assert len(demo.samples) >= MIN_SAMPLES
     final = demo.samples[-1]
-    assert final.t >= demo.events[1].t  # the arms until the landing
+    assert final.t >= demo.events[2].t  # the arms until the landing
     moved = np.abs(np.asarray(final.right_arm) - np.asarray(demo.samples[0].right_arm))
     assert np.max(moved) > 0.1  # the right arm drew
     path = tmp_path / "demo.json"

@@ -64,13 +64,15 @@ class Shots:
         return rv.NockReply(shot=self.number + 1, arrow=world.arrow_state.value, sim_time=t)
 
     def grasp(self, world: ArcheryWorld) -> rv.GraspReply:
-        """Whole shot: close the right hand on the arrow (`ArcheryWorld.grasp`).
+        """Whole shot: close the right hand on the arrow (`ArcheryWorld.grasp`); the `grasped`
+        event goes out.
 
         Raises:
             GraspMissed: the hand is off the shaft by more than the tolerance. StateError: not
                 a whole-shot world, or an arrow is held, nocked or flying.
         """
         distance = world.grasp()
+        self._sink.event("grasped", self.number + 1, world.sim_time)
         return rv.GraspReply(
             arrow=world.arrow_state.value,
             distance=distance,
