@@ -47,6 +47,7 @@ def reach(
     tolerance: float = 2e-3,
     iterations: int = 300,
     damping: float = 0.05,
+    others: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """Joint angles (rad, per part) that put every target's point at its position.
 
@@ -59,6 +60,7 @@ def reach(
         tolerance: largest accepted position error of any target (m).
         iterations: most solver iterations.
         damping: the damped least-squares λ (m).
+        others: angles (rad) of parts that do not move, where they differ from the scene's.
 
     Raises:
         CommandError: no solution within `tolerance`; the message gives the residual (m).
@@ -66,6 +68,8 @@ def reach(
     model = physics.model
     data = mujoco.MjData(model)
     data.qpos[:] = physics.data.qpos
+    for part, angles in (others or {}).items():
+        data.qpos[physics.qpos_indices(part)] = angles
     qadr = np.concatenate([physics.qpos_indices(p) for p in parts])
     dadr = np.concatenate([physics.dof_indices(p) for p in parts])
     lower = np.concatenate([limits[p][0] for p in parts])

@@ -23,7 +23,14 @@ from sim.scene_config import ARROW_NOCK_SITE, BOW_HAND_SITE, GRASP_SITE
 from sim.whole_props import NOCK_GRIP
 from sim.world import ArcheryWorld
 
-__all__ = ["APPROACH_HEIGHT", "NOCK_SHIFT", "ShotStep", "plan_aim", "plan_whole_shot"]
+__all__ = [
+    "APPROACH_HEIGHT",
+    "NOCK_SHIFT",
+    "ShotStep",
+    "plan_aim",
+    "plan_draw",
+    "plan_whole_shot",
+]
 
 APPROACH_HEIGHT = 0.06  # m, the hand comes down onto the arrow and lifts it by this much
 #: m, how far the bow hand comes toward the right hand for the nock (the string's rest point
@@ -172,6 +179,38 @@ def plan_aim(world: ArcheryWorld, bow_hand: np.ndarray, theta: np.ndarray) -> Sh
         limits,
     )
     return ShotStep("aim", arms[STRING_ARM], arms[BOW_ARM])
+
+
+def plan_draw(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> ShotStep:
+    """The right arm's posture that draws the nocked arrow's nock to the bow hand + `theta` (m),
+    with the bow arm at `bow_arm` (rad: where it will be for the draw, its archery posture).
+
+    Raises:
+        StateError: no arrow is nocked. CommandError: out of the arm's reach.
+    """
+    whole = world.whole
+    if whole is None or not whole.nocked:
+        raise StateError("no arrow is on the string to draw; nock one first")
+    physics = world.physics
+    physics.kinematics()
+    model = physics.model
+    hand = model.body(int(model.site(GRASP_SITE).bodyid[0])).name
+    arm = world.joint_positions(STRING_ARM)
+    nock = _in_body_frame(world, hand, arm, whole.nocking_point())
+    data = mujoco.MjData(model)
+    data.qpos[:] = physics.data.qpos
+    data.qpos[physics.qpos_indices(BOW_ARM)] = bow_arm
+    mujoco.mj_kinematics(model, data)
+    bow = data.site_xpos[model.site(BOW_HAND_SITE).id]
+    arms = reach(
+        physics,
+        [PointTarget(hand, nock, bow + np.asarray(theta, dtype=float))],
+        (STRING_ARM,),
+        {STRING_ARM: arm},
+        {STRING_ARM: world.joint_limits(STRING_ARM)},
+        others={BOW_ARM: np.asarray(bow_arm, dtype=float)},
+    )
+    return ShotStep("draw", arms[STRING_ARM], np.asarray(bow_arm, dtype=float).copy())
 
 
 def _in_body_frame(
