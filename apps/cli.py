@@ -100,6 +100,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "apps.demonstrate:main",
         "record a demonstration of the whole shot while the arms are driven, or check one",
     ),
+    "imitate": (
+        "apps.imitate:main",
+        "the whole shot from a demonstration's DMPs alone, drawn for θ, on a running robot",
+    ),
     "keys": ("apps.keys:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
 

@@ -43,7 +43,7 @@ class Teacher:
         self._states = {part: node.subscribe(keys.state(part), JointState) for part in PARTS}
         self._commands = {part: node.publisher(keys.command(part), JointCommand) for part in PARTS}
 
-    def _world(self) -> ArcheryWorld:
+    def world(self) -> ArcheryWorld:
         """A copy of the robot's scene standing as the robot does now.
 
         Raises:
@@ -100,19 +100,26 @@ class Teacher:
             ConfigError: not a whole-shot robot. CommandError: a posture out of reach.
             RpcError: the robot refused a step (grasp_missed, nock_missed, …).
         """
-        world = self._world()
+        world = self.world()
         aim = plan_aim(world, BOW_HAND, theta)
         self.move(aim)
         world.physics.set_joint_positions(STRING_ARM, aim.right_arm)
         if aim.left_arm is not None:
             world.physics.set_joint_positions(BOW_ARM, aim.left_arm)
         world.physics.kinematics()
-        node = self._node
         for step in plan_whole_shot(world, theta):
             self.move(step)
             if step.action is not None:
-                timeout = self._timeout
-                node.call_typed(node.keys.archery_rpc(), _ACTIONS[step.action], timeout=timeout)
+                self.act(step.action)
+
+    def act(self, action: str) -> object:
+        """Call the robot's `grasp`, `nock` or `release`; its reply.
+
+        Raises:
+            RpcError: the robot refused it (grasp_missed, nock_missed, arrow_dropped, …).
+        """
+        node = self._node
+        return node.call_typed(node.keys.archery_rpc(), _ACTIONS[action], timeout=self._timeout)
 
     def close(self) -> None:
         """Stop following the robot's states."""

@@ -29,6 +29,7 @@ __all__ = [
     "ShotStep",
     "plan_aim",
     "plan_draw",
+    "plan_string_hand",
     "plan_whole_shot",
 ]
 
@@ -211,6 +212,38 @@ def plan_draw(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> Sh
         others={BOW_ARM: np.asarray(bow_arm, dtype=float)},
     )
     return ShotStep("draw", arms[STRING_ARM], np.asarray(bow_arm, dtype=float).copy())
+
+
+def plan_string_hand(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> ShotStep:
+    """The right arm's posture that puts the string hand at the bow hand + `theta` (m, the
+    paper's θ), with the bow arm at `bow_arm` (rad), from the world's current posture.
+
+    Raises:
+        CommandError: out of the arm's reach.
+    """
+    physics = world.physics
+    model = physics.model
+    string = model.site(GRASP_SITE)
+    data = mujoco.MjData(model)
+    data.qpos[:] = physics.data.qpos
+    data.qpos[physics.qpos_indices(BOW_ARM)] = bow_arm
+    mujoco.mj_kinematics(model, data)
+    bow = data.site_xpos[model.site(BOW_HAND_SITE).id]
+    arms = reach(
+        physics,
+        [
+            PointTarget(
+                model.body(int(string.bodyid[0])).name,
+                model.site_pos[string.id].copy(),
+                bow + np.asarray(theta, dtype=float),
+            )
+        ],
+        (STRING_ARM,),
+        {STRING_ARM: world.joint_positions(STRING_ARM)},
+        {STRING_ARM: world.joint_limits(STRING_ARM)},
+        others={BOW_ARM: np.asarray(bow_arm, dtype=float)},
+    )
+    return ShotStep("hold", arms[STRING_ARM], np.asarray(bow_arm, dtype=float).copy())
 
 
 def _in_body_frame(

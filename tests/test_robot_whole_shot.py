@@ -5,6 +5,7 @@ error replies with their codes."""
 from __future__ import annotations
 
 import argparse
+import json
 import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -14,8 +15,10 @@ import mujoco
 import numpy as np
 import pytest
 
+from apps import demonstrate as demonstrate_module
 from apps.demonstrate import Recorder
 from apps.demonstrate import main as demonstrate
+from apps.imitate import main as imitate
 from apps.teacher import Teacher
 from mesh.netflags import NetConfig
 from mesh.node import Node
@@ -34,6 +37,7 @@ from tests.postures import archery_posture
 from tests.test_robot_service import Client
 
 WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
+SHIPPED = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
 Joints = dict[str, np.ndarray]
 
 
@@ -210,3 +214,32 @@ def test_the_teacher_refuses_a_posture_robot(robot: Callable[..., Client]) -> No
             teacher.teach(START_THETA)
     finally:
         teacher.close()
+
+
+def _net_flags(net: NetConfig) -> list[str]:
+    return ["--connect", net.connect[0], "--robot", net.robot]
+
+
+def test_imitate_draws_the_dmps_movement_for_theta(
+    robot: Callable[..., Client], net: NetConfig, capsys: pytest.CaptureFixture[str]
+) -> None:
+    client = robot()
+    theta = np.array([0.19, 0.03, -0.035])
+    flags = ["--theta", ",".join(str(v) for v in theta), *_net_flags(net)]
+    assert imitate([str(SHIPPED), *flags]) == 0
+    reply = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(reply["theta"], theta, atol=5e-3)  # the hands' θ at the release
+    assert reply["flight_time"] > 0.05
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_imitate_refuses_a_theta_outside_the_box_and_nothing_moves(
+    robot: Callable[..., Client], net: NetConfig, capsys: pytest.CaptureFixture[str]
+) -> None:
+    client = robot()
+    before = client.part(STRING_ARM, "getPositions")
+    assert imitate([str(SHIPPED), "--theta", "0.4,0,0", *_net_flags(net)]) == 2
+    err = capsys.readouterr().err
+    assert "outside the reachable box" in err and err.count("\n") == 1
+    after = client.part(STRING_ARM, "getPositions")
+    assert after["position"] == before["position"] and after["sim_time"] == before["sim_time"]
