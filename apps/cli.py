@@ -104,6 +104,14 @@ VERBS: dict[str, tuple[str, str]] = {
         "a live view in the browser: frame, target face, distances, liveliness, rates",
     ),
     "demo": ("apps.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
+    "demonstrate": (
+        "apps.demonstrate:main",
+        "record a demonstration of the whole shot while the arms are driven, or check one",
+    ),
+    "imitate": (
+        "apps.imitate:main",
+        "the whole shot from a demonstration's DMPs alone, drawn for θ, on a running robot",
+    ),
     "keys": ("apps.keys:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
 

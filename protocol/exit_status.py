@@ -29,6 +29,7 @@ BAD_INPUT_CODES = frozenset(
         "bad_journal",
         "bad_model",
         "bad_image",
+        "bad_demonstration",
     }
 )
 

@@ -246,7 +246,7 @@ class WorldEvent(Message, frozen=True):
     """A shot event, or a `watchdog` hold (`reason` names the part). `impact_m` is the
     ground-truth r (m) on the target plane: tests/plots only."""
 
-    kind: Literal["nocked", "released", "landed", "missed", "reset", "watchdog"]
+    kind: Literal["grasped", "nocked", "released", "landed", "missed", "reset", "watchdog"]
     shot: int = 0
     impact_m: list[float] | None = None
     reason: str = ""

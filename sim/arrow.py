@@ -30,6 +30,7 @@ __all__ = [
     "arrow_quat",
     "drag_acceleration",
     "launch_velocity",
+    "noisy_velocity",
 ]
 
 
@@ -150,17 +151,28 @@ def launch_velocity(
     speed_noise: float = 0.0,
     direction_noise: float = 0.0,
 ) -> np.ndarray:
-    """Launch velocity (m/s) for the hand positions (m): the bow's speed along −θ/‖θ‖.
-
-    With `rng`, the speed is scaled by (1 + speed_noise·N(0, 1)) (kept ≥ 0) and the direction
-    is tilted by direction_noise·N(0, 1) radians about each of two axes perpendicular to it.
+    """Launch velocity (m/s) for the hand positions (m): the bow's speed along −θ/‖θ‖, with the
+    noise of `noisy_velocity`.
 
     Raises:
         NoArrowDirection: the hands coincide, so there is no direction to shoot in.
     """
     theta = np.asarray(string_hand, dtype=float) - np.asarray(bow_hand, dtype=float)
-    direction = arrow_direction(theta)
-    speed = bow.launch_speed(theta)
+    return noisy_velocity(
+        arrow_direction(theta), bow.launch_speed(theta), rng, speed_noise, direction_noise
+    )
+
+
+def noisy_velocity(
+    direction: np.ndarray,
+    speed: float,
+    rng: np.random.Generator | None = None,
+    speed_noise: float = 0.0,
+    direction_noise: float = 0.0,
+) -> np.ndarray:
+    """`speed` (m/s) along the unit vector `direction`; with `rng`, the speed is scaled by
+    (1 + speed_noise·N(0, 1)) (kept ≥ 0) and the direction is tilted by direction_noise·N(0, 1)
+    radians about each of two axes perpendicular to it."""
     if rng is not None:
         # Always draw the same three numbers, so the stream does not depend on the settings.
         eps_speed, eps_a, eps_b = rng.standard_normal(3)
@@ -171,7 +183,8 @@ def launch_velocity(
         up = np.cross(direction, side)
         direction = direction + direction_noise * (eps_a * side + eps_b * up)
         direction /= np.linalg.norm(direction)
-    return speed * direction
+    velocity: np.ndarray = speed * direction
+    return velocity
 
 
 class ArrowFlight:

@@ -52,8 +52,15 @@ class Bow:
         return max(0.0, float(np.linalg.norm(theta)) - self.brace_height)
 
     def launch_speed(self, theta: np.ndarray) -> float:
-        """Launch speed (m/s) for the hand offset θ (m): d·sqrt(η·k/m)."""
-        return self.draw(theta) * math.sqrt(self.efficiency * self.stiffness / self.arrow_mass)
+        """Launch speed (m/s) for the hand offset θ (m): d·sqrt(η·k/m) with d = `draw(θ)`."""
+        return self.speed_for_draw(self.draw(theta))
+
+    def speed_for_draw(self, draw: float) -> float:
+        """Launch speed (m/s) for a draw length d (m, ≥ 0: how far the string's nocking point
+        was pulled from its rest): d·sqrt(η·k/m)."""
+        if not math.isfinite(draw) or draw < 0:
+            raise BowError(f"the draw length must be a finite number of metres >= 0, got {draw!r}")
+        return draw * math.sqrt(self.efficiency * self.stiffness / self.arrow_mass)
 
     def launch_velocity(self, theta: np.ndarray) -> np.ndarray:
         """Launch velocity vector (m/s) along −θ/‖θ‖ (`protocol.direction.arrow_direction`), in

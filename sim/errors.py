@@ -5,7 +5,15 @@ from __future__ import annotations
 
 from protocol import errors as project
 
-__all__ = ["CommandError", "SceneError", "SimError", "StateError"]
+__all__ = [
+    "ArrowDropped",
+    "CommandError",
+    "GraspMissed",
+    "NockMissed",
+    "SceneError",
+    "SimError",
+    "StateError",
+]
 
 
 class SimError(project.ArcheryError):
@@ -30,3 +38,23 @@ class StateError(SimError, RuntimeError):
     """A command that the world's current state does not allow (e.g. release with no arrow)."""
 
     code = "bad_state"
+
+
+class GraspMissed(SimError):
+    """The fingers closed farther from the arrow's shaft than the grasp tolerance: nothing is
+    held, the arrow stays where it was (in its holder)."""
+
+    code = "grasp_missed"
+
+
+class NockMissed(SimError):
+    """The arrow's nock is farther from the string's nocking point than the nock tolerance: the
+    arrow stays in the hand, off the string."""
+
+    code = "nock_missed"
+
+
+class ArrowDropped(SimError):
+    """The fingers opened on an arrow that was not on the string: it fell."""
+
+    code = "arrow_dropped"

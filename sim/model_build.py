@@ -1,5 +1,6 @@
 """Assembling and compiling the archery scene: the edited iCub (`sim.urdf`), its position
-servos, the hand sites and the props (`sim.props`), tuned so every joint settles alike.
+servos, the hand sites and the props (`sim.props`, and the whole shot's: `sim.whole_props`),
+tuned so every joint settles alike.
 
 Frame: the MuJoCo world frame *is* the iCub `root_link` frame of `sim.geometry` (x backward,
 y right, z up; metres). The URDF's root link is welded to the world, and the floor is the plane
@@ -17,8 +18,9 @@ from protocol.parts import PARTS
 from protocol.robotspec import HOME_POSTURE
 from sim.errors import SceneError
 from sim.props import add_arrow, add_bow, add_environment, add_target
-from sim.scene_config import BOW_HAND_SITE, SceneConfig
+from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, STRING_NOCK_SITE, SceneConfig
 from sim.urdf import add_hand_sites, robot_spec
+from sim.whole_props import add_whole_shot_props
 
 __all__ = ["build_scene"]
 
@@ -74,8 +76,11 @@ def build_scene(config: SceneConfig | None = None) -> mujoco.MjModel:
     option.density = 0.0  # air drag is applied explicitly to the arrow (sim.arrow)
     option.viscosity = 0.0
     sites = add_hand_sites(spec)
-    add_bow(spec, sites[BOW_HAND_SITE])
+    whole = config.shot == "whole"
+    add_bow(spec, sites[BOW_HAND_SITE], STRING_NOCK_SITE if whole else STRING_HAND_SITE)
     add_arrow(spec, config)
+    if whole:
+        add_whole_shot_props(spec, config, sites)
     add_target(spec, config)
     add_environment(spec, config)
     try:

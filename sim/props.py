@@ -2,8 +2,9 @@
 cameras. Each `add_*` adds its part to an `MjSpec` (positions in metres, root frame).
 
 The bow hangs from the left hand at the bow-hand site's pose with a bowstring tendon through the
-string-hand site; the arrow is a free body whose origin is its tip (marked in bright green); the
-target is a ringed face in the plane x = −target_distance on a stand. None of them collides:
+string-hand site (in the whole shot, through the nocking point of `sim.whole_props`); the arrow
+is a free body whose origin is its tip (marked in bright green); the target is a ringed face in
+the plane x = −target_distance on a stand. None of them collides:
 contact is disabled, and the arrow's impact is found geometrically by `sim.arrow`.
 """
 
@@ -25,11 +26,11 @@ from sim.scene_config import (
     BOWSTRING_TENDON,
     RING_COLOURS,
     SIDE_CAMERA,
-    STRING_HAND_SITE,
     TARGET_CAMERA,
     TARGET_CENTRE_SITE,
     SceneConfig,
 )
+from sim.whole_props import holder_arrow_pose
 
 __all__ = ["add_arrow", "add_bow", "add_environment", "add_target", "look_at_quat"]
 
@@ -51,9 +52,12 @@ def look_at_quat(eye: np.ndarray, target: np.ndarray, up: np.ndarray | None = No
     return quat
 
 
-def add_bow(spec: mujoco.MjSpec, hand_site: tuple[np.ndarray, np.ndarray]) -> None:
-    """A bow held in the left hand. In the hand frame: −y up along the grip (thumb side),
-    −z toward the target (out of the palm), +z toward the string hand."""
+def add_bow(
+    spec: mujoco.MjSpec, hand_site: tuple[np.ndarray, np.ndarray], string_site: str
+) -> None:
+    """A bow held in the left hand, its string through the site `string_site` between the limb
+    tips. In the hand frame: −y up along the grip (thumb side), −z toward the target (out of the
+    palm), +z toward the string hand."""
     pos, quat = hand_site
     bow = spec.body("l_hand").add_body(name="bow", pos=pos, quat=quat, gravcomp=1.0)
     bow.explicitinertial = True
@@ -91,17 +95,19 @@ def add_bow(spec: mujoco.MjSpec, hand_site: tuple[np.ndarray, np.ndarray]) -> No
     bow.add_site(name="bow_bottom", pos=[gx, 0.32, gz + 0.07], size=[0.004, 0, 0], group=4)
     string = spec.add_tendon(name=BOWSTRING_TENDON, width=0.0015, rgba=[0.95, 0.95, 0.9, 1.0])
     string.wrap_site("bow_top")
-    string.wrap_site(STRING_HAND_SITE)
+    string.wrap_site(string_site)
     string.wrap_site("bow_bottom")
 
 
 def add_arrow(spec: mujoco.MjSpec, config: SceneConfig) -> None:
     """The arrow: a free body whose origin is its tip and whose +x axis points forward."""
     length, mass = config.arrow_length, config.arrow_mass
-    stowed = np.array([0.12, 0.30, -config.root_height + 0.002])  # upright beside the right foot
-    arrow = spec.worldbody.add_body(
-        name=ARROW_BODY, pos=stowed, quat=[math.sqrt(0.5), 0, math.sqrt(0.5), 0]
-    )
+    if config.shot == "whole":
+        stowed, quat = holder_arrow_pose(config)  # in its holder, within the right arm's reach
+    else:
+        stowed = np.array([0.12, 0.30, -config.root_height + 0.002])  # upright by the right foot
+        quat = np.array([math.sqrt(0.5), 0, math.sqrt(0.5), 0])
+    arrow = spec.worldbody.add_body(name=ARROW_BODY, pos=stowed, quat=quat)
     arrow.add_freejoint(name=ARROW_JOINT)
     arrow.explicitinertial = True
     arrow.mass = mass

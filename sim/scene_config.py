@@ -20,13 +20,22 @@ from sim.geometry import TARGET_DISTANCE
 __all__ = [
     "ARROW_BODY",
     "ARROW_JOINT",
+    "ARROW_NOCK_SITE",
     "ARROW_TIP_RGBA",
     "ARROW_TIP_SITE",
     "BOWSTRING_TENDON",
     "BOW_HAND_SITE",
+    "GRASP_SITE",
+    "GRASP_WELD",
+    "GRIP_JOINT",
+    "HOLDER_BODY",
+    "HOLDER_WELD",
     "RING_COLOURS",
+    "SHOTS",
     "SIDE_CAMERA",
     "STRING_HAND_SITE",
+    "STRING_NOCK_BODY",
+    "STRING_NOCK_SITE",
     "TARGET_CAMERA",
     "TARGET_CENTRE_SITE",
     "SceneConfig",
@@ -42,6 +51,19 @@ ARROW_TIP_SITE = "arrow_tip"
 TARGET_CENTRE_SITE = "target_centre"
 TARGET_CAMERA = "target_cam"
 SIDE_CAMERA = "side_cam"
+# … and those the whole shot adds (`sim.whole_props`).
+ARROW_NOCK_SITE = "arrow_nock"  # the arrow's nock end, on its axis, arrow_length behind the tip
+GRASP_SITE = "r_grasp"  # between the right hand's fingers, at the string hand's frame
+GRIP_JOINT = "r_grip"  # the fingers' hinge and its servo
+HOLDER_BODY = "arrow_holder"
+HOLDER_WELD = "arrow_in_holder"
+GRASP_WELD = "arrow_in_hand"
+STRING_NOCK_BODY = "string_nock"  # the bowstring's nocking point (a free body) and its site
+STRING_NOCK_SITE = "string_nock"
+
+#: How the arrow gets onto the string: "posture", put there (the paper's simplification), or
+#: "whole", grasped from its holder, carried, nocked and drawn by the right hand.
+SHOTS = ("posture", "whole")
 
 # The archery target face, innermost first: (outer radius in m, RGBA). The tip's green is in
 # none of them, so a colour model can tell the arrow from the target.
@@ -76,6 +98,8 @@ class SceneConfig:
         camera_pos: position of `target_cam` (m, root frame), on the robot's frame above and
             to the right of its head, looking at the target centre.
         camera_fovy: vertical field of view of `target_cam` (degrees).
+        shot: "posture" (the arrow is put on the string) or "whole" (the scene also has the
+            arrow's holder, the right hand's fingers and a bowstring that bends; `SHOTS`).
     """
 
     root_height: float = 0.62
@@ -90,6 +114,7 @@ class SceneConfig:
     meshes: bool = True
     camera_pos: tuple[float, float, float] = (0.05, 0.30, 0.55)
     camera_fovy: float = 22.0
+    shot: str = SHOTS[0]
 
     def __post_init__(self) -> None:
         limits = {
@@ -113,6 +138,8 @@ class SceneConfig:
             object.__setattr__(self, name, float(value))
         if not isinstance(self.meshes, bool):
             raise ConfigError(f"scene meshes must be True or False, got {self.meshes!r}")
+        if self.shot not in SHOTS:
+            raise ConfigError(f"scene shot must be one of {', '.join(SHOTS)}, got {self.shot!r}")
         pos = finite_vector("scene camera_pos", self.camera_pos, ConfigError, unit="m")
         object.__setattr__(self, "camera_pos", tuple(pos.tolist()))
 

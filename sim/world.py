@@ -3,7 +3,8 @@
 `ArcheryWorld` is the task logic on top of the physics queries of `sim.scene.ScenePhysics`:
 position-controlled joints per YARP part (targets clamped to the joint limits and approached at
 a limited reference speed, like iCub's position control), an arrow that is stowed, nocked
-between the hands, flying or landed, and the shot of `sim.arrow`. Units: metres, radians,
+between the hands (in the whole shot first grasped, `sim.whole_shot`), flying or landed, and
+the shot of `sim.arrow`. Units: metres, radians,
 seconds, root frame (x backward, y right, z up).
 
 `reset(seed)` restores the home posture at time 0 and seeds the shot noise, so the same seed
@@ -23,13 +24,14 @@ from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import MAX_REFERENCE_SPEED, home_of
 from protocol.vectors import finite_vector
-from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
+from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity, noisy_velocity
 from sim.bow import Bow
-from sim.errors import CommandError, StateError
+from sim.errors import ArrowDropped, CommandError, StateError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
+from sim.whole_shot import WholeShot
 
 __all__ = ["ArcheryWorld", "ArrowState", "WorldConfig"]
 
@@ -37,8 +39,10 @@ __all__ = ["ArcheryWorld", "ArrowState", "WorldConfig"]
 class ArrowState(StrEnum):
     """Where the arrow is."""
 
-    STOWED = "stowed"  # beside the robot, not on the bow
+    STOWED = "stowed"  # beside the robot (in the whole shot: in its holder), not on the bow
+    GRASPED = "grasped"  # in the right hand, off the string (the whole shot)
     NOCKED = "nocked"  # tip at the bow hand, along the string-to-bow-hand line, following the hands
+    DROPPED = "dropped"  # fell from the opened hand; lies on the floor once there
     FLYING = "flying"
     LANDED = "landed"  # frozen where it met the target plane or the floor, or timed out
 
@@ -60,6 +64,10 @@ class WorldConfig:
         position_tolerance: motion is done when every joint is this close to its target (rad).
         velocity_tolerance: … and every joint is slower than this (rad/s).
         max_flight_time: a flight still going after this long ends as a timeout (s).
+        grasp_tolerance: the whole shot's grasp takes the arrow only when the hand's grasp site
+            is at most this far from its shaft (m).
+        nock_tolerance: the whole shot's nock takes only when the arrow's nock is at most this
+            far from the string's rest nocking point (m).
     """
 
     scene: SceneConfig = field(default_factory=SceneConfig)
@@ -73,6 +81,8 @@ class WorldConfig:
     position_tolerance: float = 1e-3
     velocity_tolerance: float = 5e-3
     max_flight_time: float = 3.0
+    grasp_tolerance: float = 0.015
+    nock_tolerance: float = 0.02
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, SceneConfig):
@@ -95,6 +105,8 @@ class WorldConfig:
             "position_tolerance": (1e-6, 0.5),
             "velocity_tolerance": (1e-6, 5.0),
             "max_flight_time": (0.01, 60.0),
+            "grasp_tolerance": (1e-4, 0.1),
+            "nock_tolerance": (1e-4, 0.1),
         }
         for name, (low, high) in bounds.items():
             value = getattr(self, name)
@@ -193,6 +205,11 @@ class ArcheryWorld:
         self._flight: ArrowFlight | None = None
         self._landing: Landing | None = None
         self._hold_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self.whole: WholeShot | None = None
+        if self.config.scene.shot == "whole":
+            self.whole = WholeShot(
+                self.physics, self.config.grasp_tolerance, self.config.nock_tolerance
+            )
         self.reset()
 
     # -- episode ----------------------------------------------------------------------------
@@ -220,6 +237,8 @@ class ArcheryWorld:
         self._flight = None
         self._landing = None
         self._stow()
+        if self.whole is not None:
+            self.whole.reset()
         physics.forward()
 
     # -- joints -----------------------------------------------------------------------------
@@ -420,6 +439,11 @@ class ArcheryWorld:
         return self._arrow
 
     @property
+    def arrow_falling(self) -> bool:
+        """True while a dropped arrow falls (it lies still once on the floor)."""
+        return self._arrow is ArrowState.DROPPED and self._hold_pose is None
+
+    @property
     def landing(self) -> Landing | None:
         """The last shot's landing since the last reset, if any."""
         return self._landing
@@ -427,6 +451,10 @@ class ArcheryWorld:
     def _stow(self) -> None:
         self._hold(*self.physics.stowed_arrow_pose())
         self._arrow = ArrowState.STOWED
+        if self.whole is not None:  # the holder's weld holds it
+            self._hold_pose = None
+            self.physics.set_arrow_force(np.zeros(3))
+            self.physics.data.eq_active[:] = self.physics.model.eq_active0
 
     def _hold(self, tip: np.ndarray, quat: np.ndarray) -> None:
         physics = self.physics
@@ -437,6 +465,9 @@ class ArcheryWorld:
 
     def _hold_arrow(self) -> None:
         """Re-pin a held arrow: on the hands when nocked, else where it was left."""
+        if self.whole is not None:
+            self._hold_whole(self.whole)
+            return
         if self._arrow is ArrowState.FLYING:
             return
         if self._arrow is ArrowState.NOCKED:
@@ -445,6 +476,50 @@ class ArcheryWorld:
             self._hold(bow, arrow_quat(bow - string))
         elif self._hold_pose is not None:
             self._hold(*self._hold_pose)
+
+    def _hold_whole(self, whole: WholeShot) -> None:
+        """The whole shot's pins: the string's nocking point, a nocked arrow; a dropped arrow
+        lies where it met the floor."""
+        self.physics.kinematics()
+        whole.pin()
+        if self._arrow is ArrowState.DROPPED:
+            if self._hold_pose is None:
+                tip, quat = self.physics.arrow_pose()
+                floor = -self.config.scene.root_height
+                if tip[2] > floor:
+                    return
+                tip[2] = floor
+                self._hold_pose = (tip, quat)
+            self._hold(*self._hold_pose)
+        elif self._arrow is ArrowState.LANDED and self._hold_pose is not None:
+            self._hold(*self._hold_pose)
+
+    def grasp(self) -> float:
+        """Whole shot: close the right hand's fingers on the arrow in its holder (a landed or
+        dropped arrow is first replaced by the holder's next one).
+
+        Returns:
+            The grasp site's distance from the shaft (m), within `grasp_tolerance`.
+
+        Raises:
+            StateError: not a whole-shot world, an arrow is in the hand, on the string or in
+                flight. GraspMissed: the hand is farther than `grasp_tolerance` from the shaft;
+                the arrow stays in its holder.
+        """
+        whole = self._whole_shot()
+        if self._arrow is not ArrowState.STOWED:
+            if self._arrow not in (ArrowState.LANDED, ArrowState.DROPPED):
+                raise StateError(f"the arrow is {self._arrow.value}; only one is taken at a time")
+            self._stow()
+        distance = whole.grasp()
+        self._arrow = ArrowState.GRASPED
+        self._hold_pose = None
+        return distance
+
+    def _whole_shot(self) -> WholeShot:
+        if self.whole is None:
+            raise StateError("the world's shot is 'posture': grasping needs shot 'whole'")
+        return self.whole
 
     def hand_positions(self) -> tuple[np.ndarray, np.ndarray]:
         """(bow hand, string hand) positions now (m): sites `l_hand_dh_frame`, `r_hand_dh_frame`."""
@@ -456,25 +531,50 @@ class ArcheryWorld:
         bow, string = self.hand_positions()
         return string - bow
 
-    def nock(self) -> None:
+    def nock(self) -> float:
         """Take a fresh arrow onto the bow: tip at the bow hand, pointing away from the string hand.
 
-        A landed arrow is taken back; the nocked arrow follows the hands until `release`.
+        A landed arrow is taken back; the nocked arrow follows the hands until `release`. In the
+        whole shot the grasped arrow's nock goes onto the string instead (`sim.whole_shot`).
+
+        Returns:
+            The nock's distance from the string (m): 0 for the posture shot.
 
         Raises:
-            StateError: an arrow is in flight.
+            StateError: an arrow is in flight (whole shot: no arrow is in the hand).
+            NockMissed: whole shot, the nock is farther than `nock_tolerance` from the string.
         """
         if self._arrow is ArrowState.FLYING:
             raise StateError("an arrow is in flight; wait for it to land before nocking another")
+        if self.whole is not None:
+            if self._arrow is not ArrowState.GRASPED:
+                raise StateError(
+                    f"the arrow is {self._arrow.value}, not in the hand; grasp it first"
+                )
+            distance = self.whole.nock()
+            self._arrow = ArrowState.NOCKED
+            return distance
         self._arrow = ArrowState.NOCKED
         self._hold_arrow()
+        return 0.0
 
     def launch(self) -> Launch:
-        """Release the string: the arrow starts flying; advance it with `step`.
+        """Release the string: the arrow starts flying; advance it with `step`. In the whole
+        shot the fingers open, and the arrow leaves from where it lies at the bow's speed for
+        the draw length (`sim.whole_shot`); a grasped arrow not on the string falls.
 
         Raises:
             StateError: no arrow is nocked. NoArrowDirection: the hands coincide.
+            ArrowDropped: whole shot, the arrow was in the hand but not on the string.
         """
+        if self.whole is not None and self._arrow is ArrowState.GRASPED:
+            try:
+                self.whole.release()
+            except ArrowDropped:
+                self._arrow = ArrowState.DROPPED
+                self._hold_pose = None
+                self.physics.set_arrow_force(np.zeros(3))
+                raise
         if self._arrow is not ArrowState.NOCKED:
             raise StateError(
                 f"no arrow is nocked (the arrow is {self._arrow.value}); call nock() first"
@@ -482,17 +582,23 @@ class ArcheryWorld:
         cfg = self.config
         rng = self._rng
         bow, string = self.hand_positions()
-        velocity = launch_velocity(
-            bow,
-            string,
-            cfg.bow,
-            rng,
-            speed_noise=cfg.speed_noise,
-            direction_noise=cfg.direction_noise,
-        )
+        start = bow
+        if self.whole is None:
+            velocity = launch_velocity(
+                bow,
+                string,
+                cfg.bow,
+                rng,
+                speed_noise=cfg.speed_noise,
+                direction_noise=cfg.direction_noise,
+            )
+        else:
+            start, direction, draw = self.whole.release()
+            speed = cfg.bow.speed_for_draw(draw)
+            velocity = noisy_velocity(direction, speed, rng, cfg.speed_noise, cfg.direction_noise)
         wind = self._draw_wind()
         launch = Launch(
-            position=bow,
+            position=start,
             velocity=velocity,
             theta=string - bow,
             wind=wind,

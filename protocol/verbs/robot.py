@@ -301,6 +301,16 @@ class NockReply(Reply, frozen=True):
     sim_time: Annotated[float, Meta(description="s")]
 
 
+class GraspReply(Reply, frozen=True):
+    """A grasp that holds: the grasp site's distance from the arrow's shaft and the tolerance it
+    was within."""
+
+    arrow: str
+    distance: Annotated[float, Meta(description="m")]
+    tolerance: Annotated[float, Meta(description="m")]
+    sim_time: Annotated[float, Meta(description="s")]
+
+
 class ReleaseReply(Reply, frozen=True):
     shot: int
     outcome: str
@@ -352,9 +362,25 @@ class ArcheryStatusReply(Reply, frozen=True):
     world: dict[str, Any]
 
 
-NOCK = Verb("nock", NoArgs, NockReply, "put a fresh arrow on the bow")
+# The whole shot (`archery robot --shot whole`): the arrow waits in a holder; `grasp` closes the
+# right hand's fingers on it, `nock` puts the held arrow's nock on the string (the right arm
+# carries it there first, on `command:i` or `positionMove`), the right arm draws, `release`
+# opens the fingers and the arrow leaves at the bow's speed for the draw length. Their error
+# codes: `grasp_missed` (the hand is farther from the shaft than the world's grasp_tolerance;
+# the arrow stays in its holder), `nock_missed` (the nock is farther from the string than
+# nock_tolerance; the arrow stays in the hand), `arrow_dropped` (release of an arrow in the
+# hand but off the string: it falls), `bad_state` (out of order, or `grasp` under --shot
+# posture). Under --shot posture `nock` puts a fresh arrow on the bow, as the paper's robot.
+GRASP = Verb("grasp", NoArgs, GraspReply, "whole shot: close the right hand on the arrow")
 
-RELEASE = Verb("release", NoArgs, ReleaseReply, "release the arrow; replies once it has landed")
+NOCK = Verb("nock", NoArgs, NockReply, "put a fresh arrow (whole shot: the held one) on the bow")
+
+RELEASE = Verb(
+    "release",
+    NoArgs,
+    ReleaseReply,
+    "release the arrow (whole shot: open the fingers); replies once it has landed",
+)
 
 RESET = Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed")
 
@@ -377,6 +403,7 @@ ARCHERY_VERBS = VerbTable(
     "robot archery",
     ("archery/rpc:i",),
     (
+        GRASP,
         NOCK,
         RELEASE,
         RESET,

@@ -11,6 +11,7 @@ from protocol.errors import ConfigError
 from protocol.vectors import parse_vector
 from sim.bow import BowError
 from sim.errors import SimError
+from sim.scene_config import SHOTS
 from sim.world import WorldConfig
 
 __all__ = ["COMMAND_BURST", "COMMAND_RATE", "RobotConfig", "add_arguments", "make_config"]
@@ -111,7 +112,8 @@ class RobotConfig:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the robot's own flags: the config's and the world's (wind, drag, bow stiffness)."""
+    """Add the robot's own flags: the config's and the world's (wind, drag, bow stiffness, the
+    shot: posture or whole)."""
     world = WorldConfig()
     add_config_args(parser, RobotConfig)
     parser.add_argument(
@@ -120,6 +122,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--drag", type=float, default=world.drag, help="drag K (1/m)")
     parser.add_argument(
         "--bow-stiffness", type=float, default=world.bow.stiffness, help="bow stiffness (N/m)"
+    )
+    parser.add_argument(
+        "--shot",
+        choices=SHOTS,
+        default=world.scene.shot,
+        help="posture: the arrow is put on the string (nock); whole: the right hand grasps it "
+        "from its holder, nocks it, draws and releases (grasp, nock, release)",
     )
 
 
@@ -138,7 +147,8 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> RobotConfig:
     if args.wind is not None:
         wind = tuple(parse_vector("--wind", args.wind, ConfigError, unit="m/s").tolist())
     try:
-        world = replace(base, bow=bow, wind=wind, drag=args.drag)
+        scene = replace(base.scene, shot=args.shot)
+        world = replace(base, bow=bow, wind=wind, drag=args.drag, scene=scene)
     except (SimError, ConfigError) as exc:
         raise ConfigError(f"invalid world setting: {exc}") from None
     config: RobotConfig = config_from_args(RobotConfig, args, net=net, world=world)

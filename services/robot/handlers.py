@@ -84,6 +84,7 @@ class RobotHandlers:
     def archery_verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/archery/rpc:i`."""
         return rv.ARCHERY_VERBS.bind(
+            rv.GRASP.to(self.grasp),
             rv.NOCK.to(self.nock),
             rv.RELEASE.to(self.release),
             rv.RESET.to(self.reset),
@@ -185,8 +186,13 @@ class RobotHandlers:
         return self._loop.leases.holder(part)
 
     # -- archery verbs -----------------------------------------------------------------------
+    def grasp(self, args: NoArgs) -> rv.GraspReply:
+        """Whole shot: close the right hand on the arrow (grasp_missed when off the shaft)."""
+        return self._loop.grasp()
+
     def nock(self, args: NoArgs) -> rv.NockReply:
-        """Put a fresh arrow on the bow."""
+        """Put a fresh arrow on the bow (whole shot: the held one; nock_missed when off the
+        string)."""
         return self._loop.nock()
 
     def release(self, args: NoArgs) -> rv.ReleaseReply:

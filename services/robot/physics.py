@@ -55,8 +55,8 @@ class Physics:
         self._names = {part: tuple(world.joint_names(part)) for part in world.parts}
 
     def moving(self) -> bool:
-        """True while a part has not reached its targets or an arrow flies."""
-        return self._shots.flying or not self.world.motion_done()
+        """True while a part has not reached its targets or an arrow flies or falls."""
+        return self._shots.flying or self.world.arrow_falling or not self.world.motion_done()
 
     def advance(self, steps: int) -> None:
         """Step the world `steps` time steps; publish the states then due and a landing."""

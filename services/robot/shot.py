@@ -30,8 +30,8 @@ def phase_of(world: ArcheryWorld) -> Phase:
     if state is ArrowState.LANDED:
         landing = world.landing
         return "stuck" if landing is not None and landing.hit else "missed"
-    if state is ArrowState.STOWED:
-        return "idle"
+    if state in (ArrowState.STOWED, ArrowState.GRASPED, ArrowState.DROPPED):
+        return "idle"  # no arrow on the bow
     return "nocked" if state is ArrowState.NOCKED else "flying"
 
 
@@ -63,11 +63,29 @@ class Shots:
         self._sink.event("nocked", self.number + 1, t)
         return rv.NockReply(shot=self.number + 1, arrow=world.arrow_state.value, sim_time=t)
 
+    def grasp(self, world: ArcheryWorld) -> rv.GraspReply:
+        """Whole shot: close the right hand on the arrow (`ArcheryWorld.grasp`); the `grasped`
+        event goes out.
+
+        Raises:
+            GraspMissed: the hand is off the shaft by more than the tolerance. StateError: not
+                a whole-shot world, or an arrow is held, nocked or flying.
+        """
+        distance = world.grasp()
+        self._sink.event("grasped", self.number + 1, world.sim_time)
+        return rv.GraspReply(
+            arrow=world.arrow_state.value,
+            distance=distance,
+            tolerance=world.config.grasp_tolerance,
+            sim_time=world.sim_time,
+        )
+
     def release(self, world: ArcheryWorld) -> Future[rv.ReleaseReply]:
         """Launch the nocked arrow; the future holds the reply once it has landed (`landed`).
 
         Raises:
             StateError: no arrow is nocked, or a release already waits for its landing.
+            ArrowDropped: whole shot, the arrow was in the hand but off the string: it falls.
         """
         if self._landing is not None:
             raise StateError("a release is already waiting for its landing")

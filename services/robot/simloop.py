@@ -183,8 +183,22 @@ class SimLoop:
         )
 
     # -- the shot and the world --------------------------------------------------------------
+    def grasp(self) -> rv.GraspReply:
+        """Whole shot: close the right hand on the arrow in its holder.
+
+        Raises:
+            GraspMissed: the hand is off the shaft by more than the tolerance (the arrow stays).
+            StateError: not --shot whole, or an arrow is held, nocked or flying.
+        """
+        return self.call(self._grasp)
+
     def nock(self) -> rv.NockReply:
-        """Put a fresh arrow on the bow."""
+        """Put a fresh arrow on the bow (whole shot: the held arrow's nock on the string).
+
+        Raises:
+            NockMissed: whole shot, the nock is off the string by more than the tolerance.
+            StateError: an arrow flies (whole shot: none is in the hand).
+        """
         return self.call(self._nock)
 
     def release(self, timeout: float | None = None) -> rv.ReleaseReply:
@@ -193,6 +207,7 @@ class SimLoop:
 
         Raises:
             StateError: no arrow is nocked. SimUnavailable: no landing within `timeout` wall s.
+            ArrowDropped: whole shot, the arrow was in the hand but off the string: it falls.
         """
         cfg = self.config
         if timeout is None:
@@ -233,6 +248,12 @@ class SimLoop:
         """Arrow state, sim time, shot count, counters, and the scene and world configs."""
         return self.call(self._status)
 
+    def _grasp(self) -> rv.GraspReply:
+        self._pacing.wake()
+        reply = self._shots.grasp(self.world)
+        self._physics.publish_world()
+        return reply
+
     def _nock(self) -> rv.NockReply:
         self._pacing.wake()
         reply = self._shots.nock(self.world)
@@ -240,9 +261,11 @@ class SimLoop:
         return reply
 
     def _release(self) -> Future[rv.ReleaseReply]:
-        landing = self._shots.release(self.world)
         self._pacing.wake()
-        self._physics.publish_world()
+        try:
+            landing = self._shots.release(self.world)
+        finally:
+            self._physics.publish_world()  # also a dropped arrow's
         return landing
 
     def _reset(self, seed: int | None) -> rv.ResetReply:

@@ -38,8 +38,8 @@ class Sink(Protocol):
         impact_m: list[float] | None = None,
         reason: str = "",
     ) -> None:
-        """A shot event (nocked, released, landed, missed, reset) or a watchdog hold (`reason`
-        names the part); impact_m is ground truth."""
+        """A shot event (grasped, nocked, released, landed, missed, reset) or a watchdog hold
+        (`reason` names the part); impact_m is ground truth."""
 
 
 class MeshSink:

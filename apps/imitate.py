@@ -1,0 +1,130 @@
+"""`archery imitate DEMO.json [--theta X,Y,Z]`: the whole shot from a demonstration's DMPs alone
+on a running robot (`archery robot --shot whole`).
+
+The movement is learned as DMPs (`services.learner.movement`); the draw's goal is the archery
+posture for θ (the string hand at the bow hand + θ, the bow arm as demonstrated). The rollout
+is played on the arms' `command:i` ports as waypoints `WAYPOINT_STEP` s of the movement apart,
+each awaited on `state:o`, with grasp, nock and release at their demonstrated times; the
+release's reply is printed. A bad file, or θ outside the controller's box (nothing moves):
+one line, exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import msgspec
+import numpy as np
+
+from apps.waits import announce, interrupted_line
+from mesh.cliargs import ArgumentParser, seconds
+from mesh.netflags import NetConfig, add_network_args
+from mesh.node import open_node
+from protocol.demonstration import BadDemonstration, parse_demonstration
+from protocol.errors import ArcheryError, ConfigError
+from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
+from protocol.robotspec import NOMINAL_THETA, ROBOT
+from protocol.vectors import parse_vector
+from protocol.verbs.controller import THETA_MAX, THETA_MIN
+
+if TYPE_CHECKING:
+    from services.learner.movement import Movement
+
+__all__ = ["WAYPOINT_STEP", "main"]
+
+PROG = "imitate"
+WAYPOINT_STEP = 0.1  # s of the movement between two waypoints
+
+
+def _theta(text: str) -> np.ndarray:
+    """θ (m) from X,Y,Z, inside the controller's box.
+
+    Raises:
+        ConfigError: not 3 finite numbers, or outside the box.
+    """
+    theta = parse_vector("--theta", text, ConfigError, unit="m")
+    low, high = np.asarray(THETA_MIN), np.asarray(THETA_MAX)
+    if np.any(theta < low) or np.any(theta > high):
+        raise ConfigError(
+            f"--theta {theta.round(4).tolist()} m is outside the reachable box "
+            f"{list(THETA_MIN)} .. {list(THETA_MAX)} m: nothing moved"
+        )
+    return theta
+
+
+def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> int:
+    from apps.teacher import Teacher
+    from sim.shot_script import ShotStep, plan_string_hand
+
+    net = NetConfig.from_args(args)
+    on_wait = announce(PROG)
+    with open_node(net, args.wait, on_wait=on_wait) as node:
+        node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
+        teacher = Teacher(node, args.wait)
+        try:
+            world = teacher.world()
+            hold = plan_string_hand(world, theta, movement.goal[:7])
+            rollout = movement.reproduce(np.concatenate([movement.goal[:7], hold.right_arm]))
+            times = np.arange(0.0, rollout.release, WAYPOINT_STEP)
+            marks = {"grasp": rollout.grasp, "nock": rollout.nock}
+            waypoints = np.union1d(times, [*marks.values(), rollout.release])
+            for when in waypoints:
+                left, right = rollout.at(float(when))
+                teacher.move(ShotStep("imitate", right, left))
+                for action, at in marks.items():
+                    if when == at:
+                        teacher.act(action)
+            reply = teacher.act("release")
+        finally:
+            teacher.close()
+    print(json.dumps(msgspec.to_builtins(reply)), flush=True)
+    return OK
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Play a demonstration's DMPs for θ; exit status 0, 1 (the robot refused a step or is not
+    there), 2 (bad file or θ) or 130 (Ctrl-C)."""
+    parser = ArgumentParser(
+        prog=f"archery {PROG}",
+        description="the whole shot from a demonstration's DMPs alone, drawn for θ, on a "
+        "running robot (--shot whole)",
+    )
+    add_network_args(parser, default_mode="client")
+    parser.add_argument("demonstration", type=Path, help="a demonstration (archery demonstrate)")
+    parser.add_argument(
+        "--theta",
+        default=",".join(f"{v:g}" for v in NOMINAL_THETA),
+        metavar="X,Y,Z",
+        help="draw the string hand to bow hand + θ (m), inside the controller's box",
+    )
+    parser.add_argument(
+        "--wait", type=seconds, default=30.0, help="wall s to wait for the robot and each step"
+    )
+    args = parser.parse_args(argv)
+    try:
+        theta = _theta(args.theta)
+        data = args.demonstration.read_bytes()
+        from services.learner.movement import Movement
+
+        movement = Movement(parse_demonstration(data))
+    except OSError as exc:
+        print(
+            f"archery {PROG}: {args.demonstration}: cannot read it ({exc.strerror})",
+            file=sys.stderr,
+        )
+        return BAD_INPUT
+    except (ConfigError, BadDemonstration) as exc:
+        print(f"archery {PROG}: {exc.message}", file=sys.stderr)
+        return BAD_INPUT
+    try:
+        return _play(args, theta, movement)
+    except KeyboardInterrupt:
+        print(interrupted_line(PROG), file=sys.stderr)
+        return INTERRUPTED
+    except ArcheryError as exc:
+        print(f"archery {PROG}: {exc.message}", file=sys.stderr)
+        return for_error(exc.code)

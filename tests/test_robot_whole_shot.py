@@ -1,0 +1,245 @@
+"""`archery robot --shot whole` over a real router: the scripted whole shot driven on the
+parts' `command:i` ports and the archery verbs (grasp, nock, release), and its failures as
+error replies with their codes."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+import pytest
+
+from apps import demonstrate as demonstrate_module
+from apps.demonstrate import Recorder
+from apps.demonstrate import main as demonstrate
+from apps.imitate import main as imitate
+from apps.teacher import Teacher
+from mesh.netflags import NetConfig
+from mesh.node import Node
+from protocol.demonstration import MIN_SAMPLES, encode_demonstration
+from protocol.errors import ConfigError, RpcError
+from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
+from services.robot.config import RobotConfig, add_arguments, make_config
+from services.robot.service import run
+from sim.geometry import BOW_HAND, START_THETA
+from sim.model_build import build_scene
+from sim.scene_config import SceneConfig
+from sim.shot_script import ShotStep, plan_whole_shot
+from sim.world import ArcheryWorld, WorldConfig
+from tests.conftest import archery
+from tests.postures import archery_posture
+from tests.test_robot_service import Client
+
+WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
+SHIPPED = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
+Joints = dict[str, np.ndarray]
+
+
+@pytest.fixture(scope="module")
+def model() -> mujoco.MjModel:
+    return build_scene(WHOLE.scene)
+
+
+@pytest.fixture(scope="module")
+def aim(model: mujoco.MjModel) -> Joints:
+    return archery_posture(model, BOW_HAND, BOW_HAND + START_THETA, tolerance=5e-3)
+
+
+@pytest.fixture
+def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
+    """start(world, **config) runs the robot service in a thread and returns a connected
+    client."""
+    stops: list[tuple[threading.Event, threading.Thread, Node]] = []
+
+    def start(world: WorldConfig = WHOLE, **overrides: Any) -> Client:
+        stop = threading.Event()
+        config = RobotConfig(net=net, world=world, **overrides)
+        thread = threading.Thread(target=run, args=(config, stop), daemon=True)
+        thread.start()
+        node = Node(None, net)
+        stops.append((stop, thread, node))
+        node.wait_alive([ROBOT], 30)
+        return Client(node)
+
+    yield start
+    for stop, thread, node in stops:
+        node.close()
+        stop.set()
+        thread.join(10)
+        assert not thread.is_alive()
+
+
+def _plan(model: mujoco.MjModel, aim: Joints, **offsets: Any) -> list[ShotStep]:
+    """The script, planned on a world of the same scene standing in the archery posture."""
+    world = ArcheryWorld(WHOLE, model=model)
+    for part, values in aim.items():
+        world.physics.set_joint_positions(part, values)
+    return plan_whole_shot(world, START_THETA, **offsets)
+
+
+def _arms(step: ShotStep) -> Joints:
+    arms = {STRING_ARM: step.right_arm}
+    if step.left_arm is not None:
+        arms[BOW_ARM] = step.left_arm
+    return arms
+
+
+def _drive(client: Client, steps: list[ShotStep], until: str) -> None:
+    """Move the arms on command:i through the steps and call their actions, up to the action
+    of step `until`."""
+    for step in steps:
+        client.move(_arms(step))
+        if step.name == until:
+            return
+        if step.action is not None:
+            client.archery(step.action)
+
+
+def test_the_whole_shot_over_the_mesh(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    assert client.archery("status")["scene"]["shot"] == "whole"
+    client.move(aim)
+    steps = _plan(model, aim)
+    _drive(client, steps, until="reach")
+    grasped = client.archery("grasp")
+    assert grasped["arrow"] == "grasped" and grasped["distance"] <= grasped["tolerance"]
+    client.move(_arms(steps[2]))  # lift
+    client.move(_arms(steps[3]))  # carry
+    assert client.archery("nock")["arrow"] == "nocked"
+    client.move(_arms(steps[4]))  # draw
+    released = client.archery("release")
+    assert released["flight_time"] > 0.05
+    assert released["outcome"] in {"target", "outside_face", "ground"}
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_a_grasp_off_the_shaft_is_refused_and_the_arrow_stays(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    client.move(aim)
+    tolerance = WHOLE.grasp_tolerance
+    steps = _plan(model, aim, grasp_offset=np.array([0.0, 0.0, 1.5 * tolerance]))
+    _drive(client, steps, until="reach")
+    with pytest.raises(RpcError) as missed:
+        client.archery("grasp")
+    assert missed.value.code == "grasp_missed"
+    assert client.archery("status")["arrow"] == "stowed"
+
+
+def test_a_missed_nock_and_a_dropped_arrow_are_error_replies(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints
+) -> None:
+    client = robot()
+    client.move(aim)
+    offset = np.array([0.0, 0.0, 1.5 * WHOLE.nock_tolerance])
+    _drive(client, _plan(model, aim, nock_offset=offset), until="carry")
+    with pytest.raises(RpcError) as missed:
+        client.archery("nock")
+    assert missed.value.code == "nock_missed"
+    assert client.archery("status")["arrow"] == "grasped"
+    with pytest.raises(RpcError) as dropped:
+        client.archery("release")
+    assert dropped.value.code == "arrow_dropped"
+    assert client.archery("status")["arrow"] == "dropped"
+
+
+def test_grasp_is_refused_under_the_posture_shot(robot: Callable[..., Client]) -> None:
+    client = robot(WorldConfig(scene=SceneConfig(meshes=False)))
+    with pytest.raises(RpcError) as refused:
+        client.archery("grasp")
+    assert refused.value.code == "bad_state"
+    assert client.archery("nock")["arrow"] == "nocked"  # the posture shot as before
+
+
+def test_the_shot_flag_picks_the_scene() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    for flags, shot in (([], "posture"), (["--shot", "whole"], "whole")):
+        config = make_config(parser.parse_args(flags), NetConfig())
+        assert config.world.scene.shot == shot
+    result = archery("robot", "--shot", "bow", timeout=60)
+    assert result.returncode == 2 and "--shot" in result.stderr
+
+
+def test_a_demonstration_is_recorded_while_the_arms_are_driven(
+    robot: Callable[..., Client], model: mujoco.MjModel, aim: Joints, tmp_path: Path
+) -> None:
+    # at rtf 0 the states are also paced per wall second: a faster stream samples the movement
+    client = robot(state_rate=500.0)
+    client.move(aim)
+    recorder = Recorder(client.node, "whole", made="the scripted whole shot of sim.shot_script")
+    try:
+        assert recorder.wait_started(10)
+        _drive(client, _plan(model, aim), until="")  # every step and its action
+        assert recorder.wait_ended(30)
+        demo = recorder.demonstration()
+    finally:
+        recorder.close()
+    kinds = [event.kind for event in demo.events]
+    assert kinds[:3] == ["grasped", "nocked", "released"] and kinds[3] in {"landed", "missed"}
+    assert len(demo.samples) >= MIN_SAMPLES
+    final = demo.samples[-1]
+    assert final.t >= demo.events[2].t  # the arms until the landing
+    moved = np.abs(np.asarray(final.right_arm) - np.asarray(demo.samples[0].right_arm))
+    assert np.max(moved) > 0.1  # the right arm drew
+    path = tmp_path / "demo.json"
+    path.write_bytes(encode_demonstration(demo))
+    assert demonstrate(["--check", str(path)]) == 0
+
+
+def test_the_teacher_drives_the_whole_shot(robot: Callable[..., Client]) -> None:
+    client = robot()
+    teacher = Teacher(client.node, timeout=20)
+    try:
+        teacher.teach(START_THETA)
+    finally:
+        teacher.close()
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_the_teacher_refuses_a_posture_robot(robot: Callable[..., Client]) -> None:
+    client = robot(WorldConfig(scene=SceneConfig(meshes=False)))
+    teacher = Teacher(client.node, timeout=20)
+    try:
+        with pytest.raises(ConfigError, match="--shot whole"):
+            teacher.teach(START_THETA)
+    finally:
+        teacher.close()
+
+
+def _net_flags(net: NetConfig) -> list[str]:
+    return ["--connect", net.connect[0], "--robot", net.robot]
+
+
+def test_imitate_draws_the_dmps_movement_for_theta(
+    robot: Callable[..., Client], net: NetConfig, capsys: pytest.CaptureFixture[str]
+) -> None:
+    client = robot()
+    theta = np.array([0.19, 0.03, -0.035])
+    flags = ["--theta", ",".join(str(v) for v in theta), *_net_flags(net)]
+    assert imitate([str(SHIPPED), *flags]) == 0
+    reply = json.loads(capsys.readouterr().out)
+    np.testing.assert_allclose(reply["theta"], theta, atol=5e-3)  # the hands' θ at the release
+    assert reply["flight_time"] > 0.05
+    assert client.archery("status")["arrow"] == "landed"
+
+
+def test_imitate_refuses_a_theta_outside_the_box_and_nothing_moves(
+    robot: Callable[..., Client], net: NetConfig, capsys: pytest.CaptureFixture[str]
+) -> None:
+    client = robot()
+    before = client.part(STRING_ARM, "getPositions")
+    assert imitate([str(SHIPPED), "--theta", "0.4,0,0", *_net_flags(net)]) == 2
+    err = capsys.readouterr().err
+    assert "outside the reachable box" in err and err.count("\n") == 1
+    after = client.part(STRING_ARM, "getPositions")
+    assert after["position"] == before["position"] and after["sim_time"] == before["sim_time"]
