@@ -39,7 +39,8 @@ from tests.containers import (
 pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800)]
 
 # What each image must import: every module of its process's packages. Left out on purpose: the
-# recording modules (`record`/`replay` run on a host, `archery[record]`) and tests.postures (a
+# recording modules (`record`/`replay` run on a host, `archery[record]`), the DMPs of `archery
+# imitate` (`archery[imitate]`) and tests.postures (a
 # fixture of the tests).
 IMPORTS = {
     "router": ["protocol"],
@@ -54,6 +55,7 @@ NOT_IN_IMAGES = (
     "apps.topics.json_image_records",
     "apps.topics.observe",
     "apps.topics.recording",
+    "services.learner.movement",  # the DMPs of `archery imitate` (the `imitate` extra)
     "tests.postures",
 )
 _IMPORT_ALL = """
