@@ -40,8 +40,7 @@ pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800
 
 # What each image must import: every module of its process's packages. Left out on purpose: the
 # recording modules (`record`/`replay` run on a host, `archery[record]`), the DMPs of `archery
-# imitate` (`archery[imitate]`) and tests.postures (a
-# fixture of the tests).
+# imitate` (`archery[imitate]`) and tests.postures (a fixture of the tests).
 IMPORTS = {
     "router": ["protocol"],
     "robot": ["services.robot", "sim"],
