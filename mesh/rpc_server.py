@@ -146,7 +146,12 @@ class RpcServer:
             for name, entry in self.handlers.items()
             if entry.verb.waits and entry.verb.blocking
         )
-        self._slots = threading.BoundedSemaphore(MAX_WAITING)  # the waiting verbs' threads
+        self._slots = threading.BoundedSemaphore(MAX_WAITING)  # the waiting verbs' requests
+        self._waiting: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._pool = threading.Lock()
+        self._waiters = 0  # threads started for the waiting verbs (at most MAX_WAITING)
+        self._idle = 0  # of them, those waiting for a request
+        self._queued = 0  # requests handed to them and not yet taken
         self.served = 0
         self.errors = 0
         self._seq = itertools.count(1)
@@ -204,8 +209,8 @@ class RpcServer:
     def _start_waiting(
         self, query: zenoh.Query, request: _WireRequest, arrived: float, named: str | None
     ) -> None:
-        """A waiting verb's request on a thread of its own, or `busy` at once when
-        `MAX_WAITING` of them are in hand already."""
+        """A waiting verb's request on a thread of the waiting verbs (beside the port's worker),
+        or `busy` at once when `MAX_WAITING` of them are in hand already."""
         if not self._slots.acquire(blocking=False):
             busy = Busy(
                 f"{self.key} {request.verb}: busy, {MAX_WAITING} requests of its waiting verbs "
@@ -214,13 +219,30 @@ class RpcServer:
             self._answer(query, busy, arrived, named)
             return
 
-        def wait() -> None:
+        with self._pool:  # threads are kept and reused; one more is started only when fewer
+            self._queued += 1  # are idle than requests wait for one
+            if self._idle < self._queued and self._waiters < MAX_WAITING:
+                self._waiters += 1
+                name = f"rpc {self.key} waiting {self._waiters}"
+                threading.Thread(target=self._wait_work, name=name, daemon=True).start()
+        self._waiting.put((query, request, arrived, named))
+
+    def _wait_work(self) -> None:
+        """A thread of the waiting verbs: one request at a time, its slot given back after."""
+        while True:
+            with self._pool:
+                self._idle += 1
+            item = self._waiting.get()
+            if item is _STOP:
+                return
+            with self._pool:
+                self._idle -= 1
+                self._queued -= 1
             try:
-                self._answer(query, request, arrived, named)
+                self._answer(*item)
             finally:
                 self._slots.release()
-
-        threading.Thread(target=wait, name=f"rpc {self.key} {request.verb}", daemon=True).start()
+            del item
 
     def _work(self, jobs: queue.SimpleQueue[Any], nice: int = 0) -> None:
         if nice:
@@ -340,6 +362,8 @@ class RpcServer:
             self._queryable.undeclare()
             self._queue.put(_STOP)
             self._later.put(_STOP)
+            for _ in range(self._waiters):
+                self._waiting.put(_STOP)
             for thread in self._threads:
                 thread.join(timeout=5)
             if self.tap is not None:
