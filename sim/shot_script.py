@@ -19,6 +19,7 @@ import numpy as np
 from protocol.robotspec import BOW_ARM, STRING_ARM
 from sim.errors import StateError
 from sim.reach import PointTarget, reach
+from sim.scene import ScenePhysics
 from sim.scene_config import ARROW_NOCK_SITE, BOW_HAND_SITE, GRASP_SITE
 from sim.whole_props import NOCK_GRIP
 from sim.world import ArcheryWorld
@@ -182,6 +183,17 @@ def plan_aim(world: ArcheryWorld, bow_hand: np.ndarray, theta: np.ndarray) -> Sh
     return ShotStep("aim", arms[STRING_ARM], arms[BOW_ARM])
 
 
+def _bow_hand(physics: ScenePhysics, bow_arm: np.ndarray) -> np.ndarray:
+    """The bow hand's position (m, world) with the bow arm at `bow_arm` (rad) and every other
+    joint where the world has it now."""
+    model = physics.model
+    data = mujoco.MjData(model)
+    data.qpos[:] = physics.data.qpos
+    data.qpos[physics.qpos_indices(BOW_ARM)] = bow_arm
+    mujoco.mj_kinematics(model, data)
+    return np.array(data.site_xpos[model.site(BOW_HAND_SITE).id])
+
+
 def plan_draw(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> ShotStep:
     """The right arm's posture that draws the nocked arrow's nock to the bow hand + `theta` (m),
     with the bow arm at `bow_arm` (rad: where it will be for the draw, its archery posture).
@@ -198,11 +210,7 @@ def plan_draw(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> Sh
     hand = model.body(int(model.site(GRASP_SITE).bodyid[0])).name
     arm = world.joint_positions(STRING_ARM)
     nock = _in_body_frame(world, hand, arm, whole.nocking_point())
-    data = mujoco.MjData(model)
-    data.qpos[:] = physics.data.qpos
-    data.qpos[physics.qpos_indices(BOW_ARM)] = bow_arm
-    mujoco.mj_kinematics(model, data)
-    bow = data.site_xpos[model.site(BOW_HAND_SITE).id]
+    bow = _bow_hand(physics, bow_arm)
     arms = reach(
         physics,
         [PointTarget(hand, nock, bow + np.asarray(theta, dtype=float))],
@@ -224,11 +232,7 @@ def plan_string_hand(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray
     physics = world.physics
     model = physics.model
     string = model.site(GRASP_SITE)
-    data = mujoco.MjData(model)
-    data.qpos[:] = physics.data.qpos
-    data.qpos[physics.qpos_indices(BOW_ARM)] = bow_arm
-    mujoco.mj_kinematics(model, data)
-    bow = data.site_xpos[model.site(BOW_HAND_SITE).id]
+    bow = _bow_hand(physics, bow_arm)
     arms = reach(
         physics,
         [

@@ -3,6 +3,7 @@ determinism, and a clean exit on SIGTERM."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 import subprocess
 import sys
@@ -104,10 +105,18 @@ class Client:
 @pytest.fixture
 def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
     """start(**config) runs the robot service in a thread and returns a connected client."""
+    with robot_threads(net, WORLD) as start:
+        yield start
+
+
+@contextlib.contextmanager
+def robot_threads(net: NetConfig, world: WorldConfig) -> Iterator[Callable[..., Client]]:
+    """start(world=`world`, **config) runs a robot service in a thread and returns a connected
+    client; every one started is stopped when the block ends."""
     stops: list[tuple[threading.Event, threading.Thread, Node]] = []
 
-    def start(**overrides: Any) -> Client:
-        config = RobotConfig(net=net, world=WORLD, **overrides)
+    def start(world: WorldConfig = world, **overrides: Any) -> Client:
+        config = RobotConfig(net=net, world=world, **overrides)
         stop = threading.Event()
         thread = threading.Thread(target=run, args=(config, stop), daemon=True)
         thread.start()

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import threading
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -21,12 +20,10 @@ from apps.demonstrate import main as demonstrate
 from apps.imitate import main as imitate
 from apps.teacher import Teacher
 from mesh.netflags import NetConfig
-from mesh.node import Node
 from protocol.demonstration import MIN_SAMPLES, encode_demonstration
 from protocol.errors import ConfigError, RpcError
-from protocol.robotspec import BOW_ARM, ROBOT, STRING_ARM
-from services.robot.config import RobotConfig, add_arguments, make_config
-from services.robot.service import run
+from protocol.robotspec import BOW_ARM, STRING_ARM
+from services.robot.config import add_arguments, make_config
 from sim.geometry import BOW_HAND, START_THETA
 from sim.model_build import build_scene
 from sim.scene_config import SceneConfig
@@ -34,7 +31,7 @@ from sim.shot_script import ShotStep, plan_whole_shot
 from sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import archery
 from tests.postures import archery_posture
-from tests.test_robot_service import Client
+from tests.test_robot_service import Client, robot_threads
 
 WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
 SHIPPED = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
@@ -55,24 +52,8 @@ def aim(model: mujoco.MjModel) -> Joints:
 def robot(net: NetConfig) -> Iterator[Callable[..., Client]]:
     """start(world, **config) runs the robot service in a thread and returns a connected
     client."""
-    stops: list[tuple[threading.Event, threading.Thread, Node]] = []
-
-    def start(world: WorldConfig = WHOLE, **overrides: Any) -> Client:
-        stop = threading.Event()
-        config = RobotConfig(net=net, world=world, **overrides)
-        thread = threading.Thread(target=run, args=(config, stop), daemon=True)
-        thread.start()
-        node = Node(None, net)
-        stops.append((stop, thread, node))
-        node.wait_alive([ROBOT], 30)
-        return Client(node)
-
-    yield start
-    for stop, thread, node in stops:
-        node.close()
-        stop.set()
-        thread.join(10)
-        assert not thread.is_alive()
+    with robot_threads(net, WHOLE) as start:
+        yield start
 
 
 def _plan(model: mujoco.MjModel, aim: Joints, **offsets: Any) -> list[ShotStep]:
