@@ -147,10 +147,12 @@ def test_an_unwatched_camera_renders_only_for_a_grab_and_never_an_unchanged_scen
         # a grab still gets a fresh frame of the newest state: one render
         assert grab(after_sim_time=1.0).sim_time == 1.0
         assert status()["renders"] == 1
-        # the same qpos again, asked for after a stamp: the last render, stamped now
+        # the same qpos again, asked for after a stamp: the last render, stamped now (the grab
+        # names the state's sim time too: it may reach the camera before the state does, and a
+        # grab after a stamp alone is served by the newest state the camera knows)
         now = time.time()
         world.put(_state(qpos, 1.5))
-        again = grab(after_stamp=now)
+        again = grab(after_sim_time=1.5, after_stamp=now)
         assert again.sim_time == 1.5 and again.stamp >= now
         after = status()
         assert (after["renders"], after["reuses"]) == (1, 1)
