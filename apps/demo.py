@@ -82,7 +82,10 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
         endpoint,
         "icubSim",
         runs / "logs",
-        {"robot": ["--seed", str(args.seed)], "learner": ["--runs", str(runs)]},
+        {
+            "robot": ["--seed", str(args.seed), "--shot", args.shot],
+            "learner": ["--runs", str(runs)],
+        },
     )
     with console.status(f"starting a router on {endpoint} and {', '.join(SERVICES)} …"):
         try:
@@ -167,6 +170,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rollouts", type=_positive, default=30, help="budget of rollouts")
     parser.add_argument("--seed", type=count, default=0, help="seed of the learner and the shots")
     parser.add_argument("--runs", default="runs", help="where the session directory goes")
+    parser.add_argument(
+        "--shot",
+        choices=("posture", "whole"),
+        default="posture",
+        help="posture (default: the arrow is placed on the string) or whole (every rollout "
+        "grasps, nocks and draws it, the demonstration's movement as DMPs; the imitate extra)",
+    )
     parser.add_argument(
         "--listen",
         "--endpoint",

@@ -1,11 +1,10 @@
 """`archery imitate DEMO.json [--theta X,Y,Z]`: the whole shot from a demonstration's DMPs alone
 on a running robot (`archery robot --shot whole`).
 
-The movement is learned as DMPs (`services.learner.movement`); the draw's goal is the archery
-posture for θ (the string hand at the bow hand + θ, the bow arm as demonstrated). The rollout
-is played on the arms' `command:i` ports as waypoints `WAYPOINT_STEP` s of the movement apart,
-each awaited on `state:o`, with grasp, nock and release at their demonstrated times; the
-release's reply is printed. A bad file, or θ outside the controller's box (nothing moves):
+The movement is learned as DMPs (`services.learner.movement`) and played as a learner's
+whole-shot rollout plays it (`services.learner.whole_movement`): the draw's goal is the archery
+posture for θ, grasp and nock at their demonstrated times; then the release, whose reply is
+printed. A bad file, or θ outside the controller's box (nothing moves):
 one line, exit status 2.
 """
 
@@ -34,10 +33,9 @@ from protocol.verbs.controller import THETA_MAX, THETA_MIN
 if TYPE_CHECKING:
     from services.learner.movement import Movement
 
-__all__ = ["WAYPOINT_STEP", "main"]
+__all__ = ["main"]
 
 PROG = "imitate"
-WAYPOINT_STEP = 0.1  # s of the movement between two waypoints
 
 
 def _theta(text: str) -> np.ndarray:
@@ -57,30 +55,20 @@ def _theta(text: str) -> np.ndarray:
 
 
 def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> int:
-    from apps.teacher import Teacher
-    from sim.shot_script import ShotStep, plan_string_hand
+    from services.learner.arms import ArmDriver
+    from services.learner.whole_movement import plan, play
 
     net = NetConfig.from_args(args)
     on_wait = announce(PROG)
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
-        teacher = Teacher(node, args.wait)
+        arms = ArmDriver(node, args.wait)
         try:
-            world = teacher.world()
-            hold = plan_string_hand(world, theta, movement.goal[:7])
-            rollout = movement.reproduce(np.concatenate([movement.goal[:7], hold.right_arm]))
-            times = np.arange(0.0, rollout.release, WAYPOINT_STEP)
-            marks = {"grasp": rollout.grasp, "nock": rollout.nock}
-            waypoints = np.union1d(times, [*marks.values(), rollout.release])
-            for when in waypoints:
-                left, right = rollout.at(float(when))
-                teacher.move(ShotStep("imitate", right, left))
-                for action, at in marks.items():
-                    if when == at:
-                        teacher.act(action)
-            reply = teacher.act("release")
+            world = arms.world()
+            play(arms, world, plan(world, movement, theta))
+            reply = arms.act("release")
         finally:
-            teacher.close()
+            arms.close()
     print(json.dumps(msgspec.to_builtins(reply)), flush=True)
     return OK
 

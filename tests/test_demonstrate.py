@@ -10,7 +10,7 @@ from typing import Any
 import msgspec
 import pytest
 
-from apps import demonstrate as demonstrate_module
+from services.learner.config import SHIPPED_DEMONSTRATION
 from apps.demonstrate import joint_limits, main
 from protocol.demonstration import FORMAT, MIN_DURATION, MIN_SAMPLES
 from protocol.exit_status import BAD_INPUT, OK
@@ -93,7 +93,7 @@ def test_recording_into_a_missing_folder_is_bad_input(
 
 
 def test_the_shipped_demonstration_passes(capsys: pytest.CaptureFixture[str]) -> None:
-    shipped = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
+    shipped = SHIPPED_DEMONSTRATION
     assert main(["--check", str(shipped)]) == OK
     summary = json.loads(capsys.readouterr().out)
     assert summary["shot"] == "whole" and summary["samples"] >= MIN_SAMPLES

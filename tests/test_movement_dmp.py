@@ -10,7 +10,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from apps import demonstrate as demonstrate_module
+from services.learner.config import SHIPPED_DEMONSTRATION
 from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
 from protocol.robotspec import BOW_ARM, STRING_ARM
 from services.learner.movement import Movement, Reproduction
@@ -21,7 +21,7 @@ from sim.shot_script import plan_draw
 from sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.world_steps import move_until_done
 
-SHIPPED = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
+SHIPPED = SHIPPED_DEMONSTRATION
 WORLD = WorldConfig(
     scene=SceneConfig(meshes=False, shot="whole"), speed_noise=0.0, direction_noise=0.0
 )

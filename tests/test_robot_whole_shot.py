@@ -14,7 +14,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from apps import demonstrate as demonstrate_module
+from services.learner.config import SHIPPED_DEMONSTRATION
 from apps.demonstrate import Recorder
 from apps.demonstrate import main as demonstrate
 from apps.imitate import main as imitate
@@ -34,7 +34,7 @@ from tests.postures import archery_posture
 from tests.test_robot_service import Client, robot_threads
 
 WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
-SHIPPED = Path(demonstrate_module.__file__).parent / "demonstrations" / "whole-shot.json"
+SHIPPED = SHIPPED_DEMONSTRATION
 Joints = dict[str, np.ndarray]
 
 

@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--config",
         metavar="FILE",
         help="the mesh to start, a TOML launch description (see mesh.toml); replaces "
-        "--listen/--connect/--robot/--seed/--rtf/--runs/--no-router",
+        "--listen/--connect/--robot/--seed/--rtf/--shot/--runs/--no-router",
     )
     parser.add_argument(
         "--robots",
@@ -70,6 +70,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--rtf",
         type=nonnegative,
         help="the robot's real-time factor (default 0: as fast as possible)",
+    )
+    parser.add_argument(
+        "--shot",
+        choices=("posture", "whole"),
+        help="the robot's shot (default posture: the arrow is placed on the string; whole: "
+        "every rollout grasps, nocks and draws it, the demonstration's movement as DMPs; needs "
+        "the imitate extra)",
     )
     parser.add_argument(
         "--no-router",
@@ -182,6 +189,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             "--robot": args.robot,
             "--seed": args.seed,
             "--rtf": args.rtf,
+            "--shot": args.shot,
             "--runs": args.runs,
             "--no-router": args.no_router or None,
             "--robots": args.robots,
@@ -200,6 +208,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             NetConfig(robot=args.robot or DEFAULT_ROBOT).robot,
             seed=args.seed or 0,
             rtf=args.rtf or 0.0,
+            shot=args.shot or "posture",
             runs=runs,
             start_router=not args.no_router,
             robots=1 if args.robots is None else args.robots,

@@ -180,9 +180,11 @@ def default_mesh(
     start_router: bool = True,
     restart: RestartPolicy = DEFAULT_POLICY,
     robots: int = 1,
+    shot: str = "posture",
 ) -> MeshConfig:
     """The mesh of `archery up` without --config: a router and the five services of one robot;
-    the robot gets `--seed` and `--rtf`, the learner `--runs`.
+    the robot gets `--seed`, `--rtf` and `--shot` (posture, or whole: the learner then plays
+    the whole shot's movement in every rollout), the learner `--runs`.
 
     With `robots` N > 1, a fleet: N robot stacks (robot, controller, camera, detector) under
     the prefixes `ROBOT1` … `ROBOTN` (robot i's shot noise seeded with `seed + i - 1`) and one
@@ -190,7 +192,10 @@ def default_mesh(
     session on each robot at once.
     """
     prefixes = fleet_prefixes(robot, robots)
-    args: dict[str, tuple[str, ...]] = {"robot": ("--rtf", f"{rtf:g}"), "learner": ("--runs", runs)}
+    args: dict[str, tuple[str, ...]] = {
+        "robot": ("--rtf", f"{rtf:g}", "--shot", shot),
+        "learner": ("--runs", runs),
+    }
     if robots == 1:
         args["robot"] = ("--seed", str(seed), *args["robot"])
         specs: tuple[RobotSpec, ...] = (RobotSpec(robot),)

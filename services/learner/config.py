@@ -16,6 +16,7 @@ from msgspec import UnsetType
 from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
+from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
@@ -29,6 +30,7 @@ from services.learner.algorithms.registry import ALGORITHMS
 __all__ = [
     "DEFAULT_THETA0",
     "ROBOT_OPTIONS",
+    "SHIPPED_DEMONSTRATION",
     "START_ARGS",
     "LearnerServiceConfig",
     "SessionConfig",
@@ -38,6 +40,8 @@ __all__ = [
 
 # θ (m) where sessions start (protocol.robotspec.THETA0).
 DEFAULT_THETA0 = THETA0
+#: The demonstration of the whole shot that ships with the package (`demonstrations/README.md`).
+SHIPPED_DEMONSTRATION = Path(__file__).parent / "demonstrations" / "whole-shot.json"
 
 # Learner options for the MuJoCo robot, under the caller's own. Its hands move the arrow about
 # 11 m on the target per m of θ (aim) and 1-2 m per m of draw, so the analytic model's 10-20 mm
@@ -261,6 +265,8 @@ class LearnerServiceConfig:
         rpc_timeout: longest wait for a reply from another service (wall s).
         report: write `report.png` and the hit frame when a session ends.
         fleet: more robot prefixes served by this one learner (a session on each at once).
+        demonstration: the whole shot's demonstration, whose DMPs every rollout plays on a
+            robot that runs `--shot whole` (None: `SHIPPED_DEMONSTRATION`).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -286,6 +292,12 @@ class LearnerServiceConfig:
         parse=lambda text: tuple(p.strip() for p in text.split(",") if p.strip()),
         metavar="PREFIX,PREFIX",
     )
+    demonstration: str | None = flag(
+        None,
+        "the whole shot's demonstration, played as DMPs on a robot with --shot whole "
+        "(default: the one shipped)",
+        metavar="FILE",
+    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -297,6 +309,22 @@ class LearnerServiceConfig:
         robots = self.robots()
         if len(set(robots)) != len(robots):
             raise ConfigError(f"--fleet {','.join(self.fleet)}: a robot is listed twice")
+        if self.demonstration is not None:
+            self.read_demonstration()
+
+    def read_demonstration(self) -> Demonstration:
+        """The whole shot's demonstration (`demonstration`, else the shipped one), checked.
+
+        Raises:
+            ConfigError: it cannot be read or is not a valid demonstration (one line).
+        """
+        path = Path(self.demonstration or SHIPPED_DEMONSTRATION)
+        try:
+            return parse_demonstration(path.read_bytes())
+        except OSError as exc:
+            raise ConfigError(f"--demonstration {path}: cannot read it ({exc.strerror})") from None
+        except BadDemonstration as exc:
+            raise ConfigError(f"--demonstration {path}: {exc.message}") from None
 
     def robots(self) -> tuple[str, ...]:
         """Every robot prefix this learner serves: its own (`--robot`), then `--fleet`'s."""

@@ -13,14 +13,22 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from typing import Any, TypeVar
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 import numpy as np
 
 from mesh.node import Node
 from mesh.tokens import TokenSet
-from protocol.errors import RpcError, RpcTimeout, StaleState, UpstreamLost, WrongReplier
+from protocol.errors import (
+    ArcheryError,
+    RpcError,
+    RpcTimeout,
+    StaleState,
+    UpstreamLost,
+    WrongReplier,
+)
 from protocol.messages import WorldEvent
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
 from protocol.verbs import Verb
@@ -30,6 +38,9 @@ from protocol.verbs import robot as rv
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.errors import RigError, ServiceLost
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
+
+if TYPE_CHECKING:
+    from services.learner.whole_movement import WholeMovement
 
 __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 
@@ -42,6 +53,7 @@ _UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 R = TypeVar("R", bound=msgspec.Struct)
+T = TypeVar("T")
 
 
 class MeshRig:
@@ -73,6 +85,8 @@ class MeshRig:
         # Who is alive and since when one went, kept from liveliness events: a query per check
         # would time out on a loaded machine and report every service missing.
         self._tokens = TokenSet(node.session, self.keys.alive_all())
+        #: The whole shot's movement, played before each posture on a `--shot whole` robot.
+        self.whole: WholeMovement | None = None
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
@@ -103,10 +117,18 @@ class MeshRig:
         named; `_lost_behind`).
         """
         start = time.perf_counter()
-        try:
-            result = self.node.call_typed(
+        result = self._mapped(
+            service,
+            lambda: self.node.call_typed(
                 key, verb, args, timeout=self.timeout, expect_service=service
-            )
+            ),
+        )
+        return result, time.perf_counter() - start
+
+    def _mapped(self, service: str, work: Callable[[], T]) -> T:
+        """`work()`, its errors mapped as `_call` says, `service` the one it talks to."""
+        try:
+            return work()
         except RpcTimeout as exc:
             raise ServiceLost(service, exc.message) from None
         except UpstreamLost as exc:
@@ -116,7 +138,8 @@ class MeshRig:
             if lost is not None:
                 raise ServiceLost(lost, exc.message) from None
             raise RigError(exc.message, code=exc.code) from None
-        return result, time.perf_counter() - start
+        except ArcheryError as exc:  # a movement's own errors (θ out of reach, no robot)
+            raise RigError(exc.message, code=exc.code) from None
 
     def _lost_behind(self, service: str, exc: RpcError) -> str | None:
         """The lost service behind `service`'s error reply `exc`, if any: a service not alive
@@ -185,7 +208,13 @@ class MeshRig:
         self._call("robot", self.keys.archery_rpc(), reset, rv.ResetArgs(seed=int(seed)))
 
     def move_to(self, theta: np.ndarray) -> PostureResult:
-        """The archery posture for θ (m), once the robot reports the motion done."""
+        """The archery posture for θ (m), once the robot reports the motion done; on a
+        whole-shot robot (`whole`) after the whole movement towards it (reach, grasp, carry,
+        nock, draw), so the controller's posture only refines the aim."""
+        movement: dict[str, float] = {}
+        if self.whole is not None:
+            whole = self.whole
+            movement = self._mapped("robot", lambda: whole.perform(theta))
         key = self.keys.cartesian_rpc("archery")
         args = cv.PostureArgs(theta=[float(x) for x in theta])
         result, wall = self._call("controller", key, cv.POSTURE, args)
@@ -193,7 +222,8 @@ class MeshRig:
             reached=result.reached,
             reason=result.reason,
             theta_measured=list(result.theta_measured),
-            timing={
+            timing=movement
+            | {
                 "posture_s": wall,
                 "move_s": result.wall_s,
                 "ik_and_transport_s": wall - result.wall_s,
@@ -201,18 +231,20 @@ class MeshRig:
         )
 
     def shoot(self) -> Shot:
-        """Nock and release; returns when the arrow has landed, with the θ it was launched
-        with (the release reply's)."""
+        """Nock (the whole shot's movement nocked already) and release; returns when the arrow
+        has landed, with the θ it was launched with (the release reply's)."""
         key = self.keys.archery_rpc()
         before = time.time()
-        _, nock = self._call("robot", key, rv.NOCK)
+        timing = {}
+        if self.whole is None:
+            _, timing["nock_s"] = self._call("robot", key, rv.NOCK)
         result, release = self._call("robot", key, rv.RELEASE)
         return Shot(
             shot=result.shot,
             sim_time=result.sim_time,
             stamp=before,
             outcome=result.outcome,
-            timing={"nock_s": nock, "release_s": release, "flight_sim_s": result.flight_time},
+            timing=timing | {"release_s": release, "flight_sim_s": result.flight_time},
             theta_launched=list(result.theta),
         )
 

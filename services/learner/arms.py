@@ -1,0 +1,166 @@
+"""Both arms driven over the mesh for the whole shot: postures on the parts' `command:i` ports,
+each awaited on `state:o`, and the robot's grasp, nock and release (`--shot whole`); joint
+angles in rad. `archery demonstrate --teach`, `archery imitate` and the learner's whole-shot
+rollouts (`services.learner.whole_movement`) drive the arms through it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from typing import Any
+
+import numpy as np
+
+from mesh.node import Node
+from protocol.errors import ArcheryError, ConfigError, Unreachable
+from protocol.messages import JointCommand, JointState
+from protocol.parts import PARTS
+from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.verbs import robot as rv
+from protocol.verbs.base import NoArgs, Reply, Verb
+from sim.scene_config import SceneConfig
+from sim.shot_script import ShotStep
+from sim.world import ArcheryWorld, WorldConfig
+
+__all__ = ["ACTIONS", "REACHED", "ArmDriver"]
+
+REACHED = 2e-3  # rad: a part has reached its targets when this close and its motion is done
+ACTIONS: dict[str, Verb[NoArgs, Any]] = {  # replies: GraspReply, NockReply, ReleaseReply
+    "grasp": rv.GRASP,
+    "nock": rv.NOCK,
+    "release": rv.RELEASE,
+}
+
+
+class ArmDriver:
+    """Drives one robot's arms and its archery verbs.
+
+    Args:
+        node: a node on the robot's mesh.
+        timeout: wall s to wait for each move and each verb.
+    """
+
+    def __init__(self, node: Node, timeout: float) -> None:
+        self._node = node
+        self._timeout = timeout
+        keys = node.keys
+        self._states = {part: node.subscribe(keys.state(part), JointState) for part in PARTS}
+        self._commands = {part: node.publisher(keys.command(part), JointCommand) for part in PARTS}
+        self.leases: dict[str, str] = {}  # part -> the lease id the commands carry
+
+    def scene(self) -> SceneConfig:
+        """The robot's scene (its `status`).
+
+        Raises:
+            ConfigError: the robot does not run the whole shot.
+        """
+        node = self._node
+        status = node.call_typed(node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+        scene = SceneConfig(**status.scene)
+        if scene.shot != "whole":
+            raise ConfigError(
+                f"the robot's shot is {scene.shot!r}; start it with `archery robot --shot whole`"
+            )
+        return scene
+
+    def world(self, scene: SceneConfig | None = None) -> ArcheryWorld:
+        """A copy of the robot's scene (`scene`, else asked for) without meshes, standing as
+        the robot does now (`stand`).
+
+        Raises:
+            ConfigError: the robot does not run the whole shot.
+        """
+        scene = self.scene() if scene is None else scene
+        world = ArcheryWorld(WorldConfig(scene=dataclasses.replace(scene, meshes=False)))
+        self.stand(world)
+        return world
+
+    def stand(self, world: ArcheryWorld) -> None:
+        """Set `world`'s joints to the robot's encoders now."""
+        node = self._node
+        for part in PARTS:
+            encoders = node.call_typed(node.keys.part_rpc(part), rv.GET_POSITIONS)
+            world.physics.set_joint_positions(part, np.asarray(encoders.position))
+        world.physics.kinematics()
+
+    def claim(self, owner: str, ttl: float) -> None:
+        """Take both arms' leases under `owner` for `ttl` wall s (the commands then carry them).
+
+        Raises:
+            RpcError: another client holds an arm (`not_owner`); the leases taken are dropped.
+        """
+        node = self._node
+        try:
+            for part in (BOW_ARM, STRING_ARM):
+                reply = node.call_typed(
+                    node.keys.part_rpc(part), rv.CLAIM, rv.ClaimArgs(owner=owner, ttl=ttl)
+                )
+                self.leases[part] = reply.lease
+        except BaseException:
+            self.drop()
+            raise
+
+    def drop(self) -> None:
+        """Drop the leases taken (one the robot no longer knows is gone anyway)."""
+        node = self._node
+        leases, self.leases = self.leases, {}
+        for part, lease in leases.items():
+            if lease:
+                with contextlib.suppress(ArcheryError):  # best effort: it ends with its ttl
+                    node.call_typed(
+                        node.keys.part_rpc(part), rv.DROP_CLAIM, rv.LeaseArgs(lease=lease)
+                    )
+
+    def move(self, step: ShotStep) -> None:
+        """Command the step's arms on `command:i` and wait until `state:o` shows them there
+        (the step's action is the caller's).
+
+        Raises:
+            RpcTimeout: a part did not get there within the timeout. Unreachable: no robot
+                takes the commands.
+        """
+        arms = {STRING_ARM: step.right_arm}
+        if step.left_arm is not None:
+            arms[BOW_ARM] = step.left_arm
+        after = {part: self._seq(part) for part in arms}
+        for part, values in arms.items():
+            if not self._commands[part].wait_matched(self._timeout):
+                raise Unreachable(f"nobody subscribes to {self._commands[part].key}")
+            self._commands[part].put(
+                JointCommand(
+                    part=part,
+                    position=values.tolist(),
+                    batch=len(arms),
+                    lease=self.leases.get(part, ""),
+                )
+            )
+        for part, values in arms.items():
+
+            def there(msg: JointState, wanted: np.ndarray = values) -> bool:
+                error = np.max(np.abs(np.asarray(msg.position) - wanted))
+                return msg.motion_done and bool(error < REACHED)
+
+            self._states[part].wait_newer(self._timeout, there, after_seq=after[part])
+
+    def _seq(self, part: str) -> int:
+        latest = self._states[part].latest()
+        return 0 if latest is None else latest.seq
+
+    def act(self, action: str) -> Reply:
+        """Call the robot's `grasp`, `nock` or `release`; its reply.
+
+        Raises:
+            RpcError: the robot refused it (grasp_missed, nock_missed, arrow_dropped, …).
+        """
+        node = self._node
+        reply: Reply = node.call_typed(
+            node.keys.archery_rpc(), ACTIONS[action], timeout=self._timeout
+        )
+        return reply
+
+    def close(self) -> None:
+        """Drop the leases and stop following the robot's states."""
+        self.drop()
+        for sub in self._states.values():
+            sub.close()

@@ -1,0 +1,119 @@
+"""The whole shot of one rollout, from a demonstration's DMPs (`services.learner.movement`), on
+a robot that runs `--shot whole`: reach, grasp, carry, nock and draw towards the archery
+posture for θ, played on the arms' `command:i` ports (`services.learner.arms`) as waypoints
+`WAYPOINT_STEP` s of the movement apart, with grasp and nock at their demonstrated times. The
+release is the caller's. Joint angles in rad, θ in m, times in s.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+import numpy as np
+
+from mesh.node import Node
+from protocol.errors import ArcheryError
+from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.verbs import robot as rv
+from services.learner.arms import ArmDriver
+from services.learner.movement import Movement, Reproduction
+from sim.scene_config import SceneConfig
+from sim.shot_script import ShotStep, plan_string_hand
+from sim.world import ArcheryWorld
+
+__all__ = ["LEASE_OWNER", "WAYPOINT_STEP", "WholeMovement", "plan", "play"]
+
+WAYPOINT_STEP = 0.1  # s of the movement between two waypoints
+LEASE_OWNER = "learner.whole-shot"  # the arms' leases while the movement plays
+_LEASE_TTL = 120.0  # wall s: a learner that dies mid-movement frees the arms this long after
+
+
+def plan(world: ArcheryWorld, movement: Movement, theta: np.ndarray) -> Reproduction:
+    """`movement` with its draw's goal the archery posture for θ (m): the string hand at the
+    bow hand + θ, the bow arm as demonstrated (`sim.shot_script.plan_string_hand` on `world`,
+    which stands as the robot does).
+
+    Raises:
+        CommandError: θ out of the string arm's reach.
+    """
+    bow_arm = movement.goal[:7]
+    hold = plan_string_hand(world, theta, bow_arm)
+    return movement.reproduce(np.concatenate([bow_arm, hold.right_arm]))
+
+
+def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
+    """Play `rollout` up to its release's time (the release is the caller's): the first
+    waypoint is its start, every waypoint is clipped into `world`'s joint limits, grasp and
+    nock are called at their times.
+
+    Raises:
+        RpcTimeout: an arm did not get to a waypoint. RpcError: the robot refused the grasp or
+            the nock.
+    """
+    low = {part: world.joint_limits(part)[0] for part in (BOW_ARM, STRING_ARM)}
+    high = {part: world.joint_limits(part)[1] for part in (BOW_ARM, STRING_ARM)}
+    marks = {"grasp": rollout.grasp, "nock": rollout.nock}
+    times = np.arange(0.0, rollout.release, WAYPOINT_STEP)
+    for when in np.union1d(times, [*marks.values(), rollout.release]):
+        left, right = rollout.at(float(when))
+        arms.move(
+            ShotStep(
+                "imitate",
+                np.clip(right, low[STRING_ARM], high[STRING_ARM]),
+                np.clip(left, low[BOW_ARM], high[BOW_ARM]),
+            )
+        )
+        for action, at in marks.items():
+            if when == at:
+                arms.act(action)
+
+
+class WholeMovement:
+    """The whole shot's movement before each release of a learning session.
+
+    Args:
+        node: the learner's node.
+        timeout: wall s to wait for each waypoint and each verb.
+        movement: the demonstration's DMPs.
+        scene: the robot's scene (its `status`; shot "whole").
+    """
+
+    def __init__(self, node: Node, timeout: float, movement: Movement, scene: SceneConfig):
+        self._node = node
+        self.arms = ArmDriver(node, timeout)
+        self.movement = movement
+        self._world = self.arms.world(scene)
+
+    def perform(self, theta: np.ndarray) -> dict[str, float]:
+        """Reach, grasp, carry, nock and draw for θ (m) under both arms' leases; the wall time
+        it took (s). A grasp or nock that fails leaves the robot reset (home posture, a fresh
+        arrow in the holder, the shot noise's stream going on), so the next attempt starts
+        clean.
+
+        Raises:
+            CommandError: θ out of reach (nothing moved). RpcError, RpcTimeout: as `play`, or
+                another client holds an arm (`not_owner`).
+        """
+        started = time.perf_counter()
+        self.arms.stand(self._world)
+        rollout = plan(self._world, self.movement, theta)
+        self.arms.claim(LEASE_OWNER, _LEASE_TTL)
+        try:
+            play(self.arms, self._world, rollout)
+        except Exception:
+            self._reset()
+            raise
+        finally:
+            self.arms.drop()
+        return {"movement_s": time.perf_counter() - started}
+
+    def _reset(self) -> None:
+        """Best effort: the robot home with a fresh arrow (a lost robot is the caller's)."""
+        node = self._node
+        with contextlib.suppress(ArcheryError):
+            node.call_typed(node.keys.archery_rpc(), rv.RESET, rv.ResetArgs())
+
+    def close(self) -> None:
+        """Drop the leases and stop following the arms."""
+        self.arms.close()

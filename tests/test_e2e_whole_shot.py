@@ -1,0 +1,71 @@
+"""The whole shot end to end over a real router with the five real services as processes: the
+robot runs `--shot whole`, so every rollout of ARCHER's session grasps the arrow from its
+holder, nocks it and draws it, playing the shipped demonstration's DMPs towards the archery
+posture for θ, before the release; the session still reaches the 5 cm ring."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from apps.learn.follow import follow
+from apps.up.launch_config import SERVICES
+from apps.up.launcher import Launcher
+from mesh.node import Node
+from mesh.router import free_tcp_endpoint
+from protocol.journal_records import AbortedRecord, DoneRecord
+from protocol.messages import Rollout, WorldEvent
+from services.learner.journal import read_records
+from tests.rpc import rpc_call
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def mesh(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Launcher]:
+    runs = tmp_path_factory.mktemp("runs")
+    launcher = Launcher(
+        free_tcp_endpoint(),
+        f"whole{os.getpid()}",
+        runs / "logs",
+        {"robot": ["--shot", "whole"], "learner": ["--runs", str(runs)]},
+    )
+    launcher.up(120)
+    yield launcher
+    codes = launcher.stop_all()
+    assert all(code == 0 for code in codes.values()), codes
+
+
+def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: Launcher) -> None:
+    with Node(None, mesh.net) as node:
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        kinds: list[str] = []
+        node.subscribe(
+            node.keys.world_events(),
+            WorldEvent,
+            mode="fifo",
+            callback=lambda e: kinds.append(e.kind),
+        )
+        node.wait_alive(SERVICES, timeout=60)
+        request = {"algo": "archer", "seed": 0, "rollouts": 12}
+        session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+        final = follow(node, session, rollouts, lambda m: None)
+    assert final["state"] == "finished" and final["ended"] == "hit", final
+    records = read_records(Path(final["journal"]))[0]
+    done = [r for r in records if isinstance(r, DoneRecord)]
+    aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    # every attempt that reached the release grasped and nocked its own arrow first
+    assert (
+        kinds.count("grasped")
+        == kinds.count("nocked")
+        == len(done) + sum(r.code == "no_arrow" for r in aborted)
+    ), kinds
+    assert all(r.timing["movement_s"] > 0 for r in done)
+    # the controller's posture after the movement: the launched θ is the proposed one
+    for record in done:
+        assert (
+            max(abs(a - b) for a, b in zip(record.theta_launched, record.theta, strict=True)) < 5e-3
+        )
