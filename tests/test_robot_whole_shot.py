@@ -5,6 +5,7 @@ error replies with their codes."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -14,15 +15,23 @@ import mujoco
 import numpy as np
 import pytest
 
-from services.learner.config import SHIPPED_DEMONSTRATION
 from apps.demonstrate import Recorder
 from apps.demonstrate import main as demonstrate
 from apps.imitate import main as imitate
 from apps.teacher import Teacher
 from mesh.netflags import NetConfig
-from protocol.demonstration import MIN_SAMPLES, encode_demonstration
+from mesh.node import Node
+from protocol.demonstration import MIN_SAMPLES, encode_demonstration, parse_demonstration
 from protocol.errors import ConfigError, RpcError
-from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
+from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from services.learner.abort_policy import after_abort
+from services.learner.algorithms.base import Bounds
+from services.learner.config import SHIPPED_DEMONSTRATION
+from services.learner.movement import Movement
+from services.learner.rig import MeshRig
+from services.learner.rollout_step import Failed, shoot
+from services.learner.whole_movement import WholeMovement
 from services.robot.config import add_arguments, make_config
 from sim.geometry import BOW_HAND, START_THETA
 from sim.model_build import build_scene
@@ -224,3 +233,43 @@ def test_imitate_refuses_a_theta_outside_the_box_and_nothing_moves(
     assert len(said) == 1 and "outside the reachable box" in said[0], said  # the robot logs too
     after = client.part(STRING_ARM, "getPositions")
     assert after["position"] == before["position"] and after["sim_time"] == before["sim_time"]
+
+
+@pytest.mark.parametrize(
+    ("tolerances", "code"),
+    [({"grasp_tolerance": 1e-4}, "grasp_missed"), ({"nock_tolerance": 1e-4}, "nock_missed")],
+)
+def test_a_learner_rollout_whose_grasp_or_nock_fails_is_an_abort_retried_on_a_reset_robot(
+    robot: Callable[..., Client], net: NetConfig, tolerances: dict[str, float], code: str
+) -> None:
+    client = robot(dataclasses.replace(WHOLE, **tolerances))
+    theta = np.array([0.19, 0.03, -0.035])
+    movement = Movement(parse_demonstration(SHIPPED.read_bytes()))
+    with Node(None, net) as node:
+        rig = MeshRig(node, timeout=30)
+        rig.services = ("robot",)  # only the robot runs: the others are not lost
+        rig.whole = WholeMovement(node, 30, movement, WHOLE.scene)
+        try:
+            failed = shoot(rig, theta)
+        finally:
+            rig.whole.close()
+            rig.close()
+    assert isinstance(failed, Failed) and failed.code == code, failed
+    # the robot was reset: home, a fresh arrow in the holder, the arms' leases dropped
+    status = client.archery("status")
+    assert status["arrow"] == "stowed" and status["sim_time"] < 1.0
+    assert client.part(STRING_ARM, "getClaim")["held"] is False
+    # the abort rules re-run the same θ
+    box = Bounds(low=THETA_MIN, high=THETA_MAX)
+    decision = after_abort(failed.code, theta, best_theta=None, theta0=THETA0, bounds=box)
+    assert decision.failure is None and np.allclose(decision.retry_theta, theta)
+
+
+def test_the_learner_refuses_a_bad_demonstration_in_one_line(tmp_path: Path) -> None:
+    short = tmp_path / "short.json"
+    short.write_text('{"format": 1}')
+    for path, said in ((tmp_path / "none.json", "cannot read it"), (short, str(short))):
+        result = archery("learner", "--demonstration", str(path), "--connect", "tcp/127.0.0.1:9")
+        assert result.returncode == 2, result.stderr
+        lines = result.stderr.strip().splitlines()
+        assert len(lines) == 1 and "--demonstration" in lines[0] and said in lines[0], lines

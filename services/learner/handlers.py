@@ -158,7 +158,8 @@ class LearnerHandlers:
 
         Raises:
             ArcheryError: the robot does not answer; `bad_config` when the DMPs' library (the
-                `imitate` extra) is not installed.
+                `imitate` extra) is not installed, or in secure mode (the learner may not
+                drive the arms).
         """
         node = self.node
         status = node.call_typed(
@@ -172,6 +173,12 @@ class LearnerHandlers:
             return
         if self.rig.whole is not None and self._whole_scene == scene:
             return
+        if self.config.net.secure is not None:
+            raise ConfigError(
+                "the robot runs the whole shot, whose movement the learner plays on the arms' "
+                "command:i ports; secure mode's access control grants the learner only its "
+                "verbs: run the whole shot without --secure"
+            )
         try:
             from services.learner.movement import Movement
             from services.learner.whole_movement import WholeMovement
