@@ -5,7 +5,9 @@ port), runs one session as `archery learn` does with a live table per rollout (�
 hit), stops everything cleanly, and prints where the session's files are: `runs/<session>/`
 with `journal.jsonl`, `report.png` (impacts on the target face and distance per rollout) and
 `hit.png` (the camera frame of the final hit with the detector's overlay), and `shot.mp4` with
-its contact sheet `shot.png` (the hit seen from the side, `archery film`).
+its contact sheet `shot.png` (the hit seen from the side, `archery film`). With `--shot whole`
+every rollout grasps, nocks and draws its arrow, and the film shows that movement as
+`runs/logs/whole-shot.mcap`, recorded meanwhile, saw it.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from rich.table import Table
 from apps.film.film import film_hit, film_ready, hit_video
 from apps.learn.client import learner_call, start_args
 from apps.learn.follow import SessionLost, follow, result_line
+from apps.up.command import start_observer
 from apps.up.launch_config import SERVICES
 from apps.up.launcher import Launcher, LaunchError
 from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
@@ -74,6 +77,17 @@ class Progress:
             )
 
 
+#: The robot's real-time factor for the whole shot: at rtf 0 its world states, which the film
+#: of the movement is made of, go out at most `--world-rate` times per wall second; paced, at
+#: `--world-rate` per simulated second, so the movement films smoothly, 4× faster than life.
+WHOLE_SHOT_RTF = 4.0
+
+
+def _shot_flags(shot: str) -> list[str]:
+    """The robot's flags for `shot` (posture, or whole: paced at `WHOLE_SHOT_RTF`)."""
+    return ["--shot", shot] + (["--rtf", f"{WHOLE_SHOT_RTF:g}"] if shot == "whole" else [])
+
+
 def run_demo(args: argparse.Namespace, console: Console) -> int:
     """Start the mesh, run the session with a live table, stop the mesh; the exit status."""
     endpoint = args.endpoint or free_tcp_endpoint()
@@ -83,7 +97,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
         "icubSim",
         runs / "logs",
         {
-            "robot": ["--seed", str(args.seed), "--shot", args.shot],
+            "robot": ["--seed", str(args.seed), *_shot_flags(args.shot)],
             "learner": ["--runs", str(runs)],
         },
     )
@@ -94,6 +108,18 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
             console.print(f"[red]archery demo: {exc}")
             return for_error(exc.code)
     console.print(f"mesh up in {took:.1f} s: router on {endpoint}, {', '.join(SERVICES)}")
+    recording = recorder = None
+    if args.shot == "whole":  # the film shows the movement as recorded: the journal has θ only
+        recording = runs / "logs" / "whole-shot.mcap"
+        robot = launcher.net.robot
+        argv = ["record", "--out", str(recording), "--no-transforms"]
+        argv += [f"{robot}/world/state:o", f"{robot}/learner/rollout:o"]
+        try:
+            recorder = start_observer(launcher, "recorder", argv, b"archery record: recording")
+        except LaunchError as exc:
+            console.print(f"[red]archery demo: {exc}")
+            launcher.stop_all()
+            return 1
     try:
         with Node(None, launcher.net) as node:
             rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
@@ -115,11 +141,14 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
         return 1
     finally:
         with console.status("stopping the services …"):
+            if recorder is not None:
+                recorder.terminate()  # the recording is closed before the film reads it
+                recorder.wait(60)
             codes = launcher.stop_all()
     video = hit_video(final)
     final["video"] = None if video is None else str(video)
     outcome = _summary(console, final, wall, codes)  # the result first: filming cannot lose it
-    if video is not None and film_hit(final):
+    if video is not None and film_hit(final, recording=recording):
         print(
             f"archery demo: the hit filmed into {video}", file=sys.stderr
         )  # stdout ends with the result

@@ -127,7 +127,10 @@ def film_session(
     replay = ShotReplay(target)
     source: ShotReplay | RecordedShot = replay
     if recording is not None:
-        source = RecordedShot(recording, target.header.session, target.done, max_bytes=max_bytes)
+        whole = replay.world.config.scene.shot == "whole"
+        source = RecordedShot(
+            recording, target.header.session, target.done, max_bytes=max_bytes, whole=whole
+        )
     thumbs: list[tuple[str, object]] = []
     with (
         SceneView(replay.world.config.scene, width=width, height=height) as view,
@@ -183,8 +186,12 @@ def hit_video(status: dict[str, Any]) -> Path | None:
     return Path(journal).parent / "shot.mp4"
 
 
-def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
-    """Film a finished session's hit into `hit_video(status)`; the video's path, or None.
+def film_hit(
+    status: dict[str, Any], *, quiet: bool = False, recording: Path | None = None
+) -> str | None:
+    """Film a finished session's hit into `hit_video(status)`, as its `recording` saw it when
+    given (the whole shot's movement is in the recording only), else simulated again from the
+    journal; the video's path, or None.
 
     Filming comes after the session's result: any failure here (a rendering backend that does
     not start, a missing extra, a full disk, a bug) is one warning line on stderr, never an
@@ -194,7 +201,7 @@ def film_hit(status: dict[str, Any], *, quiet: bool = False) -> str | None:
     if path is None:
         return None
     try:
-        result = film_session(Path(status["journal"]), quiet=quiet)
+        result = film_session(Path(status["journal"]), quiet=quiet, recording=recording)
     except Exception as exc:  # any failure: the session's result stands
         why = str(exc) if isinstance(exc, ArcheryError) else f"{type(exc).__name__}: {exc}"
         print(f"archery: warning: the hit was not filmed: {cut(why)}", file=sys.stderr)

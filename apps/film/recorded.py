@@ -22,12 +22,15 @@ from protocol.messages import Rollout, WorldState
 __all__ = ["RecordedShot"]
 
 _PHASES = {"idle": POSTURE, "nocked": "nock", "flying": "flight", "stuck": "impact"}
+#: The whole shot's: the arrow is off the bow while the hand reaches, grasps and carries it.
+_WHOLE_PHASES = _PHASES | {"idle": "reach, grasp & carry", "nocked": "nock & draw"}
 _HOLD_IMPACT_S = 1.5  # s of video the last state is shown
 
 
 class RecordedShot:
     """The world states of done rollout `done` of session `session` in the recording at `path`
-    (`max_bytes`: the cap on what its chunks decompress to in all, as `open_recording`'s).
+    (`max_bytes`: the cap on what its chunks decompress to in all, as `open_recording`'s;
+    `whole`: the robot ran the whole shot, whose phases the captions name).
 
     Raises:
         ConfigError: not a recording this version reads.
@@ -36,8 +39,15 @@ class RecordedShot:
     """
 
     def __init__(
-        self, path: Path, session: str, done: DoneRecord, *, max_bytes: int | None = None
+        self,
+        path: Path,
+        session: str,
+        done: DoneRecord,
+        *,
+        max_bytes: int | None = None,
+        whole: bool = False,
     ) -> None:
+        self._phases = _WHOLE_PHASES if whole else _PHASES
         recording = open_recording(path, max_bytes=max_bytes)
         robot = recording.metadata.get("robot", "")
         opened = closed = None
@@ -65,7 +75,7 @@ class RecordedShot:
     def frames(self, fps: float) -> Iterator[FilmFrame]:
         """Each recorded state for the simulated time to the next (the flight slowed down)."""
         for state, following in zip(self.states, [*self.states[1:], None], strict=True):
-            phase = _PHASES.get(state.phase, state.phase)
+            phase = self._phases.get(state.phase, state.phase)
             t = state.sim_time or 0.0
             if following is None:
                 repeat = round(_HOLD_IMPACT_S * fps)
