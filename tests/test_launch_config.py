@@ -155,6 +155,7 @@ def test_the_model_checks_itself() -> None:
         (["--config", "{bad}"], "services.eye: no service 'eye'"),
         (["--config", "{good}", "--seed", "3"], "--seed and --config: set it in"),
         (["--config", "{good}", "--robot", "r"], "--robot and --config"),
+        (["--config", "{good}", "--shot", "whole"], "--shot and --config"),
         (["--robots", "1000", "--runs", "{runs}"], "--robots 1000: this machine holds at most"),
     ],
 )
@@ -170,3 +171,9 @@ def test_up_refuses_a_bad_config_with_one_line_and_exit_2(
     assert err.startswith("archery up: ") and message in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "logs").exists()  # nothing started
+
+
+def test_the_whole_shot_is_the_robot_s_flag() -> None:
+    robot = {c.service: c for c in default_mesh(shot="whole").children()}["robot"]
+    assert robot.args[-2:] == ("--shot", "whole")
+    assert "--shot" not in {c.service: c for c in default_mesh().children()}["robot"].args

@@ -192,10 +192,8 @@ def default_mesh(
     session on each robot at once.
     """
     prefixes = fleet_prefixes(robot, robots)
-    args: dict[str, tuple[str, ...]] = {
-        "robot": ("--rtf", f"{rtf:g}", "--shot", shot),
-        "learner": ("--runs", runs),
-    }
+    robot_args = ("--rtf", f"{rtf:g}", *(() if shot == "posture" else ("--shot", shot)))
+    args: dict[str, tuple[str, ...]] = {"robot": robot_args, "learner": ("--runs", runs)}
     if robots == 1:
         args["robot"] = ("--seed", str(seed), *args["robot"])
         specs: tuple[RobotSpec, ...] = (RobotSpec(robot),)
