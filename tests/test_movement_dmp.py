@@ -4,15 +4,13 @@ to the archery posture of another θ."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import msgspec
 import numpy as np
 import pytest
 
-from services.learner.config import SHIPPED_DEMONSTRATION
 from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
 from protocol.robotspec import BOW_ARM, STRING_ARM
+from services.learner.config import SHIPPED_DEMONSTRATION
 from services.learner.movement import Movement, Reproduction
 from sim.arrow import Launch
 from sim.geometry import START_THETA
