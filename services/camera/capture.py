@@ -175,6 +175,16 @@ class Capture:
 
     def render(self, qpos: np.ndarray) -> np.ndarray:
         """Render `qpos`; a qpos of another length rebuilds the scene from the robot's status."""
+        self.fit_scene(qpos)
+        started = time.perf_counter()
+        pixels: np.ndarray = self.renderer.render(qpos)
+        self.renders += 1
+        self.render_seconds += time.perf_counter() - started
+        return pixels
+
+    def fit_scene(self, qpos: np.ndarray) -> None:
+        """Rebuild the scene from the robot's status if `qpos` is of another length than its
+        (a robot of another scene, `--shot whole`, whose status was not known yet)."""
         if qpos.shape != (self.renderer.nq,):
             log.warning(
                 "world state has %d qpos values, the scene %d: rebuilding it from the robot's "
@@ -185,11 +195,6 @@ class Capture:
             self.renderer.close()
             self._shown.clear()
             self.open()
-        started = time.perf_counter()
-        pixels: np.ndarray = self.renderer.render(qpos)
-        self.renders += 1
-        self.render_seconds += time.perf_counter() - started
-        return pixels
 
     def view(self, qpos: np.ndarray) -> np.ndarray:
         """The pixels of `qpos`: a kept render of the same view key, else a new render.

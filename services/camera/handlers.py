@@ -96,6 +96,7 @@ class CameraHandlers:
 
             latest = capture.world.latest() if capture.world else None
             qpos = latest.qpos.to_numpy() if latest else capture.renderer.model.qpos0
+            capture.fit_scene(qpos)
             pixels, marks = calibration_frame(capture.renderer, qpos)
             image = Image.from_numpy(
                 pixels, sim_time=latest.sim_time if latest else None, stamp=time.time()

@@ -23,8 +23,9 @@ from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["ACTIONS", "REACHED", "ArmDriver"]
+__all__ = ["ACTIONS", "REACHED", "TORSO", "ArmDriver"]
 
+TORSO = "torso"
 REACHED = 2e-3  # rad: a part has reached its targets when this close and its motion is done
 ACTIONS: dict[str, Verb[NoArgs, Any]] = {  # replies: GraspReply, NockReply, ReleaseReply
     "grasp": rv.GRASP,
@@ -85,14 +86,15 @@ class ArmDriver:
         world.physics.kinematics()
 
     def claim(self, owner: str, ttl: float) -> None:
-        """Take both arms' leases under `owner` for `ttl` wall s (the commands then carry them).
+        """Take the arms' and the torso's leases under `owner` for `ttl` wall s (the commands
+        then carry them).
 
         Raises:
-            RpcError: another client holds an arm (`not_owner`); the leases taken are dropped.
+            RpcError: another client holds a part (`not_owner`); the leases taken are dropped.
         """
         node = self._node
         try:
-            for part in (BOW_ARM, STRING_ARM):
+            for part in (BOW_ARM, STRING_ARM, TORSO):
                 reply = node.call_typed(
                     node.keys.part_rpc(part), rv.CLAIM, rv.ClaimArgs(owner=owner, ttl=ttl)
                 )
@@ -112,9 +114,9 @@ class ArmDriver:
                         node.keys.part_rpc(part), rv.DROP_CLAIM, rv.LeaseArgs(lease=lease)
                     )
 
-    def move(self, step: ShotStep) -> None:
-        """Command the step's arms on `command:i` and wait until `state:o` shows them there
-        (the step's action is the caller's).
+    def move(self, step: ShotStep, torso: np.ndarray | None = None) -> None:
+        """Command the step's arms (and the `torso`, rad, when given) on `command:i` and wait
+        until `state:o` shows them there (the step's action is the caller's).
 
         Raises:
             RpcTimeout: a part did not get there within the timeout. Unreachable: no robot
@@ -123,6 +125,8 @@ class ArmDriver:
         arms = {STRING_ARM: step.right_arm}
         if step.left_arm is not None:
             arms[BOW_ARM] = step.left_arm
+        if torso is not None:
+            arms[TORSO] = torso
         after = {part: self._seq(part) for part in arms}
         for part, values in arms.items():
             if not self._commands[part].wait_matched(self._timeout):

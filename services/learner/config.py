@@ -36,6 +36,7 @@ __all__ = [
     "SessionConfig",
     "add_arguments",
     "make_config",
+    "read_demonstration",
 ]
 
 # θ (m) where sessions start (protocol.robotspec.THETA0).
@@ -313,22 +314,28 @@ class LearnerServiceConfig:
             self.read_demonstration()
 
     def read_demonstration(self) -> Demonstration:
-        """The whole shot's demonstration (`demonstration`, else the shipped one), checked.
-
-        Raises:
-            ConfigError: it cannot be read or is not a valid demonstration (one line).
-        """
-        path = Path(self.demonstration or SHIPPED_DEMONSTRATION)
-        try:
-            return parse_demonstration(path.read_bytes())
-        except OSError as exc:
-            raise ConfigError(f"--demonstration {path}: cannot read it ({exc.strerror})") from None
-        except BadDemonstration as exc:
-            raise ConfigError(f"--demonstration {path}: {exc.message}") from None
+        """The whole shot's demonstration (`demonstration`, else the shipped one), checked
+        (`read_demonstration`)."""
+        return read_demonstration(self.demonstration)
 
     def robots(self) -> tuple[str, ...]:
         """Every robot prefix this learner serves: its own (`--robot`), then `--fleet`'s."""
         return (self.net.robot, *self.fleet)
+
+
+def read_demonstration(path: str | Path | None = None) -> Demonstration:
+    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked.
+
+    Raises:
+        ConfigError: it cannot be read or is not a valid demonstration (one line).
+    """
+    path = Path(path or SHIPPED_DEMONSTRATION)
+    try:
+        return parse_demonstration(path.read_bytes())
+    except OSError as exc:
+        raise ConfigError(f"--demonstration {path}: cannot read it ({exc.strerror})") from None
+    except BadDemonstration as exc:
+        raise ConfigError(f"--demonstration {path}: {exc.message}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -13,7 +13,7 @@ from msgspec import UnsetType
 
 from mesh.node import Node
 from mesh.publisher import Publisher
-from protocol.errors import ArcheryError, BadRequest, ConfigError
+from protocol.errors import ArcheryError, BadRequest
 from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
 from protocol.messages import Rollout
 from protocol.text import shown
@@ -26,14 +26,12 @@ from protocol.verbs.learner import (
     LearnerStatusReply,
     StartArgs,
 )
-from protocol.verbs.robot import ARCHERY_STATUS
 from services.learner.config import LearnerServiceConfig, SessionConfig
 from services.learner.report import write_report
 from services.learner.rig import MeshRig
 from services.learner.runs_folder import journal_in_runs
 from services.learner.session import FINAL_STATES, Session
 from services.learner.transfer import load_source
-from sim.scene_config import SceneConfig
 
 __all__ = ["LearnerHandlers", "rollout_message"]
 
@@ -65,7 +63,6 @@ class LearnerHandlers:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._report: dict[str, str | None] = {}
-        self._whole_scene: SceneConfig | None = None  # the scene `rig.whole` was built for
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
@@ -153,46 +150,10 @@ class LearnerHandlers:
             return self._status_of(session)
 
     def _prepare_shot(self) -> None:
-        """Play the whole shot's movement before each posture when the robot runs `--shot
-        whole` (its scene, from its `status`), with the demonstration's DMPs; not otherwise.
-
-        Raises:
-            ArcheryError: the robot does not answer; `bad_config` when the DMPs' library (the
-                `imitate` extra) is not installed, or in secure mode (the learner may not
-                drive the arms).
-        """
-        node = self.node
-        status = node.call_typed(
-            node.keys.archery_rpc(), ARCHERY_STATUS, timeout=self.config.rpc_timeout
-        )
-        scene = SceneConfig(**status.scene)
-        if scene.shot != "whole":
-            if self.rig.whole is not None:
-                self.rig.whole.close()
-            self.rig.whole = None
-            return
-        if self.rig.whole is not None and self._whole_scene == scene:
-            return
-        if self.config.net.secure is not None:
-            raise ConfigError(
-                "the robot runs the whole shot, whose movement the learner plays on the arms' "
-                "command:i ports; secure mode's access control grants the learner only its "
-                "verbs: run the whole shot without --secure"
-            )
-        try:
-            from services.learner.movement import Movement
-            from services.learner.whole_movement import WholeMovement
-        except ImportError as exc:
-            raise ConfigError(
-                f"the robot runs the whole shot, whose movement needs the DMPs' library "
-                f"({exc.name}): pip install 'archery[imitate]'"
-            ) from None
-        movement = Movement(self.config.read_demonstration())
-        whole = WholeMovement(node, self.config.rpc_timeout, movement, scene)
-        if self.rig.whole is not None:
-            self.rig.whole.close()
-        self.rig.whole, self._whole_scene = whole, scene
-        log.info("the robot runs the whole shot: every rollout plays the demonstration's DMPs")
+        """Follow the robot's shot (`MeshRig.follow_shot`: on a `--shot whole` robot every
+        rollout plays the demonstration's movement)."""
+        secure = self.config.net.secure is not None
+        self.rig.follow_shot(self.config.read_demonstration, secure=secure)
 
     def _run(self, session: Session, stop: threading.Event) -> None:
         status = session.run(stop)

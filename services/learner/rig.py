@@ -21,8 +21,10 @@ import numpy as np
 
 from mesh.node import Node
 from mesh.tokens import TokenSet
+from protocol.demonstration import Demonstration
 from protocol.errors import (
     ArcheryError,
+    ConfigError,
     RpcError,
     RpcTimeout,
     StaleState,
@@ -38,6 +40,7 @@ from protocol.verbs import robot as rv
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.errors import RigError, ServiceLost
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from sim.scene_config import SceneConfig
 
 if TYPE_CHECKING:
     from services.learner.whole_movement import WholeMovement
@@ -85,8 +88,10 @@ class MeshRig:
         # Who is alive and since when one went, kept from liveliness events: a query per check
         # would time out on a loaded machine and report every service missing.
         self._tokens = TokenSet(node.session, self.keys.alive_all())
-        #: The whole shot's movement, played before each posture on a `--shot whole` robot.
+        #: The whole shot's movement, played before each posture on a `--shot whole` robot
+        #: (`follow_shot`), and the robot's scene it was built for.
         self.whole: WholeMovement | None = None
+        self._whole_scene: SceneConfig | None = None
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
@@ -153,7 +158,9 @@ class MeshRig:
 
     # -- liveliness -----------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop following the liveliness tokens (the rest goes with the node's session)."""
+        """Stop following the liveliness tokens and the arms (the rest goes with the node's
+        session)."""
+        self._drop_whole()
         self._tokens.close()
 
     def missing(self) -> list[str]:
@@ -183,6 +190,50 @@ class MeshRig:
                     f"(robot {self.keys.robot!r}); restart them and resume the session",
                 )
         return False
+
+    # -- the shot ------------------------------------------------------------------------------
+    def follow_shot(self, demonstration: Callable[[], Demonstration], *, secure: bool) -> str:
+        """Play the whole shot's movement before each posture when the robot runs `--shot
+        whole` (its scene, from its `status`), with the DMPs of `demonstration()` (read only
+        then); not otherwise. The robot's shot: posture or whole.
+
+        Raises:
+            ServiceLost, RigError: the robot does not answer. ConfigError: a whole-shot robot
+                but the DMPs' library (the `imitate` extra) is not installed, or `secure` (the
+                access control grants a learner its verbs only, not the arms' `command:i`).
+        """
+        status, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
+        scene = SceneConfig(**status.scene)
+        if scene.shot != "whole":
+            self._drop_whole()
+            return scene.shot
+        if self.whole is not None and self._whole_scene == scene:
+            return scene.shot
+        if secure:
+            raise ConfigError(
+                "the robot runs the whole shot, whose movement the learner plays on the arms' "
+                "command:i ports; secure mode's access control grants a learner only its verbs: "
+                "run the whole shot without --secure"
+            )
+        try:
+            from services.learner.movement import Movement
+            from services.learner.whole_movement import WholeMovement
+        except ImportError as exc:
+            raise ConfigError(
+                f"the robot runs the whole shot, whose movement needs the DMPs' library "
+                f"({exc.name}): pip install 'archery[imitate]'"
+            ) from None
+        movement = Movement(demonstration())
+        whole = WholeMovement(self.node, self.timeout, movement, scene)
+        self._drop_whole()
+        self.whole, self._whole_scene = whole, scene
+        log.info("the robot runs the whole shot: every rollout plays the demonstration's DMPs")
+        return scene.shot
+
+    def _drop_whole(self) -> None:
+        if self.whole is not None:
+            self.whole.close()
+        self.whole = self._whole_scene = None
 
     # -- the rollout ----------------------------------------------------------------------------
     def theta_box(self) -> Bounds:

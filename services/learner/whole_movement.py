@@ -14,9 +14,9 @@ import numpy as np
 
 from mesh.node import Node
 from protocol.errors import ArcheryError
-from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.robotspec import BOW_ARM, STRING_ARM, home_of
 from protocol.verbs import robot as rv
-from services.learner.arms import ArmDriver
+from services.learner.arms import TORSO, ArmDriver
 from services.learner.movement import Movement, Reproduction
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep, plan_string_hand
@@ -44,8 +44,9 @@ def plan(world: ArcheryWorld, movement: Movement, theta: np.ndarray) -> Reproduc
 
 def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
     """Play `rollout` up to its release's time (the release is the caller's): the first
-    waypoint is its start, every waypoint is clipped into `world`'s joint limits, grasp and
-    nock are called at their times.
+    waypoint is its start, with the torso at home as it was demonstrated (the controller's
+    posture for θ may have turned it); every waypoint is clipped into `world`'s joint limits;
+    grasp and nock are called at their times.
 
     Raises:
         RpcTimeout: an arm did not get to a waypoint. RpcError: the robot refused the grasp or
@@ -55,15 +56,16 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
     high = {part: world.joint_limits(part)[1] for part in (BOW_ARM, STRING_ARM)}
     marks = {"grasp": rollout.grasp, "nock": rollout.nock}
     times = np.arange(0.0, rollout.release, WAYPOINT_STEP)
+    torso: np.ndarray | None = np.asarray(home_of(TORSO))
     for when in np.union1d(times, [*marks.values(), rollout.release]):
         left, right = rollout.at(float(when))
-        arms.move(
-            ShotStep(
-                "imitate",
-                np.clip(right, low[STRING_ARM], high[STRING_ARM]),
-                np.clip(left, low[BOW_ARM], high[BOW_ARM]),
-            )
+        step = ShotStep(
+            "imitate",
+            np.clip(right, low[STRING_ARM], high[STRING_ARM]),
+            np.clip(left, low[BOW_ARM], high[BOW_ARM]),
         )
+        arms.move(step, torso)
+        torso = None  # home from the first waypoint on
         for action, at in marks.items():
             if when == at:
                 arms.act(action)
