@@ -87,7 +87,9 @@ def _success(shots: int, out: Path) -> dict[str, Any]:
             node.wait_alive(["robot"], 60)
             status = node.call_typed(node.keys.archery_rpc(), rv.ARCHERY_STATUS)
             movement = Movement(parse_demonstration(SHIPPED_DEMONSTRATION.read_bytes()))
-            whole = WholeMovement(node, 30.0, movement, SceneConfig(**status.scene))
+            whole = WholeMovement(
+                node, 30.0, movement, SceneConfig(**status.scene), status.world["reference_speed"]
+            )
             try:
                 with progress_bar() as bar:
                     task = bar.add_task("grasp and nock at random θ", total=shots)

@@ -1,7 +1,7 @@
 """The whole shot end to end over a real router with the five real services as processes: the
 robot runs `--shot whole`, so every rollout of ARCHER's session grasps the arrow from its
 holder, nocks it and draws it, playing the shipped demonstration's DMPs towards the archery
-posture for θ, before the release; the session still reaches the 5 cm ring."""
+posture for θ, before the release, and the controller's posture for θ refines the aim."""
 
 from __future__ import annotations
 
@@ -50,13 +50,14 @@ def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: L
             callback=lambda e: kinds.append(e.kind),
         )
         node.wait_alive(SERVICES, timeout=60)
-        request = {"algo": "archer", "seed": 0, "rollouts": 12}
+        request = {"algo": "archer", "seed": 0, "rollouts": 5, "until_hit": False}
         session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
         final = follow(node, session, rollouts, lambda m: None)
-    assert final["state"] == "finished" and final["ended"] == "hit", final
+    assert final["state"] == "finished" and final["rollouts"] == 5, final
     records = read_records(Path(final["journal"]))[0]
     done = [r for r in records if isinstance(r, DoneRecord)]
     aborted = [r for r in records if isinstance(r, AbortedRecord)]
+    assert {r.code for r in aborted} <= {"no_arrow"}, aborted  # no grasp or nock missed
     # every attempt that reached the release grasped and nocked its own arrow first
     assert (
         kinds.count("grasped")
@@ -64,6 +65,8 @@ def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: L
         == len(done) + sum(r.code == "no_arrow" for r in aborted)
     ), kinds
     assert all(r.timing["movement_s"] > 0 for r in done)
+    # ARCHER's exploration, then its first step: θ moves, and so does the arrow
+    assert len({tuple(r.theta) for r in done}) == 5
     # the controller's posture after the movement: the launched θ is the proposed one
     for record in done:
         assert (

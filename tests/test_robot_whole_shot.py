@@ -248,7 +248,7 @@ def test_a_learner_rollout_whose_grasp_or_nock_fails_is_an_abort_retried_on_a_re
     with Node(None, net) as node:
         rig = MeshRig(node, timeout=30)
         rig.services = ("robot",)  # only the robot runs: the others are not lost
-        rig.whole = WholeMovement(node, 30, movement, WHOLE.scene)
+        rig.whole = WholeMovement(node, 30, movement, WHOLE.scene, WHOLE.reference_speed)
         try:
             failed = shoot(rig, theta)
         finally:

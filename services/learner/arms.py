@@ -85,18 +85,22 @@ class ArmDriver:
             world.physics.set_joint_positions(part, np.asarray(encoders.position))
         world.physics.kinematics()
 
-    def claim(self, owner: str, ttl: float) -> None:
+    def claim(self, owner: str, ttl: float, speed: float) -> None:
         """Take the arms' and the torso's leases under `owner` for `ttl` wall s (the commands
-        then carry them).
+        then carry them) and set their joints' reference speeds to `speed` (rad/s; a move
+        before may have left them slow), one call per part.
 
         Raises:
             RpcError: another client holds a part (`not_owner`); the leases taken are dropped.
         """
         node = self._node
+        claim = rv.ClaimArgs(owner=owner, ttl=ttl)
         try:
             for part in (BOW_ARM, STRING_ARM, TORSO):
                 reply = node.call_typed(
-                    node.keys.part_rpc(part), rv.CLAIM, rv.ClaimArgs(owner=owner, ttl=ttl)
+                    node.keys.part_rpc(part),
+                    rv.SET_REF_SPEEDS,
+                    rv.SetRefSpeedsArgs(speeds=speed, claim=claim),
                 )
                 self.leases[part] = reply.lease
         except BaseException:

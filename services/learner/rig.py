@@ -55,6 +55,7 @@ UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
 _UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
+DEFAULT_REFERENCE_SPEED = 0.5  # rad/s: for a robot's status that does not tell its own
 R = TypeVar("R", bound=msgspec.Struct)
 T = TypeVar("T")
 
@@ -224,7 +225,8 @@ class MeshRig:
                 f"({exc.name}): pip install 'archery[imitate]'"
             ) from None
         movement = Movement(demonstration())
-        whole = WholeMovement(self.node, self.timeout, movement, scene)
+        speed = float(status.world.get("reference_speed", DEFAULT_REFERENCE_SPEED))
+        whole = WholeMovement(self.node, self.timeout, movement, scene, speed)
         self._drop_whole()
         self.whole, self._whole_scene = whole, scene
         log.info("the robot runs the whole shot: every rollout plays the demonstration's DMPs")

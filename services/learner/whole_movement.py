@@ -79,19 +79,24 @@ class WholeMovement:
         timeout: wall s to wait for each waypoint and each verb.
         movement: the demonstration's DMPs.
         scene: the robot's scene (its `status`; shot "whole").
+        speed: the joints' reference speed the movement plays at (rad/s; the robot's default,
+            at which the demonstration was recorded).
     """
 
-    def __init__(self, node: Node, timeout: float, movement: Movement, scene: SceneConfig):
+    def __init__(
+        self, node: Node, timeout: float, movement: Movement, scene: SceneConfig, speed: float
+    ):
         self._node = node
+        self._speed = speed
         self.arms = ArmDriver(node, timeout)
         self.movement = movement
         self._world = self.arms.world(scene)
 
     def perform(self, theta: np.ndarray) -> dict[str, float]:
-        """Reach, grasp, carry, nock and draw for θ (m) under both arms' leases; the wall time
-        it took (s). A grasp or nock that fails leaves the robot reset (home posture, a fresh
-        arrow in the holder, the shot noise's stream going on), so the next attempt starts
-        clean.
+        """Reach, grasp, carry, nock and draw for θ (m) under the arms' and the torso's leases,
+        at the reference speed; the wall time it took (s). A grasp or nock that fails leaves
+        the robot reset (home posture, a fresh arrow in the holder, the shot noise's stream
+        going on), so the next attempt starts clean.
 
         Raises:
             CommandError: θ out of reach (nothing moved). RpcError, RpcTimeout: as `play`, or
@@ -100,7 +105,7 @@ class WholeMovement:
         started = time.perf_counter()
         self.arms.stand(self._world)
         rollout = plan(self._world, self.movement, theta)
-        self.arms.claim(LEASE_OWNER, _LEASE_TTL)
+        self.arms.claim(LEASE_OWNER, _LEASE_TTL, self._speed)
         try:
             play(self.arms, self._world, rollout)
         except Exception:
