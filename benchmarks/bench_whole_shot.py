@@ -138,8 +138,9 @@ def _session(launcher: Launcher, seed: int, rollouts: int) -> dict[str, Any]:
     }
 
 
-def _fig6(sessions: dict[str, list[dict[str, Any]]], path: Path) -> None:
-    """Fig. 6 of ARCHER on the whole shot beside the posture shot (the true distances)."""
+def _fig6(sessions: dict[str, list[dict[str, Any]]], path: Path, rollouts: int) -> None:
+    """Fig. 6 of ARCHER on the whole shot beside the posture shot (the true distances) over
+    the sessions that ran all `rollouts` (a failed session is counted in the table only)."""
     from apps.experiment.config import AlgorithmRun
     from apps.experiment.plots import plot_convergence
 
@@ -151,7 +152,8 @@ def _fig6(sessions: dict[str, list[dict[str, Any]]], path: Path) -> None:
             r_true=np.array([s["truth_r_m"] for s in done]),
             wall_time=sum(s["wall_s"] for s in done),
         )
-        for shot, done in sessions.items()
+        for shot, all_done in sessions.items()
+        if (done := [s for s in all_done if len(s["theta"]) == rollouts])
     }
     labels = {"posture": "ARCHER, posture shot", "whole": "ARCHER, whole shot (DMPs)"}
     title = "ARCHER on the MuJoCo iCub: the whole shot beside the posture shot"
@@ -211,7 +213,7 @@ def _run(args: argparse.Namespace) -> int:
         "sessions": sessions,
     }
     (out / "bench.json").write_text(json.dumps(result, indent=1, allow_nan=False))
-    _fig6(sessions, out / "fig6-whole-shot.png")
+    _fig6(sessions, out / "fig6-whole-shot.png", args.rollouts)
     print(f"\n{result['date']}, {result['machine']}\n")
     print(f"DMP reproduction error (joint RMS, 14 joints): {rms:.2e} rad\n")
     total = sum(success["outcomes"].values())

@@ -222,9 +222,12 @@ def plan_draw(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> Sh
     return ShotStep("draw", arms[STRING_ARM], np.asarray(bow_arm, dtype=float).copy())
 
 
-def plan_string_hand(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray) -> ShotStep:
+def plan_string_hand(
+    world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray, tolerance: float = 2e-3
+) -> ShotStep:
     """The right arm's posture that puts the string hand at the bow hand + `theta` (m, the
-    paper's θ), with the bow arm at `bow_arm` (rad), from the world's current posture.
+    paper's θ) within `tolerance` (m), with the bow arm at `bow_arm` (rad), from the world's
+    current posture.
 
     Raises:
         CommandError: out of the arm's reach.
@@ -245,6 +248,7 @@ def plan_string_hand(world: ArcheryWorld, theta: np.ndarray, bow_arm: np.ndarray
         (STRING_ARM,),
         {STRING_ARM: world.joint_positions(STRING_ARM)},
         {STRING_ARM: world.joint_limits(STRING_ARM)},
+        tolerance=tolerance,
         others={BOW_ARM: np.asarray(bow_arm, dtype=float)},
     )
     return ShotStep("hold", arms[STRING_ARM], np.asarray(bow_arm, dtype=float).copy())

@@ -4,14 +4,18 @@ to the archery posture of another θ."""
 
 from __future__ import annotations
 
+import itertools
+
 import msgspec
 import numpy as np
 import pytest
 
 from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
 from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.learner.config import SHIPPED_DEMONSTRATION
 from services.learner.movement import Movement, Reproduction
+from services.learner.whole_movement import DRAW_TOLERANCE, plan
 from sim.arrow import Launch
 from sim.geometry import START_THETA
 from sim.scene_config import SceneConfig
@@ -120,3 +124,15 @@ def test_a_demonstration_without_a_grasp_is_refused(demo: Demonstration) -> None
     )
     with pytest.raises(BadDemonstration, match="no grasped event"):
         Movement(posture_only)
+
+
+def test_the_draw_is_planned_for_every_corner_of_the_controllers_box() -> None:
+    """The string arm alone, the bow arm as demonstrated, reaches each corner of the θ box
+    within the draw's tolerance (the controller's posture, with the torso, does the rest)."""
+    world = ArcheryWorld(WorldConfig(scene=SceneConfig(meshes=False, shot="whole")))
+    movement = Movement(parse_demonstration(SHIPPED.read_bytes()))
+    for corner in itertools.product(*zip(THETA_MIN, THETA_MAX, strict=True)):
+        rollout = plan(world, movement, np.array(corner))
+        world.physics.set_joint_positions(BOW_ARM, rollout.left_arm[-1])
+        world.physics.set_joint_positions(STRING_ARM, rollout.right_arm[-1])
+        assert np.linalg.norm(world.theta() - np.array(corner)) < DRAW_TOLERANCE + 0.005, corner

@@ -18,13 +18,15 @@ from protocol.robotspec import BOW_ARM, STRING_ARM, home_of
 from protocol.verbs import robot as rv
 from services.learner.arms import TORSO, ArmDriver
 from services.learner.movement import Movement, Reproduction
+from sim.errors import CommandError
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep, plan_string_hand
 from sim.world import ArcheryWorld
 
-__all__ = ["LEASE_OWNER", "WAYPOINT_STEP", "WholeMovement", "plan", "play"]
+__all__ = ["DRAW_TOLERANCE", "LEASE_OWNER", "WAYPOINT_STEP", "WholeMovement", "plan", "play"]
 
 WAYPOINT_STEP = 0.1  # s of the movement between two waypoints
+DRAW_TOLERANCE = 0.04  # m: the draw's goal may end this far from θ (see `plan`)
 LEASE_OWNER = "learner.whole-shot"  # the arms' leases while the movement plays
 _LEASE_TTL = 120.0  # wall s: a learner that dies mid-movement frees the arms this long after
 
@@ -32,13 +34,19 @@ _LEASE_TTL = 120.0  # wall s: a learner that dies mid-movement frees the arms th
 def plan(world: ArcheryWorld, movement: Movement, theta: np.ndarray) -> Reproduction:
     """`movement` with its draw's goal the archery posture for θ (m): the string hand at the
     bow hand + θ, the bow arm as demonstrated (`sim.shot_script.plan_string_hand` on `world`,
-    which stands as the robot does).
+    which stands as the robot does). A θ the string arm alone cannot reach with the bow arm
+    so (the controller's posture also turns the torso) is drawn to within `DRAW_TOLERANCE` of
+    it: the controller's posture for θ, after the movement, takes the hands the rest of the
+    way.
 
     Raises:
-        CommandError: θ out of the string arm's reach.
+        CommandError: θ farther than `DRAW_TOLERANCE` from the string arm's reach.
     """
     bow_arm = movement.goal[:7]
-    hold = plan_string_hand(world, theta, bow_arm)
+    try:
+        hold = plan_string_hand(world, theta, bow_arm)
+    except CommandError:
+        hold = plan_string_hand(world, theta, bow_arm, tolerance=DRAW_TOLERANCE)
     return movement.reproduce(np.concatenate([bow_arm, hold.right_arm]))
 
 
