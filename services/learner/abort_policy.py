@@ -19,6 +19,7 @@ from services.learner.algorithms.base import Bounds
 
 __all__ = [
     "BACK_OFF_FRACTION",
+    "NOT_REACHED",
     "NO_ARROW",
     "SERVICE_LOST",
     "AbortDecision",
@@ -28,6 +29,7 @@ __all__ = [
 
 SERVICE_LOST = "service_lost"
 NO_ARROW = "no_arrow"
+NOT_REACHED = "not_reached"  # a posture, or a waypoint of the whole shot, not reached in time
 
 #: After a miss, the next θ is anchor + this × (θ − anchor): halfway back towards the anchor.
 BACK_OFF_FRACTION = 0.5

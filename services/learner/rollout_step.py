@@ -19,7 +19,13 @@ import numpy as np
 from msgspec import UNSET, UnsetType
 
 from protocol.journal_records import AbortedRecord, DoneRecord
-from services.learner.abort_policy import NO_ARROW, SERVICE_LOST, AbortDecision, after_abort
+from services.learner.abort_policy import (
+    NO_ARROW,
+    NOT_REACHED,
+    SERVICE_LOST,
+    AbortDecision,
+    after_abort,
+)
 from services.learner.algorithms.base import Learner
 from services.learner.config import SessionConfig
 from services.learner.errors import RigError, ServiceLost
@@ -115,7 +121,7 @@ def shoot(rig: Rig, theta: np.ndarray) -> Measured | Failed:
     try:
         posture = rig.move_to(theta)
         if not posture.reached:
-            return Failed("not_reached", f"posture not reached: {posture.reason}")
+            return Failed(NOT_REACHED, f"posture not reached: {posture.reason}")
         missing = rig.missing()
         if missing:  # nobody could measure (or release) the arrow: do not shoot
             cause = f"{', '.join(missing)}: not alive before the shot; no arrow released"

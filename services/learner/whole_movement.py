@@ -13,9 +13,10 @@ import time
 import numpy as np
 
 from mesh.node import Node
-from protocol.errors import ArcheryError
+from protocol.errors import ArcheryError, RpcError, RpcTimeout
 from protocol.robotspec import BOW_ARM, STRING_ARM, home_of
 from protocol.verbs import robot as rv
+from services.learner.abort_policy import NOT_REACHED
 from services.learner.arms import TORSO, ArmDriver
 from services.learner.movement import Movement, Reproduction
 from sim.errors import CommandError
@@ -57,8 +58,8 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
     grasp and nock are called at their times.
 
     Raises:
-        RpcTimeout: an arm did not get to a waypoint. RpcError: the robot refused the grasp or
-            the nock.
+        RpcError: an arm did not get to a waypoint in time (code `not_reached`, the abort code
+            of a posture not reached), or the robot refused the grasp or the nock.
     """
     low = {part: world.joint_limits(part)[0] for part in (BOW_ARM, STRING_ARM)}
     high = {part: world.joint_limits(part)[1] for part in (BOW_ARM, STRING_ARM)}
@@ -72,7 +73,13 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
             np.clip(right, low[STRING_ARM], high[STRING_ARM]),
             np.clip(left, low[BOW_ARM], high[BOW_ARM]),
         )
-        arms.move(step, torso)
+        try:
+            arms.move(step, torso)
+        except RpcTimeout as exc:  # a robot alive but its arm stuck: not a lost service
+            raise RpcError(
+                f"the arms did not reach the movement's waypoint at {when:.2f} s: {exc.message}",
+                code=NOT_REACHED,
+            ) from None
         torso = None  # home from the first waypoint on
         for action, at in marks.items():
             if when == at:
@@ -107,8 +114,8 @@ class WholeMovement:
         going on), so the next attempt starts clean.
 
         Raises:
-            CommandError: θ out of reach (nothing moved). RpcError, RpcTimeout: as `play`, or
-                another client holds an arm (`not_owner`).
+            CommandError: θ out of reach (nothing moved). RpcError: as `play`, or another
+                client holds a part (`not_owner`). RpcTimeout: the robot does not answer.
         """
         started = time.perf_counter()
         self.arms.stand(self._world)
