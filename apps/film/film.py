@@ -65,12 +65,18 @@ def _lines(rollout: Rollout, frame: FilmFrame) -> list[str]:
 
 def _pick(thumbs: list[tuple[str, object]]) -> list[object]:
     """Six thumbnails: the start and end of the move, the release, two of the flight and the
-    impact (a film without these phases: six evenly spread)."""
+    impact; of the whole shot: the start, middle and end of the reach, grasp and carry, the
+    end of the draw, the flight and the impact (a film without these phases: six evenly
+    spread)."""
     by_phase: dict[str, list[object]] = {}
     for phase, thumb in thumbs:
         by_phase.setdefault(phase.split(" ")[0], []).append(thumb)
     move, release = by_phase.get("posture", []), by_phase.get("release", [])
     flight, impact = by_phase.get("flight", []), by_phase.get("impact", [])
+    reach, draw = by_phase.get("reach,", []), by_phase.get("nock", [])  # the whole shot's
+    if reach and draw and flight and impact:
+        middle = reach[len(reach) // 2]
+        return [reach[0], middle, reach[-1], draw[-1], flight[len(flight) // 2], impact[0]]
     if move and release and len(flight) >= 2 and impact:
         return [
             move[0],

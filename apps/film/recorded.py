@@ -22,8 +22,12 @@ from protocol.messages import Rollout, WorldState
 __all__ = ["RecordedShot"]
 
 _PHASES = {"idle": POSTURE, "nocked": "nock", "flying": "flight", "stuck": "impact"}
-#: The whole shot's: the arrow is off the bow while the hand reaches, grasps and carries it.
+#: The whole shot's: the arrow is off the bow while the hand reaches, grasps and carries it;
+#: the last shot's arrow stays on the target until then.
 _WHOLE_PHASES = _PHASES | {"idle": "reach, grasp & carry", "nocked": "nock & draw"}
+#: The whole shot's movement (some 12 s of simulated time, more with each waypoint's settling)
+#: plays this many times faster than real time.
+WHOLE_SPEEDUP = 4.0
 _HOLD_IMPACT_S = 1.5  # s of video the last state is shown
 
 
@@ -47,6 +51,7 @@ class RecordedShot:
         max_bytes: int | None = None,
         whole: bool = False,
     ) -> None:
+        self._whole = whole
         self._phases = _WHOLE_PHASES if whole else _PHASES
         recording = open_recording(path, max_bytes=max_bytes)
         robot = recording.metadata.get("robot", "")
@@ -73,18 +78,29 @@ class RecordedShot:
             )
 
     def frames(self, fps: float) -> Iterator[FilmFrame]:
-        """Each recorded state for the simulated time to the next (the flight slowed down)."""
+        """Each recorded state for the simulated time to the next (the flight slowed down; the
+        whole shot's movement sped up, `WHOLE_SPEEDUP`)."""
+        released = False
+        owed = 0.0  # video frames owed to the states so far (a sped-up state may get none)
         for state, following in zip(self.states, [*self.states[1:], None], strict=True):
             phase = self._phases.get(state.phase, state.phase)
+            released = released or state.phase == "flying"
+            if self._whole and not released and state.phase in ("stuck", "missed"):
+                phase = self._phases["idle"]  # the last shot's arrow, before this one's grasp
             t = state.sim_time or 0.0
+            speed = WHOLE_SPEEDUP if self._whole and not released else 1.0
             if following is None:
                 repeat = round(_HOLD_IMPACT_S * fps)
             else:
                 dt = max(0.0, (following.sim_time or t) - t)
-                slow = SLOW_MOTION if phase == "flight" else 1.0
-                repeat = round(dt * fps / slow)
+                speed = SLOW_MOTION if phase == "flight" else speed
+                owed += dt * fps / speed
+                repeat = round(owed)
+                owed -= repeat
             if phase == "flight":
                 phase = f"flight ×{SLOW_MOTION:g}"
+            elif speed > 1.0 and following is not None:
+                phase = f"{phase} ×{speed:g}"
             if repeat:
                 yield FilmFrame(state.qpos.to_numpy(), t, phase, repeat=repeat)
 

@@ -23,10 +23,11 @@ from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["ACTIONS", "REACHED", "TORSO", "ArmDriver"]
+__all__ = ["ACTIONS", "PASSING", "REACHED", "TORSO", "ArmDriver"]
 
 TORSO = "torso"
 REACHED = 2e-3  # rad: a part has reached its targets when this close and its motion is done
+PASSING = 0.03  # rad: a part passes a waypoint when this close to it, still moving
 ACTIONS: dict[str, Verb[NoArgs, Any]] = {  # replies: GraspReply, NockReply, ReleaseReply
     "grasp": rv.GRASP,
     "nock": rv.NOCK,
@@ -118,9 +119,11 @@ class ArmDriver:
                         node.keys.part_rpc(part), rv.DROP_CLAIM, rv.LeaseArgs(lease=lease)
                     )
 
-    def move(self, step: ShotStep, torso: np.ndarray | None = None) -> None:
+    def move(self, step: ShotStep, torso: np.ndarray | None = None, *, settle: bool = True) -> None:
         """Command the step's arms (and the `torso`, rad, when given) on `command:i` and wait
-        until `state:o` shows them there (the step's action is the caller's).
+        until `state:o` shows them there, at rest within `REACHED` (`settle`) or on their way
+        within `PASSING` of it (a waypoint the next one follows; the step's action is the
+        caller's).
 
         Raises:
             RpcTimeout: a part did not get there within the timeout. Unreachable: no robot
@@ -147,6 +150,8 @@ class ArmDriver:
 
             def there(msg: JointState, wanted: np.ndarray = values) -> bool:
                 error = np.max(np.abs(np.asarray(msg.position) - wanted))
+                if not settle:
+                    return bool(error < PASSING)
                 return msg.motion_done and bool(error < REACHED)
 
             self._states[part].wait_newer(self._timeout, there, after_seq=after[part])

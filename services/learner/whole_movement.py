@@ -55,7 +55,9 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
     """Play `rollout` up to its release's time (the release is the caller's): the first
     waypoint is its start, with the torso at home as it was demonstrated (the controller's
     posture for θ may have turned it); every waypoint is clipped into `world`'s joint limits;
-    grasp and nock are called at their times.
+    the arms come to rest at the start, the grasp, the nock and the end, and pass through the
+    waypoints between (`ArmDriver.move`'s `settle`); grasp and nock are called at their
+    times.
 
     Raises:
         RpcError: an arm did not get to a waypoint in time (code `not_reached`, the abort code
@@ -66,7 +68,9 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
     marks = {"grasp": rollout.grasp, "nock": rollout.nock}
     times = np.arange(0.0, rollout.release, WAYPOINT_STEP)
     torso: np.ndarray | None = np.asarray(home_of(TORSO))
-    for when in np.union1d(times, [*marks.values(), rollout.release]):
+    waypoints = np.union1d(times, [*marks.values(), rollout.release])
+    stops = {float(waypoints[0]), *marks.values(), float(waypoints[-1])}
+    for when in waypoints:
         left, right = rollout.at(float(when))
         step = ShotStep(
             "imitate",
@@ -74,7 +78,7 @@ def play(arms: ArmDriver, world: ArcheryWorld, rollout: Reproduction) -> None:
             np.clip(left, low[BOW_ARM], high[BOW_ARM]),
         )
         try:
-            arms.move(step, torso)
+            arms.move(step, torso, settle=float(when) in stops)
         except RpcTimeout as exc:  # a robot alive but its arm stuck: not a lost service
             raise RpcError(
                 f"the arms did not reach the movement's waypoint at {when:.2f} s: {exc.message}",
