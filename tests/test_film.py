@@ -199,3 +199,24 @@ def test_a_rollout_is_filmed_as_a_recording_saw_it(session: Path, tmp_path: Path
         f"archery film: {path} does not cover rollout 2 of session old-format (its "
         f"learner/rollout:o records of attempt 3 are not in it)"
     ]
+
+
+def test_a_whole_shot_is_filmed_with_its_phases_and_its_movement_sped_up(
+    session: Path, tmp_path: Path
+) -> None:
+    from apps.film.recorded import WHOLE_SPEEDUP, RecordedShot
+    from protocol.journal_records import DoneRecord
+
+    path, _ = _recorded_session(session, tmp_path)
+    done = next(r for r in read_records(session / "journal.jsonl")[0] if isinstance(r, DoneRecord))
+    posture = list(RecordedShot(path, "old-format", done).frames(30))
+    whole = list(RecordedShot(path, "old-format", done, whole=True).frames(30))
+    phases = [f.phase for f in whole]
+    assert phases[0] == f"reach, grasp & carry ×{WHOLE_SPEEDUP:g}"
+    assert f"nock & draw ×{WHOLE_SPEEDUP:g}" in phases and phases[-1] == "impact"
+    # the movement (1.22 s of states before the release) plays four times faster; the flight
+    # and the impact as in any film
+    moving = [f.repeat for f in whole if "×4" in f.phase]
+    assert abs(sum(moving) - 1.22 * 30 / WHOLE_SPEEDUP) <= 1
+    tail = [f.repeat for f in whole if f.phase.startswith(("flight", "impact"))]
+    assert tail == [f.repeat for f in posture if f.phase.startswith(("flight", "impact"))]
