@@ -134,6 +134,17 @@ def check(folder: Path) -> None:
         f"wheel-check: the installed demo hit at rollout {result['hit_at']} "
         f"({result['rollouts']} rollouts), filmed into {video.name}"
     )
+    out = _step(
+        "archery demo --shot whole (the shipped demonstration's DMPs) in a bare environment",
+        ["archery", "demo", "--shot", "whole", "--seed", "4", "--rollouts", "20"],
+        timeout=900,
+        cwd=elsewhere,
+        env=env,
+    )
+    whole = json.loads(out.strip().splitlines()[-1])
+    if whole.get("hit_at") is None or not (elsewhere / str(whole.get("video"))).is_file():
+        raise CheckFailed(f"the whole shot's demo did not hit, or its hit was not filmed: {whole}")
+    print(f"wheel-check: the whole shot's demo hit at rollout {whole['hit_at']}, filmed")
 
 
 def main(argv: list[str] | None = None) -> int:
