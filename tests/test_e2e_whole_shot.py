@@ -72,3 +72,16 @@ def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: L
         assert (
             max(abs(a - b) for a, b in zip(record.theta_launched, record.theta, strict=True)) < 5e-3
         )
+
+
+@pytest.mark.parametrize("algo", ["power", "archer-prior"])
+def test_every_learner_runs_its_rollouts_as_whole_shots(mesh: Launcher, algo: str) -> None:
+    with Node(None, mesh.net) as node:
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        node.wait_alive(SERVICES, timeout=60)
+        request = {"algo": algo, "seed": 1, "rollouts": 3, "until_hit": False}
+        session = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
+        final = follow(node, session, rollouts, lambda m: None)
+    assert final["state"] == "finished" and final["rollouts"] == 3, final
+    done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
+    assert len(done) == 3 and all(r.timing["movement_s"] > 0 for r in done)
