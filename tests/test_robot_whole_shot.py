@@ -25,6 +25,8 @@ from protocol.demonstration import MIN_SAMPLES, encode_demonstration, parse_demo
 from protocol.errors import ConfigError, RpcError
 from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from services.camera.config import CameraConfig
+from services.camera.service import run as camera
 from services.learner.abort_policy import after_abort
 from services.learner.algorithms.base import Bounds
 from services.learner.config import SHIPPED_DEMONSTRATION
@@ -38,8 +40,9 @@ from sim.model_build import build_scene
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep, plan_whole_shot
 from sim.world import ArcheryWorld, WorldConfig
-from tests.conftest import archery
+from tests.conftest import archery, serving
 from tests.postures import archery_posture
+from tests.rpc import rpc_call
 from tests.test_robot_service import Client, robot_threads
 
 WHOLE = WorldConfig(scene=SceneConfig(meshes=False, shot="whole"))
@@ -273,3 +276,17 @@ def test_the_learner_refuses_a_bad_demonstration_in_one_line(tmp_path: Path) -> 
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and "--demonstration" in lines[0] and said in lines[0], lines
+
+
+def test_the_camera_and_so_the_dashboard_s_view_render_the_whole_shot_s_scene(
+    robot: Callable[..., Client], net: NetConfig
+) -> None:
+    """The camera builds its scene from the robot's status: the holder, the fingers and the
+    string's nocking point are in the detector's frames and the third-person view (`scene`,
+    the dashboard's robot panel) of a whole-shot robot."""
+    client = robot()
+    with serving(camera, CameraConfig(net=net, robot_timeout=10.0)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        status = rpc_call(node, node.keys.cam_rpc(), "status", timeout=10)
+        assert status["scene_from"] == "robot" and status["scene"]["shot"] == "whole", status
+        client.archery("status")  # the robot still answers beside the camera
