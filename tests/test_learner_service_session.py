@@ -63,6 +63,10 @@ class FakeRig:
         self.frame_error = False
         self.launched: list[list[float]] = []  # the θ (m) of each shot's release
 
+    def follow_shot(self, demonstration: object, *, secure: bool) -> str:
+        """A linear world has no arms to drive: the posture shot."""
+        return "posture"
+
     def missing(self) -> list[str]:
         return sorted(self.gone)
 
