@@ -404,6 +404,9 @@ class ArcheryWorld:
         data = physics.data
         model = physics.model
         flight = self._flight
+        if self._ramping:  # the speeds hold for the whole call: the per-step bounds, once
+            np.multiply(self._speed, self._dt, out=self._step)
+            np.negative(self._step, out=self._low)
         for _ in range(n):
             if self._ramping:
                 self._advance_setpoints()
@@ -421,11 +424,11 @@ class ArcheryWorld:
     def _advance_setpoints(self) -> None:
         """Move every setpoint one step toward its target, by at most speed × dt. It runs before
         each physics step of a motion, so it is `np.clip(target − reference, −step, step)`
-        spelled out on kept buffers (the same operations, the same bits): 3× cheaper."""
+        spelled out on kept buffers (the same operations, the same bits): 3× cheaper. The
+        bounds ±step (rad: speed × dt) are those `step` computed for its call."""
         step, delta = self._step, self._delta
-        np.multiply(self._speed, self._dt, out=step)
         np.subtract(self._target, self._reference, out=delta)
-        np.maximum(delta, np.negative(step, out=self._low), out=delta)
+        np.maximum(delta, self._low, out=delta)
         np.minimum(delta, step, out=delta)
         self._reference += delta
         if (self._reference == self._target).all():

@@ -198,6 +198,30 @@ def _block_mean(image: np.ndarray, s: int) -> np.ndarray:
     return cv2.resize(crop, (width // s, height // s), interpolation=cv2.INTER_AREA)
 
 
+def _nonzero_blocks(image: np.ndarray, s: int) -> tuple[np.ndarray, int, int] | None:
+    """The part of `_block_mean(image, s)` that holds its non-zero blocks, and its corner
+    (column, row in blocks); None when every block of a uint8 map is zero.
+
+    The rest of the block map is zero (blocks of zero pixels), so it is neither averaged nor
+    searched. The part starts on an even block row and column: the 2×2 tiles of OpenCV's
+    connected-component labelling then fall as on the whole map, so labels, their order and
+    their stats are those of the whole map (shifted by the corner). Only a uint8 map (the
+    tables' memberships) is cut: its block means are integer arithmetic, the same wherever
+    the part starts; a float map's depend on where its rows start (vectorised sums), so its
+    part is the whole map.
+    """
+    if image.dtype != np.uint8:
+        return _block_mean(image, s), 0, 0
+    x, y, w, h = cv2.boundingRect(image)  # the non-zero pixels (0, 0, 0, 0 for none)
+    rows, cols = image.shape[0] // s, image.shape[1] // s
+    bx0, by0 = (x // s) & ~1, (y // s) & ~1
+    bx1, by1 = min(cols, -(-(x + w) // s)), min(rows, -(-(y + h) // s))
+    if w == 0 or bx1 <= x // s or by1 <= y // s:
+        return None  # nothing, or only in the remainders the block map drops
+    part = image[by0 * s : by1 * s, bx0 * s : bx1 * s]
+    return _block_mean(part, s), bx0, by0
+
+
 def _chroma_scaled(table: np.ndarray, gain: float) -> np.ndarray:
     """A flat [U + 256·V] table for frames whose chroma is `gain` times the calibration's:
     entry (u, v) is the original's at 128 + (u − 128, v − 128) / gain (nearest level)."""
@@ -418,7 +442,10 @@ class Detector:
         s = self.settings
         height, width = membership.shape
         block = max(1, min(height, width) // ANALYSIS_SIDE)
-        small = _block_mean(membership, block)
+        blocks = _nonzero_blocks(membership, block)  # the whole map's non-zero part
+        if blocks is None:
+            return None
+        small, bx0, by0 = blocks
         mask = (small > 0).astype(np.uint8)
         count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
         if count < 2:
@@ -439,9 +466,10 @@ class Detector:
             )
             return None
         # the tip: Eq. 7's weighted centroid at full resolution over the blob's blocks
-        x0, y0, w, h = (int(v) * block for v in stats[label, :4])
+        x0, y0, w, h = (int(v) * block for v in stats[label, :4])  # px from the part's corner
         blob = labels[y0 // block : (y0 + h) // block, x0 // block : (x0 + w) // block] == label
         keep = np.kron(blob, np.ones((block, block), dtype=bool)) if block > 1 else blob
+        x0, y0 = x0 + bx0 * block, y0 + by0 * block  # px of the frame
         weights = np.where(keep, membership[y0 : y0 + h, x0 : x0 + w], 0).astype(np.float32)
         centre = eq7_centroid(weights)
         if centre is None:

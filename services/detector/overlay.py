@@ -22,11 +22,16 @@ def filtered_pixels(
     rgb: np.ndarray, target_m: np.ndarray, arrow_m: np.ndarray | None
 ) -> np.ndarray:
     """Fig. 9 (right): each pixel's colour where a model claims it, weighted by its membership
-    (0..255), on black elsewhere."""
+    (0..255), on black elsewhere. Only the claimed pixels (a few % of a frame) are weighted:
+    the rest are black without arithmetic."""
     weight = target_m.astype(np.float32)
     if arrow_m is not None:
         weight = np.maximum(weight, arrow_m.astype(np.float32))
-    return (rgb.astype(np.float32) * (weight[:, :, None] / 255.0)).astype(np.uint8)
+    out = np.zeros(rgb.shape, np.uint8)
+    claimed = weight != 0
+    shade = rgb[claimed].astype(np.float32) * (weight[claimed][:, None] / 255.0)
+    out[claimed] = shade.astype(np.uint8)
+    return out
 
 
 def _marks(image: np.ndarray, detection: Detection) -> None:
