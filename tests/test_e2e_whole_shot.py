@@ -57,13 +57,18 @@ def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: L
     records = read_records(Path(final["journal"]))[0]
     done = [r for r in records if isinstance(r, DoneRecord)]
     aborted = [r for r in records if isinstance(r, AbortedRecord)]
-    assert {r.code for r in aborted} <= {"no_arrow"}, aborted  # no grasp or nock missed
-    # every attempt that reached the release grasped and nocked its own arrow first
-    assert (
-        kinds.count("grasped")
-        == kinds.count("nocked")
-        == len(done) + sum(r.code == "no_arrow" for r in aborted)
-    ), kinds
+    # no grasp or nock missed near θ0 (an arm late at a waypoint, rare, is re-run)
+    assert {r.code for r in aborted} <= {"no_arrow", "not_reached"}, aborted
+    # every release, one per attempt that got that far, came after its own grasp and nock
+    releases = len(done) + sum(r.code == "no_arrow" for r in aborted)
+    assert kinds.count("released") == releases, kinds
+    since: list[str] = []
+    for kind in kinds:
+        if kind == "released":
+            assert since[-2:] == ["grasped", "nocked"], kinds
+            since = []
+        elif kind in ("grasped", "nocked"):
+            since.append(kind)
     assert all(r.timing["movement_s"] > 0 for r in done)
     # ARCHER's exploration, then its first step: θ moves, and so does the arrow
     assert len({tuple(r.theta) for r in done}) == 5
