@@ -24,6 +24,8 @@ __all__ = [
     "CALL_TIMEOUT",
     "CAMERA",
     "CAMERA_TIMEOUT",
+    "COMMAND_BURST",
+    "COMMAND_RATE",
     "CONTROLLER",
     "DETECTOR",
     "HAND_FRAMES",
@@ -134,6 +136,12 @@ MAX_REFERENCE_SPEED = 2.0
 LEASE_TTL = 2.0
 #: The lease durations a client may ask for: from a test's short lease to a hand user's session.
 LEASE_TTL_RANGE = (0.05, 600.0)
+#: Commands per wall second a part's `command:i` admits in the long run (the robot's default
+#: `--command-rate`): twice a 100 Hz teleoperation stream, while a flood's excess never
+#: reaches the simulation thread. The excess is dropped: a streaming client stays below it.
+COMMAND_RATE = 200.0
+#: Commands a part admits at once after a pause (a controller sends one per move).
+COMMAND_BURST = 50
 
 # -- default waits (wall s) --------------------------------------------------------------------
 #: One RPC call to any service when the caller says nothing else.

@@ -29,8 +29,7 @@ from mesh.node import Node
 from protocol.errors import RpcError
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
-from protocol.robotspec import CONTROLLER, LEASE_TTL, ROBOT, home_of
-from services.robot.config import COMMAND_BURST, COMMAND_RATE
+from protocol.robotspec import COMMAND_BURST, COMMAND_RATE, CONTROLLER, LEASE_TTL, ROBOT, home_of
 from tests.conftest import archery
 from tests.rpc import rpc_call
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import time
 from typing import Any
 
 import numpy as np
@@ -16,18 +17,21 @@ from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError, Unreachable
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, STRING_ARM
+from protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM
 from protocol.verbs import robot as rv
 from protocol.verbs.base import NoArgs, Reply, Verb
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["ACTIONS", "PASSING", "REACHED", "TORSO", "ArmDriver"]
+__all__ = ["ACTIONS", "COMMAND_PERIOD", "PASSING", "REACHED", "TORSO", "ArmDriver"]
 
 TORSO = "torso"
 REACHED = 2e-3  # rad: a part has reached its targets when this close and its motion is done
 PASSING = 0.03  # rad: a part passes a waypoint when this close to it, still moving
+#: Wall s between two commands to a part: under the rate a robot admits by default
+#: (`COMMAND_RATE`), whose excess it drops (a dropped waypoint would never be reached).
+COMMAND_PERIOD = 1.5 / COMMAND_RATE
 ACTIONS: dict[str, Verb[NoArgs, Any]] = {  # replies: GraspReply, NockReply, ReleaseReply
     "grasp": rv.GRASP,
     "nock": rv.NOCK,
@@ -50,6 +54,7 @@ class ArmDriver:
         self._states = {part: node.subscribe(keys.state(part), JointState) for part in PARTS}
         self._commands = {part: node.publisher(keys.command(part), JointCommand) for part in PARTS}
         self.leases: dict[str, str] = {}  # part -> the lease id the commands carry
+        self._sent_at = -float("inf")  # monotonic s of the last commands sent
 
     def scene(self) -> SceneConfig:
         """The robot's scene (its `status`).
@@ -135,6 +140,10 @@ class ArmDriver:
         if torso is not None:
             arms[TORSO] = torso
         after = {part: self._seq(part) for part in arms}
+        wait = self._sent_at + COMMAND_PERIOD - time.monotonic()
+        if wait > 0:
+            time.sleep(wait)  # paced: the robot drops commands above its rate
+        self._sent_at = time.monotonic()
         for part, values in arms.items():
             if not self._commands[part].wait_matched(self._timeout):
                 raise Unreachable(f"nobody subscribes to {self._commands[part].key}")

@@ -8,19 +8,14 @@ from dataclasses import dataclass, field, replace
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
 from protocol.errors import ConfigError
+from protocol.robotspec import COMMAND_BURST, COMMAND_RATE
 from protocol.vectors import parse_vector
 from sim.bow import BowError
 from sim.errors import SimError
 from sim.scene_config import SHOTS
 from sim.world import WorldConfig
 
-__all__ = ["COMMAND_BURST", "COMMAND_RATE", "RobotConfig", "add_arguments", "make_config"]
-
-#: Commands per wall second a part's `command:i` admits in the long run: twice a 100 Hz
-#: teleoperation stream, while a flood's excess never reaches the simulation thread.
-COMMAND_RATE = 200.0
-#: Commands a part admits at once after a pause (a controller sends one per move).
-COMMAND_BURST = 50
+__all__ = ["RobotConfig", "add_arguments", "make_config"]
 
 
 @dataclass(frozen=True)
