@@ -23,12 +23,13 @@ from apps.waits import announce, interrupted_line
 from mesh.cliargs import ArgumentParser, seconds
 from mesh.netflags import NetConfig, add_network_args
 from mesh.node import open_node
-from protocol.demonstration import BadDemonstration, parse_demonstration
+from protocol.demonstration import BadDemonstration
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
 from protocol.robotspec import NOMINAL_THETA, ROBOT
 from protocol.vectors import parse_vector
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from services.learner.config import read_demonstration
 
 if TYPE_CHECKING:
     from services.learner.movement import Movement
@@ -95,16 +96,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         theta = _theta(args.theta)
-        data = args.demonstration.read_bytes()
         from services.learner.movement import Movement
 
-        movement = Movement(parse_demonstration(data))
-    except OSError as exc:
-        print(
-            f"archery {PROG}: {args.demonstration}: cannot read it ({exc.strerror})",
-            file=sys.stderr,
-        )
-        return BAD_INPUT
+        movement = Movement(read_demonstration(args.demonstration, flag=""))
     except (ConfigError, BadDemonstration) as exc:
         print(f"archery {PROG}: {exc.message}", file=sys.stderr)
         return BAD_INPUT

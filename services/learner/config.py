@@ -323,19 +323,23 @@ class LearnerServiceConfig:
         return (self.net.robot, *self.fleet)
 
 
-def read_demonstration(path: str | Path | None = None) -> Demonstration:
-    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked.
+def read_demonstration(
+    path: str | Path | None = None, flag: str = "--demonstration"
+) -> Demonstration:
+    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked; its
+    errors name the `flag` that gave it ("" for a positional argument).
 
     Raises:
         ConfigError: it cannot be read or is not a valid demonstration (one line).
     """
     path = Path(path or SHIPPED_DEMONSTRATION)
+    named = f"{flag} {path}" if flag else str(path)
     try:
         return parse_demonstration(path.read_bytes())
     except OSError as exc:
-        raise ConfigError(f"--demonstration {path}: cannot read it ({exc.strerror})") from None
+        raise ConfigError(f"{named}: cannot read it ({exc.strerror})") from None
     except BadDemonstration as exc:
-        raise ConfigError(f"--demonstration {path}: {exc.message}") from None
+        raise ConfigError(f"{named}: {exc.message}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
