@@ -37,6 +37,7 @@ __all__ = [
     "MAX_REFERENCE_SPEED",
     "MODEL_NAME",
     "NOMINAL_THETA",
+    "REFERENCE_SPEED",
     "ROBOT",
     "ROBOT_TIMEOUT",
     "RPC_TIMEOUT",
@@ -128,6 +129,8 @@ HIT_RADIUS = 0.05
 #: The robot's upper bound for joint reference speeds (rad/s); the controller never asks for
 #: more. Up to this, commanded moves never pass the URDF joint limits in the simulator.
 MAX_REFERENCE_SPEED = 2.0
+#: The joints' reference speed (rad/s) of a robot at its start and after a reset.
+REFERENCE_SPEED = 0.5
 
 # -- command ownership (wall s) ----------------------------------------------------------------
 #: How long a part's lease (the `claim` verb of `ROBOT/PART/rpc:i`) lasts unless renewed: a

@@ -22,7 +22,7 @@ import numpy as np
 
 from protocol.errors import ConfigError
 from protocol.parts import PARTS
-from protocol.robotspec import MAX_REFERENCE_SPEED, home_of
+from protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, home_of
 from protocol.vectors import finite_vector
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity, noisy_velocity
 from sim.bow import Bow
@@ -77,7 +77,7 @@ class WorldConfig:
     wind_gust: float = 0.0
     speed_noise: float = 0.01
     direction_noise: float = 0.002
-    reference_speed: float = 0.5
+    reference_speed: float = REFERENCE_SPEED
     position_tolerance: float = 1e-3
     velocity_tolerance: float = 5e-3
     max_flight_time: float = 3.0

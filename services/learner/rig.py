@@ -32,7 +32,7 @@ from protocol.errors import (
     WrongReplier,
 )
 from protocol.messages import WorldEvent
-from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
+from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, REFERENCE_SPEED, ROBOT
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
@@ -55,7 +55,6 @@ UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
 _UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
-DEFAULT_REFERENCE_SPEED = 0.5  # rad/s: for a robot's status that does not tell its own
 R = TypeVar("R", bound=msgspec.Struct)
 T = TypeVar("T")
 
@@ -225,7 +224,7 @@ class MeshRig:
                 f"({exc.name}): pip install 'archery[imitate]'"
             ) from None
         movement = Movement(demonstration())
-        speed = float(status.world.get("reference_speed", DEFAULT_REFERENCE_SPEED))
+        speed = float(status.world.get("reference_speed", REFERENCE_SPEED))  # an older robot's
         whole = WholeMovement(self.node, self.timeout, movement, scene, speed)
         self._drop_whole()
         self.whole, self._whole_scene = whole, scene
