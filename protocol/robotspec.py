@@ -46,6 +46,7 @@ __all__ = [
     "STRING_ARM",
     "STRING_HAND_FRAME",
     "THETA0",
+    "TORSO",
     "home_of",
 ]
 
@@ -65,6 +66,7 @@ MODEL_NAME = "iCubGazeboV2_5"
 #: The arm part whose hand holds the bow, and the one that draws the string.
 BOW_ARM = "left_arm"
 STRING_ARM = "right_arm"
+TORSO = "torso"
 
 #: The end-effector frame of each arm part (iKin's hand frame, origin on the palm): URDF links
 #: in Pinocchio, sites of the same name in the MuJoCo scene.

@@ -17,16 +17,15 @@ from mesh.node import Node
 from protocol.errors import ArcheryError, ConfigError, Unreachable
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM
+from protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM, TORSO
 from protocol.verbs import robot as rv
 from protocol.verbs.base import NoArgs, Reply, Verb
 from sim.scene_config import SceneConfig
 from sim.shot_script import ShotStep
 from sim.world import ArcheryWorld, WorldConfig
 
-__all__ = ["ACTIONS", "COMMAND_PERIOD", "PASSING", "REACHED", "TORSO", "ArmDriver"]
+__all__ = ["ACTIONS", "COMMAND_PERIOD", "PASSING", "REACHED", "ArmDriver"]
 
-TORSO = "torso"
 REACHED = 2e-3  # rad: a part has reached its targets when this close and its motion is done
 PASSING = 0.03  # rad: a part passes a waypoint when this close to it, still moving
 #: Wall s between two commands to a part: under the rate a robot admits by default

@@ -14,10 +14,10 @@ import numpy as np
 
 from mesh.node import Node
 from protocol.errors import ArcheryError, RpcError, RpcTimeout
-from protocol.robotspec import BOW_ARM, STRING_ARM, home_of
+from protocol.robotspec import BOW_ARM, STRING_ARM, TORSO, home_of
 from protocol.verbs import robot as rv
 from services.learner.abort_policy import NOT_REACHED
-from services.learner.arms import TORSO, ArmDriver
+from services.learner.arms import ArmDriver
 from services.learner.movement import Movement, Reproduction
 from sim.errors import CommandError
 from sim.scene_config import SceneConfig
