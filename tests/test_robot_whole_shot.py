@@ -29,7 +29,7 @@ from services.camera.config import CameraConfig
 from services.camera.service import run as camera
 from services.learner.abort_policy import after_abort
 from services.learner.algorithms.base import Bounds
-from services.learner.config import SHIPPED_DEMONSTRATION
+from services.learner.config import SHIPPED_DEMONSTRATION, read_demonstration
 from services.learner.movement import Movement
 from services.learner.rig import MeshRig
 from services.learner.rollout_step import Failed, shoot
@@ -290,3 +290,19 @@ def test_the_camera_and_so_the_dashboard_s_view_render_the_whole_shot_s_scene(
         status = rpc_call(node, node.keys.cam_rpc(), "status", timeout=10)
         assert status["scene_from"] == "robot" and status["scene"]["shot"] == "whole", status
         client.archery("status")  # the robot still answers beside the camera
+
+
+def test_a_secure_learner_refuses_a_whole_shot_robot_with_the_reason(
+    robot: Callable[..., Client], net: NetConfig
+) -> None:
+    robot()
+    with Node(None, net) as node:
+        rig = MeshRig(node, timeout=30)
+        try:
+            with pytest.raises(ConfigError, match="secure mode's access control"):
+                rig.follow_shot(read_demonstration, secure=True)
+            assert rig.whole is None  # nothing will drive the arms
+            assert rig.follow_shot(read_demonstration, secure=False) == "whole"
+            assert rig.whole is not None
+        finally:
+            rig.close()
