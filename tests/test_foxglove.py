@@ -285,8 +285,8 @@ def test_the_wind_parameter_is_checked_and_set_through_the_robot(mesh: Mesh) -> 
 
 
 def test_garbage_and_a_hundred_clients_leak_nothing(mesh: Mesh) -> None:
-    proc, url = mesh.bridge()
-    host, port = url.removeprefix("ws://").split(":")
+    proc, url = mesh.bridge("--max-clients", "128")
+    host, port = url.removeprefix("ws://").rstrip("/").split(":")
     bridge = psutil.Process(proc.pid)
     _client(url, "--want", "/mesh/services", "--want", "/scene")
     before = bridge.num_threads()

@@ -4,10 +4,13 @@ from __future__ import annotations
 
 import argparse
 import errno
+import secrets
 import socket
 import sys
 from pathlib import Path
 
+from apps.foxglove.front_door import MAX_CONNECTIONS
+from apps.foxglove.upgrade import check_origin_flag
 from apps.waits import announce
 from mesh.cliargs import ArgumentParser, check_writable_dir, seconds
 from mesh.netflags import NetConfig, add_network_args
@@ -45,6 +48,11 @@ def check_listen(host: str, port: int) -> None:
             raise ConfigError(f"--host {host!r} --port {port}: cannot listen: {exc}") from None
 
 
+def _url_host(host: str) -> str:
+    """`host` as a URL names it (an IPv6 address in brackets)."""
+    return f"[{host}]" if ":" in host else host
+
+
 def build_parser() -> ArgumentParser:
     """The flags of `archery foxglove`."""
     parser = ArgumentParser(
@@ -66,6 +74,21 @@ def build_parser() -> ArgumentParser:
         action="store_true",
         help="let clients call the learner's status/start/stop and the robot's reset, and set "
         "the wind (in secure mode: as the operator identity); default read-only",
+    )
+    parser.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        metavar="URL",
+        help="also accept WebSocket connections from pages of this origin (e.g. "
+        "https://viewer.example.org; repeatable); the Foxglove app's own and this machine's "
+        "pages are always accepted, any other page is refused",
+    )
+    parser.add_argument(
+        "--max-clients",
+        type=int,
+        default=MAX_CONNECTIONS,
+        help=f"connections served at once; the next one is refused (default {MAX_CONNECTIONS})",
     )
     parser.add_argument(
         "--layout",
@@ -106,6 +129,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if not 0 <= args.port <= 65535:
             raise ConfigError(f"--port {args.port}: give a port number from 0 to 65535")
+        if args.max_clients < 1:
+            raise ConfigError(f"--max-clients {args.max_clients}: give at least 1")
+        for origin in args.allow_origin:
+            check_origin_flag(origin)
         check_listen(args.host, args.port)
         net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
         if args.operator and net.secure and net.identity != OPERATOR:
@@ -130,6 +157,7 @@ def _serve(args: argparse.Namespace, net: NetConfig) -> int:
     from protocol.verbs.robot import ARCHERY_STATUS
     from sim.scene_config import SceneConfig
 
+    token = secrets.token_urlsafe(24) if args.operator else None
     on_wait = announce("foxglove")
     stop = shutdown_on_signals()
     with open_node(net, args.wait, on_wait=on_wait) as node:
@@ -145,10 +173,15 @@ def _serve(args: argparse.Namespace, net: NetConfig) -> int:
             port=args.port,
             jpeg=args.jpeg,
             operator=args.operator,
+            token=token,
+            origins=tuple(args.allow_origin),
+            max_clients=args.max_clients,
         )
         try:
             mode = "operator" if args.operator else "read-only"
-            where = f"ws://{args.host}:{bridge.port}"
+            where = f"ws://{_url_host(args.host)}:{bridge.port}/"
+            if token is not None:
+                where += f"?token={token}"
             print(f"archery foxglove: serving {node.keys.robot} on {where} ({mode})", flush=True)
             stop.wait()
         finally:

@@ -16,6 +16,7 @@ import msgspec
 from mesh.node import Node
 from protocol.errors import ArcheryError
 from protocol.robotspec import CALL_TIMEOUT
+from protocol.text import shown
 from protocol.verbs import learner as lv
 from protocol.verbs import robot as rv
 from protocol.verbs.base import Verb
@@ -96,7 +97,7 @@ class Operator:
             or len(value) != 3
             or not all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
         ):
-            raise ValueError(f"{WIND} must be 3 numbers [x, y, z] (m/s), got {value!r}")
+            raise ValueError(f"{WIND} must be 3 numbers [x, y, z] (m/s), got {shown(value)}")
         if not all(math.isfinite(v) and abs(v) <= rv.MAX_WIND for v in value):
             raise ValueError(f"{WIND} components must lie within ±{rv.MAX_WIND:g} m/s")
         reply = self.node.call_typed(
