@@ -1,11 +1,17 @@
 // Drives Foxglove's own client (@foxglove/ws-protocol) against a live server and prints what it
 // saw as JSON lines on stdout, for tests/test_foxglove.py:
 //   node client.mjs URL [--want TOPIC ...] [--call SERVICE JSON | --call-unadvertised JSON]
-//     [--set-wind X,Y,Z] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]] [--watch]
+//     [--set-wind X,Y,Z [--times N]] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]] [--watch]
+//     [--stall N] [--churn N]
 // {"serverInfo": …} first, then {"channels": […]} once every wanted topic is advertised, one
 // {"message": {topic, schemaName, encoding, data (base64)}} per wanted topic (its first), the
 // service call's {"response": …} or {"failure": …}, the parameter's {"parameters": …} and
 // {"status": …} lines; exits 0 when all came, 1 on a timeout or a closed connection.
+// --times N sends the wind N times in one setParameters message.
+// --stall N: N clients subscribe to the wanted topics, then never read again (their sockets
+// paused): {"stalled": N} once all subscribed, then they wait until SIGTERM or SIGINT.
+// --churn N: subscribe to every channel and unsubscribe again, N times, then {"churned": N}
+// and stay connected until SIGTERM or SIGINT.
 import wsProtocol from "@foxglove/ws-protocol";
 const { FoxgloveClient } = wsProtocol;
 import { WebSocket } from "ws";
@@ -18,6 +24,9 @@ let wind = null;
 let timeout = 30;
 let crowd = 0;
 let watch = false;
+let times = 1;
+let stall = 0;
+let churn = 0;
 const crowdSkips = [];
 for (let i = 1; i < args.length; i++) {
   if (args[i] === "--want") want.push(args[++i]);
@@ -27,6 +36,9 @@ for (let i = 1; i < args.length; i++) {
   else if (args[i] === "--timeout") timeout = Number(args[++i]);
   else if (args[i] === "--crowd") crowd = Number(args[++i]);
   else if (args[i] === "--watch") watch = true;
+  else if (args[i] === "--times") times = Number(args[++i]);
+  else if (args[i] === "--stall") stall = Number(args[++i]);
+  else if (args[i] === "--churn") churn = Number(args[++i]);
   else if (args[i] === "--crowd-skip") crowdSkips.push(args[++i]);
 }
 const out = (o) => process.stdout.write(JSON.stringify(o) + "\n");
@@ -56,6 +68,43 @@ if (watch) {
   };
   process.on("SIGTERM", report);
   process.on("SIGINT", report);
+} else if (stall > 0) {
+  let ready = 0;
+  for (let i = 0; i < stall; i++) {
+    const ws = new WebSocket(url, protocols);
+    const c = new FoxgloveClient({ ws });
+    let done = false;
+    c.on("advertise", (list) => {
+      if (done || !want.every((t) => list.some((ch) => ch.topic === t))) return;
+      done = true;
+      for (const ch of list) if (want.includes(ch.topic)) c.subscribe(ch.id);
+      // the subscription is sent; from now on nothing is read
+      ws._socket.pause();
+      if (++ready === stall) out({ stalled: ready });
+    });
+    c.on("error", () => {});
+  }
+  const end = () => finish(0);
+  process.on("SIGTERM", end);
+  process.on("SIGINT", end);
+} else if (churn > 0) {
+  const c = new FoxgloveClient({ ws: new WebSocket(url, protocols) });
+  let done = false;
+  c.on("advertise", (list) => {
+    if (done) return;
+    done = true;
+    for (let i = 0; i < churn; i++) {
+      const ids = list.map((ch) => c.subscribe(ch.id));
+      for (const id of ids) c.unsubscribe(id);
+    }
+    // one more subscription to everything, so the stop finds feeds running
+    for (const ch of list) c.subscribe(ch.id);
+    out({ churned: churn });
+  });
+  c.on("error", () => {});
+  const end = () => finish(0);
+  process.on("SIGTERM", end);
+  process.on("SIGINT", end);
 } else if (crowd > 0) {
   // --crowd N: N clients at once, each subscribing to every channel but the skipped ones, then
   // all gone (half of
@@ -115,7 +164,7 @@ client.on("advertise", (list) => {
   for (const c of channels.values()) {
     if (want.includes(c.topic) && ![...subs.values()].includes(c.id)) subs.set(client.subscribe(c.id), c.id);
   }
-  if (wind) client.setParameters([{ name: "wind", value: wind, type: "float64_array" }], "set");
+  if (wind) client.setParameters(Array.from({ length: times }, () => ({ name: "wind", value: wind, type: "float64_array" })), "set");
   if (call && call.raw) {
     // no service advertised (a read-only server): ask anyway, the server must refuse
     client.sendServiceCallRequest({ serviceId: 1, callId: 1, encoding: "json", data: new DataView(new TextEncoder().encode(call.body).buffer) });
