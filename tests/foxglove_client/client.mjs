@@ -78,8 +78,11 @@ if (watch) {
       if (done || !want.every((t) => list.some((ch) => ch.topic === t))) return;
       done = true;
       for (const ch of list) if (want.includes(ch.topic)) c.subscribe(ch.id);
-      // the subscription is sent; from now on nothing is read
+      // the subscription is sent; from now on nothing is read (ws resumes a paused socket
+      // once its parser drains: that resume is disabled)
+      ws.pause();
       ws._socket.pause();
+      ws._socket.resume = () => ws._socket;
       if (++ready === stall) out({ stalled: ready });
     });
     c.on("error", () => {});
