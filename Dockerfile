@@ -1,7 +1,7 @@
 # One Dockerfile, one target per process of the mesh, all on one shared base layer (the OS, a
 # non-root user and the core every process needs); each target adds only what its process runs:
 #   docker build --target controller -t archery-controller .    (router robot camera detector
-#                                                                controller learner)
+#                                                                controller learner foxglove)
 # docker-compose.yml names one image per target. BASE is the official Python image; a machine
 # that reaches no image registry passes a local stand-in (docker/standin-base.sh) as
 # --build-arg BASE=... . Needs BuildKit (Docker 23+, or DOCKER_BUILDKIT=1): pip may be given the
@@ -79,3 +79,13 @@ COPY --from=wheel /wheel /wheel
 RUN python3 -m pip install --no-cache-dir --no-deps /wheel/*.whl && rm -rf /wheel
 USER archery
 CMD ["archery", "learner"]
+
+# `archery foxglove` (the compose file's `watch` profile): the robot's 3D records need MuJoCo's
+# model, never its rendering
+FROM base AS foxglove
+RUN --mount=type=secret,id=pip-ca sh /build/install.sh foxglove
+COPY --from=wheel /wheel /wheel
+RUN python3 -m pip install --no-cache-dir --no-deps /wheel/*.whl && rm -rf /wheel
+ENV MUJOCO_GL=disable
+USER archery
+CMD ["archery", "foxglove"]

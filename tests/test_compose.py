@@ -56,7 +56,9 @@ def test_services_and_images(compose: dict[str, Any]) -> None:
     secure = _secure(compose)
     assert set(secure) == {f"{n}-secure" for n in services}
     fleet = _profile(compose, "fleet")
-    assert set(services) | set(secure) | set(fleet) == set(compose["services"])
+    watch = _profile(compose, "watch")
+    assert set(watch) == {"watch"}
+    assert set(services) | set(secure) | set(fleet) | set(watch) == set(compose["services"])
     built: dict[str, str] = {}
     for name, service in compose["services"].items():
         image = service["image"]
@@ -69,7 +71,7 @@ def test_services_and_images(compose: dict[str, Any]) -> None:
         command = service["command"]
         assert command[0] == "archery" and command[1] in VERBS, name
         assert service["user"] == "${ARCHERY_USER:-1000:1000}", name
-    assert set(built) == {f"archery-{t}:latest" for t in ("router", *SERVICES)}
+    assert set(built) == {f"archery-{t}:latest" for t in ("router", *SERVICES, "foxglove")}
     assert {s["image"] for s in compose["services"].values()} <= set(built)
     for name in SERVICES:
         assert services[name]["command"][1] == name
@@ -86,8 +88,8 @@ def test_every_process_has_a_liveliness_health_check(compose: dict[str, Any]) ->
     """A container is healthy when its service holds its liveliness token (`archery alive NAME`
     through its router); a router when it answers."""
     for name, service in compose["services"].items():
-        if service["command"][1] in ("learn", "experiment"):
-            assert "healthcheck" not in service, name
+        if service["command"][1] in ("learn", "experiment", "foxglove"):
+            assert "healthcheck" not in service, name  # a client of the mesh: no token
             continue
         test = service["healthcheck"]["test"]
         assert test[:3] == ["CMD", "archery", "alive"], name
@@ -177,6 +179,29 @@ def test_fleet_profile_crosses_only_the_routers_link(compose: dict[str, Any]) ->
     assert experiment[experiment.index("--robots") + 1] == "icubSim1,icubSim2"
 
 
+def test_watch_profile_serves_foxglove_on_the_hosts_loopback(compose: dict[str, Any]) -> None:
+    """`archery foxglove`, read-only, published on the host's loopback only, on the same port as
+    inside, so what a browser sends through the published port passes the server's Host check."""
+    from apps.foxglove.command import build_parser as foxglove_parser
+    from apps.foxglove.upgrade import UpgradeRules, parse_head
+
+    watch = _profile(compose, "watch")["watch"]
+    assert watch["image"] == "archery-foxglove:latest"
+    assert watch["build"] == {"context": ".", "target": "foxglove"}
+    args = foxglove_parser().parse_args(watch["command"][2:])
+    assert args.connect == ["tcp/router:7447"] and not args.operator
+    assert args.host == "0.0.0.0"  # inside the container; the host publishes loopback only
+    assert watch["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
+    assert set(watch["depends_on"]) == {"router", "robot"}
+    rules = UpgradeRules(args.host, args.port)
+    for host in (f"localhost:{args.port}", f"127.0.0.1:{args.port}"):
+        head = f"GET / HTTP/1.1\r\nHost: {host}\r\n\r\n".encode()
+        assert rules.refusal(parse_head(head)) is None, host
+    head = f"GET / HTTP/1.1\r\nHost: evil.example:{args.port}\r\n\r\n".encode()
+    refused = rules.refusal(parse_head(head))
+    assert refused is not None and refused.status == 421
+
+
 def test_learner_and_demo_share_the_runs(compose: dict[str, Any]) -> None:
     learner = compose["services"]["learner"]
     runs = learner["command"][learner["command"].index("--runs") + 1]
@@ -229,9 +254,9 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
 def test_dockerfile() -> None:
     text = (ROOT / "Dockerfile").read_text()
     assert re.search(r"^ARG BASE=python:3\.11-slim-bookworm$", text, re.M)
-    assert set(TARGETS) == {"base", "wheel", "router", *SERVICES}
+    assert set(TARGETS) == {"base", "wheel", "router", *SERVICES, "foxglove"}
     assert "useradd --uid 1000" in text
-    for target in ("router", *SERVICES):  # every process runs as the unprivileged user
+    for target in ("router", *SERVICES, "foxglove"):  # every process runs as the unprivileged user
         stage = text.split(f" AS {target}\n", 1)[1].split("\nFROM ", 1)[0]
         assert "\nUSER archery\n" in stage, target
     lines = (ROOT / ".dockerignore").read_text().splitlines()
