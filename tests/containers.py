@@ -270,7 +270,13 @@ class Compose:
 
     def down(self) -> None:
         """Remove every container, network and volume of the project, whatever profile."""
-        self("down", "--volumes", "--remove-orphans", profiles=("secure", "fleet", "watch"), timeout=300)
+        self(
+            "down",
+            "--volumes",
+            "--remove-orphans",
+            profiles=("secure", "fleet", "watch"),
+            timeout=300,
+        )
 
     def leftovers(self) -> list[str]:
         """What the engine still holds of the project: containers, networks, volumes."""
