@@ -1,16 +1,13 @@
-"""The Foxglove server's front door: the listener users connect to, in front of the SDK's server.
+"""The Foxglove server's front door: the listener users connect to, before the SDK's server.
 
-The SDK's WebSocket server shows Python nothing of an upgrade request (no hook sees its
-headers), so it listens on an internal loopback port of its own, behind TLS with a certificate
-made at start that only the front door trusts (a web page that finds that port cannot speak to
-it: a browser refuses the certificate). The front door accepts each connection, reads the
-upgrade request's head (at most `MAX_HEAD` bytes within `HEAD_TIMEOUT` s), checks it
-(`apps.foxglove.upgrade`) and only then connects to the SDK's server and relays the bytes both
-ways, `CHUNK` bytes at a time: it reads from one side only once the other has taken what it
-was given, so a client that never reads holds at most a few `CHUNK`s here, and the SDK's own
-per-client queue (`message_backlog_size`) drops its oldest messages.
-
-At most `max_connections` connections are served at once; the next one gets 503 and is closed.
+The SDK's server shows Python nothing of an upgrade request, so it listens on an internal
+loopback port behind TLS whose certificate (made at start) only the front door trusts: a web
+page that finds that port cannot speak to it. The front door reads each connection's upgrade
+head (at most `MAX_HEAD` bytes within `HEAD_TIMEOUT` s), checks it (`apps.foxglove.upgrade`),
+only then connects to the SDK's server and relays both ways, `CHUNK` bytes at a time, reading
+one side only once the other took what it was given: a client that never reads holds a few
+`CHUNK`s here, and the SDK's per-client queue (`message_backlog_size`) drops its oldest
+messages. At most `max_connections` at once; the next one gets 503 and is closed.
 """
 
 from __future__ import annotations

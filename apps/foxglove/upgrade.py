@@ -1,16 +1,13 @@
 """What the Foxglove server's front door checks of a WebSocket upgrade before any byte of it
-reaches the SDK's server: the request head's form, its `Host`, its `Origin` and, for an
-operator's server, the launch's token. Pure: no I/O.
+reaches the SDK's server. Pure: no I/O.
 
-- `Host` must name the bound address with its port, or `localhost` / `127.0.0.1` / `[::1]`
-  with it (`apps.dashboard.guard.host_allowed`, the dashboard's own rule): a page of another
-  site rebound to this machine (DNS rebinding) is refused with 421.
-- `Origin`, when a browser sends one, must be the Foxglove app's (`FOXGLOVE_ORIGINS`), a page
-  of this machine (`http(s)://localhost`, `127.0.0.1`, `[::1]`, any port) or one the user added
-  (`--allow-origin`); any other page is refused with 403. Clients that are not browsers (the
-  Foxglove desktop app's own connections, a script) send none.
-- An operator's server needs the token it printed at start in the URL's query
-  (`?token=…`), compared in constant time: a connection alone never gets operator rights (403).
+- `Host`: the bound address with its port, or `localhost` / `127.0.0.1` / `[::1]` with it (the
+  dashboard's rule, `apps.dashboard.guard.host_allowed`); else 421 (DNS rebinding).
+- `Origin`, when sent: the Foxglove app's (`FOXGLOVE_ORIGINS`), a page of this machine
+  (`http(s)://localhost`, `127.0.0.1`, `[::1]`, any port) or one added with `--allow-origin`;
+  else 403. Clients that are not browsers send none.
+- An operator's server: the token it printed at start in the URL's query (`?token=…`),
+  compared in constant time; else 403: a connection alone never gets operator rights.
 """
 
 from __future__ import annotations
