@@ -24,8 +24,8 @@ def build_parser() -> ArgumentParser:
         prog="archery ros2",
         description="the robot on the ROS 2 graph, on the mesh's own router (rmw_zenoh's wire "
         "format: RMW_IMPLEMENTATION=rmw_zenoh_cpp sees it): joint states, /tf, the robot "
-        "description, the camera, rollouts and landings; the parts' commands; with --operator "
-        "the reset, nock and release services",
+        "description, the camera, rollouts and landings; with --operator the parts' commands "
+        "and the reset, nock and release services",
     )
     add_network_args(parser, default_mode="client")
     parser.add_argument(
@@ -35,8 +35,9 @@ def build_parser() -> ArgumentParser:
     parser.add_argument(
         "--operator",
         action="store_true",
-        help="serve reset, nock and release as std_srvs/srv/Trigger; without it the node "
-        "refuses them and only the parts' commands move the robot",
+        help="take the parts' commands (one waiting per part, at the robot's command rate) and "
+        "serve reset, nock and release as std_srvs/srv/Trigger; without it the node declares "
+        "no command subscription and answers each service call success: false",
     )
     parser.add_argument(
         "--wait",

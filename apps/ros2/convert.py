@@ -11,8 +11,10 @@ from typing import Any
 import numpy as np
 
 from apps.ros2.typestore import new
+from protocol.journal_records import DoneRecord
 from protocol.messages import Image, JointState, Rollout, WorldEvent
 from protocol.parts import PARTS
+from protocol.text import shown
 
 __all__ = [
     "FLOAT_COMMAND",
@@ -159,10 +161,9 @@ def rollout(message: Rollout) -> Any | None:
     (1 or 0), ‖r‖ (m), θ (m) and r (m), one after the other; the layout's dimensions label these
     segments in order (`ROLLOUT_SEGMENTS`, each with its size). None for a proposed or aborted
     rollout."""
-    record = message.record
-    if getattr(record, "record", None) != "done":
+    done = message.record
+    if not isinstance(done, DoneRecord):
         return None
-    done: Any = record
     values: list[list[float]] = [
         [float(done.rollout)],
         [1.0 if done.hit else 0.0],
@@ -224,11 +225,15 @@ def command_targets(part: str, ros_type: str, message: Any) -> tuple[list[str] |
             )
         return None, _finite(part, data)
     names = list(message.joint_names)
-    unknown = [n for n in names if n not in joints]
-    if unknown or not names or len(set(names)) != len(names):
+    if len(names) > len(joints) or not names or len(set(names)) != len(names):
         raise CommandError(
             f"{part}: joint_names must be some of {', '.join(joints)}, each once; got "
-            f"{', '.join(names) or 'none'}"
+            f"{shown(names)}"
+        )
+    unknown = [n for n in names if n not in joints]
+    if unknown:
+        raise CommandError(
+            f"{part}: joint_names must be some of {', '.join(joints)}; unknown: {shown(unknown)}"
         )
     if not message.points:
         raise CommandError(f"{part}: a trajectory without points moves nothing")
