@@ -40,7 +40,8 @@ from mesh.netflags import NetConfig
 from mesh.node import open_node
 from mesh.router import free_tcp_endpoint
 from mesh.subscription import Subscription
-from protocol.messages import Image, JointState
+from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from protocol.messages import Image, JointState, Rollout
 from protocol.parts import PARTS
 from protocol.robotspec import COMMAND_BURST, COMMAND_RATE, SERVICES
 from protocol.verbs import robot as rv
@@ -533,6 +534,41 @@ def test_an_oversized_trajectory_is_dropped_before_decoding(
         assert "\n" not in line and len(line) < 1000, line[:300]
     after = mesh.node.call_typed(keys.part_rpc("left_arm"), rv.GET_TARGETS)
     assert after.position == before.position
+
+
+def test_each_done_rollout_is_published_once(mesh: Mesh) -> None:
+    """The learner's rollout stream (a proposed record, then a done or an aborted one per
+    attempt) reaches `/NS/learner/rollout` as one message per done rollout."""
+    ros_type = convert.FLOAT_COMMAND
+    received: list[Any] = []
+    sub = _subscriber(mesh, f"{NS}/learner/rollout", ros_type, received)
+    publisher = mesh.node.publisher(mesh.node.keys.learner_rollouts(), Rollout, lossless=True)
+    sent: list[int] = []
+    try:
+
+        def one_more() -> bool:
+            n = len(sent) + 1
+            theta = [0.1, 0.2]
+            publisher.put(Rollout(record=ProposedRecord(index=n, theta=theta)))
+            aborted = AbortedRecord(
+                index=n, theta=theta, code="no_arrow", cause="none seen", retry_theta=theta
+            )
+            publisher.put(Rollout(record=aborted))
+            done = DoneRecord(
+                index=n, rollout=n, theta=theta, r_m=[0.01, 0.0], distance_m=0.01, hit=True
+            )
+            publisher.put(Rollout(record=done))
+            sent.append(n)
+            return bool(received)
+
+        _until(one_more, "a done rollout on ROS 2")
+        _until(lambda: received[-1].data[0] == sent[-1], "the last done rollout")
+    finally:
+        sub.close()
+        publisher.close()
+    numbers = [int(m.data[0]) for m in received]
+    assert numbers == sorted(set(numbers)) and set(numbers) <= set(sent), (numbers, sent)
+    assert list(received[-1].data) == [sent[-1], 1.0, 0.01, 0.1, 0.2, 0.01, 0.0]
 
 
 def test_export_writes_a_bag_rosbags_reads_message_for_message(mesh: Mesh, tmp_path: Path) -> None:
