@@ -571,6 +571,35 @@ def test_each_done_rollout_is_published_once(mesh: Mesh) -> None:
     assert list(received[-1].data) == [sent[-1], 1.0, 0.01, 0.1, 0.2, 0.01, 0.0]
 
 
+def test_tf_and_tf_static_are_the_urdfs_tree(mesh: Mesh) -> None:
+    """A late subscriber's `/tf_static` (transient local) and a `/tf` message together give
+    every link of `robot_description` its transform from its URDF parent."""
+    import xml.etree.ElementTree as ET
+
+    tf_type = "tf2_msgs/msg/TFMessage"
+    key = f"0/tf_static/{typestore.dds_type_name(tf_type)}/{typestore.type_hash(tf_type)}"
+    got: list[zenoh.Sample] = []
+    history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1)
+    sub = zenoh.ext.declare_advanced_subscriber(mesh.sdk.session, key, got.append, history=history)
+    moving: list[Any] = []
+    tf = _subscriber(mesh, "/tf", tf_type, moving)
+    try:
+        _until(lambda: got and moving, "/tf_static and /tf")
+    finally:
+        sub.undeclare()
+        tf.close()
+    edges = {}
+    for message in (typestore.deserialize(got[0].payload.to_bytes(), tf_type), moving[0]):
+        for t in message.transforms:
+            edges[t.child_frame_id] = t.header.frame_id
+    root = ET.fromstring(urdf_text())
+    for joint in root.findall("joint"):
+        child, parent = joint.find("child"), joint.find("parent")
+        assert child is not None and parent is not None
+        assert edges.get(child.get("link")) == parent.get("link"), child.get("link")
+    assert edges["root_link"] == "world"
+
+
 def test_export_writes_a_bag_rosbags_reads_message_for_message(mesh: Mesh, tmp_path: Path) -> None:
     """Last: it stops the mesh, so that the recording is complete."""
     mesh.stop()

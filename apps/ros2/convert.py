@@ -6,15 +6,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from apps.ros2.typestore import new
+from apps.topics.image_records import FRAME_ID
 from protocol.journal_records import DoneRecord
 from protocol.messages import Image, JointState, Rollout, WorldEvent
 from protocol.parts import PARTS
 from protocol.text import shown
+
+if TYPE_CHECKING:
+    from apps.topics.robot_frames import RobotFrames
 
 __all__ = [
     "FLOAT_COMMAND",
@@ -30,6 +34,7 @@ __all__ = [
     "landing",
     "rollout",
     "stamp",
+    "static_tf",
     "tf_message",
 ]
 
@@ -99,6 +104,20 @@ def tf_message(
             )
         )
     return new("tf2_msgs/msg/TFMessage", transforms=transforms)
+
+
+def static_tf(frames: RobotFrames, seconds: float) -> Any:
+    """`/tf_static` at wall stamp `seconds`: the robot's fixed transforms (`world` to the URDF's
+    root, then every fixed joint of the URDF) and the camera's optical frame in `world` (the
+    image's `frame_id`)."""
+    translations, rotations = frames.static_poses()
+    camera_t, camera_q = frames.camera_pose()
+    return tf_message(
+        seconds,
+        [*frames.static_links, ("world", FRAME_ID)],
+        np.concatenate([translations, camera_t[None, :]]),
+        np.concatenate([rotations, camera_q[None, :]]),
+    )
 
 
 def description(urdf: str) -> Any:

@@ -253,11 +253,9 @@ class Ros2Node:
         self._send("world/landing", convert.landing(event))
 
     def _static_tf(self) -> Any:
-        """`/tf_static`: the camera's optical frame in `world` (the image's `frame_id`)."""
-        translation, rotation = self.frames.camera_pose()
-        return convert.tf_message(
-            time.time(), [("world", FRAME_ID)], translation[None, :], rotation[None, :]
-        )
+        """`/tf_static`: the URDF's fixed joints (and `world` to its root), and the camera's
+        optical frame in `world` (the image's `frame_id`)."""
+        return convert.static_tf(self.frames, time.time())
 
     # -- commands ----------------------------------------------------------------------------
     def _subscribe(self, part: str, leaf: str, ros_type: str) -> None:
