@@ -23,6 +23,7 @@ from apps.ros2.latest import LatestPerKey
 from apps.ros2.wire import Attachment, AttachmentError, Endpoint, Kind, NodeId, Qos, check_name
 from apps.topics.image_records import FRAME_ID
 from apps.topics.robot_frames import RobotFrames
+from mesh.acl import ROS2_COMMANDS
 from mesh.instances import zid_of
 from mesh.node import Node
 from protocol.errors import ArcheryError
@@ -82,7 +83,9 @@ TOPICS = (
     Topic("world/landing", "geometry_msgs/msg/PointStamped", _STREAM, "landings"),
 )
 #: Each part's command topics (under `NAMESPACE/PART/`) and their types.
-COMMANDS = {"command": convert.FLOAT_COMMAND, "joint_trajectory": convert.TRAJECTORY_COMMAND}
+COMMANDS = dict(
+    zip(ROS2_COMMANDS, (convert.FLOAT_COMMAND, convert.TRAJECTORY_COMMAND), strict=True)
+)
 
 
 class Ros2Node:
