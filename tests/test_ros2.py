@@ -9,7 +9,7 @@ import logging
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -47,21 +47,10 @@ from protocol.robotspec import COMMAND_BURST, COMMAND_RATE, SERVICES
 from protocol.verbs import robot as rv
 from sim.scene_config import SceneConfig
 from tests.conftest import archery
-from tests.ros2_sdk import sdk_session
+from tests.ros2_sdk import sdk_session, until
 
 ROBOT = "rostwo"
 NS = f"/{ROBOT}"
-WAIT = 60.0  # s: the longest a condition is waited for
-
-
-def _until(condition: Callable[[], Any], what: str, timeout: float = WAIT) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"not within {timeout:g} s: {what}")
 
 
 def _definition(ros_type: str) -> str:
@@ -157,7 +146,7 @@ def test_the_sdk_discovers_the_node_and_its_topics(mesh: Mesh) -> None:
     expected = {
         (t.name if t.name.startswith("/") else f"{NS}/{t.name}"): t.ros_type for t in TOPICS
     }
-    topics = _until(lambda: (lambda f: f if set(expected) <= set(f) else None)(listed()), "topics")
+    topics = until(lambda: (lambda f: f if set(expected) <= set(f) else None)(listed()), "topics")
     for name, ros_type in expected.items():
         assert topics[name] == [ros_type]
     info = get_topic_info(f"{NS}/joint_states", 0, mesh.host, mesh.port, 1.0, verbose=True)
@@ -207,7 +196,7 @@ def test_joint_states_equal_the_robots(mesh: Mesh) -> None:
                     pairs.append((message, states[ns]))
             return pairs if len({s.part for _, s in pairs}) == len(PARTS) else []
 
-        pairs = _until(matched, "a joint state of every part, as the robot sent it")
+        pairs = until(matched, "a joint state of every part, as the robot sent it")
     finally:
         sub.close()
         for s in mesh_subs:
@@ -235,7 +224,7 @@ def test_an_image_equals_the_cameras_frame(mesh: Mesh) -> None:
                     return message, frames[ns]
             return None
 
-        message, pixels = _until(matched, "a frame of the camera")
+        message, pixels = until(matched, "a frame of the camera")
     finally:
         sub.close()
         camera.close()
@@ -258,7 +247,7 @@ def test_the_description_reaches_a_late_transient_local_subscriber(mesh: Mesh) -
     history = zenoh.ext.HistoryConfig(detect_late_publishers=True, max_samples=1)
     sub = zenoh.ext.declare_advanced_subscriber(mesh.sdk.session, key, got.append, history=history)
     try:
-        _until(lambda: got, "the robot description")
+        until(lambda: got, "the robot description")
     finally:
         sub.undeclare()
     Attachment.decode(got[0].attachment.to_bytes() if got[0].attachment else None)
@@ -302,10 +291,10 @@ def test_a_command_moves_the_part_and_reset_is_served(mesh: Mesh, operator: Ros2
             now = mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_TARGETS)
             return abs(now.position[0] - target[0]) < 1e-9
 
-        _until(moved, "the torso's target from a ROS 2 command")
+        until(moved, "the torso's target from a ROS 2 command")
     finally:
         pub.close()
-    state = _until(
+    state = until(
         lambda: (lambda s: s if abs(s.position[0] - target[0]) < 0.01 else None)(
             mesh.node.call_typed(keys.part_rpc("torso"), rv.GET_POSITIONS)
         ),
@@ -320,7 +309,7 @@ def test_a_command_moves_the_part_and_reset_is_served(mesh: Mesh, operator: Ros2
         router_port=mesh.port, timeout=30,
     )  # fmt: skip
     try:
-        reply = _until(lambda: client.call(structure_needs_at_least_one_member=0), "a reply")
+        reply = until(lambda: client.call(structure_needs_at_least_one_member=0), "a reply")
     finally:
         client.close()
     assert reply.success and reply.message.startswith("reset:")
@@ -357,7 +346,7 @@ def test_bad_input_is_dropped_or_refused_and_nothing_moves(mesh: Mesh, operator:
     _put(mesh, key, b"\x00\x01\x00\x00\xff\xff", good)  # not CDR of the type
     _put(mesh, key, command(target[:3]), good)  # the wrong count
     _put(mesh, key, command([float("nan"), *target[1:]]), good)  # NaN
-    _until(
+    until(
         lambda: (
             operator.counts.snapshot().get("dropped attachment") == 2
             and operator.counts.snapshot().get("dropped cdr") == 1
@@ -370,7 +359,7 @@ def test_bad_input_is_dropped_or_refused_and_nothing_moves(mesh: Mesh, operator:
     )
     try:
         _put(mesh, key, command(target), good)  # while another owns the part
-        _until(lambda: operator.counts.snapshot().get("refused") == 3, "a refusal by the robot")
+        until(lambda: operator.counts.snapshot().get("refused") == 3, "a refusal by the robot")
     finally:
         mesh.node.call_typed(
             keys.part_rpc("left_arm"), rv.DROP_CLAIM, rv.LeaseArgs(lease=lease.lease)
@@ -388,7 +377,7 @@ def test_nothing_of_the_mesh_stays_when_the_node_stops(mesh: Mesh) -> None:
     )
     assert list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**"))
     node.close()
-    _until(lambda: not list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**")), "no token left")
+    until(lambda: not list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**")), "no token left")
 
 
 def _command_key(domain: int, part: str, ros_type: str = convert.FLOAT_COMMAND) -> str:
@@ -456,7 +445,7 @@ def test_a_flood_ends_with_its_last_command_and_reset_is_not_kept_waiting(
     publisher = mesh.sdk.session.declare_publisher(
         key, congestion_control=zenoh.CongestionControl.BLOCK
     )
-    _until(lambda: publisher.matching_status.matching, "the node's command subscription")
+    until(lambda: publisher.matching_status.matching, "the node's command subscription")
     started = time.monotonic()
     try:
         for i in range(20_000):
@@ -469,7 +458,7 @@ def test_a_flood_ends_with_its_last_command_and_reset_is_not_kept_waiting(
         now = mesh.node.call_typed(keys.part_rpc("right_arm"), rv.GET_TARGETS).position
         return bool(np.allclose(now, last, atol=1e-9))
 
-    _until(at_last, "the right arm's target at the flood's last command", timeout=10)
+    until(at_last, "the right arm's target at the flood's last command", timeout=10)
     took = time.monotonic() - started
     counts = operator.counts.snapshot()
     assert counts["commands"] <= COMMAND_RATE * took + COMMAND_BURST, counts
@@ -511,7 +500,7 @@ def test_an_oversized_trajectory_is_dropped_before_decoding(
     publisher = mesh.sdk.session.declare_publisher(
         key, congestion_control=zenoh.CongestionControl.BLOCK
     )
-    _until(lambda: publisher.matching_status.matching, "the node's trajectory subscription")
+    until(lambda: publisher.matching_status.matching, "the node's trajectory subscription")
     refused = operator.counts.snapshot().get("refused", 0)
     with caplog.at_level(logging.WARNING, logger="archery.ros2"):
         try:
@@ -520,7 +509,7 @@ def test_an_oversized_trajectory_is_dropped_before_decoding(
             publisher.put(many, attachment=_attachment(3))
         finally:
             publisher.undeclare()
-        _until(
+        until(
             lambda: (
                 operator.counts.snapshot().get("dropped size") == 1
                 and operator.counts.snapshot().get("refused", 0) == refused + 2
@@ -561,8 +550,8 @@ def test_each_done_rollout_is_published_once(mesh: Mesh) -> None:
             sent.append(n)
             return bool(received)
 
-        _until(one_more, "a done rollout on ROS 2")
-        _until(lambda: received[-1].data[0] == sent[-1], "the last done rollout")
+        until(one_more, "a done rollout on ROS 2")
+        until(lambda: received[-1].data[0] == sent[-1], "the last done rollout")
     finally:
         sub.close()
         publisher.close()
@@ -584,7 +573,7 @@ def test_tf_and_tf_static_are_the_urdfs_tree(mesh: Mesh) -> None:
     moving: list[Any] = []
     tf = _subscriber(mesh, "/tf", tf_type, moving)
     try:
-        _until(lambda: got and moving, "/tf_static and /tf")
+        until(lambda: got and moving, "/tf_static and /tf")
     finally:
         sub.undeclare()
         tf.close()

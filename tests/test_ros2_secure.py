@@ -7,9 +7,8 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import pytest
@@ -33,19 +32,9 @@ from mesh.netflags import NetConfig, open_session
 from mesh.node import open_node
 from mesh.router import free_tcp_endpoint
 from protocol.verbs import robot as rv
+from tests.ros2_sdk import until
 
 ROBOT = "icubSim"
-WAIT = 60.0  # s
-
-
-def _until(condition: Callable[[], Any], what: str, timeout: float = WAIT) -> Any:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"not within {timeout:g} s: {what}")
 
 
 class SecureMesh:
@@ -105,7 +94,7 @@ def test_the_secure_node_runs_and_publishes(mesh: SecureMesh) -> None:
     got: list[zenoh.Sample] = []
     sub = session.declare_subscriber(f"0/{ROBOT}/joint_states/**", got.append)
     try:
-        _until(lambda: got, "a joint state on ROS 2 through the secure router")
+        until(lambda: got, "a joint state on ROS 2 through the secure router")
         tokens = [r for r in session.liveliness().get("@ros2_lv/0/**") if r.ok is not None]
         assert any(f"/NN/%/%{ROBOT}/archery" in str(r.ok.key_expr) for r in tokens)
     finally:
@@ -130,7 +119,7 @@ def test_only_the_operator_identity_commands_through_ros2(mesh: SecureMesh) -> N
         typestore.dds_type_name(ros_type),
         typestore.type_hash(ros_type),
     )
-    with open_node(mesh.net(OPERATOR), WAIT) as node:
+    with open_node(mesh.net(OPERATOR), 60.0) as node:
         rpc = node.keys.part_rpc("torso")
         before = node.call_typed(rpc, rv.GET_TARGETS).position
         viewer = open_session(mesh.net(ROS2))
@@ -148,7 +137,7 @@ def test_only_the_operator_identity_commands_through_ros2(mesh: SecureMesh) -> N
         target = [before[0] + 0.05, *before[1:]]
         try:
             publisher = operator.declare_publisher(key)
-            _until(lambda: publisher.matching_status.matching, "the node's command subscription")
+            until(lambda: publisher.matching_status.matching, "the node's command subscription")
 
             def moved() -> bool:
                 attachment = Attachment(2, time.time_ns(), bytes(16)).encode()
@@ -156,7 +145,7 @@ def test_only_the_operator_identity_commands_through_ros2(mesh: SecureMesh) -> N
                 now = node.call_typed(rpc, rv.GET_TARGETS).position
                 return bool(np.allclose(now, target, atol=1e-9))
 
-            _until(moved, "the torso's target from the operator identity's ROS 2 command")
+            until(moved, "the torso's target from the operator identity's ROS 2 command")
             publisher.undeclare()
         finally:
             operator.close()
