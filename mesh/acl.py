@@ -23,6 +23,8 @@ from protocol.verbs import TABLES, names_caller
 __all__ = [
     "OPERATOR",
     "REPLAY",
+    "ROS2",
+    "ROS2_OPERATOR",
     "TOOLS",
     "VIEWER",
     "Role",
@@ -32,10 +34,26 @@ __all__ = [
     "server_of",
 ]
 
+#: The command topics of `archery ros2 --operator` under each part (`apps.ros2.graph.COMMANDS`).
+ROS2_COMMANDS = ("command", "joint_trajectory")
+#: The node's topics under its namespace and its services (`apps.ros2.graph.TOPICS`,
+#: `SERVICES`): what the `ros2` identities publish and serve.
+ROS2_TOPICS = (
+    "joint_states",
+    "robot_description",
+    "camera/image_raw",
+    "camera/camera_info",
+    "learner/rollout",
+    "world/landing",
+)
+ROS2_SERVICES = ("reset", "nock", "release")
 OPERATOR = "operator"  # the tools that move the robot
 VIEWER = "viewer"  # the tools that only look
 REPLAY = "replay"  # `archery replay`: the robot's output streams, the camera's verbs
-TOOLS = (OPERATOR, VIEWER, REPLAY)  # identities of tools: no token, describe or replace
+ROS2 = "ros2"  # `archery ros2`: its rmw_zenoh keys and the robot's output streams
+ROS2_OPERATOR = "ros2_operator"  # `archery ros2 --operator`: those, and the parts' moves
+#: identities of tools: no alive token, describe or replace
+TOOLS = (OPERATOR, VIEWER, REPLAY, ROS2, ROS2_OPERATOR)
 
 
 @dataclass(frozen=True)
@@ -47,6 +65,7 @@ class Role:
     serve: tuple[str, ...] = ()
     call: tuple[str, ...] = ()
     watch: bool = True  # may watch the robot's liveliness tokens (`wait_alive`)
+    tokens: tuple[str, ...] = ()  # liveliness tokens it holds beyond a service's own
 
 
 def _calls(key: str, *verbs: str) -> tuple[str, ...]:
@@ -96,7 +115,17 @@ def roles(robot: str) -> dict[str, Role]:
       crafted): publishes the robot's output streams (`protocol.keys.OUTPUT_PORTS`: joint
       states, the world's state and events, the camera's frames, detections, rollouts) and,
       for `--serve-grab`, serves the camera's verbs (and publishes their taps); nothing else:
-      no joint command, no call, no subscription, no watch of the liveliness tokens.
+      no joint command, no call, no subscription, no watch of the liveliness tokens;
+    * ros2 (`archery ros2`, read-only, and a ROS 2 client of the lab that only looks): the
+      rmw_zenoh keys of the node's topics under its namespace (`/ROBOT`) and of `/tf` and
+      `/tf_static` on any domain (published, subscribed), its Trigger services and the
+      transient local topics' caches (served), the graph's tokens under `@ros2_lv/` (held
+      and seen), the robot's output streams and the robot's `status`; no command key, no
+      move;
+    * ros2_operator (`archery ros2 --operator`, and a ROS 2 client of the lab that moves the
+      robot): what ros2 has, the command topics of the namespace, the Trigger services'
+      calls, each part's `positionMove` (the robot applies it only where no other client's
+      lease runs) and the robot's `reset, nock, release`.
 
     Every server also publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
     """
@@ -175,7 +204,36 @@ def roles(robot: str) -> dict[str, Role]:
             watch=False,
         ),
     }
+    every[ROS2] = _ros2(robot, operator=False)
+    every[ROS2_OPERATOR] = _ros2(robot, operator=True)
     return {name: _naming_calls(name, role) for name, role in every.items()}
+
+
+def _ros2(robot: str, *, operator: bool) -> Role:
+    """The role of `archery ros2` and of a ROS 2 client of the lab holding the same identity
+    (`operator`: `--operator`): rmw_zenoh's data keys `DOMAIN/NAME/TYPE/HASH` of the node's
+    topics and services under its namespace `/ROBOT` and of `/tf`, `/tf_static`, on any
+    domain; the graph's tokens (`@ros2_lv/`)."""
+    k = Keys(robot)
+    topics = (
+        *(f"*/{robot}/{name}/**" for name in ROS2_TOPICS),
+        "*/tf/**",
+        "*/tf_static/**",
+    )
+    services = tuple(f"*/{robot}/{name}/**" for name in ROS2_SERVICES)
+    commands = tuple(f"*/{robot}/{p}/{leaf}/**" for p in PARTS for leaf in ROS2_COMMANDS)
+    moves = tuple(c for p in PARTS for c in _calls(k.part_rpc(p), "positionMove"))
+    return Role(
+        publish=(*topics, *(commands if operator else ())),
+        subscribe=(*k.output_streams(), *topics, *(commands if operator else ())),
+        serve=(*topics, *services),  # the services, the transient local topics' caches
+        call=(
+            *_calls(k.archery_rpc(), "status"),
+            *((*moves, *_calls(k.archery_rpc(), "reset", "nock", "release")) if operator else ()),
+            *(services if operator else ()),
+        ),
+        tokens=("@ros2_lv/**", *topics),
+    )
 
 
 def _naming_calls(name: str, role: Role) -> Role:
@@ -249,9 +307,16 @@ def _grants(name: str, role: Role, robot: str) -> list[dict[str, Any]]:
         ports = tuple(dict.fromkeys(_port_of_call(c) for c in call))
         out.append(_rule(f"{name}-call-replies", ["reply", "declare_queryable"], "egress", ports))
     alive = f"{robot}/alive/**"
+    tokens = role.tokens
     if name not in TOOLS:
-        tokens = (f"{robot}/alive/{name}", f"{robot}/alive/{name}/*")
+        tokens = (f"{robot}/alive/{name}", f"{robot}/alive/{name}/*", *tokens)
+    if tokens:
         out.append(_rule(f"{name}-token", ["liveliness_token"], "ingress", tokens))
+    if role.tokens:  # and sees the others' (the ROS 2 graph)
+        watched = ["declare_liveliness_subscriber", "liveliness_query"]
+        out.append(_rule(f"{name}-graph", watched, "ingress", role.tokens))
+        seen = ["liveliness_token", "reply"]
+        out.append(_rule(f"{name}-graph-tokens", seen, "egress", role.tokens))
     if not role.watch:
         return out
     out.append(

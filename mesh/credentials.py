@@ -23,7 +23,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from mesh.acl import OPERATOR, REPLAY, VIEWER
+from mesh.acl import OPERATOR, REPLAY, ROS2, ROS2_OPERATOR, VIEWER
 from protocol.errors import ConfigError
 from protocol.keys import DEFAULT_ROBOT, validate_robot
 from protocol.robotspec import SERVICES
@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 ROUTER = "router"
-IDENTITIES = (*SERVICES, ROUTER, OPERATOR, VIEWER, REPLAY)
+IDENTITIES = (*SERVICES, ROUTER, OPERATOR, VIEWER, REPLAY, ROS2, ROS2_OPERATOR)
 DEFAULT_DAYS = 365
 DEFAULT_HOSTS = ("localhost", "127.0.0.1", "router", "router-secure")  # + compose names
 CA_CERT, CA_KEY, ACL_FILE, META_FILE = "ca.pem", "ca.key", "acl.json5", "deployment.json"

@@ -1,15 +1,19 @@
-"""zenoh-ros2-sdk's shared session opened on the mesh's own terms (tests and benchmarks)."""
+"""zenoh-ros2-sdk's shared session opened on the mesh's own terms, and the wait on a condition
+(the ROS 2 tests and benchmarks)."""
 
 from __future__ import annotations
 
 import threading
+import time
+from collections.abc import Callable
+from typing import Any
 
 from rosbags.typesys import Stores, get_typestore
 from zenoh_ros2_sdk import ZenohSession
 
 from mesh.netflags import NetConfig, open_session
 
-__all__ = ["sdk_session"]
+__all__ = ["sdk_session", "until"]
 
 
 def sdk_session(net: NetConfig) -> ZenohSession:
@@ -26,3 +30,18 @@ def sdk_session(net: NetConfig) -> ZenohSession:
     sdk.liveliness = sdk.session.liveliness()
     ZenohSession._instance = sdk
     return sdk
+
+
+def until(condition: Callable[[], Any], what: str, timeout: float = 60.0) -> Any:
+    """The first true value of `condition()`, asked every 50 ms.
+
+    Raises:
+        AssertionError: naming `what`, when none came within `timeout` (s).
+    """
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"not within {timeout:g} s: {what}")

@@ -259,3 +259,76 @@ def test_archery_record_of_a_running_robot_has_it_in_3d_and_its_calls(
     for channel in (*channels, "archery/requests:o", "archery/replies:o"):
         assert f"{net.robot}/{channel} " in info.stdout, info.stdout
     assert DESCRIPTION_ATTACHMENT in info.stdout
+
+
+def _urdf_parents() -> dict[str, str]:
+    """{link: its parent link} of the robot description, read with the standard XML parser."""
+    import xml.etree.ElementTree as ET
+
+    from apps.topics.robot_frames import urdf_text
+
+    root = ET.fromstring(urdf_text())
+    return {
+        j.find("child").get("link"): j.find("parent").get("link")  # type: ignore[union-attr]
+        for j in root.findall("joint")
+    }
+
+
+def test_every_link_of_the_urdf_has_its_transform_from_its_urdf_parent(
+    frames: RobotFrames,
+) -> None:
+    """`/tf` and `/tf_static` (and Foxglove's transforms) are the URDF's own tree: every link
+    but the root reached from its URDF parent, with the URDF's frame names."""
+    parents = _urdf_parents()
+    edges = [*frames.static_links, *frames.links]
+    by_child = {child: parent for parent, child in edges}
+    assert len(by_child) == len(edges)  # one transform per frame
+    for link, parent in parents.items():
+        assert by_child.get(link) == parent, link
+    root = (set(parents.values()) - set(parents)).pop()
+    assert by_child[root] == "world"
+    assert {"root_link", "r_upper_arm", "r_elbow_1"} <= set(by_child)
+    assert set(by_child) - set(parents) == {root, "arrow"}  # the scene's one other body
+
+
+def test_the_urdf_tree_at_any_posture_is_where_the_simulator_puts_each_body(
+    frames: RobotFrames,
+) -> None:
+    """The forward kinematics over the URDF's joints (origins, axes, the positions in qpos)
+    agrees with MuJoCo's for every body of the scene."""
+    model = frames.model
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(7)
+    qpos = model.qpos0.copy()
+    for j in range(model.njnt):
+        if model.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE:
+            low, high = model.jnt_range[j] if model.jnt_limited[j] else (-1.0, 1.0)
+            qpos[model.jnt_qposadr[j]] = rng.uniform(low, high)
+    translations, rotations = frames.poses(qpos)
+    fixed_t, fixed_q = frames.static_poses()
+    edges = {
+        child: (parent, t, q)
+        for (parent, child), t, q in zip(
+            [*frames.static_links, *frames.links],
+            np.concatenate([fixed_t, translations]),
+            np.concatenate([fixed_q, rotations]),
+            strict=True,
+        )
+    }
+    world: dict[str, tuple[np.ndarray, np.ndarray]] = {"world": (np.zeros(3), np.eye(3))}
+
+    def pose(frame: str) -> tuple[np.ndarray, np.ndarray]:
+        if frame not in world:
+            parent, t, q = edges[frame]
+            p, r = pose(parent)
+            mat = np.empty(9)
+            mujoco.mju_quat2Mat(mat, q)
+            world[frame] = (p + r @ t, r @ mat.reshape(3, 3))
+        return world[frame]
+
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    for b in range(1, model.nbody):
+        position, mat = pose(model.body(b).name)
+        np.testing.assert_allclose(position, data.xpos[b], atol=1e-9)
+        np.testing.assert_allclose(mat, data.xmat[b].reshape(3, 3), atol=1e-9)

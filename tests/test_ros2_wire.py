@@ -24,7 +24,11 @@ from apps.ros2.wire import (
     NodeId,
     Qos,
     data_key,
+    gid_of,
 )
+from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from protocol.messages import Rollout
+from protocol.text import SHOWN_LIMIT
 from tests.conftest import archery
 
 # design.md's examples, as it prints them
@@ -230,3 +234,61 @@ def test_a_domain_outside_0_to_232_exits_2(domain: str) -> None:
     done = archery("ros2", "--domain", domain, "--connect", "tcp/127.0.0.1:9", timeout=60)
     assert done.returncode == 2
     assert "0 to 232" in done.stderr and len(done.stderr.strip().splitlines()) == 1
+
+
+# rmw_zenoh's own `simplified_XXH3_128bits` (rmw_zenoh_cpp/src/detail/simplified_xxhash3.cpp),
+# built and run on design.md's tokens, stored as `Entity` stores it (low64, then high64)
+RMW_ZENOH_GIDS = {
+    MP_EXAMPLE: "eb85fa883b7846dc448a4501890ad062",
+    NN_EXAMPLE: "5bd72f4daf53c0bb00c7394e7fc19547",
+    "short": "89dedfe9d5127012921725952605de5a",
+}
+
+
+@pytest.mark.parametrize(("token", "gid"), sorted(RMW_ZENOH_GIDS.items()))
+def test_a_gid_is_rmw_zenohs_xxh3_128_of_the_token(token: str, gid: str) -> None:
+    assert gid_of(token).hex() == gid
+
+
+def test_an_endpoints_gid_is_that_of_its_token() -> None:
+    endpoint = _talker_endpoint(Kind.PUBLISHER)
+    assert endpoint.token() == MP_EXAMPLE
+    assert endpoint.gid().hex() == RMW_ZENOH_GIDS[MP_EXAMPLE]
+
+
+def _done(rollout: int) -> DoneRecord:
+    return DoneRecord(
+        index=rollout - 1, rollout=rollout, theta=[0.1, 0.2], r_m=[0.03, -0.04],
+        distance_m=0.05, hit=True,
+    )  # fmt: skip
+
+
+def test_a_done_rollout_is_published_and_the_others_are_not() -> None:
+    message = convert.rollout(Rollout(record=_done(3)))
+    assert message is not None
+    assert list(message.data) == [3.0, 1.0, 0.05, 0.1, 0.2, 0.03, -0.04]
+    assert [d.label for d in message.layout.dim] == list(convert.ROLLOUT_SEGMENTS)
+    proposed = ProposedRecord(index=0, theta=[0.1, 0.2])
+    aborted = AbortedRecord(
+        index=0, theta=[0.1, 0.2], code="no_arrow", cause="none seen", retry_theta=[0.1, 0.2]
+    )
+    assert convert.rollout(Rollout(record=proposed)) is None
+    assert convert.rollout(Rollout(record=aborted)) is None
+
+
+@pytest.mark.parametrize(
+    "names",
+    [
+        ["l_elbow\narchery.ros2 ERROR forged: the robot was reset"],
+        [f"joint_{i}" + "x" * 1000 for i in range(10_000)],
+        ["torso_yaw", "torso_pitch\r\nforged"],
+    ],
+    ids=["newline", "10 MB of names", "a known and a forged name"],
+)
+def test_a_received_name_is_quoted_on_one_short_line(names: list[str]) -> None:
+    message = _trajectory(names, [[0.0] * len(names)])
+    with pytest.raises(convert.CommandError) as caught:
+        convert.command_targets("torso", convert.TRAJECTORY_COMMAND, message)
+    text = str(caught.value)
+    assert "\n" not in text and "\r" not in text
+    assert len(text) < 2 * SHOWN_LIMIT + 200

@@ -24,8 +24,8 @@ def build_parser() -> ArgumentParser:
         prog="archery ros2",
         description="the robot on the ROS 2 graph, on the mesh's own router (rmw_zenoh's wire "
         "format: RMW_IMPLEMENTATION=rmw_zenoh_cpp sees it): joint states, /tf, the robot "
-        "description, the camera, rollouts and landings; the parts' commands; with --operator "
-        "the reset, nock and release services",
+        "description, the camera, rollouts and landings; with --operator the parts' commands "
+        "and the reset, nock and release services",
     )
     add_network_args(parser, default_mode="client")
     parser.add_argument(
@@ -35,8 +35,9 @@ def build_parser() -> ArgumentParser:
     parser.add_argument(
         "--operator",
         action="store_true",
-        help="serve reset, nock and release as std_srvs/srv/Trigger; without it the node "
-        "refuses them and only the parts' commands move the robot",
+        help="take the parts' commands (one waiting per part, at the robot's command rate) and "
+        "serve reset, nock and release as std_srvs/srv/Trigger; without it the node declares "
+        "no command subscription and answers each service call success: false",
     )
     parser.add_argument(
         "--wait",
@@ -49,20 +50,20 @@ def build_parser() -> ArgumentParser:
 
 def _check(args: argparse.Namespace) -> tuple[NetConfig, str]:
     from apps.ros2.wire import MAX_DOMAIN, check_name
-    from mesh.acl import OPERATOR, VIEWER
+    from mesh.acl import ROS2, ROS2_OPERATOR
 
     if not 0 <= args.domain <= MAX_DOMAIN:
         raise ConfigError(f"--domain {args.domain}: give a ROS 2 domain id from 0 to {MAX_DOMAIN}")
-    net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
-    if net.secure:
-        raise ConfigError(
-            "--secure: the mesh's access control grants no ROS 2 keys; run archery ros2 on a "
-            "plain (loopback) mesh"
-        )
+    net = NetConfig.from_args(args).with_identity(ROS2_OPERATOR if args.operator else ROS2)
     try:
         namespace = check_name(args.namespace or f"/{net.robot}", "--namespace")
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
+    if net.secure and namespace != f"/{net.robot}":
+        raise ConfigError(
+            f"--namespace {namespace} with --secure: the access control grants the ROS 2 keys "
+            f"of /{net.robot} only"
+        )
     return net, namespace
 
 

@@ -6,13 +6,19 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from apps.ros2.typestore import new
+from apps.topics.image_records import FRAME_ID
+from protocol.journal_records import DoneRecord
 from protocol.messages import Image, JointState, Rollout, WorldEvent
 from protocol.parts import PARTS
+from protocol.text import shown
+
+if TYPE_CHECKING:
+    from apps.topics.robot_frames import RobotFrames
 
 __all__ = [
     "FLOAT_COMMAND",
@@ -28,6 +34,7 @@ __all__ = [
     "landing",
     "rollout",
     "stamp",
+    "static_tf",
     "tf_message",
 ]
 
@@ -99,6 +106,20 @@ def tf_message(
     return new("tf2_msgs/msg/TFMessage", transforms=transforms)
 
 
+def static_tf(frames: RobotFrames, seconds: float) -> Any:
+    """`/tf_static` at wall stamp `seconds`: the robot's fixed transforms (`world` to the URDF's
+    root, then every fixed joint of the URDF) and the camera's optical frame in `world` (the
+    image's `frame_id`)."""
+    translations, rotations = frames.static_poses()
+    camera_t, camera_q = frames.camera_pose()
+    return tf_message(
+        seconds,
+        [*frames.static_links, ("world", FRAME_ID)],
+        np.concatenate([translations, camera_t[None, :]]),
+        np.concatenate([rotations, camera_q[None, :]]),
+    )
+
+
 def description(urdf: str) -> Any:
     """The robot description (URDF text) as `std_msgs/msg/String`."""
     return new("std_msgs/msg/String", data=urdf)
@@ -159,10 +180,9 @@ def rollout(message: Rollout) -> Any | None:
     (1 or 0), ‖r‖ (m), θ (m) and r (m), one after the other; the layout's dimensions label these
     segments in order (`ROLLOUT_SEGMENTS`, each with its size). None for a proposed or aborted
     rollout."""
-    record = message.record
-    if getattr(record, "record", None) != "done":
+    done = message.record
+    if not isinstance(done, DoneRecord):
         return None
-    done: Any = record
     values: list[list[float]] = [
         [float(done.rollout)],
         [1.0 if done.hit else 0.0],
@@ -224,11 +244,15 @@ def command_targets(part: str, ros_type: str, message: Any) -> tuple[list[str] |
             )
         return None, _finite(part, data)
     names = list(message.joint_names)
-    unknown = [n for n in names if n not in joints]
-    if unknown or not names or len(set(names)) != len(names):
+    if len(names) > len(joints) or not names or len(set(names)) != len(names):
         raise CommandError(
             f"{part}: joint_names must be some of {', '.join(joints)}, each once; got "
-            f"{', '.join(names) or 'none'}"
+            f"{shown(names)}"
+        )
+    unknown = [n for n in names if n not in joints]
+    if unknown:
+        raise CommandError(
+            f"{part}: joint_names must be some of {', '.join(joints)}; unknown: {shown(unknown)}"
         )
     if not message.points:
         raise CommandError(f"{part}: a trajectory without points moves nothing")

@@ -89,9 +89,7 @@ def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int
                 seconds = ns / 1e9
                 text = urdf.decode() if urdf is not None else urdf_text()
                 write("robot_description", convert.description(text), ns)
-                t, q = frames.camera_pose()
-                tf = convert.tf_message(seconds, [("world", FRAME_ID)], t[None, :], q[None, :])
-                write("/tf_static", tf, ns)
+                write("/tf_static", convert.static_tf(frames, seconds), ns)
             if isinstance(message, JointState):
                 write("joint_states", convert.joint_state(message), ns)
             elif isinstance(message, WorldState) and key == f"{robot}/world/state:o":

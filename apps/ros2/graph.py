@@ -19,20 +19,31 @@ import zenoh
 from apps.follow import Stop, follow_events, follow_latest
 from apps.ros2 import convert, typestore
 from apps.ros2.endpoints import Counts, RosPublisher
+from apps.ros2.latest import LatestPerKey
 from apps.ros2.wire import Attachment, AttachmentError, Endpoint, Kind, NodeId, Qos, check_name
 from apps.topics.image_records import FRAME_ID
 from apps.topics.robot_frames import RobotFrames
+from mesh.acl import ROS2_COMMANDS
 from mesh.instances import zid_of
 from mesh.node import Node
 from protocol.errors import ArcheryError
 from protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
 from protocol.parts import PARTS
-from protocol.robotspec import CALL_TIMEOUT, RPC_TIMEOUT
+from protocol.robotspec import CALL_TIMEOUT, COMMAND_RATE, RPC_TIMEOUT
+from protocol.text import cut
 from protocol.verbs import robot as rv
 from protocol.verbs.base import Verb
 from sim.render import focal_length
 
-__all__ = ["NODE_NAME", "SERVICES", "TOPICS", "Ros2Node", "Topic"]
+__all__ = [
+    "MAX_COMMAND_BYTES",
+    "MAX_WAITING_CALLS",
+    "NODE_NAME",
+    "SERVICES",
+    "TOPICS",
+    "Ros2Node",
+    "Topic",
+]
 
 log = logging.getLogger("archery.ros2")
 
@@ -41,6 +52,13 @@ SERVICES: dict[str, Verb[Any, Any]] = {"reset": rv.RESET, "nock": rv.NOCK, "rele
 _STREAM = Qos(depth=10)
 _LATCHED = Qos(depth=1, transient_local=True)
 _SENSOR = Qos(depth=5, best_effort=True)
+_COMMANDS = Qos(depth=1)  # KEEP_LAST 1: a newer command replaces the waiting one
+#: The largest command payload decoded (bytes): a part's Float64MultiArray or JointTrajectory
+#: of a few points is well under it; a bigger one is dropped before any decoding.
+MAX_COMMAND_BYTES = 64 * 1024
+#: Service calls (reset, nock, release) waiting at once; one more is answered `success: false`.
+MAX_WAITING_CALLS = 4
+_LOG_LIMIT = 600  # characters of a reason in a log line (its received values quoted shorter)
 
 
 @dataclass(frozen=True)
@@ -65,7 +83,9 @@ TOPICS = (
     Topic("world/landing", "geometry_msgs/msg/PointStamped", _STREAM, "landings"),
 )
 #: Each part's command topics (under `NAMESPACE/PART/`) and their types.
-COMMANDS = {"command": convert.FLOAT_COMMAND, "joint_trajectory": convert.TRAJECTORY_COMMAND}
+COMMANDS = dict(
+    zip(ROS2_COMMANDS, (convert.FLOAT_COMMAND, convert.TRAJECTORY_COMMAND), strict=True)
+)
 
 
 class Ros2Node:
@@ -78,7 +98,9 @@ class Ros2Node:
         camera_fovy: the target camera's vertical field of view (degrees).
         domain: the ROS 2 domain id (0…232).
         namespace: the node's namespace, e.g. `/icubSim`.
-        operator: serve reset, nock and release; without it each call is refused.
+        operator: subscribe to the parts' commands and serve reset, nock and release;
+            without it the node declares no command subscription and answers each service
+            call `success: false`.
     """
 
     def __init__(
@@ -106,7 +128,8 @@ class Ros2Node:
         self._matched: dict[str, int] = {}  # feed -> topics of it someone subscribes to
         self._stops: dict[str, Stop] = {}
         self._changes: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
-        self._work: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
+        self._work: queue.Queue[Callable[[], None] | None] = queue.Queue(MAX_WAITING_CALLS + 1)
+        self._commands = LatestPerKey(self._move, 1.0 / COMMAND_RATE, self.counts, log)
         self._feeds: dict[str, Callable[[], Stop]] = {
             "joints": self._joints,
             "tf": self._tf,
@@ -117,6 +140,7 @@ class Ros2Node:
         self._threads = [
             threading.Thread(target=self._follow, name="ros2 feeds", daemon=True),
             threading.Thread(target=self._worker, name="ros2 calls", daemon=True),
+            threading.Thread(target=self._commands.run, name="ros2 commands", daemon=True),
         ]
         for thread in self._threads:
             thread.start()
@@ -127,9 +151,10 @@ class Ros2Node:
             self.publishers[topic.name] = self._publisher(topic)
         self.publishers["/tf_static"].publish(self._static_tf())
         self.publishers["robot_description"].publish(convert.description(urdf))
-        for part in PARTS:
-            for leaf, ros_type in COMMANDS.items():
-                self._subscribe(part, leaf, ros_type)
+        if operator:  # read-only: no command subscription at all (no subscriber, no token)
+            for part in PARTS:
+                for leaf, ros_type in COMMANDS.items():
+                    self._subscribe(part, leaf, ros_type)
         for name in SERVICES:
             self._serve(name)
 
@@ -231,15 +256,15 @@ class Ros2Node:
         self._send("world/landing", convert.landing(event))
 
     def _static_tf(self) -> Any:
-        """`/tf_static`: the camera's optical frame in `world` (the image's `frame_id`)."""
-        translation, rotation = self.frames.camera_pose()
-        return convert.tf_message(
-            time.time(), [("world", FRAME_ID)], translation[None, :], rotation[None, :]
-        )
+        """`/tf_static`: the URDF's fixed joints (and `world` to its root), and the camera's
+        optical frame in `world` (the image's `frame_id`)."""
+        return convert.static_tf(self.frames, time.time())
 
     # -- commands ----------------------------------------------------------------------------
     def _subscribe(self, part: str, leaf: str, ros_type: str) -> None:
-        endpoint = self.endpoint(Kind.SUBSCRIPTION, f"{part}/{leaf}", ros_type, _STREAM)
+        """A part's command subscription (with the operator only): each good command replaces
+        the part's waiting one (KEEP_LAST, depth 1: a stale command is dropped, never sent)."""
+        endpoint = self.endpoint(Kind.SUBSCRIPTION, f"{part}/{leaf}", ros_type, _COMMANDS)
         session = self.node.session
 
         def each(sample: zenoh.Sample) -> None:
@@ -251,34 +276,40 @@ class Ros2Node:
             except convert.CommandError as exc:
                 self._refuse(endpoint.name, str(exc))
                 return
-            self._work.put(lambda: self._move(endpoint.name, part, names, position))
+            self._commands.offer(part, (part, endpoint.name, names, position))
 
         self._closables.append(session.declare_subscriber(endpoint.key(), each))
         self._closables.append(session.liveliness().declare_token(endpoint.token()))
 
     def _received(self, name: str, ros_type: str, sample: zenoh.Sample) -> Any | None:
-        """The message of a received sample, or None (dropped and counted)."""
+        """The message of a received sample, or None (dropped and counted): no rmw_zenoh
+        attachment, more than `MAX_COMMAND_BYTES` (refused before decoding), not CDR."""
         try:
             attachment = sample.attachment
             Attachment.decode(None if attachment is None else attachment.to_bytes())
         except AttachmentError as exc:
             self._drop(name, "attachment", str(exc))
             return None
+        size = len(sample.payload)
+        if size > MAX_COMMAND_BYTES:
+            self._drop(name, "size", f"{size} bytes, more than a command's {MAX_COMMAND_BYTES}")
+            return None
         try:
             return typestore.deserialize(sample.payload.to_bytes(), ros_type)
         except Exception as exc:  # rosbags raises a few kinds for bytes that are no message
-            self._drop(name, "cdr", f"not a CDR {ros_type}: {exc}")
+            self._drop(name, "cdr", f"not a CDR {ros_type}: {cut(str(exc))}")
             return None
 
     def _drop(self, name: str, reason: str, why: str) -> None:
         self.counts.add(f"dropped {reason}")
-        log.warning("%s: dropped a sample: %s", name, why)
+        log.warning("%s: dropped a sample: %s", name, cut(why, _LOG_LIMIT))
 
     def _refuse(self, name: str, why: str) -> None:
         self.counts.add("refused")
-        log.error("%s: refused, nothing moves: %s", name, why)
+        log.error("%s: refused, nothing moves: %s", name, cut(why, _LOG_LIMIT))
 
-    def _move(self, name: str, part: str, names: list[str] | None, position: list[float]) -> None:
+    def _move(self, command: tuple[str, str, list[str] | None, list[float]]) -> None:
+        part, name, names, position = command
         args = rv.PositionMoveArgs(position=position, names=names)
         try:
             self.node.call_typed(
@@ -291,6 +322,9 @@ class Ros2Node:
 
     # -- services ------------------------------------------------------------------------------
     def _serve(self, name: str) -> None:
+        """A Trigger service, declared always (its queryable and `SS` token): without the
+        operator each call is answered `success: false` at once; with it the call waits on
+        the services' own thread (never behind the commands), `MAX_WAITING_CALLS` at most."""
         endpoint = self.endpoint(Kind.SERVICE, name, typestore.TRIGGER, _STREAM)
         verb = SERVICES[name]
         session = self.node.session
@@ -308,11 +342,15 @@ class Ros2Node:
                 self._refuse(endpoint.name, "a call without the operator")
                 self._answer(query, request, endpoint.key(), False, why)
                 return
-            self._work.put(lambda: self._call(query, request, endpoint, verb))
+            try:
+                self._work.put_nowait(lambda: self._call(query, request, endpoint, verb))
+            except queue.Full:
+                why = f"{endpoint.name}: {MAX_WAITING_CALLS} calls wait already: nothing was done"
+                self._refuse(endpoint.name, "too many calls waiting")
+                self._answer(query, request, endpoint.key(), False, why)
 
         self._closables.append(session.declare_queryable(endpoint.key(), each, complete=True))
-        if self.operator:
-            self._closables.append(session.liveliness().declare_token(endpoint.token()))
+        self._closables.append(session.liveliness().declare_token(endpoint.token()))
 
     def _call(
         self, query: zenoh.Query, request: Attachment, endpoint: Endpoint, verb: Verb[Any, Any]
@@ -348,11 +386,12 @@ class Ros2Node:
             try:
                 job()
             except Exception:
-                log.exception("a command or service call failed")
+                log.exception("a service call failed")
 
     def close(self) -> None:
         """Stop the feeds and undeclare every entity (tokens first)."""
         self._changes.put(None)
+        self._commands.close()
         self._work.put(None)
         for thread in self._threads:
             thread.join(CALL_TIMEOUT)

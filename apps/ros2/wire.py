@@ -9,11 +9,12 @@ timestamp (int64, ns since the epoch), the GID's length (one byte, 16), the GID 
 
 from __future__ import annotations
 
-import hashlib
 import re
 import struct
 from dataclasses import dataclass
 from enum import Enum
+
+import xxhash
 
 __all__ = [
     "ADMIN_SPACE",
@@ -144,8 +145,10 @@ class Endpoint:
 
 
 def gid_of(token: str) -> bytes:
-    """A 16-byte GID of the entity whose token is `token` (BLAKE2b of the token's text)."""
-    return hashlib.blake2b(token.encode(), digest_size=GID_SIZE).digest()
+    """The 16-byte GID rmw_zenoh gives the entity whose liveliness token is `token`: the
+    XXH3-128 hash (seed 0) of the token's text, its low 64 bits then its high 64 bits, each
+    little-endian (its `liveliness_utils.cpp`, `Entity`'s constructor)."""
+    return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
 class AttachmentError(ValueError):

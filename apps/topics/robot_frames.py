@@ -30,6 +30,7 @@ from apps.topics.foxglove_records import (
     stl_bytes,
 )
 from apps.topics.recording import Derived
+from apps.topics.urdf_tree import UrdfJoint, parse_joints
 from protocol.messages import JointState, WorldState
 from protocol.messages import Message as ArcheryMessage
 from protocol.robotspec import MODEL_NAME
@@ -82,9 +83,9 @@ class RobotFrames:
     """Derives the 3D records of one robot's recording, with the scene compiled from the
     robot's `SceneConfig` and `mj_kinematics`. Derived channels, next to the recorded keys:
 
-    * `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, every body of the compiled
-      scene in its parent body's frame: the iCub's moving links (its fixed links, the bow and
-      the target are merged into their parents, as in the simulator) and the arrow; the root
+    * `ROBOT/tf` (`foxglove.FrameTransforms`): per world state, the URDF's own tree (every
+      link in its URDF parent's frame, by the URDF's joints: `apps.topics.urdf_tree`, the
+      fixed ones with them) and the scene's other bodies (the arrow) in their parent's frame;
       `world` is the iCub's `root_link` frame (x backward, y right, z up; m);
     * `ROBOT/joint_states` (`foxglove.JointStates`): per joint state, the part's joints (rad,
       rad/s); the JSON `PART/state:o` channel stays as it was;
@@ -111,10 +112,29 @@ class RobotFrames:
         self.data = mujoco.MjData(self.model)
         names = [self.model.body(i).name for i in range(self.model.nbody)]
         names[0] = "world"
-        self.links: list[tuple[str, str]] = [
-            (names[p], names[b]) for b, p in enumerate(self.model.body_parentid) if b > 0
-        ]
         self.frames = names
+        joints = parse_joints(urdf_text())
+        linked = {j.child for j in joints} | {j.parent for j in joints}
+        root = next(j.parent for j in joints if j.parent not in {k.child for k in joints})
+        self.root = root
+        # the scene's own bodies (the arrow), in their MuJoCo parent's frame
+        self._extras = [b for b in range(1, self.model.nbody) if names[b] not in linked]
+        self._moving = [j for j in joints if j.moving]
+        self._qpos_of = [self._qpos_address(j.name) for j in self._moving]
+        fixed = [j for j in joints if not j.moving]
+        #: (parent, child) of each fixed transform (`static_poses`): `world` to the URDF's
+        #: root, then every fixed joint of the URDF.
+        self.static_links: list[tuple[str, str]] = [
+            ("world", root),
+            *((j.parent, j.child) for j in fixed),
+        ]
+        #: (parent, child) of each moving transform (`poses`): every moving joint of the
+        #: URDF, then the scene's bodies that are no link of it (the arrow).
+        self.links: list[tuple[str, str]] = [
+            *((j.parent, j.child) for j in self._moving),
+            *((names[self.model.body_parentid[b]], names[b]) for b in self._extras),
+        ]
+        self._static = self._static_poses(fixed)
         self.tf_topic = f"{robot}/tf"
         self.joints_topic = f"{robot}/joint_states"
         self.scene_topic = f"{robot}/robot_description/scene"
@@ -148,19 +168,61 @@ class RobotFrames:
             return [Derived(self.joints_topic, JOINT_STATES, data)]
         return []
 
+    def _qpos_address(self, joint: str) -> int | None:
+        """Where the scene keeps the URDF joint `joint`'s position (None: the scene does not
+        move it; it stays at 0)."""
+        index = mujoco.mj_name2id(self.model, mujoco.mjtObj.mjOBJ_JOINT, joint)
+        return None if index < 0 else int(self.model.jnt_qposadr[index])
+
+    def _static_poses(self, fixed: Sequence[UrdfJoint]) -> tuple[np.ndarray, np.ndarray]:
+        # the scene merges the URDF's root into its world: the same frame
+        translations = [np.zeros(3)]
+        rotations = [np.array([1.0, 0.0, 0.0, 0.0])]
+        for joint in fixed:
+            t, r = joint.pose()
+            translations.append(t)
+            rotations.append(_quat(r))
+        return np.array(translations), np.array(rotations)
+
+    def static_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """The fixed transforms, in the order of `self.static_links` (`/tf_static`):
+        translations (N, 3, m) and rotations (N, 4, w x y z); `world` to the URDF's root is
+        the identity (the scene's world is the robot's `root_link` frame)."""
+        return self._static
+
     def poses(self, qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Every body's pose at `qpos` (`self.model.nq` values) in its parent's frame, in the
-        order of `self.links`: translations (N, 3, m) and rotations (N, 4, w x y z). The one
-        derivation of the robot's transforms: the recorder's, the Foxglove bridge's and the
-        ROS 2 node's `/tf`."""
-        self.data.qpos[:] = qpos
-        mujoco.mj_kinematics(self.model, self.data)
-        return link_poses(self.model, self.data)
+        """The moving transforms at `qpos` (`self.model.nq` values), in the order of
+        `self.links`: each moving URDF joint's child in its parent link's frame (the URDF's
+        kinematics: origin, axis, the joint's position in `qpos`), then the scene's other
+        bodies in their parent's frame; translations (N, 3, m) and rotations (N, 4, w x y z).
+        The one derivation of the robot's transforms: the recorder's, the Foxglove bridge's
+        and the ROS 2 node's `/tf`."""
+        translations = np.empty((len(self.links), 3))
+        rotations = np.empty((len(self.links), 4))
+        for i, (joint, address) in enumerate(zip(self._moving, self._qpos_of, strict=True)):
+            t, r = joint.pose(0.0 if address is None else float(qpos[address]))
+            translations[i] = t
+            rotations[i] = _quat(r)
+        if self._extras:
+            self.data.qpos[:] = qpos
+            mujoco.mj_kinematics(self.model, self.data)
+            t, q = link_poses(self.model, self.data)
+            rows = [b - 1 for b in self._extras]
+            translations[len(self._moving) :] = t[rows]
+            rotations[len(self._moving) :] = q[rows]
+        return translations, rotations
 
     def transforms(self, qpos: np.ndarray, ns: int) -> bytes:
-        """The `foxglove.FrameTransforms` record of every body at `qpos`."""
+        """The `foxglove.FrameTransforms` record of the whole tree at `qpos`: the fixed
+        transforms and the moving ones."""
         translations, rotations = self.poses(qpos)
-        return frame_transforms(ns, self.links, translations, rotations)
+        fixed_t, fixed_q = self._static
+        return frame_transforms(
+            ns,
+            [*self.static_links, *self.links],
+            np.concatenate([fixed_t, translations]),
+            np.concatenate([fixed_q, rotations]),
+        )
 
     def camera_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """The target camera's optical frame (z forward, x right, y down, as ROS 2's image
@@ -227,6 +289,13 @@ class RobotFrames:
             return
         _pose(shape.pose, model.geom_pos[g], model.geom_quat[g])
         shape.color.r, shape.color.g, shape.color.b, shape.color.a = map(float, rgba)
+
+
+def _quat(rotation: np.ndarray) -> np.ndarray:
+    """A rotation matrix as a unit quaternion (w, x, y, z)."""
+    q = np.empty(4)
+    mujoco.mju_mat2Quat(q, np.ascontiguousarray(rotation).reshape(-1))
+    return q
 
 
 def _pose(target: object, position: Sequence[float], quat: Sequence[float]) -> None:
