@@ -1,5 +1,5 @@
-"""A session beside grabs that never come true: wall time per rollout with `PENDING` pending grabs of
-the camera against none.
+"""A session beside grabs that never come true: wall time per rollout with `PENDING` pending
+grabs of the camera against none.
 
 Run `python -m benchmarks.bench_pending_grabs [--repeats 5] [--rollouts 40]`. A router and the
 five services run as child processes (`benchmarks.learning_mesh`, the product's defaults: rtf
