@@ -20,23 +20,16 @@ from mesh.node import Node
 from mesh.router import free_tcp_endpoint
 from mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
 from protocol.codec import encode
-from protocol.errors import Busy, RpcError
+from protocol.errors import Busy
 from protocol.keys import verb_key
 from protocol.messages import RpcRequest
 from protocol.verbs import NoArgs
 from protocol.verbs.camera import GRAB, STATUS, GrabArgs
 from tests.conftest import archery
+from tests.test_read_limits import _error
 from tests.test_secure_session import _wait_for_line
 
 ROLLOUTS = 3
-
-
-def _error(call: object) -> RpcError | None:
-    try:
-        call()  # type: ignore[operator]
-    except RpcError as exc:
-        return exc
-    return None
 
 
 @pytest.mark.slow
