@@ -1,15 +1,16 @@
-"""A session beside grabs that never come true: wall time per rollout with 10 pending grabs of
-the camera against none.
+"""A session beside grabs that never come true: wall time per rollout with `PENDING` pending
+grabs of the camera against none.
 
 Run `python -m benchmarks.bench_pending_grabs [--repeats 5] [--rollouts 40]`. A router and the
 five services run as child processes (`benchmarks.learning_mesh`, the product's defaults: rtf
 0). Each repeat runs two ARCHER sessions of `--rollouts` rollouts (`until_hit` off), in
-alternating order: one alone, one while an anonymous client (what `viewer` may do) keeps
+alternating order: one alone, one while a client (the tools' default identity) keeps
 `PENDING` grabs of the camera waiting for a world state that never comes (`after_sim_time`
 1e9 s), each asking `HOLD` s and re-sent the moment it ends, so that `PENDING` are in hand
 throughout. Between the two, the benchmark waits until the pending grabs have run out. Reported:
 wall ms per rollout, median [min, max] over the repeats, and their ratio (goal ≤ 1.05×), with
-the grabs refused `busy` (none expected: `PENDING` < `mesh.rpc_server.MAX_WAITING`).
+the grabs refused `busy` (none expected: `PENDING` is `mesh.rpc_server.MAX_WAITING_PER_CALLER`,
+the most one identity has waiting; `benchmarks.bench_reads` tries more).
 
 `--smoke`: one repeat of 3 rollouts each (seconds after the mesh's start-up; no figures).
 """
@@ -29,13 +30,14 @@ from benchmarks.learning_mesh import learning_mesh, progress_bar
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
 from mesh.node import Node
+from mesh.rpc_server import MAX_WAITING_PER_CALLER
 from protocol.errors import RpcError
 from protocol.verbs.camera import GRAB, GrabArgs
 from tests.rpc import rpc_call
 
 __all__ = ["HOLD", "PENDING", "main"]
 
-PENDING = 10  # grabs in hand while a session runs
+PENDING = MAX_WAITING_PER_CALLER  # grabs in hand while a session runs
 HOLD = 4.0  # s: how long each pending grab asks to wait (and its caller waits)
 NEVER = 1e9  # s of sim time: a world state no session reaches
 

@@ -1,7 +1,8 @@
 """Serving an `rpc:i` key from a verb table: requests decoded straight into each verb's
 arguments, handled on a worker thread (or inline for non-blocking verbs; background verbs on a
 second worker at a lower CPU priority, `BACKGROUND_NICE` and SCHED_IDLE; waiting verbs each on a
-thread of their own, at most `MAX_WAITING` per port), replied `RpcReply`; each handled call also
+thread of their own, at most `MAX_WAITING` per port and `MAX_WAITING_PER_CALLER` of them for one
+caller identity), replied `RpcReply`; each handled call also
 goes to the port's tap (`mesh.rpc_tap`) for whoever listens. No request is worked on after its
 caller has given up (`RpcRequest.wait`): a handler reads what is left with `caller_left`.
 """
@@ -39,7 +40,16 @@ from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
 from protocol.verbs.schema import field_text
 
-__all__ = ["MAX_WAITING", "RpcServer", "bad_args_message", "caller", "caller_left"]
+__all__ = [
+    "ANONYMOUS",
+    "MAX_WAITING",
+    "MAX_WAITING_PER_CALLER",
+    "RpcServer",
+    "bad_args_message",
+    "caller",
+    "caller_left",
+    "caller_or_anonymous",
+]
 
 A = TypeVar("A", bound=msgspec.Struct)
 log = logging.getLogger("archery.node")
@@ -47,6 +57,11 @@ log = logging.getLogger("archery.node")
 _STOP = object()
 BACKGROUND_NICE = 10  # the background verbs' worker, on top of the process's niceness
 MAX_WAITING = 16  # requests of waiting verbs (`Verb.waits`) one port works on at a time
+# of them, those of one caller identity (`caller_or_anonymous`): a few identities holding their
+# most leave the others room (in secure mode fewer than MAX_WAITING / MAX_WAITING_PER_CALLER
+# identities are granted any one waiting verb)
+MAX_WAITING_PER_CALLER = 4
+ANONYMOUS = "anonymous"  # the one identity of every call that names no caller
 _call = threading.local()  # of the request being handled: its caller's deadline and name
 
 
@@ -56,6 +71,12 @@ def caller() -> str | None:
     none."""
     name: str | None = getattr(_call, "caller", None)
     return name
+
+
+def caller_or_anonymous() -> str:
+    """The identity the limits of the request this thread handles are counted for: the caller
+    it names (`caller`), or `ANONYMOUS`, one for every request that names none."""
+    return caller() or ANONYMOUS
 
 
 def caller_left() -> float | None:
@@ -146,7 +167,7 @@ class RpcServer:
             for name, entry in self.handlers.items()
             if entry.verb.waits and entry.verb.blocking
         )
-        self._slots = threading.BoundedSemaphore(MAX_WAITING)  # the waiting verbs' requests
+        self._in_hand: dict[str, int] = {}  # the waiting verbs' requests in hand, by caller
         self._waiting: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._pool = threading.Lock()
         self._waiters = 0  # threads started for the waiting verbs (at most MAX_WAITING)
@@ -210,22 +231,31 @@ class RpcServer:
         self, query: zenoh.Query, request: _WireRequest, arrived: float, named: str | None
     ) -> None:
         """A waiting verb's request on a thread of the waiting verbs (beside the port's worker),
-        or `busy` at once when `MAX_WAITING` of them are in hand already."""
-        if not self._slots.acquire(blocking=False):
-            busy = Busy(
-                f"{self.key} {request.verb}: busy, {MAX_WAITING} requests of its waiting verbs "
-                f"are in hand (the most it takes at a time); try again later"
+        or `busy` at once when its caller has `MAX_WAITING_PER_CALLER` of them in hand already,
+        or the port `MAX_WAITING`."""
+        who = named or ANONYMOUS
+        with self._pool:
+            mine, total = self._in_hand.get(who, 0), sum(self._in_hand.values())
+            if mine < MAX_WAITING_PER_CALLER and total < MAX_WAITING:
+                self._in_hand[who] = mine + 1
+                # threads are kept and reused; one more is started only when fewer are idle
+                # than requests wait for one
+                self._queued += 1
+                if self._idle < self._queued and self._waiters < MAX_WAITING:
+                    self._waiters += 1
+                    name = f"rpc {self.key} waiting {self._waiters}"
+                    threading.Thread(target=self._wait_work, name=name, daemon=True).start()
+                self._waiting.put((query, request, arrived, named))
+                return
+        if mine >= MAX_WAITING_PER_CALLER:
+            why = (
+                f"{MAX_WAITING_PER_CALLER} requests of its waiting verbs from {shown(who)} are "
+                f"in hand (the most it takes from one caller)"
             )
-            self._answer(query, busy, arrived, named)
-            return
-
-        with self._pool:  # threads are kept and reused; one more is started only when fewer
-            self._queued += 1  # are idle than requests wait for one
-            if self._idle < self._queued and self._waiters < MAX_WAITING:
-                self._waiters += 1
-                name = f"rpc {self.key} waiting {self._waiters}"
-                threading.Thread(target=self._wait_work, name=name, daemon=True).start()
-        self._waiting.put((query, request, arrived, named))
+        else:
+            why = f"{MAX_WAITING} requests of its waiting verbs are in hand (the most it takes)"
+        busy = Busy(f"{self.key} {request.verb}: busy, {why}; try again later")
+        self._answer(query, busy, arrived, named)
 
     def _wait_work(self) -> None:
         """A thread of the waiting verbs: one request at a time, its slot given back after."""
@@ -238,10 +268,14 @@ class RpcServer:
             with self._pool:
                 self._idle -= 1
                 self._queued -= 1
+            who = item[3] or ANONYMOUS
             try:
                 self._answer(*item)
             finally:
-                self._slots.release()
+                with self._pool:
+                    left = self._in_hand.pop(who) - 1
+                    if left:
+                        self._in_hand[who] = left
             del item
 
     def _work(self, jobs: queue.SimpleQueue[Any], nice: int = 0) -> None:

@@ -387,7 +387,7 @@ def test_frames_reach_the_operator_only(session_as: Callable) -> None:
     put_until_received(camera, K.cam_frames(), at_operator, b"frame-1")
     put_until_received(robot, K.world_events(), learner_events, b"event-1")
     deadline = time.monotonic() + 10  # the detector's declarations reached the router in order
-    grab = verb_key(K.cam_rpc(), "grab")
+    grab = verb_key(K.cam_rpc(), "grab", "detector")
     while [r.ok.payload.to_bytes() for r in detector.get(grab) if r.ok] != [b"grabbed"]:
         assert time.monotonic() < deadline, "the detector cannot grab a frame by RPC"
         time.sleep(0.05)
@@ -409,7 +409,7 @@ def test_only_the_owner_serves_an_rpc_key(session_as: Callable) -> None:
         query.reply(query.key_expr, b"from the detector")
 
     detector.declare_queryable(verbs_key(K.cartesian_rpc("archery")), rogue)  # denied
-    measure = verb_key(K.detector_rpc(), "measure")
+    measure = verb_key(K.detector_rpc(), "measure", "learner")
     detector.declare_queryable(
         verbs_key(K.detector_rpc()), lambda q: q.reply(q.key_expr, b"measured")
     )
@@ -715,7 +715,7 @@ def test_each_identity_may_call_exactly_the_verbs_of_its_job(session_as: Callabl
         assert (name, target) not in reached, (name, target)
     for name, target in (
         ("learner", verb_key(arch, "release")),
-        ("detector", verb_key(cam, "grab")),
+        ("detector", verb_key(cam, "grab", "detector")),
         ("controller", verb_key(K.part_rpc("left_arm"), "setRefSpeeds", "controller")),
         ("controller", verb_key(K.part_rpc("left_arm"), "claim", "controller")),
         (OPERATOR, left_claim),

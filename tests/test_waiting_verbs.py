@@ -1,9 +1,11 @@
 """A waiting verb (the camera's `grab`) cannot stall a port: it never holds the port's worker,
-at most `MAX_WAITING` wait at a time (the excess refused `busy` at once), a stamp no frame can
-reach is refused at once, and nothing waits past its caller's own timeout."""
+at most `MAX_WAITING_PER_CALLER` of one caller identity and `MAX_WAITING` in all wait at a time
+(the excess refused `busy` at once), a stamp no frame can reach is refused at once, and nothing
+waits past its caller's own timeout."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from concurrent.futures import ThreadPoolExecutor
 
@@ -12,7 +14,7 @@ import pytest
 from mesh.acl import OPERATOR, VIEWER, granted
 from mesh.netflags import NetConfig
 from mesh.node import Node
-from mesh.rpc_server import MAX_WAITING
+from mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
 from protocol.errors import RpcError, RpcTimeout
 from protocol.keys import Keys, verb_key
 from protocol.verbs import NoArgs
@@ -50,33 +52,51 @@ def test_a_stamp_beyond_the_timeout_is_refused_at_once(net: NetConfig) -> None:
         assert took < 10.0  # not the 60 s the grab asked for
 
 
+def _as(net: NetConfig, identity: str) -> Node:
+    """A node whose calls name `identity` as their caller."""
+    return Node(None, dataclasses.replace(net, identity=identity))
+
+
 def test_waiting_grabs_hold_neither_the_worker_nor_more_than_their_bound(net: NetConfig) -> None:
+    callers = MAX_WAITING // MAX_WAITING_PER_CALLER  # identities that fill the port together
     with serving(run, _camera(net)), Node(None, net) as node:
         node.wait_alive(["camera"], timeout=30)
         key = node.keys.cam_rpc()
         never = GrabArgs(after_sim_time=NEVER, timeout=10.0)  # a world state that never comes
         probe = GrabArgs(after_sim_time=NEVER, timeout=0.5)
-
-        with ThreadPoolExecutor(MAX_WAITING) as pool:
-            pending = [pool.submit(_grab_error, node, never, 10.0) for _ in range(MAX_WAITING)]
-            # once every slot is taken, the next waiting request is refused `busy` at once
-            deadline = time.monotonic() + 8.0
-            while node.call_typed(key, STATUS, NoArgs(), timeout=5.0).waiting < MAX_WAITING:
-                assert time.monotonic() < deadline, "the pending grabs are not all waiting"
-                time.sleep(0.02)
-            start = time.monotonic()
-            error = _grab_error(node, probe, 2.0)
-            assert error is not None, error
-            assert error.code == "busy", error
-            assert time.monotonic() - start < 1.0
-            assert "try again later" in error.message
-            # the port's blocking verbs still run: a calibration frame is rendered meanwhile
-            start = time.monotonic()
-            marks = node.call_typed(key, CALIBRATION, NoArgs(), timeout=30.0)
-            assert marks.image.width == 320
-            assert time.monotonic() - start < 8.0
-            assert node.call_typed(key, STATUS, NoArgs(), timeout=5.0).source == "mujoco"
-            ends = [future.result() for future in pending]
+        others = [_as(net, f"caller{n}") for n in range(callers)]
+        try:
+            with ThreadPoolExecutor(MAX_WAITING) as pool:
+                pending = [
+                    pool.submit(_grab_error, other, never, 10.0)
+                    for other in others
+                    for _ in range(MAX_WAITING_PER_CALLER)
+                ]
+                # once every slot is taken, the next waiting request is refused `busy` at once
+                deadline = time.monotonic() + 8.0
+                while node.call_typed(key, STATUS, NoArgs(), timeout=5.0).waiting < MAX_WAITING:
+                    assert time.monotonic() < deadline, "the pending grabs are not all waiting"
+                    time.sleep(0.02)
+                start = time.monotonic()
+                error = _grab_error(node, probe, 2.0)
+                assert error is not None and error.code == "busy", error
+                assert time.monotonic() - start < 1.0
+                assert "(the most it takes)" in error.message
+                assert "try again later" in error.message
+                # one caller past its own bound is told so
+                error = _grab_error(others[0], probe, 2.0)
+                assert error is not None and error.code == "busy", error
+                assert "from 'caller0'" in error.message, error.message
+                # the port's blocking verbs still run: a calibration frame is rendered meanwhile
+                start = time.monotonic()
+                marks = node.call_typed(key, CALIBRATION, NoArgs(), timeout=30.0)
+                assert marks.image.width == 320
+                assert time.monotonic() - start < 8.0
+                assert node.call_typed(key, STATUS, NoArgs(), timeout=5.0).source == "mujoco"
+                ends = [future.result() for future in pending]
+        finally:
+            for other in others:
+                other.close()
         # each pending grab ended at its timeout
         assert all(e is not None and e.code == "timeout" for e in ends), ends
 
@@ -85,9 +105,11 @@ def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:
     with serving(run, _camera(net)), Node(None, net) as node:
         node.wait_alive(["camera"], timeout=30)
         never = GrabArgs(after_sim_time=NEVER, timeout=120.0)
-        # every slot taken by callers that give up after 1 s though their grabs ask for 120 s
-        with ThreadPoolExecutor(MAX_WAITING) as pool:
-            gone = list(pool.map(lambda _: _grab_error(node, never, 1.0), range(MAX_WAITING)))
+        # every slot of its caller taken by calls that give up after 1 s though their grabs
+        # ask for 120 s
+        with ThreadPoolExecutor(MAX_WAITING_PER_CALLER) as pool:
+            calls = range(MAX_WAITING_PER_CALLER)
+            gone = list(pool.map(lambda _: _grab_error(node, never, 1.0), calls))
         # (the caller's own timeout, or the camera's reply that it stopped at that time)
         assert all(e is not None and e.code == RpcTimeout.code for e in gone), gone
         # none waits on: their slots are free within seconds, not 120 s
@@ -103,21 +125,23 @@ def test_a_grab_stops_waiting_when_its_caller_gives_up(net: NetConfig) -> None:
 
 
 @pytest.mark.parametrize(
-    ("identity", "verb", "allowed"),
+    ("identity", "verb", "named", "allowed"),
     [
-        (VIEWER, "grab", True),
-        (VIEWER, "calibration", True),
-        (OPERATOR, "grab", True),
-        ("detector", "grab", True),
-        ("learner", "grab", False),
-        ("stranger", "grab", False),
+        (VIEWER, "grab", VIEWER, True),
+        (VIEWER, "grab", "detector", False),  # a grab names its own caller, none other
+        (VIEWER, "grab", None, False),
+        (VIEWER, "calibration", None, True),
+        (OPERATOR, "grab", OPERATOR, True),
+        ("detector", "grab", "detector", True),
+        ("learner", "grab", "learner", False),
+        ("stranger", "grab", "stranger", False),
     ],
 )
 def test_granted_follows_the_rules_a_timeout_is_not_called_denied(
-    identity: str, verb: str, allowed: bool
+    identity: str, verb: str, named: str | None, allowed: bool
 ) -> None:
     keys = Keys("icubSim")
-    assert granted("icubSim", identity, verb_key(keys.cam_rpc(), verb)) is allowed
+    assert granted("icubSim", identity, verb_key(keys.cam_rpc(), verb, named)) is allowed
 
 
 def test_granted_for_moving_verbs() -> None:

@@ -10,9 +10,13 @@ from msgspec import Meta
 from protocol.messages import Image
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["CAMERA_VERBS", "MAX_GRAB_TIMEOUT", "SceneReply"]
+__all__ = ["CAMERA_VERBS", "GRAB_BURST", "GRAB_RATE", "MAX_GRAB_TIMEOUT", "SceneReply"]
 
 MAX_GRAB_TIMEOUT = 120.0  # s
+# grabs one caller identity may make: GRAB_RATE a second, in bursts of GRAB_BURST (the excess
+# refused `busy`); a session's detector grabs once or twice a rollout
+GRAB_RATE = 20.0  # calls/s
+GRAB_BURST = 20
 
 
 class GrabArgs(Args, frozen=True):
@@ -67,6 +71,7 @@ GRAB = Verb(
     "the first frame fresher than the given times (default 5 s, at most 120 s)",
     reads=True,
     waits=True,
+    names_caller=True,  # waiting grabs and their rate are bounded per caller identity
 )
 
 CALIBRATION = Verb(

@@ -8,9 +8,14 @@ from msgspec import Meta
 
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["DETECTOR_VERBS", "KEPT_FRAMES", "MAX_TIMEOUT"]
+__all__ = ["DETECTOR_VERBS", "FRAME_BURST", "FRAME_RATE", "KEPT_FRAMES", "MAX_TIMEOUT"]
 
 MAX_TIMEOUT = 120.0  # s
+# frames one caller identity may ask for: FRAME_RATE a second, in bursts of FRAME_BURST (the
+# excess refused `busy`); each costs the detector tens of ms of colour maps and a PNG, and a
+# session's learner asks for one now and then (its latest hit's)
+FRAME_RATE = 2.0  # calls/s
+FRAME_BURST = 4
 
 Timeout = Annotated[float, Meta(gt=0.0, le=MAX_TIMEOUT, description="s to wait for a frame")]
 
@@ -104,7 +109,14 @@ class DetectorStatusReply(Reply, frozen=True):
     measured: int
 
 
-MEASURE = Verb("measure", MeasureArgs, MeasureReply, "detect target and arrow in a fresh frame")
+MEASURE = Verb(
+    "measure",
+    MeasureArgs,
+    MeasureReply,
+    "detect target and arrow in a fresh frame",
+    waits=True,  # for a fresh frame: one caller's waits never hold another's
+    names_caller=True,  # waiting measurements are bounded per caller identity
+)
 
 CALIBRATE = Verb("calibrate", CalibrateArgs, CalibrateReply, "fit the colour model from pixels")
 
@@ -115,6 +127,7 @@ FRAME = Verb(
     "a recently measured frame as PNG (with overlay): the last, or that of `seq`",
     reads=True,
     background=True,
+    names_caller=True,  # its rate is bounded per caller identity
 )
 
 STATUS = Verb(

@@ -75,9 +75,11 @@ class Capture:
         if config.source.kind == "mujoco":
             self.world = node.subscribe(node.keys.world_state(), WorldState, callback=self._woken)
 
-    def _woken(self, _state: WorldState) -> None:
-        """A world state arrived: wake the capture thread if a frame is wanted at all."""
-        if self.watched or self.store.waiting():
+    def _woken(self, state: WorldState) -> None:
+        """A world state arrived: wake the capture thread if a frame is wanted at all (a
+        subscriber, or a waiting grab this state or a capture now would serve: grabs waiting
+        for a sim time to come do not wake it at every state)."""
+        if self.watched or _serves(self.store.waiting(), state.sim_time, time.time()):
             self.jobs.notify()
 
     def watch(self, matching: bool) -> None:

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import time
 
-from mesh.rpc_server import caller_left
+from mesh.rates import RateLimit
+from mesh.rpc_server import caller_left, caller_or_anonymous
 from protocol.errors import BadRequest
 from protocol.messages import Image
 from protocol.robotspec import CALL_TIMEOUT
@@ -14,6 +15,8 @@ from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import camera as cv
 from protocol.verbs.camera import (
     CAMERA_VERBS,
+    GRAB_BURST,
+    GRAB_RATE,
     CalibrationReply,
     CameraStatusReply,
     GrabArgs,
@@ -40,6 +43,7 @@ class CameraHandlers:
         self._store = store
         self._views = views
         self._rendered = config.source.kind == "mujoco"
+        self.grabs = RateLimit("camera grab", GRAB_RATE, GRAB_BURST)  # per caller identity
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/cam/rpc:i`."""
@@ -56,17 +60,22 @@ class CameraHandlers:
         With neither stamp, a frame captured after this request arrived: never the newest frame
         kept from before (nobody watching, it may show a shot of long ago). A device or folder
         frame has no sim time: there `after_sim_time` also means "captured after this request
-        arrived". It never waits past its caller's own timeout, and a stamp that no frame can
-        reach within the timeout is refused at once.
+        arrived". It never waits past its caller's own timeout (`RpcRequest.wait`; a request
+        that does not say waits at most `CALL_TIMEOUT` s: a reply after its caller gave up would
+        go to no one), and a stamp that no frame can reach within the timeout is refused at
+        once. One caller identity makes at most `GRAB_RATE` grabs a second (bursts of
+        `GRAB_BURST`); how many of its grabs wait at once the server bounds
+        (`mesh.rpc_server.MAX_WAITING_PER_CALLER`).
 
         Raises:
+            Busy: the caller is past its rate.
             BadRequest: `after_stamp` lies beyond the timeout (no frame can be captured then).
             RpcTimeout: no such frame within the timeout.
         """
+        self.grabs.take(caller_or_anonymous())
         timeout = CALL_TIMEOUT if args.timeout is None else args.timeout
         left = caller_left()
-        if left is not None:
-            timeout = max(0.0, min(timeout, left))
+        timeout = max(0.0, min(timeout, CALL_TIMEOUT if left is None else left))
         after_sim_time, after_stamp = args.after_sim_time, args.after_stamp
         now = time.time()
         if after_stamp is not None and after_stamp > now + timeout:

@@ -20,10 +20,12 @@ import numpy as np
 
 from mesh.node import Node
 from mesh.publisher import Publisher
+from mesh.rates import RateLimit
+from mesh.rpc_server import caller_left, caller_or_anonymous
 from protocol.errors import BadRequest, RpcTimeout, UpstreamLost
 from protocol.messages import Detection as DetectionMessage
 from protocol.messages import Image
-from protocol.robotspec import CAMERA
+from protocol.robotspec import CALL_TIMEOUT, CAMERA
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import detector as dv
 from protocol.verbs.camera import CALIBRATION, GRAB, GrabArgs
@@ -71,6 +73,7 @@ class DetectorHandlers:
             collections.OrderedDict()
         )
         self._measured = 0
+        self.frames = RateLimit("detector frame", dv.FRAME_RATE, dv.FRAME_BURST)  # per caller
         if config.model and Path(config.model).exists():
             self._set_model(ColourModel.load(config.model), save=False)
 
@@ -92,7 +95,14 @@ class DetectorHandlers:
             log.info("colour model saved to %s", self._config.model)
 
     def _timeout(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> float:
-        return self._config.camera_timeout if args.timeout is None else args.timeout
+        """s to wait for the frame: the request's, else the configured one; a measurement never
+        past its caller's own timeout (`RpcRequest.wait`, less the grab's grace; `CALL_TIMEOUT`
+        when the request does not say), so no grab waits on for a caller that is gone."""
+        timeout = self._config.camera_timeout if args.timeout is None else args.timeout
+        if isinstance(args, dv.MeasureArgs):
+            left = caller_left()
+            timeout = min(timeout, CALL_TIMEOUT if left is None else left - GRAB_GRACE)
+        return max(timeout, 1e-3)
 
     def _grab(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> Image:
         timeout = self._timeout(args)
@@ -135,7 +145,11 @@ class DetectorHandlers:
 
     def measure(self, args: dv.MeasureArgs) -> dv.MeasureReply:
         """Grab a frame newer than the stamps, detect, publish the detection and reply with it
-        (plus the camera's frame number and the timing {grab_s, detect_s}, wall s)."""
+        (plus the camera's frame number and the timing {grab_s, detect_s}, wall s).
+
+        Measurements wait each on a thread of their own (`Verb.waits`), at most
+        `mesh.rpc_server.MAX_WAITING_PER_CALLER` of one caller identity at a time, so one
+        caller's waits never hold another's, and none waits past its caller's timeout."""
         detector = self.ensure_model() if self._config.auto_calibrate else self.detector
         if detector is None:
             raise NotCalibrated(
@@ -174,7 +188,14 @@ class DetectorHandlers:
 
     def frame(self, args: dv.FrameArgs) -> dv.FrameReply:
         """The last measured frame (or that of the measurement `seq`, one of the last
-        `KEPT_FRAMES`) as PNG, with the detection drawn when `overlay`."""
+        `KEPT_FRAMES`) as PNG, with the detection drawn when `overlay`; at most `FRAME_RATE` a
+        second (bursts of `FRAME_BURST`) for one caller identity.
+
+        Raises:
+            Busy: the caller is past its rate.
+            BadRequest: no such kept frame.
+        """
+        self.frames.take(caller_or_anonymous())
         with self._lock:
             if not self._kept:
                 raise BadRequest("no frame measured yet: call `measure` first")
