@@ -3,8 +3,10 @@
 `--out DEMO.json` follows a running robot while an operator drives its arms (the parts'
 `command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
 both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
-once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file: its
-form, and every angle within the simulated robot's joint limits. A bad file or flag: one line
+once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file with the
+reader `imitate` and the learner use (`protocol.demonstration.read_demonstration`: a regular
+file of bounded size, its form, samples, duration and events what a learner can play), and
+every angle within the simulated robot's joint limits. A bad file or flag: one line
 naming what is wrong, exit status 2.
 """
 
@@ -32,6 +34,7 @@ from protocol.demonstration import (
     check_limits,
     encode_demonstration,
     parse_demonstration,
+    read_demonstration,
 )
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
@@ -162,12 +165,7 @@ def _summary(demo: Demonstration) -> str:
 
 def _check(path: Path) -> int:
     try:
-        data = path.read_bytes()
-    except OSError as exc:
-        print(f"archery {PROG}: {path}: cannot read it ({exc.strerror})", file=sys.stderr)
-        return BAD_INPUT
-    try:
-        demo = parse_demonstration(data)
+        demo = read_demonstration(path)
         check_limits(demo, joint_limits(demo.shot))
     except BadDemonstration as exc:
         print(f"archery {PROG}: {path}: {exc.message}", file=sys.stderr)
