@@ -8,14 +8,17 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
+    MAX_STD,
     Bounds,
     Learner,
     RestoreError,
     _count_option,
     _finite_option,
     _std_option,
+    in_range,
     rng_from_state,
     rng_state,
 )
@@ -56,7 +59,7 @@ class CmaEs(Learner):
         popsize: int | None = None,
     ) -> None:
         super().__init__(theta0, rng=rng, bounds=bounds)
-        self.sigma0 = _finite_option("sigma0 (m)", sigma0, low=1e-9)
+        self.sigma0 = _finite_option("sigma0 (m)", sigma0, low=1e-9, high=MAX_STD)
         self.popsize = (
             4 + int(3 * np.log(self.theta0.size))
             if popsize is None
@@ -192,6 +195,10 @@ class HillClimber(Learner):
             raise RestoreError(f"hill-climber state needs 'std' (m): {exc}") from exc
         if std.shape != self.theta0.shape:
             raise RestoreError(f"hill-climber 'std' must have {self.theta0.size} components")
+        if not in_range(std, 0.0, MAX_STD):
+            raise RestoreError(
+                f"hill-climber 'std' {shown(extra[HILL_STATE_MARK])} m is outside [0, {MAX_STD}]"
+            )
         self.std = std
 
 
