@@ -7,10 +7,7 @@ analytic world).
 Observation: a `Box` of shape (5,), float64, metres: `[r_y, r_z, θ_x, θ_y, θ_z]`, the last
 measured r (the arrow's offset from the centre on the target plane: r[0] to the robot's right,
 r[1] up; unbounded) and the last θ shot (inside the action box). After `reset`, before any shot,
-r is (0, 0) and θ the episode's start θ (`info["shots"]` is 0 then).
-
-An action that is not 3 finite numbers: `BadAction` (Gymnasium's `InvalidAction`, also a
-ValueError), its message bounded; a finite one outside the box is clipped.
+r is (0, 0) and θ the episode's start θ (`info["shots"]` is 0 then). A bad action: `BadAction`.
 """
 
 from __future__ import annotations
