@@ -27,6 +27,7 @@ from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node, open_node
 from protocol.demonstration import (
     FORMAT,
+    MIN_DT,
     BadDemonstration,
     DemoEvent,
     Demonstration,
@@ -102,7 +103,8 @@ class Recorder:
         return self._ended.wait(timeout)
 
     def demonstration(self) -> Demonstration:
-        """What was recorded: the times at which both arms' states arrived, up to the landing.
+        """What was recorded: the times at which both arms' states arrived, up to the landing
+        (at least `protocol.demonstration.MIN_DT` apart).
 
         Raises:
             BadDemonstration: too short to be a demonstration.
@@ -114,6 +116,7 @@ class Recorder:
             by_time = {t: self._by_time[t] for t in times}
         if not times:
             raise BadDemonstration("no state of both arms was recorded")
+        times = _spaced(times)
         start = times[0]
         demo = Demonstration(
             format=FORMAT,
@@ -135,6 +138,16 @@ class Recorder:
         for sub in self._states:
             sub.close()
         self._events_sub.close()
+
+
+def _spaced(times: list[float]) -> list[float]:
+    """`times` (s, sorted) thinned so that two kept ones are at least `MIN_DT` apart (a state
+    stream faster than a learner plays)."""
+    kept = [times[0]]
+    for t in times[1:]:
+        if t - kept[-1] >= MIN_DT:
+            kept.append(t)
+    return kept
 
 
 def joint_limits(shot: str) -> Mapping[str, tuple[Sequence[float], Sequence[float]]]:

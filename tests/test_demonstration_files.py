@@ -148,3 +148,12 @@ def test_check_refuses_a_movement_too_long_to_play_in_one_line(tmp_path: Path) -
     path = tmp_path / "demo.json"
     path.write_bytes(BAD["last time 1e12 s"][0])
     _one_line(_check(path), "too long")
+
+
+def test_a_recording_faster_than_a_learner_plays_is_thinned_to_the_shortest_interval() -> None:
+    from apps.demonstrate import _spaced
+
+    times = [i * 4e-4 for i in range(100)]  # a 2.5 kHz state stream
+    kept = _spaced(times)
+    assert kept[0] == 0.0 and float(np.diff(kept).min()) >= MIN_DT
+    assert len(kept) >= len(times) * 4e-4 / MIN_DT - 1
