@@ -16,7 +16,7 @@ import gymnasium as gym
 import numpy as np
 
 from apps.gym import keywords
-from apps.gym.aim import DEFAULT_BUDGET, episode_budget
+from apps.gym.aim import DEFAULT_BUDGET, episode_budget, session_of
 from apps.gym.registration import AIM_ROBOT_ID
 from apps.gym.robot_claim import claim_robot, robot_names
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
@@ -214,12 +214,15 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """A new episode: every service alive (waiting up to `wait` s), the robot home, its
-        shot noise seeded with `seed` (else a draw of the environment's generator).
+        shot noise seeded with `seed` (else a draw of the environment's generator). The one
+        option, `{"session": K}` (an integer >= 0, as `Aim-v0` takes it), is checked and
+        changes nothing here: the robot's noise follows `seed` alone.
 
         Raises:
+            ValueError: options other than None or `{"session": K}`.
             ServiceLostError: a service is still missing after `wait` s, or lost in the reset.
         """
-        keywords.reset_options(AIM_ROBOT_ID, options, ())
+        session_of(keywords.reset_options(AIM_ROBOT_ID, options, ("session",)))  # checked only
         super().reset(seed=seed)
         robot_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
         try:
