@@ -235,6 +235,11 @@ BAD_STATES = {
         lambda s: {**s, "options": {**s["options"], "explore_std": 1e308}},
         "explore_std (m) must be finite and in [0, 1.0], got 1e+308",
     ),
+    "a million CMA-ES proposals to replay": (
+        "cma",
+        lambda s: {**s, "extra": {**s["extra"], "events": s["extra"]["events"] + "p" * 10**6}},
+        "and at most one 'p' more",
+    ),
     "PoWER variance 1e308": (
         "power",
         lambda s: {**s, "extra": {**s["extra"], "variance": [1e308] * 3}},

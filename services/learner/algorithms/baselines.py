@@ -123,10 +123,15 @@ class CmaEs(Learner):
             rng0, events = extra["rng0"], str(extra["events"])
         except (KeyError, TypeError) as exc:
             raise RestoreError(f"CMA-ES state needs 'rng0' and 'events': {exc}") from exc
-        if set(events) - {"p", "u"} or events.count("u") != self.n_rollouts:
+        # One 'p' per proposal: at most one per told rollout, and the pending one.
+        if (
+            set(events) - {"p", "u"}
+            or events.count("u") != self.n_rollouts
+            or events.count("p") > self.n_rollouts + 1
+        ):
             raise RestoreError(
-                f"CMA-ES events {events!r} must be 'p'/'u' letters, one 'u' per told rollout "
-                f"({self.n_rollouts})"
+                f"CMA-ES events must be 'p'/'u' letters, one 'u' per told rollout "
+                f"({self.n_rollouts}) and at most one 'p' more, got {shown(events, 60)}"
             )
         saved_final, pending = rng_state(self.rng), self._pending
         self.rng, self._rng0 = rng_from_state(rng0), rng0
