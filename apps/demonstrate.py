@@ -3,8 +3,10 @@
 `--out DEMO.json` follows a running robot while an operator drives its arms (the parts'
 `command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
 both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
-once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file: its
-form, and every angle within the simulated robot's joint limits. A bad file or flag: one line
+once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file with the
+reader `imitate` and the learner use (`protocol.demonstration.read_demonstration`: a regular
+file of bounded size, its form, samples, duration and events what a learner can play), and
+every angle within the simulated robot's joint limits. A bad file or flag: one line
 naming what is wrong, exit status 2.
 """
 
@@ -25,6 +27,7 @@ from mesh.netflags import NetConfig, add_network_args
 from mesh.node import Node, open_node
 from protocol.demonstration import (
     FORMAT,
+    MIN_DT,
     BadDemonstration,
     DemoEvent,
     Demonstration,
@@ -32,6 +35,7 @@ from protocol.demonstration import (
     check_limits,
     encode_demonstration,
     parse_demonstration,
+    read_demonstration,
 )
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
@@ -99,7 +103,8 @@ class Recorder:
         return self._ended.wait(timeout)
 
     def demonstration(self) -> Demonstration:
-        """What was recorded: the times at which both arms' states arrived, up to the landing.
+        """What was recorded: the times at which both arms' states arrived, up to the landing
+        (at least `protocol.demonstration.MIN_DT` apart).
 
         Raises:
             BadDemonstration: too short to be a demonstration.
@@ -111,6 +116,7 @@ class Recorder:
             by_time = {t: self._by_time[t] for t in times}
         if not times:
             raise BadDemonstration("no state of both arms was recorded")
+        times = _spaced(times)
         start = times[0]
         demo = Demonstration(
             format=FORMAT,
@@ -132,6 +138,16 @@ class Recorder:
         for sub in self._states:
             sub.close()
         self._events_sub.close()
+
+
+def _spaced(times: list[float]) -> list[float]:
+    """`times` (s, sorted) thinned so that two kept ones are at least `MIN_DT` apart (a state
+    stream faster than a learner plays)."""
+    kept = [times[0]]
+    for t in times[1:]:
+        if t - kept[-1] >= MIN_DT:
+            kept.append(t)
+    return kept
 
 
 def joint_limits(shot: str) -> Mapping[str, tuple[Sequence[float], Sequence[float]]]:
@@ -162,12 +178,7 @@ def _summary(demo: Demonstration) -> str:
 
 def _check(path: Path) -> int:
     try:
-        data = path.read_bytes()
-    except OSError as exc:
-        print(f"archery {PROG}: {path}: cannot read it ({exc.strerror})", file=sys.stderr)
-        return BAD_INPUT
-    try:
-        demo = parse_demonstration(data)
+        demo = read_demonstration(path)
         check_limits(demo, joint_limits(demo.shot))
     except BadDemonstration as exc:
         print(f"archery {PROG}: {path}: {exc.message}", file=sys.stderr)

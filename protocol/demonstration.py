@@ -2,15 +2,17 @@
 events, as `archery demonstrate` records and checks it (a JSON file).
 
 Times are seconds of simulated time from the first sample, joint angles radians in YARP order
-(`protocol.parts`). `parse_demonstration` checks the form (JSON, fields, the arms' joint names
-and counts, times increasing, long enough); `check_limits` checks the angles against joint
-limits the caller knows (the simulator's). Each raises `BadDemonstration` with one line that
-names what is wrong.
+(`protocol.parts`). `read_demonstration` reads a file (regular, at most `MAX_BYTES`);
+`parse_demonstration` checks the form (fields, the arms' joints, times increasing) and that a
+learner can play it: bounded samples, interval and duration (a DMP's planning time and memory
+grow with duration / interval), events in order within the samples; `check_limits` checks the
+angles against joint limits the caller knows. Each raises `BadDemonstration` with one line.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Literal
 
@@ -19,9 +21,15 @@ from msgspec import Meta
 
 from protocol.errors import ArcheryError
 from protocol.parts import ARM_PARTS, PARTS
+from protocol.regular_file import FileRefused, read_regular
 
 __all__ = [
+    "EVENT_SLACK",
     "FORMAT",
+    "MAX_BYTES",
+    "MAX_DURATION",
+    "MAX_SAMPLES",
+    "MIN_DT",
     "MIN_DURATION",
     "MIN_SAMPLES",
     "BadDemonstration",
@@ -31,12 +39,17 @@ __all__ = [
     "check_limits",
     "encode_demonstration",
     "parse_demonstration",
+    "read_demonstration",
 ]
 
 FORMAT: Literal["archery-demonstration/1"] = "archery-demonstration/1"
 MIN_SAMPLES = 20  # a movement needs at least this many samples …
 MIN_DURATION = 1.0  # … over at least this long (s)
-MAX_SAMPLES = 200_000
+MAX_DURATION = 60.0  # s: the shipped one lasts 12.6 s; a DMP step costs ~45 µs to roll out
+MIN_DT = 1e-3  # s between two samples: the DMP's step is their median interval
+MAX_SAMPLES = int(MAX_DURATION / MIN_DT) + 1  # at most this many samples …
+MAX_BYTES = 40_000_000  # … and bytes in the file (indented JSON: ~450 bytes a sample)
+EVENT_SLACK = 0.1  # s: an event (the shot's end) may follow the last sample by this much
 
 Angles = Annotated[list[float], Meta(min_length=1, max_length=64, description="rad")]
 
@@ -76,11 +89,16 @@ class Demonstration(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
 
 
 def parse_demonstration(data: bytes) -> Demonstration:
-    """The demonstration in `data` (JSON), its form checked.
+    """The demonstration in `data` (JSON), its form checked, and what a learner plays bounded:
+    at most `MAX_SAMPLES` samples, at least `MIN_DT` s apart, over `MIN_DURATION` to
+    `MAX_DURATION` s (a DMP rolls out one step per median interval, ~45 µs each), every event
+    in order within the samples' span (the shot's end may follow the last sample by
+    `EVENT_SLACK` s: the recording stops at it).
 
     Raises:
         BadDemonstration: not JSON, a missing or unknown field, joints other than the arms',
-            a sample of the wrong length, times not finite or not increasing, too short.
+            a sample of the wrong length, times not finite, not increasing or too close, too
+            short or too long, an event outside the samples or out of order.
     """
     try:
         demo = msgspec.json.decode(data, type=Demonstration)
@@ -104,6 +122,11 @@ def parse_demonstration(data: bytes) -> Demonstration:
     for i, sample in enumerate(demo.samples):
         if not math.isfinite(sample.t) or sample.t <= previous:
             raise BadDemonstration(f"sample {i}: time {sample.t!r} s does not follow {previous} s")
+        if sample.t - previous < MIN_DT:
+            raise BadDemonstration(
+                f"sample {i}: time {sample.t!r} s follows {previous!r} s by less than "
+                f"{MIN_DT:g} s, the shortest sample interval a learner plays"
+            )
         previous = sample.t
         for part in ARM_PARTS:
             angles = getattr(sample, part)
@@ -118,7 +141,55 @@ def parse_demonstration(data: bytes) -> Demonstration:
         raise BadDemonstration(
             f"too short: {duration:.3f} s, a demonstration lasts at least {MIN_DURATION:g} s"
         )
+    if duration > MAX_DURATION:
+        raise BadDemonstration(
+            f"too long: {duration:.6g} s, a demonstration lasts at most {MAX_DURATION:g} s"
+        )
+    _check_events(demo)
     return demo
+
+
+def _check_events(demo: Demonstration) -> None:
+    """Every event finite, in order, within the samples' span (+ `EVENT_SLACK`)."""
+    first, last = demo.samples[0].t, demo.samples[-1].t
+    previous = first
+    for i, event in enumerate(demo.events):
+        if not first <= event.t <= last + EVENT_SLACK:
+            raise BadDemonstration(
+                f"event {i} ({event.kind}): time {event.t!r} s is outside the samples' "
+                f"{first:g} .. {last:g} s"
+            )
+        if event.t < previous:
+            raise BadDemonstration(
+                f"event {i} ({event.kind}): time {event.t!r} s comes before the event ahead "
+                f"of it ({previous!r} s)"
+            )
+        previous = event.t
+
+
+def read_demonstration(path: str | os.PathLike[str]) -> Demonstration:
+    """The demonstration in the file at `path`, its form checked (`parse_demonstration`).
+
+    Only a regular file of at most `MAX_BYTES` is read (`protocol.regular_file`): a folder, a
+    FIFO or a device is refused without a blocking open, and at most `MAX_BYTES` + 1 bytes are
+    ever read.
+
+    Raises:
+        BadDemonstration: it cannot be read, is not a regular file, is too large, or is not a
+            valid demonstration (one line).
+    """
+    try:
+        data = read_regular(path, MAX_BYTES)
+    except FileRefused as refused:
+        if refused.problem == "cannot_open":
+            raise BadDemonstration(f"cannot read it ({refused.detail})") from None
+        if refused.problem == "not_regular":
+            raise BadDemonstration(f"not a regular file ({refused.detail})") from None
+        size = f"{refused.size} bytes" if refused.problem == "too_large" else "more"
+        raise BadDemonstration(
+            f"too large: {size}, a demonstration file holds at most {MAX_BYTES} bytes"
+        ) from None
+    return parse_demonstration(data)
 
 
 def check_limits(

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import json
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 from msgspec import UnsetType
@@ -209,3 +211,64 @@ def test_a_resume_that_would_pass_the_bound_is_refused_before_it_starts(
     with pytest.raises(JournalError, match="47 more rollouts would take it to about"):
         Session.resume(path, FakeRig())
     assert path.read_bytes() == before  # refused before anything was written
+
+
+BAD_STATES = {
+    # a generator state that is a 10 MB integer (its hex string, as `rng_state` tags big ints)
+    "10 MB generator integer": (
+        "archer",
+        lambda s: {**s, "rng": {**s["rng"], "state": {"state": {"__int__": "f" * 10**7}}}},
+        "not a saved random generator state",
+    ),
+    "unknown bit generator": (
+        "archer",
+        lambda s: {**s, "rng": {**s["rng"], "bit_generator": "RandomState"}},
+        "not a saved random generator state",
+    ),
+    "pending far outside the θ box": (
+        "archer",
+        lambda s: {**s, "pending": [1e308] * 3},
+        "pending θ [1e+308, 1e+308, 1e+308] m is outside the θ box",
+    ),
+    "explore_std 1e308": (
+        "archer",
+        lambda s: {**s, "options": {**s["options"], "explore_std": 1e308}},
+        "explore_std (m) must be finite and in [0, 1.0], got 1e+308",
+    ),
+    "a million CMA-ES proposals to replay": (
+        "cma",
+        lambda s: {**s, "extra": {**s["extra"], "events": s["extra"]["events"] + "p" * 10**6}},
+        "and at most one 'p' more",
+    ),
+    "PoWER variance 1e308": (
+        "power",
+        lambda s: {**s, "extra": {**s["extra"], "variance": [1e308] * 3}},
+        "PoWER variance [1e+308, 1e+308, 1e+308] m² is outside",
+    ),
+    "hill-climber std 1e308": (
+        "hill",
+        lambda s: {**s, "extra": {k: [1e308] * 3 for k in s["extra"]}},
+        "hill-climber 'std' [1e+308, 1e+308, 1e+308] m is outside",
+    ),
+}
+
+
+@pytest.mark.parametrize(("algorithm", "corrupt", "says"), BAD_STATES.values(), ids=BAD_STATES)
+def test_a_checkpoint_out_of_its_algorithms_ranges_is_skipped_for_the_one_before_it(
+    uninterrupted: dict[str, Path],
+    tmp_path: Path,
+    algorithm: str,
+    corrupt: Callable[[dict[str, Any]], dict[str, Any]],
+    says: str,
+) -> None:
+    path = _cut_after_rollout(uninterrupted[algorithm], tmp_path / algorithm, CHECKPOINT_EVERY + 30)
+    checkpoint = next(
+        r for r in read_records(path)[0] if isinstance(r, CheckpointRecord)
+    ).learner_state
+    _edit(path, {"learner_state": corrupt(dict(checkpoint))}, record="checkpoint")
+    Session.resume(path, FakeRig()).run(threading.Event())  # no traceback: the header's state
+    assert _shots(path) == _shots(uninterrupted[algorithm])
+    (resumed,) = [r for r in read_records(path)[0] if isinstance(r, ResumedRecord)]
+    assert isinstance(resumed.skipped, str)
+    assert f"(after rollout {CHECKPOINT_EVERY}): " in resumed.skipped, resumed.skipped
+    assert says in resumed.skipped and len(resumed.skipped) < 600, resumed.skipped

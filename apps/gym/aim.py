@@ -13,14 +13,45 @@ import gymnasium as gym
 import numpy as np
 
 from apps.experiment.config import WindChange
+from apps.gym.keywords import (
+    flag,
+    keyword_errors,
+    make_keywords,
+    number,
+    refuse_unknown,
+    reset_options,
+)
+from apps.gym.registration import AIM_ID
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
+from protocol.text import cut, shown
+from protocol.vectors import finite_vector
 from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds
 from sim.ballistic import BallisticWorld, Scenario, ScenarioError
 from sim.geometry import INNER_RING_RADIUS
 
-__all__ = ["DEFAULT_BUDGET", "AimEnv", "episode_budget", "session_of", "wind_change_of"]
+__all__ = ["DEFAULT_BUDGET", "KEYWORDS", "AimEnv", "episode_budget", "session_of", "wind_change_of"]
 
 DEFAULT_BUDGET = 60  # shots per episode, as the paper's sessions
+
+
+def _bounds(bounds: object) -> Bounds:
+    """The `bounds` keyword: None (`DEFAULT_BOUNDS`), a `Bounds` or (low, high) in m.
+
+    Raises:
+        ValueError: anything else, named.
+    """
+    if bounds is None:
+        return DEFAULT_BOUNDS
+    if isinstance(bounds, Bounds):
+        return bounds
+    try:
+        low, high = cast(tuple[Sequence[float], Sequence[float]], bounds)
+        return Bounds(low=tuple(low), high=tuple(high))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"bounds must be (low, high) θ vectors (m) or a Bounds, got {shown(bounds)}: "
+            f"{cut(str(exc))}"
+        ) from None
 
 
 def episode_budget(budget: object) -> int:
@@ -30,7 +61,7 @@ def episode_budget(budget: object) -> int:
         ValueError: it is not one.
     """
     if isinstance(budget, bool) or not isinstance(budget, int | np.integer) or budget < 1:
-        raise ValueError(f"budget must be an integer >= 1 (shots per episode), got {budget!r}")
+        raise ValueError(f"budget must be an integer >= 1 (shots per episode), got {shown(budget)}")
     return int(budget)
 
 
@@ -42,7 +73,7 @@ def session_of(options: dict[str, Any] | None) -> int:
     """
     session = (options or {}).get("session", 0)
     if isinstance(session, bool) or not isinstance(session, int | np.integer) or session < 0:
-        raise ValueError(f"options['session'] must be an integer >= 0, got {session!r}")
+        raise ValueError(f"options['session'] must be an integer >= 0, got {shown(session)}")
     return int(session)
 
 
@@ -64,7 +95,7 @@ def wind_change_of(value: object, budget: int) -> WindChange | None:
             change = WindChange(int(at), (vx, vy, vz))
         except (TypeError, ValueError):
             raise ValueError(
-                f"wind_change must be 'AT:VX,VY,VZ' or (AT, (VX, VY, VZ)), got {value!r}"
+                f"wind_change must be 'AT:VX,VY,VZ' or (AT, (VX, VY, VZ)), got {shown(value)}"
             ) from None
     if change is not None and not 2 <= change.at <= budget:
         raise ValueError(f"wind_change shot {change.at} must be in [2, {budget}] (the budget)")
@@ -85,7 +116,8 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         render_mode: None (nothing to render).
 
     Raises:
-        ValueError (`sim.ballistic.ScenarioError` for the scenario): a bad keyword, named.
+        ValueError (`sim.ballistic.ScenarioError` for the scenario's ranges): a bad or unknown
+            keyword, named, in at most `apps.gym.keywords.MESSAGE_LIMIT` characters.
 
     One step is one shot: the action θ (m, `apps.gym.spaces`) is shot at the target and the
     observation is where it landed (r, m) and the θ shot; the reward is −‖r‖ (m). Every scenario
@@ -124,30 +156,17 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         until_hit: bool = True,
         bounds: Bounds | tuple[Sequence[float], Sequence[float]] | None = None,
         render_mode: str | None = None,
+        **unknown: object,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(
-                f"archery/Aim-v0 renders nothing: render_mode must be None, got {render_mode!r}"
-            )
-        given = {
-            "distance": distance,
-            "wind": None if wind is None else tuple(wind),
-            "drag": drag,
-            "noise": noise,
-            "bow_stiffness": bow_stiffness,
-            "start": None if start is None else tuple(start),
-        }
-        self.scenario = Scenario(**{k: v for k, v in given.items() if v is not None})  # type: ignore[arg-type]
-        self.budget = episode_budget(budget)
-        self.until_hit = bool(until_hit)
-        self.wind_change = wind_change_of(wind_change, self.budget)
-        if bounds is None:
-            self.bounds = DEFAULT_BOUNDS
-        elif isinstance(bounds, Bounds):
-            self.bounds = bounds
-        else:
-            low, high = bounds
-            self.bounds = Bounds(low=tuple(low), high=tuple(high))
+        with keyword_errors():
+            refuse_unknown(AIM_ID, unknown, KEYWORDS)
+            if render_mode is not None:
+                raise ValueError(
+                    f"{AIM_ID} renders nothing: render_mode must be None, got {shown(render_mode)}"
+                )
+            self._check(distance, wind, drag, noise, bow_stiffness, start, budget, until_hit)
+            self.wind_change = wind_change_of(wind_change, self.budget)
+            self.bounds = _bounds(bounds)
         if not self.bounds.contains(np.array(self.scenario.start)):
             raise ScenarioError(
                 f"start θ {list(self.scenario.start)} m lies outside the θ box "
@@ -167,12 +186,48 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         self._seeded = False
         self._obs = observation(np.zeros(2), self._start)
 
+    def _check(
+        self,
+        distance: object,
+        wind: object,
+        drag: object,
+        noise: object,
+        bow_stiffness: object,
+        start: object,
+        budget: object,
+        until_hit: object,
+    ) -> None:
+        """The scenario's keywords checked (named, bounded messages), `scenario`, `budget` and
+        `until_hit` set."""
+        given = {
+            name: number(name, value, unit)
+            for name, value, unit in (
+                ("distance", distance, "m"),
+                ("drag", drag, "1/m"),
+                ("noise", noise, "m"),
+                ("bow_stiffness", bow_stiffness, "N/m"),
+            )
+            if value is not None
+        }
+        vectors = {
+            name: tuple(finite_vector(name, value, ValueError, unit=unit).tolist())
+            for name, value, unit in (("wind", wind, "m/s"), ("start", start, "m"))
+            if value is not None
+        }
+        self.scenario = Scenario(**given, **vectors)  # type: ignore[arg-type]
+        self.budget = episode_budget(budget)
+        self.until_hit = flag("until_hit", until_hit)
+
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """A new episode: no shot yet, θ at the start; with `seed` (and `options["session"]`),
-        the observation noise of `archery experiment --seed SEED`'s session."""
-        session = session_of(options)
+        the observation noise of `archery experiment --seed SEED`'s session.
+
+        Raises:
+            ValueError: options other than None or `{"session": K}`, K an integer >= 0.
+        """
+        session = session_of(reset_options(AIM_ID, options, ("session",)))
         super().reset(seed=seed)
         if seed is not None or not self._seeded:
             master = seed if seed is not None else int(self.np_random.integers(2**63))
@@ -186,7 +241,8 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         """Shoot θ = `action` (m, clipped into the box).
 
         Raises:
-            ValueError: the action holds a NaN or an infinity, or is not 3 numbers.
+            BadAction: the action holds a NaN or an infinity, or is not 3 numbers (Gymnasium's
+                `InvalidAction`, a ValueError).
         """
         theta, clipped = checked_action(action, self.action_space)
         self._shots += 1
@@ -213,3 +269,7 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         terminated = self.until_hit and hit
         truncated = not terminated and self._shots >= self.budget
         return self._obs.copy(), -distance, terminated, truncated, info
+
+
+#: `AimEnv`'s `make` keywords: its constructor's.
+KEYWORDS = make_keywords(AimEnv)

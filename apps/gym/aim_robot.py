@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
 import sys
 import threading
@@ -16,7 +15,8 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.gym.aim import DEFAULT_BUDGET, episode_budget
+from apps.gym import keywords
+from apps.gym.aim import DEFAULT_BUDGET, episode_budget, session_of
 from apps.gym.registration import AIM_ROBOT_ID
 from apps.gym.robot_claim import claim_robot, robot_names
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
@@ -26,6 +26,7 @@ from mesh.node import open_node
 from protocol.errors import ArcheryError, ConfigError, Unreachable
 from protocol.keys import DEFAULT_ROBOT
 from protocol.robotspec import HIT_RADIUS, THETA0
+from protocol.text import shown
 from protocol.vectors import finite_vector
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
 from services.learner.config import read_demonstration
@@ -34,7 +35,7 @@ from services.learner.rig import SERVICES, MeshRig
 from services.learner.rollout_step import Failed, planar_distance, shoot
 from sim.geometry import TARGET_DIAMETER
 
-__all__ = ["AimRobotEnv", "RobotUnavailable", "ServiceLostError", "ShotNotMeasured"]
+__all__ = ["KEYWORDS", "AimRobotEnv", "RobotUnavailable", "ServiceLostError", "ShotNotMeasured"]
 
 
 class RobotUnavailable(ConnectionError):
@@ -72,19 +73,19 @@ def _after_fork_in_child() -> None:
 os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
-def _positive(name: str, value: float, unit: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
-        raise ValueError(f"{name} must be a number > 0 ({unit}), got {value!r}")
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite ({unit}), got {value!r}")
-    return float(value)
+def _positive(name: str, value: object, unit: str) -> float:
+    result = keywords.number(name, value, unit)
+    if not result > 0:
+        raise ValueError(f"{name} must be a number > 0 ({unit}), got {shown(value)}")
+    return result
 
 
 class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
     """The iCub over the mesh: shoot θ (m), observe the detector's r (m).
 
     Raises:
-        ValueError: a bad keyword, named (`protocol.errors.ConfigError` for a network setting).
+        ValueError: a bad or unknown keyword, named (`protocol.errors.ConfigError` for a network
+            setting), in at most `apps.gym.keywords.MESSAGE_LIMIT` characters.
         RobotUnavailable: no router or robot within `wait` s, or a router that refuses the
             session.
 
@@ -144,16 +145,21 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         rpc_timeout: float = 20.0,
         miss_distance: float = TARGET_DIAMETER / 2,
         render_mode: str | None = None,
+        **unknown: object,
     ) -> None:
-        if render_mode is not None:
-            raise ValueError(f"{AIM_ROBOT_ID} renders nothing: render_mode must be None")
-        self.budget = episode_budget(budget)
-        self.until_hit = bool(until_hit)
-        self.hit_radius = _positive("hit_radius", hit_radius, "m")
-        self.wait = _positive("wait", wait, "s")
-        self.rpc_timeout = _positive("rpc_timeout", rpc_timeout, "s")
-        self.miss_distance = _positive("miss_distance", miss_distance, "m")
-        self._start = np.array(finite_vector("start", start, ValueError), dtype=np.float64)
+        with keywords.keyword_errors():
+            keywords.refuse_unknown(AIM_ROBOT_ID, unknown, KEYWORDS)
+            if render_mode is not None:
+                raise ValueError(f"{AIM_ROBOT_ID} renders nothing: render_mode must be None")
+            self.budget = episode_budget(budget)
+            self.until_hit = keywords.flag("until_hit", until_hit)
+            self.hit_radius = _positive("hit_radius", hit_radius, "m")
+            self.wait = _positive("wait", wait, "s")
+            self.rpc_timeout = _positive("rpc_timeout", rpc_timeout, "s")
+            self.miss_distance = _positive("miss_distance", miss_distance, "m")
+            self._start = np.array(finite_vector("start", start, ValueError), dtype=np.float64)
+            names = robot_names(robot)
+            net = NetConfig(connect=(endpoint,), robot=names[0], secure=secure, identity=identity)
         if _forked_after_zenoh:
             raise RuntimeError(
                 f"{AIM_ROBOT_ID} cannot join the mesh from a process forked after Zenoh ran in "
@@ -162,8 +168,6 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             )
         global _zenoh_opened
         _zenoh_opened = True
-        names = robot_names(robot)
-        net = NetConfig(connect=(endpoint,), robot=names[0], secure=secure, identity=identity)
         self._claim = claim_robot(names)
         self.robot = self._claim.robot
         self._stack = contextlib.ExitStack()
@@ -210,11 +214,15 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
         """A new episode: every service alive (waiting up to `wait` s), the robot home, its
-        shot noise seeded with `seed` (else a draw of the environment's generator).
+        shot noise seeded with `seed` (else a draw of the environment's generator). The one
+        option, `{"session": K}` (an integer >= 0, as `Aim-v0` takes it), is checked and
+        changes nothing here: the robot's noise follows `seed` alone.
 
         Raises:
+            ValueError: options other than None or `{"session": K}`.
             ServiceLostError: a service is still missing after `wait` s, or lost in the reset.
         """
+        session_of(keywords.reset_options(AIM_ROBOT_ID, options, ("session",)))  # checked only
         super().reset(seed=seed)
         robot_seed = int(seed) if seed is not None else int(self.np_random.integers(2**31))
         try:
@@ -236,7 +244,8 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         """Shoot θ = `action` (m, clipped into the controller's box) on the robot.
 
         Raises:
-            ValueError: the action holds a NaN or an infinity (nothing moves).
+            BadAction: the action holds a NaN or an infinity, or is not 3 numbers (Gymnasium's
+                `InvalidAction`, a ValueError; nothing moves).
             ServiceLostError: a service was lost during the shot (named).
             ShotNotMeasured: the posture was not reached, or the detector saw no target.
         """
@@ -290,3 +299,7 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
         self._stop.set()
         self._stack.close()
         super().close()
+
+
+#: `AimRobotEnv`'s `make` keywords: its constructor's.
+KEYWORDS = keywords.make_keywords(AimRobotEnv)

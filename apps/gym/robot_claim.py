@@ -16,6 +16,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from mesh.runtime import runtime_dir
+from protocol.text import shown
 
 __all__ = ["LOCK_NAME", "RobotClaim", "claim_robot", "robot_names"]
 
@@ -40,12 +41,15 @@ def robot_names(robot: str | Sequence[str]) -> list[str]:
     """The prefixes of a `robot` keyword: one name, names separated by commas, or a list.
 
     Raises:
-        ValueError: no name, or an empty one.
+        ValueError: not a string or a list of strings, no name, or an empty one.
     """
+    listed = isinstance(robot, list | tuple) and all(isinstance(n, str) for n in robot)
+    if not isinstance(robot, str) and not listed:
+        raise ValueError(f"robot must name one robot prefix or several, got {shown(robot)}")
     names = robot.split(",") if isinstance(robot, str) else list(robot)
-    names = [str(n).strip() for n in names]
+    names = [n.strip() for n in names]
     if not names or not all(names):
-        raise ValueError(f"robot must name one robot prefix or several, got {robot!r}")
+        raise ValueError(f"robot must name one robot prefix or several, got {shown(robot)}")
     return names
 
 

@@ -7,7 +7,7 @@ analytic world).
 Observation: a `Box` of shape (5,), float64, metres: `[r_y, r_z, θ_x, θ_y, θ_z]`, the last
 measured r (the arrow's offset from the centre on the target plane: r[0] to the robot's right,
 r[1] up; unbounded) and the last θ shot (inside the action box). After `reset`, before any shot,
-r is (0, 0) and θ the episode's start θ (`info["shots"]` is 0 then).
+r is (0, 0) and θ the episode's start θ (`info["shots"]` is 0 then). A bad action: `BadAction`.
 """
 
 from __future__ import annotations
@@ -16,11 +16,14 @@ import math
 
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import InvalidAction
 
+from protocol.text import shown
 from services.learner.algorithms.base import Bounds
 
 __all__ = [
     "OBSERVATION_FIELDS",
+    "BadAction",
     "action_space",
     "checked_action",
     "observation",
@@ -29,6 +32,11 @@ __all__ = [
 
 #: What each component of an observation is (all in metres).
 OBSERVATION_FIELDS = ("r_y", "r_z", "theta_x", "theta_y", "theta_z")
+
+
+class BadAction(InvalidAction, ValueError):
+    """An action that is not 3 finite numbers (θ, m): Gymnasium's `InvalidAction` for an action
+    not in the space, and a ValueError; its message quotes the action cut (`protocol.text`)."""
 
 
 def action_space(bounds: Bounds) -> spaces.Box:
@@ -57,21 +65,34 @@ def checked_action(action: object, space: spaces.Box) -> tuple[np.ndarray, bool]
     clipped into `space` (Gymnasium's convention for continuous boxes) and never sent raw.
 
     Raises:
-        ValueError: the action is not 3 numbers, or holds a NaN or an infinity (named), before
+        BadAction: the action is not 3 numbers, or holds a NaN or an infinity (named), before
             anything moves.
     """
+    size = _size(action)
+    if size is not None and size > space.shape[0]:  # refused before a long one is copied
+        raise BadAction(f"action must be 3 numbers (θ in m), got {size}: {shown(action)}")
     try:
         theta = np.array(action, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"action must be 3 numbers (θ in m), got {action!r}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise BadAction(f"action must be 3 numbers (θ in m), got {shown(action)}") from None
     if theta.shape != space.shape:
-        raise ValueError(f"action must be 3 numbers (θ in m), got {theta.size}: {action!r}")
+        raise BadAction(f"action must be 3 numbers (θ in m), got {theta.size}: {shown(action)}")
     bad = np.flatnonzero(~np.isfinite(theta))
     if bad.size:
         i = int(bad[0])
-        raise ValueError(
+        raise BadAction(
             f"action {theta.tolist()} m holds {float(theta[i])!r} at index {i}: θ must be finite; "
             "nothing was moved"
         )
     clipped = np.clip(theta, space.low, space.high)
     return clipped, bool(np.any(clipped != theta))
+
+
+def _size(action: object) -> int | None:
+    """How many numbers an array holds, or items a list or tuple (at least its numbers' count
+    when nested as (1, 3) or (3, 1)); None for anything else."""
+    if isinstance(action, np.ndarray):
+        return int(action.size)
+    if isinstance(action, list | tuple):
+        return len(action)
+    return None

@@ -16,7 +16,8 @@ from msgspec import UnsetType
 from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
-from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
+from protocol.demonstration import BadDemonstration, Demonstration
+from protocol.demonstration import read_demonstration as read_file
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
@@ -335,9 +336,7 @@ def read_demonstration(
     path = Path(path or SHIPPED_DEMONSTRATION)
     named = f"{flag} {path}" if flag else str(path)
     try:
-        return parse_demonstration(path.read_bytes())
-    except OSError as exc:
-        raise ConfigError(f"{named}: cannot read it ({exc.strerror})") from None
+        return read_file(path)
     except BadDemonstration as exc:
         raise ConfigError(f"{named}: {exc.message}") from None
 

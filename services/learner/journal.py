@@ -17,7 +17,6 @@ import errno
 import io
 import json
 import os
-import stat
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -44,6 +43,7 @@ from protocol.journal_records import (
     ResumedRecord,
     SessionRecord,
 )
+from protocol.regular_file import FileRefused, open_regular, read_regular
 from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.learner import MAX_ROLLOUTS
 
@@ -186,6 +186,20 @@ def read_records(path: Path) -> tuple[list[JournalRecord], int]:
     return records, good
 
 
+def _journal_error(path: Path, refused: FileRefused) -> JournalError:
+    """`refused` (`protocol.regular_file`) worded for the journal at `path`."""
+    if refused.problem == "cannot_open":
+        return JournalError(f"cannot read journal {path}: {refused.detail}")
+    if refused.problem == "not_regular":
+        return JournalError(f"journal {path} is not a regular file ({refused.detail})")
+    if refused.problem == "too_large":
+        return JournalError(
+            f"journal {path} holds {refused.size} bytes, more than a journal may "
+            f"({MAX_JOURNAL_BYTES} bytes)"
+        )
+    return JournalError(f"journal {path} holds more than {MAX_JOURNAL_BYTES} bytes")
+
+
 def _open_regular(path: Path, flags: int) -> int:
     """A descriptor of the regular file `path`, opened with `flags` and O_NONBLOCK (so that a
     FIFO or a device cannot block the open) and checked on the open file.
@@ -195,37 +209,17 @@ def _open_regular(path: Path, flags: int) -> int:
             `MAX_JOURNAL_BYTES`.
     """
     try:
-        fd = os.open(path, flags | os.O_NONBLOCK | os.O_NOCTTY | os.O_CLOEXEC)
-    except OSError as exc:
-        raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
-    try:
-        info = os.fstat(fd)
-        if not stat.S_ISREG(info.st_mode):
-            raise JournalError(f"journal {path} is not a regular file")
-        if info.st_size > MAX_JOURNAL_BYTES:
-            raise JournalError(
-                f"journal {path} holds {info.st_size} bytes, more than a journal may "
-                f"({MAX_JOURNAL_BYTES} bytes)"
-            )
-    except BaseException:
-        os.close(fd)
-        raise
-    return fd
+        return open_regular(path, flags, MAX_JOURNAL_BYTES)
+    except FileRefused as refused:
+        raise _journal_error(path, refused) from None
 
 
 def _read_bounded(path: Path) -> bytes:
     """The bytes of the regular file `path`, at most `MAX_JOURNAL_BYTES` (`_open_regular`)."""
-    fd = _open_regular(path, os.O_RDONLY)
     try:
-        with os.fdopen(fd, "rb", closefd=False) as f:
-            data = f.read(MAX_JOURNAL_BYTES + 1)
-    except OSError as exc:
-        raise JournalError(f"cannot read journal {path}: {exc.strerror or exc}") from None
-    finally:
-        os.close(fd)
-    if len(data) > MAX_JOURNAL_BYTES:  # it grew while being read
-        raise JournalError(f"journal {path} holds more than {MAX_JOURNAL_BYTES} bytes")
-    return data
+        return read_regular(path, MAX_JOURNAL_BYTES)
+    except FileRefused as refused:
+        raise _journal_error(path, refused) from None
 
 
 def check_invariants(records: Sequence[JournalRecord], *, allow_open: bool = False) -> list[str]:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.text import shown
+from protocol.text import cut, shown
 from services.learner.algorithms.base import Learner, LearnerError, with_history
 from services.learner.algorithms.registry import restore_learner
 from services.learner.journal import Checkpoint, JournalError, JournalState
@@ -34,8 +34,10 @@ def rebuild_learner(state: JournalState) -> tuple[Learner, list[str]]:
     for checkpoint in reversed(state.checkpoints):
         try:
             learner = _restored(state, checkpoint)
-        except (LearnerError, KeyError, TypeError, ValueError) as exc:
-            skipped.append(f"{checkpoint.where} (after rollout {checkpoint.rollout}): {exc}")
+        except (LearnerError, KeyError, TypeError, ValueError, ArithmeticError) as exc:
+            skipped.append(
+                f"{checkpoint.where} (after rollout {checkpoint.rollout}): {cut(str(exc))}"
+            )
             continue
         _tell_after(learner, state, checkpoint)
         return learner, skipped

@@ -11,6 +11,7 @@ import numpy as np
 from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
+    MAX_STD,
     Bounds,
     Learner,
     LearnerConfigError,
@@ -114,9 +115,9 @@ class Archer(Learner):
             raise LearnerConfigError(f"safeguard must be True or False, got {shown(safeguard)}")
         self.safeguard = safeguard
         self.max_cond = _finite_option("max_cond", max_cond, low=1.0)
-        self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0)
+        self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0, high=MAX_STD)
         self.min_step = _finite_option("min_step (m)", min_step, low=0.0)
-        self.max_step = _finite_option("max_step (m)", max_step, low=self.min_step)
+        self.max_step = _finite_option("max_step (m)", max_step, low=self.min_step, high=MAX_STD)
         self.trust_radius = _finite_option(
             "trust_radius (m)", trust_radius, low=self.min_step, high=self.max_step
         )
@@ -284,4 +285,6 @@ class Archer(Learner):
                 f"ARCHER seeds must be {self.n_best} θ {self.theta0.size}-vectors and "
                 f"{self.n_best} r 2-vectors"
             )
+        if not (np.all(np.isfinite(thetas)) and np.all(np.isfinite(rewards))):
+            raise RestoreError("ARCHER seeds hold a number that is not finite")
         self._set_seeds(thetas, rewards)

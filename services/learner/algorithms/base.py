@@ -15,6 +15,7 @@ from protocol.vectors import finite_vector
 
 __all__ = [
     "DEFAULT_BOUNDS",
+    "MAX_STD",
     "STATE_VERSION",
     "Bounds",
     "Learner",
@@ -22,6 +23,7 @@ __all__ = [
     "LearnerError",
     "ObservationError",
     "RestoreError",
+    "in_range",
     "rng_from_state",
     "rng_state",
     "scalar_return",
@@ -30,6 +32,13 @@ __all__ = [
 
 STATE_VERSION = 1
 _INT64_MAX = 2**63 - 1
+MAX_STD = 1.0  # m: the largest exploration std or step a learner takes (θ spans ~0.1-0.3 m)
+# A saved generator's state (`rng_state`): numpy's bit generators, their integers of at most
+# 128 bits (PCG64's state and increment) and arrays of at most 1,024 (MT19937's 624-word key).
+_BIT_GENERATORS = ("PCG64", "PCG64DXSM", "MT19937", "Philox", "SFC64")
+_RNG_INT_BITS = 128
+_RNG_ARRAY = 1024
+_RNG_DEPTH = 3
 
 
 class LearnerError(ValueError):
@@ -64,16 +73,22 @@ def _finite_option(name: str, value: float, *, low: float, high: float = math.in
 
 
 def _std_option(name: str, value: float | Sequence[float], dim: int) -> np.ndarray:
-    """Validate a standard deviation (m), one for all components or one per component."""
+    """Validate a standard deviation (m) in [0, `MAX_STD`], one for all components or one per
+    component."""
     try:
         array = np.broadcast_to(np.asarray(value, dtype=float), (dim,)).copy()
     except (TypeError, ValueError) as exc:
         raise LearnerConfigError(
             f"{name} must be one number or {dim} numbers, got {shown(value)}"
         ) from exc
-    if not np.all(np.isfinite(array)) or np.any(array < 0):
-        raise LearnerConfigError(f"{name} must be finite and >= 0, got {shown(value)}")
+    if not in_range(array, 0.0, MAX_STD):
+        raise LearnerConfigError(f"{name} must be finite and in [0, {MAX_STD}], got {shown(value)}")
     return array
+
+
+def in_range(values: np.ndarray, low: float | np.ndarray, high: float | np.ndarray) -> bool:
+    """True if every value is finite and in [low, high] (per component for arrays)."""
+    return bool(np.all(np.isfinite(values)) and np.all((values >= low) & (values <= high)))
 
 
 def _count_option(name: str, value: int, *, low: int) -> int:
@@ -204,14 +219,64 @@ def rng_state(rng: np.random.Generator) -> dict[str, Any]:
     return result
 
 
+def _rng_int(value: Any) -> bool:
+    """True for an int of at most `_RNG_INT_BITS` bits, plain or tagged by `_plain`."""
+    if isinstance(value, dict):
+        text = value.get("__int__")
+        return len(value) == 1 and isinstance(text, str) and len(text) <= 3 + _RNG_INT_BITS // 4
+    return (
+        isinstance(value, int)
+        and not isinstance(value, bool)
+        and value.bit_length() <= _RNG_INT_BITS
+    )
+
+
+def _rng_form(value: Any, depth: int = 0) -> bool:
+    """True if `value` has the form and the sizes of a saved generator's state (`rng_state`):
+    nested dicts of strings, ints of at most `_RNG_INT_BITS` bits (plain or tagged) and short
+    tagged arrays, checked before anything is converted."""
+    if isinstance(value, bool | float | str):
+        return not isinstance(value, str) or len(value) <= 64
+    if isinstance(value, int):
+        return _rng_int(value)
+    if not isinstance(value, dict) or depth > _RNG_DEPTH:
+        return False
+    if "__int__" in value:
+        return _rng_int(value)
+    if "__array__" in value:
+        items = value["__array__"]
+        return (
+            set(value) == {"__array__", "dtype"}
+            and isinstance(items, list)
+            and len(items) <= _RNG_ARRAY
+            and isinstance(value["dtype"], str)
+            and len(value["dtype"]) <= 16
+            and all(_rng_int(x) for x in items)
+        )
+    return len(value) <= 8 and all(
+        isinstance(k, str) and _rng_form(v, depth + 1) for k, v in value.items()
+    )
+
+
 def rng_from_state(state: dict[str, Any]) -> np.random.Generator:
-    """A Generator that continues exactly where the one saved by `rng_state` stopped."""
+    """A Generator that continues exactly where the one saved by `rng_state` stopped.
+
+    Raises:
+        RestoreError: not a state `rng_state` writes: another form, a bit generator numpy does
+            not have, an integer or an array bigger than any of theirs (the value quoted,
+            `protocol.text`).
+    """
+    refused = f"not a saved random generator state: {shown(state)}"
+    if not _rng_form(state) or not isinstance(state, dict):
+        raise RestoreError(refused)
+    if state.get("bit_generator") not in _BIT_GENERATORS:
+        raise RestoreError(refused)
     try:
         raw = _unplain(state)
         bit_generator = getattr(np.random, raw["bit_generator"])()
         bit_generator.state = raw
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
-        raise RestoreError(f"not a saved random generator state: {state!r}") from exc
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as exc:
+        raise RestoreError(refused) from exc
     return np.random.Generator(bit_generator)
 
 
@@ -437,6 +502,14 @@ class Learner(ABC):
             raise RestoreError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
         if any(r.shape != (2,) for r in rewards) or (pending is not None and pending.shape != (d,)):
             raise RestoreError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
+        if not all(in_range(v, -math.inf, math.inf) for v in (*thetas, *rewards)):
+            raise RestoreError("learner state history holds a number that is not finite")
+        low, high = np.asarray(self.bounds.low), np.asarray(self.bounds.high)
+        if pending is not None and not in_range(pending, low, high):
+            raise RestoreError(
+                f"learner state's pending θ {shown(state['pending'])} m is outside the θ box "
+                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
+            )
         self.rng = rng_from_state(state["rng"])
         self._thetas = thetas
         self._rewards = rewards

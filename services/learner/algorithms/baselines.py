@@ -8,14 +8,17 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
+    MAX_STD,
     Bounds,
     Learner,
     RestoreError,
     _count_option,
     _finite_option,
     _std_option,
+    in_range,
     rng_from_state,
     rng_state,
 )
@@ -56,7 +59,7 @@ class CmaEs(Learner):
         popsize: int | None = None,
     ) -> None:
         super().__init__(theta0, rng=rng, bounds=bounds)
-        self.sigma0 = _finite_option("sigma0 (m)", sigma0, low=1e-9)
+        self.sigma0 = _finite_option("sigma0 (m)", sigma0, low=1e-9, high=MAX_STD)
         self.popsize = (
             4 + int(3 * np.log(self.theta0.size))
             if popsize is None
@@ -120,10 +123,15 @@ class CmaEs(Learner):
             rng0, events = extra["rng0"], str(extra["events"])
         except (KeyError, TypeError) as exc:
             raise RestoreError(f"CMA-ES state needs 'rng0' and 'events': {exc}") from exc
-        if set(events) - {"p", "u"} or events.count("u") != self.n_rollouts:
+        # One 'p' per proposal: at most one per told rollout, and the pending one.
+        if (
+            set(events) - {"p", "u"}
+            or events.count("u") != self.n_rollouts
+            or events.count("p") > self.n_rollouts + 1
+        ):
             raise RestoreError(
-                f"CMA-ES events {events!r} must be 'p'/'u' letters, one 'u' per told rollout "
-                f"({self.n_rollouts})"
+                f"CMA-ES events must be 'p'/'u' letters, one 'u' per told rollout "
+                f"({self.n_rollouts}) and at most one 'p' more, got {shown(events, 60)}"
             )
         saved_final, pending = rng_state(self.rng), self._pending
         self.rng, self._rng0 = rng_from_state(rng0), rng0
@@ -192,6 +200,10 @@ class HillClimber(Learner):
             raise RestoreError(f"hill-climber state needs 'std' (m): {exc}") from exc
         if std.shape != self.theta0.shape:
             raise RestoreError(f"hill-climber 'std' must have {self.theta0.size} components")
+        if not in_range(std, 0.0, MAX_STD):
+            raise RestoreError(
+                f"hill-climber 'std' {shown(extra[HILL_STATE_MARK])} m is outside [0, {MAX_STD}]"
+            )
         self.std = std
 
 

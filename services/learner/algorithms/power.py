@@ -7,14 +7,17 @@ from typing import Any
 
 import numpy as np
 
+from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
+    MAX_STD,
     Bounds,
     Learner,
     RestoreError,
     _count_option,
     _finite_option,
     _std_option,
+    in_range,
 )
 
 __all__ = ["DEFAULT_RETURN_SCALE", "Power"]
@@ -119,4 +122,10 @@ class Power(Learner):
             raise RestoreError(f"PoWER state needs 'mean' and 'variance' vectors: {exc}") from exc
         if mean.shape != self.theta0.shape or variance.shape != self.theta0.shape:
             raise RestoreError(f"PoWER state vectors must have {self.theta0.size} components")
+        if not in_range(mean, np.asarray(self.bounds.low), np.asarray(self.bounds.high)):
+            raise RestoreError(f"PoWER mean {shown(extra['mean'])} m is outside the θ box")
+        if not in_range(variance, 0.0, MAX_STD**2):
+            raise RestoreError(
+                f"PoWER variance {shown(extra['variance'])} m² is outside [0, {MAX_STD**2}]"
+            )
         self.mean, self.variance = mean, variance

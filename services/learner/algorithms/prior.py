@@ -10,6 +10,7 @@ import numpy as np
 from protocol.text import shown
 from services.learner.algorithms.base import (
     DEFAULT_BOUNDS,
+    MAX_STD,
     Bounds,
     Learner,
     LearnerConfigError,
@@ -136,11 +137,13 @@ class ArcherPrior(Learner):
         self.change_threshold = _finite_option("change_threshold (m)", change_threshold, low=0.0)
         self.change_gain = _finite_option("change_gain", change_gain, low=0.0)
         self.min_step = _finite_option("min_step (m)", min_step, low=0.0)
-        self.max_step = _finite_option("max_step (m)", max_step, low=max(self.min_step, 1e-9))
+        self.max_step = _finite_option(
+            "max_step (m)", max_step, low=max(self.min_step, 1e-9), high=MAX_STD
+        )
         self.trust_radius = _finite_option(
             "trust_radius (m)", trust_radius, low=max(self.min_step, 1e-9), high=self.max_step
         )
-        self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0)
+        self.fallback_std = _finite_option("fallback_std (m)", fallback_std, low=0.0, high=MAX_STD)
         self.max_cond = _finite_option("max_cond", max_cond, low=1.0)
         self._radius0 = self.trust_radius
         self._metric = np.ones(self.theta0.size)
