@@ -4,7 +4,7 @@
 `command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
 both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
 once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file with the
-reader `imitate` and the learner use (`protocol.demonstration.read_demonstration`: a regular
+reader `imitate` and the learner use (`services.learner.config.read_demonstration`: a regular
 file of bounded size, its form, samples, duration and events what a learner can play), and
 every angle within the simulated robot's joint limits. A bad file or flag: one line
 naming what is wrong, exit status 2.
@@ -35,7 +35,6 @@ from protocol.demonstration import (
     check_limits,
     encode_demonstration,
     parse_demonstration,
-    read_demonstration,
 )
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
@@ -44,6 +43,7 @@ from protocol.parts import ARM_PARTS, PARTS
 from protocol.robotspec import NOMINAL_THETA, ROBOT
 from protocol.vectors import parse_vector
 from protocol.verbs.robot import ARCHERY_STATUS
+from services.learner.config import read_demonstration
 
 __all__ = ["Recorder", "joint_limits", "main"]
 
@@ -178,8 +178,11 @@ def _summary(demo: Demonstration) -> str:
 
 def _check(path: Path) -> int:
     try:
-        demo = read_demonstration(path)
+        demo = read_demonstration(path, flag="")
         check_limits(demo, joint_limits(demo.shot))
+    except ConfigError as exc:  # the reader names the file
+        print(f"archery {PROG}: {exc.message}", file=sys.stderr)
+        return BAD_INPUT
     except BadDemonstration as exc:
         print(f"archery {PROG}: {path}: {exc.message}", file=sys.stderr)
         return BAD_INPUT

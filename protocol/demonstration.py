@@ -2,17 +2,17 @@
 events, as `archery demonstrate` records and checks it (a JSON file).
 
 Times are seconds of simulated time from the first sample, joint angles radians in YARP order
-(`protocol.parts`). `read_demonstration` reads a file (regular, at most `MAX_BYTES`);
-`parse_demonstration` checks the form (fields, the arms' joints, times increasing) and that a
-learner can play it: bounded samples, interval and duration (a DMP's planning time and memory
-grow with duration / interval), events in order within the samples; `check_limits` checks the
-angles against joint limits the caller knows. Each raises `BadDemonstration` with one line.
+(`protocol.parts`). `parse_demonstration` checks a file's bytes (at most `MAX_BYTES`, read
+bounded by the learner's reader, `services.learner.config.read_demonstration`): the form
+(fields, the arms' joints, times increasing) and that a learner can play it: bounded samples,
+interval and duration (a DMP's planning time and memory grow with duration / interval), events
+in order within the samples; `check_limits` checks the angles against joint limits the caller
+knows. Each raises `BadDemonstration` with one line.
 """
 
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Mapping, Sequence
 from typing import Annotated, Literal
 
@@ -21,7 +21,6 @@ from msgspec import Meta
 
 from protocol.errors import ArcheryError
 from protocol.parts import ARM_PARTS, PARTS
-from protocol.regular_file import FileRefused, read_regular
 
 __all__ = [
     "EVENT_SLACK",
@@ -39,7 +38,6 @@ __all__ = [
     "check_limits",
     "encode_demonstration",
     "parse_demonstration",
-    "read_demonstration",
 ]
 
 FORMAT: Literal["archery-demonstration/1"] = "archery-demonstration/1"
@@ -165,31 +163,6 @@ def _check_events(demo: Demonstration) -> None:
                 f"of it ({previous!r} s)"
             )
         previous = event.t
-
-
-def read_demonstration(path: str | os.PathLike[str]) -> Demonstration:
-    """The demonstration in the file at `path`, its form checked (`parse_demonstration`).
-
-    Only a regular file of at most `MAX_BYTES` is read (`protocol.regular_file`): a folder, a
-    FIFO or a device is refused without a blocking open, and at most `MAX_BYTES` + 1 bytes are
-    ever read.
-
-    Raises:
-        BadDemonstration: it cannot be read, is not a regular file, is too large, or is not a
-            valid demonstration (one line).
-    """
-    try:
-        data = read_regular(path, MAX_BYTES)
-    except FileRefused as refused:
-        if refused.problem == "cannot_open":
-            raise BadDemonstration(f"cannot read it ({refused.detail})") from None
-        if refused.problem == "not_regular":
-            raise BadDemonstration(f"not a regular file ({refused.detail})") from None
-        size = f"{refused.size} bytes" if refused.problem == "too_large" else "more"
-        raise BadDemonstration(
-            f"too large: {size}, a demonstration file holds at most {MAX_BYTES} bytes"
-        ) from None
-    return parse_demonstration(data)
 
 
 def check_limits(

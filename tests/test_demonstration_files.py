@@ -1,8 +1,9 @@
 """A demonstration file is checked for what will be done with it: `archery demonstrate --check`,
-`archery imitate` and the learner read it with the one reader (`read_demonstration`), which
-refuses what a learner could not play (samples too close, too long a movement, events outside
-the samples or out of order) and any file that is not a regular one of bounded size, in one
-line and exit status 2, without hanging or reading without end."""
+`archery imitate` and the learner read it with the one reader
+(`services.learner.config.read_demonstration`), which refuses what a learner could not play
+(samples too close, too long a movement, events outside the samples or out of order) and any
+file that is not a regular one of bounded size, in one line and exit status 2, without hanging
+or reading without end."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from protocol.demonstration import (
     MAX_DURATION,
     MIN_DT,
     BadDemonstration,
-    read_demonstration,
+    parse_demonstration,
 )
 from protocol.errors import ConfigError
 from protocol.exit_status import BAD_INPUT
@@ -84,7 +85,7 @@ def test_what_a_learner_cannot_play_is_refused_by_every_reader(
     path = tmp_path / "demo.json"
     path.write_bytes(content)
     with pytest.raises(BadDemonstration) as caught:
-        read_demonstration(path)
+        parse_demonstration(content)
     assert says in caught.value.message and "\n" not in caught.value.message
     with pytest.raises(ConfigError) as refused:
         learner_reads(path)  # the learner's `--demonstration` and `archery imitate`
@@ -102,7 +103,7 @@ def test_imitate_refuses_it_before_it_plans(
 
 
 def test_the_bounds_leave_the_shipped_demonstration_and_a_slack_end_in() -> None:
-    shipped = read_demonstration(SHIPPED_DEMONSTRATION)
+    shipped = learner_reads(SHIPPED_DEMONSTRATION)
     assert shipped.events[-1].t > shipped.samples[-1].t  # its shot ended after its last sample
     assert shipped.samples[-1].t < MAX_DURATION / 2
     times = [s.t for s in shipped.samples]

@@ -16,8 +16,13 @@ from msgspec import UnsetType
 from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
-from protocol.demonstration import BadDemonstration, Demonstration
-from protocol.demonstration import read_demonstration as read_file
+from mesh.regular_file import FileRefused, read_regular
+from protocol.demonstration import (
+    MAX_BYTES,
+    BadDemonstration,
+    Demonstration,
+    parse_demonstration,
+)
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
@@ -327,16 +332,29 @@ class LearnerServiceConfig:
 def read_demonstration(
     path: str | Path | None = None, flag: str = "--demonstration"
 ) -> Demonstration:
-    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked; its
-    errors name the `flag` that gave it ("" for a positional argument).
+    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked
+    (`parse_demonstration`); its errors name the `flag` that gave it ("" for a positional
+    argument). The one reader of a demonstration file (`archery demonstrate --check`, `imitate`,
+    the learner): only a regular file is read (a folder, a FIFO or a device is refused without
+    a blocking open), and at most `MAX_BYTES` + 1 bytes of it (`mesh.regular_file`).
 
     Raises:
-        ConfigError: it cannot be read or is not a valid demonstration (one line).
+        ConfigError: it cannot be read, is not a regular file, is too large, or is not a valid
+            demonstration (one line).
     """
     path = Path(path or SHIPPED_DEMONSTRATION)
     named = f"{flag} {path}" if flag else str(path)
     try:
-        return read_file(path)
+        return parse_demonstration(read_regular(path, MAX_BYTES))
+    except FileRefused as refused:
+        if refused.problem == "cannot_open":
+            why = f"cannot read it ({refused.detail})"
+        elif refused.problem == "not_regular":
+            why = f"not a regular file ({refused.detail})"
+        else:
+            size = f"{refused.size} bytes" if refused.problem == "too_large" else "more"
+            why = f"too large: {size}, a demonstration file holds at most {MAX_BYTES} bytes"
+        raise ConfigError(f"{named}: {why}") from None
     except BadDemonstration as exc:
         raise ConfigError(f"{named}: {exc.message}") from None
 

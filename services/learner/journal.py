@@ -27,6 +27,7 @@ import msgspec
 import numpy as np
 from msgspec import UnsetType
 
+from mesh.regular_file import FileRefused, open_regular, read_regular
 from protocol.errors import ArcheryError
 from protocol.journal_records import (
     JOURNAL_VERSION,
@@ -43,7 +44,6 @@ from protocol.journal_records import (
     ResumedRecord,
     SessionRecord,
 )
-from protocol.regular_file import FileRefused, open_regular, read_regular
 from protocol.text import SHOWN_LIMIT, cut, shown
 from protocol.verbs.learner import MAX_ROLLOUTS
 
@@ -187,7 +187,7 @@ def read_records(path: Path) -> tuple[list[JournalRecord], int]:
 
 
 def _journal_error(path: Path, refused: FileRefused) -> JournalError:
-    """`refused` (`protocol.regular_file`) worded for the journal at `path`."""
+    """`refused` (`mesh.regular_file`) worded for the journal at `path`."""
     if refused.problem == "cannot_open":
         return JournalError(f"cannot read journal {path}: {refused.detail}")
     if refused.problem == "not_regular":
