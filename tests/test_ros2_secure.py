@@ -4,6 +4,7 @@ put by the read-only identity reaches nobody, the operator identity's moves the 
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 import time
@@ -33,6 +34,7 @@ from mesh.node import open_node
 from mesh.router import free_tcp_endpoint
 from protocol.verbs import robot as rv
 from tests.ros2_sdk import until
+from tests.test_secure_session import _wait_for_line
 
 ROBOT = "icubSim"
 
@@ -149,3 +151,25 @@ def test_only_the_operator_identity_commands_through_ros2(mesh: SecureMesh) -> N
             publisher.undeclare()
         finally:
             operator.close()
+
+
+def test_up_secure_runs_the_read_only_ros2_node(tmp_path: Path) -> None:
+    deployment = init_deployment(tmp_path / "deploy", robot=ROBOT)
+    endpoint = free_tcp_endpoint().replace("tcp/", "tls/")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "apps.cli", "up", "--secure", str(deployment), "--listen",
+         endpoint, "--robot", ROBOT, "--logs", str(tmp_path / "logs"), "--runs",
+         str(tmp_path / "runs"), "--ros2", "0"],
+        stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        _wait_for_line(up, "archery up: on the ROS 2 graph", timeout=180)
+        net = NetConfig(connect=(endpoint,), robot=ROBOT, secure=str(deployment), identity=ROS2)
+        with open_session(net) as session:
+            tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**")]
+        assert any("/NN/" in token for token in tokens), tokens  # the node is on the graph
+        assert not any("/MS/" in t and "command" in t for t in tokens), tokens  # read-only
+    finally:
+        up.send_signal(signal.SIGINT)
+        up.communicate(timeout=60)
+    assert up.returncode == 0

@@ -261,8 +261,6 @@ def main(argv: list[str] | None = None) -> int:
             )
         if args.ros2 is not None and not 0 <= args.ros2 <= 232:
             raise ConfigError(f"--ros2 {args.ros2}: give a ROS 2 domain id from 0 to 232")
-        if args.ros2 is not None and args.secure:
-            raise ConfigError("--ros2 and --secure: the access control grants no ROS 2 keys")
         if mesh.router.start:  # the router's listen endpoint, checked before anything starts
             NetConfig(
                 connect=(),
