@@ -64,7 +64,7 @@ from mesh.router import free_tcp_endpoint, spawn_router
 from protocol.codec import encode
 from protocol.keys import verb_key, verbs_key
 from protocol.messages import Image, RpcRequest
-from protocol.verbs import Args, Reply, Verb, VerbTable
+from protocol.verbs import Args, Reply, Verb, VerbTable, names_caller
 
 ROBOT = "bench"
 THETA = [0.17, 0.03, -0.03]
@@ -230,7 +230,8 @@ class RawRpc:
     ) -> None:
         self.delay = delay
         self.payload = encode(RpcRequest(verb=verb, args={"theta": THETA}, stamp=time.time()))
-        target = verb_key(port, verb)
+        # the learner's call, as its node names itself on a verb that names its caller
+        target = verb_key(port, verb, "learner" if names_caller(port, verb) else None)
         self._queryable = b.declare_queryable(verbs_key(port), self._on_query)
         self._querier = a.declare_querier(target, timeout=5.0)
         deadline = time.monotonic() + 10

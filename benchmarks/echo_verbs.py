@@ -4,6 +4,7 @@ every verb of the mesh (what the RPC benchmarks time)."""
 from __future__ import annotations
 
 from mesh.acl import roles
+from protocol.keys import split_verb
 from protocol.verbs import Args, Reply, ServedVerbs, Verb, VerbTable
 
 __all__ = [
@@ -51,7 +52,9 @@ def granted_verbs(robot: str, caller: str, port: str) -> list[str]:
     Raises:
         RuntimeError: it grants `caller` none there.
     """
-    names = [c.rpartition("/")[2] for c in roles(robot)[caller].call if c.startswith(f"{port}/")]
+    # a verb that names its caller is granted as VERB~CALLER: the client names it itself
+    chunks = [c.rpartition("/")[2] for c in roles(robot)[caller].call if c.startswith(f"{port}/")]
+    names = list(dict.fromkeys(split_verb(chunk)[0] for chunk in chunks))
     if not names:
         raise RuntimeError(f"the ACL grants {caller} no verb on {port}")
     return names
