@@ -16,6 +16,7 @@ import argparse
 import json
 import sys
 import threading
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -66,7 +67,9 @@ class Recorder:
         self._by_time: dict[float, dict[str, list[float]]] = {}
         self._events: list[tuple[float, str]] = []
         self._first = threading.Event()
-        self._ended = threading.Event()
+        self._ended = threading.Event()  # the shot's end event arrived: no more events
+        self._complete = threading.Event()  # and both arms' states reached its time
+        self._end = float("inf")  # s (simulated): the shot's end
         self._shot, self._made = shot, made
         keys = node.keys
         self._states = [
@@ -78,40 +81,60 @@ class Recorder:
         )
 
     def _state(self, msg: JointState) -> None:
-        if msg.part not in ARM_PARTS or msg.sim_time is None or self._ended.is_set():
+        if msg.part not in ARM_PARTS or msg.sim_time is None or self._complete.is_set():
             return
         with self._lock:
-            self._by_time.setdefault(msg.sim_time, {})[msg.part] = list(msg.position)
+            parts = self._by_time.setdefault(msg.sim_time, {})
+            parts[msg.part] = list(msg.position)
+            reached = msg.sim_time >= self._end and len(parts) == len(ARM_PARTS)
         self._first.set()
+        if reached:
+            self._complete.set()
 
     def _event(self, msg: WorldEvent) -> None:
         if msg.kind not in _EVENTS or msg.sim_time is None or not self._first.is_set():
             return
         if self._ended.is_set():
             return
+        reached = False
         with self._lock:
             self._events.append((msg.sim_time, msg.kind))
+            if msg.kind in _SHOT_ENDS:
+                self._end = msg.sim_time
+                reached = any(
+                    t >= self._end and len(parts) == len(ARM_PARTS)
+                    for t, parts in self._by_time.items()
+                )
         if msg.kind in _SHOT_ENDS:
             self._ended.set()
+            if reached:
+                self._complete.set()
 
     def wait_started(self, timeout: float) -> bool:
         """True once the first state arrived (the operator may start), within `timeout` s."""
         return self._first.wait(timeout)
 
     def wait_ended(self, timeout: float) -> bool:
-        """True once the arrow has landed (or missed), within `timeout` wall s."""
-        return self._ended.wait(timeout)
+        """True once the arrow has landed (or missed), within `timeout` wall s, and then both
+        arms' states have reached the landing's time (the state streams and the events are
+        separate streams: the last states may follow the event), within what is left of it."""
+        deadline = time.monotonic() + timeout
+        if not self._ended.wait(timeout):
+            return False
+        self._complete.wait(max(0.0, deadline - time.monotonic()))
+        return True
 
     def demonstration(self) -> Demonstration:
-        """What was recorded: the times at which both arms' states arrived, up to the landing
-        (at least `protocol.demonstration.MIN_DT` apart).
+        """What was recorded: the times at which both arms' states arrived, up to the first
+        after the landing (at least `protocol.demonstration.MIN_DT` apart).
 
         Raises:
             BadDemonstration: too short to be a demonstration.
         """
         with self._lock:
-            end = self._events[-1][0] if self._ended.is_set() else float("inf")
-            times = sorted(t for t, parts in self._by_time.items() if len(parts) == 2 and t <= end)
+            both = sorted(t for t, parts in self._by_time.items() if len(parts) == len(ARM_PARTS))
+            after = [t for t in both if t >= self._end]
+            times = [t for t in both if t < self._end] + after[:1]
             events = list(self._events)
             by_time = {t: self._by_time[t] for t in times}
         if not times:
