@@ -101,7 +101,8 @@ def roles(robot: str) -> dict[str, Role]:
       states; serves the three cartesian controllers; `claim` and `setRefSpeeds` name their
       caller (`PORT/VERB~IDENTITY`, `Verb.names_caller`) and each identity is granted only its
       own name there (`_naming_calls`), so a lease's owner is the identity the router
-      authenticated;
+      authenticated; calls `archery/rpc:i status, followTrajectory` (the robot's shot, and the
+      whole shot's movement with its grasp and nock as one trajectory);
     * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
       release, status` (its world, journaled for replaying a shot) and the detector's
       `measure, frame`; follows the world's events; serves `learner/rpc:i`;
@@ -124,8 +125,8 @@ def roles(robot: str) -> dict[str, Role]:
       move;
     * ros2_operator (`archery ros2 --operator`, and a ROS 2 client of the lab that moves the
       robot): what ros2 has, the command topics of the namespace, the Trigger services'
-      calls, each part's `positionMove` (the robot applies it only where no other client's
-      lease runs) and the robot's `reset, nock, release`.
+      calls, each part's `positionMove` and `followTrajectory` (the robot applies them only
+      where no other client's lease runs) and the robot's `reset, nock, release`.
 
     Every server also publishes its `rpc:i` ports' request and reply taps (`mesh.rpc_tap`).
     """
@@ -174,7 +175,10 @@ def roles(robot: str) -> dict[str, Role]:
                 for c in _calls(
                     key, "getLimits", "setRefSpeeds", "claim", "renewClaim", "dropClaim"
                 )
-            ),
+            )
+            # the whole shot: its robot's shot, and the movement as one trajectory with its
+            # grasp and nock
+            + _calls(k.archery_rpc(), "status", "followTrajectory"),
         ),
         "learner": Role(
             publish=(k.learner_rollouts(), *taps(k.learner_rpc())),
@@ -222,7 +226,9 @@ def _ros2(robot: str, *, operator: bool) -> Role:
     )
     services = tuple(f"*/{robot}/{name}/**" for name in ROS2_SERVICES)
     commands = tuple(f"*/{robot}/{p}/{leaf}/**" for p in PARTS for leaf in ROS2_COMMANDS)
-    moves = tuple(c for p in PARTS for c in _calls(k.part_rpc(p), "positionMove"))
+    moves = tuple(
+        c for p in PARTS for c in _calls(k.part_rpc(p), "positionMove", "followTrajectory")
+    )
     return Role(
         publish=(*topics, *(commands if operator else ())),
         subscribe=(*k.output_streams(), *topics, *(commands if operator else ())),

@@ -103,7 +103,8 @@ def _cases() -> Iterator[Any]:
                     f"missing required field `{name}`",
                     id=f"{tag}-{name}-missing",
                 )
-            wrong = 5 if prop.get("type") == "string" or "string" in str(prop) else "text"
+            textual = prop.get("type") == "string" or "string" in str(prop) or "enum" in prop
+            wrong = 5 if textual else "text"
             if prop.get("type") == "object" and "additionalProperties" not in prop:
                 wrong = "text"
             yield pytest.param(

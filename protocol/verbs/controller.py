@@ -11,7 +11,7 @@ reachability depend on the controller's configuration and model and are checked 
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 from msgspec import Meta
 
@@ -185,12 +185,19 @@ ARM_VERBS = VerbTable(
 
 # -- archery --------------------------------------------------------------------------------------
 class PostureArgs(Args, frozen=True):
-    """θ: 3 finite numbers (`Args` refuses NaN and inf); its box is the controller's."""
+    """θ: 3 finite numbers (`Args` refuses NaN and inf); its box is the controller's.
+
+    `shot`: the robot's shot the posture is for. "posture": both arms (and the torso) straight
+    into the archery posture for θ, the paper's robot with the arrow put on the bow. "whole": on
+    a `--shot whole` robot, the demonstration's movement (reach, grasp, carry, nock, draw) played
+    as one trajectory whose draw ends in that same posture, grasp and nock at their demonstrated
+    times. A shot the robot does not run is refused (`bad_state`, naming the robot's)."""
 
     theta: Annotated[
         list[float], Meta(min_length=3, max_length=3, description="θ, right − left hand, m")
     ]
     timeout: Timeout | None = None
+    shot: Literal["posture", "whole"] = "posture"
 
 
 class PostureReply(Reply, frozen=True):
@@ -206,6 +213,10 @@ class PostureReply(Reply, frozen=True):
     reason: str
     wall_s: float
     sim_time: float
+    shot: str = "posture"
+    movement_sim_s: Annotated[
+        float, Meta(description="s of sim time the movement took (whole shot: from its start)")
+    ] = 0.0
 
 
 class ArcheryStatusReply(Reply, frozen=True):

@@ -17,10 +17,22 @@ from protocol.parts import PARTS
 from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, MAX_REFERENCE_SPEED
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["ARCHERY_VERBS", "MAX_WIND", "PART_VERBS"]
+__all__ = [
+    "ARCHERY_VERBS",
+    "MAX_TRAJECTORY_DURATION",
+    "MAX_TRAJECTORY_POINTS",
+    "MAX_WIND",
+    "PART_VERBS",
+    "TRAJECTORY_ACTIONS",
+]
 
 MAX_JOINTS = 64
 MAX_WIND = 50.0  # m/s, per axis
+#: A trajectory's most waypoints (one message; a 10 s movement at 100 points/s fits twice over)
+MAX_TRAJECTORY_POINTS = 2000
+MAX_TRAJECTORY_DURATION = 120.0  # s of simulated time from a trajectory's start to its last point
+#: The archery verbs a multi-part trajectory may run at a time of its own (`TrajectoryAction`)
+TRAJECTORY_ACTIONS = ("grasp", "nock")
 
 Speed = Annotated[float, Meta(gt=0.0, le=MAX_REFERENCE_SPEED, description="rad/s")]
 Joints = Annotated[list[float], Meta(min_length=1, max_length=MAX_JOINTS, description="rad")]
@@ -159,6 +171,102 @@ class ClaimReply(Reply, frozen=True):
     expires_in: Annotated[float, Meta(description="wall s; 0 when not held")]
 
 
+
+# -- trajectories ---------------------------------------------------------------------------------
+# A trajectory is one message: time-stamped waypoints the robot interpolates in its own loop, at
+# its physics rate (as ros2_control's joint trajectory controller does): quintic between two
+# waypoints, the velocity given at each one (or, when `velocities` is left out, the central
+# difference of its neighbours, zero at the last point), the acceleration zero there; so a
+# waypoint to waypoint move from rest and back to rest is a minimum-jerk one, as iCub's position
+# control makes. It starts from where each part's setpoints are, at rest, at the simulated time
+# it is accepted; `times` are s of simulated time from then. While it plays, a joint farther than
+# `path_tolerance` (rad) from where the trajectory wants it aborts it (`path_tolerance`: the part
+# fell behind), as does a part's lease ending or another owner's (`not_owner`) or a failed
+# action (its code: `grasp_missed`, `nock_missed`); an abort holds every part of it where it is.
+# After its last point every joint must be within `goal_tolerance` (rad) of it within
+# `goal_time` s, else `goal_tolerance`. A trajectory that breaks a rule of its form
+# (times not increasing from > 0, NaN, more than MAX_TRAJECTORY_POINTS, a joint of another
+# part, outside the limits, rows of the wrong length, an action outside the times) is refused
+# with `bad_trajectory` before anything moves. A new trajectory or command for a part that plays
+# one is refused (`busy`) until it ends. The reply comes once it has ended: a waiting verb, so
+# the caller's timeout must cover its duration in wall time (duration ÷ rtf).
+TrajTimes = Annotated[
+    list[float],
+    Meta(min_length=1, max_length=MAX_TRAJECTORY_POINTS, description="s of sim time from start"),
+]
+TrajRows = Annotated[list[Joints], Meta(min_length=1, max_length=MAX_TRAJECTORY_POINTS)]
+PathTolerance = Annotated[float, Meta(gt=0.0, le=3.2, description="rad")]
+GoalTime = Annotated[float, Meta(ge=0.0, le=10.0, description="s of sim time")]
+
+
+class TrajectoryAction(Args, frozen=True):
+    """An archery verb the robot runs when the trajectory's time reaches `t` (s from its
+    start): `grasp` closes the right hand on the arrow, `nock` puts the held arrow on the string
+    (their rules are those of the verbs)."""
+
+    t: Annotated[float, Meta(ge=0.0, description="s of sim time from the start")]
+    verb: Literal["grasp", "nock"]
+
+
+class TrajectoryPart(Args, frozen=True):
+    """One part of a multi-part trajectory: its joints (`names`, a subset in YARP order; None:
+    all of them) and the lease it moves under ("" where the part holds none)."""
+
+    part: Annotated[str, Meta(max_length=32)]
+    names: JointNames | None = None
+    lease: LeaseId = ""
+
+
+class PartTrajectoryArgs(Args, frozen=True):
+    """A trajectory of one part (`ROBOT/{part}/rpc:i followTrajectory`): `positions[i]` (rad)
+    and `velocities[i]` (rad/s) are the joints of `names` (None: all, YARP order) at
+    `times[i]`."""
+
+    times: TrajTimes
+    positions: TrajRows
+    velocities: TrajRows | None = None
+    names: JointNames | None = None
+    lease: LeaseId = ""
+    path_tolerance: PathTolerance = 0.25
+    goal_tolerance: PathTolerance = 0.02
+    goal_time: GoalTime = 1.0
+
+
+class TrajectoryArgs(Args, frozen=True):
+    """A trajectory of several parts at once (`ROBOT/archery/rpc:i followTrajectory`): each row
+    holds the joints of `parts` one part after the other; `actions` run at their times."""
+
+    parts: Annotated[list[TrajectoryPart], Meta(min_length=1, max_length=len(PARTS))]
+    times: TrajTimes
+    positions: TrajRows
+    velocities: TrajRows | None = None
+    actions: Annotated[list[TrajectoryAction], Meta(max_length=8)] = []
+    path_tolerance: PathTolerance = 0.25
+    goal_tolerance: PathTolerance = 0.02
+    goal_time: GoalTime = 1.0
+
+
+class TrajectoryReply(Reply, frozen=True):
+    """A trajectory played to its end: the simulated times it started and settled at, how far
+    a joint fell behind at worst on the way and ended from its goal (rad), and the simulated
+    time each action ran at."""
+
+    parts: list[str]
+    started: Annotated[float, Meta(description="s, sim time")]
+    ended: Annotated[float, Meta(description="s, sim time")]
+    path_error: Annotated[float, Meta(description="rad")]
+    goal_error: Annotated[float, Meta(description="rad")]
+    actions: Annotated[dict[str, float], Meta(description="verb: s, sim time")]
+
+
+FOLLOW_PART_TRAJECTORY = Verb(
+    "followTrajectory",
+    PartTrajectoryArgs,
+    TrajectoryReply,
+    "play time-stamped waypoints in the robot's loop; replies once they have ended",
+    waits=True,
+)
+
 GET_JOINT_NAMES = Verb(
     "getJointNames",
     NoArgs,
@@ -284,6 +392,7 @@ PART_VERBS = VerbTable(
         SET_REF_SPEEDS,
         GET_REF_SPEEDS,
         POSITION_MOVE,
+        FOLLOW_PART_TRAJECTORY,
         COUNTERS,
         PART_STATUS,
         CLAIM,
@@ -382,6 +491,14 @@ RELEASE = Verb(
     "release the arrow (whole shot: open the fingers); replies once it has landed",
 )
 
+FOLLOW_TRAJECTORY = Verb(
+    "followTrajectory",
+    TrajectoryArgs,
+    TrajectoryReply,
+    "play several parts' waypoints and the archery actions at their times; replies at the end",
+    waits=True,
+)
+
 RESET = Verb("reset", ResetArgs, ResetReply, "home posture at sim time 0; reseed with seed")
 
 SET_WIND = Verb(
@@ -406,6 +523,7 @@ ARCHERY_VERBS = VerbTable(
         GRASP,
         NOCK,
         RELEASE,
+        FOLLOW_TRAJECTORY,
         RESET,
         SET_WIND,
         ARCHERY_STATUS,
