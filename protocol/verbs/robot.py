@@ -171,7 +171,6 @@ class ClaimReply(Reply, frozen=True):
     expires_in: Annotated[float, Meta(description="wall s; 0 when not held")]
 
 
-
 # -- trajectories ---------------------------------------------------------------------------------
 # A trajectory is one message: time-stamped waypoints the robot interpolates in its own loop, at
 # its physics rate (as ros2_control's joint trajectory controller does): quintic between two
@@ -240,7 +239,7 @@ class TrajectoryArgs(Args, frozen=True):
     times: TrajTimes
     positions: TrajRows
     velocities: TrajRows | None = None
-    actions: Annotated[list[TrajectoryAction], Meta(max_length=8)] = []
+    actions: Annotated[tuple[TrajectoryAction, ...], Meta(max_length=8)] = ()
     path_tolerance: PathTolerance = 0.25
     goal_tolerance: PathTolerance = 0.02
     goal_time: GoalTime = 1.0
