@@ -14,8 +14,10 @@ and the same commands give the same landing bit for bit.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
 from enum import StrEnum
+from typing import Protocol
 
 import mujoco
 import numpy as np
@@ -33,7 +35,16 @@ from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
 from sim.whole_shot import WholeShot
 
-__all__ = ["ArcheryWorld", "ArrowState", "WorldConfig"]
+__all__ = ["ArcheryWorld", "ArrowState", "SetpointSource", "WorldConfig"]
+
+
+class SetpointSource(Protocol):
+    """What `ArcheryWorld.play` follows: the joints it drives (indices of the world's joint
+    vector, `ArcheryWorld.joint_indices`) and their setpoints (rad) at a simulated time (s)."""
+
+    joints: np.ndarray
+
+    def setpoints(self, sim_time: float) -> np.ndarray: ...
 
 
 class ArrowState(StrEnum):
@@ -200,6 +211,7 @@ class ArcheryWorld:
         # the buffers of `_advance_setpoints`, and the servos' controls (a view of the data)
         self._step, self._low, self._delta = (np.empty(self._home.size) for _ in range(3))
         self._ctrl = self.physics.data.ctrl
+        self._sources: list[SetpointSource] = []  # trajectories playing (`play`)
         self._rng = np.random.default_rng()  # fresh entropy until reset(seed) is called
         self._arrow = ArrowState.STOWED
         self._flight: ArrowFlight | None = None
@@ -232,6 +244,7 @@ class ArcheryWorld:
         self._reference = self._home.copy()
         self._speed[:] = self.config.reference_speed
         self._ramping = False
+        self._sources.clear()
         physics.data.qpos[self._qadr] = self._home
         physics.data.ctrl[self._act] = self._home
         self._flight = None
@@ -355,12 +368,14 @@ class ArcheryWorld:
         `velocity_tolerance` (rad/s).
         """
         if part is None:
-            if self._ramping:
+            if self._ramping or self._playing(None):
                 return False
             s = slice(None)
         else:
             s = self._part(part)
             if self._ramping and not np.array_equal(self._reference[s], self._target[s]):
+                return False
+            if self._playing(s):
                 return False
         data = self.physics.data
         error = np.max(np.abs(data.qpos[self._qadr[s]] - self._target[s]))
@@ -407,7 +422,10 @@ class ArcheryWorld:
         if self._ramping:  # the speeds hold for the whole call: the per-step bounds, once
             np.multiply(self._speed, self._dt, out=self._step)
             np.negative(self._step, out=self._low)
+        sources = self._sources
         for _ in range(n):
+            for source in sources:
+                self._drive(source, physics.time + self._dt)
             if self._ramping:
                 self._advance_setpoints()
             if flight is not None:
@@ -434,6 +452,57 @@ class ArcheryWorld:
         if (self._reference == self._target).all():
             self._ramping = False
         self._ctrl[self._act] = self._reference
+
+    # -- trajectories -----------------------------------------------------------------------
+    def joint_indices(self, part: str, names: Sequence[str] | None = None) -> np.ndarray:
+        """Where `part`'s joints (`names`, YARP order when None) sit in the world's joint
+        vector, the indices a `SetpointSource` names.
+
+        Raises:
+            CommandError: unknown part or joint name.
+        """
+        s = self._part(part)
+        joints = PARTS[part]
+        if names is None:
+            return np.arange(s.start, s.stop)
+        unknown = [n for n in names if n not in joints]
+        if unknown:
+            raise CommandError(f"{part} has no joint {unknown[0]!r}; joints: {', '.join(joints)}")
+        return np.array([s.start + joints.index(n) for n in names], dtype=int)
+
+    def setpoints_of(self, joints: np.ndarray) -> np.ndarray:
+        """The servos' setpoints (rad) of the joints at `joints` (`joint_indices`)."""
+        return self._reference[joints].copy()
+
+    def positions_of(self, joints: np.ndarray) -> np.ndarray:
+        """The measured angles (rad) of the joints at `joints` (`joint_indices`)."""
+        return self.physics.data.qpos[self._qadr[joints]].copy()
+
+    def play(self, source: SetpointSource) -> None:
+        """From the next step on, `source` sets its joints' setpoints (and targets) before every
+        physics step, clamped to the limits, until `unplay`; its parts are not done moving
+        meanwhile."""
+        self._sources.append(source)
+
+    def unplay(self, source: SetpointSource) -> None:
+        """Stop playing `source` (its joints keep the setpoints it last gave)."""
+        if source in self._sources:
+            self._sources.remove(source)
+
+    def _playing(self, s: slice | None) -> bool:
+        if s is None:
+            return bool(self._sources)
+        return any(
+            bool(np.any((source.joints >= s.start) & (source.joints < s.stop)))
+            for source in self._sources
+        )
+
+    def _drive(self, source: SetpointSource, sim_time: float) -> None:
+        joints = source.joints
+        values = np.clip(source.setpoints(sim_time), self._lower[joints], self._upper[joints])
+        self._target[joints] = values
+        self._reference[joints] = values
+        self._ctrl[self._act[joints]] = values
 
     # -- the arrow --------------------------------------------------------------------------
     @property

@@ -32,6 +32,7 @@ REJECTION_REASONS = (
     "out_of_range",
     "not_owner",
     "rate_limited",
+    "busy",
 )
 
 

@@ -10,14 +10,17 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from mesh.acl import OPERATOR
-from mesh.rpc_server import caller
+from mesh.rpc_server import caller, caller_left
 from mesh.subscription import Subscription
 from protocol.errors import BadRequest
 from protocol.messages import JointCommand
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import robot as rv
+from services.robot.follow import PartSpec
 from services.robot.gate import NotOwner
+from services.robot.jobs import SimUnavailable
 from services.robot.simloop import SimLoop
+from services.robot.trajectory import BadTrajectory
 
 __all__ = ["RobotHandlers"]
 
@@ -73,6 +76,7 @@ class RobotHandlers:
             rv.SET_REF_SPEEDS.to(lambda a: self.set_ref_speeds(part, a)),
             rv.GET_REF_SPEEDS.to(lambda a: self.get_ref_speeds(part, a)),
             rv.POSITION_MOVE.to(lambda a: self.position_move(part, a)),
+            rv.FOLLOW_PART_TRAJECTORY.to(lambda a: self.follow_part_trajectory(part, a)),
             rv.COUNTERS.to(lambda a: self.counters(part, a)),
             rv.PART_STATUS.to(lambda a: self.part_status(part, a)),
             rv.CLAIM.to(lambda a: self.claim(part, a)),
@@ -87,6 +91,7 @@ class RobotHandlers:
             rv.GRASP.to(self.grasp),
             rv.NOCK.to(self.nock),
             rv.RELEASE.to(self.release),
+            rv.FOLLOW_TRAJECTORY.to(self.follow_trajectory),
             rv.RESET.to(self.reset),
             rv.SET_WIND.to(self.set_wind),
             rv.ARCHERY_STATUS.to(self.archery_status),
@@ -151,6 +156,48 @@ class RobotHandlers:
         self._loop.leases.check(part, args.lease)
         position = self._loop.position_move(part, args.position, args.names)
         return rv.TargetsReply(names=self._names(part), position=position)
+
+    def follow_part_trajectory(self, part: str, args: rv.PartTrajectoryArgs) -> rv.TrajectoryReply:
+        """Play the part's time-stamped waypoints in the robot's loop; replies at the end."""
+        names = None if args.names is None else tuple(args.names)
+        return self._follow([PartSpec(part, names, args.lease)], args)
+
+    def follow_trajectory(self, args: rv.TrajectoryArgs) -> rv.TrajectoryReply:
+        """Play several parts' waypoints and the archery actions at their times; replies at
+        the end."""
+        specs = [
+            PartSpec(p.part, None if p.names is None else tuple(p.names), p.lease)
+            for p in args.parts
+        ]
+        return self._follow(specs, args)
+
+    def _follow(
+        self, specs: list[PartSpec], args: rv.PartTrajectoryArgs | rv.TrajectoryArgs
+    ) -> rv.TrajectoryReply:
+        """Check the leases, start the trajectory and wait for its end (at most as long as
+        the caller waits; when it did not say, its duration in wall time and the job timeout).
+
+        Raises:
+            NotOwner: another client holds a part. BadTrajectory, Busy, StateError: refused
+            before anything moved. TrajectoryAborted: stopped on its way (parts held).
+            SimUnavailable: no end in time.
+        """
+        for spec in specs:
+            if spec.part not in self._loop.limits:
+                raise BadTrajectory(f"unknown part {spec.part!r}")
+            self._loop.leases.check(spec.part, spec.lease)
+        reply = self._loop.follow(specs, args)
+        cfg = self._loop.config
+        sim_s = float(args.times[-1]) + args.goal_time
+        timeout = caller_left()
+        if timeout is None:
+            timeout = cfg.job_timeout + (sim_s / cfg.rtf if cfg.rtf > 0 else sim_s)
+        try:
+            return reply.result(max(0.0, timeout))
+        except TimeoutError:
+            raise SimUnavailable(
+                f"the trajectory had not ended after {timeout:g} wall s (it plays on)"
+            ) from None
 
     def counters(self, part: str, args: NoArgs) -> rv.CountersReply:
         """Commands accepted, clamped and rejected (by reason), watchdog trips, undecodable."""

@@ -8,12 +8,12 @@ Simulation thread only.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
-from protocol.errors import BadRequest
+from protocol.errors import BadRequest, Busy
 from protocol.text import shown
 from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from services.robot.pacing import Pacing
@@ -36,6 +36,7 @@ class JointMover:
         pacing: woken by every move (the streams keep their full rates a while).
         streams: the command streams a `command:i` command continues (the watchdog).
         thread: the loop a command's announced batch is counted for.
+        plays: whether a trajectory moves a part now (it refuses commands meanwhile: `busy`).
     """
 
     def __init__(
@@ -46,6 +47,7 @@ class JointMover:
         pacing: Pacing,
         streams: StreamWatchdog,
         thread: SimThread,
+        plays: Callable[[str], bool],
     ) -> None:
         self._world = world
         self._limits = limits
@@ -53,6 +55,7 @@ class JointMover:
         self._pacing = pacing
         self._streams = streams
         self._thread = thread
+        self._plays = plays
         self._stream_lease = {part: "" for part in world.parts}  # of the last stream command
 
     def command(
@@ -71,7 +74,7 @@ class JointMover:
         self._thread.count_batch(batch)
         try:
             targets, clamped = self._check(part, position, names, said)
-        except CommandRejected:
+        except (CommandRejected, Busy):
             return
         overtakes = not self._world.motion_done(part)
         self._apply(part, targets, clamped)
@@ -102,6 +105,10 @@ class JointMover:
     def _check(
         self, part: str, position: Any, names: Any, said: str | None
     ) -> tuple[np.ndarray, bool]:
+        if self._plays(part):
+            message = f"{part} plays a trajectory: its moves wait until it ends"
+            self._counters[part].reject("busy", message)
+            raise Busy(message)
         try:
             return check_command(
                 self._limits[part], self._world.joint_targets(part), position, names, said

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from services.robot.shot import Shots, phase_of
 from services.robot.sink import Sink
 from services.robot.watchdog import StreamWatchdog
 from sim.world import ArcheryWorld
+
+if TYPE_CHECKING:
+    from services.robot.follow import Follower
 
 __all__ = ["Physics"]
 
@@ -53,6 +57,13 @@ class Physics:
         self._streams = streams
         self._counters = counters
         self._names = {part: tuple(world.joint_names(part)) for part in world.parts}
+        self.follower: Follower | None = None  # the trajectories, once the loop attaches them
+
+    def cap(self, steps: int) -> int:
+        """`steps` cut so that a chunk ends at a playing trajectory's next action or end."""
+        if self.follower is None:
+            return steps
+        return self.follower.cap(steps, self.world.sim_time, self.dt)
 
     def moving(self) -> bool:
         """True while a part has not reached its targets or an arrow flies or falls."""
@@ -62,6 +73,8 @@ class Physics:
         """Step the world `steps` time steps; publish the states then due and a landing."""
         world = self.world
         landing = world.step(steps * self.dt)
+        if self.follower is not None:
+            self.follower.check()
         joints, world_due = self._pacing.due(world.sim_time)
         if joints:
             self.publish_joints()

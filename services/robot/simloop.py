@@ -25,6 +25,7 @@ from protocol.verbs import robot as rv
 from protocol.verbs.robot import MAX_WIND
 from services.robot.commands import PartCounters, PartLimits
 from services.robot.config import RobotConfig
+from services.robot.follow import Follower, PartSpec
 from services.robot.jobs import SimJobs, SimUnavailable
 from services.robot.joints import JointMover
 from services.robot.leases import Leases
@@ -89,14 +90,27 @@ class SimLoop:
         self._thread = SimThread(
             self._physics, self._jobs, self._pacing, self._streams, self._shots, config
         )
+        self._follower = Follower(
+            world, self.limits, self.leases, self._shots, self._physics.publish_world
+        )
+        self._physics.follower = self._follower
         self._mover = JointMover(
-            world, self.limits, self._counters, self._pacing, self._streams, self._thread
+            world,
+            self.limits,
+            self._counters,
+            self._pacing,
+            self._streams,
+            self._thread,
+            self._follower.plays,
         )
 
     # -- the thread and its jobs -------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
         """Serve jobs and advance the world until `stop` is set or the loop is closed."""
-        self._thread.run(stop)
+        try:
+            self._thread.run(stop)
+        finally:
+            self._follower.abort_all("the robot stopped mid-trajectory", unavailable=True)
 
     def call(self, func: Callable[[], T], timeout: float | None = None) -> T:
         """Run `func` on the simulation thread and return its result (or raise its error).
@@ -145,6 +159,25 @@ class SimLoop:
         if isinstance(speeds, int | float) and not isinstance(speeds, bool):
             speeds = [speeds] * len(self.limits[part].names)
         return self.call(lambda: self._mover.set_ref_speeds(part, speeds))
+
+    def follow(
+        self, parts: list[PartSpec], args: rv.PartTrajectoryArgs | rv.TrajectoryArgs
+    ) -> Future[rv.TrajectoryReply]:
+        """Start a trajectory of `parts` (`follow`); its reply once it has ended. The caller
+        checked the leases (`leases.check`).
+
+        Raises:
+            BadTrajectory, Busy, StateError: see `Follower.start` (nothing moved).
+        """
+
+        def start() -> Future[rv.TrajectoryReply]:
+            self._pacing.wake()
+            reply = self._follower.start(parts, args)
+            for spec in parts:
+                self._streams.forget(spec.part)  # no stream: the watchdog leaves it be
+            return reply
+
+        return self.call(start)
 
     # -- reading the joints ------------------------------------------------------------------
     def positions(self, part: str) -> rv.PositionsReply:
@@ -270,6 +303,7 @@ class SimLoop:
 
     def _reset(self, seed: int | None) -> rv.ResetReply:
         self._pacing.wake()
+        self._follower.abort_all("the robot was reset mid-trajectory")
         self.world.reset(seed)
         if seed is not None:
             self._seed = seed

@@ -79,11 +79,11 @@ class SimThread:
                         if self._idle:  # at rest until now: start an announced batch whole
                             self._await_batch(stop)
                         self._idle = False
-                        physics.advance(pacing.chunk(world.sim_time))
+                        physics.advance(physics.cap(pacing.chunk(world.sim_time)))
                     else:
                         self._rest(stop)
                     continue
-                steps = pacing.chunk(world.sim_time)
+                steps = physics.cap(pacing.chunk(world.sim_time))
                 if self._sleep_until(pacing.wall_due(world.sim_time, steps), stop):
                     continue  # jobs ran meanwhile: they may have changed the world
                 physics.advance(steps)

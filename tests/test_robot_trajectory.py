@@ -1,0 +1,190 @@
+"""The robot's trajectories in its own loop, without the mesh: waypoints followed at their
+simulated times, a bad trajectory refused before anything moves, other moves refused while one
+plays, and the aborts (path tolerance, a lease taken over) holding the part where it is."""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterator
+from typing import Any
+
+import mujoco
+import numpy as np
+import pytest
+
+from protocol.errors import ArcheryError, Busy
+from protocol.parts import PARTS
+from protocol.robotspec import home_of
+from protocol.verbs import robot as rv
+from services.robot.config import RobotConfig
+from services.robot.follow import PATH_TOLERANCE, PartSpec
+from services.robot.simloop import SimLoop
+from services.robot.trajectory import BadTrajectory, plan_path
+from sim.errors import StateError
+from sim.model_build import build_scene
+from sim.world import ArcheryWorld
+from tests.test_robot_service_core import WORLD, Recorder
+
+ARM = "right_arm"
+HOME = np.array(home_of(ARM))
+ELBOW = PARTS[ARM].index("r_elbow")
+
+
+@pytest.fixture(scope="module")
+def model() -> mujoco.MjModel:
+    return build_scene(WORLD.scene)
+
+
+@pytest.fixture
+def start(model: mujoco.MjModel) -> Iterator[Any]:
+    """Starts a loop on its own thread: start(**config) -> (loop, recorder)."""
+    running: list[tuple[threading.Event, threading.Thread]] = []
+
+    def _start(**overrides: Any) -> tuple[SimLoop, Recorder]:
+        world = ArcheryWorld(WORLD, model=model)
+        world.reset(0)
+        recorder = Recorder()
+        loop = SimLoop(world, RobotConfig(world=WORLD, **overrides), recorder, seed=0)
+        stop = threading.Event()
+        thread = threading.Thread(target=loop.run, args=(stop,), daemon=True)
+        thread.start()
+        running.append((stop, thread))
+        return loop, recorder
+
+    yield _start
+    for stop, thread in running:
+        stop.set()
+        thread.join(5)
+        assert not thread.is_alive()
+
+
+def _elbow_path(*angles: float, step: float = 0.5) -> rv.PartTrajectoryArgs:
+    rows = []
+    for angle in angles:
+        row = HOME.copy()
+        row[ELBOW] = angle
+        rows.append(row.tolist())
+    times = [step * (i + 1) for i in range(len(angles))]
+    return rv.PartTrajectoryArgs(times=times, positions=rows)
+
+
+def _play(loop: SimLoop, args: rv.PartTrajectoryArgs, lease: str = "") -> rv.TrajectoryReply:
+    return loop.follow([PartSpec(ARM, None, lease)], args).result(30)
+
+
+def _elbow_peak(rec: Recorder) -> tuple[float, float]:
+    """(sim s, rad) of the right arm's state with the largest elbow angle."""
+    with rec.lock:
+        return max((s[2][ELBOW], s[4]) for s in rec.states if s[1] == ARM)[::-1]
+
+
+def test_the_waypoints_are_passed_at_their_simulated_times(start: Any) -> None:
+    loop, rec = start(rtf=2.0)  # states on the sim time grid (at rtf 0, on the wall clock's)
+    middle = HOME[ELBOW] + 0.4  # up and back: the middle waypoint is the elbow's peak
+    reply = _play(loop, _elbow_path(middle, HOME[ELBOW]))
+    assert reply.parts == [ARM]
+    assert reply.path_error < 0.15 and reply.goal_error <= 0.02
+    # the trajectory took its 1 s of simulated time, then settled within the goal tolerance
+    assert 1.0 <= reply.ended - reply.started < 1.1
+    when, peak = _elbow_peak(rec)
+    assert peak == pytest.approx(middle, abs=0.03)
+    assert reply.started + 0.5 <= when <= reply.started + 0.65  # the servos lag a little
+    assert loop.positions(ARM).position[ELBOW] == pytest.approx(HOME[ELBOW], abs=0.02)
+
+
+def test_the_timing_holds_at_real_time_too(start: Any) -> None:
+    loop, _ = start(rtf=4.0)
+    reply = _play(loop, _elbow_path(HOME[ELBOW] + 0.3, step=1.0))
+    assert 1.0 <= reply.ended - reply.started < 1.1
+
+
+@pytest.mark.parametrize(
+    ("times", "rows", "match"),
+    [
+        ([0.5, 0.5], [HOME, HOME], "strictly increasing"),
+        ([0.0, 0.5], [HOME, HOME], "> 0 s"),
+        ([0.5], [np.where(np.arange(7) == ELBOW, 9.0, HOME)], "outside"),
+        ([0.5], [HOME[:6]], "6 values for 7 joints"),
+        ([0.5, 1.0], [HOME], "1 rows for 2 times"),
+        ([500.0], [HOME], "past the bound"),
+    ],
+)
+def test_a_bad_trajectory_is_refused_and_nothing_moves(
+    start: Any, times: list[float], rows: list[Any], match: str
+) -> None:
+    loop, _ = start(rtf=0.0)
+    before = loop.targets(ARM)
+    args = rv.PartTrajectoryArgs(times=times, positions=[list(map(float, r)) for r in rows])
+    with pytest.raises(BadTrajectory, match=match) as caught:
+        _play(loop, args)
+    assert caught.value.code == "bad_trajectory"
+    assert loop.targets(ARM) == before and loop.motion_done(ARM)
+
+
+def test_a_joint_of_another_part_is_refused(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    args = rv.PartTrajectoryArgs(times=[0.5], positions=[[0.1]], names=["l_elbow"])
+    with pytest.raises(BadTrajectory, match="no joint 'l_elbow'"):
+        loop.follow([PartSpec(ARM, ("l_elbow",), "")], args)
+
+
+def test_a_nan_is_refused_by_the_path() -> None:
+    with pytest.raises(BadTrajectory, match="finite"):
+        plan_path(HOME, [0.5], [[float("nan")] * 7], None, HOME - 9, HOME + 9, PARTS[ARM], 120.0)
+
+
+def test_other_moves_of_a_playing_part_are_refused_busy(start: Any) -> None:
+    loop, _ = start(rtf=1.0)
+    reply = loop.follow([PartSpec(ARM, None, "")], _elbow_path(HOME[ELBOW] + 0.3, step=2.0))
+    with pytest.raises(Busy):
+        loop.position_move(ARM, HOME.tolist())
+    with pytest.raises(Busy):
+        _play(loop, _elbow_path(HOME[ELBOW] + 0.1))
+    loop.command(ARM, HOME.tolist(), None, ARM)
+    assert loop.call(lambda: None) is None  # the command's job ran
+    assert loop.counters(ARM).rejected_by_reason.get("busy") == 2  # the move and the command
+    assert reply.result(30).goal_error <= 0.02
+
+
+def test_a_part_that_falls_behind_aborts_and_is_held(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    args = rv.PartTrajectoryArgs(
+        times=[0.3], positions=[_elbow_path(HOME[ELBOW] + 0.8).positions[0]], path_tolerance=1e-4
+    )
+    with pytest.raises(ArcheryError) as caught:
+        _play(loop, args)
+    assert caught.value.code == PATH_TOLERANCE
+    held = np.array(loop.targets(ARM))
+    assert abs(held[ELBOW] - HOME[ELBOW]) < 0.1  # stopped near where it was, not at the goal
+
+
+def test_a_lease_taken_over_mid_trajectory_stops_the_part(start: Any) -> None:
+    loop, _ = start(rtf=1.0)
+    lease = loop.leases.claim(ARM, "controller", 30.0).lease
+    reply = loop.follow([PartSpec(ARM, None, lease)], _elbow_path(HOME[ELBOW] + 0.6, step=3.0))
+    loop.leases.claim(ARM, "operator", 30.0, takeover=True)
+    with pytest.raises(ArcheryError) as caught:
+        reply.result(30)
+    assert caught.value.code == "not_owner"
+    assert loop.targets(ARM)[ELBOW] < HOME[ELBOW] + 0.6 - 0.05
+
+
+def test_actions_need_a_whole_shot_robot(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    args = rv.TrajectoryArgs(
+        parts=[rv.TrajectoryPart(part=ARM)],
+        times=[0.5],
+        positions=[HOME.tolist()],
+        actions=(rv.TrajectoryAction(t=0.2, verb="grasp"),),
+    )
+    with pytest.raises(StateError, match="--shot whole"):
+        loop.follow([PartSpec(ARM, None, "")], args).result(30)
+
+
+def test_a_reset_aborts_a_playing_trajectory(start: Any) -> None:
+    loop, _ = start(rtf=1.0)
+    reply = loop.follow([PartSpec(ARM, None, "")], _elbow_path(HOME[ELBOW] + 0.3, step=5.0))
+    loop.reset()
+    with pytest.raises(StateError, match="reset"):
+        reply.result(30)
+    assert loop.motion_done(ARM) or loop.targets(ARM) == HOME.tolist()
