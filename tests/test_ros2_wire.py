@@ -1,6 +1,7 @@
 """rmw_zenoh's wire format as `apps.ros2.wire` writes it, checked against its design document's
 examples (docs/design.md of ros2/rmw_zenoh) and against zenoh-ros2-sdk's own builders; the type
-hashes against the SDK's own computation; the commands' checks."""
+hashes against the SDK's own computation; the commands' mapping onto the robot's verbs and
+their checks."""
 
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from apps.ros2.wire import (
 from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
 from protocol.messages import Rollout
 from protocol.text import SHOWN_LIMIT
+from protocol.verbs import robot as rv
 from tests.conftest import archery
 
 # design.md's examples, as it prints them
@@ -176,36 +178,72 @@ def _floats(values: list[float]) -> object:
     )
 
 
-def _trajectory(names: list[str], points: list[list[float]]) -> object:
-    def point(values: list[float]) -> object:
-        empty = np.zeros(0, dtype=np.float64)
+def _duration(seconds: float) -> object:
+    ns = round(seconds * 1e9)
+    return typestore.new(
+        "builtin_interfaces/msg/Duration", sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000
+    )
+
+
+def _trajectory(
+    names: list[str],
+    points: list[list[float]],
+    times: list[float] | None = None,
+    velocities: list[list[float]] | None = None,
+) -> object:
+    """A JointTrajectory: point i at `times[i]` (default i + 1 s), with `velocities[i]` (default
+    none)."""
+    empty = np.zeros(0, dtype=np.float64)
+
+    def point(i: int, values: list[float]) -> object:
         return typestore.new(
             "trajectory_msgs/msg/JointTrajectoryPoint",
             positions=np.array(values, dtype=np.float64),
-            velocities=empty,
+            velocities=empty if velocities is None else np.array(velocities[i], dtype=np.float64),
             accelerations=empty,
             effort=empty,
-            time_from_start=typestore.new("builtin_interfaces/msg/Duration", sec=1, nanosec=0),
+            time_from_start=_duration(i + 1.0 if times is None else times[i]),
         )
 
     return typestore.new(
         convert.TRAJECTORY_COMMAND,
         header=typestore.new("std_msgs/msg/Header", stamp=convert.stamp(0.0), frame_id=""),
         joint_names=names,
-        points=[point(p) for p in points],
+        points=[point(i, p) for i, p in enumerate(points)],
     )
 
 
-def test_commands_become_targets() -> None:
-    assert convert.command_targets("torso", convert.FLOAT_COMMAND, _floats([0.1, 0.2, 0.3])) == (
-        None,
-        [0.1, 0.2, 0.3],
+def test_a_float_command_becomes_a_position_move() -> None:
+    args = convert.command_args("torso", convert.FLOAT_COMMAND, _floats([0.1, 0.2, 0.3]))
+    assert args == rv.PositionMoveArgs(position=[0.1, 0.2, 0.3])
+
+
+def test_a_trajectory_keeps_every_points_time() -> None:
+    message = _trajectory(
+        ["l_elbow", "l_shoulder_pitch"], [[0.0, 0.1], [0.5, -0.2]], times=[0.5, 1.25]
     )
-    message = _trajectory(["l_elbow", "l_shoulder_pitch"], [[0.0, 0.0], [0.5, -0.2]])
-    assert convert.command_targets("left_arm", convert.TRAJECTORY_COMMAND, message) == (
-        ["l_elbow", "l_shoulder_pitch"],
-        [0.5, -0.2],
+    args = convert.command_args("left_arm", convert.TRAJECTORY_COMMAND, message)
+    assert args == rv.PartTrajectoryArgs(
+        times=[0.5, 1.25],
+        positions=[[0.0, 0.1], [0.5, -0.2]],
+        velocities=None,
+        names=["l_elbow", "l_shoulder_pitch"],
     )
+
+
+def test_a_trajectorys_velocities_go_when_every_point_carries_them() -> None:
+    names, points = ["torso_pitch", "torso_yaw"], [[0.1, 0.2], [0.3, 0.4]]
+    every = _trajectory(names, points, velocities=[[1.0, 2.0], [3.0, 4.0]])
+    args = convert.command_args("torso", convert.TRAJECTORY_COMMAND, every)
+    assert isinstance(args, rv.PartTrajectoryArgs)
+    assert args.velocities == [[1.0, 2.0], [3.0, 4.0]] and args.times == [1.0, 2.0]
+    one = _trajectory(names, points, velocities=[[1.0, 2.0], []])
+    args = convert.command_args("torso", convert.TRAJECTORY_COMMAND, one)
+    assert isinstance(args, rv.PartTrajectoryArgs) and args.velocities is None
+
+
+def _yaw(times: list[float], **kwargs: list[list[float]]) -> object:
+    return _trajectory(["torso_yaw"], [[0.1 * (i + 1)] for i in range(len(times))], times, **kwargs)
 
 
 @pytest.mark.parametrize(
@@ -222,11 +260,27 @@ def test_commands_become_targets() -> None:
         ),
         (convert.TRAJECTORY_COMMAND, _trajectory(["torso_yaw"], []), "without points"),
         (convert.TRAJECTORY_COMMAND, _trajectory(["torso_yaw"], [[0.1, 0.2]]), "2 positions for 1"),
+        (convert.TRAJECTORY_COMMAND, _yaw([0.0, 1.0]), r"> 0 s .*got \[0\.0, 1\.0\]"),
+        (convert.TRAJECTORY_COMMAND, _yaw([0.5, 0.5, 1.0]), r"increase .*got \[0\.5, 0\.5, 1\.0\]"),
+        (convert.TRAJECTORY_COMMAND, _yaw([1.0, 0.5]), "increase from point to point"),
+        (convert.TRAJECTORY_COMMAND, _yaw([1.0, rv.MAX_TRAJECTORY_DURATION + 1]), "past 120 s"),
+        (convert.TRAJECTORY_COMMAND, _yaw([1.0], velocities=[[0.1, 0.2]]), "2 velocities for 1"),
+        (convert.TRAJECTORY_COMMAND, _yaw([1.0], velocities=[[math.nan]]), "velocities holds NaN"),
+        (
+            convert.TRAJECTORY_COMMAND,
+            _trajectory(["torso_yaw"], [[0.1], [math.nan]]),
+            "point 1's positions holds NaN",
+        ),
+        (
+            convert.TRAJECTORY_COMMAND,
+            _yaw([0.01 * (i + 1) for i in range(rv.MAX_TRAJECTORY_POINTS + 1)]),
+            "2001 points, more than 2000",
+        ),
     ],
 )
 def test_a_bad_command_is_refused(ros_type: str, message: object, said: str) -> None:
     with pytest.raises(convert.CommandError, match=said):
-        convert.command_targets("torso", ros_type, message)
+        convert.command_args("torso", ros_type, message)
 
 
 @pytest.mark.parametrize("domain", ["233", "-1"])
@@ -288,7 +342,7 @@ def test_a_done_rollout_is_published_and_the_others_are_not() -> None:
 def test_a_received_name_is_quoted_on_one_short_line(names: list[str]) -> None:
     message = _trajectory(names, [[0.0] * len(names)])
     with pytest.raises(convert.CommandError) as caught:
-        convert.command_targets("torso", convert.TRAJECTORY_COMMAND, message)
+        convert.command_args("torso", convert.TRAJECTORY_COMMAND, message)
     text = str(caught.value)
     assert "\n" not in text and "\r" not in text
     assert len(text) < 2 * SHOWN_LIMIT + 200

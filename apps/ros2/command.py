@@ -35,9 +35,11 @@ def build_parser() -> ArgumentParser:
     parser.add_argument(
         "--operator",
         action="store_true",
-        help="take the parts' commands (one waiting per part, at the robot's command rate) and "
-        "serve reset, nock and release as std_srvs/srv/Trigger; without it the node declares "
-        "no command subscription and answers each service call success: false",
+        help="take the parts' commands and trajectories (one waiting per part, at the robot's "
+        "command rate; a trajectory is played at its points' times, what comes for its part "
+        "meanwhile waits for its end) and serve reset, nock and release as "
+        "std_srvs/srv/Trigger; without it the node declares no command subscription and "
+        "answers each service call success: false",
     )
     parser.add_argument(
         "--wait",
@@ -105,6 +107,7 @@ def _serve(args: argparse.Namespace, net: NetConfig, namespace: str) -> int:
             domain=args.domain,
             namespace=namespace,
             operator=args.operator,
+            rtf=status.rtf,
         )
         try:
             mode = "operator" if args.operator else "read-only"

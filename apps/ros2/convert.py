@@ -1,9 +1,11 @@
-"""The mesh's messages as ROS 2's standard messages, and ROS 2 commands as a part's joint
-targets: the one mapping of the node and of `archery export --ros2` (README.md, "See the robot
-from ROS 2", tells it topic by topic). Stamps are the mesh's wall stamps (s since the epoch)."""
+"""The mesh's messages as ROS 2's standard messages, and ROS 2 commands as the robot's verbs (a
+part's position targets, or a trajectory the robot plays at its points' times): the one mapping
+of the node and of `archery export --ros2` (README.md, "See the robot from ROS 2", tells it
+topic by topic). Stamps are the mesh's wall stamps (s since the epoch)."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
@@ -16,6 +18,7 @@ from protocol.journal_records import DoneRecord
 from protocol.messages import Image, JointState, Rollout, WorldEvent
 from protocol.parts import PARTS
 from protocol.text import shown
+from protocol.verbs import robot as rv
 
 if TYPE_CHECKING:
     from apps.topics.robot_frames import RobotFrames
@@ -27,7 +30,7 @@ __all__ = [
     "TRAJECTORY_COMMAND",
     "CommandError",
     "camera_info",
-    "command_targets",
+    "command_args",
     "description",
     "image",
     "joint_state",
@@ -215,24 +218,37 @@ def landing(event: WorldEvent) -> Any | None:
     )
 
 
-def _finite(part: str, values: Sequence[float]) -> list[float]:
+def _finite(part: str, values: Sequence[float], what: str = "a command") -> list[float]:
     out = [float(v) for v in values]
     if not all(math.isfinite(v) for v in out):
-        raise CommandError(f"{part}: a command holds NaN or an infinite position")
+        raise CommandError(f"{part}: {what} holds NaN or an infinite value")
     return out
 
 
-def command_targets(part: str, ros_type: str, message: Any) -> tuple[list[str] | None, list[float]]:
-    """(joint names or None for all, positions in rad) of a ROS 2 command for `part`:
+def _seconds(duration: Any) -> float:
+    """A `builtin_interfaces/msg/Duration` in s."""
+    return (int(duration.sec) * 1_000_000_000 + int(duration.nanosec)) / 1e9
 
-    * `std_msgs/msg/Float64MultiArray`: one position per joint of the part, in its order
-      (`protocol.parts.PARTS`);
-    * `trajectory_msgs/msg/JointTrajectory`: `joint_names`, some of the part's joints, each once;
-      the last point's positions are the targets (the robot moves there at its reference
-      speeds; the points' times are not followed).
+
+def command_args(
+    part: str, ros_type: str, message: Any
+) -> rv.PositionMoveArgs | rv.PartTrajectoryArgs:
+    """The robot verb's arguments of a ROS 2 command for `part`:
+
+    * `std_msgs/msg/Float64MultiArray`: `positionMove`, one position (rad) per joint of the
+      part, in its order (`protocol.parts.PARTS`);
+    * `trajectory_msgs/msg/JointTrajectory`: `followTrajectory`, played by the robot in its own
+      loop. `joint_names` are some of the part's joints, each once; each point's
+      `time_from_start` (sec + nanosec, s of simulated time from when the robot accepts it;
+      > 0 and increasing from point to point) is its waypoint's time, its `positions` (rad) the
+      waypoint; the `velocities` (rad/s) are passed when every point carries them (else the
+      robot takes its own). The header's stamp, the accelerations and the efforts are not
+      used; the tolerances are the verb's defaults.
 
     Raises:
-        CommandError: the wrong count, an unknown or repeated joint, no point, NaN or infinity.
+        CommandError: the wrong count, an unknown or repeated joint, no point, a time at or
+            below 0 s or not after the one before, more than `MAX_TRAJECTORY_POINTS` points or
+            `MAX_TRAJECTORY_DURATION` s, NaN or infinity.
     """
     joints = PARTS[part]
     if ros_type == FLOAT_COMMAND:
@@ -242,7 +258,7 @@ def command_targets(part: str, ros_type: str, message: Any) -> tuple[list[str] |
                 f"{part}: a command needs {len(joints)} positions ({', '.join(joints)}), "
                 f"got {len(data)}"
             )
-        return None, _finite(part, data)
+        return rv.PositionMoveArgs(position=_finite(part, data))
     names = list(message.joint_names)
     if len(names) > len(joints) or not names or len(set(names)) != len(names):
         raise CommandError(
@@ -254,11 +270,42 @@ def command_targets(part: str, ros_type: str, message: Any) -> tuple[list[str] |
         raise CommandError(
             f"{part}: joint_names must be some of {', '.join(joints)}; unknown: {shown(unknown)}"
         )
-    if not message.points:
+    points = message.points
+    if not points:
         raise CommandError(f"{part}: a trajectory without points moves nothing")
-    positions = list(message.points[-1].positions)
-    if len(positions) != len(names):
+    if len(points) > rv.MAX_TRAJECTORY_POINTS:
         raise CommandError(
-            f"{part}: the last point has {len(positions)} positions for {len(names)} joint names"
+            f"{part}: a trajectory of {len(points)} points, more than {rv.MAX_TRAJECTORY_POINTS}"
         )
-    return names, _finite(part, positions)
+    times = [_seconds(point.time_from_start) for point in points]
+    if times[0] <= 0.0 or any(b <= a for a, b in itertools.pairwise(times)):
+        raise CommandError(
+            f"{part}: time_from_start must be > 0 s and increase from point to point; got "
+            f"{shown(times)}"
+        )
+    if times[-1] > rv.MAX_TRAJECTORY_DURATION:
+        raise CommandError(
+            f"{part}: the last point at {times[-1]:g} s is past {rv.MAX_TRAJECTORY_DURATION:g} s"
+        )
+    positions: list[list[float]] = []
+    velocities: list[list[float]] | None = []
+    for i, point in enumerate(points):
+        row = list(point.positions)
+        if len(row) != len(names):
+            raise CommandError(
+                f"{part}: point {i} has {len(row)} positions for {len(names)} joint names"
+            )
+        positions.append(_finite(part, row, f"point {i}'s positions"))
+        speeds = list(point.velocities)
+        if speeds and len(speeds) != len(names):
+            raise CommandError(
+                f"{part}: point {i} has {len(speeds)} velocities for {len(names)} joint names"
+            )
+        speeds = _finite(part, speeds, f"point {i}'s velocities")
+        if not speeds:
+            velocities = None
+        elif velocities is not None:
+            velocities.append(speeds)
+    return rv.PartTrajectoryArgs(
+        times=times, positions=positions, velocities=velocities, names=names
+    )

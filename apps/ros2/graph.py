@@ -1,7 +1,8 @@
 """The node on the ROS 2 graph: its topics (the table below, README.md tells each beside its
 YARP port), the feeds that follow the mesh while a ROS 2 subscriber matches, the parts'
-commands and, with an operator, the archery services. Bad input is dropped and counted
-(`Ros2Node.counts`) or refused with a clear log line; nothing moves for it."""
+commands (position targets, and trajectories the robot plays at their points' times) and, with
+an operator, the archery services. Bad input is dropped and counted (`Ros2Node.counts`) or
+refused with a clear log line; nothing moves for it."""
 
 from __future__ import annotations
 
@@ -53,8 +54,9 @@ _STREAM = Qos(depth=10)
 _LATCHED = Qos(depth=1, transient_local=True)
 _SENSOR = Qos(depth=5, best_effort=True)
 _COMMANDS = Qos(depth=1)  # KEEP_LAST 1: a newer command replaces the waiting one
-#: The largest command payload decoded (bytes): a part's Float64MultiArray or JointTrajectory
-#: of a few points is well under it; a bigger one is dropped before any decoding.
+#: The largest command payload decoded (bytes): a part's Float64MultiArray, or a JointTrajectory
+#: of some hundreds of points (7 joints: 80 bytes a point, 136 with velocities), is under it; a
+#: bigger one is dropped before any decoding.
 MAX_COMMAND_BYTES = 64 * 1024
 #: Service calls (reset, nock, release) waiting at once; one more is answered `success: false`.
 MAX_WAITING_CALLS = 4
@@ -101,6 +103,14 @@ class Ros2Node:
         operator: subscribe to the parts' commands and serve reset, nock and release;
             without it the node declares no command subscription and answers each service
             call `success: false`.
+        rtf: the robot's real-time factor (its status' `rtf`; 0, as fast as it can, is taken
+            as the wall clock's pace): how long a trajectory's call waits for the robot's reply
+            at its end (wall s: `CALL_TIMEOUT` and twice its simulated duration ÷ rtf).
+
+    A part's commands go through one keep-last slot per part (`LatestPerKey`), on a thread of
+    their own for each part: while the robot plays a part's trajectory (it answers `busy` to
+    anything else for that part until it ends) the part's newest command or trajectory waits
+    in the slot, replacing an older one, and goes once the robot's reply has come.
     """
 
     def __init__(
@@ -113,12 +123,16 @@ class Ros2Node:
         domain: int = 0,
         namespace: str = "/icubSim",
         operator: bool = False,
+        rtf: float = 0.0,
     ) -> None:
         self.node = node
         self.keys = node.keys
         self.frames = frames
         self.camera_fovy = camera_fovy
         self.operator = operator
+        self.rtf = rtf
+        #: The robot's reply to each part's last trajectory, once it has ended.
+        self.followed: dict[str, rv.TrajectoryReply] = {}
         self.namespace = check_name(namespace, "--namespace")
         self.ros = NodeId(domain, zid_of(node.session), 0, self.namespace, NODE_NAME)
         self.counts = Counts()
@@ -140,7 +154,10 @@ class Ros2Node:
         self._threads = [
             threading.Thread(target=self._follow, name="ros2 feeds", daemon=True),
             threading.Thread(target=self._worker, name="ros2 calls", daemon=True),
-            threading.Thread(target=self._commands.run, name="ros2 commands", daemon=True),
+            *(
+                threading.Thread(target=self._commands.run, name="ros2 commands", daemon=True)
+                for _ in PARTS
+            ),
         ]
         for thread in self._threads:
             thread.start()
@@ -263,7 +280,8 @@ class Ros2Node:
     # -- commands ----------------------------------------------------------------------------
     def _subscribe(self, part: str, leaf: str, ros_type: str) -> None:
         """A part's command subscription (with the operator only): each good command replaces
-        the part's waiting one (KEEP_LAST, depth 1: a stale command is dropped, never sent)."""
+        the part's waiting one (KEEP_LAST, depth 1: a stale command is dropped, never sent);
+        the call to the robot runs on the commands' threads, never on Zenoh's."""
         endpoint = self.endpoint(Kind.SUBSCRIPTION, f"{part}/{leaf}", ros_type, _COMMANDS)
         session = self.node.session
 
@@ -272,11 +290,11 @@ class Ros2Node:
             if message is None:
                 return
             try:
-                names, position = convert.command_targets(part, ros_type, message)
+                args = convert.command_args(part, ros_type, message)
             except convert.CommandError as exc:
                 self._refuse(endpoint.name, str(exc))
                 return
-            self._commands.offer(part, (part, endpoint.name, names, position))
+            self._commands.offer(part, (part, endpoint.name, args))
 
         self._closables.append(session.declare_subscriber(endpoint.key(), each))
         self._closables.append(session.liveliness().declare_token(endpoint.token()))
@@ -308,17 +326,38 @@ class Ros2Node:
         self.counts.add("refused")
         log.error("%s: refused, nothing moves: %s", name, cut(why, _LOG_LIMIT))
 
-    def _move(self, command: tuple[str, str, list[str] | None, list[float]]) -> None:
-        part, name, names, position = command
-        args = rv.PositionMoveArgs(position=position, names=names)
+    def _move(self, command: tuple[str, str, rv.PositionMoveArgs | rv.PartTrajectoryArgs]) -> None:
+        part, name, args = command
+        key = self.keys.part_rpc(part)
         try:
-            self.node.call_typed(
-                self.keys.part_rpc(part), rv.POSITION_MOVE, args, timeout=CALL_TIMEOUT
+            if isinstance(args, rv.PositionMoveArgs):
+                self.node.call_typed(key, rv.POSITION_MOVE, args, timeout=CALL_TIMEOUT)
+                self.counts.add("commands")
+                return
+            reply = self.node.call_typed(
+                key, rv.FOLLOW_PART_TRAJECTORY, args, timeout=self._trajectory_timeout(args)
             )
         except ArcheryError as exc:
             self._refuse(name, f"the robot says: {exc}")
             return
-        self.counts.add("commands")
+        self.followed[part] = reply
+        self.counts.add("trajectories")
+        log.info(
+            "%s: followed %d points from sim time %.3f s to %.3f s (path error %.4f rad, "
+            "goal error %.4f rad)",
+            name,
+            len(args.times),
+            reply.started,
+            reply.ended,
+            reply.path_error,
+            reply.goal_error,
+        )
+
+    def _trajectory_timeout(self, args: rv.PartTrajectoryArgs) -> float:
+        """How long (wall s) a trajectory's call waits for the robot's reply at its end: twice
+        its simulated time (last point and goal time) at the robot's pace, and `CALL_TIMEOUT`."""
+        pace = self.rtf if self.rtf > 0 else 1.0
+        return CALL_TIMEOUT + 2.0 * (args.times[-1] + args.goal_time) / pace
 
     # -- services ------------------------------------------------------------------------------
     def _serve(self, name: str) -> None:
@@ -393,8 +432,9 @@ class Ros2Node:
         self._changes.put(None)
         self._commands.close()
         self._work.put(None)
+        deadline = time.monotonic() + CALL_TIMEOUT  # a trajectory under way ends on its own
         for thread in self._threads:
-            thread.join(CALL_TIMEOUT)
+            thread.join(max(0.0, deadline - time.monotonic()))
         for stop in self._stops.values():
             stop()
         self._stops.clear()
