@@ -4,7 +4,7 @@
 `command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
 both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
 once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file with the
-reader `imitate` and the learner use (`services.learner.config.read_demonstration`: a regular
+reader `imitate` and the controller use (`services.controller.demonstration_file`: a regular
 file of bounded size, its form, samples, duration and events what a learner can play), and
 every angle within the simulated robot's joint limits. A bad file or flag: one line
 naming what is wrong, exit status 2.
@@ -44,7 +44,7 @@ from protocol.parts import ARM_PARTS, PARTS
 from protocol.robotspec import NOMINAL_THETA, ROBOT
 from protocol.vectors import parse_vector
 from protocol.verbs.robot import ARCHERY_STATUS
-from services.learner.config import read_demonstration
+from services.controller.demonstration_file import read_demonstration
 
 __all__ = ["Recorder", "joint_limits", "main"]
 

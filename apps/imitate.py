@@ -1,10 +1,11 @@
 """`archery imitate DEMO.json [--theta X,Y,Z]`: the whole shot from a demonstration's DMPs alone
 on a running robot (`archery robot --shot whole`).
 
-The movement is learned as DMPs (`services.learner.movement`) and played as a learner's
-whole-shot rollout plays it (`services.learner.whole_movement`): the draw's goal is the archery
-posture for θ, grasp and nock at their demonstrated times; then the release, whose reply is
-printed. A bad file, or θ outside the controller's box (nothing moves):
+The movement is learned as DMPs (`services.controller.movement`) and planned as the
+controller plans a whole shot (`services.controller.whole_shot`): the draw's goal is the
+archery posture for θ (the controller's IK), grasp and nock at their demonstrated times; the
+robot plays it as one trajectory (`archery/rpc:i followTrajectory`), then the release, whose
+reply is printed. A bad file, or θ outside the controller's box (nothing moves):
 one line, exit status 2.
 """
 
@@ -28,11 +29,12 @@ from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
 from protocol.robotspec import NOMINAL_THETA, ROBOT
 from protocol.vectors import parse_vector
+from protocol.verbs import robot as rv
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
-from services.learner.config import read_demonstration
+from services.controller.demonstration_file import read_demonstration
 
 if TYPE_CHECKING:
-    from services.learner.movement import Movement
+    from services.controller.movement import Movement
 
 __all__ = ["main"]
 
@@ -56,20 +58,41 @@ def _theta(text: str) -> np.ndarray:
 
 
 def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> int:
-    from services.learner.arms import ArmDriver
-    from services.learner.whole_movement import plan, play
+    from services.controller.posture import ArcheryPosture, PostureConfig
+    from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
 
     net = NetConfig.from_args(args)
     on_wait = announce(PROG)
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
-        arms = ArmDriver(node, args.wait)
-        try:
-            world = arms.world()
-            play(arms, world, plan(world, movement, theta))
-            reply = arms.act("release")
-        finally:
-            arms.close()
+        keys = node.keys
+        status = node.call_typed(keys.archery_rpc(), rv.ARCHERY_STATUS, timeout=args.wait)
+        shot = status.scene.get("shot", "posture")
+        if shot != "whole":
+            raise ArcheryError(
+                f"the robot runs the {shot!r} shot; start it with `archery robot --shot whole`",
+                code="bad_state",
+            )
+        standing: dict[str, float] = {}
+        for part in PARTS_MOVED:
+            encoders = node.call_typed(keys.part_rpc(part), rv.GET_POSITIONS, timeout=args.wait)
+            standing.update(zip(encoders.names, encoders.position, strict=True))
+        posture = ArcheryPosture(PostureConfig()).solve_checked(theta)
+        plan = whole_shot_trajectory(movement, posture.q, standing)
+        trajectory = rv.TrajectoryArgs(
+            parts=[rv.TrajectoryPart(part=part) for part in PARTS_MOVED],
+            times=plan.times.tolist(),
+            positions=plan.rows.tolist(),
+            actions=(
+                rv.TrajectoryAction(t=plan.grasp, verb="grasp"),
+                rv.TrajectoryAction(t=plan.nock, verb="nock"),
+            ),
+        )
+        wall = plan.release / status.rtf if status.rtf > 0 else plan.release
+        node.call_typed(
+            keys.archery_rpc(), rv.FOLLOW_TRAJECTORY, trajectory, timeout=args.wait + wall
+        )
+        reply = node.call_typed(keys.archery_rpc(), rv.RELEASE, timeout=args.wait)
     print(json.dumps(msgspec.to_builtins(reply)), flush=True)
     return OK
 
@@ -96,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         theta = _theta(args.theta)
-        from services.learner.movement import Movement
+        from services.controller.movement import Movement
 
         movement = Movement(read_demonstration(args.demonstration, flag=""))
     except (ConfigError, BadDemonstration) as exc:

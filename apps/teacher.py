@@ -1,6 +1,6 @@
 """A scripted teacher of the whole shot over the mesh (`archery demonstrate --teach`): the arms'
 postures of `sim.shot_script`, planned on a copy of the robot's scene, driven on the mesh
-(`services.learner.arms`), with the robot's grasp, nock and release in their turn. The robot
+(`apps.arms`), with the robot's grasp, nock and release in their turn. The robot
 must run with `--shot whole`; joint angles in rad, positions in m.
 """
 
@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from apps.arms import ArmDriver
 from protocol.robotspec import BOW_ARM, STRING_ARM
-from services.learner.arms import ArmDriver
 from sim.geometry import BOW_HAND
 from sim.shot_script import plan_aim, plan_whole_shot
 

@@ -1,5 +1,6 @@
 """The controlboards of a fake robot on the mesh: every part's `getLimits` and `setRefSpeeds`
-served (limits ±3 rad, no leases), its commands handed to a callback, its state publishers."""
+served (limits ±3 rad, no leases), its archery `status` (a posture shot), its commands handed
+to a callback, its state publishers."""
 
 from __future__ import annotations
 
@@ -32,6 +33,29 @@ def part_verbs(part: str, speeds_set: list[list[float]] | None = None) -> Served
     return some_verbs(rv.PART_VERBS, {"getLimits": lambda a: limits, "setRefSpeeds": speeds})
 
 
+def archery_verbs() -> ServedVerbs:
+    """The archery `status` of a posture-shot robot at rtf 0 (what a controller asks before a
+    posture)."""
+    status = rv.ArcheryStatusReply(
+        sim_time=0.0,
+        arrow="stowed",
+        phase="idle",
+        shot=0,
+        motion_done=True,
+        seed=None,
+        rtf=0.0,
+        state_rate=100.0,
+        world_rate=30.0,
+        watchdog=0.5,
+        limit_tolerance=0.01,
+        timestep=0.002,
+        counters={},
+        scene={"shot": "posture"},
+        world={},
+    )
+    return some_verbs(rv.ARCHERY_VERBS, {"status": lambda a: status})
+
+
 def serve_parts(
     node: Node,
     on_command: Callable[[JointCommand], None],
@@ -45,6 +69,7 @@ def serve_parts(
         node.subscribe(keys.command(part), JointCommand, callback=on_command)
         recorded = None if speeds_set is None else speeds_set.setdefault(part, [])
         node.serve(keys.part_rpc(part), part_verbs(part, recorded))
+    node.serve(keys.archery_rpc(), archery_verbs())
     node.ready()
     return pubs
 

@@ -208,8 +208,15 @@ def test_learner_and_demo_share_the_runs(compose: dict[str, Any]) -> None:
     assert learner["volumes"] == [f"${{ARCHERY_RUNS:-./runs}}:{runs}"]
 
 
+def _defaults(argv: list[str]) -> list[str]:
+    """`argv` with each `${NAME:-default}` replaced by its default, as docker-compose does
+    where NAME is not set."""
+    return [re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", arg) for arg in argv]
+
+
 def _parse_service(verb: str, argv: list[str], monkeypatch: pytest.MonkeyPatch) -> Any:
     """Run a service's main() with its flags but without serving: returns its config."""
+    argv = _defaults(argv)
     module_name, func = VERBS[verb][0].split(":")
     module = importlib.import_module(module_name)
     real = mesh.service.service_main  # not module.service_main: patched by an earlier call
@@ -249,6 +256,16 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
     assert opened[1].identity == "router"
     args = build_parser().parse_args(services["demo"]["command"][2:])
     assert start_request(args)["algo"] == "archer" and args.wait >= 60
+
+
+def test_the_shot_is_a_variable_of_both_robots(
+    compose: dict[str, Any], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    for name in ("robot", "robot-secure"):
+        argv = compose["services"][name]["command"]
+        assert argv[argv.index("--shot") + 1] == "${ARCHERY_SHOT:-posture}"
+        whole = [a.replace("${ARCHERY_SHOT:-posture}", "whole") for a in argv[2:]]
+        assert _parse_service("robot", whole, monkeypatch).world.scene.shot == "whole"
 
 
 def test_dockerfile() -> None:

@@ -54,11 +54,6 @@ NOT_IN_IMAGES = (
     "apps.topics.json_image_records",
     "apps.topics.observe",
     "apps.topics.recording",
-    # the whole shot's DMPs and arms (the `imitate` extra and MuJoCo): a learner image refuses
-    # a whole-shot robot's session with the reason
-    "services.learner.arms",
-    "services.learner.movement",
-    "services.learner.whole_movement",
     "tests.postures",
 )
 _IMPORT_ALL = """

@@ -15,7 +15,7 @@ from protocol.demonstration import FORMAT, MIN_DURATION, MIN_SAMPLES
 from protocol.exit_status import BAD_INPUT, OK
 from protocol.parts import ARM_PARTS, PARTS
 from protocol.robotspec import home_of
-from services.learner.config import SHIPPED_DEMONSTRATION
+from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 
 
 def _demo(samples: int = 2 * MIN_SAMPLES) -> dict[str, Any]:

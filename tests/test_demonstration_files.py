@@ -30,8 +30,8 @@ from protocol.errors import ConfigError
 from protocol.exit_status import BAD_INPUT
 from protocol.parts import ARM_PARTS, PARTS
 from protocol.robotspec import home_of
-from services.learner.config import SHIPPED_DEMONSTRATION
-from services.learner.config import read_demonstration as learner_reads
+from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from services.controller.demonstration_file import read_demonstration as controller_reads
 
 ARCHERY = Path(sys.executable).parent / "archery"  # the installed console script
 
@@ -88,7 +88,7 @@ def test_what_a_learner_cannot_play_is_refused_by_every_reader(
         parse_demonstration(content)
     assert says in caught.value.message and "\n" not in caught.value.message
     with pytest.raises(ConfigError) as refused:
-        learner_reads(path)  # the learner's `--demonstration` and `archery imitate`
+        controller_reads(path)  # the controller's `--demonstration` and `archery imitate`
     assert refused.value.message == f"--demonstration {path}: {caught.value.message}"
 
 
@@ -103,7 +103,7 @@ def test_imitate_refuses_it_before_it_plans(
 
 
 def test_the_bounds_leave_the_shipped_demonstration_and_a_slack_end_in() -> None:
-    shipped = learner_reads(SHIPPED_DEMONSTRATION)
+    shipped = controller_reads(SHIPPED_DEMONSTRATION)
     assert shipped.events[-1].t > shipped.samples[-1].t  # its shot ended after its last sample
     assert shipped.samples[-1].t < MAX_DURATION / 2
     times = [s.t for s in shipped.samples]

@@ -69,7 +69,7 @@ def test_archer_learns_theta_while_every_rollout_performs_the_whole_shot(mesh: L
             since = []
         elif kind in ("grasped", "nocked"):
             since.append(kind)
-    assert all(r.timing["movement_s"] > 0 for r in done)
+    assert all(r.timing["movement_sim_s"] > 0 for r in done)
     # ARCHER's exploration, then its first step: θ moves, and so does the arrow
     assert len({tuple(r.theta) for r in done}) == 5
     # the controller's posture after the movement: the launched θ is the proposed one
@@ -89,4 +89,4 @@ def test_every_learner_runs_its_rollouts_as_whole_shots(mesh: Launcher, algo: st
         final = follow(node, session, rollouts, lambda m: None)
     assert final["state"] == "finished" and final["rollouts"] == 3, final
     done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
-    assert len(done) == 3 and all(r.timing["movement_s"] > 0 for r in done)
+    assert len(done) == 3 and all(r.timing["movement_sim_s"] > 0 for r in done)

@@ -11,15 +11,16 @@ import numpy as np
 import pytest
 
 from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
+from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, STRING_ARM
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
-from services.learner.config import SHIPPED_DEMONSTRATION
-from services.learner.movement import Movement, Reproduction
-from services.learner.whole_movement import DRAW_TOLERANCE, plan
+from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from services.controller.movement import Movement, Reproduction
+from services.controller.posture import ArcheryPosture, PostureConfig
+from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
 from sim.arrow import Launch
 from sim.geometry import START_THETA
 from sim.scene_config import SceneConfig
-from sim.shot_script import plan_draw
 from sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.world_steps import move_until_done
 
@@ -37,6 +38,17 @@ def demo() -> Demonstration:
 @pytest.fixture(scope="module")
 def movement(demo: Demonstration) -> Movement:
     return Movement(demo)
+
+
+@pytest.fixture(scope="module")
+def posture() -> ArcheryPosture:
+    return ArcheryPosture(PostureConfig())
+
+
+def _goal(posture: ArcheryPosture, theta: np.ndarray) -> np.ndarray:
+    """Both arms' angles (rad, left then right) of the controller's posture for θ (m)."""
+    q = posture.solve_checked(theta).q
+    return np.array([q[j] for part in (BOW_ARM, STRING_ARM) for j in PARTS[part]])
 
 
 def _at_start(demo: Demonstration) -> ArcheryWorld:
@@ -96,24 +108,31 @@ def test_the_dmps_alone_grasp_nock_draw_and_release(
     assert world.arrow_state is ArrowState.LANDED
 
 
-def _drawn(demo: Demonstration, movement: Movement, theta: np.ndarray) -> tuple[float, float]:
-    """The DMPs to the nock, then to the archery posture of `theta` (m) as the goal: checks
-    the nock is drawn there; returns (draw length (m), launch speed (m/s))."""
+def _drawn(
+    demo: Demonstration, movement: Movement, posture: ArcheryPosture, theta: np.ndarray
+) -> tuple[float, float]:
+    """The DMPs to the nock, then to the controller's archery posture of `theta` (m) as the
+    goal (its torso too): checks the hands are drawn there; returns (draw length (m), launch
+    speed (m/s))."""
     world = _at_start(demo)
     _to_the_nock(world, movement.reproduce())
-    draw = plan_draw(world, theta, movement.goal[:7])
-    moved = movement.reproduce(np.concatenate([movement.goal[:7], draw.right_arm]))
+    q = posture.solve_checked(theta).q
+    moved = movement.reproduce(_goal(posture, theta))
+    world.set_joint_targets("torso", [q[j] for j in PARTS["torso"]])
     _follow(world, moved, moved.nock, moved.release)
     assert move_until_done(world)
-    bow, _ = world.hand_positions()
+    np.testing.assert_allclose(world.theta(), theta, atol=5e-3)
     assert world.whole is not None
-    np.testing.assert_allclose(world.whole.nocking_point() - bow, theta, atol=5e-3)
     length = world.whole.draw_length()
     return length, float(np.linalg.norm(world.launch().velocity))
 
 
-def test_the_goal_of_another_theta_draws_there(demo: Demonstration, movement: Movement) -> None:
-    (short, slow), (long, fast) = (_drawn(demo, movement, k * START_THETA) for k in (0.9, 1.1))
+def test_the_goal_of_another_theta_draws_there(
+    demo: Demonstration, movement: Movement, posture: ArcheryPosture
+) -> None:
+    (short, slow), (long, fast) = (
+        _drawn(demo, movement, posture, k * START_THETA) for k in (0.9, 1.1)
+    )
     assert long > short + 0.01 and fast > slow
     assert fast == pytest.approx(WORLD.bow.speed_for_draw(long), rel=1e-9)
 
@@ -126,13 +145,25 @@ def test_a_demonstration_without_a_grasp_is_refused(demo: Demonstration) -> None
         Movement(posture_only)
 
 
-def test_the_draw_is_planned_for_every_corner_of_the_controllers_box() -> None:
-    """The string arm alone, the bow arm as demonstrated, reaches each corner of the θ box
-    within the draw's tolerance (the controller's posture, with the torso, does the rest)."""
+def test_the_whole_shot_ends_in_the_posture_for_every_corner_of_the_box(
+    movement: Movement, posture: ArcheryPosture
+) -> None:
+    """The controller's whole shot for each corner of the θ box ends in its IK posture for
+    that corner: the hands at the θ it achieves, from a robot at home."""
     world = ArcheryWorld(WorldConfig(scene=SceneConfig(meshes=False, shot="whole")))
-    movement = Movement(parse_demonstration(SHIPPED.read_bytes()))
+    standing = {
+        j: float(v) for p in PARTS for j, v in zip(PARTS[p], world.joint_positions(p), strict=True)
+    }
     for corner in itertools.product(*zip(THETA_MIN, THETA_MAX, strict=True)):
-        rollout = plan(world, movement, np.array(corner))
-        world.physics.set_joint_positions(BOW_ARM, rollout.left_arm[-1])
-        world.physics.set_joint_positions(STRING_ARM, rollout.right_arm[-1])
-        assert np.linalg.norm(world.theta() - np.array(corner)) < DRAW_TOLERANCE + 0.005, corner
+        solved = posture.solve_checked(np.array(corner))
+        plan = whole_shot_trajectory(movement, solved.q, standing)
+        assert plan.lead < 0.05  # the demonstration starts at home
+        at = 0
+        for part in PARTS_MOVED:
+            n = len(PARTS[part])
+            world.physics.set_joint_positions(part, plan.rows[-1, at : at + n])
+            at += n
+        world.physics.kinematics()
+        # the hands where the controller's IK put them (the two models differ by < 1 cm there)
+        assert np.linalg.norm(world.theta() - solved.theta_achieved) < 0.01, corner
+        assert solved.relative_error_m < 0.01, corner

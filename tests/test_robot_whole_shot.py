@@ -21,19 +21,19 @@ from apps.imitate import main as imitate
 from apps.teacher import Teacher
 from mesh.netflags import NetConfig
 from mesh.node import Node
-from protocol.demonstration import MIN_SAMPLES, encode_demonstration, parse_demonstration
+from protocol.demonstration import MIN_SAMPLES, encode_demonstration
 from protocol.errors import ConfigError, RpcError
 from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.camera.config import CameraConfig
 from services.camera.service import run as camera
+from services.controller.config import ControllerConfig
+from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from services.controller.service import run as controller
 from services.learner.abort_policy import after_abort
 from services.learner.algorithms.base import Bounds
-from services.learner.config import SHIPPED_DEMONSTRATION, read_demonstration
-from services.learner.movement import Movement
 from services.learner.rig import MeshRig
 from services.learner.rollout_step import Failed, shoot
-from services.learner.whole_movement import WholeMovement
 from services.robot.config import add_arguments, make_config
 from sim.geometry import BOW_HAND, START_THETA
 from sim.model_build import build_scene
@@ -247,15 +247,14 @@ def test_a_learner_rollout_whose_grasp_or_nock_fails_is_an_abort_retried_on_a_re
 ) -> None:
     client = robot(dataclasses.replace(WHOLE, **tolerances))
     theta = np.array([0.19, 0.03, -0.035])
-    movement = Movement(parse_demonstration(SHIPPED.read_bytes()))
-    with Node(None, net) as node:
+    with serving(controller, ControllerConfig(net=net)), Node(None, net) as node:
+        node.wait_alive(["controller"], timeout=30)
         rig = MeshRig(node, timeout=30)
-        rig.services = ("robot",)  # only the robot runs: the others are not lost
-        rig.whole = WholeMovement(node, 30, movement, WHOLE.scene, WHOLE.reference_speed)
+        rig.services = ("robot", "controller")  # only these run: the others are not lost
         try:
+            assert rig.follow_shot() == "whole"
             failed = shoot(rig, theta)
         finally:
-            rig.whole.close()
             rig.close()
     assert isinstance(failed, Failed) and failed.code == code, failed
     # the robot was reset: home, a fresh arrow in the holder, the arms' leases dropped
@@ -268,11 +267,11 @@ def test_a_learner_rollout_whose_grasp_or_nock_fails_is_an_abort_retried_on_a_re
     assert decision.failure is None and np.allclose(decision.retry_theta, theta)
 
 
-def test_the_learner_refuses_a_bad_demonstration_in_one_line(tmp_path: Path) -> None:
+def test_the_controller_refuses_a_bad_demonstration_in_one_line(tmp_path: Path) -> None:
     short = tmp_path / "short.json"
     short.write_text('{"format": 1}')
     for path, said in ((tmp_path / "none.json", "cannot read it"), (short, str(short))):
-        result = archery("learner", "--demonstration", str(path), "--connect", "tcp/127.0.0.1:9")
+        result = archery("controller", "--demonstration", str(path), "--connect", "tcp/127.0.0.1:9")
         assert result.returncode == 2, result.stderr
         lines = result.stderr.strip().splitlines()
         assert len(lines) == 1 and "--demonstration" in lines[0] and said in lines[0], lines
@@ -292,17 +291,23 @@ def test_the_camera_and_so_the_dashboard_s_view_render_the_whole_shot_s_scene(
         client.archery("status")  # the robot still answers beside the camera
 
 
-def test_a_secure_learner_refuses_a_whole_shot_robot_with_the_reason(
+def test_the_learner_asks_the_controller_for_the_robot_s_shot(
     robot: Callable[..., Client], net: NetConfig
 ) -> None:
-    robot()
-    with Node(None, net) as node:
+    """The learner only reads the robot's shot; a posture asked for the other shot is refused
+    by the controller with `bad_state` naming the robot's, and nothing moves."""
+    client = robot()
+    before = client.part(STRING_ARM, "getPositions")
+    with serving(controller, ControllerConfig(net=net)), Node(None, net) as node:
+        node.wait_alive(["controller"], timeout=30)
         rig = MeshRig(node, timeout=30)
         try:
-            with pytest.raises(ConfigError, match="secure mode's access control"):
-                rig.follow_shot(read_demonstration, secure=True)
-            assert rig.whole is None  # nothing will drive the arms
-            assert rig.follow_shot(read_demonstration, secure=False) == "whole"
-            assert rig.whole is not None
+            assert rig.follow_shot() == "whole" and rig.shot == "whole"
+            key = node.keys.cartesian_rpc("archery")
+            with pytest.raises(RpcError, match="runs the 'whole' shot") as refused:
+                rpc_call(node, key, "posture", {"theta": list(THETA0)}, timeout=30)
+            assert refused.value.code == "bad_state"
         finally:
             rig.close()
+    after = client.part(STRING_ARM, "getPositions")
+    assert after["position"] == before["position"]

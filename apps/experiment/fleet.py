@@ -22,7 +22,6 @@ from mesh.node import Node
 from mesh.router import wait_for_endpoint
 from mesh.tokens import TokenSet
 from protocol.errors import ArcheryError, ConfigError
-from services.learner.config import read_demonstration
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.rig_protocol import Measurement, Shot
 
@@ -160,8 +159,8 @@ def open_fleet(
             for prefix in chosen:
                 node = Node(None, dataclasses.replace(net, robot=prefix), session=session)
                 fleet.append(FleetRobot(prefix, node, ExperimentRig(node, rpc_timeout)))
-                # a whole-shot robot: every rollout plays the shipped demonstration's movement
-                fleet[-1].rig.follow_shot(read_demonstration, secure=net.secure is not None)
+                # a whole-shot robot: every rollout is the controller's whole movement
+                fleet[-1].rig.follow_shot()
             yield fleet
         finally:
             for robot in fleet:

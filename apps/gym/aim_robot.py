@@ -29,7 +29,6 @@ from protocol.robotspec import HIT_RADIUS, THETA0
 from protocol.text import shown
 from protocol.vectors import finite_vector
 from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
-from services.learner.config import read_demonstration
 from services.learner.errors import RigError, ServiceLost
 from services.learner.rig import SERVICES, MeshRig
 from services.learner.rollout_step import Failed, planar_distance, shoot
@@ -179,8 +178,8 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             node.wait_alive(SERVICES, self.wait, on_wait=self._on_wait)
             self.rig = MeshRig(node, self.rpc_timeout)
             self._stack.callback(self.rig.close)
-            # a whole-shot robot: every step plays the shipped demonstration's movement
-            self.rig.follow_shot(read_demonstration, secure=net.secure is not None)
+            # a whole-shot robot: every step is the controller's whole movement
+            self.rig.follow_shot()
             self.bounds = self.rig.theta_box()
         except (ArcheryError, RigError) as exc:
             self._stack.close()

@@ -4,12 +4,18 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
+from protocol.errors import ConfigError
 from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, ROBOT_TIMEOUT, STATE_MAX_AGE
+from services.controller.demonstration_file import read_demonstration
 from services.controller.ik_types import IkSettings
 from services.controller.posture import PostureConfig
+
+if TYPE_CHECKING:
+    from services.controller.movement import Movement
 
 __all__ = ["LIMIT_MARGIN", "ControllerConfig", "add_arguments", "make_config"]
 
@@ -36,6 +42,8 @@ class ControllerConfig:
             within this of its target (rad).
         state_max_age: a robot joint state that arrived longer ago than this is stale, never
             used: the verbs reply `stale_state` (wall s; see `robotlink`).
+        demonstration: the whole shot's demonstration, whose DMPs a posture for a `--shot
+            whole` robot plays (None: `SHIPPED_DEMONSTRATION`).
         lease_ttl: a move holds a lease on each part it commands (no other client moves the
             part meanwhile); it lasts this long unless renewed (every quarter of it), so a
             controller that dies frees the arm within it (wall s).
@@ -73,9 +81,33 @@ class ControllerConfig:
         low=0.2,
         high=LEASE_TTL_RANGE[1],
     )
+    demonstration: str | None = flag(
+        None,
+        "the whole shot's demonstration, played as DMPs on a robot with --shot whole "
+        "(default: the one shipped)",
+        metavar="FILE",
+    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
+        if self.demonstration is not None:
+            read_demonstration(self.demonstration)
+
+    def movement(self) -> Movement:
+        """The whole shot's DMPs, of `demonstration` (else the shipped one).
+
+        Raises:
+            ConfigError: the demonstration is not readable or not valid, or the DMPs' library
+                (the `imitate` extra) is not installed.
+        """
+        try:
+            from services.controller.movement import Movement
+        except ImportError as exc:
+            raise ConfigError(
+                f"the robot runs the whole shot, whose movement needs the DMPs' library "
+                f"({exc.name}): pip install 'archery[imitate]'"
+            ) from None
+        return Movement(read_demonstration(self.demonstration))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

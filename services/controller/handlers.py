@@ -9,10 +9,11 @@ one lock: one motion at a time.
 from __future__ import annotations
 
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import replace
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -26,6 +27,10 @@ from services.controller.ik import IkSolver
 from services.controller.model import ArmsModel
 from services.controller.posture import ArcheryPosture
 from services.controller.robotlink import MoveResult, RobotLink
+from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
+
+if TYPE_CHECKING:
+    from services.controller.movement import Movement
 
 __all__ = ["ArcheryController", "ArmController", "MotionLock"]
 
@@ -193,8 +198,11 @@ class ArcheryController:
         config: ControllerConfig,
         link: RobotLink,
         motion: MotionLock,
+        movement: Callable[[], Movement] | None = None,
     ) -> None:
         self._posture = posture
+        self._movement_of = movement
+        self._movement_cache: Movement | None = None
         self._config = config
         self._link = link
         self._motion = motion
@@ -237,6 +245,16 @@ class ArcheryController:
         """
         theta = self._posture.check_theta(args.theta)
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
+        robot = self._link.robot_status()
+        shot = robot.scene.get("shot", "posture")
+        if args.shot != shot:
+            raise ArcheryError(
+                code="bad_state",
+                message=f"the robot runs the {shot!r} shot (archery robot --shot {shot}), not the "
+                f"{args.shot!r} shot asked: nothing moved",
+            )
+        if shot == "whole":
+            return self._whole(theta, timeout, robot.rtf)
         current = self._link.joint_angles()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
         result = self._posture.solve_checked(theta, q0=q0)
@@ -254,4 +272,54 @@ class ArcheryController:
             reachable=result.reachable,
             bow_hand=result.bow_hand.tolist(),
             **_move_reply(move),
+        )
+
+    def _movement(self) -> Movement:
+        """The demonstration's DMPs (built on the first whole shot).
+
+        Raises:
+            ArcheryError (code `bad_config`): no demonstration was given to this controller.
+        """
+        if self._movement_of is None:
+            raise ConfigError("this controller plays no whole shot (it was given no demonstration)")
+        if self._movement_cache is None:
+            self._movement_cache = self._movement_of()
+        return self._movement_cache
+
+    def _whole(self, theta: np.ndarray, timeout: float, rtf: float) -> cv.PostureReply:
+        """The whole shot for θ (m): the demonstration's movement drawn to the archery posture
+        for θ, played by the robot as one trajectory with grasp and nock (`whole_shot`); the
+        reply once it has ended, as a posture's."""
+        movement = self._movement()
+        standing = self._link.joint_angles()
+        result = self._posture.solve_checked(theta)
+        plan = whole_shot_trajectory(movement, result.q, standing)
+        actions = {"grasp": plan.grasp, "nock": plan.nock}
+        started = time.monotonic()
+        with self._motion.hold(timeout):
+            reply = self._link.follow(PARTS_MOVED, plan.times, plan.rows, actions, rtf)
+        wall = time.monotonic() - started
+        measured = self._link.joint_angles()
+        theta_measured = self._posture.theta_at(measured)
+        goal = {
+            j: float(v)
+            for j, v in zip(
+                (j for part in PARTS_MOVED for j in PARTS[part]), plan.rows[-1], strict=True
+            )
+        }
+        return cv.PostureReply(
+            q=goal,
+            theta=theta.tolist(),
+            theta_achieved=result.theta_achieved.tolist(),
+            theta_measured=theta_measured.tolist(),
+            relative_error_m=result.relative_error_m,
+            measured_error_m=float(np.linalg.norm(theta - theta_measured)),
+            reachable=result.reachable,
+            bow_hand=result.bow_hand.tolist(),
+            reached=True,
+            reason="",
+            wall_s=wall,
+            sim_time=reply.ended,
+            shot="whole",
+            movement_sim_s=reply.ended - reply.started,
         )

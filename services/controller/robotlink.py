@@ -22,7 +22,8 @@ from mesh.node import Node
 from protocol.errors import ArcheryError, RpcError, RpcTimeout, StaleState
 from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
-from protocol.robotspec import CONTROLLER, LEASE_TTL, STATE_MAX_AGE
+from protocol.robotspec import CONTROLLER, LEASE_TTL, LEASE_TTL_RANGE, STATE_MAX_AGE
+from protocol.verbs import robot as rv
 from protocol.verbs.robot import (
     CLAIM,
     DROP_CLAIM,
@@ -207,6 +208,75 @@ class RobotLink:
                     )
                 self._limits[part] = (np.asarray(reply.min), np.asarray(reply.max))
             return self._limits[part]
+
+    def robot_status(self) -> rv.ArcheryStatusReply:
+        """The robot's archery `status` (its scene's shot, its rtf)."""
+        return self._node.call_typed(
+            self._keys.archery_rpc(), rv.ARCHERY_STATUS, timeout=self.robot_timeout
+        )
+
+    def follow(
+        self,
+        parts: tuple[str, ...],
+        times: np.ndarray,
+        rows: np.ndarray,
+        actions: Mapping[str, float],
+        rtf: float,
+    ) -> rv.TrajectoryReply:
+        """Play one trajectory of `parts` (`rows`: their joints one part after the other, rad,
+        at `times`, s of sim time from its start) with the archery `actions` {verb: s} on the
+        robot's `archery/rpc:i followTrajectory`, under a lease of each part that lasts the
+        movement in wall time (at the robot's `rtf`; 0: as fast as it runs) and `lease_ttl`
+        more; the reply once it has ended. The leases are dropped after it.
+
+        Raises:
+            ArcheryError (code `not_owner`): another client holds a part. RpcError: the robot
+                refused or aborted it (its code: `path_tolerance`, `grasp_missed`, …).
+            RpcTimeout: no reply in time.
+        """
+        duration = float(times[-1])
+        wall = duration / rtf if rtf > 0 else duration
+        ttl = min(LEASE_TTL_RANGE[1], self.lease_ttl + wall)
+        leases: dict[str, str] = {}
+        try:
+            for part in parts:
+                leases[part] = self._claim(part, ttl)
+            args = rv.TrajectoryArgs(
+                parts=[rv.TrajectoryPart(part=p, lease=leases[p]) for p in parts],
+                times=[float(t) for t in times],
+                positions=rows.tolist(),
+                actions=tuple(
+                    rv.TrajectoryAction(t=at, verb=verb)  # type: ignore[arg-type]
+                    for verb, at in actions.items()
+                ),
+            )
+            return self._node.call_typed(
+                self._keys.archery_rpc(),
+                rv.FOLLOW_TRAJECTORY,
+                args,
+                timeout=self.robot_timeout + wall + args.goal_time / (rtf if rtf > 0 else 1.0),
+            )
+        finally:
+            self._drop(leases)
+
+    def _claim(self, part: str, ttl: float) -> str:
+        """Claim `part` for `ttl` wall s; its lease id.
+
+        Raises:
+            ArcheryError (code `not_owner`): another client holds it.
+        """
+        try:
+            reply = self._node.call_typed(
+                self._keys.part_rpc(part),
+                CLAIM,
+                ClaimArgs(owner=self.owner, ttl=ttl),
+                timeout=self.robot_timeout,
+            )
+        except RpcError as exc:
+            if exc.code == "not_owner":
+                raise ArcheryError(f"cannot move {part}: {exc.message}", code="not_owner") from None
+            raise
+        return reply.lease
 
     # -- leases -------------------------------------------------------------------------------
     def _claim_with_speeds(self, part: str, speeds: np.ndarray) -> str:

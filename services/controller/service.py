@@ -47,7 +47,7 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
         for arm in ARM_PARTS:
             controller = ArmController(arm, model, config, link, motion)
             node.serve(keys.cartesian_rpc(arm), controller.verbs())
-        archery = ArcheryController(posture, config, link, motion)
+        archery = ArcheryController(posture, config, link, motion, config.movement)
         node.serve(keys.cartesian_rpc("archery"), archery.verbs())
         node.ready()
         log.info(

@@ -16,13 +16,6 @@ from msgspec import UnsetType
 from mesh.cliargs import check_writable_dir
 from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from mesh.netflags import NetConfig
-from mesh.regular_file import FileRefused, read_regular
-from protocol.demonstration import (
-    MAX_BYTES,
-    BadDemonstration,
-    Demonstration,
-    parse_demonstration,
-)
 from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
@@ -36,19 +29,15 @@ from services.learner.algorithms.registry import ALGORITHMS
 __all__ = [
     "DEFAULT_THETA0",
     "ROBOT_OPTIONS",
-    "SHIPPED_DEMONSTRATION",
     "START_ARGS",
     "LearnerServiceConfig",
     "SessionConfig",
     "add_arguments",
     "make_config",
-    "read_demonstration",
 ]
 
 # θ (m) where sessions start (protocol.robotspec.THETA0).
 DEFAULT_THETA0 = THETA0
-#: The demonstration of the whole shot that ships with the package (`demonstrations/README.md`).
-SHIPPED_DEMONSTRATION = Path(__file__).parent / "demonstrations" / "whole-shot.json"
 
 # Learner options for the MuJoCo robot, under the caller's own. Its hands move the arrow about
 # 11 m on the target per m of θ (aim) and 1-2 m per m of draw, so the analytic model's 10-20 mm
@@ -272,8 +261,6 @@ class LearnerServiceConfig:
         rpc_timeout: longest wait for a reply from another service (wall s).
         report: write `report.png` and the hit frame when a session ends.
         fleet: more robot prefixes served by this one learner (a session on each at once).
-        demonstration: the whole shot's demonstration, whose DMPs every rollout plays on a
-            robot that runs `--shot whole` (None: `SHIPPED_DEMONSTRATION`).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -299,12 +286,6 @@ class LearnerServiceConfig:
         parse=lambda text: tuple(p.strip() for p in text.split(",") if p.strip()),
         metavar="PREFIX,PREFIX",
     )
-    demonstration: str | None = flag(
-        None,
-        "the whole shot's demonstration, played as DMPs on a robot with --shot whole "
-        "(default: the one shipped)",
-        metavar="FILE",
-    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
@@ -316,47 +297,10 @@ class LearnerServiceConfig:
         robots = self.robots()
         if len(set(robots)) != len(robots):
             raise ConfigError(f"--fleet {','.join(self.fleet)}: a robot is listed twice")
-        if self.demonstration is not None:
-            self.read_demonstration()
-
-    def read_demonstration(self) -> Demonstration:
-        """The whole shot's demonstration (`demonstration`, else the shipped one), checked
-        (`read_demonstration`)."""
-        return read_demonstration(self.demonstration)
 
     def robots(self) -> tuple[str, ...]:
         """Every robot prefix this learner serves: its own (`--robot`), then `--fleet`'s."""
         return (self.net.robot, *self.fleet)
-
-
-def read_demonstration(
-    path: str | Path | None = None, flag: str = "--demonstration"
-) -> Demonstration:
-    """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked
-    (`parse_demonstration`); its errors name the `flag` that gave it ("" for a positional
-    argument). The one reader of a demonstration file (`archery demonstrate --check`, `imitate`,
-    the learner): only a regular file is read (a folder, a FIFO or a device is refused without
-    a blocking open), and at most `MAX_BYTES` + 1 bytes of it (`mesh.regular_file`).
-
-    Raises:
-        ConfigError: it cannot be read, is not a regular file, is too large, or is not a valid
-            demonstration (one line).
-    """
-    path = Path(path or SHIPPED_DEMONSTRATION)
-    named = f"{flag} {path}" if flag else str(path)
-    try:
-        return parse_demonstration(read_regular(path, MAX_BYTES))
-    except FileRefused as refused:
-        if refused.problem == "cannot_open":
-            why = f"cannot read it ({refused.detail})"
-        elif refused.problem == "not_regular":
-            why = f"not a regular file ({refused.detail})"
-        else:
-            size = f"{refused.size} bytes" if refused.problem == "too_large" else "more"
-            why = f"too large: {size}, a demonstration file holds at most {MAX_BYTES} bytes"
-        raise ConfigError(f"{named}: {why}") from None
-    except BadDemonstration as exc:
-        raise ConfigError(f"{named}: {exc.message}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

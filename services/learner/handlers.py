@@ -151,9 +151,8 @@ class LearnerHandlers:
 
     def _prepare_shot(self) -> None:
         """Follow the robot's shot (`MeshRig.follow_shot`: on a `--shot whole` robot every
-        rollout plays the demonstration's movement)."""
-        secure = self.config.net.secure is not None
-        self.rig.follow_shot(self.config.read_demonstration, secure=secure)
+        posture is the controller's whole movement)."""
+        self.rig.follow_shot()
 
     def _run(self, session: Session, stop: threading.Event) -> None:
         status = session.run(stop)

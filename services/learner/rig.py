@@ -9,22 +9,21 @@ call. Liveliness is watched all along, so `lost_ago` tells how long ago a servic
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import Any, Literal, TypeVar
 
 import msgspec
 import numpy as np
 
 from mesh.node import Node
 from mesh.tokens import TokenSet
-from protocol.demonstration import Demonstration
 from protocol.errors import (
     ArcheryError,
-    ConfigError,
     RpcError,
     RpcTimeout,
     StaleState,
@@ -32,7 +31,7 @@ from protocol.errors import (
     WrongReplier,
 )
 from protocol.messages import WorldEvent
-from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, REFERENCE_SPEED, ROBOT
+from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
@@ -40,10 +39,6 @@ from protocol.verbs import robot as rv
 from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.errors import RigError, ServiceLost
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
-from sim.scene_config import SceneConfig
-
-if TYPE_CHECKING:
-    from services.learner.whole_movement import WholeMovement
 
 __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 
@@ -64,9 +59,10 @@ class MeshRig:
 
     Calls, in a rollout's order (ROBOT = the robot prefix):
 
-    * `ROBOT/cartesianController/archery/rpc:i posture {theta}` (and `status` for the θ box);
-    * `ROBOT/archery/rpc:i nock`, then `release` (replies once the arrow has landed),
-      `reset {seed}`;
+    * `ROBOT/cartesianController/archery/rpc:i posture {theta, shot}` (and `status` for the θ
+      box; on a whole-shot robot the controller plays the whole movement, its nock included);
+    * `ROBOT/archery/rpc:i status` (the robot's shot), `nock` (posture shot), then `release`
+      (replies once the arrow has landed), `reset {seed}`;
     * `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}`
       for the picture of a hit with the detection drawn on it;
     * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
@@ -88,10 +84,9 @@ class MeshRig:
         # Who is alive and since when one went, kept from liveliness events: a query per check
         # would time out on a loaded machine and report every service missing.
         self._tokens = TokenSet(node.session, self.keys.alive_all())
-        #: The whole shot's movement, played before each posture on a `--shot whole` robot
-        #: (`follow_shot`), and the robot's scene it was built for.
-        self.whole: WholeMovement | None = None
-        self._whole_scene: SceneConfig | None = None
+        #: The robot's shot, which every posture asks the controller for (`follow_shot`)
+        self.shot: Literal["posture", "whole"] = "posture"
+        self._rtf = 0.0  # the robot's real-time factor (its `status`)
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
@@ -104,7 +99,12 @@ class MeshRig:
             self._truth_cond.notify_all()
 
     def _call(
-        self, service: str, key: str, verb: Verb[Any, R], args: msgspec.Struct | None = None
+        self,
+        service: str,
+        key: str,
+        verb: Verb[Any, R],
+        args: msgspec.Struct | None = None,
+        timeout: float | None = None,
     ) -> tuple[R, float]:
         """(typed reply, wall s) of one call; ServiceLost or RigError when it fails.
 
@@ -125,7 +125,11 @@ class MeshRig:
         result = self._mapped(
             service,
             lambda: self.node.call_typed(
-                key, verb, args, timeout=self.timeout, expect_service=service
+                key,
+                verb,
+                args,
+                timeout=self.timeout if timeout is None else timeout,
+                expect_service=service,
             ),
         )
         return result, time.perf_counter() - start
@@ -158,9 +162,7 @@ class MeshRig:
 
     # -- liveliness -----------------------------------------------------------------------------
     def close(self) -> None:
-        """Stop following the liveliness tokens and the arms (the rest goes with the node's
-        session)."""
-        self._drop_whole()
+        """Stop following the liveliness tokens (the rest goes with the node's session)."""
         self._tokens.close()
 
     def missing(self) -> list[str]:
@@ -192,49 +194,21 @@ class MeshRig:
         return False
 
     # -- the shot ------------------------------------------------------------------------------
-    def follow_shot(self, demonstration: Callable[[], Demonstration], *, secure: bool) -> str:
-        """Play the whole shot's movement before each posture when the robot runs `--shot
-        whole` (its scene, from its `status`), with the DMPs of `demonstration()` (read only
-        then); not otherwise. The robot's shot: posture or whole.
+    def follow_shot(self) -> str:
+        """Learn the robot's shot (its `status`), which every posture asks for: on a `--shot
+        whole` robot the controller plays the whole movement towards the posture for θ. The
+        robot's shot: posture or whole.
 
         Raises:
-            ServiceLost, RigError: the robot does not answer. ConfigError: a whole-shot robot
-                but the DMPs' library (the `imitate` extra) is not installed, or `secure` (the
-                access control grants a learner its verbs only, not the arms' `command:i`).
+            ServiceLost, RigError: the robot does not answer.
         """
         status, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
-        scene = SceneConfig(**status.scene)
-        if scene.shot != "whole":
-            self._drop_whole()
-            return scene.shot
-        if self.whole is not None and self._whole_scene == scene:
-            return scene.shot
-        if secure:
-            raise ConfigError(
-                "the robot runs the whole shot, whose movement the learner plays on the arms' "
-                "command:i ports; secure mode's access control grants a learner only its verbs: "
-                "run the whole shot without --secure"
-            )
-        try:
-            from services.learner.movement import Movement
-            from services.learner.whole_movement import WholeMovement
-        except ImportError as exc:
-            raise ConfigError(
-                f"the robot runs the whole shot, whose movement needs the DMPs' library "
-                f"({exc.name}): pip install 'archery[imitate]'"
-            ) from None
-        movement = Movement(demonstration())
-        speed = float(status.world.get("reference_speed", REFERENCE_SPEED))  # an older robot's
-        whole = WholeMovement(self.node, self.timeout, movement, scene, speed)
-        self._drop_whole()
-        self.whole, self._whole_scene = whole, scene
-        log.info("the robot runs the whole shot: every rollout plays the demonstration's DMPs")
-        return scene.shot
-
-    def _drop_whole(self) -> None:
-        if self.whole is not None:
-            self.whole.close()
-        self.whole = self._whole_scene = None
+        shot = str(status.scene.get("shot", "posture"))
+        if shot == "whole" and self.shot != "whole":
+            log.info("the robot runs the whole shot: the controller plays it in every rollout")
+        self.shot = "whole" if shot == "whole" else "posture"
+        self._rtf = status.rtf
+        return self.shot
 
     # -- the rollout ----------------------------------------------------------------------------
     def theta_box(self) -> Bounds:
@@ -261,15 +235,23 @@ class MeshRig:
 
     def move_to(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done; on a
-        whole-shot robot (`whole`) after the whole movement towards it (reach, grasp, carry,
-        nock, draw), so the controller's posture only refines the aim."""
-        movement: dict[str, float] = {}
-        if self.whole is not None:
-            whole = self.whole
-            movement = self._mapped("robot", lambda: whole.perform(theta))
+        whole-shot robot (`shot`) at the end of the whole movement towards it (reach, grasp,
+        carry, nock, draw), which the controller plays; its reply waits for the movement too
+        (at most `MAX_TRAJECTORY_DURATION` s of simulated time at the robot's rtf). A whole
+        movement that fails leaves the robot reset (`_reset_after_failure`), so the next
+        attempt starts clean."""
         key = self.keys.cartesian_rpc("archery")
-        args = cv.PostureArgs(theta=[float(x) for x in theta])
-        result, wall = self._call("controller", key, cv.POSTURE, args)
+        args = cv.PostureArgs(theta=[float(x) for x in theta], shot=self.shot)
+        timeout = self.timeout
+        if self.shot == "whole":
+            timeout += rv.MAX_TRAJECTORY_DURATION / (self._rtf if self._rtf > 0 else 1.0)
+        try:
+            result, wall = self._call("controller", key, cv.POSTURE, args, timeout=timeout)
+        except RigError:
+            if self.shot == "whole":  # the next movement grasps the holder's next arrow
+                self._reset_after_failure()
+            raise
+        movement = {"movement_sim_s": result.movement_sim_s} if self.shot == "whole" else {}
         return PostureResult(
             reached=result.reached,
             reason=result.reason,
@@ -282,13 +264,22 @@ class MeshRig:
             },
         )
 
+    def _reset_after_failure(self) -> None:
+        """Best effort after a whole movement that failed (a grasp or nock missed, a part that
+        fell behind): the robot home with a fresh arrow in the holder, its shot noise going on
+        (a lost robot is the caller's)."""
+        with contextlib.suppress(ArcheryError):
+            self.node.call_typed(
+                self.keys.archery_rpc(), rv.RESET, rv.ResetArgs(), timeout=self.timeout
+            )
+
     def shoot(self) -> Shot:
         """Nock (the whole shot's movement nocked already) and release; returns when the arrow
         has landed, with the θ it was launched with (the release reply's)."""
         key = self.keys.archery_rpc()
         before = time.time()
         timing = {}
-        if self.whole is None:
+        if self.shot != "whole":
             _, timing["nock_s"] = self._call("robot", key, rv.NOCK)
         result, release = self._call("robot", key, rv.RELEASE)
         return Shot(

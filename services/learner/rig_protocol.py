@@ -9,13 +9,11 @@ Pure: no Zenoh.
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
-from protocol.demonstration import Demonstration
 from services.learner.algorithms.base import Bounds
 
 __all__ = ["Measurement", "PostureResult", "Rig", "Shot"]
@@ -77,9 +75,10 @@ class Rig(Protocol):
     def theta_box(self) -> Bounds:
         """The controller's θ box (m)."""
 
-    def follow_shot(self, demonstration: Callable[[], Demonstration], *, secure: bool) -> str:
-        """Follow the robot's shot: on a `--shot whole` robot every `move_to` first plays the
-        whole movement of `demonstration()`'s DMPs; the robot's shot (posture or whole)."""
+    def follow_shot(self) -> str:
+        """Follow the robot's shot: on a `--shot whole` robot every `move_to` asks the
+        controller for the whole movement towards the posture; the robot's shot (posture or
+        whole)."""
 
     def setup(self) -> dict[str, Any]:
         """The robot's world (`sim.world.WorldConfig.to_dict`), its shot count and the

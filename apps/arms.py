@@ -1,7 +1,8 @@
 """Both arms driven over the mesh for the whole shot: postures on the parts' `command:i` ports,
 each awaited on `state:o`, and the robot's grasp, nock and release (`--shot whole`); joint
-angles in rad. `archery demonstrate --teach`, `archery imitate` and the learner's whole-shot
-rollouts (`services.learner.whole_movement`) drive the arms through it.
+angles in rad. `archery demonstrate --teach` drives the arms through it, a posture at a time,
+as a teacher would (a movement to play whole is a trajectory of the robot's own:
+`followTrajectory`).
 """
 
 from __future__ import annotations
