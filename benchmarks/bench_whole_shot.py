@@ -1,24 +1,15 @@
 """Benchmark of the whole shot (`--shot whole`) beside the posture-only shot.
 
-Run `python -m benchmarks.bench_whole_shot [--sessions 10] [--shots 100] [--rollouts 20]`:
-
-* the DMPs' reproduction error against the shipped demonstration (joint RMS over both arms'
-  14 joints and every sample, rad; `services.learner.movement.Movement.error`);
-* grasp and nock success over `--shots` whole-shot movements (`WholeMovement.perform`, then
-  the release) at θ drawn uniformly in the controller's θ box, on a robot at rtf 0 alone on a
-  router: each outcome counted (grasped and nocked, grasp_missed, nock_missed, θ out of the
-  string arm's reach, …);
-* rollouts to the 5 cm ring with ARCHER, `--sessions` sessions (seeds 0, 1, …) of `--rollouts`
-  rollouts each on a mesh of the five services whose robot runs `--shot whole` and, interleaved
-  seed by seed, on one whose robot runs `--shot posture` (the baseline, today's default), both
-  up for the whole run at rtf 0: median [q1, q3] of the first hit (the detector's), sessions
-  that hit, and the wall time per attempt (s; the session's wall time over its done and
-  aborted attempts) with its ratio to the posture shot's; Fig. 6 of both (the true distance
-  per rollout, median and interquartile band).
-
-Prints Markdown tables; writes `runs/bench-whole-shot/bench.json` and `fig6-whole-shot.png`.
-`--smoke`: one session of each shot of 6 rollouts and 3 movements, output in a temporary
-folder.
+Run `python -m benchmarks.bench_whole_shot [--sessions 10] [--shots 100] [--rollouts 15]`:
+the DMPs' reproduction error (joint RMS, rad); `--shots` whole movements at random θ in the box
+(the controller's `posture` with `shot: whole`, then the release) on a robot at rtf 0 and
+`--paced` at `--paced-rtf`: each outcome, and each movement's simulated time against the
+demonstration's (goal within 5 %); then sessions of seeds 0, 1, … interleaved seed by seed:
+ARCHER on the posture shot (the baseline), ARCHER and archer-prior on the whole shot, all at
+rtf 0 (goals: whole-shot ARCHER median ≤ 5 rollouts to the 5 cm ring, every seed within 15;
+archer-prior ≤ 2; wall per attempt whole / posture ≤ 4×); Fig. 6 of ARCHER's two shots.
+Writes `runs/bench-whole-shot/bench.json` and `fig6-whole-shot.png`; `--smoke`: the smallest
+budget in a temporary folder.
 """
 
 from __future__ import annotations
@@ -47,27 +38,30 @@ from protocol.demonstration import parse_demonstration
 from protocol.errors import ArcheryError
 from protocol.journal_records import DoneRecord
 from protocol.messages import Rollout
+from protocol.verbs import controller as cv
 from protocol.verbs import learner as lv
 from protocol.verbs import robot as rv
 from protocol.verbs.controller import THETA_MAX, THETA_MIN
-from services.learner.config import SHIPPED_DEMONSTRATION
+from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from services.controller.movement import Movement
 from services.learner.journal import read_records
-from services.learner.movement import Movement
-from services.learner.whole_movement import WholeMovement
-from sim.scene_config import SceneConfig
 
 __all__ = ["main"]
 
 SHOTS = ("posture", "whole")
+#: The sessions of each seed, interleaved: (shot, algorithm)
+RUNS = (("posture", "archer"), ("whole", "archer"), ("whole", "archer-prior"))
 
 
-def _mesh(shot: str, logs: Path, services: tuple[str, ...] = SERVICES) -> Launcher:
-    """A router and `services` of one robot at rtf 0 running `shot`, up."""
+def _mesh(
+    shot: str, logs: Path, services: tuple[str, ...] = SERVICES, rtf: float = 0.0
+) -> Launcher:
+    """A router and `services` of one robot at `rtf` running `shot`, up."""
     mesh = MeshConfig(
         RouterSpec(free_tcp_endpoint()),
         (RobotSpec(f"bench{shot}{os.getpid()}", services),),
         {
-            "robot": ServiceSpec(("--rtf", "0", "--shot", shot)),
+            "robot": ServiceSpec(("--rtf", f"{rtf:g}", "--shot", shot)),
             "learner": ServiceSpec(("--runs", str(logs.parent / "sessions"))),
         },
     )
@@ -76,60 +70,62 @@ def _mesh(shot: str, logs: Path, services: tuple[str, ...] = SERVICES) -> Launch
     return launcher
 
 
-def _success(shots: int, out: Path) -> dict[str, Any]:
-    """`shots` whole movements at random θ in the box on a robot alone; each outcome counted."""
-    launcher = _mesh("whole", out / "logs-success", ("robot",))
+def _success(shots: int, out: Path, rtf: float) -> dict[str, Any]:
+    """`shots` whole movements at random θ in the box, each the controller's posture with
+    `shot: whole` then the release, on a robot at `rtf` with its controller; each outcome
+    counted, the simulated time of each movement kept."""
+    launcher = _mesh("whole", out / f"logs-success-{rtf:g}", ("robot", "controller"), rtf)
     rng = np.random.default_rng(0)
     outcomes: dict[str, int] = {}
     walls: list[float] = []
     sim: list[float] = []  # simulated s of each movement that reached the release
+    leads: list[float] = []  # simulated s from where the robot stood to the movement's start
     try:
         with Node(None, launcher.net) as node:
-            node.wait_alive(["robot"], 60)
+            node.wait_alive(["robot", "controller"], 60)
             key = node.keys.archery_rpc()
-            status = node.call_typed(key, rv.ARCHERY_STATUS)
-            movement = Movement(parse_demonstration(SHIPPED_DEMONSTRATION.read_bytes()))
-            whole = WholeMovement(
-                node, 30.0, movement, SceneConfig(**status.scene), status.world["reference_speed"]
-            )
-            try:
-                with progress_bar() as bar:
-                    task = bar.add_task("grasp and nock at random θ", total=shots)
-                    for _ in range(shots):
-                        theta = rng.uniform(THETA_MIN, THETA_MAX)
-                        start = time.perf_counter()
-                        try:
-                            begun = node.call_typed(key, rv.ARCHERY_STATUS).sim_time
-                            whole.perform(theta)
-                            drawn = node.call_typed(key, rv.ARCHERY_STATUS).sim_time
-                            sim.append(drawn - begun)
-                            whole.arms.act("release")
-                            code = "grasped_and_nocked"
-                        except ArcheryError as exc:
-                            code = exc.code
-                        walls.append(time.perf_counter() - start)
-                        outcomes[code] = outcomes.get(code, 0) + 1
-                        bar.advance(task)
-            finally:
-                whole.close()
+            posture = node.keys.cartesian_rpc("archery")
+            with progress_bar() as bar:
+                task = bar.add_task(f"grasp and nock at random θ, rtf {rtf:g}", total=shots)
+                for _ in range(shots):
+                    theta = [float(v) for v in rng.uniform(THETA_MIN, THETA_MAX)]
+                    args = cv.PostureArgs(theta=theta, shot="whole")
+                    start = time.perf_counter()
+                    try:
+                        reply = node.call_typed(posture, cv.POSTURE, args, timeout=300)
+                        sim.append(reply.movement_sim_s)
+                        leads.append(reply.lead_sim_s)
+                        node.call_typed(key, rv.RELEASE, timeout=60)
+                        code = "grasped_and_nocked"
+                    except ArcheryError as exc:
+                        code = exc.code
+                        node.call_typed(key, rv.RESET, rv.ResetArgs(), timeout=60)
+                    walls.append(time.perf_counter() - start)
+                    outcomes[code] = outcomes.get(code, 0) + 1
+                    bar.advance(task)
     finally:
         launcher.stop_all()
+    demo = parse_demonstration(SHIPPED_DEMONSTRATION.read_bytes())
+    demonstrated = Movement(demo).release - demo.samples[0].t
     return {
+        "rtf": rtf,
         "outcomes": outcomes,
         "wall_s_median": statistics.median(walls),
+        "sim_s": sim,
         "sim_s_median": statistics.median(sim) if sim else None,
-        "demonstrated_sim_s": movement.release,
+        "lead_s": leads,
+        "demonstrated_sim_s": demonstrated,
     }
 
 
-def _session(launcher: Launcher, seed: int, rollouts: int) -> dict[str, Any]:
-    """One ARCHER session of `rollouts` rollouts (not ended at a hit) on `launcher`'s mesh:
+def _session(launcher: Launcher, seed: int, rollouts: int, algo: str) -> dict[str, Any]:
+    """One session of `algo` of `rollouts` rollouts (not ended at a hit) on `launcher`'s mesh:
     the first hit, the attempts, the wall time and each rollout's θ, r and true r (m)."""
     with Node(None, launcher.net) as node:
         stream = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         node.wait_alive(SERVICES, 60)
         start = time.perf_counter()
-        args = lv.StartArgs(algo="archer", seed=seed, rollouts=rollouts, until_hit=False)
+        args = lv.StartArgs(algo=algo, seed=seed, rollouts=rollouts, until_hit=False)
         status = node.call_typed(node.keys.learner_rpc(), lv.START, args, timeout=60)
         final = follow(node, str(status.session), stream, lambda m: None)
         wall = time.perf_counter() - start
@@ -181,19 +177,23 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.bench_whole_shot", description=__doc__
     )
-    parser.add_argument("--sessions", type=int, default=10, help="ARCHER sessions per shot")
-    parser.add_argument("--rollouts", type=int, default=12, help="rollouts of each session")
-    parser.add_argument("--shots", type=int, default=100, help="movements at random θ")
+    parser.add_argument("--sessions", type=int, default=10, help="sessions (seeds) per run")
+    parser.add_argument("--rollouts", type=int, default=15, help="rollouts of each session")
+    parser.add_argument("--shots", type=int, default=100, help="movements at random θ, rtf 0")
+    parser.add_argument("--paced", type=int, default=5, help="movements at --paced-rtf")
+    parser.add_argument("--paced-rtf", type=float, default=1.0, help="rtf of those movements")
     parser.add_argument("--out", default="runs/bench-whole-shot", help="output directory")
     parser.add_argument(
         "--smoke",
         action="store_true",
-        help="1 session per shot of 6 rollouts, 3 movements; output in a temporary folder",
+        help="1 session per run of 6 rollouts, 3 movements at rtf 0 and 1 at rtf 4; output in "
+        "a temporary folder",
     )
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="bench-whole-shot-") as tmp:
         if args.smoke:
             args.sessions, args.rollouts, args.shots, args.out = 1, 6, 3, tmp
+            args.paced, args.paced_rtf = 1, 4.0
         return _run(args)
 
 
@@ -202,15 +202,17 @@ def _run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     demo = parse_demonstration(SHIPPED_DEMONSTRATION.read_bytes())
     rms = Movement(demo).error(demo)
-    success = _success(args.shots, out)
-    sessions: dict[str, list[dict[str, Any]]] = {shot: [] for shot in SHOTS}
+    success = _success(args.shots, out, 0.0)
+    paced = _success(args.paced, out, args.paced_rtf)
+    sessions: dict[str, list[dict[str, Any]]] = {f"{s}/{a}": [] for s, a in RUNS}
     meshes = {shot: _mesh(shot, out / "logs") for shot in SHOTS}
     try:
         with progress_bar() as bar:
-            task = bar.add_task("ARCHER sessions", total=args.sessions * len(SHOTS))
-            for seed in range(args.sessions):  # interleaved: each seed on both shots in turn
-                for shot in SHOTS:
-                    sessions[shot].append(_session(meshes[shot], seed, args.rollouts))
+            task = bar.add_task("learning sessions", total=args.sessions * len(RUNS))
+            for seed in range(args.sessions):  # interleaved: each seed on each run in turn
+                for shot, algo in RUNS:
+                    run = _session(meshes[shot], seed, args.rollouts, algo)
+                    sessions[f"{shot}/{algo}"].append(run)
                     bar.advance(task)
     finally:
         for launcher in meshes.values():
@@ -220,34 +222,45 @@ def _run(args: argparse.Namespace) -> int:
         "machine": cpu_model(),
         "dmp_rms_rad": rms,
         "success": success,
+        "paced": paced,
         "sessions": sessions,
     }
     (out / "bench.json").write_text(json.dumps(result, indent=1, allow_nan=False))
-    _fig6(sessions, out / "fig6-whole-shot.png", args.rollouts)
+    archer = {shot: sessions[f"{shot}/archer"] for shot in SHOTS}
+    _fig6(archer, out / "fig6-whole-shot.png", args.rollouts)
     print(f"\n{result['date']}, {result['machine']}\n")
     print(f"DMP reproduction error (joint RMS, 14 joints): {rms:.2e} rad\n")
-    total = sum(success["outcomes"].values())
-    print(f"Whole-shot movements at random θ in the box ({total}):\n")
-    print("| outcome | count | share |\n|---|---|---|")
-    for code, n in sorted(success["outcomes"].items(), key=lambda kv: -kv[1]):
-        print(f"| {code} | {n} | {100 * n / total:.0f} % |")
-    print(
-        f"\nwall per movement and release: {success['wall_s_median']:.2f} s (median); simulated "
-        f"time of a movement to the release: {success['sim_s_median']} s (median; the "
-        f"demonstration's {success['demonstrated_sim_s']:.2f} s)\n"
-    )
-    print("| shot | sessions hit | rollouts to 5 cm, median [q1, q3] | wall s per attempt |")
-    print("|---|---|---|---|")
-    walls = {s: [x["wall_s_per_attempt"] for x in sessions[s]] for s in SHOTS}
-    for shot in SHOTS:
-        hits = [float(x["hit_at"]) for x in sessions[shot] if x["hit_at"] is not None]
-        to_hit = _quartiles(hits) if hits else "–"
+    for moved in (success, paced):
+        total = sum(moved["outcomes"].values())
+        print(f"Whole-shot movements at random θ in the box, rtf {moved['rtf']:g} ({total}):\n")
+        print("| outcome | count | share |\n|---|---|---|")
+        for code, n in sorted(moved["outcomes"].items(), key=lambda kv: -kv[1]):
+            print(f"| {code} | {n} | {100 * n / total:.0f} % |")
+        ratio = [t / moved["demonstrated_sim_s"] for t in moved["sim_s"]]
         print(
-            f"| {shot} | {len(hits)}/{len(sessions[shot])} | {to_hit} | "
-            f"{median_spread(walls[shot], '.2f')} |"
+            f"\nwall per movement and release: {moved['wall_s_median']:.2f} s (median); "
+            f"simulated time of a movement to the release against the demonstration's "
+            f"{moved['demonstrated_sim_s']:.2f} s: ×{median_spread(ratio, '.4f')} (goal within "
+            f"5 %); before it, from where the robot stood (after a release, the drawn "
+            f"posture) to the demonstrated start: {median_spread(moved['lead_s'], '.2f')} s\n"
         )
+    print("| shot | algorithm | sessions hit | rollouts to 5 cm, median [q1, q3] | worst seed |")
+    print("|---|---|---|---|---|")
+    for name, runs in sessions.items():
+        shot, algo = name.split("/")
+        hits = [float(x["hit_at"]) for x in runs if x["hit_at"] is not None]
+        to_hit = _quartiles(hits) if hits else "–"
+        worst = f"{max(hits):g}" if len(hits) == len(runs) else "no hit"
+        print(f"| {shot} | {algo} | {len(hits)}/{len(runs)} | {to_hit} | {worst} |")
+    walls = {s: [x["wall_s_per_attempt"] for x in archer[s]] for s in SHOTS}
+    print("\n| shot | wall s per attempt (ARCHER) |\n|---|---|")
+    for shot in SHOTS:
+        print(f"| {shot} | {median_spread(walls[shot], '.2f')} |")
     ratios = [w / p for w, p in zip(walls["whole"], walls["posture"], strict=True)]
-    print(f"\nwall per attempt, whole / posture (per seed): ×{median_spread(ratios, '.2f')}")
+    print(
+        f"\nwall per attempt at rtf 0, whole / posture (per seed): "
+        f"×{median_spread(ratios, '.2f')} (goal ≤ 4)"
+    )
     return 0
 
 

@@ -42,7 +42,10 @@ def _wait_for_line(proc: subprocess.Popen[str], text: str, timeout: float) -> st
 
 
 @pytest.mark.slow
-def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> None:
+@pytest.mark.parametrize("shot", ["posture", "whole"])
+def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path, shot: str) -> None:
+    """Also the whole shot: the controller plays the movement under its own grants (the
+    robot's trajectory verb, the parts' leases), the learner only asks for postures."""
     deploy, other = tmp_path / "secrets", tmp_path / "other"
     for directory in (deploy, other):
         made = archery("keys", "init", str(directory))
@@ -50,7 +53,7 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path) -> No
     endpoint = free_tcp_endpoint().replace("tcp/", "tls/")
     runs = tmp_path / "runs"
     logs = tmp_path / "logs"
-    up_args = ["up", "--secure", str(deploy), "--listen", endpoint]
+    up_args = ["up", "--secure", str(deploy), "--listen", endpoint, "--shot", shot]
     up = subprocess.Popen(
         [sys.executable, "-m", "apps.cli", *up_args, "--logs", str(logs), "--runs", str(runs)],
         stdin=subprocess.DEVNULL,

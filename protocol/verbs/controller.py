@@ -215,7 +215,12 @@ class PostureReply(Reply, frozen=True):
     sim_time: float
     shot: str = "posture"
     movement_sim_s: Annotated[
-        float, Meta(description="s of sim time the movement took (whole shot: from its start)")
+        float,
+        Meta(description="whole shot: s of sim time from the demonstrated start to the draw's end"),
+    ] = 0.0
+    lead_sim_s: Annotated[
+        float,
+        Meta(description="whole shot: s of sim time from where the robot stood to that start"),
     ] = 0.0
 
 

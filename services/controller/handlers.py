@@ -321,5 +321,6 @@ class ArcheryController:
             wall_s=wall,
             sim_time=reply.ended,
             shot="whole",
-            movement_sim_s=reply.ended - reply.started,
+            movement_sim_s=reply.ended - reply.started - plan.lead,
+            lead_sim_s=plan.lead,
         )

@@ -23,7 +23,7 @@ __all__ = ["LEAD_SPEED", "PARTS_MOVED", "ShotTrajectory", "whole_shot_trajectory
 PARTS_MOVED = (TORSO, BOW_ARM, STRING_ARM)
 #: rad/s: the fastest joint's speed from where the robot stands to the movement's start (a
 #: robot at the demonstrated start goes straight on with it)
-LEAD_SPEED = 0.5
+LEAD_SPEED = 0.8
 
 
 @dataclass(frozen=True)

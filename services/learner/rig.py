@@ -251,7 +251,11 @@ class MeshRig:
             if self.shot == "whole":  # the next movement grasps the holder's next arrow
                 self._reset_after_failure()
             raise
-        movement = {"movement_sim_s": result.movement_sim_s} if self.shot == "whole" else {}
+        movement = (
+            {"movement_sim_s": result.movement_sim_s, "lead_sim_s": result.lead_sim_s}
+            if self.shot == "whole"
+            else {}
+        )
         return PostureResult(
             reached=result.reached,
             reason=result.reason,
