@@ -1,5 +1,6 @@
 """`archery film SESSION [--rollout N]`: a video of one rollout, simulated again from the
-session's journal, seen by the third-person camera (`sim.scene_view`).
+session's journal, seen by a camera that frames the robot while it moves and follows the arrow
+from the release to the target (`apps.film.framing`, rendered by `sim.scene_view`).
 
 SESSION is a session's folder or its `journal.jsonl`; with `--recording FILE.mcap` (an `archery
 record` of the session) the rollout is filmed as the recording saw it. Without `--rollout` it
@@ -109,10 +110,11 @@ def film_session(
     From a recording, the rollout is the robot's world states between the rollout's records on
     `learner/rollout:o`, the flight as sampled (world states at the robot's world rate of
     simulated time). The posture move (the draw) and the nock play at real time, the release is
-    held a moment, the flight slowed down ten times; every frame is captioned with the phase,
-    the simulated time, θ and, from the impact on, the measured r. The contact sheet holds six
-    frames from the move to the impact; unless `quiet`, a progress bar counts the frames on
-    stderr.
+    held a moment, the flight slowed down ten times. The camera frames the robot's upper body
+    until the release, then follows the arrow to the target (`apps.film.framing.ShotCamera`);
+    every frame (`width` × `height` px) is captioned with the phase, the simulated time, θ
+    and, from the impact on, the measured r. The contact sheet holds six frames from the move
+    to the impact; unless `quiet`, a progress bar counts the frames on stderr.
 
     Raises:
         ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.
@@ -120,6 +122,7 @@ def film_session(
     import numpy as np
     from PIL import Image
 
+    from apps.film.framing import framed
     from apps.film.recorded import RecordedShot
     from apps.film.replay import ShotReplay, load_rollout
     from apps.film.video import ShotVideo, caption, contact_sheet
@@ -144,8 +147,8 @@ def film_session(
         progress_bar(disable=quiet, transient=True) as bar,
     ):
         task = bar.add_task(f"filming rollout {target.done.rollout}", total=None)
-        for frame in source.frames(fps):
-            image = caption(view.render(frame.qpos), _lines(target, frame))
+        for frame, camera in framed(source.frames(fps), view.model, width, height):
+            image = caption(view.render(frame.qpos, camera), _lines(target, frame))
             video.add(image, frame.repeat)
             small = Image.fromarray(image).resize(SHEET_THUMB, Image.Resampling.BILINEAR)
             thumbs.append((frame.phase, np.asarray(small)))

@@ -102,7 +102,7 @@ class RecordedShot:
             elif speed > 1.0 and following is not None:
                 phase = f"{phase} ×{speed:g}"
             if repeat:
-                yield FilmFrame(state.qpos.to_numpy(), t, phase, repeat=repeat)
+                yield FilmFrame(state.qpos.to_numpy(), t, phase, repeat=repeat, released=released)
 
 
 def _messages(recording: Recording, robot: str) -> Iterator[tuple[str, object, int]]:

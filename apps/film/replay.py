@@ -40,13 +40,15 @@ MAX_MOVE_S = 20.0  # s of simulated time a move may take before the replay gives
 
 @dataclass(frozen=True)
 class FilmFrame:
-    """One state to film: the qpos, its simulated time (s), the phase shown and for how many
-    video frames it stays on screen."""
+    """One state to film: the qpos, its simulated time (s), the phase shown, for how many
+    video frames it stays on screen and whether the arrow has left the bow (from the release
+    on: the camera follows it, `apps.film.framing`)."""
 
     qpos: np.ndarray
     sim_time: float
     phase: str
     repeat: int = 1
+    released: bool = False
 
 
 @dataclass(frozen=True)
@@ -185,15 +187,27 @@ class ShotReplay:
             yield FilmFrame(world.qpos(), world.sim_time, "nock")
             world.step(1.0 / fps)
         world.launch()
-        yield FilmFrame(world.qpos(), world.sim_time, "release", repeat=round(HOLD_RELEASE_S * fps))
+        yield FilmFrame(
+            world.qpos(),
+            world.sim_time,
+            "release",
+            repeat=round(HOLD_RELEASE_S * fps),
+            released=True,
+        )
         dt = SLOW_MOTION / fps
         while True:
             landing = world.step(dt)
             if landing is not None:
                 self.landing = landing
                 break
-            yield FilmFrame(world.qpos(), world.sim_time, f"flight ×{SLOW_MOTION:g}")
-        yield FilmFrame(world.qpos(), world.sim_time, "impact", repeat=round(HOLD_IMPACT_S * fps))
+            yield FilmFrame(world.qpos(), world.sim_time, f"flight ×{SLOW_MOTION:g}", released=True)
+        yield FilmFrame(
+            world.qpos(),
+            world.sim_time,
+            "impact",
+            repeat=round(HOLD_IMPACT_S * fps),
+            released=True,
+        )
 
     def landing_error_m(self) -> float | None:
         """Distance (m) between the replayed landing's r and the journal's ground truth, once
