@@ -28,9 +28,9 @@ from protocol.demonstration import BadDemonstration
 from protocol.errors import ArcheryError, ConfigError
 from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
 from protocol.robotspec import NOMINAL_THETA, ROBOT
+from protocol.theta import THETA_BOX
 from protocol.vectors import parse_vector
 from protocol.verbs import robot as rv
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.controller.demonstration_file import read_demonstration
 
 if TYPE_CHECKING:
@@ -42,18 +42,15 @@ PROG = "imitate"
 
 
 def _theta(text: str) -> np.ndarray:
-    """θ (m) from X,Y,Z, inside the controller's box.
+    """θ (m) from X,Y,Z, inside the controller's box (`protocol.theta.THETA_BOX`): the one check
+    of θ in this program.
 
     Raises:
         ConfigError: not 3 finite numbers, or outside the box.
     """
     theta = parse_vector("--theta", text, ConfigError, unit="m")
-    low, high = np.asarray(THETA_MIN), np.asarray(THETA_MAX)
-    if np.any(theta < low) or np.any(theta > high):
-        raise ConfigError(
-            f"--theta {theta.round(4).tolist()} m is outside the reachable box "
-            f"{list(THETA_MIN)} .. {list(THETA_MAX)} m: nothing moved"
-        )
+    if not THETA_BOX.contains(theta):
+        raise ConfigError(f"{THETA_BOX.outside('--theta', theta.round(4))}: nothing moved")
     return theta
 
 

@@ -214,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
         posture_init_s = time.perf_counter() - t1
         cfg = posture.config
         rng = np.random.default_rng(args.seed)
-        thetas = [rng.uniform(cfg.theta_min, cfg.theta_max) for _ in range(args.thetas)]
+        thetas = [rng.uniform(cfg.theta_box.low, cfg.theta_box.high) for _ in range(args.thetas)]
         task = progress.add_task("posture", total=2 * args.thetas)
         posture_rows: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         times, errors = [], []
@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         times, errors = [], []
         theta, q = cfg.nominal_theta.copy(), None
         for _ in range(args.thetas):
-            theta = np.clip(theta + rng.normal(0.0, 0.01, 3), cfg.theta_min, cfg.theta_max)
+            theta = np.clip(theta + rng.normal(0.0, 0.01, 3), cfg.theta_box.low, cfg.theta_box.high)
             start = time.perf_counter()
             res = posture.solve(theta, q0=q)
             times.append(time.perf_counter() - start)

@@ -30,7 +30,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from mesh.router import free_tcp_endpoint, open_router
 from protocol.messages import WorldEvent
-from services.controller.posture import PostureConfig
+from protocol.theta import THETA_BOX
 from tests.rpc import rpc_call
 
 __all__ = ["main"]
@@ -52,14 +52,13 @@ def _row(name: str, values: list[float], unit: str = "ms", scale: float = 1e3) -
 def _rollouts(node: Node, count: int, seed: int) -> dict[str, list[float]]:
     keys = node.keys
     events = node.subscribe(keys.world_events(), WorldEvent, mode="fifo")
-    box = PostureConfig()
     rng = np.random.default_rng(seed)
     out: dict[str, list[float]] = {
         k: [] for k in ("posture", "nock", "release", "event", "total", "rtf", "error", "rpc")
     }
     sim = rpc_call(node, keys.archery_rpc(), "status")["sim_time"]
     for _ in range(count):
-        theta = rng.uniform(box.theta_min, box.theta_max).tolist()
+        theta = rng.uniform(THETA_BOX.low, THETA_BOX.high).tolist()
         t0 = time.perf_counter()
         reply = rpc_call(
             node, keys.cartesian_rpc("archery"), "posture", {"theta": theta}, timeout=60

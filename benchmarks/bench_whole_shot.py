@@ -38,10 +38,10 @@ from protocol.demonstration import parse_demonstration
 from protocol.errors import ArcheryError
 from protocol.journal_records import DoneRecord
 from protocol.messages import Rollout
+from protocol.theta import THETA_BOX
 from protocol.verbs import controller as cv
 from protocol.verbs import learner as lv
 from protocol.verbs import robot as rv
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 from services.controller.movement import Movement
 from services.learner.journal import read_records
@@ -88,7 +88,7 @@ def _success(shots: int, out: Path, rtf: float) -> dict[str, Any]:
             with progress_bar() as bar:
                 task = bar.add_task(f"grasp and nock at random θ, rtf {rtf:g}", total=shots)
                 for _ in range(shots):
-                    theta = [float(v) for v in rng.uniform(THETA_MIN, THETA_MAX)]
+                    theta = [float(v) for v in rng.uniform(THETA_BOX.low, THETA_BOX.high)]
                     args = cv.PostureArgs(theta=theta, shot="whole")
                     start = time.perf_counter()
                     try:

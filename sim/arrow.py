@@ -144,20 +144,18 @@ def arrow_quat(direction: np.ndarray) -> np.ndarray:
 
 
 def launch_velocity(
-    bow_hand: np.ndarray,
-    string_hand: np.ndarray,
+    theta: np.ndarray,
     bow: Bow,
     rng: np.random.Generator | None = None,
     speed_noise: float = 0.0,
     direction_noise: float = 0.0,
 ) -> np.ndarray:
-    """Launch velocity (m/s) for the hand positions (m): the bow's speed along −θ/‖θ‖, with the
-    noise of `noisy_velocity`.
+    """Launch velocity (m/s) for θ = p_string − p_bow (m) as measured at the release: the bow's
+    speed along −θ/‖θ‖, with the noise of `noisy_velocity`.
 
     Raises:
         NoArrowDirection: the hands coincide, so there is no direction to shoot in.
     """
-    theta = np.asarray(string_hand, dtype=float) - np.asarray(bow_hand, dtype=float)
     return noisy_velocity(
         arrow_direction(theta), bow.launch_speed(theta), rng, speed_noise, direction_noise
     )

@@ -29,7 +29,7 @@ from protocol.vectors import finite_vector
 from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity, noisy_velocity
 from sim.bow import Bow
 from sim.errors import ArrowDropped, CommandError, StateError
-from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, target_centre
+from sim.geometry import START_THETA, TARGET_DIAMETER, target_centre
 from sim.model_build import build_scene
 from sim.scene import ScenePhysics
 from sim.scene_config import SceneConfig
@@ -654,11 +654,11 @@ class ArcheryWorld:
         cfg = self.config
         rng = self._rng
         bow, string = self.hand_positions()
+        theta = string - bow  # θ measured, once: the launch's and the reply's
         start = bow
         if self.whole is None:
             velocity = launch_velocity(
-                bow,
-                string,
+                theta,
                 cfg.bow,
                 rng,
                 speed_noise=cfg.speed_noise,
@@ -672,7 +672,7 @@ class ArcheryWorld:
         launch = Launch(
             position=start,
             velocity=velocity,
-            theta=string - bow,
+            theta=theta,
             wind=wind,
             sim_time=self.physics.time,
         )
@@ -707,11 +707,9 @@ class ArcheryWorld:
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise CommandError(f"count must be an integer >= 0, got {count!r}")
         cfg = self.config
-        bow, string = BOW_HAND, BOW_HAND + START_THETA
         for _ in range(count):
             launch_velocity(
-                bow,
-                string,
+                START_THETA,
                 cfg.bow,
                 self._rng,
                 speed_noise=cfg.speed_noise,

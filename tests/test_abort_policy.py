@@ -8,10 +8,10 @@ import pytest
 
 from protocol.journal_records import AbortedRecord
 from protocol.robotspec import THETA0
+from protocol.theta import ThetaBox
 from services.learner.abort_policy import AbortDecision, after_abort, streak_failure
-from services.learner.algorithms.base import Bounds
 
-BOX = Bounds(low=(0.10, -0.05, -0.05), high=(0.30, 0.05, 0.05))
+BOX = ThetaBox(low=(0.10, -0.05, -0.05), high=(0.30, 0.05, 0.05))
 START = (0.17, 0.006, -0.026)  # θ0 of the session (m)
 MISS = (0.21, 0.02, 0.01)  # the aborted attempt's θ (m)
 BEST = (0.19, 0.0, -0.01)  # the closest rollout's θ so far (m)

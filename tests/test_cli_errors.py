@@ -145,7 +145,7 @@ CASES: list[tuple[str, int, str]] = [
     ("demonstrate", 2, "one of the arguments --out --check is required"),
     ("imitate {tmp}/missing.json", 2, "cannot read it"),
     ("imitate {tmp}/file", 2, "not JSON"),
-    ("imitate {tmp}/file --theta 0.4,0,0", 2, "outside the reachable box"),
+    ("imitate {tmp}/file --theta 0.4,0,0", 2, "outside the θ box"),
     ("imitate {tmp}/file --theta 0.2,0", 2, "--theta"),
     ("demonstrate --check {tmp}/file", 2, "not JSON"),
     ("demonstrate --check {tmp}/missing.json", 2, "cannot read it"),

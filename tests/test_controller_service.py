@@ -281,7 +281,7 @@ def test_sigterm_ends_the_controller_process_cleanly(net: NetConfig) -> None:
         with Node(None, net) as node:
             node.wait_alive(["controller"], 60)
             status = rpc_call(node, node.keys.cartesian_rpc("archery"), "status", timeout=10)
-            assert status["theta_min"] == [0.12, -0.02, -0.07]
+            assert status["theta_box"] == {"low": [0.12, -0.02, -0.07], "high": [0.24, 0.06, 0.01]}
             proc.terminate()
             assert proc.wait(20) == 0
             node.wait_gone("controller", 10)

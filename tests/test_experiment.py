@@ -160,7 +160,7 @@ def test_same_seed_same_numbers_bit_for_bit_and_independent_of_the_algorithm_lis
         (["--noise", "nan"], "--noise needs a number, got 'nan'"),
         (["--distance", "0.2"], "distance 0.2 m puts the target behind"),
         (["--bow-stiffness", "0"], "bow_stiffness must be > 0"),
-        (["--start", "0.5,0,0"], "start θ [0.5, 0.0, 0.0] m lies outside the θ bounds"),
+        (["--start", "0.5,0,0"], "start θ [0.5, 0.0, 0.0] m lies outside the θ box"),
         (["--power-scale", "0"], "--power-scale must be in [0.0001, 10] m, got 0.0"),
         (["--power-scale", "5cm"], "--power-scale needs a number, got '5cm'"),
         (["--power-scale", "inf"], "--power-scale needs a number, got 'inf'"),

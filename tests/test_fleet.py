@@ -153,7 +153,7 @@ def test_experiment_on_two_robots_across_two_routers(
     assert summary["scenario"]["world"] == "mesh"
     with Node(None, _net(fleet)) as node:
         box = rpc_call(node, node.keys.cartesian_rpc("archery"), "status", timeout=20)
-    assert summary["run"]["bounds"] == {"low": box["theta_min"], "high": box["theta_max"]}
+    assert summary["run"]["bounds"] == box["theta_box"]
     for name in ALGOS.split(","):
         assert summary["algorithms"][name].keys() == reference["algorithms"][name].keys()
     rows = (out / "curves.csv").read_text().strip().splitlines()

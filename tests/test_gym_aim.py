@@ -16,7 +16,7 @@ from gymnasium.utils.env_checker import check_env
 
 from apps.gym.agent import run_learner
 from apps.gym.registration import AIM_ID, AIM_ROBOT_ID
-from services.learner.algorithms.base import DEFAULT_BOUNDS
+from protocol.theta import THETA_BOX
 from sim.ballistic import BallisticWorld, Scenario, ScenarioError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,8 +60,8 @@ def test_the_declared_plugin_entry_point_registers_both_ids() -> None:
 
 def test_the_spaces_are_the_experiments_theta_box_and_r_with_theta_in_metres() -> None:
     env = gym.make(AIM)
-    assert env.action_space.low.tolist() == list(DEFAULT_BOUNDS.low)
-    assert env.action_space.high.tolist() == list(DEFAULT_BOUNDS.high)
+    assert env.action_space.low.tolist() == THETA_BOX.low
+    assert env.action_space.high.tolist() == THETA_BOX.high
     assert env.action_space.dtype == np.float64
     assert env.observation_space.shape == (5,)
     obs, info = env.reset(seed=0)
@@ -71,7 +71,7 @@ def test_the_spaces_are_the_experiments_theta_box_and_r_with_theta_in_metres() -
 def test_one_step_is_one_shot_of_the_ballistic_world_with_reward_minus_distance() -> None:
     env = gym.make(AIM, noise=0.0)
     env.reset(seed=3)
-    theta = np.array([0.2, 0.01, 0.02])
+    theta = np.array([0.2, 0.01, -0.02])
     obs, reward, terminated, truncated, info = env.step(theta)
     shot = BallisticWorld(Scenario()).step(theta)
     assert info["r"].tolist() == shot.r.tolist() == obs[:2].tolist()
@@ -126,7 +126,7 @@ def test_an_action_outside_the_box_is_clipped_and_flagged_never_shot_raw() -> No
     env = gym.make(AIM)
     env.reset(seed=0)
     obs, _, _, _, info = env.step(np.array([0.9, -0.5, 0.0]))
-    clipped = [DEFAULT_BOUNDS.high[0], DEFAULT_BOUNDS.low[1], 0.0]
+    clipped = [THETA_BOX.high[0], THETA_BOX.low[1], 0.0]
     assert info["clipped"] and info["theta"].tolist() == clipped == obs[2:].tolist()
     shot = BallisticWorld(Scenario()).step(np.array(clipped))
     assert info["r"].tolist() == shot.r.tolist()

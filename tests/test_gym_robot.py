@@ -22,7 +22,7 @@ from apps.up.launch_config import default_mesh
 from apps.up.launcher import Launcher
 from mesh.router import free_tcp_endpoint
 from protocol.robotspec import THETA0
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from protocol.theta import THETA_BOX
 
 pytestmark = pytest.mark.slow
 
@@ -64,8 +64,8 @@ def test_gymnasiums_checker_passes_on_the_icub(mesh: Launcher) -> None:
 def test_the_detectors_r_is_the_observation_and_the_truth_only_in_info(mesh: Launcher) -> None:
     env = _env(mesh)
     try:
-        assert env.action_space.low.tolist() == list(THETA_MIN)
-        assert env.action_space.high.tolist() == list(THETA_MAX)
+        assert env.action_space.low.tolist() == THETA_BOX.low
+        assert env.action_space.high.tolist() == THETA_BOX.high
         obs, info = env.reset(seed=4)
         assert obs[2:].tolist() == list(THETA0) and info["shots"] == 0
         obs, reward, _, _, info = env.step(np.array(THETA0))
@@ -92,8 +92,8 @@ def test_bad_actions_never_reach_the_robot(mesh: Launcher) -> None:
             env.step(np.array([0.17, 0.0, np.nan]))
         assert env.rig.setup()["shot"] == shots  # nothing moved, nothing released
         _, _, _, _, info = env.step(np.array([0.5, 0.0, -0.026]))
-        assert info["clipped"] and info["theta"][0] == THETA_MAX[0]
-        assert abs(info["theta_measured"][0] - THETA_MAX[0]) < 1e-3
+        assert info["clipped"] and info["theta"][0] == THETA_BOX.high[0]
+        assert abs(info["theta_measured"][0] - THETA_BOX.high[0]) < 1e-3
     finally:
         env.close()
 

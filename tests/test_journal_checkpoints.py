@@ -228,7 +228,7 @@ BAD_STATES = {
     "pending far outside the θ box": (
         "archer",
         lambda s: {**s, "pending": [1e308] * 3},
-        "pending θ [1e+308, 1e+308, 1e+308] m is outside the θ box",
+        "pending θ [1e+308, 1e+308, 1e+308] m lies outside the θ box",
     ),
     "explore_std 1e308": (
         "archer",

@@ -7,9 +7,10 @@ import pytest
 
 from apps.experiment.config import ExperimentConfig
 from apps.experiment.experiment import run_algorithm
-from services.learner.algorithms import Archer, Bounds, LearnerConfigError
+from protocol.theta import ThetaBox
+from services.learner.algorithms import Archer, LearnerConfigError
 
-WIDE = Bounds(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
+WIDE = ThetaBox(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 
 
 def _archer(**options: object) -> Archer:

@@ -7,11 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from services.learner.algorithms import Bounds, LearnerConfigError, Power, make_learner
+from protocol.theta import ThetaBox
+from services.learner.algorithms import LearnerConfigError, Power, make_learner
 from services.learner.algorithms.power import DEFAULT_RETURN_SCALE
 from sim.geometry import INNER_RING_RADIUS
 
-WIDE = Bounds(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
+WIDE = ThetaBox(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 
 
 def test_update_is_the_return_weighted_mean_of_the_top_sigma() -> None:

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from protocol.theta import ThetaBox
 from services.learner.algorithms import (
     ArcherPrior,
     BallisticModel,
-    Bounds,
     LearnerConfigError,
     RestoreError,
     make_learner,
@@ -212,7 +212,7 @@ def test_invalid_options_are_refused(options: dict) -> None:
 
 
 def test_every_proposal_stays_inside_narrow_bounds() -> None:
-    bounds = Bounds(low=(0.16, -0.01, -0.01), high=(0.18, 0.01, 0.01))
+    bounds = ThetaBox(low=(0.16, -0.01, -0.01), high=(0.18, 0.01, 0.01))
     learner = ArcherPrior(
         np.array([0.17, 0.0, 0.0]),
         rng=np.random.default_rng(0),

@@ -20,7 +20,7 @@ from protocol.journal_records import (
     JournalRecord,
     ProposedRecord,
 )
-from services.learner.algorithms.base import Bounds
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.config import SessionConfig
 from services.learner.errors import RigError, ServiceLost
 from services.learner.hit_frame import SAVE_AFTER
@@ -29,7 +29,7 @@ from services.learner.report import interruptions, write_report
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
 from services.learner.session import Session
 
-BOX = Bounds(low=(0.12, -0.02, -0.07), high=(0.24, 0.06, 0.01))
+BOX = THETA_BOX
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.
 GAIN = np.array([[-1.0, -11.0, -1.1], [2.3, -4.0, -11.8]])
 AIM = np.array([0.16, 0.0, -0.018])
@@ -63,7 +63,7 @@ class FakeRig:
         self.frame_error = False
         self.launched: list[list[float]] = []  # the θ (m) of each shot's release
 
-    def follow_shot(self, demonstration: object, *, secure: bool) -> str:
+    def follow_shot(self) -> str:
         """A linear world has no arms to drive: the posture shot."""
         return "posture"
 
@@ -78,7 +78,7 @@ class FakeRig:
         self.gone.clear()
         return True
 
-    def theta_box(self) -> Bounds:
+    def theta_box(self) -> ThetaBox:
         return BOX
 
     def setup(self) -> dict[str, Any]:
@@ -399,7 +399,7 @@ def test_bad_start_requests(args: dict[str, Any], message: str) -> None:
     [
         (SessionConfig(theta0=(0.30, 0.0, 0.0)), "outside the θ box"),
         (
-            SessionConfig(bounds=Bounds(low=(0.1, -0.1, -0.1), high=(0.3, 0.1, 0.1))),
+            SessionConfig(bounds=ThetaBox(low=(0.1, -0.1, -0.1), high=(0.3, 0.1, 0.1))),
             "exceed the controller's θ box",
         ),
         (SessionConfig(options={"n_best": 1}), "options for 'archer'"),

@@ -11,11 +11,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms import (
     ALGORITHMS,
-    DEFAULT_BOUNDS,
     Archer,
-    Bounds,
     CmaEs,
     HillClimber,
     Learner,
@@ -124,10 +123,10 @@ def test_proposals_are_finite_and_inside_the_bounds(
     learner = _learner(name)
     for r in rewards:
         theta = learner.ask()
-        assert np.all(np.isfinite(theta)) and DEFAULT_BOUNDS.contains(theta)
+        assert np.all(np.isfinite(theta)) and THETA_BOX.contains(theta)
         learner.tell(theta, rewards[0] if repeat else r)
     theta = learner.ask()
-    assert np.all(np.isfinite(theta)) and DEFAULT_BOUNDS.contains(theta)
+    assert np.all(np.isfinite(theta)) and THETA_BOX.contains(theta)
 
 
 @pytest.mark.parametrize("name", NAMES)
@@ -137,8 +136,6 @@ def test_proposals_are_finite_and_inside_the_bounds(
         ([0.2, 0.0, 0.0], [float("nan"), 0.0], "r must be a finite 2-vector"),
         ([0.2, 0.0, 0.0], [float("inf"), 0.0], "r must be a finite 2-vector"),
         ([0.2, 0.0, 0.0], [0.1, 0.2, 0.3], "r must be a finite 2-vector"),
-        ([0.2, 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
-        ([0.2, float("nan"), 0.0], [0.1, 0.2], "θ must be a finite 3-vector"),
         (["left", "up", "back"], [0.1, 0.2], "must be numeric vectors"),
     ],
 )
@@ -170,14 +167,26 @@ def test_unknown_option_is_a_config_error() -> None:
 def test_constructor_checks_rng_theta0_and_bounds() -> None:
     with pytest.raises(LearnerConfigError, match=r"numpy\.random\.Generator"):
         Archer(np.array(START_THETA), rng=np.random.RandomState(0))  # type: ignore[arg-type]  # a legacy RandomState on purpose
-    with pytest.raises(LearnerConfigError, match="outside the θ bounds"):
+    with pytest.raises(LearnerConfigError, match=r"theta0 \[0.5, 0.0, 0.0\] m lies outside the θ"):
         Archer(np.array([0.5, 0.0, 0.0]), rng=np.random.default_rng(0))
     with pytest.raises(LearnerConfigError, match="finite 3-vector"):
         Archer(np.array([0.2, 0.0]), rng=np.random.default_rng(0))
-    with pytest.raises(LearnerConfigError, match="low < high"):
-        Bounds(low=(0.0, 0.0), high=(1.0, 0.0))
-    with pytest.raises(LearnerConfigError, match="equal length"):
-        Bounds(low=(0.0,), high=(1.0, 1.0))
+    with pytest.raises(LearnerConfigError, match="must be a ThetaBox"):
+        Archer(np.array(START_THETA), rng=np.random.default_rng(0), bounds=(0.1, 0.3))  # type: ignore[arg-type]  # not a box on purpose
+
+
+def test_a_theta_box_is_three_finite_numbers_a_side_low_below_high() -> None:
+    # θ is 3-D in this project: a box of another dimension is refused, like a flat one.
+    with pytest.raises(ValueError, match="low < high on every axis"):
+        ThetaBox(low=(0.0, 0.0, 0.0), high=(1.0, 0.0, 1.0))
+    with pytest.raises(ValueError, match=r"θ box low must be 3 finite numbers \(m\), got \(0.0,\)"):
+        ThetaBox(low=(0.0,), high=(1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="θ box high must be 3 finite numbers"):
+        ThetaBox(low=(0.0, 0.0, 0.0), high=(1.0, math.inf, 1.0))
+    box = ThetaBox(low=np.zeros(3), high=(1, 2, 3))
+    assert box == ThetaBox(low=[0.0, 0.0, 0.0], high=[1.0, 2.0, 3.0])
+    assert box.contains([1.0, 0.0, 3.0]) and not box.contains([1.0, -0.1, 3.0])
+    np.testing.assert_array_equal(box.clip([2.0, -1.0, 1.5]), [1.0, 0.0, 1.5])
 
 
 def test_restore_refuses_broken_states() -> None:
@@ -223,7 +232,7 @@ def test_cma_draws_only_from_the_injected_generator() -> None:
 
 
 def test_hill_climber_explores_around_the_best_so_far() -> None:
-    wide = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))  # around every θ told
+    wide = ThetaBox(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))  # around every θ told
     learner = HillClimber(
         np.array(START_THETA), rng=np.random.default_rng(0), explore_std=0.001, bounds=wide
     )
@@ -238,7 +247,7 @@ def test_hill_climber_explores_around_the_best_so_far() -> None:
 
 
 def test_random_search_draws_uniformly_in_the_bounds_whatever_the_rewards() -> None:
-    bounds = Bounds(low=(0.1, -0.1, -0.05), high=(0.3, 0.1, 0.05))
+    bounds = ThetaBox(low=(0.1, -0.1, -0.05), high=(0.3, 0.1, 0.05))
     learner = RandomSearch(np.array(START_THETA), rng=np.random.default_rng(2), bounds=bounds)
     samples = []
     for _ in range(4000):

@@ -13,7 +13,7 @@ import pytest
 from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, STRING_ARM
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from protocol.theta import THETA_BOX
 from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 from services.controller.movement import Movement, Reproduction
 from services.controller.posture import ArcheryPosture, PostureConfig
@@ -154,7 +154,7 @@ def test_the_whole_shot_ends_in_the_posture_for_every_corner_of_the_box(
     standing = {
         j: float(v) for p in PARTS for j, v in zip(PARTS[p], world.joint_positions(p), strict=True)
     }
-    for corner in itertools.product(*zip(THETA_MIN, THETA_MAX, strict=True)):
+    for corner in itertools.product(*zip(THETA_BOX.low, THETA_BOX.high, strict=True)):
         solved = posture.solve_checked(np.array(corner))
         plan = whole_shot_trajectory(movement, solved.q, standing)
         assert plan.lead < 0.05  # the demonstration starts at home

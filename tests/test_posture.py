@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import itertools
 import math
 
@@ -15,11 +16,12 @@ from hypothesis import strategies as st
 from apps.experiment.config import ExperimentConfig
 from protocol.direction import NoArrowDirection, arrow_direction
 from protocol.errors import ConfigError
-from protocol.verbs.controller import THETA_MAX, THETA_MIN, PostureArgs
+from protocol.theta import THETA_BOX, ThetaBox
+from protocol.verbs.controller import PostureArgs
 from services.controller.errors import JointError, TargetError
 from services.controller.ik_types import IkSettings
 from services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
-from services.learner.algorithms.base import DEFAULT_BOUNDS
+from services.learner.algorithms.base import Learner
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -30,12 +32,10 @@ def posture() -> ArcheryPosture:
 
 
 def box_thetas(config: PostureConfig, rng: np.random.Generator, n_random: int) -> list[np.ndarray]:
-    corners = [
-        np.array(c)
-        for c in itertools.product(*zip(config.theta_min, config.theta_max, strict=True))
-    ]
-    centre = [(config.theta_min + config.theta_max) / 2, config.nominal_theta]
-    random = [rng.uniform(config.theta_min, config.theta_max) for _ in range(n_random)]
+    low, high = np.array(config.theta_box.low), np.array(config.theta_box.high)
+    corners = [np.array(c) for c in itertools.product(*zip(low, high, strict=True))]
+    centre = [(low + high) / 2, config.nominal_theta]
+    random = [rng.uniform(low, high) for _ in range(n_random)]
     return corners + centre + random
 
 
@@ -90,11 +90,20 @@ def test_hand_orientations_follow_the_paper(theta: np.ndarray) -> None:
         assert -y @ UP > 0
 
 
-def test_orientation_inputs_are_checked() -> None:
+def test_coinciding_hands_have_no_orientations() -> None:
     with pytest.raises(NoArrowDirection, match="string hand on the bow hand"):
         hand_orientations(np.zeros(3))
-    with pytest.raises(TargetError, match="vertical arrow"):
-        hand_orientations(np.array([0.0, 0.0, 0.2]))
+
+
+def test_a_posture_box_keeps_every_arrow_off_vertical() -> None:
+    """A vertical arrow leaves "bow vertical" without meaning: the posture's box is checked
+    once, when the controller is configured, so a θ inside it is never checked for it again."""
+    tall = ThetaBox(low=(0.001, -0.01, -0.2), high=(0.1, 0.01, 0.2))
+    with pytest.raises(ConfigError, match="within 1° of vertical"):
+        PostureConfig(theta_box=tall, nominal_theta=(0.05, 0.0, 0.0))
+    for corner in itertools.product(*zip(THETA_BOX.low, THETA_BOX.high, strict=True)):
+        a = arrow_direction(np.array(corner))
+        assert abs(a @ UP) < math.cos(math.radians(50))  # the box's arrows: within 40° of level
 
 
 def test_a_malformed_theta_is_refused_where_the_request_is_decoded() -> None:
@@ -112,13 +121,11 @@ def test_a_malformed_theta_is_refused_where_the_request_is_decoded() -> None:
 
 
 def test_the_theta_box_is_defined_once() -> None:
-    """The posture's default box is the contract's θ box (`protocol.verbs.controller`); the
-    analytic world, which has no arms, searches a box of its own that holds the robot's."""
-    config = PostureConfig()
-    assert config.theta_min.tolist() == list(THETA_MIN)
-    assert config.theta_max.tolist() == list(THETA_MAX)
-    for bounds in (DEFAULT_BOUNDS, ExperimentConfig().bounds):
-        assert bounds.contains(np.array(THETA_MIN)) and bounds.contains(np.array(THETA_MAX))
+    """The posture's default box is the contract's θ box (`protocol.theta.THETA_BOX`), and so
+    is the learners' and the analytic experiment's default."""
+    learner_box = inspect.signature(Learner.__init__).parameters["bounds"].default
+    for box in (PostureConfig().theta_box, learner_box, ExperimentConfig().bounds):
+        assert box is THETA_BOX
 
 
 # ------------------------------------------------------------------------------------- posture
@@ -146,7 +153,7 @@ def test_warm_started_path_through_the_box(posture: ArcheryPosture) -> None:
     theta = config.nominal_theta.copy()
     q = None
     for _ in range(25):
-        theta = np.clip(theta + rng.normal(0.0, 0.005, 3), config.theta_min, config.theta_max)
+        theta = config.theta_box.clip(theta + rng.normal(0.0, 0.005, 3))
         result = posture.solve(theta, q0=q)
         check_posture(posture, theta, result)
         if q is not None:  # small θ steps give small joint motions
@@ -159,11 +166,11 @@ def test_theta_outside_the_box_is_rejected(posture: ArcheryPosture) -> None:
     config = posture.config
     for axis in range(3):
         low = config.nominal_theta.copy()
-        low[axis] = config.theta_min[axis] - 1e-3
+        low[axis] = config.theta_box.low[axis] - 1e-3
         with pytest.raises(TargetError, match="outside the configured box"):
             posture.solve(low)
         high = config.nominal_theta.copy()
-        high[axis] = config.theta_max[axis] + 1e-3
+        high[axis] = config.theta_box.high[axis] + 1e-3
         with pytest.raises(TargetError, match="outside the configured box"):
             posture.solve(high)
     with pytest.raises(JointError, match="unknown joint"):
@@ -189,8 +196,11 @@ def test_unreachable_bow_hand_is_a_config_error() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"theta_min": (0.2, 0.0, 0.0), "theta_max": (0.1, 0.1, 0.1)}, "below theta_max"),
-        ({"theta_min": (-0.1, -0.1, -0.1)}, "theta_min"),
+        ({"theta_box": ((0.1, 0.0, 0.0), (0.2, 0.1, 0.1))}, "must be a ThetaBox"),
+        (
+            {"theta_box": ThetaBox(low=(-0.1, -0.1, -0.1), high=(0.2, 0.1, 0.1))},
+            "low x must be > 0",
+        ),
         ({"nominal_theta": (0.3, 0.0, 0.0)}, "nominal_theta"),
         ({"bow_hand": (0.0, np.nan, 0.0)}, "bow_hand"),
         ({"bow_hand": (0.0, 0.0)}, "bow_hand"),

@@ -24,14 +24,13 @@ from mesh.node import Node
 from protocol.demonstration import MIN_SAMPLES, encode_demonstration
 from protocol.errors import ConfigError, RpcError
 from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
+from protocol.theta import THETA_BOX
 from services.camera.config import CameraConfig
 from services.camera.service import run as camera
 from services.controller.config import ControllerConfig
 from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 from services.controller.service import run as controller
 from services.learner.abort_policy import after_abort
-from services.learner.algorithms.base import Bounds
 from services.learner.rig import MeshRig
 from services.learner.rollout_step import Failed, shoot
 from services.robot.config import add_arguments, make_config
@@ -234,7 +233,7 @@ def test_imitate_refuses_a_theta_outside_the_box_and_nothing_moves(
     before = client.part(STRING_ARM, "getPositions")
     assert imitate([str(SHIPPED), "--theta", "0.4,0,0", *_net_flags(net)]) == 2
     said = [line for line in capsys.readouterr().err.splitlines() if "archery imitate" in line]
-    assert len(said) == 1 and "outside the reachable box" in said[0], said  # the robot logs too
+    assert len(said) == 1 and "outside the θ box" in said[0], said  # the robot logs too
     after = client.part(STRING_ARM, "getPositions")
     assert after["position"] == before["position"] and after["sim_time"] == before["sim_time"]
 
@@ -264,8 +263,7 @@ def test_a_learner_rollout_whose_grasp_or_nock_fails_is_an_abort_retried_on_a_re
     # the controller drops its leases in the background once the movement has ended
     until(lambda: client.part(STRING_ARM, "getClaim")["held"] is False, "the lease dropped")
     # the abort rules re-run the same θ
-    box = Bounds(low=THETA_MIN, high=THETA_MAX)
-    decision = after_abort(failed.code, theta, best_theta=None, theta0=THETA0, bounds=box)
+    decision = after_abort(failed.code, theta, best_theta=None, theta0=THETA0, bounds=THETA_BOX)
     assert decision.failure is None and np.allclose(decision.retry_theta, theta)
 
 

@@ -10,11 +10,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import msgspec
 import numpy as np
 
+from protocol.theta import THETA_BOX, ThetaBox
 from protocol.vectors import parse_vector
 from protocol.verbs.learner import MAX_ROLLOUTS
-from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds, Learner, LearnerError
+from services.learner.algorithms.base import Learner, LearnerError
 from services.learner.algorithms.power import Power
 from services.learner.algorithms.registry import (
     ALGORITHMS,
@@ -155,7 +157,8 @@ class ExperimentConfig:
         rollouts: rollout budget per session.
         seed: master seed.
         scenario: the simulated range.
-        bounds: θ box (m) given to every learner.
+        bounds: θ box (m) given to every learner: by default the controller's,
+            `protocol.theta.THETA_BOX` (a fleet's robots tell theirs).
         world: the simulator: "ballistic" (the paper's analytic model, here) or "mesh" (the
             MuJoCo robots of a fleet, `apps.experiment.experiment_mesh`).
         wind_change: the wind changes during the sessions (None: it does not).
@@ -169,7 +172,7 @@ class ExperimentConfig:
     rollouts: int = 60
     seed: int = 0
     scenario: Scenario = field(default_factory=Scenario)
-    bounds: Bounds = DEFAULT_BOUNDS
+    bounds: ThetaBox = THETA_BOX
     world: str = "ballistic"
     wind_change: WindChange | None = None
     transfer: Transfer | None = None
@@ -200,11 +203,8 @@ class ExperimentConfig:
                 raise ExperimentError(f"{name} must be an integer >= {low}, got {value!r}")
         if self.rollouts > MAX_ROLLOUTS:
             raise ExperimentError(f"rollouts must be at most {MAX_ROLLOUTS}, got {self.rollouts}")
-        if not self.bounds.contains(np.array(self.scenario.start)):
-            raise ExperimentError(
-                f"start θ {list(self.scenario.start)} m lies outside the θ bounds "
-                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
-            )
+        if not self.bounds.contains(self.scenario.start):
+            raise ExperimentError(self.bounds.outside("start θ", self.scenario.start))
         if self.wind_change is not None:
             at = self.wind_change.at
             if not 2 <= at <= self.rollouts:
@@ -275,7 +275,7 @@ class ExperimentConfig:
             "rollouts": self.rollouts,
             "seed": self.seed,
             "algorithms": list(self.algorithms),
-            "bounds": self.bounds.to_dict(),
+            "bounds": msgspec.to_builtins(self.bounds),
             "from": None if self.transfer is None else self.transfer.source,
             "power_scale_m": self.power_scale,
         }

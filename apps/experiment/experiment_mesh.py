@@ -24,6 +24,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import msgspec
+
 from apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
 from apps.experiment.fleet import FleetRobot, NoRobot, StackWatch, open_fleet
 from apps.experiment.mesh_out import (
@@ -45,7 +47,7 @@ from mesh.signals import shutdown_on_signals
 from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.journal_records import DoneRecord, JournalRecord
 from protocol.robotspec import THETA0
-from services.learner.algorithms.base import Bounds
+from protocol.theta import ThetaBox
 from services.learner.algorithms.registry import ALGORITHMS
 from services.learner.errors import RigError, ServiceLost
 from services.learner.journal import JournalError
@@ -376,7 +378,7 @@ def run_mesh_experiment(
     return config, runs_from_journals(config, out)
 
 
-def fleet_box(fleet: list[FleetRobot]) -> Bounds:
+def fleet_box(fleet: list[FleetRobot]) -> ThetaBox:
     """The θ box (m) of the fleet's controllers: every learner searches in it.
 
     Raises:
@@ -388,8 +390,9 @@ def fleet_box(fleet: list[FleetRobot]) -> Bounds:
     for prefix, box in boxes.items():
         if box != boxes[first]:
             raise ConfigError(
-                f"robots {first} and {prefix} have different θ boxes ({boxes[first].to_dict()} "
-                f"and {box.to_dict()} m); use robots of one kind (--robots)"
+                f"robots {first} and {prefix} have different θ boxes "
+                f"({msgspec.to_builtins(boxes[first])} and {msgspec.to_builtins(box)} m); use "
+                "robots of one kind (--robots)"
             )
     return boxes[first]
 

@@ -13,8 +13,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from protocol.theta import ThetaBox
 from services.learner.abort_policy import NO_ARROW, after_abort
-from services.learner.algorithms.base import Bounds, Learner
+from services.learner.algorithms.base import Learner
 from services.learner.algorithms.registry import make_learner
 
 __all__ = ["Episode", "bounds_of", "learner_rng", "run_learner", "start_theta"]
@@ -43,11 +44,15 @@ class Episode:
     terminated: bool
 
 
-def bounds_of(space: gym.Space[Any]) -> Bounds:
-    """The θ box (m) of an action `Box`."""
+def bounds_of(space: gym.Space[Any]) -> ThetaBox:
+    """The θ box (m) of an action `Box`.
+
+    Raises:
+        ValueError: not a `Box` of 3 θ components, or not a valid θ box (named).
+    """
     if not isinstance(space, gym.spaces.Box) or space.shape != (3,):
         raise ValueError(f"the action space must be a Box of 3 θ components (m), got {space}")
-    return Bounds(low=tuple(space.low.tolist()), high=tuple(space.high.tolist()))
+    return ThetaBox(low=space.low.tolist(), high=space.high.tolist())
 
 
 def start_theta(observation: np.ndarray) -> np.ndarray:

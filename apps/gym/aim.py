@@ -24,8 +24,8 @@ from apps.gym.keywords import (
 from apps.gym.registration import AIM_ID
 from apps.gym.spaces import action_space, checked_action, observation, observation_space
 from protocol.text import cut, shown
+from protocol.theta import THETA_BOX, ThetaBox
 from protocol.vectors import finite_vector
-from services.learner.algorithms.base import DEFAULT_BOUNDS, Bounds
 from sim.ballistic import BallisticWorld, Scenario, ScenarioError
 from sim.geometry import INNER_RING_RADIUS
 
@@ -34,22 +34,22 @@ __all__ = ["DEFAULT_BUDGET", "KEYWORDS", "AimEnv", "episode_budget", "session_of
 DEFAULT_BUDGET = 60  # shots per episode, as the paper's sessions
 
 
-def _bounds(bounds: object) -> Bounds:
-    """The `bounds` keyword: None (`DEFAULT_BOUNDS`), a `Bounds` or (low, high) in m.
+def _bounds(bounds: object) -> ThetaBox:
+    """The `bounds` keyword: None (`THETA_BOX`), a `ThetaBox` or (low, high) in m.
 
     Raises:
         ValueError: anything else, named.
     """
     if bounds is None:
-        return DEFAULT_BOUNDS
-    if isinstance(bounds, Bounds):
+        return THETA_BOX
+    if isinstance(bounds, ThetaBox):
         return bounds
     try:
         low, high = cast(tuple[Sequence[float], Sequence[float]], bounds)
-        return Bounds(low=tuple(low), high=tuple(high))
+        return ThetaBox(low=list(low), high=list(high))
     except (TypeError, ValueError) as exc:
         raise ValueError(
-            f"bounds must be (low, high) θ vectors (m) or a Bounds, got {shown(bounds)}: "
+            f"bounds must be (low, high) θ vectors (m) or a ThetaBox, got {shown(bounds)}: "
             f"{cut(str(exc))}"
         ) from None
 
@@ -111,8 +111,8 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         wind_change: the wind from a shot of the episode on (None: no change).
         budget: shots per episode before it is truncated.
         until_hit: end the episode at the first hit (`terminated`).
-        bounds: the θ box (m, `(low, high)` or a `Bounds`); default `archery experiment`'s,
-            `services.learner.algorithms.base.DEFAULT_BOUNDS` (the analytic world has no arms).
+        bounds: the θ box (m, `(low, high)` or a `protocol.theta.ThetaBox`); default
+            `protocol.theta.THETA_BOX`, the controller's, as `archery experiment`'s.
         render_mode: None (nothing to render).
 
     Raises:
@@ -154,7 +154,7 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
         wind_change: object = None,
         budget: int = DEFAULT_BUDGET,
         until_hit: bool = True,
-        bounds: Bounds | tuple[Sequence[float], Sequence[float]] | None = None,
+        bounds: ThetaBox | tuple[Sequence[float], Sequence[float]] | None = None,
         render_mode: str | None = None,
         **unknown: object,
     ) -> None:
@@ -167,12 +167,8 @@ class AimEnv(gym.Env[np.ndarray, np.ndarray]):
             self._check(distance, wind, drag, noise, bow_stiffness, start, budget, until_hit)
             self.wind_change = wind_change_of(wind_change, self.budget)
             self.bounds = _bounds(bounds)
-        if not self.bounds.contains(np.array(self.scenario.start)):
-            raise ScenarioError(
-                f"start θ {list(self.scenario.start)} m lies outside the θ box "
-                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}",
-                "start",
-            )
+        if not self.bounds.contains(self.scenario.start):
+            raise ScenarioError(self.bounds.outside("start θ", self.scenario.start), "start")
         self.world = BallisticWorld(self.scenario)
         changed = self.world
         if self.wind_change is not None:

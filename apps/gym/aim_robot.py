@@ -194,10 +194,7 @@ class AimRobotEnv(gym.Env[np.ndarray, np.ndarray]):
             raise
         if not self.bounds.contains(self._start):
             self._stack.close()
-            raise ValueError(
-                f"start θ {self._start.tolist()} m lies outside the controller's θ box "
-                f"low={list(self.bounds.low)}, high={list(self.bounds.high)} m"
-            )
+            raise ValueError(f"{self.bounds.outside('start θ', self._start)} (the controller's)")
         self.action_space: gym.spaces.Box = action_space(self.bounds)
         self.observation_space: gym.spaces.Box = observation_space(self.bounds)
         self.render_mode = render_mode

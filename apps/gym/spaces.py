@@ -1,8 +1,9 @@
 """The spaces of the archery task as Gymnasium sees it, and the one check of an action.
 
 Action: θ, the string hand's position relative to the bow hand, a `Box` of shape (3,) in metres
-(float64): the θ box of the world (the controller's on the iCub, `archery experiment`'s on the
-analytic world).
+(float64) built from the world's `protocol.theta.ThetaBox` (the controller's on the iCub; on the
+analytic world `THETA_BOX` unless the environment is given another). `checked_action` is where
+θ enters an environment: its one check of an action.
 
 Observation: a `Box` of shape (5,), float64, metres: `[r_y, r_z, θ_x, θ_y, θ_z]`, the last
 measured r (the arrow's offset from the centre on the target plane: r[0] to the robot's right,
@@ -19,7 +20,7 @@ from gymnasium import spaces
 from gymnasium.error import InvalidAction
 
 from protocol.text import shown
-from services.learner.algorithms.base import Bounds
+from protocol.theta import ThetaBox
 
 __all__ = [
     "OBSERVATION_FIELDS",
@@ -39,7 +40,7 @@ class BadAction(InvalidAction, ValueError):
     not in the space, and a ValueError; its message quotes the action cut (`protocol.text`)."""
 
 
-def action_space(bounds: Bounds) -> spaces.Box:
+def action_space(bounds: ThetaBox) -> spaces.Box:
     """θ's box (m) as a float64 `Box`."""
     return spaces.Box(
         low=np.array(bounds.low, dtype=np.float64),
@@ -48,7 +49,7 @@ def action_space(bounds: Bounds) -> spaces.Box:
     )
 
 
-def observation_space(bounds: Bounds) -> spaces.Box:
+def observation_space(bounds: ThetaBox) -> spaces.Box:
     """The observation's `Box`: r (m) unbounded, θ (m) in `bounds`."""
     low = np.array([-math.inf, -math.inf, *bounds.low], dtype=np.float64)
     high = np.array([math.inf, math.inf, *bounds.high], dtype=np.float64)

@@ -2,11 +2,11 @@
 (iKin style) and `ROBOT/cartesianController/archery/rpc:i` (the archery posture for θ).
 
 Positions are metres in `root_link`; orientations iKin axis-angle [ax, ay, az, angle (rad)].
-The θ box is defined here, once (`THETA_MIN`, `THETA_MAX`): the controller's posture config
-starts from it and its `status` tells it; the learner reads it from that `status`, and offline
-uses (the analytic experiment world) take it from here. A request's size and finiteness are
-checked where it is decoded (these types and `Args`); the box, the zero-axis rule and
-reachability depend on the controller's configuration and model and are checked by it.
+θ is `protocol.theta.Theta`; the controller's θ box (`protocol.theta.THETA_BOX` unless it is
+configured otherwise) is told by its `status` as a `ThetaBox`, which the learner reads. A
+request's size and finiteness are checked where it is decoded (these types and `Args`); the box,
+the zero-axis rule and reachability depend on the controller's configuration and model and are
+checked by it.
 """
 
 from __future__ import annotations
@@ -15,13 +15,12 @@ from typing import Annotated, Literal
 
 from msgspec import Meta
 
+from protocol.theta import Theta, ThetaBox
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = [
     "ARCHERY_VERBS",
     "ARM_VERBS",
-    "THETA_MAX",
-    "THETA_MIN",
     "TIMEOUT_RANGE",
     "TRAJ_TIME_RANGE",
 ]
@@ -29,13 +28,6 @@ __all__ = [
 TRAJ_TIME_RANGE = (0.05, 60.0)  # s of simulated time
 TIMEOUT_RANGE = (0.1, 3600.0)  # wall s
 TOLERANCE_RANGE = (1e-6, 0.1)  # m
-
-# The θ box (m, per axis: x 0.12..0.24, y −0.02..0.06, z −0.07..0.01; ‖θ‖ 0.12..0.26 m, arrow
-# within 38° of −x): the θ the archery posture accepts. Verified reachable on a 9×9×9 grid from
-# the reference posture, relative position within the 0.1 mm IK tolerance (worst 0.03 mm);
-# tests/test_posture.py checks corners, centre, random points and a warm path.
-THETA_MIN: tuple[float, float, float] = (0.12, -0.02, -0.07)
-THETA_MAX: tuple[float, float, float] = (0.24, 0.06, 0.01)
 
 Position = Annotated[list[float], Meta(min_length=3, max_length=3, description="[x, y, z] m")]
 AxisAngle = Annotated[
@@ -193,18 +185,16 @@ class PostureArgs(Args, frozen=True):
     as one trajectory whose draw ends in that same posture, grasp and nock at their demonstrated
     times. A shot the robot does not run is refused (`bad_state`, naming the robot's)."""
 
-    theta: Annotated[
-        list[float], Meta(min_length=3, max_length=3, description="θ, right − left hand, m")
-    ]
+    theta: Theta
     timeout: Timeout | None = None
     shot: Literal["posture", "whole"] = "posture"
 
 
 class PostureReply(Reply, frozen=True):
     q: Annotated[dict[str, float], Meta(description="rad")]
-    theta: Annotated[list[float], Meta(description="m")]
-    theta_achieved: Annotated[list[float], Meta(description="m")]
-    theta_measured: Annotated[list[float], Meta(description="m")]
+    theta: Theta
+    theta_achieved: Theta
+    theta_measured: Theta
     relative_error_m: float
     measured_error_m: float
     reachable: bool
@@ -225,10 +215,9 @@ class PostureReply(Reply, frozen=True):
 
 
 class ArcheryStatusReply(Reply, frozen=True):
-    theta_min: Annotated[list[float], Meta(description="m")]
-    theta_max: Annotated[list[float], Meta(description="m")]
+    theta_box: ThetaBox
     bow_hand: Annotated[list[float], Meta(description="m")]
-    nominal_theta: Annotated[list[float], Meta(description="m")]
+    nominal_theta: Theta
     use_torso: bool
     traj_time: Annotated[float, Meta(description="s, sim time")]
     joints: list[str]

@@ -10,23 +10,17 @@ from typing import Annotated, Any
 
 from msgspec import UNSET, Meta, UnsetType
 
+from protocol.theta import Theta, ThetaBox
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = ["LEARNER_VERBS", "MAX_ROLLOUTS"]
 
-Vector3 = Annotated[list[float], Meta(min_length=3, max_length=3, description="m")]
-
 MAX_ROLLOUTS = 10_000  # the budget of done rollouts a session may ask for
 
 
-class Bounds(Args, frozen=True):
-    low: Vector3
-    high: Vector3
-
-
 class Scenario(Args, frozen=True):
-    theta0: Vector3 | UnsetType = UNSET
-    bounds: Bounds | UnsetType | None = UNSET
+    theta0: Theta | UnsetType = UNSET
+    bounds: ThetaBox | UnsetType | None = UNSET
     hit_radius: Annotated[float, Meta(ge=0.001, le=0.25, description="m")] | UnsetType = UNSET
     reset: bool | UnsetType = UNSET
 
@@ -67,7 +61,7 @@ class LearnerStatusReply(Reply, frozen=True):
     waiting_for: list[str] | UnsetType = UNSET
     journal: str | UnsetType = UNSET
     directory: str | UnsetType = UNSET
-    last_theta: list[float] | UnsetType | None = UNSET
+    last_theta: Theta | UnsetType | None = UNSET
     last_r_m: list[float] | UnsetType | None = UNSET
     report: str | UnsetType | None = UNSET
     hit_frame: str | UnsetType | None = UNSET

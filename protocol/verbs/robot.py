@@ -15,6 +15,7 @@ from msgspec import Meta
 from protocol.messages import MAX_LEASE_ID
 from protocol.parts import PARTS
 from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, MAX_REFERENCE_SPEED
+from protocol.theta import Theta
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = [
@@ -427,7 +428,7 @@ class ReleaseReply(Reply, frozen=True):
     sim_time: Annotated[float, Meta(description="s")]
     release_sim_time: Annotated[float, Meta(description="s")]
     flight_time: Annotated[float, Meta(description="s")]
-    theta: Annotated[list[float], Meta(description="m")]
+    theta: Annotated[Theta, Meta(description="θ the arrow was launched with, m")]
 
 
 class ResetArgs(Args, frozen=True):

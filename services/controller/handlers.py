@@ -220,8 +220,7 @@ class ArcheryController:
     def _status(self) -> cv.ArcheryStatusReply:
         cfg = self._posture.config
         return cv.ArcheryStatusReply(
-            theta_min=cfg.theta_min.tolist(),
-            theta_max=cfg.theta_max.tolist(),
+            theta_box=cfg.theta_box,
             bow_hand=cfg.bow_hand.tolist(),
             nominal_theta=cfg.nominal_theta.tolist(),
             use_torso=cfg.use_torso,

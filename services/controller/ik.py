@@ -23,6 +23,7 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg.lapack
 
+from protocol.vectors import finite_vector
 from services.controller.errors import JointError, TargetError
 from services.controller.ik_derivatives import (
     orientation_residual,
@@ -140,7 +141,7 @@ class IkSolver:
             TargetError: a malformed position or orientation. JointError: bad arm, names or
             angles in q0/rest.
         """
-        pos_target = PositionTarget(arm, position)
+        pos_target = PositionTarget(arm, finite_vector("position", position, TargetError))
         ori_targets = () if orientation is None else (OrientationTarget(arm, orientation),)
         chain = self.model.chain(arm, use_torso=use_torso)
         res = self.solve_targets((pos_target,), ori_targets, joints=chain, q0=q0, rest=rest)

@@ -17,7 +17,6 @@ import numpy as np
 import pinocchio as pin
 
 from protocol.errors import ConfigError
-from protocol.vectors import finite_vector
 from services.controller.errors import TargetError
 from services.controller.model import check_arm
 
@@ -125,7 +124,9 @@ class IkSettings:
 
 @dataclass(frozen=True)
 class PositionTarget:
-    """A hard position constraint on a hand frame (m, root frame).
+    """A hard position constraint on a hand frame (m, root frame): `position`, 3 finite numbers
+    its caller checked (a decoded request, `IkSolver.solve`, a validated config), kept as a
+    read-only float array.
 
     With `relative_to` set, the constrained quantity is x_arm − x_relative_to (the hand's position
     relative to the other hand); otherwise x_arm. When several constraints cannot all be met, a
@@ -145,9 +146,9 @@ class PositionTarget:
                 raise TargetError(f"relative_to must be the other arm, got {self.relative_to!r}")
         if self.priority not in (0, 1, 2):
             raise ConfigError(f"priority must be 0, 1 or 2, got {self.priority!r}")
-        object.__setattr__(
-            self, "position", finite_vector("position", self.position, TargetError, unit="m")
-        )
+        position = np.array(self.position, dtype=float)
+        position.setflags(write=False)
+        object.__setattr__(self, "position", position)
 
 
 @dataclass(frozen=True)

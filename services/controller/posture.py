@@ -22,8 +22,8 @@ from protocol.direction import arrow_direction
 from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
+from protocol.theta import THETA_BOX, ThetaBox
 from protocol.vectors import finite_vector
-from protocol.verbs.controller import THETA_MAX, THETA_MIN
 from services.controller.errors import TargetError
 from services.controller.ik import IkSolver
 from services.controller.ik_types import (
@@ -42,11 +42,14 @@ __all__ = [
 ]
 
 _UP = np.array([0.0, 0.0, 1.0])
+#: An arrow closer to vertical than this leaves "bow vertical" without meaning: a posture box
+#: must keep every θ farther from it (`PostureConfig`).
+MIN_TILT_FROM_VERTICAL = math.radians(1.0)
 
 
 def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Desired rotations (root frame) of the left and right hand frames for θ, a finite
-    3-vector (m).
+    3-vector (m) of a posture box (`PostureConfig` keeps its arrows off vertical).
 
     Conventions (root_link frame):
 
@@ -61,15 +64,11 @@ def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
       faces the bow hand (z_R = x_R × y_R).
 
     Raises:
-        TargetError: an arrow within 1° of vertical (where "bow vertical" has no meaning).
-        NoArrowDirection: the hands coincide (θ = 0; never in the θ box).
+        NoArrowDirection: the hands coincide (θ = 0; never in a posture box).
     """
     a = arrow_direction(theta)
     b = _UP - (_UP @ a) * a
-    norm_b = float(np.linalg.norm(b))
-    if norm_b < math.sin(math.radians(1.0)):
-        raise TargetError(f"θ = {np.asarray(theta).tolist()} m gives a vertical arrow")
-    b /= norm_b
+    b /= float(np.linalg.norm(b))
     y = -b
     z_left = -a
     left = np.column_stack((np.cross(y, z_left), y, z_left))
@@ -83,9 +82,11 @@ class PostureConfig:
 
     Attributes:
         bow_hand: nominal left-hand position (m, root frame).
-        theta_min, theta_max: per-axis bounds of θ (m); θ outside raises TargetError. The
-            default is the θ box of `protocol.verbs.controller` (`THETA_MIN`, `THETA_MAX`),
-            the one definition of it.
+        theta_box: the θ the posture accepts (m); θ outside raises TargetError. The default is
+            `protocol.theta.THETA_BOX`, the one definition of it. Every θ in it must put the
+            string hand behind the bow hand (low x > 0 m) and the arrow more than
+            `MIN_TILT_FROM_VERTICAL` from vertical, so a θ inside has an arrow direction and
+            hand orientations without another check.
         nominal_theta: θ (m) of the reference posture (rest posture and default warm start).
         use_torso: move the torso with the arms (True) or hold it at the start posture.
         reference_starts: start postures tried when searching the reference posture, ≥ 1.
@@ -96,8 +97,7 @@ class PostureConfig:
     """
 
     bow_hand: Any = BOW_HAND
-    theta_min: Any = THETA_MIN
-    theta_max: Any = THETA_MAX
+    theta_box: ThetaBox = THETA_BOX
     nominal_theta: Any = NOMINAL_THETA
     use_torso: bool = True
     reference_starts: int = 24
@@ -105,25 +105,27 @@ class PostureConfig:
     ik: IkSettings = field(default_factory=lambda: IkSettings(rest_weight=0.1))
 
     def __post_init__(self) -> None:
-        for name in ("bow_hand", "theta_min", "theta_max", "nominal_theta"):
+        for name in ("bow_hand", "nominal_theta"):
             object.__setattr__(self, name, finite_vector(name, getattr(self, name), ConfigError))
-        if np.any(self.theta_min >= self.theta_max):
+        box = self.theta_box
+        if not isinstance(box, ThetaBox):
+            raise ConfigError(f"theta_box must be a ThetaBox, got {type(box).__name__}")
+        if box.low[0] <= 0:
             raise ConfigError(
-                f"theta_min {self.theta_min.tolist()} must be below theta_max "
-                f"{self.theta_max.tolist()} on every axis"
+                f"theta_box low x must be > 0 m (string hand behind the bow hand, arrow towards "
+                f"−x), got low={box.low}, high={box.high} m"
             )
-        if self.theta_min[0] <= 0:
+        # The arrow nearest vertical in the box: the least horizontal reach (low x, the y
+        # nearest 0) under the highest |z|.
+        nearest_y = min(max(0.0, box.low[1]), box.high[1])
+        tilt = math.atan2(math.hypot(box.low[0], nearest_y), max(-box.low[2], box.high[2]))
+        if tilt <= MIN_TILT_FROM_VERTICAL:
             raise ConfigError(
-                f"theta_min[0] must be > 0 m (string hand behind the bow hand, arrow towards −x), "
-                f"got {self.theta_min[0]}"
+                f"theta_box low={box.low}, high={box.high} m lets the arrow come within "
+                f"{math.degrees(MIN_TILT_FROM_VERTICAL):g}° of vertical"
             )
-        if np.any(self.nominal_theta < self.theta_min) or np.any(
-            self.nominal_theta > self.theta_max
-        ):
-            raise ConfigError(
-                f"nominal_theta {self.nominal_theta.tolist()} must lie in the θ box "
-                f"{self.theta_min.tolist()}..{self.theta_max.tolist()}"
-            )
+        if not box.contains(self.nominal_theta):
+            raise ConfigError(f"nominal_theta: {box.outside('θ', self.nominal_theta)}")
         if not isinstance(self.reference_starts, int) or self.reference_starts < 1:
             raise ConfigError(
                 f"reference_starts must be an integer >= 1, got {self.reference_starts!r}"
@@ -193,11 +195,10 @@ class ArcheryPosture:
         """
         th = np.array(theta, dtype=float)
         th.setflags(write=False)
-        cfg = self.config
-        if np.any(th < cfg.theta_min) or np.any(th > cfg.theta_max):
+        box = self.config.theta_box
+        if not box.contains(th):
             raise TargetError(
-                f"θ = {th.tolist()} m is outside the configured box "
-                f"{cfg.theta_min.tolist()}..{cfg.theta_max.tolist()} m"
+                f"θ = {th.tolist()} m is outside the configured box {box.low}..{box.high} m"
             )
         return th
 

@@ -55,8 +55,8 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
             keys.robot,
             config.traj_time,
             config.use_torso,
-            config.posture.theta_min.tolist(),
-            config.posture.theta_max.tolist(),
+            config.posture.theta_box.low,
+            config.posture.theta_box.high,
         )
         stop.wait()
 

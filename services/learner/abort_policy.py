@@ -15,7 +15,7 @@ import numpy as np
 
 from protocol.journal_records import AbortedRecord
 from protocol.robotspec import THETA0
-from services.learner.algorithms.base import Bounds
+from protocol.theta import ThetaBox
 
 __all__ = [
     "BACK_OFF_FRACTION",
@@ -56,7 +56,7 @@ def after_abort(
     *,
     best_theta: Sequence[float] | None,
     theta0: Sequence[float],
-    bounds: Bounds,
+    bounds: ThetaBox,
     redraw: Sequence[float] | np.ndarray | None = None,
 ) -> AbortDecision:
     """The decision after an attempt at `theta` (m) aborted with `code`:
@@ -90,7 +90,7 @@ def after_abort(
     if code != NO_ARROW:
         return AbortDecision(_tuple(current))
     if redraw is not None:
-        return AbortDecision(_tuple(bounds.clip(np.asarray(redraw, dtype=float))))
+        return AbortDecision(_tuple(bounds.clip(redraw)))
     anchor = np.asarray(theta0 if best_theta is None else best_theta, dtype=float)
     retry = bounds.clip(anchor + BACK_OFF_FRACTION * (current - anchor))
     failure = None

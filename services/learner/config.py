@@ -10,7 +10,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any
 
-import numpy as np
+import msgspec
 from msgspec import UnsetType
 
 from mesh.cliargs import check_writable_dir
@@ -20,10 +20,9 @@ from protocol.errors import BadRequest, ConfigError
 from protocol.journal_records import HeaderRecord
 from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
 from protocol.text import shown
+from protocol.theta import ThetaBox
 from protocol.vectors import finite_vector
 from protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
-from protocol.verbs.learner import Bounds as StartBounds
-from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.algorithms.registry import ALGORITHMS
 
 __all__ = [
@@ -80,21 +79,35 @@ def _integer(name: str, value: Any, low: int, high: int) -> int:
 
 
 def _theta(name: str, value: Any) -> tuple[float, ...]:
-    """A θ-like 3-vector of a request (m) as a tuple, or BadRequest naming `name`."""
+    """A θ of plain data (a journal's header, a request built from flags) as a tuple (m), or
+    BadRequest naming `name`: the check of a θ that no decoding checked."""
     return tuple(finite_vector(name, value, BadRequest, unit="m").tolist())
+
+
+def _box(name: str, value: Mapping[str, Any]) -> ThetaBox:
+    """A θ box of plain data ({"low", "high"}, m) as a `ThetaBox`, or BadRequest naming
+    `name`."""
+    try:
+        return ThetaBox(low=value["low"], high=value["high"])
+    except ValueError as exc:
+        raise BadRequest(f"{name}: {exc}") from None
 
 
 @dataclass(frozen=True)
 class SessionConfig:
     """One learning session, validated (what `start` asks for, or a journal's header).
 
+    θ0 and the box come typed: a decoded `start` request checked them (`from_start`), and
+    `from_request` and `from_header` check the plain data they read.
+
     Attributes:
         algorithm: a name of `services.learner.algorithms.registry.ALGORITHMS`.
         rollouts: budget of done rollouts (aborted attempts are not counted).
         seed: seeds the learner's generator, and the robot's shot noise at the start.
         until_hit: end the session at the first rollout within `hit_radius` of the centre.
-        theta0: θ (m) the learner starts from.
-        bounds: θ box (m) of the learner; None: the controller's box. Must lie inside it.
+        theta0: θ (m) the learner starts from, 3 finite numbers.
+        bounds: θ box of the learner; None: the controller's box. Must lie inside it, and
+            hold θ0 (`services.learner.session_setup` checks both against the controller's).
         hit_radius: a rollout hits when the measured ‖r‖ is below this (m).
         reset: reset the robot (home posture, shot noise seeded with `seed`) when the session
             starts (not when it resumes).
@@ -107,7 +120,7 @@ class SessionConfig:
     seed: int = 0
     until_hit: bool = True
     theta0: tuple[float, ...] = DEFAULT_THETA0
-    bounds: Bounds | None = None
+    bounds: ThetaBox | None = None
     hit_radius: float = HIT_RADIUS
     reset: bool = True
     options: Mapping[str, Any] = field(default_factory=dict)
@@ -125,7 +138,7 @@ class SessionConfig:
         for name in ("until_hit", "reset"):
             if not isinstance(getattr(self, name), bool):
                 raise BadRequest(f"{name} must be true or false, got {shown(getattr(self, name))}")
-        object.__setattr__(self, "theta0", _theta("scenario.theta0", self.theta0))
+        object.__setattr__(self, "theta0", tuple(float(v) for v in self.theta0))
         radius = self.hit_radius
         if isinstance(radius, bool) or not isinstance(radius, int | float):
             raise BadRequest(f"scenario.hit_radius must be a number (m), got {shown(radius)}")
@@ -134,11 +147,6 @@ class SessionConfig:
         object.__setattr__(self, "hit_radius", float(radius))
         if not isinstance(self.options, Mapping):
             raise BadRequest(f"options must be a map of learner options, got {shown(self.options)}")
-        if self.bounds is not None and not self.bounds.contains(np.array(self.theta0)):
-            raise BadRequest(
-                f"scenario.theta0 {list(self.theta0)} m lies outside the bounds "
-                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
-            )
 
     def learner_options(self) -> dict[str, Any]:
         """`ROBOT_OPTIONS` for the algorithm, overridden by `options`."""
@@ -149,7 +157,7 @@ class SessionConfig:
         return {
             "until_hit": self.until_hit,
             "theta0": list(self.theta0),
-            "bounds": None if self.bounds is None else self.bounds.to_dict(),
+            "bounds": None if self.bounds is None else msgspec.to_builtins(self.bounds),
             "hit_radius_m": self.hit_radius,
             "reset": self.reset,
             "max_aborts": self.max_aborts,
@@ -169,23 +177,13 @@ class SessionConfig:
         def given(value: Any, default: Any) -> Any:
             return default if isinstance(value, UnsetType) else value
 
-        bounds = None
-        raw = given(scenario.bounds, None)
-        if raw is not None:
-            try:
-                bounds = Bounds(
-                    low=_theta("scenario.bounds.low", raw.low),
-                    high=_theta("scenario.bounds.high", raw.high),
-                )
-            except LearnerConfigError as exc:
-                raise BadRequest(f"scenario.bounds: {exc}") from None
         return cls(
             algorithm=given(start.algo, defaults.algorithm),
             rollouts=given(start.rollouts, defaults.rollouts),
             seed=given(start.seed, defaults.seed),
             until_hit=given(start.until_hit, defaults.until_hit),
             theta0=given(scenario.theta0, defaults.theta0),
-            bounds=bounds,
+            bounds=given(scenario.bounds, None),
             hit_radius=given(scenario.hit_radius, defaults.hit_radius),
             reset=given(scenario.reset, defaults.reset),
             options=given(start.options, {}),
@@ -221,12 +219,15 @@ class SessionConfig:
                 f"scenario.bounds must be {{low: [x,y,z], high: [x,y,z]}} (m), got {shown(raw)}"
             )
         # Built without msgspec's checks, so that the values meet the same checks (and
-        # messages) as on the learner: `from_start` and the config's own.
+        # messages) as on the learner: `from_start` and the config's own; θ0 and the box,
+        # which the learner's decoding checks, are checked here.
         fields = {k: v for k, v in args.items() if k != "scenario"}
         if scenario:
-            given = {k: v for k, v in scenario.items() if k != "bounds"}
+            given = {k: v for k, v in scenario.items() if k not in ("theta0", "bounds")}
+            if "theta0" in scenario:
+                given["theta0"] = list(_theta("scenario.theta0", scenario["theta0"]))
             if "bounds" in scenario:
-                given["bounds"] = None if raw is None else StartBounds(**raw)
+                given["bounds"] = None if raw is None else _box("scenario.bounds", raw)
             fields["scenario"] = Scenario(**given)
         return cls.from_start(StartArgs(**fields))
 
@@ -234,13 +235,13 @@ class SessionConfig:
     def from_header(cls, header: HeaderRecord) -> SessionConfig:
         """The session a journal's header describes (the learner itself comes from its state)."""
         config = header.config
-        bounds = None if config.get("bounds") is None else Bounds.from_dict(config["bounds"])
+        bounds = None if config.get("bounds") is None else _box("bounds", config["bounds"])
         return cls(
             algorithm=header.algorithm,
             rollouts=header.rollouts,
             seed=header.seed,
             until_hit=config["until_hit"],
-            theta0=tuple(config["theta0"]),
+            theta0=_theta("theta0", config["theta0"]),
             bounds=bounds,
             hit_radius=config["hit_radius_m"],
             reset=config["reset"],

@@ -32,11 +32,11 @@ from protocol.errors import (
 )
 from protocol.messages import WorldEvent
 from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
+from protocol.theta import ThetaBox
 from protocol.verbs import Verb
 from protocol.verbs import controller as cv
 from protocol.verbs import detector as dv
 from protocol.verbs import robot as rv
-from services.learner.algorithms.base import Bounds, LearnerConfigError
 from services.learner.errors import RigError, ServiceLost
 from services.learner.rig_protocol import Measurement, PostureResult, Shot
 
@@ -211,14 +211,12 @@ class MeshRig:
         return self.shot
 
     # -- the rollout ----------------------------------------------------------------------------
-    def theta_box(self) -> Bounds:
-        """The controller's θ box (m), from its `status`."""
+    def theta_box(self) -> ThetaBox:
+        """The controller's θ box (m), from its `status` (checked as the reply is decoded: a
+        status without a valid box is `RigError` with code `bad_reply`)."""
         key = self.keys.cartesian_rpc("archery")
         status, _ = self._call("controller", key, cv.STATUS)
-        try:
-            return Bounds(low=tuple(status.theta_min), high=tuple(status.theta_max))
-        except LearnerConfigError as exc:
-            raise RigError(f"the controller's status has no valid θ box: {exc}") from None
+        return status.theta_box
 
     def setup(self) -> dict[str, Any]:
         """What replaying a shot needs of the rig: the robot's world (`WorldConfig.to_dict`),
@@ -241,7 +239,7 @@ class MeshRig:
         movement that fails leaves the robot reset (`_reset_after_failure`), so the next
         attempt starts clean."""
         key = self.keys.cartesian_rpc("archery")
-        args = cv.PostureArgs(theta=[float(x) for x in theta], shot=self.shot)
+        args = cv.PostureArgs(theta=theta.tolist(), shot=self.shot)
         timeout = self.timeout
         if self.shot == "whole":
             timeout += rv.MAX_TRAJECTORY_DURATION / (self._rtf if self._rtf > 0 else 1.0)
@@ -259,7 +257,7 @@ class MeshRig:
         return PostureResult(
             reached=result.reached,
             reason=result.reason,
-            theta_measured=list(result.theta_measured),
+            theta_measured=result.theta_measured,
             timing=movement
             | {
                 "posture_s": wall,
@@ -292,7 +290,7 @@ class MeshRig:
             stamp=before,
             outcome=result.outcome,
             timing=timing | {"release_s": release, "flight_sim_s": result.flight_time},
-            theta_launched=list(result.theta),
+            theta_launched=result.theta,
         )
 
     def measure(self, shot: Shot) -> Measurement:

@@ -14,7 +14,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from services.learner.algorithms.base import Bounds
+from protocol.theta import ThetaBox
 
 __all__ = ["Measurement", "PostureResult", "Rig", "Shot"]
 
@@ -72,7 +72,7 @@ class Rig(Protocol):
 
         Raises ServiceLost when some are still missing after `timeout` s."""
 
-    def theta_box(self) -> Bounds:
+    def theta_box(self) -> ThetaBox:
         """The controller's θ box (m)."""
 
     def follow_shot(self) -> str:

@@ -52,16 +52,13 @@ def started_session(
     """
     box = rig.theta_box()
     bounds = config.bounds or box
-    if not (box.contains(np.array(bounds.low)) and box.contains(np.array(bounds.high))):
+    if not (box.contains(bounds.low) and box.contains(bounds.high)):
         raise BadRequest(
-            f"scenario.bounds low={list(bounds.low)}, high={list(bounds.high)} m exceed the "
-            f"controller's θ box low={list(box.low)}, high={list(box.high)} m"
+            f"scenario.bounds low={bounds.low}, high={bounds.high} m exceed the controller's "
+            f"θ box low={box.low}, high={box.high} m"
         )
-    if not bounds.contains(np.array(config.theta0)):
-        raise BadRequest(
-            f"scenario.theta0 {list(config.theta0)} m lies outside the θ box "
-            f"low={list(bounds.low)}, high={list(bounds.high)} m"
-        )
+    if not bounds.contains(config.theta0):
+        raise BadRequest(bounds.outside("scenario.theta0", config.theta0))
     try:
         learner = make_learner(
             config.algorithm,
@@ -84,8 +81,8 @@ def started_session(
         seed=config.seed,
         rollouts=config.rollouts,
         options=learner.options(),
-        config=config.to_dict() | {"bounds": bounds.to_dict()},
-        controller_box=box.to_dict(),
+        config=config.to_dict() | {"bounds": msgspec.to_builtins(bounds)},
+        controller_box=msgspec.to_builtins(box),
         learner_state=learner.state_dict(),
         from_=msgspec.UNSET if source is None else source.header(),
         rig=rig.setup(),

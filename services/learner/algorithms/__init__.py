@@ -2,8 +2,6 @@
 
 from services.learner.algorithms.archer import Archer
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
-    Bounds,
     Learner,
     LearnerConfigError,
     LearnerError,
@@ -19,11 +17,9 @@ from services.learner.algorithms.registry import ALGORITHMS, make_learner, resto
 
 __all__ = [
     "ALGORITHMS",
-    "DEFAULT_BOUNDS",
     "Archer",
     "ArcherPrior",
     "BallisticModel",
-    "Bounds",
     "CmaEs",
     "HillClimber",
     "ImpactModel",

@@ -9,10 +9,9 @@ from typing import Any
 import numpy as np
 
 from protocol.text import shown
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
     MAX_STD,
-    Bounds,
     Learner,
     LearnerConfigError,
     RestoreError,
@@ -93,7 +92,7 @@ class Archer(Learner):
         theta0: np.ndarray,
         *,
         rng: np.random.Generator,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: ThetaBox = THETA_BOX,
         n_best: int = 3,
         n_explore: int = 3,
         explore_std: float | Sequence[float] = (0.005, 0.02, 0.02),

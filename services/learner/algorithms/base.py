@@ -1,23 +1,25 @@
-"""The ask/tell protocol every learner follows, its errors, θ bounds and plain-state helpers."""
+"""The ask/tell protocol every learner follows, its errors and plain-state helpers.
+
+A learner searches θ (m) in a `protocol.theta.ThetaBox`, by default `THETA_BOX` (the
+controller's posture box)."""
 
 from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
-from dataclasses import dataclass
 from typing import Any, ClassVar
 
+import msgspec
 import numpy as np
 
 from protocol.text import shown
+from protocol.theta import THETA_BOX, ThetaBox
 from protocol.vectors import finite_vector
 
 __all__ = [
-    "DEFAULT_BOUNDS",
     "MAX_STD",
     "STATE_VERSION",
-    "Bounds",
     "Learner",
     "LearnerConfigError",
     "LearnerError",
@@ -46,11 +48,12 @@ class LearnerError(ValueError):
 
 
 class LearnerConfigError(LearnerError):
-    """An invalid learner option, bound or algorithm name."""
+    """An invalid learner option, θ box, θ0 or algorithm name."""
 
 
 class ObservationError(LearnerError):
-    """A θ or reward vector given to `tell` with the wrong shape or a non-finite value."""
+    """A reward vector given to `tell` with the wrong shape or a non-finite value, or a θ that
+    is not numbers."""
 
 
 class RestoreError(LearnerError):
@@ -96,70 +99,6 @@ def _count_option(name: str, value: int, *, low: int) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
         raise LearnerConfigError(f"{name} must be an integer >= {low}, got {shown(value)}")
     return int(value)
-
-
-@dataclass(frozen=True)
-class Bounds:
-    """Box bounds on θ (m): what the robot's hands can reach, per component.
-
-    Attributes:
-        low: lowest value of each θ component (m).
-        high: highest value of each θ component (m).
-    """
-
-    low: tuple[float, ...]
-    high: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        low = np.asarray(self.low, dtype=float)
-        high = np.asarray(self.high, dtype=float)
-        if low.ndim != 1 or low.shape != high.shape or low.size == 0:
-            raise LearnerConfigError(
-                f"bounds low {self.low!r} and high {self.high!r} must be vectors of equal length"
-            )
-        if not (np.all(np.isfinite(low)) and np.all(np.isfinite(high)) and np.all(low < high)):
-            raise LearnerConfigError(
-                f"bounds must be finite with low < high per component, got low={self.low!r}, "
-                f"high={self.high!r}"
-            )
-        object.__setattr__(self, "low", tuple(float(x) for x in low))
-        object.__setattr__(self, "high", tuple(float(x) for x in high))
-
-    @property
-    def dim(self) -> int:
-        """Number of θ components."""
-        return len(self.low)
-
-    def clip(self, theta: np.ndarray) -> np.ndarray:
-        """θ (m) clipped into the box."""
-        result: np.ndarray = np.clip(theta, self.low, self.high)
-        return result
-
-    def contains(self, theta: np.ndarray) -> bool:
-        """True if θ (m) lies inside the box (bounds included)."""
-        theta = np.asarray(theta, dtype=float)
-        return bool(np.all(theta >= self.low) and np.all(theta <= self.high))
-
-    def to_dict(self) -> dict[str, list[float]]:
-        """Plain-dict form for a saved state."""
-        return {"low": list(self.low), "high": list(self.high)}
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> Bounds:
-        """Inverse of `to_dict`."""
-        try:
-            return cls(low=tuple(data["low"]), high=tuple(data["high"]))
-        except (KeyError, TypeError) as exc:
-            raise RestoreError(
-                f"bounds must be {{'low': [...], 'high': [...]}}, got {data!r}"
-            ) from exc
-
-
-#: The search box of learners built without a controller: the analytic world of `archery
-#: experiment` (a point bow, no arms: wider than the iCub's reach) and tests. A session on the
-#: robot searches the controller's θ box instead (`protocol.verbs.controller.THETA_MIN/MAX`,
-#: its one definition), read from the controller's `status`.
-DEFAULT_BOUNDS = Bounds(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))
 
 
 def _plain(value: Any) -> Any:
@@ -327,21 +266,18 @@ class Learner(ABC):
         cls.transferable = callable(getattr(cls, "_seed_from", None))
 
     def __init__(
-        self, theta0: np.ndarray, *, rng: np.random.Generator, bounds: Bounds = DEFAULT_BOUNDS
+        self, theta0: np.ndarray, *, rng: np.random.Generator, bounds: ThetaBox = THETA_BOX
     ) -> None:
         if not isinstance(rng, np.random.Generator):
             raise LearnerConfigError(
                 f"rng must be a numpy.random.Generator (e.g. numpy.random.default_rng(seed)), "
                 f"got {type(rng).__name__}"
             )
-        if not isinstance(bounds, Bounds):
-            raise LearnerConfigError(f"bounds must be a Bounds, got {type(bounds).__name__}")
-        theta0 = finite_vector("theta0", theta0, LearnerConfigError, size=bounds.dim)
+        if not isinstance(bounds, ThetaBox):
+            raise LearnerConfigError(f"bounds must be a ThetaBox, got {type(bounds).__name__}")
+        theta0 = finite_vector("theta0", theta0, LearnerConfigError)
         if not bounds.contains(theta0):
-            raise LearnerConfigError(
-                f"theta0 {theta0.tolist()} m lies outside the θ bounds low={list(bounds.low)}, "
-                f"high={list(bounds.high)}"
-            )
+            raise LearnerConfigError(bounds.outside("theta0", theta0))
         self.theta0 = theta0.copy()
         self.bounds = bounds
         self.rng = rng
@@ -374,19 +310,21 @@ class Learner(ABC):
     def tell(self, theta: np.ndarray, r: np.ndarray) -> float:
         """Record that θ (m) gave the reward vector r (m); returns R = exp(−‖r‖) (Eq. 1).
 
-        θ is the parameter actually used (it may differ from the last `ask()`).
+        θ is the parameter actually used (it may differ from the last `ask()`): one `ask`
+        proposed, one a journal or a world's checked action holds (3 finite numbers, not
+        checked again here). r is measured, and checked here.
 
         Raises:
-            ObservationError: θ or r has the wrong shape or a non-finite value.
+            ObservationError: θ or r is not numbers; r has the wrong shape or a non-finite value.
         """
         try:
-            theta = np.asarray(theta, dtype=float)
+            theta = np.array(theta, dtype=float)
             r = np.asarray(r, dtype=float)
         except (TypeError, ValueError) as exc:
             raise ObservationError(
                 f"θ and r must be numeric vectors (m), got {theta!r}, {r!r}"
             ) from exc
-        theta = finite_vector("θ", theta, ObservationError, size=self.theta0.size)
+        theta.setflags(write=False)
         r = finite_vector(
             "r", r, ObservationError, size=2, unit="m, arrow − centre on the target plane"
         )
@@ -462,7 +400,7 @@ class Learner(ABC):
             "algorithm": self.algorithm,
             "options": self.options(),
             "theta0": self.theta0.tolist(),
-            "bounds": self.bounds.to_dict(),
+            "bounds": msgspec.to_builtins(self.bounds),
             "rng": rng_state(self.rng),
             "pending": None if self._pending is None else self._pending.tolist(),
             "extra": self._extra_state(),
@@ -504,12 +442,8 @@ class Learner(ABC):
             raise RestoreError(f"learner state history must pair {d}-vectors θ with 2-vectors r")
         if not all(in_range(v, -math.inf, math.inf) for v in (*thetas, *rewards)):
             raise RestoreError("learner state history holds a number that is not finite")
-        low, high = np.asarray(self.bounds.low), np.asarray(self.bounds.high)
-        if pending is not None and not in_range(pending, low, high):
-            raise RestoreError(
-                f"learner state's pending θ {shown(state['pending'])} m is outside the θ box "
-                f"low={list(self.bounds.low)}, high={list(self.bounds.high)}"
-            )
+        if pending is not None and not self.bounds.contains(pending):
+            raise RestoreError(f"learner state's {self.bounds.outside('pending θ', pending)}")
         self.rng = rng_from_state(state["rng"])
         self._thetas = thetas
         self._rewards = rewards

@@ -9,10 +9,9 @@ from typing import Any
 import numpy as np
 
 from protocol.text import shown
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
     MAX_STD,
-    Bounds,
     Learner,
     RestoreError,
     _count_option,
@@ -54,7 +53,7 @@ class CmaEs(Learner):
         theta0: np.ndarray,
         *,
         rng: np.random.Generator,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: ThetaBox = THETA_BOX,
         sigma0: float = 0.01,
         popsize: int | None = None,
     ) -> None:
@@ -170,7 +169,7 @@ class HillClimber(Learner):
         theta0: np.ndarray,
         *,
         rng: np.random.Generator,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: ThetaBox = THETA_BOX,
         explore_std: float | Sequence[float] = 0.0075,
         decay: float = 1.0,
     ) -> None:

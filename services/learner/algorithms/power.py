@@ -8,10 +8,9 @@ from typing import Any
 import numpy as np
 
 from protocol.text import shown
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
     MAX_STD,
-    Bounds,
     Learner,
     RestoreError,
     _count_option,
@@ -67,7 +66,7 @@ class Power(Learner):
         theta0: np.ndarray,
         *,
         rng: np.random.Generator,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: ThetaBox = THETA_BOX,
         n_best: int = 3,
         explore_std: float | Sequence[float] = 0.01,
         decay: float = 0.965,
@@ -122,8 +121,8 @@ class Power(Learner):
             raise RestoreError(f"PoWER state needs 'mean' and 'variance' vectors: {exc}") from exc
         if mean.shape != self.theta0.shape or variance.shape != self.theta0.shape:
             raise RestoreError(f"PoWER state vectors must have {self.theta0.size} components")
-        if not in_range(mean, np.asarray(self.bounds.low), np.asarray(self.bounds.high)):
-            raise RestoreError(f"PoWER mean {shown(extra['mean'])} m is outside the θ box")
+        if not self.bounds.contains(mean):
+            raise RestoreError(f"PoWER {self.bounds.outside('mean', mean)}")
         if not in_range(variance, 0.0, MAX_STD**2):
             raise RestoreError(
                 f"PoWER variance {shown(extra['variance'])} m² is outside [0, {MAX_STD**2}]"

@@ -8,10 +8,9 @@ from typing import Any
 import numpy as np
 
 from protocol.text import shown
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
     MAX_STD,
-    Bounds,
     Learner,
     LearnerConfigError,
     RestoreError,
@@ -113,7 +112,7 @@ class ArcherPrior(Learner):
         *,
         rng: np.random.Generator,
         model: ImpactModel,
-        bounds: Bounds = DEFAULT_BOUNDS,
+        bounds: ThetaBox = THETA_BOX,
         prior_offset_std: float = 0.5,
         prior_gain_std: float = 3.0,
         noise_std: float = 0.005,

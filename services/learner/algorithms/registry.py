@@ -7,13 +7,13 @@ from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any
 
+import msgspec
 import numpy as np
 
 from protocol.text import cut, shown
+from protocol.theta import THETA_BOX, ThetaBox
 from services.learner.algorithms.archer import Archer
 from services.learner.algorithms.base import (
-    DEFAULT_BOUNDS,
-    Bounds,
     Learner,
     LearnerConfigError,
     RestoreError,
@@ -138,7 +138,7 @@ def _build(
     cls: type[Learner],
     theta0: np.ndarray,
     rng: np.random.Generator,
-    bounds: Bounds,
+    bounds: ThetaBox,
     options: Mapping[str, Any],
     model: ImpactModel | None,
     *,
@@ -180,7 +180,7 @@ def make_learner(
     theta0: np.ndarray,
     *,
     rng: np.random.Generator,
-    bounds: Bounds = DEFAULT_BOUNDS,
+    bounds: ThetaBox = THETA_BOX,
     model: ImpactModel | None = None,
     **options: Any,
 ) -> Learner:
@@ -253,12 +253,12 @@ def restore_learner(state: Mapping[str, Any], *, model: ImpactModel | None = Non
             LEARNER_CLASSES[algorithm],
             np.asarray(state["theta0"], dtype=float),
             np.random.default_rng(0),  # replaced by the saved generator below
-            Bounds.from_dict(state["bounds"]),
+            msgspec.convert(state["bounds"], ThetaBox),
             dict(state["options"]),
             model,
             saved=True,
         )
-    except (KeyError, TypeError, LearnerConfigError) as exc:
+    except (KeyError, TypeError, msgspec.ValidationError, LearnerConfigError) as exc:
         raise RestoreError(f"learner state cannot rebuild a {algorithm!r} learner: {exc}") from exc
     learner.load_state_dict(dict(state))
     return learner
