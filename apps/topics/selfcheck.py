@@ -65,6 +65,13 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
             targets[names.index(name)] = value
         return rv.TargetsReply(names=names, position=list(targets))
 
+    def follow(a: rv.PartTrajectoryArgs) -> rv.TrajectoryReply:
+        """The last waypoint becomes the targets at once (the sample torso has no time)."""
+        move(rv.PositionMoveArgs(position=a.positions[-1], names=a.names))
+        return rv.TrajectoryReply(
+            parts=["torso"], started=0.0, ended=0.0, path_error=0.0, goal_error=0.0, actions={}
+        )
+
     def no_leases(_: object) -> rv.LeaseReply:
         raise ArcheryError(
             "the sample torso keeps no leases: it takes commands from anyone", code="unknown_verb"
@@ -96,6 +103,7 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
             "setRefSpeeds": set_speeds,
             "getRefSpeeds": lambda _: rv.RefSpeedsReply(names=names, speeds=list(speeds)),
             "positionMove": move,
+            "followTrajectory": follow,
             "counters": counters,
             "status": lambda _: rv.PartStatusReply(
                 part="torso",
