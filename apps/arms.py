@@ -64,7 +64,7 @@ class ArmDriver:
         """
         node = self._node
         status = node.call_typed(node.keys.archery_rpc(), rv.ARCHERY_STATUS)
-        scene = SceneConfig(**status.scene)
+        scene = SceneConfig.of(status.scene)
         if scene.shot != "whole":
             raise ConfigError(
                 f"the robot's shot is {scene.shot!r}; start it with `archery robot --shot whole`"

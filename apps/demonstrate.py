@@ -239,7 +239,7 @@ def _record(args: argparse.Namespace) -> int:
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
         status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
-        recorder = Recorder(node, str(status.scene.get("shot", "posture")), args.made)
+        recorder = Recorder(node, status.scene.shot, args.made)
         try:
             if not recorder.wait_started(args.wait):
                 print(f"archery {PROG}: no joint state within {args.wait:g} s", file=sys.stderr)

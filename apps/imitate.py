@@ -64,7 +64,7 @@ def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> in
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
         keys = node.keys
         status = node.call_typed(keys.archery_rpc(), rv.ARCHERY_STATUS, timeout=args.wait)
-        shot = status.scene.get("shot", "posture")
+        shot = status.scene.shot
         if shot != "whole":
             raise ArcheryError(
                 f"the robot runs the {shot!r} shot; start it with `archery robot --shot whole`",

@@ -11,9 +11,12 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
+import msgspec
+
 from protocol.errors import ConfigError
 from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
 from protocol.vectors import finite_vector
+from protocol.verbs.robot import Scene
 from sim.bow import Bow
 from sim.geometry import TARGET_DISTANCE
 
@@ -146,3 +149,16 @@ class SceneConfig:
     def to_dict(self) -> dict[str, object]:
         """JSON-friendly copy of the parameters (for the camera to rebuild the same scene)."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def to_status(self) -> Scene:
+        """The parameters as the robot's status carries them (typed)."""
+        return msgspec.convert(self.to_dict(), Scene)
+
+    @classmethod
+    def of(cls, scene: Scene) -> SceneConfig:
+        """The scene a robot's status tells (`Scene`), validated again here.
+
+        Raises:
+            ConfigError: a parameter out of its range.
+        """
+        return cls(**{f.name: getattr(scene, f.name) for f in fields(cls)})

@@ -14,6 +14,7 @@ from protocol.messages import JointCommand, JointState
 from protocol.parts import PARTS
 from protocol.verbs import ServedVerbs
 from protocol.verbs import robot as rv
+from sim.scene_config import SceneConfig
 from tests.rpc import some_verbs
 
 
@@ -50,7 +51,7 @@ def archery_verbs() -> ServedVerbs:
         limit_tolerance=0.01,
         timestep=0.002,
         counters={},
-        scene={"shot": "posture"},
+        scene=SceneConfig(meshes=False).to_status(),
         world={},
     )
     return some_verbs(rv.ARCHERY_VERBS, {"status": lambda a: status})

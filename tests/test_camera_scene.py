@@ -9,6 +9,7 @@ from collections.abc import Callable
 from types import SimpleNamespace
 from typing import Any
 
+import msgspec
 import numpy as np
 import pytest
 
@@ -147,7 +148,9 @@ def test_a_camera_that_does_not_render_refuses_the_view() -> None:
 
 def test_a_view_that_cannot_be_built_says_why(qpos: np.ndarray) -> None:
     capture = _fake_capture(SimpleNamespace(latest=lambda: _state(qpos, 0.5)))
-    capture.scene = {"no_such_parameter": 1}
+    capture.scene = msgspec.structs.replace(
+        SceneConfig(meshes=False).to_status(), target_distance=-1.0
+    )
     views = SceneViews(capture, period=0.1)
     try:
 
@@ -155,7 +158,7 @@ def test_a_view_that_cannot_be_built_says_why(qpos: np.ndarray) -> None:
             try:
                 views.reply()
             except BadRequest as exc:
-                assert "cannot be rendered" in str(exc) and "no_such_parameter" in str(exc)
+                assert "cannot be rendered" in str(exc) and "target_distance" in str(exc)
                 return True
             return False
 

@@ -211,7 +211,7 @@ def test_a_client_sees_every_channel_and_decodes_a_message_on_each(mesh: Mesh) -
     stamp = transforms.transforms[0].timestamp
     world = worlds[stamp.seconds * 10**9 + stamp.nanos]
     status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), ARCHERY_STATUS)
-    model = build_scene(SceneConfig(**status.scene))
+    model = build_scene(SceneConfig.of(status.scene))
     sim = mujoco.MjData(model)
     sim.qpos[:] = world.qpos.to_numpy()
     mujoco.mj_kinematics(model, sim)

@@ -119,7 +119,7 @@ def _no_clone(monkeypatch: pytest.MonkeyPatch) -> None:
 def operator(mesh: Mesh) -> Iterator[Ros2Node]:
     """A node with the operator's services, on domain 1 (the `up` child's is on domain 0)."""
     status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
-    scene = SceneConfig(**status.scene)
+    scene = SceneConfig.of(status.scene)
     node = Ros2Node(
         mesh.node, RobotFrames(ROBOT, scene), urdf_text(), scene.camera_fovy, domain=1,
         namespace=NS, operator=True,
@@ -371,7 +371,7 @@ def test_bad_input_is_dropped_or_refused_and_nothing_moves(mesh: Mesh, operator:
 
 def test_nothing_of_the_mesh_stays_when_the_node_stops(mesh: Mesh) -> None:
     status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
-    scene = SceneConfig(**status.scene)
+    scene = SceneConfig.of(status.scene)
     node = Ros2Node(
         mesh.node, RobotFrames(ROBOT, scene), "", scene.camera_fovy, domain=2, namespace=NS
     )

@@ -74,7 +74,7 @@ def rig(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
     try:
         node.wait_alive([ROBOT_SERVICE], timeout=120)
         status = node.call_typed(node.keys.archery_rpc(), rv.ARCHERY_STATUS)
-        scene = SceneConfig(**status.scene)
+        scene = SceneConfig.of(status.scene)
         operator = Ros2Node(
             node, RobotFrames(ROBOT, scene), urdf_text(), scene.camera_fovy, domain=DOMAIN,
             namespace=NS, operator=True, rtf=status.rtf,

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import icub_models
+import msgspec
 import mujoco
 import numpy as np
 import pinocchio as pin
@@ -13,6 +15,7 @@ import pytest
 from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import MODEL_NAME, home_of
+from protocol.verbs.robot import Scene
 from sim.errors import CommandError, SceneError
 from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
 from sim.model_build import build_scene
@@ -250,3 +253,12 @@ def test_physics_queries_reject_unknown_names(cheap_model: mujoco.MjModel) -> No
 def test_scene_config_rejects_bad_values(field: str, value: object) -> None:
     with pytest.raises(ConfigError, match=field):
         SceneConfig(**{field: value})
+
+
+def test_the_status_scene_is_the_scene_config_typed() -> None:
+    """The robot's status carries the scene as `protocol.verbs.robot.Scene`: the same
+    parameters as `SceneConfig`, and back to an equal config."""
+    assert Scene.__struct_fields__ == tuple(f.name for f in dataclasses.fields(SceneConfig))
+    config = SceneConfig(meshes=False, shot="whole", target_distance=7.5)
+    wire = msgspec.msgpack.decode(msgspec.msgpack.encode(config.to_status()), type=Scene)
+    assert wire.shot == "whole" and SceneConfig.of(wire) == config

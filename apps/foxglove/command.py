@@ -163,7 +163,7 @@ def _serve(args: argparse.Namespace, net: NetConfig) -> int:
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
         status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
-        frames = RobotFrames(node.keys.robot, SceneConfig(**status.scene))
+        frames = RobotFrames(node.keys.robot, SceneConfig.of(status.scene))
         bridge = Bridge(
             node,
             frames,

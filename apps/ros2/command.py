@@ -97,7 +97,7 @@ def _serve(args: argparse.Namespace, net: NetConfig, namespace: str) -> int:
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
         status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
-        scene = SceneConfig(**status.scene)
+        scene = SceneConfig.of(status.scene)
         frames = RobotFrames(node.keys.robot, scene)
         ros = Ros2Node(
             node,

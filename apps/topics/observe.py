@@ -119,7 +119,7 @@ def _robot_frames(node: Node, exprs: list[zenoh.KeyExpr]) -> FrameSource | None:
     scene = None
     try:
         status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS, timeout=3)
-        scene = SceneConfig(**status.scene)
+        scene = SceneConfig.of(status.scene)
     except ArcheryError as exc:
         print(f"archery record: transforms for the default scene: {exc}", file=sys.stderr)
     except (SimError, TypeError) as exc:

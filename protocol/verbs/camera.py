@@ -3,12 +3,13 @@ view (the whole robot from the side camera), status."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any, Literal
+from typing import Annotated, Literal
 
 from msgspec import Meta
 
 from protocol.messages import Image
 from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from protocol.verbs.robot import Scene
 
 __all__ = ["CAMERA_VERBS", "GRAB_BURST", "GRAB_RATE", "MAX_GRAB_TIMEOUT", "SceneReply"]
 
@@ -59,7 +60,7 @@ class CameraStatusReply(Reply, frozen=True):
     render_ms: float | None
     errors: int
     latest_sim_time: float | None
-    scene: dict[str, Any] | None
+    scene: Scene | None
     scene_from: str
     waiting: Annotated[int, Meta(description="grabs waiting for their frame now")] = 0
 

@@ -453,6 +453,29 @@ class WindReply(Reply, frozen=True):
     wind: Annotated[list[float], Meta(description="m/s, root frame")]
 
 
+class Scene(Reply, frozen=True):
+    """The robot's scene as its `status` tells it: the parameters of `sim.scene_config.
+    SceneConfig` (a test keeps the two the same), typed, for a camera, a controller or a
+    bridge to rebuild the same scene (`SceneConfig.of`). Units: m, kg, s, rad/s, kg·m², rad,
+    degrees (`camera_fovy`)."""
+
+    root_height: Annotated[float, Meta(description="m")]
+    target_distance: Annotated[float, Meta(description="m")]
+    arrow_length: Annotated[float, Meta(description="m")]
+    arrow_mass: Annotated[float, Meta(description="kg")]
+    timestep: Annotated[float, Meta(description="s")]
+    servo_bandwidth: Annotated[float, Meta(description="rad/s")]
+    servo_damping_ratio: float
+    armature: Annotated[float, Meta(description="kg·m²")]
+    limit_margin: Annotated[float, Meta(description="rad")]
+    meshes: bool
+    camera_pos: Annotated[
+        list[float], Meta(min_length=3, max_length=3, description="m, root frame")
+    ]
+    camera_fovy: Annotated[float, Meta(description="degrees")]
+    shot: Literal["posture", "whole"]
+
+
 class ArcheryStatusReply(Reply, frozen=True):
     sim_time: Annotated[float, Meta(description="s")]
     arrow: str
@@ -467,7 +490,7 @@ class ArcheryStatusReply(Reply, frozen=True):
     limit_tolerance: float
     timestep: float
     counters: dict[str, dict[str, Any]]
-    scene: dict[str, Any]
+    scene: Scene
     world: dict[str, Any]
 
 

@@ -25,6 +25,7 @@ from mesh.publisher import Publisher
 from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from protocol.messages import Image, WorldState
 from protocol.verbs import robot as robot_verbs
+from protocol.verbs.robot import Scene
 from services.camera.config import CameraConfig
 from services.camera.frames import FrameStore, Freshness
 from services.camera.sources import DeviceSource, FolderSource
@@ -57,7 +58,7 @@ class Capture:
         self.jobs = JobQueue(RpcTimeout, "the capture thread")
         self.renderer: Any = None
         self.reader: DeviceSource | FolderSource | None = None
-        self.scene: dict[str, Any] | None = None
+        self.scene: Scene | None = None
         self.scene_from = ""
         self.scene_error = ""
         self.scene_checked = 0.0
@@ -96,7 +97,7 @@ class Capture:
             status = self.node.call_typed(
                 self.node.keys.archery_rpc(), robot_verbs.ARCHERY_STATUS, timeout=timeout
             )
-            return SceneConfig(**status.scene)
+            return SceneConfig.of(status.scene)
         except (RpcError, KeyError, TypeError, ValueError) as exc:
             self.scene_error = str(exc)
             return None
@@ -115,7 +116,7 @@ class Capture:
             self.scene_from = "default"
         else:
             self.scene_from = "robot"
-        self.scene = scene.to_dict()
+        self.scene = scene.to_status()
         self.scene_checked = time.monotonic()
         return scene
 

@@ -192,7 +192,7 @@ class SceneViews:
         from sim.scene_view import SceneView
 
         scene = self._capture.scene
-        config = SceneConfig(**scene) if scene else SceneConfig()
+        config = SceneConfig.of(scene) if scene else SceneConfig()
         return SceneView(config, width=self.size[0], height=self.size[1])
 
     def _render(self, view: Any, shown: bytes | None) -> bytes | None:

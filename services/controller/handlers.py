@@ -245,7 +245,7 @@ class ArcheryController:
         theta = self._posture.check_theta(args.theta)
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
         robot = self._link.robot_status()
-        shot = robot.scene.get("shot", "posture")
+        shot = robot.scene.shot
         if args.shot != shot:
             raise ArcheryError(
                 code="bad_state",

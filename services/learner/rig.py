@@ -203,10 +203,9 @@ class MeshRig:
             ServiceLost, RigError: the robot does not answer.
         """
         status, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
-        shot = str(status.scene.get("shot", "posture"))
-        if shot == "whole" and self.shot != "whole":
+        if status.scene.shot == "whole" and self.shot != "whole":
             log.info("the robot runs the whole shot: the controller plays it in every rollout")
-        self.shot = "whole" if shot == "whole" else "posture"
+        self.shot = status.scene.shot
         self._rtf = status.rtf
         return self.shot
 

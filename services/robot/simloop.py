@@ -342,6 +342,6 @@ class SimLoop:
                 | {"streaming": self._streams.streaming(p), "owner": self.leases.owner(p)}
                 for p in world.parts
             },
-            scene=world.config.scene.to_dict(),
+            scene=world.config.scene.to_status(),
             world=world.config.to_dict(),
         )
