@@ -3,6 +3,7 @@ watchdog, flight and streams against a recording sink."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Iterator
@@ -147,6 +148,14 @@ def aim_joints(model: mujoco.MjModel) -> dict[str, np.ndarray]:
 @pytest.fixture
 def start(model: mujoco.MjModel) -> Iterator[Any]:
     """Starts a loop on its own thread: start(**config) -> (loop, recorder)."""
+    with running_loops(model) as starter:
+        yield starter
+
+
+@contextlib.contextmanager
+def running_loops(model: mujoco.MjModel) -> Iterator[Any]:
+    """A starter of simulation loops on threads of their own, `WORLD` on `model`:
+    start(**config) -> (loop, recorder); every loop is stopped and joined at the end."""
     running: list[tuple[threading.Event, threading.Thread]] = []
 
     def _start(**overrides: Any) -> tuple[SimLoop, Recorder]:

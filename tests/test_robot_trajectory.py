@@ -4,7 +4,6 @@ plays, and the aborts (path tolerance, a lease taken over) holding the part wher
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -16,14 +15,12 @@ from protocol.errors import ArcheryError, Busy
 from protocol.parts import PARTS
 from protocol.robotspec import home_of
 from protocol.verbs import robot as rv
-from services.robot.config import RobotConfig
 from services.robot.follow import PATH_TOLERANCE, PartSpec
 from services.robot.simloop import SimLoop
 from services.robot.trajectory import BadTrajectory, plan_path
 from sim.errors import StateError
 from sim.model_build import build_scene
-from sim.world import ArcheryWorld
-from tests.test_robot_service_core import WORLD, Recorder
+from tests.test_robot_service_core import WORLD, Recorder, running_loops
 
 ARM = "right_arm"
 HOME = np.array(home_of(ARM))
@@ -38,24 +35,8 @@ def model() -> mujoco.MjModel:
 @pytest.fixture
 def start(model: mujoco.MjModel) -> Iterator[Any]:
     """Starts a loop on its own thread: start(**config) -> (loop, recorder)."""
-    running: list[tuple[threading.Event, threading.Thread]] = []
-
-    def _start(**overrides: Any) -> tuple[SimLoop, Recorder]:
-        world = ArcheryWorld(WORLD, model=model)
-        world.reset(0)
-        recorder = Recorder()
-        loop = SimLoop(world, RobotConfig(world=WORLD, **overrides), recorder, seed=0)
-        stop = threading.Event()
-        thread = threading.Thread(target=loop.run, args=(stop,), daemon=True)
-        thread.start()
-        running.append((stop, thread))
-        return loop, recorder
-
-    yield _start
-    for stop, thread in running:
-        stop.set()
-        thread.join(5)
-        assert not thread.is_alive()
+    with running_loops(model) as starter:
+        yield starter
 
 
 def _elbow_path(*angles: float, step: float = 0.5) -> rv.PartTrajectoryArgs:

@@ -8,6 +8,7 @@ one lock: one motion at a time.
 
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -25,7 +26,7 @@ from services.controller.cartesian import axis_angle, ik_reply, rotation_vector
 from services.controller.config import ControllerConfig
 from services.controller.ik import IkSolver
 from services.controller.model import ArmsModel
-from services.controller.posture import ArcheryPosture
+from services.controller.posture import ArcheryPosture, PostureResult
 from services.controller.robotlink import MoveResult, RobotLink
 from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
 
@@ -59,6 +60,27 @@ class MotionLock:
             yield
         finally:
             self._lock.release()
+
+
+def _posture_reply(
+    theta: np.ndarray,
+    result: PostureResult,
+    theta_measured: np.ndarray,
+    targets: dict[str, float],
+) -> Callable[..., cv.PostureReply]:
+    """The posture reply of θ (m) solved as `result` and measured as `theta_measured` (m), the
+    joint `targets` (rad) sent; the move's fields are the caller's to add."""
+    return functools.partial(
+        cv.PostureReply,
+        q=targets,
+        theta=theta.tolist(),
+        theta_achieved=result.theta_achieved.tolist(),
+        theta_measured=theta_measured.tolist(),
+        relative_error_m=result.relative_error_m,
+        measured_error_m=float(np.linalg.norm(theta - theta_measured)),
+        reachable=result.reachable,
+        bow_hand=result.bow_hand.tolist(),
+    )
 
 
 def _move_reply(move: MoveResult) -> dict[str, Any]:
@@ -260,18 +282,9 @@ class ArcheryController:
         targets = {j: float(result.q[j]) for j in self._posture.joints}
         with self._motion.hold(timeout):
             move = self._link.move(targets, self.traj_time, timeout)
-        measured = self._posture.theta_at(move.measured)
-        return cv.PostureReply(
-            q=dict(move.targets),
-            theta=theta.tolist(),
-            theta_achieved=result.theta_achieved.tolist(),
-            theta_measured=measured.tolist(),
-            relative_error_m=result.relative_error_m,
-            measured_error_m=float(np.linalg.norm(theta - measured)),
-            reachable=result.reachable,
-            bow_hand=result.bow_hand.tolist(),
-            **_move_reply(move),
-        )
+        return _posture_reply(
+            theta, result, self._posture.theta_at(move.measured), dict(move.targets)
+        )(**_move_reply(move))
 
     def _movement(self) -> Movement:
         """The demonstration's DMPs (built on the first whole shot).
@@ -298,23 +311,15 @@ class ArcheryController:
         with self._motion.hold(timeout):
             reply = self._link.follow(PARTS_MOVED, plan.times, plan.rows, actions, rtf)
         wall = time.monotonic() - started
-        measured = self._link.joint_angles()
-        theta_measured = self._posture.theta_at(measured)
-        goal = {
-            j: float(v)
-            for j, v in zip(
-                (j for part in PARTS_MOVED for j in PARTS[part]), plan.rows[-1], strict=True
+        goal = dict(
+            zip(
+                (j for part in PARTS_MOVED for j in PARTS[part]),
+                plan.rows[-1].tolist(),
+                strict=True,
             )
-        }
-        return cv.PostureReply(
-            q=goal,
-            theta=theta.tolist(),
-            theta_achieved=result.theta_achieved.tolist(),
-            theta_measured=theta_measured.tolist(),
-            relative_error_m=result.relative_error_m,
-            measured_error_m=float(np.linalg.norm(theta - theta_measured)),
-            reachable=result.reachable,
-            bow_hand=result.bow_hand.tolist(),
+        )
+        theta_measured = self._posture.theta_at(self._link.joint_angles())
+        return _posture_reply(theta, result, theta_measured, goal)(
             reached=True,
             reason="",
             wall_s=wall,

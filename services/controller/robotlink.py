@@ -259,44 +259,23 @@ class RobotLink:
         finally:
             self._drop(leases)
 
-    def _claim(self, part: str, ttl: float) -> str:
-        """Claim `part` for `ttl` wall s; its lease id.
-
-        Raises:
-            ArcheryError (code `not_owner`): another client holds it.
-        """
-        try:
-            reply = self._node.call_typed(
-                self._keys.part_rpc(part),
-                CLAIM,
-                ClaimArgs(owner=self.owner, ttl=ttl),
-                timeout=self.robot_timeout,
-            )
-        except RpcError as exc:
-            if exc.code == "not_owner":
-                raise ArcheryError(f"cannot move {part}: {exc.message}", code="not_owner") from None
-            raise
-        return reply.lease
-
     # -- leases -------------------------------------------------------------------------------
-    def _claim_with_speeds(self, part: str, speeds: np.ndarray) -> str:
-        """Claim `part` for this controller and set its reference speeds (rad/s) in one round
-        trip; the lease id ("" from a robot that keeps no leases: it takes anyone's commands).
+    def _claim(self, part: str, ttl: float, speeds: np.ndarray | None = None) -> str:
+        """Claim `part` for this controller for `ttl` wall s, setting its reference speeds
+        (rad/s) in the same round trip when given (`setRefSpeeds` with a claim, else `claim`);
+        the lease id ("" from a robot that keeps no leases: it takes anyone's commands).
 
         Raises:
-            ArcheryError (code `not_owner`): another client holds the part (the move drops the
+            ArcheryError (code `not_owner`): another client holds the part (a move drops the
                 leases it took so far).
         """
+        claim = ClaimArgs(owner=self.owner, ttl=ttl)
+        key = self._keys.part_rpc(part)
         try:
-            reply = self._node.call_typed(
-                self._keys.part_rpc(part),
-                SET_REF_SPEEDS,
-                SetRefSpeedsArgs(
-                    speeds=speeds.tolist(),
-                    claim=ClaimArgs(owner=self.owner, ttl=self.lease_ttl),
-                ),
-                timeout=self.robot_timeout,
-            )
+            if speeds is None:
+                return self._node.call_typed(key, CLAIM, claim, timeout=self.robot_timeout).lease
+            args = SetRefSpeedsArgs(speeds=speeds.tolist(), claim=claim)
+            reply = self._node.call_typed(key, SET_REF_SPEEDS, args, timeout=self.robot_timeout)
         except RpcError as exc:
             if exc.code == "not_owner":
                 raise ArcheryError(f"cannot move {part}: {exc.message}", code="not_owner") from None
@@ -415,7 +394,7 @@ class RobotLink:
             wanted = np.array([targets.get(j, current[j]) for j in PARTS[part]])
             sent[part] = np.clip(wanted, lower, upper)
             delta = sent[part] - np.array([current[j] for j in PARTS[part]])
-            leases[part] = self._claim_with_speeds(part, reference_speeds(delta, traj_time))
+            leases[part] = self._claim(part, self.lease_ttl, reference_speeds(delta, traj_time))
         marks = {p: (s.seq if (s := self.states[p].latest()) else 0) for p in PARTS}
         # a simulated robot's states from before it took the commands show its old rest, which
         # may lie within the tolerance of targets a small step away: only states of a later
