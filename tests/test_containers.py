@@ -294,6 +294,26 @@ def test_compose_up_runs_the_demo_to_a_hit_and_survives_faults(plain: Compose) -
     assert int(plain.inspect("controller", "{{.RestartCount}}")) >= 1
 
 
+def test_the_whole_shot_runs_in_the_containers(images: dict[str, float], tmp_path: Path) -> None:
+    """ARCHERY_SHOT=whole: the robot runs `--shot whole` and every rollout of a session grasps,
+    nocks and draws its arrow, the controller's image playing the demonstration's movement and
+    the learner's only asking for postures."""
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    compose = Compose(f"archerytestwhole{os.getpid()}", runs, env={"ARCHERY_SHOT": "whole"})
+    services = ("router", "robot", "camera", "detector", "controller", "learner")
+    with compose.running():
+        up = compose("up", "-d", "--no-build", *services)
+        assert up.returncode == 0, up.stderr[-4000:] + compose.logs()
+        proc = _session(compose, "--rollouts", "3", "--no-until-hit", "--wait", "300")
+        result = _finished(proc, 3)
+        assert result["aborted"] == 0, result
+    assert compose.leftovers() == []
+    (journal,) = journals(runs)
+    done = [r for r in journal_records(journal) if r["record"] == "done"]
+    assert len(done) == 3 and all(r["timing"]["movement_sim_s"] > 12.0 for r in done), done
+
+
 def test_the_secure_profile_runs_the_demo_to_a_hit(
     images: dict[str, float], tmp_path: Path
 ) -> None:

@@ -13,15 +13,20 @@ from apps.experiment.config import ExperimentConfig
 from apps.experiment.experiment import run_algorithm
 from apps.experiment.plots import convergence_figure, split_baselines, trajectories_figure
 from apps.experiment.plots_mesh import impacts_figure
+from protocol.theta import ThetaBox
 from services.learner.algorithms.registry import ALGORITHMS
 from sim.ballistic import BallisticWorld, Scenario
 
 NAMES = ("archer", "power", "cma", "hill", "random")
 
 
+#: θ box (m) wide enough that random search's arrows scatter far from the paper's learners'
+WIDE = ThetaBox(low=(0.10, -0.12, -0.12), high=(0.30, 0.12, 0.12))
+
+
 @pytest.fixture(scope="module")
 def runs() -> dict[str, Any]:
-    config = ExperimentConfig(sessions=8, rollouts=30, seed=1, algorithms=NAMES)
+    config = ExperimentConfig(sessions=8, rollouts=30, seed=1, algorithms=NAMES, bounds=WIDE)
     return {name: run_algorithm(config, name) for name in NAMES}
 
 
