@@ -11,6 +11,17 @@ if [ -f /run/secrets/pip-ca ]; then
 fi
 python3 /build/requirements.py /build/pyproject.toml "$@" > /tmp/requirements.txt
 touch /tmp/before-install
+# A requirement published as source only (movement-primitives, whose setup builds a C extension)
+# needs a compiler and Python's headers: installed for this step and removed in it, with binutils
+# below, so no layer keeps them.
+tools=""
+if grep -qi '^movement-primitives' /tmp/requirements.txt; then
+    tools="gcc libc6-dev"
+    python3 -c 'import os, sysconfig; os.stat(os.path.join(sysconfig.get_paths()["include"], "Python.h"))' \
+        2> /dev/null || tools="$tools libpython3-dev"
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends $tools > /dev/null
+fi
 python3 -m pip install --no-cache-dir --no-compile -r /tmp/requirements.txt
 rm /tmp/requirements.txt
 site="$(python3 -c 'import numpy, pathlib; print(pathlib.Path(numpy.__file__).parents[1])')"
@@ -29,7 +40,7 @@ apt-get update -qq
 apt-get install -y -qq --no-install-recommends binutils > /dev/null
 find "$site" -name '*.so*' -not -path '*.libs/*' -type f -newer /tmp/before-install \
     -exec strip --strip-unneeded {} +
-apt-get purge -y -qq --auto-remove binutils > /dev/null
+apt-get purge -y -qq --auto-remove binutils $tools > /dev/null
 apt-get clean
 rm -rf /var/lib/apt/lists/* /tmp/before-install
 # Byte-compile once here: the containers run as a user who cannot write beside the sources.
