@@ -23,6 +23,7 @@ from mesh.netflags import NetConfig
 from mesh.node import Node
 from protocol.demonstration import MIN_SAMPLES, encode_demonstration
 from protocol.errors import ConfigError, RpcError
+from protocol.messages import Image
 from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
 from protocol.theta import THETA_BOX
 from services.camera.config import CameraConfig
@@ -289,6 +290,33 @@ def test_the_camera_and_so_the_dashboard_s_view_render_the_whole_shot_s_scene(
         status = rpc_call(node, node.keys.cam_rpc(), "status", timeout=10)
         assert status["scene_from"] == "robot" and status["scene"]["shot"] == "whole", status
         client.archery("status")  # the robot still answers beside the camera
+
+
+@pytest.mark.parametrize("shot", ["posture", "whole"])
+def test_a_camera_started_before_the_robot_renders_its_scene_once_it_answers(
+    robot: Callable[..., Client], net: NetConfig, shot: str
+) -> None:
+    """The camera renders the default scene until the robot answers, then rebuilds the robot's
+    for its frames and its scene view: a scene of the same joints (rebuilt on the robot's
+    answer) and the whole shot's (rebuilt on its world state's size)."""
+    posture = WorldConfig(scene=SceneConfig(meshes=False, target_distance=3.0))
+    with serving(camera, CameraConfig(net=net, robot_timeout=0.5)), Node(None, net) as node:
+        node.wait_alive(["camera"], timeout=30)
+        key = node.keys.cam_rpc()
+        assert rpc_call(node, key, "status", timeout=10)["scene_from"] == "default"
+        robot(posture if shot == "posture" else WHOLE)
+        # a watcher of the frames: the camera renders the robot's states, asking it again
+        node.subscribe(node.keys.cam_frames(), Image)
+
+        def rebuilt() -> bool:
+            status = rpc_call(node, key, "status", timeout=10)
+            return status["scene_from"] == "robot" and status["scene"]["shot"] == shot
+
+        until(rebuilt, f"the camera rebuilt the robot's {shot} scene")
+        until(
+            lambda: rpc_call(node, key, "scene", timeout=10)["status"] == "ok",
+            f"a scene view of the robot's {shot} scene",
+        )
 
 
 def test_the_learner_asks_the_controller_for_the_robot_s_shot(

@@ -130,7 +130,7 @@ class Capture:
         if scene is None:
             return
         self.scene_from = "robot"
-        if scene.to_dict() != self.scene:
+        if scene.to_status() != self.scene:
             log.info("the robot reports another scene than the default: rebuilding it")
             self.renderer.close()
             self.renderer = None
@@ -138,7 +138,7 @@ class Capture:
             from sim.render import SceneRenderer
 
             self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
-            self.scene = scene.to_dict()
+            self.scene = scene.to_status()
         else:
             log.info("the robot's scene is the default one")
 
