@@ -149,6 +149,16 @@ BAD_POSTURES = [
 ]
 
 
+def test_a_whole_shot_asked_of_a_posture_robot_is_refused_naming_its_shot(
+    services: Callable[..., Mesh],
+) -> None:
+    mesh = services()
+    with pytest.raises(RpcError, match="the robot runs the 'posture' shot") as info:
+        mesh.archery("posture", {"theta": [0.17, 0.03, -0.03], "shot": "whole"})
+    assert info.value.code == "bad_state"
+    assert mesh.robot("torso", "counters")["accepted"] == 0
+
+
 def test_bad_posture_requests_are_refused(services: Callable[..., Mesh]) -> None:
     mesh = services()
     for args, match in BAD_POSTURES:
