@@ -146,11 +146,20 @@ def test_a_camera_that_does_not_render_refuses_the_view() -> None:
         views.reply()
 
 
-def test_a_view_that_cannot_be_built_says_why(qpos: np.ndarray) -> None:
+@pytest.mark.parametrize(
+    ("scene", "says"),
+    [
+        (
+            msgspec.structs.replace(SceneConfig(meshes=False).to_status(), target_distance=-1.0),
+            "target_distance",
+        ),
+        ({"root_height": 0.62}, "root_height"),  # not a Scene: any error is told, none hangs
+    ],
+    ids=["out-of-range", "not-a-scene"],
+)
+def test_a_view_that_cannot_be_built_says_why(qpos: np.ndarray, scene: Any, says: str) -> None:
     capture = _fake_capture(SimpleNamespace(latest=lambda: _state(qpos, 0.5)))
-    capture.scene = msgspec.structs.replace(
-        SceneConfig(meshes=False).to_status(), target_distance=-1.0
-    )
+    capture.scene = scene
     views = SceneViews(capture, period=0.1)
     try:
 
@@ -158,7 +167,7 @@ def test_a_view_that_cannot_be_built_says_why(qpos: np.ndarray) -> None:
             try:
                 views.reply()
             except BadRequest as exc:
-                assert "cannot be rendered" in str(exc) and "target_distance" in str(exc)
+                assert "cannot be rendered" in str(exc) and says in str(exc)
                 return True
             return False
 

@@ -134,7 +134,7 @@ class SceneViews:
         lower_thread_priority(NICE)  # this thread only (Linux)
         try:
             view = self._open()
-        except (ArcheryError, ValueError, TypeError, OSError) as exc:
+        except Exception as exc:  # any cause: the page is told why, never left waiting
             log.error("the scene view cannot be built: %s", exc)
             with self._lock:
                 self._error = str(exc)
