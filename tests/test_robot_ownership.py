@@ -209,8 +209,10 @@ def test_a_rival_publisher_during_a_move_changes_nothing_and_is_counted(rig: Rig
     rival = rig.node.publisher(rig.node.keys.command(ARM), JointCommand, lossless=True)
     assert rival.wait_matched(WAIT)
     sent = 500
+    # the arm's latest state (the lease may be taken before a state arrives after the reset)
+    where = _until(lambda: rig.states and rig.states[-1][1], "a state of the arm")
     for _ in range(sent):  # valid commands: hold the arm where it is
-        rival.put(JointCommand(part=ARM, position=rig.states[-1][1]))
+        rival.put(JointCommand(part=ARM, position=where))
     counted = _until(
         lambda: (c := rig.counters())["not_owner"] - before["not_owner"] >= sent and c,
         "the rival's commands counted",
