@@ -56,7 +56,7 @@ def _theta(text: str) -> np.ndarray:
 
 def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> int:
     from services.controller.posture import ArcheryPosture, PostureConfig
-    from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
+    from services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
 
     net = NetConfig.from_args(args)
     on_wait = announce(PROG)
@@ -74,8 +74,8 @@ def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> in
         for part in PARTS_MOVED:
             encoders = node.call_typed(keys.part_rpc(part), rv.GET_POSITIONS, timeout=args.wait)
             standing.update(zip(encoders.names, encoders.position, strict=True))
-        posture = ArcheryPosture(PostureConfig()).solve_checked(theta)
-        plan = whole_shot_trajectory(movement, posture.q, standing)
+        posture = ArcheryPosture(PostureConfig())
+        plan = plan_whole_shot(movement, posture, theta, status.nock_in_hand, standing).plan
         trajectory = rv.TrajectoryArgs(
             parts=[rv.TrajectoryPart(part=part) for part in PARTS_MOVED],
             times=plan.times.tolist(),

@@ -50,7 +50,7 @@ class Launch:
     Attributes:
         position: tip position = bow hand position (m, root frame).
         velocity: launch velocity (m/s, root frame), noise included.
-        theta: θ = p_string − p_bow at release (m).
+        theta: θ = p_string − p_bow at release (m); the whole shot: the arrow's, its nock − p_bow.
         wind: wind velocity for this shot (m/s, root frame), gust included.
         sim_time: simulated time of the release (s).
     """

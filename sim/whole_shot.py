@@ -2,12 +2,12 @@
 draw and the release, each gated by the geometry it needs (m, root frame).
 
 The grasp holds only when the hand's grasp site is within `grasp_tolerance` of the arrow's
-shaft: the fingers close and a weld holds the arrow where the hand took it (the holder's weld
-lets go); farther, nothing is held. The nock takes only when the arrow's nock is within
-`nock_tolerance` of the string's rest nocking point; the nock then stays between the fingers,
-the string's nocking point on it, and the arrow lies from there across the bow hand. The draw
-length d is how far the nocking point is from its rest; the release opens the fingers and the
-arrow leaves at the bow's `speed_for_draw(d)` along the nock-to-bow-hand line.
+shaft (a weld then holds the arrow where the hand took it; the holder's lets go). The nock
+takes only when the arrow's nock is within `nock_tolerance` of the string's rest nocking point;
+the nock then stays between the fingers and the arrow lies from there across the bow hand. The
+string bends by how far the nocking point is from its rest; the release opens the fingers and
+the arrow leaves along the nock-to-bow-hand line at the bow's `launch_speed` of that line (the
+archer's draw, pivot to nock): the posture shot's bow model measured on the arrow.
 """
 
 from __future__ import annotations
@@ -27,11 +27,17 @@ from sim.scene_config import (
     GRASP_WELD,
     GRIP_JOINT,
     HOLDER_WELD,
+    STRING_HAND_SITE,
     STRING_NOCK_BODY,
 )
 from sim.whole_props import GRIP_CLOSED
 
-__all__ = ["WholeShot"]
+__all__ = ["NOCK_IN_STRING_HAND", "WholeShot"]
+
+#: m, in the string hand's frame (`r_hand_dh_frame`): where the nock of an arrow grasped from
+#: the holder as demonstrated sits once nocked (a test measures it across θ's box within 3 mm);
+#: the robot tells it in its status, for a controller to aim the arrow rather than the hand
+NOCK_IN_STRING_HAND = (-0.0136, 0.0111, -0.0061)
 
 
 def _segment_distance(point: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
@@ -68,6 +74,7 @@ class WholeShot:
             self._grasp_site = model.site(GRASP_SITE).id
             self._nock_site = model.site(ARROW_NOCK_SITE).id
             self._bow_site = model.site(BOW_HAND_SITE).id
+            self._string_site = model.site(STRING_HAND_SITE).id
             string = model.joint(STRING_NOCK_BODY)
             self._string_body = model.body(STRING_NOCK_BODY).id
             self._limbs = [model.site("bow_top").id, model.site("bow_bottom").id]
@@ -97,7 +104,7 @@ class WholeShot:
         return point
 
     def draw_length(self) -> float:
-        """d: how far the nocking point is from its rest (m); 0 when not nocked."""
+        """How far the string's nocking point is from its rest (m); 0 when not nocked."""
         if self._pinch is None:
             return 0.0
         return float(np.linalg.norm(self.nocking_point() - self.rest_point()))
@@ -188,11 +195,25 @@ class WholeShot:
         self.pin()
         return distance
 
-    def release(self) -> tuple[np.ndarray, np.ndarray, float]:
+    def arrow_line(self) -> np.ndarray:
+        """The nocked arrow's θ (m): its nock relative to the bow hand's pivot, the arrow lying
+        along its negative; the nock at rest when not nocked."""
+        line: np.ndarray = self.nocking_point() - self.physics.data.site_xpos[self._bow_site]
+        return line
+
+    def nock_in_hand(self) -> np.ndarray:
+        """The nocking point in the string hand's frame (m, `r_hand_dh_frame`)."""
+        data = self.physics.data
+        site = self._string_site
+        rot = data.site_xmat[site].reshape(3, 3)
+        local: np.ndarray = rot.T @ (self.nocking_point() - data.site_xpos[site])
+        return local
+
+    def release(self) -> tuple[np.ndarray, np.ndarray]:
         """Open the fingers on the nocked arrow: the string goes back to rest.
 
         Returns:
-            (the arrow's tip (m), its unit direction, the draw length d (m)) at the release.
+            (the arrow's tip (m), its θ (`arrow_line`, m)) at the release.
 
         Raises:
             ArrowDropped: the arrow was held but not nocked; it now falls.
@@ -208,11 +229,11 @@ class WholeShot:
             data.eq_active[self._grasp_eq] = 0
             self.physics.set_arrow_force(np.zeros(3))
             raise ArrowDropped("the fingers opened on an arrow that was not nocked: it fell")
-        tip, direction = self._nocked_pose()
-        draw = self.draw_length()
+        tip, _ = self._nocked_pose()
+        line = self.arrow_line()
         self._pinch = None
         self.pin()
-        return tip, direction, draw
+        return tip, line
 
     def _nocked_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """(tip (m), unit direction) of the nocked arrow: from the nock across the bow hand."""

@@ -26,7 +26,7 @@ from protocol.errors import ConfigError
 from protocol.parts import PARTS
 from protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, home_of
 from protocol.vectors import finite_vector
-from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity, noisy_velocity
+from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
 from sim.bow import Bow
 from sim.errors import ArrowDropped, CommandError, StateError
 from sim.geometry import START_THETA, TARGET_DIAMETER, target_centre
@@ -632,8 +632,8 @@ class ArcheryWorld:
 
     def launch(self) -> Launch:
         """Release the string: the arrow starts flying; advance it with `step`. In the whole
-        shot the fingers open, and the arrow leaves from where it lies at the bow's speed for
-        the draw length (`sim.whole_shot`); a grasped arrow not on the string falls.
+        shot the fingers open, and the arrow leaves from where it lies, its θ the nock's from the
+        bow hand (`sim.whole_shot`); a grasped arrow not on the string falls.
 
         Raises:
             StateError: no arrow is nocked. NoArrowDirection: the hands coincide.
@@ -654,20 +654,13 @@ class ArcheryWorld:
         cfg = self.config
         rng = self._rng
         bow, string = self.hand_positions()
-        theta = string - bow  # θ measured, once: the launch's and the reply's
+        theta = string - bow  # θ measured, once: the launch's and the reply's; in the whole
         start = bow
-        if self.whole is None:
-            velocity = launch_velocity(
-                theta,
-                cfg.bow,
-                rng,
-                speed_noise=cfg.speed_noise,
-                direction_noise=cfg.direction_noise,
-            )
-        else:
-            start, direction, draw = self.whole.release()
-            speed = cfg.bow.speed_for_draw(draw)
-            velocity = noisy_velocity(direction, speed, rng, cfg.speed_noise, cfg.direction_noise)
+        if self.whole is not None:
+            start, theta = self.whole.release()  # shot, the arrow's: its nock's from the bow hand
+        velocity = launch_velocity(
+            theta, cfg.bow, rng, speed_noise=cfg.speed_noise, direction_noise=cfg.direction_noise
+        )
         wind = self._draw_wind()
         launch = Launch(
             position=start,

@@ -5,6 +5,7 @@ to the archery posture of another θ."""
 from __future__ import annotations
 
 import itertools
+from collections.abc import Mapping
 
 import msgspec
 import numpy as np
@@ -17,10 +18,16 @@ from protocol.theta import THETA_BOX
 from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 from services.controller.movement import Movement, Reproduction
 from services.controller.posture import ArcheryPosture, PostureConfig
-from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
+from services.controller.whole_shot import (
+    PARTS_MOVED,
+    aim_arrow,
+    plan_whole_shot,
+    whole_shot_trajectory,
+)
 from sim.arrow import Launch
 from sim.geometry import START_THETA
 from sim.scene_config import SceneConfig
+from sim.whole_shot import NOCK_IN_STRING_HAND
 from sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.world_steps import move_until_done
 
@@ -47,7 +54,11 @@ def posture() -> ArcheryPosture:
 
 def _goal(posture: ArcheryPosture, theta: np.ndarray) -> np.ndarray:
     """Both arms' angles (rad, left then right) of the controller's posture for θ (m)."""
-    q = posture.solve_checked(theta).q
+    return _goal_of(posture.solve_checked(theta).q)
+
+
+def _goal_of(q: Mapping[str, float]) -> np.ndarray:
+    """Both arms' angles (rad, left then right) of the posture q."""
     return np.array([q[j] for part in (BOW_ARM, STRING_ARM) for j in PARTS[part]])
 
 
@@ -123,8 +134,29 @@ def _drawn(
     assert move_until_done(world)
     np.testing.assert_allclose(world.theta(), theta, atol=5e-3)
     assert world.whole is not None
-    length = world.whole.draw_length()
+    length = float(np.linalg.norm(world.whole.arrow_line())) - WORLD.bow.brace_height
     return length, float(np.linalg.norm(world.launch().velocity))
+
+
+@pytest.mark.parametrize("corner", ["low", "nominal", "high"])
+def test_the_controller_aims_the_arrow_along_theta(
+    demo: Demonstration, movement: Movement, posture: ArcheryPosture, corner: str
+) -> None:
+    """The hands drawn to θ less the nock's offset (told by the robot): the nocked arrow lies
+    along θ from the bow hand, its nock where the robot says it sits in the string hand."""
+    theta = {"low": THETA_BOX.low, "nominal": START_THETA, "high": THETA_BOX.high}[corner]
+    theta = np.asarray(theta, dtype=float)
+    world = _at_start(demo)
+    _to_the_nock(world, movement.reproduce())
+    q = aim_arrow(posture, theta, NOCK_IN_STRING_HAND)[0].q
+    moved = movement.reproduce(_goal_of(q))
+    world.set_joint_targets("torso", [q[j] for j in PARTS["torso"]])
+    _follow(world, moved, moved.nock, moved.release)
+    assert move_until_done(world)
+    assert world.whole is not None
+    np.testing.assert_allclose(world.whole.nock_in_hand(), NOCK_IN_STRING_HAND, atol=3e-3)
+    np.testing.assert_allclose(world.whole.arrow_line(), theta, atol=6e-3)
+    assert not aim_arrow(posture, theta, None)[1].any()
 
 
 def test_the_goal_of_another_theta_draws_there(
@@ -167,3 +199,19 @@ def test_the_whole_shot_ends_in_the_posture_for_every_corner_of_the_box(
         # the hands where the controller's IK put them (the two models differ by < 1 cm there)
         assert np.linalg.norm(world.theta() - solved.theta_achieved) < 0.01, corner
         assert solved.relative_error_m < 0.01, corner
+
+
+def test_the_movement_stays_within_the_joint_limits_where_the_goal_is_at_one(
+    movement: Movement, posture: ArcheryPosture
+) -> None:
+    """A posture with a joint at its limit: the DMPs drawn there overshoot it; the waypoints
+    sent are clipped to the model's limits (the robot would refuse them: bad_trajectory)."""
+    theta = np.array([0.127, 0.01, -0.036])
+    standing = {j: 0.0 for part in PARTS for j in PARTS[part]}
+    aimed = plan_whole_shot(movement, posture, theta, NOCK_IN_STRING_HAND, standing)
+    model = posture.model
+    moved = [model.index(j) for part in PARTS_MOVED for j in PARTS[part]]
+    lower, upper = model.lower[moved], model.upper[moved]
+    free = whole_shot_trajectory(movement, aimed.posture.q, standing)
+    assert np.any(free.rows > upper + 1e-3)  # the overshoot this guards against
+    assert np.all((aimed.plan.rows >= lower) & (aimed.plan.rows <= upper))

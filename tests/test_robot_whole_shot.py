@@ -222,7 +222,7 @@ def test_imitate_draws_the_dmps_movement_for_theta(
     flags = ["--theta", ",".join(str(v) for v in theta), *_net_flags(net)]
     assert imitate([str(SHIPPED), *flags]) == 0
     reply = json.loads(capsys.readouterr().out)
-    np.testing.assert_allclose(reply["theta"], theta, atol=5e-3)  # the hands' θ at the release
+    np.testing.assert_allclose(reply["theta"], theta, atol=5e-3)  # the arrow's θ at the release
     assert reply["flight_time"] > 0.05
     assert client.archery("status")["arrow"] == "landed"
 

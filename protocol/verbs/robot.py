@@ -492,6 +492,9 @@ class ArcheryStatusReply(Reply, frozen=True):
     counters: dict[str, dict[str, Any]]
     scene: Scene
     world: dict[str, Any]
+    #: m, the string hand's frame (`r_hand_dh_frame`): where a nocked arrow's nock sits, for a
+    #: controller to aim the arrow rather than the hand; None on a posture-shot robot
+    nock_in_hand: Annotated[list[float], Meta(min_length=3, max_length=3)] | None = None
 
 
 # The whole shot (`archery robot --shot whole`): the arrow waits in a holder; `grasp` closes the

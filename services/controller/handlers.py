@@ -22,13 +22,14 @@ from protocol.errors import ArcheryError, BadRequest, ConfigError
 from protocol.parts import PARTS
 from protocol.verbs import NoArgs, ServedVerbs
 from protocol.verbs import controller as cv
+from protocol.verbs import robot as rv
 from services.controller.cartesian import axis_angle, ik_reply, rotation_vector
 from services.controller.config import ControllerConfig
 from services.controller.ik import IkSolver
 from services.controller.model import ArmsModel
 from services.controller.posture import ArcheryPosture, PostureResult
 from services.controller.robotlink import MoveResult, RobotLink
-from services.controller.whole_shot import PARTS_MOVED, whole_shot_trajectory
+from services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
 
 if TYPE_CHECKING:
     from services.controller.movement import Movement
@@ -67,17 +68,23 @@ def _posture_reply(
     result: PostureResult,
     theta_measured: np.ndarray,
     targets: dict[str, float],
+    nock: np.ndarray | None = None,
 ) -> Callable[..., cv.PostureReply]:
     """The posture reply of θ (m) solved as `result` and measured as `theta_measured` (m), the
-    joint `targets` (rad) sent; the move's fields are the caller's to add."""
+    joint `targets` (rad) sent; the move's fields are the caller's to add. With `nock` (m, the
+    nock's offset from the string hand, root frame: the whole shot), θ is the arrow's and the
+    hands' θ achieved and measured are told as the arrow's (the offset added)."""
+    offset = np.zeros(3) if nock is None else nock
+    achieved = result.theta_achieved + offset
+    measured = theta_measured + offset
     return functools.partial(
         cv.PostureReply,
         q=targets,
         theta=theta.tolist(),
-        theta_achieved=result.theta_achieved.tolist(),
-        theta_measured=theta_measured.tolist(),
-        relative_error_m=result.relative_error_m,
-        measured_error_m=float(np.linalg.norm(theta - theta_measured)),
+        theta_achieved=achieved.tolist(),
+        theta_measured=measured.tolist(),
+        relative_error_m=float(np.linalg.norm(theta - achieved)),
+        measured_error_m=float(np.linalg.norm(theta - measured)),
         reachable=result.reachable,
         bow_hand=result.bow_hand.tolist(),
     )
@@ -275,7 +282,7 @@ class ArcheryController:
                 f"{args.shot!r} shot asked: nothing moved",
             )
         if shot == "whole":
-            return self._whole(theta, timeout, robot.rtf)
+            return self._whole(theta, timeout, robot)
         current = self._link.joint_angles()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
         result = self._posture.solve_checked(theta, q0=q0)
@@ -298,18 +305,21 @@ class ArcheryController:
             self._movement_cache = self._movement_of()
         return self._movement_cache
 
-    def _whole(self, theta: np.ndarray, timeout: float, rtf: float) -> cv.PostureReply:
-        """The whole shot for θ (m): the demonstration's movement drawn to the archery posture
-        for θ, played by the robot as one trajectory with grasp and nock (`whole_shot`); the
-        reply once it has ended, as a posture's."""
+    def _whole(
+        self, theta: np.ndarray, timeout: float, robot: rv.ArcheryStatusReply
+    ) -> cv.PostureReply:
+        """The whole shot for θ (m, the arrow's: its nock from the bow hand, where the robot
+        tells the nock sits in the string hand): the demonstration's movement drawn to the
+        archery posture for the hands' θ, played by the robot as one trajectory with grasp and
+        nock (`whole_shot`); the reply once it has ended, as a posture's."""
         movement = self._movement()
         standing = self._link.joint_angles()
-        result = self._posture.solve_checked(theta)
-        plan = whole_shot_trajectory(movement, result.q, standing)
+        aimed = plan_whole_shot(movement, self._posture, theta, robot.nock_in_hand, standing)
+        plan = aimed.plan
         actions = {"grasp": plan.grasp, "nock": plan.nock}
         started = time.monotonic()
         with self._motion.hold(timeout):
-            reply = self._link.follow(PARTS_MOVED, plan.times, plan.rows, actions, rtf)
+            reply = self._link.follow(PARTS_MOVED, plan.times, plan.rows, actions, robot.rtf)
         wall = time.monotonic() - started
         goal = dict(
             zip(
@@ -319,7 +329,7 @@ class ArcheryController:
             )
         )
         theta_measured = self._posture.theta_at(self._link.joint_angles())
-        return _posture_reply(theta, result, theta_measured, goal)(
+        return _posture_reply(theta, aimed.posture, theta_measured, goal, aimed.nock)(
             reached=True,
             reason="",
             wall_s=wall,

@@ -213,10 +213,17 @@ class ArcheryPosture:
         """
         return self.solve_checked(self.check_theta(theta), q0=q0)
 
-    def solve_checked(self, theta: np.ndarray, *, q0: JointValues | None = None) -> PostureResult:
-        """`solve` for a θ that `check_theta` returned (not checked again)."""
+    def solve_checked(
+        self,
+        theta: np.ndarray,
+        *,
+        q0: JointValues | None = None,
+        arrow: np.ndarray | None = None,
+    ) -> PostureResult:
+        """`solve` for a θ that `check_theta` returned (not checked again); the hands turned
+        for the arrow's θ `arrow` (m; default θ: the arrow lies along the hands)."""
         start = self.reference if q0 is None else self.model.vector(q0, default=self.reference)
-        res = self._solve(theta, start)
+        res = self._solve(theta, start, arrow=arrow)
         return self._result(theta, res)
 
     def theta_at(self, q: JointValues | np.ndarray) -> np.ndarray:
@@ -229,9 +236,13 @@ class ArcheryPosture:
     # ------------------------------------------------------------------------------- internals
 
     def _solve(
-        self, theta: np.ndarray, start: np.ndarray, rest: np.ndarray | None = None
+        self,
+        theta: np.ndarray,
+        start: np.ndarray,
+        rest: np.ndarray | None = None,
+        arrow: np.ndarray | None = None,
     ) -> TargetsResult:
-        left_rot, right_rot = hand_orientations(theta)
+        left_rot, right_rot = hand_orientations(theta if arrow is None else arrow)
         return self.solver.solve_targets(
             (
                 PositionTarget(BOW_ARM, self.config.bow_hand, priority=0),

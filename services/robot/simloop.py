@@ -35,6 +35,7 @@ from services.robot.shot import Shots, phase_of
 from services.robot.simthread import SimThread
 from services.robot.sink import Sink
 from services.robot.watchdog import StreamWatchdog
+from sim.whole_shot import NOCK_IN_STRING_HAND
 from sim.world import ArcheryWorld
 
 __all__ = ["SimLoop"]
@@ -344,4 +345,5 @@ class SimLoop:
             },
             scene=world.config.scene.to_status(),
             world=world.config.to_dict(),
+            nock_in_hand=None if world.whole is None else list(NOCK_IN_STRING_HAND),
         )
