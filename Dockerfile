@@ -20,6 +20,7 @@ RUN --mount=type=secret,id=pip-ca sh /build/install.sh
 # The project itself, as a wheel (only its code: every dependency is installed above).
 FROM base AS wheel
 COPY pyproject.toml README.md /src/
+COPY archery /src/archery
 COPY protocol /src/protocol
 COPY mesh /src/mesh
 COPY services /src/services

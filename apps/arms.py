@@ -14,16 +14,16 @@ from typing import Any
 
 import numpy as np
 
-from mesh.node import Node
-from protocol.errors import ArcheryError, ConfigError, Unreachable
-from protocol.messages import JointCommand, JointState
-from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM, TORSO
-from protocol.verbs import robot as rv
-from protocol.verbs.base import NoArgs, Reply, Verb
-from sim.scene_config import SceneConfig
-from sim.shot_script import ShotStep
-from sim.world import ArcheryWorld, WorldConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError, ConfigError, Unreachable
+from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM, TORSO
+from archery.protocol.verbs import robot as rv
+from archery.protocol.verbs.base import NoArgs, Reply, Verb
+from archery.sim.scene_config import SceneConfig
+from archery.sim.shot_script import ShotStep
+from archery.sim.world import ArcheryWorld, WorldConfig
 
 __all__ = ["ACTIONS", "COMMAND_PERIOD", "PASSING", "REACHED", "ArmDriver"]
 

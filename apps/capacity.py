@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = [
     "MAX_SESSIONS",

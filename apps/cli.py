@@ -9,11 +9,11 @@ import logging
 import os
 import sys
 
-from apps.waits import interrupted_line
-from mesh.cliargs import ArgumentParser
-from mesh.logs import DEFAULT_SPEC, add_log_args, configure
-from protocol.errors import ConfigError
-from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK
+from archery.apps.waits import interrupted_line
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.logs import DEFAULT_SPEC, add_log_args, configure
+from archery.protocol.errors import ConfigError
+from archery.protocol.exit_status import BAD_INPUT, INTERRUPTED, OK
 
 __all__ = ["VERBS", "main"]
 
@@ -21,98 +21,125 @@ __all__ = ["VERBS", "main"]
 # the process exit status. Modules are imported only when their verb runs, so a tool never pays
 # for MuJoCo or Pinocchio it does not use.
 VERBS: dict[str, tuple[str, str]] = {
-    "router": ("mesh.router:main", "run a Zenoh router (the mesh's embedded default)"),
+    "router": ("archery.mesh.router:main", "run a Zenoh router (the mesh's embedded default)"),
     "ports": (
-        "apps.topics.tools:ports_main",
+        "archery.apps.topics.tools:ports_main",
         "list live services and their ports (yarp name list)",
     ),
     "alive": (
-        "apps.topics.tools:alive_main",
+        "archery.apps.topics.tools:alive_main",
         "exit 0 when the router answers and the named services are alive (health checks)",
     ),
-    "read": ("apps.topics.tools:read_main", "print decoded messages from a key as JSON lines"),
-    "write": ("apps.topics.tools:write_main", "publish one message, given as JSON, on a key"),
-    "rpc": ("apps.topics.tools:rpc_main", "call an rpc:i verb and print the reply"),
+    "read": (
+        "archery.apps.topics.tools:read_main",
+        "print decoded messages from a key as JSON lines",
+    ),
+    "write": (
+        "archery.apps.topics.tools:write_main",
+        "publish one message, given as JSON, on a key",
+    ),
+    "rpc": ("archery.apps.topics.tools:rpc_main", "call an rpc:i verb and print the reply"),
     "interface": (
-        "apps.topics.interface:interface_main",
+        "archery.apps.topics.interface:interface_main",
         "a port's message type; each rpc:i verb's argument and reply schema",
     ),
     "record": (
-        "apps.topics.observe:record_main",
+        "archery.apps.topics.observe:record_main",
         "record the robot's streams (or KEY_PATTERNs) into an MCAP file",
     ),
-    "replay": ("apps.topics.observe:replay_main", "publish an MCAP recording again, in time"),
-    "hz": ("apps.topics.observe:hz_main", "message rate and bandwidth of the matching keys"),
-    "view": ("apps.topics.tools:view_main", "save the next image on an image port as PNG"),
-    "selfcheck": ("apps.topics.selfcheck:main", "start a router and two nodes, check the mesh"),
-    "robot": ("services.robot.service:main", "the simulated iCub: joint ports, bow, arrow, target"),
+    "replay": (
+        "archery.apps.topics.observe:replay_main",
+        "publish an MCAP recording again, in time",
+    ),
+    "hz": (
+        "archery.apps.topics.observe:hz_main",
+        "message rate and bandwidth of the matching keys",
+    ),
+    "view": ("archery.apps.topics.tools:view_main", "save the next image on an image port as PNG"),
+    "selfcheck": (
+        "archery.apps.topics.selfcheck:main",
+        "start a router and two nodes, check the mesh",
+    ),
+    "robot": (
+        "archery.services.robot.service:main",
+        "the simulated iCub: joint ports, bow, arrow, target",
+    ),
     "camera": (
-        "services.camera.service:main",
+        "archery.services.camera.service:main",
         "camera frames of the target (rendered/device/folder)",
     ),
-    "detector": ("services.detector.service:main", "GMM colour detector: target centre, arrow tip"),
-    "calibrate": ("apps.detect:calibrate_main", "fit the colour model from pixels"),
-    "detect": ("apps.detect:detect_main", "detect target and arrow in an image"),
-    "controller": ("services.controller.service:main", "Pinocchio IK: archery posture for θ"),
+    "detector": (
+        "archery.services.detector.service:main",
+        "GMM colour detector: target centre, arrow tip",
+    ),
+    "calibrate": ("archery.apps.detect:calibrate_main", "fit the colour model from pixels"),
+    "detect": ("archery.apps.detect:detect_main", "detect target and arrow in an image"),
+    "controller": (
+        "archery.services.controller.service:main",
+        "Pinocchio IK: archery posture for θ",
+    ),
     "learner": (
-        "services.learner.service:main",
+        "archery.services.learner.service:main",
         "learning sessions over the mesh (ARCHER, PoWER, baselines), journaled",
     ),
     "learn": (
-        "apps.learn.learn:main",
+        "archery.apps.learn.learn:main",
         "run one learning session against running services",
     ),
-    "up": ("apps.up.command:main", "start a router and all five services; stop them on Ctrl-C"),
+    "up": (
+        "archery.apps.up.command:main",
+        "start a router and all five services; stop them on Ctrl-C",
+    ),
     "drill": (
-        "apps.drills.runner:main",
+        "archery.apps.drills.runner:main",
         "fault drills on a real mesh (kills, freezes, router outages, floods); their table",
     ),
     "experiment": (
-        "apps.experiment.experiment:main",
+        "archery.apps.experiment.experiment:main",
         "run the paper's simulation experiment (the ballistic world, or the robots of a fleet)",
     ),
     "compare": (
-        "apps.compare.compare:main",
+        "archery.apps.compare.compare:main",
         "ARCHER and PoWER against pycma and nevergrad through the Gymnasium environment",
     ),
     "report": (
-        "apps.report:main",
+        "archery.apps.report:main",
         "draw report.png beside session journals (a session's or an experiment's folder)",
     ),
     "film": (
-        "apps.film.film:main",
+        "archery.apps.film.film:main",
         "a video of a session's hit (or --rollout N), simulated again from its journal",
     ),
     "info": (
-        "apps.topics.info:main",
+        "archery.apps.topics.info:main",
         "an MCAP recording's duration, channels, counts, rates, schemas and size",
     ),
     "foxglove": (
-        "apps.foxglove.command:main",
+        "archery.apps.foxglove.command:main",
         "a live Foxglove WebSocket server: the robot in 3D, the camera, the learning curve",
     ),
     "ros2": (
-        "apps.ros2.command:main",
+        "archery.apps.ros2.command:main",
         "the robot on the ROS 2 graph through rmw_zenoh's wire format (joint states, TF, camera)",
     ),
     "export": (
-        "apps.ros2.export:main",
+        "archery.apps.ros2.export:main",
         "a recording as a ROS 2 bag (--ros2 OUT: MCAP, CDR) of the topics `archery ros2` sends",
     ),
     "dashboard": (
-        "apps.dashboard.server:main",
+        "archery.apps.dashboard.server:main",
         "a live view in the browser: frame, target face, distances, liveliness, rates",
     ),
-    "demo": ("apps.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
+    "demo": ("archery.apps.demo:main", "start the mesh, learn until the 5 cm ring is hit, show it"),
     "demonstrate": (
-        "apps.demonstrate:main",
+        "archery.apps.demonstrate:main",
         "record a demonstration of the whole shot while the arms are driven, or check one",
     ),
     "imitate": (
-        "apps.imitate:main",
+        "archery.apps.imitate:main",
         "the whole shot from a demonstration's DMPs alone, drawn for θ, on a running robot",
     ),
-    "keys": ("apps.keys:main", "keys init DIR: CA, identities and ACL for --secure"),
+    "keys": ("archery.apps.keys:main", "keys init DIR: CA, identities and ACL for --secure"),
 }
 
 

@@ -22,21 +22,21 @@ from rich.console import Console
 from rich.live import Live
 from rich.table import Table
 
-from apps.film.film import film_hit, film_ready, hit_video
-from apps.learn.client import learner_call, start_args
-from apps.learn.follow import SessionLost, follow, result_line
-from apps.up.command import start_observer
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher, LaunchError
-from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import for_error
-from protocol.journal_records import AbortedRecord, DoneRecord
-from protocol.messages import Rollout
-from services.learner.algorithms.registry import ALGORITHMS
+from archery.apps.film.film import film_hit, film_ready, hit_video
+from archery.apps.learn.client import learner_call, start_args
+from archery.apps.learn.follow import SessionLost, follow, result_line
+from archery.apps.up.command import start_observer
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher, LaunchError
+from archery.mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.exit_status import for_error
+from archery.protocol.journal_records import AbortedRecord, DoneRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.algorithms.registry import ALGORITHMS
 
 __all__ = ["main"]
 

@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.waits import announce, interrupted_line
-from mesh.cliargs import ArgumentParser, seconds
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node, open_node
-from protocol.demonstration import (
+from archery.apps.waits import announce, interrupted_line
+from archery.mesh.cliargs import ArgumentParser, seconds
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import Node, open_node
+from archery.protocol.demonstration import (
     FORMAT,
     MIN_DT,
     BadDemonstration,
@@ -37,14 +37,14 @@ from protocol.demonstration import (
     encode_demonstration,
     parse_demonstration,
 )
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
-from protocol.messages import JointState, WorldEvent
-from protocol.parts import ARM_PARTS, PARTS
-from protocol.robotspec import NOMINAL_THETA, ROBOT
-from protocol.vectors import parse_vector
-from protocol.verbs.robot import ARCHERY_STATUS
-from services.controller.demonstration_file import read_demonstration
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
+from archery.protocol.messages import JointState, WorldEvent
+from archery.protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.robotspec import NOMINAL_THETA, ROBOT
+from archery.protocol.vectors import parse_vector
+from archery.protocol.verbs.robot import ARCHERY_STATUS
+from archery.services.controller.demonstration_file import read_demonstration
 
 __all__ = ["Recorder", "joint_limits", "main"]
 
@@ -176,9 +176,9 @@ def _spaced(times: list[float]) -> list[float]:
 def joint_limits(shot: str) -> Mapping[str, tuple[Sequence[float], Sequence[float]]]:
     """The arms' joint limits (rad) of the simulated robot for `shot`: the URDF's, which its
     joints never pass (commands stop a margin inside them, `SceneConfig.limit_margin`)."""
-    from sim.model_build import build_scene
-    from sim.scene import ScenePhysics
-    from sim.scene_config import SceneConfig
+    from archery.sim.model_build import build_scene
+    from archery.sim.scene import ScenePhysics
+    from archery.sim.scene_config import SceneConfig
 
     physics = ScenePhysics(build_scene(SceneConfig(meshes=False, shot=shot)))
     limits = {}
@@ -215,7 +215,7 @@ def _check(path: Path) -> int:
 
 def _teach(node: Node, theta: np.ndarray, timeout: float) -> None:
     """Drive the robot through the scripted whole shot (`apps.teacher`)."""
-    from apps.teacher import Teacher
+    from archery.apps.teacher import Teacher
 
     teacher = Teacher(node, timeout)
     try:

@@ -21,16 +21,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from apps.progress import progress_bar
-from mesh.cliargs import ArgumentParser
-from protocol.errors import ArcheryError
-from services.detector.calibration import fit_from_marks, load_pixels
-from services.detector.colour_model import ColourModel
-from services.detector.config import add_settings_arguments, settings_from_args
-from services.detector.detect import Detector, check_image
-from services.detector.errors import ImageError
-from services.detector.overlay import draw_overlay
-from services.detector.whitebalance import apply_gains
+from archery.apps.progress import progress_bar
+from archery.mesh.cliargs import ArgumentParser
+from archery.protocol.errors import ArcheryError
+from archery.services.detector.calibration import fit_from_marks, load_pixels
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.config import add_settings_arguments, settings_from_args
+from archery.services.detector.detect import Detector, check_image
+from archery.services.detector.errors import ImageError
+from archery.services.detector.overlay import draw_overlay
+from archery.services.detector.whitebalance import apply_gains
 
 __all__ = [
     "calibrate_main",

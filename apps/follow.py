@@ -1,6 +1,7 @@
 """Following a mesh stream for a live viewer (the Foxglove bridge, the ROS 2 node): the newest
-state on a thread of its own, or every event on arrival; each returns the function that stops it,
-so a topic nobody watches costs the mesh nothing."""
+state on a thread of its own, or every event on arrival, each a subscription of the viewer's
+`Node` (so `describe` lists it while it lasts); each returns the function that stops it and
+unsubscribes, so a topic nobody watches costs the mesh nothing."""
 
 from __future__ import annotations
 
@@ -9,9 +10,8 @@ import threading
 from collections.abc import Callable
 from typing import Any
 
-import zenoh
-
-from mesh.subscription import Subscription
+from archery.mesh.node import Node
+from archery.mesh.subscription import Subscription
 
 __all__ = ["Stop", "follow_events", "follow_latest"]
 
@@ -21,7 +21,7 @@ Stop = Callable[[], None]
 
 
 def follow_latest(
-    session: zenoh.Session,
+    node: Node,
     key: str,
     kind: type[Any],
     name: str,
@@ -31,7 +31,7 @@ def follow_latest(
     """Follow a state stream on a thread of its own: `each(message)` with the newest message
     only, so a slow viewer skips states instead of queueing them; a failure of `each` is logged
     on `log` (naming `name`) and the stream goes on."""
-    sub: Subscription[Any] = Subscription(session, key, kind, "latest", None)
+    sub: Subscription[Any] = node.subscribe(key, kind, mode="latest")
     stop = threading.Event()
 
     def work() -> None:
@@ -54,16 +54,14 @@ def follow_latest(
 
     def close() -> None:
         stop.set()
-        sub.close()
+        node.unsubscribe(sub)
         thread.join(5 * WAIT)
 
     return close
 
 
-def follow_events(
-    session: zenoh.Session, key: str, kind: type[Any], each: Callable[[Any], None]
-) -> Stop:
+def follow_events(node: Node, key: str, kind: type[Any], each: Callable[[Any], None]) -> Stop:
     """Follow an event stream: `each(message)` with every message, on arrival (they are
     small)."""
-    sub: Subscription[Any] = Subscription(session, key, kind, "fifo", each)
-    return sub.close
+    sub: Subscription[Any] = node.subscribe(key, kind, mode="fifo", callback=each)
+    return lambda: node.unsubscribe(sub)

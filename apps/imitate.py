@@ -20,21 +20,21 @@ from typing import TYPE_CHECKING
 import msgspec
 import numpy as np
 
-from apps.waits import announce, interrupted_line
-from mesh.cliargs import ArgumentParser, seconds
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import open_node
-from protocol.demonstration import BadDemonstration
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
-from protocol.robotspec import NOMINAL_THETA, ROBOT
-from protocol.theta import THETA_BOX
-from protocol.vectors import parse_vector
-from protocol.verbs import robot as rv
-from services.controller.demonstration_file import read_demonstration
+from archery.apps.waits import announce, interrupted_line
+from archery.mesh.cliargs import ArgumentParser, seconds
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import open_node
+from archery.protocol.demonstration import BadDemonstration
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
+from archery.protocol.robotspec import NOMINAL_THETA, ROBOT
+from archery.protocol.theta import THETA_BOX
+from archery.protocol.vectors import parse_vector
+from archery.protocol.verbs import robot as rv
+from archery.services.controller.demonstration_file import read_demonstration
 
 if TYPE_CHECKING:
-    from services.controller.movement import Movement
+    from archery.services.controller.movement import Movement
 
 __all__ = ["main"]
 
@@ -55,8 +55,8 @@ def _theta(text: str) -> np.ndarray:
 
 
 def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> int:
-    from services.controller.posture import ArcheryPosture, PostureConfig
-    from services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
+    from archery.services.controller.posture import ArcheryPosture, PostureConfig
+    from archery.services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
 
     net = NetConfig.from_args(args)
     on_wait = announce(PROG)
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         theta = _theta(args.theta)
-        from services.controller.movement import Movement
+        from archery.services.controller.movement import Movement
 
         movement = Movement(read_demonstration(args.demonstration, flag=""))
     except (ConfigError, BadDemonstration) as exc:

@@ -7,16 +7,16 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from mesh.cliargs import ArgumentParser
-from mesh.credentials import (
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.credentials import (
     DEFAULT_DAYS,
     DEFAULT_HOSTS,
     IDENTITIES,
     init_deployment,
     unignored_keys,
 )
-from protocol.errors import ConfigError
-from protocol.keys import DEFAULT_ROBOT
+from archery.protocol.errors import ConfigError
+from archery.protocol.keys import DEFAULT_ROBOT
 
 __all__ = ["main"]
 

@@ -8,8 +8,8 @@ import time
 from collections.abc import Mapping
 from typing import Any
 
-from mesh.patterns import stream_type
-from protocol.messages import Describe
+from archery.mesh.patterns import stream_type
+from archery.protocol.messages import Describe
 
 __all__ = ["PortRates", "stream_counts"]
 

@@ -15,7 +15,7 @@ import sys
 from argparse import ArgumentParser
 from pathlib import Path
 
-from services.learner.journal import JournalError
+from archery.services.learner.journal import JournalError
 
 __all__ = ["find_journals", "main"]
 
@@ -57,8 +57,8 @@ def main(argv: list[str] | None = None) -> int:
     except FileNotFoundError as exc:
         print(f"archery report: {exc}", file=sys.stderr)
         return 2
-    from apps.progress import progress_bar
-    from services.learner.report import write_report
+    from archery.apps.progress import progress_bar
+    from archery.services.learner.report import write_report
 
     status = 0
     with progress_bar(disable=args.no_progress or len(journals) < 2) as bar:

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from apps.arms import ArmDriver
-from protocol.robotspec import BOW_ARM, STRING_ARM
-from sim.geometry import BOW_HAND
-from sim.shot_script import plan_aim, plan_whole_shot
+from archery.apps.arms import ArmDriver
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM
+from archery.sim.geometry import BOW_HAND
+from archery.sim.shot_script import plan_aim, plan_whole_shot
 
 __all__ = ["Teacher"]
 

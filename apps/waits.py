@@ -13,7 +13,7 @@ import sys
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # a type only: `archery --help` imports no Zenoh
-    from mesh.liveliness import OnWait
+    from archery.mesh.liveliness import OnWait
 
 __all__ = ["announce", "interrupted_line", "waiting_for", "waiting_line"]
 

@@ -36,19 +36,19 @@ import sys
 import tempfile
 from pathlib import Path
 
+from archery.mesh.router import free_tcp_endpoint, wait_for_endpoint
 from benchmarks.spread import median_spread
 from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
-from mesh.router import free_tcp_endpoint, wait_for_endpoint
 
 RPC_WORKLOAD = r"""
 import json, statistics, subprocess, sys, tempfile, time
 from pathlib import Path
-from mesh.credentials import init_deployment
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.verbs.robot import GET_LIMITS
-from protocol.verbs.robot import PART_VERBS, LimitsReply
+from archery.mesh.credentials import init_deployment
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.verbs.robot import GET_LIMITS
+from archery.protocol.verbs.robot import PART_VERBS, LimitsReply
 
 calls = int(sys.argv[1])
 robot = "aclbench"
@@ -120,7 +120,7 @@ LEARN_FLAGS = ("--no-until-hit", "--quiet", "--wait", "120")
 
 
 def _cli(*argv: str) -> list[str]:
-    return [sys.executable, "-m", "apps.cli", *argv]
+    return [sys.executable, "-m", "archery.apps.cli", *argv]
 
 
 def _session(tree: Path, work: Path, rollouts: int, seed: int, smoke: bool = False) -> float:

@@ -27,10 +27,10 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from apps.progress import progress_bar
+from archery.apps.progress import progress_bar
+from archery.mesh.router import free_tcp_endpoint, wait_for_endpoint
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.router import free_tcp_endpoint, wait_for_endpoint
 from tests.containers import (
     CA_BUNDLES,
     IMAGE_LIMIT,
@@ -110,7 +110,7 @@ def _containers_session(runs: Path, rollouts: int, seed: int) -> float:
 def _host_session(runs: Path, rollouts: int, seed: int) -> float:
     """One session on `archery up` on this machine (started, used, stopped); s per rollout."""
     endpoint = free_tcp_endpoint()
-    archery = [sys.executable, "-m", "apps.cli"]
+    archery = [sys.executable, "-m", "archery.apps.cli"]
     up = subprocess.Popen(
         [*archery, "up", "--listen", endpoint, "--runs", str(runs), "--log-level", "warn"],
         cwd=ROOT,

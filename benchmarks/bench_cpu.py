@@ -46,14 +46,14 @@ from typing import Any
 
 import psutil
 
+from archery.mesh.router import free_tcp_endpoint
 from benchmarks.observers import Observers
 from benchmarks.spread import median_spread
 from benchmarks.trees import ROOT, env_for, header, tree_at
-from mesh.router import free_tcp_endpoint
 
 __all__ = ["ARCHERY", "main", "start_up", "stop"]
 
-ARCHERY = (sys.executable, "-m", "apps.cli")
+ARCHERY = (sys.executable, "-m", "archery.apps.cli")
 MESH = ("router", "robot", "controller", "camera", "detector", "learner")
 FIRST, LAST = 10, 40  # the window: from the 10th to the 40th journaled done rollout
 SMOKE_WINDOW = (2, 4)  # the smoke run's window
@@ -75,7 +75,7 @@ def _children(up: subprocess.Popen[str]) -> dict[str, psutil.Process]:
     out = {}
     for child in psutil.Process(up.pid).children():
         args = child.cmdline()
-        verb = args[args.index("apps.cli") + 1]
+        verb = args[args.index("archery.apps.cli") + 1]
         out[verb] = child
     missing = set(MESH) - set(out)
     if missing:

@@ -27,12 +27,12 @@ import socket
 import statistics
 import time
 
-from apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
-from apps.dashboard.server import Dashboard, bind
+from archery.apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
+from archery.apps.dashboard.server import Dashboard, bind
+from archery.mesh.netflags import NetConfig
+from archery.mesh.router import free_tcp_endpoint, spawn_router
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.netflags import NetConfig
-from mesh.router import free_tcp_endpoint, spawn_router
 
 PATHS = ("/api/state", "/")
 

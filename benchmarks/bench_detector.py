@@ -39,18 +39,18 @@ import sklearn
 from scipy.linalg import solve_triangular
 from sklearn.mixture import GaussianMixture
 
-from apps.detect import read_rgb, write_png
+from archery.apps.detect import read_rgb, write_png
+from archery.services.detector.calibration import load_pixels, sample_pixels
+from archery.services.detector.colour_model import ColourModel, Gmm, rgb_to_uv
+from archery.services.detector.detect import Detector, eq7_centroid
+from archery.services.detector.overlay import draw_overlay
+from archery.sim.bow import Bow
+from archery.sim.geometry import BOW_HAND, TARGET_DISTANCE
+from archery.sim.model_build import build_scene
+from archery.sim.render import SceneRenderer, calibration_frame
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 from benchmarks.machine import cpu_model, pin_one_core
-from services.detector.calibration import load_pixels, sample_pixels
-from services.detector.colour_model import ColourModel, Gmm, rgb_to_uv
-from services.detector.detect import Detector, eq7_centroid
-from services.detector.overlay import draw_overlay
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.model_build import build_scene
-from sim.render import SceneRenderer, calibration_frame
-from sim.scene_config import SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
 from tests.detector_reference import exact_memberships, locate
 from tests.postures import archery_posture
 from tests.world_steps import move_until_done

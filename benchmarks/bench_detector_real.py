@@ -33,6 +33,7 @@ import json
 import math
 import os
 import platform
+import re
 import resource
 import shutil
 import statistics
@@ -48,10 +49,10 @@ from typing import Any
 
 import numpy as np
 
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import Detector, DetectorSettings
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector, DetectorSettings
 from tests import devset
 from tests.devset import Case, Scene
 
@@ -91,8 +92,12 @@ def load_baseline(tree: Path) -> ModuleType:
     """
     package = tree.parent / "baseline_detector"
     shutil.copytree(tree / "services" / "detector", package)
-    for path in package.glob("*.py"):
-        path.write_text(path.read_text().replace("services.detector.", "baseline_detector."))
+    for path in package.glob("*.py"):  # a tree of before the one import name `archery` too
+        text = path.read_text().replace("archery.services.detector.", "baseline_detector.")
+        text = text.replace("archery.services.detector.", "baseline_detector.")
+        path.write_text(
+            re.sub(r"^(\s*)from (protocol|sim)\.", r"\1from archery.\2.", text, flags=re.M)
+        )
     sys.path.insert(0, str(tree.parent))
     return importlib.import_module("baseline_detector.detect")
 
@@ -216,7 +221,7 @@ def time_cli(
         for name, tree in trees.items():
             env = {**os.environ, "PYTHONPATH": str(tree)}
             model = work / f"{name}.json"
-            cli = [sys.executable, "-m", "apps.cli"]
+            cli = [sys.executable, "-m", "archery.apps.cli"]
             commands = {
                 "calibrate one photo": [
                     *cli, "calibrate", str(photo), "--pixels", str(pixels), "--out", str(model)

@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 from sklearn.mixture import GaussianMixture
 
+from archery.services.detector.calibration import sample_pixels
+from archery.services.detector.colour_model import _REG_COVAR, rgb_to_uv
+from archery.services.detector.em import fit_mixture
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from services.detector.calibration import sample_pixels
-from services.detector.colour_model import _REG_COVAR, rgb_to_uv
-from services.detector.em import fit_mixture
 from tests.devset import Scene, drawn_scenes, photo_scenes
 
 PHOTOS = Path(__file__).resolve().parents[2] / "shared" / "data" / "real-targets"

@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.experiment.censored import format_count, format_counts, format_mean
-from apps.experiment.config import AlgorithmRun, ExperimentConfig
-from apps.experiment.experiment import run_algorithm, summarise, write_outputs
-from services.learner.algorithms.registry import ALGORITHMS
-from sim.ballistic import Scenario
+from archery.apps.experiment.censored import format_count, format_counts, format_mean
+from archery.apps.experiment.config import AlgorithmRun, ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm, summarise, write_outputs
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.sim.ballistic import Scenario
 
 __all__ = ["PAPER_ROLLOUTS", "SCENARIOS", "main"]
 
@@ -83,7 +83,7 @@ def _time_default_command(out: Path, sessions: int, rollouts: int, seed: int) ->
     command = [
         sys.executable,
         "-m",
-        "apps.cli",
+        "archery.apps.cli",
         "experiment",
         "--sessions",
         str(sessions),

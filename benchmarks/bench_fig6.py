@@ -35,10 +35,10 @@ from typing import Any
 
 import psutil
 
+from archery.mesh.router import free_tcp_endpoint
 from benchmarks.bench_cpu import ARCHERY, start_up, stop
 from benchmarks.spread import median_spread
 from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
-from mesh.router import free_tcp_endpoint
 
 __all__ = ["main"]
 

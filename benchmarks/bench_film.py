@@ -28,18 +28,18 @@ import tempfile
 import time
 from pathlib import Path
 
-from apps.film.film import film_session
-from apps.learn.follow import follow
-from apps.topics.recording import Recorder
-from apps.up.launch_config import SERVICES
+from archery.apps.film.film import film_session
+from archery.apps.learn.follow import follow
+from archery.apps.topics.recording import Recorder
+from archery.apps.up.launch_config import SERVICES
+from archery.mesh.node import Node
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import read_records
 from benchmarks.bench_record import mesh_launcher
 from benchmarks.machine import cpu_model
 from benchmarks.observers import stop
 from benchmarks.spread import median_spread
-from mesh.node import Node
-from protocol.journal_records import DoneRecord
-from protocol.messages import Rollout
-from services.learner.journal import read_records
 from tests.rpc import rpc_call
 from tests.spawn import spawn
 
@@ -47,8 +47,8 @@ __all__ = ["main"]
 
 _FRAME_PROBE = """
 import sys, time, numpy as np
-from sim.render import SceneRenderer
-from sim.scene_view import SceneView
+from archery.sim.render import SceneRenderer
+from archery.sim.scene_view import SceneView
 frames = int(sys.argv[1])
 with SceneView(width=960, height=540) as view, SceneRenderer() as lean:
     q = view._renderer.model.qpos0.copy()
@@ -101,7 +101,7 @@ def _record(endpoint: str, robot: str, path: Path, transforms: bool) -> subproce
 
 def _fixed_bytes(tmp: Path) -> int:
     """Bytes of a recording with the 3D records' start (URDF, scene) and no message."""
-    from apps.topics.robot_frames import RobotFrames
+    from archery.apps.topics.robot_frames import RobotFrames
 
     path = tmp / "empty.mcap"
     Recorder(path, "bench", ["bench/**"], frames=RobotFrames("bench")).close()

@@ -53,13 +53,13 @@ from typing import Any
 import numpy as np
 import psutil
 
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment_mesh import (
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment_mesh import (
     MeshSettings,
     mesh_experiment_config,
     run_mesh_experiment,
 )
-from apps.up.launch_config import (
+from archery.apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
@@ -67,13 +67,13 @@ from apps.up.launch_config import (
     ServiceSpec,
     fleet_prefixes,
 )
-from apps.up.launcher import Launcher
+from archery.apps.up.launcher import Launcher
+from archery.mesh.netflags import NetConfig
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
+from archery.services.learner.journal import read_records
 from benchmarks.machine import core_scaling, cpu_model
 from benchmarks.spread import median_spread
-from mesh.netflags import NetConfig
-from mesh.router import free_tcp_endpoint
-from protocol.journal_records import DoneRecord
-from services.learner.journal import read_records
 
 __all__ = ["main"]
 

@@ -60,10 +60,10 @@ SCENARIOS = {
 FLOODER = r"""
 import sys, time
 import zenoh
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.codec import encode
-from protocol.messages import JointCommand, JointState
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.codec import encode
+from archery.protocol.messages import JointCommand, JointState
 
 endpoint, robot, kind, count = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
 with Node(None, NetConfig(connect=(endpoint,), robot=robot)) as node:
@@ -90,12 +90,12 @@ with Node(None, NetConfig(connect=(endpoint,), robot=robot)) as node:
 WORKLOAD = r"""
 import json, subprocess, sys, threading, time
 import numpy as np
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.messages import JointState
-from protocol.parts import PARTS
-from protocol.errors import RpcError
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.messages import JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.errors import RpcError
 from tests.rpc import rpc_call
 
 kind, rtf, watchdog, when, count, flooder_src = sys.argv[1:7]
@@ -106,7 +106,7 @@ endpoint = free_tcp_endpoint()
 router = spawn_router(endpoint)
 robot = "flood"
 flags = ["--connect", endpoint, "--robot", robot]
-cli = [sys.executable, "-m", "apps.cli"]
+cli = [sys.executable, "-m", "archery.apps.cli"]
 procs = [
     subprocess.Popen(
         [*cli, "robot", "--rtf", rtf, "--watchdog", watchdog, *flags], stdin=subprocess.DEVNULL

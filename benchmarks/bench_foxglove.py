@@ -25,15 +25,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from apps.port_rates import stream_counts
+from archery.apps.port_rates import stream_counts
+from archery.mesh.instances import describe_all
+from archery.mesh.node import Node
+from archery.protocol.journal_records import DoneRecord
+from archery.services.learner.journal import read_records
 from benchmarks.bench_record import _per_rollout
 from benchmarks.observers import cpu_seconds
 from benchmarks.paced_runs import paced_mesh, run_paced
 from benchmarks.spread import median_spread
-from mesh.instances import describe_all
-from mesh.node import Node
-from protocol.journal_records import DoneRecord
-from services.learner.journal import read_records
 
 __all__ = ["main"]
 
@@ -47,7 +47,7 @@ class Watched:
         if not (CLIENT / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
             subprocess.run(["npm", "ci", "--no-audit", "--no-fund"], cwd=CLIENT, check=True)
         self.bridge = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "foxglove", "--connect", endpoint, "--robot",
+            [sys.executable, "-m", "archery.apps.cli", "foxglove", "--connect", endpoint, "--robot",
              robot, "--port", "0"],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,

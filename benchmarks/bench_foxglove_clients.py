@@ -25,13 +25,13 @@ import time
 from pathlib import Path
 from typing import Any
 
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node, open_node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.messages import Image
+from archery.protocol.robotspec import SERVICES
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.netflags import NetConfig
-from mesh.node import Node, open_node
-from mesh.router import free_tcp_endpoint
-from protocol.messages import Image
-from protocol.robotspec import SERVICES
 
 __all__ = ["main"]
 
@@ -50,8 +50,8 @@ def _peak_rss(pid: int) -> int:
 def _one(endpoint: str, node: Node, frames: list[float], clients: int, more: int) -> dict[str, Any]:
     """One bridge with `clients` stalled camera clients while `more` frames are published."""
     bridge = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "foxglove", "--connect", endpoint, "--robot", ROBOT,
-         "--port", "0", "--max-clients", str(max(16, clients + 4))],
+        [sys.executable, "-m", "archery.apps.cli", "foxglove", "--connect", endpoint,
+         "--robot", ROBOT, "--port", "0", "--max-clients", str(max(16, clients + 4))],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     endpoint = free_tcp_endpoint()
     with tempfile.TemporaryDirectory() as tmp:
         up = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "up", "--listen", endpoint, "--robot", ROBOT,
+            [sys.executable, "-m", "archery.apps.cli", "up", "--listen", endpoint, "--robot", ROBOT,
              "--logs", f"{tmp}/logs", "--runs", f"{tmp}/runs"],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,

@@ -36,20 +36,20 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.compare.compare import compare
-from apps.experiment.censored import count_stats, format_counts
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from apps.gym.agent import run_learner
-from apps.gym.aim import AimEnv
-from apps.gym.registration import AIM_ID, AIM_ROBOT_ID
-from apps.learn.follow import follow
+from archery.apps.compare.compare import compare
+from archery.apps.experiment.censored import count_stats, format_counts
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.apps.gym.agent import run_learner
+from archery.apps.gym.aim import AimEnv
+from archery.apps.gym.registration import AIM_ID, AIM_ROBOT_ID
+from archery.apps.learn.follow import follow
+from archery.protocol.journal_records import DoneRecord
+from archery.services.learner.journal import read_records
+from archery.sim.ballistic import BallisticWorld
 from benchmarks.learning_mesh import learning_mesh
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from protocol.journal_records import DoneRecord
-from services.learner.journal import read_records
-from sim.ballistic import BallisticWorld
 from tests.rpc import rpc_call
 
 __all__ = ["main"]

@@ -41,15 +41,15 @@ import json, statistics, sys, threading, time
 from typing import Annotated
 import msgspec, numpy as np
 try:
-    from mesh.netflags import NetConfig
-    from mesh.node import Node
-    from mesh.router import free_tcp_endpoint, open_router
+    from archery.mesh.netflags import NetConfig
+    from archery.mesh.node import Node
+    from archery.mesh.router import free_tcp_endpoint, open_router
 except ImportError:  # the layout before the house
-    from protocol.netflags import NetConfig
-    from protocol.node import Node
-    from protocol.router import free_tcp_endpoint, open_router
-from protocol.messages import Image
-from protocol.verbs import Args, Reply, Verb, VerbTable
+    from archery.protocol.netflags import NetConfig
+    from archery.protocol.node import Node
+    from archery.protocol.router import free_tcp_endpoint, open_router
+from archery.protocol.messages import Image
+from archery.protocol.verbs import Args, Reply, Verb, VerbTable
 
 calls, frames = int(sys.argv[1]), int(sys.argv[2])
 

@@ -22,12 +22,12 @@ from rich.progress import Progress
 from rich.table import Table
 from scipy.optimize import minimize
 
-from apps.progress import progress_bar
-from protocol.robotspec import HOME_POSTURE
-from services.controller.ik import IkSolver
-from services.controller.ik_types import IkSettings
-from services.controller.model import ArmsModel, load_arms_model
-from services.controller.posture import ArcheryPosture
+from archery.apps.progress import progress_bar
+from archery.protocol.robotspec import HOME_POSTURE
+from archery.services.controller.ik import IkSolver
+from archery.services.controller.ik_types import IkSettings
+from archery.services.controller.model import ArmsModel, load_arms_model
+from archery.services.controller.posture import ArcheryPosture
 
 __all__ = ["Case", "Outcome", "SlsqpBaseline", "main"]
 

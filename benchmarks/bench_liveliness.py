@@ -31,13 +31,13 @@ from datetime import UTC, datetime
 
 import zenoh
 
-from apps.progress import progress_bar
+from archery.apps.progress import progress_bar
+from archery.mesh.instances import live_instances, zid_of
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.instances import live_instances, zid_of
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
 
 NAME = "robot"
 ARRANGEMENTS = ("alone", "fresh subscriber", "kept subscriber")

@@ -36,13 +36,13 @@ from typing import Any
 
 import psutil
 
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import open_node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Rollout
 from benchmarks.spread import median_spread
 from benchmarks.trees import ROOT, env_for, header, interleaved, tree_at
-from mesh.netflags import NetConfig
-from mesh.node import open_node
-from mesh.router import free_tcp_endpoint
-from protocol.journal_records import DoneRecord
-from protocol.messages import Rollout
 
 __all__ = ["main"]
 
@@ -51,7 +51,7 @@ SERVICES = ("robot", "camera", "detector", "controller", "learner")
 _RESUME = """
 import shutil, sys, tempfile, time
 from pathlib import Path
-from services.learner.session_setup import reopened_session
+from archery.services.learner.session_setup import reopened_session
 with tempfile.TemporaryDirectory() as tmp:
     path = Path(tmp) / "journal.jsonl"
     shutil.copy(sys.argv[1], path)
@@ -110,7 +110,7 @@ def _session(
     """One long session on a fresh mesh of the tree `env` runs; its figures."""
     endpoint = free_tcp_endpoint()
     runs, mcap = folder / "runs", folder / "run.mcap"
-    argv = [sys.executable, "-m", "apps.cli"]
+    argv = [sys.executable, "-m", "archery.apps.cli"]
     quiet = {"stdin": subprocess.DEVNULL, "stdout": subprocess.DEVNULL, "env": env, "cwd": folder}
     up = subprocess.Popen(
         [*argv, "up", "--listen", endpoint, "--runs", str(runs), "--record", str(mcap)],
@@ -311,7 +311,14 @@ def _print_times(
             shutil.copy(sessions[(name, algo)]["journal"], report / "journal.jsonl")
             times[name]["report"].append(
                 _timed(
-                    [sys.executable, "-m", "apps.cli", "report", "--no-progress", str(report)],
+                    [
+                        sys.executable,
+                        "-m",
+                        "archery.apps.cli",
+                        "report",
+                        "--no-progress",
+                        str(report),
+                    ],
                     env,
                     tmp,
                 )

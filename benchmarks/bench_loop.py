@@ -37,14 +37,14 @@ from typing import Any
 
 import numpy as np
 
-from apps.learn.follow import follow
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.journal_records import DoneRecord
-from protocol.messages import Rollout
-from services.learner.journal import read_records
+from archery.apps.learn.follow import follow
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import read_records
 from tests.rpc import rpc_call
 
 __all__ = ["main"]

@@ -53,18 +53,18 @@ import msgspec
 import numpy as np
 import zenoh
 
-from apps.progress import progress_bar
+from archery.apps.progress import progress_bar
+from archery.mesh.credentials import init_deployment
+from archery.mesh.netflags import NetConfig, open_session
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.codec import encode
+from archery.protocol.keys import verb_key, verbs_key
+from archery.protocol.messages import Image, RpcRequest
+from archery.protocol.verbs import Args, Reply, Verb, VerbTable, names_caller
 from benchmarks.echo_verbs import granted_verbs
 from benchmarks.machine import cpu_model
-from mesh.credentials import init_deployment
-from mesh.netflags import NetConfig, open_session
-from mesh.node import Node
-from mesh.publisher import Publisher
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.codec import encode
-from protocol.keys import verb_key, verbs_key
-from protocol.messages import Image, RpcRequest
-from protocol.verbs import Args, Reply, Verb, VerbTable, names_caller
 
 ROBOT = "bench"
 THETA = [0.17, 0.03, -0.03]

@@ -28,12 +28,12 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SIDE_CAMERA, TARGET_CAMERA, SceneConfig
+from archery.sim.urdf import load_urdf_model
+from archery.sim.world import ArcheryWorld, WorldConfig
 from benchmarks.machine import cpu_model, pin_one_core
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import SIDE_CAMERA, TARGET_CAMERA, SceneConfig
-from sim.urdf import load_urdf_model
-from sim.world import ArcheryWorld, WorldConfig
 from tests.postures import archery_posture
 from tests.world_steps import move_until_done
 

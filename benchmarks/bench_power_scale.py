@@ -24,11 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.experiment.censored import count_stats, format_counts
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
+from archery.apps.experiment.censored import count_stats, format_counts
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.services.learner.algorithms.power import DEFAULT_RETURN_SCALE
 from benchmarks.machine import cpu_model
-from services.learner.algorithms.power import DEFAULT_RETURN_SCALE
 
 __all__ = ["PAPER_POWER", "SCALES", "main"]
 

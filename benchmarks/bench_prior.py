@@ -38,13 +38,13 @@ from typing import Any
 
 import numpy as np
 
-from apps.experiment.config import AlgorithmRun, ExperimentConfig, WindChange
-from apps.experiment.experiment import run_algorithm, write_outputs
+from archery.apps.experiment.config import AlgorithmRun, ExperimentConfig, WindChange
+from archery.apps.experiment.experiment import run_algorithm, write_outputs
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.sim.ballistic import Scenario
 from benchmarks.learning_mesh import learning_mesh, progress_bar
 from benchmarks.prior_ranges import AIRS, range_rows, range_table
 from benchmarks.trees import ROOT, header, tree_at
-from services.learner.algorithms.registry import ALGORITHMS
-from sim.ballistic import Scenario
 from tests.rpc import rpc_call
 
 __all__ = ["CHANGE", "ROBOT_VARIANTS", "SCENARIOS", "main"]
@@ -154,9 +154,9 @@ def _run_ballistic(
 def _robot_session(
     node: Any, rollouts: Any, algo: str, options: dict[str, Any], seed: int, budget: int
 ) -> dict[str, Any]:
-    from apps.learn.follow import follow
-    from protocol.journal_records import DoneRecord
-    from services.learner.journal import read_records
+    from archery.apps.learn.follow import follow
+    from archery.protocol.journal_records import DoneRecord
+    from archery.services.learner.journal import read_records
 
     request = {"algo": algo, "seed": seed, "rollouts": budget, "options": options}
     start = time.perf_counter()

@@ -38,13 +38,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.protocol.verbs import detector as dv
+from archery.protocol.verbs.camera import GRAB, GrabArgs
 from benchmarks.learning_mesh import learning_mesh, progress_bar
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.node import Node
-from protocol.errors import RpcError
-from protocol.verbs import detector as dv
-from protocol.verbs.camera import GRAB, GrabArgs
 from tests.rpc import rpc_call
 
 __all__ = ["FLOOD", "GRABS", "main"]
@@ -123,7 +123,7 @@ def _reader(viewer: Node, condition: str, flood: int) -> Reader:
 
 def _session(node: Node, rollouts: Any, count: int, seed: int) -> float:
     """One ARCHER session of `count` rollouts; its wall time (s)."""
-    from apps.learn.follow import follow
+    from archery.apps.learn.follow import follow
 
     learner = node.keys.learner_rpc()
     request = {"algo": "archer", "seed": seed, "rollouts": count, "until_hit": False}

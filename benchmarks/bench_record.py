@@ -42,17 +42,17 @@ from typing import Any
 
 import numpy as np
 
-from apps.learn.follow import follow
-from apps.topics.recording import open_recording
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
+from archery.apps.learn.follow import follow
+from archery.apps.topics.recording import open_recording
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Detection, Image, Rollout
+from archery.services.learner.journal import read_records
 from benchmarks.observers import CONDITIONS, Observers, cpu_seconds, stop
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.journal_records import DoneRecord
-from protocol.messages import Detection, Image, Rollout
-from services.learner.journal import read_records
 from tests.rpc import rpc_call
 from tests.spawn import spawn
 
@@ -177,7 +177,7 @@ def _fidelity(endpoint: str, path: Path, model: Path, journal: Path) -> tuple[fl
         [
             sys.executable,
             "-m",
-            "apps.cli",
+            "archery.apps.cli",
             "detector",
             "--model",
             str(model),

@@ -36,12 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.topics.recording import Recorder
+from archery.apps.topics.recording import Recorder
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.codec import encode
+from archery.protocol.messages import Image
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.codec import encode
-from protocol.messages import Image
 from tests.peak_rss import run_with_peak
 
 __all__ = ["main"]

@@ -26,18 +26,18 @@ os.environ.setdefault("MUJOCO_GL", "egl")
 import mujoco
 import numpy as np
 
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.messages import Array, Image, WorldState
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run
+from archery.sim.arrow import arrow_quat
+from archery.sim.model_build import build_scene
+from archery.sim.render import LEAN_FLAGS, ROBOT_GEOM_GROUP, SceneRenderer
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig
 from benchmarks.machine import cpu_model
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.messages import Array, Image, WorldState
-from services.camera.config import CameraConfig
-from services.camera.service import run
-from sim.arrow import arrow_quat
-from sim.model_build import build_scene
-from sim.render import LEAN_FLAGS, ROBOT_GEOM_GROUP, SceneRenderer
-from sim.scene import ScenePhysics
-from sim.scene_config import TARGET_CAMERA, TARGET_CENTRE_SITE, SceneConfig
 from tests.rpc import rpc_call
 
 __all__ = ["main"]

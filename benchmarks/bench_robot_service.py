@@ -26,18 +26,18 @@ import time
 
 import numpy as np
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, open_router
-from protocol.messages import WorldEvent
-from protocol.theta import THETA_BOX
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, open_router
+from archery.protocol.messages import WorldEvent
+from archery.protocol.theta import THETA_BOX
 from tests.rpc import rpc_call
 
 __all__ = ["main"]
 
 
 def _spawn(verb: str, net: NetConfig, *flags: str) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "apps.cli", verb, "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "archery.apps.cli", verb, "--connect", net.connect[0]]
     return subprocess.Popen([*argv, "--robot", net.robot, *flags], stdin=subprocess.DEVNULL)
 
 

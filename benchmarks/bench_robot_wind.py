@@ -54,9 +54,9 @@ def _session(
 ) -> dict[str, Any]:
     """One session of `algo`: up to `before` rollouts to the first hit, the wind changed after
     it, then up to `after` rollouts to hit again."""
-    from apps.learn.follow import follow
-    from protocol.journal_records import DoneRecord
-    from services.learner.journal import read_records
+    from archery.apps.learn.follow import follow
+    from archery.protocol.journal_records import DoneRecord
+    from archery.services.learner.journal import read_records
 
     robot, learner = node.keys.archery_rpc(), node.keys.learner_rpc()
     rpc_call(node, robot, "setWind", {"wind": [0.0, 0.0, 0.0]}, timeout=20)

@@ -25,17 +25,17 @@ from typing import Any
 
 from zenoh_ros2_sdk import ROS2Subscriber, ZenohSession
 
-from apps.port_rates import stream_counts
-from apps.ros2 import typestore
-from apps.ros2.command import READY
+from archery.apps.port_rates import stream_counts
+from archery.apps.ros2 import typestore
+from archery.apps.ros2.command import READY
+from archery.mesh.instances import describe_all
+from archery.mesh.node import Node
+from archery.protocol.parts import PARTS
 from benchmarks.bench_foxglove import _rollouts
 from benchmarks.bench_record import _per_rollout
 from benchmarks.observers import cpu_seconds
 from benchmarks.paced_runs import paced_mesh, run_paced
 from benchmarks.spread import median_spread
-from mesh.instances import describe_all
-from mesh.node import Node
-from protocol.parts import PARTS
 from tests.ros2_sdk import sdk_session
 
 __all__ = ["main"]
@@ -53,7 +53,16 @@ class WithNode:
 
     def __init__(self, endpoint: str, net: Any) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "ros2", "--connect", endpoint, "--robot", ROBOT],
+            [
+                sys.executable,
+                "-m",
+                "archery.apps.cli",
+                "ros2",
+                "--connect",
+                endpoint,
+                "--robot",
+                ROBOT,
+            ],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,
             text=True,

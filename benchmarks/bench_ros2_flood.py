@@ -33,18 +33,18 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from apps.ros2 import convert, typestore
-from apps.ros2.command import READY
-from apps.ros2.wire import Attachment, data_key
-from apps.up.launcher import Launcher
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.command import READY
+from archery.apps.ros2.wire import Attachment, data_key
+from archery.apps.up.launcher import Launcher
+from archery.mesh.netflags import open_session
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.mesh.subscription import Subscription
+from archery.protocol.messages import JointState
+from archery.protocol.verbs import robot as rv
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.netflags import open_session
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from mesh.subscription import Subscription
-from protocol.messages import JointState
-from protocol.verbs import robot as rv
 
 __all__ = ["main"]
 
@@ -132,8 +132,8 @@ def _run(repeats: int, count: int, base: Path) -> dict[str, list[float]]:
     node_proc = None
     try:
         node_proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "ros2", "--connect", endpoint, "--robot", ROBOT,
-             "--operator"],
+            [sys.executable, "-m", "archery.apps.cli", "ros2", "--connect", endpoint,
+             "--robot", ROBOT, "--operator"],
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
         )  # fmt: skip
         assert node_proc.stdout is not None

@@ -26,13 +26,13 @@ import time
 
 import numpy as np
 
-from apps.progress import progress_bar
+from archery.apps.progress import progress_bar
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.messages import Image
 from benchmarks.echo_verbs import ECHO, ECHO_ARGS, echo_verbs
 from benchmarks.machine import cpu_model
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.messages import Image
 
 WIDTH, HEIGHT = 1280, 720
 

@@ -33,16 +33,16 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from apps.dashboard.watch import SCENE_INTEREST
-from apps.up.launch_config import SERVICES
+from archery.apps.dashboard.watch import SCENE_INTEREST
+from archery.apps.up.launch_config import SERVICES
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.messages import Rollout
+from archery.services.camera.scene_view import PERIOD
 from benchmarks.bench_record import _per_rollout, mesh_launcher
 from benchmarks.machine import cpu_model
 from benchmarks.observers import PageClient, cpu_seconds, stop
 from benchmarks.spread import median_spread
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.messages import Rollout
-from services.camera.scene_view import PERIOD
 from tests.spawn import spawn
 
 __all__ = ["main"]

@@ -39,20 +39,20 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.learn.follow import follow
-from apps.progress import progress_bar
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
+from archery.apps.learn.follow import follow
+from archery.apps.progress import progress_bar
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.credentials import init_deployment
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.mesh.subscription import Subscription
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Image, Rollout
 from benchmarks.echo_verbs import ECHO_ARGS, granted_verbs, named_echo
 from benchmarks.machine import cpu_model
-from mesh.credentials import init_deployment
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.publisher import Publisher
-from mesh.router import free_tcp_endpoint, spawn_router
-from mesh.subscription import Subscription
-from protocol.journal_records import DoneRecord
-from protocol.messages import Image, Rollout
 from tests.rpc import rpc_call
 
 ROBOT = "bench"

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from apps.experiment.config import ExperimentConfig, Transfer
-from apps.experiment.experiment import run_algorithm
-from sim.ballistic import Scenario
+from archery.apps.experiment.config import ExperimentConfig, Transfer
+from archery.apps.experiment.experiment import run_algorithm
+from archery.sim.ballistic import Scenario
 
 __all__ = ["PAIRS", "main"]
 

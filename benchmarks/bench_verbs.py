@@ -24,10 +24,10 @@ from typing import Annotated
 import msgspec
 import numpy as np
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.verbs import Args, Reply, Verb, VerbTable
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.verbs import Args, Reply, Verb, VerbTable
 from tests.rpc import rpc_call
 
 THETA = [0.17, 0.03, -0.03]

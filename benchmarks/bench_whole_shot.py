@@ -26,25 +26,25 @@ from typing import Any
 
 import numpy as np
 
-from apps.learn.follow import follow
-from apps.progress import progress_bar
-from apps.up.launch_config import SERVICES, MeshConfig, RobotSpec, RouterSpec, ServiceSpec
-from apps.up.launcher import Launcher
+from archery.apps.learn.follow import follow
+from archery.apps.progress import progress_bar
+from archery.apps.up.launch_config import SERVICES, MeshConfig, RobotSpec, RouterSpec, ServiceSpec
+from archery.apps.up.launcher import Launcher
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.demonstration import parse_demonstration
+from archery.protocol.errors import ArcheryError
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Rollout
+from archery.protocol.theta import THETA_BOX
+from archery.protocol.verbs import controller as cv
+from archery.protocol.verbs import learner as lv
+from archery.protocol.verbs import robot as rv
+from archery.services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from archery.services.controller.movement import Movement
+from archery.services.learner.journal import read_records
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.demonstration import parse_demonstration
-from protocol.errors import ArcheryError
-from protocol.journal_records import DoneRecord
-from protocol.messages import Rollout
-from protocol.theta import THETA_BOX
-from protocol.verbs import controller as cv
-from protocol.verbs import learner as lv
-from protocol.verbs import robot as rv
-from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
-from services.controller.movement import Movement
-from services.learner.journal import read_records
 
 __all__ = ["main"]
 
@@ -147,8 +147,8 @@ def _session(launcher: Launcher, seed: int, rollouts: int, algo: str) -> dict[st
 def _fig6(sessions: dict[str, list[dict[str, Any]]], path: Path, rollouts: int) -> None:
     """Fig. 6 of ARCHER on the whole shot beside the posture shot (the true distances) over
     the sessions that ran all `rollouts` (a failed session is counted in the table only)."""
-    from apps.experiment.config import AlgorithmRun
-    from apps.experiment.plots import plot_convergence
+    from archery.apps.experiment.config import AlgorithmRun
+    from archery.apps.experiment.plots import plot_convergence
 
     runs = {
         shot: AlgorithmRun(

@@ -17,7 +17,7 @@ import argparse
 import sys
 import tempfile
 
-from apps.drills.runner import main as drill_main
+from archery.apps.drills.runner import main as drill_main
 
 
 def main(argv: list[str] | None = None) -> int:

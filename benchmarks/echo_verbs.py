@@ -3,9 +3,9 @@ every verb of the mesh (what the RPC benchmarks time)."""
 
 from __future__ import annotations
 
-from mesh.acl import roles
-from protocol.keys import split_verb
-from protocol.verbs import Args, Reply, ServedVerbs, Verb, VerbTable
+from archery.mesh.acl import roles
+from archery.protocol.keys import split_verb
+from archery.protocol.verbs import Args, Reply, ServedVerbs, Verb, VerbTable
 
 __all__ = [
     "ECHO",

@@ -8,13 +8,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from apps.progress import progress_bar
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from mesh.subscription import Subscription
-from protocol.messages import Rollout
+from archery.apps.progress import progress_bar
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.mesh.subscription import Subscription
+from archery.protocol.messages import Rollout
 
 __all__ = ["learning_mesh", "progress_bar"]
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import psutil
 
-from apps.dashboard.server import TOKEN_HEADER
-from mesh.router import free_tcp_endpoint
+from archery.apps.dashboard.server import TOKEN_HEADER
+from archery.mesh.router import free_tcp_endpoint
 from tests.spawn import spawn
 
 __all__ = ["CONDITIONS", "Observers", "PageClient", "cpu_seconds", "stop"]

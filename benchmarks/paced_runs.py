@@ -13,13 +13,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.node import Node
+from archery.mesh.subscription import Subscription
+from archery.protocol.messages import Rollout
 from benchmarks.bench_record import _per_rollout, mesh_launcher
 from benchmarks.trees import header
-from mesh.node import Node
-from mesh.subscription import Subscription
-from protocol.messages import Rollout
 
 __all__ = ["PacedMesh", "paced_mesh", "run_paced"]
 

@@ -32,9 +32,9 @@ AIRS = (
 WORKLOAD = """
 import json, sys
 import numpy as np
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from sim.ballistic import Scenario
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.sim.ballistic import Scenario
 spec = json.loads(sys.argv[1])
 rows = []
 for distance in spec["distances"]:

@@ -16,9 +16,9 @@ from typing import Any
 
 import zenoh
 
-from protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
-from protocol.parts import PARTS
-from protocol.verbs import TABLES, names_caller
+from archery.protocol.keys import CARTESIAN_ARMS, Keys, tap_keys, verb_key, verbs_key
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs import TABLES, names_caller
 
 __all__ = [
     "OPERATOR",

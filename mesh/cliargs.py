@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NoReturn
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = [
     "IMAGE_EXTENSIONS",

@@ -18,7 +18,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Union, get_args, get_origin, get_type_hints
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = [
     "FlagSpec",

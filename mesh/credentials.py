@@ -23,10 +23,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from mesh.acl import OPERATOR, REPLAY, ROS2, ROS2_OPERATOR, VIEWER
-from protocol.errors import ConfigError
-from protocol.keys import DEFAULT_ROBOT, validate_robot
-from protocol.robotspec import SERVICES
+from archery.mesh.acl import OPERATOR, REPLAY, ROS2, ROS2_OPERATOR, VIEWER
+from archery.protocol.errors import ConfigError
+from archery.protocol.keys import DEFAULT_ROBOT, validate_robot
+from archery.protocol.robotspec import SERVICES
 
 __all__ = [
     "IDENTITIES",
@@ -211,7 +211,7 @@ def init_deployment(
     Raises:
         ConfigError: `directory` holds a deployment already (unless `force`), or a bad value.
     """
-    from mesh.acl import rules
+    from archery.mesh.acl import rules
 
     validate_robot(robot)
     if not 0 < days <= 3650:

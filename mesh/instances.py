@@ -20,12 +20,12 @@ from pathlib import Path
 
 import zenoh
 
-from mesh.runtime import ReplaceToken, read_token
-from mesh.tokens import TokenSet
-from protocol.codec import decode, encode
-from protocol.errors import DecodeError, DuplicateService
-from protocol.keys import Keys
-from protocol.messages import Describe, ReplaceRequest
+from archery.mesh.runtime import ReplaceToken, read_token
+from archery.mesh.tokens import TokenSet
+from archery.protocol.codec import decode, encode
+from archery.protocol.errors import DecodeError, DuplicateService
+from archery.protocol.keys import Keys
+from archery.protocol.messages import Describe, ReplaceRequest
 
 __all__ = [
     "InstanceWatch",

@@ -15,11 +15,11 @@ from collections.abc import Callable, Iterable
 
 import zenoh
 
-from mesh.tokens import TokenSet
-from protocol.errors import (
+from archery.mesh.tokens import TokenSet
+from archery.protocol.errors import (
     RpcTimeout,
 )
-from protocol.keys import ALIVE_EVERY_ROBOT, Keys
+from archery.protocol.keys import ALIVE_EVERY_ROBOT, Keys
 
 __all__ = ["Liveliness", "OnWait"]
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import zenoh
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = ["DEFAULT_SPEC", "LEVELS", "add_log_args", "configure", "parse_spec"]
 

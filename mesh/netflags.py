@@ -21,10 +21,10 @@ from pathlib import Path
 
 import zenoh
 
-from mesh.cliargs import clean_zenoh_error
-from mesh.logs import add_log_args
-from protocol.errors import ConfigError, Unreachable
-from protocol.keys import DEFAULT_ROBOT, validate_robot
+from archery.mesh.cliargs import clean_zenoh_error
+from archery.mesh.logs import add_log_args
+from archery.protocol.errors import ConfigError, Unreachable
+from archery.protocol.keys import DEFAULT_ROBOT, validate_robot
 
 __all__ = [
     "DEFAULT_ROUTER",

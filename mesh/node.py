@@ -23,24 +23,24 @@ from typing import Any, TypeVar
 import msgspec
 import zenoh
 
-from mesh import instances
-from mesh.liveliness import Liveliness, OnWait
-from mesh.netflags import NetConfig, listens, open_session
-from mesh.publisher import Publisher
-from mesh.router import wait_for_endpoint
-from mesh.rpc_client import RpcClient
-from mesh.rpc_server import RpcServer
-from mesh.runtime import ReplaceToken
-from mesh.subscription import Subscription
-from protocol.codec import encode
-from protocol.errors import ConfigError, Unreachable
-from protocol.keys import Keys
-from protocol.messages import (
+from archery.mesh import instances
+from archery.mesh.liveliness import Liveliness, OnWait
+from archery.mesh.netflags import NetConfig, listens, open_session
+from archery.mesh.publisher import Publisher
+from archery.mesh.router import wait_for_endpoint
+from archery.mesh.rpc_client import RpcClient
+from archery.mesh.rpc_server import RpcServer
+from archery.mesh.runtime import ReplaceToken
+from archery.mesh.subscription import Subscription
+from archery.protocol.codec import encode
+from archery.protocol.errors import ConfigError, Unreachable
+from archery.protocol.keys import Keys
+from archery.protocol.messages import (
     Describe,
     Message,
     PortInfo,
 )
-from protocol.verbs.base import ServedVerbs
+from archery.protocol.verbs.base import ServedVerbs
 
 __all__ = ["Node", "open_node"]
 
@@ -71,6 +71,7 @@ class Node(RpcClient, Liveliness):
         self._verbs: dict[str, list[str]] = {}
         self._interfaces: dict[str, dict[str, Any]] = {}
         self._closables: list[Any] = []
+        self._ports_lock = threading.Lock()  # ports come and go from any thread (`unsubscribe`)
         self._queriers: dict[tuple[str, float], zenoh.Querier] = {}
         self._rpc_seq = itertools.count(1)  # next() is atomic: no lock per call
         self._rpc_lock = threading.Lock()
@@ -136,7 +137,9 @@ class Node(RpcClient, Liveliness):
             quietly("describe queryable", self._describe.undeclare)
             quietly("replace queryable", self._replace.undeclare)
             quietly("replace token", self._replace_token.close)
-        for item in reversed(self._closables):
+        with self._ports_lock:
+            closables = list(self._closables)
+        for item in reversed(closables):
             quietly(type(item).__name__, item.close)
         for key, querier in self._queriers.items():
             quietly(f"querier {key[0]}", querier.undeclare)
@@ -173,6 +176,16 @@ class Node(RpcClient, Liveliness):
         self._register(key, "sub", message_type.__name__, sub)
         return sub
 
+    def unsubscribe(self, sub: Subscription[Any]) -> None:
+        """Undeclare a subscription of this node's (`subscribe`): it leaves `describe`; one
+        already gone is ignored."""
+        with self._ports_lock:
+            for i, closable in enumerate(self._closables):
+                if closable is sub:
+                    del self._closables[i], self._ports[i]
+                    break
+        sub.close()
+
     def serve(self, key: str, verbs: ServedVerbs) -> RpcServer:
         """Serve an `rpc:i` key: a verb table with its handlers bound (`VerbTable.bind`), whose
         argument and reply schemas `describe` then carries, and its taps (`mesh.rpc_tap`)."""
@@ -187,18 +200,21 @@ class Node(RpcClient, Liveliness):
         return server
 
     def _register(self, key: str, kind: str, message: str, closable: Any) -> None:
-        self._ports.append(PortInfo(key=key, kind=kind, message=message))
-        self._closables.append(closable)
+        with self._ports_lock:
+            self._ports.append(PortInfo(key=key, kind=kind, message=message))
+            self._closables.append(closable)
 
     def describe(self) -> Describe:
         """This node's self-description."""
+        with self._ports_lock:
+            ports = list(zip(self._ports, self._closables, strict=True))
         return Describe(
             service=self.name or "",
             ports=[
                 msgspec.structs.replace(port, count=source.count)
                 if isinstance(source, Publisher)
                 else port
-                for port, source in zip(self._ports, self._closables, strict=True)
+                for port, source in ports
             ],
             pid=os.getpid(),
             host=socket.gethostname(),

@@ -12,11 +12,11 @@ import functools
 
 import zenoh
 
-from mesh.cliargs import clean_zenoh_error
-from protocol.errors import KeyNameError
-from protocol.keys import CARTESIAN_ARMS, PORTS
-from protocol.messages import MESSAGE_TYPES, Message
-from protocol.parts import PARTS
+from archery.mesh.cliargs import clean_zenoh_error
+from archery.protocol.errors import KeyNameError
+from archery.protocol.keys import CARTESIAN_ARMS, PORTS
+from archery.protocol.messages import MESSAGE_TYPES, Message
+from archery.protocol.parts import PARTS
 
 __all__ = ["STREAM_KINDS", "check_pattern", "is_wildcard", "stream_type"]
 
@@ -64,7 +64,7 @@ def check_pattern(pattern: str) -> zenoh.KeyExpr:
 
 def stream_type(key: str) -> type[Message] | None:
     """The message type of a concrete stream key, or None when it is no stream port."""
-    from protocol.keys import port_of
+    from archery.protocol.keys import port_of
 
     try:
         spec = port_of(key)

@@ -18,7 +18,7 @@ import os
 import threading
 from pathlib import Path
 
-from mesh.cliargs import int_in
+from archery.mesh.cliargs import int_in
 
 __all__ = [
     "OBSERVER_NICE",

@@ -12,8 +12,8 @@ from typing import Generic, TypeVar, cast
 import msgspec
 import zenoh
 
-from protocol.codec import encode_into
-from protocol.messages import (
+from archery.protocol.codec import encode_into
+from archery.protocol.messages import (
     Image,
     Message,
 )

@@ -13,8 +13,8 @@ from __future__ import annotations
 import threading
 import time
 
-from protocol.errors import Busy
-from protocol.text import shown
+from archery.protocol.errors import Busy
+from archery.protocol.text import shown
 
 __all__ = ["MAX_IDENTITIES", "RateLimit"]
 

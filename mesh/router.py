@@ -14,16 +14,16 @@ import time
 
 import zenoh
 
-from mesh.cliargs import ArgumentParser
-from mesh.netflags import (
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.netflags import (
     DEFAULT_ROUTER,
     DEFAULT_SECURE_ROUTER,
     NetConfig,
     add_network_args,
     open_session,
 )
-from mesh.signals import shutdown_on_signals
-from protocol.errors import ConfigError
+from archery.mesh.signals import shutdown_on_signals
+from archery.protocol.errors import ConfigError
 
 __all__ = ["free_tcp_endpoint", "main", "open_router", "spawn_router", "wait_for_endpoint"]
 
@@ -73,7 +73,7 @@ def spawn_router(
     extra = ["--secure", secure] if secure is not None else []
     extra += ["--log-level", log_level]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "router", "--listen", endpoint, *extra],
+        [sys.executable, "-m", "archery.apps.cli", "router", "--listen", endpoint, *extra],
         stdin=subprocess.DEVNULL,
     )
     try:

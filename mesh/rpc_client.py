@@ -13,25 +13,25 @@ from typing import TypeVar
 import msgspec
 import zenoh
 
-from mesh import instances
-from mesh.acl import OPERATOR, granted, server_of
-from mesh.netflags import NetConfig
-from protocol.codec import decode, encode
-from protocol.errors import (
+from archery.mesh import instances
+from archery.mesh.acl import OPERATOR, granted, server_of
+from archery.mesh.netflags import NetConfig
+from archery.protocol.codec import decode, encode
+from archery.protocol.errors import (
     RpcError,
     RpcTimeout,
     UpstreamLost,
     WrongReplier,
 )
-from protocol.keys import Keys, verb_key
-from protocol.messages import (
+from archery.protocol.keys import Keys, verb_key
+from archery.protocol.messages import (
     MAX_CALLER_WAIT,
     RpcReply,
     RpcRequest,
 )
-from protocol.robotspec import CALL_TIMEOUT
-from protocol.verbs import names_caller
-from protocol.verbs.base import Verb
+from archery.protocol.robotspec import CALL_TIMEOUT
+from archery.protocol.verbs import names_caller
+from archery.protocol.verbs.base import Verb
 
 __all__ = ["RpcClient", "reply_error"]
 

@@ -19,26 +19,26 @@ from typing import Annotated, Any, TypeVar
 import msgspec
 import zenoh
 
-from mesh.memory import note_payload
-from mesh.priority import lower_thread_priority
-from mesh.rpc_tap import RpcTap
-from protocol.codec import MAX_PAYLOAD_BYTES, encode
-from protocol.errors import (
+from archery.mesh.memory import note_payload
+from archery.mesh.priority import lower_thread_priority
+from archery.mesh.rpc_tap import RpcTap
+from archery.protocol.codec import MAX_PAYLOAD_BYTES, encode
+from archery.protocol.errors import (
     ArcheryError,
     Busy,
     DecodeError,
     RpcTimeout,
     UpstreamLost,
 )
-from protocol.keys import split_verb, tap_keys, verbs_key
-from protocol.messages import (
+from archery.protocol.keys import split_verb, tap_keys, verbs_key
+from archery.protocol.messages import (
     MAX_CALLER_WAIT,
     Message,
     RpcReply,
 )
-from protocol.text import SHOWN_LIMIT, cut, shown
-from protocol.verbs.base import BoundVerb, ServedVerbs, Verb
-from protocol.verbs.schema import field_text
+from archery.protocol.text import SHOWN_LIMIT, cut, shown
+from archery.protocol.verbs.base import BoundVerb, ServedVerbs, Verb
+from archery.protocol.verbs.schema import field_text
 
 __all__ = [
     "ANONYMOUS",

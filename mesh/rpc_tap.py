@@ -18,9 +18,9 @@ from typing import Any
 import msgspec
 import zenoh
 
-from mesh.publisher import Publisher
-from protocol.keys import tap_keys
-from protocol.messages import RpcReply, RpcRequest
+from archery.mesh.publisher import Publisher
+from archery.protocol.keys import tap_keys
+from archery.protocol.messages import RpcReply, RpcRequest
 
 __all__ = ["MAX_TAPPED_REPLY", "REDACTED", "RpcTap"]
 

@@ -10,10 +10,10 @@ import threading
 from collections.abc import Callable
 from typing import TypeVar
 
-from mesh.cliargs import ArgumentParser
-from mesh.netflags import NetConfig, add_network_args
-from mesh.signals import shutdown_on_signals
-from protocol.errors import ArcheryError, DuplicateService
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.signals import shutdown_on_signals
+from archery.protocol.errors import ArcheryError, DuplicateService
 
 __all__ = ["service_main"]
 

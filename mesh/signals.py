@@ -6,7 +6,7 @@ import logging
 import signal
 import threading
 
-from mesh import instances
+from archery.mesh import instances
 
 __all__ = ["shutdown_on_signals"]
 

@@ -13,14 +13,14 @@ from typing import Generic, TypeVar
 
 import zenoh
 
-from mesh.memory import note_payload
-from protocol.codec import decode
-from protocol.errors import (
+from archery.mesh.memory import note_payload
+from archery.protocol.codec import decode
+from archery.protocol.errors import (
     DecodeError,
     RpcTimeout,
     StaleState,
 )
-from protocol.messages import (
+from archery.protocol.messages import (
     Message,
 )
 

@@ -6,8 +6,8 @@ No Zenoh, no argparse, no I/O: a reader learns every message and verb of the mes
 runtime that carries them is `mesh`.
 """
 
-from protocol.codec import decode, encode
-from protocol.errors import (
+from archery.protocol.codec import decode, encode
+from archery.protocol.errors import (
     ArcheryError,
     BadRequest,
     ConfigError,
@@ -16,7 +16,7 @@ from protocol.errors import (
     RpcError,
     RpcTimeout,
 )
-from protocol.keys import Keys, port_of
+from archery.protocol.keys import Keys, port_of
 
 __all__ = [
     "ArcheryError",

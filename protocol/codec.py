@@ -6,9 +6,9 @@ from typing import Any, TypeVar, Union
 
 import msgspec
 
-from protocol.errors import DecodeError
-from protocol.messages import MESSAGE_TYPES, Array, Image, Message
-from protocol.text import SHOWN_LIMIT, cut, shown
+from archery.protocol.errors import DecodeError
+from archery.protocol.messages import MESSAGE_TYPES, Array, Image, Message
+from archery.protocol.text import SHOWN_LIMIT, cut, shown
 
 __all__ = [
     "MAX_PAYLOAD_BYTES",

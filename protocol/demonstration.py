@@ -19,8 +19,8 @@ from typing import Annotated, Literal
 import msgspec
 from msgspec import Meta
 
-from protocol.errors import ArcheryError
-from protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.errors import ArcheryError
+from archery.protocol.parts import ARM_PARTS, PARTS
 
 __all__ = [
     "EVENT_SLACK",

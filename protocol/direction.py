@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.errors import ArcheryError
+from archery.protocol.errors import ArcheryError
 
 __all__ = ["MIN_THETA_NORM", "NoArrowDirection", "arrow_direction"]
 

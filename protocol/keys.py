@@ -10,10 +10,10 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from protocol.errors import KeyNameError
-from protocol.parts import PARTS
-from protocol.robotspec import SERVICES
-from protocol.text import shown
+from archery.protocol.errors import KeyNameError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import SERVICES
+from archery.protocol.text import shown
 
 __all__ = [
     "ALIVE_EVERY_ROBOT",

@@ -21,8 +21,8 @@ import msgspec.inspect
 import numpy as np
 from msgspec import Meta
 
-from protocol.journal_records import RolloutRecord
-from protocol.text import shown
+from archery.protocol.journal_records import RolloutRecord
+from archery.protocol.text import shown
 
 __all__ = [
     "ALLOWED_DTYPES",

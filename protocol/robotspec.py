@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from types import MappingProxyType
 
-from protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.parts import ARM_PARTS, PARTS
 
 __all__ = [
     "BOW_ARM",

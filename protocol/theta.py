@@ -21,7 +21,7 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
-from protocol.text import shown
+from archery.protocol.text import shown
 
 __all__ = ["THETA_BOX", "THETA_SIZE", "Theta", "ThetaBox"]
 

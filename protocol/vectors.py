@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.text import shown
+from archery.protocol.text import shown
 
 __all__ = ["MAX_SHOWN", "finite_vector", "parse_vector"]
 

@@ -4,6 +4,6 @@ Importing the package picks the rendering backend (`sim.gl_backend.select`) befo
 modules imports `mujoco`, which reads `MUJOCO_GL` only then.
 """
 
-from sim.gl_backend import select as _select_rendering_backend
+from archery.sim.gl_backend import select as _select_rendering_backend
 
 _select_rendering_backend()

@@ -17,10 +17,10 @@ from enum import StrEnum
 import mujoco
 import numpy as np
 
-from protocol.direction import arrow_direction
-from sim.bow import Bow
-from sim.errors import StateError
-from sim.scene import ScenePhysics
+from archery.protocol.direction import arrow_direction
+from archery.sim.bow import Bow
+from archery.sim.errors import StateError
+from archery.sim.scene import ScenePhysics
 
 __all__ = [
     "ArrowFlight",

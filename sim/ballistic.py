@@ -18,10 +18,16 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from protocol.direction import NoArrowDirection
-from protocol.vectors import finite_vector
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, INNER_RING_RADIUS, START_THETA, TARGET_DISTANCE, target_centre
+from archery.protocol.direction import NoArrowDirection
+from archery.protocol.vectors import finite_vector
+from archery.sim.bow import Bow
+from archery.sim.geometry import (
+    BOW_HAND,
+    INNER_RING_RADIUS,
+    START_THETA,
+    TARGET_DISTANCE,
+    target_centre,
+)
 
 __all__ = [
     "GRAVITY",

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.direction import arrow_direction
+from archery.protocol.direction import arrow_direction
 
 __all__ = ["Bow", "BowError"]
 

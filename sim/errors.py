@@ -3,7 +3,7 @@ invalid parameter is the project's `protocol.errors.ConfigError`)."""
 
 from __future__ import annotations
 
-from protocol import errors as project
+from archery.protocol import errors as project
 
 __all__ = [
     "ArrowDropped",

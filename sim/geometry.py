@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol import robotspec
+from archery.protocol import robotspec
 
 __all__ = [
     "BOW_HAND",

@@ -16,7 +16,7 @@ import os
 import sys
 from typing import Any
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = ["HEADLESS", "RenderBackendError", "check", "renderer_ready", "select"]
 

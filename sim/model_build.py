@@ -14,13 +14,13 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from protocol.parts import PARTS
-from protocol.robotspec import HOME_POSTURE
-from sim.errors import SceneError
-from sim.props import add_arrow, add_bow, add_environment, add_target
-from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, STRING_NOCK_SITE, SceneConfig
-from sim.urdf import add_hand_sites, robot_spec
-from sim.whole_props import add_whole_shot_props
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import HOME_POSTURE
+from archery.sim.errors import SceneError
+from archery.sim.props import add_arrow, add_bow, add_environment, add_target
+from archery.sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, STRING_NOCK_SITE, SceneConfig
+from archery.sim.urdf import add_hand_sites, robot_spec
+from archery.sim.whole_props import add_whole_shot_props
 
 __all__ = ["build_scene"]
 

@@ -16,9 +16,9 @@ from itertools import pairwise
 import mujoco
 import numpy as np
 
-from sim.errors import SceneError
-from sim.geometry import TARGET_DIAMETER, target_centre
-from sim.scene_config import (
+from archery.sim.errors import SceneError
+from archery.sim.geometry import TARGET_DIAMETER, target_centre
+from archery.sim.scene_config import (
     ARROW_BODY,
     ARROW_JOINT,
     ARROW_TIP_RGBA,
@@ -30,7 +30,7 @@ from sim.scene_config import (
     TARGET_CENTRE_SITE,
     SceneConfig,
 )
-from sim.whole_props import holder_arrow_pose
+from archery.sim.whole_props import holder_arrow_pose
 
 __all__ = ["add_arrow", "add_bow", "add_environment", "add_target", "look_at_quat"]
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import mujoco
 import numpy as np
 
-from sim.errors import CommandError
-from sim.scene import ScenePhysics
+from archery.sim.errors import CommandError
+from archery.sim.scene import ScenePhysics
 
 __all__ = ["PointTarget", "reach"]
 

@@ -16,19 +16,19 @@ import math
 import mujoco
 import numpy as np
 
-from protocol.errors import ConfigError
-from sim.arrow import arrow_quat
-from sim.gl_backend import renderer_ready
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import (
+from archery.protocol.errors import ConfigError
+from archery.sim.arrow import arrow_quat
+from archery.sim.gl_backend import renderer_ready
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import (
     ARROW_BODY,
     RING_COLOURS,
     TARGET_CAMERA,
     TARGET_CENTRE_SITE,
     SceneConfig,
 )
-from sim.view_key import ViewKey
+from archery.sim.view_key import ViewKey
 
 __all__ = [
     "CALIBRATION_ARROW_R",

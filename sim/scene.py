@@ -16,9 +16,9 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from protocol.parts import PARTS
-from sim.errors import CommandError, SceneError
-from sim.scene_config import (
+from archery.protocol.parts import PARTS
+from archery.sim.errors import CommandError, SceneError
+from archery.sim.scene_config import (
     ARROW_BODY,
     ARROW_JOINT,
     ARROW_TIP_SITE,

@@ -13,12 +13,12 @@ from dataclasses import dataclass, fields
 
 import msgspec
 
-from protocol.errors import ConfigError
-from protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
-from protocol.vectors import finite_vector
-from protocol.verbs.robot import Scene
-from sim.bow import Bow
-from sim.geometry import TARGET_DISTANCE
+from archery.protocol.errors import ConfigError
+from archery.protocol.robotspec import BOW_HAND_FRAME, STRING_HAND_FRAME
+from archery.protocol.vectors import finite_vector
+from archery.protocol.verbs.robot import Scene
+from archery.sim.bow import Bow
+from archery.sim.geometry import TARGET_DISTANCE
 
 __all__ = [
     "ARROW_BODY",

@@ -19,8 +19,8 @@ from collections.abc import Sequence
 import mujoco
 import numpy as np
 
-from sim.render import SceneRenderer
-from sim.scene_config import SIDE_CAMERA, SceneConfig
+from archery.sim.render import SceneRenderer
+from archery.sim.scene_config import SIDE_CAMERA, SceneConfig
 
 __all__ = ["SceneView", "free_camera"]
 

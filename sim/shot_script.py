@@ -16,13 +16,13 @@ from typing import Literal
 import mujoco
 import numpy as np
 
-from protocol.robotspec import BOW_ARM, STRING_ARM
-from sim.errors import StateError
-from sim.reach import PointTarget, reach
-from sim.scene import ScenePhysics
-from sim.scene_config import ARROW_NOCK_SITE, BOW_HAND_SITE, GRASP_SITE
-from sim.whole_props import NOCK_GRIP
-from sim.world import ArcheryWorld
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM
+from archery.sim.errors import StateError
+from archery.sim.reach import PointTarget, reach
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import ARROW_NOCK_SITE, BOW_HAND_SITE, GRASP_SITE
+from archery.sim.whole_props import NOCK_GRIP
+from archery.sim.world import ArcheryWorld
 
 __all__ = [
     "APPROACH_HEIGHT",

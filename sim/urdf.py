@@ -1,6 +1,8 @@
 """The official iCub URDF (`protocol.robotspec.MODEL_NAME`, CC BY-SA 4.0), edited for MuJoCo.
 
-* `package://iCub/` mesh paths are resolved to the `icub-models` package's own mesh files;
+* `urdf_text` reads it (the description the robot runs, as the recorder, the bridges and the
+  robot frames carry it; `mesh_root` the folder its `package://iCub/` URIs name); for MuJoCo
+  its mesh paths are resolved to the `icub-models` package's own mesh files;
 * `load_urdf_model` is MuJoCo's plain import (the benchmarks' baseline);
 * `robot_spec` keeps only the controlled joints (legs and neck frozen), switches collisions off
   and compensates gravity;
@@ -17,12 +19,19 @@ import xml.etree.ElementTree as ET
 import mujoco
 import numpy as np
 
-from protocol.parts import PARTS
-from protocol.robotspec import MODEL_NAME
-from sim.errors import SceneError
-from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import MODEL_NAME
+from archery.sim.errors import SceneError
+from archery.sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
 
-__all__ = ["add_hand_sites", "load_urdf_model", "robot_spec", "urdf_frame_placement"]
+__all__ = [
+    "add_hand_sites",
+    "load_urdf_model",
+    "mesh_root",
+    "robot_spec",
+    "urdf_frame_placement",
+    "urdf_text",
+]
 
 _ROBOT_NAME_TAG = '<robot name="iCub">'
 _PACKAGE_PREFIX = "package://iCub/"
@@ -37,12 +46,22 @@ def _model_file() -> pathlib.Path:
     return path
 
 
-def _urdf_text(resolve_meshes: bool = True) -> str:
-    """The URDF with `package://iCub/` mesh paths made absolute (the package's share dir)."""
+def mesh_root() -> pathlib.Path:
+    """The folder the description's `package://iCub/` URIs name (icub-models' `share/iCub`)."""
+    return _model_file().parents[2]  # …/share/iCub/robots/<model>/model.urdf → …/share/iCub
+
+
+def urdf_text(resolve_meshes: bool = False) -> str:
+    """The URDF the robot runs; with `resolve_meshes`, its `package://iCub/` mesh paths made
+    absolute (the package's share folder), as MuJoCo reads them.
+
+    Raises:
+        SceneError: the model file, or the meshes beside it, are missing.
+    """
     path = _model_file()
-    text = path.read_text()
+    text = path.read_text(encoding="utf-8")
     if resolve_meshes:
-        share = path.parents[2]  # …/share/iCub/robots/<model>/model.urdf → …/share/iCub
+        share = mesh_root()
         if not (share / "meshes").is_dir():
             raise SceneError(f"no meshes directory next to the iCub model: {share / 'meshes'}")
         text = text.replace(_PACKAGE_PREFIX, f"{share}/")
@@ -65,7 +84,9 @@ def load_urdf_model() -> mujoco.MjModel:
     This is the baseline the benchmark compares against: MuJoCo's own URDF import, floating legs,
     self-collision on, no actuators.
     """
-    return mujoco.MjModel.from_xml_string(_with_compiler(_urdf_text(), 'strippath="false"'))
+    return mujoco.MjModel.from_xml_string(
+        _with_compiler(urdf_text(resolve_meshes=True), 'strippath="false"')
+    )
 
 
 def _rpy_quat(rpy: tuple[float, float, float]) -> np.ndarray:
@@ -93,7 +114,7 @@ def urdf_frame_placement(frame: str) -> tuple[str, np.ndarray, np.ndarray]:
     Raises:
         SceneError: `frame` is not a link of the model.
     """
-    root = ET.fromstring(_urdf_text(resolve_meshes=False))
+    root = ET.fromstring(urdf_text())
     links = {link.get("name") for link in root.iter("link")}
     if frame not in links:
         raise SceneError(
@@ -135,7 +156,9 @@ def robot_spec(config: SceneConfig) -> mujoco.MjSpec:
     Raises:
         SceneError: the model file is missing or lacks a controlled joint.
     """
-    spec = mujoco.MjSpec.from_string(_with_compiler(_urdf_text(), 'strippath="false"'))
+    spec = mujoco.MjSpec.from_string(
+        _with_compiler(urdf_text(resolve_meshes=True), 'strippath="false"')
+    )
     # Keep the contype-0 geoms (URDF import would discard them as visual-only), and fuse every
     # body without a joint into its parent (the URDF's ~180 fixed frames, the frozen legs and
     # neck, the bow and the target): fewer bodies, same kinematics.

@@ -14,7 +14,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from sim.scene_config import (
+from archery.sim.scene_config import (
     ARROW_BODY,
     ARROW_NOCK_SITE,
     GRASP_SITE,

@@ -15,11 +15,11 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from protocol.direction import arrow_direction
-from sim.arrow import arrow_quat
-from sim.errors import ArrowDropped, GraspMissed, NockMissed, SceneError, StateError
-from sim.scene import ScenePhysics
-from sim.scene_config import (
+from archery.protocol.direction import arrow_direction
+from archery.sim.arrow import arrow_quat
+from archery.sim.errors import ArrowDropped, GraspMissed, NockMissed, SceneError, StateError
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import (
     ARROW_BODY,
     ARROW_NOCK_SITE,
     BOW_HAND_SITE,
@@ -30,7 +30,7 @@ from sim.scene_config import (
     STRING_HAND_SITE,
     STRING_NOCK_BODY,
 )
-from sim.whole_props import GRIP_CLOSED
+from archery.sim.whole_props import GRIP_CLOSED
 
 __all__ = ["NOCK_IN_STRING_HAND", "WholeShot"]
 

@@ -22,18 +22,18 @@ from typing import Protocol
 import mujoco
 import numpy as np
 
-from protocol.errors import ConfigError
-from protocol.parts import PARTS
-from protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, home_of
-from protocol.vectors import finite_vector
-from sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
-from sim.bow import Bow
-from sim.errors import ArrowDropped, CommandError, StateError
-from sim.geometry import START_THETA, TARGET_DIAMETER, target_centre
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import SceneConfig
-from sim.whole_shot import WholeShot
+from archery.protocol.errors import ConfigError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, home_of
+from archery.protocol.vectors import finite_vector
+from archery.sim.arrow import ArrowFlight, Landing, Launch, arrow_quat, launch_velocity
+from archery.sim.bow import Bow
+from archery.sim.errors import ArrowDropped, CommandError, StateError
+from archery.sim.geometry import START_THETA, TARGET_DIAMETER, target_centre
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import SceneConfig
+from archery.sim.whole_shot import WholeShot
 
 __all__ = ["ArcheryWorld", "ArrowState", "SetpointSource", "WorldConfig"]
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from mesh.node import Node
-from mesh.publisher import Publisher
-from protocol.messages import WorldState
-from services.camera.config import CameraConfig
-from services.camera.service import run
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.protocol.messages import WorldState
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run
 from tests.conftest import serving
 
 

@@ -22,8 +22,8 @@ from typing import Any
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.router import free_tcp_endpoint, spawn_router
+from archery.mesh.netflags import NetConfig
+from archery.mesh.router import free_tcp_endpoint, spawn_router
 
 _counter = itertools.count()
 
@@ -47,7 +47,7 @@ def net(router_endpoint: str) -> NetConfig:
 def archery(*args: str, timeout: float = 60.0) -> subprocess.CompletedProcess[str]:
     """Run the `archery` CLI in a child process and capture its output."""
     return subprocess.run(
-        [sys.executable, "-m", "apps.cli", *args],
+        [sys.executable, "-m", "archery.apps.cli", *args],
         capture_output=True,
         text=True,
         timeout=timeout,

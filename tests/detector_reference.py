@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.detector.colour_model import ColourModel, rgb_to_uv_exact
-from services.detector.detect import Detection, Detector, check_image, downscale
-from services.detector.target import find_face
+from archery.services.detector.colour_model import ColourModel, rgb_to_uv_exact
+from archery.services.detector.detect import Detection, Detector, check_image, downscale
+from archery.services.detector.target import find_face
 
 __all__ = ["exact_memberships", "locate"]
 

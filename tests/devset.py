@@ -28,10 +28,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.detector.calibration import sample_pixels
-from services.detector.colour_model import ColourModel
-from services.detector.detect import WHITE_SIDE, downscale
-from services.detector.whitebalance import estimate_white
+from archery.services.detector.calibration import sample_pixels
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import WHITE_SIDE, downscale
+from archery.services.detector.whitebalance import estimate_white
 
 __all__ = [
     "CHANGES",

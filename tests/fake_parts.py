@@ -8,13 +8,13 @@ import abc
 import threading
 from collections.abc import Callable
 
-from mesh.node import Node
-from mesh.publisher import Publisher
-from protocol.messages import JointCommand, JointState
-from protocol.parts import PARTS
-from protocol.verbs import ServedVerbs
-from protocol.verbs import robot as rv
-from sim.scene_config import SceneConfig
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs import ServedVerbs
+from archery.protocol.verbs import robot as rv
+from archery.sim.scene_config import SceneConfig
 from tests.rpc import some_verbs
 
 

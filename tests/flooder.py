@@ -12,10 +12,10 @@ import time
 
 import zenoh
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.codec import encode
-from protocol.messages import JointCommand, JointState
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.codec import encode
+from archery.protocol.messages import JointCommand, JointState
 
 
 def main(argv: list[str]) -> int:

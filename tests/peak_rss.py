@@ -49,7 +49,7 @@ def run_with_peak(*args: str, timeout: float = 120.0) -> PeakRun:
     os.set_inheritable(write_end, True)
     try:
         proc = subprocess.Popen(
-            [sys.executable, "-c", _LAUNCHER, str(write_end), "-m", "apps.cli", *args],
+            [sys.executable, "-c", _LAUNCHER, str(write_end), "-m", "archery.apps.cli", *args],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             stdin=subprocess.DEVNULL,

@@ -12,9 +12,15 @@ import mujoco
 import numpy as np
 from scipy.optimize import least_squares
 
-from protocol.robotspec import BOW_ARM, BOW_HAND_FRAME, STRING_ARM, STRING_HAND_FRAME, home_of
-from sim.errors import CommandError
-from sim.scene import ScenePhysics
+from archery.protocol.robotspec import (
+    BOW_ARM,
+    BOW_HAND_FRAME,
+    STRING_ARM,
+    STRING_HAND_FRAME,
+    home_of,
+)
+from archery.sim.errors import CommandError
+from archery.sim.scene import ScenePhysics
 
 __all__ = ["archery_posture"]
 

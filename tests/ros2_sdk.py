@@ -11,7 +11,7 @@ from typing import Any
 from rosbags.typesys import Stores, get_typestore
 from zenoh_ros2_sdk import ZenohSession
 
-from mesh.netflags import NetConfig, open_session
+from archery.mesh.netflags import NetConfig, open_session
 
 __all__ = ["sdk_session", "until"]
 

@@ -8,13 +8,13 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from mesh.node import Node
-from mesh.rpc_client import reply_error
-from protocol.codec import encode
-from protocol.errors import ArcheryError
-from protocol.messages import RpcRequest
-from protocol.robotspec import CALL_TIMEOUT
-from protocol.verbs import ServedVerbs, VerbTable
+from archery.mesh.node import Node
+from archery.mesh.rpc_client import reply_error
+from archery.protocol.codec import encode
+from archery.protocol.errors import ArcheryError
+from archery.protocol.messages import RpcRequest
+from archery.protocol.robotspec import CALL_TIMEOUT
+from archery.protocol.verbs import ServedVerbs, VerbTable
 
 __all__ = ["rpc_call", "some_verbs"]
 

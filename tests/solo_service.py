@@ -7,8 +7,8 @@ import sys
 import threading
 from types import SimpleNamespace
 
-from mesh.node import Node
-from mesh.service import service_main
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
 
 
 def main(argv: list[str]) -> int:

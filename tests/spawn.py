@@ -20,7 +20,7 @@ def spawn(
         RuntimeError: it printed something else first, or ended; with its stderr.
     """
     proc = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *args],
+        [sys.executable, "-m", "archery.apps.cli", *args],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

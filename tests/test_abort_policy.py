@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol.journal_records import AbortedRecord
-from protocol.robotspec import THETA0
-from protocol.theta import ThetaBox
-from services.learner.abort_policy import AbortDecision, after_abort, streak_failure
+from archery.protocol.journal_records import AbortedRecord
+from archery.protocol.robotspec import THETA0
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.abort_policy import AbortDecision, after_abort, streak_failure
 
 BOX = ThetaBox(low=(0.10, -0.05, -0.05), high=(0.30, 0.05, 0.05))
 START = (0.17, 0.006, -0.026)  # θ0 of the session (m)

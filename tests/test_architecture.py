@@ -20,7 +20,7 @@ def _modules() -> dict[str, Path]:
     for package in PACKAGES:
         for path in sorted((ROOT / package).rglob("*.py")):
             parts = path.relative_to(ROOT).with_suffix("").parts
-            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+            name = ".".join(["archery", *(parts[:-1] if parts[-1] == "__init__" else parts)])
             out[name] = path
     return out
 
@@ -63,7 +63,8 @@ GRAPH = {
 
 
 def _layer(module: str) -> str:
-    return module.split(".")[0]
+    """The folder a module of ours is in (`archery.LAYER...`)."""
+    return module.split(".")[1]
 
 
 def test_the_contract_imports_only_itself_and_does_no_io() -> None:
@@ -93,14 +94,14 @@ def test_services_are_exactly_five_and_never_import_each_other_or_a_program() ->
     assert packages == set(SERVICES)
     assert {p.name for p in (ROOT / "services").glob("*.py")} == {"__init__.py"}
     for name in MODULES:
-        if _layer(name) != "services" or name == "services":
+        if _layer(name) != "services" or name == "archery.services":
             continue
-        own = name.split(".")[1]
+        own = name.split(".")[2]
         for imported in GRAPH[name]:
             layer = _layer(imported)
             assert layer in ("protocol", "mesh", "sim", "services"), (name, imported)
             if layer == "services":
-                assert imported.split(".")[1] == own, (name, imported)
+                assert imported.split(".")[2] == own, (name, imported)
             if layer == "sim":  # physics for the robot and camera, the analytic model
                 assert own in ("robot", "camera", "learner"), (name, imported)
 
@@ -140,6 +141,42 @@ def test_no_import_circles() -> None:
     assert not circles, "\n".join(circles)
 
 
+def _python_files() -> Iterator[Path]:
+    """Every Python file of the repository: the product, the tests, the benchmarks, docker/."""
+    for folder in (*PACKAGES, "tests", "benchmarks", "docker"):
+        yield from sorted((ROOT / folder).rglob("*.py"))
+
+
+def test_everything_imports_the_product_by_its_one_name() -> None:
+    """The distribution installs one import name, `archery`: every import of the product, in
+    the product, the tests and the benchmarks, goes through it (a top-level `protocol`,
+    `services` … is not installed)."""
+    old = []
+    for path in _python_files():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                names = [node.module or ""]
+            else:
+                continue
+            old += [f"{path.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] in PACKAGES]
+    assert not old, "\n".join(old)
+
+
+def test_the_import_package_links_each_folder() -> None:
+    """`archery/` holds the package's `__init__.py` and one link per product folder, so the
+    repository keeps its top-level folders and installs them as `archery.FOLDER`."""
+    package = ROOT / "archery"
+    assert {p.name for p in package.iterdir() if p.name != "__pycache__"} == {
+        "__init__.py",
+        *PACKAGES,
+    }
+    for name in PACKAGES:
+        link = package / name
+        assert link.is_symlink() and link.resolve() == (ROOT / name).resolve(), name
+
+
 def test_no_test_fixture_in_the_product() -> None:
     for name, path in MODULES.items():
         text = path.read_text()
@@ -161,7 +198,7 @@ def test_no_module_re_exports_another_modules_names() -> None:
                 isinstance(t, ast.Name) and t.id == "__all__" for t in node.targets
             ):
                 exported = {e.value for e in node.value.elts if isinstance(e, ast.Constant)}
-            if isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] in PACKAGES:
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("archery."):
                 imported |= {alias.asname or alias.name for alias in node.names}
         if exported & imported:
             shims.append(f"{name}: {sorted(exported & imported)}")
@@ -196,9 +233,9 @@ def test_the_rendering_backend_is_picked_in_one_place() -> None:
     """`sim.gl_backend` alone reads and sets MUJOCO_GL and PYOPENGL_PLATFORM; every MuJoCo
     renderer is made by `sim.render.SceneRenderer` (which readies the backend first)."""
     for name, path in MODULES.items():
-        if name != "sim.gl_backend":
+        if name != "archery.sim.gl_backend":
             assert not _names_a_rendering_variable(path), name
-        if name != "sim.render":
+        if name != "archery.sim.render":
             text = path.read_text()
             assert not re.search(r"\bmujoco\.(Renderer|GLContext)\b", text), name
 

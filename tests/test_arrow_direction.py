@@ -8,11 +8,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.direction import NoArrowDirection, arrow_direction
-from services.controller.posture import hand_orientations
-from sim.arrow import launch_velocity
-from sim.ballistic import BallisticWorld, Scenario, ShotError
-from sim.bow import Bow
+from archery.protocol.direction import NoArrowDirection, arrow_direction
+from archery.services.controller.posture import hand_orientations
+from archery.sim.arrow import launch_velocity
+from archery.sim.ballistic import BallisticWorld, Scenario, ShotError
+from archery.sim.bow import Bow
 
 component = st.floats(-0.5, 0.5, allow_nan=False)
 

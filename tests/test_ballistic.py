@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim.ballistic import GRAVITY, BallisticWorld, Scenario, ScenarioError, ShotError
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
+from archery.sim.ballistic import GRAVITY, BallisticWorld, Scenario, ScenarioError, ShotError
+from archery.sim.bow import Bow
+from archery.sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
 
 thetas_in_box = st.tuples(
     st.floats(0.12, 0.28), st.floats(-0.08, 0.08), st.floats(-0.08, 0.08)

@@ -12,18 +12,18 @@ import msgspec
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import ConfigError, RpcError
-from protocol.messages import Array, Image, WorldState
-from services.camera.config import CameraConfig
-from services.camera.service import run
-from services.camera.sources import DeviceSource, SourceError, SourceSpec, parse_source
-from sim.arrow import arrow_quat
-from sim.model_build import build_scene
-from sim.render import SceneRenderer, project
-from sim.scene import ScenePhysics
-from sim.scene_config import TARGET_CENTRE_SITE, SceneConfig
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import ConfigError, RpcError
+from archery.protocol.messages import Array, Image, WorldState
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run
+from archery.services.camera.sources import DeviceSource, SourceError, SourceSpec, parse_source
+from archery.sim.arrow import arrow_quat
+from archery.sim.model_build import build_scene
+from archery.sim.render import SceneRenderer, project
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import TARGET_CENTRE_SITE, SceneConfig
 from tests.camera_world import camera_with_world
 from tests.conftest import archery, serving
 from tests.rpc import rpc_call

@@ -13,20 +13,20 @@ import msgspec
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import BadRequest, RpcError
-from protocol.messages import Array, WorldState
-from protocol.verbs.base import NoArgs
-from protocol.verbs.camera import SCENE, STATUS, SceneReply
-from services.camera.config import CameraConfig
-from services.camera.scene_view import SIZE, SceneViews
-from services.camera.service import run
-from services.camera.sources import SourceSpec
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import SceneConfig
-from sim.scene_view import SceneView
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import BadRequest, RpcError
+from archery.protocol.messages import Array, WorldState
+from archery.protocol.verbs.base import NoArgs
+from archery.protocol.verbs.camera import SCENE, STATUS, SceneReply
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.scene_view import SIZE, SceneViews
+from archery.services.camera.service import run
+from archery.services.camera.sources import SourceSpec
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import SceneConfig
+from archery.sim.scene_view import SceneView
 from tests.camera_world import camera_with_world
 from tests.conftest import serving
 

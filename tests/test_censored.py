@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from apps.experiment.censored import count_stats, format_count, format_counts, format_mean
+from archery.apps.experiment.censored import count_stats, format_count, format_counts, format_mean
 
 
 def test_every_session_hit_nothing_is_censored() -> None:

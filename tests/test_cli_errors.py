@@ -13,15 +13,15 @@ from pathlib import Path
 
 import pytest
 
-from apps.cli import VERBS
-from apps.topics.selfcheck import ECHO_SERVICE, run_echo
-from mesh.cliargs import clean_zenoh_error, loads_finite
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ConfigError, RpcError
-from protocol.messages import JointCommand
-from protocol.verbs.robot import PART_VERBS
+from archery.apps.cli import VERBS
+from archery.apps.topics.selfcheck import ECHO_SERVICE, run_echo
+from archery.mesh.cliargs import clean_zenoh_error, loads_finite
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ConfigError, RpcError
+from archery.protocol.messages import JointCommand
+from archery.protocol.verbs.robot import PART_VERBS
 from tests.conftest import archery, serving
 from tests.rpc import rpc_call, some_verbs
 
@@ -246,9 +246,9 @@ def _argv(template: str, values: dict[str, str]) -> list[str]:
 
 def _recordings(tmp: Path) -> None:
     """ok.mcap (one event), cut.mcap (it, cut short), v9.mcap (of schema version 9)."""
-    from apps.topics.recording import Recorder
-    from protocol.codec import encode
-    from protocol.messages import WorldEvent
+    from archery.apps.topics.recording import Recorder
+    from archery.protocol.codec import encode
+    from archery.protocol.messages import WorldEvent
 
     recorder = Recorder(tmp / "ok.mcap", "icubSim", ["icubSim/**"])
     recorder.put("icubSim/world/events:o", encode(WorldEvent(kind="reset")))
@@ -360,7 +360,7 @@ def echo(net: NetConfig) -> Iterator[NetConfig]:
 
 def _popen(*args: str) -> subprocess.Popen[bytes]:
     return subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *args],
+        [sys.executable, "-m", "archery.apps.cli", *args],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -414,11 +414,11 @@ def test_ports_waits_for_a_service_by_liveliness(net: NetConfig) -> None:
 def test_a_refused_joint_command_fails_with_the_robots_reason(
     net: NetConfig, tmp_path: Path
 ) -> None:
-    from protocol.robotspec import ROBOT
-    from services.robot.config import RobotConfig
-    from services.robot.service import run
-    from sim.scene_config import SceneConfig
-    from sim.world import WorldConfig
+    from archery.protocol.robotspec import ROBOT
+    from archery.services.robot.config import RobotConfig
+    from archery.services.robot.service import run
+    from archery.sim.scene_config import SceneConfig
+    from archery.sim.world import WorldConfig
 
     config = RobotConfig(net=net, world=WorldConfig(scene=SceneConfig(meshes=False)))
     flags = ["--connect", net.connect[0], "--robot", net.robot]

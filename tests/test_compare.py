@@ -9,12 +9,12 @@ from pathlib import Path
 
 import pytest
 
-from apps.compare.compare import main
-from apps.experiment.censored import count_stats
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from mesh.router import free_tcp_endpoint
-from sim.ballistic import Scenario
+from archery.apps.compare.compare import main
+from archery.apps.experiment.censored import count_stats
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.mesh.router import free_tcp_endpoint
+from archery.sim.ballistic import Scenario
 
 
 def test_compare_runs_every_method_through_the_environment(

@@ -19,12 +19,12 @@ from typing import Any
 
 import pytest
 
-import mesh.router
-import mesh.service
-from apps.cli import VERBS
-from apps.learn.learn import build_parser, start_request
-from apps.up.launch_config import SERVICES
-from mesh.credentials import DEFAULT_HOSTS
+import archery.mesh.router
+import archery.mesh.service
+from archery.apps.cli import VERBS
+from archery.apps.learn.learn import build_parser, start_request
+from archery.apps.up.launch_config import SERVICES
+from archery.mesh.credentials import DEFAULT_HOSTS
 from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -182,8 +182,8 @@ def test_fleet_profile_crosses_only_the_routers_link(compose: dict[str, Any]) ->
 def test_watch_profile_serves_foxglove_on_the_hosts_loopback(compose: dict[str, Any]) -> None:
     """`archery foxglove`, read-only, published on the host's loopback only, on the same port as
     inside, so what a browser sends through the published port passes the server's Host check."""
-    from apps.foxglove.command import build_parser as foxglove_parser
-    from apps.foxglove.upgrade import UpgradeRules, parse_head
+    from archery.apps.foxglove.command import build_parser as foxglove_parser
+    from archery.apps.foxglove.upgrade import UpgradeRules, parse_head
 
     watch = _profile(compose, "watch")["watch"]
     assert watch["image"] == "archery-foxglove:latest"
@@ -219,14 +219,14 @@ def _parse_service(verb: str, argv: list[str], monkeypatch: pytest.MonkeyPatch) 
     argv = _defaults(argv)
     module_name, func = VERBS[verb][0].split(":")
     module = importlib.import_module(module_name)
-    real = mesh.service.service_main  # not module.service_main: patched by an earlier call
+    real = archery.mesh.service.service_main  # not module.service_main: patched by an earlier call
     seen: list[Any] = []
 
     def dry(argv: Any, **kw: Any) -> int:
         return real(argv, **(kw | {"run": lambda config, stop: seen.append(config)}))
 
     monkeypatch.setattr(module, "service_main", dry)
-    monkeypatch.setattr(mesh.service, "shutdown_on_signals", threading.Event)
+    monkeypatch.setattr(archery.mesh.service, "shutdown_on_signals", threading.Event)
     assert getattr(module, func)(argv) == 0
     return seen[0]
 
@@ -245,13 +245,15 @@ def test_every_command_parses(compose: dict[str, Any], monkeypatch: pytest.Monke
     stop = threading.Event()
     stop.set()
     opened: list[Any] = []
-    monkeypatch.setattr(mesh.router, "shutdown_on_signals", lambda: stop)
+    monkeypatch.setattr(archery.mesh.router, "shutdown_on_signals", lambda: stop)
     monkeypatch.setattr(
-        mesh.router, "open_session", lambda net: opened.append(net) or contextlib.nullcontext()
+        archery.mesh.router,
+        "open_session",
+        lambda net: opened.append(net) or contextlib.nullcontext(),
     )
-    assert mesh.router.main(services["router"]["command"][2:]) == 0
+    assert archery.mesh.router.main(services["router"]["command"][2:]) == 0
     assert opened[0].listen == ("tcp/0.0.0.0:7447",) and opened[0].mode == "router"
-    assert mesh.router.main(services["router-secure"]["command"][2:]) == 0
+    assert archery.mesh.router.main(services["router-secure"]["command"][2:]) == 0
     assert opened[1].listen == ("tls/0.0.0.0:7447",) and opened[1].secure == "/secrets"
     assert opened[1].identity == "router"
     args = build_parser().parse_args(services["demo"]["command"][2:])
@@ -364,7 +366,7 @@ def test_make_compose_names_what_is_missing_besides_the_client(tmp_path: Path) -
 
 
 def test_the_images_keep_the_icub_model_the_project_loads() -> None:
-    from protocol.robotspec import MODEL_NAME
+    from archery.protocol.robotspec import MODEL_NAME
 
     install = (ROOT / "docker" / "install.sh").read_text()
     assert f"prune_models.py {MODEL_NAME}\n" in install

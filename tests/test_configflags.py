@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
-from mesh.cliargs import ArgumentParser
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from protocol.errors import ConfigError
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.protocol.errors import ConfigError
 
 
 def _parse_pair(text: str) -> tuple[int, int]:

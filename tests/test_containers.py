@@ -42,18 +42,18 @@ pytestmark = [pytest.mark.containers, pytest.mark.slow, pytest.mark.timeout(1800
 # recording modules (`record`/`replay` run on a host, `archery[record]`), the DMPs of `archery
 # imitate` (`archery[imitate]`) and tests.postures (a fixture of the tests).
 IMPORTS = {
-    "router": ["protocol"],
-    "robot": ["services.robot", "sim"],
-    "camera": ["services.camera", "sim"],
-    "detector": ["services.detector"],
-    "controller": ["services.controller"],
-    "learner": ["services.learner"],
+    "router": ["archery.protocol"],
+    "robot": ["archery.services.robot", "archery.sim"],
+    "camera": ["archery.services.camera", "archery.sim"],
+    "detector": ["archery.services.detector"],
+    "controller": ["archery.services.controller"],
+    "learner": ["archery.services.learner"],
 }
 NOT_IN_IMAGES = (
-    "apps.topics.image_records",
-    "apps.topics.json_image_records",
-    "apps.topics.observe",
-    "apps.topics.recording",
+    "archery.apps.topics.image_records",
+    "archery.apps.topics.json_image_records",
+    "archery.apps.topics.observe",
+    "archery.apps.topics.recording",
     "tests.postures",
 )
 _IMPORT_ALL = """
@@ -144,7 +144,7 @@ def test_no_key_enters_an_image(base: str, tmp_path: Path) -> None:
     """A deployment in secrets/ and a stray key beside the Dockerfile stay out of the image."""
     context = copy_context(tmp_path / "context")
     subprocess.run(
-        [sys.executable, "-m", "apps.cli", "keys", "init", str(context / "secrets")],
+        [sys.executable, "-m", "archery.apps.cli", "keys", "init", str(context / "secrets")],
         check=True,
         capture_output=True,
         cwd=ROOT,
@@ -320,7 +320,7 @@ def test_the_secure_profile_runs_the_demo_to_a_hit(
     runs, secrets = tmp_path / "runs", tmp_path / "secrets"
     runs.mkdir()
     subprocess.run(
-        [sys.executable, "-m", "apps.cli", "keys", "init", str(secrets)],
+        [sys.executable, "-m", "archery.apps.cli", "keys", "init", str(secrets)],
         check=True,
         capture_output=True,
         cwd=ROOT,

@@ -14,16 +14,16 @@ import msgspec
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import RpcError
-from protocol.parts import PARTS
-from services.controller import service as controller_service
-from services.controller.config import ControllerConfig
-from services.robot import service as robot_service
-from services.robot.config import RobotConfig
-from sim.scene_config import SceneConfig
-from sim.world import WorldConfig
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.protocol.parts import PARTS
+from archery.services.controller import service as controller_service
+from archery.services.controller.config import ControllerConfig
+from archery.services.robot import service as robot_service
+from archery.services.robot.config import RobotConfig
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import WorldConfig
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
@@ -285,7 +285,7 @@ def test_an_absent_robot_is_a_clear_error_naming_its_key(services: Callable[...,
 
 
 def test_sigterm_ends_the_controller_process_cleanly(net: NetConfig) -> None:
-    argv = [sys.executable, "-m", "apps.cli", "controller", "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "archery.apps.cli", "controller", "--connect", net.connect[0]]
     proc = subprocess.Popen([*argv, "--robot", net.robot], stdin=subprocess.DEVNULL)
     try:
         with Node(None, net) as node:

@@ -12,12 +12,12 @@ from typing import Protocol
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.messages import JointState
-from protocol.parts import PARTS
-from protocol.robotspec import ROBOT
-from services.controller.robotlink import RobotLink
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.messages import JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import ROBOT
+from archery.services.controller.robotlink import RobotLink
 from tests.fake_parts import FakeRobot
 
 REST = 5.0  # sim s of the robot's rest before the move

@@ -13,17 +13,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.subscription import Subscription
-from protocol.errors import RpcError
-from protocol.messages import JointState
-from protocol.parts import PARTS
-from protocol.robotspec import CONTROLLER, ROBOT, STATE_MAX_AGE
-from services.controller import service as controller_service
-from services.controller.config import ControllerConfig
-from services.learner.errors import ServiceLost
-from services.learner.rig import MeshRig
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.subscription import Subscription
+from archery.protocol.errors import RpcError
+from archery.protocol.messages import JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import CONTROLLER, ROBOT, STATE_MAX_AGE
+from archery.services.controller import service as controller_service
+from archery.services.controller.config import ControllerConfig
+from archery.services.learner.errors import ServiceLost
+from archery.services.learner.rig import MeshRig
 from tests.conftest import serving
 from tests.fake_parts import FakeRobot
 from tests.rpc import rpc_call

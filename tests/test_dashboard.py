@@ -24,16 +24,21 @@ import cv2
 import numpy as np
 import pytest
 
-from apps.dashboard.server import Dashboard, bind
-from apps.dashboard.watch import SCENE_INTEREST, MeshWatch
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.publisher import Publisher
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord, RolloutRecord
-from protocol.messages import Array, Image, JointState, Rollout, WorldState
-from protocol.verbs.camera import CAMERA_VERBS, SceneReply
-from protocol.verbs.detector import DETECTOR_VERBS, FrameReply
-from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
+from archery.apps.dashboard.server import Dashboard, bind
+from archery.apps.dashboard.watch import SCENE_INTEREST, MeshWatch
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    ProposedRecord,
+    RolloutRecord,
+)
+from archery.protocol.messages import Array, Image, JointState, Rollout, WorldState
+from archery.protocol.verbs.camera import CAMERA_VERBS, SceneReply
+from archery.protocol.verbs.detector import DETECTOR_VERBS, FrameReply
+from archery.protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
 from tests.rpc import some_verbs
 
 CHROMIUM = "/usr/bin/chromium"
@@ -247,11 +252,11 @@ def fake_learner(
 def real_camera(net: NetConfig) -> Iterator[None]:
     """The camera service, rendering the scene view of the robot's initial pose (a world state
     as the robot publishes it)."""
-    from services.camera.config import CameraConfig
-    from services.camera.service import run
-    from sim.model_build import build_scene
-    from sim.scene import ScenePhysics
-    from sim.scene_config import SceneConfig
+    from archery.services.camera.config import CameraConfig
+    from archery.services.camera.service import run
+    from archery.sim.model_build import build_scene
+    from archery.sim.scene import ScenePhysics
+    from archery.sim.scene_config import SceneConfig
     from tests.conftest import serving
 
     physics = ScenePhysics(build_scene(SceneConfig(meshes=False)))

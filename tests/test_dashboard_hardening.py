@@ -15,11 +15,11 @@ from collections.abc import Callable
 
 import pytest
 
-from apps.dashboard.guard import MAX_CONNECTIONS, host_allowed
-from apps.dashboard.server import MAX_ROBOTS, TOKEN_HEADER, Dashboard, bind
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
+from archery.apps.dashboard.guard import MAX_CONNECTIONS, host_allowed
+from archery.apps.dashboard.server import MAX_ROBOTS, TOKEN_HEADER, Dashboard, bind
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.verbs.learner import LEARNER_VERBS, LearnerStatusReply
 from tests.rpc import some_verbs
 
 Answer = tuple[int, dict[str, str], bytes]

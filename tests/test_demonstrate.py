@@ -10,12 +10,12 @@ from typing import Any
 import msgspec
 import pytest
 
-from apps.demonstrate import joint_limits, main
-from protocol.demonstration import FORMAT, MIN_DURATION, MIN_SAMPLES
-from protocol.exit_status import BAD_INPUT, OK
-from protocol.parts import ARM_PARTS, PARTS
-from protocol.robotspec import home_of
-from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from archery.apps.demonstrate import joint_limits, main
+from archery.protocol.demonstration import FORMAT, MIN_DURATION, MIN_SAMPLES
+from archery.protocol.exit_status import BAD_INPUT, OK
+from archery.protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.robotspec import home_of
+from archery.services.controller.demonstration_file import SHIPPED_DEMONSTRATION
 
 
 def _demo(samples: int = 2 * MIN_SAMPLES) -> dict[str, Any]:

@@ -16,8 +16,8 @@ import msgspec
 import numpy as np
 import pytest
 
-from apps.imitate import main as imitate
-from protocol.demonstration import (
+from archery.apps.imitate import main as imitate
+from archery.protocol.demonstration import (
     EVENT_SLACK,
     FORMAT,
     MAX_BYTES,
@@ -26,12 +26,12 @@ from protocol.demonstration import (
     BadDemonstration,
     parse_demonstration,
 )
-from protocol.errors import ConfigError
-from protocol.exit_status import BAD_INPUT
-from protocol.parts import ARM_PARTS, PARTS
-from protocol.robotspec import home_of
-from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
-from services.controller.demonstration_file import read_demonstration as controller_reads
+from archery.protocol.errors import ConfigError
+from archery.protocol.exit_status import BAD_INPUT
+from archery.protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.robotspec import home_of
+from archery.services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from archery.services.controller.demonstration_file import read_demonstration as controller_reads
 
 ARCHERY = Path(sys.executable).parent / "archery"  # the installed console script
 
@@ -152,7 +152,7 @@ def test_check_refuses_a_movement_too_long_to_play_in_one_line(tmp_path: Path) -
 
 
 def test_a_recording_faster_than_a_learner_plays_is_thinned_to_the_shortest_interval() -> None:
-    from apps.demonstrate import _spaced
+    from archery.apps.demonstrate import _spaced
 
     times = [i * 4e-4 for i in range(100)]  # a 2.5 kHz state stream
     kept = _spaced(times)

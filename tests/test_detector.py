@@ -10,18 +10,18 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.errors import ConfigError
-from services.detector.calibration import sample_pixels
-from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector, DetectorSettings
-from services.detector.errors import ImageError
-from sim.arrow import arrow_quat
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.model_build import build_scene
-from sim.render import SceneRenderer, calibration_frame, project
-from sim.scene_config import ARROW_TIP_SITE, TARGET_CENTRE_SITE, SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
+from archery.protocol.errors import ConfigError
+from archery.services.detector.calibration import sample_pixels
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import Detector, DetectorSettings
+from archery.services.detector.errors import ImageError
+from archery.sim.arrow import arrow_quat
+from archery.sim.bow import Bow
+from archery.sim.geometry import BOW_HAND, TARGET_DISTANCE
+from archery.sim.model_build import build_scene
+from archery.sim.render import SceneRenderer, calibration_frame, project
+from archery.sim.scene_config import ARROW_TIP_SITE, TARGET_CENTRE_SITE, SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.detector_reference import exact_memberships, locate
 from tests.postures import archery_posture
 from tests.world_steps import move_until_done

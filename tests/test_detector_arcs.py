@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detector.arcs import ring_from_arcs
-from services.detector.detect import Detector
-from services.detector.rings import Ellipse, fit_disc
-from services.detector.target import find_face
+from archery.services.detector.arcs import ring_from_arcs
+from archery.services.detector.detect import Detector
+from archery.services.detector.rings import Ellipse, fit_disc
+from archery.services.detector.target import find_face
 from tests.devset import Case, Scene, _encode, _linear, calibrate, drawn_scenes, judge
 
 OUTER = Ellipse((200.0, 150.0), (180.0, 120.0), 20.0)

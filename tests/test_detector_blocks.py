@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detector.detect import _block_mean, _nonzero_blocks
+from archery.services.detector.detect import _block_mean, _nonzero_blocks
 
 
 def _maps(seed: int, shape: tuple[int, int], count: int) -> list[np.ndarray]:

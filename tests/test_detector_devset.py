@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from services.detector.detect import Detector
+from archery.services.detector.detect import Detector
 from tests.devset import (
     CHANGES,
     Scene,

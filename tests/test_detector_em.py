@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from services.detector.em import fit_mixture
+from archery.services.detector.em import fit_mixture
 
 
 def _samples(seed: int = 0) -> np.ndarray:

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detector.detect import Detector
-from services.detector.pieces import joined_hull
-from services.detector.rings import Ellipse, centre_spread, fit_disc
-from services.detector.whitebalance import estimate_white
+from archery.services.detector.detect import Detector
+from archery.services.detector.pieces import joined_hull
+from archery.services.detector.rings import Ellipse, centre_spread, fit_disc
+from archery.services.detector.whitebalance import estimate_white
 from tests.devset import calibrate, cases, drawn_scenes, judge
 
 

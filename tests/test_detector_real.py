@@ -10,10 +10,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from apps.detect import read_rgb
-from services.detector.calibration import load_pixels, sample_pixels
-from services.detector.colour_model import ColourModel
-from services.detector.detect import Detector
+from archery.apps.detect import read_rgb
+from archery.services.detector.calibration import load_pixels, sample_pixels
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import Detector
 from tests.conftest import archery
 from tests.detector_reference import exact_memberships, locate
 

@@ -11,10 +11,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.detector.colour_model import ColourModel
-from services.detector.errors import ModelFileError
-from services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
-from services.detector.whitebalance import apply_gains, estimate_white, white_gains
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.errors import ModelFileError
+from archery.services.detector.rings import Ellipse, fit_disc, nested_centre, radial_position
+from archery.services.detector.whitebalance import apply_gains, estimate_white, white_gains
 
 
 def _disc(

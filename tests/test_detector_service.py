@@ -13,21 +13,21 @@ import cv2
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import RpcError
-from protocol.messages import Array, Detection, WorldState
-from services.camera.config import CameraConfig
-from services.camera.service import run as run_camera
-from services.detector.config import DetectorConfig
-from services.detector.detect import DetectorSettings
-from services.detector.service import run as run_detector
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, TARGET_DISTANCE
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.protocol.messages import Array, Detection, WorldState
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run as run_camera
+from archery.services.detector.config import DetectorConfig
+from archery.services.detector.detect import DetectorSettings
+from archery.services.detector.service import run as run_detector
+from archery.sim.bow import Bow
+from archery.sim.geometry import BOW_HAND, TARGET_DISTANCE
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
 from tests.postures import archery_posture
 from tests.rpc import rpc_call

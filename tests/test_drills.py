@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from apps.drills import runner
-from apps.drills.order import start_order
-from apps.drills.verdict import DrillResult, Evidence, count_lost_duplicated, judge
-from apps.up.launch_config import SERVICES
-from protocol.journal_records import (
+from archery.apps.drills import runner
+from archery.apps.drills.order import start_order
+from archery.apps.drills.verdict import DrillResult, Evidence, count_lost_duplicated, judge
+from archery.apps.up.launch_config import SERVICES
+from archery.protocol.journal_records import (
     AbortedRecord,
     DoneRecord,
     HeaderRecord,

@@ -15,15 +15,20 @@ from typing import Any
 import numpy as np
 import pytest
 
-from apps.learn.follow import follow
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from mesh.subscription import Subscription
-from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
-from protocol.messages import Rollout
-from services.learner.journal import read_records
+from archery.apps.learn.follow import follow
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.mesh.subscription import Subscription
+from archery.protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    JournalRecord,
+    ProposedRecord,
+)
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import read_records
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
@@ -120,7 +125,7 @@ def test_learner_killed_mid_session(
     learn = ["learn", "--algo", "archer", "--seed", "2", "--rollouts", "6", "--no-until-hit"]
     learn += ["--lost-wait", "5"]  # nothing restarts this learner: no need to wait long for it
     proc = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *learn, *net],
+        [sys.executable, "-m", "archery.apps.cli", *learn, *net],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

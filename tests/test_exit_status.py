@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import (
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import (
     ArcheryError,
     BadRequest,
     ConfigError,
@@ -18,8 +18,8 @@ from protocol.errors import (
     RpcTimeout,
     Unreachable,
 )
-from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, for_error
-from protocol.verbs.robot import PART_VERBS
+from archery.protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, for_error
+from archery.protocol.verbs.robot import PART_VERBS
 from tests.conftest import archery
 from tests.rpc import some_verbs
 

@@ -9,10 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from apps.cli import main as archery
-from apps.experiment.config import CURVE_COLUMNS, AlgorithmRun, ExperimentConfig, ExperimentError
-from apps.experiment.experiment import main, run_algorithm, summarise
-from sim.ballistic import Scenario
+from archery.apps.cli import main as archery
+from archery.apps.experiment.config import (
+    CURVE_COLUMNS,
+    AlgorithmRun,
+    ExperimentConfig,
+    ExperimentError,
+)
+from archery.apps.experiment.experiment import main, run_algorithm, summarise
+from archery.sim.ballistic import Scenario
 
 SMALL = ["--sessions", "3", "--rollouts", "8", "--seed", "1", "--no-progress"]
 

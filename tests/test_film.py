@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from apps.film.film import SHEET_THUMB, film_hit, film_session, hit_video
-from apps.film.replay import ShotReplay, load_rollout
-from apps.film.video import caption
-from protocol.errors import BadRequest
-from services.learner.journal import read_records
+from archery.apps.film.film import SHEET_THUMB, film_hit, film_session, hit_video
+from archery.apps.film.replay import ShotReplay, load_rollout
+from archery.apps.film.video import caption
+from archery.protocol.errors import BadRequest
+from archery.services.learner.journal import read_records
 from tests.conftest import archery
 
 JOURNALS = Path(__file__).parent / "journals"
@@ -110,7 +110,7 @@ def test_the_demo_films_its_hit_and_the_replay_lands_where_the_journal_says(
 ) -> None:
     runs = tmp_path / "runs"
     demo = subprocess.run(
-        [sys.executable, "-m", "apps.cli", "demo", "--runs", str(runs), "--seed", "0"],
+        [sys.executable, "-m", "archery.apps.cli", "demo", "--runs", str(runs), "--seed", "0"],
         capture_output=True,
         text=True,
         timeout=600,
@@ -138,12 +138,12 @@ def test_the_demo_films_its_hit_and_the_replay_lands_where_the_journal_says(
 def _recorded_session(session: Path, tmp_path: Path) -> tuple[Path, int]:
     """A recording of rollout 1 of the session: its learner records and the world states of
     a move, a nock and a flight (simulated here); and the video frames they make at 10 fps."""
-    from apps.topics.recording import Recorder
-    from protocol.codec import encode
-    from protocol.journal_records import DoneRecord, ProposedRecord
-    from protocol.messages import Array, Rollout, WorldState
-    from sim.scene_config import SceneConfig
-    from sim.world import ArcheryWorld, WorldConfig
+    from archery.apps.topics.recording import Recorder
+    from archery.protocol.codec import encode
+    from archery.protocol.journal_records import DoneRecord, ProposedRecord
+    from archery.protocol.messages import Array, Rollout, WorldState
+    from archery.sim.scene_config import SceneConfig
+    from archery.sim.world import ArcheryWorld, WorldConfig
 
     records = read_records(session / "journal.jsonl")[0]
     done = next(r for r in records if isinstance(r, DoneRecord) and r.rollout == 1)
@@ -204,8 +204,8 @@ def test_a_rollout_is_filmed_as_a_recording_saw_it(session: Path, tmp_path: Path
 def test_a_whole_shot_is_filmed_with_its_phases_and_its_movement_sped_up(
     session: Path, tmp_path: Path
 ) -> None:
-    from apps.film.recorded import WHOLE_SPEEDUP, RecordedShot
-    from protocol.journal_records import DoneRecord
+    from archery.apps.film.recorded import WHOLE_SPEEDUP, RecordedShot
+    from archery.protocol.journal_records import DoneRecord
 
     path, _ = _recorded_session(session, tmp_path)
     done = next(r for r in read_records(session / "journal.jsonl")[0] if isinstance(r, DoneRecord))

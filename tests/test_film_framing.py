@@ -15,11 +15,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from apps.film.framing import ShotCamera, framed
-from apps.film.replay import FilmFrame, ShotReplay, load_rollout
-from sim.geometry import target_centre
-from sim.scene_config import ARROW_BODY, SceneConfig
-from sim.scene_view import SceneView
+from archery.apps.film.framing import ShotCamera, framed
+from archery.apps.film.replay import FilmFrame, ShotReplay, load_rollout
+from archery.sim.geometry import target_centre
+from archery.sim.scene_config import ARROW_BODY, SceneConfig
+from archery.sim.scene_view import SceneView
 
 JOURNAL = Path(__file__).parent / "journals" / "old_format.jsonl"
 WIDTH, HEIGHT = 320, 180  # px

@@ -16,16 +16,16 @@ from pathlib import Path
 
 import pytest
 
-from apps.experiment.experiment import main as experiment_main
-from apps.learn.follow import follow
-from apps.up.launch_config import SERVICES, MeshConfig, RobotSpec, RouterSpec, ServiceSpec
-from apps.up.launcher import Launcher
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, wait_for_endpoint
-from protocol.journal_records import DoneRecord, EndRecord, ResumedRecord
-from protocol.messages import Rollout, WorldEvent
-from services.learner.journal import check_invariants, read_records
+from archery.apps.experiment.experiment import main as experiment_main
+from archery.apps.learn.follow import follow
+from archery.apps.up.launch_config import SERVICES, MeshConfig, RobotSpec, RouterSpec, ServiceSpec
+from archery.apps.up.launcher import Launcher
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, wait_for_endpoint
+from archery.protocol.journal_records import DoneRecord, EndRecord, ResumedRecord
+from archery.protocol.messages import Rollout, WorldEvent
+from archery.services.learner.journal import check_invariants, read_records
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
@@ -57,7 +57,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str, Launch
     side_a = Launcher(logs=logs / "a", mesh=_mesh(a, ROBOTS[0], logs / "runs", ROBOTS[1]))
     side_a.up(120, services=[s for s in side_a.specs if s != "learner"])
     router_b = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "router", "--listen", b, "--connect", a],
+        [sys.executable, "-m", "archery.apps.cli", "router", "--listen", b, "--connect", a],
         stdin=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -173,7 +173,7 @@ def test_experiment_on_two_robots_across_two_routers(
 
 def test_resume_after_the_experiment_was_killed(fleet: dict[str, Launcher], tmp_path: Path) -> None:
     out = tmp_path / "exp"
-    argv = [sys.executable, "-m", "apps.cli", "experiment", "--world", "mesh"]
+    argv = [sys.executable, "-m", "archery.apps.cli", "experiment", "--world", "mesh"]
     argv += ["--connect", fleet["a"].endpoint, "--sessions", "3", "--rollouts", "5"]
     argv += ["--algo", ALGOS, "--no-progress"]
     proc = subprocess.Popen([*argv, "--out", str(out)], stderr=subprocess.DEVNULL)
@@ -215,7 +215,7 @@ def test_bad_robot_and_no_robot_are_one_line(fleet: dict[str, Launcher], tmp_pat
     ]
     alone = free_tcp_endpoint()
     router = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "router", "--listen", alone],
+        [sys.executable, "-m", "archery.apps.cli", "router", "--listen", alone],
         stdin=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )
@@ -237,7 +237,7 @@ def test_a_robot_killed_mid_experiment_costs_no_session(
     fleet: dict[str, Launcher], tmp_path: Path
 ) -> None:
     out = tmp_path / "exp"
-    argv = [sys.executable, "-m", "apps.cli", "experiment", "--world", "mesh"]
+    argv = [sys.executable, "-m", "archery.apps.cli", "experiment", "--world", "mesh"]
     argv += ["--connect", fleet["a"].endpoint, "--sessions", "3", "--rollouts", "5"]
     argv += ["--algo", ALGOS, "--no-progress", "--robot-wait", "2", "--out", str(out)]
     with Node(None, _net(fleet, ROBOTS[1])) as node:
@@ -262,7 +262,7 @@ def test_a_robot_killed_mid_experiment_costs_no_session(
 
 def test_up_with_two_robots_starts_two_stacks_and_one_learner(tmp_path: Path) -> None:
     endpoint = free_tcp_endpoint()
-    argv = [sys.executable, "-m", "apps.cli", "up", "--robots", "2", "--listen", endpoint]
+    argv = [sys.executable, "-m", "archery.apps.cli", "up", "--robots", "2", "--listen", endpoint]
     argv += ["--runs", str(tmp_path / "runs"), "--logs", str(tmp_path / "logs")]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

@@ -8,14 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from apps.experiment.config import ExperimentConfig, ExperimentError
-from apps.experiment.experiment_mesh import journal_path, mesh_experiment_config
-from apps.experiment.fleet import robot_stacks
-from apps.experiment.mesh_out import PLAN_NAME, SessionItem, prepare_out, session_config
-from apps.up.launch_config import default_mesh, fleet_prefixes
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from services.learner.config import LearnerServiceConfig
+from archery.apps.experiment.config import ExperimentConfig, ExperimentError
+from archery.apps.experiment.experiment_mesh import journal_path, mesh_experiment_config
+from archery.apps.experiment.fleet import robot_stacks
+from archery.apps.experiment.mesh_out import PLAN_NAME, SessionItem, prepare_out, session_config
+from archery.apps.up.launch_config import default_mesh, fleet_prefixes
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.services.learner.config import LearnerServiceConfig
 from tests.conftest import archery
 
 

@@ -30,21 +30,21 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from scipy.spatial.transform import Rotation
 
-from apps.foxglove.bridge import asset
-from apps.foxglove.channels import TOPICS
-from apps.foxglove.command import check_listen
-from apps.foxglove.marks import image_marks
-from apps.foxglove.operator import Operator
-from mesh.netflags import NetConfig
-from mesh.node import open_node
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ConfigError
-from protocol.messages import Detection, JointState, WorldEvent, WorldState
-from protocol.parts import PARTS
-from protocol.robotspec import SERVICES
-from protocol.verbs.robot import ARCHERY_STATUS
-from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
+from archery.apps.foxglove.bridge import asset
+from archery.apps.foxglove.channels import TOPICS
+from archery.apps.foxglove.command import check_listen
+from archery.apps.foxglove.marks import image_marks
+from archery.apps.foxglove.operator import Operator
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import open_node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ConfigError
+from archery.protocol.messages import Detection, JointState, WorldEvent, WorldState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import SERVICES
+from archery.protocol.verbs.robot import ARCHERY_STATUS
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SceneConfig
 from tests.conftest import archery
 
 CLIENT = Path(__file__).parent / "foxglove_client"
@@ -78,8 +78,8 @@ class Mesh:
         self.endpoint = free_tcp_endpoint()
         self.tmp = tmp
         self.up = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "up", "--listen", self.endpoint, "--robot", ROBOT,
-             "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs")],
+            [sys.executable, "-m", "archery.apps.cli", "up", "--listen", self.endpoint,
+             "--robot", ROBOT, "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs")],
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )  # fmt: skip
@@ -91,7 +91,7 @@ class Mesh:
     def bridge(self, *extra: str) -> tuple[subprocess.Popen[str], str]:
         """An `archery foxglove` on a free port, once it serves; (process, its ws:// URL)."""
         proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "foxglove", "--connect", self.endpoint,
+            [sys.executable, "-m", "archery.apps.cli", "foxglove", "--connect", self.endpoint,
              "--robot", ROBOT, "--port", "0", *extra],
             stdout=subprocess.PIPE,
             stderr=(self.tmp / f"bridge-{len(self.bridges)}.err").open("w"),
@@ -380,7 +380,7 @@ def test_up_serves_foxglove_beside_the_services(tmp_path: Path) -> None:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
     up = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "up", "--listen", free_tcp_endpoint(), "--robot",
+        [sys.executable, "-m", "archery.apps.cli", "up", "--listen", free_tcp_endpoint(), "--robot",
          "foxup", "--logs", str(tmp_path / "logs"), "--runs", str(tmp_path / "runs"),
          "--foxglove", str(port)],
         stdout=subprocess.PIPE,

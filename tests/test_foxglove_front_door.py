@@ -24,10 +24,10 @@ import psutil
 import pytest
 from foxglove.websocket import Parameter, ParameterType
 
-from apps.foxglove.bridge import MAX_PARAMETERS, Bridge
-from apps.foxglove.upgrade import UpgradeRules, parse_head
-from protocol.errors import ConfigError
-from protocol.messages import Image
+from archery.apps.foxglove.bridge import MAX_PARAMETERS, Bridge
+from archery.apps.foxglove.upgrade import UpgradeRules, parse_head
+from archery.protocol.errors import ConfigError
+from archery.protocol.messages import Image
 from tests.conftest import archery
 from tests.test_foxglove import CLIENT, Mesh, _client, _of
 
@@ -306,6 +306,6 @@ def test_the_upgrade_rules() -> None:
     with pytest.raises(ValueError, match="request line"):
         parse_head(b"\x00\xff nonsense\r\n\r\n")
     with pytest.raises(ConfigError):
-        from apps.foxglove.upgrade import check_origin_flag
+        from archery.apps.foxglove.upgrade import check_origin_flag
 
         check_origin_flag("https://example.org/page")

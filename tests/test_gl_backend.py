@@ -14,15 +14,15 @@ from pathlib import Path
 
 import pytest
 
-from mesh.router import free_tcp_endpoint
+from archery.mesh.router import free_tcp_endpoint
 from tests.test_user_shell import bare_env
 
 RENDER = """
 import mujoco  # first, before anything of ours: MuJoCo reads MUJOCO_GL now
 import numpy as np
-from sim.render import SceneRenderer
-from sim.scene_config import SceneConfig
-from sim.gl_backend import check
+from archery.sim.render import SceneRenderer
+from archery.sim.scene_config import SceneConfig
+from archery.sim.gl_backend import check
 with SceneRenderer(SceneConfig(meshes=False), width=64, height=48) as renderer:
     frame = renderer.render(renderer.data.qpos.copy())
 print(check(), frame.shape, int(np.asarray(frame).std() > 1))

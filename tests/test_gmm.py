@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.detector.colour_model import (
+from archery.services.detector.colour_model import (
     MIN_PIXELS,
     MODEL_VERSION,
     ColourModel,
@@ -19,7 +19,7 @@ from services.detector.colour_model import (
     rgb_to_uv,
     rgb_to_uv_exact,
 )
-from services.detector.errors import CalibrationError, ModelFileError
+from archery.services.detector.errors import CalibrationError, ModelFileError
 
 YELLOW, RED, BLUE, GREEN = (250, 215, 20), (225, 25, 25), (30, 90, 225), (30, 250, 30)
 

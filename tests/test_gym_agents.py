@@ -7,12 +7,12 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from apps.experiment.config import DEFAULT_ALGORITHMS, ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from apps.gym.agent import run_learner
-from sim.ballistic import Scenario
+from archery.apps.experiment.config import DEFAULT_ALGORITHMS, ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.apps.gym.agent import run_learner
+from archery.sim.ballistic import Scenario
 
-AIM = "apps.gym:archery/Aim-v0"
+AIM = "archery.apps.gym:archery/Aim-v0"
 SCENARIOS = ({}, {"noise": 0.01, "drag": 0.05, "wind": (0.0, 2.0, 0.0), "distance": 3.0})
 
 

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from apps.gym.agent import run_learner
-from apps.gym.registration import AIM_ID, AIM_ROBOT_ID
-from protocol.theta import THETA_BOX
-from sim.ballistic import BallisticWorld, Scenario, ScenarioError
+from archery.apps.gym.agent import run_learner
+from archery.apps.gym.registration import AIM_ID, AIM_ROBOT_ID
+from archery.protocol.theta import THETA_BOX
+from archery.sim.ballistic import BallisticWorld, Scenario, ScenarioError
 
 ROOT = Path(__file__).resolve().parents[1]
-AIM = f"apps.gym:{AIM_ID}"
+AIM = f"archery.apps.gym:{AIM_ID}"
 
 
 def _checked(env: gym.Env) -> None:
@@ -40,7 +40,8 @@ def test_gymnasiums_checker_passes_on_the_paper_world_and_a_windy_noisy_one() ->
 
 def test_the_ids_resolve_in_a_fresh_interpreter_with_nothing_imported_first() -> None:
     code = (
-        "import gymnasium as g; e = g.make('apps.gym:archery/Aim-v0'); o, _ = e.reset(seed=1); "
+        "import gymnasium as g; e = g.make('archery.apps.gym:archery/Aim-v0'); "
+        "o, _ = e.reset(seed=1); "
         "print(e.spec.id, e.observation_space.shape, e.action_space.shape)"
     )
     done = subprocess.run(

@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 from gymnasium.error import InvalidAction
 
-import apps.gym  # noqa: F401 (registers the ids)
-from apps.gym.aim_robot import AimRobotEnv
-from apps.gym.keywords import MESSAGE_LIMIT
-from apps.gym.registration import AIM_ID
-from apps.gym.spaces import BadAction
+import archery.apps.gym  # noqa: F401 (registers the ids)
+from archery.apps.gym.aim_robot import AimRobotEnv
+from archery.apps.gym.keywords import MESSAGE_LIMIT
+from archery.apps.gym.registration import AIM_ID
+from archery.apps.gym.spaces import BadAction
 
 MILLION = [0.1] * 10**6
 

@@ -16,17 +16,17 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from apps.compare.compare import main as compare_main
-from apps.gym.aim_robot import AimRobotEnv, RobotUnavailable, ServiceLostError
-from apps.up.launch_config import default_mesh
-from apps.up.launcher import Launcher
-from mesh.router import free_tcp_endpoint
-from protocol.robotspec import THETA0
-from protocol.theta import THETA_BOX
+from archery.apps.compare.compare import main as compare_main
+from archery.apps.gym.aim_robot import AimRobotEnv, RobotUnavailable, ServiceLostError
+from archery.apps.up.launch_config import default_mesh
+from archery.apps.up.launcher import Launcher
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.robotspec import THETA0
+from archery.protocol.theta import THETA_BOX
 
 pytestmark = pytest.mark.slow
 
-ROBOT = "apps.gym:archery/AimRobot-v0"
+ROBOT = "archery.apps.gym:archery/AimRobot-v0"
 ROBOTS = ("icubSim1", "icubSim2")
 
 

@@ -11,15 +11,15 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from apps.gym.aim_robot import AimRobotEnv, RobotUnavailable
-from apps.up.launcher import Launcher
-from mesh.credentials import init_deployment
-from mesh.router import free_tcp_endpoint
-from protocol.robotspec import THETA0
+from archery.apps.gym.aim_robot import AimRobotEnv, RobotUnavailable
+from archery.apps.up.launcher import Launcher
+from archery.mesh.credentials import init_deployment
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.robotspec import THETA0
 
 pytestmark = pytest.mark.slow
 
-ROBOT = "apps.gym:archery/AimRobot-v0"
+ROBOT = "archery.apps.gym:archery/AimRobot-v0"
 PREFIX = "icubSim"
 
 

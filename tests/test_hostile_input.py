@@ -16,18 +16,18 @@ from typing import Any
 import msgspec
 import pytest
 
-from mesh import memory
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.codec import encode
-from protocol.errors import KeyNameError, RpcError
-from protocol.messages import JointCommand, JointState, RpcRequest
-from protocol.robotspec import ROBOT
-from protocol.text import SHOWN_LIMIT, shown
-from services.robot.config import RobotConfig
-from services.robot.service import run
-from sim.scene_config import SceneConfig
-from sim.world import WorldConfig
+from archery.mesh import memory
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.codec import encode
+from archery.protocol.errors import KeyNameError, RpcError
+from archery.protocol.messages import JointCommand, JointState, RpcRequest
+from archery.protocol.robotspec import ROBOT
+from archery.protocol.text import SHOWN_LIMIT, shown
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.service import run
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import WorldConfig
 from tests.conftest import serving
 from tests.rpc import rpc_call
 
@@ -165,7 +165,7 @@ def test_memory_goes_back_after_a_burst_of_big_requests(net: NetConfig) -> None:
         [
             sys.executable,
             "-m",
-            "apps.cli",
+            "archery.apps.cli",
             "robot",
             "--connect",
             net.connect[0],

@@ -8,19 +8,24 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.errors import ArcheryError, BadRequest, ConfigError
-from protocol.parts import PARTS
-from protocol.robotspec import HOME_POSTURE
-from services.controller.errors import ControllerError, JointError, TargetError
-from services.controller.ik import IkSolver
-from services.controller.ik_derivatives import (
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import HOME_POSTURE
+from archery.services.controller.errors import ControllerError, JointError, TargetError
+from archery.services.controller.ik import IkSolver
+from archery.services.controller.ik_derivatives import (
     orientation_residual,
     orientation_residual_jacobian,
     position_hessian_contraction,
 )
-from services.controller.ik_types import IkSettings, OrientationTarget, PositionTarget, as_rotation
-from services.controller.model import JOINT_NAMES, ArmsModel, load_arms_model
-from services.controller.qp import solve_box_qp
+from archery.services.controller.ik_types import (
+    IkSettings,
+    OrientationTarget,
+    PositionTarget,
+    as_rotation,
+)
+from archery.services.controller.model import JOINT_NAMES, ArmsModel, load_arms_model
+from archery.services.controller.qp import solve_box_qp
 
 ARMS = ("left_arm", "right_arm")
 

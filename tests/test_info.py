@@ -5,10 +5,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from apps.topics.info import read_info, render
-from apps.topics.recording import CALIBRATION_ATTACHMENT, Recorder
-from protocol.codec import encode
-from protocol.messages import JointState, WorldEvent
+from archery.apps.topics.info import read_info, render
+from archery.apps.topics.recording import CALIBRATION_ATTACHMENT, Recorder
+from archery.protocol.codec import encode
+from archery.protocol.messages import JointState, WorldEvent
 from tests.conftest import archery
 
 

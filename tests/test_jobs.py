@@ -7,7 +7,7 @@ import time
 
 import pytest
 
-from mesh.jobs import JobQueue
+from archery.mesh.jobs import JobQueue
 
 
 class Unavailable(Exception):

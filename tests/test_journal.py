@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from msgspec import UNSET
 
-from protocol.journal_records import (
+from archery.protocol.journal_records import (
     JOURNAL_VERSION,
     AbortedRecord,
     CheckpointRecord,
@@ -30,9 +30,9 @@ from protocol.journal_records import (
     SessionRecord,
     StoppedRecord,
 )
-from services.learner import journal as journal_module
-from services.learner.algorithms.registry import make_learner
-from services.learner.journal import (
+from archery.services.learner import journal as journal_module
+from archery.services.learner.algorithms.registry import make_learner
+from archery.services.learner.journal import (
     JOURNAL_NAME,
     MAX_JOURNAL_BYTES,
     Journal,
@@ -42,7 +42,7 @@ from services.learner.journal import (
     encode_record,
     read_records,
 )
-from services.learner.replay import rebuild_learner
+from archery.services.learner.replay import rebuild_learner
 
 
 def _learner() -> Any:
@@ -293,8 +293,8 @@ def test_learner_state_restores_the_next_proposal(tmp_path: Path) -> None:
 _WRITER = """
 import sys
 from pathlib import Path
-from protocol.journal_records import AbortedRecord, HeaderRecord, ProposedRecord
-from services.learner.journal import Journal
+from archery.protocol.journal_records import AbortedRecord, HeaderRecord, ProposedRecord
+from archery.services.learner.journal import Journal
 journal = Journal.create(Path(sys.argv[1]), HeaderRecord(session="k", algorithm="archer", seed=0,
     rollouts=10**6, options={}, config={}, learner_state={"pad": "x" * 4000}))
 print("ready", flush=True)

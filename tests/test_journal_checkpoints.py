@@ -15,25 +15,25 @@ from typing import Any
 import pytest
 from msgspec import UnsetType
 
-from protocol.journal_records import (
+from archery.protocol.journal_records import (
     CHECKPOINT_EVERY,
     AbortedRecord,
     CheckpointRecord,
     DoneRecord,
     ResumedRecord,
 )
-from protocol.verbs.learner import MAX_ROLLOUTS
-from services.learner import journal as journal_module
-from services.learner.algorithms.registry import restore_learner
-from services.learner.config import SessionConfig
-from services.learner.journal import (
+from archery.protocol.verbs.learner import MAX_ROLLOUTS
+from archery.services.learner import journal as journal_module
+from archery.services.learner.algorithms.registry import restore_learner
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.journal import (
     JOURNAL_NAME,
     MAX_JOURNAL_BYTES,
     ROLLOUT_BYTES,
     JournalError,
     read_records,
 )
-from services.learner.session import Session
+from archery.services.learner.session import Session
 from tests.test_learner_service_session import Crash, FakeRig
 
 ROLLOUTS = 2 * CHECKPOINT_EVERY + 15  # past two checkpoints

@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from protocol.errors import KeyNameError
-from protocol.keys import PORTS, Keys, port_of, validate_robot
-from protocol.parts import PARTS
+from archery.protocol.errors import KeyNameError
+from archery.protocol.keys import PORTS, Keys, port_of, validate_robot
+from archery.protocol.parts import PARTS
 
 
 def test_keys_follow_yarp_names() -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from apps.up.command import main
-from apps.up.launch_config import (
+from archery.apps.up.command import main
+from archery.apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
@@ -17,9 +17,9 @@ from apps.up.launch_config import (
     load_mesh,
     parse_mesh,
 )
-from apps.up.launcher import Launcher
-from apps.up.restart_policy import RestartPolicy
-from protocol.errors import ConfigError
+from archery.apps.up.launcher import Launcher
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.protocol.errors import ConfigError
 from tests.composefile import read_compose
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -10,14 +10,14 @@ from pathlib import Path
 
 import pytest
 
-from apps.topics.recording import open_recording
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher, LaunchError
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, open_router, wait_for_endpoint
-from protocol.errors import ConfigError
-from protocol.messages import Image
+from archery.apps.topics.recording import open_recording
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher, LaunchError
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, open_router, wait_for_endpoint
+from archery.protocol.errors import ConfigError
+from archery.protocol.messages import Image
 
 
 def test_launcher_starts_watches_and_stops(tmp_path: Path) -> None:
@@ -69,7 +69,7 @@ def _up(endpoint: str, tmp_path: Path, *extra: str) -> subprocess.Popen[str]:
         [
             sys.executable,
             "-m",
-            "apps.cli",
+            "archery.apps.cli",
             "up",
             "--listen",
             endpoint,
@@ -149,7 +149,7 @@ def _children_of(endpoint: str) -> list[int]:
             cmdline = (entry / "cmdline").read_bytes()
         except OSError:
             continue
-        if entry.name.isdigit() and endpoint.encode() in cmdline and b"apps.cli" in cmdline:
+        if entry.name.isdigit() and endpoint.encode() in cmdline and b"archery.apps.cli" in cmdline:
             pids.append(int(entry.name))
     return pids
 

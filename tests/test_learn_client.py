@@ -25,22 +25,22 @@ from typing import Any
 
 import pytest
 
-from apps.learn.follow import SessionLost, follow, journal_status
-from apps.up.launch_config import SERVICES, default_mesh
-from apps.up.launcher import Launcher
-from apps.up.restart_policy import RestartPolicy
-from apps.up.supervisor import GiveUp, Supervisor
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from mesh.subscription import Subscription
-from protocol.journal_records import DoneRecord, JournalRecord, StoppedRecord
-from protocol.messages import Rollout
-from services.learner import handlers as learner_handlers
-from services.learner import service as learner_service
-from services.learner.config import LearnerServiceConfig, SessionConfig
-from services.learner.journal import JournalState, check_invariants, read_records
-from services.learner.session import FINAL_STATES, Session
+from archery.apps.learn.follow import SessionLost, follow, journal_status
+from archery.apps.up.launch_config import SERVICES, default_mesh
+from archery.apps.up.launcher import Launcher
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.apps.up.supervisor import GiveUp, Supervisor
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.mesh.subscription import Subscription
+from archery.protocol.journal_records import DoneRecord, JournalRecord, StoppedRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner import handlers as learner_handlers
+from archery.services.learner import service as learner_service
+from archery.services.learner.config import LearnerServiceConfig, SessionConfig
+from archery.services.learner.journal import JournalState, check_invariants, read_records
+from archery.services.learner.session import FINAL_STATES, Session
 from tests.conftest import serving
 from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig
@@ -265,7 +265,7 @@ class Mesh:
             threading.Event().wait(0.2)
         net = ["--connect", self.launcher.endpoint, "--robot", self.launcher.net.robot]
         return subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "learn", *args, *net],
+            [sys.executable, "-m", "archery.apps.cli", "learn", *args, *net],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from protocol.theta import ThetaBox
-from services.learner.algorithms import Archer, LearnerConfigError
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.algorithms import Archer, LearnerConfigError
 
 WIDE = ThetaBox(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 

@@ -17,14 +17,14 @@ from typing import Any
 import numpy as np
 import pytest
 
-from apps.learn import attach, follow, learn
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.errors import RpcError, UpstreamLost
-from protocol.journal_records import (
+from archery.apps.learn import attach, follow, learn
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import RpcError, UpstreamLost
+from archery.protocol.journal_records import (
     AbortedRecord,
     DoneRecord,
     HeaderRecord,
@@ -32,19 +32,19 @@ from protocol.journal_records import (
     ProposedRecord,
     StoppedRecord,
 )
-from protocol.messages import Rollout, WorldEvent
-from protocol.verbs import controller as cv
-from protocol.verbs.learner import LearnerStatusReply
-from services.detector import service as detector_service
-from services.detector.colour_model import ColourModel
-from services.learner import handlers as learner_handlers
-from services.learner import service as learner_service
-from services.learner.config import LearnerServiceConfig, SessionConfig
-from services.learner.errors import ServiceLost
-from services.learner.journal import JournalState, check_invariants, read_records
-from services.learner.rig import MeshRig
-from services.learner.rig_protocol import Measurement, PostureResult, Shot
-from services.learner.session import FINAL_STATES, Session
+from archery.protocol.messages import Rollout, WorldEvent
+from archery.protocol.verbs import controller as cv
+from archery.protocol.verbs.learner import LearnerStatusReply
+from archery.services.detector import service as detector_service
+from archery.services.detector.colour_model import ColourModel
+from archery.services.learner import handlers as learner_handlers
+from archery.services.learner import service as learner_service
+from archery.services.learner.config import LearnerServiceConfig, SessionConfig
+from archery.services.learner.errors import ServiceLost
+from archery.services.learner.journal import JournalState, check_invariants, read_records
+from archery.services.learner.rig import MeshRig
+from archery.services.learner.rig_protocol import Measurement, PostureResult, Shot
+from archery.services.learner.session import FINAL_STATES, Session
 from tests.conftest import serving
 from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig

@@ -15,14 +15,14 @@ from typing import Any
 
 import pytest
 
-from apps.learn import learn
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import RpcError
-from services.learner import service as learner_service
-from services.learner.config import LearnerServiceConfig, SessionConfig
-from services.learner.journal import MAX_JOURNAL_BYTES
-from services.learner.session import Session
+from archery.apps.learn import learn
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.services.learner import service as learner_service
+from archery.services.learner.config import LearnerServiceConfig, SessionConfig
+from archery.services.learner.journal import MAX_JOURNAL_BYTES
+from archery.services.learner.session import Session
 from tests.conftest import serving
 from tests.rpc import rpc_call
 from tests.test_learner_service_session import FakeRig

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from protocol.theta import ThetaBox
-from services.learner.algorithms import LearnerConfigError, Power, make_learner
-from services.learner.algorithms.power import DEFAULT_RETURN_SCALE
-from sim.geometry import INNER_RING_RADIUS
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.algorithms import LearnerConfigError, Power, make_learner
+from archery.services.learner.algorithms.power import DEFAULT_RETURN_SCALE
+from archery.sim.geometry import INNER_RING_RADIUS
 
 WIDE = ThetaBox(low=(-5.0, -5.0, -5.0), high=(5.0, 5.0, 5.0))
 

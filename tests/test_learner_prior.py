@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from protocol.theta import ThetaBox
-from services.learner.algorithms import (
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.algorithms import (
     ArcherPrior,
     BallisticModel,
     LearnerConfigError,
@@ -16,8 +16,8 @@ from services.learner.algorithms import (
     make_learner,
     restore_learner,
 )
-from sim.ballistic import BallisticWorld, Scenario
-from sim.geometry import INNER_RING_RADIUS, START_THETA
+from archery.sim.ballistic import BallisticWorld, Scenario
+from archery.sim.geometry import INNER_RING_RADIUS, START_THETA
 
 THETA0 = np.array(START_THETA)
 

@@ -7,16 +7,16 @@ import json
 import numpy as np
 import pytest
 
-from services.learner.algorithms import (
+from archery.services.learner.algorithms import (
     ArcherPrior,
     BallisticModel,
     PhysicalModel,
     RestoreError,
     restore_learner,
 )
-from services.learner.algorithms.model_fit import fit_parameters
-from sim.ballistic import BallisticWorld, Scenario
-from sim.geometry import INNER_RING_RADIUS
+from archery.services.learner.algorithms.model_fit import fit_parameters
+from archery.sim.ballistic import BallisticWorld, Scenario
+from archery.sim.geometry import INNER_RING_RADIUS
 from tests.test_learner_prior import THETA0, _play, _prior
 
 

@@ -15,22 +15,22 @@ import cv2
 import numpy as np
 import pytest
 
-from apps.learn.follow import follow
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import ArcheryError, RpcError
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
-from protocol.messages import Rollout, WorldEvent
-from protocol.verbs import detector as dv
-from services.controller import service as controller_service
-from services.controller.config import ControllerConfig
-from services.learner import service as learner_service
-from services.learner.config import LearnerServiceConfig
-from services.learner.journal import read_records
-from services.robot import service as robot_service
-from services.robot.config import RobotConfig
-from sim.scene_config import SceneConfig
-from sim.world import WorldConfig
+from archery.apps.learn.follow import follow
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError, RpcError
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from archery.protocol.messages import Rollout, WorldEvent
+from archery.protocol.verbs import detector as dv
+from archery.services.controller import service as controller_service
+from archery.services.controller.config import ControllerConfig
+from archery.services.learner import service as learner_service
+from archery.services.learner.config import LearnerServiceConfig
+from archery.services.learner.journal import read_records
+from archery.services.robot import service as robot_service
+from archery.services.robot.config import RobotConfig
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import WorldConfig
 from tests.conftest import archery
 from tests.rpc import rpc_call
 

@@ -12,22 +12,22 @@ import cv2
 import numpy as np
 import pytest
 
-from protocol.errors import BadRequest
-from protocol.journal_records import (
+from archery.protocol.errors import BadRequest
+from archery.protocol.journal_records import (
     AbortedRecord,
     DoneRecord,
     EndRecord,
     JournalRecord,
     ProposedRecord,
 )
-from protocol.theta import THETA_BOX, ThetaBox
-from services.learner.config import SessionConfig
-from services.learner.errors import RigError, ServiceLost
-from services.learner.hit_frame import SAVE_AFTER
-from services.learner.journal import JournalError, JournalState, read_records
-from services.learner.report import interruptions, write_report
-from services.learner.rig_protocol import Measurement, PostureResult, Shot
-from services.learner.session import Session
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.hit_frame import SAVE_AFTER
+from archery.services.learner.journal import JournalError, JournalState, read_records
+from archery.services.learner.report import interruptions, write_report
+from archery.services.learner.rig_protocol import Measurement, PostureResult, Shot
+from archery.services.learner.session import Session
 
 BOX = THETA_BOX
 # r (m) per θ (m) near the aim point, as measured on the MuJoCo robot.

@@ -11,8 +11,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.theta import THETA_BOX, ThetaBox
-from services.learner.algorithms import (
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.services.learner.algorithms import (
     ALGORITHMS,
     Archer,
     CmaEs,
@@ -27,9 +27,9 @@ from services.learner.algorithms import (
     restore_learner,
     scalar_return,
 )
-from services.learner.algorithms.base import rng_from_state, rng_state
-from sim.ballistic import BallisticWorld, Scenario
-from sim.geometry import START_THETA
+from archery.services.learner.algorithms.base import rng_from_state, rng_state
+from archery.sim.ballistic import BallisticWorld, Scenario
+from archery.sim.geometry import START_THETA
 
 NAMES = list(ALGORITHMS)
 

@@ -8,9 +8,9 @@ import sys
 
 import pytest
 
-from mesh.logs import _zenoh_spec, parse_spec
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ConfigError
+from archery.mesh.logs import _zenoh_spec, parse_spec
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ConfigError
 
 ANSI = re.compile(r"\x1b\[")
 

@@ -15,9 +15,9 @@ from pathlib import Path
 import psutil
 import pytest
 
-from apps.up.launch_config import SERVICES
-from apps.up.launcher import Launcher
-from mesh.router import free_tcp_endpoint
+from archery.apps.up.launch_config import SERVICES
+from archery.apps.up.launcher import Launcher
+from archery.mesh.router import free_tcp_endpoint
 
 
 def _sockets(pid: int) -> list[psutil._common.pconn]:
@@ -53,7 +53,7 @@ def test_every_socket_of_a_running_mesh_is_on_the_given_loopback_endpoint(
         launcher.up(120)
         learn = subprocess.Popen(
             [
-                *(sys.executable, "-m", "apps.cli", "learn", "--connect", endpoint),
+                *(sys.executable, "-m", "archery.apps.cli", "learn", "--connect", endpoint),
                 *("--robot", robot, "--rollouts", "2", "--no-until-hit", "--quiet"),
             ],
             stdout=subprocess.PIPE,

@@ -12,10 +12,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol.codec import decode, encode, from_jsonable, to_jsonable
-from protocol.errors import DecodeError
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
-from protocol.messages import (
+from archery.protocol.codec import decode, encode, from_jsonable, to_jsonable
+from archery.protocol.errors import DecodeError
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from archery.protocol.messages import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     Array,

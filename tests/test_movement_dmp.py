@@ -11,24 +11,24 @@ import msgspec
 import numpy as np
 import pytest
 
-from protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
-from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, STRING_ARM
-from protocol.theta import THETA_BOX
-from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
-from services.controller.movement import Movement, Reproduction
-from services.controller.posture import ArcheryPosture, PostureConfig
-from services.controller.whole_shot import (
+from archery.protocol.demonstration import BadDemonstration, Demonstration, parse_demonstration
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM
+from archery.protocol.theta import THETA_BOX
+from archery.services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from archery.services.controller.movement import Movement, Reproduction
+from archery.services.controller.posture import ArcheryPosture, PostureConfig
+from archery.services.controller.whole_shot import (
     PARTS_MOVED,
     aim_arrow,
     plan_whole_shot,
     whole_shot_trajectory,
 )
-from sim.arrow import Launch
-from sim.geometry import START_THETA
-from sim.scene_config import SceneConfig
-from sim.whole_shot import NOCK_IN_STRING_HAND
-from sim.world import ArcheryWorld, ArrowState, WorldConfig
+from archery.sim.arrow import Launch
+from archery.sim.geometry import START_THETA
+from archery.sim.scene_config import SceneConfig
+from archery.sim.whole_shot import NOCK_IN_STRING_HAND
+from archery.sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.world_steps import move_until_done
 
 SHIPPED = SHIPPED_DEMONSTRATION

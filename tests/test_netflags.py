@@ -7,9 +7,9 @@ import time
 
 import pytest
 
-from mesh.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ConfigError
+from archery.mesh.netflags import DEFAULT_ROUTER, NetConfig, add_network_args, open_session
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ConfigError
 
 
 def _parse(*argv: str) -> NetConfig:

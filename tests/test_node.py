@@ -13,15 +13,15 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from apps.topics.selfcheck import ECHO_SERVICE
-from mesh.instances import describe_all
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.errors import BadRequest, RpcError, RpcTimeout
-from protocol.messages import JointState, WorldEvent
-from protocol.verbs import Args, NoArgs, Reply, Verb, VerbTable
-from protocol.verbs.robot import PART_VERBS
+from archery.apps.topics.selfcheck import ECHO_SERVICE
+from archery.mesh.instances import describe_all
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.errors import BadRequest, RpcError, RpcTimeout
+from archery.protocol.messages import JointState, WorldEvent
+from archery.protocol.verbs import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.verbs.robot import PART_VERBS
 from tests.rpc import rpc_call, some_verbs
 
 
@@ -187,8 +187,8 @@ def test_describe_lists_ports_and_verbs(pair: tuple[Node, Node]) -> None:
     server.serve(server.keys.part_rpc("left_arm"), some_verbs(PART_VERBS, {}))
     server.ready()
     client.wait_alive(["server"], 10)
-    from protocol.codec import decode
-    from protocol.messages import Describe
+    from archery.protocol.codec import decode
+    from archery.protocol.messages import Describe
 
     replies = list(client.session.get(client.keys.describe("server"), timeout=5))
     info = decode(replies[0].ok.payload.to_bytes(), Describe)
@@ -216,7 +216,7 @@ def test_describe_counts_the_messages_of_each_publisher(pair: tuple[Node, Node])
 
 
 def _spawn_echo(net: NetConfig) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
+    argv = [sys.executable, "-m", "archery.apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     for endpoint in net.connect:
         argv += ["--connect", endpoint]
     return subprocess.Popen(argv, stdin=subprocess.DEVNULL)

@@ -14,12 +14,12 @@ import msgspec
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.rpc_server import BACKGROUND_NICE, RpcServer
-from protocol.errors import BadRequest, RpcError
-from protocol.messages import Array, Image
-from protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.rpc_server import BACKGROUND_NICE, RpcServer
+from archery.protocol.errors import BadRequest, RpcError
+from archery.protocol.messages import Array, Image
+from archery.protocol.verbs import TABLES, Args, NoArgs, Reply, Verb, VerbTable
 from tests.rpc import rpc_call
 
 

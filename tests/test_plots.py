@@ -9,13 +9,13 @@ from typing import Any
 import matplotlib.pyplot as plt
 import pytest
 
-from apps.experiment.config import ExperimentConfig
-from apps.experiment.experiment import run_algorithm
-from apps.experiment.plots import convergence_figure, split_baselines, trajectories_figure
-from apps.experiment.plots_mesh import impacts_figure
-from protocol.theta import ThetaBox
-from services.learner.algorithms.registry import ALGORITHMS
-from sim.ballistic import BallisticWorld, Scenario
+from archery.apps.experiment.config import ExperimentConfig
+from archery.apps.experiment.experiment import run_algorithm
+from archery.apps.experiment.plots import convergence_figure, split_baselines, trajectories_figure
+from archery.apps.experiment.plots_mesh import impacts_figure
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.sim.ballistic import BallisticWorld, Scenario
 
 NAMES = ("archer", "power", "cma", "hill", "random")
 

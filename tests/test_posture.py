@@ -13,15 +13,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from apps.experiment.config import ExperimentConfig
-from protocol.direction import NoArrowDirection, arrow_direction
-from protocol.errors import ConfigError
-from protocol.theta import THETA_BOX, ThetaBox
-from protocol.verbs.controller import PostureArgs
-from services.controller.errors import JointError, TargetError
-from services.controller.ik_types import IkSettings
-from services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
-from services.learner.algorithms.base import Learner
+from archery.apps.experiment.config import ExperimentConfig
+from archery.protocol.direction import NoArrowDirection, arrow_direction
+from archery.protocol.errors import ConfigError
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.protocol.verbs.controller import PostureArgs
+from archery.services.controller.errors import JointError, TargetError
+from archery.services.controller.ik_types import IkSettings
+from archery.services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
+from archery.services.learner.algorithms.base import Learner
 
 UP = np.array([0.0, 0.0, 1.0])
 

@@ -14,20 +14,20 @@ from pathlib import Path
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.rates import RateLimit
-from mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
-from protocol.codec import encode
-from protocol.errors import Busy, RpcError
-from protocol.messages import RpcRequest
-from protocol.verbs import NoArgs
-from protocol.verbs import detector as dv
-from protocol.verbs.camera import GRAB, STATUS, GrabArgs
-from services.camera.config import CameraConfig
-from services.camera.service import run as run_camera
-from services.detector.config import DetectorConfig
-from services.detector.service import run as run_detector
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.rates import RateLimit
+from archery.mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
+from archery.protocol.codec import encode
+from archery.protocol.errors import Busy, RpcError
+from archery.protocol.messages import RpcRequest
+from archery.protocol.verbs import NoArgs
+from archery.protocol.verbs import detector as dv
+from archery.protocol.verbs.camera import GRAB, STATUS, GrabArgs
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run as run_camera
+from archery.services.detector.config import DetectorConfig
+from archery.services.detector.service import run as run_detector
 from tests.conftest import serving
 
 NEVER = 1e9  # s of sim time: a world state no test publishes

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from mesh.router import free_tcp_endpoint
+from archery.mesh.router import free_tcp_endpoint
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 BLOCK = re.compile(r"^```(sh|python) test\n(.*?)^```", re.M | re.S)

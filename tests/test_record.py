@@ -22,15 +22,15 @@ from mcap.reader import make_reader
 from mcap.writer import Writer
 from mcap_protobuf.decoder import DecoderFactory
 
-from apps.topics.recording import Recorder, from_record, open_recording, to_record
-from apps.topics.selfcheck import ECHO_SERVICE, run_echo
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.priority import WRITER_NICE
-from protocol.codec import decode, encode
-from protocol.errors import ConfigError, RpcTimeout
-from protocol.journal_records import DoneRecord
-from protocol.messages import (
+from archery.apps.topics.recording import Recorder, from_record, open_recording, to_record
+from archery.apps.topics.selfcheck import ECHO_SERVICE, run_echo
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.priority import WRITER_NICE
+from archery.protocol.codec import decode, encode
+from archery.protocol.errors import ConfigError, RpcTimeout
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import (
     Array,
     Detection,
     Image,
@@ -39,7 +39,7 @@ from protocol.messages import (
     WorldEvent,
     WorldState,
 )
-from protocol.verbs.camera import GrabArgs
+from archery.protocol.verbs.camera import GrabArgs
 from tests.conftest import archery, serving
 from tests.spawn import spawn
 
@@ -381,8 +381,8 @@ def test_the_mcap_protobuf_decoder_reads_the_frames_from_their_schema(tmp_path: 
 
 
 def test_a_replayed_grab_finds_each_rollouts_frame_by_its_stamp() -> None:
-    from apps.topics.observe import _Frames
-    from protocol.errors import BadRequest
+    from archery.apps.topics.observe import _Frames
+    from archery.protocol.errors import BadRequest
 
     rgb = np.zeros((4, 4, 3), np.uint8)
     # three rollouts, each restarting the simulated clock
@@ -433,7 +433,7 @@ def test_the_recorder_runs_at_a_lower_priority_when_told(net: NetConfig, tmp_pat
 
 
 def test_attachments_are_written_first_and_read_back(tmp_path: Path) -> None:
-    from apps.topics.recording import CALIBRATION_ATTACHMENT, Recorder
+    from archery.apps.topics.recording import CALIBRATION_ATTACHMENT, Recorder
 
     with_marks = Recorder(
         tmp_path / "a.mcap",

@@ -5,9 +5,9 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from apps.topics.recording import Recorder
-from protocol.codec import encode
-from protocol.messages import JointState
+from archery.apps.topics.recording import Recorder
+from archery.protocol.codec import encode
+from archery.protocol.messages import JointState
 
 
 def test_an_idle_recorder_waits_without_using_the_cpu(tmp_path: Path) -> None:

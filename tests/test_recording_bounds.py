@@ -23,21 +23,21 @@ from mcap.records import (
 )
 from mcap.writer import Writer
 
-from apps.film.recorded import RecordedShot
-from apps.topics.info import read_info, render
-from apps.topics.mcap_reader import MAGIC, BadRecording, McapFile
-from apps.topics.read_limits import (
+from archery.apps.film.recorded import RecordedShot
+from archery.apps.topics.info import read_info, render
+from archery.apps.topics.mcap_reader import MAGIC, BadRecording, McapFile
+from archery.apps.topics.read_limits import (
     MAX_RECORD_BYTES,
     MAX_TOTAL_BYTES,
     byte_size,
     printable,
     total_cap,
 )
-from apps.topics.recording import open_recording, to_record
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from protocol.journal_records import DoneRecord
-from protocol.messages import SCHEMA_VERSION, WorldEvent
+from archery.apps.topics.recording import open_recording, to_record
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import SCHEMA_VERSION, WorldEvent
 from tests.peak_rss import run_with_peak
 
 BOMB_BYTES = 600 << 20  # what the bombs decompress to

@@ -7,10 +7,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from protocol.errors import ConfigError
-from sim.render import SceneRenderer, calibration_frame, project
-from sim.scene import ScenePhysics
-from sim.scene_config import ARROW_TIP_SITE, RING_COLOURS, TARGET_CENTRE_SITE, SceneConfig
+from archery.protocol.errors import ConfigError
+from archery.sim.render import SceneRenderer, calibration_frame, project
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import ARROW_TIP_SITE, RING_COLOURS, TARGET_CENTRE_SITE, SceneConfig
 
 SCENE = SceneConfig(meshes=False)
 

@@ -17,14 +17,22 @@ import numpy as np
 import zenoh
 from mcap.writer import Writer
 
-from apps.topics.image_records import image_schema
-from apps.topics.recording import PROFILE, SCHEMA_VERSION, to_record
-from mesh.acl import REPLAY, roles, rules
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.codec import decode
-from protocol.keys import OUTPUT_PORTS, PORTS, Keys, output_port, tap_keys, verb_key, verbs_key
-from protocol.messages import (
+from archery.apps.topics.image_records import image_schema
+from archery.apps.topics.recording import PROFILE, SCHEMA_VERSION, to_record
+from archery.mesh.acl import REPLAY, roles, rules
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.codec import decode
+from archery.protocol.keys import (
+    OUTPUT_PORTS,
+    PORTS,
+    Keys,
+    output_port,
+    tap_keys,
+    verb_key,
+    verbs_key,
+)
+from archery.protocol.messages import (
     Image,
     JointCommand,
     JointState,

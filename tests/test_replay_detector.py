@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from apps.topics.recording import CALIBRATION_ATTACHMENT, open_recording
+from archery.apps.topics.recording import CALIBRATION_ATTACHMENT, open_recording
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.protocol.keys import Keys
+from archery.protocol.messages import Detection, WorldState
+from archery.services.detector.config import DetectorConfig
+from archery.services.detector.service import run as run_detector
 from benchmarks.bench_record import remeasure
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import RpcError
-from protocol.keys import Keys
-from protocol.messages import Detection, WorldState
-from services.detector.config import DetectorConfig
-from services.detector.service import run as run_detector
 from tests import test_detector_service
 from tests.conftest import serving
 from tests.rpc import rpc_call

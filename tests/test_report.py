@@ -8,16 +8,21 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol.journal_records import (
+from archery.protocol.journal_records import (
     AbortedRecord,
     DoneRecord,
     HeaderRecord,
     ProposedRecord,
     ResumedRecord,
 )
-from services.learner.algorithms.registry import make_learner
-from services.learner.journal import Journal, JournalState, read_records
-from services.learner.report import Interruptions, interruptions, report_figure, write_report
+from archery.services.learner.algorithms.registry import make_learner
+from archery.services.learner.journal import Journal, JournalState, read_records
+from archery.services.learner.report import (
+    Interruptions,
+    interruptions,
+    report_figure,
+    write_report,
+)
 
 THETA = [0.17, 0.0, -0.02]  # m
 

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from apps.report import find_journals, main
-from services.learner.config import SessionConfig
-from services.learner.session import Session
+from archery.apps.report import find_journals, main
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.session import Session
 from tests.test_learner_service_session import FakeRig
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from apps.up.restart_policy import RestartPolicy, decide
-from protocol.errors import ConfigError
+from archery.apps.up.restart_policy import RestartPolicy, decide
+from archery.protocol.errors import ConfigError
 
 ON_FAILURE = RestartPolicy()
 ALWAYS = RestartPolicy(mode="always")

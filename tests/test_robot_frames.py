@@ -18,21 +18,21 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from apps.topics.recording import DESCRIPTION_METADATA, Recorder, open_recording
-from apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames
-from mesh.instances import describe_all
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.codec import encode
-from protocol.messages import Array, JointState, WorldState
-from protocol.parts import PARTS
-from protocol.robotspec import ROBOT
-from services.robot.config import RobotConfig
-from services.robot.service import run
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
+from archery.apps.topics.recording import DESCRIPTION_METADATA, Recorder, open_recording
+from archery.apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames
+from archery.mesh.instances import describe_all
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.codec import encode
+from archery.protocol.messages import Array, JointState, WorldState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import ROBOT
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.service import run
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import serving
 from tests.postures import archery_posture
 from tests.rpc import rpc_call
@@ -214,7 +214,7 @@ def test_archery_record_of_a_running_robot_has_it_in_3d_and_its_calls(
     with serving(run, config), Node(None, net) as node:
         node.wait_alive([ROBOT], 30)
         recorder = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "record", "--out", str(path), *flags],
+            [sys.executable, "-m", "archery.apps.cli", "record", "--out", str(path), *flags],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
@@ -249,7 +249,7 @@ def test_archery_record_of_a_running_robot_has_it_in_3d_and_its_calls(
     assert asked[-3:] == ["nock", "release", "reset"] and set(asked[:-3]) == {"status"}
     assert len(answered) == len(asked) and all(answered)
     info = subprocess.run(
-        [sys.executable, "-m", "apps.cli", "info", str(path)],
+        [sys.executable, "-m", "archery.apps.cli", "info", str(path)],
         capture_output=True,
         text=True,
         timeout=60,
@@ -265,7 +265,7 @@ def _urdf_parents() -> dict[str, str]:
     """{link: its parent link} of the robot description, read with the standard XML parser."""
     import xml.etree.ElementTree as ET
 
-    from apps.topics.robot_frames import urdf_text
+    from archery.sim.urdf import urdf_text
 
     root = ET.fromstring(urdf_text())
     return {

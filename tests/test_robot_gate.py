@@ -13,17 +13,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from protocol.codec import decode, encode
-from protocol.messages import JointCommand
-from protocol.parts import PARTS
-from protocol.verbs import robot as rv
-from services.robot.commands import REJECTION_REASONS
-from services.robot.config import RobotConfig
-from services.robot.gate import NOT_OWNER, RATE_LIMITED, NotOwner, PartGate
-from services.robot.handlers import RobotHandlers
-from services.robot.simloop import SimLoop
-from sim.scene_config import SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
+from archery.protocol.codec import decode, encode
+from archery.protocol.messages import JointCommand
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.commands import REJECTION_REASONS
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.gate import NOT_OWNER, RATE_LIMITED, NotOwner, PartGate
+from archery.services.robot.handlers import RobotHandlers
+from archery.services.robot.simloop import SimLoop
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 

@@ -24,12 +24,19 @@ from typing import Any
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.errors import RpcError
-from protocol.messages import JointCommand, JointState
-from protocol.parts import PARTS
-from protocol.robotspec import COMMAND_BURST, COMMAND_RATE, CONTROLLER, LEASE_TTL, ROBOT, home_of
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.errors import RpcError
+from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import (
+    COMMAND_BURST,
+    COMMAND_RATE,
+    CONTROLLER,
+    LEASE_TTL,
+    ROBOT,
+    home_of,
+)
 from tests.conftest import archery
 from tests.rpc import rpc_call
 
@@ -42,7 +49,7 @@ WAIT = 60.0  # wall s: the bound of every wait on a condition
 
 
 def _spawn(verb: str, net: NetConfig, *flags: str) -> subprocess.Popen[bytes]:
-    argv = [sys.executable, "-m", "apps.cli", verb, "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "archery.apps.cli", verb, "--connect", net.connect[0]]
     return subprocess.Popen([*argv, "--robot", net.robot, *flags], stdin=subprocess.DEVNULL)
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from services.robot import pacing
-from services.robot.pacing import MAX_IDLE_WAIT, Pacing
+from archery.services.robot import pacing
+from archery.services.robot.pacing import MAX_IDLE_WAIT, Pacing
 
 
 class Clock:

@@ -16,19 +16,19 @@ import mujoco
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.subscription import Subscription
-from protocol.errors import RpcError
-from protocol.messages import JointCommand, JointState, WorldEvent, WorldState
-from protocol.parts import PARTS
-from protocol.robotspec import ROBOT
-from services.robot.config import RobotConfig
-from services.robot.service import run
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
-from sim.world import WorldConfig
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.subscription import Subscription
+from archery.protocol.errors import RpcError
+from archery.protocol.messages import JointCommand, JointState, WorldEvent, WorldState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import ROBOT
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.service import run
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import WorldConfig
 from tests.conftest import archery
 from tests.postures import archery_posture
 from tests.rpc import rpc_call
@@ -300,7 +300,7 @@ def test_reset_waits_for_a_flight_to_land(robot: Callable[..., Client]) -> None:
 
 
 def test_sigterm_ends_the_robot_process_cleanly(net: NetConfig) -> None:
-    argv = [sys.executable, "-m", "apps.cli", "robot", "--connect", net.connect[0]]
+    argv = [sys.executable, "-m", "archery.apps.cli", "robot", "--connect", net.connect[0]]
     proc = subprocess.Popen([*argv, "--robot", net.robot, "--rtf", "1"], stdin=subprocess.DEVNULL)
     try:
         with Node(None, net) as node:

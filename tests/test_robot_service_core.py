@@ -14,16 +14,16 @@ import mujoco
 import numpy as np
 import pytest
 
-from protocol.errors import BadRequest
-from protocol.parts import PARTS
-from services.robot.commands import CommandRejected, PartLimits, check_command
-from services.robot.config import RobotConfig
-from services.robot.simloop import SimLoop
-from sim.errors import StateError
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
-from sim.world import ArcheryWorld, WorldConfig
+from archery.protocol.errors import BadRequest
+from archery.protocol.parts import PARTS
+from archery.services.robot.commands import CommandRejected, PartLimits, check_command
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.simloop import SimLoop
+from archery.sim.errors import StateError
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.postures import archery_posture
 
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))

@@ -11,15 +11,15 @@ import mujoco
 import numpy as np
 import pytest
 
-from protocol.errors import ArcheryError, Busy
-from protocol.parts import PARTS
-from protocol.robotspec import home_of
-from protocol.verbs import robot as rv
-from services.robot.follow import PATH_TOLERANCE, PartSpec
-from services.robot.simloop import SimLoop
-from services.robot.trajectory import BadTrajectory, plan_path
-from sim.errors import StateError
-from sim.model_build import build_scene
+from archery.protocol.errors import ArcheryError, Busy
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import home_of
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.follow import PATH_TOLERANCE, PartSpec
+from archery.services.robot.simloop import SimLoop
+from archery.services.robot.trajectory import BadTrajectory, plan_path
+from archery.sim.errors import StateError
+from archery.sim.model_build import build_scene
 from tests.test_robot_service_core import WORLD, Recorder, running_loops
 
 ARM = "right_arm"

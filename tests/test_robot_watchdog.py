@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from protocol.messages import JointCommand, JointState
+from archery.protocol.messages import JointCommand, JointState
 from tests import test_robot_service as mesh
 
 robot = mesh.robot  # the fixture: the robot service in a thread, a client on the mesh

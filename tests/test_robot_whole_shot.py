@@ -15,31 +15,31 @@ import mujoco
 import numpy as np
 import pytest
 
-from apps.demonstrate import Recorder
-from apps.demonstrate import main as demonstrate
-from apps.imitate import main as imitate
-from apps.teacher import Teacher
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.demonstration import MIN_SAMPLES, encode_demonstration
-from protocol.errors import ConfigError, RpcError
-from protocol.messages import Image
-from protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
-from protocol.theta import THETA_BOX
-from services.camera.config import CameraConfig
-from services.camera.service import run as camera
-from services.controller.config import ControllerConfig
-from services.controller.demonstration_file import SHIPPED_DEMONSTRATION
-from services.controller.service import run as controller
-from services.learner.abort_policy import after_abort
-from services.learner.rig import MeshRig
-from services.learner.rollout_step import Failed, shoot
-from services.robot.config import add_arguments, make_config
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import SceneConfig
-from sim.shot_script import ShotStep, plan_whole_shot
-from sim.world import ArcheryWorld, WorldConfig
+from archery.apps.demonstrate import Recorder
+from archery.apps.demonstrate import main as demonstrate
+from archery.apps.imitate import main as imitate
+from archery.apps.teacher import Teacher
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.demonstration import MIN_SAMPLES, encode_demonstration
+from archery.protocol.errors import ConfigError, RpcError
+from archery.protocol.messages import Image
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM, THETA0
+from archery.protocol.theta import THETA_BOX
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run as camera
+from archery.services.controller.config import ControllerConfig
+from archery.services.controller.demonstration_file import SHIPPED_DEMONSTRATION
+from archery.services.controller.service import run as controller
+from archery.services.learner.abort_policy import after_abort
+from archery.services.learner.rig import MeshRig
+from archery.services.learner.rollout_step import Failed, shoot
+from archery.services.robot.config import add_arguments, make_config
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import SceneConfig
+from archery.sim.shot_script import ShotStep, plan_whole_shot
+from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import archery, serving
 from tests.postures import archery_posture
 from tests.ros2_sdk import until

@@ -8,7 +8,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from protocol.errors import RpcError
+from archery.protocol.errors import RpcError
 from tests.test_robot_service import Client, Joints, aim_joints, robot, shoot  # noqa: F401
 
 WIND = [0.0, 10.0, 0.0]  # m/s along +y: r[0] of the impact is along +y

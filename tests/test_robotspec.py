@@ -11,13 +11,13 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from protocol import robotspec
-from protocol.parts import ARM_PARTS, PARTS
-from protocol.robotspec import SERVICES
-from services.controller.model import ArmsModel, load_arms_model
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import SceneConfig
+from archery.protocol import robotspec
+from archery.protocol.parts import ARM_PARTS, PARTS
+from archery.protocol.robotspec import SERVICES
+from archery.services.controller.model import ArmsModel, load_arms_model
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import SceneConfig
 
 POSITION_TOL = 1e-3  # m
 ANGLE_TOL = 1e-3  # rad

@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from msgspec import UNSET
 
-from protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
-from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
-from services.learner.algorithms.base import Learner
-from services.learner.algorithms.registry import make_learner
-from services.learner.config import SessionConfig
-from services.learner.errors import RigError
-from services.learner.journal import JournalState
-from services.learner.rig_protocol import Measurement, PostureResult, Shot
-from services.learner.rollout_step import (
+from archery.protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
+from archery.services.learner.abort_policy import NO_ARROW, SERVICE_LOST
+from archery.services.learner.algorithms.base import Learner
+from archery.services.learner.algorithms.registry import make_learner
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.errors import RigError
+from archery.services.learner.journal import JournalState
+from archery.services.learner.rig_protocol import Measurement, PostureResult, Shot
+from archery.services.learner.rollout_step import (
     Failed,
     Measured,
     aborted_record,

@@ -30,22 +30,23 @@ from zenoh_ros2_sdk import (
     get_topic_names_and_types,
 )
 
-from apps.ros2 import convert, typestore
-from apps.ros2.graph import MAX_COMMAND_BYTES, TOPICS, Ros2Node
-from apps.ros2.graph import SERVICES as SERVICE_NAMES
-from apps.ros2.wire import Attachment, data_key
-from apps.topics.recording import open_recording
-from apps.topics.robot_frames import RobotFrames, urdf_text
-from mesh.netflags import NetConfig
-from mesh.node import open_node
-from mesh.router import free_tcp_endpoint
-from mesh.subscription import Subscription
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
-from protocol.messages import Image, JointState, Rollout
-from protocol.parts import PARTS
-from protocol.robotspec import COMMAND_BURST, COMMAND_RATE, SERVICES
-from protocol.verbs import robot as rv
-from sim.scene_config import SceneConfig
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.graph import MAX_COMMAND_BYTES, TOPICS, Ros2Node
+from archery.apps.ros2.graph import SERVICES as SERVICE_NAMES
+from archery.apps.ros2.wire import Attachment, data_key
+from archery.apps.topics.recording import open_recording
+from archery.apps.topics.robot_frames import RobotFrames
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import open_node
+from archery.mesh.router import free_tcp_endpoint
+from archery.mesh.subscription import Subscription
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from archery.protocol.messages import Image, JointState, Rollout
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import COMMAND_BURST, COMMAND_RATE, SERVICES
+from archery.protocol.verbs import robot as rv
+from archery.sim.scene_config import SceneConfig
+from archery.sim.urdf import urdf_text
 from tests.conftest import archery
 from tests.ros2_sdk import sdk_session, until
 
@@ -64,8 +65,8 @@ class Mesh:
         self.endpoint = free_tcp_endpoint()
         self.recording = tmp / "run.mcap"
         self.up = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "up", "--listen", self.endpoint, "--robot", ROBOT,
-             "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs"), "--ros2",
+            [sys.executable, "-m", "archery.apps.cli", "up", "--listen", self.endpoint,
+             "--robot", ROBOT, "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs"), "--ros2",
              "--record", str(self.recording)],
             stdout=subprocess.PIPE,
             stderr=subprocess.DEVNULL,

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 from rosbags.rosbag2 import Reader
 
-from apps.ros2 import typestore
-from apps.topics.recording import Recorder
-from protocol.codec import encode
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
-from protocol.messages import Rollout
+from archery.apps.ros2 import typestore
+from archery.apps.topics.recording import Recorder
+from archery.protocol.codec import encode
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from archery.protocol.messages import Rollout
 from tests.conftest import archery
 
 ROBOT = "icubSim"

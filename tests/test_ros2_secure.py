@@ -15,11 +15,11 @@ import numpy as np
 import pytest
 import zenoh
 
-from apps.ros2 import convert, typestore
-from apps.ros2.graph import COMMANDS, SERVICES, TOPICS
-from apps.ros2.wire import Attachment, data_key
-from apps.up.launcher import Launcher
-from mesh.acl import (
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.graph import COMMANDS, SERVICES, TOPICS
+from archery.apps.ros2.wire import Attachment, data_key
+from archery.apps.up.launcher import Launcher
+from archery.mesh.acl import (
     OPERATOR,
     ROS2,
     ROS2_COMMANDS,
@@ -28,11 +28,11 @@ from mesh.acl import (
     ROS2_TOPICS,
     roles,
 )
-from mesh.credentials import IDENTITIES, init_deployment
-from mesh.netflags import NetConfig, open_session
-from mesh.node import open_node
-from mesh.router import free_tcp_endpoint
-from protocol.verbs import robot as rv
+from archery.mesh.credentials import IDENTITIES, init_deployment
+from archery.mesh.netflags import NetConfig, open_session
+from archery.mesh.node import open_node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.verbs import robot as rv
 from tests.ros2_sdk import until
 from tests.test_secure_session import _wait_for_line
 
@@ -49,7 +49,7 @@ class SecureMesh:
         self.launcher = Launcher(self.endpoint, ROBOT, base / "logs", secure=str(self.deployment))
         self.launcher.up(180, services=["robot"])
         self.ros2 = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "ros2", "--secure", str(self.deployment),
+            [sys.executable, "-m", "archery.apps.cli", "ros2", "--secure", str(self.deployment),
              "--connect", self.endpoint, "--robot", ROBOT, "--operator"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )  # fmt: skip
@@ -157,7 +157,7 @@ def test_up_secure_runs_the_read_only_ros2_node(tmp_path: Path) -> None:
     deployment = init_deployment(tmp_path / "deploy", robot=ROBOT)
     endpoint = free_tcp_endpoint().replace("tcp/", "tls/")
     up = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", "up", "--secure", str(deployment), "--listen",
+        [sys.executable, "-m", "archery.apps.cli", "up", "--secure", str(deployment), "--listen",
          endpoint, "--robot", ROBOT, "--logs", str(tmp_path / "logs"), "--runs",
          str(tmp_path / "runs"), "--ros2", "0"],
         stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

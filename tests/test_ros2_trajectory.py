@@ -20,20 +20,21 @@ import numpy as np
 import pytest
 import zenoh
 
-from apps.ros2 import convert, typestore
-from apps.ros2.endpoints import Counts
-from apps.ros2.graph import Ros2Node
-from apps.ros2.latest import LatestPerKey
-from apps.ros2.wire import Attachment, data_key
-from apps.topics.robot_frames import RobotFrames, urdf_text
-from mesh.netflags import NetConfig, open_session
-from mesh.node import Node, open_node
-from mesh.subscription import Subscription
-from protocol.messages import JointState
-from protocol.parts import PARTS
-from protocol.robotspec import ROBOT as ROBOT_SERVICE
-from protocol.verbs import robot as rv
-from sim.scene_config import SceneConfig
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.endpoints import Counts
+from archery.apps.ros2.graph import Ros2Node
+from archery.apps.ros2.latest import LatestPerKey
+from archery.apps.ros2.wire import Attachment, data_key
+from archery.apps.topics.robot_frames import RobotFrames
+from archery.mesh.netflags import NetConfig, open_session
+from archery.mesh.node import Node, open_node
+from archery.mesh.subscription import Subscription
+from archery.protocol.messages import JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import ROBOT as ROBOT_SERVICE
+from archery.protocol.verbs import robot as rv
+from archery.sim.scene_config import SceneConfig
+from archery.sim.urdf import urdf_text
 from tests.ros2_sdk import until
 
 ROBOT = f"rostraj{os.getpid()}"
@@ -64,7 +65,7 @@ def rig(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
     log = tmp_path_factory.mktemp("ros2_trajectory") / "robot.log"
     with Path(log).open("wb") as out:
         robot = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", "robot", "--connect", router_endpoint,
+            [sys.executable, "-m", "archery.apps.cli", "robot", "--connect", router_endpoint,
              "--robot", ROBOT, "--rtf", "2", "--state-rate", "100"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=out,
         )  # fmt: skip

@@ -14,9 +14,9 @@ from zenoh_ros2_sdk.attachment import Attachment as SdkAttachment
 from zenoh_ros2_sdk.entity import EndpointEntity, EntityKind, NodeEntity
 from zenoh_ros2_sdk.keyexpr import endpoint_liveliness_keyexpr, node_liveliness_keyexpr
 
-from apps.ros2 import convert, typestore
-from apps.ros2.graph import TOPICS
-from apps.ros2.wire import (
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.graph import TOPICS
+from archery.apps.ros2.wire import (
     ATTACHMENT_SIZE,
     Attachment,
     AttachmentError,
@@ -27,10 +27,10 @@ from apps.ros2.wire import (
     data_key,
     gid_of,
 )
-from protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
-from protocol.messages import Rollout
-from protocol.text import SHOWN_LIMIT
-from protocol.verbs import robot as rv
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ProposedRecord
+from archery.protocol.messages import Rollout
+from archery.protocol.text import SHOWN_LIMIT
+from archery.protocol.verbs import robot as rv
 from tests.conftest import archery
 
 # design.md's examples, as it prints them

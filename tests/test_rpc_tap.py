@@ -8,13 +8,13 @@ from collections.abc import Iterator
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.rpc_server import RpcServer
-from mesh.rpc_tap import MAX_TAPPED_REPLY, REDACTED
-from protocol.keys import port_of, tap_keys
-from protocol.messages import RpcReply, RpcRequest
-from protocol.verbs.robot import PART_VERBS, LimitsReply, RefSpeedsReply
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.rpc_server import RpcServer
+from archery.mesh.rpc_tap import MAX_TAPPED_REPLY, REDACTED
+from archery.protocol.keys import port_of, tap_keys
+from archery.protocol.messages import RpcReply, RpcRequest
+from archery.protocol.verbs.robot import PART_VERBS, LimitsReply, RefSpeedsReply
 from tests.rpc import rpc_call, some_verbs
 
 NAMES = ["a", "b"]

@@ -12,15 +12,21 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from protocol.errors import ConfigError
-from protocol.parts import PARTS
-from protocol.robotspec import MODEL_NAME, home_of
-from protocol.verbs.robot import Scene
-from sim.errors import CommandError, SceneError
-from sim.geometry import BOW_HAND, START_THETA, TARGET_DIAMETER, TARGET_DISTANCE, target_centre
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import (
+from archery.protocol.errors import ConfigError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import MODEL_NAME, home_of
+from archery.protocol.verbs.robot import Scene
+from archery.sim.errors import CommandError, SceneError
+from archery.sim.geometry import (
+    BOW_HAND,
+    START_THETA,
+    TARGET_DIAMETER,
+    TARGET_DISTANCE,
+    target_centre,
+)
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import (
     ARROW_JOINT,
     ARROW_TIP_SITE,
     BOW_HAND_SITE,
@@ -32,7 +38,7 @@ from sim.scene_config import (
     TARGET_CENTRE_SITE,
     SceneConfig,
 )
-from sim.urdf import urdf_frame_placement
+from archery.sim.urdf import urdf_frame_placement
 from tests.postures import archery_posture
 
 CHEAP = SceneConfig(meshes=False)

@@ -7,10 +7,10 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from protocol.errors import ConfigError
-from sim.render import SceneRenderer, project
-from sim.scene_config import SIDE_CAMERA, SceneConfig
-from sim.scene_view import SceneView
+from archery.protocol.errors import ConfigError
+from archery.sim.render import SceneRenderer, project
+from archery.sim.scene_config import SIDE_CAMERA, SceneConfig
+from archery.sim.scene_view import SceneView
 
 
 @pytest.fixture(scope="module")

@@ -26,8 +26,8 @@ from cryptography import x509
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 
-from mesh.acl import OPERATOR, REPLAY, VIEWER, roles, rules, server_of
-from mesh.credentials import (
+from archery.mesh.acl import OPERATOR, REPLAY, VIEWER, roles, rules, server_of
+from archery.mesh.credentials import (
     CA_CERT,
     CA_KEY,
     IDENTITIES,
@@ -37,25 +37,25 @@ from mesh.credentials import (
     issue,
     write_identity,
 )
-from mesh.netflags import NetConfig, open_session
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, spawn_router
-from protocol.codec import encode
-from protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
-from protocol.keys import Keys, verb_key, verbs_key
-from protocol.messages import Image, RpcReply
-from protocol.verbs import TABLES, names_caller, table_for_key
-from protocol.verbs import camera as cam_verbs
-from protocol.verbs.camera import CAMERA_VERBS, GRAB, GrabArgs
-from protocol.verbs.detector import CALIBRATE, DETECTOR_VERBS, STATUS, MeasureReply
-from protocol.verbs.robot import CLAIM, GET_CLAIM, ClaimArgs
-from services.learner.errors import RigError
-from services.learner.rig import MeshRig
-from services.learner.rig_protocol import Shot
-from services.robot.config import RobotConfig
-from services.robot.service import run as run_robot
-from sim.scene_config import SceneConfig
-from sim.world import WorldConfig
+from archery.mesh.netflags import NetConfig, open_session
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, spawn_router
+from archery.protocol.codec import encode
+from archery.protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
+from archery.protocol.keys import Keys, verb_key, verbs_key
+from archery.protocol.messages import Image, RpcReply
+from archery.protocol.verbs import TABLES, names_caller, table_for_key
+from archery.protocol.verbs import camera as cam_verbs
+from archery.protocol.verbs.camera import CAMERA_VERBS, GRAB, GrabArgs
+from archery.protocol.verbs.detector import CALIBRATE, DETECTOR_VERBS, STATUS, MeasureReply
+from archery.protocol.verbs.robot import CLAIM, GET_CLAIM, ClaimArgs
+from archery.services.learner.errors import RigError
+from archery.services.learner.rig import MeshRig
+from archery.services.learner.rig_protocol import Shot
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.service import run as run_robot
+from archery.sim.scene_config import SceneConfig
+from archery.sim.world import WorldConfig
 from tests.conftest import archery, serving
 from tests.inbox import Inbox
 from tests.rpc import rpc_call, some_verbs
@@ -534,10 +534,10 @@ def test_a_reply_from_a_non_instance_is_rejected(net: NetConfig, tmp_path: Path)
 
 
 def test_the_session_journals_wrong_replier_as_an_abort(tmp_path: Path) -> None:
-    from protocol.journal_records import AbortedRecord, DoneRecord
-    from services.learner.config import SessionConfig
-    from services.learner.journal import read_records
-    from services.learner.session import Session
+    from archery.protocol.journal_records import AbortedRecord, DoneRecord
+    from archery.services.learner.config import SessionConfig
+    from archery.services.learner.journal import read_records
+    from archery.services.learner.session import Session
     from tests.test_learner_service_session import FakeRig
 
     class RogueRig(FakeRig):
@@ -620,7 +620,7 @@ def test_a_plain_client_meeting_a_secure_router_is_told_so(endpoint: str) -> Non
 def test_up_hands_each_child_only_the_ca_certificate_and_its_own_identity(
     deployment: Path, tmp_path: Path
 ) -> None:
-    from apps.up.launcher import Launcher
+    from archery.apps.up.launcher import Launcher
 
     launcher = Launcher(
         free_tcp_endpoint().replace("tcp/", "tls/"),

@@ -15,16 +15,16 @@ from pathlib import Path
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
-from protocol.codec import encode
-from protocol.errors import Busy
-from protocol.keys import verb_key
-from protocol.messages import RpcRequest
-from protocol.verbs import NoArgs
-from protocol.verbs.camera import GRAB, STATUS, GrabArgs
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
+from archery.protocol.codec import encode
+from archery.protocol.errors import Busy
+from archery.protocol.keys import verb_key
+from archery.protocol.messages import RpcRequest
+from archery.protocol.verbs import NoArgs
+from archery.protocol.verbs.camera import GRAB, STATUS, GrabArgs
 from tests.conftest import archery
 from tests.test_read_limits import _error
 from tests.test_secure_session import _wait_for_line
@@ -41,7 +41,7 @@ def test_a_viewers_far_future_grabs_leave_a_secure_session_its_frames(tmp_path: 
     logs, runs = str(tmp_path / "logs"), str(tmp_path / "runs")
     up_args = ["up", "--secure", str(deploy), "--listen", endpoint, "--logs", logs, "--runs", runs]
     up = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *up_args],
+        [sys.executable, "-m", "archery.apps.cli", *up_args],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from mesh.router import free_tcp_endpoint
-from protocol.journal_records import DoneRecord
-from services.learner.journal import read_records
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
+from archery.services.learner.journal import read_records
 from tests.conftest import archery
 
 ROLLOUTS = 3
@@ -55,7 +55,16 @@ def test_a_learning_session_runs_end_to_end_in_secure_mode(tmp_path: Path, shot:
     logs = tmp_path / "logs"
     up_args = ["up", "--secure", str(deploy), "--listen", endpoint, "--shot", shot]
     up = subprocess.Popen(
-        [sys.executable, "-m", "apps.cli", *up_args, "--logs", str(logs), "--runs", str(runs)],
+        [
+            sys.executable,
+            "-m",
+            "archery.apps.cli",
+            *up_args,
+            "--logs",
+            str(logs),
+            "--runs",
+            str(runs),
+        ],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,

@@ -14,13 +14,13 @@ from collections.abc import Iterator
 import pytest
 import zenoh
 
-from mesh.instances import InstanceWatch, live_instances, zid_of
-from mesh.netflags import NetConfig, open_session
-from mesh.node import Node
-from mesh.runtime import runtime_dir
-from protocol.codec import encode
-from protocol.errors import DuplicateService
-from protocol.messages import Describe, ReplaceRequest
+from archery.mesh.instances import InstanceWatch, live_instances, zid_of
+from archery.mesh.netflags import NetConfig, open_session
+from archery.mesh.node import Node
+from archery.mesh.runtime import runtime_dir
+from archery.protocol.codec import encode
+from archery.protocol.errors import DuplicateService
+from archery.protocol.messages import Describe, ReplaceRequest
 from tests.conftest import archery
 
 NAME = "detector"
@@ -50,7 +50,7 @@ def spawn(net: NetConfig) -> Iterator:
 
 def _instance_pids(node: Node) -> set[int]:
     """Pids of the instances holding NAME's instance token now (from their describe)."""
-    from mesh.instances import describe_all
+    from archery.mesh.instances import describe_all
 
     zids = live_instances(node.session, node.keys, NAME)
     return {d.pid for z, d in describe_all(node.session, node.keys, NAME).items() if z in zids}

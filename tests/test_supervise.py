@@ -19,14 +19,14 @@ import psutil
 import pytest
 import zenoh
 
-from apps.up.launch_config import SERVICES, default_mesh
-from apps.up.launcher import Launcher
-from apps.up.restart_policy import RestartPolicy
-from apps.up.supervisor import GiveUp, Supervisor
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, wait_for_endpoint
-from protocol.errors import ConfigError
+from archery.apps.up.launch_config import SERVICES, default_mesh
+from archery.apps.up.launcher import Launcher
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.apps.up.supervisor import GiveUp, Supervisor
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, wait_for_endpoint
+from archery.protocol.errors import ConfigError
 from tests.rpc import rpc_call
 
 ROBOT = "sup1"
@@ -196,7 +196,7 @@ def test_up_stops_everything_when_the_budget_is_spent(tmp_path: Path) -> None:
     config.write_text(
         f'[router]\nendpoint = "{endpoint}"\n[robots.supcli]\nservices = ["controller"]\n'
     )
-    argv = [sys.executable, "-m", "apps.cli", "up", "--config", str(config)]
+    argv = [sys.executable, "-m", "archery.apps.cli", "up", "--config", str(config)]
     argv += ["--logs", str(tmp_path / "logs"), "--restart-budget", "1"]
     proc = subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=os.environ

@@ -14,19 +14,19 @@ import cv2
 import numpy as np
 import pytest
 
-from apps.topics.selfcheck import ECHO_SERVICE, run_echo
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from protocol.messages import Image
-from protocol.parts import PARTS
-from protocol.verbs.robot import PART_VERBS
+from archery.apps.topics.selfcheck import ECHO_SERVICE, run_echo
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.messages import Image
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs.robot import PART_VERBS
 from tests.conftest import archery, serving
 
 
 @pytest.fixture
 def echo(net: NetConfig) -> Iterator[NetConfig]:
     """The sample service as a real child process."""
-    argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
+    argv = [sys.executable, "-m", "archery.apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     argv += ["--connect", net.connect[0]]
     proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL)
     with Node(None, net) as node:
@@ -137,7 +137,7 @@ def test_rpc_ok_error_and_timeout(echo: NetConfig) -> None:
 
 
 def test_tools_without_a_router_say_so(tmp_path: Path) -> None:
-    from mesh.router import free_tcp_endpoint
+    from archery.mesh.router import free_tcp_endpoint
 
     out = archery("ports", "--connect", free_tcp_endpoint())
     assert out.returncode == 1 and "Is a router running there?" in out.stderr

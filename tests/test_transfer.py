@@ -11,23 +11,23 @@ import msgspec
 import numpy as np
 import pytest
 
-from apps.experiment.config import ExperimentConfig, Transfer
-from apps.experiment.experiment import run_algorithm
-from protocol.errors import BadRequest
-from protocol.journal_records import HeaderRecord
-from services.learner.algorithms.base import LearnerConfigError, RestoreError
-from services.learner.algorithms.registry import (
+from archery.apps.experiment.config import ExperimentConfig, Transfer
+from archery.apps.experiment.experiment import run_algorithm
+from archery.protocol.errors import BadRequest
+from archery.protocol.journal_records import HeaderRecord
+from archery.services.learner.algorithms.base import LearnerConfigError, RestoreError
+from archery.services.learner.algorithms.registry import (
     TRANSFER_ALGORITHMS,
     check_transfer,
     make_learner,
     restore_learner,
     transferred_learner,
 )
-from services.learner.config import SessionConfig
-from services.learner.journal import JournalError, read_records
-from services.learner.session import Session
-from services.learner.transfer import load_source
-from sim.ballistic import BallisticWorld, Scenario
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.journal import JournalError, read_records
+from archery.services.learner.session import Session
+from archery.services.learner.transfer import load_source
+from archery.sim.ballistic import BallisticWorld, Scenario
 from tests.test_learner_service_session import FakeRig
 
 STIFF = Scenario(bow_stiffness=420.0)  # the learner's nominal model is a 300 N/m bow

@@ -11,10 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from apps.up.child import spawn
-from apps.up.launcher import Launcher
-from apps.up.logfile import RotatingLog
-from mesh.router import free_tcp_endpoint
+from archery.apps.up.child import spawn
+from archery.apps.up.launcher import Launcher
+from archery.apps.up.logfile import RotatingLog
+from archery.mesh.router import free_tcp_endpoint
 
 SPAM = """
 import sys
@@ -74,7 +74,7 @@ def test_up_bounds_a_childs_logs(tmp_path: Path) -> None:
 PARENT = """
 import sys
 from pathlib import Path
-from apps.up.launcher import Launcher
+from archery.apps.up.launcher import Launcher
 launcher = Launcher(sys.argv[1], "orphans", Path(sys.argv[2]))
 launcher.start_router()
 print(launcher.children["router"].proc.pid, flush=True)

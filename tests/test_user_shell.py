@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from mesh.router import free_tcp_endpoint
+from archery.mesh.router import free_tcp_endpoint
 
 pytestmark = pytest.mark.slow
 

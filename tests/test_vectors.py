@@ -7,7 +7,7 @@ import re
 import numpy as np
 import pytest
 
-from protocol.vectors import MAX_SHOWN, finite_vector, parse_vector
+from archery.protocol.vectors import MAX_SHOWN, finite_vector, parse_vector
 
 
 class Refused(ValueError):

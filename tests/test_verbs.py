@@ -12,14 +12,14 @@ import msgspec
 import numpy as np
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.rpc_server import bad_args_message
-from protocol.errors import RpcError
-from protocol.messages import Image, RpcReply
-from protocol.theta import THETA_BOX
-from protocol.verbs import TABLES, NoArgs, Reply, Verb, VerbTable, table_for_key
-from protocol.verbs import controller as cv
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.rpc_server import bad_args_message
+from archery.protocol.errors import RpcError
+from archery.protocol.messages import Image, RpcReply
+from archery.protocol.theta import THETA_BOX
+from archery.protocol.verbs import TABLES, NoArgs, Reply, Verb, VerbTable, table_for_key
+from archery.protocol.verbs import controller as cv
 from tests.conftest import archery
 from tests.rpc import rpc_call
 

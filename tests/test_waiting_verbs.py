@@ -11,16 +11,16 @@ from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
-from mesh.acl import OPERATOR, VIEWER, granted
-from mesh.netflags import NetConfig
-from mesh.node import Node
-from mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
-from protocol.errors import RpcError, RpcTimeout
-from protocol.keys import Keys, verb_key
-from protocol.verbs import NoArgs
-from protocol.verbs.camera import CALIBRATION, GRAB, STATUS, GrabArgs
-from services.camera.config import CameraConfig
-from services.camera.service import run
+from archery.mesh.acl import OPERATOR, VIEWER, granted
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.rpc_server import MAX_WAITING, MAX_WAITING_PER_CALLER
+from archery.protocol.errors import RpcError, RpcTimeout
+from archery.protocol.keys import Keys, verb_key
+from archery.protocol.verbs import NoArgs
+from archery.protocol.verbs.camera import CALIBRATION, GRAB, STATUS, GrabArgs
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run
 from tests.conftest import serving
 
 GRAB = GRAB

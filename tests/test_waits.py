@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from mesh.netflags import NetConfig
-from mesh.router import free_tcp_endpoint
+from archery.mesh.netflags import NetConfig
+from archery.mesh.router import free_tcp_endpoint
 
 LINE_WITHIN = 60.0  # s: the waiting line comes at once; this bounds a loaded machine's start-up
 
@@ -24,7 +24,7 @@ class Waiting:
 
     def __init__(self, *args: str, cwd: Path | None = None) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "apps.cli", *args],
+            [sys.executable, "-m", "archery.apps.cli", *args],
             stdin=subprocess.DEVNULL,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,

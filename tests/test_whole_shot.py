@@ -7,14 +7,14 @@ import mujoco
 import numpy as np
 import pytest
 
-from protocol.robotspec import BOW_ARM, STRING_ARM
-from sim.errors import ArrowDropped, GraspMissed, NockMissed, StateError
-from sim.geometry import BOW_HAND, START_THETA
-from sim.model_build import build_scene
-from sim.scene_config import BOWSTRING_TENDON, STRING_NOCK_SITE, SceneConfig
-from sim.shot_script import APPROACH_HEIGHT, ShotStep, plan_whole_shot
-from sim.whole_props import HOLDER_NOCK
-from sim.world import ArcheryWorld, ArrowState, WorldConfig
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM
+from archery.sim.errors import ArrowDropped, GraspMissed, NockMissed, StateError
+from archery.sim.geometry import BOW_HAND, START_THETA
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import BOWSTRING_TENDON, STRING_NOCK_SITE, SceneConfig
+from archery.sim.shot_script import APPROACH_HEIGHT, ShotStep, plan_whole_shot
+from archery.sim.whole_props import HOLDER_NOCK
+from archery.sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.postures import archery_posture
 from tests.world_steps import move_until_done
 

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from protocol.errors import ArcheryError, BadRequest, ConfigError
-from sim.arrow import Landing, Outcome, drag_acceleration
-from sim.bow import Bow
-from sim.errors import CommandError, SimError, StateError
-from sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
-from sim.model_build import build_scene
-from sim.scene import ScenePhysics
-from sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
-from sim.world import ArcheryWorld, ArrowState, WorldConfig
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError
+from archery.sim.arrow import Landing, Outcome, drag_acceleration
+from archery.sim.bow import Bow
+from archery.sim.errors import CommandError, SimError, StateError
+from archery.sim.geometry import BOW_HAND, START_THETA, TARGET_DISTANCE, target_centre
+from archery.sim.model_build import build_scene
+from archery.sim.scene import ScenePhysics
+from archery.sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
+from archery.sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.postures import archery_posture
 from tests.world_steps import move_until_done
 

@@ -1,13 +1,15 @@
 """`make wheel-check`: the package as a user installs it, checked end to end.
 
 1. The wheel is built from the checkout (`pip wheel --no-deps`).
-2. Every file of the five product packages that git tracks is inside it (a module or a page
-   missing from the wheel would work in the checkout and fail for a user).
+2. Every file of the five product packages that git tracks is inside it, under the one import
+   name `archery` (a module or a page missing from the wheel would work in the checkout and
+   fail for a user), and nothing else is at its top but its metadata.
 3. It is installed with `[all]` into a fresh virtual environment outside the checkout, not
    editable.
 4. From another folder, with only PATH, HOME and LANG in the environment, the installed
-   `archery` imports from that environment (never the checkout) and `archery demo` runs to a
-   hit, its JSON result line printed and the hit filmed.
+   distribution put only `archery` at the top of site-packages (`import protocol` fails), the
+   installed `archery` imports from that environment (never the checkout) and `archery demo`
+   runs to a hit, its JSON result line printed and the hit filmed.
 
 Each step prints its time; the folder is removed afterwards unless a step failed (then its path
 is printed). Exit status 0 when every step passes, 1 otherwise.
@@ -61,13 +63,26 @@ def _step(title: str, argv: list[str], *, timeout: float, **kwargs: object) -> s
 def _tracked_package_files() -> set[str]:
     """The files of the product packages that git tracks, as paths inside the wheel."""
     out = subprocess.run(
-        ["git", "ls-files", *PACKAGES],
+        ["git", "ls-files", *PACKAGES, "archery/__init__.py"],
         cwd=CHECKOUT,
         capture_output=True,
         text=True,
         check=True,
     ).stdout
-    return {line for line in out.splitlines() if line.strip()}
+    return {
+        line if line.startswith("archery/") else f"archery/{line}"
+        for line in out.splitlines()
+        if line.strip()
+    }
+
+
+def _check_top(names: set[str], where: str) -> None:
+    """Only `archery` and the distribution's metadata at the top of `names` (paths)."""
+    top = {name.split("/")[0] for name in names if not name.startswith("..")}
+    extra = sorted(t for t in top if t != "archery" and not t.endswith(".dist-info"))
+    if extra:
+        raise CheckFailed(f"{where} puts more than `archery` at the top: {extra}")
+    print(f"wheel-check: {where} puts only `archery` at the top of site-packages")
 
 
 def _check_contents(wheel: Path) -> None:
@@ -79,6 +94,7 @@ def _check_contents(wheel: Path) -> None:
             + ", ".join(missing[:20])
         )
     print(f"wheel-check: {wheel.name} holds every tracked package file ({len(names)} files)")
+    _check_top(names, wheel.name)
 
 
 def check(folder: Path) -> None:
@@ -104,9 +120,37 @@ def check(folder: Path) -> None:
     )
     env = {"PATH": f"{venv / 'bin'}:/usr/local/bin:/usr/bin:/bin", "HOME": str(home)}
     env["LANG"] = "C.UTF-8"
+    installed = _step(
+        "list the installed distribution's files",
+        ["python", "-c", "import importlib.metadata as m; print(*m.files('archery'), sep='\\n')"],
+        timeout=120,
+        cwd=elsewhere,
+        env=env,
+    )
+    _check_top(set(installed.split()), "the installed distribution")
+    try:
+        _step(
+            "import protocol",
+            ["python", "-c", "import protocol"],
+            timeout=120,
+            cwd=elsewhere,
+            env=env,
+        )
+    except CheckFailed as exc:
+        if "ModuleNotFoundError: No module named 'protocol'" not in str(exc):
+            raise
+        print("wheel-check: `import protocol` fails after the install, as it should")
+    else:
+        raise CheckFailed(
+            "`import protocol` works after the install: an old import name is at the top"
+        )
     where = _step(
         "import from the installed package",
-        ["python", "-c", "import apps, sim; print(apps.__file__); print(sim.__file__)"],
+        [
+            "python",
+            "-c",
+            "import archery.apps, archery.sim; print(archery.apps.__file__, archery.sim.__file__)",
+        ],
         timeout=120,
         cwd=elsewhere,
         env=env,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 
-from sim.errors import CommandError
-from sim.world import ArcheryWorld
+from archery.sim.errors import CommandError
+from archery.sim.world import ArcheryWorld
 
 __all__ = ["move_until_done"]
 

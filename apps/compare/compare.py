@@ -25,23 +25,23 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.compare.optimizers import OPTIMIZERS, run_optimizer
-from apps.experiment.censored import count_stats, format_counts, format_mean
-from apps.experiment.config import CURVE_COLUMNS as EXPERIMENT_COLUMNS
-from apps.experiment.config import AlgorithmRun, ExperimentError, number
-from apps.gym.agent import run_learner
-from apps.gym.aim_robot import RobotUnavailable, ServiceLostError, ShotNotMeasured
-from apps.gym.registration import AIM_ID, AIM_ROBOT_ID
-from apps.progress import progress_bar
-from apps.waits import interrupted_line
-from mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
-from mesh.netflags import NetConfig, add_network_args
-from protocol.errors import ArcheryError
-from protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, for_error
-from protocol.vectors import parse_vector
-from services.learner.algorithms.base import LearnerError
-from services.learner.algorithms.registry import ALGORITHMS
-from sim.geometry import INNER_RING_RADIUS
+from archery.apps.compare.optimizers import OPTIMIZERS, run_optimizer
+from archery.apps.experiment.censored import count_stats, format_counts, format_mean
+from archery.apps.experiment.config import CURVE_COLUMNS as EXPERIMENT_COLUMNS
+from archery.apps.experiment.config import AlgorithmRun, ExperimentError, number
+from archery.apps.gym.agent import run_learner
+from archery.apps.gym.aim_robot import RobotUnavailable, ServiceLostError, ShotNotMeasured
+from archery.apps.gym.registration import AIM_ID, AIM_ROBOT_ID
+from archery.apps.progress import progress_bar
+from archery.apps.waits import interrupted_line
+from archery.mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.protocol.errors import ArcheryError
+from archery.protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, for_error
+from archery.protocol.vectors import parse_vector
+from archery.services.learner.algorithms.base import LearnerError
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.sim.geometry import INNER_RING_RADIUS
 
 __all__ = ["DEFAULT_METHODS", "build_parser", "compare", "main"]
 
@@ -121,7 +121,7 @@ def write_outputs(
     out: Path, runs: dict[str, AlgorithmRun], summary: dict[str, Any], title: str
 ) -> None:
     """summary.json, curves.csv and fig6.png into `out`."""
-    from apps.experiment.plots import plot_convergence
+    from archery.apps.experiment.plots import plot_convergence
 
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")

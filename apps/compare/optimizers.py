@@ -16,7 +16,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.gym.agent import Episode, StepHook, bounds_of, start_theta
+from archery.apps.gym.agent import Episode, StepHook, bounds_of, start_theta
 
 __all__ = ["CMA_SIGMA0", "OPTIMIZERS", "run_optimizer"]
 

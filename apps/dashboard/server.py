@@ -8,6 +8,7 @@ framework) through the guarded HTTP server of `apps.dashboard.guard`; the mesh s
 
 from __future__ import annotations
 
+import argparse
 import errno
 import hmac
 import ipaddress
@@ -15,7 +16,6 @@ import json
 import logging
 import secrets
 import socket
-import sys
 import threading
 import time
 from http import HTTPStatus
@@ -24,17 +24,16 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
-from apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
-from apps.dashboard.watch import MeshWatch
-from mesh.acl import VIEWER
-from mesh.cliargs import ArgumentParser, int_in
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node
-from mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
-from mesh.signals import shutdown_on_signals
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import for_error
-from protocol.keys import validate_robot
+from archery.apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
+from archery.apps.dashboard.watch import MeshWatch
+from archery.apps.viewer import View, viewer_main
+from archery.mesh.acl import VIEWER
+from archery.mesh.cliargs import ArgumentParser, int_in
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import Node
+from archery.mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.keys import validate_robot
 
 __all__ = [
     "DEFAULT_PORT",
@@ -66,7 +65,7 @@ def _static(name: str) -> bytes | None:
     """A file of the package's `static/` folder, or None when there is no such file."""
     if "/" in name or name.startswith("."):
         return None
-    path = resources.files("apps.dashboard").joinpath("static", name)
+    path = resources.files("archery.apps.dashboard").joinpath("static", name)
     return path.read_bytes() if path.is_file() else None
 
 
@@ -293,10 +292,18 @@ class Dashboard:
     and, while a page shows it, the camera's `scene`, so watching never disturbs a session.
     """
 
-    def __init__(self, net: NetConfig, server: _Server, *, watch_idle: float = WATCH_IDLE) -> None:
+    def __init__(
+        self,
+        net: NetConfig,
+        server: _Server,
+        *,
+        watch_idle: float = WATCH_IDLE,
+        node: Node | None = None,
+    ) -> None:
         self.server = server
+        self._own_node = node is None  # a node given stays its giver's to close
         try:
-            self.node = Node(None, net)
+            self.node = Node(None, net) if node is None else node
         except BaseException:
             self.server.server_close()
             raise
@@ -408,7 +415,8 @@ class Dashboard:
             watches = list(self._watches.values())
         for watch in watches:
             watch.close()
-        self.node.close()
+        if self._own_node:
+            self.node.close()
 
     def __enter__(self) -> Dashboard:
         return self
@@ -435,21 +443,30 @@ def main(argv: list[str] | None = None) -> int:
         help=f"default {DEFAULT_PORT}",
     )
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
-    args = parser.parse_args(argv)
-    try:
-        net = NetConfig.from_args(args).with_identity(VIEWER)
-        host = _check_host(args.host)
-        server = bind(host, args.port)
-    except ArcheryError as exc:
-        print(f"archery dashboard: {exc}", file=sys.stderr)
-        return 2
-    lower_priority(args.nice)
-    stop = shutdown_on_signals()
-    try:
-        with Dashboard(net, server) as dash:
-            print(f"archery dashboard: serving {dash.url} (robot {net.robot})", flush=True)
-            stop.wait()
-    except ArcheryError as exc:
-        print(f"archery dashboard: {exc}", file=sys.stderr)
-        return for_error(exc.code)
-    return 0
+    return viewer_main(
+        argv, prog="dashboard", parser=parser, check=_check, start=_start, robot=False
+    )
+
+
+def _check(args: argparse.Namespace) -> tuple[NetConfig, _Server]:
+    """The node's settings and the HTTP server, bound."""
+    net = NetConfig.from_args(args).with_identity(VIEWER)
+    return net, bind(_check_host(args.host), args.port)
+
+
+class _Serving:
+    """The dashboard, as `viewer_main` runs it."""
+
+    def __init__(self, dashboard: Dashboard) -> None:
+        self.dashboard = dashboard
+
+    def ready(self) -> str:
+        return f"serving {self.dashboard.url} (robot {self.dashboard.node.keys.robot})"
+
+    def close(self) -> None:
+        self.dashboard.close()
+
+
+def _start(view: View, server: _Server) -> _Serving:
+    lower_priority(view.args.nice)
+    return _Serving(Dashboard(view.node.net, server, node=view.node))

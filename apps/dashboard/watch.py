@@ -17,20 +17,20 @@ from typing import Any
 
 import msgspec
 
-from apps.port_rates import PortRates, stream_counts
-from mesh.instances import describe_all
-from mesh.node import Node
-from mesh.tokens import TokenSet
-from protocol.errors import ArcheryError
-from protocol.journal_records import DoneRecord, ProposedRecord
-from protocol.keys import Keys
-from protocol.messages import Rollout
-from protocol.robotspec import HIT_RADIUS, SERVICES
-from protocol.verbs import learner as learner_verbs
-from protocol.verbs.base import NoArgs
-from protocol.verbs.camera import SCENE
-from protocol.verbs.detector import FRAME, FrameArgs
-from sim.scene_config import RING_COLOURS
+from archery.apps.port_rates import PortRates, stream_counts
+from archery.mesh.instances import describe_all
+from archery.mesh.node import Node
+from archery.mesh.tokens import TokenSet
+from archery.protocol.errors import ArcheryError
+from archery.protocol.journal_records import DoneRecord, ProposedRecord
+from archery.protocol.keys import Keys
+from archery.protocol.messages import Rollout
+from archery.protocol.robotspec import HIT_RADIUS, SERVICES
+from archery.protocol.verbs import learner as learner_verbs
+from archery.protocol.verbs.base import NoArgs
+from archery.protocol.verbs.camera import SCENE
+from archery.protocol.verbs.detector import FRAME, FrameArgs
+from archery.sim.scene_config import RING_COLOURS
 
 __all__ = ["FRAME_DUTY", "MAX_ROLLOUTS", "SCENE_INTEREST", "MeshWatch"]
 

@@ -7,9 +7,9 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from apps.drills.mesh import DrillMesh, SessionRun
-from apps.drills.verdict import DrillResult, Evidence, judge
-from protocol.journal_records import AbortedRecord
+from archery.apps.drills.mesh import DrillMesh, SessionRun
+from archery.apps.drills.verdict import DrillResult, Evidence, judge
+from archery.protocol.journal_records import AbortedRecord
 
 __all__ = ["finish", "noticed", "recovered", "running_session", "same_processes"]
 

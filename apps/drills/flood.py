@@ -17,13 +17,13 @@ import time
 import msgspec
 import zenoh
 
-from apps.drills.faults import AFTER, finish, recovered, running_session, same_processes
-from apps.drills.mesh import DrillMesh
-from apps.drills.verdict import DrillResult
-from protocol.codec import encode
-from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
-from protocol.messages import JointCommand, JointState
-from protocol.verbs.robot import COUNTERS
+from archery.apps.drills.faults import AFTER, finish, recovered, running_session, same_processes
+from archery.apps.drills.mesh import DrillMesh
+from archery.apps.drills.verdict import DrillResult
+from archery.protocol.codec import encode
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
+from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.verbs.robot import COUNTERS
 
 __all__ = ["PART", "flood", "flood_drill"]
 

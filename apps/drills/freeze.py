@@ -14,10 +14,10 @@ import signal
 import threading
 import time
 
-from apps.drills import faults
-from apps.drills.mesh import DrillMesh
-from apps.drills.verdict import DrillResult
-from protocol.journal_records import ResumedRecord
+from archery.apps.drills import faults
+from archery.apps.drills.mesh import DrillMesh
+from archery.apps.drills.verdict import DrillResult
+from archery.protocol.journal_records import ResumedRecord
 
 __all__ = ["FREEZE", "LEASE", "freeze_service"]
 

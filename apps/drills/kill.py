@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 
-from apps.drills.faults import (
+from archery.apps.drills.faults import (
     AFTER,
     finish,
     noticed,
@@ -28,9 +28,9 @@ from apps.drills.faults import (
     running_session,
     same_processes,
 )
-from apps.drills.mesh import WAIT, DrillMesh
-from apps.drills.verdict import DrillResult
-from protocol.journal_records import ResumedRecord
+from archery.apps.drills.mesh import WAIT, DrillMesh
+from archery.apps.drills.verdict import DrillResult
+from archery.protocol.journal_records import ResumedRecord
 
 __all__ = ["kill_learner", "kill_learner_repeatedly", "kill_service"]
 
@@ -80,7 +80,7 @@ def kill_learner(mesh: DrillMesh, seed: int, rollouts: int = 30) -> DrillResult:
     back = mesh.tokens.wait("learner", True, fault)
     launcher = mesh.launcher
     net = ["--connect", launcher.endpoint, "--robot", launcher.net.robot]
-    argv = [sys.executable, "-m", "apps.cli", "learn", *net, "--resume", str(run.journal)]
+    argv = [sys.executable, "-m", "archery.apps.cli", "learn", *net, "--resume", str(run.journal)]
     problems = []
     try:
         client = subprocess.run(

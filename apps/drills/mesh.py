@@ -21,18 +21,18 @@ from typing import Any
 
 import zenoh
 
-from apps.learn.client import learner_call, start_args
-from apps.up.launch_config import SERVICES, default_mesh
-from apps.up.launcher import Launcher
-from apps.up.restart_policy import RestartPolicy
-from apps.up.supervisor import GiveUp, Supervisor
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint
-from protocol.errors import ArcheryError, RpcTimeout
-from protocol.journal_records import DoneRecord, JournalRecord
-from protocol.messages import Rollout
-from services.learner.journal import read_records
-from services.learner.session import FINAL_STATES
+from archery.apps.learn.client import learner_call, start_args
+from archery.apps.up.launch_config import SERVICES, default_mesh
+from archery.apps.up.launcher import Launcher
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.apps.up.supervisor import GiveUp, Supervisor
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.errors import ArcheryError, RpcTimeout
+from archery.protocol.journal_records import DoneRecord, JournalRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import read_records
+from archery.services.learner.session import FINAL_STATES
 
 __all__ = ["DRILL_POLICY", "DrillError", "DrillMesh", "Tokens"]
 

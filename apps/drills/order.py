@@ -16,10 +16,10 @@ import threading
 import time
 from pathlib import Path
 
-from apps.drills.faults import finish
-from apps.drills.mesh import DrillMesh
-from apps.drills.verdict import DrillResult
-from apps.up.launch_config import SERVICES
+from archery.apps.drills.faults import finish
+from archery.apps.drills.mesh import DrillMesh
+from archery.apps.drills.verdict import DrillResult
+from archery.apps.up.launch_config import SERVICES
 
 __all__ = ["STAGGER", "start_order", "start_order_drill"]
 

@@ -13,12 +13,12 @@ from __future__ import annotations
 import dataclasses
 import time
 
-from apps.drills.faults import AFTER, finish, recovered, running_session, same_processes
-from apps.drills.mesh import WAIT, DrillMesh
-from apps.drills.verdict import DrillResult
-from apps.up.restart_policy import RestartPolicy
-from mesh.router import wait_for_endpoint
-from protocol.journal_records import ResumedRecord
+from archery.apps.drills.faults import AFTER, finish, recovered, running_session, same_processes
+from archery.apps.drills.mesh import WAIT, DrillMesh
+from archery.apps.drills.verdict import DrillResult
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.mesh.router import wait_for_endpoint
+from archery.protocol.journal_records import ResumedRecord
 
 __all__ = ["router_outage"]
 

@@ -21,17 +21,17 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from apps.drills.flood import flood_drill
-from apps.drills.freeze import LEASE, freeze_service
-from apps.drills.kill import kill_learner, kill_learner_repeatedly, kill_service
-from apps.drills.mesh import DrillMesh
-from apps.drills.order import start_order_drill
-from apps.drills.router import router_outage
-from apps.drills.verdict import DrillResult
-from apps.progress import progress_bar
-from apps.up.launch_config import SERVICES
-from mesh.cliargs import ArgumentParser, check_writable_dir
-from protocol.errors import ArcheryError, ConfigError
+from archery.apps.drills.flood import flood_drill
+from archery.apps.drills.freeze import LEASE, freeze_service
+from archery.apps.drills.kill import kill_learner, kill_learner_repeatedly, kill_service
+from archery.apps.drills.mesh import DrillMesh
+from archery.apps.drills.order import start_order_drill
+from archery.apps.drills.router import router_outage
+from archery.apps.drills.verdict import DrillResult
+from archery.apps.progress import progress_bar
+from archery.apps.up.launch_config import SERVICES
+from archery.mesh.cliargs import ArgumentParser, check_writable_dir
+from archery.protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DRILLS", "QUICK", "Drill", "Drills", "main", "render", "run_drills"]
 

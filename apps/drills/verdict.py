@@ -17,8 +17,13 @@ from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
-from services.learner.journal import check_invariants
+from archery.protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    JournalRecord,
+    ProposedRecord,
+)
+from archery.services.learner.journal import check_invariants
 
 __all__ = ["DrillResult", "Evidence", "count_lost_duplicated", "judge"]
 

@@ -13,19 +13,19 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from protocol.theta import THETA_BOX, ThetaBox
-from protocol.vectors import parse_vector
-from protocol.verbs.learner import MAX_ROLLOUTS
-from services.learner.algorithms.base import Learner, LearnerError
-from services.learner.algorithms.power import Power
-from services.learner.algorithms.registry import (
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.protocol.vectors import parse_vector
+from archery.protocol.verbs.learner import MAX_ROLLOUTS
+from archery.services.learner.algorithms.base import Learner, LearnerError
+from archery.services.learner.algorithms.power import Power
+from archery.services.learner.algorithms.registry import (
     ALGORITHMS,
     check_transfer,
     make_learner,
     transferred_learner,
 )
-from sim.ballistic import Scenario
-from sim.geometry import INNER_RING_RADIUS
+from archery.sim.ballistic import Scenario
+from archery.sim.geometry import INNER_RING_RADIUS
 
 __all__ = [
     "CURVE_COLUMNS",

@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
-from apps.capacity import MAX_SESSIONS, check_experiment
-from apps.experiment.censored import count_stats, format_counts, format_mean
-from apps.experiment.config import (
+from archery.apps.capacity import MAX_SESSIONS, check_experiment
+from archery.apps.experiment.censored import count_stats, format_counts, format_mean
+from archery.apps.experiment.config import (
     CURVE_COLUMNS,
     DEFAULT_ALGORITHMS,
     LEARNERS_NAME,
@@ -33,18 +33,18 @@ from apps.experiment.config import (
     WindChange,
     number,
 )
-from apps.experiment.plots import BANDS
-from apps.progress import progress_bar
-from mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
-from mesh.netflags import add_network_args
-from protocol.errors import ArcheryError
-from protocol.exit_status import BAD_INPUT, for_error
-from protocol.vectors import parse_vector
-from services.learner.algorithms.base import LearnerError
-from services.learner.algorithms.registry import (
+from archery.apps.experiment.plots import BANDS
+from archery.apps.progress import progress_bar
+from archery.mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
+from archery.mesh.netflags import add_network_args
+from archery.protocol.errors import ArcheryError
+from archery.protocol.exit_status import BAD_INPUT, for_error
+from archery.protocol.vectors import parse_vector
+from archery.services.learner.algorithms.base import LearnerError
+from archery.services.learner.algorithms.registry import (
     ALGORITHMS,
 )
-from sim.ballistic import BallisticError, BallisticWorld, Scenario, ScenarioError
+from archery.sim.ballistic import BallisticError, BallisticWorld, Scenario, ScenarioError
 
 __all__ = ["build_parser", "main", "run_algorithm", "run_experiment", "summarise", "write_outputs"]
 
@@ -168,7 +168,7 @@ def write_outputs(
                     )
                     writer.writerow([name, s, k + 1, *(repr(float(v)) for v in values)])
     if figures:
-        from apps.experiment.plots import plot_convergence, plot_trajectories
+        from archery.apps.experiment.plots import plot_convergence, plot_trajectories
 
         labels = {name: ALGORITHMS[name].label for name in runs}
         plot_convergence(
@@ -402,7 +402,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_writable_dir(out, flag, create=args.resume is None)  # before the work
         start = time.perf_counter()
         if config.world == "mesh":
-            from apps.experiment import experiment_mesh
+            from archery.apps.experiment import experiment_mesh
 
             config, runs = experiment_mesh.run_from_args(args, parser, config, out)
         elif args.resume is not None or args.robots is not None:

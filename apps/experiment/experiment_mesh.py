@@ -26,9 +26,9 @@ from typing import Any
 
 import msgspec
 
-from apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
-from apps.experiment.fleet import FleetRobot, NoRobot, StackWatch, open_fleet
-from apps.experiment.mesh_out import (
+from archery.apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
+from archery.apps.experiment.fleet import FleetRobot, NoRobot, StackWatch, open_fleet
+from archery.apps.experiment.mesh_out import (
     FleetFailure,
     SessionItem,
     journal_path,
@@ -38,20 +38,20 @@ from apps.experiment.mesh_out import (
     session_ended,
     session_records,
 )
-from apps.progress import progress_bar
-from apps.waits import announce
-from mesh.liveliness import OnWait
-from mesh.logs import DEFAULT_SPEC
-from mesh.netflags import NetConfig
-from mesh.signals import shutdown_on_signals
-from protocol.errors import ArcheryError, BadRequest, ConfigError
-from protocol.journal_records import DoneRecord, JournalRecord
-from protocol.robotspec import THETA0
-from protocol.theta import ThetaBox
-from services.learner.algorithms.registry import ALGORITHMS
-from services.learner.errors import RigError, ServiceLost
-from services.learner.journal import JournalError
-from services.learner.session import Session
+from archery.apps.progress import progress_bar
+from archery.apps.waits import announce
+from archery.mesh.liveliness import OnWait
+from archery.mesh.logs import DEFAULT_SPEC
+from archery.mesh.netflags import NetConfig
+from archery.mesh.signals import shutdown_on_signals
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError
+from archery.protocol.journal_records import DoneRecord, JournalRecord
+from archery.protocol.robotspec import THETA0
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.journal import JournalError
+from archery.services.learner.session import Session
 
 __all__ = [
     "BALLISTIC_ONLY",
@@ -494,8 +494,8 @@ def write_mesh_figures(
 ) -> None:
     """fig6.png (distance per rollout over sessions, `band` as `plots.plot_convergence`) and
     fig5.png (session 0's impacts on the target face per algorithm) of a run on the robot."""
-    from apps.experiment.plots import plot_convergence
-    from apps.experiment.plots_mesh import plot_impacts
+    from archery.apps.experiment.plots import plot_convergence
+    from archery.apps.experiment.plots_mesh import plot_impacts
 
     labels = {name: ALGORITHMS[name].label for name in runs}
     title = f"{config.sessions} sessions × {config.rollouts} rollouts; MuJoCo iCub over the mesh"

@@ -16,14 +16,14 @@ from dataclasses import dataclass
 
 import zenoh
 
-from mesh.liveliness import OnWait
-from mesh.netflags import NetConfig, listens, open_session
-from mesh.node import Node
-from mesh.router import wait_for_endpoint
-from mesh.tokens import TokenSet
-from protocol.errors import ArcheryError, ConfigError
-from services.learner.rig import SERVICES, MeshRig
-from services.learner.rig_protocol import Measurement, Shot
+from archery.mesh.liveliness import OnWait
+from archery.mesh.netflags import NetConfig, listens, open_session
+from archery.mesh.node import Node
+from archery.mesh.router import wait_for_endpoint
+from archery.mesh.tokens import TokenSet
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.services.learner.rig import SERVICES, MeshRig
+from archery.services.learner.rig_protocol import Measurement, Shot
 
 __all__ = [
     "ExperimentRig",

@@ -10,14 +10,14 @@ from typing import Any
 
 import numpy as np
 
-from apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
-from protocol.errors import ArcheryError
-from protocol.journal_records import DoneRecord, EndRecord, JournalRecord, SessionRecord
-from services.learner.algorithms.power import Power
-from services.learner.algorithms.registry import ALGORITHMS
-from services.learner.config import SessionConfig
-from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
-from services.learner.replay import rebuild_learner
+from archery.apps.experiment.config import AlgorithmRun, ExperimentConfig, ExperimentError
+from archery.protocol.errors import ArcheryError
+from archery.protocol.journal_records import DoneRecord, EndRecord, JournalRecord, SessionRecord
+from archery.services.learner.algorithms.power import Power
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from archery.services.learner.replay import rebuild_learner
 
 __all__ = [
     "PLAN_NAME",

@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from apps.experiment.censored import count_stats, format_count
-from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
-from services.learner.algorithms.registry import ALGORITHMS
-from services.learner.label_placement import Label, place_labels
-from sim.ballistic import BallisticWorld
-from sim.geometry import BOW_HAND, INNER_RING_RADIUS, TARGET_DIAMETER
+from archery.apps.experiment.censored import count_stats, format_count
+from archery.services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
+from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.services.learner.label_placement import Label, place_labels
+from archery.sim.ballistic import BallisticWorld
+from archery.sim.geometry import BOW_HAND, INNER_RING_RADIUS, TARGET_DIAMETER
 
 if TYPE_CHECKING:
-    from apps.experiment.config import AlgorithmRun
+    from archery.apps.experiment.config import AlgorithmRun
 
 __all__ = [
     "BANDS",

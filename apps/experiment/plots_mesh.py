@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sim.geometry import INNER_RING_RADIUS, TARGET_DIAMETER
+from archery.sim.geometry import INNER_RING_RADIUS, TARGET_DIAMETER
 
 if TYPE_CHECKING:
-    from apps.experiment.config import AlgorithmRun
+    from archery.apps.experiment.config import AlgorithmRun
 
 __all__ = ["impacts_figure", "plot_impacts"]
 
@@ -45,7 +45,7 @@ def impacts_figure(
     (ARCHER, PoWER) share one scale; each baseline's panel is scaled to its own impacts."""
     import matplotlib
 
-    from apps.experiment.plots import split_baselines
+    from archery.apps.experiment.plots import split_baselines
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

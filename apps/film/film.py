@@ -19,15 +19,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from apps.progress import progress_bar
-from apps.topics.read_limits import add_max_bytes_arg
-from mesh.cliargs import ArgumentParser, count
-from protocol.errors import ArcheryError
-from protocol.exit_status import BAD_INPUT, OK, for_error
-from protocol.text import cut
+from archery.apps.progress import progress_bar
+from archery.apps.topics.read_limits import add_max_bytes_arg
+from archery.mesh.cliargs import ArgumentParser, count
+from archery.protocol.errors import ArcheryError
+from archery.protocol.exit_status import BAD_INPUT, OK, for_error
+from archery.protocol.text import cut
 
 if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
-    from apps.film.replay import FilmFrame, Rollout
+    from archery.apps.film.replay import FilmFrame, Rollout
 
 __all__ = ["FilmResult", "film_hit", "film_ready", "film_session", "hit_video", "main"]
 
@@ -122,11 +122,11 @@ def film_session(
     import numpy as np
     from PIL import Image
 
-    from apps.film.framing import framed
-    from apps.film.recorded import RecordedShot
-    from apps.film.replay import ShotReplay, load_rollout
-    from apps.film.video import ShotVideo, caption, contact_sheet
-    from sim.scene_view import SceneView
+    from archery.apps.film.framing import framed
+    from archery.apps.film.recorded import RecordedShot
+    from archery.apps.film.replay import ShotReplay, load_rollout
+    from archery.apps.film.video import ShotVideo, caption, contact_sheet
+    from archery.sim.scene_view import SceneView
 
     target = load_rollout(session, rollout)
     folder = session if session.is_dir() else session.parent
@@ -173,7 +173,7 @@ def film_ready() -> None:
     """
     if importlib.util.find_spec("mujoco") is None:
         return
-    from sim.gl_backend import check
+    from archery.sim.gl_backend import check
 
     check()
 
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
     parser.add_argument("--fps", type=count, default=30, help="video frames per second")
     args = parser.parse_args(argv)
-    from sim.gl_backend import RenderBackendError, check
+    from archery.sim.gl_backend import RenderBackendError, check
 
     try:
         check()

@@ -18,10 +18,10 @@ from collections.abc import Iterable, Iterator
 import mujoco
 import numpy as np
 
-from apps.film.replay import FilmFrame
-from sim.render import ROBOT_GEOM_GROUP
-from sim.scene_config import ARROW_BODY, HOLDER_BODY, TARGET_CENTRE_SITE
-from sim.scene_view import free_camera
+from archery.apps.film.replay import FilmFrame
+from archery.sim.render import ROBOT_GEOM_GROUP
+from archery.sim.scene_config import ARROW_BODY, HOLDER_BODY, TARGET_CENTRE_SITE
+from archery.sim.scene_view import free_camera
 
 __all__ = [
     "CATCH_M",

@@ -13,11 +13,11 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
-from apps.film.replay import POSTURE, SLOW_MOTION, FilmFrame
-from apps.topics.recording import Recording, open_recording
-from protocol.errors import BadRequest
-from protocol.journal_records import DoneRecord, ProposedRecord
-from protocol.messages import Rollout, WorldState
+from archery.apps.film.replay import POSTURE, SLOW_MOTION, FilmFrame
+from archery.apps.topics.recording import Recording, open_recording
+from archery.protocol.errors import BadRequest
+from archery.protocol.journal_records import DoneRecord, ProposedRecord
+from archery.protocol.messages import Rollout, WorldState
 
 __all__ = ["RecordedShot"]
 

@@ -17,16 +17,16 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol.errors import BadRequest, ConfigError
-from protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
-from protocol.parts import PARTS
-from services.controller.cartesian import reference_speeds
-from services.controller.config import ControllerConfig
-from services.controller.posture import ArcheryPosture
-from services.learner.journal import JOURNAL_NAME, JournalState, read_records
-from sim.arrow import Landing
-from sim.errors import SimError
-from sim.world import ArcheryWorld, WorldConfig
+from archery.protocol.errors import BadRequest, ConfigError
+from archery.protocol.journal_records import DoneRecord, HeaderRecord, ProposedRecord
+from archery.protocol.parts import PARTS
+from archery.services.controller.cartesian import reference_speeds
+from archery.services.controller.config import ControllerConfig
+from archery.services.controller.posture import ArcheryPosture
+from archery.services.learner.journal import JOURNAL_NAME, JournalState, read_records
+from archery.sim.arrow import Landing
+from archery.sim.errors import SimError
+from archery.sim.world import ArcheryWorld, WorldConfig
 
 __all__ = ["POSTURE", "FilmFrame", "Rollout", "ShotReplay", "load_rollout"]
 

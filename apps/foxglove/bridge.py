@@ -21,15 +21,15 @@ from foxglove.websocket import (
     ServerListener,
 )
 
-from apps.foxglove.channels import open_channels
-from apps.foxglove.feeds import Feeds
-from apps.foxglove.front_door import MAX_CONNECTIONS, FrontDoor
-from apps.foxglove.inner_tls import INNER_HOST, inner_tls
-from apps.foxglove.operator import WIND, Operator
-from apps.foxglove.upgrade import UpgradeRules, normal_origin
-from apps.topics.robot_frames import RobotFrames
-from mesh.node import Node
-from protocol.text import shown
+from archery.apps.foxglove.channels import open_channels
+from archery.apps.foxglove.feeds import Feeds
+from archery.apps.foxglove.front_door import MAX_CONNECTIONS, FrontDoor
+from archery.apps.foxglove.inner_tls import INNER_HOST, inner_tls
+from archery.apps.foxglove.operator import WIND, Operator
+from archery.apps.foxglove.upgrade import UpgradeRules, normal_origin
+from archery.apps.topics.robot_frames import RobotFrames
+from archery.mesh.node import Node
+from archery.protocol.text import shown
 
 __all__ = ["MAX_PARAMETERS", "Bridge", "asset"]
 

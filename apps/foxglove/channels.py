@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import foxglove
 
-from apps.foxglove.marks import ROLLOUT_SCHEMA
-from apps.topics.foxglove_records import (
+from archery.apps.foxglove.marks import ROLLOUT_SCHEMA
+from archery.apps.topics.foxglove_records import (
     FRAME_TRANSFORMS,
     IMAGE_ANNOTATIONS,
     JOINT_STATES,
@@ -18,7 +18,7 @@ from apps.topics.foxglove_records import (
     SCENE_UPDATE,
     schema_data,
 )
-from apps.topics.image_records import COMPRESSED, RAW, image_schema
+from archery.apps.topics.image_records import COMPRESSED, RAW, image_schema
 
 __all__ = ["TOPICS", "Topic", "open_channels"]
 

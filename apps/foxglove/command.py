@@ -1,4 +1,5 @@
-"""`archery foxglove`: its flags, the checks of where it listens, and the run until Ctrl-C."""
+"""`archery foxglove`: its flags, the checks of where it listens, and the bridge started on the
+robot (`viewer_main`: the run until Ctrl-C or SIGTERM)."""
 
 from __future__ import annotations
 
@@ -8,19 +9,22 @@ import secrets
 import socket
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from apps.foxglove.front_door import MAX_CONNECTIONS
-from apps.foxglove.upgrade import check_origin_flag
-from apps.waits import announce
-from mesh.cliargs import ArgumentParser, check_writable_dir, seconds
-from mesh.netflags import NetConfig, add_network_args
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import BAD_INPUT, FAILURE, OK
+from archery.apps.foxglove.front_door import MAX_CONNECTIONS
+from archery.apps.foxglove.upgrade import check_origin_flag
+from archery.apps.viewer import View, viewer_main
+from archery.mesh.cliargs import ArgumentParser, check_writable_dir
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.protocol.errors import ConfigError
+from archery.protocol.exit_status import BAD_INPUT, OK
+
+if TYPE_CHECKING:
+    from archery.apps.foxglove.bridge import Bridge
 
 __all__ = ["check_listen", "main"]
 
 DEFAULT_PORT = 8765  # Foxglove's usual WebSocket port
-DEFAULT_WAIT = 30.0  # s: for the router and the robot
 
 
 def check_listen(host: str, port: int) -> None:
@@ -95,17 +99,11 @@ def build_parser() -> ArgumentParser:
         metavar="FILE.json",
         help="write the bridge's Foxglove layout to this file (import it once) and exit",
     )
-    parser.add_argument(
-        "--wait",
-        type=seconds,
-        default=DEFAULT_WAIT,
-        help=f"wait this long for the router and the robot (s, default {DEFAULT_WAIT:g})",
-    )
     return parser
 
 
 def _write_layout(path: str) -> int:
-    from apps.foxglove.layout import layout
+    from archery.apps.foxglove.layout import layout
 
     try:
         if not path.endswith(".json"):
@@ -121,69 +119,72 @@ def _write_layout(path: str) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """`archery foxglove`: serve the mesh to Foxglove clients until Ctrl-C or SIGTERM."""
-    args = build_parser().parse_args(argv)
-    if args.layout is not None:
-        return _write_layout(args.layout)
-    from mesh.acl import OPERATOR, VIEWER
-
-    try:
-        if not 0 <= args.port <= 65535:
-            raise ConfigError(f"--port {args.port}: give a port number from 0 to 65535")
-        if args.max_clients < 1:
-            raise ConfigError(f"--max-clients {args.max_clients}: give at least 1")
-        for origin in args.allow_origin:
-            check_origin_flag(origin)
-        check_listen(args.host, args.port)
-        net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
-        if args.operator and net.secure and net.identity != OPERATOR:
-            raise ConfigError(
-                f"--operator in secure mode runs as identity {OPERATOR!r}, not {net.identity!r}"
-            )
-    except ArcheryError as exc:
-        print(f"archery foxglove: {exc}", file=sys.stderr)
-        return BAD_INPUT
-    try:
-        return _serve(args, net)
-    except ArcheryError as exc:
-        print(f"archery foxglove: {exc}", file=sys.stderr)
-        return FAILURE
+    return viewer_main(
+        argv,
+        prog="foxglove",
+        parser=build_parser(),
+        check=_check,
+        start=_start,
+        early=lambda args: None if args.layout is None else _write_layout(args.layout),
+    )
 
 
-def _serve(args: argparse.Namespace, net: NetConfig) -> int:
-    from apps.foxglove.bridge import Bridge
-    from apps.topics.robot_frames import RobotFrames, mesh_root, urdf_text
-    from mesh.node import open_node
-    from mesh.signals import shutdown_on_signals
-    from protocol.verbs.robot import ARCHERY_STATUS
-    from sim.scene_config import SceneConfig
+def _check(args: argparse.Namespace) -> tuple[NetConfig, str | None]:
+    """The node's settings and the operator's token (None: read-only)."""
+    from archery.mesh.acl import OPERATOR, VIEWER
 
-    token = secrets.token_urlsafe(24) if args.operator else None
-    on_wait = announce("foxglove")
-    stop = shutdown_on_signals()
-    with open_node(net, args.wait, on_wait=on_wait) as node:
-        node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
-        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
-        frames = RobotFrames(node.keys.robot, SceneConfig.of(status.scene))
-        bridge = Bridge(
-            node,
-            frames,
-            urdf_text(),
-            mesh_root(),
-            host=args.host,
-            port=args.port,
-            jpeg=args.jpeg,
-            operator=args.operator,
-            token=token,
-            origins=tuple(args.allow_origin),
-            max_clients=args.max_clients,
+    if not 0 <= args.port <= 65535:
+        raise ConfigError(f"--port {args.port}: give a port number from 0 to 65535")
+    if args.max_clients < 1:
+        raise ConfigError(f"--max-clients {args.max_clients}: give at least 1")
+    for origin in args.allow_origin:
+        check_origin_flag(origin)
+    check_listen(args.host, args.port)
+    net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
+    if args.operator and net.secure and net.identity != OPERATOR:
+        raise ConfigError(
+            f"--operator in secure mode runs as identity {OPERATOR!r}, not {net.identity!r}"
         )
-        try:
-            mode = "operator" if args.operator else "read-only"
-            where = f"ws://{_url_host(args.host)}:{bridge.port}/"
-            if token is not None:
-                where += f"?token={token}"
-            print(f"archery foxglove: serving {node.keys.robot} on {where} ({mode})", flush=True)
-            stop.wait()
-        finally:
-            bridge.close()
-    return OK
+    return net, secrets.token_urlsafe(24) if args.operator else None
+
+
+class _Serving:
+    """The bridge, as `viewer_main` runs it."""
+
+    def __init__(self, bridge: Bridge, view: View, token: str | None) -> None:
+        self.bridge = bridge
+        self.view = view
+        self.token = token
+
+    def ready(self) -> str:
+        args = self.view.args
+        mode = "operator" if args.operator else "read-only"
+        where = f"ws://{_url_host(args.host)}:{self.bridge.port}/"
+        if self.token is not None:
+            where += f"?token={self.token}"
+        return f"serving {self.view.node.keys.robot} on {where} ({mode})"
+
+    def close(self) -> None:
+        self.bridge.close()
+
+
+def _start(view: View, token: str | None) -> _Serving:
+    from archery.apps.foxglove.bridge import Bridge
+    from archery.sim.urdf import mesh_root, urdf_text
+
+    assert view.frames is not None
+    args = view.args
+    bridge = Bridge(
+        view.node,
+        view.frames,
+        urdf_text(),
+        mesh_root(),
+        host=args.host,
+        port=args.port,
+        jpeg=args.jpeg,
+        operator=args.operator,
+        token=token,
+        origins=tuple(args.allow_origin),
+        max_clients=args.max_clients,
+    )
+    return _Serving(bridge, view, token)

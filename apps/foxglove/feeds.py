@@ -12,16 +12,16 @@ from typing import Any
 
 import foxglove
 
-from apps.follow import Stop, follow_events, follow_latest
-from apps.foxglove.marks import event_log, image_marks, rollout_record
-from apps.port_rates import PortRates, stream_counts
-from apps.topics.image_records import image_record
-from apps.topics.robot_frames import RobotFrames
-from mesh.instances import describe_all
-from mesh.node import Node
-from mesh.tokens import TokenSet
-from protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
-from protocol.parts import PARTS
+from archery.apps.follow import Stop, follow_events, follow_latest
+from archery.apps.foxglove.marks import event_log, image_marks, rollout_record
+from archery.apps.port_rates import PortRates, stream_counts
+from archery.apps.topics.image_records import image_record
+from archery.apps.topics.robot_frames import RobotFrames
+from archery.mesh.instances import describe_all
+from archery.mesh.node import Node
+from archery.mesh.tokens import TokenSet
+from archery.protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
+from archery.protocol.parts import PARTS
 
 __all__ = ["Feeds", "jpeg_record"]
 
@@ -38,8 +38,8 @@ def jpeg_record(image: Image) -> bytes:
     import cv2
     from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 
-    from apps.topics.foxglove_records import stamp
-    from apps.topics.image_records import FRAME_ID
+    from archery.apps.topics.foxglove_records import stamp
+    from archery.apps.topics.image_records import FRAME_ID
 
     rgb = image.unpacked().to_numpy()
     ok, data = cv2.imencode(".jpg", rgb[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
@@ -162,10 +162,10 @@ class Feeds:
     # -- streams --------------------------------------------------------------------------------
 
     def _latest(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        return follow_latest(self.node.session, key, kind, name, each, log)
+        return follow_latest(self.node, key, kind, name, each, log)
 
     def _events(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        return follow_events(self.node.session, key, kind, each)
+        return follow_events(self.node, key, kind, each)
 
     def _tf(self) -> Stop:
         key = self.keys.world_state()

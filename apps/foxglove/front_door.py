@@ -20,9 +20,9 @@ import ssl
 import threading
 from collections.abc import Callable
 
-from apps.foxglove.upgrade import MAX_HEAD, Refusal, parse_head
-from apps.foxglove.upgrade import Head as _Head
-from protocol.text import cut
+from archery.apps.foxglove.upgrade import MAX_HEAD, Refusal, parse_head
+from archery.apps.foxglove.upgrade import Head as _Head
+from archery.protocol.text import cut
 
 __all__ = ["CHUNK", "HEAD_TIMEOUT", "MAX_CONNECTIONS", "FrontDoor"]
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 from cryptography.hazmat.primitives import serialization
 
-from mesh.credentials import issue, new_authority
+from archery.mesh.credentials import issue, new_authority
 
 __all__ = ["INNER_HOST", "InnerTls", "inner_tls"]
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import foxglove.layouts as fl
 
-from apps.foxglove.channels import EVENTS, IMAGE, MARKS, ROLLOUTS, SCENE, SERVICES
+from archery.apps.foxglove.channels import EVENTS, IMAGE, MARKS, ROLLOUTS, SCENE, SERVICES
 
 __all__ = ["layout"]
 

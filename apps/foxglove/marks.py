@@ -11,9 +11,9 @@ from typing import Any
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.Log_pb2 import Log
 
-from apps.topics.foxglove_records import stamp
-from protocol.journal_records import DoneRecord
-from protocol.messages import Detection, Rollout, WorldEvent
+from archery.apps.topics.foxglove_records import stamp
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Detection, Rollout, WorldEvent
 
 __all__ = ["ROLLOUT_SCHEMA", "event_log", "image_marks", "rollout_record"]
 

@@ -13,13 +13,13 @@ from typing import Any
 import foxglove
 import msgspec
 
-from mesh.node import Node
-from protocol.errors import ArcheryError
-from protocol.robotspec import CALL_TIMEOUT
-from protocol.text import shown
-from protocol.verbs import learner as lv
-from protocol.verbs import robot as rv
-from protocol.verbs.base import Verb
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError
+from archery.protocol.robotspec import CALL_TIMEOUT
+from archery.protocol.text import shown
+from archery.protocol.verbs import learner as lv
+from archery.protocol.verbs import robot as rv
+from archery.protocol.verbs.base import Verb
 
 __all__ = ["WIND", "Operator"]
 

@@ -17,9 +17,9 @@ import ipaddress
 from dataclasses import dataclass
 from urllib.parse import parse_qs, urlsplit
 
-from apps.dashboard.guard import host_allowed
-from protocol.errors import ConfigError
-from protocol.text import shown
+from archery.apps.dashboard.guard import host_allowed
+from archery.protocol.errors import ConfigError
+from archery.protocol.text import shown
 
 __all__ = [
     "FOXGLOVE_ORIGINS",

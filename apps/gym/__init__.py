@@ -2,6 +2,6 @@
 `archery[gym]` extra) and the project's learners as their agents. Importing the package
 registers the ids (`apps.gym.registration`)."""
 
-from apps.gym.registration import register_envs
+from archery.apps.gym.registration import register_envs
 
 register_envs()

@@ -13,10 +13,10 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from protocol.theta import ThetaBox
-from services.learner.abort_policy import NO_ARROW, after_abort
-from services.learner.algorithms.base import Learner
-from services.learner.algorithms.registry import make_learner
+from archery.protocol.theta import ThetaBox
+from archery.services.learner.abort_policy import NO_ARROW, after_abort
+from archery.services.learner.algorithms.base import Learner
+from archery.services.learner.algorithms.registry import make_learner
 
 __all__ = ["Episode", "bounds_of", "learner_rng", "run_learner", "start_theta"]
 

@@ -12,8 +12,8 @@ from typing import Any, cast
 import gymnasium as gym
 import numpy as np
 
-from apps.experiment.config import WindChange
-from apps.gym.keywords import (
+from archery.apps.experiment.config import WindChange
+from archery.apps.gym.keywords import (
     flag,
     keyword_errors,
     make_keywords,
@@ -21,13 +21,13 @@ from apps.gym.keywords import (
     refuse_unknown,
     reset_options,
 )
-from apps.gym.registration import AIM_ID
-from apps.gym.spaces import action_space, checked_action, observation, observation_space
-from protocol.text import cut, shown
-from protocol.theta import THETA_BOX, ThetaBox
-from protocol.vectors import finite_vector
-from sim.ballistic import BallisticWorld, Scenario, ScenarioError
-from sim.geometry import INNER_RING_RADIUS
+from archery.apps.gym.registration import AIM_ID
+from archery.apps.gym.spaces import action_space, checked_action, observation, observation_space
+from archery.protocol.text import cut, shown
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.protocol.vectors import finite_vector
+from archery.sim.ballistic import BallisticWorld, Scenario, ScenarioError
+from archery.sim.geometry import INNER_RING_RADIUS
 
 __all__ = ["DEFAULT_BUDGET", "KEYWORDS", "AimEnv", "episode_budget", "session_of", "wind_change_of"]
 

@@ -15,24 +15,24 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from apps.gym import keywords
-from apps.gym.aim import DEFAULT_BUDGET, episode_budget, session_of
-from apps.gym.registration import AIM_ROBOT_ID
-from apps.gym.robot_claim import claim_robot, robot_names
-from apps.gym.spaces import action_space, checked_action, observation, observation_space
-from apps.waits import waiting_for
-from mesh.netflags import DEFAULT_ROUTER, NetConfig
-from mesh.node import open_node
-from protocol.errors import ArcheryError, ConfigError, Unreachable
-from protocol.keys import DEFAULT_ROBOT
-from protocol.robotspec import HIT_RADIUS, THETA0
-from protocol.text import shown
-from protocol.vectors import finite_vector
-from services.learner.abort_policy import NO_ARROW, SERVICE_LOST
-from services.learner.errors import RigError, ServiceLost
-from services.learner.rig import SERVICES, MeshRig
-from services.learner.rollout_step import Failed, planar_distance, shoot
-from sim.geometry import TARGET_DIAMETER
+from archery.apps.gym import keywords
+from archery.apps.gym.aim import DEFAULT_BUDGET, episode_budget, session_of
+from archery.apps.gym.registration import AIM_ROBOT_ID
+from archery.apps.gym.robot_claim import claim_robot, robot_names
+from archery.apps.gym.spaces import action_space, checked_action, observation, observation_space
+from archery.apps.waits import waiting_for
+from archery.mesh.netflags import DEFAULT_ROUTER, NetConfig
+from archery.mesh.node import open_node
+from archery.protocol.errors import ArcheryError, ConfigError, Unreachable
+from archery.protocol.keys import DEFAULT_ROBOT
+from archery.protocol.robotspec import HIT_RADIUS, THETA0
+from archery.protocol.text import shown
+from archery.protocol.vectors import finite_vector
+from archery.services.learner.abort_policy import NO_ARROW, SERVICE_LOST
+from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.rig import SERVICES, MeshRig
+from archery.services.learner.rollout_step import Failed, planar_distance, shoot
+from archery.sim.geometry import TARGET_DIAMETER
 
 __all__ = ["KEYWORDS", "AimRobotEnv", "RobotUnavailable", "ServiceLostError", "ShotNotMeasured"]
 

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from protocol.text import cut, shown
+from archery.protocol.text import cut, shown
 
 __all__ = [
     "MESSAGE_LIMIT",

@@ -15,8 +15,8 @@ import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from mesh.runtime import runtime_dir
-from protocol.text import shown
+from archery.mesh.runtime import runtime_dir
+from archery.protocol.text import shown
 
 __all__ = ["LOCK_NAME", "RobotClaim", "claim_robot", "robot_names"]
 

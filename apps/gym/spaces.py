@@ -19,8 +19,8 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.error import InvalidAction
 
-from protocol.text import shown
-from protocol.theta import ThetaBox
+from archery.protocol.text import shown
+from archery.protocol.theta import ThetaBox
 
 __all__ = [
     "OBSERVATION_FIELDS",

@@ -19,21 +19,21 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from apps.learn.client import learner_call
-from apps.learn.follow import SessionLost, follow, result_line
-from mesh.node import Node
-from mesh.subscription import Subscription
-from protocol.errors import ArcheryError, RpcError
-from protocol.exit_status import INTERRUPTED, for_error
-from protocol.journal_records import HeaderRecord
-from protocol.messages import Rollout
-from services.learner.journal import (
+from archery.apps.learn.client import learner_call
+from archery.apps.learn.follow import SessionLost, follow, result_line
+from archery.mesh.node import Node
+from archery.mesh.subscription import Subscription
+from archery.protocol.errors import ArcheryError, RpcError
+from archery.protocol.exit_status import INTERRUPTED, for_error
+from archery.protocol.journal_records import HeaderRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import (
     JOURNAL_NAME,
     JournalError,
     JournalState,
     read_records,
 )
-from services.learner.session import FINAL_STATES
+from archery.services.learner.session import FINAL_STATES
 
 __all__ = ["WaitingLines", "attach", "journal_counts", "session_of", "stderr_line"]
 

@@ -8,10 +8,10 @@ from typing import Any
 
 import msgspec
 
-from mesh.node import Node
-from mesh.rpc_server import bad_args_message
-from protocol.errors import BadRequest
-from protocol.verbs.learner import LEARNER_VERBS, START, StartArgs
+from archery.mesh.node import Node
+from archery.mesh.rpc_server import bad_args_message
+from archery.protocol.errors import BadRequest
+from archery.protocol.verbs.learner import LEARNER_VERBS, START, StartArgs
 
 __all__ = ["learner_call", "start_args"]
 

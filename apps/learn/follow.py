@@ -14,14 +14,14 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from apps.learn.client import learner_call, start_args
-from apps.waits import waiting_for
-from mesh.node import Node
-from protocol.errors import ArcheryError, RpcError, RpcTimeout
-from protocol.journal_records import StoppedRecord
-from protocol.messages import Rollout
-from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
-from services.learner.session import FINAL_STATES
+from archery.apps.learn.client import learner_call, start_args
+from archery.apps.waits import waiting_for
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError, RpcError, RpcTimeout
+from archery.protocol.journal_records import StoppedRecord
+from archery.protocol.messages import Rollout
+from archery.services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from archery.services.learner.session import FINAL_STATES
 
 __all__ = ["SessionLost", "follow", "journal_status", "result_line"]
 

@@ -18,23 +18,23 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from apps.film.film import film_hit, film_ready, hit_video
-from apps.learn import attach
-from apps.learn.client import learner_call, start_args
-from apps.learn.follow import SessionLost, follow, result_line
-from apps.waits import announce
-from mesh.cliargs import ArgumentParser, loads_finite, seconds
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import open_node
-from protocol.errors import ArcheryError, ConfigError, RpcError
-from protocol.exit_status import FAILURE, INTERRUPTED, for_error
-from protocol.journal_records import AbortedRecord, ProposedRecord
-from protocol.messages import Rollout
-from protocol.robotspec import SERVICES
-from protocol.vectors import parse_vector
-from services.learner.algorithms.base import LearnerError
-from services.learner.algorithms.registry import ALGORITHMS, check_transfer
-from services.learner.config import SessionConfig
+from archery.apps.film.film import film_hit, film_ready, hit_video
+from archery.apps.learn import attach
+from archery.apps.learn.client import learner_call, start_args
+from archery.apps.learn.follow import SessionLost, follow, result_line
+from archery.apps.waits import announce
+from archery.mesh.cliargs import ArgumentParser, loads_finite, seconds
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import open_node
+from archery.protocol.errors import ArcheryError, ConfigError, RpcError
+from archery.protocol.exit_status import FAILURE, INTERRUPTED, for_error
+from archery.protocol.journal_records import AbortedRecord, ProposedRecord
+from archery.protocol.messages import Rollout
+from archery.protocol.robotspec import SERVICES
+from archery.protocol.vectors import parse_vector
+from archery.services.learner.algorithms.base import LearnerError
+from archery.services.learner.algorithms.registry import ALGORITHMS, check_transfer
+from archery.services.learner.config import SessionConfig
 
 __all__ = ["DEFAULTS", "build_parser", "main", "session_flags_given", "start_request"]
 

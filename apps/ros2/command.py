@@ -1,20 +1,22 @@
 """`archery ros2`: its flags, their checks (a domain outside 0…232 is bad input, exit 2) and the
-run until Ctrl-C or SIGTERM; at the end, one line of what the node sent, dropped and refused."""
+node started on the robot (`viewer_main`: the run until Ctrl-C or SIGTERM); at the end, one line
+of what the node sent, dropped and refused."""
 
 from __future__ import annotations
 
 import argparse
-import sys
+from typing import TYPE_CHECKING
 
-from apps.waits import announce
-from mesh.cliargs import ArgumentParser, seconds
-from mesh.netflags import NetConfig, add_network_args
-from protocol.errors import ArcheryError, ConfigError
-from protocol.exit_status import BAD_INPUT, FAILURE, OK
+from archery.apps.viewer import View, viewer_main
+from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.protocol.errors import ConfigError
+
+if TYPE_CHECKING:
+    from archery.apps.ros2.graph import Ros2Node
 
 __all__ = ["READY", "build_parser", "main"]
 
-DEFAULT_WAIT = 30.0  # s: for the router and the robot
 READY = "archery ros2: on the ROS 2 graph"  # the line `archery up --ros2` waits for
 
 
@@ -41,18 +43,12 @@ def build_parser() -> ArgumentParser:
         "std_srvs/srv/Trigger; without it the node declares no command subscription and "
         "answers each service call success: false",
     )
-    parser.add_argument(
-        "--wait",
-        type=seconds,
-        default=DEFAULT_WAIT,
-        help=f"wait this long for the router and the robot (s, default {DEFAULT_WAIT:g})",
-    )
     return parser
 
 
 def _check(args: argparse.Namespace) -> tuple[NetConfig, str]:
-    from apps.ros2.wire import MAX_DOMAIN, check_name
-    from mesh.acl import ROS2, ROS2_OPERATOR
+    from archery.apps.ros2.wire import MAX_DOMAIN, check_name
+    from archery.mesh.acl import ROS2, ROS2_OPERATOR
 
     if not 0 <= args.domain <= MAX_DOMAIN:
         raise ConfigError(f"--domain {args.domain}: give a ROS 2 domain id from 0 to {MAX_DOMAIN}")
@@ -71,54 +67,48 @@ def _check(args: argparse.Namespace) -> tuple[NetConfig, str]:
 
 def main(argv: list[str] | None = None) -> int:
     """`archery ros2`: keep the robot on the ROS 2 graph until Ctrl-C or SIGTERM."""
-    args = build_parser().parse_args(argv)
-    try:
-        net, namespace = _check(args)
-    except ArcheryError as exc:
-        print(f"archery ros2: {exc}", file=sys.stderr)
-        return BAD_INPUT
-    try:
-        return _serve(args, net, namespace)
-    except ArcheryError as exc:
-        print(f"archery ros2: {exc}", file=sys.stderr)
-        return FAILURE
+    return viewer_main(argv, prog="ros2", parser=build_parser(), check=_check, start=_start)
 
 
-def _serve(args: argparse.Namespace, net: NetConfig, namespace: str) -> int:
-    from apps.ros2.graph import NODE_NAME, Ros2Node
-    from apps.topics.robot_frames import RobotFrames, urdf_text
-    from mesh.node import open_node
-    from mesh.signals import shutdown_on_signals
-    from protocol.verbs.robot import ARCHERY_STATUS
-    from sim.scene_config import SceneConfig
+class _OnTheGraph:
+    """The node on the graph, as `viewer_main` runs it."""
 
-    on_wait = announce("ros2")
-    stop = shutdown_on_signals()
-    with open_node(net, args.wait, on_wait=on_wait) as node:
-        node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
-        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
-        scene = SceneConfig.of(status.scene)
-        frames = RobotFrames(node.keys.robot, scene)
-        ros = Ros2Node(
-            node,
-            frames,
-            urdf_text(),
-            scene.camera_fovy,
-            domain=args.domain,
-            namespace=namespace,
-            operator=args.operator,
-            rtf=status.rtf,
+    def __init__(self, ros: Ros2Node, view: View, namespace: str) -> None:
+        self.ros = ros
+        self.view = view
+        self.namespace = namespace
+
+    def ready(self) -> str:
+        from archery.apps.ros2.graph import NODE_NAME
+
+        args, net = self.view.args, self.view.node.net
+        mode = "operator" if args.operator else "read-only"
+        return (
+            f"{READY.removeprefix('archery ros2: ')} as {self.namespace.rstrip('/')}/{NODE_NAME} "
+            f"(domain {args.domain}, {mode}) through "
+            f"{net.connect[0] if net.connect else 'the default router'}"
         )
-        try:
-            mode = "operator" if args.operator else "read-only"
-            print(
-                f"{READY} as {namespace.rstrip('/')}/{NODE_NAME} (domain {args.domain}, {mode}) "
-                f"through {net.connect[0] if net.connect else 'the default router'}",
-                flush=True,
-            )
-            stop.wait()
-        finally:
-            ros.close()
-            counts = ", ".join(f"{k} {v}" for k, v in sorted(ros.counts.snapshot().items()))
-            print(f"archery ros2: stopped ({counts or 'nothing sent'})", file=sys.stderr)
-    return OK
+
+    def close(self) -> str:
+        self.ros.close()
+        counts = ", ".join(f"{k} {v}" for k, v in sorted(self.ros.counts.snapshot().items()))
+        return f"stopped ({counts or 'nothing sent'})"
+
+
+def _start(view: View, namespace: str) -> _OnTheGraph:
+    from archery.apps.ros2.graph import Ros2Node
+    from archery.sim.urdf import urdf_text
+
+    assert view.status is not None and view.scene is not None and view.frames is not None
+    args = view.args
+    ros = Ros2Node(
+        view.node,
+        view.frames,
+        urdf_text(),
+        view.scene.camera_fovy,
+        domain=args.domain,
+        namespace=namespace,
+        operator=args.operator,
+        rtf=view.status.rtf,
+    )
+    return _OnTheGraph(ros, view, namespace)

@@ -12,16 +12,16 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from apps.ros2.typestore import new
-from apps.topics.image_records import FRAME_ID
-from protocol.journal_records import DoneRecord
-from protocol.messages import Image, JointState, Rollout, WorldEvent
-from protocol.parts import PARTS
-from protocol.text import shown
-from protocol.verbs import robot as rv
+from archery.apps.ros2.typestore import new
+from archery.apps.topics.image_records import FRAME_ID
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.messages import Image, JointState, Rollout, WorldEvent
+from archery.protocol.parts import PARTS
+from archery.protocol.text import shown
+from archery.protocol.verbs import robot as rv
 
 if TYPE_CHECKING:
-    from apps.topics.robot_frames import RobotFrames
+    from archery.apps.topics.robot_frames import RobotFrames
 
 __all__ = [
     "FLOAT_COMMAND",

@@ -14,8 +14,8 @@ from typing import Any
 import zenoh
 import zenoh.ext
 
-from apps.ros2 import typestore
-from apps.ros2.wire import Attachment, Endpoint
+from archery.apps.ros2 import typestore
+from archery.apps.ros2.wire import Attachment, Endpoint
 
 __all__ = ["Counts", "RosPublisher"]
 

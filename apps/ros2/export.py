@@ -11,9 +11,9 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from mesh.cliargs import ArgumentParser
-from protocol.errors import ArcheryError, ConfigError, DecodeError
-from protocol.exit_status import BAD_INPUT, FAILURE, OK
+from archery.mesh.cliargs import ArgumentParser
+from archery.protocol.errors import ArcheryError, ConfigError, DecodeError
+from archery.protocol.exit_status import BAD_INPUT, FAILURE, OK
 
 __all__ = ["build_parser", "export", "main"]
 
@@ -41,15 +41,16 @@ def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from apps.ros2 import convert, typestore
-    from apps.ros2.graph import TOPICS
-    from apps.ros2.wire import check_name
-    from apps.topics.image_records import FRAME_ID
-    from apps.topics.recording import DESCRIPTION_METADATA, open_recording
-    from apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames, urdf_text
-    from protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
-    from sim.render import focal_length
-    from sim.scene_config import SceneConfig
+    from archery.apps.ros2 import convert, typestore
+    from archery.apps.ros2.graph import TOPICS
+    from archery.apps.ros2.wire import check_name
+    from archery.apps.topics.image_records import FRAME_ID
+    from archery.apps.topics.recording import DESCRIPTION_METADATA, open_recording
+    from archery.apps.topics.robot_frames import DESCRIPTION_ATTACHMENT, RobotFrames
+    from archery.protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
+    from archery.sim.render import focal_length
+    from archery.sim.scene_config import SceneConfig
+    from archery.sim.urdf import urdf_text
 
     if out.exists():
         raise ConfigError(f"--ros2 {str(out)!r}: already exists (give a new folder)")
@@ -93,13 +94,10 @@ def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int
             if isinstance(message, JointState):
                 write("joint_states", convert.joint_state(message), ns)
             elif isinstance(message, WorldState) and key == f"{robot}/world/state:o":
-                qpos = message.qpos.to_numpy()
-                if qpos.shape == (frames.model.nq,):
-                    translations, rotations = frames.poses(qpos)
-                    links = frames.links
-                    write(
-                        "/tf", convert.tf_message(message.stamp, links, translations, rotations), ns
-                    )
+                poses = frames.state_poses(message)
+                if poses is not None:  # else another scene's
+                    tf = convert.tf_message(message.stamp, frames.links, *poses)
+                    write("/tf", tf, ns)
             elif isinstance(message, Image):
                 image = convert.image(message, FRAME_ID)
                 focal = focal_length(image.height, scene.camera_fovy)

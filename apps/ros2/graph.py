@@ -17,24 +17,32 @@ from typing import Any
 import msgspec
 import zenoh
 
-from apps.follow import Stop, follow_events, follow_latest
-from apps.ros2 import convert, typestore
-from apps.ros2.endpoints import Counts, RosPublisher
-from apps.ros2.latest import LatestPerKey
-from apps.ros2.wire import Attachment, AttachmentError, Endpoint, Kind, NodeId, Qos, check_name
-from apps.topics.image_records import FRAME_ID
-from apps.topics.robot_frames import RobotFrames
-from mesh.acl import ROS2_COMMANDS
-from mesh.instances import zid_of
-from mesh.node import Node
-from protocol.errors import ArcheryError
-from protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
-from protocol.parts import PARTS
-from protocol.robotspec import CALL_TIMEOUT, COMMAND_RATE, RPC_TIMEOUT
-from protocol.text import cut
-from protocol.verbs import robot as rv
-from protocol.verbs.base import Verb
-from sim.render import focal_length
+from archery.apps.follow import Stop, follow_events, follow_latest
+from archery.apps.ros2 import convert, typestore
+from archery.apps.ros2.endpoints import Counts, RosPublisher
+from archery.apps.ros2.latest import LatestPerKey
+from archery.apps.ros2.wire import (
+    Attachment,
+    AttachmentError,
+    Endpoint,
+    Kind,
+    NodeId,
+    Qos,
+    check_name,
+)
+from archery.apps.topics.image_records import FRAME_ID
+from archery.apps.topics.robot_frames import RobotFrames
+from archery.mesh.acl import ROS2_COMMANDS
+from archery.mesh.instances import zid_of
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError
+from archery.protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import CALL_TIMEOUT, COMMAND_RATE, RPC_TIMEOUT
+from archery.protocol.text import cut
+from archery.protocol.verbs import robot as rv
+from archery.protocol.verbs.base import Verb
+from archery.sim.render import focal_length
 
 __all__ = [
     "MAX_COMMAND_BYTES",
@@ -220,7 +228,7 @@ class Ros2Node:
                 log.exception("feed %s: could not follow its subscribers' change", feed)
 
     def _events(self, key: str, kind: type[Any], each: Callable[[Any], None]) -> Stop:
-        return follow_events(self.node.session, key, kind, each)
+        return follow_events(self.node, key, kind, each)
 
     def _send(self, topic: str, message: Any) -> None:
         if message is not None:
@@ -244,16 +252,11 @@ class Ros2Node:
 
     def _tf(self) -> Stop:
         def each(state: WorldState) -> None:
-            qpos = state.qpos.to_numpy()
-            if qpos.shape != (self.frames.model.nq,):
-                return  # another scene: its poses cannot be computed with this model
-            translations, rotations = self.frames.poses(qpos)
-            message = convert.tf_message(state.stamp, self.frames.links, translations, rotations)
-            self._send("/tf", message)
+            poses = self.frames.state_poses(state)
+            if poses is not None:  # else another scene's
+                self._send("/tf", convert.tf_message(state.stamp, self.frames.links, *poses))
 
-        return follow_latest(
-            self.node.session, self.keys.world_state(), WorldState, "/tf", each, log
-        )
+        return follow_latest(self.node, self.keys.world_state(), WorldState, "/tf", each, log)
 
     def _camera(self) -> Stop:
         def each(frame: Image) -> None:
@@ -264,7 +267,7 @@ class Ros2Node:
             self._send("camera/camera_info", info)
 
         key = self.keys.cam_frames()
-        return follow_latest(self.node.session, key, Image, "camera/image_raw", each, log)
+        return follow_latest(self.node, key, Image, "camera/image_raw", each, log)
 
     def _rollout(self, rollout: Rollout) -> None:
         self._send("learner/rollout", convert.rollout(rollout))

@@ -13,7 +13,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from apps.ros2.endpoints import Counts
+from archery.apps.ros2.endpoints import Counts
 
 __all__ = ["LatestPerKey"]
 

@@ -20,8 +20,8 @@ from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as _FoxRaw
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory, timestamp_pb2
 from google.protobuf.message import DecodeError as ProtobufDecodeError
 
-from protocol.errors import DecodeError
-from protocol.messages import Image
+from archery.protocol.errors import DecodeError
+from archery.protocol.messages import Image
 
 __all__ = [
     "COMPRESSED",

@@ -26,10 +26,10 @@ from mcap.records import (
     Schema,
 )
 
-from apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile
-from apps.topics.read_limits import add_max_bytes_arg, printable
-from mesh.cliargs import ArgumentParser
-from protocol.exit_status import BAD_INPUT, OK
+from archery.apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile
+from archery.apps.topics.read_limits import add_max_bytes_arg, printable
+from archery.mesh.cliargs import ArgumentParser
+from archery.protocol.exit_status import BAD_INPUT, OK
 
 __all__ = ["RecordingInfo", "main", "read_info"]
 

@@ -15,16 +15,16 @@ from typing import Any
 
 import msgspec
 
-from mesh.acl import VIEWER
-from mesh.cliargs import ArgumentParser, seconds
-from mesh.netflags import NetConfig, add_network_args
-from protocol.codec import decode
-from protocol.errors import ArcheryError
-from protocol.exit_status import for_error
-from protocol.keys import port_of
-from protocol.messages import MESSAGE_TYPES, Describe
-from protocol.verbs import table_for_key
-from protocol.verbs.schema import fields_of, render_verb
+from archery.mesh.acl import VIEWER
+from archery.mesh.cliargs import ArgumentParser, seconds
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.protocol.codec import decode
+from archery.protocol.errors import ArcheryError
+from archery.protocol.exit_status import for_error
+from archery.protocol.keys import port_of
+from archery.protocol.messages import MESSAGE_TYPES, Describe
+from archery.protocol.verbs import table_for_key
+from archery.protocol.verbs.schema import fields_of, render_verb
 
 __all__ = ["interface_lines", "interface_main", "live_interfaces", "message_lines"]
 
@@ -67,7 +67,7 @@ def _show(key: str, args: argparse.Namespace) -> int:
     live = None
     if not args.offline:
         try:
-            from mesh.node import Node
+            from archery.mesh.node import Node
 
             with Node(None, NetConfig.from_args(args).with_identity(VIEWER)) as node:
                 live = live_interfaces(node, key, args.timeout)

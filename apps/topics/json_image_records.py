@@ -11,9 +11,9 @@ from typing import Any
 
 import msgspec
 
-from apps.topics.image_records import COMPRESSED, RAW, checked_image
-from protocol.errors import DecodeError
-from protocol.messages import Image
+from archery.apps.topics.image_records import COMPRESSED, RAW, checked_image
+from archery.protocol.errors import DecodeError
+from archery.protocol.messages import Image
 
 __all__ = ["json_image_from_record"]
 

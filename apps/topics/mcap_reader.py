@@ -38,14 +38,14 @@ from mcap.records import (
 )
 from mcap.summary import Summary
 
-from apps.topics.read_limits import (
+from archery.apps.topics.read_limits import (
     MAX_RECORD_BYTES,
     MAX_TIME_NS,
     printable,
     size_text,
     total_cap,
 )
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = ["MAGIC", "BadRecording", "CutShort", "McapFile", "Skipped"]
 

@@ -25,8 +25,8 @@ from typing import Any
 import msgspec
 import zenoh
 
-from apps.topics.read_limits import add_max_bytes_arg
-from apps.topics.recording import (
+from archery.apps.topics.read_limits import add_max_bytes_arg
+from archery.apps.topics.recording import (
     CALIBRATION_ATTACHMENT,
     CALIBRATION_MEDIA_TYPE,
     COMPRESSIONS,
@@ -35,22 +35,22 @@ from apps.topics.recording import (
     Recording,
     open_recording,
 )
-from mesh.acl import REPLAY, VIEWER
-from mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node
-from mesh.patterns import check_pattern, stream_type
-from mesh.priority import add_nice_arg, lower_priority
-from mesh.rpc_server import caller_left
-from mesh.signals import shutdown_on_signals
-from protocol.codec import encode
-from protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
-from protocol.exit_status import for_error
-from protocol.keys import output_port, validate_robot
-from protocol.messages import Image, Message
-from protocol.text import shown
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs.camera import (
+from archery.mesh.acl import REPLAY, VIEWER
+from archery.mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import Node
+from archery.mesh.patterns import check_pattern, stream_type
+from archery.mesh.priority import add_nice_arg, lower_priority
+from archery.mesh.rpc_server import caller_left
+from archery.mesh.signals import shutdown_on_signals
+from archery.protocol.codec import encode
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
+from archery.protocol.exit_status import for_error
+from archery.protocol.keys import output_port, validate_robot
+from archery.protocol.messages import Image, Message
+from archery.protocol.text import shown
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs.camera import (
     CALIBRATION,
     CAMERA_VERBS,
     GRAB,
@@ -62,7 +62,7 @@ from protocol.verbs.camera import (
     GrabArgs,
     SceneReply,
 )
-from protocol.verbs.robot import ARCHERY_STATUS
+from archery.protocol.verbs.robot import ARCHERY_STATUS
 
 __all__ = ["hz_main", "record_main", "replay_main"]
 
@@ -110,9 +110,9 @@ def _robot_frames(node: Node, exprs: list[zenoh.KeyExpr]) -> FrameSource | None:
     if not any(expr.includes(zenoh.KeyExpr(world)) for expr in exprs):
         return None
     try:
-        from apps.topics.robot_frames import RobotFrames
-        from sim.errors import SimError
-        from sim.scene_config import SceneConfig
+        from archery.apps.topics.robot_frames import RobotFrames
+        from archery.sim.errors import SimError
+        from archery.sim.scene_config import SceneConfig
     except ImportError as exc:
         print(f"archery record: no 3D records (transforms): {exc}", file=sys.stderr)
         return None

@@ -24,16 +24,22 @@ from mcap.records import Attachment, Channel, Header, Metadata, Schema
 from mcap.records import Message as McapMessage
 from mcap.writer import CompressionType, Writer
 
-from apps.topics.foxglove_records import DERIVED_SCHEMAS, schema_data
-from apps.topics.image_records import COMPRESSED, RAW, image_from_record, image_record, image_schema
-from apps.topics.json_image_records import json_image_from_record
-from apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile, printable
-from mesh.patterns import stream_type
-from mesh.priority import WRITER_NICE, lower_thread_priority
-from protocol.codec import decode
-from protocol.errors import ConfigError, DecodeError
-from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Image
-from protocol.messages import Message as ArcheryMessage
+from archery.apps.topics.foxglove_records import DERIVED_SCHEMAS, schema_data
+from archery.apps.topics.image_records import (
+    COMPRESSED,
+    RAW,
+    image_from_record,
+    image_record,
+    image_schema,
+)
+from archery.apps.topics.json_image_records import json_image_from_record
+from archery.apps.topics.mcap_reader import MAGIC, BadRecording, CutShort, McapFile, printable
+from archery.mesh.patterns import stream_type
+from archery.mesh.priority import WRITER_NICE, lower_thread_priority
+from archery.protocol.codec import decode
+from archery.protocol.errors import ConfigError, DecodeError
+from archery.protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Image
+from archery.protocol.messages import Message as ArcheryMessage
 
 __all__ = [
     "CALIBRATION_ATTACHMENT",

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import mujoco
 import numpy as np
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-from apps.topics.foxglove_records import (
+from archery.apps.topics.foxglove_records import (
     FRAME_TRANSFORMS,
     JOINT_STATES,
     SCENE_UPDATE,
@@ -29,39 +28,23 @@ from apps.topics.foxglove_records import (
     stamp,
     stl_bytes,
 )
-from apps.topics.recording import Derived
-from apps.topics.urdf_tree import UrdfJoint, parse_joints
-from protocol.messages import JointState, WorldState
-from protocol.messages import Message as ArcheryMessage
-from protocol.robotspec import MODEL_NAME
-from sim.model_build import build_scene
-from sim.scene_config import TARGET_CAMERA, SceneConfig
+from archery.apps.topics.recording import Derived
+from archery.apps.topics.urdf_tree import UrdfJoint, parse_joints
+from archery.protocol.messages import JointState, WorldState
+from archery.protocol.messages import Message as ArcheryMessage
+from archery.protocol.robotspec import MODEL_NAME
+from archery.sim.model_build import build_scene
+from archery.sim.scene_config import TARGET_CAMERA, SceneConfig
+from archery.sim.urdf import urdf_text
 
 __all__ = [
     "DESCRIPTION_ATTACHMENT",
     "RobotFrames",
     "link_poses",
-    "mesh_root",
-    "urdf_text",
 ]
 
 DESCRIPTION_ATTACHMENT = "robot_description.urdf"
 _DRAWN_GROUPS = (0, 1, 2)  # floor, robot, props; higher groups are markers
-
-
-def urdf_text() -> str:
-    """The robot description the robot runs: icub-models' URDF of `MODEL_NAME`."""
-    import icub_models
-
-    with open(icub_models.get_model_file(MODEL_NAME), encoding="utf-8") as file:
-        return file.read()
-
-
-def mesh_root() -> Path:
-    """The folder the description's `package://iCub/` URIs name (icub-models' `share/iCub`)."""
-    import icub_models
-
-    return Path(icub_models.get_model_file(MODEL_NAME)).parents[2]
 
 
 def link_poses(model: mujoco.MjModel, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
@@ -159,10 +142,10 @@ class RobotFrames:
     def derive(self, key: str, message: ArcheryMessage, ns: int) -> list[Derived]:
         """The records derived from one recorded message (none for most keys)."""
         if isinstance(message, WorldState) and key == self._world_state:
-            qpos = message.qpos.to_numpy()
-            if qpos.shape != (self.model.nq,):
-                return []  # another scene: its poses cannot be computed with this model
-            return [Derived(self.tf_topic, FRAME_TRANSFORMS, self.transforms(qpos, ns))]
+            poses = self.state_poses(message)
+            if poses is None:
+                return []  # another scene
+            return [Derived(self.tf_topic, FRAME_TRANSFORMS, self._transforms(*poses, ns))]
         if isinstance(message, JointState):
             data = joint_states(ns, message.names, message.position, message.velocity)
             return [Derived(self.joints_topic, JOINT_STATES, data)]
@@ -212,10 +195,17 @@ class RobotFrames:
             rotations[len(self._moving) :] = q[rows]
         return translations, rotations
 
-    def transforms(self, qpos: np.ndarray, ns: int) -> bytes:
-        """The `foxglove.FrameTransforms` record of the whole tree at `qpos`: the fixed
-        transforms and the moving ones."""
-        translations, rotations = self.poses(qpos)
+    def state_poses(self, state: WorldState) -> tuple[np.ndarray, np.ndarray] | None:
+        """`poses` at a world state's joints; None for a state of another scene (its joint
+        vector not this model's: its poses cannot be computed here)."""
+        qpos = state.qpos.to_numpy()
+        if qpos.shape != (self.model.nq,):
+            return None
+        return self.poses(qpos)
+
+    def _transforms(self, translations: np.ndarray, rotations: np.ndarray, ns: int) -> bytes:
+        """The `foxglove.FrameTransforms` record of the whole tree: the fixed transforms and
+        the moving ones (`poses`)."""
         fixed_t, fixed_q = self._static
         return frame_transforms(
             ns,

@@ -18,20 +18,20 @@ from typing import cast
 
 import zenoh
 
-from mesh.cliargs import ArgumentParser, seconds
-from mesh.netflags import NetConfig, add_network_args, open_session
-from mesh.node import Node
-from mesh.router import free_tcp_endpoint, open_router
-from mesh.signals import shutdown_on_signals
-from mesh.subscription import Subscription
-from protocol.codec import decode
-from protocol.errors import ArcheryError, BadRequest, RpcError
-from protocol.exit_status import for_error
-from protocol.messages import Describe, JointCommand, JointState, WorldEvent
-from protocol.parts import PARTS
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import learner as learner_verbs
-from protocol.verbs import robot as rv
+from archery.mesh.cliargs import ArgumentParser, seconds
+from archery.mesh.netflags import NetConfig, add_network_args, open_session
+from archery.mesh.node import Node
+from archery.mesh.router import free_tcp_endpoint, open_router
+from archery.mesh.signals import shutdown_on_signals
+from archery.mesh.subscription import Subscription
+from archery.protocol.codec import decode
+from archery.protocol.errors import ArcheryError, BadRequest, RpcError
+from archery.protocol.exit_status import for_error
+from archery.protocol.messages import Describe, JointCommand, JointState, WorldEvent
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs import learner as learner_verbs
+from archery.protocol.verbs import robot as rv
 
 __all__ = ["ECHO_SERVICE", "main", "run_echo"]
 
@@ -164,13 +164,13 @@ def _rendering() -> str:
     """The backend frames are rendered with here (`sim.gl_backend.check`), or why none."""
     if importlib.util.find_spec("mujoco") is None:
         return "skipped: MuJoCo is not installed here (archery[robot])"
-    from sim.gl_backend import check
+    from archery.sim.gl_backend import check
 
     return f"{check()} (MuJoCo renders offscreen)"
 
 
 def _selfcheck(net: NetConfig, timeout: float) -> bool:
-    argv = [sys.executable, "-m", "apps.cli", "selfcheck", "--echo", "--robot", net.robot]
+    argv = [sys.executable, "-m", "archery.apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     for endpoint in net.connect:
         argv += ["--connect", endpoint]
     child = subprocess.Popen(argv, stdin=subprocess.DEVNULL)

@@ -13,9 +13,9 @@ from typing import Any
 import msgspec
 import zenoh
 
-from apps.waits import announce, interrupted_line
-from mesh.acl import VIEWER
-from mesh.cliargs import (
+from archery.apps.waits import announce, interrupted_line
+from archery.mesh.acl import VIEWER
+from archery.mesh.cliargs import (
     ArgumentParser,
     check_image_path,
     count,
@@ -23,14 +23,14 @@ from mesh.cliargs import (
     seconds,
     seconds_or_zero,
 )
-from mesh.instances import describe_all
-from mesh.netflags import NetConfig, add_network_args
-from mesh.node import Node, open_node
-from mesh.patterns import check_pattern, is_wildcard, stream_type
-from mesh.rpc_server import bad_args_message
-from mesh.tokens import TokenSet
-from protocol.codec import decode, from_jsonable, to_jsonable
-from protocol.errors import (
+from archery.mesh.instances import describe_all
+from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.node import Node, open_node
+from archery.mesh.patterns import check_pattern, is_wildcard, stream_type
+from archery.mesh.rpc_server import bad_args_message
+from archery.mesh.tokens import TokenSet
+from archery.protocol.codec import decode, from_jsonable, to_jsonable
+from archery.protocol.errors import (
     ArcheryError,
     BadRequest,
     ConfigError,
@@ -38,12 +38,12 @@ from protocol.errors import (
     KeyNameError,
     RpcError,
 )
-from protocol.exit_status import BAD_INPUT, INTERRUPTED, for_error
-from protocol.keys import ALIVE_EVERY_ROBOT, DEFAULT_ROBOT, Keys, port_of
-from protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
-from protocol.robotspec import CALL_TIMEOUT
-from protocol.verbs import Verb, table_for_key
-from protocol.verbs.robot import COUNTERS
+from archery.protocol.exit_status import BAD_INPUT, INTERRUPTED, for_error
+from archery.protocol.keys import ALIVE_EVERY_ROBOT, DEFAULT_ROBOT, Keys, port_of
+from archery.protocol.messages import MESSAGE_TYPES, Describe, Image, Message, PortInfo
+from archery.protocol.robotspec import CALL_TIMEOUT
+from archery.protocol.verbs import Verb, table_for_key
+from archery.protocol.verbs.robot import COUNTERS
 
 __all__ = ["alive_main", "ports_main", "read_main", "rpc_main", "view_main", "write_main"]
 
@@ -220,7 +220,7 @@ def _print_service(node: Node, keys: Keys, name: str, args: argparse.Namespace) 
 
 
 def _verbose_lines(info: Describe, port: PortInfo) -> list[str]:
-    from apps.topics.interface import interface_lines, message_lines
+    from archery.apps.topics.interface import interface_lines, message_lines
 
     if port.kind != "rpc":
         return message_lines(port.message, "      ")

@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from apps.up.logfile import LOG_FILES, RotatingLog, pump, read_tail
+from archery.apps.up.logfile import LOG_FILES, RotatingLog, pump, read_tail
 
 __all__ = ["DRAIN_WAIT", "Child", "die_with_parent", "spawn"]
 

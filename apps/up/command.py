@@ -19,19 +19,19 @@ import sys
 import time
 from pathlib import Path
 
-from apps.capacity import check_robots
-from apps.up.child import spawn
-from apps.up.launch_config import MeshConfig, default_mesh, load_mesh
-from apps.up.launcher import Launcher, LaunchError, StartInterrupted
-from apps.up.restart_policy import POLICIES, describe_status
-from apps.up.supervisor import GiveUp, Supervisor
-from apps.waits import announce
-from mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
-from mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
-from mesh.signals import shutdown_on_signals
-from protocol.errors import ConfigError
-from protocol.exit_status import INTERRUPTED
-from protocol.keys import DEFAULT_ROBOT
+from archery.apps.capacity import check_robots
+from archery.apps.up.child import spawn
+from archery.apps.up.launch_config import MeshConfig, default_mesh, load_mesh
+from archery.apps.up.launcher import Launcher, LaunchError, StartInterrupted
+from archery.apps.up.restart_policy import POLICIES, describe_status
+from archery.apps.up.supervisor import GiveUp, Supervisor
+from archery.apps.waits import announce
+from archery.mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
+from archery.mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
+from archery.mesh.signals import shutdown_on_signals
+from archery.protocol.errors import ConfigError
+from archery.protocol.exit_status import INTERRUPTED
+from archery.protocol.keys import DEFAULT_ROBOT
 
 __all__ = ["build_parser", "main", "mesh_from_args", "start_observer", "start_recorder"]
 
@@ -152,7 +152,7 @@ def start_observer(
         path.unlink(missing_ok=True)
     child = spawn(
         name,
-        [sys.executable, "-m", "apps.cli", *argv, *connect, *launcher.secure],
+        [sys.executable, "-m", "archery.apps.cli", *argv, *connect, *launcher.secure],
         output,
         launcher.env,
     )

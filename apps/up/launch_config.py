@@ -16,10 +16,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from apps.up.restart_policy import RestartPolicy
-from mesh.netflags import DEFAULT_ROUTER, NetConfig
-from protocol.errors import ConfigError
-from protocol.keys import DEFAULT_ROBOT
+from archery.apps.up.restart_policy import RestartPolicy
+from archery.mesh.netflags import DEFAULT_ROUTER, NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.keys import DEFAULT_ROBOT
 
 __all__ = [
     "SERVICES",

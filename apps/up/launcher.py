@@ -25,22 +25,22 @@ import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
-from apps.up.child import Child, spawn
-from apps.up.launch_config import (
+from archery.apps.up.child import Child, spawn
+from archery.apps.up.launch_config import (
     SERVICES,
     MeshConfig,
     RobotSpec,
     RouterSpec,
     ServiceSpec,
 )
-from apps.up.logfile import LOG_FILE_BYTES, LOG_FILES, RotatingLog
-from apps.up.restart_policy import RestartPolicy, describe_status
-from mesh.credentials import identity_folder
-from mesh.liveliness import OnWait
-from mesh.netflags import DEFAULT_ROUTER, NetConfig
-from mesh.node import Node
-from mesh.router import wait_for_endpoint
-from protocol.errors import ArcheryError, ConfigError, RpcTimeout
+from archery.apps.up.logfile import LOG_FILE_BYTES, LOG_FILES, RotatingLog
+from archery.apps.up.restart_policy import RestartPolicy, describe_status
+from archery.mesh.credentials import identity_folder
+from archery.mesh.liveliness import OnWait
+from archery.mesh.netflags import DEFAULT_ROUTER, NetConfig
+from archery.mesh.node import Node
+from archery.mesh.router import wait_for_endpoint
+from archery.protocol.errors import ArcheryError, ConfigError, RpcTimeout
 
 __all__ = [
     "INTERRUPT_GRACE",
@@ -175,7 +175,7 @@ class Launcher:
         return self._outputs[name]
 
     def _spawn(self, name: str, argv: list[str]) -> Child:
-        argv = [sys.executable, "-m", "apps.cli", *argv]
+        argv = [sys.executable, "-m", "archery.apps.cli", *argv]
         child = spawn(name, argv, self.output(name), self.env)
         self.children[name] = child
         return child

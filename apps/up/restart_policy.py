@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
-from protocol.errors import ConfigError
+from archery.protocol.errors import ConfigError
 
 __all__ = ["POLICIES", "Decision", "RestartPolicy", "decide", "describe_status"]
 

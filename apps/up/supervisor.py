@@ -16,9 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
-from apps.up.child import Child
-from apps.up.restart_policy import Decision, RestartPolicy, decide
-from protocol.errors import ArcheryError
+from archery.apps.up.child import Child
+from archery.apps.up.restart_policy import Decision, RestartPolicy, decide
+from archery.protocol.errors import ArcheryError
 
 __all__ = ["GiveUp", "Supervisor"]
 

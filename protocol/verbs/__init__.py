@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-from protocol.errors import KeyNameError
-from protocol.verbs import camera, controller, detector, learner, robot
-from protocol.verbs.base import Args, BoundVerb, NoArgs, Reply, ServedVerbs, Verb, VerbTable
+from archery.protocol.errors import KeyNameError
+from archery.protocol.verbs import camera, controller, detector, learner, robot
+from archery.protocol.verbs.base import Args, BoundVerb, NoArgs, Reply, ServedVerbs, Verb, VerbTable
 
 __all__ = [
     "TABLES",

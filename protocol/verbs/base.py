@@ -19,7 +19,7 @@ from typing import Any, Generic, TypeVar
 
 import msgspec
 
-from protocol.messages import check_finite_fields
+from archery.protocol.messages import check_finite_fields
 
 __all__ = ["Args", "BoundVerb", "NoArgs", "Reply", "ServedVerbs", "Verb", "VerbTable"]
 
@@ -92,7 +92,7 @@ class Verb(Generic[A, R]):
     @functools.cached_property
     def reply_decoder(self) -> msgspec.msgpack.Decoder[Any]:
         """Decodes a whole `RpcReply` whose result is this verb's reply (or None)."""
-        from protocol.messages import RpcReply
+        from archery.protocol.messages import RpcReply
 
         typed = msgspec.defstruct(
             "RpcReply",

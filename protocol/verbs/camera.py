@@ -7,9 +7,9 @@ from typing import Annotated, Literal
 
 from msgspec import Meta
 
-from protocol.messages import Image
-from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
-from protocol.verbs.robot import Scene
+from archery.protocol.messages import Image
+from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.verbs.robot import Scene
 
 __all__ = ["CAMERA_VERBS", "GRAB_BURST", "GRAB_RATE", "MAX_GRAB_TIMEOUT", "SceneReply"]
 

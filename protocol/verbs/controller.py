@@ -15,8 +15,8 @@ from typing import Annotated, Literal
 
 from msgspec import Meta
 
-from protocol.theta import Theta, ThetaBox
-from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.theta import Theta, ThetaBox
+from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = [
     "ARCHERY_VERBS",

@@ -6,7 +6,7 @@ from typing import Annotated, Any, Literal
 
 from msgspec import Meta
 
-from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = ["DETECTOR_VERBS", "FRAME_BURST", "FRAME_RATE", "KEPT_FRAMES", "MAX_TIMEOUT"]
 

@@ -10,8 +10,8 @@ from typing import Annotated, Any
 
 from msgspec import UNSET, Meta, UnsetType
 
-from protocol.theta import Theta, ThetaBox
-from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.theta import Theta, ThetaBox
+from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = ["LEARNER_VERBS", "MAX_ROLLOUTS"]
 

@@ -12,11 +12,11 @@ from typing import Annotated, Any, Literal
 
 from msgspec import Meta
 
-from protocol.messages import MAX_LEASE_ID
-from protocol.parts import PARTS
-from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, MAX_REFERENCE_SPEED
-from protocol.theta import Theta
-from protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
+from archery.protocol.messages import MAX_LEASE_ID
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, MAX_REFERENCE_SPEED
+from archery.protocol.theta import Theta
+from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = [
     "ARCHERY_VERBS",

@@ -19,16 +19,16 @@ from typing import Any
 import cv2
 import numpy as np
 
-from mesh.jobs import JobQueue
-from mesh.node import Node
-from mesh.publisher import Publisher
-from protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
-from protocol.messages import Image, WorldState
-from protocol.verbs import robot as robot_verbs
-from protocol.verbs.robot import Scene
-from services.camera.config import CameraConfig
-from services.camera.frames import FrameStore, Freshness
-from services.camera.sources import DeviceSource, FolderSource
+from archery.mesh.jobs import JobQueue
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
+from archery.protocol.messages import Image, WorldState
+from archery.protocol.verbs import robot as robot_verbs
+from archery.protocol.verbs.robot import Scene
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.frames import FrameStore, Freshness
+from archery.services.camera.sources import DeviceSource, FolderSource
 
 __all__ = ["Capture", "capture_loop", "encode"]
 
@@ -91,7 +91,7 @@ class Capture:
 
     def _robot_scene(self, timeout: float) -> Any:
         """The robot's SceneConfig from its `status`, or None when no robot answers."""
-        from sim.scene_config import SceneConfig
+        from archery.sim.scene_config import SceneConfig
 
         try:
             status = self.node.call_typed(
@@ -103,7 +103,7 @@ class Capture:
             return None
 
     def _scene(self) -> Any:
-        from sim.scene_config import SceneConfig
+        from archery.sim.scene_config import SceneConfig
 
         scene = self._robot_scene(max(0.1, self.config.robot_timeout))
         if scene is None:
@@ -135,7 +135,7 @@ class Capture:
             self.renderer.close()
             self.renderer = None
             self._shown.clear()
-            from sim.render import SceneRenderer
+            from archery.sim.render import SceneRenderer
 
             self.renderer = SceneRenderer(scene, width=self.config.width, height=self.config.height)
             self.scene = scene.to_status()
@@ -150,7 +150,7 @@ class Capture:
         """
         source = self.config.source
         if source.kind == "mujoco":
-            from sim.render import SceneRenderer
+            from archery.sim.render import SceneRenderer
 
             self.renderer = SceneRenderer(
                 self._scene(), width=self.config.width, height=self.config.height

@@ -5,11 +5,11 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from protocol.robotspec import ROBOT_TIMEOUT
-from services.camera.sources import SourceSpec, parse_source
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.robotspec import ROBOT_TIMEOUT
+from archery.services.camera.sources import SourceSpec, parse_source
 
 __all__ = ["ENCODINGS", "CameraConfig", "add_arguments", "make_config"]
 
@@ -92,7 +92,7 @@ def make_config(args: argparse.Namespace, net: NetConfig) -> CameraConfig:
         raise ConfigError(f"--size {args.size!r} is not WIDTHxHEIGHT, e.g. 1280x720") from None
     config: CameraConfig = config_from_args(CameraConfig, args, net=net, width=width, height=height)
     if config.source.kind == "mujoco":  # a backend that cannot start: exit 2 before serving
-        from sim.gl_backend import check
+        from archery.sim.gl_backend import check
 
         check()
     return config

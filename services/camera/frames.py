@@ -10,8 +10,8 @@ import threading
 import time
 from dataclasses import dataclass
 
-from protocol.errors import RpcTimeout
-from protocol.messages import Image
+from archery.protocol.errors import RpcTimeout
+from archery.protocol.messages import Image
 
 __all__ = ["FrameStore", "Freshness"]
 

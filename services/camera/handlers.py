@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import time
 
-from mesh.rates import RateLimit
-from mesh.rpc_server import caller_left, caller_or_anonymous
-from protocol.errors import BadRequest
-from protocol.messages import Image
-from protocol.robotspec import CALL_TIMEOUT
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import camera as cv
-from protocol.verbs.camera import (
+from archery.mesh.rates import RateLimit
+from archery.mesh.rpc_server import caller_left, caller_or_anonymous
+from archery.protocol.errors import BadRequest
+from archery.protocol.messages import Image
+from archery.protocol.robotspec import CALL_TIMEOUT
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs import camera as cv
+from archery.protocol.verbs.camera import (
     CAMERA_VERBS,
     GRAB_BURST,
     GRAB_RATE,
@@ -22,10 +22,10 @@ from protocol.verbs.camera import (
     GrabArgs,
     SceneReply,
 )
-from services.camera.capture import Capture
-from services.camera.config import CameraConfig
-from services.camera.frames import FrameStore, Freshness
-from services.camera.scene_view import SceneViews
+from archery.services.camera.capture import Capture
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.frames import FrameStore, Freshness
+from archery.services.camera.scene_view import SceneViews
 
 __all__ = ["CALIBRATION_TIMEOUT", "CameraHandlers"]
 
@@ -101,7 +101,7 @@ class CameraHandlers:
         capture = self._capture
 
         def job() -> CalibrationReply:
-            from sim.render import calibration_frame
+            from archery.sim.render import calibration_frame
 
             latest = capture.world.latest() if capture.world else None
             qpos = latest.qpos.to_numpy() if latest else capture.renderer.model.qpos0

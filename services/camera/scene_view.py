@@ -18,11 +18,11 @@ import cv2
 import msgspec
 import numpy as np
 
-from mesh.memory import BIG_PAYLOAD, note_payload
-from mesh.priority import lower_thread_priority
-from protocol.errors import ArcheryError, BadRequest
-from protocol.messages import Image
-from protocol.verbs.camera import SceneReply
+from archery.mesh.memory import BIG_PAYLOAD, note_payload
+from archery.mesh.priority import lower_thread_priority
+from archery.protocol.errors import ArcheryError, BadRequest
+from archery.protocol.messages import Image
+from archery.protocol.verbs.camera import SceneReply
 
 __all__ = ["HOLD", "IDLE", "NICE", "PERIOD", "SIZE", "SceneViews"]
 
@@ -188,8 +188,8 @@ class SceneViews:
         return store.count == frames and time.monotonic() - seen < HOLD
 
     def _open(self) -> Any:
-        from sim.scene_config import SceneConfig
-        from sim.scene_view import SceneView
+        from archery.sim.scene_config import SceneConfig
+        from archery.sim.scene_view import SceneView
 
         scene = self._capture.scene
         config = SceneConfig.of(scene) if scene else SceneConfig()

@@ -9,15 +9,15 @@ from __future__ import annotations
 import logging
 import threading
 
-from mesh.node import Node
-from mesh.service import service_main
-from protocol.messages import Image
-from protocol.robotspec import CAMERA
-from services.camera.capture import Capture, capture_loop
-from services.camera.config import CameraConfig, add_arguments, make_config
-from services.camera.frames import FrameStore
-from services.camera.handlers import CameraHandlers
-from services.camera.scene_view import SceneViews
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
+from archery.protocol.messages import Image
+from archery.protocol.robotspec import CAMERA
+from archery.services.camera.capture import Capture, capture_loop
+from archery.services.camera.config import CameraConfig, add_arguments, make_config
+from archery.services.camera.frames import FrameStore
+from archery.services.camera.handlers import CameraHandlers
+from archery.services.camera.scene_view import SceneViews
 
 __all__ = ["main", "run"]
 

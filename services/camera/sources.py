@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.errors import ArcheryError, ConfigError
+from archery.protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DeviceSource", "FolderSource", "SourceError", "SourceSpec", "parse_source"]
 

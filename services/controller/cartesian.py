@@ -16,10 +16,10 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from protocol.robotspec import MAX_REFERENCE_SPEED
-from protocol.vectors import finite_vector
-from services.controller.errors import TargetError
-from services.controller.ik_types import IkResult
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED
+from archery.protocol.vectors import finite_vector
+from archery.services.controller.errors import TargetError
+from archery.services.controller.ik_types import IkResult
 
 __all__ = ["MIN_REFERENCE_SPEED", "axis_angle", "ik_reply", "reference_speeds", "rotation_vector"]
 

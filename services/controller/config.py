@@ -6,16 +6,16 @@ import argparse
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, ROBOT_TIMEOUT, STATE_MAX_AGE
-from services.controller.demonstration_file import read_demonstration
-from services.controller.ik_types import IkSettings
-from services.controller.posture import PostureConfig
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, ROBOT_TIMEOUT, STATE_MAX_AGE
+from archery.services.controller.demonstration_file import read_demonstration
+from archery.services.controller.ik_types import IkSettings
+from archery.services.controller.posture import PostureConfig
 
 if TYPE_CHECKING:
-    from services.controller.movement import Movement
+    from archery.services.controller.movement import Movement
 
 __all__ = ["LIMIT_MARGIN", "ControllerConfig", "add_arguments", "make_config"]
 
@@ -101,7 +101,7 @@ class ControllerConfig:
                 (the `imitate` extra) is not installed.
         """
         try:
-            from services.controller.movement import Movement
+            from archery.services.controller.movement import Movement
         except ImportError as exc:
             raise ConfigError(
                 f"the robot runs the whole shot, whose movement needs the DMPs' library "

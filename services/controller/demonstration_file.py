@@ -5,9 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mesh.regular_file import FileRefused, read_regular
-from protocol.demonstration import MAX_BYTES, BadDemonstration, Demonstration, parse_demonstration
-from protocol.errors import ConfigError
+from archery.mesh.regular_file import FileRefused, read_regular
+from archery.protocol.demonstration import (
+    MAX_BYTES,
+    BadDemonstration,
+    Demonstration,
+    parse_demonstration,
+)
+from archery.protocol.errors import ConfigError
 
 __all__ = ["SHIPPED_DEMONSTRATION", "read_demonstration"]
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from protocol import errors as project
+from archery.protocol import errors as project
 
 __all__ = ["ControllerError", "JointError", "TargetError"]
 

@@ -18,21 +18,21 @@ from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from protocol.errors import ArcheryError, BadRequest, ConfigError
-from protocol.parts import PARTS
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import controller as cv
-from protocol.verbs import robot as rv
-from services.controller.cartesian import axis_angle, ik_reply, rotation_vector
-from services.controller.config import ControllerConfig
-from services.controller.ik import IkSolver
-from services.controller.model import ArmsModel
-from services.controller.posture import ArcheryPosture, PostureResult
-from services.controller.robotlink import MoveResult, RobotLink
-from services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError
+from archery.protocol.parts import PARTS
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs import controller as cv
+from archery.protocol.verbs import robot as rv
+from archery.services.controller.cartesian import axis_angle, ik_reply, rotation_vector
+from archery.services.controller.config import ControllerConfig
+from archery.services.controller.ik import IkSolver
+from archery.services.controller.model import ArmsModel
+from archery.services.controller.posture import ArcheryPosture, PostureResult
+from archery.services.controller.robotlink import MoveResult, RobotLink
+from archery.services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
 
 if TYPE_CHECKING:
-    from services.controller.movement import Movement
+    from archery.services.controller.movement import Movement
 
 __all__ = ["ArcheryController", "ArmController", "MotionLock"]
 

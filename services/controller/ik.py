@@ -23,14 +23,14 @@ import numpy as np
 import pinocchio as pin
 import scipy.linalg.lapack
 
-from protocol.vectors import finite_vector
-from services.controller.errors import JointError, TargetError
-from services.controller.ik_derivatives import (
+from archery.protocol.vectors import finite_vector
+from archery.services.controller.errors import JointError, TargetError
+from archery.services.controller.ik_derivatives import (
     orientation_residual,
     orientation_residual_jacobian,
     position_hessian_contraction,
 )
-from services.controller.ik_types import (
+from archery.services.controller.ik_types import (
     FrameJacobian,
     IkResult,
     IkSettings,
@@ -41,8 +41,8 @@ from services.controller.ik_types import (
     RestTask,
     TargetsResult,
 )
-from services.controller.model import ArmsModel, JointValues, check_arm, load_arms_model
-from services.controller.qp import solve_box_qp
+from archery.services.controller.model import ArmsModel, JointValues, check_arm, load_arms_model
+from archery.services.controller.qp import solve_box_qp
 
 __all__ = ["IkSolver"]
 

@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from protocol.errors import ConfigError
-from services.controller.errors import TargetError
-from services.controller.model import check_arm
+from archery.protocol.errors import ConfigError
+from archery.services.controller.errors import TargetError
+from archery.services.controller.model import check_arm
 
 __all__ = [
     "FrameJacobian",

@@ -16,9 +16,9 @@ import icub_models
 import numpy as np
 import pinocchio as pin
 
-from protocol.parts import PARTS
-from protocol.robotspec import HAND_FRAMES, HOME_POSTURE, MODEL_NAME
-from services.controller.errors import JointError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import HAND_FRAMES, HOME_POSTURE, MODEL_NAME
+from archery.services.controller.errors import JointError
 
 __all__ = ["JOINT_NAMES", "ArmsModel", "load_arms_model"]
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from movement_primitives.dmp import DMP
 
-from protocol.demonstration import BadDemonstration, Demonstration
+from archery.protocol.demonstration import BadDemonstration, Demonstration
 
 __all__ = ["DEFAULT_WEIGHTS", "Movement", "Reproduction"]
 

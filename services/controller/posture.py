@@ -18,21 +18,21 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from protocol.direction import arrow_direction
-from protocol.errors import ConfigError
-from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
-from protocol.theta import THETA_BOX, ThetaBox
-from protocol.vectors import finite_vector
-from services.controller.errors import TargetError
-from services.controller.ik import IkSolver
-from services.controller.ik_types import (
+from archery.protocol.direction import arrow_direction
+from archery.protocol.errors import ConfigError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.protocol.vectors import finite_vector
+from archery.services.controller.errors import TargetError
+from archery.services.controller.ik import IkSolver
+from archery.services.controller.ik_types import (
     IkSettings,
     OrientationTarget,
     PositionTarget,
     TargetsResult,
 )
-from services.controller.model import JointValues, load_arms_model
+from archery.services.controller.model import JointValues, load_arms_model
 
 __all__ = [
     "ArcheryPosture",

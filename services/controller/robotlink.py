@@ -18,13 +18,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mesh.node import Node
-from protocol.errors import ArcheryError, RpcError, RpcTimeout, StaleState
-from protocol.messages import JointCommand, JointState
-from protocol.parts import PARTS
-from protocol.robotspec import CONTROLLER, LEASE_TTL, LEASE_TTL_RANGE, STATE_MAX_AGE
-from protocol.verbs import robot as rv
-from protocol.verbs.robot import (
+from archery.mesh.node import Node
+from archery.protocol.errors import ArcheryError, RpcError, RpcTimeout, StaleState
+from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import CONTROLLER, LEASE_TTL, LEASE_TTL_RANGE, STATE_MAX_AGE
+from archery.protocol.verbs import robot as rv
+from archery.protocol.verbs.robot import (
     CLAIM,
     DROP_CLAIM,
     GET_LIMITS,
@@ -34,7 +34,7 @@ from protocol.verbs.robot import (
     LeaseArgs,
     SetRefSpeedsArgs,
 )
-from services.controller.cartesian import reference_speeds
+from archery.services.controller.cartesian import reference_speeds
 
 __all__ = ["REST_WAIT", "MoveResult", "RobotLink"]
 

@@ -15,15 +15,15 @@ from __future__ import annotations
 import logging
 import threading
 
-from mesh.node import Node
-from mesh.service import service_main
-from protocol.parts import ARM_PARTS
-from protocol.robotspec import CONTROLLER
-from services.controller.config import ControllerConfig, add_arguments, make_config
-from services.controller.handlers import ArcheryController, ArmController, MotionLock
-from services.controller.model import load_arms_model
-from services.controller.posture import ArcheryPosture
-from services.controller.robotlink import RobotLink
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
+from archery.protocol.parts import ARM_PARTS
+from archery.protocol.robotspec import CONTROLLER
+from archery.services.controller.config import ControllerConfig, add_arguments, make_config
+from archery.services.controller.handlers import ArcheryController, ArmController, MotionLock
+from archery.services.controller.model import load_arms_model
+from archery.services.controller.posture import ArcheryPosture
+from archery.services.controller.robotlink import RobotLink
 
 __all__ = ["main", "run"]
 

@@ -12,11 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.parts import PARTS
-from protocol.robotspec import BOW_ARM, STRING_ARM, TORSO, home_of
-from protocol.verbs.robot import MAX_TRAJECTORY_POINTS
-from services.controller.movement import Movement
-from services.controller.posture import ArcheryPosture, PostureResult, hand_orientations
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import BOW_ARM, STRING_ARM, TORSO, home_of
+from archery.protocol.verbs.robot import MAX_TRAJECTORY_POINTS
+from archery.services.controller.movement import Movement
+from archery.services.controller.posture import ArcheryPosture, PostureResult, hand_orientations
 
 __all__ = [
     "LEAD_SPEED",

@@ -17,7 +17,7 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from services.detector.rings import Ellipse, perimeter_support, radial_position
+from archery.services.detector.rings import Ellipse, perimeter_support, radial_position
 
 __all__ = ["ring_from_arcs"]
 

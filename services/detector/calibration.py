@@ -15,11 +15,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.text import shown
-from services.detector.colour_model import ColourModel
-from services.detector.detect import WHITE_SIDE, downscale
-from services.detector.errors import CalibrationError
-from services.detector.whitebalance import estimate_white
+from archery.protocol.text import shown
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import WHITE_SIDE, downscale
+from archery.services.detector.errors import CalibrationError
+from archery.services.detector.whitebalance import estimate_white
 
 __all__ = ["MarkedFit", "fit_from_marks", "load_pixels", "parse_pixels", "sample_pixels"]
 

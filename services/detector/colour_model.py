@@ -20,9 +20,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.vectors import finite_vector
-from services.detector.em import Mixture, fit_mixture
-from services.detector.errors import CalibrationError, ModelFileError
+from archery.protocol.vectors import finite_vector
+from archery.services.detector.em import Mixture, fit_mixture
+from archery.services.detector.errors import CalibrationError, ModelFileError
 
 __all__ = [
     "MIN_CHROMA",

@@ -6,15 +6,15 @@ import argparse
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mesh.cliargs import check_writable_dir
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from protocol.robotspec import CAMERA_TIMEOUT
-from protocol.verbs import detector as dv
-from services.detector.colour_model import ColourModel
-from services.detector.detect import DetectorSettings
-from services.detector.errors import ModelFileError
+from archery.mesh.cliargs import check_writable_dir
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.robotspec import CAMERA_TIMEOUT
+from archery.protocol.verbs import detector as dv
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.detect import DetectorSettings
+from archery.services.detector.errors import ModelFileError
 
 __all__ = [
     "DetectorConfig",

@@ -18,13 +18,13 @@ from typing import Any
 import cv2
 import numpy as np
 
-from protocol.errors import ConfigError
-from protocol.text import shown
-from services.detector.colour_model import ColourModel
-from services.detector.errors import ImageError
-from services.detector.rings import Ellipse
-from services.detector.target import FaceFit, colour_groups, find_face, merge_faces
-from services.detector.whitebalance import apply_gains, estimate_white, white_gains
+from archery.protocol.errors import ConfigError
+from archery.protocol.text import shown
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.errors import ImageError
+from archery.services.detector.rings import Ellipse
+from archery.services.detector.target import FaceFit, colour_groups, find_face, merge_faces
+from archery.services.detector.whitebalance import apply_gains, estimate_white, white_gains
 
 __all__ = [
     "MAX_IMAGE_SIDE",

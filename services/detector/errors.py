@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from protocol.errors import ArcheryError, BadRequest
+from archery.protocol.errors import ArcheryError, BadRequest
 
 __all__ = ["CalibrationError", "DetectorError", "ImageError", "ModelFileError"]
 

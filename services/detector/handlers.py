@@ -18,23 +18,23 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from mesh.node import Node
-from mesh.publisher import Publisher
-from mesh.rates import RateLimit
-from mesh.rpc_server import caller_left, caller_or_anonymous
-from protocol.errors import BadRequest, RpcTimeout, UpstreamLost
-from protocol.messages import Detection as DetectionMessage
-from protocol.messages import Image
-from protocol.robotspec import CALL_TIMEOUT, CAMERA
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import detector as dv
-from protocol.verbs.camera import CALIBRATION, GRAB, GrabArgs
-from services.detector.calibration import fit_from_marks, parse_pixels
-from services.detector.colour_model import ColourModel
-from services.detector.config import DetectorConfig
-from services.detector.detect import Detection, Detector
-from services.detector.errors import DetectorError
-from services.detector.overlay import draw_overlay, encode_png
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.mesh.rates import RateLimit
+from archery.mesh.rpc_server import caller_left, caller_or_anonymous
+from archery.protocol.errors import BadRequest, RpcTimeout, UpstreamLost
+from archery.protocol.messages import Detection as DetectionMessage
+from archery.protocol.messages import Image
+from archery.protocol.robotspec import CALL_TIMEOUT, CAMERA
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs import detector as dv
+from archery.protocol.verbs.camera import CALIBRATION, GRAB, GrabArgs
+from archery.services.detector.calibration import fit_from_marks, parse_pixels
+from archery.services.detector.colour_model import ColourModel
+from archery.services.detector.config import DetectorConfig
+from archery.services.detector.detect import Detection, Detector
+from archery.services.detector.errors import DetectorError
+from archery.services.detector.overlay import draw_overlay, encode_png
 
 __all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
 

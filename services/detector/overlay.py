@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from services.detector.detect import Detection
+from archery.services.detector.detect import Detection
 
 __all__ = ["draw_overlay", "encode_png", "filtered_pixels"]
 

@@ -10,13 +10,13 @@ import threading
 
 import cv2
 
-from mesh.node import Node
-from mesh.service import service_main
-from protocol.errors import ArcheryError, BadRequest, RpcError
-from protocol.messages import Detection as DetectionMessage
-from protocol.robotspec import CAMERA, DETECTOR
-from services.detector.config import DetectorConfig, add_arguments, make_config
-from services.detector.handlers import DetectorHandlers
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
+from archery.protocol.errors import ArcheryError, BadRequest, RpcError
+from archery.protocol.messages import Detection as DetectionMessage
+from archery.protocol.robotspec import CAMERA, DETECTOR
+from archery.services.detector.config import DetectorConfig, add_arguments, make_config
+from archery.services.detector.handlers import DetectorHandlers
 
 __all__ = ["main", "run"]
 

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.detector.arcs import ring_from_arcs
-from services.detector.pieces import joined_hull
-from services.detector.rings import (
+from archery.services.detector.arcs import ring_from_arcs
+from archery.services.detector.pieces import joined_hull
+from archery.services.detector.rings import (
     Ellipse,
     centre_spread,
     fit_disc,

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.journal_records import AbortedRecord
-from protocol.robotspec import THETA0
-from protocol.theta import ThetaBox
+from archery.protocol.journal_records import AbortedRecord
+from archery.protocol.robotspec import THETA0
+from archery.protocol.theta import ThetaBox
 
 __all__ = [
     "BACK_OFF_FRACTION",

@@ -13,17 +13,17 @@ from typing import Any
 import msgspec
 from msgspec import UnsetType
 
-from mesh.cliargs import check_writable_dir
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from mesh.netflags import NetConfig
-from protocol.errors import BadRequest, ConfigError
-from protocol.journal_records import HeaderRecord
-from protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
-from protocol.text import shown
-from protocol.theta import ThetaBox
-from protocol.vectors import finite_vector
-from protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
-from services.learner.algorithms.registry import ALGORITHMS
+from archery.mesh.cliargs import check_writable_dir
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import BadRequest, ConfigError
+from archery.protocol.journal_records import HeaderRecord
+from archery.protocol.robotspec import HIT_RADIUS, RPC_TIMEOUT, THETA0
+from archery.protocol.text import shown
+from archery.protocol.theta import ThetaBox
+from archery.protocol.vectors import finite_vector
+from archery.protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
+from archery.services.learner.algorithms.registry import ALGORITHMS
 
 __all__ = [
     "DEFAULT_THETA0",

@@ -3,7 +3,7 @@ RPC replies and abort records); a journal's are `services.learner.journal.Journa
 
 from __future__ import annotations
 
-from protocol.errors import ArcheryError
+from archery.protocol.errors import ArcheryError
 
 __all__ = ["RigError", "ServiceLost", "SessionFailed"]
 

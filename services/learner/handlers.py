@@ -11,14 +11,19 @@ from typing import Any
 import msgspec
 from msgspec import UnsetType
 
-from mesh.node import Node
-from mesh.publisher import Publisher
-from protocol.errors import ArcheryError, BadRequest
-from protocol.journal_records import AbortedRecord, DoneRecord, JournalRecord, ProposedRecord
-from protocol.messages import Rollout
-from protocol.text import shown
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs.learner import (
+from archery.mesh.node import Node
+from archery.mesh.publisher import Publisher
+from archery.protocol.errors import ArcheryError, BadRequest
+from archery.protocol.journal_records import (
+    AbortedRecord,
+    DoneRecord,
+    JournalRecord,
+    ProposedRecord,
+)
+from archery.protocol.messages import Rollout
+from archery.protocol.text import shown
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs.learner import (
     LEARNER_VERBS,
     START,
     STATUS,
@@ -26,12 +31,12 @@ from protocol.verbs.learner import (
     LearnerStatusReply,
     StartArgs,
 )
-from services.learner.config import LearnerServiceConfig, SessionConfig
-from services.learner.report import write_report
-from services.learner.rig import MeshRig
-from services.learner.runs_folder import journal_in_runs
-from services.learner.session import FINAL_STATES, Session
-from services.learner.transfer import load_source
+from archery.services.learner.config import LearnerServiceConfig, SessionConfig
+from archery.services.learner.report import write_report
+from archery.services.learner.rig import MeshRig
+from archery.services.learner.runs_folder import journal_in_runs
+from archery.services.learner.session import FINAL_STATES, Session
+from archery.services.learner.transfer import load_source
 
 __all__ = ["LearnerHandlers", "rollout_message"]
 

@@ -16,12 +16,12 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-from protocol.journal_records import DoneRecord
-from protocol.verbs.detector import KEPT_FRAMES
-from services.learner.errors import RigError
-from services.learner.journal import JournalState
-from services.learner.report import caption_png, hit_caption
-from services.learner.rig_protocol import Measurement, Rig, Shot
+from archery.protocol.journal_records import DoneRecord
+from archery.protocol.verbs.detector import KEPT_FRAMES
+from archery.services.learner.errors import RigError
+from archery.services.learner.journal import JournalState
+from archery.services.learner.report import caption_png, hit_caption
+from archery.services.learner.rig_protocol import Measurement, Rig, Shot
 
 __all__ = ["SAVE_AFTER", "LatestHit"]
 

@@ -27,9 +27,9 @@ import msgspec
 import numpy as np
 from msgspec import UnsetType
 
-from mesh.regular_file import FileRefused, open_regular, read_regular
-from protocol.errors import ArcheryError
-from protocol.journal_records import (
+from archery.mesh.regular_file import FileRefused, open_regular, read_regular
+from archery.protocol.errors import ArcheryError
+from archery.protocol.journal_records import (
     JOURNAL_VERSION,
     READ_VERSIONS,
     RECORD_KINDS,
@@ -44,8 +44,8 @@ from protocol.journal_records import (
     ResumedRecord,
     SessionRecord,
 )
-from protocol.text import SHOWN_LIMIT, cut, shown
-from protocol.verbs.learner import MAX_ROLLOUTS
+from archery.protocol.text import SHOWN_LIMIT, cut, shown
+from archery.protocol.verbs.learner import MAX_ROLLOUTS
 
 __all__ = [
     "JOURNAL_NAME",

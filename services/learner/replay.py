@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol.text import cut, shown
-from services.learner.algorithms.base import Learner, LearnerError, with_history
-from services.learner.algorithms.registry import restore_learner
-from services.learner.journal import Checkpoint, JournalError, JournalState
+from archery.protocol.text import cut, shown
+from archery.services.learner.algorithms.base import Learner, LearnerError, with_history
+from archery.services.learner.algorithms.registry import restore_learner
+from archery.services.learner.journal import Checkpoint, JournalError, JournalState
 
 __all__ = ["rebuild_learner"]
 

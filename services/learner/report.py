@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
-from protocol.robotspec import HIT_RADIUS
-from services.learner.journal import JournalState, read_records
-from services.learner.label_placement import Label, place_labels
+from archery.protocol.journal_records import AbortedRecord, DoneRecord, ResumedRecord
+from archery.protocol.robotspec import HIT_RADIUS
+from archery.services.learner.journal import JournalState, read_records
+from archery.services.learner.label_placement import Label, place_labels
 
 __all__ = [
     "Interruptions",

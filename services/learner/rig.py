@@ -20,9 +20,9 @@ from typing import Any, Literal, TypeVar
 import msgspec
 import numpy as np
 
-from mesh.node import Node
-from mesh.tokens import TokenSet
-from protocol.errors import (
+from archery.mesh.node import Node
+from archery.mesh.tokens import TokenSet
+from archery.protocol.errors import (
     ArcheryError,
     RpcError,
     RpcTimeout,
@@ -30,15 +30,15 @@ from protocol.errors import (
     UpstreamLost,
     WrongReplier,
 )
-from protocol.messages import WorldEvent
-from protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
-from protocol.theta import ThetaBox
-from protocol.verbs import Verb
-from protocol.verbs import controller as cv
-from protocol.verbs import detector as dv
-from protocol.verbs import robot as rv
-from services.learner.errors import RigError, ServiceLost
-from services.learner.rig_protocol import Measurement, PostureResult, Shot
+from archery.protocol.messages import WorldEvent
+from archery.protocol.robotspec import CAMERA, CONTROLLER, DETECTOR, ROBOT
+from archery.protocol.theta import ThetaBox
+from archery.protocol.verbs import Verb
+from archery.protocol.verbs import controller as cv
+from archery.protocol.verbs import detector as dv
+from archery.protocol.verbs import robot as rv
+from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.rig_protocol import Measurement, PostureResult, Shot
 
 __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 

@@ -14,7 +14,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from protocol.theta import ThetaBox
+from archery.protocol.theta import ThetaBox
 
 __all__ = ["Measurement", "PostureResult", "Rig", "Shot"]
 

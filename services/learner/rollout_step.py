@@ -18,19 +18,19 @@ from typing import Any
 import numpy as np
 from msgspec import UNSET, UnsetType
 
-from protocol.journal_records import AbortedRecord, DoneRecord
-from services.learner.abort_policy import (
+from archery.protocol.journal_records import AbortedRecord, DoneRecord
+from archery.services.learner.abort_policy import (
     NO_ARROW,
     NOT_REACHED,
     SERVICE_LOST,
     AbortDecision,
     after_abort,
 )
-from services.learner.algorithms.base import Learner
-from services.learner.config import SessionConfig
-from services.learner.errors import RigError, ServiceLost
-from services.learner.journal import JournalState
-from services.learner.rig_protocol import Measurement, PostureResult, Rig, Shot
+from archery.services.learner.algorithms.base import Learner
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.journal import JournalState
+from archery.services.learner.rig_protocol import Measurement, PostureResult, Rig, Shot
 
 __all__ = [
     "Attempt",

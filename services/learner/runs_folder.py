@@ -14,9 +14,9 @@ import os
 import stat
 from pathlib import Path
 
-from protocol.errors import BadRequest
-from protocol.text import shown
-from services.learner.journal import JOURNAL_NAME, MAX_JOURNAL_BYTES, JournalError
+from archery.protocol.errors import BadRequest
+from archery.protocol.text import shown
+from archery.services.learner.journal import JOURNAL_NAME, MAX_JOURNAL_BYTES, JournalError
 
 __all__ = ["journal_in_runs"]
 

@@ -15,11 +15,11 @@ import dataclasses
 import logging
 import threading
 
-from mesh.node import Node
-from mesh.service import service_main
-from protocol.robotspec import LEARNER
-from services.learner.config import LearnerServiceConfig, add_arguments, make_config
-from services.learner.handlers import LearnerHandlers
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
+from archery.protocol.robotspec import LEARNER
+from archery.services.learner.config import LearnerServiceConfig, add_arguments, make_config
+from archery.services.learner.handlers import LearnerHandlers
 
 __all__ = ["main", "run"]
 

@@ -14,8 +14,8 @@ import threading
 import time
 from collections.abc import Callable
 
-from services.learner.errors import ServiceLost, SessionFailed
-from services.learner.rig_protocol import Rig
+from archery.services.learner.errors import ServiceLost, SessionFailed
+from archery.services.learner.rig_protocol import Rig
 
 __all__ = ["WAIT_LOG_EVERY", "WAIT_SLICE", "ServiceWait"]
 

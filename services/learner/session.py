@@ -21,7 +21,7 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from protocol.journal_records import (
+from archery.protocol.journal_records import (
     CHECKPOINT_EVERY,
     CheckpointRecord,
     EndRecord,
@@ -29,16 +29,16 @@ from protocol.journal_records import (
     ProposedRecord,
     StoppedRecord,
 )
-from protocol.text import shown
-from protocol.verbs.learner import LearnerStatusReply
-from services.learner.abort_policy import SERVICE_LOST, streak_failure
-from services.learner.algorithms.base import Learner
-from services.learner.config import SessionConfig
-from services.learner.errors import RigError, ServiceLost, SessionFailed
-from services.learner.hit_frame import LatestHit
-from services.learner.journal import Journal, JournalError
-from services.learner.rig_protocol import Rig
-from services.learner.rollout_step import (
+from archery.protocol.text import shown
+from archery.protocol.verbs.learner import LearnerStatusReply
+from archery.services.learner.abort_policy import SERVICE_LOST, streak_failure
+from archery.services.learner.algorithms.base import Learner
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.errors import RigError, ServiceLost, SessionFailed
+from archery.services.learner.hit_frame import LatestHit
+from archery.services.learner.journal import Journal, JournalError
+from archery.services.learner.rig_protocol import Rig
+from archery.services.learner.rollout_step import (
     Attempt,
     Failed,
     Measured,
@@ -47,9 +47,9 @@ from services.learner.rollout_step import (
     next_attempt,
     shoot,
 )
-from services.learner.service_wait import ServiceWait
-from services.learner.session_setup import reopened_session, started_session
-from services.learner.transfer import TransferSource
+from archery.services.learner.service_wait import ServiceWait
+from archery.services.learner.session_setup import reopened_session, started_session
+from archery.services.learner.transfer import TransferSource
 
 __all__ = ["FINAL_STATES", "Session"]
 

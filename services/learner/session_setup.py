@@ -12,15 +12,15 @@ from pathlib import Path
 import msgspec
 import numpy as np
 
-from protocol.errors import BadRequest
-from protocol.journal_records import HeaderRecord, ResumedRecord
-from services.learner.algorithms.base import Learner, LearnerError
-from services.learner.algorithms.registry import make_learner, transferred_learner
-from services.learner.config import SessionConfig
-from services.learner.journal import JOURNAL_NAME, Journal, JournalError
-from services.learner.replay import rebuild_learner
-from services.learner.rig_protocol import Rig
-from services.learner.transfer import TransferSource
+from archery.protocol.errors import BadRequest
+from archery.protocol.journal_records import HeaderRecord, ResumedRecord
+from archery.services.learner.algorithms.base import Learner, LearnerError
+from archery.services.learner.algorithms.registry import make_learner, transferred_learner
+from archery.services.learner.config import SessionConfig
+from archery.services.learner.journal import JOURNAL_NAME, Journal, JournalError
+from archery.services.learner.replay import rebuild_learner
+from archery.services.learner.rig_protocol import Rig
+from archery.services.learner.transfer import TransferSource
 
 __all__ = ["new_session_id", "reopened_session", "started_session"]
 

@@ -13,12 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.errors import BadRequest
-from services.learner.algorithms.base import LearnerError
-from services.learner.algorithms.registry import check_transfer
-from services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
-from services.learner.replay import rebuild_learner
-from services.learner.runs_folder import journal_in_runs
+from archery.protocol.errors import BadRequest
+from archery.services.learner.algorithms.base import LearnerError
+from archery.services.learner.algorithms.registry import check_transfer
+from archery.services.learner.journal import JOURNAL_NAME, JournalError, JournalState, read_records
+from archery.services.learner.replay import rebuild_learner
+from archery.services.learner.runs_folder import journal_in_runs
 
 __all__ = ["TransferSource", "load_source"]
 

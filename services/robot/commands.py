@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import BadRequest
-from protocol.text import shown
+from archery.protocol.errors import BadRequest
+from archery.protocol.text import shown
 
 __all__ = ["REJECTION_REASONS", "CommandRejected", "PartCounters", "PartLimits", "check_command"]
 

@@ -5,15 +5,15 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field, replace
 
-from mesh.configflags import add_config_args, check_bounds, config_from_args, flag
-from mesh.netflags import NetConfig
-from protocol.errors import ConfigError
-from protocol.robotspec import COMMAND_BURST, COMMAND_RATE
-from protocol.vectors import parse_vector
-from sim.bow import BowError
-from sim.errors import SimError
-from sim.scene_config import SHOTS
-from sim.world import WorldConfig
+from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
+from archery.mesh.netflags import NetConfig
+from archery.protocol.errors import ConfigError
+from archery.protocol.robotspec import COMMAND_BURST, COMMAND_RATE
+from archery.protocol.vectors import parse_vector
+from archery.sim.bow import BowError
+from archery.sim.errors import SimError
+from archery.sim.scene_config import SHOTS
+from archery.sim.world import WorldConfig
 
 __all__ = ["RobotConfig", "add_arguments", "make_config"]
 

@@ -17,16 +17,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.errors import ArcheryError, Busy
-from protocol.verbs import robot as rv
-from services.robot.commands import PartLimits
-from services.robot.gate import NotOwner
-from services.robot.jobs import SimUnavailable
-from services.robot.leases import Leases
-from services.robot.shot import Shots
-from services.robot.trajectory import BadTrajectory, JointPath, plan_path
-from sim.errors import StateError
-from sim.world import ArcheryWorld
+from archery.protocol.errors import ArcheryError, Busy
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.commands import PartLimits
+from archery.services.robot.gate import NotOwner
+from archery.services.robot.jobs import SimUnavailable
+from archery.services.robot.leases import Leases
+from archery.services.robot.shot import Shots
+from archery.services.robot.trajectory import BadTrajectory, JointPath, plan_path
+from archery.sim.errors import StateError
+from archery.sim.world import ArcheryWorld
 
 __all__ = ["GOAL_TOLERANCE", "PATH_TOLERANCE", "Follower", "PartSpec", "TrajectoryAborted"]
 

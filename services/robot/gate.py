@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import msgspec
 
-from protocol.errors import ArcheryError
+from archery.protocol.errors import ArcheryError
 
 __all__ = ["NOT_OWNER", "RATE_LIMITED", "Lease", "NotOwner", "PartGate", "lease_field"]
 

@@ -9,18 +9,18 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 
-from mesh.acl import OPERATOR
-from mesh.rpc_server import caller, caller_left
-from mesh.subscription import Subscription
-from protocol.errors import BadRequest
-from protocol.messages import JointCommand
-from protocol.verbs import NoArgs, ServedVerbs
-from protocol.verbs import robot as rv
-from services.robot.follow import PartSpec
-from services.robot.gate import NotOwner
-from services.robot.jobs import SimUnavailable
-from services.robot.simloop import SimLoop
-from services.robot.trajectory import BadTrajectory
+from archery.mesh.acl import OPERATOR
+from archery.mesh.rpc_server import caller, caller_left
+from archery.mesh.subscription import Subscription
+from archery.protocol.errors import BadRequest
+from archery.protocol.messages import JointCommand
+from archery.protocol.verbs import NoArgs, ServedVerbs
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.follow import PartSpec
+from archery.services.robot.gate import NotOwner
+from archery.services.robot.jobs import SimUnavailable
+from archery.services.robot.simloop import SimLoop
+from archery.services.robot.trajectory import BadTrajectory
 
 __all__ = ["RobotHandlers"]
 

@@ -12,8 +12,8 @@ from collections.abc import Callable
 from concurrent.futures import Future
 from typing import TypeVar
 
-from mesh.jobs import JobQueue
-from protocol.errors import ArcheryError
+from archery.mesh.jobs import JobQueue
+from archery.protocol.errors import ArcheryError
 
 __all__ = ["SHUTTING_DOWN", "SimJobs", "SimUnavailable"]
 

@@ -13,13 +13,13 @@ from typing import Any
 
 import numpy as np
 
-from protocol.errors import BadRequest, Busy
-from protocol.text import shown
-from services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
-from services.robot.pacing import Pacing
-from services.robot.simthread import SimThread
-from services.robot.watchdog import StreamWatchdog
-from sim.world import ArcheryWorld
+from archery.protocol.errors import BadRequest, Busy
+from archery.protocol.text import shown
+from archery.services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
+from archery.services.robot.pacing import Pacing
+from archery.services.robot.simthread import SimThread
+from archery.services.robot.watchdog import StreamWatchdog
+from archery.sim.world import ArcheryWorld
 
 __all__ = ["JointMover"]
 

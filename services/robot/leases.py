@@ -15,9 +15,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping
 
-from protocol.verbs import robot as rv
-from services.robot.commands import PartCounters
-from services.robot.gate import NOT_OWNER, NotOwner, PartGate
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.commands import PartCounters
+from archery.services.robot.gate import NOT_OWNER, NotOwner, PartGate
 
 __all__ = ["Leases"]
 

@@ -13,15 +13,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from services.robot.commands import PartCounters
-from services.robot.pacing import Pacing
-from services.robot.shot import Shots, phase_of
-from services.robot.sink import Sink
-from services.robot.watchdog import StreamWatchdog
-from sim.world import ArcheryWorld
+from archery.services.robot.commands import PartCounters
+from archery.services.robot.pacing import Pacing
+from archery.services.robot.shot import Shots, phase_of
+from archery.services.robot.sink import Sink
+from archery.services.robot.watchdog import StreamWatchdog
+from archery.sim.world import ArcheryWorld
 
 if TYPE_CHECKING:
-    from services.robot.follow import Follower
+    from archery.services.robot.follow import Follower
 
 __all__ = ["Physics"]
 

@@ -13,15 +13,15 @@ import logging
 import threading
 from functools import partial
 
-from mesh.node import Node
-from mesh.service import service_main
-from protocol.messages import JointCommand
-from protocol.robotspec import ROBOT
-from services.robot.config import RobotConfig, add_arguments, make_config
-from services.robot.handlers import RobotHandlers
-from services.robot.simloop import SimLoop
-from services.robot.sink import MeshSink
-from sim.world import ArcheryWorld
+from archery.mesh.node import Node
+from archery.mesh.service import service_main
+from archery.protocol.messages import JointCommand
+from archery.protocol.robotspec import ROBOT
+from archery.services.robot.config import RobotConfig, add_arguments, make_config
+from archery.services.robot.handlers import RobotHandlers
+from archery.services.robot.simloop import SimLoop
+from archery.services.robot.sink import MeshSink
+from archery.sim.world import ArcheryWorld
 
 __all__ = ["main", "run"]
 

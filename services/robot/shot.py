@@ -12,12 +12,12 @@ from __future__ import annotations
 from concurrent.futures import Future
 from typing import Literal
 
-from protocol.verbs import robot as rv
-from services.robot.jobs import SimUnavailable
-from services.robot.sink import Sink
-from sim.arrow import Landing
-from sim.errors import StateError
-from sim.world import ArcheryWorld, ArrowState
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.jobs import SimUnavailable
+from archery.services.robot.sink import Sink
+from archery.sim.arrow import Landing
+from archery.sim.errors import StateError
+from archery.sim.world import ArcheryWorld, ArrowState
 
 __all__ = ["Phase", "Shots", "phase_of"]
 

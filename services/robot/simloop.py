@@ -3,44 +3,40 @@ on the world, queued for the thread that owns it.
 
 Its parts, each in its own module: the job queue (`jobs`), the thread's loop (`simthread`),
 physics stepping (`physics`), pacing (`pacing`), the lease gate (`leases`, `gate`), the shot
-(`shot`), moving the joints (`joints`, by the rules of `commands`) and the stream watchdog
-(`watchdog`). The ports and
-verbs are listed in the README and `protocol.verbs.robot`.
+(`shot`), the archery verbs' work on the world (`world_jobs`), moving the joints (`joints`, by
+the rules of `commands`) and the stream watchdog (`watchdog`). The ports and verbs are listed
+in the README and `protocol.verbs.robot`.
 """
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import replace
 from typing import Any, TypeVar
 
-from protocol.errors import BadRequest
-from protocol.text import shown
-from protocol.vectors import finite_vector
-from protocol.verbs import robot as rv
-from protocol.verbs.robot import MAX_WIND
-from services.robot.commands import PartCounters, PartLimits
-from services.robot.config import RobotConfig
-from services.robot.follow import Follower, PartSpec
-from services.robot.jobs import SimJobs, SimUnavailable
-from services.robot.joints import JointMover
-from services.robot.leases import Leases
-from services.robot.pacing import Pacing
-from services.robot.physics import Physics
-from services.robot.shot import Shots, phase_of
-from services.robot.simthread import SimThread
-from services.robot.sink import Sink
-from services.robot.watchdog import StreamWatchdog
-from sim.whole_shot import NOCK_IN_STRING_HAND
-from sim.world import ArcheryWorld
+from archery.protocol.errors import BadRequest
+from archery.protocol.text import shown
+from archery.protocol.vectors import finite_vector
+from archery.protocol.verbs import robot as rv
+from archery.protocol.verbs.robot import MAX_WIND
+from archery.services.robot.commands import PartCounters, PartLimits
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.follow import Follower, PartSpec
+from archery.services.robot.jobs import SimJobs, SimUnavailable
+from archery.services.robot.joints import JointMover
+from archery.services.robot.leases import Leases
+from archery.services.robot.pacing import Pacing
+from archery.services.robot.physics import Physics
+from archery.services.robot.shot import Shots
+from archery.services.robot.simthread import SimThread
+from archery.services.robot.sink import Sink
+from archery.services.robot.watchdog import StreamWatchdog
+from archery.services.robot.world_jobs import WorldJobs
+from archery.sim.world import ArcheryWorld
 
 __all__ = ["SimLoop"]
-
-log = logging.getLogger("archery.robot")
 
 T = TypeVar("T")
 
@@ -60,7 +56,6 @@ class SimLoop:
     ) -> None:
         self.world = world
         self.config = config
-        self._seed = seed
         self.limits = {
             part: PartLimits(
                 part=part,
@@ -95,6 +90,19 @@ class SimLoop:
             world, self.limits, self.leases, self._shots, self._physics.publish_world
         )
         self._physics.follower = self._follower
+        self._world = WorldJobs(
+            world,
+            config,
+            sink,
+            self._pacing,
+            self._shots,
+            self._physics,
+            self._follower,
+            self._streams,
+            self._counters,
+            self.leases,
+            seed,
+        )
         self._mover = JointMover(
             world,
             self.limits,
@@ -224,7 +232,7 @@ class SimLoop:
             GraspMissed: the hand is off the shaft by more than the tolerance (the arrow stays).
             StateError: not --shot whole, or an arrow is held, nocked or flying.
         """
-        return self.call(self._grasp)
+        return self.call(self._world.grasp)
 
     def nock(self) -> rv.NockReply:
         """Put a fresh arrow on the bow (whole shot: the held arrow's nock on the string).
@@ -233,7 +241,7 @@ class SimLoop:
             NockMissed: whole shot, the nock is off the string by more than the tolerance.
             StateError: an arrow flies (whole shot: none is in the hand).
         """
-        return self.call(self._nock)
+        return self.call(self._world.nock)
 
     def release(self, timeout: float | None = None) -> rv.ReleaseReply:
         """Release the nocked arrow and return once it has landed (at rtf 0, once the robot
@@ -247,7 +255,7 @@ class SimLoop:
         if timeout is None:
             flight = cfg.world.max_flight_time
             timeout = cfg.job_timeout + (flight / cfg.rtf if cfg.rtf > 0 else flight)
-        landing = self.call(self._release)
+        landing = self.call(self._world.release)
         try:
             return landing.result(timeout)
         except TimeoutError:
@@ -262,7 +270,7 @@ class SimLoop:
         """
         if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
             raise BadRequest(f"seed must be an integer >= 0 or absent, got {shown(seed)}")
-        return self.call(lambda: self._reset(seed))
+        return self.call(lambda: self._world.reset(seed))
 
     def set_wind(self, wind: Any) -> list[float]:
         """Set the constant wind (m/s, root frame) of the shots launched from now on; returns
@@ -276,74 +284,8 @@ class SimLoop:
             raise BadRequest(
                 f"each wind component must be within ±{MAX_WIND:g} m/s, got {shown(wind)}"
             )
-        return self.call(lambda: self._set_wind((x, y, z)))
+        return self.call(lambda: self._world.set_wind((x, y, z)))
 
     def status(self) -> rv.ArcheryStatusReply:
         """Arrow state, sim time, shot count, counters, and the scene and world configs."""
-        return self.call(self._status)
-
-    def _grasp(self) -> rv.GraspReply:
-        self._pacing.wake()
-        reply = self._shots.grasp(self.world)
-        self._physics.publish_world()
-        return reply
-
-    def _nock(self) -> rv.NockReply:
-        self._pacing.wake()
-        reply = self._shots.nock(self.world)
-        self._physics.publish_world()
-        return reply
-
-    def _release(self) -> Future[rv.ReleaseReply]:
-        self._pacing.wake()
-        try:
-            landing = self._shots.release(self.world)
-        finally:
-            self._physics.publish_world()  # also a dropped arrow's
-        return landing
-
-    def _reset(self, seed: int | None) -> rv.ResetReply:
-        self._pacing.wake()
-        self._follower.abort_all("the robot was reset mid-trajectory")
-        self.world.reset(seed)
-        if seed is not None:
-            self._seed = seed
-        self._streams.forget()
-        self._pacing.schedule(self.world.sim_time)
-        shot = self._shots.number
-        self._sink.event("reset", shot, self.world.sim_time)
-        self._physics.publish_joints()
-        self._physics.publish_world()
-        return rv.ResetReply(sim_time=self.world.sim_time, seed=seed, shot=shot)
-
-    def _set_wind(self, wind: tuple[float, float, float]) -> list[float]:
-        self._pacing.wake()
-        self.world.config = replace(self.world.config, wind=wind)
-        log.info("wind set to %s m/s", list(wind))
-        return list(self.world.config.wind)
-
-    def _status(self) -> rv.ArcheryStatusReply:
-        world = self.world
-        cfg = self.config
-        return rv.ArcheryStatusReply(
-            sim_time=world.sim_time,
-            arrow=world.arrow_state.value,
-            phase=phase_of(world),
-            shot=self._shots.number,
-            motion_done=world.motion_done(),
-            seed=self._seed,
-            rtf=cfg.rtf,
-            state_rate=cfg.state_rate,
-            world_rate=cfg.world_rate,
-            watchdog=cfg.watchdog,
-            limit_tolerance=cfg.limit_tolerance,
-            timestep=world.timestep,
-            counters={
-                p: self._counters[p].to_dict()
-                | {"streaming": self._streams.streaming(p), "owner": self.leases.owner(p)}
-                for p in world.parts
-            },
-            scene=world.config.scene.to_status(),
-            world=world.config.to_dict(),
-            nock_in_hand=None if world.whole is None else list(NOCK_IN_STRING_HAND),
-        )
+        return self.call(self._world.status)

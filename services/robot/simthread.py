@@ -16,12 +16,12 @@ import threading
 import time
 from collections.abc import Callable
 
-from services.robot.config import RobotConfig
-from services.robot.jobs import SimJobs
-from services.robot.pacing import MAX_IDLE_WAIT, Pacing
-from services.robot.physics import Physics
-from services.robot.shot import Shots
-from services.robot.watchdog import StreamWatchdog
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.jobs import SimJobs
+from archery.services.robot.pacing import MAX_IDLE_WAIT, Pacing
+from archery.services.robot.physics import Physics
+from archery.services.robot.shot import Shots
+from archery.services.robot.watchdog import StreamWatchdog
 
 __all__ = ["SimThread"]
 

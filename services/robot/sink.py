@@ -7,8 +7,8 @@ from typing import Protocol
 
 import numpy as np
 
-from mesh.node import Node
-from protocol.messages import Array, JointState, WorldEvent, WorldState
+from archery.mesh.node import Node
+from archery.protocol.messages import Array, JointState, WorldEvent, WorldState
 
 __all__ = ["MeshSink", "Sink"]
 

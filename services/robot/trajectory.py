@@ -11,8 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from protocol.errors import BadRequest
-from protocol.text import shown
+from archery.protocol.errors import BadRequest
+from archery.protocol.text import shown
 
 __all__ = ["BAD_TRAJECTORY", "BadTrajectory", "JointPath", "plan_path"]
 

@@ -1,7 +1,7 @@
 """The learning algorithms: PoWER, ARCHER and baselines behind one ask/tell protocol."""
 
-from services.learner.algorithms.archer import Archer
-from services.learner.algorithms.base import (
+from archery.services.learner.algorithms.archer import Archer
+from archery.services.learner.algorithms.base import (
     Learner,
     LearnerConfigError,
     LearnerError,
@@ -9,11 +9,15 @@ from services.learner.algorithms.base import (
     RestoreError,
     scalar_return,
 )
-from services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
-from services.learner.algorithms.impact_model import BallisticModel, ImpactModel, PhysicalModel
-from services.learner.algorithms.power import Power
-from services.learner.algorithms.prior import ArcherPrior
-from services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
+from archery.services.learner.algorithms.baselines import CmaEs, HillClimber, RandomSearch
+from archery.services.learner.algorithms.impact_model import (
+    BallisticModel,
+    ImpactModel,
+    PhysicalModel,
+)
+from archery.services.learner.algorithms.power import Power
+from archery.services.learner.algorithms.prior import ArcherPrior
+from archery.services.learner.algorithms.registry import ALGORITHMS, make_learner, restore_learner
 
 __all__ = [
     "ALGORITHMS",

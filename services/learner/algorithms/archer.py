@@ -8,9 +8,9 @@ from typing import Any
 
 import numpy as np
 
-from protocol.text import shown
-from protocol.theta import THETA_BOX, ThetaBox
-from services.learner.algorithms.base import (
+from archery.protocol.text import shown
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.services.learner.algorithms.base import (
     MAX_STD,
     Learner,
     LearnerConfigError,

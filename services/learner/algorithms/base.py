@@ -13,9 +13,9 @@ from typing import Any, ClassVar
 import msgspec
 import numpy as np
 
-from protocol.text import shown
-from protocol.theta import THETA_BOX, ThetaBox
-from protocol.vectors import finite_vector
+from archery.protocol.text import shown
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.protocol.vectors import finite_vector
 
 __all__ = [
     "MAX_STD",

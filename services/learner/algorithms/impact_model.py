@@ -15,10 +15,10 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from services.learner.algorithms.base import LearnerConfigError, _finite_option
-from sim.ballistic import MAX_WIND, BallisticError, BallisticWorld, Scenario
-from sim.bow import Bow
-from sim.geometry import BOW_HAND, TARGET_DISTANCE
+from archery.services.learner.algorithms.base import LearnerConfigError, _finite_option
+from archery.sim.ballistic import MAX_WIND, BallisticError, BallisticWorld, Scenario
+from archery.sim.bow import Bow
+from archery.sim.geometry import BOW_HAND, TARGET_DISTANCE
 
 __all__ = ["MODEL_DT", "BallisticModel", "ImpactModel", "PhysicalModel"]
 

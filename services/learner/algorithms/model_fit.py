@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from services.learner.algorithms.impact_model import PhysicalModel
+from archery.services.learner.algorithms.impact_model import PhysicalModel
 
 __all__ = ["fit_parameters"]
 

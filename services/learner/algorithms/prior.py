@@ -7,17 +7,17 @@ from typing import Any
 
 import numpy as np
 
-from protocol.text import shown
-from protocol.theta import THETA_BOX, ThetaBox
-from services.learner.algorithms.base import (
+from archery.protocol.text import shown
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.services.learner.algorithms.base import (
     MAX_STD,
     Learner,
     LearnerConfigError,
     RestoreError,
     _finite_option,
 )
-from services.learner.algorithms.impact_model import ImpactModel, PhysicalModel
-from services.learner.algorithms.model_fit import fit_parameters
+from archery.services.learner.algorithms.impact_model import ImpactModel, PhysicalModel
+from archery.services.learner.algorithms.model_fit import fit_parameters
 
 __all__ = ["ArcherPrior"]
 

@@ -10,23 +10,23 @@ from typing import Any
 import msgspec
 import numpy as np
 
-from protocol.text import cut, shown
-from protocol.theta import THETA_BOX, ThetaBox
-from services.learner.algorithms.archer import Archer
-from services.learner.algorithms.base import (
+from archery.protocol.text import cut, shown
+from archery.protocol.theta import THETA_BOX, ThetaBox
+from archery.services.learner.algorithms.archer import Archer
+from archery.services.learner.algorithms.base import (
     Learner,
     LearnerConfigError,
     RestoreError,
 )
-from services.learner.algorithms.baselines import (
+from archery.services.learner.algorithms.baselines import (
     HILL_STATE_MARK,
     CmaEs,
     HillClimber,
     RandomSearch,
 )
-from services.learner.algorithms.impact_model import BallisticModel, ImpactModel
-from services.learner.algorithms.power import Power
-from services.learner.algorithms.prior import ArcherPrior
+from archery.services.learner.algorithms.impact_model import BallisticModel, ImpactModel
+from archery.services.learner.algorithms.power import Power
+from archery.services.learner.algorithms.prior import ArcherPrior
 
 __all__ = [
     "ALGORITHMS",
