@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """The `archery` command (and `python -m apps.cli`): `main`, then leave with its status
+    """The `archery` command (and `python -m archery.apps.cli`): `main`, then leave with its status
     without the interpreter's teardown.
 
     Zenoh's threads may still hand the interpreter a callback or drop a reference while it

@@ -42,7 +42,7 @@ PROG = "imitate"
 
 
 def _theta(text: str) -> np.ndarray:
-    """θ (m) from X,Y,Z, inside the controller's box (`protocol.theta.THETA_BOX`): the one check
+    """θ (m) from X,Y,Z, inside the controller's box (`protocol.theta.THETA_BOX`): its check
     of θ in this program.
 
     Raises:

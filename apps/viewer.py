@@ -28,7 +28,7 @@ if TYPE_CHECKING:
     from archery.apps.topics.robot_frames import RobotFrames
     from archery.sim.scene_config import SceneConfig
 
-__all__ = ["DEFAULT_WAIT", "View", "Viewer", "viewer_main"]
+__all__ = ["DEFAULT_WAIT", "View", "Viewer", "add_wait_arg", "viewer_main"]
 
 C = TypeVar("C")
 
@@ -59,6 +59,17 @@ class Viewer(Protocol):
         ...
 
 
+def add_wait_arg(parser: argparse.ArgumentParser, *, robot: bool = True) -> None:
+    """`--wait S`: how long `viewer_main` waits for the router (and, with `robot`, the robot)."""
+    parser.add_argument(
+        "--wait",
+        type=seconds,
+        default=DEFAULT_WAIT,
+        help=f"wait this long for the router{' and the robot' if robot else ''} "
+        f"(s, default {DEFAULT_WAIT:g})",
+    )
+
+
 def viewer_main(
     argv: list[str] | None,
     *,
@@ -71,7 +82,7 @@ def viewer_main(
 ) -> int:
     """Run a bridge from the command line.
 
-    `parser` holds the bridge's flags and the network flags (`--wait` is added here);
+    `parser` holds the bridge's flags, the network flags and `--wait` (`add_wait_arg`);
     `check(args)` returns the node's settings and what else the bridge prepared from its flags
     (raising `ArcheryError` for bad values); `start(view, prepared)` starts the bridge on the
     opened node. With `robot`, the robot's services are awaited first and `view` carries its
@@ -81,13 +92,6 @@ def viewer_main(
     Returns:
         0 after a stop by a signal, 2 for bad flags, else `for_error` of the error met.
     """
-    parser.add_argument(
-        "--wait",
-        type=seconds,
-        default=DEFAULT_WAIT,
-        help=f"wait this long for the router{' and the robot' if robot else ''} "
-        f"(s, default {DEFAULT_WAIT:g})",
-    )
     args = parser.parse_args(argv)
     if early is not None and (status := early(args)) is not None:
         return status

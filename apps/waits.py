@@ -1,4 +1,4 @@
-"""The one line a program prints when it begins to wait, and the one line of a Ctrl-C.
+"""The line a program prints when it begins to wait, and its line at a Ctrl-C.
 
 Every wait of a program says what it waits for and for how long at most, on stderr, the moment
 it begins (not once it is over): `waiting_line` words it. The mesh layer never prints: what
@@ -48,6 +48,6 @@ def announce(prog: str) -> OnWait:
 
 
 def interrupted_line(prog: str) -> str:
-    """The one line of `archery PROG` stopped by Ctrl-C (exit status 130) in a wait or any
+    """The line of `archery PROG` stopped by Ctrl-C (exit status 130) in a wait or any
     other place where the program has nothing more to say."""
     return f"archery {prog}: interrupted (Ctrl-C)"

@@ -1,6 +1,6 @@
 """The liveliness tokens under one key expression, kept current: who is alive, since when a
 token is gone, and waiting for a condition on that set (by liveliness events, never by
-polling). The one liveliness tracker of the project."""
+polling). Every liveliness wait of the project uses it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The arrow's direction for θ = p_string − p_bow (m): a = −θ/‖θ‖, the one computation of it
+"""The arrow's direction for θ = p_string − p_bow (m): a = −θ/‖θ‖
 (the controller's hand orientations, the bow's launch velocity, the MuJoCo arrow's launch)."""
 
 from __future__ import annotations

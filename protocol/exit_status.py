@@ -1,4 +1,4 @@
-"""The one exit-status rule of every `archery` verb and service.
+"""The exit-status rule of every `archery` verb and service.
 
 0 success; 1 a runtime failure (nothing at the endpoint, busy, denied, timed out, refused by
 the robot, a session that failed); 2 bad input (anything the user typed that can be judged

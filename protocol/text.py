@@ -2,8 +2,8 @@
 one line, cut short.
 
 A message can carry a string of megabytes (a part name, a verb, an unknown field's name); quoting
-it whole would make every reply, log line and counter that names it as big. `shown` is the one
-way to quote a received value: its `repr`, on one line, at most `limit` characters, a long one
+it whole would make every reply, log line and counter that names it as big. `shown` quotes a
+received value: its `repr`, on one line, at most `limit` characters, a long one
 cut with "… (N chars)" (or "N bytes", "N items") saying how long it was. `cut` does the same for a
 text that may quote received data already (a decoder's error message). Both look only at the
 first `limit` characters' worth of the value, so quoting a huge value costs no more than a short

@@ -5,8 +5,8 @@ of θ, and `THETA_BOX`, the θ the controller's archery posture accepts.
 relative to the bow hand; the arrow flies along −θ/‖θ‖ (`protocol.direction`). `Theta` is 3
 floats: decoding checks the length, `Args` and `Reply` refuse NaN and inf. A process checks θ
 once, where it enters: a service where the RPC server decodes the verb's `Args`, a program where
-it parses its flags, a Gymnasium environment where it checks an action. `ThetaBox` is the one box
-type: the learners' search box, the controller's (its `status` tells it), a `start` request's
+it parses its flags, a Gymnasium environment where it checks an action. `ThetaBox` is the box
+type of the learners' search box, the controller's (its `status` tells it), a `start` request's
 `scenario.bounds`, the Gymnasium action space; finite, low < high per axis, checked when built or
 decoded.
 """
@@ -87,7 +87,7 @@ class ThetaBox(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=
 
 
 #: The θ box of the archery posture (m, per axis: x 0.12..0.24, y −0.02..0.06, z −0.07..0.01;
-#: ‖θ‖ 0.12..0.26 m, arrow within 38° of −x), the one definition of it: the controller's posture
+#: ‖θ‖ 0.12..0.26 m, arrow within 38° of −x): the controller's posture
 #: accepts these θ (its `status` tells the box), the learners search in it by default, and
 #: `archery imitate` checks --theta against it. Verified reachable on a 9×9×9 grid from the
 #: reference posture, relative position within the 0.1 mm IK tolerance (worst 0.03 mm);

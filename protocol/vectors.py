@@ -1,4 +1,4 @@
-"""The one check of the small fixed-size vectors the project passes around: positions and θ (m),
+"""The check of the small fixed-size vectors the project passes around: positions and θ (m),
 wind (m/s), axis-angles (unit axis, then rad), reward vectors (m).
 
 `finite_vector` turns a value (a list, a tuple or a numeric numpy array) into a read-only float

@@ -1,4 +1,4 @@
-"""The one place the rendering backend is picked: MuJoCo's `MUJOCO_GL`, PyOpenGL's
+"""Where the rendering backend is picked: MuJoCo's `MUJOCO_GL`, PyOpenGL's
 `PYOPENGL_PLATFORM`.
 
 MuJoCo reads `MUJOCO_GL` once, when `mujoco` is first imported, and PyOpenGL reads

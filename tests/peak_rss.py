@@ -40,7 +40,7 @@ class PeakRun:
 
 
 def run_with_peak(*args: str, timeout: float = 120.0) -> PeakRun:
-    """`python -m apps.cli ARGS` (the tree's own CLI) and its own peak RSS.
+    """`python -m archery.apps.cli ARGS` (the tree's own CLI) and its own peak RSS.
 
     Raises:
         subprocess.TimeoutExpired: still running after `timeout` s (it is killed).

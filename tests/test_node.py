@@ -215,6 +215,36 @@ def test_describe_counts_the_messages_of_each_publisher(pair: tuple[Node, Node])
     assert counts == {server.keys.state("torso"): 3, server.keys.state("left_arm"): 0}
 
 
+def test_an_unsubscribed_stream_leaves_describe_and_calls_back_no_more(
+    pair: tuple[Node, Node],
+) -> None:
+    server, client = pair
+    key = server.keys.state("torso")
+    states = server.publisher(key, JointState)
+    got: list[JointState] = []
+    arrived = threading.Event()
+
+    def on_state(message: JointState) -> None:
+        got.append(message)
+        arrived.set()
+
+    sub = client.subscribe(key, JointState, mode="fifo", callback=on_state)
+    assert (key, "sub") in {(p.key, p.kind) for p in client.describe().ports}
+    state = JointState(part="torso", names=["a"], position=[0.0], velocity=[0.0])
+    states.wait_matched(10.0)
+    states.put(state)
+    assert arrived.wait(10)
+    unmatched = threading.Event()
+    stop = states.on_matching(lambda matching: None if matching else unmatched.set())
+    try:
+        client.unsubscribe(sub)
+        client.unsubscribe(sub)  # once gone, ignored
+        assert (key, "sub") not in {(p.key, p.kind) for p in client.describe().ports}
+        assert unmatched.wait(10) or not states.matching()  # undeclared: nobody matches
+    finally:
+        stop()
+
+
 def _spawn_echo(net: NetConfig) -> subprocess.Popen[bytes]:
     argv = [sys.executable, "-m", "archery.apps.cli", "selfcheck", "--echo", "--robot", net.robot]
     for endpoint in net.connect:

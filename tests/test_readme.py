@@ -70,9 +70,9 @@ archery() {
       fi ;;
   esac
   if [[ $BASHPID != $$ ]]; then  # a background job: python replaces the subshell
-    exec "$PYTHON" -m apps.cli "$verb" "$@"
+    exec "$PYTHON" -m archery.apps.cli "$verb" "$@"
   fi
-  "$PYTHON" -m apps.cli "$verb" "$@"
+  "$PYTHON" -m archery.apps.cli "$verb" "$@"
 }
 """
 

@@ -184,7 +184,7 @@ def _children(pid: int) -> dict[str, int]:
     out = {}
     for child in psutil.Process(pid).children():
         with contextlib.suppress(psutil.NoSuchProcess):
-            out[child.cmdline()[3]] = child.pid  # python -m apps.cli VERB ...
+            out[child.cmdline()[3]] = child.pid  # python -m archery.apps.cli VERB ...
     return out
 
 

@@ -26,7 +26,7 @@ from urllib.parse import parse_qs, urlsplit
 
 from archery.apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
 from archery.apps.dashboard.watch import MeshWatch
-from archery.apps.viewer import View, viewer_main
+from archery.apps.viewer import View, add_wait_arg, viewer_main
 from archery.mesh.acl import VIEWER
 from archery.mesh.cliargs import ArgumentParser, int_in
 from archery.mesh.netflags import NetConfig, add_network_args
@@ -443,6 +443,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"default {DEFAULT_PORT}",
     )
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
+    add_wait_arg(parser, robot=False)
     return viewer_main(
         argv, prog="dashboard", parser=parser, check=_check, start=_start, robot=False
     )

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 from archery.apps.foxglove.front_door import MAX_CONNECTIONS
 from archery.apps.foxglove.upgrade import check_origin_flag
-from archery.apps.viewer import View, viewer_main
+from archery.apps.viewer import View, add_wait_arg, viewer_main
 from archery.mesh.cliargs import ArgumentParser, check_writable_dir
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.protocol.errors import ConfigError
@@ -99,6 +99,7 @@ def build_parser() -> ArgumentParser:
         metavar="FILE.json",
         help="write the bridge's Foxglove layout to this file (import it once) and exit",
     )
+    add_wait_arg(parser)
     return parser
 
 

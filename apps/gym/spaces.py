@@ -1,9 +1,9 @@
-"""The spaces of the archery task as Gymnasium sees it, and the one check of an action.
+"""The spaces of the archery task as Gymnasium sees it, and the check of an action.
 
 Action: θ, the string hand's position relative to the bow hand, a `Box` of shape (3,) in metres
 (float64) built from the world's `protocol.theta.ThetaBox` (the controller's on the iCub; on the
 analytic world `THETA_BOX` unless the environment is given another). `checked_action` is where
-θ enters an environment: its one check of an action.
+θ enters an environment: its check of an action.
 
 Observation: a `Box` of shape (5,), float64, metres: `[r_y, r_z, θ_x, θ_y, θ_z]`, the last
 measured r (the arrow's offset from the centre on the target plane: r[0] to the robot's right,

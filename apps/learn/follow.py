@@ -1,5 +1,5 @@
 """Following a session from outside the learner: its rollouts as they are published, its status
-until it ends, and the one JSON line `archery learn` prints of it.
+until it ends, and the JSON line `archery learn` prints of it.
 
 Following outlives the faults the mesh lives through, every wait bounded by `gone_after` and
 said the moment it begins (`apps.waits.waiting_for`); `follow` says what it waits for and how

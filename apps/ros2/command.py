@@ -7,7 +7,7 @@ from __future__ import annotations
 import argparse
 from typing import TYPE_CHECKING
 
-from archery.apps.viewer import View, viewer_main
+from archery.apps.viewer import View, add_wait_arg, viewer_main
 from archery.mesh.cliargs import ArgumentParser
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.protocol.errors import ConfigError
@@ -43,6 +43,7 @@ def build_parser() -> ArgumentParser:
         "std_srvs/srv/Trigger; without it the node declares no command subscription and "
         "answers each service call success: false",
     )
+    add_wait_arg(parser)
     return parser
 
 

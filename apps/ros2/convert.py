@@ -1,5 +1,5 @@
 """The mesh's messages as ROS 2's standard messages, and ROS 2 commands as the robot's verbs (a
-part's position targets, or a trajectory the robot plays at its points' times): the one mapping
+part's position targets, or a trajectory the robot plays at its points' times): the mapping
 of the node and of `archery export --ros2` (README.md, "See the robot from ROS 2", tells it
 topic by topic). Stamps are the mesh's wall stamps (s since the epoch)."""
 

@@ -1,4 +1,4 @@
-"""MCAP files read with bounds: the one reader of recordings behind `archery info`, `archery
+"""MCAP files read with bounds: the reader of recordings behind `archery info`, `archery
 replay` and `archery film --recording`.
 
 A file is read one record at a time and a chunk is decompressed only when its turn comes, so

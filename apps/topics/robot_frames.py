@@ -178,8 +178,7 @@ class RobotFrames:
         `self.links`: each moving URDF joint's child in its parent link's frame (the URDF's
         kinematics: origin, axis, the joint's position in `qpos`), then the scene's other
         bodies in their parent's frame; translations (N, 3, m) and rotations (N, 4, w x y z).
-        The one derivation of the robot's transforms: the recorder's, the Foxglove bridge's
-        and the ROS 2 node's `/tf`."""
+        The transforms of the recorder's, the Foxglove bridge's and the ROS 2 node's `/tf`."""
         translations = np.empty((len(self.links), 3))
         rotations = np.empty((len(self.links), 4))
         for i, (joint, address) in enumerate(zip(self._moving, self._qpos_of, strict=True)):

@@ -1,7 +1,7 @@
 """`archery up`: a router and all five services as supervised child processes of one command.
 
 It starts `archery router --listen ENDPOINT` and `archery robot|camera|detector|controller|
-learner --connect ENDPOINT --robot NAME` (each with `python -m apps.cli`, so this module
+learner --connect ENDPOINT --robot NAME` (each with `python -m archery.apps.cli`, so this module
 imports no service), waits until every service is alive by liveliness (each wait said as it
 begins, by the caller's `on_wait`: `apps.waits`), and then supervises them
 (`apps.up.supervisor`, `apps.up.restart_policy`; `Launcher` tells how they stop, and where their

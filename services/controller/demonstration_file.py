@@ -25,8 +25,8 @@ def read_demonstration(
 ) -> Demonstration:
     """The whole shot's demonstration at `path` (None: `SHIPPED_DEMONSTRATION`), checked
     (`parse_demonstration`); its errors name the `flag` that gave it ("" for a positional
-    argument). The one reader of a demonstration file (`archery demonstrate --check`, `imitate`,
-    the controller): only a regular file is read (a folder, a FIFO or a device is refused without
+    argument). Used by `archery demonstrate --check`, `imitate` and the
+    controller: only a regular file is read (a folder, a FIFO or a device is refused without
     a blocking open), and at most `MAX_BYTES` + 1 bytes of it (`mesh.regular_file`).
 
     Raises:

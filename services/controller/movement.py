@@ -1,7 +1,7 @@
 """The whole shot's movement as dynamic movement primitives, learned from a demonstration
 (`protocol.demonstration`) with `movement_primitives`: one bimanual joint-space DMP (both arms,
 14 joints, rad) up to the nock, whose goal is the demonstrated nocking posture, and one from the
-nock on (draw, hold, release), whose goal is the archery posture for θ, so the one movement
+nock on (draw, hold, release), whose goal is the archery posture for θ, so one movement
 serves any θ. Times are seconds from the movement's start; the grasp, nock and release happen
 at their demonstrated times.
 """

@@ -83,7 +83,7 @@ class PostureConfig:
     Attributes:
         bow_hand: nominal left-hand position (m, root frame).
         theta_box: the θ the posture accepts (m); θ outside raises TargetError. The default is
-            `protocol.theta.THETA_BOX`, the one definition of it. Every θ in it must put the
+            `protocol.theta.THETA_BOX`. Every θ in it must put the
             string hand behind the bow hand (low x > 0 m) and the arrow more than
             `MIN_TILT_FROM_VERTICAL` from vertical, so a θ inside has an arrow direction and
             hand orientations without another check.
@@ -188,7 +188,7 @@ class ArcheryPosture:
 
     def check_theta(self, theta: Sequence[float] | np.ndarray) -> np.ndarray:
         """θ, 3 finite numbers (m; as `PostureArgs` decodes them), as a read-only array inside
-        the configured box: the controller's one check of the box.
+        the configured box: the controller's check of the box.
 
         Raises:
             TargetError: θ outside the configured box (the message names θ and the box).

@@ -1,7 +1,7 @@
 """The controller's side of the robot's controlboards: joint states in, targets out, over the mesh.
 
 `RobotLink.move` moves the parts under a lease each and waits until the whole robot rests at
-the targets (its docstring tells a move step by step); `RobotLink.state` is the one reader of
+the targets (its docstring tells a move step by step); `RobotLink.state` reads the
 joint states and never hands out a stale one: a state that arrived more than `state_max_age`
 wall seconds ago raises `StaleState` (code `stale_state`), which the RPC verbs reply as their
 error (the robot is frozen or lost).

@@ -4,7 +4,7 @@ limit).
 It runs on whichever thread delivers a command (a Zenoh callback), on the raw payload before it
 is decoded (`PartGate.screen`), so a refused or excess command costs a lock and a byte search
 (~1 µs), never a decoding or a job: a flood cannot make the simulation loop fall behind. It is
-the one check of a command's lease: what passes is not checked again. `PartGate` tells the
+where a command's lease is checked: what passes is not checked again. `PartGate` tells the
 lease's rules. Pure: no Zenoh, no MuJoCo. Times are monotonic wall seconds.
 """
 

@@ -1,4 +1,4 @@
-"""The lease gate of every part: the one check of a command's lease, at the edge where the
+"""The lease gate of every part: a command's lease checked at the edge where the
 command arrives, and the lease verbs' replies.
 
 A `command:i` payload is checked once, raw, on the thread that received it (`screen`: the

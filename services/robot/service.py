@@ -45,7 +45,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                     callback=lambda msg, part=part: loop.command(  # type: ignore[misc]  # mypy can't type lambda defaults (mypy#15459)
                         part, msg.position, msg.names, msg.part, msg.batch, msg.lease
                     ),
-                    admit=partial(loop.leases.screen, part),  # the one check of its lease
+                    admit=partial(loop.leases.screen, part),  # its lease, checked here
                 )
                 for part in world.parts
             }
