@@ -157,15 +157,19 @@ def build_images(
 
 
 def copy_context(dest: Path) -> Path:
-    """Copy the files git tracks (as they are in the working tree) to `dest`: a build context
-    to change without touching the repository. Returns `dest`."""
+    """Copy the files git tracks (as they are in the working tree; links as links) to `dest`: a
+    build context to change without touching the repository. Returns `dest`."""
     tracked = subprocess.run(
         ["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True
     ).stdout.split()
     for name in tracked:
-        if (ROOT / name).is_file():
+        source = ROOT / name
+        if source.is_symlink():  # the import package's links to the folders: kept as links
             (dest / name).parent.mkdir(parents=True, exist_ok=True)
-            shutil.copy2(ROOT / name, dest / name)
+            (dest / name).symlink_to(source.readlink())
+        elif source.is_file():
+            (dest / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, dest / name)
     return dest
 
 
