@@ -75,7 +75,8 @@ def _children(up: subprocess.Popen[str]) -> dict[str, psutil.Process]:
     out = {}
     for child in psutil.Process(up.pid).children():
         args = child.cmdline()
-        verb = args[args.index("archery.apps.cli") + 1]
+        cli = "archery.apps.cli" if "archery.apps.cli" in args else "apps.cli"  # a tree before it
+        verb = args[args.index(cli) + 1]
         out[verb] = child
     missing = set(MESH) - set(out)
     if missing:
