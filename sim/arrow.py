@@ -131,15 +131,21 @@ def arrow_quat(direction: np.ndarray) -> np.ndarray:
     The arrow's z axis is the one closest to world +z; a vertical direction uses world +y as
     the reference instead.
     """
-    x = np.asarray(direction, dtype=float)
-    norm = float(np.linalg.norm(x))
-    x = np.array([-1.0, 0.0, 0.0]) if norm < 1e-12 else x / norm
-    ref = np.array([0.0, 0.0, 1.0]) if abs(x[2]) < 0.999 else np.array([0.0, 1.0, 0.0])
-    y = np.cross(ref, x)
-    y /= np.linalg.norm(y)
-    z = np.cross(x, y)
+    # plain floats: the whole shot pins a nocked arrow with this at every physics step
+    dx, dy, dz = (float(v) for v in direction)
+    norm = math.sqrt(dx * dx + dy * dy + dz * dz)
+    if norm < 1e-12:
+        dx, dy, dz, norm = -1.0, 0.0, 0.0, 1.0
+    x0, x1, x2 = dx / norm, dy / norm, dz / norm
+    if abs(x2) < 0.999:  # y = ẑ × x
+        y0, y1, y2 = -x1, x0, 0.0
+    else:  # y = ŷ × x
+        y0, y1, y2 = x2, 0.0, -x0
+    n = math.sqrt(y0 * y0 + y1 * y1 + y2 * y2)
+    y0, y1, y2 = y0 / n, y1 / n, y2 / n
+    z0, z1, z2 = x1 * y2 - x2 * y1, x2 * y0 - x0 * y2, x0 * y1 - x1 * y0
     quat = np.empty(4)
-    mujoco.mju_mat2Quat(quat, np.column_stack([x, y, z]).ravel())
+    mujoco.mju_mat2Quat(quat, np.array([x0, y0, z0, x1, y1, z1, x2, y2, z2]))
     return quat
 
 

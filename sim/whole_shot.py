@@ -89,7 +89,8 @@ class WholeShot:
     # -- where things are -------------------------------------------------------------------
     def rest_point(self) -> np.ndarray:
         """The string's nocking point at rest (m): midway between the limb tips."""
-        point: np.ndarray = np.mean(self.physics.data.site_xpos[self._limbs], axis=0)
+        xpos = self.physics.data.site_xpos
+        point: np.ndarray = 0.5 * (xpos[self._limbs[0]] + xpos[self._limbs[1]])
         return point
 
     def nocking_point(self) -> np.ndarray:
