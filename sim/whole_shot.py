@@ -84,6 +84,10 @@ class WholeShot:
         self._string_v = int(string.dofadr[0])
         self._arrow_length = float(np.linalg.norm(model.site_pos[self._nock_site]))
         self._pinch: np.ndarray | None = None  # the nock in the hand's frame, once nocked
+        # N: the forces that hold the string's nocking point and a nocked arrow up (the model's
+        # gravity is fixed once built), kept for `pin`, which runs at every physics step
+        self._string_weight = -model.body_mass[self._string_body] * physics.gravity
+        self._arrow_weight = -physics.arrow_mass * physics.gravity
         self.grasped = False
 
     # -- where things are -------------------------------------------------------------------
@@ -252,14 +256,12 @@ class WholeShot:
         data.qpos[q : q + 3] = self.nocking_point()
         data.qpos[q + 3 : q + 7] = (1.0, 0.0, 0.0, 0.0)
         data.qvel[v : v + 6] = 0.0
-        data.xfrc_applied[self._string_body, :3] = (
-            -physics.model.body_mass[self._string_body] * physics.gravity
-        )
+        data.xfrc_applied[self._string_body, :3] = self._string_weight
         if self._pinch is not None:
             tip, direction = self._nocked_pose()
             physics.set_arrow_pose(tip, arrow_quat(direction))
             physics.set_arrow_velocity(np.zeros(3))
-            physics.set_arrow_force(-physics.arrow_mass * physics.gravity)
+            physics.set_arrow_force(self._arrow_weight)
 
     def grip_angle(self) -> float:
         """The fingers' hinge angle (rad): 0 open, `GRIP_CLOSED` closed."""

@@ -6,8 +6,9 @@ from the start, angles in rad, velocities in rad/s. Pure: no mesh, no world.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -34,6 +35,11 @@ class JointPath:
     t: np.ndarray
     q: np.ndarray
     v: np.ndarray
+    #: `t` as floats, for `at`'s bisection (it runs before every physics step)
+    times: tuple[float, ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "times", tuple(float(x) for x in self.t))
 
     @property
     def duration(self) -> float:
@@ -48,12 +54,12 @@ class JointPath:
 
     def at(self, when: float) -> np.ndarray:
         """The joints' positions (rad) at `when` s from the start."""
-        t = self.t
+        t = self.times
         if when >= t[-1]:
             return np.array(self.q[-1])
         if when <= 0.0:
             return np.array(self.q[0])
-        i = int(np.searchsorted(t, when, side="right")) - 1
+        i = bisect.bisect_right(t, when) - 1
         h = t[i + 1] - t[i]
         s = (when - t[i]) / h
         s2 = s * s
