@@ -16,7 +16,7 @@ import zenoh
 from archery.mesh import instances
 from archery.mesh.acl import OPERATOR, granted, server_of
 from archery.mesh.netflags import NetConfig
-from archery.protocol.codec import decode, encode
+from archery.protocol.codec import decode, encode, validation_text
 from archery.protocol.errors import (
     RpcError,
     RpcTimeout,
@@ -105,7 +105,8 @@ class RpcClient:
             if not plain.ok:
                 raise reply_error(f"{key} {verb.name}", plain) from None
             raise RpcError(
-                f"{key} {verb.name} replied a result that is not a {verb.reply.__name__}: {exc}",
+                f"{key} {verb.name} replied a result that is not a {verb.reply.__name__}: "
+                f"{validation_text(exc) if isinstance(exc, msgspec.ValidationError) else exc}",
                 code="bad_reply",
             ) from None
         if not reply.ok:

@@ -22,7 +22,7 @@ import zenoh
 from archery.mesh.memory import note_payload
 from archery.mesh.priority import lower_thread_priority
 from archery.mesh.rpc_tap import RpcTap
-from archery.protocol.codec import MAX_PAYLOAD_BYTES, encode
+from archery.protocol.codec import MAX_PAYLOAD_BYTES, encode, validation_text
 from archery.protocol.errors import (
     ArcheryError,
     Busy,
@@ -111,8 +111,7 @@ _NO_TYPE = "missing required field `type`"
 
 def bad_args_message(verb: Verb[Any, Any], exc: msgspec.ValidationError) -> str:
     """`bad_request` text: the verb, msgspec's error and path, and what the field allows."""
-    text = str(exc)
-    what, _, path = text.partition(" - at `")
+    what, _, path = validation_text(exc).partition(" - at `")
     what = cut(what, 2 * SHOWN_LIMIT)  # it may quote the request (an unknown field's name)
     path = cut(path.rstrip("`"), SHOWN_LIMIT) or "$"
     if what.startswith("$.") and " is " in what:  # a finiteness check of a struct's field

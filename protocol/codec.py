@@ -7,10 +7,11 @@ from typing import Any, TypeVar, Union
 import msgspec
 
 from archery.protocol.errors import DecodeError
-from archery.protocol.messages import MESSAGE_TYPES, Array, Image, Message
+from archery.protocol.messages import FLOAT_MAX, MESSAGE_TYPES, Array, Image, Message
 from archery.protocol.text import SHOWN_LIMIT, cut, shown
 
 __all__ = [
+    "FINITE_EXPECTED",
     "MAX_PAYLOAD_BYTES",
     "NESTED_TOO_DEEP",
     "ImageView",
@@ -19,6 +20,7 @@ __all__ = [
     "encode_into",
     "from_jsonable",
     "to_jsonable",
+    "validation_text",
 ]
 
 M = TypeVar("M", bound=Message)
@@ -46,10 +48,18 @@ _view_decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {
 }
 
 
-def _why(exc: msgspec.ValidationError) -> str:
+#: msgspec's words for a `FiniteFloat` it refused (NaN or ±inf), and ours for them
+_FINITE_BOUNDS = (f"Expected `float` >= {-FLOAT_MAX!r}", f"Expected `float` <= {FLOAT_MAX!r}")
+FINITE_EXPECTED = "Expected a finite number"
+
+
+def validation_text(exc: msgspec.ValidationError) -> str:
     """msgspec's "what - at `path`", each part cut short: what may quote the payload (an
-    unknown field's name, a bad enum value), and a long one must not push the path out."""
+    unknown field's name, a bad enum value), and a long one must not push the path out; a
+    `FiniteFloat` refused reads `FINITE_EXPECTED`."""
     what, at, path = str(exc).partition(" - at `")
+    if what.startswith(_FINITE_BOUNDS):
+        what = FINITE_EXPECTED
     return cut(what, 2 * SHOWN_LIMIT) + at + cut(path, SHOWN_LIMIT)
 
 
@@ -94,7 +104,7 @@ def decode(
         return message
     except msgspec.ValidationError as exc:
         wanted = expected.__name__ if expected is not None else "message"
-        raise DecodeError(f"invalid {wanted}: {_why(exc)}") from None
+        raise DecodeError(f"invalid {wanted}: {validation_text(exc)}") from None
     except msgspec.DecodeError as exc:
         raise DecodeError(f"payload is not msgpack: {cut(str(exc))}") from None
     except RecursionError:
@@ -135,6 +145,6 @@ def from_jsonable(obj: Any, message_type: type[M]) -> M:
     try:
         return msgspec.convert(data, message_type)
     except msgspec.ValidationError as exc:
-        raise DecodeError(f"invalid {message_type.__name__}: {_why(exc)}") from None
+        raise DecodeError(f"invalid {message_type.__name__}: {validation_text(exc)}") from None
     except RecursionError:
         raise DecodeError(NESTED_TOO_DEEP) from None

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
+import sys
 from typing import Annotated, Any, Literal
 
 import lz4.block
@@ -26,6 +27,7 @@ from archery.protocol.text import shown
 
 __all__ = [
     "ALLOWED_DTYPES",
+    "FLOAT_MAX",
     "MAX_BATCH",
     "MAX_CALLER_WAIT",
     "MAX_LEASE_ID",
@@ -34,6 +36,7 @@ __all__ = [
     "Array",
     "Describe",
     "Detection",
+    "FiniteFloat",
     "Image",
     "JointCommand",
     "JointState",
@@ -59,6 +62,13 @@ _ITEMSIZE = {dtype: np.dtype(dtype).itemsize for dtype in ALLOWED_DTYPES}
 _FLOATS = ("<f4", "<f8")
 
 
+#: The largest finite float: `FiniteFloat`'s bounds.
+FLOAT_MAX = sys.float_info.max
+#: A float that decoding checks is finite (msgspec's bounds refuse NaN and ±inf) and building a
+#: struct does not: a value of this type is checked where it enters a process, not where it is
+#: sent (`check_finite_fields` leaves it to the decoder).
+FiniteFloat = Annotated[float, Meta(ge=-FLOAT_MAX, le=FLOAT_MAX)]
+
 _NO_FLOATS = (
     msgspec.inspect.IntType,
     msgspec.inspect.StrType,
@@ -73,6 +83,10 @@ _NO_FLOATS = (
 
 def _may_hold_float(info: msgspec.inspect.Type) -> bool:
     inspect = msgspec.inspect
+    if isinstance(info, inspect.Metadata):
+        return _may_hold_float(info.type)
+    if isinstance(info, inspect.FloatType) and info.ge == -FLOAT_MAX and info.le == FLOAT_MAX:
+        return False  # a FiniteFloat: its decoder checks it
     if isinstance(info, inspect.UnionType):
         return any(_may_hold_float(t) for t in info.types)
     if isinstance(info, inspect.ListType | inspect.VarTupleType | inspect.SetType):

@@ -48,6 +48,7 @@ __all__ = [
     "THETA0",
     "TORSO",
     "home_of",
+    "model_file",
 ]
 
 # -- the services ------------------------------------------------------------------------------
@@ -62,6 +63,18 @@ SERVICES: tuple[str, ...] = (ROBOT, CAMERA, DETECTOR, CONTROLLER, LEARNER)
 # -- the robot model ---------------------------------------------------------------------------
 #: The `icub-models` URDF both the simulator (MuJoCo) and the controller (Pinocchio) load.
 MODEL_NAME = "iCubGazeboV2_5"
+
+
+def model_file() -> str:
+    """Where the installed `icub-models` keeps `MODEL_NAME`'s URDF (a path; nothing is read).
+
+    The simulator (`sim/urdf.py`: MuJoCo), the controller (`services/controller/model.py`:
+    Pinocchio), the robot frames and the bridges all load the robot from this one file.
+    """
+    import icub_models
+
+    return str(icub_models.get_model_file(MODEL_NAME))
+
 
 #: The arm part whose hand holds the bow, and the one that draws the string.
 BOW_ARM = "left_arm"

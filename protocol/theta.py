@@ -1,14 +1,14 @@
-"""θ, the archery task's policy parameter, typed once: `Theta` on the wire, `ThetaBox` for a box
-of θ, and `THETA_BOX`, the θ the controller's archery posture accepts.
+"""θ, the archery task's policy parameter, typed once: `Theta` on the wire, `ThetaBox` for a box of
+θ, and `THETA_BOX`, the θ the controller's archery posture accepts.
 
 θ = p_string − p_bow (m; `root_link`: x backward, y right, z up) is the string hand's position
 relative to the bow hand; the arrow flies along −θ/‖θ‖ (`protocol.direction`). `Theta` is 3
-floats: decoding checks the length, `Args` and `Reply` refuse NaN and inf. A process checks θ
-once, where it enters: a service where the RPC server decodes the verb's `Args`, a program where
-it parses its flags, a Gymnasium environment where it checks an action. `ThetaBox` is the box
-type of the learners' search box, the controller's (its `status` tells it), a `start` request's
-`scenario.bounds`, the Gymnasium action space; finite, low < high per axis, checked when built or
-decoded.
+finite floats, both checked as θ is decoded and never as a message holding it is built (its
+sender's build is not where θ enters). A process checks θ once, where it enters: a service where
+the RPC server decodes the verb's `Args`, a program where it parses its flags, a Gymnasium
+environment where it checks an action. `ThetaBox` is the box type of the learners' search box,
+the controller's (its `status` tells it), a `start` request's `scenario.bounds`, the Gymnasium
+action space; finite, low < high per axis, checked when built or decoded.
 """
 
 from __future__ import annotations
@@ -21,15 +21,17 @@ import msgspec
 import numpy as np
 from msgspec import Meta
 
+from archery.protocol.messages import FiniteFloat
 from archery.protocol.text import shown
 
 __all__ = ["THETA_BOX", "THETA_SIZE", "Theta", "ThetaBox"]
 
 THETA_SIZE = 3  # components of θ: x, y, z (m)
 
-#: θ on the wire: 3 floats, m (finite: `Args` and `Reply` refuse NaN and inf).
+#: θ on the wire: 3 finite floats, m, checked as they are decoded (where θ enters a process),
+#: not as a struct holding them is built (where θ leaves one).
 Theta = Annotated[
-    list[float],
+    list[FiniteFloat],
     Meta(min_length=THETA_SIZE, max_length=THETA_SIZE, description="θ, string − bow hand, m"),
 ]
 

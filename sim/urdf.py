@@ -20,7 +20,7 @@ import mujoco
 import numpy as np
 
 from archery.protocol.parts import PARTS
-from archery.protocol.robotspec import MODEL_NAME
+from archery.protocol.robotspec import MODEL_NAME, model_file
 from archery.sim.errors import SceneError
 from archery.sim.scene_config import BOW_HAND_SITE, STRING_HAND_SITE, SceneConfig
 
@@ -38,9 +38,7 @@ _PACKAGE_PREFIX = "package://iCub/"
 
 
 def _model_file() -> pathlib.Path:
-    import icub_models
-
-    path = pathlib.Path(icub_models.get_model_file(MODEL_NAME))
+    path = pathlib.Path(model_file())
     if not path.is_file():
         raise SceneError(f"the icub-models file for {MODEL_NAME!r} is missing: {path}")
     return path

@@ -141,8 +141,8 @@ def test_trajectory_time_sets_how_long_a_move_takes(services: Callable[..., Mesh
 
 BAD_POSTURES = [
     ({"theta": [0.5, 0.0, 0.0]}, r"outside the configured box \[0.12, -0.02, -0.07\]"),
-    ({"theta": [0.17, 0.03]}, r"length >= 3; theta must be list\[float\] length 3"),
-    ({"theta": "far"}, r"Expected `array`, got `str`.*theta must be list\[float\] length 3"),
+    ({"theta": [0.17, 0.03]}, r"length >= 3; theta must be list\[finite float\] length 3"),
+    ({"theta": "far"}, r"Expected `array`, got `str`.*theta must be list\[finite float\] length 3"),
     ({"theta": [0.17, 0.03, -0.03], "speed": 1}, "unknown field `speed`.*: theta, timeout"),
     ({}, "missing required field `theta`"),
     ({"theta": [0.17, 0.03, -0.03], "timeout": -1}, r"timeout must be float in \[0.1, 3600\]"),

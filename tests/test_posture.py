@@ -14,10 +14,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from archery.apps.experiment.config import ExperimentConfig
+from archery.mesh.rpc_server import bad_args_message
 from archery.protocol.direction import NoArrowDirection, arrow_direction
 from archery.protocol.errors import ConfigError
 from archery.protocol.theta import THETA_BOX, ThetaBox
-from archery.protocol.verbs.controller import PostureArgs
+from archery.protocol.verbs.controller import POSTURE, PostureArgs
 from archery.services.controller.errors import JointError, TargetError
 from archery.services.controller.ik_types import IkSettings
 from archery.services.controller.posture import ArcheryPosture, PostureConfig, hand_orientations
@@ -90,9 +91,15 @@ def test_hand_orientations_follow_the_paper(theta: np.ndarray) -> None:
         assert -y @ UP > 0
 
 
-def test_coinciding_hands_have_no_orientations() -> None:
+def test_coinciding_hands_never_reach_the_orientations(posture: ArcheryPosture) -> None:
+    """θ = 0 has no arrow direction: the box refuses it where θ enters, and a box whose θ
+    could come near it is refused when the posture is configured."""
+    with pytest.raises(TargetError, match="outside the configured box"):
+        posture.solve(np.zeros(3))
+    with pytest.raises(ConfigError, match="low x must be > 0"):
+        PostureConfig(theta_box=ThetaBox(low=(0.0, -0.01, -0.01), high=(0.1, 0.01, 0.01)))
     with pytest.raises(NoArrowDirection, match="string hand on the bow hand"):
-        hand_orientations(np.zeros(3))
+        arrow_direction(np.zeros(3))  # the launch's, which measures θ
 
 
 def test_a_posture_box_keeps_every_arrow_off_vertical() -> None:
@@ -115,8 +122,9 @@ def test_a_malformed_theta_is_refused_where_the_request_is_decoded() -> None:
         ([0.17, 0.03], "length"),
         ([0.17, 0.03, -0.03, 0.0], "length"),
     ):
-        with pytest.raises(msgspec.ValidationError, match=why):
+        with pytest.raises(msgspec.ValidationError) as info:
             msgspec.convert({"theta": theta}, PostureArgs)
+        assert why in bad_args_message(POSTURE, info.value)
     assert msgspec.convert({"theta": [0.17, 0.03, -0.03]}, PostureArgs).theta == [0.17, 0.03, -0.03]
 
 

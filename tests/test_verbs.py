@@ -15,6 +15,7 @@ import pytest
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node
 from archery.mesh.rpc_server import bad_args_message
+from archery.protocol.codec import validation_text
 from archery.protocol.errors import RpcError
 from archery.protocol.messages import Image, RpcReply
 from archery.protocol.theta import THETA_BOX
@@ -328,7 +329,7 @@ def test_describe_carries_each_verbs_schema(served: Any) -> None:
     assert out.returncode == 0, out.stderr
     assert "live: service verbs" in out.stdout
     assert "time  float in [0.05, 60] (s, sim time)  required" in out.stdout
-    assert "theta    list[float] length 3" in out.stdout
+    assert "theta    list[finite float] length 3" in out.stdout
     out = archery(
         "ports", "--verbose", "--connect", client.net.connect[0], "--robot", client.net.robot
     )
@@ -351,3 +352,21 @@ def test_every_served_reply_is_an_rpc_reply_struct() -> None:
     reply = RpcReply(ok=True, result=cv.TrajTimeReply(time=1.0))
     decoded = cv.ARCHERY_VERBS["getTrajTime"].reply_decoder.decode(msgspec.msgpack.encode(reply))
     assert decoded.result == cv.TrajTimeReply(time=1.0)
+
+
+def test_theta_is_checked_where_it_is_decoded_not_where_it_is_built() -> None:
+    """θ enters a process where a message holding it is decoded: there NaN and inf are refused
+    in words; the sender's build checks nothing (it is not where θ enters), while the other
+    floats of the same message are still checked on both sides."""
+    args = cv.PostureArgs(theta=[0.17, math.nan, -0.03])
+    with pytest.raises(msgspec.ValidationError) as info:
+        cv.POSTURE.args_decoder.decode(msgspec.msgpack.encode(args))
+    assert validation_text(info.value) == "Expected a finite number - at `$.theta[1]`"
+    assert "at `$.theta[1]`: Expected a finite number" in bad_args_message(cv.POSTURE, info.value)
+    with pytest.raises(ValueError, match=r"\$.timeout is nan"):
+        cv.PostureArgs(theta=[0.17, 0.03, -0.03], timeout=math.nan)
+    for bad in (math.inf, -math.inf):
+        payload = msgspec.msgpack.encode({"theta": [bad, 0.03, -0.03]})
+        with pytest.raises(msgspec.ValidationError) as info:
+            cv.POSTURE.args_decoder.decode(payload)
+        assert validation_text(info.value).startswith("Expected a finite number")

@@ -7,6 +7,7 @@ Used by the RPC server's error messages (the allowed values of a field) and by
 from __future__ import annotations
 
 import json
+import sys
 from typing import Any
 
 __all__ = ["field_text", "fields_of", "render_verb", "type_text"]
@@ -63,7 +64,10 @@ def type_text(s: dict[str, Any], defs: dict[str, Any] | None = None) -> str:
         values = s.get("additionalProperties")
         text = f"map[str, {type_text(values, defs)}]" if isinstance(values, dict) else "map"
     elif kind in ("number", "integer"):
-        text = ("float" if kind == "number" else "int") + _range(s)
+        if s.get("minimum") == -sys.float_info.max and s.get("maximum") == sys.float_info.max:
+            text = "finite float"  # `protocol.messages.FiniteFloat`
+        else:
+            text = ("float" if kind == "number" else "int") + _range(s)
     elif kind == "string":
         text = "bytes" if s.get("contentEncoding") == "base64" else "str"
         lengths = _lengths(s.get("minLength"), s.get("maxLength"), "length")

@@ -12,12 +12,11 @@ import os
 from collections.abc import Mapping
 from types import MappingProxyType
 
-import icub_models
 import numpy as np
 import pinocchio as pin
 
 from archery.protocol.parts import PARTS
-from archery.protocol.robotspec import HAND_FRAMES, HOME_POSTURE, MODEL_NAME
+from archery.protocol.robotspec import HAND_FRAMES, HOME_POSTURE, model_file
 from archery.services.controller.errors import JointError
 
 __all__ = ["JOINT_NAMES", "ArmsModel", "load_arms_model"]
@@ -37,7 +36,7 @@ class ArmsModel:
     """
 
     def __init__(self, urdf_path: str | os.PathLike[str] | None = None) -> None:
-        path = icub_models.get_model_file(MODEL_NAME) if urdf_path is None else urdf_path
+        path = model_file() if urdf_path is None else urdf_path
         full = pin.buildModelFromUrdf(str(path))
         missing = [name for name in JOINT_NAMES if not full.existJointName(name)]
         if missing:

@@ -18,7 +18,6 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from archery.protocol.direction import arrow_direction
 from archery.protocol.errors import ConfigError
 from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import BOW_ARM, BOW_HAND, NOMINAL_THETA, STRING_ARM
@@ -63,10 +62,9 @@ def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     * String (right) hand: fingers along the arrow (x_R = a), thumb up (y_R = −b), so the palm
       faces the bow hand (z_R = x_R × y_R).
 
-    Raises:
-        NoArrowDirection: the hands coincide (θ = 0; never in a posture box).
+    θ is not checked: a posture box's θ are at least its low x (> 0 m) long.
     """
-    a = arrow_direction(theta)
+    a = _along(theta)
     b = _UP - (_UP @ a) * a
     b /= float(np.linalg.norm(b))
     y = -b
@@ -74,6 +72,13 @@ def hand_orientations(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     left = np.column_stack((np.cross(y, z_left), y, z_left))
     right = np.column_stack((a, y, np.cross(a, y)))
     return left, right
+
+
+def _along(theta: np.ndarray) -> np.ndarray:
+    """−θ/‖θ‖, the arrow's direction (`protocol.direction`) of a θ that the posture box keeps
+    long (‖θ‖ ≥ its low x > 0 m): not checked again."""
+    direction: np.ndarray = -theta / float(np.linalg.norm(theta))
+    return direction
 
 
 @dataclass(frozen=True)
@@ -282,7 +287,7 @@ class ArcheryPosture:
         arrays = [achieved, x_left]
         left_aa = np.asarray(pin.log3(r_left))
         right_aa = np.asarray(pin.log3(r_right))
-        direction = arrow_direction(achieved)
+        direction = _along(achieved)  # a solution's θ: within the IK's tolerance of a box's θ
         for arr in (*arrays, left_aa, right_aa, direction):
             arr.setflags(write=False)
         return PostureResult(
