@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from archery.apps.shot_plan import ShotStep
 from archery.mesh.node import Node
 from archery.protocol.errors import ArcheryError, ConfigError, Unreachable
 from archery.protocol.messages import JointCommand, JointState
@@ -22,7 +23,6 @@ from archery.protocol.robotspec import BOW_ARM, COMMAND_RATE, STRING_ARM, TORSO
 from archery.protocol.verbs import robot as rv
 from archery.protocol.verbs.base import NoArgs, Reply, Verb
 from archery.sim.scene_config import SceneConfig
-from archery.sim.shot_script import ShotStep
 from archery.sim.world import ArcheryWorld, WorldConfig
 
 __all__ = ["ACTIONS", "COMMAND_PERIOD", "PASSING", "REACHED", "ArmDriver"]

@@ -1,7 +1,7 @@
 """A scripted teacher of the whole shot over the mesh (`archery demonstrate --teach`): the arms'
-postures of `sim.shot_script`, planned on a copy of the robot's scene, driven on the mesh
-(`apps.arms`), with the robot's grasp, nock and release in their turn. The robot
-must run with `--shot whole`; joint angles in rad, positions in m.
+postures of `apps.shot_plan`, planned with the controller's IK on a copy of the robot's scene,
+driven on the mesh (`apps.arms`), with the robot's grasp, nock and release in their turn. The
+robot must run with `--shot whole`; joint angles in rad, positions in m.
 """
 
 from __future__ import annotations
@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 
 from archery.apps.arms import ArmDriver
+from archery.apps.shot_plan import plan_aim, plan_whole_shot
 from archery.protocol.robotspec import BOW_ARM, STRING_ARM
 from archery.sim.geometry import BOW_HAND
-from archery.sim.shot_script import plan_aim, plan_whole_shot
 
 __all__ = ["Teacher"]
 
@@ -24,7 +24,7 @@ class Teacher(ArmDriver):
         lift, carry, nock, draw to bow hand + `theta` (m), hold and release.
 
         Raises:
-            ConfigError: not a whole-shot robot. CommandError: a posture out of reach.
+            ConfigError: not a whole-shot robot. BadRequest: a posture out of reach.
             RpcError: the robot refused a step (grasp_missed, nock_missed, …).
         """
         world = self.world()

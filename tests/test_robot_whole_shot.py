@@ -18,6 +18,7 @@ import pytest
 from archery.apps.demonstrate import Recorder
 from archery.apps.demonstrate import main as demonstrate
 from archery.apps.imitate import main as imitate
+from archery.apps.shot_plan import ShotStep, plan_whole_shot
 from archery.apps.teacher import Teacher
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node
@@ -38,7 +39,6 @@ from archery.services.robot.config import add_arguments, make_config
 from archery.sim.geometry import BOW_HAND, START_THETA
 from archery.sim.model_build import build_scene
 from archery.sim.scene_config import SceneConfig
-from archery.sim.shot_script import ShotStep, plan_whole_shot
 from archery.sim.world import ArcheryWorld, WorldConfig
 from tests.conftest import archery, serving
 from tests.postures import archery_posture
@@ -170,7 +170,7 @@ def test_a_demonstration_is_recorded_while_the_arms_are_driven(
     # at rtf 0 the states are also paced per wall second: a faster stream samples the movement
     client = robot(state_rate=500.0)
     client.move(aim)
-    recorder = Recorder(client.node, "whole", made="the scripted whole shot of sim.shot_script")
+    recorder = Recorder(client.node, "whole", made="the scripted whole shot of apps.shot_plan")
     try:
         assert recorder.wait_started(10)
         _drive(client, _plan(model, aim), until="")  # every step and its action

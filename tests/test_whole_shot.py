@@ -7,12 +7,13 @@ import mujoco
 import numpy as np
 import pytest
 
+from archery.apps.shot_plan import APPROACH_HEIGHT, ShotStep, plan_aim, plan_whole_shot
+from archery.protocol.errors import BadRequest
 from archery.protocol.robotspec import BOW_ARM, STRING_ARM
 from archery.sim.errors import ArrowDropped, GraspMissed, NockMissed, StateError
 from archery.sim.geometry import BOW_HAND, START_THETA
 from archery.sim.model_build import build_scene
 from archery.sim.scene_config import BOWSTRING_TENDON, STRING_NOCK_SITE, SceneConfig
-from archery.sim.shot_script import APPROACH_HEIGHT, ShotStep, plan_whole_shot
 from archery.sim.whole_props import HOLDER_NOCK
 from archery.sim.world import ArcheryWorld, ArrowState, WorldConfig
 from tests.postures import archery_posture
@@ -241,3 +242,24 @@ def test_a_posture_world_has_no_grasp() -> None:
         world.grasp()
     with pytest.raises(StateError):
         plan_whole_shot(world, START_THETA)
+
+
+def test_the_plan_is_the_controllers_ik_and_refuses_what_it_cannot_reach(
+    model: mujoco.MjModel, posture: dict[str, np.ndarray]
+) -> None:
+    """The teacher's postures come from the controller's solver (Pinocchio): the aim puts the
+    world's hand sites where it was asked, and a hand out of reach is refused in words, with
+    the world untouched."""
+    world = _ready(model, posture)
+    aim = plan_aim(world, BOW_HAND, START_THETA)
+    assert aim.left_arm is not None
+    world.physics.set_joint_positions(STRING_ARM, aim.right_arm)
+    world.physics.set_joint_positions(BOW_ARM, aim.left_arm)
+    world.physics.kinematics()
+    bow, string = world.hand_positions()
+    np.testing.assert_allclose(bow, BOW_HAND, atol=1e-3)
+    np.testing.assert_allclose(string - bow, START_THETA, atol=1e-3)
+    before = world.physics.data.qpos.copy()
+    with pytest.raises(BadRequest, match="aim is out of the arms' reach"):
+        plan_aim(world, BOW_HAND, np.array([1.5, 0.0, 0.0]))
+    np.testing.assert_array_equal(world.physics.data.qpos, before)
