@@ -122,6 +122,10 @@ VERBS: dict[str, tuple[str, str]] = {
         "archery.apps.ros2.command:main",
         "the robot on the ROS 2 graph through rmw_zenoh's wire format (joint states, TF, camera)",
     ),
+    "yarp": (
+        "archery.apps.yarp.command:main",
+        "the robot as a YARP robot: control boards for remote_controlboard, camera, verbs",
+    ),
     "export": (
         "archery.apps.ros2.export:main",
         "a recording as a ROS 2 bag (--ros2 OUT: MCAP, CDR) of the topics `archery ros2` sends",

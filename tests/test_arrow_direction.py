@@ -9,7 +9,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from archery.protocol.direction import NoArrowDirection, arrow_direction
-from archery.services.controller.posture import hand_orientations
 from archery.sim.arrow import launch_velocity
 from archery.sim.ballistic import BallisticWorld, Scenario, ShotError
 from archery.sim.bow import Bow
@@ -37,7 +36,6 @@ def test_coinciding_hands_raise_the_one_error_everywhere() -> None:
         lambda: arrow_direction(zero),
         lambda: Bow().launch_velocity(zero),
         lambda: launch_velocity(hand - hand, Bow()),
-        lambda: hand_orientations(zero),
     ):
         with pytest.raises(NoArrowDirection, match="string hand on the bow hand") as caught:
             call()

@@ -1,0 +1,262 @@
+"""YARP's network for the bridge: its ports on loopback (or `--yarp-ip`), its name server, and
+YARP's library initialised.
+
+The name server is, in this order: `--yarp-server HOST:PORT`; the one the user's YARP
+configuration names (`yarp conf`), when it answers; or one the bridge runs itself, YARP's own
+`yarpserver`, on a free port of the bridge's address, with a configuration of its own (the
+user's is never written). The environment YARP reads is set here, before YARP is imported.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import random
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.text import shown
+
+__all__ = [
+    "YARP_MISSING",
+    "NameServer",
+    "YarpNetwork",
+    "free_server_port",
+    "parse_server",
+    "user_server",
+]
+
+YARP_MISSING = (
+    "YARP's Python bindings are not installed: install YARP 3.5 (robotology-superbuild, "
+    "conda-forge's `yarp`, or `make yarp` in the project's checkout) into this environment"
+)
+log = logging.getLogger("archery.yarp")
+_CONF = "yarp.conf"  # the default namespace's file in YARP's configuration folder
+
+
+@dataclass(frozen=True)
+class NameServer:
+    """Where a YARP name server listens, and who runs it ("given", "configured", "ours")."""
+
+    host: str
+    port: int
+    origin: str
+
+    def __str__(self) -> str:
+        return f"{self.host}:{self.port}"
+
+
+def parse_server(text: str) -> NameServer:
+    """`HOST:PORT` of `--yarp-server`.
+
+    Raises:
+        ConfigError: not a host and a port from 1 to 65535.
+    """
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"--yarp-server {shown(text)}: give HOST:PORT, e.g. 127.0.0.1:10000")
+    return NameServer(host.strip("[]"), int(port), "given")
+
+
+def _config_home() -> Path:
+    """YARP's configuration folder as YARP 3.5 finds it on Linux."""
+    if home := os.environ.get("YARP_CONFIG_HOME"):
+        return Path(home)
+    base = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "yarp"
+
+
+def user_server() -> NameServer | None:
+    """The name server the user's YARP configuration names (None: none, or not readable)."""
+    try:
+        words = (_config_home() / _CONF).read_text(encoding="utf-8").split()
+    except (OSError, UnicodeDecodeError):
+        return None
+    if len(words) < 2 or not words[1].isdigit():
+        return None
+    return NameServer(words[0], int(words[1]), "configured")
+
+
+class NotANameServer(ArcheryError):
+    """Something answers at the name server's address, but not as a YARP name server."""
+
+    code = "bad_state"
+
+
+_QUERY = b"NAME_SERVER query /root\n"  # YARP's name server also speaks text, line by line
+_END = b"*** end of message"
+_MOST = 4096  # bytes of an answer read at most
+
+
+def _answers(server: NameServer, timeout: float = 1.0) -> bool:
+    """True once `server` answers a name query as a YARP name server, False while nothing
+    listens there.
+
+    Raises:
+        NotANameServer: what answers is not one (the message quotes what it sent).
+    """
+    try:
+        with socket.create_connection((server.host, server.port), timeout=timeout) as conn:
+            conn.sendall(_QUERY)
+            answer = b""
+            while _END not in answer and len(answer) < _MOST:
+                chunk = conn.recv(_MOST)
+                if not chunk:
+                    break
+                answer += chunk
+    except ConnectionRefusedError:
+        return False
+    except OSError as exc:
+        raise NotANameServer(f"the YARP name server at {server} does not answer: {exc}") from None
+    if b"registration name /root" not in answer:
+        text = answer.decode("utf-8", errors="replace")
+        raise NotANameServer(
+            f"what answers at {server} is not a YARP name server: it sent {shown(text)}"
+        )
+    return True
+
+
+#: where a name server of the bridge's own listens: below the ports this machine hands out for
+#: outgoing connections (Linux: from 32768), for YARP numbers the ports it registers in a row
+#: from the name server's, and a number taken by a connection would fail to bind
+SERVER_PORTS = range(20000, 32000, 100)
+SERVER_BLOCK = 64  # the ports after a name server's that must be free when it starts
+
+
+def free_server_port(host: str) -> int:
+    """A port for a YARP name server on `host` whose next `SERVER_BLOCK` ports are free too.
+
+    Raises:
+        ConfigError: no such block is free.
+    """
+    for base in random.sample(SERVER_PORTS, len(SERVER_PORTS)):
+        try:
+            with contextlib.ExitStack() as held:
+                for port in range(base, base + SERVER_BLOCK):
+                    probe = held.enter_context(socket.socket(socket.AF_INET, socket.SOCK_STREAM))
+                    probe.bind((host, port))
+            return base
+        except OSError:
+            continue
+    raise ConfigError(f"no free block of {SERVER_BLOCK} ports on {host} for a YARP name server")
+
+
+def _yarpserver() -> str:
+    here = Path(sys.executable).parent / "yarpserver"
+    found = str(here) if here.exists() else shutil.which("yarpserver")
+    if found is None:
+        raise ConfigError(
+            "no yarpserver to run (it comes with YARP's tools); give --yarp-server HOST:PORT"
+        )
+    return found
+
+
+def _answering(server: NameServer | None) -> NameServer | None:
+    """`server` (the user's configured one) if it answers as a name server, else None."""
+    if server is None:
+        return None
+    try:
+        return server if _answers(server) else None
+    except NotANameServer as exc:
+        log.warning("%s; the bridge runs a name server of its own", exc)
+        return None
+
+
+class YarpNetwork:
+    """YARP set up for the bridge until `close`: the environment, the name server, `yarp`
+    imported and initialised (`self.yarp`).
+
+    Args:
+        ip: the address YARP's ports register and listen on.
+        server: the name server to use (None: the user's, else one of the bridge's own).
+        wait: s to wait for the name server to answer.
+
+    Raises:
+        ConfigError: YARP is not installed, or no name server can be had.
+        ArcheryError: the name server does not answer within `wait`.
+    """
+
+    def __init__(self, ip: str, server: NameServer | None, wait: float) -> None:
+        self._own: subprocess.Popen[bytes] | None = None
+        self._initialised = False
+        self._folder: tempfile.TemporaryDirectory[str] | None = None
+        os.environ["YARP_IP"] = ip
+        if server is None:
+            server = _answering(user_server())
+        if server is None:
+            server = NameServer(ip, free_server_port(ip), "ours")
+            folder = self._private(server)
+            with open(folder / "yarpserver.log", "wb") as log:  # its registrations, each a line
+                self._own = subprocess.Popen(
+                    [_yarpserver(), "--read", "--socket", str(server.port)],
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                )
+        elif server.origin == "given":
+            self._private(server)
+        self.server = server
+        deadline = time.monotonic() + wait
+        while not self._answers(server):
+            if self._own is not None and self._own.poll() is not None:
+                assert self._folder is not None
+                log_file = Path(self._folder.name) / "yarpserver.log"
+                text = log_file.read_text(encoding="utf-8", errors="replace")
+                self.close()
+                raise ArcheryError(f"yarpserver on {server} exited: {shown(text.strip()[-300:])}")
+            if time.monotonic() > deadline:
+                self.close()
+                raise ArcheryError(f"no YARP name server answers at {server} within {wait:g} s")
+            time.sleep(0.05)
+        try:
+            import yarp
+        except ImportError:
+            self.close()
+            raise ConfigError(YARP_MISSING) from None
+        self.yarp: Any = yarp
+        yarp.Network.init()
+        self._initialised = True
+        if not yarp.Network.checkNetwork(wait):
+            self.close()
+            raise ArcheryError(f"the YARP name server at {server} does not answer as one")
+
+    def _answers(self, server: NameServer) -> bool:
+        try:
+            return _answers(server, timeout=0.5)
+        except NotANameServer:
+            self.close()
+            raise
+
+    def _private(self, server: NameServer) -> Path:
+        """A configuration folder of the bridge's own that names `server`."""
+        self._folder = tempfile.TemporaryDirectory(prefix="archery-yarp-")
+        folder = Path(self._folder.name)
+        (folder / _CONF).write_text(f"{server.host} {server.port} yarp\n")
+        os.environ["YARP_CONFIG_HOME"] = str(folder)
+        return folder
+
+    def close(self) -> None:
+        """Stop the bridge's own name server, if it runs one, and drop its configuration."""
+        if self._initialised:
+            self._initialised = False
+            self.yarp.Network.fini()
+        if self._own is not None:
+            self._own.terminate()
+            try:
+                self._own.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                self._own.kill()
+                self._own.wait()
+            self._own = None
+        if self._folder is not None:
+            self._folder.cleanup()
+            self._folder = None
