@@ -418,3 +418,24 @@ def test_bad_flags_are_bad_input() -> None:
         out = archery("yarp", *flags)
         assert out.returncode == 2, out.stderr
         assert why in out.stderr
+
+
+def test_archery_up_yarp_serves_the_robot_on_the_name_server(world: World, tmp_path: Path) -> None:
+    up = subprocess.Popen(
+        [sys.executable, "-m", "archery.apps.cli", "up", "--listen", free_tcp_endpoint(),
+         "--robot", "upbot", "--logs", str(tmp_path / "logs"), "--runs", str(tmp_path / "runs"),
+         "--yarp", f"127.0.0.1:{world.yarp_port}"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert up.stdout is not None
+        said = next(line for line in up.stdout if line.startswith("archery up: on YARP"))
+        assert "as /upbot (read-only)" in said and str(world.yarp_port) in said
+        names = world.yarp_cli("name", "list")
+        assert "/upbot/left_arm/stateExt:o" in names and "/upbot/archery/rpc:i" in names
+    finally:
+        up.terminate()
+        up.communicate(timeout=120)
+    assert "/upbot/left_arm/stateExt:o" not in world.yarp_cli("name", "list")

@@ -121,6 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="put the first robot on the ROS 2 graph of DOMAIN (default 0) through the mesh's "
         "router (read-only, see `archery ros2`)",
     )
+    parser.add_argument(
+        "--yarp",
+        metavar="HOST:PORT",
+        nargs="?",
+        const="",
+        help="serve the first robot as a YARP robot (read-only, see `archery yarp`), registered "
+        "with the YARP name server HOST:PORT (default: the configured one, else its own)",
+    )
     return parser
 
 
@@ -297,6 +305,13 @@ def main(argv: list[str] | None = None) -> int:
                 ready = b"archery ros2: on the ROS 2 graph"
                 observers.append(("the ROS 2 node", start_observer(launcher, "ros2", argv, ready)))
                 print(f"archery up: on the ROS 2 graph (domain {args.ros2})", flush=True)
+            if args.yarp is not None:
+                argv = ["yarp", *(["--yarp-server", args.yarp] if args.yarp else [])]
+                ready = b"archery yarp: on YARP"
+                observers.append(("the YARP bridge", start_observer(launcher, "yarp", argv, ready)))
+                said = _read(launcher.output("yarp").path).decode(errors="replace")
+                line = next(x for x in said.splitlines() if x.startswith("archery yarp: on YARP"))
+                print(f"archery up: {line.removeprefix('archery yarp: ')}", flush=True)
         except LaunchError:
             for _, observer in observers:
                 observer.terminate()

@@ -1,0 +1,167 @@
+"""YARP 3.5 for `archery yarp` and its tests, as a user without robotology-superbuild or conda
+gets it: when this Python cannot `import yarp`, install a wheel built from PyPI's
+`yarp-middleware` 3.5.0 source distribution (YARP's libraries, device plugins, tools and Python
+bindings), kept in a cache outside the checkout (`$XDG_CACHE_HOME/archery/yarp`, by default
+`~/.cache/archery/yarp`) so that a machine builds it once (about 7 minutes on 2 cores).
+
+The source distribution does not build as published on Debian 12 with GCC 12 and CMake 4; the
+build edits its setup.py's CMake options (no ACE library; shared libraries, so that the device
+plugins exist; the standard headers GCC 12 no longer includes by itself), builds with
+CMake < 4, and makes the wheel relocatable (the plugins' search path, which CMake writes as the
+build folder, and `import yarp` pointing YARP_DATA_DIRS and YARP_PLUGINS_DIR at the installed
+package unless they are set). Usage: python tools/yarp_wheel.py [--build-only]
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import hashlib
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+VERSION = "3.5.0"
+SDIST = f"yarp_middleware-{VERSION}.tar.gz"
+HEADERS = (
+    "utility cstdint limits stdexcept iterator algorithm functional memory string cstring mutex "
+    "array cmath"
+)
+#: setup.py's CMake options: (what it passes, what the build passes instead)
+OPTIONS = (
+    ('"-DBUILD_SHARED_LIBS:BOOL=OFF",', '"-DBUILD_SHARED_LIBS:BOOL=ON",'),
+    (
+        '"-DYARP_COMPILE_UNMAINTAINED:BOOL=OFF",',
+        '"-DYARP_COMPILE_UNMAINTAINED:BOOL=OFF", "-DSKIP_ACE:BOOL=ON", '
+        f'"-DCMAKE_CXX_FLAGS={" ".join(f"-include {h}" for h in HEADERS.split())}",',
+    ),
+)
+PRELUDE = (
+    "import os as _os\n"
+    "_here = _os.path.dirname(_os.path.abspath(__file__))\n"
+    "_os.environ.setdefault('YARP_DATA_DIRS', _os.path.join(_here, 'share', 'yarp'))\n"
+    "_os.environ.setdefault('YARP_PLUGINS_DIR', _os.path.join(_here, 'lib', 'yarp'))\n"
+    "del _os, _here\n"
+)
+
+
+def say(text: str, started: float) -> None:
+    print(f"yarp: {text} ({time.monotonic() - started:.0f} s)", flush=True)
+
+
+def cache() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "archery" / "yarp"
+
+
+def importable() -> bool:
+    found = subprocess.run([sys.executable, "-c", "import yarp"], capture_output=True)
+    return found.returncode == 0
+
+
+def cached_wheel() -> Path | None:
+    tag = f"cp{sys.version_info.major}{sys.version_info.minor}"
+    wheels = sorted(cache().glob(f"yarp_middleware-{VERSION}-{tag}-*.whl"))
+    return wheels[-1] if wheels else None
+
+
+def build(started: float) -> Path:
+    """Build the wheel into the cache; its path."""
+    if shutil.which("swig") is None or shutil.which("g++") is None:
+        if os.geteuid() != 0 or shutil.which("apt-get") is None:
+            sys.exit("yarp: the build needs swig and g++: install them (e.g. apt install swig g++)")
+        say("installing swig and g++", started)
+        env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+        subprocess.run(["apt-get", "update", "-qq"], check=True, env=env)
+        subprocess.run(["apt-get", "install", "-y", "-qq", "swig", "g++"], check=True, env=env)
+    with tempfile.TemporaryDirectory(prefix="yarp-build-") as folder:
+        work = Path(folder)
+        say(f"downloading yarp-middleware {VERSION}'s source distribution", started)
+        pip = [sys.executable, "-m", "pip"]
+        subprocess.run(
+            [*pip, "download", "-q", "--no-deps", "--no-binary", "yarp-middleware",
+             f"yarp-middleware=={VERSION}", "-d", str(work)],
+            check=True,
+        )  # fmt: skip
+        shutil.unpack_archive(work / SDIST, work)
+        source = work / SDIST.removesuffix(".tar.gz")
+        setup = source / "setup.py"
+        text = setup.read_text()
+        for old, new in OPTIONS:
+            if old not in text:
+                sys.exit(f"yarp: unexpected setup.py: no {old}")
+            text = text.replace(old, new)
+        setup.write_text(text)
+        (work / "constraints.txt").write_text("cmake<4\n")
+        env = {
+            **os.environ,
+            "CMAKE_POLICY_VERSION_MINIMUM": "3.5",
+            "PIP_CONSTRAINT": str(work / "constraints.txt"),
+            "CMAKE_BUILD_PARALLEL_LEVEL": str(os.cpu_count() or 1),
+        }
+        say("building YARP (libraries, device plugins, tools, bindings): about 7 minutes", started)
+        subprocess.run(
+            [*pip, "wheel", "-q", "--no-deps", str(source), "-w", str(work / "dist")],
+            check=True,
+            env=env,
+        )
+        wheel = next((work / "dist").glob("yarp_middleware-*.whl"))
+        relocate(wheel)
+        cache().mkdir(parents=True, exist_ok=True)
+        kept = cache() / wheel.name
+        shutil.copyfile(wheel, kept)
+    say(f"built {kept}", started)
+    return kept
+
+
+def relocate(wheel: Path) -> None:
+    """Rewrite `wheel` so that its plugins load wherever it is installed."""
+    with zipfile.ZipFile(wheel) as zipped:
+        entries = [(info, zipped.read(info.filename)) for info in zipped.infolist()]
+    rewritten = []
+    for info, data in entries:
+        if info.filename == "yarp/__init__.py" and b"YARP_PLUGINS_DIR" not in data:
+            data = PRELUDE.encode() + data
+        elif info.filename == "yarp/share/yarp/plugins/yarp.ini":
+            data = re.sub(rb"(?m)^path .*$", b'path "${YARP_PLUGINS_DIR}"', data)
+        rewritten.append((info, data))
+    record = next(i.filename for i, _ in rewritten if i.filename.endswith(".dist-info/RECORD"))
+    rows = []
+    for info, data in rewritten:
+        if info.filename != record:
+            digest = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=")
+            rows.append(f"{info.filename},sha256={digest.decode()},{len(data)}")
+    rows.append(f"{record},,")
+    out = wheel.with_suffix(".tmp")
+    with zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zipped:
+        for info, data in rewritten:
+            zipped.writestr(
+                info, ("\n".join(rows) + "\n").encode() if info.filename == record else data
+            )
+    out.replace(wheel)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--build-only", action="store_true", help="build (or find) the wheel only")
+    args = parser.parse_args()
+    started = time.monotonic()
+    if not args.build_only and importable():
+        return 0
+    wheel = cached_wheel() or build(started)
+    if args.build_only:
+        print(wheel)
+        return 0
+    say(f"installing {wheel.name}", started)
+    subprocess.run([sys.executable, "-m", "pip", "install", "-q", str(wheel)], check=True)
+    return 0 if importable() else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
