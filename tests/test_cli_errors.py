@@ -208,6 +208,9 @@ CASES: list[tuple[str, int, str]] = [
     # ros2, export
     ("ros2 --domain 233 {net}", 2, "--domain 233: give a ROS 2 domain id from 0 to 232"),
     ("ros2 --wait 1 --connect {dead}", 1, "{dead}"),
+    ("yarp --yarp-server nowhere {net}", 2, "--yarp-server 'nowhere': give HOST:PORT"),
+    ("yarp --yarp-ip loopback {net}", 2, "--yarp-ip 'loopback': give an address"),
+    ("yarp --wait 1 --connect {dead}", 1, "{dead}"),
     ("export {tmp}/none.mcap --ros2 {tmp}/bag", 2, "No such file or directory"),
     ("export README.md --ros2 {tmp}/bag2", 2, "is not an MCAP file"),
     # foxglove
