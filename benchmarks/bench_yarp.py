@@ -166,6 +166,7 @@ def stream(setup: Setup, window: float) -> tuple[float, float, float]:
     sub = setup.node.subscribe(setup.node.keys.state(ARM), JointState, mode="fifo", callback=mesh)
     ports = {"state": yarp.BufferedPortVector(), "ext": yarp.BufferedPortBottle()}
     for key, port in ports.items():
+        port.setStrict(True)  # every message, not only the newest
         port.open(f"/bench/{key}:i")
         leaf = "state:o" if key == "state" else "stateExt:o"
         yarp.Network.connect(f"/{ROBOT}/{ARM}/{leaf}", f"/bench/{key}:i")

@@ -24,9 +24,11 @@ from archery.apps.yarp.network import free_server_port
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node, open_node
 from archery.mesh.router import free_tcp_endpoint
+from archery.protocol.journal_records import DoneRecord
 from archery.protocol.messages import JointState, WorldEvent
 from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import SERVICES
+from archery.services.learner.journal import read_records
 from tests.conftest import archery
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
@@ -439,3 +441,86 @@ def test_archery_up_yarp_serves_the_robot_on_the_name_server(world: World, tmp_p
         up.terminate()
         up.communicate(timeout=120)
     assert "/upbot/left_arm/stateExt:o" not in world.yarp_cli("name", "list")
+
+
+def _session(endpoint: str, runs: Path) -> list[tuple[list[float], list[float]]]:
+    """One 4-rollout ARCHER session of seed 5 on `endpoint`'s robot: (θ, r) of each rollout."""
+    before = set(runs.iterdir()) if runs.exists() else set()
+    out = archery(
+        "learn", "--connect", endpoint, "--robot", "besidebot", "--seed", "5", "--rollouts", "4",
+        "--no-until-hit", "--quiet", "--no-film", timeout=300,
+    )  # fmt: skip
+    assert out.returncode == 0, out.stderr
+    (folder,) = set(runs.iterdir()) - before
+    done = [r for r in read_records(folder / "journal.jsonl")[0] if isinstance(r, DoneRecord)]
+    return [(list(r.theta), list(r.r_m)) for r in done]
+
+
+def test_beside_a_session_a_reader_sees_every_state_and_the_session_is_unchanged(
+    world: World, tmp_path: Path
+) -> None:
+    endpoint = free_tcp_endpoint()
+    up = subprocess.Popen(
+        [sys.executable, "-m", "archery.apps.cli", "up", "--listen", endpoint, "--robot",
+         "besidebot", "--logs", str(tmp_path / "logs"), "--runs", str(tmp_path / "runs")],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    bridge = None
+    try:
+        assert up.stdout is not None
+        next(line for line in up.stdout if line.startswith("archery up: all alive"))
+        alone = _session(endpoint, tmp_path / "runs")
+        bridge = subprocess.Popen(
+            [sys.executable, "-m", "archery.apps.cli", "yarp", "--connect", endpoint, "--robot",
+             "besidebot", "--yarp-server", f"127.0.0.1:{world.yarp_port}"],
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+        )  # fmt: skip
+        assert bridge.stdout is not None
+        next(line for line in bridge.stdout if line.startswith("archery yarp: on YARP"))
+        node = open_node(NetConfig(connect=(endpoint,), robot="besidebot"), 30)
+        counts = {"mesh": 0, "yarp": 0}
+        counting = threading.Event()
+
+        def on_mesh(_: JointState) -> None:
+            if counting.is_set():
+                counts["mesh"] += 1
+
+        sub = node.subscribe(
+            node.keys.state("right_arm"), JointState, mode="fifo", callback=on_mesh
+        )
+        port = yarp.BufferedPortVector()
+        port.setStrict(True)  # every state, as a logger reads them (not only the newest)
+        assert port.open("/test/beside:i")
+        assert yarp.Network.connect("/besidebot/right_arm/state:o", "/test/beside:i")
+        stop = threading.Event()
+        moved: list[list[float]] = []
+
+        def on_yarp() -> None:
+            while not stop.is_set():
+                vector = port.read(True)
+                if vector is not None and counting.is_set():
+                    counts["yarp"] += 1
+                    moved.append([vector[i] for i in range(vector.size())])
+
+        reader = threading.Thread(target=on_yarp, daemon=True)
+        reader.start()
+        counting.set()
+        watched = _session(endpoint, tmp_path / "runs")
+        time.sleep(0.5)  # the last states through both paths
+        counting.clear()
+        stop.set()
+        port.interrupt()
+        reader.join(timeout=10)
+        port.close()
+        node.unsubscribe(sub)
+        node.close()
+        assert watched == alone  # the same seed, the same rollouts, with the bridge or without
+        assert counts["mesh"] > 50
+        assert counts["yarp"] >= 0.95 * counts["mesh"], counts
+        spread = np.ptp(np.array(moved), axis=0)
+        assert spread.max() > 1, spread  # degrees: the arm moved while the reader read
+    finally:
+        for proc in (bridge, up):
+            if proc is not None:
+                proc.terminate()
+                proc.communicate(timeout=120)

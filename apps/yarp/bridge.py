@@ -70,8 +70,8 @@ class YarpBridge:
         return port
 
     def _writer(self, port: Any, fill: Callable[..., None]) -> Callable[[Any], None]:
-        """Write each message on `port` (its stamp the envelope); ports nobody reads cost a
-        prepare and nothing more."""
+        """Write each message on `port` (its stamp the envelope): every measurement and event
+        (a busy connection waits for them), the newest frame (a busy reader skips one)."""
         counter = {image_to: "frames", reward_bottle: "hits", event_bottle: "events"}[fill]
         count = [0]
 
@@ -82,7 +82,7 @@ class YarpBridge:
                 fill(port.prepare(), message)
             count[0] += 1
             port.setEnvelope(self.yarp.Stamp(count[0], message.stamp))
-            port.write()
+            port.write(fill is not image_to)  # events strictly; a frame skips a busy reader
             self.counts[counter] += 1
 
         return write

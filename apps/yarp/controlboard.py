@@ -202,10 +202,10 @@ class ControlBoard:
             for i, x in enumerate(state.position):
                 vector[i] = math.degrees(x)
             self.state.setEnvelope(self._stamp)
-            self.state.write()
+            self.state.write(True)  # strict: a busy connection waits, it skips no state
             joint_data(self.yarp, self.state_ext.prepare(), state)
             self.state_ext.setEnvelope(self._stamp)
-            self.state_ext.write()
+            self.state_ext.write(True)
             self.counts["states"] += 1
 
     # -- rpc:i -----------------------------------------------------------------------------------
