@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 import pytest
 
-from archery.apps.yarp.network import free_server_port
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node, open_node
 from archery.mesh.router import free_tcp_endpoint
@@ -30,6 +29,7 @@ from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import SERVICES
 from archery.services.learner.journal import read_records
 from tests.conftest import archery
+from tests.yarp_setup import YarpSetup
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
 
@@ -71,37 +71,14 @@ class World:
         self.node: Node = open_node(self.net, 60)
         self.node.wait_alive(SERVICES, timeout=120)
         # YARP's own name server, on loopback, in a configuration folder of the test's
-        self.conf = tmp / "yarp"
-        self.conf.mkdir()
-        self.yarp_port = free_server_port("127.0.0.1")
-        (self.conf / "yarp.conf").write_text(f"127.0.0.1 {self.yarp_port} yarp\n")
-        self.env = {**os.environ, "YARP_CONFIG_HOME": str(self.conf), "YARP_IP": "127.0.0.1"}
-        server = [str(Path(sys.executable).parent / "yarpserver"), "--read"]
-        self.procs.append(
-            subprocess.Popen(
-                [*server, "--socket", str(self.yarp_port)],
-                env=self.env,
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
-                text=True,
-            )
-        )
-        until(self._server_answers, 30, "yarpserver")
-        os.environ.update(YARP_CONFIG_HOME=str(self.conf), YARP_IP="127.0.0.1")
-        yarp.Network.init()
+        self.yarp = YarpSetup(yarp, tmp / "yarp")
+        self.yarp_port, self.env = self.yarp.port, self.yarp.env
         bridge = [sys.executable, "-m", "archery.apps.cli", "yarp", "--connect", self.endpoint,
                   "--robot", ROBOT, "--yarp-server", f"127.0.0.1:{self.yarp_port}"]  # fmt: skip
         self.reader = self._start([*bridge, "--prefix", "/icubSim"], "archery yarp: on YARP")
         self.operator = self._start(
             [*bridge, "--prefix", "/op", "--operator"], "archery yarp: on YARP"
         )
-
-    def _server_answers(self) -> bool:
-        try:
-            with socket.create_connection(("127.0.0.1", self.yarp_port), timeout=0.5):
-                return True
-        except OSError:
-            return False
 
     def _start(self, argv: list[str], ready: str) -> subprocess.Popen[str]:
         log = self.tmp / f"{argv[3]}-{len(self.procs)}.log"
@@ -144,7 +121,7 @@ class World:
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.communicate()
-        yarp.Network.fini()
+        self.yarp.close()
 
 
 @pytest.fixture(scope="module")
