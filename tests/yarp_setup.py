@@ -43,6 +43,8 @@ class YarpSetup:
             time.sleep(0.05)
         os.environ.update(wanted)
         yarp.Network.init()
+        # a process whose YARP met another name server before keeps its contact: this one's
+        yarp.Network.setNameServerContact(yarp.Contact("/root", "tcp", "127.0.0.1", self.port))
 
     def _answers(self) -> bool:
         try:
