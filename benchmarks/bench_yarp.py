@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -105,6 +106,7 @@ class Setup:
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
                 text=True,
+                start_new_session=True,  # YARP's launcher script and the server: one group
             )
         )
         import yarp
@@ -144,7 +146,10 @@ class Setup:
             if proc is None:
                 self.yarp.Network.fini()
                 continue
-            proc.terminate()
+            if proc is server:
+                os.killpg(proc.pid, signal.SIGTERM)
+            else:
+                proc.terminate()
             proc.communicate(timeout=120)
 
 

@@ -62,14 +62,23 @@ class World:
         self.tmp = tmp
         self.endpoint = free_tcp_endpoint()
         self.procs: list[subprocess.Popen[str]] = []
+        self._node: Node | None = None
+        self.yarp: YarpSetup | None = None
+        try:
+            self._begin(tmp)
+        except BaseException:
+            self.close()  # what started before the failure stops with it
+            raise
+
+    def _begin(self, tmp: Path) -> None:
         self.up = self._start(
             [sys.executable, "-m", "archery.apps.cli", "up", "--listen", self.endpoint,
              "--robot", ROBOT, "--logs", str(tmp / "logs"), "--runs", str(tmp / "runs")],
             "archery up: all alive",
         )  # fmt: skip
         self.net = NetConfig(connect=(self.endpoint,), robot=ROBOT)
-        self.node: Node = open_node(self.net, 60)
-        self.node.wait_alive(SERVICES, timeout=120)
+        self._node = open_node(self.net, 60)
+        self._node.wait_alive(SERVICES, timeout=120)
         # YARP's own name server, on loopback, in a configuration folder of the test's
         self.yarp = YarpSetup(yarp, tmp / "yarp")
         self.yarp_port, self.env = self.yarp.port, self.yarp.env
@@ -111,8 +120,14 @@ class World:
         finally:
             self.node.unsubscribe(sub)
 
+    @property
+    def node(self) -> Node:
+        assert self._node is not None
+        return self._node
+
     def close(self) -> None:
-        self.node.close()
+        if self._node is not None:
+            self._node.close()
         for proc in reversed(self.procs):
             if proc.poll() is None:
                 proc.terminate()
@@ -121,7 +136,8 @@ class World:
                 except subprocess.TimeoutExpired:
                     proc.kill()
                     proc.communicate()
-        self.yarp.close()
+        if self.yarp is not None:
+            self.yarp.close()
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,7 @@ network initialised in the test process; all undone by `close`."""
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -34,11 +35,12 @@ class YarpSetup:
             env=self.env,
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            start_new_session=True,  # YARP's launcher script and the server it runs: one group
         )
         deadline = time.monotonic() + 30
         while not self._answers():
             if time.monotonic() > deadline or self.server.poll() is not None:
-                self.server.kill()
+                os.killpg(self.server.pid, signal.SIGKILL)
                 raise AssertionError(f"yarpserver did not start on {self.port}")
             time.sleep(0.05)
         os.environ.update(wanted)
@@ -59,7 +61,7 @@ class YarpSetup:
 
     def close(self) -> None:
         self.yarp.Network.fini()
-        self.server.terminate()
+        os.killpg(self.server.pid, signal.SIGTERM)
         self.server.communicate(timeout=60)
         for name, value in self._before.items():
             if value is None:

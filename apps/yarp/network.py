@@ -14,6 +14,7 @@ import logging
 import os
 import random
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -160,6 +161,19 @@ def _yarpserver() -> str:
     return found
 
 
+def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+    """Stop `proc` and what it started (a Python launcher of YARP's tools runs the tool as its
+    child): SIGTERM to its process group, SIGKILL after 5 s."""
+    for sig, wait in ((signal.SIGTERM, 5.0), (signal.SIGKILL, None)):
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, sig)
+        try:
+            proc.wait(timeout=wait)
+            return
+        except subprocess.TimeoutExpired:
+            continue
+
+
 def _answering(server: NameServer | None) -> NameServer | None:
     """`server` (the user's configured one) if it answers as a name server, else None."""
     if server is None:
@@ -201,6 +215,7 @@ class YarpNetwork:
                     stdin=subprocess.DEVNULL,
                     stdout=log,
                     stderr=subprocess.STDOUT,
+                    start_new_session=True,  # a launcher script and the server: one group
                 )
         elif server.origin == "given":
             self._private(server)
@@ -250,12 +265,7 @@ class YarpNetwork:
             self._initialised = False
             self.yarp.Network.fini()
         if self._own is not None:
-            self._own.terminate()
-            try:
-                self._own.wait(timeout=5)
-            except subprocess.TimeoutExpired:
-                self._own.kill()
-                self._own.wait()
+            _stop_group(self._own)
             self._own = None
         if self._folder is not None:
             self._folder.cleanup()
