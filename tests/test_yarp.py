@@ -517,3 +517,26 @@ def test_beside_a_session_a_reader_sees_every_state_and_the_session_is_unchanged
             if proc is not None:
                 proc.terminate()
                 proc.communicate(timeout=120)
+
+
+def test_streamed_position_commands_move_only_through_the_operator_bridge(world: World) -> None:
+    for remote, moves in (("/icubSim/left_arm", False), ("/op/left_arm", True)):
+        board = Board(remote, f"/test/direct{remote.replace('/', '_')}")
+        try:
+            direct = board.driver.viewIPositionDirect()
+            start = world.arm().position[ELBOW]
+            goal = math.degrees(start) + (8 if start < 1.0 else -8)
+            for _ in range(5):  # a stream: the first may go before the connection carries it
+                direct.setPosition(ELBOW, goal)
+                time.sleep(0.05)
+            if moves:
+                until(
+                    lambda goal=goal: abs(world.arm().position[ELBOW] - math.radians(goal)) < 0.01,
+                    20,
+                    "the streamed command on the mesh",
+                )
+            else:
+                time.sleep(0.5)
+                assert world.arm().position[ELBOW] == pytest.approx(start, abs=1e-3)
+        finally:
+            board.close()

@@ -381,8 +381,12 @@ class ControlBoard:
         """Streamed commands (`CommandMessage`: a head bottle, then the values): position direct
         and position moves go to the part's `command:i`; anything else, or any on a read-only
         bridge, is refused with a log line (at most one a second)."""
-        publisher = self.link.node.publisher(
-            self.link.node.keys.command(self.link.part), JointCommand
+        node = self.link.node
+        # read-only: no command path at all (no publisher on the part's command:i)
+        publisher = (
+            node.publisher(node.keys.command(self.link.part), JointCommand)
+            if self.operator
+            else None
         )
         last_log = 0.0
         while not self._closing.is_set():
@@ -396,6 +400,7 @@ class ControlBoard:
                 if np.any(radians < low[joints]) or np.any(radians > high[joints]):
                     raise BadCommand("a value lies outside the joint's limits")
                 names = [self.link.names[j] for j in joints]
+                assert publisher is not None  # `_streamed` refuses every command read-only
                 publisher.put(
                     JointCommand(part=self.link.part, position=radians.tolist(), names=names)
                 )
