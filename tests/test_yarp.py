@@ -540,3 +540,36 @@ def test_streamed_position_commands_move_only_through_the_operator_bridge(world:
                 assert world.arm().position[ELBOW] == pytest.approx(start, abs=1e-3)
         finally:
             board.close()
+
+
+def test_a_failure_inside_an_answer_is_a_fail_bottle_and_the_port_goes_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from archery.apps.yarp.controlboard import serve_rpc
+
+    closing = threading.Event()
+    replies: list[str] = []
+
+    class Port:
+        """Two requests, then the port closes."""
+
+        def __init__(self) -> None:
+            self.left = ["[get] [axes]", "[get] [encs]"]
+
+        def read(self, request: Any, wait: bool) -> bool:
+            request.fromString(self.left.pop(0))
+            if not self.left:
+                closing.set()
+            return True
+
+        def reply(self, bottle: Any) -> None:
+            replies.append(bottle.toString())
+
+    def respond(request: Any, reply: Any) -> None:
+        if request.get(1).asVocab32() == yarp.createVocab32("e", "n", "c", "s"):
+            raise RuntimeError("a failure of the answer")
+        reply.addString("fine")
+
+    serve_rpc(yarp, Port(), respond, closing, "/test/rpc:i")
+    assert replies == ["fine", "[fail]"]
+    assert "'[get] [encs]' failed" in caplog.text and "a failure of the answer" in caplog.text

@@ -14,7 +14,7 @@ import math
 import os
 import socket
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from archery.protocol.parts import PARTS
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 
-__all__ = ["ControlBoard", "PartLink", "close_port", "joint_data", "open_port"]
+__all__ = ["ControlBoard", "PartLink", "close_port", "joint_data", "open_port", "serve_rpc"]
 
 log = logging.getLogger("archery.yarp")
 
@@ -65,6 +65,29 @@ def open_port(yarp: Any, port: Any, name: str) -> Any:
             return port
         yarp.Network.unregisterName(name)
     raise ArcheryError(f"YARP port {name} did not open (is the name server reachable?)")
+
+
+def serve_rpc(
+    yarp: Any,
+    port: Any,
+    respond: Callable[[Any, Any], None],
+    closing: threading.Event,
+    name: str,
+) -> None:
+    """Answer `port`'s requests with `respond(request, reply)` until `closing` is set: one at a
+    time, in order, like a YARP RPC server. A failure inside `respond` is a `[fail]` reply and
+    one logged error (the request quoted), and the port goes on serving."""
+    while not closing.is_set():
+        request, reply = yarp.Bottle(), yarp.Bottle()
+        if not port.read(request, True):
+            continue
+        try:
+            respond(request, reply)
+        except Exception:
+            log.exception("%s: %s failed", name, shown(request.toString()))
+            reply.clear()
+            reply.addVocab32(v.FAIL)
+        port.reply(reply)
 
 
 def close_port(yarp: Any, port: Any) -> None:
@@ -210,13 +233,7 @@ class ControlBoard:
 
     # -- rpc:i -----------------------------------------------------------------------------------
     def _serve(self) -> None:
-        yarp = self.yarp
-        while not self._closing.is_set():
-            request, reply = yarp.Bottle(), yarp.Bottle()
-            if not self.rpc.read(request, True):
-                continue
-            self.respond(request, reply)
-            self.rpc.reply(reply)
+        serve_rpc(self.yarp, self.rpc, self.respond, self._closing, f"{self.name}/rpc:i")
 
     def respond(self, request: Any, reply: Any) -> None:
         """Answer one control board request into `reply` (`[fail]` for what it refuses)."""
@@ -405,7 +422,7 @@ class ControlBoard:
                     JointCommand(part=self.link.part, position=radians.tolist(), names=names)
                 )
                 self.counts["commands"] += 1
-            except (BadCommand, ArcheryError) as exc:
+            except Exception as exc:  # refused: a bad command, the mesh's error, or a failure
                 self.counts["refused"] += 1
                 now = self.yarp.Time.now()
                 if now - last_log >= 1.0:

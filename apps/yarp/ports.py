@@ -19,7 +19,7 @@ from typing import Any
 
 import msgspec
 
-from archery.apps.yarp.controlboard import close_port, open_port
+from archery.apps.yarp.controlboard import close_port, open_port, serve_rpc
 from archery.mesh.node import Node
 from archery.protocol.errors import ArcheryError
 from archery.protocol.messages import Detection, Image, WorldEvent
@@ -89,13 +89,7 @@ class ArcheryPort:
         self._thread.start()
 
     def _serve(self) -> None:
-        yarp = self.yarp
-        while not self._closing.is_set():
-            request, reply = yarp.Bottle(), yarp.Bottle()
-            if not self.port.read(request, True):
-                continue
-            self.respond(request, reply)
-            self.port.reply(reply)
+        serve_rpc(self.yarp, self.port, self.respond, self._closing, self.name)
 
     def respond(self, request: Any, reply: Any) -> None:
         """Answer one request: `ok key value …` or `fail code message`."""
