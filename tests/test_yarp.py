@@ -13,7 +13,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +29,7 @@ from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import SERVICES
 from archery.services.learner.journal import read_records
 from tests.conftest import archery
+from tests.ros2_sdk import until
 from tests.yarp_setup import YarpSetup
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
@@ -42,17 +43,6 @@ def _exit_statuses() -> None:
     """In a process where YARP's devices have run, children's exit statuses read 0 (YARP's
     library changes SIGCHLD's handling): the default comes back before a test reads one."""
     signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-
-
-def until(what: Callable[[], Any], timeout: float, why: str) -> Any:
-    """Wait for `what()` to be truthy (polling), else fail naming `why`."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = what()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {why}")
 
 
 class World:
@@ -166,7 +156,7 @@ class Board:
 
     def read(self) -> list[float]:
         values = yarp.Vector(self.axes)
-        until(lambda: self.encoders.getEncoders(values.data()), 10, "the encoders")
+        until(lambda: self.encoders.getEncoders(values.data()), "the encoders", timeout=10)
         return [values[i] for i in range(self.axes)]
 
     def close(self) -> None:
@@ -200,11 +190,11 @@ def test_remote_controlboard_moves_a_joint_the_mesh_sees_in_radians(world: World
         assert board.position.positionMove(ELBOW, goal)
         until(
             lambda: abs(world.arm().position[ELBOW] - math.radians(goal)) < math.radians(0.5),
-            20,
             "the elbow at its goal on the mesh's state:o",
+            timeout=20,
         )
         done = yarp.BVector(1)
-        until(lambda: board.position.checkMotionDone(done) and done[0], 20, "motion done")
+        until(lambda: board.position.checkMotionDone(done) and done[0], "motion done", timeout=20)
         assert board.read()[ELBOW] == pytest.approx(goal, abs=0.5)
         # outside the limits: refused, nothing moves
         low, high = yarp.DVector(1), yarp.DVector(1)
@@ -220,7 +210,7 @@ def test_an_image_port_reads_the_target_camera(world: World) -> None:
     assert port.open("/test/frames:i")
     try:
         assert yarp.Network.connect("/icubSim/cam/target:o", "/test/frames:i")
-        image = until(lambda: port.read(False), 30, "a frame")
+        image = until(lambda: port.read(False), "a frame", timeout=30)
         assert (image.width(), image.height()) == (1280, 720)
         pixels = np.zeros((720, 1280, 3), dtype=np.uint8)
         view = yarp.ImageRgb()
@@ -532,8 +522,8 @@ def test_streamed_position_commands_move_only_through_the_operator_bridge(world:
             if moves:
                 until(
                     lambda goal=goal: abs(world.arm().position[ELBOW] - math.radians(goal)) < 0.01,
-                    20,
                     "the streamed command on the mesh",
+                    timeout=20,
                 )
             else:
                 time.sleep(0.5)

@@ -19,7 +19,8 @@ from archery.mesh.netflags import NetConfig
 from archery.mesh.node import open_node
 from archery.mesh.router import free_tcp_endpoint
 from archery.protocol.messages import JointState
-from tests.test_yarp import ARM, ELBOW, Board, until
+from tests.ros2_sdk import until
+from tests.test_yarp import ARM, ELBOW, Board
 from tests.yarp_setup import YarpSetup
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
@@ -96,8 +97,8 @@ def test_the_viewer_bridge_reads_and_moves_nothing_the_operator_bridge_moves(
         assert operator.position.positionMove(ELBOW, goal)
         until(
             lambda: abs(mesh.elbow() - math.radians(goal)) < math.radians(0.5),
-            20,
             "the operator's move on the mesh",
+            timeout=20,
         )
     finally:
         operator.close()
