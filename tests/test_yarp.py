@@ -563,3 +563,51 @@ def test_a_failure_inside_an_answer_is_a_fail_bottle_and_the_port_goes_on(
     serve_rpc(yarp, Port(), respond, closing, "/test/rpc:i")
     assert replies == ["fine", "[fail]"]
     assert "'[get] [encs]' failed" in caplog.text and "a failure of the answer" in caplog.text
+
+
+def test_a_read_only_control_board_declares_no_command_path(world: World) -> None:
+    """Read-only, a part's control board opens no publisher on the part's `command:i` (the
+    operator's does), so no command of YARP's can reach the robot through it."""
+    from archery.apps.yarp.controlboard import ControlBoard, PartLink
+
+    for operator in (False, True):
+        node = open_node(world.net, 30)
+        board = ControlBoard(
+            yarp, PartLink(node, ARM, 5.0), f"/unit{int(operator)}", operator=operator
+        )
+        sender = yarp.BufferedPortBottle()
+        try:
+            command = node.keys.command(ARM)
+
+            def declared(node: Node = node, command: str = command) -> list[Any]:
+                return [p for p in node.describe().ports if p.key == command]
+
+            if operator:
+                assert until(declared, "the operator's publisher", timeout=10)[0].kind == "pub"
+                continue
+            # a streamed command refused: the command thread has run past where it would declare
+            assert sender.open(f"/test/sender{time.monotonic_ns()}")
+            assert yarp.Network.connect(sender.getName(), f"{board.name}/command:i")
+
+            def refusing(sender: Any = sender, counts: dict[str, int] = board.counts) -> bool:
+                return _send(sender) and counts["refused"] >= 3
+
+            until(refusing, "refusals", timeout=10)
+            assert not declared()
+            assert board._threads[1].is_alive()  # the refusals' thread goes on
+        finally:
+            sender.close()
+            board.close()
+            node.close()
+
+
+def _send(port: Any) -> bool:
+    """One streamed position command (`[dpos]` then the values) on `port`; True."""
+    message = port.prepare()
+    message.clear()
+    message.addList().addVocab32(yarp.createVocab32("d", "p", "o", "s"))
+    values = message.addList()
+    for _ in PARTS[ARM]:
+        values.addFloat64(0.0)
+    port.write()
+    return True

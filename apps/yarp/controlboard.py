@@ -14,6 +14,7 @@ import math
 import os
 import socket
 import threading
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -424,7 +425,7 @@ class ControlBoard:
                 self.counts["commands"] += 1
             except Exception as exc:  # refused: a bad command, the mesh's error, or a failure
                 self.counts["refused"] += 1
-                now = self.yarp.Time.now()
+                now = time.monotonic()
                 if now - last_log >= 1.0:
                     last_log = now
                     log.warning(
