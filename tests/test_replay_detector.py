@@ -100,8 +100,9 @@ def test_replayed_frames_give_the_recorded_detections(
         fresh_keys = Keys(fresh.robot)
         with serving(run_detector, config), Node(None, fresh) as node:
             node.wait_alive(["detector"], timeout=30)
-            worst, _ = remeasure(node, hits)
+            worst, _, absent = remeasure(node, hits)
             assert worst <= 1e-3  # 1 mm
+            assert absent == 0  # every measured frame was recorded
             status = rpc_call(node, fresh_keys.detector_rpc(), "status", timeout=10)
             assert status["calibrated"]
             with pytest.raises(RpcError, match="a replay serves the recorded camera frames") as no:
