@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from archery.apps.yarp.network import stop_group
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node, open_node
 from archery.mesh.router import free_tcp_endpoint
@@ -284,8 +285,7 @@ def test_yarp_cli_lists_reads_and_drives_the_ports(world: World) -> None:
         assert len(angles) == len(PARTS[ARM])
         assert angles[ELBOW] == pytest.approx(math.degrees(world.arm().position[ELBOW]), abs=1.0)
     finally:
-        os.killpg(reader.pid, signal.SIGTERM)
-        reader.communicate(timeout=30)
+        stop_group(reader)
     out = world.yarp_cli("rpc", "/op/archery/rpc:i", stdin="status\n")
     assert "Response: ok" in out and "shot" in out
 

@@ -33,6 +33,7 @@ __all__ = [
     "YarpNetwork",
     "free_server_port",
     "parse_server",
+    "stop_group",
     "user_server",
 ]
 
@@ -161,9 +162,10 @@ def _yarpserver() -> str:
     return found
 
 
-def _stop_group(proc: subprocess.Popen[bytes]) -> None:
+def stop_group(proc: subprocess.Popen[Any]) -> None:
     """Stop `proc` and what it started (a Python launcher of YARP's tools runs the tool as its
-    child): SIGTERM to its process group, SIGKILL after 5 s."""
+    child): SIGTERM to its process group, SIGKILL after 5 s (a tool that closes its ports
+    slowly, as `yarp read` can on a loaded machine, does not hold up its caller)."""
     for sig, wait in ((signal.SIGTERM, 5.0), (signal.SIGKILL, None)):
         with contextlib.suppress(ProcessLookupError):
             os.killpg(proc.pid, sig)
@@ -265,7 +267,7 @@ class YarpNetwork:
             self._initialised = False
             self.yarp.Network.fini()
         if self._own is not None:
-            _stop_group(self._own)
+            stop_group(self._own)
             self._own = None
         if self._folder is not None:
             self._folder.cleanup()
