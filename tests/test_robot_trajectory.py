@@ -1,6 +1,7 @@
 """The robot's trajectories in its own loop, without the mesh: waypoints followed at their
 simulated times, a bad trajectory refused before anything moves, other moves refused while one
-plays, and the aborts (path tolerance, a lease taken over) holding the part where it is."""
+plays, the aborts (path tolerance, a lease taken over) holding the part where it is, and at rtf
+0 the reply held until the robot rests."""
 
 from __future__ import annotations
 
@@ -77,6 +78,20 @@ def test_the_timing_holds_at_real_time_too(start: Any) -> None:
     loop, _ = start(rtf=4.0)
     reply = _play(loop, _elbow_path(HOME[ELBOW] + 0.3, step=1.0))
     assert 1.0 <= reply.ended - reply.started < 1.1
+
+
+def test_at_rtf_0_the_reply_comes_at_rest_at_a_simulated_time_of_its_own(start: Any) -> None:
+    # the next command (a release) then finds the joints settled where the simulation put
+    # them, not where they were when the wall clock delivered it: same-seed runs stay identical
+    ends = []
+    for _ in range(2):
+        loop, _ = start(rtf=0.0)
+        reply = _play(loop, _elbow_path(HOME[ELBOW] + 0.3, step=0.4))
+        assert loop.motion_done(ARM)
+        ends.append((reply.ended, reply.goal_error, loop.positions(ARM).position))
+    assert ends[0][0] == ends[1][0] and ends[0][1] == ends[1][1]
+    assert np.array_equal(ends[0][2], ends[1][2])
+    assert ends[0][1] < 0.02  # settled, nearer its goal than the tolerance that ended it
 
 
 @pytest.mark.parametrize(

@@ -188,7 +188,8 @@ class ClaimReply(Reply, frozen=True):
 # (times not increasing from > 0, NaN, more than MAX_TRAJECTORY_POINTS, a joint of another
 # part, outside the limits, rows of the wrong length, an action outside the times) is refused
 # with `bad_trajectory` before anything moves. A new trajectory or command for a part that plays
-# one is refused (`busy`) until it ends. The reply comes once it has ended: a waiting verb, so
+# one is refused (`busy`) until it ends. The reply comes once it has ended (at rtf 0 once the
+# robot also rests, as a release's: `ended` is then that simulated time): a waiting verb, so
 # the caller's timeout must cover its duration in wall time (duration ÷ rtf).
 TrajTimes = Annotated[
     list[float],

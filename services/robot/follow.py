@@ -86,6 +86,8 @@ class Follower:
         leases: the parts' leases (a lease that ends or changes owner aborts a trajectory).
         shots: runs the actions (grasp, nock).
         published: called after an action changed the world (publishes its state).
+        wait_for_rest: hold an ended trajectory's reply until the robot rests (rtf 0), as a
+            landing's: the next command then finds the joints settled, not wall-clock timed.
     """
 
     def __init__(
@@ -95,13 +97,16 @@ class Follower:
         leases: Leases,
         shots: Shots,
         published: Callable[[], None],
+        wait_for_rest: bool = False,
     ) -> None:
         self._world = world
         self._limits = limits
         self._leases = leases
         self._shots = shots
         self._published = published
+        self._wait_for_rest = wait_for_rest
         self._playing: list[Playing] = []
+        self._settling: list[Playing] = []  # ended; their replies go out at rest
 
     def plays(self, part: str) -> bool:
         """True while a trajectory moves `part` (it then refuses other moves: `busy`)."""
@@ -238,7 +243,7 @@ class Follower:
             return
         goal_error = float(np.max(np.abs(positions - p.path.goal)))
         if goal_error <= p.goal_tolerance:
-            self._finish(p, goal_error)
+            self._finish(p)
         elif since > p.path.duration + p.goal_time:
             raise TrajectoryAborted(
                 f"a joint ended {goal_error:.3f} rad from the goal {p.goal_time:g} s after the "
@@ -246,19 +251,33 @@ class Follower:
                 code=GOAL_TOLERANCE,
             )
 
-    def _finish(self, p: Playing, goal_error: float) -> None:
+    def _finish(self, p: Playing) -> None:
         self._playing.remove(p)
         self._world.unplay(p)
+        if self._wait_for_rest:
+            self._settling.append(p)
+        else:
+            self._reply(p)
+
+    def _reply(self, p: Playing) -> None:
+        positions = self._world.positions_of(p.joints)
         p.reply.set_result(
             rv.TrajectoryReply(
                 parts=list(p.names),
                 started=p.start,
                 ended=self._world.sim_time,
                 path_error=p.path_error,
-                goal_error=goal_error,
+                goal_error=float(np.max(np.abs(positions - p.path.goal))),
                 actions=p.ran,
             )
         )
+
+    def at_rest(self) -> None:
+        """The robot rests and has published so: the held replies of ended trajectories go
+        out (their `ended` the simulated time of the rest)."""
+        settling, self._settling = self._settling, []
+        for p in settling:
+            self._reply(p)
 
     def _abort(self, p: Playing, exc: ArcheryError) -> None:
         """Stop `p` with `exc`, every part of it held where it is."""
@@ -272,7 +291,9 @@ class Follower:
             p.reply.set_exception(exc)
 
     def abort_all(self, why: str, unavailable: bool = False) -> None:
-        """Abort every trajectory (a reset, `bad_state`; the loop's end, `unavailable`)."""
+        """Abort every trajectory (a reset, `bad_state`; the loop's end, `unavailable`); those
+        that ended and wait for the rest are answered now."""
+        self.at_rest()
         for p in list(self._playing):
             exc: ArcheryError = SimUnavailable(why) if unavailable else StateError(why)
             self._abort(p, exc)

@@ -87,7 +87,12 @@ class SimLoop:
             self._physics, self._jobs, self._pacing, self._streams, self._shots, config
         )
         self._follower = Follower(
-            world, self.limits, self.leases, self._shots, self._physics.publish_world
+            world,
+            self.limits,
+            self.leases,
+            self._shots,
+            self._physics.publish_world,
+            wait_for_rest=config.rtf == 0,
         )
         self._physics.follower = self._follower
         self._world = WorldJobs(

@@ -143,6 +143,8 @@ class SimThread:
             self._physics.publish_joints()  # the final state shows motion_done at once
             self._physics.publish_world()
             self._shots.at_rest()  # the release's reply, now at rest
+            if self._physics.follower is not None:
+                self._physics.follower.at_rest()  # an ended trajectory's, likewise
         if self._jobs.wait(self._pacing.idle_wait()):
             self._jobs.drain()  # a command that starts a motion: `run` awaits its batch
             return
