@@ -41,9 +41,16 @@ DEFAULT_THETA0 = THETA0
 # Learner options for the MuJoCo robot, under the caller's own. Its hands move the arrow about
 # 11 m on the target per m of θ (aim) and 1-2 m per m of draw, so the analytic model's 10-20 mm
 # of exploration would scatter the first arrows off the 25 cm face: 3 mm scatters them ~3.5 cm.
-# ARCHER's trust radius starts at 2 cm (22 cm on the target) and never exceeds 4 cm.
+# ARCHER explores the aim 5 mm (~5.5 cm on the target, about 9 times the bow's shot noise, so
+# its regression of Eq. 5 is not led by the noise), the draw 3 mm; its trust radius starts at
+# 2 cm (22 cm on the target) and never exceeds 4 cm.
 _EXPLORE = {"explore_std": 0.003}
-_ARCHER = {"explore_std": 0.003, "trust_radius": 0.02, "max_step": 0.04, "fallback_std": 0.002}
+_ARCHER = {
+    "explore_std": (0.003, 0.005, 0.005),
+    "trust_radius": 0.02,
+    "max_step": 0.04,
+    "fallback_std": 0.002,
+}
 ROBOT_OPTIONS: Mapping[str, Mapping[str, Any]] = MappingProxyType(
     {
         "archer": _ARCHER,
