@@ -1,7 +1,8 @@
 """The whole shot end to end over a real router with the five real services as processes: the
 robot runs `--shot whole`, so every rollout of ARCHER's session grasps the arrow from its
 holder, nocks it and draws it, playing the shipped demonstration's DMPs towards the archery
-posture for θ, before the release, and the controller's posture for θ refines the aim."""
+posture for θ, before the release, and the controller's posture for θ refines the aim; a seed
+replays a session bit for bit."""
 
 from __future__ import annotations
 
@@ -90,3 +91,19 @@ def test_every_learner_runs_its_rollouts_as_whole_shots(mesh: Launcher, algo: st
     assert final["state"] == "finished" and final["rollouts"] == 3, final
     done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
     assert len(done) == 3 and all(r.timing["movement_sim_s"] > 0 for r in done)
+
+
+def test_a_seed_replays_the_same_whole_shot_session_bit_for_bit(mesh: Launcher) -> None:
+    # at rtf 0 the movement's reply waits until the arms rest: the release never finds them at
+    # a point of their settling that the wall clock chose
+    runs = []
+    with Node(None, mesh.net) as node:
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        node.wait_alive(SERVICES, timeout=60)
+        for _ in range(2):
+            request = {"algo": "archer", "seed": 2, "rollouts": 4, "until_hit": False}
+            started = rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)
+            final = follow(node, started["session"], rollouts, lambda m: None)
+            done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
+            runs.append([(r.theta, r.r_m, r.truth_r_m, r.theta_launched) for r in done])
+    assert len(runs[0]) == 4 and runs[0] == runs[1]
