@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from archery.apps.waits import announce, interrupted_line
-from archery.mesh.cliargs import ArgumentParser, seconds
+from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_output_file, seconds
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.mesh.node import Node, open_node
 from archery.protocol.demonstration import (
@@ -225,9 +225,10 @@ def _teach(node: Node, theta: np.ndarray, timeout: float) -> None:
 
 
 def _record(args: argparse.Namespace) -> int:
-    out: Path = args.out
-    if not out.parent.is_dir():
-        print(f"archery {PROG}: --out {out}: no folder {out.parent}", file=sys.stderr)
+    try:
+        out = check_output_file(args.out, "--out", (".json",), force=args.force)
+    except ConfigError as exc:
+        print(f"archery {PROG}: {exc.message}", file=sys.stderr)
         return BAD_INPUT
     try:
         theta = parse_vector("--theta", args.theta, ConfigError, unit="m")
@@ -278,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     what = parser.add_mutually_exclusive_group(required=True)
     what.add_argument("--out", type=Path, metavar="DEMO.json", help="record into this file")
     what.add_argument("--check", type=Path, metavar="FILE", help="check this file")
+    add_force_arg(parser, "an existing --out file")
     parser.add_argument(
         "--timeout", type=seconds, default=600.0, help="wall s to wait for the shot to end"
     )

@@ -2,6 +2,8 @@
 
 Each check fails with one line naming the bad value: argparse types raise
 `argparse.ArgumentTypeError` (argparse prints usage and exits 2), the others `ConfigError`.
+A path a verb writes is checked before any work (`check_output_file`, `check_new_folder`,
+`check_writable_dir`): nothing is created or replaced by the check.
 """
 
 from __future__ import annotations
@@ -11,18 +13,23 @@ import json
 import math
 import os
 import re
-from collections.abc import Callable
+import stat
+import tempfile
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from archery.mesh.regular_file import file_kind
 from archery.protocol.errors import ConfigError
 
 __all__ = [
     "IMAGE_EXTENSIONS",
     "MAX_SECONDS",
     "ArgumentParser",
-    "check_image_path",
+    "add_force_arg",
     "check_new_file",
+    "check_new_folder",
+    "check_output_file",
     "check_writable_dir",
     "clean_zenoh_error",
     "count",
@@ -119,17 +126,6 @@ def loads_finite(text: str, what: str) -> Any:
         raise ConfigError(f"{what} {text!r}: {exc}") from None
 
 
-def check_image_path(path: str, flag: str = "--out") -> None:
-    """Raise ConfigError unless `path` ends in an image extension and its folder exists."""
-    suffix = Path(path).suffix.lower()
-    if suffix not in IMAGE_EXTENSIONS:
-        raise ConfigError(
-            f"{flag} {path!r}: unknown image extension {suffix or '(none)'!r}; "
-            f"use one of {', '.join(IMAGE_EXTENSIONS)}"
-        )
-    check_writable_dir(Path(path).parent, f"{flag} {path!r}: folder", create=False)
-
-
 def check_writable_dir(path: Path, what: str, *, create: bool) -> None:
     """Raise ConfigError unless `path` is (or, with `create`, can be made) a writable folder."""
     path = Path(path) if str(path) else Path(".")
@@ -148,6 +144,90 @@ def check_new_file(path: Path, flag: str) -> None:
     """Raise ConfigError when `path` exists but is not a folder (a folder of outputs is wanted)."""
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{flag} {str(path)!r} is an existing file; give a folder")
+
+
+def _folder_refusal(folder: Path) -> str | None:
+    """Why nothing can be written in `folder`, or None: it is missing, not a folder, or a
+    probe file cannot be created in it (so a read-only mount or /proc refuses root too)."""
+    shown = repr(str(folder))
+    if not folder.exists():
+        return f"no folder {shown}; create it first or give another path"
+    if not folder.is_dir():
+        return f"{shown} is not a folder; give a path in an existing folder"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return f"the folder {shown} is not writable; give a path in a writable folder"
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".archery-probe-", dir=folder)
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        return f"cannot create a file in the folder {shown} ({reason}); give a writable folder"
+    os.close(fd)
+    os.unlink(probe)
+    return None
+
+
+def add_force_arg(parser: argparse.ArgumentParser, what: str = "an existing output file") -> None:
+    """The `--force` flag of a verb that writes a file: without it, `check_output_file`
+    refuses to replace one."""
+    parser.add_argument("--force", action="store_true", help=f"replace {what}")
+
+
+def check_output_file(
+    path: str | os.PathLike[str], flag: str, extensions: Sequence[str], *, force: bool
+) -> Path:
+    """`path` as a Path, when it is a place to write a file of one of `extensions` (lower
+    case, with their dot): not a folder, its extension one of them, its folder existing and
+    writable, and no file there unless `force` (then a regular file that may be replaced).
+    Checked before any work; nothing is created or replaced.
+
+    Raises:
+        ConfigError: one line naming `flag`, the value and what to give instead.
+    """
+    out = Path(path)
+    named = f"{flag} {str(path)!r}"
+    endings = ", ".join(extensions[:-1]) + (" or " if len(extensions) > 1 else "") + extensions[-1]
+    if out.is_dir():
+        example = str(out / f"NAME{extensions[0]}")
+        raise ConfigError(f"{named} is a folder; give a file name, e.g. {example!r}")
+    if out.suffix.lower() not in extensions:
+        raise ConfigError(
+            f"{named}: give a file name ending in {endings} (not {out.suffix or '(none)'!r})"
+        )
+    why = _folder_refusal(out.parent if str(out.parent) else Path("."))
+    if why is not None:
+        raise ConfigError(f"{named}: {why}")
+    try:
+        mode = os.stat(out).st_mode
+    except FileNotFoundError:
+        return out
+    except OSError as exc:
+        raise ConfigError(f"{named}: {exc.strerror or exc}; give another name") from None
+    if not stat.S_ISREG(mode):
+        raise ConfigError(f"{named} is {file_kind(mode)}; give a regular file's name")
+    if not force:
+        raise ConfigError(f"{named} exists; give --force to replace it, or another name")
+    if not os.access(out, os.W_OK):
+        raise ConfigError(f"{named} exists and is not writable; give another name")
+    return out
+
+
+def check_new_folder(path: str | os.PathLike[str], flag: str) -> Path:
+    """`path` as a Path, when it is a folder to create: nothing there yet (a file or folder is
+    refused), its parent an existing, writable folder. Nothing is created.
+
+    Raises:
+        ConfigError: one line naming `flag`, the value and what to give instead.
+    """
+    out = Path(path)
+    named = f"{flag} {str(path)!r}"
+    if out.is_dir():
+        raise ConfigError(f"{named}: a folder of that name exists; give a new folder")
+    if out.exists():
+        raise ConfigError(f"{named} is an existing file; give a new folder")
+    why = _folder_refusal(out.parent if str(out.parent) else Path("."))
+    if why is not None:
+        raise ConfigError(f"{named}: {why}")
+    return out
 
 
 def clean_zenoh_error(exc: BaseException | str) -> str:
