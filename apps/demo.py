@@ -112,7 +112,7 @@ def run_demo(args: argparse.Namespace, console: Console) -> int:
     if args.shot == "whole":  # the film shows the movement as recorded: the journal has θ only
         recording = runs / "logs" / "whole-shot.mcap"
         robot = launcher.net.robot
-        argv = ["record", "--out", str(recording), "--no-transforms"]
+        argv = ["record", "--out", str(recording), "--no-transforms", "--force"]
         argv += [f"{robot}/world/state:o", f"{robot}/learner/rollout:o"]
         try:
             recorder = start_observer(launcher, "recorder", argv, b"archery record: recording")

@@ -30,7 +30,13 @@ from archery.apps.drills.router import router_outage
 from archery.apps.drills.verdict import DrillResult
 from archery.apps.progress import progress_bar
 from archery.apps.up.launch_config import SERVICES
-from archery.mesh.cliargs import ArgumentParser, check_writable_dir
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_output_file,
+    check_writable_dir,
+    count,
+)
 from archery.protocol.errors import ArcheryError, ConfigError
 
 __all__ = ["DRILLS", "QUICK", "Drill", "Drills", "main", "render", "run_drills"]
@@ -236,14 +242,17 @@ def build_parser() -> argparse.ArgumentParser:
     """The flags of `archery drill`."""
     parser = ArgumentParser(prog="archery drill", description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK)}")
-    parser.add_argument("--json", metavar="OUT", help="write the results as JSON to OUT")
+    parser.add_argument("--json", metavar="OUT", help="write the results as JSON to OUT (.json)")
+    add_force_arg(parser, "an existing --json file")
     parser.add_argument(
         "--only",
         action="append",
         metavar="NAME",
         help=f"run only this drill (repeatable): {', '.join(DRILLS)}",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the sessions and kill points")
+    parser.add_argument(
+        "--seed", type=count, default=0, help="seed of the sessions and kill points (>= 0)"
+    )
     parser.add_argument(
         "--workdir",
         metavar="DIR",
@@ -264,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
         names = list(dict.fromkeys(args.only))
     try:
         if args.json:
-            check_writable_dir(Path(args.json).parent, "--json's folder", create=False)
+            check_output_file(args.json, "--json", (".json",), force=args.force)
         if args.workdir:
             check_writable_dir(Path(args.workdir), "--workdir", create=True)
     except ConfigError as exc:

@@ -5,10 +5,11 @@ from the release to the target (`apps.film.framing`, rendered by `sim.scene_view
 SESSION is a session's folder or its `journal.jsonl`; with `--recording FILE.mcap` (an `archery
 record` of the session) the rollout is filmed as the recording saw it. Without `--rollout` it
 films the session's first hit into `shot.mp4` beside the journal; `--rollout N` films done
-rollout N into `rollout-N.mp4`; each video has its contact sheet beside it (`.png`), and its
-path is printed on stdout. Exit status 2 (one line on stderr): no such session, a journal of
-another version, a session without a hit and no `--rollout`, a rollout it does not have, a
-recording that does not cover the rollout (or is no recording).
+rollout N into `rollout-N.mp4` (`--out`: .mp4, .mkv or .mov); each video has its contact
+sheet beside it (`.png`), and its path is printed on stdout. Exit status 2 (one line on stderr),
+before anything is rendered: no such session, a journal of another version, a session without a
+hit and no `--rollout`, a rollout it does not have, a recording that does not cover the rollout
+(or is no recording), an output that is a folder, in no folder, or exists (without `--force`).
 """
 
 from __future__ import annotations
@@ -21,17 +22,27 @@ from typing import TYPE_CHECKING, Any
 
 from archery.apps.progress import progress_bar
 from archery.apps.topics.read_limits import add_max_bytes_arg
-from archery.mesh.cliargs import ArgumentParser, count
-from archery.protocol.errors import ArcheryError
+from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_output_file, count
+from archery.protocol.errors import ArcheryError, ConfigError
 from archery.protocol.exit_status import BAD_INPUT, OK, for_error
 from archery.protocol.text import cut
 
 if TYPE_CHECKING:  # imported where used: `learn` and `demo` import this module without MuJoCo
     from archery.apps.film.replay import FilmFrame, Rollout
 
-__all__ = ["FilmResult", "film_hit", "film_ready", "film_session", "hit_video", "main"]
+__all__ = [
+    "VIDEO_EXTENSIONS",
+    "FilmResult",
+    "check_video",
+    "film_hit",
+    "film_ready",
+    "film_session",
+    "hit_video",
+    "main",
+]
 
 SHEET_THUMB = (480, 270)  # px, one contact-sheet frame
+VIDEO_EXTENSIONS = (".mp4", ".mkv", ".mov")  # the containers that take `ShotVideo`'s H.264
 
 
 @dataclass(frozen=True)
@@ -91,11 +102,29 @@ def _pick(thumbs: list[tuple[str, object]]) -> list[object]:
     return [every[round(i * (len(every) - 1) / 5)] for i in range(6)]
 
 
+def check_video(video: Path, flag: str, *, force: bool) -> Path:
+    """The contact sheet's path (`video` with `.png`), once `video` is a place to write a
+    video (`mesh.cliargs.check_output_file`) and no sheet is there unless `force`.
+
+    Raises:
+        ConfigError: one line naming `flag` and the path.
+    """
+    check_output_file(video, flag, VIDEO_EXTENSIONS, force=force)
+    sheet = video.with_suffix(".png")
+    if sheet.is_dir() or (sheet.exists() and not force):
+        raise ConfigError(
+            f"{flag} {str(video)!r}: its contact sheet {str(sheet)!r} exists; give --force to "
+            "replace it, or another name"
+        )
+    return sheet
+
+
 def film_session(
     session: Path,
     rollout: int | None = None,
     *,
     out: Path | None = None,
+    force: bool = True,
     width: int = 960,
     height: int = 540,
     fps: int = 30,
@@ -114,7 +143,8 @@ def film_session(
     until the release, then follows the arrow to the target (`apps.film.framing.ShotCamera`);
     every frame (`width` × `height` px) is captioned with the phase, the simulated time, θ
     and, from the impact on, the measured r. The contact sheet holds six frames from the move
-    to the impact; unless `quiet`, a progress bar counts the frames on stderr.
+    to the impact; unless `quiet`, a progress bar counts the frames on stderr. Unless `force`,
+    an existing video or sheet is refused (`check_video`), before anything is rendered.
 
     Raises:
         ArcheryError (bad_journal, bad_request, bad_config): see the module's exit statuses.
@@ -132,7 +162,7 @@ def film_session(
     folder = session if session.is_dir() else session.parent
     name = "shot" if rollout is None else f"rollout-{target.done.rollout}"
     video_path = out or folder / f"{name}.mp4"
-    sheet_path = video_path.with_suffix(".png")
+    sheet_path = check_video(video_path, "--out" if out else "the video", force=force)
     replay = ShotReplay(target)
     source: ShotReplay | RecordedShot = replay
     if recording is not None:
@@ -223,7 +253,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="archery film", description=__doc__)
     parser.add_argument("session", type=Path, help="a session's folder or its journal.jsonl")
     parser.add_argument("--rollout", type=count, default=None, help="done rollout N (1-based)")
-    parser.add_argument("--out", type=Path, default=None, help="the video (default: see above)")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="the video: .mp4, .mkv, .mov (default: see above)"
+    )
+    add_force_arg(parser, "an existing video and its contact sheet")
     parser.add_argument(
         "--recording",
         type=Path,
@@ -236,6 +269,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=count, default=540, help="frame height (px, even)")
     parser.add_argument("--fps", type=count, default=30, help="video frames per second")
     args = parser.parse_args(argv)
+    if args.out is not None:
+        try:
+            check_video(args.out, "--out", force=args.force)
+        except ConfigError as exc:
+            print(f"archery film: {exc}", file=sys.stderr)
+            return BAD_INPUT
     from archery.sim.gl_backend import RenderBackendError, check
 
     try:
@@ -266,6 +305,7 @@ def main(argv: list[str] | None = None) -> int:
             args.session,
             args.rollout,
             out=args.out,
+            force=args.force,
             width=args.width,
             height=args.height,
             fps=args.fps,

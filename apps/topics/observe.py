@@ -19,7 +19,6 @@ import statistics
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -36,7 +35,13 @@ from archery.apps.topics.recording import (
     open_recording,
 )
 from archery.mesh.acl import REPLAY, VIEWER
-from archery.mesh.cliargs import ArgumentParser, check_writable_dir, count, seconds
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_output_file,
+    count,
+    seconds,
+)
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.mesh.node import Node
 from archery.mesh.patterns import check_pattern, stream_type
@@ -138,6 +143,7 @@ def record_main(argv: list[str] | None = None) -> int:
     add_nice_arg(parser, 0)
     parser.add_argument("patterns", nargs="*", metavar="KEY_PATTERN", help="e.g. icubSim/**")
     parser.add_argument("--out", required=True, help="the MCAP file to write (.mcap)")
+    add_force_arg(parser, "an existing recording")
     parser.add_argument("--duration", type=seconds, help="stop after this many seconds")
     parser.add_argument("--count", type=count, default=0, help="stop after N messages (0: no)")
     parser.add_argument(
@@ -162,10 +168,7 @@ def record_main(argv: list[str] | None = None) -> int:
         net = NetConfig.from_args(args).with_identity(VIEWER)
         patterns = args.patterns or [f"{net.robot}/**"]
         exprs = [check_pattern(p) for p in patterns]
-        out = Path(args.out)
-        if out.suffix != ".mcap":
-            raise ConfigError(f"--out {args.out!r}: give a file name ending in .mcap")
-        check_writable_dir(out.parent, f"--out {args.out!r}: folder", create=False)
+        out = check_output_file(args.out, "--out", (".mcap",), force=args.force)
     except ArcheryError as exc:
         return _fail("record", exc, 2)
     lower_priority(args.nice)

@@ -16,8 +16,10 @@ import zenoh
 from archery.apps.waits import announce, interrupted_line
 from archery.mesh.acl import VIEWER
 from archery.mesh.cliargs import (
+    IMAGE_EXTENSIONS,
     ArgumentParser,
-    check_image_path,
+    add_force_arg,
+    check_output_file,
     count,
     loads_finite,
     seconds,
@@ -492,13 +494,14 @@ def view_main(argv: list[str] | None = None) -> int:
     parser = _parser("view", "save the next image published on an image port")
     parser.add_argument("key")
     parser.add_argument("--out", required=True, help="image file to write (.png, .jpg, …)")
+    add_force_arg(parser)
     args = parser.parse_args(argv)
 
     def check() -> NetConfig:
         net = NetConfig.from_args(args).with_identity(VIEWER)
         if _stream_type(args.key) is not Image:
             raise KeyNameError(f"{args.key} does not carry images")
-        check_image_path(args.out)
+        check_output_file(args.out, "--out", IMAGE_EXTENSIONS, force=args.force)
         return net
 
     def body(net: NetConfig) -> int:

@@ -26,7 +26,15 @@ from archery.apps.up.launcher import Launcher, LaunchError, StartInterrupted
 from archery.apps.up.restart_policy import POLICIES, describe_status
 from archery.apps.up.supervisor import GiveUp, Supervisor
 from archery.apps.waits import announce
-from archery.mesh.cliargs import ArgumentParser, check_writable_dir, count, nonnegative, seconds
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_output_file,
+    check_writable_dir,
+    count,
+    nonnegative,
+    seconds,
+)
 from archery.mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
 from archery.mesh.signals import shutdown_on_signals
 from archery.protocol.errors import ConfigError
@@ -103,6 +111,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.mcap",
         help="record the whole run (every stream of the robot) into this MCAP file",
     )
+    add_force_arg(parser, "an existing --record file")
     parser.add_argument(
         "--foxglove",
         metavar="PORT",
@@ -133,13 +142,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subprocess.Popen[bytes]:
-    """An `archery record` child writing every stream of the first robot to `out` (its log
-    `LOGS/recorder.log`), started once it subscribes.
+    """An `archery record` child writing every stream of the first robot to `out` (checked,
+    and replaced if it exists: `archery up --force`), its log `LOGS/recorder.log`, started once
+    it subscribes.
 
     Raises:
         LaunchError: it exited or did not subscribe within `timeout` s.
     """
-    argv = ["record", "--out", out]
+    argv = ["record", "--out", out, "--force"]
     return start_observer(launcher, "recorder", argv, b"archery record: recording", timeout)
 
 
@@ -262,11 +272,7 @@ def main(argv: list[str] | None = None) -> int:
         check_robots(len(mesh.robots), args.allow_overload)
         check_writable_dir(Path(args.logs), "--logs", create=True)
         if args.record is not None:
-            if not args.record.endswith(".mcap"):
-                raise ConfigError(f"--record {args.record!r}: give a file name ending in .mcap")
-            check_writable_dir(
-                Path(args.record).parent, f"--record {args.record!r}: folder", create=False
-            )
+            check_output_file(args.record, "--record", (".mcap",), force=args.force)
         if args.ros2 is not None and not 0 <= args.ros2 <= 232:
             raise ConfigError(f"--ros2 {args.ros2}: give a ROS 2 domain id from 0 to 232")
         if mesh.router.start:  # the router's listen endpoint, checked before anything starts
