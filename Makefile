@@ -1,15 +1,22 @@
 # One command per job: `make demo` runs the main job, `make test` the test suite, `make compose`
 # the containers. Nothing is exported: every command runs as it would from a plain shell (the
-# product picks its rendering backend itself).
+# product picks its rendering backend itself). `make demo` needs no root, no compiler and no YARP:
+# it installs the package with `[all]` from wheels; the development tools (`[dev]`) and YARP
+# (built from source, ~7 minutes) come only with the targets that use them.
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 
-.PHONY: setup yarp demo test compose lint format bench bench-smoke wheel-check drills clean
+.PHONY: setup dev yarp demo test compose lint format bench bench-smoke wheel-check drills clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[all]'
+	touch $@
+
+# pytest, ruff, mypy and the tests' reference libraries
+$(VENV)/.dev: $(VENV)/.installed
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $@
 
@@ -19,42 +26,44 @@ $(VENV)/.yarp: $(VENV)/.installed tools/yarp_wheel.py
 	$(PY) tools/yarp_wheel.py
 	touch $@
 
-yarp: $(VENV)/.yarp
+setup: $(VENV)/.installed
 
-setup: $(VENV)/.installed $(VENV)/.yarp
+dev: $(VENV)/.dev
+
+yarp: $(VENV)/.yarp
 
 demo: setup
 	$(VENV)/bin/archery demo
 
-test: setup
+test: dev yarp
 	$(PY) -m pytest
 
 # The containers for real: images, docker-compose's demo, secure and fleet profiles, faults.
-compose: setup
+compose: dev
 	$(PY) -m tests.containers
 
-lint: setup
+lint: dev
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/mypy
 
-format: setup
+format: dev
 	$(VENV)/bin/ruff format .
 	$(VENV)/bin/ruff check --fix .
 
-bench: setup
+bench: dev
 	$(PY) -m benchmarks.run
 
 # Every benchmark at its smallest budget: they still run against today's code.
-bench-smoke: setup
+bench-smoke: dev
 	$(PY) -m benchmarks.run --smoke
 
 # The wheel as a user installs it: built, installed with [all] into a fresh venv outside the
 # checkout (not editable), `archery demo` run from another folder in a bare environment.
-wheel-check: setup
+wheel-check: dev
 	$(PY) -m tests.wheel_check
 
-drills: setup
+drills: dev
 	$(VENV)/bin/archery drill
 
 clean:

@@ -190,6 +190,22 @@ def _positive(text: str) -> int:
     return value
 
 
+def _check_demo_listen(endpoint: str) -> None:
+    """Raise ConfigError unless the demo's router may listen on `endpoint`: a valid endpoint on
+    this machine only (the demo takes neither --secure nor --insecure-network: a mesh that other
+    machines reach is `archery up`'s, with `archery learn` beside it)."""
+    try:
+        NetConfig(connect=(), listen=(endpoint,), mode="router")
+    except ConfigError as exc:
+        if "plain mode trusts every peer" not in str(exc):
+            raise
+        raise ConfigError(
+            f"--listen {endpoint}: the demo's mesh is for this machine only; give a loopback "
+            "endpoint (e.g. tcp/127.0.0.1:7447), or, for a mesh other machines reach, run "
+            "`archery up --secure DIR --listen tls/HOST:PORT` and `archery learn` beside it"
+        ) from None
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; exit status 0 when the ring was hit and everything stopped cleanly."""
     parser = ArgumentParser(prog="archery demo", description=__doc__)
@@ -217,7 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         if args.endpoint:
-            NetConfig(connect=(), listen=(args.endpoint,), mode="router")
+            _check_demo_listen(args.endpoint)
         check_writable_dir(Path(args.runs), "--runs", create=True)
         film_ready()  # the hit is filmed: a backend that cannot start fails now, not then
     except ConfigError as exc:

@@ -3,12 +3,14 @@
 `make bench` runs them at their recorded budgets; `make bench-smoke` (`--smoke`) runs each at
 its smallest budget (seconds; no figures or results written), so that a benchmark that no longer
 runs against today's code fails CI instead of waiting to be noticed. Each module's time is
-printed, and the slowest at the end.
+printed, and the slowest at the end. A benchmark whose engine is missing here (Docker, YARP) is
+skipped with one line naming what to install; CI, which installs both, runs every one.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import subprocess
 import sys
 import time
@@ -18,6 +20,22 @@ __all__ = ["MODULES", "main"]
 
 HERE = Path(__file__).parent
 MODULES = [*sorted(p.stem for p in HERE.glob("bench_*.py")), "drill_router"]
+
+
+def _docker_problem() -> str | None:
+    from tests.containers import engine_problem
+
+    return engine_problem()
+
+
+def _yarp_problem() -> str | None:
+    if importlib.util.find_spec("yarp") is None:
+        return "YARP's Python bindings are not installed (`make yarp` builds them, ~7 minutes)"
+    return None
+
+
+#: module -> the check of the engine it needs: None when it is here, else what to install
+ENGINES = {"bench_containers": _docker_problem, "bench_yarp": _yarp_problem}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,9 +48,15 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"no benchmark module {', '.join(unknown)}; they are: {', '.join(MODULES)}")
     failed: list[str] = []
+    skipped: list[str] = []
     took: dict[str, float] = {}
     begin = time.monotonic()
     for name in args.only or MODULES:
+        problem = ENGINES[name]() if name in ENGINES else None
+        if problem is not None:
+            print(f"\n=== {name}: skipped: {problem} ===", flush=True)
+            skipped.append(name)
+            continue
         print(f"\n=== {name}{' (smoke)' if args.smoke else ''} ===", flush=True)
         start = time.monotonic()
         argv_ = [sys.executable, "-m", f"benchmarks.{name}", *(["--smoke"] if args.smoke else [])]
@@ -47,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
         + ", ".join(f"{n} {took[n]:.0f} s" for n in slowest),
         flush=True,
     )
+    if skipped:
+        print(f"skipped (engine missing): {', '.join(skipped)}", flush=True)
     if failed:
         print(f"failed: {', '.join(failed)}", file=sys.stderr)
     return 1 if failed else 0

@@ -32,6 +32,7 @@ __all__ = [
     "MODES",
     "NetConfig",
     "add_network_args",
+    "check_server_host",
     "listens",
     "open_session",
 ]
@@ -257,14 +258,29 @@ def add_network_args(parser: argparse.ArgumentParser, *, default_mode: str = "cl
     group.add_argument(
         "--insecure-network",
         action="store_true",
-        help="plain mode only: allow --listen beyond loopback (anyone reaching it may move the "
-        "robot; prefer --secure)",
+        help="allow --listen (plain mode) or a server's --host beyond loopback (anyone reaching "
+        "it may see or move the robot; prefer --secure)",
     )
     group.add_argument(
         "--identity",
         metavar="NAME",
         help="with --secure: the identity to present (default: the service's name, "
         "`operator` for tools, `router` for the router)",
+    )
+
+
+def check_server_host(host: str, insecure_network: bool) -> None:
+    """Raise ConfigError (one line) when a local server (the dashboard, the Foxglove bridge) is
+    asked to listen on `host` beyond loopback without `--insecure-network`: the mesh's rule for
+    `--listen`, since these servers authenticate no one and a page or client that reaches them
+    sees the robot (and, with --operator, commands it)."""
+    if insecure_network or _loopback(f"tcp/{host}:0"):
+        return
+    raise ConfigError(
+        f"--host {host}: this server authenticates no one, and this address is reachable from "
+        "other machines. Listen on 127.0.0.1 (the default; reach it from elsewhere through an "
+        "SSH tunnel), or give --insecure-network on a network you trust (e.g. a container "
+        "network)"
     )
 
 

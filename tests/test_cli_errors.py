@@ -215,14 +215,17 @@ CASES: list[tuple[str, int, str]] = [
     ("export README.md --ros2 {tmp}/bag2", 2, "is not an MCAP file"),
     # foxglove
     ("foxglove --port {busy} {net}", 2, "--port {busy}: already in use on 127.0.0.1"),
-    ("foxglove --host 192.0.2.1 --port 0 {net}", 2, "not an address of this machine"),
+    ("foxglove --host 192.0.2.1 --port 0 --insecure-network {net}", 2, "not an address of this"),
+    ("foxglove --host 0.0.0.0 --port 0 {net}", 2, "--host 0.0.0.0: this server authenticates"),
+    ("foxglove --host :: --port 0 {net}", 2, "or give --insecure-network"),
     ("foxglove --port 70000 {net}", 2, "--port 70000: give a port number from 0 to 65535"),
     ("foxglove --port 0 --wait 1 --connect {dead}", 1, "{dead}"),
     ("foxglove --layout {tmp}/layout.txt", 2, "ending in .json"),
     # dashboard
     ("dashboard --port {busy} {net}", 2, "--port {busy}: address 127.0.0.1:{busy} is in use"),
     ("dashboard --host nohost --port 0 {net}", 2, "--host 'nohost' is not an IP address"),
-    ("dashboard --host 192.0.2.1 --port 0 {net}", 2, "cannot listen"),
+    ("dashboard --host 192.0.2.1 --port 0 --insecure-network {net}", 2, "cannot listen"),
+    ("dashboard --host 0.0.0.0 --port 0 {net}", 2, "--host 0.0.0.0: this server authenticates"),
     ("dashboard --port 70000 {net}", 2, "'70000'"),
     ("dashboard --port 0 --connect {dead}", 1, "{dead}"),
     # the dispatcher and demo
@@ -236,6 +239,7 @@ CASES: list[tuple[str, int, str]] = [
     ("fly", 2, "'fly'"),
     ("help fly", 2, "'fly'"),
     ("demo --rollouts 0", 2, "'0'"),
+    ("demo --listen tcp/192.0.2.1:7447", 2, "the demo's mesh is for this machine only"),
     ("demo --algo nosuch", 2, "'nosuch'"),
     ("demo --listen 127.0.0.1:1", 2, "'127.0.0.1:1'"),
     ("demo --runs /proc/nope", 2, "'/proc/nope'"),

@@ -191,6 +191,7 @@ def test_watch_profile_serves_foxglove_on_the_hosts_loopback(compose: dict[str, 
     args = foxglove_parser().parse_args(watch["command"][2:])
     assert args.connect == ["tcp/router:7447"] and not args.operator
     assert args.host == "0.0.0.0"  # inside the container; the host publishes loopback only
+    assert args.insecure_network  # the container network is the trust boundary
     assert watch["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
     assert set(watch["depends_on"]) == {"router", "robot"}
     rules = UpgradeRules(args.host, args.port)

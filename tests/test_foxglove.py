@@ -318,8 +318,10 @@ def test_where_it_cannot_listen_or_no_mesh_is_there(tmp_path: Path) -> None:
         done = archery("foxglove", "--port", str(port))
         assert done.returncode == 2 and "already in use" in done.stderr
         assert len(done.stderr.strip().splitlines()) == 1
-    done = archery("foxglove", "--host", "192.0.2.7", "--port", "0")
+    done = archery("foxglove", "--host", "192.0.2.7", "--port", "0", "--insecure-network")
     assert done.returncode == 2 and "not an address of this machine" in done.stderr
+    done = archery("foxglove", "--host", "192.0.2.7", "--port", "0")
+    assert done.returncode == 2 and "or give --insecure-network" in done.stderr
     done = archery("foxglove", "--connect", free_tcp_endpoint(), "--port", "0", "--wait", "1")
     assert done.returncode == 1
     assert "archery foxglove: waiting up to 1 s for the router" in done.stderr

@@ -29,7 +29,7 @@ from archery.apps.dashboard.watch import MeshWatch
 from archery.apps.viewer import View, add_wait_arg, viewer_main
 from archery.mesh.acl import VIEWER
 from archery.mesh.cliargs import ArgumentParser, int_in
-from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.netflags import NetConfig, add_network_args, check_server_host
 from archery.mesh.node import Node
 from archery.mesh.priority import OBSERVER_NICE, add_nice_arg, lower_priority
 from archery.protocol.errors import ArcheryError, ConfigError
@@ -47,7 +47,7 @@ __all__ = [
 
 log = logging.getLogger("archery.dashboard")
 
-DEFAULT_PORT = 8765
+DEFAULT_PORT = 8780  # `archery foxglove` keeps Foxglove's usual 8765
 MAX_ROBOTS = 32  # robots one dashboard follows at most (a watch each)
 WATCH_IDLE = 30.0  # s: a watch of another robot that no page polled this long is closed
 TOKEN_HEADER = "X-Dashboard-Token"  # the page's token: on every answer, required on each POST
@@ -235,7 +235,7 @@ def _check_host(host: str) -> str:
             return "127.0.0.1"
         raise ConfigError(
             f"--host {host!r} is not an IP address; give one of this machine's addresses, "
-            f"e.g. 127.0.0.1 (this machine only) or 0.0.0.0 (every interface)"
+            f"e.g. 127.0.0.1 (this machine only)"
         ) from None
 
 
@@ -451,8 +451,10 @@ def main(argv: list[str] | None = None) -> int:
 
 def _check(args: argparse.Namespace) -> tuple[NetConfig, _Server]:
     """The node's settings and the HTTP server, bound."""
+    host = _check_host(args.host)
+    check_server_host(host, args.insecure_network)
     net = NetConfig.from_args(args).with_identity(VIEWER)
-    return net, bind(_check_host(args.host), args.port)
+    return net, bind(host, args.port)
 
 
 class _Serving:

@@ -15,7 +15,7 @@ from archery.apps.foxglove.front_door import MAX_CONNECTIONS
 from archery.apps.foxglove.upgrade import check_origin_flag
 from archery.apps.viewer import View, add_wait_arg, viewer_main
 from archery.mesh.cliargs import ArgumentParser, check_writable_dir
-from archery.mesh.netflags import NetConfig, add_network_args
+from archery.mesh.netflags import NetConfig, add_network_args, check_server_host
 from archery.protocol.errors import ConfigError
 from archery.protocol.exit_status import BAD_INPUT, OK
 
@@ -140,6 +140,7 @@ def _check(args: argparse.Namespace) -> tuple[NetConfig, str | None]:
         raise ConfigError(f"--max-clients {args.max_clients}: give at least 1")
     for origin in args.allow_origin:
         check_origin_flag(origin)
+    check_server_host(args.host, args.insecure_network)
     check_listen(args.host, args.port)
     net = NetConfig.from_args(args).with_identity(OPERATOR if args.operator else VIEWER)
     if args.operator and net.secure and net.identity != OPERATOR:
