@@ -33,10 +33,10 @@ def test_the_shipped_example_is_the_default() -> None:
     assert all(c.robot == "icubSim" and c.restart == RestartPolicy() for c in children)
 
 
-def test_the_readme_shows_the_example() -> None:
-    readme = (ROOT / "README.md").read_text()
+def test_the_docs_show_the_example() -> None:
+    page = (ROOT / "docs" / "mesh-up.md").read_text()
     example = (ROOT / "mesh.toml").read_text()
-    shown = readme.split("```toml\n", 1)[1].split("```", 1)[0]
+    shown = page.split("```toml\n", 1)[1].split("```", 1)[0]
     assert shown == example
 
 

@@ -1,5 +1,6 @@
-"""The README is executable: every block marked ```sh test or ```python test runs here against a
-real mesh on a free port, and each `#=> TEXT` of the block must appear in its output.
+"""The README and the pages of docs/ are executable: every block marked ```sh test or ```python
+test runs here against a real mesh on a free port, and each `#=> TEXT` of the block must appear
+in its output. A block's id names its page and its number on that page (`secure-block0`).
 
 A shell block runs in bash in a fresh folder, with `archery` a function that adds the endpoint:
 `--listen` for `router` and `up`, `--connect` for the verbs that talk to the mesh (unless the
@@ -23,7 +24,8 @@ import pytest
 
 from archery.mesh.router import free_tcp_endpoint
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 BLOCK = re.compile(r"^```(sh|python) test\n(.*?)^```", re.M | re.S)
 EXPECT = re.compile(r"# ?=> (.+)$", re.M)  # `#=> TEXT`; `# => TEXT` in Python
 MESH_VERBS = [
@@ -77,9 +79,13 @@ archery() {
 """
 
 
-def _blocks() -> list[tuple[str, str]]:
-    """(language, text) of every block the README marks to run."""
-    return [(m.group(1), m.group(2)) for m in BLOCK.finditer(README.read_text())]
+def _blocks() -> list[tuple[str, str, str]]:
+    """(id, language, text) of every block the README and the pages of docs/ mark to run."""
+    return [
+        (f"{page.stem}-block{i}", m.group(1), m.group(2))
+        for page in PAGES
+        for i, m in enumerate(BLOCK.finditer(page.read_text()))
+    ]
 
 
 def _substituted(text: str, tcp: str, tls: str) -> str:
@@ -87,15 +93,18 @@ def _substituted(text: str, tcp: str, tls: str) -> str:
     return text.replace(".venv/bin/archery", "archery")
 
 
-def test_the_readme_marks_its_runnable_blocks() -> None:
-    kinds = [language for language, _ in _blocks()]
+def test_the_pages_mark_their_runnable_blocks() -> None:
+    kinds = [language for _, language, _ in _blocks()]
     assert kinds.count("sh") >= 4 and kinds.count("python") >= 1
-    assert all(EXPECT.search(text) for _, text in _blocks())
+    assert any(block_id.startswith("README-") for block_id, _, _ in _blocks())
+    assert all(EXPECT.search(text) for _, _, text in _blocks())
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("language", "text"), _blocks(), ids=[f"block{i}" for i, _ in enumerate(_blocks())]
+    ("language", "text"),
+    [(language, text) for _, language, text in _blocks()],
+    ids=[block_id for block_id, _, _ in _blocks()],
 )
 def test_a_readme_block_runs_and_prints_what_it_says(
     language: str, text: str, tmp_path: Path
