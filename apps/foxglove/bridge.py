@@ -37,8 +37,10 @@ log = logging.getLogger("archery.foxglove")
 
 #: Messages the SDK's server queues per client before it drops the oldest: a client that reads
 #: slower than the camera sends holds at most this many frames (2.8 MB each when raw) in the
-#: server. The SDK sizes its control queue alike: a client whose queue of replies fills (one that
-#: never reads) is dropped.
+#: server. The SDK sizes its control queue alike, and drops a client whose queue of replies
+#: fills: the assets (the 3D panel asks for all 39 meshes at once) are therefore answered by the
+#: front door, one at a time per client, and never queue there (a backlog sized for them would
+#: hold as many raw frames per client: 39 + the streams' ≈ 150 MB for each slow reader).
 BACKLOG = 4
 MAX_PARAMETERS = 16  # parameters one get/set message may name (the bridge has one: the wind)
 MAX_ASSET_BYTES = 64 << 20  # a mesh file the client may fetch (the iCub's largest: ~2 MB)
@@ -138,6 +140,7 @@ class Bridge(ServerListener):
                 tls.client,
                 lambda bound: UpgradeRules(*bound, origins=accepted, token=self.token).refusal,
                 max_connections=max_clients,
+                assets=lambda uri: asset(meshes, uri),
             )
         except BaseException:
             self._stop_server()

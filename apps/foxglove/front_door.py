@@ -4,27 +4,38 @@ The SDK's server shows Python nothing of an upgrade request, so it listens on an
 loopback port behind TLS whose certificate (made at start) only the front door trusts: a web
 page that finds that port cannot speak to it. The front door reads each connection's upgrade
 head (at most `MAX_HEAD` bytes within `HEAD_TIMEOUT` s), checks it (`apps.foxglove.upgrade`),
-only then connects to the SDK's server and relays both ways, `CHUNK` bytes at a time, reading
-one side only once the other took what it was given: a client that never reads holds a few
-`CHUNK`s here, and the SDK's per-client queue (`message_backlog_size`) drops its oldest
-messages. At most `max_connections` at once; the next one gets 503 and is closed.
+only then connects to the SDK's server and relays both ways, WebSocket frame by frame, `CHUNK`
+bytes at a time, reading one side only once the other took what it was given: a client that
+never reads holds a few `CHUNK`s here, and the SDK's per-client queue (`message_backlog_size`)
+drops its oldest messages.
+
+The door answers the clients' `fetchAsset` requests itself (the meshes the robot description
+names), one at a time per connection and between the server's frames, so a burst of them (the
+3D panel asks for all 39 at once) never reaches the SDK's small per-client control queue, which
+drops a client whose answers overflow it. A client that takes no byte for `STALL_AFTER` s while
+the door has bytes for it is dropped; so is one the SDK's server closes: either drop is logged
+once, naming the client. At most `max_connections` at once; the next one gets 503 and is
+closed.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import socket
 import ssl
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
 from archery.apps.foxglove.upgrade import MAX_HEAD, Refusal, parse_head
 from archery.apps.foxglove.upgrade import Head as _Head
-from archery.protocol.text import cut
+from archery.protocol.text import cut, shown
 
-__all__ = ["CHUNK", "HEAD_TIMEOUT", "MAX_CONNECTIONS", "FrontDoor"]
+__all__ = ["CHUNK", "HEAD_TIMEOUT", "MAX_CONNECTIONS", "STALL_AFTER", "FrontDoor", "client_name"]
 
 log = logging.getLogger("archery.foxglove")
 
@@ -32,6 +43,12 @@ HEAD_TIMEOUT = 5.0  # s: the longest wait for a connection's upgrade request hea
 MAX_CONNECTIONS = 16  # connections served at once (the default of --max-clients)
 CHUNK = 64 << 10  # bytes: read from one side and written to the other at a time
 INNER_BUFFER = 256 << 10  # bytes: the kernel's receive buffer of the link to the SDK's server
+STALL_AFTER = 10.0  # s: a client that takes no byte this long while bytes wait is dropped
+#: fetchAsset requests of one connection waiting for their answers; with more, the door reads
+#: nothing more from that client until one is answered
+MAX_PENDING_ASSETS = 256
+MAX_REQUEST = 4096  # bytes: a client's text message the door reads for a fetchAsset
+_FETCH_ASSET_RESPONSE = 4  # the ws-protocol's binary opcode of an asset's answer
 _BUSY = Refusal(503, "Service Unavailable", "the Foxglove server is full: try again later")
 _LISTEN_BACKLOG = 128
 
@@ -45,6 +62,9 @@ class FrontDoor:
         check: the refusal of a request head (`UpgradeRules.refusal` of the bound address), or
             None to let it through; given the bound (address, port) once listening.
         max_connections: connections at once (the next one gets 503).
+        assets: the bytes of the asset a `fetchAsset` URI names (None: no such asset), read in
+            a worker thread; the door answers those requests itself. Without it they go to the
+            SDK's server.
     """
 
     def __init__(
@@ -56,8 +76,11 @@ class FrontDoor:
         check: Callable[[tuple[str, int]], Callable[[_Head], Refusal | None]],
         *,
         max_connections: int = MAX_CONNECTIONS,
+        assets: Callable[[str], bytes | None] | None = None,
     ) -> None:
         self.inner = inner
+        self.assets = assets
+        self.dropped = 0  # clients dropped since start (stalled, or closed by the SDK)
         self.inner_tls = inner_tls
         self.max_connections = max_connections
         self.open = 0  # connections open (the loop's thread only)
@@ -156,8 +179,12 @@ class FrontDoor:
             sock = inner_writer.get_extra_info("socket")
             if sock is not None:
                 sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, INNER_BUFFER)
-            inner_writer.write(data)
-            await _relay(reader, writer, inner_reader, inner_writer)
+            inner_writer.write(_without_extensions(data))
+            link = _Link(reader, writer, inner_reader, inner_writer, self.assets)
+            why = await link.relay()
+            if why is not None:
+                self.dropped += 1
+                log.warning("%s: dropped: %s", client_name(peer), why)
         finally:
             inner_writer.close()
 
@@ -184,28 +211,237 @@ async def _answer(writer: asyncio.StreamWriter, refusal: Refusal) -> None:
         await asyncio.wait_for(writer.drain(), 1.0)
 
 
-async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
-    """Copy `source` to `sink` until either ends, never holding more than a `CHUNK` unsent
-    beyond the transport's own high-water mark (`drain`)."""
-    while data := await source.read(CHUNK):
-        sink.write(data)
-        await sink.drain()
+def client_name(peer: Any) -> str:
+    """A connection's peer as `host:port` (`[host]:port` for IPv6)."""
+    if isinstance(peer, tuple) and len(peer) >= 2:
+        host, port = peer[0], peer[1]
+        return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return str(peer)
 
 
-async def _relay(
-    reader: asyncio.StreamReader,
-    writer: asyncio.StreamWriter,
-    inner_reader: asyncio.StreamReader,
-    inner_writer: asyncio.StreamWriter,
-) -> None:
-    """Relay both ways until one side ends; then the other is closed."""
-    ways = {
-        asyncio.ensure_future(_pipe(reader, inner_writer)),
-        asyncio.ensure_future(_pipe(inner_reader, writer)),
-    }
+def _without_extensions(head: bytes) -> bytes:
+    """An upgrade request head without its `Sec-WebSocket-Extensions` lines: frames stay plain
+    (no compression), so the door can read and insert them."""
+    lines = head.split(b"\r\n")
+    kept = [line for line in lines if not line.lower().startswith(b"sec-websocket-extensions:")]
+    return b"\r\n".join(kept)
+
+
+class _Stalled(Exception):
+    """The client took no byte for `STALL_AFTER` s while bytes waited for it."""
+
+
+async def _drain(writer: asyncio.StreamWriter) -> None:
+    """Wait until the client took what it was given, at most `STALL_AFTER` s."""
     try:
-        await asyncio.wait(ways, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        for way in ways:
-            way.cancel()
-        await asyncio.gather(*ways, return_exceptions=True)
+        await asyncio.wait_for(writer.drain(), STALL_AFTER)
+    except TimeoutError:
+        raise _Stalled from None
+
+
+@dataclass
+class _Frame:
+    """A WebSocket frame's header: its bytes, FIN, opcode, payload size and masking key."""
+
+    raw: bytes
+    fin: bool
+    opcode: int
+    size: int
+    mask: bytes
+
+
+async def _frame(reader: asyncio.StreamReader) -> _Frame:
+    """The next frame's header (IncompleteReadError: the stream ended)."""
+    raw = await reader.readexactly(2)
+    size = raw[1] & 0x7F
+    if size >= 126:
+        more = await reader.readexactly(2 if size == 126 else 8)
+        raw += more
+        size = int.from_bytes(more, "big")
+    mask = await reader.readexactly(4) if raw[1] & 0x80 else b""
+    return _Frame(raw + mask, bool(raw[0] & 0x80), raw[0] & 0x0F, size, mask)
+
+
+def _unmask(payload: bytes, mask: bytes) -> bytes:
+    if not mask:
+        return payload
+    n = len(payload)
+    key = (mask * (n // 4 + 1))[:n]
+    return (int.from_bytes(payload, "big") ^ int.from_bytes(key, "big")).to_bytes(n, "big")
+
+
+def _fetch_asset(text: bytes) -> tuple[str, int] | None:
+    """(uri, request id) of a `fetchAsset` request; None for any other message."""
+    if b"fetchAsset" not in text:
+        return None
+    try:
+        message = json.loads(text)
+    except ValueError:
+        return None
+    if not isinstance(message, dict) or message.get("op") != "fetchAsset":
+        return None
+    uri, request = message.get("uri"), message.get("requestId")
+    if not isinstance(uri, str) or type(request) is not int or not 0 <= request < 1 << 32:
+        return None  # malformed: the SDK's server answers it
+    return uri, request
+
+
+def _asset_frame(request: int, data: bytes | None, uri: str) -> bytes:
+    """The server's binary frame answering fetchAsset `request`: the asset's bytes, or (None)
+    an error naming `uri`."""
+    error = b"" if data is not None else f"no such asset: {shown(uri)}".encode()
+    status = b"\x00" if data is not None else b"\x01"
+    payload = b"".join(
+        (
+            bytes([_FETCH_ASSET_RESPONSE]),
+            request.to_bytes(4, "little"),
+            status,
+            len(error).to_bytes(4, "little"),
+            error,
+            data or b"",
+        )
+    )
+    n = len(payload)
+    if n < 126:
+        head = bytes([0x82, n])
+    elif n < 1 << 16:
+        head = bytes([0x82, 126]) + n.to_bytes(2, "big")
+    else:
+        head = bytes([0x82, 127]) + n.to_bytes(8, "big")
+    return head + payload
+
+
+async def _copy(
+    source: asyncio.StreamReader, sink: asyncio.StreamWriter, size: int, client: bool
+) -> None:
+    """Copy `size` bytes, `CHUNK` at a time, each taken by `sink` before the next is read (the
+    client: within `STALL_AFTER` s)."""
+    while size > 0:
+        data = await source.read(min(CHUNK, size))
+        if not data:
+            raise asyncio.IncompleteReadError(b"", size)
+        sink.write(data)
+        await (_drain(sink) if client else sink.drain())
+        size -= len(data)
+
+
+class _Link:
+    """One client's relay: its frames to the SDK's server, fetchAsset requests answered here;
+    the server's frames to the client, the answers inserted between them."""
+
+    def __init__(
+        self,
+        reader: asyncio.StreamReader,
+        writer: asyncio.StreamWriter,
+        inner_reader: asyncio.StreamReader,
+        inner_writer: asyncio.StreamWriter,
+        assets: Callable[[str], bytes | None] | None,
+    ) -> None:
+        self.reader, self.writer = reader, writer
+        self.inner_reader, self.inner_writer = inner_reader, inner_writer
+        self.assets = assets
+        self.requests: asyncio.Queue[tuple[str, int]] = asyncio.Queue(MAX_PENDING_ASSETS)
+        self.sending = asyncio.Lock()  # held while a frame goes to the client
+        self.client_closed = False  # the client sent a close frame
+        self.server_closed = False  # the server sent one first: it dropped the client
+
+    async def relay(self) -> str | None:
+        """Relay until one side ends; why the client was dropped (None: it left)."""
+        ways = {
+            asyncio.ensure_future(self._from_client()),
+            asyncio.ensure_future(self._to_client()),
+        }
+        if self.assets is not None:
+            ways.add(asyncio.ensure_future(self._answer_assets(self.assets)))
+        try:
+            done, _ = await asyncio.wait(ways, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for way in ways:
+                way.cancel()
+            await asyncio.gather(*ways, return_exceptions=True)
+        if any(not way.cancelled() and isinstance(way.exception(), _Stalled) for way in done):
+            self.writer.transport.abort()  # what waits for it is dropped with it
+            return f"it read nothing for {STALL_AFTER:g} s"
+        if self.server_closed and not self.client_closed:
+            return "the Foxglove server closed it (its queue of replies was full)"
+        return None
+
+    async def _from_client(self) -> None:
+        """The client's frames to the server, its fetchAsset requests kept for `_answer_assets`."""
+        fragmented = False
+        with contextlib.suppress(asyncio.IncompleteReadError):
+            while True:
+                frame = await _frame(self.reader)
+                if frame.opcode == 0x8:
+                    self.client_closed = True
+                if (
+                    self.assets is not None
+                    and frame.opcode == 0x1
+                    and frame.fin
+                    and not fragmented
+                    and frame.size <= MAX_REQUEST
+                ):
+                    payload = await self.reader.readexactly(frame.size)
+                    request = _fetch_asset(_unmask(payload, frame.mask))
+                    if request is not None:
+                        await self.requests.put(request)
+                        continue
+                    self.inner_writer.write(frame.raw + payload)
+                    await self.inner_writer.drain()
+                    continue
+                if frame.opcode < 0x8:
+                    fragmented = not frame.fin
+                self.inner_writer.write(frame.raw)
+                await _copy(self.reader, self.inner_writer, frame.size, client=False)
+
+    async def _to_client(self) -> None:
+        """The server's answer to the upgrade, then its frames, each whole."""
+        async with self.sending:
+            try:
+                head = await self.inner_reader.readuntil(b"\r\n\r\n")
+            except (asyncio.IncompleteReadError, asyncio.LimitOverrunError):
+                return
+            self.writer.write(head)
+            await _drain(self.writer)
+        if not head.startswith(b"HTTP/1.1 101"):
+            while data := await self.inner_reader.read(CHUNK):  # a refusal's body
+                self.writer.write(data)
+                await _drain(self.writer)
+            return
+        held = False
+        fragmented = False
+        try:
+            while True:
+                try:
+                    frame = await _frame(self.inner_reader)
+                except asyncio.IncompleteReadError:
+                    return
+                if frame.opcode == 0x8 and not self.client_closed:
+                    self.server_closed = True
+                if not held:
+                    await self.sending.acquire()
+                    held = True
+                self.writer.write(frame.raw)
+                await _copy(self.inner_reader, self.writer, frame.size, client=True)
+                if frame.opcode < 0x8:
+                    fragmented = not frame.fin
+                if not fragmented:
+                    self.sending.release()
+                    held = False
+        finally:
+            if held:
+                self.sending.release()
+
+    async def _answer_assets(self, assets: Callable[[str], bytes | None]) -> None:
+        """Answer the fetchAsset requests in turn, each between two of the server's frames."""
+        while True:
+            uri, request = await self.requests.get()
+            try:
+                data = await asyncio.to_thread(assets, uri)
+            except OSError as exc:
+                log.warning("asset %s: %s", shown(uri), exc)
+                data = None
+            frame = _asset_frame(request, data, uri)
+            async with self.sending:
+                self.writer.write(frame)
+                await _drain(self.writer)

@@ -2,19 +2,24 @@
 // saw as JSON lines on stdout, for tests/test_foxglove.py:
 //   node client.mjs URL [--want TOPIC ...] [--call SERVICE JSON | --call-unadvertised JSON]
 //     [--set-wind X,Y,Z [--times N]] [--timeout S] [--crowd N [--crowd-skip TOPIC ...]] [--watch]
-//     [--stall N] [--churn N]
+//     [--stall N] [--churn N] [--assets]
 // {"serverInfo": …} first, then {"channels": […]} once every wanted topic is advertised, one
 // {"message": {topic, schemaName, encoding, data (base64)}} per wanted topic (its first), the
 // service call's {"response": …} or {"failure": …}, the parameter's {"parameters": …} and
 // {"status": …} lines; exits 0 when all came, 1 on a timeout or a closed connection.
 // --times N sends the wind N times in one setParameters message.
 // --stall N: N clients subscribe to the wanted topics, then never read again (their sockets
-// paused): {"stalled": N} once all subscribed, then they wait until SIGTERM or SIGINT.
+// paused): {"stalled": N, "ports": [each client's local port]} once all subscribed, then they wait until SIGTERM or SIGINT.
+// --assets: once /robot_description (wanted) arrives, fetchAsset every package:// URI it names,
+// all at once, as Foxglove's 3D panel does: one {"asset": {uri, status, error, bytes, sha256}}
+// per answer, then {"fetched": {assets, seconds, streamed: {topic: messages during the burst}}};
+// the run also waits for every answer.
 // --churn N: subscribe to every channel and unsubscribe again, N times, then {"churned": N}
 // and stay connected until SIGTERM or SIGINT.
 import wsProtocol from "@foxglove/ws-protocol";
 const { FoxgloveClient } = wsProtocol;
 import { WebSocket } from "ws";
+import { createHash } from "node:crypto";
 
 const args = process.argv.slice(2);
 const url = args[0];
@@ -27,6 +32,7 @@ let watch = false;
 let times = 1;
 let stall = 0;
 let churn = 0;
+let assets = false;
 const crowdSkips = [];
 for (let i = 1; i < args.length; i++) {
   if (args[i] === "--want") want.push(args[++i]);
@@ -39,6 +45,7 @@ for (let i = 1; i < args.length; i++) {
   else if (args[i] === "--times") times = Number(args[++i]);
   else if (args[i] === "--stall") stall = Number(args[++i]);
   else if (args[i] === "--churn") churn = Number(args[++i]);
+  else if (args[i] === "--assets") assets = true;
   else if (args[i] === "--crowd-skip") crowdSkips.push(args[++i]);
 }
 const out = (o) => process.stdout.write(JSON.stringify(o) + "\n");
@@ -70,6 +77,7 @@ if (watch) {
   process.on("SIGINT", report);
 } else if (stall > 0) {
   let ready = 0;
+  const ports = [];
   for (let i = 0; i < stall; i++) {
     const ws = new WebSocket(url, protocols);
     const c = new FoxgloveClient({ ws });
@@ -83,7 +91,8 @@ if (watch) {
       ws.pause();
       ws._socket.pause();
       ws._socket.resume = () => ws._socket;
-      if (++ready === stall) out({ stalled: ready });
+      ports.push(ws._socket.localPort);
+      if (++ready === stall) out({ stalled: ready, ports });
     });
     c.on("error", () => {});
   }
@@ -142,14 +151,19 @@ const subs = new Map();
 const got = new Set();
 let pending = (call ? 1 : 0) + (wind ? 1 : 0);
 let services = [];
+// --assets: {requestId: uri} of the fetches not yet answered; null until they are sent
+let fetching = null;
+let fetchStarted = 0;
+let fetchCount = 0;
+const streamed = {};
 const done = () => {
-  if (got.size === want.length && pending === 0) {
+  if (got.size === want.length && pending === 0 && (!assets || (fetching && fetching.size === 0))) {
     client.close();
     finish(0);
   }
 };
 setTimeout(() => {
-  out({ timeout: { missing: want.filter((t) => !got.has(t)), pending } });
+  out({ timeout: { missing: want.filter((t) => !got.has(t)), pending, unanswered: fetching ? fetching.size : null } });
   finish(1);
 }, timeout * 1000);
 client.on("error", (e) => out({ error: String(e && e.message ? e.message : e) }));
@@ -197,11 +211,31 @@ client.on("parameterValues", (p) => {
   pending--;
   done();
 });
+client.on("fetchAssetResponse", (r) => {
+  if (!fetching || !fetching.has(r.requestId)) return;
+  const uri = fetching.get(r.requestId);
+  fetching.delete(r.requestId);
+  const bytes = r.status === 0 ? Buffer.from(r.data.buffer, r.data.byteOffset, r.data.byteLength) : Buffer.alloc(0);
+  out({ asset: { uri, status: r.status === 0 ? "success" : "error", error: r.error || null, bytes: bytes.length, sha256: createHash("sha256").update(bytes).digest("hex") } });
+  if (fetching.size === 0) out({ fetched: { assets: fetchCount, seconds: (Date.now() - fetchStarted) / 1000, streamed } });
+  done();
+});
 client.on("message", ({ subscriptionId, data }) => {
   const c = channels.get(subs.get(subscriptionId));
-  if (!c || got.has(c.topic)) return;
+  if (!c) return;
+  if (fetching && fetching.size > 0) streamed[c.topic] = (streamed[c.topic] || 0) + 1;
+  if (got.has(c.topic)) return;
   got.add(c.topic);
   const bytes = Buffer.from(data.buffer, data.byteOffset, data.byteLength);
+  if (assets && !fetching && c.topic === "/robot_description") {
+    // every mesh the description names, asked at once (the 3D panel's burst)
+    const text = JSON.parse(bytes.toString("utf8")).data;
+    const uris = [...new Set(text.match(/package:\/\/[^"'<>\s]+/g) || [])];
+    fetching = new Map(uris.map((uri, i) => [i + 1, uri]));
+    fetchCount = uris.length;
+    fetchStarted = Date.now();
+    for (const [id, uri] of fetching) client.fetchAsset(uri, id);
+  }
   out({ message: { topic: c.topic, schemaName: c.schemaName, encoding: c.encoding, data: bytes.toString("base64") } });
   done();
 });
