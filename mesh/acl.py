@@ -5,7 +5,7 @@ Default deny: every identity (a certificate common name: the five services, and 
 of VERB goes to the key `PORT/VERB`, `protocol.keys.verb_key`, and a server answers `PORT/*`),
 so a rule can grant one verb and not its neighbours. `roles` says what each identity
 publishes, subscribes to, serves and calls, `_grants` turns a role into the router's rules and
-`rules` is the whole policy; README.md, 'Secure mode', tells the roles in prose.
+`rules` is the whole policy; docs/secure.md tells the roles in prose.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ services, the `router`, and `operator`, `viewer` and `replay` for the CLI tools;
 says what each may do), the router's access-control policy and `deployment.json`
 (`init_deployment` lists the files, and why certificates rather than passwords). The CA key
 signs every identity: keep it off the machines that run the mesh (the compose profile mounts
-only the CA certificate and each container's own identity). README.md, 'Secure mode'.
+only the CA certificate and each container's own identity). docs/secure.md.
 """
 
 from __future__ import annotations

@@ -5,7 +5,7 @@ up) and `ROBOT/alive/NAME/ZID`, where ZID is its session's Zenoh id (`session.in
 client that expects an answer from NAME accepts it only if the replier holds NAME's instance
 token (`InstanceWatch`); anything else is `WrongReplier` (code `wrong_replier`). Before a
 service declares any port, `claim` refuses to start a second live instance of its name or, with
-`replace`, asks the live one to stop (`accept_replace`). README.md, 'Secure mode', tells both
+`replace`, asks the live one to stop (`accept_replace`). docs/secure.md tells both
 from the user's side.
 """
 

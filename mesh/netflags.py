@@ -3,8 +3,8 @@
 Every process listens and connects only where it is told: by default a Zenoh client of the
 router it is given, with multicast scouting, gossip and shared memory off (the docstring of
 `NetConfig.zenoh_config` says why), and with `--secure DIR` mutual TLS on every link
-(`NetConfig._tls_config`). README.md, 'The `archery` command', tells the flags, and 'Secure
-mode' the secure deployment.
+(`NetConfig._tls_config`). docs/commands.md, 'Network flags and logs', tells the flags, and
+docs/secure.md the secure deployment.
 """
 
 from __future__ import annotations

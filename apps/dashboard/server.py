@@ -2,8 +2,8 @@
 
 A small page served by the package itself (`_Handler`: its endpoints, and why no web
 framework) through the guarded HTTP server of `apps.dashboard.guard`; the mesh side is one
-`apps.dashboard.watch.MeshWatch` per robot followed (`Dashboard`). What the page shows: README.md,
-'The `archery` command', under `archery dashboard`.
+`apps.dashboard.watch.MeshWatch` per robot followed (`Dashboard`).
+What the page shows: docs/commands.md, under `archery dashboard`.
 """
 
 from __future__ import annotations

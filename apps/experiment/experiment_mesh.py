@@ -5,8 +5,8 @@ Every (algorithm, session) pair is one learning session of the learner (`Session
 closed loop and journal as `archery learn`), journaled in `OUT/sessions/ALGO-sNN/journal.jsonl`
 with the learner seed of the ballistic world's session NN, the robot's default start θ and θ
 box, and the whole rollout budget (no stop at the first hit, so Fig. 6 has every rollout).
-`_Experiment` shares them out among the robots and survives a lost robot; README.md, 'A fleet
-of robots', tells the rest. Pure wiring: the sessions' maths is in `services.learner.session`
+`_Experiment` shares them out among the robots and survives a lost robot; docs/fleet.md
+tells the rest. Pure wiring: the sessions' maths is in `services.learner.session`
 and the algorithms.
 """
 

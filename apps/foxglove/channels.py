@@ -1,6 +1,6 @@
 """The bridge's channels: each live topic with its schema, and the Foxglove SDK channel made
 for it. Topic names follow ROS 2's conventions (`/tf`, `/joint_states`, `/robot_description`);
-the table in README.md, "Watch it live in Foxglove", maps each to the mesh key it follows."""
+the table in docs/foxglove.md maps each to the mesh key it follows."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import foxglove
 
 from archery.apps.foxglove.marks import ROLLOUT_SCHEMA
 from archery.apps.topics.foxglove_records import (
+    CAMERA_CALIBRATION,
     FRAME_TRANSFORMS,
     IMAGE_ANNOTATIONS,
     JOINT_STATES,
@@ -20,7 +21,7 @@ from archery.apps.topics.foxglove_records import (
 )
 from archery.apps.topics.image_records import COMPRESSED, RAW, image_schema
 
-__all__ = ["TOPICS", "Topic", "open_channels"]
+__all__ = ["CALIBRATION", "TOPICS", "Topic", "open_channels"]
 
 
 @dataclass(frozen=True)
@@ -59,13 +60,14 @@ DESCRIPTION = Topic("/robot_description", "std_msgs/msg/String", protobuf=False)
 SCENE = Topic("/scene", SCENE_UPDATE)
 IMAGE = Topic("/camera/image", RAW)
 IMAGE_JPEG = Topic("/camera/image", COMPRESSED)
+CALIBRATION = Topic("/camera/calibration", CAMERA_CALIBRATION)
 MARKS = Topic("/camera/annotations", IMAGE_ANNOTATIONS)
 ROLLOUTS = Topic("/learner/rollouts", "archery.RolloutPoint", protobuf=False)
 EVENTS = Topic("/world/events", LOG)
 SERVICES = Topic("/mesh/services", "archery.MeshServices", protobuf=False)
 
 #: Every topic the bridge serves (the camera's as raw frames; `--jpeg`: `IMAGE_JPEG`).
-TOPICS = (TF, JOINTS, DESCRIPTION, SCENE, IMAGE, MARKS, ROLLOUTS, EVENTS, SERVICES)
+TOPICS = (TF, JOINTS, DESCRIPTION, SCENE, IMAGE, CALIBRATION, MARKS, ROLLOUTS, EVENTS, SERVICES)
 
 
 def _schema(topic: Topic) -> foxglove.Schema:

@@ -1,6 +1,6 @@
 """The mesh's messages as ROS 2's standard messages, and ROS 2 commands as the robot's verbs (a
 part's position targets, or a trajectory the robot plays at its points' times): the mapping
-of the node and of `archery export --ros2` (README.md, "See the robot from ROS 2", tells it
+of the node and of `archery export --ros2` (docs/ros2.md tells it
 topic by topic). Stamps are the mesh's wall stamps (s since the epoch)."""
 
 from __future__ import annotations

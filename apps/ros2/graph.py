@@ -1,4 +1,4 @@
-"""The node on the ROS 2 graph: its topics (the table below, README.md tells each beside its
+"""The node on the ROS 2 graph: its topics (the table below, docs/ros2.md tells each beside its
 YARP port), the feeds that follow the mesh while a ROS 2 subscriber matches, the parts'
 commands (position targets, and trajectories the robot plays at their points' times) and, with
 an operator, the archery services. Bad input is dropped and counted (`Ros2Node.counts`) or

@@ -3,7 +3,7 @@
 The format is chosen so that a replay is exact, the Foxglove app and the `mcap` CLI read it, and
 writing a camera frame costs a copy of its pixels and little else: one MCAP channel per Zenoh
 key, frames as Foxglove's protobuf images, every other message as JSON with its type's JSON
-schema (`Recorder` says it field by field; README.md, 'The `archery` command', under `archery
+schema (`Recorder` says it field by field; docs/commands.md, under `archery
 record`). Reading goes through `Recording` and the bounded reader `apps.topics.mcap_reader`.
 """
 

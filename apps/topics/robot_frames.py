@@ -5,7 +5,7 @@ The robot service publishes its full generalized position on `world/state:o` (`W
 30 Hz of simulated time) and each part's joints on `PART/state:o`. The recorder already
 receives them, so it derives the 3D records itself, with the very kinematics the simulator
 runs: the robot's loop pays nothing for them, and a recording of any robot of this version gets
-them. `RobotFrames` lists the derived channels; README.md, 'The `archery` command', under
+them. `RobotFrames` lists the derived channels; docs/commands.md, under
 `archery record`, tells them from the user's side.
 """
 

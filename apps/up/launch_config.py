@@ -3,7 +3,7 @@ arguments and restart policies, and the router's endpoint.
 
 `archery up --config mesh.toml` reads it from a TOML file: the repository's `mesh.toml`, which
 equals the built-in default (`default_mesh()`), shows every table and key with its meaning, as
-does README.md, 'Learning over the mesh'. Every error (an unknown key, a bad policy, an unknown
+does docs/mesh-up.md. Every error (an unknown key, a bad policy, an unknown
 service, a bad endpoint or robot prefix) is a `ConfigError` of one line naming the key.
 """
 

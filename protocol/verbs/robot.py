@@ -3,7 +3,7 @@
 Joint vectors are in YARP order, in rad (rad/s for speeds). Limits that depend on the loaded
 model (joint limits, joint names) are checked by the robot itself. A client takes a part with
 `claim` and gets a lease id that its commands carry (the comment above `CLAIM` tells the rules;
-README.md, 'Names on the mesh', tells them from the user's side).
+docs/names.md tells them from the user's side).
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 It serves `ROBOT/cartesianController/{left_arm,right_arm}/rpc:i` and
 `ROBOT/cartesianController/archery/rpc:i` (their verbs: the tables of
-`protocol.verbs.controller`, bound in `handlers`; README.md, 'Names on the mesh'), reads the
+`protocol.verbs.controller`, bound in `handlers`; docs/names.md), reads the
 robot's `{part}/state:o`, writes `{part}/command:i` and calls `{part}/rpc:i` (getLimits,
 setRefSpeeds and the lease verbs, `--lease-ttl` wall s: `robotlink`); it never imports the
 robot's code. Positions are metres in root_link, orientations iKin axis-angle [ax, ay, az,

@@ -4,7 +4,7 @@ The paper's Eq. 7 as printed weights every pixel alike (`eq7_centroid` says why 
 kept of it); the centre comes from the geometry of the face instead (`services.detector.target`,
 `rings`: `Detector.detect`), the tip from Eq. 7's weighted centroid (`Detector._find_arrow`),
 and r from both with the face's known size (`Detector.from_fit`, which states the reward's
-convention). README.md, 'Seeing the hit: the colour detector on real photos', tells the method.
+convention). docs/detector.md tells the method.
 """
 
 from __future__ import annotations

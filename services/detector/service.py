@@ -1,5 +1,5 @@
 """`archery detector`: the GMM colour detector on the mesh: the verbs of
-`ROBOT/detector/rpc:i` (`protocol.verbs.detector`; the README's tables) and each measurement on
+`ROBOT/detector/rpc:i` (`protocol.verbs.detector`; docs/names.md's tables) and each measurement on
 `ROBOT/detector/hit:o`. Without `--model` (or with one not made yet) it calibrates itself from
 the camera's `calibration` marks once the camera is alive (`--no-auto-calibrate`: not)."""
 

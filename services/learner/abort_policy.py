@@ -3,7 +3,7 @@
 An attempt aborts when it ends without a measurement; the learner is not told and the attempt
 is not counted as a rollout. `after_abort` picks the next attempt's θ (m) by the abort's code,
 `streak_failure` fails the session after `max_aborts` aborts in a row (`service_lost` aside).
-README.md, 'Learning over the mesh', tells the codes from the user's side.
+docs/learning.md tells the codes from the user's side.
 """
 
 from __future__ import annotations

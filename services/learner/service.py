@@ -1,8 +1,8 @@
 """`archery learner`: runs learning sessions over the mesh, one rollout at a time, journaled.
 
 It serves `ROBOT/learner/rpc:i` (`start`, `stop`, `status`: `services.learner.handlers`) and
-publishes each journal record of a rollout on `ROBOT/learner/rollout:o`; README.md, 'Learning
-over the mesh', tells the verbs. With `--fleet P2,P3`, one learner process serves the same
+publishes each journal record of a rollout on `ROBOT/learner/rollout:o`; docs/learning.md
+tells the verbs. With `--fleet P2,P3`, one learner process serves the same
 ports under each of those robot prefixes too, and runs a session on each robot at once.
 Sessions go to `RUNS/<session>/journal.jsonl`; when one ends, `report.png` (and `hit.png`, the
 frame of the latest hit with the detection drawn) are written beside it.

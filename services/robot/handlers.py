@@ -1,5 +1,5 @@
 """The robot's RPC handlers: one method per verb of `protocol.verbs.robot` (the tables, with
-the README's), served from `SimLoop` and its lease gate (`leases`).
+docs/names.md's), served from `SimLoop` and its lease gate (`leases`).
 
 Part verbs take the part first (bound per `ROBOT/{part}/rpc:i` key by `part_verbs`); joint
 vectors are in YARP order (rad, rad/s), times in s of simulated time.

@@ -2,7 +2,7 @@
 
 `run` wires the simulation (`simloop`) to its ports: each part's `command:i` subscription,
 screened raw by the lease gate (`leases`) before decoding, and the verb handlers (`handlers`).
-The ports are listed in the README ("Names on the mesh"), the verbs in
+The ports are listed in docs/names.md, the verbs in
 `protocol.verbs.robot` (`archery interface KEY` prints them); ARCHITECTURE.md places the robot in
 the life of one rollout.
 """

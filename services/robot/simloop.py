@@ -5,7 +5,7 @@ Its parts, each in its own module: the job queue (`jobs`), the thread's loop (`s
 physics stepping (`physics`), pacing (`pacing`), the lease gate (`leases`, `gate`), the shot
 (`shot`), the archery verbs' work on the world (`world_jobs`), moving the joints (`joints`, by
 the rules of `commands`) and the stream watchdog (`watchdog`). The ports and verbs are listed
-in the README and `protocol.verbs.robot`.
+in docs/names.md and `protocol.verbs.robot`.
 """
 
 from __future__ import annotations

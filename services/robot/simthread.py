@@ -3,7 +3,7 @@
 At rtf > 0 each chunk waits for its wall time (`pacing`), running the jobs that arrive and
 holding stale streams meanwhile. At rtf 0 the world runs as fast as possible while something
 moves and, when nothing does, the thread sleeps on its job queue and repeats the unchanged
-state in wall time (see `pacing` and the README for the rates). A command that wakes the idle
+state in wall time (see `pacing` and docs/names.md for the rates). A command that wakes the idle
 robot starts its motion at once unless it announces a batch (`JointCommand.batch` > 1): the
 loop then waits for the rest of the batch (at most `batch_window` wall s) and starts them at
 one simulated time, so same-seed runs stay identical.
