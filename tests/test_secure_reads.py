@@ -1,4 +1,4 @@
-"""The finding of issue 48 in secure mode, through the commands the README gives: `archery up
+"""The finding of issue 48 in secure mode, through the commands docs/secure.md gives: `archery up
 --secure DIR`, then 16 far-future grabs of the camera by the `viewer` identity (120 s each), then
 `archery learn --secure DIR`: the session finishes with no abort, the viewer's grabs past its
 share are refused `busy`, and a viewer naming another identity's caller reaches nobody."""

@@ -1,4 +1,4 @@
-"""A whole learning session in secure mode, through the commands the README gives: `archery keys
+"""A whole learning session in secure mode, through the commands docs/secure.md gives: `archery keys
 init DIR`, `archery up --secure DIR --listen tls/...` (router and five services, each with its
 own identity, the router enforcing DIR/acl.json5) and `archery learn --secure DIR --connect
 tls/...` (the `operator` identity). The controls in the same run: the same `learn` presenting

@@ -1,4 +1,4 @@
-"""The README's second path as a user runs it: `archery up` in one shell, `archery learn` in
+"""docs/learning.md's path as a user runs it: `archery up` in one shell, `archery learn` in
 another, both with only PATH, HOME and LANG in their environment, from a folder outside the
 checkout; the session hits, its JSON result line comes out and the hit is filmed."""
 
