@@ -22,7 +22,13 @@ import cv2
 import numpy as np
 
 from archery.apps.progress import progress_bar
-from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_output_file,
+    count,
+    int_in,
+)
 from archery.protocol.errors import ArcheryError
 from archery.services.detector.calibration import fit_from_marks, load_pixels
 from archery.services.detector.colour_model import ColourModel
@@ -79,11 +85,18 @@ def calibrate_main(argv: list[str] | None = None) -> int:
         required=True,
         help='PIXELS.json: {"target": [[x, y], {"rect": [x, y, w, h]}, ...], "arrow": [...]}',
     )
-    parser.add_argument("--out", required=True, help="colour model file to write (JSON)")
-    parser.add_argument("--max-components", type=int, default=5, help="largest K tried by BIC")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the GMM fits")
+    parser.add_argument("--out", required=True, help="colour model file to write (.json)")
+    add_force_arg(parser, "an existing --out file")
+    parser.add_argument(
+        "--max-components",
+        type=int_in(1, 10, "a number of components"),
+        default=5,
+        help="largest K tried by BIC (1..10, default 5)",
+    )
+    parser.add_argument("--seed", type=count, default=0, help="seed of the GMM fits (>= 0)")
     args = parser.parse_args(argv)
     try:
+        check_output_file(args.out, "--out", (".json",), force=args.force)
         rgb = read_rgb(args.image)
         fitted = fit_from_marks(
             rgb, load_pixels(args.pixels), max_components=args.max_components, seed=args.seed
@@ -134,6 +147,7 @@ def detect_main(argv: list[str] | None = None) -> int:
         help="write the image and its filtered pixels with the detection and the fitted rings "
         "(PNG; with several images, a folder that gets IMAGE-NAME.png each)",
     )
+    add_force_arg(parser, "existing overlay files")
     parser.add_argument(
         "--no-progress", action="store_true", help="no progress bar for several images"
     )
@@ -142,26 +156,16 @@ def detect_main(argv: list[str] | None = None) -> int:
     several = len(args.image) > 1
     first = None
     try:
+        overlays = _overlays(args.image, args.overlay, force=args.force)
         if not several:  # a missing image is named before a missing model, as it always was
             first = read_rgb(args.image[0])
         detector = Detector(ColourModel.load(args.model), settings_from_args(args))
-        if several and args.overlay and not Path(args.overlay).is_dir():
-            raise ImageError(f"--overlay {args.overlay!r} must be a folder for several images")
     except ArcheryError as exc:
         print(f"archery detect: {exc}", file=sys.stderr)
         return 2
     status = 0
-    stems: dict[str, int] = {}
     with _progress(len(args.image), enabled=several and not args.no_progress) as advance:
-        for image in args.image:
-            overlay = None
-            if args.overlay and not several:
-                overlay = Path(args.overlay)
-            elif args.overlay:
-                stem = Path(image).stem
-                stems[stem] = stems.get(stem, 0) + 1  # a/x.jpg, b/x.jpg → x.png, x-2.png
-                name = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
-                overlay = Path(args.overlay) / f"{name}.png"
+        for image, overlay in zip(args.image, overlays, strict=True):
             try:
                 line = _detect_one(detector, image, overlay, first)
             except ArcheryError as exc:
@@ -173,6 +177,32 @@ def detect_main(argv: list[str] | None = None) -> int:
             print(json.dumps(line), flush=True)
             advance()
     return status
+
+
+def _overlays(images: list[str], overlay: str | None, *, force: bool) -> list[Path | None]:
+    """Each image's overlay file: `overlay` itself for one image; for several, IMAGE-NAME.png
+    in the folder `overlay` (a/x.jpg, b/x.jpg → x.png, x-2.png). Each is checked as an output
+    (`mesh.cliargs.check_output_file`) before any image is read.
+
+    Raises:
+        ConfigError, ImageError: one line naming --overlay and what to give instead.
+    """
+    if overlay is None:
+        return [None] * len(images)
+    if len(images) == 1:
+        return [check_output_file(overlay, "--overlay", (".png",), force=force)]
+    if not Path(overlay).is_dir():
+        raise ImageError(f"--overlay {overlay!r} must be an existing folder for several images")
+    stems: dict[str, int] = {}
+    paths: list[Path | None] = []
+    for image in images:
+        stem = Path(image).stem
+        stems[stem] = stems.get(stem, 0) + 1
+        name = stem if stems[stem] == 1 else f"{stem}-{stems[stem]}"
+        path = Path(overlay) / f"{name}.png"
+        check_output_file(path, "--overlay", (".png",), force=force)
+        paths.append(path)
+    return paths
 
 
 @contextlib.contextmanager

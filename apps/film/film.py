@@ -5,11 +5,10 @@ from the release to the target (`apps.film.framing`, rendered by `sim.scene_view
 SESSION is a session's folder or its `journal.jsonl`; with `--recording FILE.mcap` (an `archery
 record` of the session) the rollout is filmed as the recording saw it. Without `--rollout` it
 films the session's first hit into `shot.mp4` beside the journal; `--rollout N` films done
-rollout N into `rollout-N.mp4` (`--out`: .mp4, .mkv or .mov); each video has its contact
-sheet beside it (`.png`), and its path is printed on stdout. Exit status 2 (one line on stderr),
-before anything is rendered: no such session, a journal of another version, a session without a
-hit and no `--rollout`, a rollout it does not have, a recording that does not cover the rollout
-(or is no recording), an output that is a folder, in no folder, or exists (without `--force`).
+rollout N into `rollout-N.mp4` (`--out`: .mp4, .mkv or .mov), its contact sheet beside it
+(`.png`), its path printed on stdout. Exit status 2 (one line on stderr), before any rendering:
+no such session, a journal of another version, no hit and no `--rollout`, a rollout it does not
+have, a recording that does not cover it, an output `mesh.cliargs.check_output_file` refuses.
 """
 
 from __future__ import annotations
@@ -275,13 +274,6 @@ def main(argv: list[str] | None = None) -> int:
         except ConfigError as exc:
             print(f"archery film: {exc}", file=sys.stderr)
             return BAD_INPUT
-    from archery.sim.gl_backend import RenderBackendError, check
-
-    try:
-        check()
-    except RenderBackendError as exc:
-        print(f"archery film: {exc}", file=sys.stderr)
-        return BAD_INPUT
     if (
         args.width % 2
         or args.height % 2
@@ -299,6 +291,13 @@ def main(argv: list[str] | None = None) -> int:
         return BAD_INPUT
     if args.rollout is not None and args.rollout < 1:
         print("archery film: --rollout counts from 1", file=sys.stderr)
+        return BAD_INPUT
+    from archery.sim.gl_backend import RenderBackendError, check
+
+    try:
+        check()
+    except RenderBackendError as exc:
+        print(f"archery film: {exc}", file=sys.stderr)
         return BAD_INPUT
     try:
         result = film_session(

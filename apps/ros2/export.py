@@ -1,21 +1,25 @@
 """`archery export FILE.mcap --ros2 OUT`: a recording as a ROS 2 bag (rosbag2, MCAP storage,
 CDR) of the topics the live node publishes (`apps.ros2.graph.TOPICS`, converted by the same
 `apps.ros2.convert`), each message at the time it was recorded; the robot description and
-`/tf_static` once, at the first message's time."""
+`/tf_static` once, at the first message's time. OUT is a new folder in an existing one; an
+existing bag there is replaced with `--force` only (any other file or folder never)."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
 
-from archery.mesh.cliargs import ArgumentParser
+from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_new_folder
 from archery.protocol.errors import ArcheryError, ConfigError, DecodeError
 from archery.protocol.exit_status import BAD_INPUT, FAILURE, OK
 
-__all__ = ["build_parser", "export", "main"]
+__all__ = ["build_parser", "check_bag_out", "export", "main"]
+
+BAG_METADATA = "metadata.yaml"  # what every rosbag2 folder holds
 
 
 def build_parser() -> ArgumentParser:
@@ -30,11 +34,43 @@ def build_parser() -> ArgumentParser:
         "--ros2", metavar="OUT", required=True, help="the ROS 2 bag to write (a new folder)"
     )
     parser.add_argument("--namespace", help="the topics' namespace (default /ROBOT)")
+    add_force_arg(parser, "an existing bag at --ros2 (a folder holding a metadata.yaml)")
     return parser
 
 
-def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int]:
-    """Write the ROS 2 bag `out` of the recording `path`; {topic: messages written}.
+def _is_bag(folder: Path) -> bool:
+    """Whether `folder` is a rosbag2 bag: its metadata.yaml and files only (no subfolder)."""
+    return (
+        folder.is_dir()
+        and not folder.is_symlink()
+        and (folder / BAG_METADATA).is_file()
+        and all(entry.is_file() and not entry.is_symlink() for entry in folder.iterdir())
+    )
+
+
+def check_bag_out(out: Path, *, force: bool) -> bool:
+    """Whether the bag folder `out` replaces an existing bag (`force`, and a bag is there);
+    else it is checked as a new folder (`mesh.cliargs.check_new_folder`).
+
+    Raises:
+        ConfigError: one line naming --ros2, the value and what to give instead.
+    """
+    if force and _is_bag(out):
+        return True
+    try:
+        check_new_folder(out, "--ros2")
+    except ConfigError as exc:
+        if out.is_dir() and _is_bag(out):
+            raise ConfigError(f"{exc.message}, or --force to replace the bag") from None
+        raise
+    return False
+
+
+def export(
+    path: Path, out: Path, namespace: str | None = None, *, force: bool = False
+) -> dict[str, int]:
+    """Write the ROS 2 bag `out` of the recording `path`; {topic: messages written}. With
+    `force` an existing bag at `out` is replaced (`check_bag_out`), once the recording opens.
 
     Raises:
         ConfigError: an unreadable recording, an existing `out`, a bad namespace.
@@ -52,8 +88,7 @@ def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int
     from archery.sim.scene_config import SceneConfig
     from archery.sim.urdf import urdf_text
 
-    if out.exists():
-        raise ConfigError(f"--ros2 {str(out)!r}: already exists (give a new folder)")
+    replace = check_bag_out(out, force=force)
     recording = open_recording(path)
     robot = recording.metadata.get("robot", "")
     try:
@@ -65,6 +100,8 @@ def export(path: Path, out: Path, namespace: str | None = None) -> dict[str, int
     frames = RobotFrames(robot, scene)
     urdf = recording.attachment(DESCRIPTION_ATTACHMENT)
     counts: dict[str, int] = {}
+    if replace:
+        shutil.rmtree(out)
 
     def name(topic: str) -> str:
         return topic if topic.startswith("/") else f"{prefix.rstrip('/')}/{topic}"
@@ -117,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     """`archery export FILE.mcap --ros2 OUT`; exit 2 for a bad recording or output."""
     args: argparse.Namespace = build_parser().parse_args(argv)
     try:
-        counts = export(Path(args.recording), Path(args.ros2), args.namespace)
+        counts = export(Path(args.recording), Path(args.ros2), args.namespace, force=args.force)
     except (ConfigError, DecodeError) as exc:
         print(f"archery export: {exc}", file=sys.stderr)
         return BAD_INPUT

@@ -273,6 +273,8 @@ def main(argv: list[str] | None = None) -> int:
         check_writable_dir(Path(args.logs), "--logs", create=True)
         if args.record is not None:
             check_output_file(args.record, "--record", (".mcap",), force=args.force)
+        if args.foxglove is not None and not 0 <= args.foxglove <= 65535:
+            raise ConfigError(f"--foxglove {args.foxglove}: give a port number from 0 to 65535")
         if args.ros2 is not None and not 0 <= args.ros2 <= 232:
             raise ConfigError(f"--ros2 {args.ros2}: give a ROS 2 domain id from 0 to 232")
         if mesh.router.start:  # the router's listen endpoint, checked before anything starts
