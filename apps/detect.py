@@ -192,7 +192,7 @@ def _overlays(images: list[str], overlay: str | None, *, force: bool) -> list[Pa
     if len(images) == 1:
         return [check_output_file(overlay, "--overlay", (".png",), force=force)]
     if not Path(overlay).is_dir():
-        raise ImageError(f"--overlay {overlay!r} must be an existing folder for several images")
+        raise ImageError(f"--overlay {overlay!r} must be a folder for several images")
     stems: dict[str, int] = {}
     paths: list[Path | None] = []
     for image in images:

@@ -231,6 +231,7 @@ def time_cli(
                     *cli, "detect", str(work / "missing.jpg"), "--model", str(model)
                 ],
             }  # fmt: skip
+            model.unlink(missing_ok=True)  # calibrate refuses to replace it (no --force)
             for label, command in commands.items():
                 wall, cpu, status = _child_times(command, tree, env)
                 expected = 2 if "missing" in label else 0

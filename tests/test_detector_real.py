@@ -107,7 +107,7 @@ def test_the_tools_explain_bad_input(tmp_path: Path) -> None:
         "--pixels",
         str(DATA / "target-2.json"),
         "--out",
-        str(tmp_path / "m"),
+        str(tmp_path / "m.json"),
     )
     assert done.returncode == 2 and "outside the 64x64 image" in done.stderr
     done = archery("detect", str(tmp_path / "missing.jpg"), "--model", str(tmp_path / "m.json"))
@@ -118,5 +118,7 @@ def test_the_tools_explain_bad_input(tmp_path: Path) -> None:
     assert done.returncode == 2 and "version 0 is not supported" in done.stderr
     pixels = tmp_path / "grey.json"
     pixels.write_text(json.dumps({"target": [{"rect": [2, 2, 20, 20]}]}))
-    done = archery("calibrate", str(tiny), "--pixels", str(pixels), "--out", str(tmp_path / "m"))
+    done = archery(
+        "calibrate", str(tiny), "--pixels", str(pixels), "--out", str(tmp_path / "m.json")
+    )
     assert done.returncode == 2 and "grey, white or black" in done.stderr
