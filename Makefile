@@ -58,10 +58,12 @@ bench: dev
 bench-smoke: dev
 	$(PY) -m benchmarks.run --smoke
 
-# The wheel as a user installs it: built, installed with [all] into a fresh venv outside the
-# checkout (not editable), `archery demo` run from another folder in a bare environment.
+# The wheel as a user installs it: built once, installed with [all] into a fresh venv outside the
+# checkout (not editable), `archery demo` run from another folder in a bare environment; then on
+# each of OTHER_PYTHONS the demo and a fast subset of the tests (the full suite runs on 3.11).
+OTHER_PYTHONS ?= 3.12,3.13
 wheel-check: dev
-	$(PY) -m tests.wheel_check
+	$(PY) -m tests.wheel_check --pythons $(OTHER_PYTHONS)
 
 drills: dev
 	$(VENV)/bin/archery drill

@@ -42,7 +42,7 @@ __all__ = [
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = ROOT / "docker-compose.yml"
-TARGETS = ("router", "robot", "camera", "detector", "controller", "learner")
+TARGETS = ("router", "robot", "camera", "detector", "controller", "learner", "foxglove")
 OFFICIAL_BASE = "python:3.11-slim-bookworm"
 STANDIN_BASE = "archery-base:bookworm"
 CA_BUNDLES = ("/etc/ssl/certs/ca-certificates.crt",)
@@ -231,6 +231,7 @@ class Compose:
             "ARCHERY_USER": f"{os.getuid()}:{os.getgid()}",
             "ARCHERY_PORT": os.environ.get("ARCHERY_PORT") or str(free_port()),
             "ARCHERY_SECURE_PORT": os.environ.get("ARCHERY_SECURE_PORT") or str(free_port()),
+            "ARCHERY_FOXGLOVE_PORT": os.environ.get("ARCHERY_FOXGLOVE_PORT") or str(free_port()),
             "ARCHERY_RUNS": str(self.runs),
             "ARCHERY_SECRETS": str(self.secrets or self.runs / "no-secrets"),
         } | self.env
@@ -326,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = list(sys.argv[1:] if argv is None else argv)
     problem = engine_problem()
     if problem is None:
-        for var in ("ARCHERY_PORT", "ARCHERY_SECURE_PORT"):
+        for var in ("ARCHERY_PORT", "ARCHERY_SECURE_PORT", "ARCHERY_FOXGLOVE_PORT"):
             if os.environ.get(var):
                 problem = port_problem(int(os.environ[var]))
                 problem = problem and f"{problem}: {var}"

@@ -188,11 +188,14 @@ def test_watch_profile_serves_foxglove_on_the_hosts_loopback(compose: dict[str, 
     watch = _profile(compose, "watch")["watch"]
     assert watch["image"] == "archery-foxglove:latest"
     assert watch["build"] == {"context": ".", "target": "foxglove"}
-    args = foxglove_parser().parse_args(watch["command"][2:])
+    port = "${ARCHERY_FOXGLOVE_PORT:-8765}"  # the same on both sides (the Host check)
+    command = [port.split("-")[1].rstrip("}") if a == port else a for a in watch["command"]]
+    args = foxglove_parser().parse_args(command[2:])
     assert args.connect == ["tcp/router:7447"] and not args.operator
     assert args.host == "0.0.0.0"  # inside the container; the host publishes loopback only
     assert args.insecure_network  # the container network is the trust boundary
-    assert watch["ports"] == [f"127.0.0.1:{args.port}:{args.port}"]
+    assert args.port == 8765 and watch["command"][watch["command"].index("--port") + 1] == port
+    assert watch["ports"] == [f"127.0.0.1:{port}:{port}"]
     assert set(watch["depends_on"]) == {"router", "robot"}
     rules = UpgradeRules(args.host, args.port)
     for host in (f"localhost:{args.port}", f"127.0.0.1:{args.port}"):

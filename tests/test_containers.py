@@ -1,7 +1,8 @@
 """The containers for real (`make compose`): the images build and each runs its process as a
 non-root user, no key enters an image, `docker-compose up` runs the demo to a hit, the secure
 profile too, the fleet profile runs an experiment across two networks whose routers link, and a
-session survives a killed service and a restarted router. Skipped, with the reason, where no
+session survives a killed service and a restarted router; the watch profile's Foxglove server is
+read by Foxglove's own client through the host's loopback. Skipped, with the reason, where no
 Docker engine runs (`make compose` fails instead: ARCHERY_CONTAINERS=required)."""
 
 from __future__ import annotations
@@ -13,8 +14,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -48,6 +50,7 @@ IMPORTS = {
     "detector": ["archery.services.detector"],
     "controller": ["archery.services.controller"],
     "learner": ["archery.services.learner"],
+    "foxglove": ["archery.apps.foxglove"],
 }
 NOT_IN_IMAGES = (
     "archery.apps.topics.image_records",
@@ -312,6 +315,50 @@ def test_the_whole_shot_runs_in_the_containers(images: dict[str, float], tmp_pat
     (journal,) = journals(runs)
     done = [r for r in journal_records(journal) if r["record"] == "done"]
     assert len(done) == 3 and all(r["timing"]["movement_sim_s"] > 12.0 for r in done), done
+
+
+def test_the_watch_profile_serves_the_robot_to_foxglove(
+    images: dict[str, float], tmp_path: Path
+) -> None:
+    """`--profile watch`: the Foxglove container beside the plain mesh, published on the host's
+    loopback; Foxglove's own client reads the robot's description, joints and camera from it."""
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    compose = Compose(f"archerytestwatch{os.getpid()}", runs)
+    url = f"ws://127.0.0.1:{compose.env['ARCHERY_FOXGLOVE_PORT']}/"
+    with compose.running():
+        up = compose("up", "-d", "--no-build", "router", "robot", "camera", "watch",
+                     profiles=("watch",))  # fmt: skip
+        assert up.returncode == 0, up.stderr[-4000:] + compose.logs()
+        wants = ("/robot_description", "/joint_states", "/camera/image")
+        lines = _foxglove_client(url, wants, timeout=300)
+        assert compose.inspect("watch", "{{.State.Running}}") == "true", compose.logs("watch")
+    assert compose.leftovers() == []
+    topics = {m["topic"] for line in lines if "message" in line for m in [line["message"]]}
+    assert set(wants) <= topics, (topics, lines[-3:])
+
+
+def _foxglove_client(url: str, wants: Sequence[str], timeout: float) -> list[dict[str, Any]]:
+    """Foxglove's own client (tests/foxglove_client) against `url`, retried while the server
+    starts (connection refused) until `timeout`; its JSON lines once it has every wanted topic."""
+    client = ROOT / "tests" / "foxglove_client"
+    if not (client / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        subprocess.run(["npm", "ci", "--no-audit", "--no-fund"], cwd=client, check=True)
+    argv = ["node", str(client / "client.mjs"), url, *(a for w in wants for a in ("--want", w))]
+    deadline = time.monotonic() + timeout
+    while True:
+        left = deadline - time.monotonic()
+        done = subprocess.run(
+            [*argv, "--timeout", str(max(10, int(min(left, 120))))],
+            capture_output=True,
+            text=True,
+            timeout=150,
+        )
+        if done.returncode == 0:
+            return [json.loads(line) for line in done.stdout.splitlines() if line.strip()]
+        if time.monotonic() > deadline:
+            raise AssertionError(f"Foxglove's client got no answer: {done.stderr[-2000:]}")
+        time.sleep(1)
 
 
 def test_the_secure_profile_runs_the_demo_to_a_hit(

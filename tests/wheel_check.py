@@ -10,17 +10,23 @@
    distribution put only `archery` at the top of site-packages (`import protocol` fails), the
    installed `archery` imports from that environment (never the checkout) and `archery demo`
    runs to a hit, its JSON result line printed and the hit filmed.
+5. With `--pythons 3.12,3.13`, the same wheel on each of those Pythons: a fresh venv, the
+   install with `[all]`, `archery demo` to a hit from a bare shell, and a fast subset of the
+   tests (FAST_TESTS) run by that Python (the full suite stays on the main Python).
 
 Each step prints its time; the folder is removed afterwards unless a step failed (then its path
 is printed). Exit status 0 when every step passes, 1 otherwise.
 
-    python -m tests.wheel_check [--keep]
+    python -m tests.wheel_check [--keep] [--pythons 3.12,3.13]
 """
 
 from __future__ import annotations
 
 import argparse
+import glob
 import json
+import os
+import re
 import shutil
 import subprocess
 import sys
@@ -31,6 +37,27 @@ from pathlib import Path
 
 CHECKOUT = Path(__file__).resolve().parents[1]
 PACKAGES = ("protocol", "mesh", "services", "apps", "sim")
+#: a fast subset of the suite for the other Pythons: every layer and each compiled dependency
+#: (numpy, scipy, zenoh, MuJoCo, Pinocchio, OpenCV, msgspec), about two minutes
+FAST_TESTS = (
+    "test_ballistic.py",
+    "test_messages.py",
+    "test_vectors.py",
+    "test_robotspec.py",
+    "test_verbs.py",
+    "test_netflags.py",
+    "test_node.py",
+    "test_journal.py",
+    "test_learners.py",
+    "test_ik.py",
+    "test_movement_dmp.py",
+    "test_world.py",
+    "test_gmm.py",
+    "test_detector_em.py",
+    "test_output_paths.py",
+)
+#: what the fast subset needs beyond `[all]`
+TEST_TOOLS = ("pytest>=8", "pytest-timeout>=2.2", "hypothesis>=6.100", "psutil>=5.9")
 
 
 class CheckFailed(Exception):
@@ -97,29 +124,93 @@ def _check_contents(wheel: Path) -> None:
     _check_top(names, wheel.name)
 
 
-def check(folder: Path) -> None:
-    """The whole check in `folder` (outside the checkout). Raises CheckFailed."""
-    dist, venv, home, elsewhere = (folder / n for n in ("dist", "venv", "home", "elsewhere"))
-    for path in (home, elsewhere):
-        path.mkdir(parents=True)
-    python = sys.executable
+def interpreter(version: str) -> str:
+    """The path of a `pythonX.Y` for `version` ("3.12"): the one on PATH when it runs, else
+    pyenv's (whose shim refuses a version that is not selected). Raises CheckFailed."""
+    name = f"python{version}"
+    found = shutil.which(name)
+    if found and subprocess.run([found, "-c", ""], capture_output=True).returncode == 0:
+        return found
+    root = os.environ.get("PYENV_ROOT") or str(Path.home() / ".pyenv")
+    for candidate in sorted(glob.glob(f"{root}/versions/{version}*/bin/{name}"), reverse=True):
+        if subprocess.run([candidate, "-c", ""], capture_output=True).returncode == 0:
+            return candidate
+    raise CheckFailed(f"no {name} on PATH or under {root}/versions: install Python {version}")
+
+
+def build(folder: Path) -> Path:
+    """The wheel, built from the checkout into `folder`/dist and its contents checked."""
+    dist = folder / "dist"
     _step(
         "build the wheel",
-        [python, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(CHECKOUT)],
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(dist), str(CHECKOUT)],
         timeout=600,
     )
     wheels = sorted(dist.glob("archery-*.whl"))
     if len(wheels) != 1:
         raise CheckFailed(f"expected one archery wheel in {dist}, found {wheels}")
     _check_contents(wheels[0])
+    return wheels[0]
+
+
+def _installed(folder: Path, wheel: Path, python: str) -> tuple[Path, Path, dict[str, str]]:
+    """A fresh venv of `python` in `folder` with `wheel[all]`: (venv, a folder outside the
+    checkout to run from, the bare environment to run in)."""
+    venv, home, elsewhere = (folder / n for n in ("venv", "home", "elsewhere"))
+    for path in (home, elsewhere):
+        path.mkdir(parents=True)
     _step("create a fresh virtual environment", [python, "-m", "venv", str(venv)], timeout=300)
     _step(
         "install the wheel with [all]",
-        [str(venv / "bin" / "pip"), "install", "-q", f"{wheels[0]}[all]"],
+        [str(venv / "bin" / "pip"), "install", "-q", f"{wheel}[all]"],
         timeout=1800,
     )
     env = {"PATH": f"{venv / 'bin'}:/usr/local/bin:/usr/bin:/bin", "HOME": str(home)}
     env["LANG"] = "C.UTF-8"
+    return venv, elsewhere, env
+
+
+def _demo(elsewhere: Path, env: dict[str, str], title: str, *args: str) -> dict[str, object]:
+    """`archery demo ARGS` in `elsewhere` with `env`; its JSON result, checked for a filmed hit."""
+    out = _step(title, ["archery", "demo", *args], timeout=900, cwd=elsewhere, env=env)
+    try:
+        result: dict[str, object] = json.loads(out.strip().splitlines()[-1])
+    except (IndexError, ValueError):
+        raise CheckFailed(f"the demo's last line is not its JSON result:\n{out[-2000:]}") from None
+    video = elsewhere / str(result.get("video"))
+    if result.get("hit_at") is None or not video.is_file() or video.stat().st_size == 0:
+        raise CheckFailed(f"the demo did not hit, or its hit was not filmed: {result}")
+    return result
+
+
+def check_other_python(folder: Path, wheel: Path, version: str) -> None:
+    """The wheel on Python `version`: installed with [all], the demo to a hit from a bare shell,
+    the fast subset of the tests. Raises CheckFailed."""
+    python = interpreter(version)
+    print(f"wheel-check: Python {version} ({python})", flush=True)
+    venv, elsewhere, env = _installed(folder, wheel, python)
+    result = _demo(elsewhere, env, f"archery demo on Python {version} in a bare environment")
+    print(f"wheel-check: Python {version}: the demo hit at rollout {result['hit_at']}, filmed")
+    _step(
+        f"install the test tools on Python {version}",
+        [str(venv / "bin" / "pip"), "install", "-q", *TEST_TOOLS],
+        timeout=600,
+    )
+    tests = [str(CHECKOUT / "tests" / name) for name in FAST_TESTS]
+    out = _step(
+        f"the fast subset of the tests on Python {version}",
+        [str(venv / "bin" / "python"), "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests],
+        timeout=1200,
+        cwd=CHECKOUT,
+        env=env,
+    )
+    print(f"wheel-check: Python {version}: {out.strip().splitlines()[-1]}")
+
+
+def check(folder: Path, wheel: Path) -> None:
+    """The whole check of `wheel` on this Python in `folder` (outside the checkout). Raises
+    CheckFailed."""
+    venv, elsewhere, env = _installed(folder, wheel, sys.executable)
     installed = _step(
         "list the installed distribution's files",
         ["python", "-c", "import importlib.metadata as m; print(*m.files('archery'), sep='\\n')"],
@@ -158,36 +249,17 @@ def check(folder: Path) -> None:
     for line in where.split():
         if not Path(line).is_relative_to(venv) or Path(line).is_relative_to(CHECKOUT):
             raise CheckFailed(f"the package was imported from {line}, not from {venv}")
-    out = _step(
-        "archery demo from another folder in a bare environment",
-        ["archery", "demo"],
-        timeout=900,
-        cwd=elsewhere,
-        env=env,
-    )
-    try:
-        result = json.loads(out.strip().splitlines()[-1])
-    except (IndexError, ValueError):
-        raise CheckFailed(f"the demo's last line is not its JSON result:\n{out[-2000:]}") from None
-    if result.get("hit_at") is None:
-        raise CheckFailed(f"the demo did not hit: {result}")
-    video = elsewhere / str(result.get("video"))
-    if not video.is_file() or video.stat().st_size == 0:
-        raise CheckFailed(f"the demo's hit was not filmed: {video} is missing")
+    result = _demo(elsewhere, env, "archery demo from another folder in a bare environment")
     print(
         f"wheel-check: the installed demo hit at rollout {result['hit_at']} "
-        f"({result['rollouts']} rollouts), filmed into {video.name}"
+        f"({result['rollouts']} rollouts), filmed into {Path(str(result['video'])).name}"
     )
-    out = _step(
+    whole = _demo(
+        elsewhere,
+        env,
         "archery demo --shot whole (the shipped demonstration's DMPs) in a bare environment",
-        ["archery", "demo", "--shot", "whole", "--seed", "4", "--rollouts", "20"],
-        timeout=900,
-        cwd=elsewhere,
-        env=env,
+        *("--shot", "whole", "--seed", "4", "--rollouts", "20"),
     )
-    whole = json.loads(out.strip().splitlines()[-1])
-    if whole.get("hit_at") is None or not (elsewhere / str(whole.get("video"))).is_file():
-        raise CheckFailed(f"the whole shot's demo did not hit, or its hit was not filmed: {whole}")
     print(f"wheel-check: the whole shot's demo hit at rollout {whole['hit_at']}, filmed")
 
 
@@ -195,14 +267,27 @@ def main(argv: list[str] | None = None) -> int:
     """Run the check; exit status 0 when every step passes."""
     parser = argparse.ArgumentParser(prog="python -m tests.wheel_check", description=__doc__)
     parser.add_argument("--keep", action="store_true", help="keep the folder afterwards")
+    parser.add_argument(
+        "--pythons",
+        default="",
+        metavar="X.Y,…",
+        help="also check the wheel on these Pythons (e.g. 3.12,3.13): demo and fast tests",
+    )
     args = parser.parse_args(argv)
+    versions = [v for v in args.pythons.split(",") if v]
+    for version in versions:
+        if not re.fullmatch(r"3\.\d+", version):
+            parser.error(f"--pythons: {version!r} is not a version like 3.12")
     folder = Path(tempfile.mkdtemp(prefix="archery-wheel-check-"))
     if folder.is_relative_to(CHECKOUT):
         print(f"wheel-check: {folder} is inside the checkout", file=sys.stderr)
         return 1
     start = time.monotonic()
     try:
-        check(folder)
+        wheel = build(folder)
+        check(folder / "main", wheel)
+        for version in versions:
+            check_other_python(folder / f"python{version}", wheel, version)
     except CheckFailed as exc:
         print(f"wheel-check: FAILED: {exc}\n(the folder is kept: {folder})", file=sys.stderr)
         return 1
