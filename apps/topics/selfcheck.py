@@ -98,6 +98,7 @@ def _torso_verbs(commands: Subscription[JointCommand]) -> ServedVerbs:
             "getPositions": lambda _: rv.PositionsReply(
                 names=names, position=zeros, velocity=zeros, sim_time=0.0
             ),
+            "getHistory": lambda _: rv.HistoryReply(names=names, times=[0.0], positions=[zeros]),
             "getTargets": lambda _: rv.TargetsReply(names=names, position=list(targets)),
             "checkMotionDone": lambda _: rv.MotionDoneReply(done=True),
             "setRefSpeeds": set_speeds,

@@ -20,6 +20,8 @@ from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
 __all__ = [
     "ARCHERY_VERBS",
+    "HISTORY_SPAN",
+    "MAX_HISTORY_POINTS",
     "MAX_TRAJECTORY_DURATION",
     "MAX_TRAJECTORY_POINTS",
     "MAX_WIND",
@@ -34,6 +36,11 @@ MAX_TRAJECTORY_POINTS = 2000
 MAX_TRAJECTORY_DURATION = 120.0  # s of simulated time from a trajectory's start to its last point
 #: The archery verbs a multi-part trajectory may run at a time of its own (`TrajectoryAction`)
 TRAJECTORY_ACTIONS = ("grasp", "nock")
+#: s of simulated time a part's joint-state history keeps (`getHistory`): a demonstration's
+#: longest movement (`protocol.demonstration.MAX_DURATION`, 60 s) and some
+HISTORY_SPAN = 65.0
+MAX_STATE_RATE = 1000.0  # Hz of simulated time: the fastest joint-state grid (`--state-rate`)
+MAX_HISTORY_POINTS = int(HISTORY_SPAN * MAX_STATE_RATE) + 1
 
 Speed = Annotated[float, Meta(gt=0.0, le=MAX_REFERENCE_SPEED, description="rad/s")]
 Joints = Annotated[list[float], Meta(min_length=1, max_length=MAX_JOINTS, description="rad")]
@@ -78,6 +85,21 @@ class PositionsReply(Reply, frozen=True):
     position: Annotated[list[float], Meta(description="rad")]
     velocity: Annotated[list[float], Meta(description="rad/s")]
     sim_time: Annotated[float, Meta(description="s")]
+
+
+class HistoryArgs(Args, frozen=True):
+    """The joint-state history from `since` (s of simulated time) on."""
+
+    since: Annotated[float, Meta(ge=0.0, description="s of sim time")] = 0.0
+
+
+class HistoryReply(Reply, frozen=True):
+    """The part's encoder positions (rad, `names` in YARP order) at `times` (s of simulated
+    time, increasing, one joint-state period apart)."""
+
+    names: list[str]
+    times: Annotated[list[float], Meta(max_length=MAX_HISTORY_POINTS, description="s of sim time")]
+    positions: Annotated[list[Joints], Meta(max_length=MAX_HISTORY_POINTS)]
 
 
 class TargetsReply(Reply, frozen=True):
@@ -294,6 +316,19 @@ GET_POSITIONS = Verb(
     reads=True,
 )
 
+# The joint-state history: the encoders at every point of the joint-state grid (`--state-rate`
+# per simulated second) over the last HISTORY_SPAN s of simulated time, whatever the rtf. At rtf 0
+# the `state:o` streams go out at most `--state-rate` times per wall second, so a movement that
+# runs faster than the wall clock skips grid points there; a recording of it (`archery
+# demonstrate`) reads them here, after the movement. A reset (sim time 0) clears it.
+GET_HISTORY = Verb(
+    "getHistory",
+    HistoryArgs,
+    HistoryReply,
+    "encoders at every joint-state period of sim time since `since` (the last 65 s)",
+    reads=True,
+)
+
 GET_TARGETS = Verb(
     "getTargets", NoArgs, TargetsReply, "the current (clamped) position targets", reads=True
 )
@@ -388,6 +423,7 @@ PART_VERBS = VerbTable(
         GET_JOINT_NAMES,
         GET_LIMITS,
         GET_POSITIONS,
+        GET_HISTORY,
         GET_TARGETS,
         CHECK_MOTION_DONE,
         SET_REF_SPEEDS,

@@ -71,6 +71,7 @@ class RobotHandlers:
             rv.GET_JOINT_NAMES.to(lambda a: self.get_joint_names(part, a)),
             rv.GET_LIMITS.to(lambda a: self.get_limits(part, a)),
             rv.GET_POSITIONS.to(lambda a: self.get_positions(part, a)),
+            rv.GET_HISTORY.to(lambda a: self.get_history(part, a)),
             rv.GET_TARGETS.to(lambda a: self.get_targets(part, a)),
             rv.CHECK_MOTION_DONE.to(lambda a: self.check_motion_done(part, a)),
             rv.SET_REF_SPEEDS.to(lambda a: self.set_ref_speeds(part, a)),
@@ -118,6 +119,10 @@ class RobotHandlers:
     def get_positions(self, part: str, args: NoArgs) -> rv.PositionsReply:
         """Encoders: positions (rad), velocities (rad/s), sim time (s)."""
         return self._loop.positions(part)
+
+    def get_history(self, part: str, args: rv.HistoryArgs) -> rv.HistoryReply:
+        """Encoders at every joint-state period of sim time since `args.since` (s)."""
+        return self._loop.history(part, args.since)
 
     def get_targets(self, part: str, args: NoArgs) -> rv.TargetsReply:
         """The part's current (clamped) targets (rad)."""

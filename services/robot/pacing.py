@@ -58,6 +58,9 @@ class Pacing:
         self._sent_world = -math.inf
         self._lively_until = time.monotonic() + rest_after  # wall time the full-rate beats end
         self._anchor: tuple[float, float] | None = None  # (wall, sim) pair of the rtf schedule
+        #: the last `due` reached a joint-state grid point (at rtf 0 also one that does not go
+        #: out on the streams: the history keeps every one)
+        self.on_state_grid = False
 
     # -- sim time ----------------------------------------------------------------------------
     def schedule(self, sim_time: float) -> None:
@@ -84,7 +87,7 @@ class Pacing:
         goes out at once (the loop publishes it on coming to rest).
         """
         half = 0.5 * self.dt
-        joints = sim_time >= self._next_state - half
+        joints = self.on_state_grid = sim_time >= self._next_state - half
         if joints:
             self._next_state = max(self._next_state + self.state_period, sim_time + half)
         world = sim_time >= self._next_world - half

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from archery.services.robot.commands import PartCounters
+from archery.services.robot.history import StateHistory
 from archery.services.robot.pacing import Pacing
 from archery.services.robot.shot import Shots, phase_of
 from archery.services.robot.sink import Sink
@@ -57,6 +58,10 @@ class Physics:
         self._streams = streams
         self._counters = counters
         self._names = {part: tuple(world.joint_names(part)) for part in world.parts}
+        #: every part's positions at each joint-state grid point, whatever the rtf
+        self.history = StateHistory(
+            {part: len(names) for part, names in self._names.items()}, pacing.state_period
+        )
         self.follower: Follower | None = None  # the trajectories, once the loop attaches them
 
     def cap(self, steps: int) -> int:
@@ -76,6 +81,8 @@ class Physics:
         if self.follower is not None:
             self.follower.check()
         joints, world_due = self._pacing.due(world.sim_time)
+        if self._pacing.on_state_grid:
+            self.record()
         if joints:
             self.publish_joints()
         if landing is not None:
@@ -83,6 +90,12 @@ class Physics:
             self._shots.landed(landing)
         elif world_due:
             self.publish_world()
+
+    def record(self) -> None:
+        """Keep every part's positions now in the history (a grid point of the joint states)."""
+        world = self.world
+        row = np.concatenate([world.joint_positions(part) for part in world.parts])
+        self.history.add(world.sim_time, row)
 
     def publish_joints(self) -> None:
         """Every part's joint state: positions (rad), velocities (rad/s), motion done."""

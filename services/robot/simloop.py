@@ -206,6 +206,17 @@ class SimLoop:
             )
         )
 
+    def history(self, part: str, since: float) -> rv.HistoryReply:
+        """`part`'s encoder positions (rad) at every joint-state grid point (s of sim time)
+        from `since` on, of the last `HISTORY_SPAN` s (`history`)."""
+
+        def read() -> rv.HistoryReply:
+            times, positions = self._physics.history.since(part, since)
+            names = list(self.world.joint_names(part))
+            return rv.HistoryReply(names=names, times=times, positions=positions)
+
+        return self.call(read)
+
     def targets(self, part: str) -> list[float]:
         """Current (clamped) targets of `part` (rad)."""
         return self.call(lambda: self.world.joint_targets(part).tolist())

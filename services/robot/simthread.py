@@ -71,6 +71,7 @@ class SimThread:
         world = physics.world
         try:
             pacing.schedule(world.sim_time)
+            physics.record()  # the grid's first point
             while not stop.is_set() and not jobs.closed:
                 jobs.drain()
                 physics.hold_stale(time.monotonic())

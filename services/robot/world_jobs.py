@@ -84,6 +84,8 @@ class WorldJobs:
             self.seed = seed
         self._streams.forget()
         self._pacing.schedule(self.world.sim_time)
+        self._physics.history.clear()  # simulated time starts again
+        self._physics.record()
         shot = self._shots.number
         self._sink.event("reset", shot, self.world.sim_time)
         self._physics.publish_joints()
