@@ -2,8 +2,9 @@
 
 `--out DEMO.json` follows a running robot while an operator drives its arms (the parts'
 `command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
-both arms' joint trajectory (the `state:o` streams, in simulated s) with the shot's events
-once the arrow has landed (`protocol.demonstration`). `--check FILE` validates a file with the
+both arms' joint trajectory (the robot's joint states at every period of its `--state-rate`
+in simulated s, read from its history whatever its rtf) with the shot's events once the arrow
+has landed (`protocol.demonstration`). `--check FILE` validates a file with the
 reader `imitate` and the controller use (`services.controller.demonstration_file`: a regular
 file of bounded size, its form, samples, duration and events what a learner can play), and
 every angle within the simulated robot's joint limits. A bad file or flag: one line
@@ -16,11 +17,9 @@ import argparse
 import json
 import sys
 import threading
-import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 from archery.apps.waits import announce, interrupted_line
 from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_output_file, seconds
@@ -37,14 +36,17 @@ from archery.protocol.demonstration import (
     encode_demonstration,
     parse_demonstration,
 )
-from archery.protocol.errors import ArcheryError, ConfigError
+from archery.protocol.errors import ArcheryError, ConfigError, RpcTimeout
 from archery.protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, OK, for_error
-from archery.protocol.messages import JointState, WorldEvent
+from archery.protocol.messages import WorldEvent
 from archery.protocol.parts import ARM_PARTS, PARTS
-from archery.protocol.robotspec import NOMINAL_THETA, ROBOT
+from archery.protocol.robotspec import NOMINAL_THETA, ROBOT, STRING_ARM
 from archery.protocol.vectors import parse_vector
-from archery.protocol.verbs.robot import ARCHERY_STATUS
+from archery.protocol.verbs.robot import ARCHERY_STATUS, GET_HISTORY, GET_POSITIONS, HistoryArgs
 from archery.services.controller.demonstration_file import read_demonstration
+
+if TYPE_CHECKING:
+    from archery.apps.teacher import Teacher
 
 __all__ = ["Recorder", "joint_limits", "main"]
 
@@ -54,7 +56,12 @@ _EVENTS = ("grasped", "nocked", "released", *_SHOT_ENDS)
 
 
 class Recorder:
-    """Both arms' states and the shot's events of one robot, from now until the shot ends.
+    """Both arms' joint trajectory and the shot's events of one robot, from now until the shot
+    ends: the events as they come (`world/events:o`), the arms' positions at every point of
+    the robot's joint-state grid (`--state-rate` per simulated second) read from its history
+    once the shot has ended (`getHistory`): at rtf 0 the `state:o` streams go out at most
+    `--state-rate` times per wall second, and a movement 50 times faster than the wall clock
+    would leave most of its samples unpublished.
 
     Args:
         node: a node on the robot's mesh.
@@ -63,94 +70,93 @@ class Recorder:
     """
 
     def __init__(self, node: Node, shot: str, made: str = "") -> None:
+        self._node = node
         self._lock = threading.Lock()
-        self._by_time: dict[float, dict[str, list[float]]] = {}
         self._events: list[tuple[float, str]] = []
-        self._first = threading.Event()
-        self._ended = threading.Event()  # the shot's end event arrived: no more events
-        self._complete = threading.Event()  # and both arms' states reached its time
+        self._start = float("inf")  # s (simulated): the recording's start
         self._end = float("inf")  # s (simulated): the shot's end
+        self._started = threading.Event()
+        self._ended = threading.Event()  # the shot's end event (or a reset) arrived
+        self._reset = False
         self._shot, self._made = shot, made
-        keys = node.keys
-        self._states = [
-            node.subscribe(keys.state(part), JointState, mode="fifo", callback=self._state)
-            for part in ARM_PARTS
-        ]
         self._events_sub = node.subscribe(
-            keys.world_events(), WorldEvent, mode="fifo", callback=self._event
+            node.keys.world_events(), WorldEvent, mode="fifo", callback=self._event
         )
 
-    def _state(self, msg: JointState) -> None:
-        if msg.part not in ARM_PARTS or msg.sim_time is None or self._complete.is_set():
-            return
-        with self._lock:
-            parts = self._by_time.setdefault(msg.sim_time, {})
-            parts[msg.part] = list(msg.position)
-            reached = msg.sim_time >= self._end and len(parts) == len(ARM_PARTS)
-        self._first.set()
-        if reached:
-            self._complete.set()
-
     def _event(self, msg: WorldEvent) -> None:
-        if msg.kind not in _EVENTS or msg.sim_time is None or not self._first.is_set():
+        if msg.sim_time is None or not self._started.is_set() or self._ended.is_set():
             return
-        if self._ended.is_set():
-            return
-        reached = False
         with self._lock:
-            self._events.append((msg.sim_time, msg.kind))
-            if msg.kind in _SHOT_ENDS:
-                self._end = msg.sim_time
-                reached = any(
-                    t >= self._end and len(parts) == len(ARM_PARTS)
-                    for t, parts in self._by_time.items()
-                )
-        if msg.kind in _SHOT_ENDS:
+            if msg.kind == "reset":  # simulated time starts again: the recording is void
+                self._reset = True
+            elif msg.kind not in _EVENTS or msg.sim_time < self._start:
+                return
+            else:
+                self._events.append((msg.sim_time, msg.kind))
+                if msg.kind in _SHOT_ENDS:
+                    self._end = msg.sim_time
+        if self._reset or msg.kind in _SHOT_ENDS:
             self._ended.set()
-            if reached:
-                self._complete.set()
 
     def wait_started(self, timeout: float) -> bool:
-        """True once the first state arrived (the operator may start), within `timeout` s."""
-        return self._first.wait(timeout)
-
-    def wait_ended(self, timeout: float) -> bool:
-        """True once the arrow has landed (or missed), within `timeout` wall s, and then both
-        arms' states have reached the landing's time (the state streams and the events are
-        separate streams: the last states may follow the event), within what is left of it."""
-        deadline = time.monotonic() + timeout
-        if not self._ended.wait(timeout):
+        """Start the recording at the robot's simulated time now (its string arm's encoders);
+        True once it is known (the operator may start), False if the robot did not answer
+        within `timeout` s."""
+        node = self._node
+        try:
+            now = node.call_typed(node.keys.part_rpc(STRING_ARM), GET_POSITIONS, timeout=timeout)
+        except RpcTimeout:
             return False
-        self._complete.wait(max(0.0, deadline - time.monotonic()))
+        with self._lock:
+            self._start = now.sim_time
+        self._started.set()
         return True
 
-    def demonstration(self) -> Demonstration:
-        """What was recorded: the times at which both arms' states arrived, up to the first
-        after the landing (at least `protocol.demonstration.MIN_DT` apart).
+    def wait_ended(self, timeout: float) -> bool:
+        """True once the arrow has landed (or missed), or the robot was reset, within `timeout`
+        wall s: the robot's history then holds the arms' states up to the landing (it keeps
+        them before it tells the landing)."""
+        return self._ended.wait(timeout)
+
+    def demonstration(self, timeout: float = 30.0) -> Demonstration:
+        """What was recorded: both arms at every joint-state grid point from the start up to
+        the first after the landing (at least `protocol.demonstration.MIN_DT` apart), read from
+        the robot within `timeout` s.
 
         Raises:
-            BadDemonstration: too short to be a demonstration.
+            BadDemonstration: the robot was reset meanwhile, or too short to be a
+                demonstration.
         """
         with self._lock:
-            both = sorted(t for t, parts in self._by_time.items() if len(parts) == len(ARM_PARTS))
-            after = [t for t in both if t >= self._end]
-            times = [t for t in both if t < self._end] + after[:1]
+            start, end, reset = self._start, self._end, self._reset
             events = list(self._events)
-            by_time = {t: self._by_time[t] for t in times}
+        if reset:
+            raise BadDemonstration("the robot was reset while recording: record it again")
+        by_time: dict[float, dict[str, list[float]]] = {}
+        node = self._node
+        for part in ARM_PARTS:
+            history = node.call_typed(
+                node.keys.part_rpc(part), GET_HISTORY, HistoryArgs(since=start), timeout=timeout
+            )
+            for t, position in zip(history.times, history.positions, strict=True):
+                by_time.setdefault(t, {})[part] = position
+        both = sorted(t for t, parts in by_time.items() if len(parts) == len(ARM_PARTS))
+        after = [t for t in both if t >= end]
+        times = [t for t in both if t < end] + after[:1]
         if not times:
             raise BadDemonstration("no state of both arms was recorded")
         times = _spaced(times)
-        start = times[0]
+        first = times[0]
         demo = Demonstration(
             format=FORMAT,
             joints={part: list(PARTS[part]) for part in ARM_PARTS},
             samples=[
                 Sample(
-                    t=t - start, left_arm=by_time[t]["left_arm"], right_arm=by_time[t]["right_arm"]
+                    t=t - first, left_arm=by_time[t]["left_arm"], right_arm=by_time[t]["right_arm"]
                 )
                 for t in times
             ],
-            events=[DemoEvent(t=t - start, kind=kind) for t, kind in events],  # type: ignore[arg-type]  # kinds filtered by _EVENTS
+            events=[DemoEvent(t=t - first, kind=kind) for t, kind in events],  # type: ignore[arg-type]  # kinds filtered by _EVENTS
             shot=self._shot,  # type: ignore[arg-type]  # the robot's status names one of the two
             made=self._made,
         )
@@ -158,8 +164,6 @@ class Recorder:
 
     def close(self) -> None:
         """Stop following the robot."""
-        for sub in self._states:
-            sub.close()
         self._events_sub.close()
 
 
@@ -213,15 +217,21 @@ def _check(path: Path) -> int:
     return OK
 
 
-def _teach(node: Node, theta: np.ndarray, timeout: float) -> None:
-    """Drive the robot through the scripted whole shot (`apps.teacher`)."""
+def _teacher(node: Node, timeout: float) -> Teacher:
+    """The scripted whole shot's teacher (`apps.teacher`), its robot at its starting posture.
+
+    Raises:
+        ConfigError: not a whole-shot robot. NotAtStart: not at its starting posture.
+    """
     from archery.apps.teacher import Teacher
 
     teacher = Teacher(node, timeout)
     try:
-        teacher.teach(theta)
-    finally:
+        teacher.check_start()
+    except BaseException:
         teacher.close()
+        raise
+    return teacher
 
 
 def _record(args: argparse.Namespace) -> int:
@@ -240,14 +250,18 @@ def _record(args: argparse.Namespace) -> int:
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
         status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
+        teacher = _teacher(node, args.wait) if args.teach else None  # nothing recorded yet
         recorder = Recorder(node, status.scene.shot, args.made)
         try:
             if not recorder.wait_started(args.wait):
-                print(f"archery {PROG}: no joint state within {args.wait:g} s", file=sys.stderr)
+                print(
+                    f"archery {PROG}: the robot told no simulated time within {args.wait:g} s",
+                    file=sys.stderr,
+                )
                 return FAILURE
             print(f"archery {PROG}: recording until the arrow lands", file=sys.stderr, flush=True)
-            if args.teach:
-                _teach(node, theta, args.wait)
+            if teacher is not None:
+                teacher.teach(theta)
             if not recorder.wait_ended(args.timeout):
                 print(
                     f"archery {PROG}: no shot ended within {args.timeout:g} s; nothing written",
@@ -262,6 +276,8 @@ def _record(args: argparse.Namespace) -> int:
             return FAILURE
         finally:
             recorder.close()
+            if teacher is not None:
+                teacher.close()
     out.write_bytes(encode_demonstration(demo))
     print(_summary(demo), flush=True)
     return OK
@@ -269,7 +285,8 @@ def _record(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Record (`--out`) or check (`--check`) a demonstration; exit status 0, 1 (no shot ended,
-    the robot is not there), 2 (bad flags or file) or 130 (Ctrl-C)."""
+    the robot is not there or, with --teach, not at its starting posture), 2 (bad flags or
+    file) or 130 (Ctrl-C)."""
     parser = ArgumentParser(
         prog=f"archery {PROG}",
         description="record a demonstration of the whole shot while an operator drives the "
