@@ -9,9 +9,15 @@ PY := $(VENV)/bin/python
 
 .PHONY: setup dev yarp demo test compose lint format bench bench-smoke wheel-check drills clean
 
+# movement-primitives is published as source only, and its build compiles an optional C extension
+# whenever Cython is at hand, which the project does not use (the DMPs integrate with "rk4", in
+# Python): built without build isolation, where no Cython is installed, it needs no compiler.
+MOVEMENT := $(shell grep -o '"movement-primitives[^"]*"' pyproject.toml | tr -d '"')
+
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q --upgrade pip setuptools wheel
+	$(PY) -m pip install -q --no-build-isolation '$(MOVEMENT)'
 	$(PY) -m pip install -q -e '.[all]'
 	touch $@
 
