@@ -30,6 +30,7 @@ __all__ = [
     "check_new_file",
     "check_new_folder",
     "check_output_file",
+    "check_results_folder",
     "check_writable_dir",
     "clean_zenoh_error",
     "count",
@@ -228,6 +229,17 @@ def check_new_folder(path: str | os.PathLike[str], flag: str) -> Path:
     if why is not None:
         raise ConfigError(f"{named}: {why}")
     return out
+
+
+def check_results_folder(out: Path, flag: str, results: Sequence[str], *, force: bool) -> None:
+    """Refuse (ConfigError, one line) a folder `out` that already holds one of `results` (file
+    names) unless `force`: a second run never writes over the first one's results silently."""
+    held = [name for name in results if (out / name).exists()]
+    if held and not force:
+        raise ConfigError(
+            f"{flag} {str(out)!r} holds the results of an earlier run ({', '.join(held)}); "
+            "choose another folder, or give --force to replace them"
+        )
 
 
 def clean_zenoh_error(exc: BaseException | str) -> str:

@@ -71,6 +71,8 @@ FOLDER_CASES: list[tuple[str, str, str, str]] = [
     ("export {tmp}/none.mcap --ros2 {out}", "--ros2", "/proc/bag", "'/proc'"),
     ("experiment --out {out} --connect {dead}", "--out", "{tmp}/a-file", "is an existing file"),
     ("compare --out {out} --connect {dead}", "--out", "{tmp}/a-file", "is an existing file"),
+    ("experiment --out {out}", "--out", "{tmp}/results", "holds the results of an earlier run"),
+    ("compare --out {out}", "--out", "{tmp}/results", "give --force to replace them"),
     ("demo --runs {out}", "--runs", "{tmp}/a-file", "cannot be created"),
     ("drill --quick --workdir {out}", "--workdir", "{tmp}/a-file", "cannot be created"),
 ]
@@ -123,6 +125,8 @@ def _tree(tmp: Path) -> None:
     (tmp / "existing").mkdir()
     for _, _, name, _ in FILE_OUTPUTS.values():
         (tmp / "existing" / name).write_text(f"an earlier {name}\n")
+    (tmp / "results").mkdir()
+    (tmp / "results" / "summary.json").write_text("{}\n")
 
 
 @dataclass(frozen=True)
@@ -195,6 +199,8 @@ def test_the_existing_outputs_are_unchanged(refusals: Refusals) -> None:
     for _, _, name, _ in FILE_OUTPUTS.values():
         assert (tmp / "existing" / name).read_text() == f"an earlier {name}\n"
     assert (tmp / "a-file").read_text() == "not a folder\n"
+    assert [p.name for p in (tmp / "results").iterdir()] == ["summary.json"]
+    assert (tmp / "results" / "summary.json").read_text() == "{}\n"
     assert not (tmp / "no").exists()
     assert list((tmp / "a-folder").iterdir()) == []
 

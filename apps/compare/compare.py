@@ -34,7 +34,13 @@ from archery.apps.gym.aim_robot import RobotUnavailable, ServiceLostError, ShotN
 from archery.apps.gym.registration import AIM_ID, AIM_ROBOT_ID
 from archery.apps.progress import progress_bar
 from archery.apps.waits import interrupted_line
-from archery.mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_new_file,
+    check_results_folder,
+    check_writable_dir,
+)
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.protocol.errors import ArcheryError
 from archery.protocol.exit_status import BAD_INPUT, FAILURE, INTERRUPTED, for_error
@@ -211,6 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="--world mesh: s to wait for the router and the robot (default 10)",
     )
     add("--out", default="runs/compare", help="output directory (default runs/compare)")
+    add_force_arg(parser, "the results of an earlier run in --out")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add_network_args(parser)
     return parser
@@ -266,6 +273,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             )
         check_new_file(out, "--out")
         check_writable_dir(out, "--out", create=True)
+        check_results_folder(
+            out, "--out", ("summary.json", "curves.csv", "fig6.png"), force=args.force
+        )
         if args.world == "ballistic":
             keywords = _scenario(args)
             env_id = AIM_ID

@@ -35,7 +35,13 @@ from archery.apps.experiment.config import (
 )
 from archery.apps.experiment.plots import BANDS
 from archery.apps.progress import progress_bar
-from archery.mesh.cliargs import ArgumentParser, check_new_file, check_writable_dir
+from archery.mesh.cliargs import (
+    ArgumentParser,
+    add_force_arg,
+    check_new_file,
+    check_results_folder,
+    check_writable_dir,
+)
 from archery.mesh.netflags import add_network_args
 from archery.protocol.errors import ArcheryError
 from archery.protocol.exit_status import BAD_INPUT, for_error
@@ -133,6 +139,10 @@ def summarise(config: ExperimentConfig, runs: dict[str, AlgorithmRun]) -> dict[s
         "wind_change": None if change is None else change.to_dict(),
     }
     return {"scenario": scenario, "run": config.to_dict(), "algorithms": algorithms}
+
+
+#: what a run writes into --out (a second run into the same folder needs --force)
+RESULTS = ("summary.json", "curves.csv", LEARNERS_NAME, "fig5.png", "fig6.png")
 
 
 def write_outputs(
@@ -271,6 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="fig6.png: median with the interquartile band (default), or mean ± std",
     )
     add("--out", default="runs/experiment", help="output directory (default runs/experiment)")
+    add_force_arg(parser, "the results of an earlier run in --out")
     add("--no-progress", action="store_true", help="hide the progress bar")
     add("--no-figures", action="store_true", help="skip fig5.png and fig6.png")
     add(
@@ -400,6 +411,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         flag = "--out" if args.resume is None else "--resume"
         check_new_file(out, flag)
         check_writable_dir(out, flag, create=args.resume is None)  # before the work
+        if args.resume is None:
+            check_results_folder(out, "--out", RESULTS, force=args.force)
         start = time.perf_counter()
         if config.world == "mesh":
             from archery.apps.experiment import experiment_mesh
