@@ -4,9 +4,12 @@ tests/foxglove_client) beside a real mesh (`archery up` on a free loopback port)
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import math
+import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -21,6 +24,7 @@ import mujoco
 import numpy as np
 import psutil
 import pytest
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
@@ -44,7 +48,8 @@ from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import SERVICES
 from archery.protocol.verbs.robot import ARCHERY_STATUS
 from archery.sim.model_build import build_scene
-from archery.sim.scene_config import SceneConfig
+from archery.sim.scene_config import TARGET_CAMERA, SceneConfig
+from archery.sim.urdf import mesh_root, urdf_text
 from tests.conftest import archery
 
 CLIENT = Path(__file__).parent / "foxglove_client"
@@ -423,3 +428,91 @@ def test_in_secure_mode_only_the_operator_identity_operates(tmp_path: Path) -> N
     )  # fmt: skip
     assert done.returncode == 2
     assert "--operator in secure mode runs as identity 'operator', not 'viewer'" in done.stderr
+
+
+def test_every_mesh_the_description_names_is_served_at_once_while_frames_stream(
+    mesh: Mesh,
+) -> None:
+    """The 3D panel's burst: a client subscribed to the streams asks for every mesh of the
+    robot description at once (39; the SDK's server dropped a client after ~4)."""
+    proc, url = mesh.bridge()
+    streams = ("/robot_description", "/tf", "/joint_states", "/camera/image")
+    wants = [arg for topic in streams for arg in ("--want", topic)]
+    lines = _client_while_learning(mesh, url, *wants, "--assets")
+    named = set(re.findall(r"package://iCub/[^\"'<>\s]+", urdf_text()))
+    answers = {a["uri"]: a for a in _of(lines, "asset")}
+    assert set(answers) == named and len(named) >= 39
+    for uri, answer in answers.items():
+        data = (mesh_root() / uri.removeprefix("package://iCub/")).read_bytes()
+        assert answer["status"] == "success", answer
+        assert (answer["bytes"], answer["sha256"]) == (len(data), hashlib.sha256(data).hexdigest())
+    fetched = _of(lines, "fetched")[0]
+    assert fetched["assets"] == len(named) and fetched["seconds"] < 30, fetched
+    assert not [s for s in _of(lines, "status") if "backlog" in s["message"]]
+    assert proc.poll() is None
+    err = (mesh.tmp / f"bridge-{mesh.bridges.index(proc)}.err").read_text()
+    assert "dropped" not in err, err[-2000:]
+
+
+def test_a_client_that_stops_reading_is_dropped_and_logged_once(mesh: Mesh) -> None:
+    proc, url = mesh.bridge()
+    err = mesh.tmp / f"bridge-{mesh.bridges.index(proc)}.err"
+    stalled = subprocess.Popen(
+        ["node", str(CLIENT / "client.mjs"), url, "--stall", "1", "--want", "/camera/image",
+         "--want", "/tf"],
+        stdout=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        assert stalled.stdout is not None
+        port = json.loads(stalled.stdout.readline())["ports"][0]
+        name = f"127.0.0.1:{port}: dropped"
+        deadline = time.monotonic() + 240
+        while name not in err.read_text() and time.monotonic() < deadline:
+            mesh.learn(1)  # the camera sends 10 frames/s while the view moves (1/s at rest)
+        # the server goes on serving; the dropped client is not named again
+        lines = _client(url, "--want", "/mesh/services")
+        assert _of(lines, "message")
+    finally:
+        stalled.send_signal(signal.SIGTERM)
+        stalled.communicate(timeout=30)
+    drops = [line for line in err.read_text().splitlines() if name in line]
+    assert len(drops) == 1 and "read nothing" in drops[0], err.read_text()[-2000:]
+    assert proc.poll() is None
+
+
+def test_the_camera_is_on_tf_with_its_calibration(mesh: Mesh) -> None:
+    _, url = mesh.bridge()
+    lines = _client_while_learning(
+        mesh, url, "--want", "/tf", "--want", "/camera/calibration", "--want", "/camera/image"
+    )
+    data = {m["topic"]: base64.b64decode(m["data"]) for m in _of(lines, "message")}
+    status = mesh.node.call_typed(mesh.node.keys.archery_rpc(), ARCHERY_STATUS)
+    model = build_scene(SceneConfig.of(status.scene))
+    sim = mujoco.MjData(model)
+    mujoco.mj_forward(model, sim)
+    cam = model.camera(TARGET_CAMERA).id
+
+    transforms = FrameTransforms.FromString(data["/tf"])
+    camera = [t for t in transforms.transforms if t.child_frame_id == "target_camera"]
+    assert len(camera) == 1 and camera[0].parent_frame_id == "world"
+    t, q = camera[0].translation, camera[0].rotation
+    assert np.allclose([t.x, t.y, t.z], sim.cam_xpos[cam], atol=1e-6)
+    optical = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+    # MuJoCo's camera looks along its -z, y up; the optical frame along +z, y down
+    mujoco_axes = sim.cam_xmat[cam].reshape(3, 3)
+    assert np.allclose(optical[:, 2], -mujoco_axes[:, 2], atol=1e-6)
+    assert np.allclose(optical[:, 1], -mujoco_axes[:, 1], atol=1e-6)
+    assert np.allclose(optical[:, 0], mujoco_axes[:, 0], atol=1e-6)
+    target = sim.geom("target_ring_0").xpos - sim.cam_xpos[cam]
+    assert optical[:, 2] @ target / np.linalg.norm(target) > 0.99  # it looks at the target
+
+    calibration = CameraCalibration.FromString(data["/camera/calibration"])
+    image = RawImage.FromString(data["/camera/image"])
+    assert calibration.frame_id == image.frame_id == "target_camera"
+    assert (calibration.width, calibration.height) == (image.width, image.height) == (1280, 720)
+    fy = 360 / math.tan(math.radians(model.cam_fovy[cam]) / 2)
+    assert list(calibration.K) == pytest.approx([fy, 0, 640, 0, fy, 360, 0, 0, 1])
+    assert list(calibration.P) == pytest.approx([fy, 0, 640, 0, 0, fy, 360, 0, 0, 0, 1, 0])
+    assert list(calibration.R) == pytest.approx(list(np.eye(3).reshape(-1)))
+    assert calibration.distortion_model == "plumb_bob" and not any(calibration.D)

@@ -1,6 +1,11 @@
 """The bridge's feeds: what each live topic follows of the mesh, started when a client first
 subscribes to the topic and stopped when the last one leaves (a topic nobody watches costs the
-mesh nothing: no subscription, so no publisher sends for it and the camera renders nothing)."""
+mesh nothing: no subscription, so no publisher sends for it and the camera renders nothing).
+
+The camera is placed for the 3D panel: `/tf` carries its optical frame (`target_camera`, the
+frames' `frame_id`: z forward, x right, y down) in `world`, from the scene's camera pose, and
+`/camera/calibration` a `foxglove.CameraCalibration` per frame (its size; the focal length from
+the camera's vertical field of view)."""
 
 from __future__ import annotations
 
@@ -15,13 +20,16 @@ import foxglove
 from archery.apps.follow import Stop, follow_events, follow_latest
 from archery.apps.foxglove.marks import event_log, image_marks, rollout_record
 from archery.apps.port_rates import PortRates, stream_counts
-from archery.apps.topics.image_records import image_record
+from archery.apps.topics.foxglove_records import camera_calibration, frame_transforms
+from archery.apps.topics.image_records import FRAME_ID, image_record
 from archery.apps.topics.robot_frames import RobotFrames
 from archery.mesh.instances import describe_all
 from archery.mesh.node import Node
 from archery.mesh.tokens import TokenSet
 from archery.protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
 from archery.protocol.parts import PARTS
+from archery.sim.render import focal_length
+from archery.sim.scene_config import TARGET_CAMERA
 
 __all__ = ["Feeds", "jpeg_record"]
 
@@ -80,6 +88,8 @@ class Feeds:
         self.sent: dict[str, int] = dict.fromkeys(channels, 0)  # messages logged per topic
         self._count = threading.Lock()
         self._scene_data: bytes | None = None
+        self._camera_t, self._camera_q = frames.camera_pose()  # fixed in the world
+        self._fovy = float(frames.model.camera(TARGET_CAMERA).fovy[0])  # degrees
         self._wanted: dict[str, threading.Event] = {}  # static topic -> a newcomer wants it
         self._starts: dict[str, Callable[[], Stop]] = {
             "/tf": self._tf,
@@ -87,6 +97,7 @@ class Feeds:
             "/robot_description": self._description,
             "/scene": self._scene,
             "/camera/image": self._camera,
+            "/camera/calibration": self._calibration,
             "/camera/annotations": lambda: self._events(
                 self.keys.detector_hits(), Detection, "/camera/annotations", self._marks
             ),
@@ -173,7 +184,7 @@ class Feeds:
         def each(state: WorldState) -> None:
             ns = round(state.stamp * 1e9)
             for record in self.frames.derive(key, state, ns):
-                self._log("/tf", record.data, ns)
+                self._log("/tf", record.data + self.camera_transform(ns), ns)
 
         return self._latest(key, WorldState, "/tf", each)
 
@@ -201,6 +212,26 @@ class Feeds:
             self._log("/camera/image", data, round(image.stamp * 1e9))
 
         return self._latest(self.keys.cam_frames(), Image, "/camera/image", each)
+
+    def camera_transform(self, ns: int) -> bytes:
+        """The camera's optical frame in `world` as a `foxglove.FrameTransforms` record (two
+        records' bytes joined are one record with the transforms of both)."""
+        return frame_transforms(
+            ns, [("world", FRAME_ID)], self._camera_t[None, :], self._camera_q[None, :]
+        )
+
+    def calibration(self, image: Image) -> bytes:
+        """The `foxglove.CameraCalibration` of a frame: its size, fy = (h / 2) / tan(fovy / 2)
+        and fx = fy (square pixels)."""
+        focal = focal_length(image.height, self._fovy)
+        ns = round(image.stamp * 1e9)
+        return camera_calibration(ns, FRAME_ID, image.width, image.height, focal)
+
+    def _calibration(self) -> Stop:
+        def each(image: Image) -> None:
+            self._log("/camera/calibration", self.calibration(image), round(image.stamp * 1e9))
+
+        return self._latest(self.keys.cam_frames(), Image, "/camera/calibration", each)
 
     def _marks(self, detection: Detection) -> None:
         self._log("/camera/annotations", image_marks(detection), round(detection.stamp * 1e9))

@@ -6,7 +6,15 @@ from __future__ import annotations
 
 import foxglove.layouts as fl
 
-from archery.apps.foxglove.channels import EVENTS, IMAGE, MARKS, ROLLOUTS, SCENE, SERVICES
+from archery.apps.foxglove.channels import (
+    CALIBRATION,
+    EVENTS,
+    IMAGE,
+    MARKS,
+    ROLLOUTS,
+    SCENE,
+    SERVICES,
+)
 
 __all__ = ["layout"]
 
@@ -25,6 +33,7 @@ def layout() -> fl.Layout:
         config=fl.ImageConfig(
             image_mode=fl.ImageModeConfig(
                 image_topic=IMAGE.name,
+                calibration_topic=CALIBRATION.name,
                 annotations={MARKS.name: fl.ImageAnnotationSettings(visible=True)},
             ),
         ),

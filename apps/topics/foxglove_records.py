@@ -1,6 +1,6 @@
 """Foxglove's schemas as protobuf records: frame transforms, joint states, a scene of meshes and
-primitives, image annotations and logs, with the schema data (a `FileDescriptorSet`) a channel
-carries.
+primitives, image annotations, a camera's calibration and logs, with the schema data (a
+`FileDescriptorSet`) a channel carries.
 
 Poses are metres and unit quaternions (x, y, z, w, Foxglove's order); times are ns since the
 epoch. The messages are Foxglove's own (`foxglove-schemas-protobuf`), unextended.
@@ -13,6 +13,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
 from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
 from foxglove_schemas_protobuf.JointStates_pb2 import JointStates
@@ -22,12 +23,14 @@ from google.protobuf import descriptor_pb2
 from google.protobuf.descriptor import FileDescriptor
 
 __all__ = [
+    "CAMERA_CALIBRATION",
     "DERIVED_SCHEMAS",
     "FRAME_TRANSFORMS",
     "IMAGE_ANNOTATIONS",
     "JOINT_STATES",
     "LOG",
     "SCENE_UPDATE",
+    "camera_calibration",
     "frame_transforms",
     "joint_states",
     "schema_data",
@@ -40,6 +43,7 @@ JOINT_STATES = "foxglove.JointStates"
 SCENE_UPDATE = "foxglove.SceneUpdate"
 IMAGE_ANNOTATIONS = "foxglove.ImageAnnotations"  # the live bridge's, no recording's
 LOG = "foxglove.Log"
+CAMERA_CALIBRATION = "foxglove.CameraCalibration"  # the live bridge's, no recording's
 #: Schemas of the records a recorder derives (no mesh message has them: a replay skips them).
 DERIVED_SCHEMAS = frozenset({FRAME_TRANSFORMS, JOINT_STATES, SCENE_UPDATE})
 _CLASSES: dict[str, Any] = {
@@ -48,6 +52,7 @@ _CLASSES: dict[str, Any] = {
     SCENE_UPDATE: SceneUpdate,
     IMAGE_ANNOTATIONS: ImageAnnotations,
     LOG: Log,
+    CAMERA_CALIBRATION: CameraCalibration,
 }
 
 
@@ -89,6 +94,26 @@ def frame_transforms(
         transform.translation.x, transform.translation.y, transform.translation.z = map(float, t)
         rotation = transform.rotation
         rotation.w, rotation.x, rotation.y, rotation.z = map(float, q)
+    return message.SerializeToString()
+
+
+def camera_calibration(ns: int, frame_id: str, width: int, height: int, focal: float) -> bytes:
+    """A `foxglove.CameraCalibration` record of a pinhole camera without distortion: focal
+    length `focal` (px) on both axes (square pixels), the principal point at the image's centre
+    in Foxglove's pixel coordinates ((0, 0) the top-left corner of the top-left pixel: cx =
+    width / 2, cy = height / 2); `frame_id` the optical frame (z forward, x right, y down)."""
+    cx, cy = 0.5 * width, 0.5 * height
+    message = CameraCalibration(
+        frame_id=frame_id,
+        width=width,
+        height=height,
+        distortion_model="plumb_bob",
+        D=[0.0] * 5,
+        K=[focal, 0.0, cx, 0.0, focal, cy, 0.0, 0.0, 1.0],
+        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        P=[focal, 0.0, cx, 0.0, 0.0, focal, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
+    )
+    stamp(message.timestamp, ns)
     return message.SerializeToString()
 
 

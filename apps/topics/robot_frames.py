@@ -218,6 +218,8 @@ class RobotFrames:
         frames) in `world`: translation (3, m) and rotation (4, w x y z). The camera is fixed in
         the world, so its pose does not depend on the robot's joints."""
         mujoco.mj_kinematics(self.model, self.data)
+        mujoco.mj_comPos(self.model, self.data)
+        mujoco.mj_camlight(self.model, self.data)  # the cameras' poses (mj_kinematics leaves them)
         cam = self.model.camera(TARGET_CAMERA).id
         optical = self.data.cam_xmat[cam].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
         rotation = np.empty(4)

@@ -9,11 +9,13 @@
 // {"status": …} lines; exits 0 when all came, 1 on a timeout or a closed connection.
 // --times N sends the wind N times in one setParameters message.
 // --stall N: N clients subscribe to the wanted topics, then never read again (their sockets
-// paused): {"stalled": N, "ports": [each client's local port]} once all subscribed, then they wait until SIGTERM or SIGINT.
-// --assets: once /robot_description (wanted) arrives, fetchAsset every package:// URI it names,
-// all at once, as Foxglove's 3D panel does: one {"asset": {uri, status, error, bytes, sha256}}
-// per answer, then {"fetched": {assets, seconds, streamed: {topic: messages during the burst}}};
-// the run also waits for every answer.
+// paused): {"stalled": N, "ports": [each client's local port]} once all subscribed, then they
+// wait until SIGTERM or SIGINT.
+// --assets: once every wanted topic (/robot_description among them) has sent a message,
+// fetchAsset every package:// URI the description names, all at once, as Foxglove's 3D panel
+// does: one {"asset": {uri, status, error, bytes, sha256}} per answer, then
+// {"fetched": {assets, seconds, streamed: {topic: messages during the burst}}}; the run also
+// waits for every answer.
 // --churn N: subscribe to every channel and unsubscribe again, N times, then {"churned": N}
 // and stay connected until SIGTERM or SIGINT.
 import wsProtocol from "@foxglove/ws-protocol";
@@ -96,6 +98,8 @@ if (watch) {
     });
     c.on("error", () => {});
   }
+  // paused sockets keep no event pending: without this timer Node would exit at once
+  setInterval(() => {}, 1 << 30);
   const end = () => finish(0);
   process.on("SIGTERM", end);
   process.on("SIGINT", end);
@@ -155,6 +159,7 @@ let services = [];
 let fetching = null;
 let fetchStarted = 0;
 let fetchCount = 0;
+let description = null;
 const streamed = {};
 const done = () => {
   if (got.size === want.length && pending === 0 && (!assets || (fetching && fetching.size === 0))) {
@@ -227,9 +232,11 @@ client.on("message", ({ subscriptionId, data }) => {
   if (got.has(c.topic)) return;
   got.add(c.topic);
   const bytes = Buffer.from(data.buffer, data.byteOffset, data.byteLength);
-  if (assets && !fetching && c.topic === "/robot_description") {
-    // every mesh the description names, asked at once (the 3D panel's burst)
-    const text = JSON.parse(bytes.toString("utf8")).data;
+  if (c.topic === "/robot_description") description = JSON.parse(bytes.toString("utf8")).data;
+  if (assets && !fetching && description !== null && got.size === want.length) {
+    // every wanted topic flows: every mesh the description names, asked at once (the 3D
+    // panel's burst)
+    const text = description;
     const uris = [...new Set(text.match(/package:\/\/[^"'<>\s]+/g) || [])];
     fetching = new Map(uris.map((uri, i) => [i + 1, uri]));
     fetchCount = uris.length;
