@@ -1,7 +1,7 @@
 """The robot's trajectories in its own loop, without the mesh: waypoints followed at their
-simulated times, a bad trajectory refused before anything moves, other moves refused while one
-plays, the aborts (path tolerance, a lease taken over) holding the part where it is, and at rtf
-0 the reply held until the robot rests."""
+simulated times, a bad trajectory (one faster than the joints' speed bound among them) refused
+before anything moves, other moves refused while one plays, the aborts (path tolerance, a lease
+taken over) holding the part where it is, and at rtf 0 the reply held until the robot rests."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import pytest
 
 from archery.protocol.errors import ArcheryError, Busy
 from archery.protocol.parts import PARTS
-from archery.protocol.robotspec import home_of
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED, home_of
 from archery.protocol.verbs import robot as rv
 from archery.services.robot.follow import PATH_TOLERANCE, PartSpec
 from archery.services.robot.simloop import SimLoop
@@ -117,6 +117,91 @@ def test_a_bad_trajectory_is_refused_and_nothing_moves(
     assert loop.targets(ARM) == before and loop.motion_done(ARM)
 
 
+def _elbow_limits(loop: SimLoop) -> tuple[float, float]:
+    limits = loop.limits[ARM]
+    return limits.lower[ELBOW], limits.upper[ELBOW]
+
+
+def _refused_still(loop: SimLoop, args: rv.PartTrajectoryArgs | rv.TrajectoryArgs) -> str:
+    """`args` refused `bad_trajectory` with nothing moved; its message."""
+    before = loop.targets(ARM)
+    with pytest.raises(BadTrajectory) as caught:
+        loop.follow([PartSpec(ARM, None, "")], args).result(30)
+    assert caught.value.code == "bad_trajectory"
+    assert loop.targets(ARM) == before and loop.motion_done(ARM)
+    assert loop.call(lambda: loop.world.setpoints_of(loop.world.joint_indices(ARM))).tolist() == (
+        before
+    )
+    return caught.value.message
+
+
+def test_one_waypoint_at_1e_300_s_is_refused_and_nothing_moves(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    _, upper = _elbow_limits(loop)
+    message = _refused_still(loop, _elbow_path(upper, step=1e-300))
+    assert message.startswith("positions[0] moves right_arm.r_elbow at ")
+    assert "from the setpoint at the start" in message
+    assert f"over the maximum joint speed of {MAX_REFERENCE_SPEED:g} rad/s" in message
+
+
+def test_a_limit_to_limit_swing_every_10_ms_is_refused(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    lower, upper = _elbow_limits(loop)
+    swing = [upper if i % 2 else lower for i in range(rv.MAX_TRAJECTORY_POINTS)]  # 20 s
+    message = _refused_still(loop, _elbow_path(*swing, step=0.01))
+    # the first waypoint from home is already too fast: HOME to the lower limit in 10 ms
+    speed = abs(lower - HOME[ELBOW]) / 0.01
+    assert message.startswith(f"positions[0] moves right_arm.r_elbow at {speed:.4g} rad/s")
+    times = [2.0 + 0.01 * i for i in range(len(swing))]  # the first at the lower limit, slowly
+    slow_start = rv.PartTrajectoryArgs(times=times, positions=_elbow_path(*swing).positions)
+    message = _refused_still(loop, slow_start)
+    span = upper - lower
+    assert message.startswith(f"positions[1] moves right_arm.r_elbow at {span / 0.01:.4g} rad/s")
+    assert "from positions[0]" in message
+
+
+def test_a_velocity_over_the_bound_is_refused(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    path = _elbow_path(HOME[ELBOW] + 0.2, HOME[ELBOW] + 0.4, step=1.0)  # 0.2 rad/s
+    velocities = [[0.0] * 7, [0.0] * 7]
+    velocities[0][ELBOW] = 1.5 * MAX_REFERENCE_SPEED
+    args = rv.PartTrajectoryArgs(times=path.times, positions=path.positions, velocities=velocities)
+    message = _refused_still(loop, args)
+    assert message == (
+        f"velocities[0] gives right_arm.r_elbow {1.5 * MAX_REFERENCE_SPEED:.4g} rad/s, over the "
+        f"maximum joint speed of {MAX_REFERENCE_SPEED:g} rad/s"
+    )
+
+
+def test_several_parts_are_held_to_the_bound_too(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    left = list(home_of("left_arm"))
+    left[PARTS["left_arm"].index("l_elbow")] += 0.5  # 0.5 rad in 0.1 s
+    args = rv.TrajectoryArgs(
+        parts=[rv.TrajectoryPart(part=ARM), rv.TrajectoryPart(part="left_arm")],
+        times=[0.1],
+        positions=[[*HOME.tolist(), *left]],
+    )
+    with pytest.raises(BadTrajectory, match=r"positions\[0\] moves left_arm.l_elbow at 5 rad/s"):
+        loop.follow([PartSpec(ARM, None, ""), PartSpec("left_arm", None, "")], args).result(30)
+    assert loop.motion_done("left_arm")
+
+
+def test_a_trajectory_just_within_the_bound_is_played(start: Any) -> None:
+    loop, _ = start(rtf=0.0)
+    fast = 0.95 * MAX_REFERENCE_SPEED
+    out = HOME[ELBOW] + fast * 0.2
+    path = _elbow_path(out, HOME[ELBOW], step=0.2)
+    reply = _play(loop, path)
+    assert reply.goal_error <= 0.02
+    given = rv.PartTrajectoryArgs(
+        times=path.times,
+        positions=path.positions,
+        velocities=[[fast if j == ELBOW else 0.0 for j in range(7)], [0.0] * 7],
+    )
+    assert _play(loop, given).goal_error <= 0.02
+
+
 def test_a_joint_of_another_part_is_refused(start: Any) -> None:
     loop, _ = start(rtf=0.0)
     args = rv.PartTrajectoryArgs(times=[0.5], positions=[[0.1]], names=["l_elbow"])
@@ -145,7 +230,7 @@ def test_other_moves_of_a_playing_part_are_refused_busy(start: Any) -> None:
 def test_a_part_that_falls_behind_aborts_and_is_held(start: Any) -> None:
     loop, _ = start(rtf=0.0)
     args = rv.PartTrajectoryArgs(
-        times=[0.3], positions=[_elbow_path(HOME[ELBOW] + 0.8).positions[0]], path_tolerance=1e-4
+        times=[0.45], positions=[_elbow_path(HOME[ELBOW] + 0.8).positions[0]], path_tolerance=1e-4
     )
     with pytest.raises(ArcheryError) as caught:
         _play(loop, args)

@@ -208,7 +208,9 @@ class ClaimReply(Reply, frozen=True):
 # After its last point every joint must be within `goal_tolerance` (rad) of it within
 # `goal_time` s, else `goal_tolerance`. A trajectory that breaks a rule of its form
 # (times not increasing from > 0, NaN, more than MAX_TRAJECTORY_POINTS, a joint of another
-# part, outside the limits, rows of the wrong length, an action outside the times) is refused
+# part, outside the limits, rows of the wrong length, an action outside the times, a joint
+# faster than `MAX_REFERENCE_SPEED`, the speed bound `positionMove` keeps: |Δq|/Δt from the
+# waypoint before, the first from the setpoint at the start, or a velocity given) is refused
 # with `bad_trajectory` before anything moves. A new trajectory or command for a part that plays
 # one is refused (`busy`) until it ends. The reply comes once it has ended (at rtf 0 once the
 # robot also rests, as a release's: `ended` is then that simulated time): a waiting verb, so

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from archery.protocol.errors import ArcheryError, Busy
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED
 from archery.protocol.verbs import robot as rv
 from archery.services.robot.commands import PartLimits
 from archery.services.robot.gate import NotOwner
@@ -152,6 +153,7 @@ class Follower:
             upper,
             names,
             rv.MAX_TRAJECTORY_DURATION,
+            MAX_REFERENCE_SPEED,
         )
         playing = Playing(
             parts=tuple(parts),

@@ -1,7 +1,9 @@
-"""A trajectory's joint path: time-stamped waypoints checked against a part's rules and
-interpolated quintically (velocities given or central differences, accelerations zero at the
-waypoints), from where the joints' setpoints are at its start. Times in s of simulated time
-from the start, angles in rad, velocities in rad/s. Pure: no mesh, no world.
+"""A trajectory's joint path: time-stamped waypoints checked against a part's rules (the
+limits, and the joint speed bound `positionMove` keeps, `MAX_REFERENCE_SPEED`: between
+waypoints and in the velocities given) and interpolated quintically (velocities given or central
+differences, accelerations zero at the waypoints), from where the joints' setpoints are at its
+start. Times in s of simulated time from the start, angles in rad, velocities in rad/s. Pure:
+no mesh, no world.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from archery.protocol.errors import BadRequest
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED
 from archery.protocol.text import shown
 
 __all__ = ["BAD_TRAJECTORY", "BadTrajectory", "JointPath", "plan_path"]
@@ -96,6 +99,7 @@ def plan_path(
     upper: np.ndarray,
     names: Sequence[str],
     max_duration: float,
+    max_speed: float = MAX_REFERENCE_SPEED,
 ) -> JointPath:
     """The path from `start` (rad, the setpoints now) through the waypoints.
 
@@ -108,10 +112,13 @@ def plan_path(
         lower, upper: each joint's limits, the clamp tolerance included (rad).
         names: the joints' names, for the messages.
         max_duration: the last time's bound (s).
+        max_speed: every joint's speed bound (rad/s): |Δq|/Δt from the waypoint before (the
+            first from `start`) and each velocity given.
 
     Raises:
         BadTrajectory: times not > 0 or not increasing or past `max_duration`, rows of the
-            wrong length, NaN or infinity, a waypoint outside a joint's limits.
+            wrong length, NaN or infinity, a waypoint outside a joint's limits, a joint faster
+            than `max_speed` (the first such waypoint, named with its joint and speed).
     """
     t = np.asarray(times, dtype=float)
     if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)):
@@ -133,9 +140,40 @@ def plan_path(
         )
     times_all = np.concatenate([[0.0], t])
     q_all = np.vstack([start, q])
+    _check_speeds(times_all, q_all, names, max_speed)
     if velocities is None:
         v_all = np.zeros_like(q_all)
         v_all[1:-1] = (q_all[2:] - q_all[:-2]) / (times_all[2:] - times_all[:-2])[:, None]
     else:
-        v_all = np.vstack([np.zeros(width), _rows("velocities", velocities, t.size, width)])
+        given = _rows("velocities", velocities, t.size, width)
+        fast = np.abs(given) > max_speed * (1.0 + _SLACK)
+        if fast.any():
+            row, joint = (int(x) for x in np.argwhere(fast)[0])
+            raise BadTrajectory(
+                f"velocities[{row}] gives {names[joint]} {given[row, joint]:.4g} rad/s, over "
+                f"the maximum joint speed of {max_speed:g} rad/s"
+            )
+        v_all = np.vstack([np.zeros(width), given])
     return JointPath(t=times_all, q=q_all, v=v_all)
+
+
+_SLACK = 1e-9  # relative: a speed computed at the bound is not past it
+
+
+def _check_speeds(t: np.ndarray, q: np.ndarray, names: Sequence[str], max_speed: float) -> None:
+    """|Δq|/Δt (rad/s) of every joint from each waypoint to the next (`t[0]`, `q[0]`: the
+    start) within `max_speed`."""
+    step = np.abs(np.diff(q, axis=0))
+    dt = np.diff(t)
+    with np.errstate(over="ignore"):  # 6 rad in 1e-320 s: an infinite speed, refused
+        speed = step / dt[:, None]
+    fast = speed > max_speed * (1.0 + _SLACK)
+    if not fast.any():
+        return
+    row, joint = (int(x) for x in np.argwhere(fast)[0])
+    origin = "the setpoint at the start" if row == 0 else f"positions[{row - 1}]"
+    raise BadTrajectory(
+        f"positions[{row}] moves {names[joint]} at {speed[row, joint]:.4g} rad/s "
+        f"({step[row, joint]:.4f} rad in {dt[row]:.4g} s from {origin}), over the maximum joint "
+        f"speed of {max_speed:g} rad/s"
+    )
