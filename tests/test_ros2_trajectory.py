@@ -1,8 +1,9 @@
 """`archery ros2 --operator`'s `PART/joint_trajectory` against the real robot: a JointTrajectory
 becomes one `followTrajectory`, its points kept at their times (the robot runs at rtf 2 with 100
-joint states per simulated s, so that its stream shows the way); a bad one moves nothing; a
-trajectory that comes while one plays waits for its end; read-only declares no command path.
-The samples are raw Zenoh puts with rmw_zenoh's attachment, CDR written by rosbags."""
+joint states per simulated s, so that its stream shows the way); a bad one (a joint faster than
+the robot's speed bound among them, refused by the robot) moves nothing; a trajectory that
+comes while one plays waits for its end; read-only declares no command path. The samples
+are raw Zenoh puts with rmw_zenoh's attachment, CDR written by rosbags."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ from archery.mesh.node import Node, open_node
 from archery.mesh.subscription import Subscription
 from archery.protocol.messages import JointState
 from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED
 from archery.protocol.robotspec import ROBOT as ROBOT_SERVICE
 from archery.protocol.verbs import robot as rv
 from archery.sim.scene_config import SceneConfig
@@ -230,6 +232,38 @@ def test_a_bad_trajectory_is_refused_and_nothing_moves(
     assert any("> 0 s" in line and "[0.0, 0.5, 1.0]" in line for line in lines), lines
     after = rig.node.call_typed(keys.part_rpc(ARM), rv.GET_TARGETS).position
     assert after == before
+    now = rig.operator.counts.snapshot()
+    assert now.get("trajectories", 0) == counts.get("trajectories", 0)
+
+
+def test_a_trajectory_faster_than_the_joints_is_refused_by_the_robot_and_nothing_moves(
+    rig: Rig, caplog: pytest.LogCaptureFixture
+) -> None:
+    """0.4 rad in 10 ms (40 rad/s, the bound is positionMove's 2 rad/s): the robot refuses it
+    `bad_trajectory` naming the point, joint and speed; one log line, the arm's targets kept."""
+    keys = rig.node.keys
+    _, points = _waypoints(rig)
+    before = rig.node.call_typed(keys.part_rpc(ARM), rv.GET_TARGETS).position
+    counts = rig.operator.counts.snapshot()
+    client = Client(rig)
+    with caplog.at_level(logging.ERROR, logger="archery.ros2"):
+        try:
+            until(lambda: client.publisher.matching_status.matching, "the subscription")
+            client.send(_trajectory(NAMED, [0.01], [list(points[1])]))
+            until(
+                lambda: (
+                    rig.operator.counts.snapshot().get("refused", 0) == counts.get("refused", 0) + 1
+                ),
+                f"the refusal ({rig.operator.counts.snapshot()})",
+            )
+        finally:
+            client.close()
+    lines = [r.getMessage() for r in caplog.records if r.name == "archery.ros2"]
+    said = [line for line in lines if "the robot says" in line]
+    assert len(said) == 1, lines
+    assert f"positions[0] moves {ARM}.{NAMED[0]} at 40 rad/s" in said[0], said
+    assert f"over the maximum joint speed of {MAX_REFERENCE_SPEED:g} rad/s" in said[0], said
+    assert rig.node.call_typed(keys.part_rpc(ARM), rv.GET_TARGETS).position == before
     now = rig.operator.counts.snapshot()
     assert now.get("trajectories", 0) == counts.get("trajectories", 0)
 
