@@ -1,21 +1,13 @@
 """The Foxglove server's front door: the listener users connect to, before the SDK's server.
 
-The SDK's server shows Python nothing of an upgrade request, so it listens on an internal
-loopback port behind TLS whose certificate (made at start) only the front door trusts: a web
-page that finds that port cannot speak to it. The front door reads each connection's upgrade
-head (at most `MAX_HEAD` bytes within `HEAD_TIMEOUT` s), checks it (`apps.foxglove.upgrade`),
-only then connects to the SDK's server and relays both ways, WebSocket frame by frame, `CHUNK`
-bytes at a time, reading one side only once the other took what it was given: a client that
-never reads holds a few `CHUNK`s here, and the SDK's per-client queue (`message_backlog_size`)
-drops its oldest messages.
-
-The door answers the clients' `fetchAsset` requests itself (the meshes the robot description
-names), one at a time per connection and between the server's frames, so a burst of them (the
-3D panel asks for all 39 at once) never reaches the SDK's small per-client control queue, which
-drops a client whose answers overflow it. A client that takes no byte for `STALL_AFTER` s while
-the door has bytes for it is dropped; so is one the SDK's server closes: either drop is logged
-once, naming the client. At most `max_connections` at once; the next one gets 503 and is
-closed.
+The SDK's server listens on an internal loopback port behind TLS that only the door trusts. The
+door checks each connection's upgrade head (`apps.foxglove.upgrade`), then relays both ways frame
+by frame, reading one side only once the other took what it was given (a client that never
+reads holds a few `CHUNK`s here). It answers the clients' `fetchAsset` requests itself, one at a
+time per connection between the server's frames, so the 3D panel's burst of 39 never overflows
+the SDK's small per-client queue. A client that takes no byte for `STALL_AFTER` s while bytes
+wait for it, or that the SDK's server closes, is dropped and logged once; at most
+`max_connections` at once (the next one: 503).
 """
 
 from __future__ import annotations
