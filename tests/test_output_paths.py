@@ -44,6 +44,7 @@ FILE_OUTPUTS: dict[str, tuple[str, str, str, str]] = {
         "overlay.png",
         "overlay.jpg",
     ),
+    "foxglove": ("foxglove --layout {out}", "--layout", "layout.json", "layout.txt"),
     "up": (
         "up --no-router --connect {dead} --runs {tmp}/up-runs --logs {tmp}/up-logs --record {out}",
         "--record",

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from archery.apps.foxglove.front_door import MAX_CONNECTIONS
 from archery.apps.foxglove.upgrade import check_origin_flag
 from archery.apps.viewer import View, add_wait_arg, viewer_main
-from archery.mesh.cliargs import ArgumentParser, check_writable_dir
+from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_output_file
 from archery.mesh.netflags import NetConfig, add_network_args, check_server_host
 from archery.protocol.errors import ConfigError
 from archery.protocol.exit_status import BAD_INPUT, OK
@@ -99,17 +99,16 @@ def build_parser() -> ArgumentParser:
         metavar="FILE.json",
         help="write the bridge's Foxglove layout to this file (import it once) and exit",
     )
+    add_force_arg(parser, "an existing --layout file")
     add_wait_arg(parser)
     return parser
 
 
-def _write_layout(path: str) -> int:
+def _write_layout(path: str, force: bool) -> int:
     from archery.apps.foxglove.layout import layout
 
     try:
-        if not path.endswith(".json"):
-            raise ConfigError(f"--layout {path!r}: give a file name ending in .json")
-        check_writable_dir(Path(path).parent, f"--layout {path!r}: folder", create=False)
+        check_output_file(path, "--layout", (".json",), force=force)
     except ConfigError as exc:
         print(f"archery foxglove: {exc}", file=sys.stderr)
         return BAD_INPUT
@@ -126,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         parser=build_parser(),
         check=_check,
         start=_start,
-        early=lambda args: None if args.layout is None else _write_layout(args.layout),
+        early=lambda args: None if args.layout is None else _write_layout(args.layout, args.force),
     )
 
 
