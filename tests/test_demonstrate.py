@@ -1,5 +1,6 @@
 """`archery demonstrate --check`: a good file passes; a malformed, short, wrong-joint or
-out-of-limits one, or a missing one, is refused with one line naming what is wrong, exit 2."""
+out-of-limits one, or a missing one, is refused with one line naming what is wrong, exit 2 (a
+whole shot's events, speeds and accelerations: `tests/test_demonstration_files.py`)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,11 @@ def _demo(samples: int = 2 * MIN_SAMPLES) -> dict[str, Any]:
             {"t": i * step, **{part: list(home_of(part)) for part in ARM_PARTS}}
             for i in range(samples)
         ],
-        "events": [{"t": 0.5, "kind": "nocked"}],
+        "events": [
+            {"t": 0.5, "kind": "grasped"},
+            {"t": 1.0, "kind": "nocked"},
+            {"t": 1.5, "kind": "released"},
+        ],
         "shot": "whole",
         "made": "the home posture, held",
     }
@@ -49,7 +54,8 @@ def test_a_good_demonstration_passes(tmp_path: Path, capsys: pytest.CaptureFixtu
 def _out_of_limits() -> dict[str, Any]:
     demo = _demo()
     upper = joint_limits("whole")["right_arm"][1]
-    demo["samples"][3]["right_arm"][3] = upper[3] + 0.1
+    for sample in demo["samples"]:  # held there: no jump the speed bound would refuse first
+        sample["right_arm"][3] = upper[3] + 0.1
     return demo
 
 
@@ -66,7 +72,7 @@ def _wrong_joints() -> dict[str, Any]:
         (b'{"format": "archery-demonstration/1"}', "not a demonstration"),
         (msgspec.json.encode(_demo(MIN_SAMPLES // 2)), "too short"),
         (msgspec.json.encode(_wrong_joints()), "left_arm joints must be"),
-        (msgspec.json.encode(_out_of_limits()), "r_elbow"),
+        (msgspec.json.encode(_out_of_limits()), "r_elbow = "),
     ],
     ids=["malformed", "fields", "short", "joints", "limits"],
 )
