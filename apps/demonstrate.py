@@ -6,9 +6,10 @@ both arms' joint trajectory (the robot's joint states at every period of its `--
 in simulated s, read from its history whatever its rtf) with the shot's events once the arrow
 has landed (`protocol.demonstration`). `--check FILE` validates a file with the
 reader `imitate` and the controller use (`services.controller.demonstration_file`: a regular
-file of bounded size, its form, samples, duration and events what a learner can play), and
-every angle within the simulated robot's joint limits. A bad file or flag: one line
-naming what is wrong, exit status 2.
+file of bounded size, its form, samples, duration and events what a learner can play, a whole
+shot's grasp, nock and release, each joint's speed and acceleration what the robot follows),
+and every angle within the simulated robot's joint limits. A bad file or flag: one line naming
+what is wrong, exit status 2.
 """
 
 from __future__ import annotations
