@@ -1,7 +1,9 @@
 """A demonstration file is checked for what will be done with it: `archery demonstrate --check`,
-`archery imitate` and the learner read it with the one reader
-(`services.learner.config.read_demonstration`), which refuses what a learner could not play
-(samples too close, too long a movement, events outside the samples or out of order) and any
+`archery imitate` and the controller read it with the one reader
+(`services.controller.demonstration_file.read_demonstration`), which refuses what a learner
+could not play (samples too close, too long a movement, events outside the samples or out of
+order), what the robot could never play (no grasp, nock or release once each in this order, a
+joint past the speed or acceleration bound; the controller before it joins the mesh) and any
 file that is not a regular one of bounded size, in one line and exit status 2, without hanging
 or reading without end."""
 
