@@ -34,7 +34,7 @@ from tests.rpc import rpc_call
 WORLD = WorldConfig(scene=SceneConfig(meshes=False))
 HUGE = 10 * 1024 * 1024  # characters of a hostile name
 SHORT = 1000  # characters: a reply's message, a counter or a log line at most, here
-DEEP = 5000  # nesting levels of a hostile payload
+DEEP = 100_000  # nesting levels of a hostile payload: past every Python's recursion limit
 
 
 @pytest.fixture
