@@ -17,6 +17,7 @@ from typing import Any
 import zenoh
 
 from archery.protocol.errors import ConfigError
+from archery.protocol.text import cut
 
 __all__ = ["DEFAULT_SPEC", "LEVELS", "add_log_args", "configure", "parse_spec"]
 
@@ -87,6 +88,22 @@ def _move_stdout_to_stderr() -> None:
     _stdout_moved = True
 
 
+FOREIGN_LINE_LIMIT = 1000  # characters of a log line another library writes
+
+
+class _ForeignOnOneLine(logging.Filter):
+    """Other libraries' records (the Foxglove SDK's, whose errors quote what a client sent) on
+    one line, cut short, through the project's quoting (`protocol.text.cut`): a newline in a
+    received value cannot forge a log line. The project's own loggers quote what they received
+    with `shown` already."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if not record.name.startswith("archery"):
+            record.msg = cut(record.getMessage(), FOREIGN_LINE_LIMIT)
+            record.args = None
+        return True
+
+
 class _StderrHandler(logging.StreamHandler):  # type: ignore[type-arg]  # generic in typeshed only
     """Writes to whatever `sys.stderr` is when a record is emitted (not the stream of the moment
     logging was configured, which may since have been closed or replaced)."""
@@ -125,6 +142,7 @@ def configure(spec: str = DEFAULT_SPEC) -> None:
     """
     default, targets = parse_spec(spec)
     handler = _StderrHandler()
+    handler.addFilter(_ForeignOnOneLine())
     handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
     logging.basicConfig(level=max(LEVELS[default], LEVELS["warn"]), handlers=[handler], force=True)
     logging.getLogger("archery").setLevel(LEVELS[default])

@@ -29,6 +29,7 @@ from archery.apps.foxglove.upgrade import UpgradeRules, parse_head
 from archery.protocol.errors import ConfigError
 from archery.protocol.messages import Image
 from tests.conftest import archery
+from tests.ros2_sdk import until
 from tests.test_foxglove import CLIENT, Mesh, _client, _of
 
 pytestmark = pytest.mark.skipif(shutil.which("node") is None, reason="Node is not installed")
@@ -311,3 +312,28 @@ def test_the_upgrade_rules() -> None:
         from archery.apps.foxglove.upgrade import check_origin_flag
 
         check_origin_flag("https://example.org/page")
+
+
+def _masked_text(text: str) -> bytes:
+    """One WebSocket text frame as a client sends it (masked; payload under 126 bytes)."""
+    payload = text.encode()
+    mask = os.urandom(4)
+    masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    return bytes([0x81, 0x80 | len(payload)]) + mask + masked
+
+
+def test_the_sdks_own_log_lines_cannot_be_forged(mesh: Mesh) -> None:
+    """A newline in what a client sends (an unknown `op`) reaches the SDK's error line, which
+    the bridge's logging writes on one line: no forged line starts in its log."""
+    _, url = mesh.bridge()
+    log = mesh.tmp / f"bridge-{len(mesh.bridges) - 1}.err"
+    sock, status, _ = _open(_port(url))
+    with sock:
+        assert status == 101
+        sock.sendall(_masked_text('{"op": "bogus\\nERROR forged line"}'))
+        line = until(
+            lambda: next((x for x in log.read_text().splitlines() if "bogus" in x), None),
+            "the SDK's error line in the bridge's log",
+        )
+    assert "bogus ERROR forged line" in line
+    assert not any(x.startswith("ERROR forged") for x in log.read_text().splitlines())
