@@ -189,17 +189,20 @@ def test_several_parts_are_held_to_the_bound_too(start: Any) -> None:
 
 def test_a_trajectory_just_within_the_bound_is_played(start: Any) -> None:
     loop, _ = start(rtf=0.0)
-    fast = 0.95 * MAX_REFERENCE_SPEED
-    out = HOME[ELBOW] + fast * 0.2
+    fast = 0.95 * MAX_REFERENCE_SPEED  # the played path's peak: rest to rest, 1.875 × average
+    out = HOME[ELBOW] + fast / 1.875 * 0.2
     path = _elbow_path(out, HOME[ELBOW], step=0.2)
     reply = _play(loop, path)
     assert reply.goal_error <= 0.02
     given = rv.PartTrajectoryArgs(
-        times=path.times,
-        positions=path.positions,
-        velocities=[[fast if j == ELBOW else 0.0 for j in range(7)], [0.0] * 7],
+        times=path.times, positions=path.positions, velocities=[[0.0] * 7, [0.0] * 7]
     )
     assert _play(loop, given).goal_error <= 0.02
+    twice = rv.PartTrajectoryArgs(  # the same average speed, its peak past the bound
+        times=[0.2], positions=[_elbow_path(HOME[ELBOW] + fast * 0.2).positions[0]]
+    )
+    with pytest.raises(BadTrajectory, match=r"at up to 3\.56\d* rad/s \(quintic between"):
+        _play(loop, twice)
 
 
 def test_a_joint_of_another_part_is_refused(start: Any) -> None:
@@ -230,7 +233,7 @@ def test_other_moves_of_a_playing_part_are_refused_busy(start: Any) -> None:
 def test_a_part_that_falls_behind_aborts_and_is_held(start: Any) -> None:
     loop, _ = start(rtf=0.0)
     args = rv.PartTrajectoryArgs(
-        times=[0.45], positions=[_elbow_path(HOME[ELBOW] + 0.8).positions[0]], path_tolerance=1e-4
+        times=[0.45], positions=[_elbow_path(HOME[ELBOW] + 0.4).positions[0]], path_tolerance=1e-4
     )
     with pytest.raises(ArcheryError) as caught:
         _play(loop, args)

@@ -113,7 +113,7 @@ def plan_path(
         names: the joints' names, for the messages.
         max_duration: the last time's bound (s).
         max_speed: every joint's speed bound (rad/s): |Δq|/Δt from the waypoint before (the
-            first from `start`) and each velocity given.
+            first from `start`), each velocity given, and the played path's peak between them.
 
     Raises:
         BadTrajectory: times not > 0 or not increasing or past `max_duration`, rows of the
@@ -154,10 +154,43 @@ def plan_path(
                 f"the maximum joint speed of {max_speed:g} rad/s"
             )
         v_all = np.vstack([np.zeros(width), given])
+    _check_path_speed(times_all, q_all, v_all, names, max_speed)
     return JointPath(t=times_all, q=q_all, v=v_all)
 
 
 _SLACK = 1e-9  # relative: a speed computed at the bound is not past it
+_PEAK_SLACK = 1e-3  # relative: the sampled peak of a quintic at the bound is not past it
+#: where on each segment (0: its start, 1: its end) the quintic's speed is sampled for its peak
+_S = np.linspace(0.0, 1.0, 33)
+_S2, _S3, _S4 = _S**2, _S**3, _S**4
+#: the derivatives of `JointPath.at`'s basis in s: dq/dt = D5 Δq/h + D1 v_i + D4 v_i+1
+_D5 = 30.0 * _S2 - 60.0 * _S3 + 30.0 * _S4
+_D1 = 1.0 - 18.0 * _S2 + 32.0 * _S3 - 15.0 * _S4
+_D4 = -12.0 * _S2 + 28.0 * _S3 - 15.0 * _S4
+
+
+def _check_path_speed(
+    t: np.ndarray, q: np.ndarray, v: np.ndarray, names: Sequence[str], max_speed: float
+) -> None:
+    """The speed of the path the robot plays (quintic between waypoints: from rest to rest it
+    peaks at 1.875 times the average) within `max_speed` everywhere, not only on average."""
+    h = np.diff(t)[:, None, None]
+    dq = np.diff(q, axis=0)[:, None, :]
+    speed = np.abs(
+        _D5[None, :, None] * dq / h
+        + _D1[None, :, None] * v[:-1, None, :]
+        + _D4[None, :, None] * v[1:, None, :]
+    ).max(axis=1)
+    fast = speed > max_speed * (1.0 + _PEAK_SLACK)
+    if not fast.any():
+        return
+    row, joint = (int(x) for x in np.argwhere(fast)[0])
+    origin = "the setpoint at the start" if row == 0 else f"positions[{row - 1}]"
+    raise BadTrajectory(
+        f"from {origin} to positions[{row}] the path moves {names[joint]} at up to "
+        f"{speed[row, joint]:.4g} rad/s (quintic between waypoints), over "
+        f"the maximum joint speed of {max_speed:g} rad/s: add waypoints or give it more time"
+    )
 
 
 def _check_speeds(t: np.ndarray, q: np.ndarray, names: Sequence[str], max_speed: float) -> None:
