@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     installs: list[float] = []
     results: list[dict[str, object]] = []
     with tempfile.TemporaryDirectory() as tmp:
+        Path(tmp).chmod(0o755)  # the unprivileged user walks into it
         clone = None
         for i in range(args.repeats):
             folder = Path(tmp, f"fresh{i}")
