@@ -181,13 +181,12 @@ def _check_path_speed(
         + _D1[None, :, None] * v[:-1, None, :]
         + _D4[None, :, None] * v[1:, None, :]
     ).max(axis=1)
-    fast = speed > max_speed * (1.0 + _PEAK_SLACK)
-    if not fast.any():
+    over = _first_over(speed, max_speed * (1.0 + _PEAK_SLACK))
+    if over is None:
         return
-    row, joint = (int(x) for x in np.argwhere(fast)[0])
-    origin = "the setpoint at the start" if row == 0 else f"positions[{row - 1}]"
+    row, joint = over
     raise BadTrajectory(
-        f"from {origin} to positions[{row}] the path moves {names[joint]} at up to "
+        f"from {_origin(row)} to positions[{row}] the path moves {names[joint]} at up to "
         f"{speed[row, joint]:.4g} rad/s (quintic between waypoints), over "
         f"the maximum joint speed of {max_speed:g} rad/s: add waypoints or give it more time"
     )
@@ -200,13 +199,23 @@ def _check_speeds(t: np.ndarray, q: np.ndarray, names: Sequence[str], max_speed:
     dt = np.diff(t)
     with np.errstate(over="ignore"):  # 6 rad in 1e-320 s: an infinite speed, refused
         speed = step / dt[:, None]
-    fast = speed > max_speed * (1.0 + _SLACK)
-    if not fast.any():
+    over = _first_over(speed, max_speed * (1.0 + _SLACK))
+    if over is None:
         return
-    row, joint = (int(x) for x in np.argwhere(fast)[0])
-    origin = "the setpoint at the start" if row == 0 else f"positions[{row - 1}]"
+    row, joint = over
     raise BadTrajectory(
         f"positions[{row}] moves {names[joint]} at {speed[row, joint]:.4g} rad/s "
-        f"({step[row, joint]:.4f} rad in {dt[row]:.4g} s from {origin}), over the maximum joint "
-        f"speed of {max_speed:g} rad/s"
+        f"({step[row, joint]:.4f} rad in {dt[row]:.4g} s from {_origin(row)}), over the maximum "
+        f"joint speed of {max_speed:g} rad/s"
     )
+
+
+def _first_over(speed: np.ndarray, bound: float) -> tuple[int, int] | None:
+    """(segment, joint) of the first speed (rad/s) past `bound`; None when none is."""
+    fast = np.argwhere(speed > bound)
+    return None if fast.size == 0 else (int(fast[0][0]), int(fast[0][1]))
+
+
+def _origin(row: int) -> str:
+    """Where segment `row` of a path starts, as a message names it."""
+    return "the setpoint at the start" if row == 0 else f"positions[{row - 1}]"
