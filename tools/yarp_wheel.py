@@ -9,7 +9,10 @@ build edits its setup.py's CMake options (no ACE library; shared libraries, so t
 plugins exist; the standard headers GCC 12 no longer includes by itself), builds with
 CMake < 4, and makes the wheel relocatable (the plugins' search path, which CMake writes as the
 build folder, and `import yarp` pointing YARP_DATA_DIRS and YARP_PLUGINS_DIR at the installed
-package unless they are set). Usage: python tools/yarp_wheel.py [--build-only]
+package unless they are set). One mend to YARP's source: a bottle nested deeper than 64 lists,
+read from the wire or parsed from text, is refused (read as empty), where YARP 3.5 recursed until
+its stack overflowed. An installed YARP without the mend is replaced.
+Usage: python tools/yarp_wheel.py [--build-only]
 """
 
 from __future__ import annotations
@@ -42,7 +45,55 @@ OPTIONS = (
         f'"-DCMAKE_CXX_FLAGS={" ".join(f"-include {h}" for h in HEADERS.split())}",',
     ),
 )
+BOTTLE = "src/libYARP_os/src/yarp/os/impl/BottleImpl.cpp"
+_DEPTH = """namespace {
+// archery: a bottle nested deeper than this is refused (read as empty), not recursed into
+constexpr int archeryDepthMost = 64;
+thread_local int archeryDepth = 0;
+thread_local bool archeryTooDeep = false;
+struct ArcheryDepth
+{
+    yarp::os::impl::BottleImpl* bottle;
+    explicit ArcheryDepth(yarp::os::impl::BottleImpl* b) : bottle(b) { ++archeryDepth; }
+    bool refused() const
+    {
+        if (archeryDepth > archeryDepthMost) {
+            archeryTooDeep = true;
+        }
+        return archeryTooDeep;
+    }
+    ~ArcheryDepth()
+    {
+        if (--archeryDepth == 0 && archeryTooDeep) {
+            archeryTooDeep = false;
+            bottle->clear();
+        }
+    }
+};
+} // namespace
+
+"""
+#: mends to YARP's source: (file, what it holds, what the build puts instead)
+MENDS = (
+    (
+        BOTTLE,
+        "void BottleImpl::fromString(const std::string& line)\n{\n",
+        _DEPTH + "void BottleImpl::fromString(const std::string& line)\n{\n"
+        "    ArcheryDepth archeryGuard(this);\n"
+        "    if (archeryGuard.refused()) {\n        clear();\n        return;\n    }\n",
+    ),
+    (
+        BOTTLE,
+        "bool BottleImpl::read(ConnectionReader& reader)\n{\n",
+        "bool BottleImpl::read(ConnectionReader& reader)\n{\n"
+        "    ArcheryDepth archeryGuard(this);\n"
+        "    if (archeryGuard.refused()) {\n        return false;\n    }\n",
+    ),
+)
+#: names the build's mends: a YARP installed without them is replaced
+MENDED = hashlib.sha256(repr(MENDS).encode()).hexdigest()[:12]
 PRELUDE = (
+    f"archery_mends = {MENDED!r}\n"
     "import os as _os\n"
     "_here = _os.path.dirname(_os.path.abspath(__file__))\n"
     "_os.environ.setdefault('YARP_DATA_DIRS', _os.path.join(_here, 'share', 'yarp'))\n"
@@ -61,13 +112,15 @@ def cache() -> Path:
 
 
 def importable() -> bool:
-    found = subprocess.run([sys.executable, "-c", "import yarp"], capture_output=True)
+    """True when this Python imports a YARP built with this build's mends."""
+    check = f"import yarp, sys; sys.exit(getattr(yarp, 'archery_mends', '') != {MENDED!r})"
+    found = subprocess.run([sys.executable, "-c", check], capture_output=True)
     return found.returncode == 0
 
 
 def cached_wheel() -> Path | None:
     tag = f"cp{sys.version_info.major}{sys.version_info.minor}"
-    wheels = sorted(cache().glob(f"yarp_middleware-{VERSION}-{tag}-*.whl"))
+    wheels = sorted((cache() / MENDED).glob(f"yarp_middleware-{VERSION}-{tag}-*.whl"))
     return wheels[-1] if wheels else None
 
 
@@ -98,6 +151,11 @@ def build(started: float) -> Path:
                 sys.exit(f"yarp: unexpected setup.py: no {old}")
             text = text.replace(old, new)
         setup.write_text(text)
+        for path, old, new in MENDS:
+            code = (source / path).read_text()
+            if old not in code:
+                sys.exit(f"yarp: unexpected {path}: no {old.splitlines()[0]}")
+            (source / path).write_text(code.replace(old, new, 1))
         (work / "constraints.txt").write_text("cmake<4\n")
         env = {
             **os.environ,
@@ -113,8 +171,8 @@ def build(started: float) -> Path:
         )
         wheel = next((work / "dist").glob("yarp_middleware-*.whl"))
         relocate(wheel)
-        cache().mkdir(parents=True, exist_ok=True)
-        kept = cache() / wheel.name
+        (cache() / MENDED).mkdir(parents=True, exist_ok=True)
+        kept = cache() / MENDED / wheel.name
         shutil.copyfile(wheel, kept)
     say(f"built {kept}", started)
     return kept
@@ -159,7 +217,8 @@ def main() -> int:
         print(wheel)
         return 0
     say(f"installing {wheel.name}", started)
-    subprocess.run([sys.executable, "-m", "pip", "install", "-q", str(wheel)], check=True)
+    pip = [sys.executable, "-m", "pip", "install", "-q", "--force-reinstall", "--no-deps"]
+    subprocess.run([*pip, str(wheel)], check=True)
     return 0 if importable() else 1
 
 

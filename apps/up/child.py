@@ -12,10 +12,11 @@ import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from archery.apps.up.logfile import LOG_FILES, RotatingLog, pump, read_tail
 
-__all__ = ["DRAIN_WAIT", "Child", "die_with_parent", "spawn"]
+__all__ = ["DRAIN_WAIT", "Child", "die_with_parent", "popen_tied", "spawn"]
 
 _PR_SET_PDEATHSIG = 1
 DRAIN_WAIT = 5.0  # s to wait for the last of an ended child's output to reach its log
@@ -96,3 +97,32 @@ def die_with_parent() -> None:
         libc.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
     except (OSError, AttributeError):
         pass
+
+
+def popen_tied(argv: list[str], **options: Any) -> subprocess.Popen[bytes]:
+    """`subprocess.Popen(argv, **options)` of a child that gets SIGTERM when this process ends,
+    however it ends (`die_with_parent`). Linux ties that signal to the thread that started the
+    child, so it is started on a thread of its own that lasts as long as the child.
+
+    Raises:
+        OSError: it could not be started.
+    """
+    started: list[subprocess.Popen[bytes] | BaseException] = []
+    ready = threading.Event()
+
+    def run() -> None:
+        try:
+            proc = subprocess.Popen(argv, preexec_fn=die_with_parent, **options)
+        except BaseException as exc:
+            started.append(exc)
+            ready.set()
+            return
+        started.append(proc)
+        ready.set()
+        proc.wait()
+
+    threading.Thread(target=run, name=f"tied {Path(argv[0]).name}", daemon=True).start()
+    ready.wait()
+    if isinstance(started[0], BaseException):
+        raise started[0]
+    return started[0]

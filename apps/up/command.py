@@ -7,7 +7,8 @@ to be alive (`--timeout` s), e.g. `archery up: waiting up to 90 s for the servic
 camera, detector, controller, learner (Ctrl-C to stop)`.
 
 The processes themselves are started, watched and stopped by `apps.up.launcher.Launcher` and
-supervised by `apps.up.supervisor.Supervisor`; see `apps.up.launcher` for what `up` runs.
+supervised by `apps.up.supervisor.Supervisor`; see `apps.up.launcher` for what `up` runs. The
+YARP bridge (`--yarp`) is supervised too: a crash inside YARP's library is a restart, reported.
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ from pathlib import Path
 from archery.apps.capacity import check_robots
 from archery.apps.up.child import spawn
 from archery.apps.up.launch_config import MeshConfig, default_mesh, load_mesh
-from archery.apps.up.launcher import Launcher, LaunchError, StartInterrupted
-from archery.apps.up.restart_policy import POLICIES, describe_status
+from archery.apps.up.launcher import Launcher, LaunchError, Observer, StartInterrupted
+from archery.apps.up.restart_policy import POLICIES, RestartPolicy, describe_status
 from archery.apps.up.supervisor import GiveUp, Supervisor
 from archery.apps.waits import announce
 from archery.mesh.cliargs import (
@@ -154,26 +155,31 @@ def start_recorder(launcher: Launcher, out: str, timeout: float = 30.0) -> subpr
 
 
 def start_observer(
-    launcher: Launcher, name: str, argv: list[str], ready: bytes, timeout: float = 30.0
+    launcher: Launcher,
+    name: str,
+    argv: list[str],
+    ready: bytes,
+    timeout: float = 30.0,
+    *,
+    restart: RestartPolicy | None = None,
 ) -> subprocess.Popen[bytes]:
     """An `archery ARGV…` child that follows the first robot (the recorder, the Foxglove
     server), its log `LOGS/NAME.log` rotated and bounded like the others', returned once its
-    log holds `ready`.
+    log holds `ready`; with `restart`, a child the launcher supervises under that policy.
 
     Raises:
         LaunchError: it exited or did not get ready within `timeout` s.
     """
     connect = ["--connect", launcher.endpoint, "--robot", launcher.net.robot]
+    full = [sys.executable, "-m", "archery.apps.cli", *argv, *connect, *launcher.secure]
     output = launcher.output(name)
-    output.close()
-    for path in output.paths:  # this run's words only
-        path.unlink(missing_ok=True)
-    child = spawn(
-        name,
-        [sys.executable, "-m", "archery.apps.cli", *argv, *connect, *launcher.secure],
-        output,
-        launcher.env,
-    )
+    if restart is not None:
+        child = launcher.observe(name, Observer(tuple(full), ready, restart))
+    else:
+        output.close()
+        for path in output.paths:  # this run's words only
+            path.unlink(missing_ok=True)
+        child = spawn(name, full, output, launcher.env)
     assert child.proc is not None
     deadline = time.monotonic() + timeout
     while ready not in _read(output.path):
@@ -316,7 +322,9 @@ def main(argv: list[str] | None = None) -> int:
             if args.yarp is not None:
                 argv = ["yarp", *(["--yarp-server", args.yarp] if args.yarp else [])]
                 ready = b"archery yarp: on YARP"
-                observers.append(("the YARP bridge", start_observer(launcher, "yarp", argv, ready)))
+                given = (("mode", args.restart), ("budget", args.restart_budget))
+                policy = RestartPolicy(**{k: v for k, v in given if v is not None})
+                start_observer(launcher, "yarp", argv, ready, restart=policy)
                 said = _read(launcher.output("yarp").path).decode(errors="replace")
                 line = next(x for x in said.splitlines() if x.startswith("archery yarp: on YARP"))
                 print(f"archery up: {line.removeprefix('archery yarp: ')}", flush=True)
@@ -343,9 +351,12 @@ def main(argv: list[str] | None = None) -> int:
         f"Run `{learn}` in another shell; Ctrl-C stops everything.",
         flush=True,
     )
-    supervisor = Supervisor(
-        launcher, report=lambda line: print(f"archery up: {line}", file=sys.stderr, flush=True)
-    )
+
+    def report(line: str) -> None:
+        print(f"archery up: {line}", file=sys.stderr, flush=True)
+
+    launcher.on_ready = lambda name, line: report(f"{name} is back: {line.split(': ', 1)[-1]}")
+    supervisor = Supervisor(launcher, report=report)
     outcome = supervisor.run(stop)
     for name, observer in observers:
         observer.terminate()

@@ -7,11 +7,14 @@ begins, by the caller's `on_wait`: `apps.waits`), and then supervises them
 (`apps.up.supervisor`, `apps.up.restart_policy`; `Launcher` tells how they stop, and where their
 output goes). The mesh is the built-in default or a launch description (`--config mesh.toml`,
 `apps.up.launch_config`); `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN`
-and one learner serving them all (`launch_config.default_mesh`).
+and one learner serving them all (`launch_config.default_mesh`). Observers (the YARP bridge)
+may be supervised beside them: restarted by their policy, stopped first, their process group
+killed 1 s after SIGTERM.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import shutil
@@ -22,7 +25,8 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 from archery.apps.up.child import Child, spawn
@@ -44,10 +48,12 @@ from archery.protocol.errors import ArcheryError, ConfigError, RpcTimeout
 
 __all__ = [
     "INTERRUPT_GRACE",
+    "OBSERVER_GRACE",
     "ROUTER_START",
     "STOP_ORDER",
     "LaunchError",
     "Launcher",
+    "Observer",
     "StartInterrupted",
 ]
 
@@ -67,6 +73,21 @@ class StartInterrupted(LaunchError):
 
 
 INTERRUPT_GRACE = 2.0  # s a child stopped during start-up gets before SIGKILL
+#: s a supervised observer gets after SIGTERM before SIGKILL of its process group (a handler
+#: that cannot run while a library's C++ code holds the process is no handler)
+OBSERVER_GRACE = 1.0
+
+
+@dataclass(frozen=True)
+class Observer:
+    """A supervised observer: its command line, the bytes its log holds once it is ready, its
+    restart policy. Exhausting its budget leaves it down; the mesh runs on without it."""
+
+    argv: tuple[str, ...]
+    ready: bytes
+    restart: RestartPolicy
+
+
 ROUTER_START = 15.0  # s the router may take to listen
 
 
@@ -158,10 +179,15 @@ class Launcher:
         self.log_files = log_files
         self._outputs: dict[str, RotatingLog] = {}  # by child name, kept across restarts
         self._stop: threading.Event | None = None  # set: stop starting (`up`)
+        self.observers: dict[str, Observer] = {}  # supervised observers, by child name
+        #: called with an observer's name and its ready line once a restart of it is ready
+        self.on_ready: Callable[[str, str], None] | None = None
         self.env = dict(os.environ)  # each child picks its rendering backend (sim.gl_backend)
 
     def policy(self, name: str) -> RestartPolicy:
-        """The restart policy of a child (`router` or a service's id)."""
+        """The restart policy of a child (`router`, a service's id or an observer's name)."""
+        if name in self.observers:
+            return self.observers[name].restart
         return self.mesh.router.restart if name == "router" else self.specs[name].restart
 
     # -- starting -------------------------------------------------------------------------------
@@ -240,11 +266,47 @@ class Launcher:
         return ["--secure", str(identity_folder(self._deployment, identity, self._secrets))]
 
     def restart(self, name: str) -> None:
-        """Start a child that exited again: the router on its endpoint, or a service."""
+        """Start a child that exited again: the router on its endpoint, a service, or an
+        observer (`on_ready` told once its log says it is ready)."""
         if name == "router":
             self.start_router(restart=True)
+        elif name in self.observers:
+            self._restart_observer(name)
         else:
             self.start(name)
+
+    def observe(self, name: str, observer: Observer) -> Child:
+        """Start a supervised observer (its log `LOGS/NAME.log`, this run's words only)."""
+        output = self.output(name)
+        output.close()
+        for path in output.paths:
+            path.unlink(missing_ok=True)
+        self.observers[name] = observer
+        child = spawn(name, list(observer.argv), output, self.env)
+        self.children[name] = child
+        return child
+
+    def _restart_observer(self, name: str) -> None:
+        observer = self.observers[name]
+        old = self.children.get(name)
+        if old is not None and old.proc is not None:
+            kill_group(old.proc.pid)  # whatever it started in its group goes with it
+        path = self.output(name).path
+        start = _size(path)
+        child = spawn(name, list(observer.argv), self.output(name), self.env)
+        self.children[name] = child
+
+        def wait_ready() -> None:
+            while child.returncode is None:
+                said = _read_from(path, start)
+                line = next((x for x in said.splitlines() if observer.ready in x), None)
+                if line is not None:
+                    if self.on_ready is not None:
+                        self.on_ready(name, line.decode(errors="replace").strip())
+                    return
+                time.sleep(0.05)
+
+        threading.Thread(target=wait_ready, name=f"{name} ready", daemon=True).start()
 
     def up(
         self,
@@ -363,8 +425,11 @@ class Launcher:
             child.proc.wait(30)
         child.drain()
 
-    def stop(self, names: Iterable[str], grace: float = 10.0) -> dict[str, int | None]:
-        """SIGTERM the named children together, SIGKILL those still running after `grace` s.
+    def stop(
+        self, names: Iterable[str], grace: float = 10.0, *, group: bool = False
+    ) -> dict[str, int | None]:
+        """SIGTERM the named children together, SIGKILL those still running after `grace` s
+        (`group`: SIGKILL to each one's process group, what it started with it).
 
         Returns:
             Each one's exit status.
@@ -380,7 +445,10 @@ class Launcher:
             try:
                 child.proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                child.proc.kill()
+                if group:
+                    kill_group(child.proc.pid)
+                else:
+                    child.proc.kill()
                 child.proc.wait(10)
         for child in chosen:
             child.drain()  # their last lines, into their logs
@@ -392,14 +460,17 @@ class Launcher:
             shutil.rmtree(self._secrets, ignore_errors=True)
 
     def stop_all(self, grace: float = 10.0) -> dict[str, int | None]:
-        """Stop the services (all at once, the learners' sessions first), then the router."""
-        services = [n for n in self.children if n != "router"]
+        """Stop the supervised observers (`OBSERVER_GRACE` s each, then their process groups
+        killed), the services (all at once, the learners' sessions first), then the router."""
+        observers = [n for n in self.children if n in self.observers]
+        codes = self.stop(observers, OBSERVER_GRACE, group=True) if observers else {}
+        services = [n for n in self.children if n != "router" and n not in self.observers]
         learners = [n for n in services if self.specs[n].service == "learner"]
         rest = sorted(
             (n for n in services if n not in learners),
             key=lambda n: STOP_ORDER.index(self.specs[n].service),
         )
-        codes = self.stop(learners, grace) if learners else {}
+        codes |= self.stop(learners, grace) if learners else {}
         codes |= self.stop(rest, grace)
         codes |= self.stop(["router"], grace)
         self.forget_identities()
@@ -412,3 +483,29 @@ class Launcher:
         self.stop_all()
         for output in self._outputs.values():
             output.close()
+
+
+def kill_group(pid: int) -> None:
+    """SIGKILL the process group of `pid` (a child `spawn` started leads its own)."""
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(pid, signal.SIGKILL)
+
+
+def _size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except FileNotFoundError:
+        return 0
+
+
+def _read_from(path: Path, start: int) -> bytes:
+    """A log's bytes from `start` (all of it once it was rotated below `start`)."""
+    try:
+        with path.open("rb") as file:
+            if file.seek(0, os.SEEK_END) >= start:
+                file.seek(start)
+            else:
+                file.seek(0)
+            return file.read()
+    except FileNotFoundError:
+        return b""

@@ -5,7 +5,8 @@ Each decision is reported as one line ("camera was killed by signal 9; restart 1
 60 s, in 0.5 s"). A restart waits out its back-off without blocking the others' supervision.
 The router is supervised like the services and restarted on the same endpoint; the services
 are not restarted for it: as Zenoh clients they reconnect by themselves and re-declare their
-liveliness tokens and subscriptions.
+liveliness tokens and subscriptions. A supervised observer (the YARP bridge) whose policy gives
+up is left down instead: its end is not the mesh's.
 """
 
 from __future__ import annotations
@@ -76,6 +77,9 @@ class Supervisor:
                 continue
             times = self.restarts.setdefault(name, [])
             decision = decide(self.launcher.policy(name), status, now - child.started, now, times)
+            if decision.action == "give_up" and name in getattr(self.launcher, "observers", {}):
+                # an observer's end is not the mesh's: it stays down, the rest runs on
+                decision = Decision("leave", 0.0, f"{decision.reason}; left down, the mesh runs on")
             if decision.action == "give_up":
                 return GiveUp(child, decision)
             self.report(f"{name} {decision.reason}")

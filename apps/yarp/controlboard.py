@@ -4,7 +4,9 @@
 `command:i` takes the streaming commands. Angles in degrees on YARP's side, radians on the
 mesh's; every move goes through the part's own verbs (`positionMove`, `setRefSpeeds`) and so
 under its lease rules. Read-only (the default): every `set` and every streamed command is
-refused (a `[fail]` bottle, one log line) and nothing reaches the robot.
+refused (a `[fail]` bottle, one log line) and nothing reaches the robot. An output port
+(`Output`) never waits on a slow reader: a connection still busy is skipped, one that takes
+nothing for `STALL` s is dropped.
 """
 
 from __future__ import annotations
@@ -28,7 +30,17 @@ from archery.protocol.parts import PARTS
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 
-__all__ = ["ControlBoard", "PartLink", "close_port", "joint_data", "open_port", "serve_rpc"]
+__all__ = [
+    "PATIENCE",
+    "STALL",
+    "ControlBoard",
+    "Output",
+    "PartLink",
+    "close_port",
+    "joint_data",
+    "open_port",
+    "serve_rpc",
+]
 
 log = logging.getLogger("archery.yarp")
 
@@ -66,6 +78,59 @@ def open_port(yarp: Any, port: Any, name: str) -> Any:
             return port
         yarp.Network.unregisterName(name)
     raise ArcheryError(f"YARP port {name} did not open (is the name server reachable?)")
+
+
+#: s a connection of an output port may take nothing before YARP drops it
+STALL = 2.0
+#: s a write waits for the message before it to be taken before it skips a busy connection
+PATIENCE = 0.02
+
+
+class Output:
+    """A buffered YARP output port (`self.port`, of the class `kind`, e.g.
+    `yarp.BufferedPortVector`: `prepare`, `setEnvelope`) on a plain port whose connections time
+    out after `STALL` s, opened as `name`; `send` writes without waiting on a slow connection."""
+
+    def __init__(self, yarp: Any, kind: Any, name: str) -> None:
+        self.yarp, self.name = yarp, name
+        plain = yarp.Port()
+        plain.setTimeout(STALL)  # before any connection: each connection gets it
+        open_port(yarp, plain, name)
+        self.port: Any = kind(plain)  # YARP's BufferedPort on the plain port's connections
+        self._plain = plain  # after `port`, so that it is freed after it: the port uses it
+        self._busy_since: float | None = None
+        self._logged = False
+
+    def send(self) -> None:
+        """Write the prepared message: each connection that has taken the one before gets it; a
+        connection still busy after `PATIENCE` s is skipped (it gets a later one), and one busy
+        for half of `STALL` is logged once (YARP drops it at `STALL`)."""
+        deadline = time.monotonic() + PATIENCE
+        while self.port.isWriting() and time.monotonic() < deadline:
+            time.sleep(PATIENCE / 20)
+        now = time.monotonic()
+        if not self.port.isWriting():
+            self._busy_since, self._logged = None, False
+        elif self._busy_since is None:
+            self._busy_since = now
+        elif now - self._busy_since >= STALL / 2 and not self._logged:
+            self._logged = True
+            log.warning(
+                "%s: a connection has taken nothing for %g s (a reader that does not read): "
+                "dropped at %g s, the other readers go on",
+                self.name,
+                STALL / 2,
+                STALL,
+            )
+        self.port.write(False)
+
+    def close(self) -> None:
+        if self.port is None:
+            return
+        self.port.interrupt()
+        close_port(self.yarp, self._plain)
+        self.port.close()
+        self.port = None  # the buffered port freed before the plain one it writes through
 
 
 def serve_rpc(
@@ -202,8 +267,8 @@ class ControlBoard:
         self._lock = threading.Lock()
         self._closing = threading.Event()
         self.rpc = self._open(yarp.RpcServer(), "rpc:i")
-        self.state = self._open(yarp.BufferedPortVector(), "state:o")
-        self.state_ext = self._open(yarp.BufferedPortBottle(), "stateExt:o")
+        self.state = Output(yarp, yarp.BufferedPortVector, f"{self.name}/state:o")
+        self.state_ext = Output(yarp, yarp.BufferedPortBottle, f"{self.name}/stateExt:o")
         self.command = self._open(yarp.BufferedPortBottle(), "command:i")
         self._threads = [
             threading.Thread(target=self._serve, name=f"yarp-{link.part}-rpc", daemon=True),
@@ -221,15 +286,15 @@ class ControlBoard:
         self.link.state = state
         with self._lock:
             self._stamp = self.yarp.Stamp(self._stamp.getCount() + 1, state.stamp)
-            vector = self.state.prepare()
+            vector = self.state.port.prepare()
             vector.resize(len(state.position))
             for i, x in enumerate(state.position):
                 vector[i] = math.degrees(x)
-            self.state.setEnvelope(self._stamp)
-            self.state.write(True)  # strict: a busy connection waits, it skips no state
-            joint_data(self.yarp, self.state_ext.prepare(), state)
-            self.state_ext.setEnvelope(self._stamp)
-            self.state_ext.write(True)
+            self.state.port.setEnvelope(self._stamp)
+            self.state.send()  # a reader that keeps up gets each; a stalled one, none
+            joint_data(self.yarp, self.state_ext.port.prepare(), state)
+            self.state_ext.port.setEnvelope(self._stamp)
+            self.state_ext.send()
             self.counts["states"] += 1
 
     # -- rpc:i -----------------------------------------------------------------------------------
@@ -452,12 +517,14 @@ class ControlBoard:
 
     def close(self) -> None:
         self._closing.set()
-        for port in (self.rpc, self.command, self.state, self.state_ext):
+        for port in (self.rpc, self.command):
             port.interrupt()
         for thread in self._threads:
             thread.join(timeout=5)
-        for port in (self.rpc, self.command, self.state, self.state_ext):
+        for port in (self.rpc, self.command):
             close_port(self.yarp, port)
+        for output in (self.state, self.state_ext):
+            output.close()
 
 
 def _add_list(reply: Any, values: Sequence[float]) -> None:

@@ -10,6 +10,7 @@ user's is never written). The environment YARP reads is set here, before YARP is
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import logging
 import os
 import random
@@ -24,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from archery.apps.up.child import popen_tied
 from archery.protocol.errors import ArcheryError, ConfigError
 from archery.protocol.text import shown
 
@@ -119,6 +121,8 @@ def _answers(server: NameServer, timeout: float = 1.0) -> bool:
         return False
     except OSError as exc:
         raise NotANameServer(f"the YARP name server at {server} does not answer: {exc}") from None
+    if answer.strip() == _END:  # a name server that has not registered itself yet
+        return False
     if b"registration name /root" not in answer:
         text = answer.decode("utf-8", errors="replace")
         raise NotANameServer(
@@ -153,6 +157,12 @@ def free_server_port(host: str) -> int:
 
 
 def _yarpserver() -> str:
+    """YARP's `yarpserver`: the program itself where the `yarp` package holds it (its Python
+    launcher would outlive a bridge that dies), else the launcher beside this Python."""
+    spec = importlib.util.find_spec("yarp")  # found, not imported: YARP's environment is not set
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        if (binary := Path(folder) / "bin" / "yarpserver").is_file():
+            return str(binary)
     here = Path(sys.executable).parent / "yarpserver"
     found = str(here) if here.exists() else shutil.which("yarpserver")
     if found is None:
@@ -160,6 +170,20 @@ def _yarpserver() -> str:
             "no yarpserver to run (it comes with YARP's tools); give --yarp-server HOST:PORT"
         )
     return found
+
+
+def _package_dirs() -> dict[str, str]:
+    """YARP's data and plugin folders in the `yarp` package, as its import sets them (for its
+    programs run without their launcher)."""
+    spec = importlib.util.find_spec("yarp")
+    for folder in (spec.submodule_search_locations or []) if spec else []:
+        here = Path(folder)
+        if (here / "share" / "yarp").is_dir():
+            return {
+                "YARP_DATA_DIRS": str(here / "share" / "yarp"),
+                "YARP_PLUGINS_DIR": str(here / "lib" / "yarp"),
+            }
+    return {}
 
 
 def stop_group(proc: subprocess.Popen[Any]) -> None:
@@ -212,11 +236,12 @@ class YarpNetwork:
             server = NameServer(ip, free_server_port(ip), "ours")
             folder = self._private(server)
             with open(folder / "yarpserver.log", "wb") as log:  # its registrations, each a line
-                self._own = subprocess.Popen(
+                self._own = popen_tied(  # it dies with the bridge, even a crashed one
                     [_yarpserver(), "--read", "--socket", str(server.port)],
                     stdin=subprocess.DEVNULL,
                     stdout=log,
                     stderr=subprocess.STDOUT,
+                    env={**_package_dirs(), **os.environ},
                     start_new_session=True,  # a launcher script and the server: one group
                 )
         elif server.origin == "given":
