@@ -292,3 +292,19 @@ def test_the_supervisor_waits_out_the_back_off_and_gives_up_on_a_bad_configurati
         "router exited with status 2 (a bad configuration: a restart cannot help)"
     )
     assert supervisor.restart_count() == 2
+
+
+def test_an_observer_whose_budget_is_spent_is_left_down_and_the_mesh_runs_on() -> None:
+    fake = _FakeLauncher(RestartPolicy(budget=1, backoff=0.0))
+    fake.children["yarp"] = _Proc("yarp")
+    fake.observers = {"yarp": object()}  # type: ignore[attr-defined]  # a supervised observer
+    lines: list[str] = []
+    supervisor = Supervisor(fake, report=lines.append, clock=lambda: fake.now)  # type: ignore[arg-type]  # a fake launcher
+    fake.children["yarp"].returncode = -11  # a crash inside YARP's library: restarted
+    assert supervisor.step() is None and fake.restarted == [("yarp", 100.0)]
+    fake.children["yarp"].returncode = -11  # again: the budget is spent, yet nothing ends
+    assert supervisor.step() is None
+    assert lines[-1].endswith("spent the budget of 1; left down, the mesh runs on")
+    assert "yarp" in supervisor.left and fake.restarted == [("yarp", 100.0)]
+    fake.children["camera"].returncode = 2  # a service's end still ends everything
+    assert supervisor.step() is not None

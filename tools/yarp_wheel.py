@@ -1,18 +1,15 @@
 """YARP 3.5 for `archery yarp` and its tests, as a user without robotology-superbuild or conda
-gets it: when this Python cannot `import yarp`, install a wheel built from PyPI's
-`yarp-middleware` 3.5.0 source distribution (YARP's libraries, device plugins, tools and Python
-bindings), kept in a cache outside the checkout (`$XDG_CACHE_HOME/archery/yarp`, by default
-`~/.cache/archery/yarp`) so that a machine builds it once (about 7 minutes on 2 cores).
+gets it: unless this Python imports a YARP built with this file's mend, install a wheel built
+from PyPI's `yarp-middleware` 3.5.0 source distribution (libraries, device plugins, tools,
+Python bindings), cached outside the checkout (`$XDG_CACHE_HOME/archery/yarp`, by default
+`~/.cache/archery/yarp`): a machine builds it once (about 7 minutes on 2 cores).
 
-The source distribution does not build as published on Debian 12 with GCC 12 and CMake 4; the
-build edits its setup.py's CMake options (no ACE library; shared libraries, so that the device
-plugins exist; the standard headers GCC 12 no longer includes by itself), builds with
-CMake < 4, and makes the wheel relocatable (the plugins' search path, which CMake writes as the
-build folder, and `import yarp` pointing YARP_DATA_DIRS and YARP_PLUGINS_DIR at the installed
-package unless they are set). One mend to YARP's source: a bottle nested deeper than 64 lists,
-read from the wire or parsed from text, is refused (read as empty), where YARP 3.5 recursed until
-its stack overflowed. An installed YARP without the mend is replaced.
-Usage: python tools/yarp_wheel.py [--build-only]
+The build edits setup.py's CMake options for Debian 12, GCC 12 and CMake 4 (no ACE; shared
+libraries, so that the device plugins exist; the standard headers GCC 12 no longer includes),
+builds with CMake < 4, makes the wheel relocatable (`import yarp` points YARP_DATA_DIRS and
+YARP_PLUGINS_DIR at the package unless set) and mends YARP's bottle parser: a bottle nested
+deeper than 64 lists, from the wire or from text, is read as empty, where YARP 3.5 recursed until
+its stack overflowed. Usage: python tools/yarp_wheel.py [--build-only]
 """
 
 from __future__ import annotations

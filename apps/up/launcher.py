@@ -7,9 +7,8 @@ begins, by the caller's `on_wait`: `apps.waits`), and then supervises them
 (`apps.up.supervisor`, `apps.up.restart_policy`; `Launcher` tells how they stop, and where their
 output goes). The mesh is the built-in default or a launch description (`--config mesh.toml`,
 `apps.up.launch_config`); `--robots N` starts a fleet: N robot stacks under `ROBOT1` … `ROBOTN`
-and one learner serving them all (`launch_config.default_mesh`). Observers (the YARP bridge)
-may be supervised beside them: restarted by their policy, stopped first, their process group
-killed 1 s after SIGTERM.
+and one learner serving them all (`launch_config.default_mesh`). A supervised observer (the
+YARP bridge) is restarted by its policy, stopped first, its group killed 1 s after SIGTERM.
 """
 
 from __future__ import annotations
