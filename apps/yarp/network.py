@@ -1,10 +1,12 @@
 """YARP's network for the bridge: its ports on loopback (or `--yarp-ip`), its name server, and
-YARP's library initialised.
+YARP's library initialised, all by one deadline (`start`).
 
 The name server is, in this order: `--yarp-server HOST:PORT`; the one the user's YARP
 configuration names (`yarp conf`), when it answers; or one the bridge runs itself, YARP's own
 `yarpserver`, on a free port of the bridge's address, with a configuration of its own (the
-user's is never written). The environment YARP reads is set here, before YARP is imported.
+user's is never written), its multicast fallback on a UDP port of its own. With a YARP key
+(`--secure`) every process of the bridge's authenticates, and a name server that does not is
+refused. The environment YARP reads is set here, before YARP is imported.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from archery.apps.up.child import popen_tied
+from archery.apps.yarp.auth import AUTH_CONF, NotAuthenticated, YarpKey, authenticate
 from archery.protocol.errors import ArcheryError, ConfigError
 from archery.protocol.text import shown
 
@@ -101,24 +104,32 @@ _END = b"*** end of message"
 _MOST = 4096  # bytes of an answer read at most
 
 
-def _answers(server: NameServer, timeout: float = 1.0) -> bool:
-    """True once `server` answers a name query as a YARP name server, False while nothing
-    listens there.
+def _answers(server: NameServer, deadline: float, key: YarpKey | None = None) -> bool:
+    """True once `server` answers a name query as a YARP name server (with `key`: after YARP's
+    handshake with it), False while nothing listens there; by `deadline` (time.monotonic()).
 
     Raises:
-        NotANameServer: what answers is not one (the message quotes what it sent).
+        NotANameServer: what answers is not one (the message quotes what it sent), does not
+            authenticate with `key`, or is silent until `deadline`.
     """
     try:
-        with socket.create_connection((server.host, server.port), timeout=timeout) as conn:
+        with socket.create_connection(
+            (server.host, server.port), timeout=max(deadline - time.monotonic(), 0.01)
+        ) as conn:
+            if key is not None:
+                authenticate(conn, key, deadline)
             conn.sendall(_QUERY)
             answer = b""
             while _END not in answer and len(answer) < _MOST:
+                conn.settimeout(max(deadline - time.monotonic(), 0.01))
                 chunk = conn.recv(_MOST)
                 if not chunk:
                     break
                 answer += chunk
     except ConnectionRefusedError:
         return False
+    except NotAuthenticated as exc:
+        raise NotANameServer(f"the YARP name server at {server}: {exc}") from None
     except OSError as exc:
         raise NotANameServer(f"the YARP name server at {server} does not answer: {exc}") from None
     if answer.strip() == _END:  # a name server that has not registered itself yet
@@ -200,91 +211,122 @@ def stop_group(proc: subprocess.Popen[Any]) -> None:
             continue
 
 
-def _answering(server: NameServer | None) -> NameServer | None:
-    """`server` (the user's configured one) if it answers as a name server, else None."""
+def _answering(server: NameServer | None, key: YarpKey | None) -> NameServer | None:
+    """`server` (the user's configured one) if it answers as a name server (with `key`, one
+    that authenticates with it), else None."""
     if server is None:
         return None
     try:
-        return server if _answers(server) else None
+        return server if _answers(server, time.monotonic() + 1.0, key) else None
     except NotANameServer as exc:
         log.warning("%s; the bridge runs a name server of its own", exc)
         return None
 
 
+def _fallback_port() -> int:
+    """A free UDP port for the multicast fallback of a `yarpserver` of the bridge's own
+    (`YARP_PORT_RANGE`), so that it never meets another's: YARP 3.5 built without ACE binds
+    that port for its sender without sharing it, and a second yarpserver on the same port
+    exits; so bound, the fallback never listens (with ACE it would take name-server commands,
+    unauthenticated, from any UDP datagram)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("0.0.0.0", 0))
+        return int(probe.getsockname()[1])
+
+
 class YarpNetwork:
     """YARP set up for the bridge until `close`: the environment, the name server, `yarp`
-    imported and initialised (`self.yarp`).
+    imported and initialised (`self.yarp`, after `start`).
 
     Args:
         ip: the address YARP's ports register and listen on.
         server: the name server to use (None: the user's, else one of the bridge's own).
-        wait: s to wait for the name server to answer.
-
-    Raises:
-        ConfigError: YARP is not installed, or no name server can be had.
-        ArcheryError: the name server does not answer within `wait`.
+        key: the deployment's YARP key (`--secure`): every connection of the bridge's, and of its
+            own name server, authenticates with it; None: none does (YARP's default).
     """
 
-    def __init__(self, ip: str, server: NameServer | None, wait: float) -> None:
+    def __init__(self, ip: str, server: NameServer | None, key: YarpKey | None = None) -> None:
+        self.ip, self.key = ip, key
+        self.server: NameServer | None = server
+        self.stage = "probing the name server"  # what `start` does now, for a late start's words
+        self.yarp: Any = None
         self._own: subprocess.Popen[bytes] | None = None
         self._initialised = False
         self._folder: tempfile.TemporaryDirectory[str] | None = None
-        os.environ["YARP_IP"] = ip
+
+    def start(self, deadline: float) -> None:
+        """Find or run the name server, import YARP and initialise it, by `deadline`
+        (time.monotonic()). YARP's own calls cannot be interrupted: a server that hangs inside
+        one is for the caller to give up on (`abandon`).
+
+        Raises:
+            ConfigError: YARP is not installed, or no name server can be had.
+            ArcheryError: the name server does not answer (as one) by `deadline`.
+        """
+        os.environ["YARP_IP"] = self.ip
+        server = self.server
         if server is None:
-            server = _answering(user_server())
+            server = _answering(user_server(), self.key)
         if server is None:
-            server = NameServer(ip, free_server_port(ip), "ours")
+            server = NameServer(self.ip, free_server_port(self.ip), "ours")
             folder = self._private(server)
-            with open(folder / "yarpserver.log", "wb") as log:  # its registrations, each a line
+            env = {**os.environ, "YARP_PORT_RANGE": str(_fallback_port())}
+            with open(folder / "yarpserver.log", "wb") as out:  # its registrations, each a line
                 self._own = popen_tied(  # it dies with the bridge, even a crashed one
                     [_yarpserver(), "--read", "--socket", str(server.port)],
                     stdin=subprocess.DEVNULL,
-                    stdout=log,
+                    stdout=out,
                     stderr=subprocess.STDOUT,
-                    env={**_package_dirs(), **os.environ},
+                    cwd=folder,  # YARP reads an auth.conf of its working folder first
+                    env={**_package_dirs(), **env},
                     start_new_session=True,  # a launcher script and the server: one group
                 )
-        elif server.origin == "given":
+        elif server.origin == "given" or self.key is not None:
             self._private(server)
         self.server = server
-        deadline = time.monotonic() + wait
-        while not self._answers(server):
+        while not self._answers(server, deadline):
             if self._own is not None and self._own.poll() is not None:
                 assert self._folder is not None
                 log_file = Path(self._folder.name) / "yarpserver.log"
                 text = log_file.read_text(encoding="utf-8", errors="replace")
-                self.close()
                 raise ArcheryError(f"yarpserver on {server} exited: {shown(text.strip()[-300:])}")
             if time.monotonic() > deadline:
-                self.close()
-                raise ArcheryError(f"no YARP name server answers at {server} within {wait:g} s")
+                raise ArcheryError(f"no YARP name server answers at {server} by --wait")
             time.sleep(0.05)
+        self.stage = "initialising YARP"
         try:
             import yarp
         except ImportError:
-            self.close()
             raise ConfigError(YARP_MISSING) from None
-        self.yarp: Any = yarp
+        self.yarp = yarp
         yarp.Network.init()
         self._initialised = True
-        if not yarp.Network.checkNetwork(wait):
-            self.close()
+        self.stage = "checking the name server with YARP"
+        if not yarp.Network.checkNetwork(max(deadline - time.monotonic(), 0.1)):
             raise ArcheryError(f"the YARP name server at {server} does not answer as one")
+        self.stage = "registering the bridge's ports"
 
-    def _answers(self, server: NameServer) -> bool:
-        try:
-            return _answers(server, timeout=0.5)
-        except NotANameServer:
-            self.close()
-            raise
+    def _answers(self, server: NameServer, deadline: float) -> bool:
+        return _answers(server, min(deadline, time.monotonic() + 1.0), self.key)
 
     def _private(self, server: NameServer) -> Path:
-        """A configuration folder of the bridge's own that names `server`."""
+        """A configuration folder of the bridge's own (0700) that names `server` and holds the
+        deployment's YARP key, if any."""
         self._folder = tempfile.TemporaryDirectory(prefix="archery-yarp-")
         folder = Path(self._folder.name)
         (folder / _CONF).write_text(f"{server.host} {server.port} yarp\n")
+        if self.key is not None:
+            fd = os.open(folder / AUTH_CONF, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+            with os.fdopen(fd, "wb") as out:
+                out.write(b"[AUTH]\nkey " + self.key.secret + b"\n")
         os.environ["YARP_CONFIG_HOME"] = str(folder)
         return folder
+
+    def abandon(self) -> None:
+        """What `close` does without YARP's own calls: for a start stuck inside one of them,
+        before the process ends."""
+        self._initialised = False
+        self.close()
 
     def close(self) -> None:
         """Stop the bridge's own name server, if it runs one, and drop its configuration."""
