@@ -1,15 +1,13 @@
 """`archery demonstrate`: record a demonstration of the whole shot, or check one.
 
 `--out DEMO.json` follows a running robot while an operator drives its arms (the parts'
-`command:i` ports: `--teach`'s scripted teacher, `archery write`) and its verbs, and writes
-both arms' joint trajectory (the robot's joint states at every period of its `--state-rate`
-in simulated s, read from its history whatever its rtf) with the shot's events once the arrow
-has landed (`protocol.demonstration`). `--check FILE` validates a file with the
-reader `imitate` and the controller use (`services.controller.demonstration_file`: a regular
-file of bounded size, its form, samples, duration and events what a learner can play, a whole
-shot's grasp, nock and release, each joint's speed and acceleration what the robot follows),
-and every angle within the simulated robot's joint limits. A bad file or flag: one line naming
-what is wrong, exit status 2.
+`command:i` ports: `--teach`'s scripted teacher, `archery write`) and writes both arms' joint
+trajectory (the robot's joint states at every period of its `--state-rate` in simulated s, read
+from its history whatever its rtf) with the shot's events once the arrow has landed
+(`protocol.demonstration`). `--check FILE` validates a file as `imitate` and the controller
+read it (`services.controller.demonstration_file`: bounded size, form, samples, the grasp, nock
+and release, each joint's speed and acceleration, every angle within the joint limits). A bad
+file or flag: one line naming what is wrong, exit status 2.
 """
 
 from __future__ import annotations
