@@ -13,6 +13,7 @@ for _variable in ("MUJOCO_GL", "PYOPENGL_PLATFORM"):
     os.environ.pop(_variable, None)
 
 import itertools
+import signal
 import subprocess
 import sys
 import threading
@@ -26,6 +27,16 @@ from archery.mesh.netflags import NetConfig
 from archery.mesh.router import free_tcp_endpoint, spawn_router
 
 _counter = itertools.count()
+
+
+@pytest.fixture(autouse=True)
+def _children_exit_statuses() -> Iterator[None]:
+    """In a process where YARP's devices have run (remote_controlboard in a test's own process),
+    SIGCHLD is ignored and every child's exit status reads 0: each test starts and ends with
+    the default, so the statuses it and the next module's fixtures read are the children's."""
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+    yield
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
 
 
 @pytest.fixture(scope="session")

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -38,12 +37,6 @@ yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds 
 ROBOT = "yarpbot"
 ARM = "left_arm"
 ELBOW = 3  # the arm's joint the tests move (index in YARP order)
-
-
-def _exit_statuses() -> None:
-    """In a process where YARP's devices have run, children's exit statuses read 0 (YARP's
-    library changes SIGCHLD's handling): the default comes back before a test reads one."""
-    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
 
 
 class World:
@@ -379,7 +372,6 @@ def test_a_name_server_that_answers_nonsense_is_an_error_not_a_hang(world: World
 
     thread = threading.Thread(target=nonsense, daemon=True)
     thread.start()
-    _exit_statuses()
     try:
         out = archery(
             "yarp", "--connect", world.endpoint, "--robot", ROBOT, "--wait", "3",
@@ -394,7 +386,6 @@ def test_a_name_server_that_answers_nonsense_is_an_error_not_a_hang(world: World
 
 
 def test_bad_flags_are_bad_input() -> None:
-    _exit_statuses()
     for flags, why in (
         (["--yarp-server", "nowhere"], "HOST:PORT"),
         (["--yarp-ip", "loopback"], "give an address"),
