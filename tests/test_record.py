@@ -417,7 +417,8 @@ def _thread_niceness(pid: int) -> list[tuple[int, int]]:
 def test_the_recorder_runs_at_a_lower_priority_when_told(net: NetConfig, tmp_path: Path) -> None:
     mine = os.getpriority(os.PRIO_PROCESS, 0)
     for flag, expected in (([], mine), (["--nice", "10"], min(19, mine + 10))):
-        recorder = _recording(tmp_path / "n.mcap", net, f"{net.robot}/**", *flag)
+        out = tmp_path / f"n{len(flag)}.mcap"  # a new file each: an existing one is refused
+        recorder = _recording(out, net, f"{net.robot}/**", *flag)
         try:
             niceness = _thread_niceness(recorder.pid)
             # one thread, the writer, waits for idle CPU (SCHED_IDLE); every other one, Zenoh's
