@@ -43,6 +43,7 @@ OPTIONS = (
     ),
 )
 BOTTLE = "src/libYARP_os/src/yarp/os/impl/BottleImpl.cpp"
+SOCKET = "src/libYARP_os/src/yarp/os/impl/SocketTwoWayStream.h"
 _DEPTH = """namespace {
 // archery: a bottle nested deeper than this is refused (read as empty), not recursed into
 constexpr int archeryDepthMost = 64;
@@ -85,6 +86,20 @@ MENDS = (
         "bool BottleImpl::read(ConnectionReader& reader)\n{\n"
         "    ArcheryDepth archeryGuard(this);\n"
         "    if (archeryGuard.refused()) {\n        return false;\n    }\n",
+    ),
+    # The authentication's handshake gives a connection 2 s timeouts, then "clears" them by a
+    # flag only: the socket keeps SO_RCVTIMEO/SO_SNDTIMEO, and an authenticated connection left
+    # idle for 2 s fails (a secure RPC client's next call with it). Cleared on the socket too.
+    *(
+        (
+            SOCKET,
+            f"        if (timeout < 1e-12) {{\n            have{kind}Timeout = false;\n",
+            f"        if (timeout < 1e-12) {{\n            have{kind}Timeout = false;\n"
+            "            struct timeval archeryNone = {0, 0};\n"
+            f"            stream.set_option(SOL_SOCKET, {option}, &archeryNone, "
+            "sizeof(archeryNone));\n",
+        )
+        for kind, option in (("Write", "SO_SNDTIMEO"), ("Read", "SO_RCVTIMEO"))
     ),
 )
 #: names the build's mends: a YARP installed without them is replaced
