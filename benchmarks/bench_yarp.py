@@ -63,6 +63,7 @@ from archery.protocol.robotspec import SERVICES
 from archery.protocol.verbs import robot as rv
 from benchmarks.machine import cpu_model
 from benchmarks.spread import median_spread
+from tests.yarp_setup import crash_output_port
 
 __all__ = ["main"]
 
@@ -353,12 +354,7 @@ class Supervised:
         mark = len(self.out.lines)
         with self._connect(address) as raw:
             crashed = time.monotonic()
-            raw.sendall(b"CONNECT /probe\n")
-            raw.sendall(b"r\n")
-            raw.settimeout(10)
-            with contextlib.suppress(OSError):
-                while raw.recv(4096):  # until the bridge closes it, as it dies
-                    pass
+            crash_output_port(raw)
         bridge.wait(30)
         gone = time.monotonic()
         after, _, killed = self.out.wait("archery up: yarp was killed by signal", mark, 60)

@@ -33,7 +33,7 @@ from archery.mesh.router import free_tcp_endpoint
 from archery.protocol.messages import JointState
 from archery.protocol.robotspec import SERVICES
 from tests.ros2_sdk import until
-from tests.yarp_setup import YarpSetup
+from tests.yarp_setup import YarpSetup, crash_output_port
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
 
@@ -220,12 +220,7 @@ def test_connect_then_r_on_an_output_port_costs_a_restart(up: Up) -> None:
     def attack() -> None:
         address = _address(up, f"/{ROBOT}/{ARM}/state:o")  # where the bridge of now listens
         with socket.create_connection(address, timeout=5) as raw:
-            raw.sendall(b"CONNECT /probe\n")
-            raw.sendall(b"r\n")
-            raw.settimeout(10)
-            with contextlib.suppress(OSError):
-                while raw.recv(4096):  # until the bridge closes it, as it dies
-                    pass
+            crash_output_port(raw)
 
     for _ in range(3):  # three times: the median of the recoveries
         restarted, took = _survived(up, attack)

@@ -4,6 +4,7 @@ network initialised in the test process; all undone by `close`."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -68,3 +69,15 @@ class YarpSetup:
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = value
+
+
+def crash_output_port(raw: socket.socket) -> None:
+    """YARP 3.5's own NULL dereference, on a connection `raw` to an output port: `CONNECT` then
+    `r` (a request to read from a port that writes); returns when the bridge closes it, as it
+    dies."""
+    raw.sendall(b"CONNECT /probe\n")
+    raw.sendall(b"r\n")
+    raw.settimeout(10)
+    with contextlib.suppress(OSError):
+        while raw.recv(4096):
+            pass
