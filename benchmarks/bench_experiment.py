@@ -93,6 +93,7 @@ def _time_default_command(out: Path, sessions: int, rollouts: int, seed: int) ->
         str(seed),
         "--out",
         str(out),
+        "--force",  # the benchmark's own folder: a run before this one is replaced
         "--no-progress",
     ]
     start = time.perf_counter()

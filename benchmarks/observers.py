@@ -156,6 +156,7 @@ class Observers:
                     "record",
                     "--out",
                     str(out),
+                    "--force",  # each repeat records anew into the benchmark's own file
                     *flags,
                     ready="archery record: recording",
                     env=env,
