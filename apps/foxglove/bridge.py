@@ -43,6 +43,7 @@ log = logging.getLogger("archery.foxglove")
 #: hold as many raw frames per client: 39 + the streams' ≈ 150 MB for each slow reader).
 BACKLOG = 4
 MAX_PARAMETERS = 16  # parameters one get/set message may name (the bridge has one: the wind)
+SERVER_STOP_WAIT = 0.5  # s: the longest the bridge waits for the SDK's server to stop
 MAX_ASSET_BYTES = 64 << 20  # a mesh file the client may fetch (the iCub's largest: ~2 MB)
 
 
@@ -258,7 +259,13 @@ class Bridge(ServerListener):
         self.server.publish_status(message, foxglove.StatusLevel.Error)
 
     def _stop_server(self) -> None:
-        self.server.stop()
+        """Stop the SDK's server, waiting at most `SERVER_STOP_WAIT` s (its stop waits for
+        every connection's task; the process exits after this either way), then the feeds."""
+        stopping = threading.Thread(target=self.server.stop, name="foxglove stop", daemon=True)
+        stopping.start()
+        stopping.join(SERVER_STOP_WAIT)
+        if stopping.is_alive():
+            log.warning("the Foxglove server did not stop within %g s", SERVER_STOP_WAIT)
         with self._lock:
             self._closing = True
             self._newcomers.clear()

@@ -36,6 +36,7 @@ MAX_CONNECTIONS = 16  # connections served at once (the default of --max-clients
 CHUNK = 64 << 10  # bytes: read from one side and written to the other at a time
 INNER_BUFFER = 256 << 10  # bytes: the kernel's receive buffer of the link to the SDK's server
 STALL_AFTER = 10.0  # s: a client that takes no byte this long while bytes wait is dropped
+CLOSE_WAIT = 1.0  # s: the longest a closing door waits for its relays to end
 #: fetchAsset requests of one connection waiting for their answers; with more, the door reads
 #: nothing more from that client until one is answered
 MAX_PENDING_ASSETS = 256
@@ -79,6 +80,7 @@ class FrontDoor:
         self.refused = 0  # upgrades refused since start
         self._loop = asyncio.new_event_loop()
         self._tasks: set[asyncio.Task[None]] = set()
+        self._transports: set[asyncio.WriteTransport] = set()  # both sides of every connection
         self._ready = threading.Event()
         self._failed: BaseException | None = None
         self._server: asyncio.Server | None = None
@@ -124,6 +126,7 @@ class FrontDoor:
         task = asyncio.current_task()
         assert task is not None
         self._tasks.add(task)
+        self._transports.add(writer.transport)
         try:
             if self.open >= self.max_connections:
                 self.refused += 1
@@ -139,6 +142,7 @@ class FrontDoor:
         finally:
             writer.close()
             self._tasks.discard(task)
+            self._transports.discard(writer.transport)
 
     async def _upgrade(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         peer = writer.get_extra_info("peername")
@@ -167,6 +171,7 @@ class FrontDoor:
             server_hostname=self.inner[0],
             limit=CHUNK,
         )
+        self._transports.add(inner_writer.transport)
         try:
             sock = inner_writer.get_extra_info("socket")
             if sock is not None:
@@ -179,22 +184,31 @@ class FrontDoor:
                 log.warning("%s: dropped: %s", client_name(peer), why)
         finally:
             inner_writer.close()
+            self._transports.discard(inner_writer.transport)
 
     def close(self) -> None:
-        """Stop listening and close every connection (idempotent)."""
+        """Stop listening and close every connection, both its sides (idempotent): each relay
+        is cancelled and given `CLOSE_WAIT` s to end; the sockets of those still open then are
+        aborted, so the SDK's server sees each of its clients gone (a link left open would hold
+        its stop)."""
         if self._loop.is_closed():
             return
 
-        def stop() -> None:
+        async def stop() -> None:
             if self._server is not None:
                 self._server.close()
-            for task in list(self._tasks):
+            tasks = list(self._tasks)
+            for task in tasks:
                 task.cancel()
-            self._loop.call_later(0.05, self._loop.stop)
+            if tasks:
+                await asyncio.wait(tasks, timeout=CLOSE_WAIT)
+            for transport in list(self._transports):
+                transport.abort()
+            self._loop.stop()
 
         with contextlib.suppress(RuntimeError):  # the loop already stopped
-            self._loop.call_soon_threadsafe(stop)
-        self._thread.join(2.0)
+            asyncio.run_coroutine_threadsafe(stop(), self._loop)
+        self._thread.join(CLOSE_WAIT + 1.0)
 
 
 async def _answer(writer: asyncio.StreamWriter, refusal: Refusal) -> None:
