@@ -10,6 +10,8 @@ __all__ = [
     "DecodeError",
     "DuplicateService",
     "KeyNameError",
+    "RobotError",
+    "RobotLost",
     "RpcError",
     "RpcTimeout",
     "StaleState",
@@ -129,3 +131,26 @@ class StaleState(ArcheryError):
         super().__init__(f"{text}: its publisher is frozen or lost")
         self.key = key
         self.age = age
+
+
+class RobotError(RpcError):
+    """What a client of the robot meets when the robot does not do what it asked
+    (`mesh/robot_client.py`): `kind` says which of "not_owner" (another client holds a part),
+    "busy", "not_reached" (a move ended off its targets: `moved` tells where) or "lost" (the
+    robot does not answer, or its states went silent); `code` is the robot's own code and the
+    message its own reason."""
+
+    code = "robot_error"
+
+    def __init__(self, message: str, *, kind: str, code: str | None = None, moved: object = None):
+        super().__init__(message, code=code if code is not None else kind)
+        self.kind = kind
+        self.moved = moved
+
+
+class RobotLost(RobotError, RpcTimeout):
+    """A `RobotError` of kind "lost": no reply in time, or a state stream gone silent (its code:
+    `timeout`, `stale_state`, `upstream_lost`)."""
+
+    def __init__(self, message: str, *, code: str = "timeout") -> None:
+        super().__init__(message, kind="lost", code=code)

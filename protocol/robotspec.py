@@ -46,6 +46,7 @@ __all__ = [
     "STRING_ARM",
     "STRING_HAND_FRAME",
     "THETA0",
+    "TOLERANCES",
     "TORSO",
     "home_of",
     "model_file",
@@ -166,6 +167,13 @@ COMMAND_BURST = 50
 CALL_TIMEOUT = 5.0
 #: A joint state or a controlboard RPC reply from the robot (controller, camera).
 ROBOT_TIMEOUT = 3.0
+
+#: What "reached" means for every client of the robot (`mesh/robot_client.py`), rad: a move
+#: `until="rest"` ends once the whole robot rests (motion done, states of one simulated time)
+#: with each moved joint within `TOLERANCES["rest"]` of its target; `until="passing"` once each
+#: moved joint is within `TOLERANCES["passing"]`, still moving (a waypoint the next follows).
+#: The controller's `--joint-tolerance` defaults to the first.
+TOLERANCES: Mapping[str, float] = MappingProxyType({"rest": 0.005, "passing": 0.03})
 #: A robot state older than this (by its arrival on the receiver) is stale: never used, the
 #: caller gets `StaleState` (controller).
 STATE_MAX_AGE = 0.5
