@@ -12,8 +12,9 @@ from typing import Any
 
 from archery.mesh.node import Node
 from archery.mesh.subscription import Subscription
+from archery.protocol.streams import Stream
 
-__all__ = ["Stop", "follow_events", "follow_latest"]
+__all__ = ["Stop", "follow_events", "follow_latest", "follow_stream"]
 
 WAIT = 0.5  # s: how long a worker waits for a newer message before it looks at its stop flag
 
@@ -65,3 +66,23 @@ def follow_events(node: Node, key: str, kind: type[Any], each: Callable[[Any], N
     small)."""
     sub: Subscription[Any] = node.subscribe(key, kind, mode="fifo", callback=each)
     return lambda: node.unsubscribe(sub)
+
+
+def follow_stream(
+    node: Node, stream: Stream, each: Callable[[Any], None], log: logging.Logger, name: str = ""
+) -> Stop:
+    """Follow a row of the declared stream table (`protocol/streams.py`) on `node`'s robot, as
+    the row says (the newest state on a thread of its own, or every event), each of its keys
+    (one per part for a part's port); `each(message)`; one function stops them all."""
+    stops = [
+        follow_latest(node, key, stream.message, name or key, each, log)
+        if stream.follow == "latest"
+        else follow_events(node, key, stream.message, each)
+        for key in stream.keys(node.keys)
+    ]
+
+    def close() -> None:
+        for stop in stops:
+            stop()
+
+    return close

@@ -1,0 +1,29 @@
+"""The declared stream table: every row an output port of the contract with its message type, and
+every viewer's conversions exactly the rows it shows."""
+
+from __future__ import annotations
+
+import pytest
+
+from archery.protocol.keys import OUTPUT_PORTS, Keys
+from archery.protocol.streams import STREAMS, VIEWERS, shown_by, stream
+
+
+def test_every_row_is_an_output_port_of_its_message_type() -> None:
+    kinds = {spec.pattern: spec for spec in OUTPUT_PORTS}
+    for row in STREAMS:
+        spec = kinds[row.port]
+        assert spec.message == row.message.__name__, row.name
+        assert row.follow == "events" or spec.kind == "pub", row.name  # an event is never skipped
+        assert set(row.keys(Keys("lab"))) <= set(Keys("lab").output_streams())
+        assert set(row.channels) <= set(VIEWERS), row.name
+
+
+def test_the_rows_are_named_once_and_found_by_name() -> None:
+    names = [row.name for row in STREAMS]
+    assert len(names) == len(set(names))
+    assert stream("joints").port == "{part}/state:o"
+    with pytest.raises(KeyError, match="streams: joints"):
+        stream("nonsense")
+    with pytest.raises(KeyError, match="viewers"):
+        shown_by("nonsense")
