@@ -25,6 +25,7 @@ from typing import Any
 
 from archery.apps.foxglove.upgrade import MAX_HEAD, Refusal, parse_head
 from archery.apps.foxglove.upgrade import Head as _Head
+from archery.mesh.memory import BIG_PAYLOAD, note_payload
 from archery.protocol.text import cut, shown
 
 __all__ = ["CHUNK", "HEAD_TIMEOUT", "MAX_CONNECTIONS", "STALL_AFTER", "FrontDoor", "client_name"]
@@ -137,6 +138,9 @@ class FrontDoor:
                 await self._upgrade(reader, writer)
             finally:
                 self.open -= 1
+                # what the SDK's server kept for the client (its queue of camera frames, the
+                # robot description) is freed with it: given back once the closes stop coming
+                note_payload(BIG_PAYLOAD)
         except (OSError, asyncio.CancelledError):
             pass  # the client went, or the door closes
         finally:
