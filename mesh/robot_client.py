@@ -262,17 +262,15 @@ class RobotClient:
         finally:
             held.drop()
 
-    def command(
-        self, part: str, position: Sequence[float], *, lease: str = "", batch: int = 1
-    ) -> None:
-        """Publish one `JointCommand` of `part` (rad) on its `command:i` (the streamed path)."""
+    def command(self, part: str, position: Sequence[float], **fields: Any) -> None:
+        """Publish one `JointCommand` of `part` (rad) on its `command:i` (the streamed path) with
+        its other `fields` (`lease`, `batch`, `names`); no `position`: its publisher declared."""
         with self._lock:
             if part not in self._commands:
                 self._commands[part] = self.node.publisher(self.keys.command(part), JointCommand)
             pub = self._commands[part]
-        pub.put(
-            JointCommand(part=part, position=[float(x) for x in position], batch=batch, lease=lease)
-        )
+        if len(position):
+            pub.put(JointCommand(part=part, position=[float(x) for x in position], **fields))
 
     def move(
         self,

@@ -27,3 +27,11 @@ def test_the_rows_are_named_once_and_found_by_name() -> None:
         stream("nonsense")
     with pytest.raises(KeyError, match="viewers"):
         shown_by("nonsense")
+
+
+def test_the_yarp_bridge_converts_exactly_the_rows_yarp_shows() -> None:
+    from archery.apps.yarp.bridge import CONVERSIONS
+
+    assert set(CONVERSIONS) == {row.name for row in shown_by("yarp")}
+    for row in shown_by("yarp"):  # a row followed latest-wins has no outbox; an event row has
+        assert (CONVERSIONS[row.name].queued == 0) == (row.follow == "latest"), row.name

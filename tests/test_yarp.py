@@ -559,13 +559,13 @@ def test_a_failure_inside_an_answer_is_a_fail_bottle_and_the_port_goes_on(
 def test_a_read_only_control_board_declares_no_command_path(world: World) -> None:
     """Read-only, a part's control board opens no publisher on the part's `command:i` (the
     operator's does), so no command of YARP's can reach the robot through it."""
-    from archery.apps.yarp.controlboard import ControlBoard, PartLink
+    from archery.apps.yarp.controlboard import ControlBoard
+    from archery.mesh.robot_client import RobotClient
 
     for operator in (False, True):
         node = open_node(world.net, 30)
-        board = ControlBoard(
-            yarp, PartLink(node, ARM, 5.0), f"/unit{int(operator)}", operator=operator
-        )
+        robot = RobotClient(node, timeout=5.0)
+        board = ControlBoard(yarp, robot, ARM, f"/unit{int(operator)}", operator=operator)
         sender = yarp.BufferedPortBottle()
         try:
             command = node.keys.command(ARM)
@@ -589,6 +589,7 @@ def test_a_read_only_control_board_declares_no_command_path(world: World) -> Non
         finally:
             sender.close()
             board.close()
+            robot.close()
             node.close()
 
 

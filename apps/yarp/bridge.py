@@ -1,7 +1,10 @@
 """The YARP bridge on a running mesh (`archery yarp`): each part's control board, the camera,
 the detector's measurements, the world's events and the archery verbs as YARP ports named as
-the mesh names them (`<prefix>/<part>/state:o` for `ROBOT/<part>/state:o`), each stream fed by a
-subscription of the bridge's node at the rate the mesh publishes it. The mesh's callback
+the mesh names them (`<prefix>/<part>/state:o` for `ROBOT/<part>/state:o`). The streams are the
+rows of the declared table YARP shows (`protocol/streams.py`: `shown_by("yarp")`), each followed
+as its row says (`follow_stream`) by the bridge's node at the rate the mesh publishes it and
+written by its conversion (`CONVERSIONS`); the moves and the verbs go through the one robot
+client (`RobotClient`). The mesh's callback
 threads never wait on YARP: each output port is written by a thread of its own behind a small
 queue (`Outbox`: latest-wins for states, bounded for events; frames: the newest only), and no
 reader can block a write (`controlboard.Output`). The process's memory is bounded
@@ -14,17 +17,30 @@ import logging
 import os
 import resource
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import MappingProxyType
 from typing import Any
 
-from archery.apps.follow import Stop, follow_events, follow_latest
-from archery.apps.yarp.controlboard import ControlBoard, Output, PartLink
+from archery.apps.follow import Stop, follow_stream
+from archery.apps.yarp.controlboard import ControlBoard, Output
 from archery.apps.yarp.ports import ArcheryPort, event_bottle, image_to, reward_bottle
 from archery.mesh.node import Node
-from archery.protocol.messages import Detection, Image, JointState, WorldEvent
+from archery.mesh.robot_client import RobotClient
+from archery.protocol.messages import JointState
 from archery.protocol.parts import PARTS
+from archery.protocol.streams import Stream, shown_by
 
-__all__ = ["CLOSE_WITHIN", "EVENTS_QUEUED", "MEMORY_BOUND", "STATES_QUEUED", "Outbox", "YarpBridge"]
+__all__ = [
+    "CLOSE_WITHIN",
+    "CONVERSIONS",
+    "EVENTS_QUEUED",
+    "MEMORY_BOUND",
+    "STATES_QUEUED",
+    "Conversion",
+    "Outbox",
+    "YarpBridge",
+]
 
 log = logging.getLogger("archery.yarp")
 
@@ -33,6 +49,41 @@ MEMORY_BOUND = 2 << 30
 STATES_QUEUED = 4  # joint states a part's writer holds at most (latest-wins)
 EVENTS_QUEUED = 64  # measurements or events a writer holds at most (then the oldest go)
 CLOSE_WITHIN = 1.0  # s from the start of `close` to the end of the process, at most
+
+
+@dataclass(frozen=True)
+class Conversion:
+    """How the bridge shows one row of the stream table on its YARP channel
+    (`row.channels["yarp"]`).
+
+    Attributes:
+        port: the `yarp` module's port class of the channel; "" for the joints, which each
+            part's control board writes (`ControlBoard.publish`, routed by the state's `part`).
+        fill: `fill(yarp, prepared, message)` writes a message into the port's prepared one.
+        queued: how many messages its writer's `Outbox` holds; 0: no outbox, the newest only,
+            written on the follower's own thread (a "latest" row).
+        counter: its count in `YarpBridge.counts`.
+    """
+
+    port: str
+    fill: Callable[[Any, Any, Any], None] | None
+    queued: int
+    counter: str = ""
+
+
+#: {row name: its conversion}, exactly the rows YARP shows (`shown_by("yarp")`)
+CONVERSIONS: Mapping[str, Conversion] = MappingProxyType(
+    {
+        "joints": Conversion("", None, STATES_QUEUED),
+        "events": Conversion(
+            "BufferedPortBottle", lambda _, out, m: event_bottle(out, m), EVENTS_QUEUED, "events"
+        ),
+        "camera": Conversion("BufferedPortImageRgb", image_to, 0, "frames"),
+        "detections": Conversion(
+            "BufferedPortBottle", lambda _, out, m: reward_bottle(out, m), EVENTS_QUEUED, "hits"
+        ),
+    }
+)
 
 
 def _end_now() -> None:
@@ -103,7 +154,7 @@ class YarpBridge:
         node: the bridge's node on the mesh (its identity: viewer, or operator).
         prefix: the robot's YARP name (e.g. "/icubSim").
         operator: take moves and the archery verbs (else read-only).
-        timeout: wall s for each call to the mesh.
+        timeout: wall s for each call to the robot (its client's).
     """
 
     def __init__(
@@ -116,54 +167,59 @@ class YarpBridge:
         self._outboxes: list[Outbox] = []
         self._stops: list[Stop] = []
         self.counts = {"frames": 0, "hits": 0, "events": 0}
-        keys = node.keys
+        self.robot = RobotClient(node, timeout=timeout)
         try:
             for part in PARTS:
-                board = ControlBoard(yarp, PartLink(node, part, timeout), prefix, operator=operator)
-                self.boards[part] = board
-                states = self._outbox(f"{board.name}/state:o", board.publish, STATES_QUEUED)
-                self._stops.append(follow_events(node, keys.state(part), JointState, states.put))
-            self.archery = ArcheryPort(yarp, node, prefix, operator=operator, timeout=timeout)
-            frames = self._output(yarp.BufferedPortImageRgb, "cam/target:o")
-            hits = self._output(yarp.BufferedPortBottle, "detector/hit:o")
-            events = self._output(yarp.BufferedPortBottle, "world/events:o")
-            write_hit = self._outbox(hits.name, self._writer(hits, reward_bottle), EVENTS_QUEUED)
-            write_event = self._outbox(
-                events.name, self._writer(events, event_bottle), EVENTS_QUEUED
-            )
-            self._stops += [
-                follow_latest(  # a thread of its own, the newest frame only
-                    node, keys.cam_frames(), Image, "frames", self._writer(frames, image_to), log
-                ),
-                follow_events(node, keys.detector_hits(), Detection, write_hit.put),
-                follow_events(node, keys.world_events(), WorldEvent, write_event.put),
-            ]
+                self.boards[part] = ControlBoard(yarp, self.robot, part, prefix, operator=operator)
+            self.archery = ArcheryPort(yarp, self.robot, prefix, operator=operator)
+            rows = shown_by("yarp")
+            writers = {row.name: self._writer_of(row, CONVERSIONS[row.name]) for row in rows}
+            for row in rows:  # the ports all open before the first message comes
+                self._stops.append(
+                    follow_stream(node, row, writers[row.name], log, CONVERSIONS[row.name].counter)
+                )
         except BaseException:
             self._close()
             raise
 
-    def _output(self, kind: Any, leaf: str) -> Output:
-        output = Output(self.yarp, kind, f"{self.prefix}/{leaf}")
+    def _writer_of(self, row: Stream, conversion: Conversion) -> Callable[[Any], None]:
+        """The function the row's follower hands each message to: its writer's outbox's `put`
+        (never waiting on YARP), or the writer itself for a row followed latest-wins."""
+        if not conversion.port:  # the joints: each part's board, by the state's part
+            states = {
+                part: self._outbox(f"{board.name}/state:o", board.publish, conversion.queued)
+                for part, board in self.boards.items()
+            }
+
+            def route(state: JointState) -> None:
+                outbox = states.get(state.part)
+                if outbox is not None:  # a part the contract does not name: nowhere to show it
+                    outbox.put(state)
+
+            return route
+        (channel,) = row.channels["yarp"]
+        output = Output(self.yarp, getattr(self.yarp, conversion.port), f"{self.prefix}{channel}")
         self._outputs.append(output)
-        return output
+        write = self._writer(output, conversion)
+        if not conversion.queued:
+            return write
+        return self._outbox(output.name, write, conversion.queued).put
 
     def _outbox(self, name: str, write: Callable[[Any], None], size: int) -> Outbox:
         outbox = Outbox(name, write, size, events=size == EVENTS_QUEUED)
         self._outboxes.append(outbox)
         return outbox
 
-    def _writer(self, output: Output, fill: Callable[..., None]) -> Callable[[Any], None]:
+    def _writer(self, output: Output, conversion: Conversion) -> Callable[[Any], None]:
         """Write each message on `output` (its stamp the envelope), never waiting on a slow
         reader (`Output.send`)."""
-        counter = {image_to: "frames", reward_bottle: "hits", event_bottle: "events"}[fill]
+        fill, counter = conversion.fill, conversion.counter
+        assert fill is not None
         count = [0]
         port = output.port
 
         def write(message: Any) -> None:
-            if fill is image_to:
-                fill(self.yarp, port.prepare(), message)
-            else:
-                fill(port.prepare(), message)
+            fill(self.yarp, port.prepare(), message)
             count[0] += 1
             port.setEnvelope(self.yarp.Stamp(count[0], message.stamp))
             output.send()
@@ -202,3 +258,5 @@ class YarpBridge:
         for output in self._outputs:
             output.close()
         self._outputs = []
+        if hasattr(self, "robot"):
+            self.robot.close()

@@ -2,8 +2,9 @@
 `<prefix>/<part>/rpc:i` answers the control board vocabularies, `state:o` streams the encoders
 (a `yarp::sig::Vector`) and `stateExt:o` the `jointData` the client reads its encoders from,
 `command:i` takes the streaming commands. Angles in degrees on YARP's side, radians on the
-mesh's; every move goes through the part's own verbs (`positionMove`, `setRefSpeeds`) and so
-under its lease rules. Read-only (the default): every `set` and every streamed command is
+mesh's; the board maps YARP's units and names onto the one robot client (`RobotClient`): every
+move goes through the part's own verbs (`positionMove`, `setRefSpeeds`) and so under its lease
+rules. Read-only (the default): every `set` and every streamed command is
 refused (a `[fail]` bottle, one log line) and nothing reaches the robot. An output port
 (`Output`) never waits on a slow reader: a connection still busy is skipped, one that takes
 nothing for `STALL` s is dropped.
@@ -23,10 +24,11 @@ from typing import Any
 import numpy as np
 
 from archery.apps.yarp import vocabs as v
-from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError
-from archery.protocol.messages import JointCommand, JointState
+from archery.protocol.messages import JointState
 from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import TOLERANCES
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 
@@ -35,7 +37,6 @@ __all__ = [
     "STALL",
     "ControlBoard",
     "Output",
-    "PartLink",
     "close_port",
     "joint_data",
     "open_port",
@@ -50,8 +51,6 @@ log = logging.getLogger("archery.yarp")
 _OTHER_FLOATS = 8
 _MODES = 2
 #: what a `set` or a streamed command meets on a read-only bridge
-#: rad: a move sent through the bridge is seen reached this close to its target
-REACHED = math.radians(0.5)
 READ_ONLY = "read-only bridge (start `archery yarp --operator` to move the robot)"
 
 
@@ -168,61 +167,6 @@ def _deg(values: Sequence[float]) -> list[float]:
     return [math.degrees(x) for x in values]
 
 
-class PartLink:
-    """The mesh's side of one part: its newest joint state, its limits (read once) and its
-    verbs. Angles in rad."""
-
-    def __init__(self, node: Node, part: str, timeout: float) -> None:
-        self.node, self.part, self.timeout = node, part, timeout
-        self.names: tuple[str, ...] = PARTS[part]
-        self.key = node.keys.part_rpc(part)
-        self.state: JointState | None = None
-        self._limits: tuple[np.ndarray, np.ndarray] | None = None
-        #: the targets (rad) of the moves sent and not yet seen reached, by joint name
-        self._moving: dict[str, float] = {}
-
-    def _call(self, verb: Any, args: Any = None) -> Any:
-        if args is None:
-            return self.node.call_typed(self.key, verb, timeout=self.timeout)
-        return self.node.call_typed(self.key, verb, args, timeout=self.timeout)
-
-    def limits(self) -> tuple[np.ndarray, np.ndarray]:
-        """The part's software limits (rad), asked once."""
-        if self._limits is None:
-            reply = self._call(rv.GET_LIMITS)
-            self._limits = (np.array(reply.min), np.array(reply.max))
-        return self._limits
-
-    def move(self, names: Sequence[str], positions: Sequence[float]) -> None:
-        self._call(
-            rv.POSITION_MOVE, rv.PositionMoveArgs(position=list(positions), names=list(names))
-        )
-        self._moving.update(zip(names, positions, strict=True))
-
-    def done(self) -> bool:
-        """The part's motion done, and every move sent through here seen reached (within
-        `REACHED` rad) on a joint state: the robot takes a move at its next step, so its own
-        flag may still tell of the motion before it."""
-        if self._moving:
-            state = self.state
-            if state is None:
-                return False
-            where = dict(zip(state.names, state.position, strict=True))
-            if any(abs(where[name] - x) > REACHED for name, x in self._moving.items()):
-                return False
-            self._moving.clear()
-        return bool(self._call(rv.CHECK_MOTION_DONE).done)
-
-    def targets(self) -> list[float]:
-        return list(self._call(rv.GET_TARGETS).position)
-
-    def speeds(self) -> list[float]:
-        return list(self._call(rv.GET_REF_SPEEDS).speeds)
-
-    def set_speeds(self, speeds: Sequence[float]) -> None:
-        self._call(rv.SET_REF_SPEEDS, rv.SetRefSpeedsArgs(speeds=list(speeds)))
-
-
 class BadCommand(ValueError):
     """A request the control board refuses before it reaches the mesh (its message says why)."""
 
@@ -250,18 +194,28 @@ def joint_data(yarp: Any, out: Any, state: JointState) -> None:
 
 
 class ControlBoard:
-    """The YARP ports of one part, served until `close`.
+    """The YARP ports of one part, served until `close`: YARP's degrees and joint indices mapped
+    onto the robot client's radians and joint names. It keeps the part's newest joint state
+    (`joints`, fed by `publish`) and the moves sent through it and not yet seen reached.
 
     Args:
         yarp: the `yarp` module (its network initialised).
-        link: the part on the mesh.
+        robot: the one client of the mesh's robot (shared by every part's board).
+        part: the part's name (`PARTS`).
         prefix: the robot's YARP name, e.g. "/icubSim".
         operator: take `set` requests and streamed commands (else refuse them).
     """
 
-    def __init__(self, yarp: Any, link: PartLink, prefix: str, *, operator: bool) -> None:
-        self.yarp, self.link, self.operator = yarp, link, operator
-        self.name = f"{prefix}/{link.part}"
+    def __init__(
+        self, yarp: Any, robot: RobotClient, part: str, prefix: str, *, operator: bool
+    ) -> None:
+        self.yarp, self.robot, self.part, self.operator = yarp, robot, part, operator
+        self.names: tuple[str, ...] = PARTS[part]
+        self.name = f"{prefix}/{part}"
+        #: the part's newest joint state (rad), None until the first
+        self.joints: JointState | None = None
+        #: the targets (rad) of the moves sent and not yet seen reached, by joint name
+        self._moving: dict[str, float] = {}
         self.counts = {"states": 0, "requests": 0, "refused": 0, "commands": 0}
         self._stamp = yarp.Stamp()
         self._lock = threading.Lock()
@@ -271,8 +225,8 @@ class ControlBoard:
         self.state_ext = Output(yarp, yarp.BufferedPortBottle, f"{self.name}/stateExt:o")
         self.command = self._open(yarp.BufferedPortBottle(), "command:i")
         self._threads = [
-            threading.Thread(target=self._serve, name=f"yarp-{link.part}-rpc", daemon=True),
-            threading.Thread(target=self._commands, name=f"yarp-{link.part}-cmd", daemon=True),
+            threading.Thread(target=self._serve, name=f"yarp-{part}-rpc", daemon=True),
+            threading.Thread(target=self._commands, name=f"yarp-{part}-cmd", daemon=True),
         ]
         for thread in self._threads:
             thread.start()
@@ -283,7 +237,7 @@ class ControlBoard:
     # -- the stream ----------------------------------------------------------------------------
     def publish(self, state: JointState) -> None:
         """Write one joint state on `state:o` and `stateExt:o` (its stamp their envelope)."""
-        self.link.state = state
+        self.joints = state
         with self._lock:
             self._stamp = self.yarp.Stamp(self._stamp.getCount() + 1, state.stamp)
             vector = self.state.port.prepare()
@@ -296,6 +250,32 @@ class ControlBoard:
             self.state_ext.port.setEnvelope(self._stamp)
             self.state_ext.send()
             self.counts["states"] += 1
+
+    # -- the part's verbs (rad) ----------------------------------------------------------------
+    def _call(self, verb: Any, args: Any = None) -> Any:
+        return self.robot.part_call(self.part, verb, args)
+
+    def limits(self) -> tuple[np.ndarray, np.ndarray]:
+        """The part's software limits (rad), asked once (by the client)."""
+        return self.robot.limits(self.part)
+
+    def done(self) -> bool:
+        """The part's motion done, and every move sent through here seen reached (within
+        `TOLERANCES["rest"]` rad) on a joint state: the robot takes a move at its next step, so
+        its own flag may still tell of the motion before it."""
+        if self._moving:
+            state = self.joints
+            if state is None:
+                return False
+            where = dict(zip(state.names, state.position, strict=True))
+            reached = TOLERANCES["rest"]
+            if any(abs(where[name] - x) > reached for name, x in self._moving.items()):
+                return False
+            self._moving.clear()
+        return bool(self._call(rv.CHECK_MOTION_DONE).done)
+
+    def speeds(self) -> list[float]:
+        return list(self._call(rv.GET_REF_SPEEDS).speeds)
 
     # -- rpc:i -----------------------------------------------------------------------------------
     def _serve(self) -> None:
@@ -343,7 +323,7 @@ class ControlBoard:
 
     def _joint(self, request: Any, at: int = 2) -> int:
         item = request.get(at)
-        n = len(self.link.names)
+        n = len(self.names)
         if not item.isInt32() or not 0 <= item.asInt32() < n:
             raise BadCommand(f"a joint index from 0 to {n - 1} is wanted at {at}")
         return int(item.asInt32())
@@ -373,21 +353,20 @@ class ControlBoard:
         return [self._joint(joints, i) for i in range(joints.size())]
 
     def _get(self, what: int, request: Any, reply: Any) -> None:
-        link = self.link
-        n = len(link.names)
+        n = len(self.names)
         if what == v.AXES:
             reply.addInt32(n)
         elif what in (v.ENCODER, v.ENCODERS):
-            if link.state is None:
+            if self.joints is None:
                 raise BadCommand("no joint state has come from the robot yet")
-            degrees = _deg(link.state.position)
+            degrees = _deg(self.joints.position)
             if what == v.ENCODER:
                 reply.addFloat64(degrees[self._joint(request)])
             else:
                 _add_list(reply, degrees)
         elif what == v.LIMITS:
             j = self._joint(request)
-            low, high = link.limits()
+            low, high = self.limits()
             reply.addFloat64(math.degrees(low[j]))
             reply.addFloat64(math.degrees(high[j]))
         elif what in (v.DONE, v.DONES, v.MOTION_DONE_GROUP):
@@ -395,27 +374,26 @@ class ControlBoard:
                 self._joint(request)
             elif what == v.MOTION_DONE_GROUP:
                 self._group(request)
-            reply.addInt32(int(link.done()))
+            reply.addInt32(int(self.done()))
         elif what in (v.REF_SPEED, v.REF_SPEEDS):
-            speeds = _deg(link.speeds())
+            speeds = _deg(self.speeds())
             if what == v.REF_SPEED:
                 reply.addFloat64(speeds[self._joint(request)])
             else:
                 _add_list(reply, speeds)
         elif what in (v.POSITION_MOVE, v.POSITION_MOVES):
-            targets = _deg(link.targets())
+            targets = _deg(self._call(rv.GET_TARGETS).position)
             if what == v.POSITION_MOVE:
                 reply.addFloat64(targets[self._joint(request)])
             else:
                 _add_list(reply, targets)
         elif what == v.INFO_NAME:
-            reply.addString(link.names[self._joint(request)])
+            reply.addString(self.names[self._joint(request)])
         else:
             raise BadCommand(f"unknown request [get] [{v.vocab_text(what)}]")
 
     def _set(self, what: int, request: Any) -> None:
-        link = self.link
-        n = len(link.names)
+        n = len(self.names)
         if what == v.POSITION_MOVE:
             joints, values = [self._joint(request)], [self._number(request.get(3))]
         elif what == v.POSITION_MOVES:
@@ -433,18 +411,20 @@ class ControlBoard:
     def move(self, joints: Sequence[int], degrees: Sequence[float]) -> None:
         """Move `joints` (indices) to `degrees`, each inside the part's limits, by the part's
         `positionMove` (its lease rules)."""
-        low, high = self.link.limits()
+        low, high = self.limits()
         radians = [math.radians(x) for x in degrees]
         for j, x in zip(joints, radians, strict=True):
             if not low[j] <= x <= high[j]:
                 raise BadCommand(
-                    f"{self.link.names[j]} to {math.degrees(x):g}° lies outside its limits "
+                    f"{self.names[j]} to {math.degrees(x):g}° lies outside its limits "
                     f"{math.degrees(low[j]):g}° … {math.degrees(high[j]):g}°"
                 )
-        self.link.move([self.link.names[j] for j in joints], radians)
+        names = [self.names[j] for j in joints]
+        self._call(rv.POSITION_MOVE, rv.PositionMoveArgs(position=radians, names=names))
+        self._moving.update(zip(names, radians, strict=True))
 
     def _set_speeds(self, what: int, request: Any) -> None:
-        n = len(self.link.names)
+        n = len(self.names)
         if what == v.REF_SPEEDS:
             wanted = dict(enumerate(self._floats(request.get(2), n)))
         elif what == v.REF_SPEED:
@@ -452,25 +432,20 @@ class ControlBoard:
         else:
             joints = self._group(request)
             wanted = dict(zip(joints, self._floats(request.get(4), len(joints)), strict=True))
-        speeds = self.link.speeds()
+        speeds = self.speeds()
         for j, x in wanted.items():
             if x <= 0:
                 raise BadCommand(f"a reference speed is > 0 deg/s, got {x:g}")
             speeds[j] = math.radians(x)
-        self.link.set_speeds(speeds)
+        self._call(rv.SET_REF_SPEEDS, rv.SetRefSpeedsArgs(speeds=speeds))
 
     # -- command:i -------------------------------------------------------------------------------
     def _commands(self) -> None:
         """Streamed commands (`CommandMessage`: a head bottle, then the values): position direct
         and position moves go to the part's `command:i`; anything else, or any on a read-only
         bridge, is refused with a log line (at most one a second)."""
-        node = self.link.node
-        # read-only: no command path at all (no publisher on the part's command:i)
-        publisher = (
-            node.publisher(node.keys.command(self.link.part), JointCommand)
-            if self.operator
-            else None
-        )
+        if self.operator:  # read-only: no command path at all (no publisher on its command:i)
+            self.robot.command(self.part, ())  # the publisher declared, nothing sent
         last_log = 0.0
         while not self._closing.is_set():
             message = self.command.read(True)
@@ -478,15 +453,12 @@ class ControlBoard:
                 continue
             try:
                 joints, values = self._streamed(message)
-                low, high = self.link.limits()
+                low, high = self.limits()
                 radians = np.radians(values)
                 if np.any(radians < low[joints]) or np.any(radians > high[joints]):
                     raise BadCommand("a value lies outside the joint's limits")
-                names = [self.link.names[j] for j in joints]
-                assert publisher is not None  # `_streamed` refuses every command read-only
-                publisher.put(
-                    JointCommand(part=self.link.part, position=radians.tolist(), names=names)
-                )
+                names = [self.names[j] for j in joints]
+                self.robot.command(self.part, radians.tolist(), names=names)
                 self.counts["commands"] += 1
             except Exception as exc:  # refused: a bad command, the mesh's error, or a failure
                 self.counts["refused"] += 1
@@ -507,7 +479,7 @@ class ControlBoard:
         if message.size() != 2 or not message.get(0).isList() or not message.get(1).isList():
             raise BadCommand("a streamed command is (head) (values)")
         head, body = message.get(0).asList(), message.get(1).asList()
-        n = len(self.link.names)
+        n = len(self.names)
         kind = head.get(0).asVocab32() if head.size() and head.get(0).isVocab32() else 0
         if kind == v.POSITION_DIRECT:
             return [self._joint(head, 1)], self._floats(message.get(1), 1)

@@ -20,7 +20,7 @@ from typing import Any
 import msgspec
 
 from archery.apps.yarp.controlboard import close_port, open_port, serve_rpc
-from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError
 from archery.protocol.messages import Detection, Image, WorldEvent
 from archery.protocol.text import shown
@@ -76,12 +76,11 @@ def event_bottle(out: Any, event: WorldEvent) -> None:
 
 
 class ArcheryPort:
-    """The archery verbs on `<prefix>/archery/rpc:i`, as text bottles, until `close`."""
+    """The archery verbs on `<prefix>/archery/rpc:i`, as text bottles, until `close`, each
+    through the one robot client `robot`."""
 
-    def __init__(
-        self, yarp: Any, node: Node, prefix: str, *, operator: bool, timeout: float
-    ) -> None:
-        self.yarp, self.node, self.operator, self.timeout = yarp, node, operator, timeout
+    def __init__(self, yarp: Any, robot: RobotClient, prefix: str, *, operator: bool) -> None:
+        self.yarp, self.robot, self.operator = yarp, robot, operator
         self.name = f"{prefix}/archery/rpc:i"
         self.port = open_port(yarp, yarp.RpcServer(), self.name)
         self._closing = threading.Event()
@@ -111,9 +110,7 @@ class ArcheryPort:
             return
         try:
             args: Any = rv.ResetArgs() if verb is rv.RESET else NoArgs()
-            result = self.node.call_typed(
-                self.node.keys.archery_rpc(), verb, args, timeout=self.timeout
-            )
+            result = self.robot.call(verb, args)
         except ArcheryError as exc:
             _fail(reply, exc.code, str(exc))
             return
