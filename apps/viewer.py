@@ -19,9 +19,11 @@ from archery.apps.waits import announce
 from archery.mesh.cliargs import ArgumentParser, seconds
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node, open_node
+from archery.mesh.robot_client import RobotClient
 from archery.mesh.signals import shutdown_on_signals
 from archery.protocol.errors import ArcheryError
 from archery.protocol.exit_status import BAD_INPUT, OK, for_error
+from archery.protocol.robotspec import CALL_TIMEOUT
 from archery.protocol.verbs import robot as rv
 
 if TYPE_CHECKING:
@@ -125,6 +127,6 @@ def _view(args: argparse.Namespace, node: Node, on_wait: Callable[[str, float], 
     from archery.sim.scene_config import SceneConfig
 
     node.wait_alive(["robot"], timeout=args.wait, on_wait=on_wait)
-    status = node.call_typed(node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+    status = RobotClient(node, timeout=CALL_TIMEOUT).status()
     scene = SceneConfig.of(status.scene)
     return View(args, node, status, scene, RobotFrames(node.keys.robot, scene))

@@ -2,15 +2,13 @@
 
 Each `Stream` row names one output port of the mesh (`protocol/keys.py`'s `OUTPUT_PORTS`), its
 message type, how a viewer follows it (the newest state, or every event) and, for each viewer,
-the channels it shows it on. A viewer maps the table: it follows `shown_by(viewer)`, each row
-through one conversion of its own (`apps/<viewer>/`: a dict keyed by the row's `name`, checked
-against the table by `tests/test_streams.py`). A new stream of the robot reaches every viewer by
-one row here and one conversion per viewer that shows it.
-
-The viewers: the dashboard (`apps/dashboard/`), Foxglove (`apps/foxglove/`), ROS 2
-(`apps/ros2/`) and YARP (`apps/yarp/`). Channel names are each viewer's own (`{part}` stands for
-each part's name). The recorder (`archery record`) is no viewer of the table: it keeps every
-output port's raw messages under their keys, whatever the rows.
+the channels it shows it on, named as the viewer publishes them (`{part}`: each part's name).
+A viewer maps the table: it follows `shown_by(viewer)`, each row through its conversion
+(`apps/<viewer>/`: a dict keyed by the row's `name`, checked against the table by
+`tests/test_streams.py`). A new stream reaches every viewer by one row here and one
+conversion per viewer that shows it. The viewers: the dashboard (`apps/dashboard/`), Foxglove
+(`apps/foxglove/`), ROS 2 (`apps/ros2/`) and YARP (`apps/yarp/`). The recorder (`archery
+record`) is no viewer of the table: it keeps every output port's raw messages under their keys.
 """
 
 from __future__ import annotations
@@ -89,7 +87,7 @@ STREAMS: tuple[Stream, ...] = (
         "world/state:o",
         WorldState,
         "latest",
-        foxglove=("/tf", "/scene"),
+        foxglove=("/tf",),
         ros2=("/tf",),
     ),
     _row(
@@ -98,7 +96,7 @@ STREAMS: tuple[Stream, ...] = (
         WorldEvent,
         "events",
         foxglove=("/world/events",),
-        ros2=("landings",),
+        ros2=("world/landing",),
         yarp=("/world/events:o",),
     ),
     _row(
@@ -125,7 +123,7 @@ STREAMS: tuple[Stream, ...] = (
         "events",
         dashboard=("rollouts",),
         foxglove=("/learner/rollouts",),
-        ros2=("rollouts",),
+        ros2=("learner/rollout",),
     ),
 )
 

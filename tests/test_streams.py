@@ -29,6 +29,29 @@ def test_the_rows_are_named_once_and_found_by_name() -> None:
         shown_by("nonsense")
 
 
+def test_the_ros2_node_converts_exactly_the_rows_it_shows_on_its_topics() -> None:
+    from archery.apps.ros2.graph import CONVERSIONS, TOPICS
+
+    rows = shown_by("ros2")
+    assert set(CONVERSIONS) == {row.name for row in rows}
+    feeds = {topic.name: topic.feed for topic in TOPICS}
+    for row in rows:
+        assert set(CONVERSIONS[row.name]) == set(row.channels["ros2"]), row.name
+        assert {feeds[name] for name in row.channels["ros2"]} == {row.name}, row.name
+    assert {feed for feed in feeds.values() if feed is not None} == set(CONVERSIONS)
+
+
+def test_the_foxglove_bridge_converts_exactly_the_rows_it_shows_on_its_channels() -> None:
+    from archery.apps.foxglove.channels import TOPICS
+    from archery.apps.foxglove.feeds import CONVERSIONS
+
+    rows = shown_by("foxglove")
+    assert set(CONVERSIONS) == {row.name for row in rows}
+    for row in rows:
+        assert set(CONVERSIONS[row.name]) == set(row.channels["foxglove"]), row.name
+        assert set(row.channels["foxglove"]) <= {topic.name for topic in TOPICS}, row.name
+
+
 def test_the_yarp_bridge_converts_exactly_the_rows_yarp_shows() -> None:
     from archery.apps.yarp.bridge import CONVERSIONS
 

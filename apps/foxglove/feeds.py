@@ -1,6 +1,7 @@
 """The bridge's feeds: what each live topic follows of the mesh, started when a client first
 subscribes to the topic and stopped when the last one leaves (a topic nobody watches costs the
 mesh nothing: no subscription, so no publisher sends for it and the camera renders nothing).
+A stream's topic follows its row of `protocol/streams.py` through its conversion (`CONVERSIONS`).
 
 The camera is placed for the 3D panel: `/tf` carries its optical frame (`target_camera`, the
 frames' `frame_id`: z forward, x right, y down) in `world`, from the scene's camera pose, and
@@ -17,21 +18,25 @@ from typing import Any
 
 import foxglove
 
-from archery.apps.follow import Stop, follow_events, follow_latest
+from archery.apps.follow import Stop, follow_stream
 from archery.apps.foxglove.marks import event_log, image_marks, rollout_record
 from archery.apps.port_rates import PortRates, stream_counts
-from archery.apps.topics.foxglove_records import camera_calibration, frame_transforms
+from archery.apps.topics.foxglove_records import (
+    camera_calibration,
+    frame_transforms,
+    joint_states,
+)
 from archery.apps.topics.image_records import FRAME_ID, image_record
 from archery.apps.topics.robot_frames import RobotFrames
 from archery.mesh.instances import describe_all
 from archery.mesh.node import Node
 from archery.mesh.tokens import TokenSet
-from archery.protocol.messages import Detection, Image, JointState, Rollout, WorldEvent, WorldState
-from archery.protocol.parts import PARTS
+from archery.protocol.messages import Image, JointState, WorldState
+from archery.protocol.streams import Stream, shown_by, stream
 from archery.sim.render import focal_length
 from archery.sim.scene_config import TARGET_CAMERA
 
-__all__ = ["Feeds", "jpeg_record"]
+__all__ = ["CONVERSIONS", "Feeds", "jpeg_record"]
 
 log = logging.getLogger("archery.foxglove")
 
@@ -91,28 +96,32 @@ class Feeds:
         self._camera_t, self._camera_q = frames.camera_pose()  # fixed in the world
         self._fovy = float(frames.model.camera(TARGET_CAMERA).fovy[0])  # degrees
         self._wanted: dict[str, threading.Event] = {}  # static topic -> a newcomer wants it
+        #: the world states' key, which the robot's frames derive `/tf` from
+        self.world_key = stream("world").keys(node.keys)[0]
+        #: {topic: the stream table's row it shows}
+        self._rows = {t: row for row in shown_by("foxglove") for t in row.channels["foxglove"]}
         self._starts: dict[str, Callable[[], Stop]] = {
-            "/tf": self._tf,
-            "/joint_states": self._joints,
             "/robot_description": self._description,
             "/scene": self._scene,
-            "/camera/image": self._camera,
-            "/camera/calibration": self._calibration,
-            "/camera/annotations": lambda: self._events(
-                self.keys.detector_hits(), Detection, "/camera/annotations", self._marks
-            ),
-            "/learner/rollouts": lambda: self._events(
-                self.keys.learner_rollouts(), Rollout, "/learner/rollouts", self._rollout
-            ),
-            "/world/events": lambda: self._events(
-                self.keys.world_events(), WorldEvent, "/world/events", self._event
-            ),
             "/mesh/services": self._services,
         }
 
     def start(self, topic: str) -> Stop:
         """Start following what `topic` shows; returns the function that stops it."""
-        return self._starts[topic]()
+        row = self._rows.get(topic)
+        return self._starts[topic]() if row is None else self._follow(row, topic)
+
+    def _follow(self, row: Stream, topic: str) -> Stop:
+        """Follow `row` of the stream table, each message logged on `topic` through its
+        conversion (`CONVERSIONS`; a None is not sent), at the message's stamp."""
+        conversion = CONVERSIONS[row.name][topic]
+
+        def each(message: Any) -> None:
+            data = conversion(self, message)
+            if data is not None:
+                self._log(topic, data, round(message.stamp * 1e9))
+
+        return follow_stream(self.node, row, each, log, name=topic)
 
     def _log(self, topic: str, data: bytes | dict[str, Any], ns: int | None = None) -> None:
         channel = self.channels[topic]
@@ -172,47 +181,6 @@ class Feeds:
 
     # -- streams --------------------------------------------------------------------------------
 
-    def _latest(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        return follow_latest(self.node, key, kind, name, each, log)
-
-    def _events(self, key: str, kind: type[Any], name: str, each: Callable[[Any], None]) -> Stop:
-        return follow_events(self.node, key, kind, each)
-
-    def _tf(self) -> Stop:
-        key = self.keys.world_state()
-
-        def each(state: WorldState) -> None:
-            ns = round(state.stamp * 1e9)
-            for record in self.frames.derive(key, state, ns):
-                self._log("/tf", record.data + self.camera_transform(ns), ns)
-
-        return self._latest(key, WorldState, "/tf", each)
-
-    def _joints(self) -> Stop:
-        stops = []
-        for part in PARTS:
-            key = self.keys.state(part)
-
-            def each(state: JointState, key: str = key) -> None:
-                ns = round(state.stamp * 1e9)
-                for record in self.frames.derive(key, state, ns):
-                    self._log("/joint_states", record.data, ns)
-
-            stops.append(self._events(key, JointState, "/joint_states", each))
-
-        def close() -> None:
-            for stop in stops:
-                stop()
-
-        return close
-
-    def _camera(self) -> Stop:
-        def each(image: Image) -> None:
-            data = jpeg_record(image) if self.jpeg else image_record(image)[1]
-            self._log("/camera/image", data, round(image.stamp * 1e9))
-
-        return self._latest(self.keys.cam_frames(), Image, "/camera/image", each)
-
     def camera_transform(self, ns: int) -> bytes:
         """The camera's optical frame in `world` as a `foxglove.FrameTransforms` record (two
         records' bytes joined are one record with the transforms of both)."""
@@ -226,23 +194,6 @@ class Feeds:
         focal = focal_length(image.height, self._fovy)
         ns = round(image.stamp * 1e9)
         return camera_calibration(ns, FRAME_ID, image.width, image.height, focal)
-
-    def _calibration(self) -> Stop:
-        def each(image: Image) -> None:
-            self._log("/camera/calibration", self.calibration(image), round(image.stamp * 1e9))
-
-        return self._latest(self.keys.cam_frames(), Image, "/camera/calibration", each)
-
-    def _marks(self, detection: Detection) -> None:
-        self._log("/camera/annotations", image_marks(detection), round(detection.stamp * 1e9))
-
-    def _rollout(self, rollout: Rollout) -> None:
-        record = rollout_record(rollout)
-        if record is not None:
-            self._log("/learner/rollouts", record, round(rollout.stamp * 1e9))
-
-    def _event(self, event: WorldEvent) -> None:
-        self._log("/world/events", event_log(event, self.keys.robot), round(event.stamp * 1e9))
 
     def _services(self) -> Stop:
         """The live services and each stream port's rate, every `SERVICES_EVERY` s."""
@@ -268,3 +219,34 @@ class Feeds:
             alive.close()
 
         return close
+
+
+# -- the conversions: a row's message as its topic's record (None: nothing sent) ----------------
+
+
+def _tf(feeds: Feeds, state: WorldState) -> bytes | None:
+    ns = round(state.stamp * 1e9)
+    for record in feeds.frames.derive(feeds.world_key, state, ns):  # none: another scene's
+        return record.data + feeds.camera_transform(ns)
+    return None
+
+
+def _joints(feeds: Feeds, state: JointState) -> bytes:
+    return joint_states(round(state.stamp * 1e9), state.names, state.position, state.velocity)
+
+
+def _image(feeds: Feeds, image: Image) -> bytes:
+    return jpeg_record(image) if feeds.jpeg else image_record(image)[1]
+
+
+Conversion = Callable[[Feeds, Any], bytes | dict[str, Any] | None]
+#: {row of the stream table the bridge shows: {its topic: the conversion of a row's message to
+#: the topic's record, or None}}.
+CONVERSIONS: dict[str, dict[str, Conversion]] = {
+    "joints": {"/joint_states": _joints},
+    "world": {"/tf": _tf},
+    "events": {"/world/events": lambda feeds, event: event_log(event, feeds.keys.robot)},
+    "camera": {"/camera/image": _image, "/camera/calibration": Feeds.calibration},
+    "detections": {"/camera/annotations": lambda feeds, detection: image_marks(detection)},
+    "rollouts": {"/learner/rollouts": lambda feeds, rollout: rollout_record(rollout)},
+}

@@ -1,19 +1,21 @@
 """What a Foxglove client may do with `--operator`: call the learner's `status`, `start` and
 `stop` and the robot's `reset` as Foxglove services, and set the wind as a parameter. Every call
-goes through the verb tables (the same decoding and checks as any caller's); a refused call
-answers that client with the service's reason."""
+goes through the verb tables (the same decoding and checks as any caller's), the robot's through
+its one client (`RobotClient`); a refused call answers that client with the service's reason."""
 
 from __future__ import annotations
 
 import json
 import logging
 import math
+from collections.abc import Callable
 from typing import Any
 
 import foxglove
 import msgspec
 
 from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError
 from archery.protocol.robotspec import CALL_TIMEOUT
 from archery.protocol.text import shown
@@ -41,13 +43,17 @@ class Operator:
 
     def __init__(self, node: Node) -> None:
         self.node = node
-        keys = node.keys
-        self._verbs: dict[str, tuple[str, Verb[Any, Any]]] = {
-            "/learner/status": (keys.learner_rpc(), lv.STATUS),
-            "/learner/start": (keys.learner_rpc(), lv.START),
-            "/learner/stop": (keys.learner_rpc(), lv.STOP),
-            "/robot/reset": (keys.archery_rpc(), rv.RESET),
+        self.robot = RobotClient(node, timeout=CALL_TIMEOUT)
+        learner, robot = self._learner, self.robot.call
+        self._verbs: dict[str, tuple[Callable[..., Any], Verb[Any, Any]]] = {
+            "/learner/status": (learner, lv.STATUS),
+            "/learner/start": (learner, lv.START),
+            "/learner/stop": (learner, lv.STOP),
+            "/robot/reset": (robot, rv.RESET),
         }
+
+    def _learner(self, verb: Verb[Any, Any], args: Any, timeout: float) -> Any:
+        return self.node.call_typed(self.node.keys.learner_rpc(), verb, args, timeout=timeout)
 
     def services(self) -> list[foxglove.Service]:
         """One Foxglove service per verb, JSON in and out, schemas from the verb's contract."""
@@ -64,7 +70,7 @@ class Operator:
 
     def call(self, request: foxglove.ServiceRequest) -> bytes:
         """Run one service call; raises (the client gets the message) when it is refused."""
-        key, verb = self._verbs[request.service_name]
+        call, verb = self._verbs[request.service_name]
         if request.encoding != "json":
             raise ValueError(f"{request.service_name}: send JSON, not {request.encoding!r}")
         try:
@@ -74,7 +80,7 @@ class Operator:
         except msgspec.DecodeError as exc:
             raise ValueError(f"{request.service_name}: the request is not JSON: {exc}") from None
         try:
-            reply = self.node.call_typed(key, verb, args, timeout=CALL_TIMEOUT)
+            reply = call(verb, args, timeout=CALL_TIMEOUT)
         except ArcheryError as exc:
             raise RuntimeError(f"{request.service_name}: {exc}") from None
         return msgspec.json.encode(reply)
@@ -82,7 +88,7 @@ class Operator:
     def wind(self) -> list[float] | None:
         """The wind in force (m/s), from the robot's status; None when the robot is silent."""
         try:
-            status = self.node.call_typed(self.node.keys.archery_rpc(), rv.ARCHERY_STATUS)
+            status = self.robot.status()
         except ArcheryError as exc:
             log.warning("the wind: %s", exc)
             return None
@@ -100,10 +106,5 @@ class Operator:
             raise ValueError(f"{WIND} must be 3 numbers [x, y, z] (m/s), got {shown(value)}")
         if not all(math.isfinite(v) and abs(v) <= rv.MAX_WIND for v in value):
             raise ValueError(f"{WIND} components must lie within ±{rv.MAX_WIND:g} m/s")
-        reply = self.node.call_typed(
-            self.node.keys.archery_rpc(),
-            rv.SET_WIND,
-            rv.SetWindArgs(wind=[float(v) for v in value]),
-            timeout=CALL_TIMEOUT,
-        )
+        reply = self.robot.call(rv.SET_WIND, rv.SetWindArgs(wind=[float(v) for v in value]))
         return list(reply.wind)

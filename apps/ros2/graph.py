@@ -1,8 +1,10 @@
 """The node on the ROS 2 graph: its topics (the table below, docs/ros2.md tells each beside its
-YARP port), the feeds that follow the mesh while a ROS 2 subscriber matches, the parts'
-commands (position targets, and trajectories the robot plays at their points' times) and, with
-an operator, the archery services. Bad input is dropped and counted (`Ros2Node.counts`) or
-refused with a clear log line; nothing moves for it."""
+YARP port), the feeds that follow the mesh's streams (the rows of `protocol/streams.py` the
+node shows, each through its conversions: `CONVERSIONS`) while a ROS 2 subscriber matches, the
+parts' commands (position targets, and trajectories the robot plays at their points' times)
+and, with an operator, the archery services, all through one `RobotClient`. Bad input is
+dropped and counted (`Ros2Node.counts`) or refused with a clear log line; nothing moves for
+it."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ from typing import Any
 import msgspec
 import zenoh
 
-from archery.apps.follow import Stop, follow_events, follow_latest
+from archery.apps.follow import Stop, follow_stream
 from archery.apps.ros2 import convert, typestore
 from archery.apps.ros2.endpoints import Counts, RosPublisher
 from archery.apps.ros2.latest import LatestPerKey
@@ -35,16 +37,19 @@ from archery.apps.topics.robot_frames import RobotFrames
 from archery.mesh.acl import ROS2_COMMANDS
 from archery.mesh.instances import zid_of
 from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError
-from archery.protocol.messages import Image, JointState, Rollout, WorldEvent, WorldState
+from archery.protocol.messages import Image, WorldState
 from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import CALL_TIMEOUT, COMMAND_RATE, RPC_TIMEOUT
+from archery.protocol.streams import Stream, shown_by
 from archery.protocol.text import cut
 from archery.protocol.verbs import robot as rv
 from archery.protocol.verbs.base import Verb
 from archery.sim.render import focal_length
 
 __all__ = [
+    "CONVERSIONS",
     "MAX_COMMAND_BYTES",
     "MAX_WAITING_CALLS",
     "NODE_NAME",
@@ -74,7 +79,8 @@ _LOG_LIMIT = 600  # characters of a reason in a log line (its received values qu
 @dataclass(frozen=True)
 class Topic:
     """A published topic: its name (relative: under the namespace; absolute: as it is), type,
-    QoS and the feed that fills it (None: sent once at the start, transient local)."""
+    QoS and the feed that fills it: the stream table's row that shows on it (None: sent once
+    at the start, transient local)."""
 
     name: str
     ros_type: str
@@ -82,15 +88,23 @@ class Topic:
     feed: str | None
 
 
+#: {topic: the name of the stream table's row it shows} (`channels["ros2"]` of each row)
+_ROWS = {topic: row.name for row in shown_by("ros2") for topic in row.channels["ros2"]}
+
+
+def _topic(name: str, ros_type: str, qos: Qos) -> Topic:
+    return Topic(name, ros_type, qos, _ROWS.get(name))
+
+
 TOPICS = (
-    Topic("joint_states", "sensor_msgs/msg/JointState", _STREAM, "joints"),
-    Topic("/tf", "tf2_msgs/msg/TFMessage", _STREAM, "tf"),
-    Topic("/tf_static", "tf2_msgs/msg/TFMessage", _LATCHED, None),
-    Topic("robot_description", "std_msgs/msg/String", _LATCHED, None),
-    Topic("camera/image_raw", "sensor_msgs/msg/Image", _SENSOR, "camera"),
-    Topic("camera/camera_info", "sensor_msgs/msg/CameraInfo", _SENSOR, "camera"),
-    Topic("learner/rollout", convert.FLOAT_COMMAND, _STREAM, "rollouts"),
-    Topic("world/landing", "geometry_msgs/msg/PointStamped", _STREAM, "landings"),
+    _topic("joint_states", "sensor_msgs/msg/JointState", _STREAM),
+    _topic("/tf", "tf2_msgs/msg/TFMessage", _STREAM),
+    _topic("/tf_static", "tf2_msgs/msg/TFMessage", _LATCHED),
+    _topic("robot_description", "std_msgs/msg/String", _LATCHED),
+    _topic("camera/image_raw", "sensor_msgs/msg/Image", _SENSOR),
+    _topic("camera/camera_info", "sensor_msgs/msg/CameraInfo", _SENSOR),
+    _topic("learner/rollout", convert.FLOAT_COMMAND, _STREAM),
+    _topic("world/landing", "geometry_msgs/msg/PointStamped", _STREAM),
 )
 #: Each part's command topics (under `NAMESPACE/PART/`) and their types.
 COMMANDS = dict(
@@ -144,21 +158,16 @@ class Ros2Node:
         self.namespace = check_name(namespace, "--namespace")
         self.ros = NodeId(domain, zid_of(node.session), 0, self.namespace, NODE_NAME)
         self.counts = Counts()
+        self.robot = RobotClient(node)
         self._next_id = 0
         self._lock = threading.Lock()
         self._closables: list[Any] = []
-        self._matched: dict[str, int] = {}  # feed -> topics of it someone subscribes to
+        self._matched: dict[str, int] = {}  # feed (row) -> topics of it someone subscribes to
         self._stops: dict[str, Stop] = {}
         self._changes: queue.SimpleQueue[tuple[str, bool] | None] = queue.SimpleQueue()
         self._work: queue.Queue[Callable[[], None] | None] = queue.Queue(MAX_WAITING_CALLS + 1)
         self._commands = LatestPerKey(self._move, 1.0 / COMMAND_RATE, self.counts, log)
-        self._feeds: dict[str, Callable[[], Stop]] = {
-            "joints": self._joints,
-            "tf": self._tf,
-            "camera": self._camera,
-            "rollouts": lambda: self._events(self.keys.learner_rollouts(), Rollout, self._rollout),
-            "landings": lambda: self._events(self.keys.world_events(), WorldEvent, self._landing),
-        }
+        self._rows = {row.name: row for row in shown_by("ros2")}
         self._threads = [
             threading.Thread(target=self._follow, name="ros2 feeds", daemon=True),
             threading.Thread(target=self._worker, name="ros2 calls", daemon=True),
@@ -219,7 +228,7 @@ class Ros2Node:
             self._matched[feed] = after
             try:
                 if before == 0 and after == 1:
-                    self._stops[feed] = self._feeds[feed]()
+                    self._stops[feed] = self._feed(self._rows[feed])
                     log.info("feed %s started (a ROS 2 subscriber matched)", feed)
                 elif before == 1 and after == 0 and feed in self._stops:
                     self._stops.pop(feed)()
@@ -227,53 +236,20 @@ class Ros2Node:
             except Exception:
                 log.exception("feed %s: could not follow its subscribers' change", feed)
 
-    def _events(self, key: str, kind: type[Any], each: Callable[[Any], None]) -> Stop:
-        return follow_events(self.node, key, kind, each)
+    def _feed(self, row: Stream) -> Stop:
+        """Follow `row` of the stream table, each message sent on the row's topics through
+        their conversions (`CONVERSIONS`; a None is not sent)."""
+        conversions = CONVERSIONS[row.name]
+
+        def each(message: Any) -> None:
+            for topic, conversion in conversions.items():
+                self._send(topic, conversion(self, message))
+
+        return follow_stream(self.node, row, each, log, name=row.channels["ros2"][0])
 
     def _send(self, topic: str, message: Any) -> None:
         if message is not None:
             self.publishers[topic].publish(message)
-
-    def _joints(self) -> Stop:
-        stops = [
-            self._events(
-                self.keys.state(part),
-                JointState,
-                lambda state: self._send("joint_states", convert.joint_state(state)),
-            )
-            for part in PARTS
-        ]
-
-        def close() -> None:
-            for stop in stops:
-                stop()
-
-        return close
-
-    def _tf(self) -> Stop:
-        def each(state: WorldState) -> None:
-            poses = self.frames.state_poses(state)
-            if poses is not None:  # else another scene's
-                self._send("/tf", convert.tf_message(state.stamp, self.frames.links, *poses))
-
-        return follow_latest(self.node, self.keys.world_state(), WorldState, "/tf", each, log)
-
-    def _camera(self) -> Stop:
-        def each(frame: Image) -> None:
-            message = convert.image(frame, FRAME_ID)
-            focal = focal_length(message.height, self.camera_fovy)
-            info = convert.camera_info(frame.stamp, FRAME_ID, message.width, message.height, focal)
-            self._send("camera/image_raw", message)
-            self._send("camera/camera_info", info)
-
-        key = self.keys.cam_frames()
-        return follow_latest(self.node, key, Image, "camera/image_raw", each, log)
-
-    def _rollout(self, rollout: Rollout) -> None:
-        self._send("learner/rollout", convert.rollout(rollout))
-
-    def _landing(self, event: WorldEvent) -> None:
-        self._send("world/landing", convert.landing(event))
 
     def _static_tf(self) -> Any:
         """`/tf_static`: the URDF's fixed joints (and `world` to its root), and the camera's
@@ -331,14 +307,13 @@ class Ros2Node:
 
     def _move(self, command: tuple[str, str, rv.PositionMoveArgs | rv.PartTrajectoryArgs]) -> None:
         part, name, args = command
-        key = self.keys.part_rpc(part)
         try:
             if isinstance(args, rv.PositionMoveArgs):
-                self.node.call_typed(key, rv.POSITION_MOVE, args, timeout=CALL_TIMEOUT)
+                self.robot.part_call(part, rv.POSITION_MOVE, args, timeout=CALL_TIMEOUT)
                 self.counts.add("commands")
                 return
-            reply = self.node.call_typed(
-                key, rv.FOLLOW_PART_TRAJECTORY, args, timeout=self._trajectory_timeout(args)
+            reply = self.robot.part_call(
+                part, rv.FOLLOW_PART_TRAJECTORY, args, timeout=self._trajectory_timeout(args)
             )
         except ArcheryError as exc:
             self._refuse(name, f"the robot says: {exc}")
@@ -398,7 +373,7 @@ class Ros2Node:
         self, query: zenoh.Query, request: Attachment, endpoint: Endpoint, verb: Verb[Any, Any]
     ) -> None:
         try:
-            reply = self.node.call_typed(self.keys.archery_rpc(), verb, timeout=RPC_TIMEOUT)
+            reply = self.robot.call(verb, timeout=RPC_TIMEOUT)
         except ArcheryError as exc:
             self._refuse(endpoint.name, f"the robot says: {exc}")
             self._answer(query, request, endpoint.key(), False, f"{verb.name}: {exc}")
@@ -441,6 +416,7 @@ class Ros2Node:
         for stop in self._stops.values():
             stop()
         self._stops.clear()
+        self.robot.close()
         tokens = [c for c in self._closables if isinstance(c, zenoh.LivelinessToken)]
         others = [c for c in self._closables if not isinstance(c, zenoh.LivelinessToken)]
         for item in [*tokens, *reversed(others)]:
@@ -448,3 +424,31 @@ class Ros2Node:
                 (item.close if isinstance(item, RosPublisher) else item.undeclare)()
             except Exception as exc:  # closing goes on whatever one part raises
                 log.debug("%s not undeclared: %s", type(item).__name__, exc)
+
+
+# -- the conversions: each row's messages as its topics' (None: nothing sent) -------------------
+
+
+def _tf(ros: Ros2Node, state: WorldState) -> Any:
+    poses = ros.frames.state_poses(state)
+    return None if poses is None else convert.tf_message(state.stamp, ros.frames.links, *poses)
+
+
+def _camera_info(ros: Ros2Node, frame: Image) -> Any:
+    focal = focal_length(frame.height, ros.camera_fovy)
+    return convert.camera_info(frame.stamp, FRAME_ID, frame.width, frame.height, focal)
+
+
+Conversion = Callable[[Ros2Node, Any], Any]
+#: {row of the stream table the node shows: {its topic: the conversion of a row's message to
+#: the topic's message, or None}}, in the order they are sent (a frame's image before its info).
+CONVERSIONS: dict[str, dict[str, Conversion]] = {
+    "joints": {"joint_states": lambda ros, state: convert.joint_state(state)},
+    "world": {"/tf": _tf},  # another scene's state (its poses unknown here) sends nothing
+    "events": {"world/landing": lambda ros, event: convert.landing(event)},
+    "camera": {
+        "camera/image_raw": lambda ros, frame: convert.image(frame, FRAME_ID),
+        "camera/camera_info": _camera_info,
+    },
+    "rollouts": {"learner/rollout": lambda ros, rollout: convert.rollout(rollout)},
+}

@@ -3,9 +3,10 @@ frames, encodes and publishes them, and runs the work RPC handlers hand it (`job
 
 GL contexts and devices belong to the thread that opened them, so everything that touches the
 source runs here. A rendered frame follows the robot's world states on `ROBOT/world/state:o`
-with a model built from the scene the robot reports (`archery/rpc:i status`; the default scene
-until the robot answers). `capture_loop` says when frames go out (only while someone wants
-them), `Capture.view` when a render is reused rather than made again.
+with a model built from the scene the robot reports (its `status`, asked through the one
+`RobotClient`; the default scene until the robot answers). `capture_loop` says when frames go
+out (only while someone wants them), `Capture.view` when a render is reused rather than made
+again.
 """
 
 from __future__ import annotations
@@ -22,9 +23,9 @@ import numpy as np
 from archery.mesh.jobs import JobQueue
 from archery.mesh.node import Node
 from archery.mesh.publisher import Publisher
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError, ConfigError, RpcError, RpcTimeout
 from archery.protocol.messages import Image, WorldState
-from archery.protocol.verbs import robot as robot_verbs
 from archery.protocol.verbs.robot import Scene
 from archery.services.camera.config import CameraConfig
 from archery.services.camera.frames import FrameStore, Freshness
@@ -54,6 +55,7 @@ class Capture:
     def __init__(self, config: CameraConfig, node: Node, store: FrameStore) -> None:
         self.config = config
         self.node = node
+        self.robot = RobotClient(node)
         self.store = store
         self.jobs = JobQueue(RpcTimeout, "the capture thread")
         self.renderer: Any = None
@@ -94,10 +96,7 @@ class Capture:
         from archery.sim.scene_config import SceneConfig
 
         try:
-            status = self.node.call_typed(
-                self.node.keys.archery_rpc(), robot_verbs.ARCHERY_STATUS, timeout=timeout
-            )
-            return SceneConfig.of(status.scene)
+            return SceneConfig.of(self.robot.scene(timeout))
         except (RpcError, KeyError, TypeError, ValueError) as exc:
             self.scene_error = str(exc)
             return None

@@ -21,6 +21,7 @@ import msgspec
 import numpy as np
 
 from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.mesh.tokens import TokenSet
 from archery.protocol.errors import (
     ArcheryError,
@@ -62,7 +63,7 @@ class MeshRig:
     * `ROBOT/cartesianController/archery/rpc:i posture {theta, shot}` (and `status` for the θ
       box; on a whole-shot robot the controller plays the whole movement, its nock included);
     * `ROBOT/archery/rpc:i status` (the robot's shot), `nock` (posture shot), then `release`
-      (replies once the arrow has landed), `reset {seed}`;
+      (replies once the arrow has landed), `reset {seed}`, through the one `RobotClient`;
     * `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}`
       for the picture of a hit with the detection drawn on it;
     * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
@@ -78,6 +79,7 @@ class MeshRig:
         self.node = node
         self.keys = node.keys
         self.timeout = timeout
+        self.robot = RobotClient(node, timeout=timeout, expect_service=True)
         self._truth: OrderedDict[int, tuple[float, WorldEvent]] = OrderedDict()
         self._truth_cond = threading.Condition()
         node.subscribe(self.keys.world_events(), WorldEvent, mode="fifo", callback=self._on_event)
@@ -121,8 +123,7 @@ class MeshRig:
         frozen or lost), or any error reply while some service is not alive (that one is
         named; `_lost_behind`).
         """
-        start = time.perf_counter()
-        result = self._mapped(
+        return self._timed(
             service,
             lambda: self.node.call_typed(
                 key,
@@ -132,6 +133,12 @@ class MeshRig:
                 expect_service=service,
             ),
         )
+
+    def _timed(self, service: str, work: Callable[[], T]) -> tuple[T, float]:
+        """(`work()`, wall s), its errors mapped as `_call` says (the robot's calls: its client's
+        `RobotLost` is an `RpcTimeout`, so `ServiceLost`)."""
+        start = time.perf_counter()
+        result = self._mapped(service, work)
         return result, time.perf_counter() - start
 
     def _mapped(self, service: str, work: Callable[[], T]) -> T:
@@ -202,7 +209,7 @@ class MeshRig:
         Raises:
             ServiceLost, RigError: the robot does not answer.
         """
-        status, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
+        status, _ = self._timed("robot", self.robot.status)
         if status.scene.shot == "whole" and self.shot != "whole":
             log.info("the robot runs the whole shot: the controller plays it in every rollout")
         self.shot = status.scene.shot
@@ -220,15 +227,14 @@ class MeshRig:
     def setup(self) -> dict[str, Any]:
         """What replaying a shot needs of the rig: the robot's world (`WorldConfig.to_dict`),
         its shot count before the session and the controller's trajectory time (s)."""
-        robot, _ = self._call("robot", self.keys.archery_rpc(), rv.ARCHERY_STATUS)
+        robot, _ = self._timed("robot", self.robot.status)
         key = self.keys.cartesian_rpc("archery")
         controller, _ = self._call("controller", key, cv.STATUS)
         return {"world": robot.world, "shot": robot.shot, "traj_time": controller.traj_time}
 
     def reset(self, seed: int) -> None:
         """Robot to the home posture, shot noise reseeded with `seed`."""
-        reset = rv.RESET
-        self._call("robot", self.keys.archery_rpc(), reset, rv.ResetArgs(seed=int(seed)))
+        self._timed("robot", lambda: self.robot.reset(int(seed)))
 
     def move_to(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done; on a
@@ -270,19 +276,16 @@ class MeshRig:
         fell behind): the robot home with a fresh arrow in the holder, its shot noise going on
         (a lost robot is the caller's)."""
         with contextlib.suppress(ArcheryError):
-            self.node.call_typed(
-                self.keys.archery_rpc(), rv.RESET, rv.ResetArgs(), timeout=self.timeout
-            )
+            self.robot.reset()
 
     def shoot(self) -> Shot:
         """Nock (the whole shot's movement nocked already) and release; returns when the arrow
         has landed, with the θ it was launched with (the release reply's)."""
-        key = self.keys.archery_rpc()
         before = time.time()
         timing = {}
         if self.shot != "whole":
-            _, timing["nock_s"] = self._call("robot", key, rv.NOCK)
-        result, release = self._call("robot", key, rv.RELEASE)
+            _, timing["nock_s"] = self._timed("robot", self.robot.nock)
+        result, release = self._timed("robot", self.robot.release)
         return Shot(
             shot=result.shot,
             sim_time=result.sim_time,
