@@ -24,6 +24,7 @@ from archery.apps.waits import announce, interrupted_line
 from archery.mesh.cliargs import ArgumentParser, add_force_arg, check_output_file, seconds
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.mesh.node import Node, open_node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.demonstration import (
     FORMAT,
     MIN_DT,
@@ -41,7 +42,7 @@ from archery.protocol.messages import WorldEvent
 from archery.protocol.parts import ARM_PARTS, PARTS
 from archery.protocol.robotspec import NOMINAL_THETA, ROBOT, STRING_ARM
 from archery.protocol.vectors import parse_vector
-from archery.protocol.verbs.robot import ARCHERY_STATUS, GET_HISTORY, GET_POSITIONS, HistoryArgs
+from archery.protocol.verbs.robot import GET_POSITIONS
 from archery.services.controller.demonstration_file import read_demonstration
 
 if TYPE_CHECKING:
@@ -63,13 +64,14 @@ class Recorder:
     would leave most of its samples unpublished.
 
     Args:
-        node: a node on the robot's mesh.
+        node: a node on the robot's mesh (its world events followed here, the robot read
+            through its client, `mesh.robot_client`).
         shot: the robot's shot ("posture" or "whole"), written into the demonstration.
         made: how the demonstration is made (free text), written into it.
     """
 
     def __init__(self, node: Node, shot: str, made: str = "") -> None:
-        self._node = node
+        self._robot = RobotClient(node)
         self._lock = threading.Lock()
         self._events: list[tuple[float, str]] = []
         self._start = float("inf")  # s (simulated): the recording's start
@@ -101,9 +103,8 @@ class Recorder:
         """Start the recording at the robot's simulated time now (its string arm's encoders);
         True once it is known (the operator may start), False if the robot did not answer
         within `timeout` s."""
-        node = self._node
         try:
-            now = node.call_typed(node.keys.part_rpc(STRING_ARM), GET_POSITIONS, timeout=timeout)
+            now = self._robot.part_call(STRING_ARM, GET_POSITIONS, timeout=timeout)
         except RpcTimeout:
             return False
         with self._lock:
@@ -132,11 +133,8 @@ class Recorder:
         if reset:
             raise BadDemonstration("the robot was reset while recording: record it again")
         by_time: dict[float, dict[str, list[float]]] = {}
-        node = self._node
         for part in ARM_PARTS:
-            history = node.call_typed(
-                node.keys.part_rpc(part), GET_HISTORY, HistoryArgs(since=start), timeout=timeout
-            )
+            history = self._robot.history(part, start, timeout)
             for t, position in zip(history.times, history.positions, strict=True):
                 by_time.setdefault(t, {})[part] = position
         both = sorted(t for t, parts in by_time.items() if len(parts) == len(ARM_PARTS))
@@ -164,6 +162,7 @@ class Recorder:
     def close(self) -> None:
         """Stop following the robot."""
         self._events_sub.close()
+        self._robot.close()
 
 
 def _spaced(times: list[float]) -> list[float]:
@@ -248,7 +247,7 @@ def _record(args: argparse.Namespace) -> int:
     on_wait = announce(PROG)
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
-        status = node.call_typed(node.keys.archery_rpc(), ARCHERY_STATUS)
+        status = RobotClient(node, timeout=args.wait).status()
         teacher = _teacher(node, args.wait) if args.teach else None  # nothing recorded yet
         recorder = Recorder(node, status.scene.shot, args.made)
         try:

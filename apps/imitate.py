@@ -4,9 +4,9 @@ on a running robot (`archery robot --shot whole`).
 The movement is learned as DMPs (`services.controller.movement`) and planned as the
 controller plans a whole shot (`services.controller.whole_shot`): the draw's goal is the
 archery posture for θ (the controller's IK), grasp and nock at their demonstrated times; the
-robot plays it as one trajectory (`archery/rpc:i followTrajectory`), then the release, whose
-reply is printed. A bad file, or θ outside the controller's box (nothing moves):
-one line, exit status 2.
+robot plays it as one trajectory under the parts' leases (`archery/rpc:i followTrajectory`,
+through the robot's client, `mesh.robot_client`), then the release, whose reply is printed. A
+bad file, or θ outside the controller's box (nothing moves): one line, exit status 2.
 """
 
 from __future__ import annotations
@@ -24,13 +24,14 @@ from archery.apps.waits import announce, interrupted_line
 from archery.mesh.cliargs import ArgumentParser, seconds
 from archery.mesh.netflags import NetConfig, add_network_args
 from archery.mesh.node import open_node
+from archery.mesh.robot_client import RobotClient
 from archery.protocol.demonstration import BadDemonstration
 from archery.protocol.errors import ArcheryError, ConfigError
 from archery.protocol.exit_status import BAD_INPUT, INTERRUPTED, OK, for_error
+from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import NOMINAL_THETA, ROBOT
 from archery.protocol.theta import THETA_BOX
 from archery.protocol.vectors import parse_vector
-from archery.protocol.verbs import robot as rv
 from archery.services.controller.demonstration_file import read_demonstration
 
 if TYPE_CHECKING:
@@ -62,34 +63,31 @@ def _play(args: argparse.Namespace, theta: np.ndarray, movement: Movement) -> in
     on_wait = announce(PROG)
     with open_node(net, args.wait, on_wait=on_wait) as node:
         node.wait_alive([ROBOT], args.wait, on_wait=on_wait)
-        keys = node.keys
-        status = node.call_typed(keys.archery_rpc(), rv.ARCHERY_STATUS, timeout=args.wait)
-        shot = status.scene.shot
-        if shot != "whole":
-            raise ArcheryError(
-                f"the robot runs the {shot!r} shot; start it with `archery robot --shot whole`",
-                code="bad_state",
+        robot = RobotClient(node, timeout=args.wait)
+        try:
+            status = robot.status()
+            shot = status.scene.shot
+            if shot != "whole":
+                raise ArcheryError(
+                    f"the robot runs the {shot!r} shot; start it with `archery robot --shot whole`",
+                    code="bad_state",
+                )
+            standing: dict[str, float] = {}
+            for part in PARTS_MOVED:
+                standing.update(zip(PARTS[part], robot.positions(part).tolist(), strict=True))
+            posture = ArcheryPosture(PostureConfig())
+            plan = plan_whole_shot(movement, posture, theta, status.nock_in_hand, standing).plan
+            robot.follow(
+                PARTS_MOVED,
+                plan.times,
+                plan.rows,
+                {"grasp": plan.grasp, "nock": plan.nock},
+                owner=PROG,
+                rtf=status.rtf,
             )
-        standing: dict[str, float] = {}
-        for part in PARTS_MOVED:
-            encoders = node.call_typed(keys.part_rpc(part), rv.GET_POSITIONS, timeout=args.wait)
-            standing.update(zip(encoders.names, encoders.position, strict=True))
-        posture = ArcheryPosture(PostureConfig())
-        plan = plan_whole_shot(movement, posture, theta, status.nock_in_hand, standing).plan
-        trajectory = rv.TrajectoryArgs(
-            parts=[rv.TrajectoryPart(part=part) for part in PARTS_MOVED],
-            times=plan.times.tolist(),
-            positions=plan.rows.tolist(),
-            actions=(
-                rv.TrajectoryAction(t=plan.grasp, verb="grasp"),
-                rv.TrajectoryAction(t=plan.nock, verb="nock"),
-            ),
-        )
-        wall = plan.release / status.rtf if status.rtf > 0 else plan.release
-        node.call_typed(
-            keys.archery_rpc(), rv.FOLLOW_TRAJECTORY, trajectory, timeout=args.wait + wall
-        )
-        reply = node.call_typed(keys.archery_rpc(), rv.RELEASE, timeout=args.wait)
+            reply = robot.release()
+        finally:
+            robot.close()
     print(json.dumps(msgspec.to_builtins(reply)), flush=True)
     return OK
 

@@ -1,6 +1,7 @@
 """The scripted whole shot, planned with the controller's inverse kinematics (Eq. 9, Pinocchio):
 the arms' postures for aim, approach, reach, lift, carry, draw and hold, with the world's grasp,
-nock and release in their turn, for the scripted teacher (`apps.teacher`).
+nock and release in their turn, for the scripted teacher (`apps.teacher`); each step's joint
+targets by name (`ShotStep.targets`), as the robot's client moves them.
 
 Where things are (the arrow in its holder, the string's rest point on the bow, where a grasped
 nock sits in the hand) is read from a copy of the robot's world (`sim.world`); every posture is
@@ -54,6 +55,17 @@ class ShotStep:
     right_arm: np.ndarray
     left_arm: np.ndarray | None = None
     action: Action = None
+
+    def targets(self) -> dict[str, float]:
+        """The step's joint targets {joint: rad} (the contract's `PARTS` names): the right
+        arm's, and the left arm's when it moves."""
+        arms = {STRING_ARM: self.right_arm, BOW_ARM: self.left_arm}
+        return {
+            joint: float(x)
+            for part, q in arms.items()
+            if q is not None
+            for joint, x in zip(PARTS[part], q, strict=True)
+        }
 
 
 @functools.cache

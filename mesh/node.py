@@ -141,7 +141,9 @@ class Node(RpcClient, Liveliness):
             closables = list(self._closables)
         for item in reversed(closables):
             quietly(type(item).__name__, item.close)
-        for key, querier in self._queriers.items():
+        with self._rpc_lock:  # a call on another thread may declare one meanwhile
+            queriers = list(self._queriers.items())
+        for key, querier in queriers:
             quietly(f"querier {key[0]}", querier.undeclare)
         if self._own_session:
             quietly("session", self.session.close)

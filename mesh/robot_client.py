@@ -439,10 +439,12 @@ class RobotClient:
             held.drop(wait=False)
 
     def close(self) -> None:
-        """Stop following the joint states (the node's ports go with the node)."""
+        """Stop following the joint states, the leases' drops ended first (within `timeout`)."""
         with self._lock:
             states, self._states = self._states, {}
         for sub in states.values():
             self.node.unsubscribe(sub)
             sub.close()
+        with contextlib.suppress(TimeoutError, RuntimeError):  # RuntimeError: closed already
+            self._drops.submit(int).result(self.timeout)  # after the drops queued before it
         self._drops.shutdown(wait=False)
