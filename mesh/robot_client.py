@@ -2,11 +2,10 @@
 
 `RobotClient(node)` names the robot's ports (`protocol/keys.py`) and calls its verbs through the
 contract's tables (`protocol/verbs/robot.py`); nobody else takes a lease or names them, but the
-robot itself and the tools whose job is the raw port. "Reached" has one meaning, the table
-`TOLERANCES` of `protocol/robotspec.py`. Every failure is a `RobotError` (`kind` "not_owner",
-"busy", "not_reached" or "lost") carrying the robot's own code and reason; a lease lost in the
-middle of a move ends it with `not_owner`, never a hang. Angles in rad, times in s (wall clock
-unless said otherwise).
+robot itself and the tools whose job is the raw port. "Reached" means `TOLERANCES`
+(`protocol/robotspec.py`). Every failure is a `RobotError` (`kind` not_owner, busy, not_reached
+or lost) with the robot's own code and reason; a lease lost mid-move ends it with `not_owner`,
+never a hang. Angles in rad, times in s (wall clock unless said otherwise).
 """
 
 from __future__ import annotations
@@ -49,10 +48,9 @@ _KINDS = {"not_owner": "not_owner", "busy": "busy"}
 
 @dataclass(frozen=True)
 class Moved:
-    """How a move ended: `reached` its targets {joint: rad} (after the robot's clipping), the
-    `measured` posture {joint: rad} at the end, `wall_s` from the commands to the end, the
-    robot's `sim_time` (s) of the states that showed it there (the latest when not) and why not
-    (`reason`, "" when reached)."""
+    """How a move ended: `reached` its `targets` {joint: rad}, the `measured` posture {joint: rad}
+    at the end, `wall_s` from the commands to the end, the robot's `sim_time` (s) of the states
+    that showed it there (the latest when not) and why not (`reason`, "" when reached)."""
 
     reached: bool
     targets: Mapping[str, float]
@@ -91,6 +89,7 @@ class RobotClient:
         reached: a joint within this of its target is there (rad); the table's by default.
         state_max_age: a joint state that arrived longer ago than this is stale (wall s).
         expect_service: accept replies only from the robot's live instance.
+        lease_ttl: a move's leases last this long unless renewed (wall s).
     """
 
     def __init__(
@@ -101,8 +100,9 @@ class RobotClient:
         reached: float = TOLERANCES["rest"],
         state_max_age: float = STATE_MAX_AGE,
         expect_service: bool = False,
+        lease_ttl: float = LEASE_TTL,
     ) -> None:
-        self.node, self.keys = node, node.keys
+        self.node, self.keys, self.lease_ttl = node, node.keys, lease_ttl
         self.timeout, self.reached, self.state_max_age = timeout, reached, state_max_age
         self._expect = ROBOT if expect_service else None
         self._states: dict[str, Subscription[JointState]] = {}
@@ -169,8 +169,7 @@ class RobotClient:
         return self.part_call(part, rv.GET_HISTORY, rv.HistoryArgs(since=since), timeout)
 
     def limits(self, part: str) -> tuple[np.ndarray, np.ndarray]:
-        """(lower, upper) software limits of `part` (rad, its joint order), asked once; RpcError
-        when they name other joints than the contract's `PARTS`."""
+        """(lower, upper) software limits of `part` (rad), asked once; RpcError if not `PARTS`'."""
         with self._lock:
             if part not in self._limits:
                 reply = self.part_call(part, rv.GET_LIMITS)
@@ -195,8 +194,7 @@ class RobotClient:
 
     def joints(self, part: str) -> JointState:
         """The newest joint state of `part` if fresh, else the next within `state_max_age` (the
-        first within `timeout`): a stale one is never handed out. RobotLost (code `timeout` or
-        `stale_state`, naming the key) when none comes."""
+        first within `timeout`), never a stale one; else RobotLost (`timeout`, `stale_state`)."""
         sub = self.stream(part)
         try:
             if sub.latest() is not None:
@@ -285,20 +283,21 @@ class RobotClient:
     ) -> Moved:
         """Move the joints of `targets` {joint: rad} (their parts' other joints kept where they
         are) as one batch the robot starts at one simulated time, under `claim`'s leases, else
-        leases taken for it under `owner` (`speeds` {part: rad/s} set in the same round trip),
-        renewed while it waits and dropped after it without waiting. `until="rest"`: the whole
-        robot rests, the moved joints within `reached`, in states of a later simulated time than
-        the commands; `"passing"`: each moved joint within `TOLERANCES["passing"]`. `pace`: wall
-        s at least between two moves' commands (a robot drops commands above its rate).
+        leases of `lease_ttl` taken under `owner` (`speeds` {part: rad/s} set in the same round
+        trip), renewed while it waits and dropped after it without waiting. `until="rest"`: the
+        whole robot rests, the moved joints within `reached`, in states of a later simulated time
+        than the commands; `"passing"`: each moved joint within `TOLERANCES["passing"]`. `pace`:
+        wall s at least between two moves' commands (a robot drops commands above its rate).
 
         Raises:
-            RobotError: kind `not_owner` (a part held by another client, at the start or taken
-                over meanwhile), `not_reached` (not there within `timeout`: `moved` tells where)
-                or `lost` (a part's states went silent for `state_max_age`, or no reply).
+            RobotError: kind `not_owner` (a part held by another client at the start, or taken
+                over meanwhile), `not_reached` (not there within `timeout`) or `lost` (a part's
+                states went silent for `state_max_age`, or no reply); `moved` tells where a move
+                taken over or not reached ended.
         """
         parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
         own = claim is None
-        held = claim if claim is not None else Claim(self.part_call, self._drops, owner, LEASE_TTL)
+        held = claim or Claim(self.part_call, self._drops, owner, self.lease_ttl)
         try:
             return self._move(targets, parts, held, own, until, speeds, timeout, pace)
         except RobotLost:
@@ -342,7 +341,7 @@ class RobotClient:
             )
         tol = self.reached if until == "rest" else TOLERANCES["passing"]
         waited = tuple(PARTS) if until == "rest" else parts
-        reason, done_at = "", 0.0
+        reason, done_at, kind = "", 0.0, "not_reached"
         while not reason:
             for part in waited:
                 goal = sent.get(part)
@@ -378,6 +377,10 @@ class RobotClient:
                                 else f"{streams[part].key} (not moved) did not come to rest "
                                 f"within {wait_for:g} s"
                             )
+                    except RobotError as exc:  # a part taken over: ends it, `moved` tells where
+                        if exc.kind != "not_owner":
+                            raise
+                        reason, kind = exc.message, "not_owner"
             if reason or until == "passing":
                 break
             now_states = {p: streams[p].latest() for p in PARTS}
@@ -396,7 +399,7 @@ class RobotClient:
             reason=reason,
         )
         if reason:
-            raise RobotError(reason, kind="not_reached", moved=moved)
+            raise RobotError(reason, kind=kind, moved=moved)
         return moved
 
     def follow(
@@ -415,11 +418,8 @@ class RobotClient:
         `times`, s of sim time from its start) with the archery `actions` {verb: s} in the
         robot's own loop (`followTrajectory`), under leases that last the movement in wall time
         (at the robot's `rtf`; 0: as fast as it runs) and `ttl` more; the reply once it ended.
-
-        Raises:
-            RobotError: a part is held by another (`not_owner`); the robot refused or aborted it
-                (its code: `path_tolerance`, `grasp_missed`, …).
-        """
+        RobotError: a part held by another (`not_owner`); the robot refused or aborted it (its
+        code: `path_tolerance`, `grasp_missed`, …)."""
         duration = float(times[-1])
         wall = duration / rtf if rtf > 0 else duration
         held = Claim(self.part_call, self._drops, owner, min(LEASE_TTL_RANGE[1], ttl + wall))

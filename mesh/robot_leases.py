@@ -37,14 +37,25 @@ class Claim:
         self._renew_at = time.monotonic() + ttl / 4
 
     def take(self, part: str, speeds: Sequence[float] | np.ndarray | float | None = None) -> str:
-        """Claim `part`, setting its reference speeds (rad/s) in the same round trip when given."""
+        """Claim `part`, setting its reference speeds (rad/s) in the same round trip when given.
+
+        Raises:
+            RobotError: kind `not_owner` ("cannot move PART: " and the robot's reason) when
+                another client holds the part.
+        """
         claim = rv.ClaimArgs(owner=self.owner, ttl=self.ttl)
-        if speeds is None:
-            reply: Any = self.call(part, rv.CLAIM, claim)
-        else:
-            value = speeds if isinstance(speeds, float | int) else [float(s) for s in speeds]
-            args = rv.SetRefSpeedsArgs(speeds=value, claim=claim)
-            reply = self.call(part, rv.SET_REF_SPEEDS, args)
+        try:
+            if speeds is None:
+                reply: Any = self.call(part, rv.CLAIM, claim)
+            else:
+                value = speeds if isinstance(speeds, float | int) else [float(s) for s in speeds]
+                args = rv.SetRefSpeedsArgs(speeds=value, claim=claim)
+                reply = self.call(part, rv.SET_REF_SPEEDS, args)
+        except RobotError as exc:
+            if exc.kind != "not_owner":
+                raise
+            message = f"cannot move {part}: {exc.message}"
+            raise RobotError(message, kind=exc.kind, code=exc.code) from exc
         self.leases[part] = reply.lease
         return str(reply.lease)
 
@@ -75,7 +86,8 @@ class Claim:
                 if exc.kind != "not_owner":
                     raise
                 try:
-                    self.take(part)
+                    claim = rv.ClaimArgs(owner=self.owner, ttl=self.ttl)
+                    self.leases[part] = self.call(part, rv.CLAIM, claim).lease
                 except RobotError as again:
                     if again.kind != "not_owner":
                         raise

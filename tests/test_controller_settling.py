@@ -14,10 +14,12 @@ import pytest
 
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node
+from archery.mesh.robot_client import Moved, RobotClient
+from archery.protocol.errors import RobotError
 from archery.protocol.messages import JointState
 from archery.protocol.parts import PARTS
 from archery.protocol.robotspec import ROBOT
-from archery.services.controller.robotlink import RobotLink
+from archery.services.controller.handlers import move
 from tests.fake_parts import FakeRobot
 
 REST = 5.0  # sim s of the robot's rest before the move
@@ -73,7 +75,7 @@ class ScriptedRobot(FakeRobot):
 class Start(Protocol):
     def __call__(
         self, after_command: list[Beat], before: list[Beat] | None = None
-    ) -> tuple[RobotLink, ScriptedRobot]: ...
+    ) -> tuple[RobotClient, ScriptedRobot]: ...
 
 
 @pytest.fixture
@@ -83,11 +85,15 @@ def link(net: NetConfig) -> Iterator[Start]:
 
         def start(
             after_command: list[Beat], before: list[Beat] | None = None
-        ) -> tuple[RobotLink, ScriptedRobot]:
+        ) -> tuple[RobotClient, ScriptedRobot]:
             robot = ScriptedRobot(robot_node, after_command, before)
             robots.append(robot)
             node.wait_alive([ROBOT], 10)
-            return RobotLink(node, robot_timeout=5.0, joint_tolerance=TOL), robot
+            client = RobotClient(node, timeout=5.0, reached=TOL)
+            for part in PARTS:  # followed and declared from the start, as the controller does
+                client.stream(part)
+                client.command(part, ())
+            return client, robot
 
         yield start
         for robot in robots:
@@ -107,7 +113,7 @@ def test_the_old_rest_within_tolerance_of_the_targets_does_not_end_the_move(
         [(REST + 0.02, _moved(STEP / 2, False)), (REST + 0.04, _moved(STEP, True))]
     )
     targets = {j: STEP for p in ("left_arm", "right_arm") for j in PARTS[p]}
-    result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
+    result = move(robot_link, targets, traj_time=1.0, timeout=10.0)
     assert robot.commanded.is_set() and result.reached, result.reason
     assert result.sim_time == REST + 0.04  # not REST: that state was from before the commands
 
@@ -124,7 +130,7 @@ def test_a_move_ends_only_once_every_part_rests_at_one_simulated_time(
         ]
     )
     targets = {j: STEP for p in ("left_arm", "right_arm") for j in PARTS[p]}
-    result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
+    result = move(robot_link, targets, traj_time=1.0, timeout=10.0)
     assert result.reached, result.reason
     assert result.sim_time == REST + 0.06
 
@@ -140,7 +146,7 @@ def test_a_move_starts_from_the_robot_at_rest_not_from_a_state_while_it_settles(
         [(REST + 0.02, _moved(0.05, True))], before=[*settling, (REST, AT_REST)]
     )
     targets = {j: 0.05 for p in ("left_arm", "right_arm") for j in PARTS[p]}
-    result = robot_link.move(targets, traj_time=1.0, timeout=10.0)
+    result = move(robot_link, targets, traj_time=1.0, timeout=10.0)
     assert result.reached, result.reason
     assert robot.speeds_set["left_arm"][-1] == pytest.approx([0.05] * 7)  # 50 mrad in 1 s
 
@@ -149,6 +155,9 @@ def test_a_part_that_never_rests_fails_the_move_naming_its_key(link: Start) -> N
     # the torso (not moved) never shows motion done: the move ends unreached at its timeout
     robot_link, _ = link([(REST + 0.02, _moved(STEP, True, torso=(0.001, False)))])
     targets = {j: STEP for p in ("left_arm", "right_arm") for j in PARTS[p]}
-    result = robot_link.move(targets, traj_time=1.0, timeout=0.5)
-    assert not result.reached
+    with pytest.raises(RobotError) as unreached:
+        move(robot_link, targets, traj_time=1.0, timeout=0.5)
+    assert unreached.value.kind == "not_reached"
+    result = unreached.value.moved
+    assert isinstance(result, Moved) and not result.reached
     assert "torso/state:o (not moved) did not come to rest within 0.5 s" in result.reason

@@ -9,7 +9,13 @@ from typing import TYPE_CHECKING
 from archery.mesh.configflags import add_config_args, check_bounds, config_from_args, flag
 from archery.mesh.netflags import NetConfig
 from archery.protocol.errors import ConfigError
-from archery.protocol.robotspec import LEASE_TTL, LEASE_TTL_RANGE, ROBOT_TIMEOUT, STATE_MAX_AGE
+from archery.protocol.robotspec import (
+    LEASE_TTL,
+    LEASE_TTL_RANGE,
+    ROBOT_TIMEOUT,
+    STATE_MAX_AGE,
+    TOLERANCES,
+)
 from archery.services.controller.demonstration_file import read_demonstration
 from archery.services.controller.ik_types import IkSettings
 from archery.services.controller.posture import PostureConfig
@@ -41,7 +47,7 @@ class ControllerConfig:
         joint_tolerance: the robot is at the targets when motion is done and every joint is
             within this of its target (rad).
         state_max_age: a robot joint state that arrived longer ago than this is stale, never
-            used: the verbs reply `stale_state` (wall s; see `robotlink`).
+            used: the verbs reply `stale_state` (wall s; see `mesh/robot_client.py`).
         demonstration: the whole shot's demonstration, whose DMPs a posture for a `--shot
             whole` robot plays (None: `SHIPPED_DEMONSTRATION`).
         lease_ttl: a move holds a lease on each part it commands (no other client moves the
@@ -69,7 +75,11 @@ class ControllerConfig:
         high=600,
     )
     joint_tolerance: float = flag(
-        0.005, "a joint within this of its target is there", unit="rad", low=1e-4, high=0.5
+        TOLERANCES["rest"],
+        "a joint within this of its target is there",
+        unit="rad",
+        low=1e-4,
+        high=0.5,
     )
     state_max_age: float = flag(
         STATE_MAX_AGE, "a robot state older than this is stale", unit="wall s", low=0.05, high=60

@@ -11,33 +11,40 @@ from __future__ import annotations
 import functools
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
-from archery.protocol.errors import ArcheryError, BadRequest, ConfigError
+from archery.mesh.robot_client import Moved, RobotClient
+from archery.protocol.errors import ArcheryError, BadRequest, ConfigError, RobotError
 from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import CONTROLLER
 from archery.protocol.verbs import NoArgs, ServedVerbs
 from archery.protocol.verbs import controller as cv
 from archery.protocol.verbs import robot as rv
-from archery.services.controller.cartesian import axis_angle, ik_reply, rotation_vector
+from archery.services.controller.cartesian import (
+    axis_angle,
+    ik_reply,
+    reference_speeds,
+    rotation_vector,
+)
 from archery.services.controller.config import ControllerConfig
 from archery.services.controller.ik import IkSolver
 from archery.services.controller.model import ArmsModel
 from archery.services.controller.posture import ArcheryPosture, PostureResult
-from archery.services.controller.robotlink import MoveResult, RobotLink
 from archery.services.controller.whole_shot import PARTS_MOVED, plan_whole_shot
 
 if TYPE_CHECKING:
     from archery.services.controller.movement import Movement
 
-__all__ = ["ArcheryController", "ArmController", "MotionLock"]
+__all__ = ["REST_WAIT", "ArcheryController", "ArmController", "MotionLock", "move"]
 
 TRAJ_TIME_RANGE = cv.TRAJ_TIME_RANGE  # s of simulated time
 TIMEOUT_RANGE = cv.TIMEOUT_RANGE  # wall s
+REST_WAIT = 1.0  # wall s a move waits for the robot to rest before it starts from its posture
 
 
 class MotionLock:
@@ -61,6 +68,49 @@ class MotionLock:
             yield
         finally:
             self._lock.release()
+
+
+def move(
+    client: RobotClient, targets: Mapping[str, float], traj_time: float, timeout: float
+) -> Moved:
+    """Move the joints named in `targets` {joint: rad}, only their parts, under a lease each.
+
+    The move starts from the robot at rest (waiting up to `REST_WAIT` s for it, else from its
+    newest states): each moved part's targets are its named joints' and the others' angles
+    there, clipped into the part's software limits (`getLimits`), with reference speeds that
+    cover every joint's distance in the trajectory time `traj_time` (s of simulated time); the
+    client claims each part and sets its speeds in one round trip, commands them as one batch
+    and waits until the whole robot rests at the targets (`RobotClient.move`).
+
+    Raises:
+        RobotError: kind `not_owner` (a part held by another client: "cannot move PART: …"; a
+            part taken over during the move: `moved` tells where it ended), `not_reached` (not
+            there within `timeout` wall s: `moved`) or `lost` (code `stale_state`, `timeout`).
+    """
+    parts = tuple(p for p in PARTS if any(j in targets for j in PARTS[p]))
+    current = client.rested(REST_WAIT) or client.posture()
+    sent: dict[str, float] = {}
+    speeds: dict[str, np.ndarray] = {}
+    for part in parts:
+        lower, upper = client.limits(part)
+        wanted = np.array([targets.get(j, current[j]) for j in PARTS[part]])
+        clipped = np.clip(wanted, lower, upper)
+        delta = clipped - np.array([current[j] for j in PARTS[part]])
+        speeds[part] = reference_speeds(delta, traj_time)
+        sent.update(zip(PARTS[part], clipped.tolist(), strict=True))
+    return client.move(sent, owner=CONTROLLER, speeds=speeds, timeout=timeout)
+
+
+def _move_ended(
+    client: RobotClient, targets: Mapping[str, float], traj_time: float, timeout: float
+) -> Moved:
+    """`move`, or where it ended when it did not reach its targets (taken over, timed out)."""
+    try:
+        return move(client, targets, traj_time, timeout)
+    except RobotError as exc:
+        if isinstance(exc.moved, Moved):
+            return exc.moved
+        raise
 
 
 def _posture_reply(
@@ -90,12 +140,12 @@ def _posture_reply(
     )
 
 
-def _move_reply(move: MoveResult) -> dict[str, Any]:
+def _move_reply(moved: Moved) -> dict[str, Any]:
     return {
-        "reached": move.reached,
-        "reason": move.reason,
-        "wall_s": move.wall_s,
-        "sim_time": move.sim_time,
+        "reached": moved.reached,
+        "reason": moved.reason,
+        "wall_s": moved.wall_s,
+        "sim_time": moved.sim_time,
     }
 
 
@@ -107,7 +157,7 @@ class ArmController:
         arm: str,
         model: ArmsModel,
         config: ControllerConfig,
-        link: RobotLink,
+        client: RobotClient,
         motion: MotionLock,
     ) -> None:
         self.arm = arm
@@ -115,7 +165,7 @@ class ArmController:
         self._config = config
         self._settings = config.ik
         self._solver = IkSolver(model, config.ik)
-        self._link = link
+        self._client = client
         self._motion = motion
         self.torso = config.use_torso
         self.traj_time = config.traj_time
@@ -146,7 +196,7 @@ class ArmController:
         """{"xd": [x, y, z] m, "od"?: [ax, ay, az, angle]} → the solution, without moving.
 
         Warm-started from the robot's posture when its states are fresh, else from home."""
-        q0 = self._link.fresh_joints()
+        q0 = self._client.fresh_posture()
         result = self._solve(args, q0)
         return cv.AskForPoseReply(
             **ik_reply(result, self._chain()), warm_start="home" if q0 is None else "robot"
@@ -158,18 +208,19 @@ class ArmController:
         The reply adds "reached" (False after `timeout` s, with the reason), the measured hand
         position "x_measured" (m) and its distance to xd "position_error_measured_m"."""
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
-        current = self._link.joint_angles()
+        current = self._client.posture()
         result = self._solve(args, current)
         moving = PARTS[self.arm] if not self.torso else self._chain()
+        targets = {j: result.q[j] for j in moving}
         with self._motion.hold(timeout):
-            move = self._link.move({j: result.q[j] for j in moving}, self.traj_time, timeout)
-        x_measured, _ = self._solver.hand_pose(move.measured, self.arm)
+            moved = _move_ended(self._client, targets, self.traj_time, timeout)
+        x_measured, _ = self._solver.hand_pose(moved.measured, self.arm)
         xd = np.array(args.xd, dtype=float)
         return cv.GoToPoseReply(
             **(
                 ik_reply(result, self._chain())
-                | {"q": {j: move.targets.get(j, float(result.q[j])) for j in self._chain()}}
-                | _move_reply(move)
+                | {"q": {j: moved.targets.get(j, float(result.q[j])) for j in self._chain()}}
+                | _move_reply(moved)
             ),
             x_measured=x_measured.tolist(),
             position_error_measured_m=float(np.linalg.norm(x_measured - xd)),
@@ -177,13 +228,13 @@ class ArmController:
 
     def get_pose(self, args: NoArgs) -> cv.PoseReply:
         """The hand pose now, by forward kinematics of the robot's joint states."""
-        q = self._link.joint_angles()
+        q = self._client.posture()
         x, rotation = self._solver.hand_pose(q, self.arm)
         return cv.PoseReply(
             x=x.tolist(),
             o=axis_angle(rotation),
             q={j: q[j] for j in self._chain()},
-            sim_time=cast(float, self._link.state(self.arm).sim_time),  # the robot stamps it
+            sim_time=cast(float, self._client.joints(self.arm).sim_time),  # the robot stamps it
         )
 
     def _tolerance(self) -> cv.ToleranceReply:
@@ -225,7 +276,7 @@ class ArcheryController:
         self,
         posture: ArcheryPosture,
         config: ControllerConfig,
-        link: RobotLink,
+        client: RobotClient,
         motion: MotionLock,
         movement: Callable[[], Movement] | None = None,
     ) -> None:
@@ -233,7 +284,7 @@ class ArcheryController:
         self._movement_of = movement
         self._movement_cache: Movement | None = None
         self._config = config
-        self._link = link
+        self._client = client
         self._motion = motion
         self.traj_time = config.traj_time
 
@@ -273,7 +324,7 @@ class ArcheryController:
         """
         theta = self._posture.check_theta(args.theta)
         timeout = self._config.motion_timeout if args.timeout is None else args.timeout
-        robot = self._link.robot_status()
+        robot = self._client.status()
         shot = robot.scene.shot
         if args.shot != shot:
             raise ArcheryError(
@@ -283,15 +334,15 @@ class ArcheryController:
             )
         if shot == "whole":
             return self._whole(theta, timeout, robot)
-        current = self._link.joint_angles()  # the robot must be there before anything is solved
+        current = self._client.posture()  # the robot must be there before anything is solved
         q0 = None if self._posture.config.use_torso else {j: current[j] for j in PARTS["torso"]}
         result = self._posture.solve_checked(theta, q0=q0)
         targets = {j: float(result.q[j]) for j in self._posture.joints}
         with self._motion.hold(timeout):
-            move = self._link.move(targets, self.traj_time, timeout)
+            moved = _move_ended(self._client, targets, self.traj_time, timeout)
         return _posture_reply(
-            theta, result, self._posture.theta_at(move.measured), dict(move.targets)
-        )(**_move_reply(move))
+            theta, result, self._posture.theta_at(moved.measured), dict(moved.targets)
+        )(**_move_reply(moved))
 
     def _movement(self) -> Movement:
         """The demonstration's DMPs (built on the first whole shot).
@@ -313,13 +364,21 @@ class ArcheryController:
         archery posture for the hands' θ, played by the robot as one trajectory with grasp and
         nock (`whole_shot`); the reply once it has ended, as a posture's."""
         movement = self._movement()
-        standing = self._link.joint_angles()
+        standing = self._client.posture()
         aimed = plan_whole_shot(movement, self._posture, theta, robot.nock_in_hand, standing)
         plan = aimed.plan
         actions = {"grasp": plan.grasp, "nock": plan.nock}
         started = time.monotonic()
         with self._motion.hold(timeout):
-            reply = self._link.follow(PARTS_MOVED, plan.times, plan.rows, actions, robot.rtf)
+            reply = self._client.follow(
+                PARTS_MOVED,
+                plan.times,
+                plan.rows,
+                actions,
+                owner=CONTROLLER,
+                rtf=robot.rtf,
+                ttl=self._config.lease_ttl,
+            )
         wall = time.monotonic() - started
         goal = dict(
             zip(
@@ -328,7 +387,7 @@ class ArcheryController:
                 strict=True,
             )
         )
-        theta_measured = self._posture.theta_at(self._link.joint_angles())
+        theta_measured = self._posture.theta_at(self._client.posture())
         return _posture_reply(theta, aimed.posture, theta_measured, goal, aimed.nock)(
             reached=True,
             reason="",
