@@ -1,5 +1,6 @@
-"""The camera's capture thread: it owns the source (renderer, device or folder), renders or reads
-frames, encodes and publishes them, and runs the work RPC handlers hand it (`jobs`).
+"""The camera's capture thread: it owns the source (renderer, device, folder or YARP port),
+renders or reads frames, encodes and publishes them, and runs the work RPC handlers hand it
+(`jobs`).
 
 GL contexts and devices belong to the thread that opened them, so everything that touches the
 source runs here. A rendered frame follows the robot's world states on `ROBOT/world/state:o`
@@ -29,7 +30,12 @@ from archery.protocol.messages import Image, WorldState
 from archery.protocol.verbs.robot import Scene
 from archery.services.camera.config import CameraConfig
 from archery.services.camera.frames import FrameStore, Freshness
-from archery.services.camera.sources import DeviceSource, FolderSource
+from archery.services.camera.sources import (
+    DeviceSource,
+    FolderSource,
+    SourceError,
+    YarpSource,
+)
 
 __all__ = ["Capture", "capture_loop", "encode"]
 
@@ -59,7 +65,7 @@ class Capture:
         self.store = store
         self.jobs = JobQueue(RpcTimeout, "the capture thread")
         self.renderer: Any = None
-        self.reader: DeviceSource | FolderSource | None = None
+        self.reader: DeviceSource | FolderSource | YarpSource | None = None
         self.scene: Scene | None = None
         self.scene_from = ""
         self.scene_error = ""
@@ -145,7 +151,9 @@ class Capture:
         """Open the source (capture thread).
 
         Raises:
-            ConfigError: the device cannot be opened, or the folder holds no readable image.
+            ConfigError: the device cannot be opened, the folder holds no readable image, or
+                the YARP port gives no frame (no name server, no such port, no frame within
+                `frame_timeout`).
         """
         source = self.config.source
         if source.kind == "mujoco":
@@ -156,6 +164,12 @@ class Capture:
             )
         elif source.kind == "device":
             self.reader = DeviceSource(source.index, self.config.width, self.config.height)
+        elif source.kind == "yarp":
+            try:
+                self.reader = YarpSource(source.port, self.config.frame_timeout)
+                self.reader.read()
+            except SourceError as exc:
+                raise ConfigError(f"--source {exc}") from None
         else:
             self.reader = FolderSource(source.path)
             try:
@@ -331,7 +345,7 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                     serve = any(w.after_stamp is None or w.after_stamp <= wall for w in waiting)
                     if due or serve:
                         captured = time.time()
-                        pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]  # not MuJoCo: a device or folder
+                        pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]  # not MuJoCo: a device, folder or YARP port
                         capture.publish(pixels, None, captured, pub)
                         next_due = now + period
             except ArcheryError as exc:

@@ -32,12 +32,14 @@ class CameraConfig:
             1280x720 frame is ~55 kB instead of 2.7 MB through the router), rgb8 (raw), jpeg
             or png.
         robot_timeout: how long to wait for the robot's scene parameters at start (s).
+        frame_timeout: how long a `yarp:` source waits for its name server and for a frame (s).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
     source: SourceSpec = flag(
         SourceSpec("mujoco"),
-        "mujoco (render the robot's scene), device:N or folder:PATH (default mujoco)",
+        "mujoco (render the robot's scene), device:N, folder:PATH or yarp:/PORT (a YARP image "
+        "port, e.g. yarp:/icub/cam/left) (default mujoco)",
         parse=parse_source,
     )
     width: int = flag(1280, "image width", unit="px", low=16, high=4096, name="--size", cli=False)
@@ -60,6 +62,13 @@ class CameraConfig:
         "wait this long for the robot's scene parameters at start",
         unit="s",
         low=0,
+        high=60,
+    )
+    frame_timeout: float = flag(
+        5.0,
+        "wait this long for a frame (and for YARP's name server) of a yarp: source",
+        unit="s",
+        low=0.1,
         high=60,
     )
 

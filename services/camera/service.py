@@ -1,8 +1,8 @@
 """`archery camera`: frames of the target on `ROBOT/cam/target:o` and the verbs of
 `ROBOT/cam/rpc:i` (`protocol.verbs.camera`; docs/names.md's tables). Sources: `mujoco` renders the
-robot's scene, `device:N` reads a camera, `folder:PATH` replays images. One capture thread (the
-one `run` is called on) owns the source; frames are captured only while wanted
-(`services.camera.capture`)."""
+robot's scene, `device:N` reads a camera, `folder:PATH` replays images, `yarp:/PORT` reads a YARP
+image port (a real iCub's camera). One capture thread (the one `run` is called on) owns the
+source; frames are captured only while wanted (`services.camera.capture`)."""
 
 from __future__ import annotations
 
