@@ -391,18 +391,20 @@ def test_a_command_without_a_batch_starts_at_once(start: Any) -> None:
 
 def test_an_incomplete_batch_starts_when_the_window_ends(start: Any) -> None:
     loop, _ = start(batch_window=0.3)
+    before = loop.positions("torso")
+    target = np.asarray(before.position) + [0.0, 0.0, 0.1]  # 0.1 rad from where it stands
     t0 = time.monotonic()
-    loop.command("torso", [0.0, 0.0, 0.1], None, "torso", batch=3)  # the other two never come
+    loop.command("torso", target.tolist(), None, "torso", batch=3)  # the other two never come
 
     def arrived() -> bool:  # at rest at the target: not merely at rest, as before the move
         at = np.asarray(loop.positions("torso").position)
-        return loop.call(loop.world.motion_done) and bool(abs(at[2] - 0.1) < 0.02)
+        return loop.call(loop.world.motion_done) and bool(abs(at[2] - target[2]) < 0.02)
 
     while not arrived():
         assert time.monotonic() < t0 + 20, "the move did not end"
         time.sleep(0.002)
-    assert time.monotonic() - t0 >= 0.3
-    np.testing.assert_allclose(loop.positions("torso").position, [0.0, 0.0, 0.1], atol=0.02)
+    assert time.monotonic() - t0 >= 0.3, (before, loop.positions("torso"))
+    np.testing.assert_allclose(loop.positions("torso").position, target, atol=0.02)
 
 
 def test_a_release_after_a_batched_move_waits_for_no_batch(

@@ -376,7 +376,7 @@ def test_nothing_of_the_mesh_stays_when_the_node_stops(mesh: Mesh) -> None:
     node = Ros2Node(
         mesh.node, RobotFrames(ROBOT, scene), "", scene.camera_fovy, domain=2, namespace=NS
     )
-    assert list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**"))
+    until(lambda: list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**")), "the node's tokens")
     node.close()
     until(lambda: not list(mesh.sdk.session.liveliness().get("@ros2_lv/2/**")), "no token left")
 
