@@ -392,7 +392,7 @@ def test_a_command_without_a_batch_starts_at_once(start: Any) -> None:
 def test_an_incomplete_batch_starts_when_the_window_ends(start: Any) -> None:
     loop, _ = start(batch_window=0.3)
     before = loop.positions("torso")
-    target = np.asarray(before.position) + [0.0, 0.0, 0.1]  # 0.1 rad from where it stands
+    target = np.asarray(before.position) + np.array([0.0, 0.0, 0.1])  # 0.1 rad from its posture
     t0 = time.monotonic()
     loop.command("torso", target.tolist(), None, "torso", batch=3)  # the other two never come
 
