@@ -5,11 +5,13 @@ Python bindings), cached outside the checkout (`$XDG_CACHE_HOME/archery/yarp`, b
 `~/.cache/archery/yarp`): a machine builds it once (about 7 minutes on 2 cores).
 
 The build edits setup.py's CMake options for Debian 12, GCC 12 and CMake 4 (no ACE; shared
-libraries, so that the device plugins exist; the standard headers GCC 12 no longer includes),
-builds with CMake < 4, makes the wheel relocatable (`import yarp` points YARP_DATA_DIRS and
-YARP_PLUGINS_DIR at the package unless set) and mends YARP's bottle parser: a bottle nested
-deeper than 64 lists, from the wire or from text, is read as empty, where YARP 3.5 recursed until
-its stack overflowed. Usage: python tools/yarp_wheel.py [--build-only]
+libraries, so that the device plugins exist; the standard headers GCC 12 no longer includes;
+the `fakeMotionControl` device, a simulated control board, which needs YARP_math and so Eigen 3:
+the build installs `libeigen3-dev` with apt when Eigen is missing and it runs as root; without
+root and without Eigen the wheel builds without that device), builds with CMake < 4, makes
+the wheel relocatable (`import yarp` points YARP_DATA_DIRS and YARP_PLUGINS_DIR at the package
+unless set) and mends YARP's bottle parser: a bottle nested deeper than 64 lists, from the
+wire or from text, is read as empty, where YARP 3.5 recursed until its stack overflowed. Usage: python tools/yarp_wheel.py [--build-only]
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ OPTIONS = (
     (
         '"-DYARP_COMPILE_UNMAINTAINED:BOOL=OFF",',
         '"-DYARP_COMPILE_UNMAINTAINED:BOOL=OFF", "-DSKIP_ACE:BOOL=ON", '
+        '"-DENABLE_yarpmod_fakeMotionControl:BOOL=ON", '
         f'"-DCMAKE_CXX_FLAGS={" ".join(f"-include {h}" for h in HEADERS.split())}",',
     ),
 )
@@ -102,8 +105,11 @@ MENDS = (
         for kind, option in (("Write", "SO_SNDTIMEO"), ("Read", "SO_RCVTIMEO"))
     ),
 )
-#: names the build's mends: a YARP installed without them is replaced
-MENDED = hashlib.sha256(repr(MENDS).encode()).hexdigest()[:12]
+#: where Debian's libeigen3-dev puts Eigen 3's CMake package (YARP_math, fakeMotionControl)
+EIGEN = Path("/usr/share/eigen3/cmake/Eigen3Config.cmake")
+#: names the build's options and mends: a YARP installed without them is replaced, a wheel cached
+#: under another name is built again
+MENDED = hashlib.sha256(repr((OPTIONS, MENDS)).encode()).hexdigest()[:12]
 PRELUDE = (
     f"archery_mends = {MENDED!r}\n"
     "import os as _os\n"
@@ -136,15 +142,29 @@ def cached_wheel() -> Path | None:
     return wheels[-1] if wheels else None
 
 
+def apt_install(packages: list[str], started: float) -> None:
+    """Install Debian `packages` with apt-get (as root)."""
+    say(f"installing {' and '.join(packages)}", started)
+    env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
+    subprocess.run(["apt-get", "update", "-qq"], check=True, env=env)
+    subprocess.run(["apt-get", "install", "-y", "-qq", *packages], check=True, env=env)
+
+
 def build(started: float) -> Path:
     """Build the wheel into the cache; its path."""
+    can_apt = os.geteuid() == 0 and shutil.which("apt-get") is not None
     if shutil.which("swig") is None or shutil.which("g++") is None:
-        if os.geteuid() != 0 or shutil.which("apt-get") is None:
+        if not can_apt:
             sys.exit("yarp: the build needs swig and g++: install them (e.g. apt install swig g++)")
-        say("installing swig and g++", started)
-        env = {**os.environ, "DEBIAN_FRONTEND": "noninteractive"}
-        subprocess.run(["apt-get", "update", "-qq"], check=True, env=env)
-        subprocess.run(["apt-get", "install", "-y", "-qq", "swig", "g++"], check=True, env=env)
+        apt_install(["swig", "g++"], started)
+    if not EIGEN.is_file():
+        if can_apt:
+            apt_install(["libeigen3-dev"], started)
+        else:
+            say(
+                "no Eigen 3 (apt install libeigen3-dev): building without fakeMotionControl",
+                started,
+            )
     with tempfile.TemporaryDirectory(prefix="yarp-build-") as folder:
         work = Path(folder)
         say(f"downloading yarp-middleware {VERSION}'s source distribution", started)
