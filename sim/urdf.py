@@ -3,6 +3,7 @@
 * `urdf_text` reads it (the description the robot runs, as the recorder, the bridges and the
   robot frames carry it; `mesh_root` the folder its `package://iCub/` URIs name); for MuJoCo
   its mesh paths are resolved to the `icub-models` package's own mesh files;
+* `urdf_joint_limits` reads the controlled joints' limits (rad) without MuJoCo's compile;
 * `load_urdf_model` is MuJoCo's plain import (the benchmarks' baseline);
 * `robot_spec` keeps only the controlled joints (legs and neck frozen), switches collisions off
   and compensates gravity;
@@ -30,6 +31,7 @@ __all__ = [
     "mesh_root",
     "robot_spec",
     "urdf_frame_placement",
+    "urdf_joint_limits",
     "urdf_text",
 ]
 
@@ -141,6 +143,30 @@ def urdf_frame_placement(frame: str) -> tuple[str, np.ndarray, np.ndarray]:
         quat = new_quat
         link = joint.find("parent").get("link")  # type: ignore[union-attr,assignment]  # a URDF joint has a <parent link=...>
     return link, pos, quat
+
+
+def urdf_joint_limits() -> dict[str, tuple[float, float]]:
+    """The URDF's (lower, upper) limits (rad) of every controlled joint (`PARTS`), by joint name:
+    the limits MuJoCo's scene gives those joints (`ScenePhysics.joint_limits`), read from the
+    file alone.
+
+    Raises:
+        SceneError: the model file is missing, or a controlled joint is absent or has no
+            finite lower < upper limit.
+    """
+    joints = {joint.get("name"): joint for joint in ET.fromstring(urdf_text()).iter("joint")}
+    out: dict[str, tuple[float, float]] = {}
+    for name in (name for names in PARTS.values() for name in names):
+        limit = joints[name].find("limit") if name in joints else None
+        try:
+            lower = float(limit.get("lower", "nan")) if limit is not None else math.nan
+            upper = float(limit.get("upper", "nan")) if limit is not None else math.nan
+        except ValueError:
+            lower = upper = math.nan
+        if not (math.isfinite(lower) and math.isfinite(upper) and lower < upper):
+            raise SceneError(f"{MODEL_NAME}: the joint {name!r} has no finite lower < upper limit")
+        out[name] = (lower, upper)
+    return out
 
 
 def robot_spec(config: SceneConfig) -> mujoco.MjSpec:

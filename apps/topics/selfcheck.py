@@ -2,7 +2,7 @@
 
 With `--echo`, run only the sample service (a torso controlboard that moves nothing, serving
 the real controlboard verbs, and streams a joint state) until SIGINT/SIGTERM; tests use it as a
-real process to kill.
+real process to kill. With `--body yarp`, check a YARP robot's body instead (body_check).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import cast
 
 import zenoh
 
+from archery.apps.topics.body_check import add_body_args, check_body_flags, run_body_check
 from archery.mesh.cliargs import ArgumentParser, seconds
 from archery.mesh.netflags import NetConfig, add_network_args, open_session
 from archery.mesh.node import Node
@@ -26,7 +27,7 @@ from archery.mesh.signals import shutdown_on_signals
 from archery.mesh.subscription import Subscription
 from archery.protocol.codec import decode
 from archery.protocol.errors import ArcheryError, BadRequest, RpcError
-from archery.protocol.exit_status import for_error
+from archery.protocol.exit_status import BAD_INPUT, for_error
 from archery.protocol.messages import Describe, JointCommand, JointState, WorldEvent
 from archery.protocol.parts import PARTS
 from archery.protocol.verbs import NoArgs, ServedVerbs
@@ -257,12 +258,22 @@ def _selfcheck(net: NetConfig, timeout: float) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the self-check (exit 0 when every check passes) or, with --echo, the sample service."""
+    """Run the self-check (exit 0 when every check passes) or, with --echo, the sample service;
+    with --body yarp, the body check of a YARP robot (exit 0, or 2 with one line of what is
+    wrong)."""
     parser = ArgumentParser(prog="archery selfcheck", description=__doc__)
     add_network_args(parser)
     parser.add_argument("--echo", action="store_true", help="only run the sample service")
     parser.add_argument("--timeout", type=seconds, default=10.0, help="seconds per check")
+    add_body_args(parser)
     args = parser.parse_args(argv)
+    if args.body == "yarp":
+        try:
+            run_body_check(check_body_flags(args), args.timeout)
+        except ArcheryError as exc:
+            print(f"archery selfcheck: {exc}", file=sys.stderr)
+            return BAD_INPUT
+        return 0
     try:
         net = NetConfig.from_args(args)
     except ArcheryError as exc:
