@@ -9,13 +9,17 @@ from archery.mesh.configflags import add_config_args, check_bounds, config_from_
 from archery.mesh.netflags import NetConfig
 from archery.protocol.errors import ConfigError
 from archery.protocol.robotspec import COMMAND_BURST, COMMAND_RATE
+from archery.protocol.text import shown
 from archery.protocol.vectors import parse_vector
 from archery.sim.bow import BowError
 from archery.sim.errors import SimError
 from archery.sim.scene_config import SHOTS
 from archery.sim.world import WorldConfig
 
-__all__ = ["RobotConfig", "add_arguments", "make_config"]
+__all__ = ["BODIES", "RobotConfig", "add_arguments", "make_config"]
+
+#: what `archery robot --body` serves: the simulated iCub, or a YARP robot's control boards
+BODIES = ("mujoco", "yarp")
 
 
 @dataclass(frozen=True)
@@ -55,6 +59,11 @@ class RobotConfig:
             part keeping its last accepted targets (see `gate`); 0 switches the limit off.
         command_burst: how many commands a part admits at once after a pause (the rate
             limit's bucket).
+        body: what the robot serves: "mujoco", the simulated iCub (the default), or "yarp", a
+            YARP robot's control boards (`yarp_loop`: joint states at `state_rate` per wall
+            second, positionMove and the lease verbs; no archery verb, no world).
+        remote: the YARP robot's name with `body` "yarp", e.g. /icubSim (its control boards
+            REMOTE/PART); YARP's name server is the one YARP's configuration names.
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -101,9 +110,31 @@ class RobotConfig:
     command_burst: int = flag(
         COMMAND_BURST, "commands a part admits at once after a pause", low=1, high=1e6
     )
+    body: str = flag(
+        "mujoco",
+        "the robot's body: the simulated iCub, or a YARP robot's control boards (--remote)",
+        choices=BODIES,
+    )
+    remote: str = flag(
+        "/icub", "the YARP robot's name with --body yarp (its boards REMOTE/PART)", metavar="NAME"
+    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
+        if self.body == "yarp" and not _yarp_name(self.remote):
+            raise ConfigError(
+                f"--remote {shown(self.remote)}: give the robot's YARP name, e.g. /icub"
+            )
+
+
+def _yarp_name(name: str) -> bool:
+    """Whether `name` is a YARP port name: /, no trailing /, printable, no space."""
+    return (
+        name.startswith("/")
+        and not name.endswith("/")
+        and name.isprintable()
+        and not any(c.isspace() for c in name)
+    )
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

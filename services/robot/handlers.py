@@ -1,5 +1,6 @@
 """The robot's RPC handlers: one method per verb of `protocol.verbs.robot` (the tables, with
-docs/names.md's), served from `SimLoop` and its lease gate (`leases`).
+docs/names.md's), served from a `RobotLoop` (the simulated robot's `SimLoop`, or a YARP body's
+`yarp_loop.YarpLoop`, which refuses what needs the world) and its lease gate (`leases`).
 
 Part verbs take the part first (bound per `ROBOT/{part}/rpc:i` key by `part_verbs`); joint
 vectors are in YARP order (rad, rad/s), times in s of simulated time.
@@ -8,6 +9,8 @@ vectors are in YARP order (rad, rad/s), times in s of simulated time.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from concurrent.futures import Future
+from typing import Any, Protocol
 
 from archery.mesh.acl import OPERATOR
 from archery.mesh.rpc_server import caller, caller_left
@@ -16,20 +19,51 @@ from archery.protocol.errors import BadRequest
 from archery.protocol.messages import JointCommand
 from archery.protocol.verbs import NoArgs, ServedVerbs
 from archery.protocol.verbs import robot as rv
+from archery.services.robot.commands import PartLimits
+from archery.services.robot.config import RobotConfig
 from archery.services.robot.follow import PartSpec
 from archery.services.robot.gate import NotOwner
 from archery.services.robot.jobs import SimUnavailable
-from archery.services.robot.simloop import SimLoop
+from archery.services.robot.leases import Leases
 from archery.services.robot.trajectory import BadTrajectory
 
-__all__ = ["RobotHandlers"]
+__all__ = ["RobotHandlers", "RobotLoop"]
+
+
+class RobotLoop(Protocol):
+    """What the handlers need of a robot's loop (`simloop.SimLoop`, `yarp_loop.YarpLoop`):
+    angles in rad, speeds in rad/s, times in s (each loop's docstrings say of which clock)."""
+
+    @property
+    def config(self) -> RobotConfig: ...
+    @property
+    def limits(self) -> Mapping[str, PartLimits]: ...
+    @property
+    def leases(self) -> Leases: ...
+    def positions(self, part: str) -> rv.PositionsReply: ...
+    def history(self, part: str, since: float) -> rv.HistoryReply: ...
+    def targets(self, part: str) -> list[float]: ...
+    def motion_done(self, part: str) -> bool: ...
+    def set_ref_speeds(self, part: str, speeds: Any) -> list[float]: ...
+    def ref_speeds(self, part: str) -> list[float]: ...
+    def position_move(self, part: str, position: Any, names: Any = None) -> list[float]: ...
+    def follow(
+        self, parts: list[PartSpec], args: rv.PartTrajectoryArgs | rv.TrajectoryArgs
+    ) -> Future[rv.TrajectoryReply]: ...
+    def counters(self, part: str, undecodable: int = 0) -> rv.CountersReply: ...
+    def grasp(self) -> rv.GraspReply: ...
+    def nock(self) -> rv.NockReply: ...
+    def release(self, timeout: float | None = None) -> rv.ReleaseReply: ...
+    def reset(self, seed: Any = None) -> rv.ResetReply: ...
+    def set_wind(self, wind: Any) -> list[float]: ...
+    def status(self) -> rv.ArcheryStatusReply: ...
 
 
 class RobotHandlers:
     """The controlboard verbs of every part and the archery verbs.
 
     Args:
-        loop: the simulation loop the verbs run on.
+        loop: the loop the verbs run on (the simulation's, or a YARP body's).
         commands: each part's `command:i` subscription (its undecodable count is a counter).
         secure: the mesh runs in secure mode: a lease's owner is the identity its claim names
             (`mesh.rpc_server.caller`, vouched for by the router), and only the operator takes
@@ -38,7 +72,7 @@ class RobotHandlers:
 
     def __init__(
         self,
-        loop: SimLoop,
+        loop: RobotLoop,
         commands: Mapping[str, Subscription[JointCommand]],
         secure: bool = False,
     ) -> None:

@@ -44,13 +44,16 @@ class Sink(Protocol):
 
 class MeshSink:
     """The loop's streams as Zenoh publishers (`ROBOT/{part}/state:o`, `ROBOT/world/state:o`,
-    `ROBOT/world/events:o`, the last lossless)."""
+    `ROBOT/world/events:o`, the last lossless; `world` False: the joint states alone, for a
+    robot with no simulated world, whose `world_state` and `event` then publish nothing)."""
 
-    def __init__(self, node: Node, parts: tuple[str, ...]) -> None:
+    def __init__(self, node: Node, parts: tuple[str, ...], world: bool = True) -> None:
         keys = node.keys
         self._states = {p: node.publisher(keys.state(p), JointState) for p in parts}
-        self._world = node.publisher(keys.world_state(), WorldState)
-        self._events = node.publisher(keys.world_events(), WorldEvent, lossless=True)
+        self._world = node.publisher(keys.world_state(), WorldState) if world else None
+        self._events = (
+            node.publisher(keys.world_events(), WorldEvent, lossless=True) if world else None
+        )
 
     def joint_state(
         self,
@@ -73,6 +76,8 @@ class MeshSink:
         )
 
     def world_state(self, qpos: np.ndarray, phase: str, shot: int, sim_time: float) -> None:
+        if self._world is None:
+            return
         self._world.put(
             WorldState(qpos=Array.from_numpy(qpos), phase=phase, shot=shot, sim_time=sim_time)
         )
@@ -85,6 +90,8 @@ class MeshSink:
         impact_m: list[float] | None = None,
         reason: str = "",
     ) -> None:
+        if self._events is None:
+            return
         self._events.put(
             WorldEvent(
                 kind=kind,  # type: ignore[arg-type]  # callers pass one of WorldEvent's kinds

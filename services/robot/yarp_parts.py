@@ -204,6 +204,11 @@ class YarpBody:
             out[part] = check_encoders(axes, read, self.margin)
         return out
 
+    def driver(self, part: str) -> Any:
+        """The open `remote_controlboard` of `part` (a `yarp.PolyDriver`), for the caller that
+        commands the robot (`yarp_loop`); this module only reads."""
+        return self._drivers[part]
+
     def close(self) -> None:
         """Close every control board and leave YARP's network (as `open_parts` joined it)."""
         drivers, self._drivers = self._drivers, {}

@@ -1,0 +1,334 @@
+"""`YarpLoop`: a YARP robot's control boards (`yarp_parts.open_parts`) as the robot's handlers
+see a loop (`handlers.RobotLoop`), for `archery robot --body yarp`.
+
+Each part's joint states at `state_rate` per WALL second (no simulated time: `sim_time` is the
+wall time since the start, s, one stamp for all the parts read together); `positionMove` and
+`command:i` through `IPositionControl.positionMove` (degrees, the mapped axes, the targets
+checked and clamped by `commands`' rules); reference speeds through `setRefSpeed` (deg/s, at
+most `MAX_REFERENCE_SPEED` rad/s). Motion done: the encoders within `TOLERANCES["rest"]` (rad)
+of the last targets, never the robot's `checkMotionDone`. The leases are the simulated robot's
+(`leases`, `gate`). What needs the simulated world is refused (`Unsupported`). `yarp` is never
+imported here: the body holds it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from concurrent.futures import Future
+from typing import Any
+
+import numpy as np
+
+from archery.protocol.errors import ArcheryError, BadRequest
+from archery.protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, TOLERANCES
+from archery.protocol.text import shown
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
+from archery.services.robot.config import RobotConfig
+from archery.services.robot.follow import PartSpec
+from archery.services.robot.leases import Leases
+from archery.services.robot.sink import Sink
+from archery.services.robot.yarp_parts import BodyError, YarpBody
+
+__all__ = ["UNSUPPORTED", "Unsupported", "YarpLoop"]
+
+log = logging.getLogger("archery.robot")
+
+UNSUPPORTED = "unsupported"
+
+
+class Unsupported(ArcheryError):
+    """A verb a YARP body cannot do (yet): it needs the simulated world (arrow, bow, scene,
+    simulated time), which a YARP robot's control boards do not have."""
+
+    code = UNSUPPORTED
+
+    def __init__(self, verb: str) -> None:
+        super().__init__(
+            f"a YARP body has no {verb} yet: `archery robot --body yarp` serves the parts' "
+            "control boards only (joint states, limits, positionMove, speeds, leases); the "
+            "archery verbs need the simulated robot (--body mujoco)"
+        )
+
+
+class YarpLoop:
+    """A YARP robot's parts, read at `config.state_rate` per wall second (`run`, on a thread
+    of its own) and moved on request; every method may be called from any thread (the YARP
+    calls are serialised by one lock).
+
+    Args:
+        body: the robot's control boards, opened by `yarp_parts.open_parts`; the loop closes
+            them (`close`).
+        config: state_rate (Hz, wall), limit_tolerance (rad), command_rate and command_burst.
+        sink: receives the joint states (`Sink.joint_state`; no world state, no event).
+
+    Raises:
+        BodyError: a part has no position control (`IPositionControl`), its first encoder
+            reading is refused (`YarpBody.encoders`), or it refuses the start's reference
+            speeds (`REFERENCE_SPEED`).
+    """
+
+    def __init__(self, body: YarpBody, config: RobotConfig, sink: Sink) -> None:
+        self.body = body
+        self.config = config
+        self.parts = tuple(body.parts)
+        self.limits = {
+            part: PartLimits(
+                part=part,
+                names=axes.joints,
+                lower=axes.lower,
+                upper=axes.upper,
+                tolerance=config.limit_tolerance,
+            )
+            for part, axes in body.parts.items()
+        }
+        self._counters = {part: PartCounters() for part in self.parts}
+        self.leases = Leases(self.parts, config.command_rate, config.command_burst, self._counters)
+        self._sink = sink
+        self._lock = threading.Lock()  # the YARP calls and the state below
+        self._controls: dict[str, Any] = {}
+        for part in self.parts:
+            control = body.driver(part).viewIPositionControl()
+            if control is None:
+                raise BodyError(f"{body.parts[part].board} takes no position command")
+            self._controls[part] = control
+        self._start = time.monotonic()
+        self._stamp = 0.0  # s of wall time since the start, of the reading below
+        self._position = {p: np.asarray(v) for p, v in body.encoders().items()}
+        self._velocity = {p: np.zeros(len(v)) for p, v in self._position.items()}
+        self._targets = {p: v.copy() for p, v in self._position.items()}
+        self._speeds: dict[str, list[float]] = {}
+        for part in self.parts:
+            self._send_speeds(part, [REFERENCE_SPEED] * len(self.limits[part].names))
+        self._closed = threading.Event()
+        self._refused = ""  # the last encoder reading refused, logged once
+
+    # -- the loop ------------------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        """Read every part and publish its joint state, `state_rate` times per wall second,
+        until `stop` is set or the loop is closed. A reading refused (an encoder NaN, out of
+        its limits, or silent) is logged once and not published: the states go stale."""
+        period = 1.0 / self.config.state_rate
+        tick = time.monotonic()
+        while not (stop.is_set() or self._closed.is_set()):
+            try:
+                self._publish()
+            except BodyError as exc:
+                if str(exc) != self._refused:
+                    self._refused = str(exc)
+                    log.error("joint states not published: %s", exc)
+            tick = max(tick + period, time.monotonic())
+            stop.wait(max(0.0, tick - time.monotonic()))
+
+    def _publish(self) -> None:
+        with self._lock:
+            now = self.body.encoders()
+            stamp = time.monotonic() - self._start
+            dt = stamp - self._stamp
+            for part, values in now.items():
+                position = np.asarray(values)
+                if dt > 0:
+                    self._velocity[part] = (position - self._position[part]) / dt
+                self._position[part] = position
+            self._stamp = stamp
+            self._refused = ""
+            states = [
+                (
+                    part,
+                    self._position[part].tolist(),
+                    self._velocity[part].tolist(),
+                    self._done(part),
+                )
+                for part in self.parts
+            ]
+        for part, position, velocity, done in states:  # one stamp: one time for all parts
+            self._sink.joint_state(part, self.limits[part].names, position, velocity, done, stamp)
+
+    def close(self) -> None:
+        """End `run` and close the control boards (and YARP's network)."""
+        self._closed.set()
+        with self._lock:
+            self.body.close()
+
+    # -- reading -------------------------------------------------------------------------------
+    def _done(self, part: str) -> bool:
+        """Every joint of `part` within `TOLERANCES["rest"]` rad of its target (lock held)."""
+        gap = np.abs(self._position[part] - self._targets[part])
+        return bool(np.all(gap <= TOLERANCES["rest"]))
+
+    def positions(self, part: str) -> rv.PositionsReply:
+        """`part`'s encoders now: positions (rad), velocities (rad/s, from the loop's last two
+        readings), `sim_time`: wall s since the start.
+
+        Raises:
+            BodyError: the reading is refused (`YarpBody.encoders`).
+        """
+        with self._lock:
+            position = self.body.encoders()[part]
+            return rv.PositionsReply(
+                names=list(self.limits[part].names),
+                position=list(position),
+                velocity=self._velocity[part].tolist(),
+                sim_time=time.monotonic() - self._start,
+            )
+
+    def targets(self, part: str) -> list[float]:
+        """`part`'s last targets (rad; its encoders at the start before any move)."""
+        with self._lock:
+            out: list[float] = self._targets[part].tolist()
+            return out
+
+    def motion_done(self, part: str) -> bool:
+        """Whether the loop's last reading of `part` lies within `TOLERANCES["rest"]` (rad) of
+        its targets."""
+        with self._lock:
+            return self._done(part)
+
+    def ref_speeds(self, part: str) -> list[float]:
+        """`part`'s reference speeds (rad/s), as last sent."""
+        with self._lock:
+            return list(self._speeds[part])
+
+    def counters(self, part: str, undecodable: int = 0) -> rv.CountersReply:
+        """`part`'s command counters; never `streaming` (a YARP body keeps no stream
+        watchdog); `undecodable`: counted by the service's subscription."""
+        return rv.CountersReply(
+            **self._counters[part].to_dict(), streaming=False, undecodable=undecodable
+        )
+
+    # -- moving --------------------------------------------------------------------------------
+    def command(
+        self,
+        part: str,
+        position: list[float],
+        names: list[str] | None,
+        said: str,
+        batch: int = 1,
+        lease: str = "",
+    ) -> None:
+        """A `command:i` message for `part` that passed `leases.screen`: moved at once (a
+        YARP robot has no simulated time for a `batch` to start at). A command that breaks
+        a rule (`commands`) or that the robot refuses is counted and logged, never applied."""
+        try:
+            self._move(part, position, names, said)
+        except CommandRejected:
+            return
+        except ArcheryError as exc:
+            log.warning("command on %s not sent: %s", part, exc)
+
+    def position_move(self, part: str, position: Any, names: Any = None) -> list[float]:
+        """Check the targets (rad) like a command, clamp them into the limits and send the
+        named joints' (all, without names) to the robot; the part's targets. The caller
+        checked the lease (`leases.check`).
+
+        Raises:
+            BadRequest: `names` is not a list; the robot refuses the move.
+            CommandRejected: a command rule is broken (nothing sent).
+        """
+        if names is not None and not isinstance(names, list | tuple):
+            raise BadRequest(f"names must be a list of joint names, got {shown(names)}")
+        return self._move(part, position, names, None)
+
+    def _move(self, part: str, position: Any, names: Any, said: str | None) -> list[float]:
+        limits = self.limits[part]
+        with self._lock:
+            try:
+                targets, clamped = check_command(limits, self._targets[part], position, names, said)
+            except CommandRejected as exc:
+                n = self._counters[part].reject(exc.reason, exc.message)
+                if n <= 10 or n % 100 == 0:
+                    log.warning("rejected command #%d on %s (%s): %s", n, part, exc.reason, exc)
+                raise
+            moved = range(len(limits.names)) if names is None else map(limits.names.index, names)
+            axes, control = self.body.parts[part], self._controls[part]
+            for k in moved:
+                if not control.positionMove(axes.index[k], math.degrees(float(targets[k]))):
+                    raise BadRequest(
+                        f"{axes.board} refused positionMove of {limits.names[k]} "
+                        f"(axis {axes.index[k]}) to {math.degrees(float(targets[k])):.2f}°"
+                    )
+                self._targets[part][k] = targets[k]
+            self._counters[part].accept(clamped)
+            out: list[float] = self._targets[part].tolist()
+            return out
+
+    def set_ref_speeds(self, part: str, speeds: Any) -> list[float]:
+        """Set `part`'s reference speeds (rad/s: one for every joint, or one per joint), each
+        in (0, MAX_REFERENCE_SPEED]; sent in deg/s. The caller checked the lease.
+
+        Raises:
+            BadRequest: the wrong number of speeds, one out of range, or the robot refuses.
+        """
+        n = len(self.limits[part].names)
+        if isinstance(speeds, int | float) and not isinstance(speeds, bool):
+            speeds = [speeds] * n
+        values = [float(v) for v in speeds]
+        if len(values) != n:
+            raise BadRequest(f"{part} takes {n} reference speeds (rad/s), got {len(values)}")
+        if not all(0 < v <= MAX_REFERENCE_SPEED for v in values):
+            raise BadRequest(
+                f"{part} reference speeds must be in (0, {MAX_REFERENCE_SPEED:g}] rad/s, "
+                f"got {shown(values)}"
+            )
+        with self._lock:
+            try:
+                self._send_speeds(part, values)
+            except BodyError as exc:
+                raise BadRequest(str(exc)) from None
+            return list(self._speeds[part])
+
+    def _send_speeds(self, part: str, speeds: list[float]) -> None:
+        """`speeds` (rad/s) to `part`'s axes (deg/s), kept when the robot takes them all
+        (lock held, or in the constructor).
+
+        Raises:
+            BodyError: the robot refuses one.
+        """
+        axes, control = self.body.parts[part], self._controls[part]
+        for k, speed in enumerate(speeds):
+            if not control.setRefSpeed(axes.index[k], math.degrees(speed)):
+                raise BodyError(
+                    f"{axes.board} refused the reference speed {math.degrees(speed):.1f}°/s of "
+                    f"{axes.joints[k]} (axis {axes.index[k]})"
+                )
+        self._speeds[part] = list(speeds)
+
+    # -- what needs the simulated world ----------------------------------------------------------
+    def history(self, part: str, since: float) -> rv.HistoryReply:
+        """Refused: no joint-state history is kept of a YARP body."""
+        raise Unsupported("getHistory")
+
+    def follow(
+        self, parts: list[PartSpec], args: rv.PartTrajectoryArgs | rv.TrajectoryArgs
+    ) -> Future[rv.TrajectoryReply]:
+        """Refused: trajectories play in the simulated robot's loop."""
+        verb = "followTrajectory" if isinstance(args, rv.TrajectoryArgs) else "followPartTrajectory"
+        raise Unsupported(verb)
+
+    def grasp(self) -> rv.GraspReply:
+        """Refused: no arrow, no holder."""
+        raise Unsupported("grasp")
+
+    def nock(self) -> rv.NockReply:
+        """Refused: no arrow, no bow."""
+        raise Unsupported("nock")
+
+    def release(self, timeout: float | None = None) -> rv.ReleaseReply:
+        """Refused: no arrow to release."""
+        raise Unsupported("release")
+
+    def reset(self, seed: Any = None) -> rv.ResetReply:
+        """Refused: a real robot is not put back by a verb."""
+        raise Unsupported("reset")
+
+    def set_wind(self, wind: Any) -> list[float]:
+        """Refused: no simulated wind."""
+        raise Unsupported("setWind")
+
+    def status(self) -> rv.ArcheryStatusReply:
+        """Refused: the archery status tells a scene, an arrow, a shot and simulated time,
+        none of which a YARP body has."""
+        raise Unsupported("status (its scene, arrow, shot and simulated time)")

@@ -1,0 +1,179 @@
+"""`archery robot --body yarp`: the robot service in front of YARP's own devices (YARP 3.5's
+`fakeMotionControl` behind `controlboardwrapper2`, one `yarpdev` per part, on YARP's own
+`yarpserver` on loopback; the fixtures of tests/test_yarp_body.py), on a real Zenoh router,
+read and moved through the mesh's `RobotClient`."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
+from archery.protocol.errors import RobotError, RpcError
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import ROBOT, TOLERANCES
+from archery.protocol.verbs import robot as rv
+from archery.services.robot.yarp_parts import project_limits
+from tests.ros2_sdk import until
+from tests.test_yarp_body import FAKE, POSE, Board, Robots, _fake_motion_control
+from tests.yarp_setup import YarpSetup
+
+yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
+
+
+@dataclass
+class Rig:
+    setup: YarpSetup
+    robots: Robots
+    net: NetConfig
+    node: Node
+    proc: subprocess.Popen[bytes]
+    log: Path
+
+
+def _robot(net: NetConfig, env: dict[str, str], log: Path, *flags: str) -> subprocess.Popen[bytes]:
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)  # YARP's handler reaps children (see conftest)
+    argv = [sys.executable, "-m", "archery.apps.cli", "robot", "--connect", net.connect[0]]
+    with log.open("wb") as out:
+        return subprocess.Popen(
+            [*argv, "--robot", net.robot, "--body", "yarp", *flags],
+            env=env,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
+
+
+@pytest.fixture(scope="module")
+def rig(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Rig]:
+    if not _fake_motion_control():
+        pytest.skip("this YARP has no fakeMotionControl device (tools/yarp_wheel.py builds it)")
+    tmp = tmp_path_factory.mktemp("yarp_body_robot")
+    setup = YarpSetup(yarp, tmp / "server")
+    try:
+        robots = Robots(setup, tmp)
+        try:
+            net = NetConfig(connect=(router_endpoint,), robot=f"yarp{os.getpid()}")
+            log = tmp / "robot.log"
+            proc = _robot(net, setup.env, log, "--remote", "/fake")
+            node = Node(None, net)
+            try:
+                node.wait_alive([ROBOT], 60)
+                yield Rig(setup, robots, net, node, proc, log)
+            finally:
+                node.close()
+                signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+                proc.terminate()
+                try:
+                    status = proc.wait(20)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+                    proc.wait()
+                    raise
+                assert status == 0, log.read_text(errors="replace")[-2000:]
+        finally:
+            robots.close()
+    finally:
+        setup.close()
+
+
+def _elbow_degrees(rig: Rig) -> float:
+    """The left elbow as fakeMotionControl reads it (deg), through the test's own client."""
+    board = Board("/fake/left_arm", "/test/robot/read")
+    try:
+        return board.read()[FAKE["left_arm"].index("l_elbow")]
+    finally:
+        board.close()
+
+
+def test_the_client_reads_the_joints_and_limits(rig: Rig) -> None:
+    client = RobotClient(rig.node, timeout=10)
+    try:
+        limits = project_limits()  # fakeMotionControl's getLimits fails: the project's
+        for part, names in PARTS.items():
+            lower, upper = client.limits(part)
+            assert lower.tolist() == pytest.approx([limits[n][0] for n in names])
+            assert upper.tolist() == pytest.approx([limits[n][1] for n in names])
+            state = client.joints(part)
+            assert state.names == list(names)
+            assert state.position == pytest.approx([POSE[n] for n in names], abs=1e-6)
+            assert state.motion_done
+        stamps = {client.joints(p).sim_time for p in PARTS}
+        assert all(s is not None and s > 0 for s in stamps)  # wall s since the start
+    finally:
+        client.close()
+
+
+def test_a_claimed_move_reaches_the_elbow_in_yarp_and_another_owner_is_refused(rig: Rig) -> None:
+    client, rival = RobotClient(rig.node, timeout=10), RobotClient(rig.node, timeout=10)
+    try:
+        _, upper = client.limits("left_arm")
+        k = PARTS["left_arm"].index("l_elbow")
+        now = client.joints("left_arm").position[k]
+        target = now + 0.2 if now + 0.2 < upper[k] else now - 0.2
+        with client.claim(["left_arm"], "archer", speeds=1.0) as held:
+            with pytest.raises(RobotError) as refused:
+                rival.move({"l_elbow": target}, owner="rival")
+            assert refused.value.kind == "not_owner"
+            moved = client.move({"l_elbow": target}, claim=held, until="rest")
+        assert moved.reached, moved.reason
+        assert moved.measured["l_elbow"] == pytest.approx(target, abs=TOLERANCES["rest"])
+        assert _elbow_degrees(rig) == pytest.approx(math.degrees(target), abs=1e-6)
+        targets = client.part_call("left_arm", rv.GET_TARGETS)
+        assert targets.position[k] == pytest.approx(target)
+        # the part is free again: a positionMove a little past the limit is clamped onto it
+        args = rv.PositionMoveArgs(position=[float(upper[k]) + 0.01], names=["l_elbow"])
+        reply = client.part_call("left_arm", rv.POSITION_MOVE, args)
+        assert reply.position[k] == pytest.approx(float(upper[k]))
+        until(
+            lambda: abs(_elbow_degrees(rig) - math.degrees(upper[k])) < 1e-6,
+            "the elbow at its upper limit",
+            timeout=10,
+        )
+        assert client.part_call("left_arm", rv.COUNTERS).clamped == 1
+    finally:
+        client.close()
+        rival.close()
+
+
+@pytest.mark.parametrize("verb", ["release", "nock", "status"])
+def test_the_archery_verbs_are_refused_naming_why(rig: Rig, verb: str) -> None:
+    client = RobotClient(rig.node, timeout=10)
+    try:
+        with pytest.raises(RpcError) as refused:
+            getattr(client, verb)()
+        assert refused.value.code == "unsupported"
+        assert f"a YARP body has no {verb}" in refused.value.message
+    finally:
+        client.close()
+
+
+def test_a_remote_that_does_not_exist_is_one_line_exit_2(rig: Rig, tmp_path: Path) -> None:
+    net = NetConfig(connect=rig.net.connect, robot=f"nothere{os.getpid()}")
+    log = tmp_path / "robot.log"
+    proc = _robot(net, rig.setup.env, log, "--remote", "/nothere")
+    assert proc.wait(60) == 2
+    lines = log.read_text().splitlines()
+    assert lines[-1].startswith("archery robot: no control board at /nothere/torso, ")
+    assert "/nothere/torso" in lines[-1] and "\n" not in lines[-1]
+
+
+def test_a_remote_that_is_not_a_yarp_name_is_refused_before_any_work(
+    rig: Rig, tmp_path: Path
+) -> None:
+    log = tmp_path / "robot.log"
+    proc = _robot(rig.net, rig.setup.env, log, "--remote", "icub")
+    assert proc.wait(60) == 2
+    assert log.read_text().splitlines() == [
+        "archery robot: --remote 'icub': give the robot's YARP name, e.g. /icub"
+    ]
