@@ -11,7 +11,8 @@ the build installs `libeigen3-dev` with apt when Eigen is missing and it runs as
 root and without Eigen the wheel builds without that device), builds with CMake < 4, makes
 the wheel relocatable (`import yarp` points YARP_DATA_DIRS and YARP_PLUGINS_DIR at the package
 unless set) and mends YARP's bottle parser: a bottle nested deeper than 64 lists, from the
-wire or from text, is read as empty, where YARP 3.5 recursed until its stack overflowed. Usage: python tools/yarp_wheel.py [--build-only]
+wire or from text, is read as empty, where YARP 3.5 recursed until its stack overflowed.
+Usage: python tools/yarp_wheel.py [--build-only]
 """
 
 from __future__ import annotations
