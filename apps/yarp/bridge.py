@@ -24,10 +24,16 @@ from typing import Any
 
 from archery.apps.follow import Stop, follow_stream
 from archery.apps.yarp.controlboard import ControlBoard, Output
-from archery.apps.yarp.ports import ArcheryPort, event_bottle, image_to, reward_bottle
+from archery.apps.yarp.ports import (
+    ArcheryPort,
+    SeenClock,
+    event_bottle,
+    image_to,
+    reward_bottle,
+)
 from archery.mesh.node import Node
 from archery.mesh.robot_client import RobotClient
-from archery.protocol.messages import JointState
+from archery.protocol.messages import Image, JointState, WorldState
 from archery.protocol.parts import PARTS
 from archery.protocol.streams import Stream, shown_by
 
@@ -168,6 +174,11 @@ class YarpBridge:
         self._stops: list[Stop] = []
         self.counts = {"frames": 0, "hits": 0, "events": 0}
         self.robot = RobotClient(node, timeout=timeout)
+        #: when the world was in each rendered frame's state: the frames' envelope stamps
+        self.seen = SeenClock()
+        self._world = node.subscribe(
+            node.keys.world_state(), WorldState, mode="fifo", callback=self.seen.state
+        )
         try:
             for part in PARTS:
                 self.boards[part] = ControlBoard(yarp, self.robot, part, prefix, operator=operator)
@@ -211,8 +222,9 @@ class YarpBridge:
         return outbox
 
     def _writer(self, output: Output, conversion: Conversion) -> Callable[[Any], None]:
-        """Write each message on `output` (its stamp the envelope), never waiting on a slow
-        reader (`Output.send`)."""
+        """Write each message on `output` (its stamp the envelope; a frame's, when the world
+        was in the state it shows: `SeenClock`), never waiting on a slow reader
+        (`Output.send`)."""
         fill, counter = conversion.fill, conversion.counter
         assert fill is not None
         count = [0]
@@ -221,7 +233,8 @@ class YarpBridge:
         def write(message: Any) -> None:
             fill(self.yarp, port.prepare(), message)
             count[0] += 1
-            port.setEnvelope(self.yarp.Stamp(count[0], message.stamp))
+            stamp = self.seen.seen(message) if isinstance(message, Image) else message.stamp
+            port.setEnvelope(self.yarp.Stamp(count[0], stamp))
             output.send()
             self.counts[counter] += 1
 
@@ -248,6 +261,7 @@ class YarpBridge:
         for stop in self._stops:
             stop()
         self._stops = []
+        self.node.unsubscribe(self._world)
         for outbox in self._outboxes:
             outbox.close()
         self._outboxes = []

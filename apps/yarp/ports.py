@@ -7,11 +7,13 @@ centre, x to the robot's right, y up; `status` "ok", or "no_target" / "no_arrow"
 `<prefix>/world/events:o` is `kind shot [x y z] reason` (the impact in m, root frame, where
 there is one). `<prefix>/archery/rpc:i` answers `reset`, `nock`, `release`, `grasp` (a whole
 shot robot's), `status` and `help`: `ok …` with the verb's reply as key value pairs, or
-`fail code message` (read-only: every verb but `status` and `help` is refused).
+`fail code message` (read-only: every verb but `status` and `help` is refused); `json VERB`
+answers `ok TEXT`, TEXT the whole typed reply as JSON (`ArcheryPort._respond_json`).
 """
 
 from __future__ import annotations
 
+import bisect
 import logging
 import threading
 from collections.abc import Callable
@@ -22,12 +24,12 @@ import msgspec
 from archery.apps.yarp.controlboard import close_port, open_port, serve_rpc
 from archery.mesh.robot_client import RobotClient
 from archery.protocol.errors import ArcheryError
-from archery.protocol.messages import Detection, Image, WorldEvent
+from archery.protocol.messages import Detection, Image, WorldEvent, WorldState
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 from archery.protocol.verbs.base import NoArgs, Verb
 
-__all__ = ["ArcheryPort", "event_bottle", "image_to", "reward_bottle"]
+__all__ = ["ArcheryPort", "SeenClock", "event_bottle", "image_to", "reward_bottle"]
 
 log = logging.getLogger("archery.yarp")
 
@@ -39,6 +41,51 @@ VERBS: dict[str, tuple[Verb[Any, Any], bool]] = {
     "grasp": (rv.GRASP, True),
     "status": (rv.ARCHERY_STATUS, False),
 }
+
+
+class SeenClock:
+    """When the simulated world was last known to be in the state of a given simulated time:
+    the wall stamps (s) of the robot's world states, kept for the last `kept` sim times (the
+    record starts over when sim time goes back: a reset). A rendered frame shows one world
+    state (its `sim_time`); its YARP envelope takes `seen(frame)`, the wall time its world was
+    that, not when the frame was published, so that a YARP reader asking for a frame "captured
+    after" a wall time never gets a re-sent render of an older world."""
+
+    def __init__(self, kept: int = 512) -> None:
+        self._lock = threading.Lock()
+        self._kept = kept
+        self._times: list[float] = []  # sim s, increasing
+        self._stamps: list[float] = []  # wall s of the newest world state at each
+
+    def state(self, state: WorldState) -> None:
+        """Record a world state (its sim time, s, and wall stamp, s)."""
+        if state.sim_time is None:
+            return
+        with self._lock:
+            if self._times and state.sim_time < self._times[-1]:
+                self._times.clear()
+                self._stamps.clear()
+            if self._times and state.sim_time == self._times[-1]:
+                self._stamps[-1] = max(self._stamps[-1], state.stamp)
+                return
+            self._times.append(state.sim_time)
+            self._stamps.append(state.stamp)
+            if len(self._times) > self._kept:
+                del self._times[0], self._stamps[0]
+
+    def seen(self, image: Image) -> float:
+        """The wall time (s) the world was last known in `image`'s state: the stamp of the
+        world state of its sim time; one not recorded (yet), the newest recorded before it (a
+        lower bound: it was published later); the image's own stamp when nothing tells."""
+        if image.sim_time is None:
+            return image.stamp
+        with self._lock:
+            k = bisect.bisect_right(self._times, image.sim_time)
+            if k and self._times[k - 1] == image.sim_time:
+                return self._stamps[k - 1]
+            if k:
+                return max(self._stamps[:k])
+            return image.stamp
 
 
 def image_to(yarp: Any, out: Any, image: Image) -> None:
@@ -91,9 +138,13 @@ class ArcheryPort:
         serve_rpc(self.yarp, self.port, self.respond, self._closing, self.name)
 
     def respond(self, request: Any, reply: Any) -> None:
-        """Answer one request: `ok key value …` or `fail code message`."""
+        """Answer one request: `ok key value …` (`json VERB`: `ok TEXT`, the reply as JSON) or
+        `fail code message`."""
         reply.clear()
         word = request.get(0).toString() if request.size() else ""
+        if word == "json" and request.size() >= 2:
+            self._respond_json(request, reply)
+            return
         if word == "help" or (request.size() == 0):
             reply.addString("ok")
             reply.addString("verbs: " + ", ".join(VERBS) + (" (read-only)" * (not self.operator)))
@@ -116,6 +167,33 @@ class ArcheryPort:
             return
         reply.addString("ok")
         _add_plain(reply, msgspec.to_builtins(result))
+
+    def _respond_json(self, request: Any, reply: Any) -> None:
+        """`json VERB` (`json reset SEED`, SEED an integer in [0, 2**63)): `ok TEXT`, TEXT the
+        verb's reply encoded as JSON, or `fail code message`."""
+        word = request.get(1).toString()
+        found = VERBS.get(word)
+        seed = request.get(2) if request.size() == 3 else None
+        seeded = word == "reset" and seed is not None and (seed.isInt32() or seed.isInt64())
+        if found is None or not (request.size() == 2 or seeded):
+            _fail(reply, "bad_request", f"unknown request {shown(request.toString())}; try help")
+            log.warning("%s: %s refused: unknown", self.name, shown(request.toString()))
+            return
+        verb, moves = found
+        if moves and not self.operator:
+            _fail(reply, "read_only", "read-only bridge (start `archery yarp --operator`)")
+            log.warning("%s: %s refused: read-only", self.name, word)
+            return
+        try:
+            args: Any = NoArgs()
+            if verb is rv.RESET:
+                args = rv.ResetArgs(seed=seed.asInt64() if seeded and seed is not None else None)
+            result = self.robot.call(verb, args)
+        except (ArcheryError, msgspec.ValidationError) as exc:
+            _fail(reply, getattr(exc, "code", "bad_request"), str(exc))
+            return
+        reply.addString("ok")
+        reply.addString(msgspec.json.encode(result).decode())
 
     def close(self) -> None:
         self._closing.set()

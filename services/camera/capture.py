@@ -246,6 +246,15 @@ class Capture:
             self.reader.close()
 
 
+def _sender_stamp(reader: Any, captured: float) -> float:
+    """When a frame was captured (wall s): its sender's stamp for a YARP port's frame that
+    carries one (`YarpSource.stamp`, never later than `captured`), else `captured`, when its
+    read started."""
+    if isinstance(reader, YarpSource) and reader.stamp is not None:
+        return min(reader.stamp, captured)
+    return captured
+
+
 def _serves(waiting: list[Freshness], sim_time: float | None, wall: float) -> bool:
     """True if a frame of a world state at `sim_time` (s) captured at `wall` (s) would serve
     one of the `waiting` grabs."""
@@ -346,6 +355,7 @@ def capture_loop(capture: Capture, pub: Publisher[Image], stop: threading.Event)
                     if due or serve:
                         captured = time.time()
                         pixels = capture.reader.read(fresh=serve)  # type: ignore[union-attr]  # not MuJoCo: a device, folder or YARP port
+                        captured = _sender_stamp(capture.reader, captured)
                         capture.publish(pixels, None, captured, pub)
                         next_due = now + period
             except ArcheryError as exc:

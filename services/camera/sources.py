@@ -36,6 +36,8 @@ log = logging.getLogger("archery.camera")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 YARP_PORT = re.compile(r"/[^\s@]{1,200}")  # a YARP port name: `/` then no blank, no `@`
 YARP_POLL = 0.002  # s between two looks at a YARP port's input while a frame is awaited
+#: s: a YARP frame's envelope stamp further than this from its arrival is not this clock's
+YARP_STAMP_SKEW = 10.0
 _local_ports = itertools.count()
 
 
@@ -158,6 +160,12 @@ class YarpSource:
     `BufferedPortImageRgb` of the camera's own (`/archery/camera/PID/N:i`) that YARP connects
     from `PORT` (tcp), keeping only the newest frame it receives.
 
+    `stamp` is the last frame's capture time as its sender stamped it (the envelope's
+    `yarp::os::Stamp`, wall s since the Unix epoch, as `archery yarp` and a real iCub's camera
+    stamp theirs), or None when it has none or one more than `YARP_STAMP_SKEW` s from its
+    arrival (another clock): a frame relayed over YARP arrives late, and its arrival is not
+    when it was seen.
+
     YARP finds its name server as its users configure it (`yarp conf HOST PORT`, `YARP_IP`).
     Every failure is one `SourceError` that names the port: no name server configured, or none
     answering within `timeout`; no such port; no frame within `timeout`; a frame of another
@@ -180,6 +188,8 @@ class YarpSource:
         self.timeout = timeout
         self.local = f"/archery/camera/{os.getpid()}/{next(_local_ports)}:i"
         self.size: tuple[int, int] | None = None  # (width, height) px of the first frame
+        self.stamp: float | None = None  # wall s: the last frame's envelope stamp
+        self._skewed = False  # a stamp from another clock, said once
         self._yarp: Any = yarp
         self._port: Any = None
         yarp.Network.init()
@@ -227,6 +237,7 @@ class YarpSource:
                 self._reconnect()
                 raise SourceError(f"yarp:{self.remote}: no frame within {self.timeout:g} s")
             time.sleep(YARP_POLL)
+        self.stamp = self._envelope()
         width, height = image.width(), image.height()
         if width == 0 or height == 0:
             raise SourceError(f"yarp:{self.remote}: an empty frame ({width}x{height} px)")
@@ -244,6 +255,25 @@ class YarpSource:
         view.setExternal(rows, width, height)
         view.copy(image)
         return np.ascontiguousarray(rows[:, : 3 * width].reshape(height, width, 3))
+
+    def _envelope(self) -> float | None:
+        """The frame just read's envelope stamp (wall s), None if it has none or one from
+        another clock (said once)."""
+        envelope = self._yarp.Stamp()
+        if not self._port.getEnvelope(envelope) or not envelope.isValid():
+            return None
+        stamp = float(envelope.getTime())
+        if abs(stamp - time.time()) > YARP_STAMP_SKEW:
+            if not self._skewed:
+                self._skewed = True
+                log.warning(
+                    "yarp:%s: the frames' stamps are %.1f s from this clock: their arrival "
+                    "stands for their capture time",
+                    self.remote,
+                    stamp - time.time(),
+                )
+            return None
+        return stamp
 
     def _reconnect(self) -> None:
         """Connect the port to ours again if the connection went (the port's program ended and

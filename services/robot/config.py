@@ -64,6 +64,11 @@ class RobotConfig:
             second, positionMove and the lease verbs; no archery verb, no world).
         remote: the YARP robot's name with `body` "yarp", e.g. /icubSim (its control boards
             REMOTE/PART); YARP's name server is the one YARP's configuration names.
+        archery_rpc: with `body` "yarp", the robot's own archery RPC port (e.g.
+            /icubSim/archery/rpc:i, `archery yarp --operator`'s): `status`, `reset`, `nock`,
+            `release` and `grasp` are its answers (`yarp_archery`), and the robot's world
+            events (REMOTE/world/events:o, when it exists) go to the mesh; "" (the default):
+            those verbs are refused.
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -118,12 +123,24 @@ class RobotConfig:
     remote: str = flag(
         "/icub", "the YARP robot's name with --body yarp (its boards REMOTE/PART)", metavar="NAME"
     )
+    archery_rpc: str = flag(
+        "",
+        "with --body yarp, the robot's own archery RPC port (e.g. /icubSim/archery/rpc:i): its "
+        "status, reset, nock, release and grasp answers, and its world events "
+        "(REMOTE/world/events:o) forwarded; none: those verbs are refused",
+        metavar="PORT",
+    )
 
     def __post_init__(self) -> None:
         check_bounds(self)
         if self.body == "yarp" and not _yarp_name(self.remote):
             raise ConfigError(
                 f"--remote {shown(self.remote)}: give the robot's YARP name, e.g. /icub"
+            )
+        if self.archery_rpc and (self.body != "yarp" or not _yarp_name(self.archery_rpc)):
+            raise ConfigError(
+                f"--archery-rpc {shown(self.archery_rpc)}: give a YARP port name, e.g. "
+                "/icubSim/archery/rpc:i, with --body yarp"
             )
 
 

@@ -20,11 +20,12 @@ from archery.mesh.service import service_main
 from archery.protocol.errors import ConfigError
 from archery.protocol.exit_status import BAD_INPUT
 from archery.protocol.messages import JointCommand
-from archery.protocol.robotspec import ROBOT, ROBOT_TIMEOUT
+from archery.protocol.robotspec import ROBOT, ROBOT_TIMEOUT, RPC_TIMEOUT
 from archery.services.robot.config import RobotConfig, add_arguments, make_config
 from archery.services.robot.handlers import RobotHandlers
 from archery.services.robot.simloop import SimLoop
 from archery.services.robot.sink import MeshSink
+from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_loop import YarpLoop
 from archery.services.robot.yarp_parts import BodyError, open_parts
 from archery.sim.world import ArcheryWorld
@@ -85,11 +86,13 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
 def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
     """Serve the YARP robot `config.remote`'s parts (`yarp_loop`) until `stop` is set: each
     part's `state:o`, `command:i` and controlboard verbs, with the simulated robot's lease
-    rules; the archery verbs answer `unsupported`.
+    rules; the archery verbs answer `unsupported`, or, with `config.archery_rpc`, are the
+    robot's own port's answers, its world events forwarded (`yarp_archery`).
 
     Raises:
         BodyError: the body does not open (no name server, a part or an axis missing, an
-            encoder refused, YARP's bindings absent), before anything is served.
+            encoder refused, YARP's bindings absent, no archery RPC port), before anything is
+            served.
     """
     try:
         body = open_parts(config.remote, timeout=ROBOT_TIMEOUT)
@@ -97,11 +100,23 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
         raise
     except ConfigError as exc:  # YARP's bindings are not installed
         raise BodyError(str(exc)) from None
+    archery: ArcheryLink | None = None
     try:
         node = Node(ROBOT, config.net)
         try:
-            loop = YarpLoop(body, config, MeshSink(node, tuple(body.parts), world=False))
+            sink = MeshSink(node, tuple(body.parts), world=False, events=bool(config.archery_rpc))
+            if config.archery_rpc:
+                archery = ArcheryLink(
+                    body.yarp,
+                    config.archery_rpc,
+                    f"{config.remote}/world/events:o",
+                    sink,
+                    timeout=RPC_TIMEOUT,  # a release answers once the arrow landed
+                )
+            loop = YarpLoop(body, config, sink, archery)
         except BaseException:
+            if archery is not None:
+                archery.close()
             node.close()
             raise
     except BaseException:
@@ -113,11 +128,13 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
         try:
             _serve(node, loop, tuple(body.parts), config)
             log.info(
-                "robot %r ready: the YARP robot %s (%s), joint states %g Hz (wall time)",
+                "robot %r ready: the YARP robot %s (%s), joint states %g Hz (wall time); "
+                "archery verbs: %s",
                 node.keys.robot,
                 config.remote,
                 ", ".join(body.parts),
                 config.state_rate,
+                config.archery_rpc or "refused",
             )
             stop.wait()
         finally:

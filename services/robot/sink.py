@@ -34,25 +34,31 @@ class Sink(Protocol):
         self,
         kind: str,
         shot: int,
-        sim_time: float,
+        sim_time: float | None,
         impact_m: list[float] | None = None,
         reason: str = "",
     ) -> None:
         """A shot event (grasped, nocked, released, landed, missed, reset) or a watchdog hold
-        (`reason` names the part); impact_m is ground truth."""
+        (`reason` names the part); impact_m is ground truth; sim_time None: not known (a YARP
+        robot's event, forwarded)."""
 
 
 class MeshSink:
     """The loop's streams as Zenoh publishers (`ROBOT/{part}/state:o`, `ROBOT/world/state:o`,
     `ROBOT/world/events:o`, the last lossless; `world` False: the joint states alone, for a
-    robot with no simulated world, whose `world_state` and `event` then publish nothing)."""
+    robot with no simulated world, whose `world_state` and `event` then publish nothing; but
+    `events` True: the events too, a YARP robot's forwarded)."""
 
-    def __init__(self, node: Node, parts: tuple[str, ...], world: bool = True) -> None:
+    def __init__(
+        self, node: Node, parts: tuple[str, ...], world: bool = True, events: bool = False
+    ) -> None:
         keys = node.keys
         self._states = {p: node.publisher(keys.state(p), JointState) for p in parts}
         self._world = node.publisher(keys.world_state(), WorldState) if world else None
         self._events = (
-            node.publisher(keys.world_events(), WorldEvent, lossless=True) if world else None
+            node.publisher(keys.world_events(), WorldEvent, lossless=True)
+            if world or events
+            else None
         )
 
     def joint_state(
@@ -86,7 +92,7 @@ class MeshSink:
         self,
         kind: str,
         shot: int,
-        sim_time: float,
+        sim_time: float | None,
         impact_m: list[float] | None = None,
         reason: str = "",
     ) -> None:

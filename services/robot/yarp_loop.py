@@ -7,8 +7,8 @@ wall time since the start, s, one stamp for all the parts read together); `posit
 checked and clamped by `commands`' rules); reference speeds through `setRefSpeed` (deg/s, at
 most `MAX_REFERENCE_SPEED` rad/s). Motion done: the encoders within `TOLERANCES["rest"]` (rad)
 of the last targets, never the robot's `checkMotionDone`. The leases are the simulated robot's
-(`leases`, `gate`). What needs the simulated world is refused (`Unsupported`). `yarp` is never
-imported here: the body holds it.
+(`leases`, `gate`). What needs the simulated world is refused (`Unsupported`), the archery
+verbs unless the robot has its own archery port (`yarp_archery`). The body holds `yarp`.
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from archery.services.robot.config import RobotConfig
 from archery.services.robot.follow import PartSpec
 from archery.services.robot.leases import Leases
 from archery.services.robot.sink import Sink
+from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
 
 __all__ = ["UNSUPPORTED", "Unsupported", "YarpLoop"]
@@ -64,6 +65,8 @@ class YarpLoop:
             them (`close`).
         config: state_rate (Hz, wall), limit_tolerance (rad), command_rate and command_burst.
         sink: receives the joint states (`Sink.joint_state`; no world state, no event).
+        archery: the robot's own archery RPC port, which answers the archery verbs (None:
+            they are refused); the loop closes it.
 
     Raises:
         BodyError: a part has no position control (`IPositionControl`), its first encoder
@@ -71,8 +74,11 @@ class YarpLoop:
             speeds (`REFERENCE_SPEED`).
     """
 
-    def __init__(self, body: YarpBody, config: RobotConfig, sink: Sink) -> None:
+    def __init__(
+        self, body: YarpBody, config: RobotConfig, sink: Sink, archery: ArcheryLink | None = None
+    ) -> None:
         self.body = body
+        self.archery = archery
         self.config = config
         self.parts = tuple(body.parts)
         self.limits = {
@@ -151,6 +157,8 @@ class YarpLoop:
         """End `run` and close the control boards (and YARP's network)."""
         self._closed.set()
         with self._lock:
+            if self.archery is not None:
+                self.archery.close()
             self.body.close()
 
     # -- reading -------------------------------------------------------------------------------
@@ -309,26 +317,57 @@ class YarpLoop:
         raise Unsupported(verb)
 
     def grasp(self) -> rv.GraspReply:
-        """Refused: no arrow, no holder."""
-        raise Unsupported("grasp")
+        """The robot's own `grasp` (`archery`); refused without one: no arrow, no holder."""
+        if self.archery is None:
+            raise Unsupported("grasp")
+        return self.archery.grasp()
 
     def nock(self) -> rv.NockReply:
-        """Refused: no arrow, no bow."""
-        raise Unsupported("nock")
+        """The robot's own `nock` (`archery`); refused without one: no arrow, no bow."""
+        if self.archery is None:
+            raise Unsupported("nock")
+        return self.archery.nock()
 
     def release(self, timeout: float | None = None) -> rv.ReleaseReply:
-        """Refused: no arrow to release."""
-        raise Unsupported("release")
+        """The robot's own `release` (`archery`: it answers once the arrow landed, within the
+        link's timeout, not `timeout`); refused without one: no arrow to release."""
+        if self.archery is None:
+            raise Unsupported("release")
+        return self.archery.release()
 
     def reset(self, seed: Any = None) -> rv.ResetReply:
-        """Refused: a real robot is not put back by a verb."""
-        raise Unsupported("reset")
+        """The robot's own `reset` (`archery`), after which each part's targets are the
+        robot's (`getTargetPositions`; its encoders where it tells none); refused without one:
+        a real robot is not put back by a verb."""
+        if self.archery is None:
+            raise Unsupported("reset")
+        reply = self.archery.reset(seed)
+        self._resync_targets()
+        return reply
+
+    def _resync_targets(self) -> None:
+        """Each part's targets from the robot's `getTargetPositions` (deg → rad), or from its
+        encoders where the robot refuses."""
+        yarp = self.body.yarp
+        with self._lock:
+            encoders = self.body.encoders()
+            for part in self.parts:
+                axes = self.body.parts[part]
+                told = yarp.Vector(len(axes.axes))
+                if self._controls[part].getTargetPositions(told.data()):
+                    values = [math.radians(told[k]) for k in axes.index]
+                else:
+                    values = list(encoders[part])
+                self._targets[part] = np.asarray(values, dtype=float)
+                self._position[part] = np.asarray(encoders[part])
 
     def set_wind(self, wind: Any) -> list[float]:
         """Refused: no simulated wind."""
         raise Unsupported("setWind")
 
     def status(self) -> rv.ArcheryStatusReply:
-        """Refused: the archery status tells a scene, an arrow, a shot and simulated time,
-        none of which a YARP body has."""
-        raise Unsupported("status (its scene, arrow, shot and simulated time)")
+        """The robot's own `status` (`archery`: its scene, arrow, shot and simulated time);
+        refused without one: a YARP body has none of them."""
+        if self.archery is None:
+            raise Unsupported("status (its scene, arrow, shot and simulated time)")
+        return self.archery.status()

@@ -204,6 +204,11 @@ class YarpBody:
             out[part] = check_encoders(axes, read, self.margin)
         return out
 
+    @property
+    def yarp(self) -> Any:
+        """YARP's module, its network joined until `close` (for the ports a caller opens)."""
+        return self._yarp
+
     def driver(self, part: str) -> Any:
         """The open `remote_controlboard` of `part` (a `yarp.PolyDriver`), for the caller that
         commands the robot (`yarp_loop`); this module only reads."""
