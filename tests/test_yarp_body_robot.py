@@ -177,3 +177,88 @@ def test_a_remote_that_is_not_a_yarp_name_is_refused_before_any_work(
     assert log.read_text().splitlines() == [
         "archery robot: --remote 'icub': give the robot's YARP name, e.g. /icub"
     ]
+
+
+def _elbow_path(client: RobotClient, step: float) -> tuple[int, float, list[float]]:
+    """The left elbow's index, where it is now (rad), and three waypoints `step` rad apart
+    towards the side of its range with room."""
+    _, upper = client.limits("left_arm")
+    k = PARTS["left_arm"].index("l_elbow")
+    now = client.joints("left_arm").position[k]
+    sign = 1.0 if now + 3 * step < upper[k] - 0.01 else -1.0
+    return k, now, [now + sign * step * i for i in (1, 2, 3)]
+
+
+def test_a_part_trajectory_plays_its_waypoints_in_order_at_their_times(rig: Rig) -> None:
+    client = RobotClient(rig.node, timeout=10)
+    seen: list[tuple[float, float]] = []  # (wall s since the start, elbow rad), from the mesh
+    k, _, waypoints = _elbow_path(client, 0.15)
+    sub = client.follow_joints("left_arm", lambda s: seen.append((s.sim_time, s.position[k])))
+    try:
+        with client.claim(["left_arm"], "archer") as held:
+            args = rv.PartTrajectoryArgs(
+                times=[0.5, 1.0, 1.5],
+                positions=[[w] for w in waypoints],
+                names=["l_elbow"],
+                lease=held.leases["left_arm"],
+            )
+            reply = client.part_call("left_arm", rv.FOLLOW_PART_TRAJECTORY, args, timeout=20)
+        assert reply.parts == ["left_arm"]
+        assert reply.ended - reply.started >= 1.5  # wall s: the last waypoint's time at least
+        assert reply.goal_error <= TOLERANCES["rest"]
+        assert reply.path_error < args.path_tolerance
+        assert _elbow_degrees(rig) == pytest.approx(math.degrees(waypoints[-1]), abs=1e-6)
+        during = [(t, q) for t, q in seen if reply.started <= t <= reply.ended]
+        reached = [next(t for t, q in during if abs(q - w) < 0.02) for w in waypoints]
+        assert reached == sorted(reached)  # in order
+        for at, due in zip(reached, (0.5, 1.0, 1.5), strict=True):  # near their times (wall s)
+            assert abs(at - reply.started - due) < 0.25, (reached, reply.started)
+        assert client.part_call("left_arm", rv.CHECK_MOTION_DONE).done
+    finally:
+        rig.node.unsubscribe(sub)
+        sub.close()
+        client.close()
+
+
+def test_a_trajectory_past_the_speed_bound_or_under_another_lease_is_refused(rig: Rig) -> None:
+    client, rival = RobotClient(rig.node, timeout=10), RobotClient(rig.node, timeout=10)
+    try:
+        _, _, waypoints = _elbow_path(client, 0.3)
+        before = _elbow_degrees(rig)
+        fast = rv.PartTrajectoryArgs(times=[0.1], positions=[[waypoints[0]]], names=["l_elbow"])
+        with pytest.raises(RpcError) as refused:
+            client.part_call("left_arm", rv.FOLLOW_PART_TRAJECTORY, fast)
+        assert refused.value.code == "bad_trajectory"
+        assert "over the maximum joint speed" in refused.value.message
+        slow = rv.PartTrajectoryArgs(times=[1.0], positions=[[waypoints[0]]], names=["l_elbow"])
+        with client.claim(["left_arm"], "archer"):
+            with pytest.raises(RpcError) as taken:
+                rival.part_call("left_arm", rv.FOLLOW_PART_TRAJECTORY, slow)
+            assert taken.value.code == "not_owner"
+        assert _elbow_degrees(rig) == pytest.approx(before, abs=1e-6)  # nothing moved
+    finally:
+        client.close()
+        rival.close()
+
+
+def test_followtrajectory_plays_without_actions_and_refuses_them_without_archery_rpc(
+    rig: Rig,
+) -> None:
+    client = RobotClient(rig.node, timeout=10)
+    try:
+        _, _, waypoints = _elbow_path(client, 0.1)
+        part = rv.TrajectoryPart(part="left_arm", names=["l_elbow"])
+        plain = rv.TrajectoryArgs(parts=[part], times=[0.5], positions=[[waypoints[0]]])
+        reply = client.call(rv.FOLLOW_TRAJECTORY, plain, timeout=20)
+        assert reply.goal_error <= TOLERANCES["rest"] and reply.actions == {}
+        grasp = (rv.TrajectoryAction(t=0.5, verb="grasp"),)
+        acting = rv.TrajectoryArgs(
+            parts=[part], times=[0.5], positions=[[waypoints[1]]], actions=grasp
+        )
+        with pytest.raises(RpcError) as refused:
+            client.call(rv.FOLLOW_TRAJECTORY, acting)
+        assert refused.value.code == "unsupported"
+        assert "--archery-rpc" in refused.value.message
+        assert _elbow_degrees(rig) == pytest.approx(math.degrees(waypoints[0]), abs=1e-6)
+    finally:
+        client.close()

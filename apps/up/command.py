@@ -41,6 +41,7 @@ from archery.mesh.signals import shutdown_on_signals
 from archery.protocol.errors import ConfigError
 from archery.protocol.exit_status import INTERRUPTED
 from archery.protocol.keys import DEFAULT_ROBOT
+from archery.services.robot.config import RobotConfig
 
 __all__ = ["build_parser", "main", "mesh_from_args", "start_observer", "start_recorder"]
 
@@ -86,6 +87,23 @@ def build_parser() -> argparse.ArgumentParser:
         help="the robot's shot (default posture: the arrow is placed on the string; whole: "
         "every rollout grasps, nocks and draws it, the demonstration's movement as DMPs; needs "
         "the imitate extra)",
+    )
+    parser.add_argument(
+        "--body",
+        choices=("mujoco", "yarp"),
+        help="the robot's body (default mujoco: the simulated iCub; yarp: a YARP robot's "
+        "control boards, --remote, as `archery robot --body yarp`)",
+    )
+    parser.add_argument(
+        "--remote",
+        metavar="NAME",
+        help="with --body yarp, the YARP robot's name, e.g. /icubSim (its boards NAME/PART)",
+    )
+    parser.add_argument(
+        "--archery-rpc",
+        metavar="PORT",
+        help="with --body yarp, the robot's own archery RPC port (e.g. /icubSim/archery/rpc:i): "
+        "its status, reset, nock, release and grasp answers (none: refused)",
     )
     parser.add_argument(
         "--no-router",
@@ -217,6 +235,9 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             "--runs": args.runs,
             "--no-router": args.no_router or None,
             "--robots": args.robots,
+            "--body": args.body,
+            "--remote": args.remote,
+            "--archery-rpc": args.archery_rpc,
         }
         clash = [flag for flag, value in given.items() if value is not None]
         if clash:
@@ -236,8 +257,35 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             runs=runs,
             start_router=not args.no_router,
             robots=1 if args.robots is None else args.robots,
+            body=_body(args),
         )
     return mesh.with_policy(args.restart, args.restart_budget)
+
+
+def _body(args: argparse.Namespace) -> tuple[str, ...]:
+    """The robot's body flags (`--body yarp --remote NAME [--archery-rpc PORT]`; () for the
+    simulated iCub), checked as the robot checks them.
+
+    Raises:
+        ConfigError: --remote or --archery-rpc without --body yarp, --body yarp without
+            --remote, a flag of the simulated robot's (--seed, --rtf, --shot) with it, or a
+            name that is not a YARP name.
+    """
+    if args.body != "yarp":
+        for flag, value in (("--remote", args.remote), ("--archery-rpc", args.archery_rpc)):
+            if value is not None:
+                raise ConfigError(f"{flag} goes with --body yarp")
+        return ()
+    if args.remote is None:
+        raise ConfigError("--body yarp needs --remote NAME, the YARP robot's name, e.g. /icubSim")
+    for flag, value in (("--seed", args.seed), ("--rtf", args.rtf), ("--shot", args.shot)):
+        if value is not None:
+            raise ConfigError(f"{flag} is the simulated robot's: a YARP body has none")
+    body: tuple[str, ...] = ("--body", "yarp", "--remote", args.remote)
+    if args.archery_rpc is not None:
+        body += ("--archery-rpc", args.archery_rpc)
+    RobotConfig(body="yarp", remote=args.remote, archery_rpc=args.archery_rpc or "")
+    return body
 
 
 def _final(launcher: Launcher, supervisor: Supervisor, outcome: GiveUp | None) -> int:

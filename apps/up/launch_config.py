@@ -181,10 +181,15 @@ def default_mesh(
     restart: RestartPolicy = DEFAULT_POLICY,
     robots: int = 1,
     shot: str = "posture",
+    body: tuple[str, ...] = (),
 ) -> MeshConfig:
     """The mesh of `archery up` without --config: a router and the five services of one robot;
     the robot gets `--seed`, `--rtf` and `--shot` (posture, or whole: the learner then plays
     the whole shot's movement in every rollout), the learner `--runs`.
+
+    With `body` (a YARP robot's flags, e.g. `("--body", "yarp", "--remote", "/icubSim")`), the
+    robot gets those instead of `--seed`, `--rtf` and `--shot` (a YARP body has no shot noise,
+    no simulated time and no shot of its own); one robot only.
 
     With `robots` N > 1, a fleet: N robot stacks (robot, controller, camera, detector) under
     the prefixes `ROBOT1` … `ROBOTN` (robot i's shot noise seeded with `seed + i - 1`) and one
@@ -192,10 +197,12 @@ def default_mesh(
     session on each robot at once.
     """
     prefixes = fleet_prefixes(robot, robots)
+    if body and robots != 1:
+        raise ConfigError(f"--robots {robots}: a YARP body is one robot (--remote)")
     robot_args = ("--rtf", f"{rtf:g}", *(() if shot == "posture" else ("--shot", shot)))
     args: dict[str, tuple[str, ...]] = {"robot": robot_args, "learner": ("--runs", runs)}
     if robots == 1:
-        args["robot"] = ("--seed", str(seed), *args["robot"])
+        args["robot"] = body or ("--seed", str(seed), *args["robot"])
         specs: tuple[RobotSpec, ...] = (RobotSpec(robot),)
     else:
         stack = tuple(s for s in SERVICES if s != "learner")
