@@ -1,16 +1,13 @@
 """`YarpLoop`: a YARP robot's control boards (`yarp_parts.open_parts`) as the robot's handlers
 see a loop (`handlers.RobotLoop`), for `archery robot --body yarp`.
 
-Each part's joint states at `state_rate` per WALL second (no simulated time: `sim_time` is the
-wall time since the start, s, one stamp for all the parts read together); `positionMove` and
-`command:i` through `IPositionControl.positionMove` (degrees, the mapped axes, the targets
-checked and clamped by `commands`' rules); reference speeds through `setRefSpeed` (deg/s, at
-most `MAX_REFERENCE_SPEED` rad/s). Motion done: the encoders within `TOLERANCES["rest"]` (rad)
-of the last targets, never the robot's `checkMotionDone`. The leases are the simulated robot's
-(`leases`, `gate`). Trajectories are checked by the simulated robot's code (`trajectory`) and
-played by a thread of their own in wall s through `positionMove` (`YarpLoop.follow`). What
-needs the simulated world is refused (`Unsupported`), the archery verbs unless the robot has
-its own archery port (`yarp_archery`). The body holds `yarp`.
+Each part's joint states at `state_rate` per WALL second (`sim_time`: wall s since the start);
+`positionMove`, `command:i` and trajectories (checked by `trajectory`, played on a thread of
+their own in wall s) through `IPositionControl.positionMove` (degrees, the mapped axes);
+reference speeds through `setRefSpeed` (deg/s). Motion done: the encoders within
+`TOLERANCES["rest"]` (rad) of the last targets. The leases are the simulated robot's (`leases`,
+`gate`). What needs the simulated world is refused (`Unsupported`), the archery verbs unless
+the robot has its own archery port (`yarp_archery`). The body holds `yarp`.
 """
 
 from __future__ import annotations
