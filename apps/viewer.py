@@ -20,7 +20,7 @@ from archery.mesh.cliargs import ArgumentParser, seconds
 from archery.mesh.netflags import NetConfig
 from archery.mesh.node import Node, open_node
 from archery.mesh.robot_client import RobotClient
-from archery.mesh.signals import shutdown_on_signals
+from archery.mesh.signals import shutdown_on_signals, wait_for_stop
 from archery.protocol.errors import ArcheryError
 from archery.protocol.exit_status import BAD_INPUT, OK, for_error
 from archery.protocol.robotspec import CALL_TIMEOUT
@@ -110,7 +110,7 @@ def viewer_main(
             viewer = start(view, prepared)
             try:
                 print(f"archery {prog}: {viewer.ready()}", flush=True)
-                stop.wait()
+                wait_for_stop(stop)
             finally:
                 last = viewer.close()
                 if last:

@@ -22,7 +22,7 @@ from archery.mesh.netflags import (
     add_network_args,
     open_session,
 )
-from archery.mesh.signals import shutdown_on_signals
+from archery.mesh.signals import shutdown_on_signals, wait_for_stop
 from archery.protocol.errors import ConfigError
 
 __all__ = ["free_tcp_endpoint", "main", "open_router", "spawn_router", "wait_for_endpoint"]
@@ -99,7 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         with open_session(net):
             secure = f" (mutual TLS, access control of {net.secure})" if net.secure else ""
             log.info("router listening on %s%s", ", ".join(net.listen), secure)
-            stop.wait()
+            wait_for_stop(stop)
     except ConfigError as exc:
         print(f"archery router: {exc}", file=sys.stderr)
         return 2

@@ -65,6 +65,7 @@ class Subscription(Generic[M]):
         self._latest: M | None = None
         self._latest_time = 0.0
         self._cond = threading.Condition()
+        self._closed = False  # closed: nothing newer will come
         self._queue: queue.Queue[M] = queue.Queue()
         self._sub: zenoh.Subscriber[None] | None = session.declare_subscriber(key, self._on_sample)
 
@@ -154,7 +155,7 @@ class Subscription(Generic[M]):
                     return msg
                 now = time.monotonic()
                 remaining = deadline - now
-                if remaining <= 0:
+                if remaining <= 0 or self._closed:
                     raise RpcTimeout(
                         f"no suitable message on {self.key} within {timeout:g} s "
                         f"(received {self.received}, dropped {self.dropped})"
@@ -179,7 +180,11 @@ class Subscription(Generic[M]):
             raise RpcTimeout(f"no message on {self.key} within {timeout:g} s") from None
 
     def close(self) -> None:
-        """Undeclare the subscriber (idempotent)."""
+        """Undeclare the subscriber (idempotent); a `wait_newer` under way ends at once with
+        `RpcTimeout` (nothing newer will come)."""
         if self._sub is not None:
             self._sub.undeclare()
             self._sub = None
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()

@@ -37,7 +37,7 @@ MAX_CONNECTIONS = 16  # connections served at once (the default of --max-clients
 CHUNK = 64 << 10  # bytes: read from one side and written to the other at a time
 INNER_BUFFER = 256 << 10  # bytes: the kernel's receive buffer of the link to the SDK's server
 STALL_AFTER = 10.0  # s: a client that takes no byte this long while bytes wait is dropped
-CLOSE_WAIT = 1.0  # s: the longest a closing door waits for its relays to end
+CLOSE_WAIT = 0.5  # s: the longest a closing door waits for its relays to end
 #: fetchAsset requests of one connection waiting for their answers; with more, the door reads
 #: nothing more from that client until one is answered
 MAX_PENDING_ASSETS = 256
@@ -191,23 +191,22 @@ class FrontDoor:
             self._transports.discard(inner_writer.transport)
 
     def close(self) -> None:
-        """Stop listening and close every connection, both its sides (idempotent): each relay
-        is cancelled and given `CLOSE_WAIT` s to end; the sockets of those still open then are
-        aborted, so the SDK's server sees each of its clients gone (a link left open would hold
-        its stop)."""
+        """Stop listening and close every connection, both its sides, at once (idempotent):
+        the sockets are aborted, so the SDK's server sees each of its clients gone (a link left
+        open would hold its stop), and each relay is cancelled and given `CLOSE_WAIT` s to end."""
         if self._loop.is_closed():
             return
 
         async def stop() -> None:
             if self._server is not None:
                 self._server.close()
+            for transport in list(self._transports):
+                transport.abort()
             tasks = list(self._tasks)
             for task in tasks:
                 task.cancel()
             if tasks:
                 await asyncio.wait(tasks, timeout=CLOSE_WAIT)
-            for transport in list(self._transports):
-                transport.abort()
             self._loop.stop()
 
         with contextlib.suppress(RuntimeError):  # the loop already stopped

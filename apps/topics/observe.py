@@ -47,7 +47,7 @@ from archery.mesh.node import Node
 from archery.mesh.patterns import check_pattern, stream_type
 from archery.mesh.priority import add_nice_arg, lower_priority
 from archery.mesh.rpc_server import caller_left
-from archery.mesh.signals import shutdown_on_signals
+from archery.mesh.signals import shutdown_on_signals, wait_for_stop
 from archery.protocol.codec import encode
 from archery.protocol.errors import ArcheryError, BadRequest, ConfigError, KeyNameError, RpcTimeout
 from archery.protocol.exit_status import for_error
@@ -456,7 +456,7 @@ def replay_main(argv: list[str] | None = None) -> int:
                 flush=True,
             )
             if args.serve_grab:
-                stop.wait()
+                wait_for_stop(stop)
     except ArcheryError as exc:  # a malformed record found while publishing: bad input, 2
         return _fail("replay", exc, for_error(exc.code))
     if channels.skipped_channels and not published:

@@ -19,6 +19,7 @@ import threading
 from archery.mesh.node import Node
 from archery.mesh.robot_client import RobotClient
 from archery.mesh.service import service_main
+from archery.mesh.signals import wait_for_stop
 from archery.protocol.parts import ARM_PARTS, PARTS
 from archery.protocol.robotspec import CONTROLLER
 from archery.services.controller.config import ControllerConfig, add_arguments, make_config
@@ -62,7 +63,7 @@ def run(config: ControllerConfig, stop: threading.Event) -> None:
             config.posture.theta_box.low,
             config.posture.theta_box.high,
         )
-        stop.wait()
+        wait_for_stop(stop)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -12,6 +12,7 @@ import cv2
 
 from archery.mesh.node import Node
 from archery.mesh.service import service_main
+from archery.mesh.signals import wait_for_stop
 from archery.protocol.errors import ArcheryError, BadRequest, RpcError
 from archery.protocol.messages import Detection as DetectionMessage
 from archery.protocol.robotspec import CAMERA, DETECTOR
@@ -58,7 +59,7 @@ def run(config: DetectorConfig, stop: threading.Event) -> None:
         log.info("detector up (%s)", "calibrated" if handlers.detector else "not calibrated yet")
         if config.auto_calibrate:
             _auto_calibrate(handlers, node, stop)
-        stop.wait()
+        wait_for_stop(stop)
 
 
 def main(argv: list[str] | None = None) -> int:

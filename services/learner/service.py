@@ -17,6 +17,7 @@ import threading
 
 from archery.mesh.node import Node
 from archery.mesh.service import service_main
+from archery.mesh.signals import wait_for_stop
 from archery.protocol.robotspec import LEARNER
 from archery.services.learner.config import LearnerServiceConfig, add_arguments, make_config
 from archery.services.learner.handlers import LearnerHandlers
@@ -41,7 +42,7 @@ def run(config: LearnerServiceConfig, stop: threading.Event) -> None:
         for node in served:
             node.ready()
         log.info("learner ready for %s: runs in %s", ", ".join(config.robots()), config.runs)
-        stop.wait()
+        wait_for_stop(stop)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -17,6 +17,7 @@ from functools import partial
 
 from archery.mesh.node import Node
 from archery.mesh.service import service_main
+from archery.mesh.signals import wait_for_stop
 from archery.protocol.errors import ConfigError
 from archery.protocol.exit_status import BAD_INPUT
 from archery.protocol.messages import JointCommand
@@ -76,7 +77,7 @@ def run(config: RobotConfig, stop: threading.Event) -> None:
                 config.rest_rate,
                 config.rest_after,
             )
-            stop.wait()
+            wait_for_stop(stop)
         finally:
             stop.set()
             loop.close()
@@ -136,7 +137,7 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
                 config.state_rate,
                 config.archery_rpc or "refused",
             )
-            stop.wait()
+            wait_for_stop(stop)
         finally:
             stop.set()
             thread.join(timeout=10)
