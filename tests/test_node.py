@@ -316,3 +316,24 @@ def test_close_never_raises_and_says_in_one_line_what_it_could_not_close(
     lines = [r.getMessage() for r in caplog.records if "not closed cleanly" in r.getMessage()]
     assert len(lines) == 1 and "Stuck: close operation timed out" in lines[0]
     assert not [r for r in caplog.records if r.exc_info]  # no traceback
+
+
+def test_a_wait_on_a_subscription_ends_as_it_closes(pair: tuple[Node, Node]) -> None:
+    _, client = pair
+    sub = client.subscribe(client.keys.state("torso"), JointState)
+    ended: list[BaseException] = []
+
+    def wait() -> None:
+        try:
+            sub.wait_newer(60.0)
+        except RpcTimeout as exc:
+            ended.append(exc)
+
+    waiter = threading.Thread(target=wait)
+    waiter.start()
+    client.unsubscribe(sub)
+    waiter.join(10)  # the wait would otherwise last its 60 s
+    assert not waiter.is_alive() and len(ended) == 1
+    with pytest.raises(RpcTimeout):
+        sub.wait_newer(60.0)  # closed: nothing newer will come, at once
+
