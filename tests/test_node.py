@@ -336,4 +336,3 @@ def test_a_wait_on_a_subscription_ends_as_it_closes(pair: tuple[Node, Node]) -> 
     assert not waiter.is_alive() and len(ended) == 1
     with pytest.raises(RpcTimeout):
         sub.wait_newer(60.0)  # closed: nothing newer will come, at once
-
