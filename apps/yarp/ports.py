@@ -149,15 +149,8 @@ class ArcheryPort:
             reply.addString("ok")
             reply.addString("verbs: " + ", ".join(VERBS) + (" (read-only)" * (not self.operator)))
             return
-        found = VERBS.get(word)
-        if found is None or request.size() != 1:
-            _fail(reply, "bad_request", f"unknown request {shown(request.toString())}; try help")
-            log.warning("%s: %s refused: unknown", self.name, shown(request.toString()))
-            return
-        verb, moves = found
-        if moves and not self.operator:
-            _fail(reply, "read_only", "read-only bridge (start `archery yarp --operator`)")
-            log.warning("%s: %s refused: read-only", self.name, word)
+        verb = self._verb(request, reply, word, request.size() == 1)
+        if verb is None:
             return
         try:
             args: Any = rv.ResetArgs() if verb is rv.RESET else NoArgs()
@@ -168,21 +161,31 @@ class ArcheryPort:
         reply.addString("ok")
         _add_plain(reply, msgspec.to_builtins(result))
 
-    def _respond_json(self, request: Any, reply: Any) -> None:
-        """`json VERB` (`json reset SEED`, SEED an integer in [0, 2**63)): `ok TEXT`, TEXT the
-        verb's reply encoded as JSON, or `fail code message`."""
-        word = request.get(1).toString()
+    def _verb(
+        self, request: Any, reply: Any, word: str, well_formed: bool
+    ) -> Verb[Any, Any] | None:
+        """The verb `word` names, or None with `reply` the refusal: an unknown or malformed
+        request, or a verb that moves on a read-only bridge."""
         found = VERBS.get(word)
-        seed = request.get(2) if request.size() == 3 else None
-        seeded = word == "reset" and seed is not None and (seed.isInt32() or seed.isInt64())
-        if found is None or not (request.size() == 2 or seeded):
+        if found is None or not well_formed:
             _fail(reply, "bad_request", f"unknown request {shown(request.toString())}; try help")
             log.warning("%s: %s refused: unknown", self.name, shown(request.toString()))
-            return
+            return None
         verb, moves = found
         if moves and not self.operator:
             _fail(reply, "read_only", "read-only bridge (start `archery yarp --operator`)")
             log.warning("%s: %s refused: read-only", self.name, word)
+            return None
+        return verb
+
+    def _respond_json(self, request: Any, reply: Any) -> None:
+        """`json VERB` (`json reset SEED`, SEED an integer in [0, 2**63)): `ok TEXT`, TEXT the
+        verb's reply encoded as JSON, or `fail code message`."""
+        word = request.get(1).toString()
+        seed = request.get(2) if request.size() == 3 else None
+        seeded = word == "reset" and seed is not None and (seed.isInt32() or seed.isInt64())
+        verb = self._verb(request, reply, word, request.size() == 2 or seeded)
+        if verb is None:
             return
         try:
             args: Any = NoArgs()
