@@ -35,7 +35,11 @@ def _yarp_problem() -> str | None:
 
 
 #: module -> the check of the engine it needs: None when it is here, else what to install
-ENGINES = {"bench_containers": _docker_problem, "bench_yarp": _yarp_problem}
+ENGINES = {
+    "bench_containers": _docker_problem,
+    "bench_yarp": _yarp_problem,
+    "bench_yarp_body": _yarp_problem,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
