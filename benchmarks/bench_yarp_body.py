@@ -397,6 +397,15 @@ def main(argv: list[str] | None = None) -> int:
                         print("  " + _line(session, repeat, args.repeats, CAP), file=sys.stderr,
                               flush=True)  # fmt: skip
                 runs.append(sessions)
+                got = _per_repeat(sessions)
+                print(
+                    f"  repeat {repeat + 1}: wall per rollout B / A ×"
+                    f"{got['B']['step'] / got['A']['step']:.3f} ({got['B']['step'] * 1e3:.0f} vs "
+                    f"{got['A']['step'] * 1e3:.0f} ms); robot CPU per rollout B / A ×"
+                    f"{got['B']['cpu'] / got['A']['cpu']:.3f} ({got['B']['cpu'] * 1e3:.0f} vs "
+                    f"{got['A']['cpu'] * 1e3:.0f} ms)",
+                    flush=True,
+                )
         finally:
             setup.close()
     report(runs, CAP)
