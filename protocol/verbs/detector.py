@@ -1,4 +1,4 @@
-"""Verbs of the detector, `ROBOT/detector/rpc:i`: measure, calibrate, frame, status."""
+"""Verbs of the detector, `ROBOT/detector/rpc:i`: baseline, measure, calibrate, frame, status."""
 
 from __future__ import annotations
 
@@ -8,7 +8,16 @@ from msgspec import Meta
 
 from archery.protocol.verbs.base import Args, NoArgs, Reply, Verb, VerbTable
 
-__all__ = ["DETECTOR_VERBS", "FRAME_BURST", "FRAME_RATE", "KEPT_FRAMES", "MAX_TIMEOUT"]
+__all__ = [
+    "DETECTOR_VERBS",
+    "FRAME_BURST",
+    "FRAME_RATE",
+    "KEPT_BASELINES",
+    "KEPT_FRAMES",
+    "LANDING_STILL_S",
+    "MAX_STILL_S",
+    "MAX_TIMEOUT",
+]
 
 MAX_TIMEOUT = 120.0  # s
 # frames one caller identity may ask for: FRAME_RATE a second, in bursts of FRAME_BURST (the
@@ -19,14 +28,53 @@ FRAME_BURST = 4
 
 Timeout = Annotated[float, Meta(gt=0.0, le=MAX_TIMEOUT, description="s to wait for a frame")]
 
+#: The detector keeps its last KEPT_BASELINES baselines (by id) for `measure`.
+KEPT_BASELINES = 8
+#: s the picture must be still for a landing, when a measurement with a baseline does not say.
+LANDING_STILL_S = 0.5
+MAX_STILL_S = 10.0  # s
+
+
+class BaselineArgs(Args, frozen=True):
+    """Keep a frame captured after the request arrived as the scene before a shot."""
+
+    timeout: Timeout | None = None
+
+
+class BaselineReply(Reply, frozen=True):
+    baseline: Annotated[int, Meta(ge=1, description="its id, for `measure`: increasing")]
+    frame_stamp: Annotated[float, Meta(description="wall s: the frame's capture")]
+    frame: Annotated[int, Meta(description="the camera's frame number")]
+
 
 class MeasureArgs(Args, frozen=True):
     """Measure a frame rendered at or after `after_sim_time` and captured at or after
-    `after_stamp`; with neither, one captured after the request arrived."""
+    `after_stamp`; with neither, one captured after the request arrived.
+
+    With `baseline` (an id `baseline` replied), measure the newest arrow once it has landed:
+    frames are grabbed one after another (the first as above) until one shows a new object
+    since the baseline's frame and the picture has been still for `still_s`; the tip is
+    searched only where the picture changed since the baseline (`no_landing` when none comes
+    within the timeout)."""
 
     after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
     after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None
     timeout: Timeout | None = None
+    baseline: (
+        Annotated[int, Meta(ge=1, description="a baseline's id: wait for a landing since it")]
+        | None
+    ) = None
+    still_s: (
+        Annotated[
+            float,
+            Meta(
+                gt=0.0,
+                le=MAX_STILL_S,
+                description=f"s the picture must be still (default {LANDING_STILL_S})",
+            ),
+        ]
+        | None
+    ) = None
 
 
 class CalibrateArgs(Args, frozen=True):
@@ -84,7 +132,7 @@ class MeasureReply(Reply, frozen=True):
         | None
     )
     frame: int
-    timing: Annotated[dict[str, float], Meta(description="s")]
+    timing: Annotated[dict[str, float], Meta(description="s: grab_s, wait_s, detect_s")]
 
 
 class CalibrateReply(Reply, frozen=True):
@@ -108,6 +156,15 @@ class DetectorStatusReply(Reply, frozen=True):
     settings: dict[str, Any]
     measured: int
 
+
+BASELINE = Verb(
+    "baseline",
+    BaselineArgs,
+    BaselineReply,
+    "keep a fresh frame as the scene before a shot, for `measure` with `baseline`",
+    waits=True,  # for a fresh frame: one caller's waits never hold another's
+    names_caller=True,  # waiting requests are bounded per caller identity
+)
 
 MEASURE = Verb(
     "measure",
@@ -143,6 +200,7 @@ DETECTOR_VERBS = VerbTable(
     "detector",
     ("detector/rpc:i",),
     (
+        BASELINE,
         MEASURE,
         CALIBRATE,
         FRAME,

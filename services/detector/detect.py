@@ -295,8 +295,9 @@ class Detector:
         model has no white, or the frame shows none)."""
         return white_gains(self._white, estimate_white(downscale(check_image(rgb), WHITE_SIDE)[0]))
 
-    def detect(self, rgb: np.ndarray) -> Detection:
-        """Detect in an RGB uint8 image (H, W, 3).
+    def detect(self, rgb: np.ndarray, region: np.ndarray | None = None) -> Detection:
+        """Detect in an RGB uint8 image (H, W, 3); the arrow's tip only where `region` (bool,
+        H × W; None: anywhere) is True, the face on the whole frame.
 
         Real photographs break the plain Eq. 7 centroid: arrow holes and ring lines punch gaps
         in the target, distractors share its colours (a yellow logo letter, a pin), a tight
@@ -313,9 +314,12 @@ class Detector:
         at twice the resolution (until the copy is within 2.5× of the image).
 
         Raises:
-            ImageError: not an RGB uint8 image with sides of 32..8192 px.
+            ImageError: not an RGB uint8 image with sides of 32..8192 px, or a region of
+                another size.
         """
         rgb = check_image(rgb)
+        if region is not None and region.shape != rgb.shape[:2]:
+            raise ImageError(f"a search region of {region.shape} px for a frame of {rgb.shape[:2]}")
         side = FACE_SIDE
         while True:
             small, factor = downscale(rgb, side)
@@ -329,6 +333,8 @@ class Detector:
         if self.has_arrow_model:
             full = rgb if best_gains is None else apply_gains(rgb, best_gains)
             arrow_m = self.memberships(full)[1]
+            if region is not None and arrow_m is not None:
+                arrow_m = np.where(region, arrow_m, np.uint8(0))
         found = self.from_fit(face, factor, arrow_m)
         if best_gains is None:
             return found

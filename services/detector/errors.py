@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from archery.protocol.errors import ArcheryError, BadRequest
 
-__all__ = ["CalibrationError", "DetectorError", "ImageError", "ModelFileError"]
+__all__ = ["CalibrationError", "DetectorError", "ImageError", "ModelFileError", "NoLanding"]
 
 
 class DetectorError(ArcheryError):
@@ -29,3 +29,11 @@ class ImageError(DetectorError, BadRequest):
     """An image of the wrong type, shape or size."""
 
     code = "bad_image"
+
+
+class NoLanding(DetectorError):
+    """No landing seen within a measurement's timeout: no new object since the baseline, or
+    a picture that never came to rest; the message says how long, how many frames, the
+    largest change seen and whether the picture was moving."""
+
+    code = "no_landing"

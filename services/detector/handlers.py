@@ -1,9 +1,10 @@
-"""The detector's RPC verbs on `ROBOT/detector/rpc:i` (`protocol.verbs.detector`): measure,
-calibrate, frame, status; and the colour model they share (guarded by one lock).
+"""The detector's RPC verbs on `ROBOT/detector/rpc:i` (`protocol.verbs.detector`): baseline,
+measure, calibrate, frame, status; and the colour model they share (guarded by one lock).
 
 The frames of the last `KEPT_FRAMES` measurements are kept (by their detection's seq), so a
 client may ask for a measurement's picture later (`frame` with `seq`): the learner draws only
-the latest hit's, once, instead of every hit's."""
+the latest hit's, once, instead of every hit's. The last `KEPT_BASELINES` baselines (frames
+before a shot, as compared: `services.detector.landing`) are kept by id for `measure`."""
 
 from __future__ import annotations
 
@@ -34,6 +35,8 @@ from archery.services.detector.colour_model import ColourModel
 from archery.services.detector.config import DetectorConfig
 from archery.services.detector.detect import Detection, Detector
 from archery.services.detector.errors import DetectorError
+from archery.services.detector.landing import GreyFrame, LandingThresholds, grey_frame
+from archery.services.detector.landing_wait import Landed, wait_for_landing
 from archery.services.detector.overlay import draw_overlay, encode_png
 
 __all__ = ["CALIBRATION_GRACE", "DetectorHandlers", "NotCalibrated"]
@@ -73,6 +76,10 @@ class DetectorHandlers:
             collections.OrderedDict()
         )
         self._measured = 0
+        self._landing = LandingThresholds()
+        # the last KEPT_BASELINES baselines by id, the newest last
+        self._baselines: collections.OrderedDict[int, GreyFrame] = collections.OrderedDict()
+        self._baseline_ids = 0
         self.frames = RateLimit("detector frame", dv.FRAME_RATE, dv.FRAME_BURST)  # per caller
         if config.model and Path(config.model).exists():
             self._set_model(ColourModel.load(config.model), save=False)
@@ -80,6 +87,7 @@ class DetectorHandlers:
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/detector/rpc:i`."""
         return dv.DETECTOR_VERBS.bind(
+            dv.BASELINE.to(self.baseline),
             dv.MEASURE.to(self.measure),
             dv.CALIBRATE.to(self.calibrate),
             dv.FRAME.to(self.frame),
@@ -94,21 +102,27 @@ class DetectorHandlers:
             model.save(self._config.model)
             log.info("colour model saved to %s", self._config.model)
 
-    def _timeout(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> float:
+    def _timeout(self, args: dv.MeasureArgs | dv.CalibrateArgs | dv.BaselineArgs) -> float:
         """s to wait for the frame: the request's, else the configured one; a measurement never
         past its caller's own timeout (`RpcRequest.wait`, less the grab's grace; `CALL_TIMEOUT`
         when the request does not say), so no grab waits on for a caller that is gone."""
         timeout = self._config.camera_timeout if args.timeout is None else args.timeout
-        if isinstance(args, dv.MeasureArgs):
+        if isinstance(args, dv.MeasureArgs | dv.BaselineArgs):
             left = caller_left()
             timeout = min(timeout, CALL_TIMEOUT if left is None else left - GRAB_GRACE)
         return max(timeout, 1e-3)
 
-    def _grab(self, args: dv.MeasureArgs | dv.CalibrateArgs) -> Image:
-        timeout = self._timeout(args)
-        grab = GrabArgs(
-            after_sim_time=args.after_sim_time, after_stamp=args.after_stamp, timeout=timeout
-        )
+    def _grab(self, args: dv.MeasureArgs | dv.CalibrateArgs | dv.BaselineArgs) -> Image:
+        if isinstance(args, dv.BaselineArgs):
+            return self._grab_after(None, None, self._timeout(args))
+        return self._grab_after(args.after_sim_time, args.after_stamp, self._timeout(args))
+
+    def _grab_after(
+        self, after_sim_time: float | None, after_stamp: float | None, timeout: float
+    ) -> Image:
+        """The camera's first frame rendered at or after `after_sim_time` (s) and captured at
+        or after `after_stamp` (wall s); with neither, one captured after the grab arrived."""
+        grab = GrabArgs(after_sim_time=after_sim_time, after_stamp=after_stamp, timeout=timeout)
         key = self._node.keys.cam_rpc()
         try:
             return self._node.call_typed(key, GRAB, grab, timeout=timeout + GRAB_GRACE)
@@ -143,13 +157,64 @@ class DetectorHandlers:
                 log.info("calibrated from the camera's marks: %s", reply)
         return self.detector
 
+    def baseline(self, args: dv.BaselineArgs) -> dv.BaselineReply:
+        """Keep a frame captured after the request arrived as the scene before a shot, under a
+        new id (the last `KEPT_BASELINES` are kept), for `measure` with `baseline`."""
+        image = self._grab(args)
+        frame = grey_frame(image.to_numpy(), self._landing)
+        with self._lock:
+            self._baseline_ids += 1
+            number = self._baseline_ids
+            self._baselines[number] = frame
+            while len(self._baselines) > dv.KEPT_BASELINES:
+                self._baselines.popitem(last=False)
+        return dv.BaselineReply(baseline=number, frame_stamp=image.stamp, frame=image.frame)
+
+    def _landed(self, args: dv.MeasureArgs, number: int) -> Landed:
+        """The frame of a landing since baseline `number` (`landing_wait.wait_for_landing`).
+
+        Raises:
+            BadRequest: no such kept baseline.
+            NoLanding: none within the measurement's timeout.
+        """
+        with self._lock:
+            baseline = self._baselines.get(number)
+            kept = ", ".join(str(n) for n in self._baselines) or "none yet"
+        if baseline is None:
+            raise BadRequest(
+                f"no kept baseline {number}: the detector keeps its last {dv.KEPT_BASELINES} "
+                f"baselines ({kept}); call `baseline` before the shot"
+            )
+        return wait_for_landing(
+            self._grab_after,
+            baseline,
+            name=f"baseline {number}",
+            after_sim_time=args.after_sim_time,
+            after_stamp=args.after_stamp,
+            timeout=self._timeout(args),
+            still_s=dv.LANDING_STILL_S if args.still_s is None else args.still_s,
+            thresholds=self._landing,
+            min_arrow_pixels=self._config.settings.min_arrow_pixels,
+        )
+
     def measure(self, args: dv.MeasureArgs) -> dv.MeasureReply:
         """Grab a frame newer than the stamps, detect, publish the detection and reply with it
-        (plus the camera's frame number and the timing {grab_s, detect_s}, wall s).
+        (plus the camera's frame number and the timing {grab_s, wait_s, detect_s}, wall s).
+
+        With `baseline`, the frame is that of the landing since the baseline (a new object,
+        then `still_s` of a still picture: `landing_wait`), and the arrow's tip is searched
+        only where the picture changed since the baseline, so an older arrow is never taken.
 
         Measurements wait each on a thread of their own (`Verb.waits`), at most
         `mesh.rpc_server.MAX_WAITING_PER_CALLER` of one caller identity at a time, so one
-        caller's waits never hold another's, and none waits past its caller's timeout."""
+        caller's waits never hold another's, and none waits past its caller's timeout.
+
+        Raises:
+            NotCalibrated: no colour model.
+            BadRequest: an unknown baseline.
+            NoLanding: no landing since the baseline within the timeout.
+            ImageError: a frame of another size than the baseline's.
+        """
         detector = self.ensure_model() if self._config.auto_calibrate else self.detector
         if detector is None:
             raise NotCalibrated(
@@ -157,10 +222,15 @@ class DetectorHandlers:
                 "real camera), or start it with --model FILE"
             )
         started = time.perf_counter()
-        image = self._grab(args)
-        rgb = image.to_numpy()
+        region, wait_s = None, 0.0
+        if args.baseline is None:
+            image = self._grab(args)
+            rgb = image.to_numpy()
+        else:
+            landed = self._landed(args, args.baseline)
+            image, rgb, region, wait_s = landed.image, landed.rgb, landed.region, landed.wait_s
         grabbed_at = time.perf_counter()
-        found = detector.detect(rgb)
+        found = detector.detect(rgb, region)
         detect_s = time.perf_counter() - grabbed_at
         with self._lock:
             self._measured += 1
@@ -181,7 +251,11 @@ class DetectorHandlers:
             self._kept[message.seq] = (rgb, found, detector)
             while len(self._kept) > dv.KEPT_FRAMES:
                 self._kept.popitem(last=False)
-        timing = {"grab_s": round(grabbed_at - started, 6), "detect_s": round(detect_s, 6)}
+        timing = {
+            "grab_s": round(grabbed_at - started, 6),
+            "wait_s": round(wait_s, 6),
+            "detect_s": round(detect_s, 6),
+        }
         fields = msgspec.to_builtins(message)
         del fields["rings"]  # the hits stream's, for viewers: the reply keeps its fields
         return dv.MeasureReply(**fields, frame=image.frame, timing=timing)
