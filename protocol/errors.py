@@ -133,6 +133,14 @@ class StaleState(ArcheryError):
         self.age = age
 
 
+class OperatorNeeded(ArcheryError):
+    """A verb the robot cannot do by itself (a real robot's `nock`, `grasp` or `reset` where no
+    hand posture is configured for it): the operator does it by hand and tells the session
+    (the learner's `confirm`); the message says what to do."""
+
+    code = "operator_needed"
+
+
 class RobotError(RpcError):
     """What a client of the robot meets when the robot does not do what it asked
     (`mesh/robot_client.py`): `kind` says which of "not_owner" (another client holds a part),

@@ -25,7 +25,7 @@ from archery.protocol.robotspec import ROBOT, TOLERANCES
 from archery.protocol.verbs import robot as rv
 from archery.services.robot.yarp_parts import project_limits
 from tests.ros2_sdk import until
-from tests.test_yarp_body import FAKE, POSE, Board, Robots, _fake_motion_control
+from tests.test_yarp_body import FAKE, HAND_ANGLE, POSE, Board, Robots, _fake_motion_control
 from tests.yarp_setup import YarpSetup
 
 yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
@@ -146,16 +146,93 @@ def test_a_claimed_move_reaches_the_elbow_in_yarp_and_another_owner_is_refused(r
         rival.close()
 
 
-@pytest.mark.parametrize("verb", ["release", "nock", "status"])
-def test_the_archery_verbs_are_refused_naming_why(rig: Rig, verb: str) -> None:
+def _finger_degrees(name: str = "r_index_proximal") -> float:
+    """A right-hand axis as fakeMotionControl reads it (deg), through the test's own client."""
+    board = Board("/fake/right_arm", "/test/robot/finger")
+    try:
+        return board.read()[FAKE["right_arm"].index(name)]
+    finally:
+        board.close()
+
+
+def test_release_opens_the_index_finger_and_a_nock_without_posture_is_the_operators(
+    rig: Rig,
+) -> None:
     client = RobotClient(rig.node, timeout=10)
     try:
-        with pytest.raises(RpcError) as refused:
-            getattr(client, verb)()
-        assert refused.value.code == "unsupported"
-        assert f"a YARP body has no {verb}" in refused.value.message
+        status = client.status()
+        assert status.world["landing"] == "camera"
+        assert status.world["release"] == {"joint": "r_index_proximal", "open_deg": 0.0}
+        shots = status.shot
+        with pytest.raises(RpcError) as asked:
+            client.nock()
+        assert asked.value.code == "operator_needed"
+        assert asked.value.message.endswith(
+            "nock: put an arrow on the bow with its nock on the string, in the right hand "
+            "(the robot has no nock posture)"
+        )
+        assert _finger_degrees() == pytest.approx(HAND_ANGLE, abs=1e-6)  # nothing moved
+        reply = client.release()
+        assert (reply.outcome, reply.hit, reply.theta, reply.shot) == (
+            "released", False, None, shots + 1
+        )  # fmt: skip
+        assert _finger_degrees() == pytest.approx(0.0, abs=1e-6)  # fakeMotionControl: at once
+        assert _finger_degrees("r_index_distal") == pytest.approx(HAND_ANGLE, abs=1e-6)
+        with pytest.raises(RpcError) as reset:
+            client.reset()
+        assert reset.value.code == "operator_needed"
     finally:
         client.close()
+
+
+def test_hand_postures_nock_and_a_release_to_a_given_angle(rig: Rig, tmp_path: Path) -> None:
+    postures = tmp_path / "hands.json"
+    postures.write_text('{"nock": {"r_index_proximal": 60, "r_thumb_oppose": 20}}')
+    net = NetConfig(connect=rig.net.connect, robot=f"hands{os.getpid()}")
+    log = tmp_path / "robot.log"
+    flags = ("--remote", "/fake", "--hand-postures", str(postures), "--release-open", "12.5")
+    proc = _robot(net, rig.setup.env, log, *flags)
+    try:
+        with Node(None, net) as node:
+            node.wait_alive([ROBOT], 60)
+            client = RobotClient(node, timeout=10)
+            try:
+                client.nock()
+                assert _finger_degrees() == pytest.approx(60.0, abs=1e-6)
+                assert _finger_degrees("r_thumb_oppose") == pytest.approx(20.0, abs=1e-6)
+                assert client.status().phase == "nocked"
+                assert client.release().outcome == "released"
+                assert _finger_degrees() == pytest.approx(12.5, abs=1e-6)
+                with pytest.raises(RpcError) as asked:
+                    client.grasp()
+                assert asked.value.code == "operator_needed"
+            finally:
+                client.close()
+    finally:
+        signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        proc.terminate()
+        assert proc.wait(20) == 0, log.read_text(errors="replace")[-2000:]
+
+
+@pytest.mark.parametrize(
+    ("flags", "said"),
+    [
+        (("--release-joint", "r_ring"), "--release-joint 'r_ring': no axis of that name on "),
+        (("--hand-postures", "{folder}/nope.json"), "--hand-postures "),
+        (("--hand-postures", "{folder}/bad.json"), "'wave' is not one of grasp, nock, reset"),
+    ],
+)
+def test_a_release_joint_or_posture_the_robot_lacks_is_one_line_exit_2(
+    rig: Rig, tmp_path: Path, flags: tuple[str, ...], said: str
+) -> None:
+    (tmp_path / "bad.json").write_text('{"wave": {"r_index_proximal": 10}}')
+    log = tmp_path / "robot.log"
+    net = NetConfig(connect=rig.net.connect, robot=f"lacks{os.getpid()}")
+    given = [flag.format(folder=tmp_path) for flag in flags]
+    proc = _robot(net, rig.setup.env, log, "--remote", "/fake", *given)
+    assert proc.wait(60) == 2
+    last = log.read_text().splitlines()[-1]
+    assert last.startswith("archery robot: ") and said in last, last
 
 
 def test_a_remote_that_does_not_exist_is_one_line_exit_2(rig: Rig, tmp_path: Path) -> None:

@@ -1,4 +1,5 @@
-"""Verbs of the learner, `ROBOT/learner/rpc:i`: start (or resume), stop, status.
+"""Verbs of the learner, `ROBOT/learner/rpc:i`: start (or resume), stop, status, confirm (the
+operator did what the session waits for).
 
 Which algorithms exist, whether θ0 lies in the bounds and whether a journal can be resumed are
 checked by the learner itself.
@@ -43,6 +44,23 @@ class StartArgs(Args, frozen=True):
     ) = UNSET
 
 
+class OperatorRequest(Reply, frozen=True):
+    """What a session waits for the operator to do (a real robot's nock or reset by hand), until
+    `confirm` tells it done."""
+
+    request: Annotated[int, Meta(ge=1, description="its number in the learner's life")]
+    verb: Annotated[str, Meta(description="the robot's verb done by hand: nock, grasp, reset")]
+    message: str
+    since: Annotated[float, Meta(description="wall s (epoch) it was asked")]
+    limit: Annotated[float, Meta(description="s the session waits before it stops")]
+
+
+class ConfirmArgs(Args, frozen=True):
+    request: (
+        Annotated[int, Meta(ge=1, description="the request confirmed; absent: the current")] | None
+    ) = None
+
+
 class LearnerStatusReply(Reply, frozen=True):
     """{"state": "idle"} before any session; else the session's counts and results."""
 
@@ -66,6 +84,7 @@ class LearnerStatusReply(Reply, frozen=True):
     report: str | UnsetType | None = UNSET
     hit_frame: str | UnsetType | None = UNSET
     stopping: bool | UnsetType = UNSET
+    operator: OperatorRequest | UnsetType | None = UNSET
 
 
 START = Verb("start", StartArgs, LearnerStatusReply, "start a session, or resume a journal")
@@ -81,6 +100,14 @@ STATUS = Verb(
     reads=True,
 )
 
+CONFIRM = Verb(
+    "confirm",
+    ConfirmArgs,
+    OperatorRequest,
+    "the operator did what the session waits for (status: operator); its request",
+    blocking=False,
+)
+
 LEARNER_VERBS = VerbTable(
     "learner",
     ("learner/rpc:i",),
@@ -88,5 +115,6 @@ LEARNER_VERBS = VerbTable(
         START,
         STOP,
         STATUS,
+        CONFIRM,
     ),
 )

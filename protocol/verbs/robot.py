@@ -467,7 +467,8 @@ class ReleaseReply(Reply, frozen=True):
     sim_time: Annotated[float, Meta(description="s")]
     release_sim_time: Annotated[float, Meta(description="s")]
     flight_time: Annotated[float, Meta(description="s")]
-    theta: Annotated[Theta, Meta(description="θ the arrow was launched with, m")]
+    #: None from a robot that cannot tell it (a real robot's finger release)
+    theta: Annotated[Theta, Meta(description="θ the arrow was launched with, m")] | None = None
 
 
 class ResetArgs(Args, frozen=True):

@@ -24,6 +24,7 @@ from archery.protocol.theta import ThetaBox
 from archery.protocol.vectors import finite_vector
 from archery.protocol.verbs.learner import MAX_ROLLOUTS, Scenario, StartArgs
 from archery.services.learner.algorithms.registry import ALGORITHMS
+from archery.services.learner.operator_desk import OPERATOR_LIMIT
 
 __all__ = [
     "DEFAULT_THETA0",
@@ -267,6 +268,8 @@ class LearnerServiceConfig:
         service_wait: how long a session waits for a vanished service before it fails (wall s).
         start_wait: how long `start` waits for the other services to be alive (wall s).
         rpc_timeout: longest wait for a reply from another service (wall s).
+        operator_wait: how long a session waits for the operator to confirm what a real robot
+            cannot do by itself (a nock by hand: `operator_desk`) before it stops (wall s).
         report: write `report.png` and the hit frame when a session ends.
         fleet: more robot prefixes served by this one learner (a session on each at once).
     """
@@ -285,6 +288,14 @@ class LearnerServiceConfig:
     )
     rpc_timeout: float = flag(
         RPC_TIMEOUT, "longest wait for another service's reply", unit="s", low=0.5, high=600
+    )
+    operator_wait: float = flag(
+        OPERATOR_LIMIT,
+        "wait this long for the operator to confirm a nock or reset done by hand, then stop "
+        "the session (resumable)",
+        unit="s",
+        low=1,
+        high=86400,
     )
     report: bool = flag(True, "write no report figures", name="--no-report")
     fleet: tuple[str, ...] = flag(

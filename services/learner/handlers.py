@@ -1,6 +1,6 @@
 """The learner's RPC verbs on `ROBOT/learner/rpc:i` (`protocol.verbs.learner`): start, stop,
-status; and the session thread they start. Each journal record of a rollout also goes out on
-`ROBOT/learner/rollout:o`."""
+status, confirm (`operator_desk`); and the session thread they start. Each journal record of a
+rollout also goes out on `ROBOT/learner/rollout:o`."""
 
 from __future__ import annotations
 
@@ -24,11 +24,14 @@ from archery.protocol.messages import Rollout
 from archery.protocol.text import shown
 from archery.protocol.verbs import NoArgs, ServedVerbs
 from archery.protocol.verbs.learner import (
+    CONFIRM,
     LEARNER_VERBS,
     START,
     STATUS,
     STOP,
+    ConfirmArgs,
     LearnerStatusReply,
+    OperatorRequest,
     StartArgs,
 )
 from archery.services.learner.config import LearnerServiceConfig, SessionConfig
@@ -59,7 +62,7 @@ class LearnerHandlers:
     def __init__(self, config: LearnerServiceConfig, node: Node) -> None:
         self.config = config
         self.node = node
-        self.rig = MeshRig(node, config.rpc_timeout)
+        self.rig = MeshRig(node, config.rpc_timeout, operator_limit=config.operator_wait)
         self.rollouts: Publisher[Rollout] = node.publisher(
             node.keys.learner_rollouts(), Rollout, lossless=True
         )
@@ -71,7 +74,12 @@ class LearnerHandlers:
 
     def verbs(self) -> ServedVerbs:
         """The verbs of `ROBOT/learner/rpc:i` (`protocol.verbs.learner`)."""
-        return LEARNER_VERBS.bind(START.to(self.start), STOP.to(self.stop), STATUS.to(self.status))
+        return LEARNER_VERBS.bind(
+            START.to(self.start),
+            STOP.to(self.stop),
+            STATUS.to(self.status),
+            CONFIRM.to(self.confirm),
+        )
 
     def _publish(self, record: JournalRecord) -> None:
         message = rollout_message(record)
@@ -147,6 +155,7 @@ class LearnerHandlers:
             self._session = session
             self._report = {}
             self._stop = threading.Event()
+            self.rig.stop = self._stop  # a wait for the operator ends with the session
             self._thread = threading.Thread(
                 target=self._run, args=(session, self._stop), name="session", daemon=True
             )
@@ -180,7 +189,8 @@ class LearnerHandlers:
         if state in FINAL_STATES and self._thread is not None and self._thread.is_alive():
             state = "reporting"
         report = {"report": None, "hit_frame": None} | self._report
-        return msgspec.structs.replace(status, state=state, **report, **extra)
+        operator = self.rig.desk.pending
+        return msgspec.structs.replace(status, state=state, operator=operator, **report, **extra)
 
     def stop(self, args: NoArgs) -> LearnerStatusReply:
         """Ask the running session to stop after its current rollout."""
@@ -197,6 +207,15 @@ class LearnerHandlers:
         reporting, finished, stopped or failed), or {"state": "idle"}."""
         session = self._session
         return LearnerStatusReply(state="idle") if session is None else self._status_of(session)
+
+    def confirm(self, args: ConfirmArgs) -> OperatorRequest:
+        """The operator did what the running session waits for (`status`'s `operator`; with
+        `request`, only if it is that one); the request confirmed.
+
+        Raises:
+            BadRequest: nothing waits, or another request does.
+        """
+        return self.rig.desk.confirm(args.request)
 
     def close(self, timeout: float = 30.0) -> None:
         """Stop the running session (after its current rollout) and wait for it."""

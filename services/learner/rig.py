@@ -25,6 +25,7 @@ from archery.mesh.robot_client import RobotClient
 from archery.mesh.tokens import TokenSet
 from archery.protocol.errors import (
     ArcheryError,
+    OperatorNeeded,
     RpcError,
     RpcTimeout,
     StaleState,
@@ -39,6 +40,7 @@ from archery.protocol.verbs import controller as cv
 from archery.protocol.verbs import detector as dv
 from archery.protocol.verbs import robot as rv
 from archery.services.learner.errors import RigError, ServiceLost
+from archery.services.learner.operator_desk import OPERATOR_LIMIT, OperatorDesk
 from archery.services.learner.rig_protocol import Measurement, PostureResult, Shot
 
 __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
@@ -65,7 +67,11 @@ class MeshRig:
     * `ROBOT/archery/rpc:i status` (the robot's shot), `nock` (posture shot), then `release`
       (replies once the arrow has landed), `reset {seed}`, through the one `RobotClient`;
     * `ROBOT/detector/rpc:i measure` for a frame newer than the landing, and `frame {overlay}`
-      for the picture of a hit with the detection drawn on it;
+      for the picture of a hit with the detection drawn on it; on a robot that does not see
+      the arrow land (its status: `world.landing` "camera"), `baseline` before the release and
+      `measure {baseline}`, which waits for the new arrow and a still picture;
+    * a verb the robot answers `operator_needed` (a real robot's nock by hand) is the
+      operator's: asked on the `desk` and waited for until confirmed (`OperatorDesk.ask`);
     * `ROBOT/world/events:o` is read for the ground-truth impact, which goes to the log only.
 
     Args:
@@ -75,7 +81,9 @@ class MeshRig:
 
     services: tuple[str, ...] = SERVICES
 
-    def __init__(self, node: Node, timeout: float = 20.0) -> None:
+    def __init__(
+        self, node: Node, timeout: float = 20.0, operator_limit: float = OPERATOR_LIMIT
+    ) -> None:
         self.node = node
         self.keys = node.keys
         self.timeout = timeout
@@ -89,6 +97,12 @@ class MeshRig:
         #: The robot's shot, which every posture asks the controller for (`follow_shot`)
         self.shot: Literal["posture", "whole"] = "posture"
         self._rtf = 0.0  # the robot's real-time factor (its `status`)
+        #: who tells the landing: the robot ("events": its release replies once landed) or the
+        #: camera (the detector, from frames: a robot that does not see the arrow)
+        self.landing = "events"
+        self.desk = OperatorDesk(operator_limit)
+        #: the running session's stop, which ends a wait for the operator
+        self.stop = threading.Event()
 
     def _on_event(self, event: WorldEvent) -> None:
         if event.kind not in ("landed", "missed"):
@@ -214,6 +228,7 @@ class MeshRig:
             log.info("the robot runs the whole shot: the controller plays it in every rollout")
         self.shot = status.scene.shot
         self._rtf = status.rtf
+        self.landing = "camera" if status.world.get("landing") == "camera" else "events"
         return self.shot
 
     # -- the rollout ----------------------------------------------------------------------------
@@ -233,8 +248,24 @@ class MeshRig:
         return {"world": robot.world, "shot": robot.shot, "traj_time": controller.traj_time}
 
     def reset(self, seed: int) -> None:
-        """Robot to the home posture, shot noise reseeded with `seed`."""
-        self._timed("robot", lambda: self.robot.reset(int(seed)))
+        """Robot to the home posture, shot noise reseeded with `seed` (the operator's, where
+        the robot cannot: `_by_hand`)."""
+        self._by_hand("reset", lambda: self.robot.reset(int(seed)))
+
+    def _by_hand(self, verb: str, work: Callable[[], T]) -> tuple[T | None, float]:
+        """(`work()`, wall s), or (None, wall s waited) when the robot answers that only the
+        operator can do it (`operator_needed`): the operator is asked and waited for.
+
+        Raises:
+            OperatorAbsent: no confirmation within the desk's limit, or the session stopped.
+        """
+        try:
+            return self._timed("robot", work)
+        except RigError as exc:
+            if exc.code != OperatorNeeded.code:
+                raise
+            asked = exc.message
+        return None, self.desk.ask(verb, asked, self.stop)
 
     def move_to(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done; on a
@@ -284,7 +315,14 @@ class MeshRig:
         before = time.time()
         timing = {}
         if self.shot != "whole":
-            _, timing["nock_s"] = self._timed("robot", self.robot.nock)
+            _, timing["nock_s"] = self._by_hand("nock", self.robot.nock)
+        baseline = None
+        if self.landing == "camera":  # the scene before the release, the new arrow's reference
+            args = dv.BaselineArgs(timeout=max(0.5, self.timeout - 2.0))
+            taken, timing["baseline_s"] = self._call(
+                "detector", self.keys.detector_rpc(), dv.BASELINE, args
+            )
+            baseline, before = taken.baseline, time.time()
         result, release = self._timed("robot", self.robot.release)
         return Shot(
             shot=result.shot,
@@ -293,6 +331,7 @@ class MeshRig:
             outcome=result.outcome,
             timing=timing | {"release_s": release, "flight_sim_s": result.flight_time},
             theta_launched=result.theta,
+            baseline=baseline,
         )
 
     def measure(self, shot: Shot) -> Measurement:
@@ -300,9 +339,10 @@ class MeshRig:
         after the nock (so never a frame from before a reset or of an earlier arrow)."""
         key = self.keys.detector_rpc()
         args = dv.MeasureArgs(
-            after_sim_time=shot.sim_time,
+            after_sim_time=None if shot.baseline is not None else shot.sim_time,
             after_stamp=shot.stamp,
             timeout=max(0.5, self.timeout - 2.0),  # the detector answers before we give up
+            baseline=shot.baseline,
         )
         result, wall = self._call("detector", key, dv.MEASURE, args)
         if result.status == "ok" and result.r_m is None:
@@ -315,6 +355,9 @@ class MeshRig:
         """The robot's true r (m) of `shot` (waits up to 1 s for its event; None if none): only
         an event received after the shot's nock, so a restarted robot's shot numbers never pick
         up an old event of an earlier instance's shot of the same number."""
+
+        if shot.baseline is not None:  # the robot does not see its arrows: no truth to wait for
+            return None
 
         def event() -> WorldEvent | None:
             received, found = self._truth.get(shot.shot, (0.0, None))

@@ -43,6 +43,9 @@ class Shot:
     outcome: str
     timing: dict[str, float] = field(default_factory=dict)
     theta_launched: list[float] | None = None
+    #: the detector's baseline taken before the release, when the camera tells the landing
+    #: (a robot that does not see the arrow land: `MeshRig.landing`); None: the robot told it
+    baseline: int | None = None
 
 
 @dataclass(frozen=True)

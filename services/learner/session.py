@@ -37,6 +37,7 @@ from archery.services.learner.config import SessionConfig
 from archery.services.learner.errors import RigError, ServiceLost, SessionFailed
 from archery.services.learner.hit_frame import LatestHit
 from archery.services.learner.journal import Journal, JournalError
+from archery.services.learner.operator_desk import OperatorAbsent
 from archery.services.learner.rig_protocol import Rig
 from archery.services.learner.rollout_step import (
     Attempt,
@@ -198,6 +199,13 @@ class Session:
             self._set("failed", exc.message)
             log.error("session %s failed: %s", self.session_id, exc.message)
             self._record_failure(exc.message)
+        except OperatorAbsent as exc:  # its attempt stays open: the resumed session runs it
+            self._set("stopped", exc.message)
+            log.error("session %s stopped: %s", self.session_id, exc.message)
+            try:
+                self._record(StoppedRecord(reason="operator absent", cause=exc.message))
+            except JournalError as journal:
+                log.error("session %s: the stop was not journaled: %s", self.session_id, journal)
         except JournalError as exc:
             self._set("failed", exc.message)
             log.error("session %s: journal failure: %s", self.session_id, exc.message)

@@ -20,6 +20,8 @@ __all__ = ["BODIES", "RobotConfig", "add_arguments", "make_config"]
 
 #: what `archery robot --body` serves: the simulated iCub, or a YARP robot's control boards
 BODIES = ("mujoco", "yarp")
+#: who tells a YARP body's arrow landing (`--landing`)
+LANDINGS = ("events", "camera")
 
 
 @dataclass(frozen=True)
@@ -69,6 +71,15 @@ class RobotConfig:
             `release` and `grasp` are its answers (`yarp_archery`), and the robot's world
             events (REMOTE/world/events:o, when it exists) go to the mesh; "" (the default):
             those verbs are refused.
+        landing: with `archery_rpc`, who tells the arrow's landing: "events" (the robot's
+            release replies once landed, its world events forwarded) or "camera" (they are
+            ignored: the detector tells it from the frames, as on a robot that does not see
+            its arrows). A body without `archery_rpc` always leaves it to the camera.
+        release_joint: with `body` "yarp" and no `archery_rpc`, the finger axis `release`
+            opens (`yarp_shot`; "": `yarp_shot.RELEASE_JOINT` when the robot has it).
+        release_open: the angle (degrees) `release` moves that finger to.
+        hand_postures: a JSON file {verb: {axis: degrees}} of the hand postures of `grasp`,
+            `nock` and `reset` (a verb without one is the operator's: `operator_needed`).
     """
 
     net: NetConfig = field(default_factory=NetConfig)
@@ -129,6 +140,27 @@ class RobotConfig:
         "status, reset, nock, release and grasp answers, and its world events "
         "(REMOTE/world/events:o) forwarded; none: those verbs are refused",
         metavar="PORT",
+    )
+    landing: str = flag(
+        "events",
+        "with --archery-rpc, who tells the arrow's landing: the robot's events, or the camera "
+        "(the robot's ignored, as on a robot that does not see its arrows)",
+        choices=LANDINGS,
+    )
+    release_joint: str = flag(
+        "",
+        "with --body yarp and no --archery-rpc, the finger axis the release opens (default "
+        "r_index_proximal when the robot has it)",
+        metavar="AXIS",
+    )
+    release_open: float = flag(
+        0.0, "the angle the release finger opens to", unit="degrees", low=-360, high=360
+    )
+    hand_postures: str = flag(
+        "",
+        "with --body yarp, a JSON file {grasp|nock|reset: {AXIS: degrees}}: the hand postures "
+        "of those verbs (a verb without one is done by the operator and confirmed)",
+        metavar="FILE",
     )
 
     def __post_init__(self) -> None:

@@ -29,6 +29,7 @@ from archery.services.robot.sink import MeshSink
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_loop import YarpLoop
 from archery.services.robot.yarp_parts import BodyError, open_parts
+from archery.services.robot.yarp_shot import LabShot
 from archery.sim.world import ArcheryWorld
 
 __all__ = ["main", "run", "run_yarp"]
@@ -105,12 +106,13 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
     try:
         node = Node(ROBOT, config.net)
         try:
-            sink = MeshSink(node, tuple(body.parts), world=False, events=bool(config.archery_rpc))
+            events = bool(config.archery_rpc) and config.landing == "events"
+            sink = MeshSink(node, tuple(body.parts), world=False, events=events)
             if config.archery_rpc:
                 archery = ArcheryLink(
                     body.yarp,
                     config.archery_rpc,
-                    f"{config.remote}/world/events:o",
+                    f"{config.remote}/world/events:o" if events else "",
                     sink,
                     timeout=RPC_TIMEOUT,  # a release answers once the arrow landed
                 )
@@ -135,13 +137,26 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
                 config.remote,
                 ", ".join(body.parts),
                 config.state_rate,
-                config.archery_rpc or "refused",
+                _shot_of(loop, config),
             )
             wait_for_stop(stop)
         finally:
             stop.set()
             thread.join(timeout=10)
             loop.close()
+
+
+def _shot_of(loop: YarpLoop, config: RobotConfig) -> str:
+    """How the body's archery verbs are answered, for its start line."""
+    if config.archery_rpc:
+        return f"{config.archery_rpc}, landing told by the {config.landing}"
+    if isinstance(loop.shot, LabShot):
+        postures = ", ".join(loop.shot.postures) or "none"
+        return (
+            f"release by {loop.shot.finger.name} to {loop.shot.open:g}°, hand postures: "
+            f"{postures} (others by the operator), landing told by the camera"
+        )
+    return "refused"
 
 
 def _serve(node: Node, loop: YarpLoop, parts: tuple[str, ...], config: RobotConfig) -> None:

@@ -40,6 +40,8 @@ from archery.services.robot.sink import Sink
 from archery.services.robot.trajectory import BadTrajectory, JointPath, plan_path
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
+from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
+from archery.sim.scene_config import SceneConfig
 
 __all__ = ["UNSUPPORTED", "Unsupported", "YarpLoop"]
 
@@ -86,7 +88,10 @@ class YarpLoop:
         self, body: YarpBody, config: RobotConfig, sink: Sink, archery: ArcheryLink | None = None
     ) -> None:
         self.body = body
-        self.archery = archery
+        self.archery = archery  # the robot's own archery port: trajectories' actions need it
+        #: who answers the archery verbs: the robot's own port (its landing ignored with
+        #: `config.landing` "camera"), a finger release (`yarp_shot.LabShot`), or none
+        self.shot: Shot | None = None
         self.config = config
         self.parts = tuple(body.parts)
         self.limits = {
@@ -120,6 +125,10 @@ class YarpLoop:
         self._playing: set[str] = set()  # the parts a trajectory moves (`follow`)
         self._closed = threading.Event()
         self._refused = ""  # the last encoder reading refused, logged once
+        if archery is not None:
+            self.shot = EventsIgnored(archery) if config.landing == "camera" else archery
+        else:
+            self.shot = lab_shot(body, self._lock, self._stamp_now, config, self.lab_status)
 
     # -- the loop ------------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -166,8 +175,8 @@ class YarpLoop:
         """End `run` and close the control boards (and YARP's network)."""
         self._closed.set()
         with self._lock:
-            if self.archery is not None:
-                self.archery.close()
+            if self.shot is not None:
+                self.shot.close()
             self.body.close()
 
     # -- reading -------------------------------------------------------------------------------
@@ -524,32 +533,30 @@ class YarpLoop:
         except (BodyError, ArcheryError) as exc:
             log.error("the aborted trajectory's joints not held: %s", exc)
 
+    def _shot(self, verb: str) -> Shot:
+        if self.shot is None:
+            raise Unsupported(verb)
+        return self.shot
+
     def grasp(self) -> rv.GraspReply:
-        """The robot's own `grasp` (`archery`); refused without one: no arrow, no holder."""
-        if self.archery is None:
-            raise Unsupported("grasp")
-        return self.archery.grasp()
+        """The shot's `grasp` (`yarp_shot` or the robot's own port); refused without one."""
+        return self._shot("grasp").grasp()
 
     def nock(self) -> rv.NockReply:
-        """The robot's own `nock` (`archery`); refused without one: no arrow, no bow."""
-        if self.archery is None:
-            raise Unsupported("nock")
-        return self.archery.nock()
+        """The shot's `nock`; refused without one."""
+        return self._shot("nock").nock()
 
     def release(self, timeout: float | None = None) -> rv.ReleaseReply:
-        """The robot's own `release` (`archery`: it answers once the arrow landed, within the
-        link's timeout, not `timeout`); refused without one: no arrow to release."""
-        if self.archery is None:
-            raise Unsupported("release")
-        return self.archery.release()
+        """The shot's `release` (the robot's own port answers once the arrow landed, within the
+        link's timeout, not `timeout`; a finger release once the finger is open); refused
+        without one."""
+        return self._shot("release").release()
 
     def reset(self, seed: Any = None) -> rv.ResetReply:
-        """The robot's own `reset` (`archery`), after which each part's targets are the
-        robot's (`getTargetPositions`; its encoders where it tells none); refused without one:
-        a real robot is not put back by a verb."""
-        if self.archery is None:
-            raise Unsupported("reset")
-        reply = self.archery.reset(seed)
+        """The shot's `reset`, after which each part's targets are the robot's
+        (`getTargetPositions`; its encoders where it tells none); refused without one: a real
+        robot is not put back by a verb."""
+        reply = self._shot("reset").reset(seed)
         self._resync_targets()
         return reply
 
@@ -574,8 +581,34 @@ class YarpLoop:
         raise Unsupported("setWind")
 
     def status(self) -> rv.ArcheryStatusReply:
-        """The robot's own `status` (`archery`: its scene, arrow, shot and simulated time);
-        refused without one: a YARP body has none of them."""
-        if self.archery is None:
-            raise Unsupported("status (its scene, arrow, shot and simulated time)")
-        return self.archery.status()
+        """The shot's `status` (the robot's own port's: its scene, arrow, shot and simulated
+        time; a finger release's: `lab_status`); refused without one."""
+        return self._shot("status (its scene, arrow, shot and simulated time)").status()
+
+    def lab_status(self, phase: str, shot: int, world: dict[str, Any]) -> rv.ArcheryStatusReply:
+        """The robot's status as a body without a world tells it: wall s since the start, the
+        shot's `phase` and count, the body's rates and counters, the project's scene
+        (`SceneConfig`: the lab sets its target where the project's stands), `world`."""
+        cfg = self.config
+        with self._lock:
+            done = all(self._done(part) for part in self.parts)
+        return rv.ArcheryStatusReply(
+            sim_time=self._stamp_now(),
+            arrow="",
+            phase=phase,  # type: ignore[arg-type]  # LabShot's phases: idle, nocked
+            shot=shot,
+            motion_done=done,
+            seed=None,
+            rtf=1.0,
+            state_rate=cfg.state_rate,
+            world_rate=0.0,
+            watchdog=cfg.watchdog,
+            limit_tolerance=cfg.limit_tolerance,
+            timestep=0.0,
+            counters={
+                p: self._counters[p].to_dict() | {"streaming": False, "owner": self.leases.owner(p)}
+                for p in self.parts
+            },
+            scene=SceneConfig().to_status(),
+            world={"body": "yarp", "remote": self.body.remote} | world,
+        )
