@@ -104,6 +104,7 @@ def wait_for_landing(
     still_s: float,
     thresholds: LandingThresholds,
     min_arrow_pixels: float,
+    interval: float = FRAME_INTERVAL,
 ) -> Landed:
     """Grab frames one after another (each captured after the previous one; the first after
     `after_sim_time` and `after_stamp`, wall s) until one shows a new object since `baseline`
@@ -115,6 +116,7 @@ def wait_for_landing(
         name: what the messages call the baseline ("baseline 3").
         timeout: s to wait in all.
         min_arrow_pixels: full-resolution px an arrow's tip needs (`DetectorSettings`).
+        interval: wall s at least between two grabs.
 
     Raises:
         NoLanding: none within `timeout` (the message says what was seen).
@@ -137,7 +139,7 @@ def wait_for_landing(
         stamp = after_stamp
         if previous is not None:
             stamp = max(previous[1] + STAMP_STEP, -math.inf if stamp is None else stamp)
-        next_grab = time.monotonic() + FRAME_INTERVAL
+        next_grab = time.monotonic() + interval
         try:
             image = grab(after_sim_time, stamp, left)
         except RpcError as exc:
