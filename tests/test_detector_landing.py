@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -74,8 +73,9 @@ def _tip_px(render: np.ndarray, empty: np.ndarray) -> tuple[float, float]:
     return float(cols.mean()), float(rows.mean())
 
 
-@pytest.fixture(scope="module")
-def rendered() -> Iterator[Rendered]:
+def render_scenes() -> Rendered:
+    """The frames of `Rendered`, rendered, and the colour model calibrated on the scene's
+    calibration frame and marks."""
     model = build_scene(SCENE)
     with SceneRenderer(SCENE) as renderer:
         qpos = model.qpos0.copy()
@@ -99,7 +99,7 @@ def rendered() -> Iterator[Rendered]:
         moved = arrow_at(NEW_R[0] + 0.03, NEW_R[1])
         both = np.where(np.any(new != empty, axis=2)[:, :, None], new, old)
         moved_both = np.where(np.any(moved != empty, axis=2)[:, :, None], moved, old)
-        yield Rendered(
+        return Rendered(
             empty,
             old,
             both,
@@ -108,6 +108,11 @@ def rendered() -> Iterator[Rendered]:
             _tip_px(old, empty),
             Detector(colours),
         )
+
+
+@pytest.fixture(scope="module")
+def rendered() -> Rendered:
+    return render_scenes()
 
 
 def _paste_arrow(rgb: np.ndarray, tip: tuple[int, int]) -> np.ndarray:
