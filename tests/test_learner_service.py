@@ -87,7 +87,13 @@ def run_fake_sensors(net: NetConfig, stop: threading.Event, noise_m: float = 0.0
         def absent(args: Any) -> Any:
             raise ArcheryError("the fake detector has no such verb", code="unsupported")
 
-        verbs = {"measure": measure, "frame": frame, "calibrate": absent, "status": absent}
+        verbs = {
+            "measure": measure,
+            "frame": frame,
+            "baseline": absent,
+            "calibrate": absent,
+            "status": absent,
+        }
         detector.serve(detector.keys.detector_rpc(), dv.DETECTOR_VERBS.bind_names(verbs))
         camera.ready()
         detector.ready()
