@@ -55,7 +55,7 @@ class MeasureArgs(Args, frozen=True):
     frames are grabbed one after another (the first as above) until one shows a new object
     since the baseline's frame and the picture has been still for `still_s`; the tip is
     searched only where the picture changed since the baseline (`no_landing` when none comes
-    within the timeout)."""
+    within the timeout). `still_s` counts only with a baseline."""
 
     after_sim_time: Annotated[float, Meta(description="s: rendered at or after")] | None = None
     after_stamp: Annotated[float, Meta(description="wall s: captured at or after")] | None = None

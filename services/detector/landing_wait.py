@@ -144,6 +144,7 @@ def wait_for_landing(
             image = grab(after_sim_time, stamp, left)
         except RpcError as exc:
             if exc.code == Busy.code:  # the camera's rate for this caller: the next in turn
+                seen.camera = exc.message
                 continue
             if exc.code == RpcTimeout.code and not isinstance(exc, RpcTimeout):
                 seen.camera = exc.message  # the camera's own: no frame within `left`
