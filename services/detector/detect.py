@@ -319,7 +319,7 @@ class Detector:
         """
         rgb = check_image(rgb)
         if region is not None and region.shape != rgb.shape[:2]:
-            raise ImageError(f"a search region of {region.shape} px for a frame of {rgb.shape[:2]}")
+            raise ImageError(f"a search region of shape {region.shape} for a frame {rgb.shape[:2]}")
         side = FACE_SIDE
         while True:
             small, factor = downscale(rgb, side)
