@@ -105,7 +105,7 @@ def roles(robot: str) -> dict[str, Role]:
       whole shot's movement with its grasp and nock as one trajectory);
     * learner: calls the archery controller's `status, posture`, the robot's `reset, nock,
       release, status` (its world, journaled for replaying a shot) and the detector's
-      `measure, frame`; follows the world's events; serves `learner/rpc:i`;
+      `measure, frame, baseline`; follows the world's events; serves `learner/rpc:i`;
     * operator (the tools that move the robot or run sessions: `rpc`, `write`, `learn`, `up`):
       every verb, the joint commands, every stream, every `describe` and `replace`;
     * viewer (the tools that only look: `ports`, `alive`, `read`, `hz`, `record`, `view`,
@@ -187,7 +187,7 @@ def roles(robot: str) -> dict[str, Role]:
             call=(
                 *_calls(k.cartesian_rpc("archery"), "status", "posture"),
                 *_calls(k.archery_rpc(), "reset", "nock", "release", "status"),
-                *_calls(k.detector_rpc(), "measure", "frame"),
+                *_calls(k.detector_rpc(), "measure", "frame", "baseline"),
             ),
         ),
         # The tools that move the robot or run sessions (rpc, write, learn, up): every verb,

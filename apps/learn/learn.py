@@ -22,6 +22,7 @@ from archery.apps.film.film import film_hit, film_ready, hit_video
 from archery.apps.learn import attach
 from archery.apps.learn.client import learner_call, start_args
 from archery.apps.learn.follow import SessionLost, follow, result_line
+from archery.apps.learn.operator_prompt import OperatorPrompt
 from archery.apps.waits import announce
 from archery.mesh.cliargs import ArgumentParser, loads_finite, seconds
 from archery.mesh.netflags import NetConfig, add_network_args
@@ -289,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery learn: {exc}", file=sys.stderr)
         return 2
     show = (lambda m: None) if args.quiet else _progress
-    waiting = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
+    lines = (lambda s: None) if args.quiet else attach.WaitingLines(attach.stderr_line)
     note = None if args.quiet else attach.stderr_line
     on_wait = None if args.quiet else announce("learn")
     resume_timeout = args.wait + 30.0  # s: a resumed session's `start` waits for the services
@@ -299,6 +300,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"archery learn: {exc}", file=sys.stderr)
         return for_error(exc.code)
     with node:
+        keys = sys.stdin if sys.stdin is not None and sys.stdin.isatty() else None
+        prompt = OperatorPrompt(node, attach.stderr_line, keys)  # said even with --quiet
+
+        def waiting(status: dict[str, Any]) -> None:
+            lines(status)
+            prompt(status)
+
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         if args.attach:
             return attach.attach(
