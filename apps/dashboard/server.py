@@ -2,7 +2,7 @@
 
 A small page served by the package itself (`_Handler`: its endpoints, and why no web
 framework) through the guarded HTTP server of `apps.dashboard.guard`; the mesh side is one
-`apps.dashboard.watch.MeshWatch` per robot followed (`Dashboard`).
+`apps.dashboard.watch.MeshWatch` per robot followed (`Dashboard`); `--operator`: `confirm.py`.
 What the page shows: docs/commands.md, under `archery dashboard`.
 """
 
@@ -24,10 +24,10 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, urlsplit
 
+from archery.apps.dashboard.confirm import CONFIRM_PATH, add_operator_arg, confirm, node_settings
 from archery.apps.dashboard.guard import MAX_CONNECTIONS, REQUEST_TIMEOUT, GuardedServer
 from archery.apps.dashboard.watch import MeshWatch
 from archery.apps.viewer import View, add_wait_arg, viewer_main
-from archery.mesh.acl import VIEWER
 from archery.mesh.cliargs import ArgumentParser, int_in
 from archery.mesh.netflags import NetConfig, add_network_args, check_server_host
 from archery.mesh.node import Node
@@ -133,8 +133,9 @@ class _Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:
         url = urlsplit(self.path)
         path, query = url.path, parse_qs(url.query)
-        if path in _POSTS:
-            self._text(HTTPStatus.METHOD_NOT_ALLOWED, f"{path} changes what is watched: POST it")
+        if path in self.server.dashboard.posts:
+            what = "the session" if path == CONFIRM_PATH else "what is watched"
+            self._text(HTTPStatus.METHOD_NOT_ALLOWED, f"{path} changes {what}: POST it")
             return
         if path.startswith("/api/"):
             self._api(path, query)
@@ -150,16 +151,18 @@ class _Handler(BaseHTTPRequestHandler):
         self._send(HTTPStatus.OK, content, ctype + "; charset=utf-8")
 
     def do_POST(self) -> None:
-        """`/api/watch?robot=R` (follow a robot alive on the router; 404 for one that is not)
-        and `/api/scene?robot=R` (a page shows the scene view: the page posts it with each poll
-        while its scene panel is open), each with the page's token in `TOKEN_HEADER`: a random
-        one per server, sent with every answer; a page of another site cannot read it, nor
-        send a header of its own without this server's consent."""
+        """`/api/watch?robot=R` (follow a robot alive on the router; 404 for one that is not),
+        `/api/scene?robot=R` (a page shows the scene view: the page posts it with each poll
+        while its scene panel is open) and, with `--operator` only, `/api/confirm?robot=R&
+        request=N` (the operator did request N: `apps.dashboard.confirm`; else 404), each with
+        the page's token in `TOKEN_HEADER`: a random one per server, sent with every answer; a
+        page of another site cannot read it, nor send a header of its own without this
+        server's consent."""
         url = urlsplit(self.path)
         dashboard = self.server.dashboard
         if not self._drain_body():
             return
-        if url.path not in _POSTS:
+        if url.path not in dashboard.posts:
             self._text(HTTPStatus.NOT_FOUND, "not found")
             return
         token = self.headers.get(TOKEN_HEADER, "")
@@ -170,8 +173,12 @@ class _Handler(BaseHTTPRequestHandler):
         if origin is not None and not self.server.allows(urlsplit(origin).netloc):
             self._text(HTTPStatus.FORBIDDEN, "a page of another site may not POST here")
             return
-        robot = parse_qs(url.query).get("robot", [None])[0]
+        query = parse_qs(url.query)
+        robot = query.get("robot", [None])[0]
         try:
+            if url.path == CONFIRM_PATH:
+                self._send(*confirm(dashboard.watch(robot), query))
+                return
             if url.path == "/api/watch":
                 watch = dashboard.follow(robot)
             else:
@@ -213,7 +220,8 @@ class _Handler(BaseHTTPRequestHandler):
             self._send(status, body, "application/json")
             return
         if path == "/api/state":
-            body = json.dumps(watch.snapshot(), allow_nan=False).encode()
+            state = watch.snapshot() | {"operator": dashboard.operator}
+            body = json.dumps(state, allow_nan=False).encode()
             self._send(HTTPStatus.OK, body, "application/json")
         elif path in ("/api/frame.png", "/api/scene.jpg"):
             png = path == "/api/frame.png"
@@ -283,13 +291,15 @@ class NotWatched(ArcheryError):
 class Dashboard:
     """The server and the mesh watches together (the node's robot's, and each other robot's
     a page chose, while it is alive on the router and a page polls it); a context manager
-    (tests use it directly). `token` is what the page sends with each POST.
+    (tests use it directly). `token` is what the page sends with each POST; `operator`
+    (`--operator`): `/api/confirm` is served, and the page shows its Confirm button.
 
     The mesh side is an anonymous node with one `MeshWatch` per robot followed, at most
     `MAX_ROBOTS`; another robot's is closed once no page polled it for `WATCH_IDLE` s. A watch
     subscribes to the rollouts, watches the liveliness tokens and calls only the learner's
     `status`, each service's `describe` (its ports' message counts), the detector's `frame`
-    and, while a page shows it, the camera's `scene`, so watching never disturbs a session.
+    and, while a page shows it, the camera's `scene`, so watching never disturbs a session;
+    with `operator`, the learner's `confirm` when the page's Confirm button is pressed.
     """
 
     def __init__(
@@ -299,8 +309,11 @@ class Dashboard:
         *,
         watch_idle: float = WATCH_IDLE,
         node: Node | None = None,
+        operator: bool = False,
     ) -> None:
         self.server = server
+        self.operator = operator
+        self.posts = (*_POSTS, CONFIRM_PATH) if operator else _POSTS
         self._own_node = node is None  # a node given stays its giver's to close
         try:
             self.node = Node(None, net) if node is None else node
@@ -426,12 +439,13 @@ class Dashboard:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`archery dashboard [--port N] [--host ADDR]`: serve the live view until Ctrl-C."""
+    """`archery dashboard [--port N] [--host ADDR] [--operator]`: serve until Ctrl-C."""
     parser = ArgumentParser(
         prog="archery dashboard",
         description="serve a live view of the robot's session in the browser: each "
         "rollout's camera frame with overlay, the whole robot from the side camera, target face, "
-        "distance per rollout, liveliness and port rates; a selector for the robots of a fleet",
+        "distance per rollout, liveliness and port rates; a selector for the robots of a fleet; "
+        "what the session waits for the operator to do; read-only unless --operator",
     )
     add_network_args(parser, default_mode="client")
     add_nice_arg(parser, OBSERVER_NICE)
@@ -443,6 +457,7 @@ def main(argv: list[str] | None = None) -> int:
         help=f"default {DEFAULT_PORT}",
     )
     http.add_argument("--host", default="127.0.0.1", help="default 127.0.0.1: this machine only")
+    add_operator_arg(http)
     add_wait_arg(parser, robot=False)
     return viewer_main(
         argv, prog="dashboard", parser=parser, check=_check, start=_start, robot=False
@@ -453,8 +468,7 @@ def _check(args: argparse.Namespace) -> tuple[NetConfig, _Server]:
     """The node's settings and the HTTP server, bound."""
     host = _check_host(args.host)
     check_server_host(host, args.insecure_network)
-    net = NetConfig.from_args(args).with_identity(VIEWER)
-    return net, bind(host, args.port)
+    return node_settings(args), bind(host, args.port)
 
 
 class _Serving:
@@ -464,7 +478,8 @@ class _Serving:
         self.dashboard = dashboard
 
     def ready(self) -> str:
-        return f"serving {self.dashboard.url} (robot {self.dashboard.node.keys.robot})"
+        mode = "operator: its Confirm button" if self.dashboard.operator else "read-only"
+        return f"serving {self.dashboard.url} (robot {self.dashboard.node.keys.robot}, {mode})"
 
     def close(self) -> None:
         self.dashboard.close()
@@ -472,4 +487,4 @@ class _Serving:
 
 def _start(view: View, server: _Server) -> _Serving:
     lower_priority(view.args.nice)
-    return _Serving(Dashboard(view.node.net, server, node=view.node))
+    return _Serving(Dashboard(view.node.net, server, node=view.node, operator=view.args.operator))

@@ -83,6 +83,7 @@ class MeshWatch:
         self._scene_wanted_at = -math.inf  # monotonic s: a page last asked for the scene view
         self._scene_due = 0.0  # monotonic s: when the camera may be asked again
         self._frame_wanted = threading.Event()
+        self._status_wanted = threading.Event()  # the status changed (a confirm): fetch it now
         self._wake = threading.Event()  # a rollout, a page wanting the scene, or close()
         self._stop = threading.Event()
         self._rates = PortRates()
@@ -139,7 +140,8 @@ class MeshWatch:
         next_status = 0.0
         while not self._stop.is_set():
             now = time.monotonic()
-            if now >= next_status:
+            if now >= next_status or self._status_wanted.is_set():
+                self._status_wanted.clear()
                 self._fetch_status()
                 next_status = time.monotonic() + self.status_every
                 if self.frame()[1] == 0:
@@ -229,6 +231,12 @@ class MeshWatch:
                 }
             self._scene = scene
         self._scene_due = time.monotonic() + period
+
+    def status_soon(self) -> None:
+        """The learner's status changed (the page confirmed its operator's request): fetch it
+        now rather than at the next `status_every`."""
+        self._status_wanted.set()
+        self._wake.set()
 
     def want_scene(self) -> None:
         """A page shows the scene view: fetch it for the next `SCENE_INTEREST` s."""

@@ -3,7 +3,9 @@
 // coloured by rollout, with a colour bar) and the distance curve as SVG, lists the services and
 // port rates, and offers the robots alive on the router. GETs change nothing on the server: the
 // page POSTs (with the server's token) the robot it follows and, with each poll while the scene
-// panel is open, that it shows the scene view.
+// panel is open, that it shows the scene view. While the session waits for the operator (the
+// learner's status: `operator`), a banner says what for; a dashboard started with --operator
+// (the state's `operator: true`) adds a Confirm button, which POSTs the request number it shows.
 "use strict";
 
 const SVG = "http://www.w3.org/2000/svg";
@@ -17,6 +19,8 @@ let robot = null; // null: the dashboard's own robot
 let frameVersion = 0;
 let sceneVersion = 0;
 let token = null; // from the header of the server's answers
+let confirming = false; // a Confirm POST in flight
+let confirmed = null; // "robot request" last confirmed here: its button stays off
 
 function el(name, attrs, parent) {
   const node = document.createElementNS(SVG, name);
@@ -274,6 +278,36 @@ function showScene(state) {
   }
 }
 
+function clock(epochS) {
+  const t = new Date(epochS * 1000);
+  return [t.getHours(), t.getMinutes(), t.getSeconds()]
+    .map((v) => String(v).padStart(2, "0")).join(":");
+}
+
+// The operator's request the session waits for, with the Confirm button on an operator's
+// dashboard; the button keeps the robot and the request number it shows.
+function showOperator(state) {
+  const panel = document.getElementById("operator-panel");
+  const button = document.getElementById("confirm");
+  const ask = state.learner.operator;
+  if (!ask) {
+    panel.hidden = true;
+    return;
+  }
+  const shown = `${state.robot} ${ask.request}`;
+  if (panel.dataset.shown !== shown) document.getElementById("operator-note").textContent = "";
+  panel.dataset.shown = shown;
+  document.getElementById("operator-request").textContent =
+    `The session waits for the operator: ${ask.message} (request ${ask.request}, ` +
+    `since ${clock(ask.since)}, waits up to ${ask.limit} s)`;
+  button.hidden = !state.operator;
+  button.dataset.robot = state.robot;
+  button.dataset.request = ask.request;
+  button.textContent = `Confirm request ${ask.request}: done`;
+  button.disabled = confirming || confirmed === shown;
+  panel.hidden = false;
+}
+
 function show(state) {
   document.getElementById("robot").textContent = state.robot;
   document.getElementById("session").textContent =
@@ -291,6 +325,7 @@ function show(state) {
   showRates(state);
   showFrame(state);
   showScene(state);
+  showOperator(state);
 }
 
 // A GET of the dashboard's: the token the server sends with every answer is kept for POSTs.
@@ -300,10 +335,11 @@ async function get(path) {
   return response;
 }
 
-// A POST of the page's own (`/api/watch`, `/api/scene`) for the chosen robot, with the token.
-async function post(path) {
+// A POST of the page's own (`/api/watch`, `/api/scene`: for the chosen robot; `/api/confirm`:
+// with its `params`), with the token.
+async function post(path, params) {
   if (!token) await get("/api/robots");
-  return fetch(`${path}${query()}`,
+  return fetch(params ? `${path}?${new URLSearchParams(params)}` : `${path}${query()}`,
     { method: "POST", cache: "no-store", headers: { [TOKEN_HEADER]: token || "" } });
 }
 
@@ -354,7 +390,31 @@ document.getElementById("robot-select").addEventListener("change", (event) => {
   sceneVersion = 0;
   for (const id of ["frame", "scene"]) document.getElementById(id).removeAttribute("src");
   document.getElementById("frame-caption").hidden = true;
+  document.getElementById("operator-panel").hidden = true; // until this robot's state comes
   post("/api/watch").catch(() => {}); // the state poll reports a failure
+});
+
+document.getElementById("confirm").addEventListener("click", async (event) => {
+  const button = event.currentTarget;
+  const note = document.getElementById("operator-note");
+  const { robot: shownRobot, request } = button.dataset;
+  confirming = true;
+  button.disabled = true;
+  note.textContent = `confirming request ${request}…`;
+  try {
+    const response = await post("/api/confirm", { robot: shownRobot, request });
+    if (response.ok) {
+      confirmed = `${shownRobot} ${request}`;
+      note.textContent = `request ${request} confirmed`;
+    } else {
+      note.textContent = `not confirmed: ${(await response.text()).trim()}`;
+    }
+  } catch (err) {
+    note.textContent = `not confirmed: ${err.message}`;
+  } finally {
+    confirming = false;
+    button.disabled = confirmed === `${shownRobot} ${request}`;
+  }
 });
 
 listRobots();
