@@ -35,6 +35,7 @@ from archery.protocol.verbs.learner import (
     StartArgs,
 )
 from archery.services.learner.config import LearnerServiceConfig, SessionConfig
+from archery.services.learner.operator_desk import OperatorDesk
 from archery.services.learner.report import write_report
 from archery.services.learner.rig import MeshRig
 from archery.services.learner.runs_folder import journal_in_runs
@@ -62,7 +63,9 @@ class LearnerHandlers:
     def __init__(self, config: LearnerServiceConfig, node: Node) -> None:
         self.config = config
         self.node = node
-        self.rig = MeshRig(node, config.rpc_timeout, operator_limit=config.operator_wait)
+        self.rig = MeshRig(node, config.rpc_timeout)
+        self.desk = OperatorDesk(config.operator_wait)  # what a session asks of the operator
+        self.rig.desk = self.desk
         self.rollouts: Publisher[Rollout] = node.publisher(
             node.keys.learner_rollouts(), Rollout, lossless=True
         )
@@ -189,7 +192,7 @@ class LearnerHandlers:
         if state in FINAL_STATES and self._thread is not None and self._thread.is_alive():
             state = "reporting"
         report = {"report": None, "hit_frame": None} | self._report
-        operator = self.rig.desk.pending
+        operator = self.desk.pending
         return msgspec.structs.replace(status, state=state, operator=operator, **report, **extra)
 
     def stop(self, args: NoArgs) -> LearnerStatusReply:
@@ -215,7 +218,7 @@ class LearnerHandlers:
         Raises:
             BadRequest: nothing waits, or another request does.
         """
-        return self.rig.desk.confirm(args.request)
+        return self.desk.confirm(args.request)
 
     def close(self, timeout: float = 30.0) -> None:
         """Stop the running session (after its current rollout) and wait for it."""

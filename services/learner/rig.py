@@ -81,9 +81,7 @@ class MeshRig:
 
     services: tuple[str, ...] = SERVICES
 
-    def __init__(
-        self, node: Node, timeout: float = 20.0, operator_limit: float = OPERATOR_LIMIT
-    ) -> None:
+    def __init__(self, node: Node, timeout: float = 20.0) -> None:
         self.node = node
         self.keys = node.keys
         self.timeout = timeout
@@ -100,7 +98,7 @@ class MeshRig:
         #: who tells the landing: the robot ("events": its release replies once landed) or the
         #: camera (the detector, from frames: a robot that does not see the arrow)
         self.landing = "events"
-        self.desk = OperatorDesk(operator_limit)
+        self.desk = OperatorDesk(OPERATOR_LIMIT)  # the learner's own, where it has one
         #: the running session's stop, which ends a wait for the operator
         self.stop = threading.Event()
 
