@@ -3,7 +3,9 @@ behind `archery yarp --operator` (the robot as a YARP robot, /icubSim, on YARP's
 `yarpserver`); mesh B, another router, runs `archery robot --body yarp --remote /icubSim
 --archery-rpc /icubSim/archery/rpc:i`, `archery camera --source yarp:/icubSim/cam/target:o`,
 the detector, the controller and the learner, which knows mesh A only through YARP's ports.
-ARCHER hits the 5 cm ring within its usual rollouts (posture shot)."""
+ARCHER hits the 5 cm ring within its usual rollouts (posture shot); and again on mesh C, whose
+YARP body ignores the robot's landing (`--landing camera`): the detector tells it from the
+frames alone (a new arrow, then a still picture), no ground truth reaches the journal."""
 
 from __future__ import annotations
 
@@ -12,6 +14,7 @@ import subprocess
 import sys
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -85,6 +88,20 @@ class Loop:
         self.meshes.append(b)
         b.up(180)
         self.b = b
+        c = Launcher(free_tcp_endpoint(), "meshC", tmp / "logs-c", self._services(model, "c"))
+        self.meshes.append(c)
+        c.up(180)
+        self.c = c
+
+    def _services(self, model: Path, name: str) -> dict[str, list[str]]:
+        """Mesh C's flags: mesh B's, the robot's landing ignored."""
+        return {
+            "robot": ["--body", "yarp", "--remote", PREFIX, "--archery-rpc",
+                      f"{PREFIX}/archery/rpc:i", "--landing", "camera"],
+            "camera": ["--source", f"yarp:{PREFIX}/cam/target:o"],
+            "detector": ["--model", str(model)],
+            "learner": ["--runs", str(self.tmp / f"runs-{name}"), "--service-wait", "60"],
+        }  # fmt: skip
 
     def _calibrate(self, a: Launcher) -> Path:
         """The detector's colour model, fitted as a lab fits it for a real camera: on a frame
@@ -121,15 +138,21 @@ def loop(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Loop]:
         running.close()
 
 
-def test_archer_hits_the_5cm_ring_through_yarp(loop: Loop) -> None:
-    with Node(None, loop.b.net) as node:
+def _session(mesh: Launcher) -> dict[str, Any]:
+    """An ARCHER session (seed 0, at most 15 rollouts) on `mesh`, followed to its end."""
+    with Node(None, mesh.net) as node:
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
         node.wait_alive(SERVICES, timeout=60)
         request = {"algo": "archer", "seed": 0, "rollouts": 15}
         session = str(
             rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"]
         )
-        final = follow(node, session, rollouts, lambda m: None)
+        final: dict[str, Any] = follow(node, session, rollouts, lambda m: None)
+    return final
+
+
+def test_archer_hits_the_5cm_ring_through_yarp(loop: Loop) -> None:
+    final = _session(loop.b)
     assert final["state"] == "finished" and final["ended"] == "hit", final
     assert final["hit_at"] <= 15 and final["final_distance_m"] < 0.05
     done = [r for r in read_records(Path(final["journal"]))[0] if isinstance(r, DoneRecord)]
@@ -142,3 +165,15 @@ def test_archer_hits_the_5cm_ring_through_yarp(loop: Loop) -> None:
     for record in told:
         assert record.r_m is not None and record.truth_r_m is not None
         assert np.linalg.norm(np.subtract(record.r_m, record.truth_r_m)) < 0.02, record
+
+
+def test_archer_hits_with_the_landing_told_by_the_camera_alone(loop: Loop) -> None:
+    final = _session(loop.c)
+    assert final["state"] == "finished" and final["ended"] == "hit", final
+    assert final["hit_at"] <= 15 and final["final_distance_m"] < 0.05
+    records = read_records(Path(str(final["journal"])))[0]
+    done = [r for r in records if isinstance(r, DoneRecord)]
+    assert len(done) == final["rollouts"]
+    for record in done:  # the detector waited for each landing; no truth was told
+        assert record.truth_r_m is None
+        assert record.timing is not None and record.timing["detector_wait_s"] > 0

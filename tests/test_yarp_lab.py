@@ -1,0 +1,193 @@
+"""A lab's robot as the paper shot it, with YARP's own devices on the other side: YARP 3.5's
+`fakeMotionControl` arms (16 named axes each) behind `archery robot --body yarp` (a nock
+posture that closes the index finger, the release that opens it, no reset posture), a
+`folder:` camera that shows what a real camera would (the scene with an older arrow, then the
+new arrow in flight and at rest, once the finger opened), the detector telling the landing from
+the frames alone, the controller and the learner. The operator confirms the reset the robot
+cannot do; an operator who never confirms stops the session, its journal intact, resumable."""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import threading
+from collections.abc import Iterator
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from archery.apps.learn.follow import follow
+from archery.mesh.netflags import NetConfig
+from archery.mesh.node import Node
+from archery.protocol.journal_records import DoneRecord, ProposedRecord, StoppedRecord
+from archery.protocol.messages import Image, Rollout
+from archery.protocol.robotspec import ROBOT
+from archery.services.camera.config import CameraConfig
+from archery.services.camera.service import run as run_camera
+from archery.services.camera.sources import parse_source
+from archery.services.controller import service as controller_service
+from archery.services.controller.config import ControllerConfig
+from archery.services.detector.config import DetectorConfig
+from archery.services.detector.service import run as run_detector
+from archery.services.learner import service as learner_service
+from archery.services.learner.config import LearnerServiceConfig
+from archery.services.learner.journal import read_records
+from tests.conftest import serving
+from tests.ros2_sdk import until
+from tests.rpc import rpc_call
+from tests.test_detector_landing import NEW_R, Rendered, render_scenes
+from tests.test_detector_landing_mesh import Scene
+from tests.test_yarp_body import FAKE, Board, Robots, _fake_motion_control
+from tests.test_yarp_body_robot import _robot
+from tests.yarp_setup import YarpSetup
+
+yarp = pytest.importorskip("yarp", reason="YARP's bindings: `make setup` builds and installs them")
+
+pytestmark = pytest.mark.slow
+
+NOCKED, OPEN = 60.0, 5.0  # deg: the index finger on the string, and open
+
+
+@dataclass
+class Lab:
+    net: NetConfig
+    tmp: Path
+    scene: Scene
+    scenes: Rendered
+    node: Node
+
+
+@pytest.fixture(scope="module")
+def lab(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Lab]:
+    if not _fake_motion_control():
+        pytest.skip("this YARP has no fakeMotionControl device (tools/yarp_wheel.py builds it)")
+    tmp = tmp_path_factory.mktemp("yarp_lab")
+    scenes = render_scenes()
+    net = NetConfig(connect=(router_endpoint,), robot=f"lab{os.getpid()}")
+    with ExitStack() as stack:
+        setup = YarpSetup(yarp, tmp / "server")
+        stack.callback(setup.close)
+        robots = Robots(setup, tmp)
+        stack.callback(robots.close)
+        hands = tmp / "hands.json"
+        hands.write_text(f'{{"nock": {{"r_index_proximal": {NOCKED}}}}}')
+        log = tmp / "robot.log"
+        flags = ("--remote", "/fake", "--hand-postures", str(hands), "--release-open", str(OPEN))
+        proc = _robot(net, setup.env, log, *flags)
+        stack.callback(_ended, proc, log)
+        scene = Scene(tmp)
+        scene.show(scenes.old)
+        model = tmp / "model.json"
+        scenes.detector.model.save(str(model))
+        camera = CameraConfig(net=net, source=parse_source(f"folder:{scene.path.parent}"), rate=20)
+        stack.enter_context(serving(run_camera, camera))
+        detector = DetectorConfig(net=net, model=str(model), auto_calibrate=False)
+        stack.enter_context(serving(run_detector, detector))
+        stack.enter_context(serving(controller_service.run, ControllerConfig(net=net)))
+        node = stack.enter_context(Node(None, net))
+        node.wait_alive([ROBOT, "camera", "detector", "controller"], timeout=60)
+        yield Lab(net, tmp, scene, scenes, node)
+
+
+def _ended(proc: subprocess.Popen[bytes], log: Path) -> None:
+    signal.signal(signal.SIGCHLD, signal.SIG_DFL)  # YARP's handler reaps children
+    proc.terminate()
+    assert proc.wait(20) == 0, log.read_text(errors="replace")[-2000:]
+
+
+def _finger() -> float:
+    """The right index finger as fakeMotionControl reads it (deg)."""
+    board = Board("/fake/right_arm", "/test/lab/finger")
+    try:
+        return board.read()[FAKE["right_arm"].index("r_index_proximal")]
+    finally:
+        board.close()
+
+
+def _the_arrow_flies(lab: Lab, frames: Any, done: threading.Event) -> None:
+    """The world: once the finger opens (from anywhere else), the new arrow shows in flight
+    (two frames), then at rest."""
+    board = Board("/fake/right_arm", "/test/lab/world")
+    axis = FAKE["right_arm"].index("r_index_proximal")
+    try:
+        until(
+            lambda: abs(board.read()[axis] - OPEN) > 1 or done.is_set(), "a closed finger", 120
+        )
+        until(lambda: abs(board.read()[axis] - OPEN) < 1e-6 or done.is_set(), "the release", 120)
+    finally:
+        board.close()
+    if done.is_set():
+        return
+    shown = lab.scene.show(lab.scenes.moved)
+    for _ in range(2):
+        shown = frames.wait_newer(10, lambda i, s=shown: i.stamp > s).stamp
+    lab.scene.show(lab.scenes.both)
+
+
+def _start(node: Node, runs: Path) -> str:
+    request = {"algo": "archer", "seed": 0, "rollouts": 1}
+    return str(rpc_call(node, node.keys.learner_rpc(), "start", request, timeout=60)["session"])
+
+
+def _request(node: Node) -> dict[str, Any]:
+    """The operator's request the learner shows, once it shows one."""
+    status: dict[str, Any] = {}
+
+    def asked() -> bool:
+        status.update(rpc_call(node, node.keys.learner_rpc(), "status", {}, timeout=10))
+        return bool(status.get("operator"))
+
+    until(asked, "the learner asking the operator", timeout=60)
+    request: dict[str, Any] = status["operator"]
+    return request
+
+
+def test_the_shot_with_a_finger_release_and_the_landing_from_the_camera(lab: Lab) -> None:
+    node = lab.node
+    config = LearnerServiceConfig(net=lab.net, runs=lab.tmp / "runs", start_wait=30)
+    frames = node.subscribe(node.keys.cam_frames(), Image)
+    done = threading.Event()
+    world = threading.Thread(target=_the_arrow_flies, args=(lab, frames, done), daemon=True)
+    with serving(learner_service.run, config):
+        node.wait_alive(["learner"], timeout=30)
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        world.start()
+        session = _start(node, config.runs)
+        request = _request(node)  # the robot has no reset posture: the operator's hand
+        assert request["verb"] == "reset" and "ready the robot" in request["message"]
+        key = node.keys.learner_rpc()
+        with pytest.raises(Exception, match="is not the one waiting"):
+            rpc_call(node, key, "confirm", {"request": request["request"] + 1}, timeout=10)
+        confirmed = rpc_call(node, key, "confirm", {"request": request["request"]}, timeout=10)
+        assert confirmed["verb"] == "reset"
+        final = follow(node, session, rollouts, lambda m: None)
+        done.set()
+        world.join(timeout=60)
+    assert final["state"] == "finished" and final["rollouts"] == 1, final
+    records = read_records(Path(final["journal"]))[0]
+    (shot,) = [r for r in records if isinstance(r, DoneRecord)]
+    assert math.dist(shot.r_m, NEW_R) < 0.01, shot  # the new arrow, never the older one
+    assert shot.truth_r_m is None  # no ground truth is invented
+    assert shot.timing is not None and shot.timing["detector_wait_s"] > 0
+    assert abs(_finger() - OPEN) < 1e-6
+
+
+def test_an_operator_who_never_confirms_stops_the_session_resumably(lab: Lab) -> None:
+    node = lab.node
+    runs = lab.tmp / "runs-absent"
+    config = LearnerServiceConfig(net=lab.net, runs=runs, start_wait=30, operator_wait=1.0)
+    with serving(learner_service.run, config):
+        node.wait_alive(["learner"], timeout=30)
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        session = _start(node, runs)
+        final = follow(node, session, rollouts, lambda m: None)
+    assert final["state"] == "stopped", final
+    assert "the operator did not confirm the reset within 1 s" in final["cause"]
+    records = read_records(Path(final["journal"]))[0]
+    assert isinstance(records[-1], StoppedRecord) and records[-1].reason == "operator absent"
+    assert not [r for r in records if isinstance(r, ProposedRecord | DoneRecord)]  # no shot
