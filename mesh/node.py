@@ -96,12 +96,21 @@ class Node(RpcClient, Liveliness):
         the service alive also finds all its ports."""
         if self.name is None:
             raise ValueError("an anonymous node has no liveliness token")
-        if self._token is None:
+        if self._instance_token is None:
             zid = instances.zid_of(self.session)
             self._instance_token = self.session.liveliness().declare_token(
                 self.keys.alive_instance(self.name, zid)
             )
+        if self._token is None:
             self._token = self.session.liveliness().declare_token(self.keys.alive(self.name))
+
+    def withdraw(self) -> None:
+        """Undeclare the service's token `ROBOT/alive/NAME` while it cannot do its work (a YARP
+        robot's part lost), its instance's kept so its replies are still its own: peers see the
+        service missing until `ready()` declares it again."""
+        if self._token is not None:
+            self._token.undeclare()
+            self._token = None
 
     # -- context management -------------------------------------------------------------
     def __enter__(self) -> Node:
@@ -129,8 +138,8 @@ class Node(RpcClient, Liveliness):
 
         if self._token is not None:
             quietly("liveliness token", self._token.undeclare)
-            if self._instance_token is not None:
-                quietly("instance token", self._instance_token.undeclare)
+        if self._instance_token is not None:
+            quietly("instance token", self._instance_token.undeclare)
         if self._watch is not None:
             quietly("liveliness watch", self._watch.close)
         if self.name is not None:

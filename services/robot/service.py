@@ -130,6 +130,7 @@ def run_yarp(config: RobotConfig, stop: threading.Event) -> None:
         thread.start()
         try:
             _serve(node, loop, tuple(body.parts), config)
+            loop.on_whole = lambda whole: node.ready() if whole else node.withdraw()
             log.info(
                 "robot %r ready: the YARP robot %s (%s), joint states %g Hz (wall time); "
                 "archery verbs: %s",

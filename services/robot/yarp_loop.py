@@ -16,6 +16,7 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import Any
 
@@ -40,6 +41,7 @@ from archery.services.robot.sink import Sink
 from archery.services.robot.trajectory import BadTrajectory, JointPath, plan_path
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
+from archery.services.robot.yarp_presence import Presence
 from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
 from archery.sim.scene_config import SceneConfig
 
@@ -124,7 +126,10 @@ class YarpLoop:
             self._send_speeds(part, [REFERENCE_SPEED] * len(self.limits[part].names))
         self._playing: set[str] = set()  # the parts a trajectory moves (`follow`)
         self._closed = threading.Event()
-        self._refused = ""  # the last encoder reading refused, logged once
+        #: called with False when a part is lost, True when every part answers again (the
+        #: service withdraws and declares its liveliness token)
+        self.on_whole: Callable[[bool], None] = lambda whole: None
+        self.presence = Presence(self.parts, body.timeout, lambda whole: self.on_whole(whole))
         if archery is not None:
             self.shot = EventsIgnored(archery) if config.landing == "camera" else archery
         else:
@@ -134,42 +139,62 @@ class YarpLoop:
     def run(self, stop: threading.Event) -> None:
         """Read every part and publish its joint state, `state_rate` times per wall second,
         until `stop` is set or the loop is closed. A reading refused (an encoder NaN, out of
-        its limits, or silent) is logged once and not published: the states go stale."""
+        its limits) is logged once and not published; a part silent for the body's timeout is
+        lost and its board opened again until it answers (`yarp_presence`)."""
         period = 1.0 / self.config.state_rate
         tick = time.monotonic()
         while not (stop.is_set() or self._closed.is_set()):
-            try:
-                self._publish()
-            except BodyError as exc:
-                if str(exc) != self._refused:
-                    self._refused = str(exc)
-                    log.error("joint states not published: %s", exc)
+            self._publish()
+            self._reopen()
             tick = max(tick + period, time.monotonic())
             stop.wait(max(0.0, tick - time.monotonic()))
 
     def _publish(self) -> None:
+        states = []
         with self._lock:
-            now = self.body.encoders()
-            stamp = time.monotonic() - self._start
-            dt = stamp - self._stamp
-            for part, values in now.items():
+            now = time.monotonic()
+            stamp = now - self._start
+            for part in self.parts:
+                if not self.presence.reads(part):
+                    continue
+                try:
+                    values = self.body.read(part)
+                except BodyError as exc:
+                    self.presence.refused(part, str(exc))
+                    continue
+                if values is None:
+                    self.presence.silent(part, self.body.parts[part].board, now)
+                    continue
                 position = np.asarray(values)
+                dt = now - self.presence.read_at[part]
                 if dt > 0:
                     self._velocity[part] = (position - self._position[part]) / dt
+                if self.presence.read(part, now):  # back: it holds where it stands
+                    self._targets[part] = position.copy()
+                    self._velocity[part] = np.zeros(len(position))
                 self._position[part] = position
-            self._stamp = stamp
-            self._refused = ""
-            states = [
-                (
-                    part,
-                    self._position[part].tolist(),
-                    self._velocity[part].tolist(),
-                    self._done(part),
+                states.append(
+                    (part, position.tolist(), self._velocity[part].tolist(), self._done(part))
                 )
-                for part in self.parts
-            ]
+            self._stamp = stamp
         for part, position, velocity, done in states:  # one stamp: one time for all parts
             self._sink.joint_state(part, self.limits[part].names, position, velocity, done, stamp)
+
+    def _reopen(self) -> None:
+        """Open each lost part's board again, every `REOPEN_EVERY` s, until it answers."""
+        for part in self.presence.due(time.monotonic()):
+            with self._lock:
+                try:
+                    self.body.reopen(part)
+                    control = self.body.driver(part).viewIPositionControl()
+                    if control is None:
+                        raise BodyError(f"{self.body.parts[part].board} takes no position command")
+                    self._controls[part] = control
+                    self._send_speeds(part, self._speeds[part])
+                except BodyError as exc:
+                    log.debug("%s not back yet: %s", part, exc)
+                    continue
+                self.presence.reopened(part, time.monotonic())
 
     def close(self) -> None:
         """End `run` and close the control boards (and YARP's network)."""
@@ -193,7 +218,8 @@ class YarpLoop:
             BodyError: the reading is refused (`YarpBody.encoders`).
         """
         with self._lock:
-            position = self.body.encoders()[part]
+            self.presence.check(part)
+            position = self.body.encoders([part])[part]
             return rv.PositionsReply(
                 names=list(self.limits[part].names),
                 position=list(position),
@@ -261,6 +287,7 @@ class YarpLoop:
     def _move(self, part: str, position: Any, names: Any, said: str | None) -> list[float]:
         limits = self.limits[part]
         with self._lock:
+            self.presence.check(part)
             if part in self._playing:
                 raise Busy(f"{part} plays a trajectory; send the next move when it ends")
             try:
@@ -302,6 +329,7 @@ class YarpLoop:
                 f"got {shown(values)}"
             )
         with self._lock:
+            self.presence.check(part)
             try:
                 self._send_speeds(part, values)
             except BodyError as exc:
@@ -438,6 +466,7 @@ class YarpLoop:
         ran: dict[str, float] = {}
         path_error = 0.0
         pending = list(actions)
+        moved = sorted({part for part, _ in joints})
         try:
             while True:
                 if self._closed.is_set():
@@ -452,7 +481,7 @@ class YarpLoop:
                         ) from None
                 since = time.monotonic() - started
                 with self._lock:
-                    read = self.body.encoders()
+                    read = self.body.encoders(moved)
                 positions = np.array([read[part][k] for part, k in joints])
                 if since <= path.duration:
                     error = float(np.max(np.abs(positions - path.at(since))))
@@ -528,7 +557,7 @@ class YarpLoop:
         """Every joint of an aborted trajectory held where its encoder reads (best effort)."""
         try:
             with self._lock:
-                read = self.body.encoders()
+                read = self.body.encoders(sorted({part for part, _ in joints}))
             self._setpoints(joints, np.array([read[part][k] for part, k in joints]))
         except (BodyError, ArcheryError) as exc:
             log.error("the aborted trajectory's joints not held: %s", exc)
@@ -565,8 +594,9 @@ class YarpLoop:
         encoders where the robot refuses."""
         yarp = self.body.yarp
         with self._lock:
-            encoders = self.body.encoders()
-            for part in self.parts:
+            answering = [part for part in self.parts if part not in self.presence.lost]
+            encoders = self.body.encoders(answering)
+            for part in answering:
                 axes = self.body.parts[part]
                 told = yarp.Vector(len(axes.axes))
                 if self._controls[part].getTargetPositions(told.data()):

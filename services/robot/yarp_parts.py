@@ -180,16 +180,20 @@ class YarpBody:
         self._yarp = yarp
         self._drivers = dict(drivers)
         self._joined = True  # YARP's network, joined by `open_parts`
+        self.local = f"/archery/body/{os.getpid()}"  # the prefix of this body's own ports
+        self._opened = 0  # boards opened again (`reopen`), for their ports' names
 
-    def encoders(self) -> dict[str, tuple[float, ...]]:
-        """Each part's joints now (rad, `PARTS` order), read through `IEncoders` (degrees) and
-        checked (`check_encoders`); waits up to `timeout` (s) for a part's first state.
+    def encoders(self, parts: Sequence[str] | None = None) -> dict[str, tuple[float, ...]]:
+        """Each part's (of `parts`, default all) joints now (rad, `PARTS` order), read through
+        `IEncoders` (degrees) and checked (`check_encoders`); waits up to `timeout` (s) for a
+        part's first state.
 
         Raises:
             BodyError: a part's encoders give nothing within `timeout`, or a value is refused.
         """
         out: dict[str, tuple[float, ...]] = {}
-        for part, axes in self.parts.items():
+        for part in self.parts if parts is None else parts:
+            axes = self.parts[part]
             encoders = self._drivers[part].viewIEncoders()
             values = self._yarp.Vector(len(axes.axes))
             deadline = time.monotonic() + self.timeout
@@ -203,6 +207,44 @@ class YarpBody:
             read = [math.radians(float(values[i])) for i in axes.index]
             out[part] = check_encoders(axes, read, self.margin)
         return out
+
+    def read(self, part: str) -> tuple[float, ...] | None:
+        """`part`'s joints now (rad, `PARTS` order), or None when its board gives no reading
+        now (its `stateExt:o` silent); never waits.
+
+        Raises:
+            BodyError: a value is refused (`check_encoders`: NaN, past its limits).
+        """
+        axes = self.parts[part]
+        values = self._yarp.Vector(len(axes.axes))
+        if not self._drivers[part].viewIEncoders().getEncoders(values.data()):
+            return None
+        return check_encoders(
+            axes, [math.radians(float(values[i])) for i in axes.index], self.margin
+        )
+
+    def reopen(self, part: str) -> None:
+        """Open `part`'s board again (the robot's side restarted it): the old
+        `remote_controlboard` closed, a new one opened, its axes the same by name.
+
+        Raises:
+            BodyError: the board does not open (not back yet), or came back with other axes.
+        """
+        axes = self.parts[part]
+        self._opened += 1
+        driver = _open(self._yarp, axes.board, f"{self.local}/{part}/{self._opened}")
+        try:
+            found = _read_part(self._yarp, driver, part, axes.board, axes.joints, project_limits())
+            if found.axes != axes.axes:
+                raise BodyError(
+                    f"{axes.board} came back with other axes: {', '.join(found.axes)} (it had "
+                    f"{', '.join(axes.axes)})"
+                )
+        except BaseException:
+            driver.close()
+            raise
+        old, self._drivers[part] = self._drivers[part], driver
+        old.close()
 
     @property
     def yarp(self) -> Any:
@@ -317,7 +359,9 @@ def open_parts(
                 remote,
                 ", ".join(untold),
             )
-        return YarpBody(yarp, remote, found, drivers, timeout, margin)
+        body = YarpBody(yarp, remote, found, drivers, timeout, margin)
+        body.local = local
+        return body
     except BaseException:
         for driver in drivers.values():
             driver.close()
