@@ -192,6 +192,7 @@ def test_only_verbs_that_never_wait_are_non_blocking() -> None:
         ("cartesian controller: archery posture", "getTrajTime"),
         ("cartesian controller: archery posture", "status"),
         ("learner", "status"),
+        ("learner", "confirm"),  # sets an event: a waiting session goes on
     }
 
 

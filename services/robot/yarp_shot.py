@@ -7,9 +7,8 @@ shot it: `release` moves one finger joint to its open angle (`--release-joint r_
 open, outcome "released", and its `status` says `world.landing` "camera" (the detector tells
 the landing from the frames). Nothing is invented: no ground truth, no θ at the release.
 
-`LabShot` moves the hand's axes (any axis the robot names, mapped by name) through
-`IPositionControl.positionMove`, at most `REFERENCE_SPEED`, and judges them there from the
-encoders within `TOLERANCES["rest"]` (a `checkMotionDone` that never says done is not asked).
+`LabShot` moves the hand's axes (mapped by name) by `positionMove` at `REFERENCE_SPEED` and
+judges them there from the encoders within `TOLERANCES["rest"]`, never by `checkMotionDone`.
 """
 
 from __future__ import annotations
