@@ -473,3 +473,31 @@ def test_the_start_ends_at_wait_whatever_the_name_server_says(mesh: SecureYarp, 
     ours = [line for line in out.stderr.splitlines() if line.startswith("archery yarp: ")]
     assert len(ours) == 1 and "within --wait 8 s" in ours[0], out.stderr
     assert took < 8 + 20, took
+
+
+def test_the_yarp_body_checks_a_secure_robot_with_its_key_and_reaches_nothing_without(
+    mesh: SecureYarp,
+) -> None:
+    """`archery selfcheck --body yarp` (the YARP body's read side) against the secure bridge's
+    robot: with the lab's YARP configured with the key, YARP's own AuthHMAC lets the body in and
+    it reads every part; without it, one line says why, exit 2, nothing read."""
+    assert mesh.yarp is not None
+    argv = [sys.executable, "-m", "archery.apps.cli", "selfcheck", "--body", "yarp",
+            "--remote", "/op"]  # fmt: skip
+    said = {}
+    for name, folder in (("keyed", mesh.keyed), ("keyless", mesh.keyless)):
+        said[name] = subprocess.run(
+            argv,
+            capture_output=True,
+            text=True,
+            env={**mesh.yarp.env, "YARP_CONFIG_HOME": str(folder)},
+            cwd=folder,
+            timeout=120,
+        )
+    keyed, keyless = said["keyed"], said["keyless"]
+    assert keyed.returncode == 0, keyed.stderr[-2000:]
+    assert keyed.stdout.splitlines()[-1].startswith("ok: 3 parts, ")
+    assert keyless.returncode == 2, keyless.stderr[-2000:]
+    last = keyless.stderr.strip().splitlines()[-1]
+    assert last.startswith("archery selfcheck: the YARP name server at "), last
+    assert "AuthHMAC" in last and keyless.stdout == ""

@@ -124,13 +124,23 @@ def run_body_check(plan: BodyPlan, timeout: float) -> None:
     Raises:
         ArcheryError: what is wrong, in one line (`yarp_parts.BodyError` and YARP's set-up).
     """
-    from archery.apps.yarp.network import YarpNetwork
+    from archery.apps.yarp.network import NotANameServer, YarpNetwork, user_key
     from archery.services.robot.yarp_parts import open_parts
 
     _listens(plan.server, timeout)
-    network = YarpNetwork(plan.ip, plan.server)
+    key = user_key()  # a secure robot's YARP (AuthHMAC) lets in only a YARP with its key
+    network = YarpNetwork(plan.ip, plan.server, key)
     try:
-        network.start(time.monotonic() + timeout)
+        try:
+            network.start(time.monotonic() + timeout)
+        except NotANameServer as exc:
+            if key is not None:
+                raise
+            raise ConfigError(
+                f"{exc} (a YARP that authenticates its connections, AuthHMAC, answers only a "
+                "YARP with its key: auth.conf in the working folder or YARP's configuration "
+                "folder)"
+            ) from None
         with open_parts(plan.remote, timeout=timeout) as body:
             now = body.encoders()
             _show(body, now, plan)

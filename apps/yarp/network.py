@@ -93,6 +93,26 @@ def user_server() -> NameServer | None:
     return NameServer(words[0], int(words[1]), "configured")
 
 
+def user_key() -> YarpKey | None:
+    """The YARP key the user's YARP would authenticate with (YARP's AuthHMAC): the `[AUTH]` key
+    of an auth.conf in the working folder, else in YARP's configuration folder, as YARP 3.5
+    looks (None: neither holds one)."""
+    for folder in (Path.cwd(), _config_home()):
+        path = folder / AUTH_CONF
+        try:
+            text = path.read_text(encoding="utf-8", errors="replace")[:_MOST]
+        except OSError:
+            continue
+        section = ""
+        for raw in text.splitlines():
+            line = raw.strip()
+            if line.startswith("["):
+                section = line
+            elif section == "[AUTH]" and len(line.split()) > 1 and line.split()[0] == "key":
+                return YarpKey(path, line.split(maxsplit=1)[1].strip().encode())
+    return None
+
+
 class NotANameServer(ArcheryError):
     """Something answers at the name server's address, but not as a YARP name server."""
 

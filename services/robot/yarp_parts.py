@@ -331,7 +331,11 @@ def open_parts(
     drivers: dict[str, Any] = {}
     try:
         if not yarp.Network.checkNetwork(timeout):
-            raise BodyError(f"no YARP name server answers at {_server(yarp)} within {timeout:g} s")
+            raise BodyError(
+                f"no YARP name server answers at {_server(yarp)} within {timeout:g} s (one "
+                "that authenticates its connections, YARP's AuthHMAC, answers only a YARP "
+                "configured with its key: auth.conf in YARP's configuration folder)"
+            )
         missing = [
             f"{remote}/{part}"
             for part in parts
