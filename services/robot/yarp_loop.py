@@ -2,12 +2,12 @@
 see a loop (`handlers.RobotLoop`), for `archery robot --body yarp`.
 
 Each part's joint states at `state_rate` per WALL second (`sim_time`: wall s since the start);
-`positionMove`, `command:i` and trajectories (checked by `trajectory`, played on a thread of
-their own in wall s) through `IPositionControl.positionMove` (degrees, the mapped axes);
-reference speeds through `setRefSpeed` (deg/s). Motion done: the encoders within
-`TOLERANCES["rest"]` (rad) of the last targets. The leases are the simulated robot's (`leases`,
-`gate`). What needs the simulated world is refused (`Unsupported`), the archery verbs unless
-the robot has its own archery port (`yarp_archery`). The body holds `yarp`.
+`positionMove`, `command:i` and trajectories (`yarp_play`: checked by `trajectory`, played on
+a thread of their own in wall s) through `IPositionControl.positionMove` (degrees, the mapped
+axes); reference speeds through `setRefSpeed` (deg/s). Motion done: the encoders within
+`TOLERANCES["rest"]` (rad) of the last targets. The leases are the simulated robot's
+(`leases`, `gate`). What needs the simulated world is refused (`Unsupported`), the archery
+verbs unless the robot has its own archery port (`yarp_archery`). The body holds `yarp`.
 """
 
 from __future__ import annotations
@@ -28,19 +28,12 @@ from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 from archery.services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from archery.services.robot.config import RobotConfig
-from archery.services.robot.follow import (
-    GOAL_TOLERANCE,
-    PATH_TOLERANCE,
-    PartSpec,
-    TrajectoryAborted,
-)
-from archery.services.robot.gate import NotOwner
-from archery.services.robot.jobs import SimUnavailable
+from archery.services.robot.follow import PartSpec
 from archery.services.robot.leases import Leases
 from archery.services.robot.sink import Sink
-from archery.services.robot.trajectory import BadTrajectory, JointPath, plan_path
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
+from archery.services.robot.yarp_play import TrajectoryPlayer
 from archery.services.robot.yarp_presence import Presence
 from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
 from archery.sim.scene_config import SceneConfig
@@ -50,7 +43,6 @@ __all__ = ["UNSUPPORTED", "Unsupported", "YarpLoop"]
 log = logging.getLogger("archery.robot")
 
 UNSUPPORTED = "unsupported"
-PLAY_PERIOD = 0.01  # wall s between a trajectory's setpoints (`YarpLoop._play`)
 
 
 class Unsupported(ArcheryError):
@@ -124,8 +116,18 @@ class YarpLoop:
         self._speeds: dict[str, list[float]] = {}
         for part in self.parts:
             self._send_speeds(part, [REFERENCE_SPEED] * len(self.limits[part].names))
-        self._playing: set[str] = set()  # the parts a trajectory moves (`follow`)
         self._closed = threading.Event()
+        self._player = TrajectoryPlayer(
+            body,
+            self._controls,
+            self._lock,
+            self.limits,
+            self._targets,
+            self.leases,
+            archery,
+            self._start,
+            self._closed,
+        )
         #: called with False when a part is lost, True when every part answers again (the
         #: service withdraws and declares its liveliness token)
         self.on_whole: Callable[[bool], None] = lambda whole: None
@@ -288,7 +290,7 @@ class YarpLoop:
         limits = self.limits[part]
         with self._lock:
             self.presence.check(part)
-            if part in self._playing:
+            if self._player.plays(part):
                 raise Busy(f"{part} plays a trajectory; send the next move when it ends")
             try:
                 targets, clamped = check_command(limits, self._targets[part], position, names, said)
@@ -362,8 +364,8 @@ class YarpLoop:
     ) -> Future[rv.TrajectoryReply]:
         """Check a trajectory by the simulated robot's rules (`trajectory.plan_path`: the
         times, the limits, `MAX_REFERENCE_SPEED`) from the joints' targets now, and play it on
-        a thread of its own (`_play`) from now on, in wall s; its reply. The caller checked
-        the leases.
+        a thread of its own (`yarp_play.TrajectoryPlayer`) from now on, in wall s; its reply.
+        The caller checked the leases.
 
         Raises:
             BadTrajectory: a rule of its form broken (nothing moves). Busy: a part plays
@@ -378,189 +380,11 @@ class YarpLoop:
                 "trajectory without actions plays on the control boards alone",
                 code=UNSUPPORTED,
             )
-        seen = [spec.part for spec in parts]
-        if len(set(seen)) != len(seen):
-            raise BadTrajectory(f"a part is named twice: {seen}")
-        last = float(args.times[-1])
-        for t, verb in actions:
-            if not 0.0 <= t <= last:
-                raise BadTrajectory(f"{verb} at {t:g} s is outside the times (0 to {last:g} s)")
-        joints, lower, upper, names = self._joints(parts)
-        with self._lock:
-            for spec in parts:
-                if spec.part in self._playing:
-                    raise Busy(f"{spec.part} plays a trajectory; send the next one when it ends")
-            start = np.array([self._targets[part][k] for part, k in joints])
-            path = plan_path(
-                start,
-                args.times,
-                args.positions,
-                args.velocities,
-                lower,
-                upper,
-                names,
-                rv.MAX_TRAJECTORY_DURATION,
-                MAX_REFERENCE_SPEED,
-            )
-            reply: Future[rv.TrajectoryReply] = Future()
-            self._playing.update(seen)
-        thread = threading.Thread(
-            target=self._play,
-            args=(tuple(parts), joints, path, actions, args, reply),
-            name="robot yarp trajectory",
-            daemon=True,
-        )
-        thread.start()
-        return reply
-
-    def _joints(
-        self, parts: list[PartSpec]
-    ) -> tuple[list[tuple[str, int]], np.ndarray, np.ndarray, list[str]]:
-        """The trajectory's joints as (part, index in the part), their limits with the clamp
-        tolerance (rad) and names `part.joint`.
-
-        Raises:
-            BadTrajectory: an unknown part or joint, or a joint named twice.
-        """
-        joints: list[tuple[str, int]] = []
-        lower: list[float] = []
-        upper: list[float] = []
-        names: list[str] = []
-        for spec in parts:
-            limits = self.limits.get(spec.part)
-            if limits is None:
-                raise BadTrajectory(f"unknown part {spec.part!r}; parts: {', '.join(self.limits)}")
-            chosen = limits.names if spec.names is None else spec.names
-            if len(set(chosen)) != len(chosen):
-                raise BadTrajectory(f"{spec.part}: a joint is named twice")
-            unknown = [n for n in chosen if n not in limits.names]
-            if unknown:
-                raise BadTrajectory(
-                    f"{spec.part} has no joint {unknown[0]!r}; joints: {', '.join(limits.names)}"
-                )
-            for name in chosen:
-                k = limits.names.index(name)
-                joints.append((spec.part, k))
-                lower.append(limits.lower[k] - limits.tolerance)
-                upper.append(limits.upper[k] + limits.tolerance)
-                names.append(f"{spec.part}.{name}")
-        return joints, np.array(lower), np.array(upper), names
-
-    def _play(
-        self,
-        parts: tuple[PartSpec, ...],
-        joints: list[tuple[str, int]],
-        path: JointPath,
-        actions: list[tuple[float, str]],
-        args: rv.PartTrajectoryArgs | rv.TrajectoryArgs,
-        reply: Future[rv.TrajectoryReply],
-    ) -> None:
-        """Play `path` from now (wall s): every `PLAY_PERIOD` s the setpoints `path.at(t)`
-        go to the robot through `positionMove` (deg), the leases are checked (an ended or
-        taken lease aborts with its code), the encoders compared with the path (more than
-        `path_tolerance` rad behind: `path_tolerance`) and the due actions run (the robot's
-        archery port). Once the last waypoint's time passed, the reply comes when every
-        encoder lies within `TOLERANCES["rest"]` rad of the goal, else `goal_tolerance`
-        `goal_time` s after it. An abort holds every joint where its encoder is."""
-        started = time.monotonic()
-        ran: dict[str, float] = {}
-        path_error = 0.0
-        pending = list(actions)
-        moved = sorted({part for part, _ in joints})
-        try:
-            while True:
-                if self._closed.is_set():
-                    raise SimUnavailable("the robot stopped mid-trajectory")
-                for spec in parts:
-                    try:
-                        self.leases.check(spec.part, spec.lease, counted=False)
-                    except NotOwner as exc:
-                        raise TrajectoryAborted(
-                            f"{spec.part}: the lease ended mid-trajectory ({exc.message})",
-                            code=exc.code,
-                        ) from None
-                since = time.monotonic() - started
-                with self._lock:
-                    read = self.body.encoders(moved)
-                positions = np.array([read[part][k] for part, k in joints])
-                if since <= path.duration:
-                    error = float(np.max(np.abs(positions - path.at(since))))
-                    path_error = max(path_error, error)
-                    if error > args.path_tolerance:
-                        raise TrajectoryAborted(
-                            f"a joint fell {error:.3f} rad behind the trajectory at "
-                            f"{since:.3f} s (path tolerance {args.path_tolerance:g} rad)",
-                            code=PATH_TOLERANCE,
-                        )
-                while pending and pending[0][0] <= since:
-                    _, verb = pending.pop(0)
-                    assert self.archery is not None  # `follow` refused actions without it
-                    self.archery.grasp() if verb == "grasp" else self.archery.nock()
-                    ran[verb] = self._stamp_now()
-                if since >= path.duration:
-                    goal_error = float(np.max(np.abs(positions - path.goal)))
-                    if goal_error <= TOLERANCES["rest"]:
-                        reply.set_result(
-                            rv.TrajectoryReply(
-                                parts=[spec.part for spec in parts],
-                                started=started - self._start,
-                                ended=self._stamp_now(),
-                                path_error=path_error,
-                                goal_error=goal_error,
-                                actions=ran,
-                            )
-                        )
-                        return
-                    if since > path.duration + args.goal_time:
-                        raise TrajectoryAborted(
-                            f"a joint ended {goal_error:.3f} rad from the goal {args.goal_time:g} "
-                            f"s after the last waypoint (rest tolerance {TOLERANCES['rest']:g} "
-                            "rad)",
-                            code=GOAL_TOLERANCE,
-                        )
-                self._setpoints(joints, path.at(since + PLAY_PERIOD))
-                time.sleep(PLAY_PERIOD)
-        except ArcheryError as exc:
-            log.warning(
-                "trajectory of %s aborted (%s): %s", ", ".join(p.part for p in parts), exc.code, exc
-            )
-            self._hold(joints)
-            reply.set_exception(exc)
-        except BaseException as exc:  # a YARP failure: the caller hears of it
-            self._hold(joints)
-            reply.set_exception(exc)
-        finally:
-            with self._lock:
-                self._playing.difference_update(spec.part for spec in parts)
+        return self._player.follow(parts, args, actions)
 
     def _stamp_now(self) -> float:
         """Wall s since the loop's start."""
         return time.monotonic() - self._start
-
-    def _setpoints(self, joints: list[tuple[str, int]], values: np.ndarray) -> None:
-        """`values` (rad) to the joints through `positionMove` (deg); they are the targets.
-
-        Raises:
-            BodyError: the robot refuses one.
-        """
-        with self._lock:
-            for (part, k), value in zip(joints, values, strict=True):
-                axes = self.body.parts[part]
-                if not self._controls[part].positionMove(axes.index[k], math.degrees(value)):
-                    raise BodyError(
-                        f"{axes.board} refused positionMove of {axes.joints[k]} (axis "
-                        f"{axes.index[k]}) to {math.degrees(value):.2f}° mid-trajectory"
-                    )
-                self._targets[part][k] = value
-
-    def _hold(self, joints: list[tuple[str, int]]) -> None:
-        """Every joint of an aborted trajectory held where its encoder reads (best effort)."""
-        try:
-            with self._lock:
-                read = self.body.encoders(sorted({part for part, _ in joints}))
-            self._setpoints(joints, np.array([read[part][k] for part, k in joints]))
-        except (BodyError, ArcheryError) as exc:
-            log.error("the aborted trajectory's joints not held: %s", exc)
 
     def _shot(self, verb: str) -> Shot:
         if self.shot is None:
