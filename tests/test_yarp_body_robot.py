@@ -169,9 +169,10 @@ def test_release_opens_the_index_finger_and_a_nock_without_posture_is_the_operat
         assert asked.value.code == "operator_needed"
         assert asked.value.message.endswith(
             "nock: put an arrow on the bow with its nock on the string, in the right hand "
-            "(the robot has no nock posture)"
+            "(the robot's hand needs the operator's)"
         )
         assert _finger_degrees() == pytest.approx(HAND_ANGLE, abs=1e-6)  # nothing moved
+        assert client.nock().shot == shots + 1  # called again once the operator confirmed
         reply = client.release()
         assert (reply.outcome, reply.hit, reply.theta, reply.shot) == (
             "released", False, None, shots + 1
@@ -181,13 +182,16 @@ def test_release_opens_the_index_finger_and_a_nock_without_posture_is_the_operat
         with pytest.raises(RpcError) as reset:
             client.reset()
         assert reset.value.code == "operator_needed"
+        assert client.reset().shot == shots + 1
     finally:
         client.close()
 
 
 def test_hand_postures_nock_and_a_release_to_a_given_angle(rig: Rig, tmp_path: Path) -> None:
     postures = tmp_path / "hands.json"
-    postures.write_text('{"nock": {"r_index_proximal": 60, "r_thumb_oppose": 20}}')
+    postures.write_text(
+        '{"nock": {"r_index_proximal": 60, "r_thumb_oppose": 20}, "operator": ["nock"]}'
+    )
     net = NetConfig(connect=rig.net.connect, robot=f"hands{os.getpid()}")
     log = tmp_path / "robot.log"
     flags = ("--remote", "/fake", "--hand-postures", str(postures), "--release-open", "12.5")
@@ -197,7 +201,13 @@ def test_hand_postures_nock_and_a_release_to_a_given_angle(rig: Rig, tmp_path: P
             node.wait_alive([ROBOT], 60)
             client = RobotClient(node, timeout=10)
             try:
-                client.nock()
+                before = _finger_degrees()
+                with pytest.raises(RpcError) as asked:  # the arrow on the string first
+                    client.nock()
+                assert asked.value.code == "operator_needed"
+                assert "the robot then takes its nock posture" in asked.value.message
+                assert _finger_degrees() == pytest.approx(before, abs=1e-6)  # not yet
+                client.nock()  # confirmed: the fingers close on the string
                 assert _finger_degrees() == pytest.approx(60.0, abs=1e-6)
                 assert _finger_degrees("r_thumb_oppose") == pytest.approx(20.0, abs=1e-6)
                 assert client.status().phase == "nocked"

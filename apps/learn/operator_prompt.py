@@ -51,7 +51,8 @@ class OperatorPrompt:
         how = (
             "press Enter here when done"
             if self.keys is not None
-            else "confirm on the dashboard or with `archery rpc learner/rpc:i confirm`"
+            else "confirm on the dashboard or with "
+            f"`archery rpc {self.node.keys.learner_rpc()} confirm`"
         )
         self.out(
             f"  operator, please: {request['message']} — {how} "

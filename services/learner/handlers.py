@@ -64,7 +64,8 @@ class LearnerHandlers:
         self.config = config
         self.node = node
         self.rig = MeshRig(node, config.rpc_timeout)
-        self.desk = OperatorDesk(config.operator_wait)  # what a session asks of the operator
+        # what a session asks of the operator
+        self.desk = OperatorDesk(config.operator_wait, node.keys.learner_rpc())
         self.rig.desk = self.desk
         self.rollouts: Publisher[Rollout] = node.publisher(
             node.keys.learner_rollouts(), Rollout, lossless=True

@@ -36,10 +36,11 @@ class OperatorDesk:
 
     Args:
         limit: s a request waits for its confirmation (`ask`).
+        key: the learner's RPC key, named in the line that asks (ROBOT/learner/rpc:i).
     """
 
-    def __init__(self, limit: float = OPERATOR_LIMIT) -> None:
-        self.limit = limit
+    def __init__(self, limit: float = OPERATOR_LIMIT, key: str = "ROBOT/learner/rpc:i") -> None:
+        self.limit, self.key = limit, key
         self._cond = threading.Condition()
         self._count = 0
         self._pending: OperatorRequest | None = None
@@ -66,8 +67,9 @@ class OperatorDesk:
             self._pending = request
         log.warning(
             "operator, please: %s — then confirm (Enter on `archery learn`, the dashboard's "
-            "Confirm, or `archery rpc learner/rpc:i confirm`); request %d, waiting up to %g s",
+            "Confirm, or `archery rpc %s confirm`); request %d, waiting up to %g s",
             message,
+            self.key,
             request.request,
             self.limit,
         )

@@ -53,6 +53,7 @@ UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
 _UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
+_ASKS = 3  # times a verb may ask for the operator's hand in a row
 R = TypeVar("R", bound=msgspec.Struct)
 T = TypeVar("T")
 
@@ -250,20 +251,25 @@ class MeshRig:
         the robot cannot: `_by_hand`)."""
         self._by_hand("reset", lambda: self.robot.reset(int(seed)))
 
-    def _by_hand(self, verb: str, work: Callable[[], T]) -> tuple[T | None, float]:
-        """(`work()`, wall s), or (None, wall s waited) when the robot answers that only the
-        operator can do it (`operator_needed`): the operator is asked and waited for.
+    def _by_hand(self, verb: str, work: Callable[[], T]) -> tuple[T, float]:
+        """(`work()`, wall s); where the robot answers that the operator's hand is needed
+        first (`operator_needed`), the operator is asked, waited for, and `work` called again
+        (the robot then does its part: a posture, or nothing), at most `_ASKS` times.
 
         Raises:
             OperatorAbsent: no confirmation within the desk's limit, or the session stopped.
+            RigError: the robot still asks after `_ASKS` confirmations.
         """
-        try:
-            return self._timed("robot", work)
-        except RigError as exc:
-            if exc.code != OperatorNeeded.code:
-                raise
-            asked = exc.message
-        return None, self.desk.ask(verb, asked, self.stop)
+        for _ in range(_ASKS):
+            try:
+                return self._timed("robot", work)
+            except RigError as exc:
+                if exc.code != OperatorNeeded.code:
+                    raise
+                self.desk.ask(verb, exc.message, self.stop)
+        raise RigError(
+            f"the robot asked the operator for its {verb} {_ASKS} times", code="bad_state"
+        )
 
     def move_to(self, theta: np.ndarray) -> PostureResult:
         """The archery posture for θ (m), once the robot reports the motion done; on a

@@ -29,12 +29,13 @@ from archery.protocol.verbs import robot as rv
 from archery.services.robot.commands import CommandRejected, PartCounters, PartLimits, check_command
 from archery.services.robot.config import RobotConfig
 from archery.services.robot.follow import PartSpec
+from archery.services.robot.jobs import SimUnavailable
 from archery.services.robot.leases import Leases
 from archery.services.robot.sink import Sink
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
 from archery.services.robot.yarp_play import TrajectoryPlayer
-from archery.services.robot.yarp_presence import Presence
+from archery.services.robot.yarp_presence import BoardsLock, Presence
 from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
 from archery.sim.scene_config import SceneConfig
 
@@ -101,7 +102,7 @@ class YarpLoop:
         self._counters = {part: PartCounters() for part in self.parts}
         self.leases = Leases(self.parts, config.command_rate, config.command_burst, self._counters)
         self._sink = sink
-        self._lock = threading.Lock()  # the YARP calls and the state below
+        self._lock = BoardsLock()  # the YARP calls and the state below
         self._controls: dict[str, Any] = {}
         for part in self.parts:
             control = body.driver(part).viewIPositionControl()
@@ -146,8 +147,11 @@ class YarpLoop:
         period = 1.0 / self.config.state_rate
         tick = time.monotonic()
         while not (stop.is_set() or self._closed.is_set()):
-            self._publish()
-            self._reopen()
+            try:
+                self._publish()
+                self._reopen()
+            except SimUnavailable:  # closed meanwhile
+                return
             tick = max(tick + period, time.monotonic())
             stop.wait(max(0.0, tick - time.monotonic()))
 
@@ -201,7 +205,7 @@ class YarpLoop:
     def close(self) -> None:
         """End `run` and close the control boards (and YARP's network)."""
         self._closed.set()
-        with self._lock:
+        with self._lock.closing():
             if self.shot is not None:
                 self.shot.close()
             self.body.close()

@@ -34,6 +34,7 @@ from archery.services.robot.leases import Leases
 from archery.services.robot.trajectory import BadTrajectory, JointPath, plan_path
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
+from archery.services.robot.yarp_presence import BoardsLock
 
 __all__ = ["PLAY_PERIOD", "TrajectoryPlayer"]
 
@@ -64,7 +65,7 @@ class TrajectoryPlayer:
         self,
         body: YarpBody,
         controls: Mapping[str, Any],
-        lock: threading.Lock,
+        lock: BoardsLock,
         limits: Mapping[str, PartLimits],
         targets: Mapping[str, np.ndarray],
         leases: Leases,

@@ -7,13 +7,17 @@ once per part and not published."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from types import TracebackType
 
 from archery.protocol.errors import ArcheryError
+from archery.services.robot.jobs import SimUnavailable
 
-__all__ = ["REOPEN_EVERY", "PartLost", "Presence"]
+__all__ = ["REOPEN_EVERY", "BoardsLock", "PartLost", "Presence"]
 
 log = logging.getLogger("archery.robot")
 
@@ -24,6 +28,34 @@ class PartLost(ArcheryError):
     """A verb on a part whose board no longer answers."""
 
     code = "part_lost"
+
+
+class BoardsLock:
+    """The lock of a YARP body's calls: once `closing` has closed the boards, entering it raises
+    `SimUnavailable` instead of calling a closed board."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._closed = False
+
+    def __enter__(self) -> BoardsLock:
+        self._lock.acquire()
+        if self._closed:
+            self._lock.release()
+            raise SimUnavailable("the robot service stopped: its control boards are closed")
+        return self
+
+    def __exit__(
+        self, kind: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self._lock.release()
+
+    @contextlib.contextmanager
+    def closing(self) -> Iterator[None]:
+        """Hold the lock to close the boards; every later entry is refused."""
+        with self._lock:
+            self._closed = True
+            yield
 
 
 class Presence:

@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import threading
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from archery.protocol.robotspec import REFERENCE_SPEED, TOLERANCES
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
 from archery.services.robot.yarp_parts import BodyError, YarpBody
+from archery.services.robot.yarp_presence import BoardsLock
 
 if TYPE_CHECKING:
     from archery.services.robot.config import RobotConfig
@@ -53,7 +53,7 @@ HAND_TIMEOUT = 5.0  # wall s a hand posture (or the release finger) has to be re
 HAND_VERBS = ("grasp", "nock", "reset")
 _POLL = 0.01  # wall s between two readings of the hand's encoders
 _BY_HAND = {
-    "grasp": "close the right hand on an arrow",
+    "grasp": "put an arrow in the right hand",
     "nock": "put an arrow on the bow with its nock on the string, in the right hand",
     "reset": "ready the robot for a session (hands free, an arrow at hand)",
 }
@@ -72,7 +72,7 @@ class Shot(Protocol):
 
 def lab_shot(
     body: YarpBody,
-    lock: threading.Lock,
+    lock: BoardsLock,
     clock: Callable[[], float],
     config: RobotConfig,
     status: Callable[[str, int, dict[str, Any]], rv.ArcheryStatusReply],
@@ -86,7 +86,7 @@ def lab_shot(
             is outside its limits, or the postures file does not read.
     """
     joint = config.release_joint or RELEASE_JOINT
-    postures = read_postures(config.hand_postures) if config.hand_postures else {}
+    postures, first = read_postures(config.hand_postures) if config.hand_postures else ({}, ())
     if not config.release_joint and not any(joint in a.axes for a in body.parts.values()):
         if postures:
             raise BodyError(
@@ -100,7 +100,7 @@ def lab_shot(
             RELEASE_JOINT,
         )
         return None
-    return LabShot(body, lock, clock, joint, config.release_open, postures, status)
+    return LabShot(body, lock, clock, joint, config.release_open, postures, status, first)
 
 
 class NotReached(ArcheryError):
@@ -120,25 +120,28 @@ class AxisRef:
     limits: tuple[float, float] | None
 
 
-def read_postures(path: str) -> dict[str, dict[str, float]]:
-    """The hand postures of `path` (JSON {verb: {axis: degrees}}, verb among `HAND_VERBS`).
+def read_postures(path: str) -> tuple[dict[str, dict[str, float]], tuple[str, ...]]:
+    """The hand postures of `path` (JSON {verb: {axis: degrees}}, verb among `HAND_VERBS`;
+    "operator": [verb, …], the verbs whose posture waits for the operator's hand first, e.g.
+    an arrow put on the string before the fingers close on it) and those verbs.
 
     Raises:
         BodyError: the file does not read, is not that shape, or names another verb.
     """
+    where = f"--hand-postures {shown(path)}"
     try:
         raw = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
-        raise BodyError(f"--hand-postures {shown(path)}: {exc}") from None
+        raise BodyError(f"{where}: {exc}") from None
     if not isinstance(raw, dict):
-        raise BodyError(f"--hand-postures {shown(path)}: not a JSON object {{verb: {{axis: deg}}}}")
+        raise BodyError(f"{where}: not a JSON object {{verb: {{axis: deg}}}}")
+    first = raw.pop("operator", [])
+    if not isinstance(first, list) or not all(verb in HAND_VERBS for verb in first):
+        raise BodyError(f'{where}: "operator" lists verbs among {", ".join(HAND_VERBS)}')
     out: dict[str, dict[str, float]] = {}
     for verb, angles in raw.items():
         if verb not in HAND_VERBS:
-            raise BodyError(
-                f"--hand-postures {shown(path)}: {shown(verb)} is not one of "
-                f"{', '.join(HAND_VERBS)}"
-            )
+            raise BodyError(f"{where}: {shown(verb)} is not one of {', '.join(HAND_VERBS)}")
         if (
             not isinstance(angles, dict)
             or not angles
@@ -147,9 +150,9 @@ def read_postures(path: str) -> dict[str, dict[str, float]]:
                 for v in angles.values()
             )
         ):
-            raise BodyError(f"--hand-postures {shown(path)}: {verb} must map axis names to degrees")
+            raise BodyError(f"{where}: {verb} must map axis names to degrees")
         out[verb] = {str(k): float(v) for k, v in angles.items()}
-    return out
+    return out, tuple(first)
 
 
 class LabShot:
@@ -163,6 +166,7 @@ class LabShot:
             (degrees).
         postures: {verb: {axis: degrees}} for grasp, nock, reset (`read_postures`).
         status: builds the robot's status from the shot's (phase, shot) and world.
+        operator_first: the verbs whose posture waits for the operator's hand first.
 
     Raises:
         BodyError: an axis named is not the robot's (the message names the robot's axes), is
@@ -172,14 +176,17 @@ class LabShot:
     def __init__(
         self,
         body: YarpBody,
-        lock: threading.Lock,
+        lock: BoardsLock,
         clock: Callable[[], float],
         release_joint: str,
         release_open: float,
         postures: Mapping[str, Mapping[str, float]],
         status: Callable[[str, int, dict[str, Any]], rv.ArcheryStatusReply],
+        operator_first: tuple[str, ...] = (),
     ) -> None:
         self.body, self._lock, self._clock, self._status = body, lock, clock, status
+        self.operator_first = operator_first
+        self._asked: str | None = None  # the verb whose operator's part was asked last
         self.finger = self._axis(release_joint, "--release-joint")
         self._check(self.finger, release_open, "--release-open")
         self.open = release_open
@@ -261,11 +268,19 @@ class LabShot:
             time.sleep(_POLL)
 
     def _posture(self, verb: str) -> None:
-        """The configured posture of `verb`, or the operator's hand (`OperatorNeeded`)."""
+        """The configured posture of `verb`; where the operator's hand is needed (no posture,
+        or one listed in the postures' "operator"), the first call answers `OperatorNeeded`
+        and the next one, once the operator confirmed, takes the posture (if any)."""
         moves = self.postures.get(verb)
-        if moves is None:
-            raise OperatorNeeded(f"{_BY_HAND[verb]} (the robot has no {verb} posture)")
-        self._move(moves, f"the {verb} posture")
+        if (moves is None or verb in self.operator_first) and self._asked != verb:
+            self._asked = verb
+            then = f"; the robot then takes its {verb} posture" if moves else ""
+            raise OperatorNeeded(
+                f"{verb}: {_BY_HAND[verb]}{then} (the robot's hand needs the operator's)"
+            )
+        self._asked = None
+        if moves is not None:
+            self._move(moves, f"the {verb} posture")
 
     # -- the verbs ----------------------------------------------------------------------------
     def grasp(self) -> rv.GraspReply:
