@@ -23,9 +23,12 @@ from archery.apps.learn.follow import follow
 from archery.apps.up.launch_config import SERVICES
 from archery.apps.up.launcher import Launcher
 from archery.mesh.node import Node
+from archery.mesh.robot_client import RobotClient
 from archery.mesh.router import free_tcp_endpoint
 from archery.protocol.journal_records import DoneRecord
 from archery.protocol.messages import Rollout
+from archery.protocol.parts import PARTS
+from archery.protocol.robotspec import TOLERANCES
 from archery.protocol.verbs.camera import CALIBRATION
 from archery.services.detector.calibration import fit_from_marks, parse_pixels
 from archery.services.learner.journal import read_records
@@ -177,3 +180,27 @@ def test_archer_hits_with_the_landing_told_by_the_camera_alone(loop: Loop) -> No
     for record in done:  # the detector waited for each landing; no truth was told
         assert record.truth_r_m is None
         assert record.timing is not None and record.timing["detector_wait_s"] > 0
+
+
+def test_after_a_reset_through_yarp_the_newest_state_is_of_after_it(loop: Loop) -> None:
+    """A mover that plans from the robot at rest right after a reset (the controller's first
+    posture of a session) sees the robot where the reset put it, never the states of before it
+    that a state stream still carries for a moment."""
+    with Node(None, loop.b.net) as node, Node(None, loop.meshes[0].net) as mesh_a:
+        client, truth = RobotClient(node, timeout=10), RobotClient(mesh_a, timeout=10)
+        try:
+            _, upper = client.limits("left_arm")
+            k = PARTS["left_arm"].index("l_elbow")
+            client.reset()
+            home = truth.joints("left_arm").position[k]
+            target = home + 0.4 if home + 0.4 < upper[k] - 0.05 else home - 0.4
+            for _ in range(3):
+                with client.claim(["left_arm"], "probe", speeds=1.0) as held:
+                    assert client.move({"l_elbow": target}, claim=held, until="rest").reached
+                client.reset()  # the elbow back home, 0.4 rad from where the states had it
+                rested = client.rested(5.0)
+                assert rested is not None
+                assert rested["l_elbow"] == pytest.approx(home, abs=TOLERANCES["passing"])
+        finally:
+            client.close()
+            truth.close()

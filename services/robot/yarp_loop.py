@@ -44,6 +44,8 @@ __all__ = ["UNSUPPORTED", "Unsupported", "YarpLoop"]
 log = logging.getLogger("archery.robot")
 
 UNSUPPORTED = "unsupported"
+RESYNC_WAIT = 2.0  # wall s a reset waits for the encoders to show the robot at its targets
+_RESYNC_POLL = 0.01  # wall s between two readings meanwhile
 
 
 class Unsupported(ArcheryError):
@@ -415,23 +417,38 @@ class YarpLoop:
         robot is not put back by a verb."""
         reply = self._shot("reset").reset(seed)
         self._resync_targets()
+        self._publish()  # before the reply: no state of before the reset is the newest then
         return reply
 
     def _resync_targets(self) -> None:
         """Each part's targets from the robot's `getTargetPositions` (deg → rad), or from its
-        encoders where the robot refuses."""
+        encoders where the robot refuses; then, up to `RESYNC_WAIT` s, until the encoders show
+        the robot within `TOLERANCES["passing"]` of them: a state stream lags its robot, and
+        the states of before a reset would otherwise be taken for the robot's (a mover would
+        plan its first move from where the robot no longer is)."""
         yarp = self.body.yarp
         with self._lock:
             answering = [part for part in self.parts if part not in self.presence.lost]
-            encoders = self.body.encoders(answering)
+            targets = {}
             for part in answering:
                 axes = self.body.parts[part]
                 told = yarp.Vector(len(axes.axes))
                 if self._controls[part].getTargetPositions(told.data()):
-                    values = [math.radians(told[k]) for k in axes.index]
-                else:
-                    values = list(encoders[part])
-                self._targets[part] = np.asarray(values, dtype=float)
+                    targets[part] = np.radians([told[k] for k in axes.index])
+        deadline = time.monotonic() + RESYNC_WAIT
+        while True:
+            with self._lock:
+                encoders = self.body.encoders(answering)
+            there = all(
+                np.all(np.abs(np.subtract(encoders[part], goal)) <= TOLERANCES["passing"])
+                for part, goal in targets.items()
+            )
+            if there or time.monotonic() > deadline:
+                break
+            time.sleep(_RESYNC_POLL)
+        with self._lock:
+            for part in answering:
+                self._targets[part] = np.asarray(targets.get(part, encoders[part]), dtype=float)
                 self._position[part] = np.asarray(encoders[part])
 
     def set_wind(self, wind: Any) -> list[float]:
