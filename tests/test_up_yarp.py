@@ -26,6 +26,7 @@ def test_up_body_yarp_brings_all_five_services_alive(robots: Robots, tmp_path: P
     argv = [sys.executable, "-m", "archery.apps.cli", "up", "--listen", endpoint]
     argv += ["--robot", f"upyarp{os.getpid()}", "--logs", str(tmp_path / "logs")]
     argv += ["--runs", str(tmp_path / "runs"), "--body", "yarp", "--remote", "/fake"]
+    argv += ["--release-open", "7.5"]  # a shot flag, passed on to the robot
     out = tmp_path / "up.out"
     with out.open("wb") as sink:
         proc = subprocess.Popen(
@@ -43,6 +44,7 @@ def test_up_body_yarp_brings_all_five_services_alive(robots: Robots, tmp_path: P
             time.sleep(0.2)
         robot_log = (tmp_path / "logs" / "robot.log").read_text(errors="replace")
         assert "/fake" in robot_log, robot_log[-2000:]
+        assert "release by r_index_proximal to 7.5°" in robot_log, robot_log[-2000:]
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -65,6 +67,8 @@ def test_up_body_yarp_brings_all_five_services_alive(robots: Robots, tmp_path: P
         (["--body", "yarp", "--remote", "icubSim"], "--remote 'icubSim'"),
         (["--body", "yarp", "--remote", "/icubSim", "--rtf", "1"], "--rtf is the simulated"),
         (["--body", "yarp", "--remote", "/icubSim", "--robots", "2"], "--robots 2: a YARP"),
+        (["--release-open", "5"], "--release-open goes with --body yarp"),
+        (["--body", "yarp", "--remote", "/icubSim", "--landing", "sideways"], "invalid choice"),
     ],
 )
 def test_body_flags_that_do_not_fit_are_one_line_exit_2(

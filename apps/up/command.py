@@ -36,6 +36,7 @@ from archery.mesh.cliargs import (
     nonnegative,
     seconds,
 )
+from archery.mesh.configflags import add_config_args, config_from_args
 from archery.mesh.netflags import DEFAULT_ROUTER, DEFAULT_SECURE_ROUTER, NetConfig, add_network_args
 from archery.mesh.signals import shutdown_on_signals
 from archery.protocol.errors import ConfigError
@@ -105,6 +106,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="with --body yarp, the robot's own archery RPC port (e.g. /icubSim/archery/rpc:i): "
         "its status, reset, nock, release and grasp answers (none: refused)",
     )
+    for flag, metavar, what in _SHOT_FLAGS:
+        parser.add_argument(flag, metavar=metavar, help=f"with --body yarp, {what}")
     parser.add_argument(
         "--no-router",
         action="store_true",
@@ -238,6 +241,7 @@ def mesh_from_args(args: argparse.Namespace) -> MeshConfig:
             "--body": args.body,
             "--remote": args.remote,
             "--archery-rpc": args.archery_rpc,
+            **{flag: _shot_flag(args, flag) for flag, _, _ in _SHOT_FLAGS},
         }
         clash = [flag for flag, value in given.items() if value is not None]
         if clash:
@@ -271,8 +275,10 @@ def _body(args: argparse.Namespace) -> tuple[str, ...]:
             --remote, a flag of the simulated robot's (--seed, --rtf, --shot) with it, or a
             name that is not a YARP name.
     """
+    shot = {flag: _shot_flag(args, flag) for flag, _, _ in _SHOT_FLAGS}
     if args.body != "yarp":
-        for flag, value in (("--remote", args.remote), ("--archery-rpc", args.archery_rpc)):
+        given = {"--remote": args.remote, "--archery-rpc": args.archery_rpc, **shot}
+        for flag, value in given.items():
             if value is not None:
                 raise ConfigError(f"{flag} goes with --body yarp")
         return ()
@@ -284,8 +290,31 @@ def _body(args: argparse.Namespace) -> tuple[str, ...]:
     body: tuple[str, ...] = ("--body", "yarp", "--remote", args.remote)
     if args.archery_rpc is not None:
         body += ("--archery-rpc", args.archery_rpc)
-    RobotConfig(body="yarp", remote=args.remote, archery_rpc=args.archery_rpc or "")
+    for flag, value in shot.items():
+        if value is not None:
+            body += (flag, value)
+    robot_parser = argparse.ArgumentParser(prog="archery robot", exit_on_error=False)
+    add_config_args(robot_parser, RobotConfig)
+    try:  # checked as the robot checks them, before anything starts
+        parsed = robot_parser.parse_args(list(body))
+        config_from_args(RobotConfig, parsed, net=NetConfig())
+    except (argparse.ArgumentError, SystemExit) as exc:
+        raise ConfigError(f"the robot's flags {' '.join(body)}: {exc}") from None
     return body
+
+
+#: the YARP body's shot flags `archery up` passes on to the robot (`archery robot --help`)
+_SHOT_FLAGS = (
+    ("--landing", "events|camera", "who tells the landing (as `archery robot`)"),
+    ("--release-joint", "AXIS", "the finger axis the release opens (as `archery robot`)"),
+    ("--release-open", "DEG", "the angle the release finger opens to (as `archery robot`)"),
+    ("--hand-postures", "FILE", "the hand postures of grasp, nock, reset (as `archery robot`)"),
+)
+
+
+def _shot_flag(args: argparse.Namespace, flag: str) -> str | None:
+    value: str | None = getattr(args, flag.lstrip("-").replace("-", "_"))
+    return value
 
 
 def _final(launcher: Launcher, supervisor: Supervisor, outcome: GiveUp | None) -> int:
