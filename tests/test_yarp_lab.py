@@ -115,9 +115,7 @@ def _the_arrow_flies(lab: Lab, frames: Any, done: threading.Event) -> None:
     board = Board("/fake/right_arm", "/test/lab/world")
     axis = FAKE["right_arm"].index("r_index_proximal")
     try:
-        until(
-            lambda: abs(board.read()[axis] - OPEN) > 1 or done.is_set(), "a closed finger", 120
-        )
+        until(lambda: abs(board.read()[axis] - OPEN) > 1 or done.is_set(), "a closed finger", 120)
         until(lambda: abs(board.read()[axis] - OPEN) < 1e-6 or done.is_set(), "the release", 120)
     finally:
         board.close()
