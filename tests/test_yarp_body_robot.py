@@ -349,3 +349,16 @@ def test_followtrajectory_plays_without_actions_and_refuses_them_without_archery
         assert _elbow_degrees(rig) == pytest.approx(math.degrees(waypoints[0]), abs=1e-6)
     finally:
         client.close()
+
+
+def test_a_yarp_with_no_name_server_configured_is_one_line_exit_2(tmp_path: Path) -> None:
+    """A user whose YARP names no name server (a fresh account: no yarp.conf)."""
+    env = {"PATH": os.environ["PATH"], "HOME": str(tmp_path)}
+    argv = [sys.executable, "-m", "archery.apps.cli", "robot", "--body", "yarp", "--remote",
+            "/icub", "--connect", "tcp/127.0.0.1:9"]  # fmt: skip
+    done = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=60, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        "archery robot: no YARP name server is configured: name the robot's with `yarp conf "
+        "HOST PORT` (or a yarp.conf in YARP_CONFIG_HOME)"
+    )

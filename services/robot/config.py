@@ -174,6 +174,12 @@ class RobotConfig:
                 f"--archery-rpc {shown(self.archery_rpc)}: give a YARP port name, e.g. "
                 "/icubSim/archery/rpc:i, with --body yarp"
             )
+        if self.hand_postures:
+            if self.body != "yarp":
+                raise ConfigError("--hand-postures goes with --body yarp")
+            from archery.services.robot.yarp_shot import read_postures
+
+            read_postures(self.hand_postures)  # before any work: the file and its shape
 
 
 def _yarp_name(name: str) -> bool:

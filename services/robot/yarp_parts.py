@@ -330,6 +330,11 @@ def open_parts(
     yarp.Network.init()
     drivers: dict[str, Any] = {}
     try:
+        if yarp.Network.getNameServerContact().getPort() <= 0:
+            raise BodyError(
+                "no YARP name server is configured: name the robot's with `yarp conf HOST PORT` "
+                "(or a yarp.conf in YARP_CONFIG_HOME)"
+            )
         if not yarp.Network.checkNetwork(timeout):
             raise BodyError(
                 f"no YARP name server answers at {_server(yarp)} within {timeout:g} s (one "
