@@ -13,6 +13,7 @@ import os
 import signal
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -60,6 +61,7 @@ class Lab:
     scene: Scene
     scenes: Rendered
     node: Node
+    robots: Robots
 
 
 @pytest.fixture(scope="module")
@@ -75,7 +77,7 @@ def lab(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
         robots = Robots(setup, tmp)
         stack.callback(robots.close)
         hands = tmp / "hands.json"
-        hands.write_text(f'{{"nock": {{"r_index_proximal": {NOCKED}}}}}')
+        hands.write_text(f'{{"nock": {{"r_index_proximal": {NOCKED}}}, "operator": ["nock"]}}')
         log = tmp / "robot.log"
         flags = ("--remote", "/fake", "--hand-postures", str(hands), "--release-open", str(OPEN))
         proc = _robot(net, setup.env, log, *flags)
@@ -91,7 +93,7 @@ def lab(router_endpoint: str, tmp_path_factory: pytest.TempPathFactory) -> Itera
         stack.enter_context(serving(controller_service.run, ControllerConfig(net=net)))
         node = stack.enter_context(Node(None, net))
         node.wait_alive([ROBOT, "camera", "detector", "controller"], timeout=60)
-        yield Lab(net, tmp, scene, scenes, node)
+        yield Lab(net, tmp, scene, scenes, node, robots)
 
 
 def _ended(proc: subprocess.Popen[bytes], log: Path) -> None:
@@ -109,22 +111,44 @@ def _finger() -> float:
         board.close()
 
 
-def _the_arrow_flies(lab: Lab, frames: Any, done: threading.Event) -> None:
-    """The world: once the finger opens (from anywhere else), the new arrow shows in flight
-    (two frames), then at rest."""
+def _arrows_land(lab: Lab, frames: Any, done: threading.Event) -> None:
+    """The world of a session's shots: each release (the finger seen closed, then open) shows
+    the new arrow in flight (two frames), then at rest."""
     board = Board("/fake/right_arm", "/test/lab/world")
     axis = FAKE["right_arm"].index("r_index_proximal")
+
+    def finger(opened: bool) -> bool:
+        while not done.is_set():
+            if (abs(board.read()[axis] - OPEN) < 1e-6) == opened:
+                return True
+            time.sleep(0.002)  # the finger stays closed for a frame's grab at least
+        return False
+
     try:
-        until(lambda: abs(board.read()[axis] - OPEN) > 1 or done.is_set(), "a closed finger", 120)
-        until(lambda: abs(board.read()[axis] - OPEN) < 1e-6 or done.is_set(), "the release", 120)
+        while finger(False) and finger(True):
+            shown = lab.scene.show(lab.scenes.moved)
+            for _ in range(2):
+                shown = frames.wait_newer(10, lambda i, s=shown: i.stamp > s).stamp
+            lab.scene.show(lab.scenes.both)
     finally:
         board.close()
-    if done.is_set():
-        return
-    shown = lab.scene.show(lab.scenes.moved)
-    for _ in range(2):
-        shown = frames.wait_newer(10, lambda i, s=shown: i.stamp > s).stamp
-    lab.scene.show(lab.scenes.both)
+
+
+def _operator(lab: Lab, done: threading.Event, confirmed: list[str]) -> None:
+    """The operator: before each nock clears the target to its older arrow and puts an arrow on
+    the string, then confirms; confirms every other request as it comes."""
+    key = lab.node.keys.learner_rpc()
+    last = 0  # the last request confirmed
+    while not done.is_set():
+        request = rpc_call(lab.node, key, "status", {}, timeout=10).get("operator")
+        if not request or request["request"] == last:
+            done.wait(0.05)
+            continue
+        last = request["request"]
+        if request["verb"] == "nock":
+            lab.scene.show(lab.scenes.old)
+        rpc_call(lab.node, key, "confirm", {"request": request["request"]}, timeout=10)
+        confirmed.append(request["verb"])
 
 
 def _start(node: Node, runs: Path) -> str:
@@ -150,7 +174,9 @@ def test_the_shot_with_a_finger_release_and_the_landing_from_the_camera(lab: Lab
     config = LearnerServiceConfig(net=lab.net, runs=lab.tmp / "runs", start_wait=30)
     frames = node.subscribe(node.keys.cam_frames(), Image)
     done = threading.Event()
-    world = threading.Thread(target=_the_arrow_flies, args=(lab, frames, done), daemon=True)
+    confirmed: list[str] = []
+    world = threading.Thread(target=_arrows_land, args=(lab, frames, done), daemon=True)
+    operator = threading.Thread(target=_operator, args=(lab, done, confirmed), daemon=True)
     with serving(learner_service.run, config):
         node.wait_alive(["learner"], timeout=30)
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
@@ -161,12 +187,13 @@ def test_the_shot_with_a_finger_release_and_the_landing_from_the_camera(lab: Lab
         key = node.keys.learner_rpc()
         with pytest.raises(Exception, match="is not the one waiting"):
             rpc_call(node, key, "confirm", {"request": request["request"] + 1}, timeout=10)
-        confirmed = rpc_call(node, key, "confirm", {"request": request["request"]}, timeout=10)
-        assert confirmed["verb"] == "reset"
+        operator.start()  # it confirms the reset, then the nock once the arrow is on
         final = follow(node, session, rollouts, lambda m: None)
         done.set()
         world.join(timeout=60)
+        operator.join(timeout=60)
     assert final["state"] == "finished" and final["rollouts"] == 1, final
+    assert confirmed == ["reset", "nock"]
     records = read_records(Path(final["journal"]))[0]
     (shot,) = [r for r in records if isinstance(r, DoneRecord)]
     assert math.dist(shot.r_m, NEW_R) < 0.01, shot  # the new arrow, never the older one
@@ -189,3 +216,52 @@ def test_an_operator_who_never_confirms_stops_the_session_resumably(lab: Lab) ->
     records = read_records(Path(final["journal"]))[0]
     assert isinstance(records[-1], StoppedRecord) and records[-1].reason == "operator absent"
     assert not [r for r in records if isinstance(r, ProposedRecord | DoneRecord)]  # no shot
+
+
+def test_an_arm_lost_mid_session_is_waited_for_and_the_session_goes_on(lab: Lab) -> None:
+    node = lab.node
+    runs = lab.tmp / "runs-lost"
+    config = LearnerServiceConfig(net=lab.net, runs=runs, start_wait=30, service_wait=120)
+    frames = node.subscribe(node.keys.cam_frames(), Image)
+    done = threading.Event()
+    confirmed: list[str] = []
+    world = threading.Thread(target=_arrows_land, args=(lab, frames, done), daemon=True)
+    operator = threading.Thread(target=_operator, args=(lab, done, confirmed), daemon=True)
+    with serving(learner_service.run, config):
+        node.wait_alive(["learner"], timeout=30)
+        rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
+        world.start()
+        operator.start()
+        request = {"algo": "archer", "seed": 0, "rollouts": 3, "scenario": {"reset": False}}
+        key = node.keys.learner_rpc()
+        session = str(rpc_call(node, key, "start", request, timeout=60)["session"])
+        seen: list[Rollout] = []
+        until(
+            lambda: any(r.record.kind == "done" for r in seen) or seen.append(rollouts.get(5)),
+            "the first rollout done",
+            timeout=120,
+        )
+        arm = lab.robots.procs[1]  # /fake/left_arm's yarpdev: killed, as a cable pulled out
+        os.killpg(arm.pid, signal.SIGKILL)
+        arm.wait()
+        until(lambda: ROBOT not in node.alive(), "the robot missing", timeout=30)
+        lab.robots._device(lab.tmp, "/fake/left_arm", FAKE["left_arm"])
+        until(
+            lambda: yarp.Network.exists("/fake/left_arm/stateExt:o", True),
+            "the arm back",
+            timeout=30,
+        )
+        board = Board("/fake/left_arm", "/test/lab/pose")
+        try:
+            board.pose(FAKE["left_arm"])
+        finally:
+            board.close()
+        final = follow(node, session, rollouts, seen.append)
+        done.set()
+        world.join(timeout=60)
+        operator.join(timeout=60)
+    assert final["state"] == "finished" and final["rollouts"] == 3, final
+    records = read_records(Path(final["journal"]))[0]
+    assert len([r for r in records if isinstance(r, DoneRecord)]) == 3
+    said = (lab.tmp / "robot.log").read_text(errors="replace")
+    assert "left_arm is lost" in said and "left_arm is back" in said

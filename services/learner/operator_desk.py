@@ -111,5 +111,6 @@ class OperatorDesk:
                     f"({pending.verb}: {pending.message})"
                 )
             self._confirmed = pending.request
+            self._pending = None  # no longer shown as waiting, even before the session wakes
             self._cond.notify_all()
             return pending

@@ -48,9 +48,9 @@ __all__ = ["SERVICES", "UPSTREAM", "MeshRig"]
 SERVICES = (ROBOT, CAMERA, DETECTOR, CONTROLLER)  # the services a session needs
 #: The service each service calls to do its work: its `timeout` error means that one is lost.
 UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
-#: Error codes that mean the upstream service is lost: its call timed out, or its state stream
-#: is stale (a robot frozen mid-motion is as lost as a dead one).
-_UPSTREAM_CODES = (RpcTimeout.code, StaleState.code)
+#: Error codes that mean the upstream service is lost: its call timed out, its state stream is
+#: stale (a robot frozen mid-motion is as lost as a dead one), or a part of a YARP robot is gone.
+_UPSTREAM_CODES = (RpcTimeout.code, StaleState.code, "part_lost")
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 _ASKS = 3  # times a verb may ask for the operator's hand in a row

@@ -35,7 +35,7 @@ from archery.services.robot.sink import Sink
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
 from archery.services.robot.yarp_play import TrajectoryPlayer
-from archery.services.robot.yarp_presence import BoardsLock, Presence
+from archery.services.robot.yarp_presence import BoardsLock, PartLost, Presence
 from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
 from archery.sim.scene_config import SceneConfig
 
@@ -309,9 +309,10 @@ class YarpLoop:
             axes, control = self.body.parts[part], self._controls[part]
             for k in moved:
                 if not control.positionMove(axes.index[k], math.degrees(float(targets[k]))):
-                    raise BadRequest(
+                    raise self._refusal(
+                        part,
                         f"{axes.board} refused positionMove of {limits.names[k]} "
-                        f"(axis {axes.index[k]}) to {math.degrees(float(targets[k])):.2f}°"
+                        f"(axis {axes.index[k]}) to {math.degrees(float(targets[k])):.2f}°",
                     )
                 self._targets[part][k] = targets[k]
             self._counters[part].accept(clamped)
@@ -341,8 +342,15 @@ class YarpLoop:
             try:
                 self._send_speeds(part, values)
             except BodyError as exc:
-                raise BadRequest(str(exc)) from None
+                raise self._refusal(part, str(exc)) from None
             return list(self._speeds[part])
+
+    def _refusal(self, part: str, said: str) -> ArcheryError:
+        """What a refusal of `part`'s board is (lock held): `PartLost` when its encoders' stamps
+        stopped too (the board is gone, not yet found lost by the loop), else `BadRequest`."""
+        if self.body.stale(part):
+            return PartLost(f"{part} does not answer: {said}; its encoders are silent")
+        return BadRequest(said)
 
     def _send_speeds(self, part: str, speeds: list[float]) -> None:
         """`speeds` (rad/s) to `part`'s axes (deg/s), kept when the robot takes them all

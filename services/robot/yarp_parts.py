@@ -43,6 +43,7 @@ log = logging.getLogger("archery.robot.yarp")
 #: calibration leaves its joints a little past their software limits, never 2°.
 ENCODER_MARGIN = math.radians(2.0)
 _POLL = 0.02  # s between two reads of an encoder stream that has not delivered yet
+STALE_AFTER = 0.5  # wall s: an encoder reading older than this by its stamp is a silent board
 
 
 class BodyError(ConfigError):
@@ -222,6 +223,18 @@ class YarpBody:
         return check_encoders(
             axes, [math.radians(float(values[i])) for i in axes.index], self.margin
         )
+
+    def stale(self, part: str, max_age: float = STALE_AFTER) -> bool:
+        """Whether `part`'s newest encoder reading is older than `max_age` wall s by its own
+        stamps (`IEncodersTimed`), or there is none: a board whose `yarpdev` is gone still
+        gives its last values for a while, never newer stamps."""
+        axes = self.parts[part]
+        timed = self._drivers[part].viewIEncodersTimed()
+        values, stamps = self._yarp.Vector(len(axes.axes)), self._yarp.Vector(len(axes.axes))
+        if timed is None or not timed.getEncodersTimed(values.data(), stamps.data()):
+            return True
+        newest = max(float(stamps[i]) for i in range(len(axes.axes)))
+        return time.time() - newest > max_age
 
     def reopen(self, part: str) -> None:
         """Open `part`'s board again (the robot's side restarted it): the old
