@@ -177,7 +177,7 @@ class RobotConfig:
         if self.hand_postures:
             if self.body != "yarp":
                 raise ConfigError("--hand-postures goes with --body yarp")
-            from archery.services.robot.yarp_shot import read_postures
+            from archery.services.robot.hand_postures import read_postures
 
             read_postures(self.hand_postures)  # before any work: the file and its shape
 

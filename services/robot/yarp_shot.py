@@ -13,13 +13,11 @@ judges them there from the encoders within `TOLERANCES["rest"]`, never by `check
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
@@ -28,6 +26,7 @@ from archery.protocol.errors import ArcheryError, OperatorNeeded
 from archery.protocol.robotspec import REFERENCE_SPEED, TOLERANCES
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
+from archery.services.robot.hand_postures import read_postures
 from archery.services.robot.yarp_parts import BodyError, YarpBody
 from archery.services.robot.yarp_presence import BoardsLock
 
@@ -36,21 +35,18 @@ if TYPE_CHECKING:
 
 __all__ = [
     "HAND_TIMEOUT",
-    "HAND_VERBS",
     "RELEASE_JOINT",
     "AxisRef",
     "EventsIgnored",
     "LabShot",
     "Shot",
     "lab_shot",
-    "read_postures",
 ]
 
 log = logging.getLogger("archery.robot")
 
 RELEASE_JOINT = "r_index_proximal"  # the paper's: "one joint in the index finger"
 HAND_TIMEOUT = 5.0  # wall s a hand posture (or the release finger) has to be reached
-HAND_VERBS = ("grasp", "nock", "reset")
 _POLL = 0.01  # wall s between two readings of the hand's encoders
 _BY_HAND = {
     "grasp": "put an arrow in the right hand",
@@ -118,41 +114,6 @@ class AxisRef:
     part: str
     index: int
     limits: tuple[float, float] | None
-
-
-def read_postures(path: str) -> tuple[dict[str, dict[str, float]], tuple[str, ...]]:
-    """The hand postures of `path` (JSON {verb: {axis: degrees}}, verb among `HAND_VERBS`;
-    "operator": [verb, …], the verbs whose posture waits for the operator's hand first, e.g.
-    an arrow put on the string before the fingers close on it) and those verbs.
-
-    Raises:
-        BodyError: the file does not read, is not that shape, or names another verb.
-    """
-    where = f"--hand-postures {shown(path)}"
-    try:
-        raw = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise BodyError(f"{where}: {exc}") from None
-    if not isinstance(raw, dict):
-        raise BodyError(f"{where}: not a JSON object {{verb: {{axis: deg}}}}")
-    first = raw.pop("operator", [])
-    if not isinstance(first, list) or not all(verb in HAND_VERBS for verb in first):
-        raise BodyError(f'{where}: "operator" lists verbs among {", ".join(HAND_VERBS)}')
-    out: dict[str, dict[str, float]] = {}
-    for verb, angles in raw.items():
-        if verb not in HAND_VERBS:
-            raise BodyError(f"{where}: {shown(verb)} is not one of {', '.join(HAND_VERBS)}")
-        if (
-            not isinstance(angles, dict)
-            or not angles
-            or not all(
-                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
-                for v in angles.values()
-            )
-        ):
-            raise BodyError(f"{where}: {verb} must map axis names to degrees")
-        out[verb] = {str(k): float(v) for k, v in angles.items()}
-    return out, tuple(first)
 
 
 class LabShot:
