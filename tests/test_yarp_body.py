@@ -23,6 +23,7 @@ from archery.apps.yarp.network import stop_group
 from archery.protocol.parts import PARTS
 from archery.services.robot.yarp_parts import (
     ENCODER_MARGIN,
+    STREAM_CARRIER,
     BodyError,
     PartAxes,
     check_encoders,
@@ -96,6 +97,7 @@ class Board:
         options.put("device", "remote_controlboard")
         options.put("remote", remote)
         options.put("local", local)
+        options.put("carrier", STREAM_CARRIER)  # as the body: no udp port numbers held after
         self.driver = yarp.PolyDriver(options)
         assert self.driver.isValid(), f"remote_controlboard did not open {remote}"
         self.encoders = self.driver.viewIEncoders()

@@ -105,6 +105,9 @@ class YarpLoop:
         self.leases = Leases(self.parts, config.command_rate, config.command_burst, self._counters)
         self._sink = sink
         self._lock = BoardsLock()  # the YARP calls and the state below
+        #: one publication at a time, its reading and its sending: the states leave in the order
+        #: of their stamps (a reset's state is never followed by one read before it)
+        self._publishing = threading.Lock()
         self._controls: dict[str, Any] = {}
         for part in self.parts:
             control = body.driver(part).viewIPositionControl()
@@ -158,6 +161,11 @@ class YarpLoop:
             stop.wait(max(0.0, tick - time.monotonic()))
 
     def _publish(self) -> None:
+        """Read every part's encoders and publish their joint states, all of one stamp."""
+        with self._publishing:
+            self._publish_now()
+
+    def _publish_now(self) -> None:
         states = []
         with self._lock:
             now = time.monotonic()

@@ -27,6 +27,7 @@ from archery.sim.urdf import urdf_joint_limits
 
 __all__ = [
     "ENCODER_MARGIN",
+    "STREAM_CARRIER",
     "BodyError",
     "PartAxes",
     "YarpBody",
@@ -43,6 +44,10 @@ log = logging.getLogger("archery.robot.yarp")
 #: calibration leaves its joints a little past their software limits, never 2°.
 ENCODER_MARGIN = math.radians(2.0)
 _POLL = 0.02  # s between two reads of an encoder stream that has not delivered yet
+#: the carrier of the state and command streams (`remote_controlboard`'s own default is udp): a
+#: udp stream binds its port's number on its own, which YARP's name server hands out again as
+#: soon as a port closes, so a restarted body could find it still held by a stream of before
+STREAM_CARRIER = "tcp"
 STALE_AFTER = 0.5  # wall s: an encoder reading older than this by its stamp is a silent board
 
 
@@ -392,11 +397,13 @@ def open_parts(
 
 
 def _open(yarp: Any, board: str, local: str) -> Any:
-    """A `remote_controlboard` on `board`, its ports named from `local`."""
+    """A `remote_controlboard` on `board`, its ports named from `local`, its state and command
+    streams over tcp (`STREAM_CARRIER`)."""
     options = yarp.Property()
     options.put("device", "remote_controlboard")
     options.put("remote", board)
     options.put("local", local)
+    options.put("carrier", STREAM_CARRIER)
     driver = yarp.PolyDriver(options)
     if not driver.isValid():
         raise BodyError(f"remote_controlboard does not open {board} (its log above says why)")
