@@ -257,7 +257,8 @@ def open_node(
 ) -> Node:
     """A node on the mesh, waiting up to `wait` s for the router to listen (`archery up &` or
     `archery router &` followed at once by a tool). Only while nothing listens: a router that
-    listens yet refuses the session (another deployment's certificate) fails at once.
+    listens yet refuses the session (another deployment's certificate) fails at the attempt after
+    the one that saw it listen (the first may have come just before the router listened).
 
     Args:
         wait: the limit (s); 0: no wait.
@@ -270,14 +271,19 @@ def open_node(
         ConfigError: other bad settings (e.g. a missing deployment file).
     """
     deadline = time.monotonic() + wait
-    announced = False
+    announced = again = False
     while True:
         try:
             return Node(name, net)
         except Unreachable:
             left = deadline - time.monotonic()
-            if left <= 0 or not net.connect or listens(net.connect[0]):
+            if left <= 0 or not net.connect:
                 raise
+            if listens(net.connect[0]):
+                if again:  # it listened at the attempt before too: it refuses the session
+                    raise
+                again = True  # it may have begun to listen since the attempt: once more
+                continue
             if on_wait is not None and not announced:
                 on_wait(f"the router at {net.connect[0]}", wait)
                 announced = True

@@ -38,7 +38,7 @@ from archery.mesh.credentials import (
     write_identity,
 )
 from archery.mesh.netflags import NetConfig, open_session
-from archery.mesh.node import Node
+from archery.mesh.node import Node, open_node
 from archery.mesh.router import free_tcp_endpoint, spawn_router
 from archery.protocol.codec import encode
 from archery.protocol.errors import ConfigError, RpcError, Unreachable, WrongReplier
@@ -615,6 +615,18 @@ def test_a_plain_client_meeting_a_secure_router_is_told_so(endpoint: str) -> Non
     with pytest.raises(Unreachable, match="does not answer plain Zenoh: a secure router") as err:
         open_session(plain)
     assert f"--connect {endpoint}" in str(err.value)
+
+
+def test_a_tool_waiting_for_a_router_is_told_at_once_when_one_listens_and_refuses(
+    endpoint: str,
+) -> None:
+    """`--wait` waits while nothing listens; a router that listens and refuses the session
+    (here a secure one, met in plain) is said after a second attempt, not after the wait."""
+    plain = NetConfig(connect=(endpoint.replace("tls/", "tcp/"),), robot=ROBOT)
+    began = time.monotonic()
+    with pytest.raises(Unreachable, match="does not answer plain Zenoh: a secure router"):
+        open_node(plain, 120)
+    assert time.monotonic() - began < 60
 
 
 def test_up_hands_each_child_only_the_ca_certificate_and_its_own_identity(
