@@ -169,31 +169,47 @@ def _request(node: Node) -> dict[str, Any]:
     return request
 
 
+class _Hands:
+    """The lab's hands around one session: the world, whose arrows land in the camera's frames
+    once the finger opens, and the operator, who confirms what the learner asks (`confirmed`:
+    the verbs, in order); each started by the test, both ended by `stop`."""
+
+    def __init__(self, lab: Lab) -> None:
+        frames = lab.node.subscribe(lab.node.keys.cam_frames(), Image)
+        self.done = threading.Event()
+        self.confirmed: list[str] = []
+        self.world = threading.Thread(
+            target=_arrows_land, args=(lab, frames, self.done), daemon=True
+        )
+        self.operator = threading.Thread(
+            target=_operator, args=(lab, self.done, self.confirmed), daemon=True
+        )
+
+    def stop(self) -> None:
+        self.done.set()
+        self.world.join(timeout=60)
+        self.operator.join(timeout=60)
+
+
 def test_the_shot_with_a_finger_release_and_the_landing_from_the_camera(lab: Lab) -> None:
     node = lab.node
     config = LearnerServiceConfig(net=lab.net, runs=lab.tmp / "runs", start_wait=30)
-    frames = node.subscribe(node.keys.cam_frames(), Image)
-    done = threading.Event()
-    confirmed: list[str] = []
-    world = threading.Thread(target=_arrows_land, args=(lab, frames, done), daemon=True)
-    operator = threading.Thread(target=_operator, args=(lab, done, confirmed), daemon=True)
+    hands = _Hands(lab)
     with serving(learner_service.run, config):
         node.wait_alive(["learner"], timeout=30)
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-        world.start()
+        hands.world.start()
         session = _start(node, config.runs)
         request = _request(node)  # the robot has no reset posture: the operator's hand
         assert request["verb"] == "reset" and "ready the robot" in request["message"]
         key = node.keys.learner_rpc()
         with pytest.raises(Exception, match="is not the one waiting"):
             rpc_call(node, key, "confirm", {"request": request["request"] + 1}, timeout=10)
-        operator.start()  # it confirms the reset, then the nock once the arrow is on
+        hands.operator.start()  # it confirms the reset, then the nock once the arrow is on
         final = follow(node, session, rollouts, lambda m: None)
-        done.set()
-        world.join(timeout=60)
-        operator.join(timeout=60)
+        hands.stop()
     assert final["state"] == "finished" and final["rollouts"] == 1, final
-    assert confirmed == ["reset", "nock"]
+    assert hands.confirmed == ["reset", "nock"]
     records = read_records(Path(final["journal"]))[0]
     (shot,) = [r for r in records if isinstance(r, DoneRecord)]
     assert math.dist(shot.r_m, NEW_R) < 0.01, shot  # the new arrow, never the older one
@@ -222,16 +238,12 @@ def test_an_arm_lost_mid_session_is_waited_for_and_the_session_goes_on(lab: Lab)
     node = lab.node
     runs = lab.tmp / "runs-lost"
     config = LearnerServiceConfig(net=lab.net, runs=runs, start_wait=30, service_wait=120)
-    frames = node.subscribe(node.keys.cam_frames(), Image)
-    done = threading.Event()
-    confirmed: list[str] = []
-    world = threading.Thread(target=_arrows_land, args=(lab, frames, done), daemon=True)
-    operator = threading.Thread(target=_operator, args=(lab, done, confirmed), daemon=True)
+    hands = _Hands(lab)
     with serving(learner_service.run, config):
         node.wait_alive(["learner"], timeout=30)
         rollouts = node.subscribe(node.keys.learner_rollouts(), Rollout, mode="fifo")
-        world.start()
-        operator.start()
+        hands.world.start()
+        hands.operator.start()
         request = {"algo": "archer", "seed": 0, "rollouts": 3, "scenario": {"reset": False}}
         key = node.keys.learner_rpc()
         session = str(rpc_call(node, key, "start", request, timeout=60)["session"])
@@ -257,9 +269,7 @@ def test_an_arm_lost_mid_session_is_waited_for_and_the_session_goes_on(lab: Lab)
         finally:
             board.close()
         final = follow(node, session, rollouts, seen.append)
-        done.set()
-        world.join(timeout=60)
-        operator.join(timeout=60)
+        hands.stop()
     assert final["state"] == "finished" and final["rollouts"] == 3, final
     records = read_records(Path(final["journal"]))[0]
     assert len([r for r in records if isinstance(r, DoneRecord)]) == 3
