@@ -10,6 +10,8 @@ __all__ = [
     "DecodeError",
     "DuplicateService",
     "KeyNameError",
+    "OperatorNeeded",
+    "PartLost",
     "RobotError",
     "RobotLost",
     "RpcError",
@@ -139,6 +141,13 @@ class OperatorNeeded(ArcheryError):
     (the learner's `confirm`); the message says what to do."""
 
     code = "operator_needed"
+
+
+class PartLost(ArcheryError):
+    """A verb on a part of a YARP robot whose board no longer answers: the robot is lost for
+    the session, as a service whose calls time out (it waits for the part to come back)."""
+
+    code = "part_lost"
 
 
 class RobotError(RpcError):

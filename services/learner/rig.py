@@ -26,6 +26,7 @@ from archery.mesh.tokens import TokenSet
 from archery.protocol.errors import (
     ArcheryError,
     OperatorNeeded,
+    PartLost,
     RpcError,
     RpcTimeout,
     StaleState,
@@ -50,7 +51,7 @@ SERVICES = (ROBOT, CAMERA, DETECTOR, CONTROLLER)  # the services a session needs
 UPSTREAM = {DETECTOR: CAMERA, CONTROLLER: ROBOT}
 #: Error codes that mean the upstream service is lost: its call timed out, its state stream is
 #: stale (a robot frozen mid-motion is as lost as a dead one), or a part of a YARP robot is gone.
-_UPSTREAM_CODES = (RpcTimeout.code, StaleState.code, "part_lost")
+_UPSTREAM_CODES = (RpcTimeout.code, StaleState.code, PartLost.code)
 log = logging.getLogger("archery.learner")
 _TRUTH_KEPT = 256  # shots whose ground truth is remembered
 _ASKS = 3  # times a verb may ask for the operator's hand in a row

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from archery.protocol.errors import ArcheryError, BadRequest, Busy
+from archery.protocol.errors import ArcheryError, BadRequest, Busy, PartLost
 from archery.protocol.robotspec import MAX_REFERENCE_SPEED, REFERENCE_SPEED, TOLERANCES
 from archery.protocol.text import shown
 from archery.protocol.verbs import robot as rv
@@ -35,7 +35,7 @@ from archery.services.robot.sink import Sink
 from archery.services.robot.yarp_archery import ArcheryLink
 from archery.services.robot.yarp_parts import BodyError, YarpBody
 from archery.services.robot.yarp_play import TrajectoryPlayer
-from archery.services.robot.yarp_presence import BoardsLock, PartLost, Presence
+from archery.services.robot.yarp_presence import BoardsLock, Presence
 from archery.services.robot.yarp_shot import EventsIgnored, Shot, lab_shot
 from archery.sim.scene_config import SceneConfig
 

@@ -14,20 +14,14 @@ import time
 from collections.abc import Callable, Iterator
 from types import TracebackType
 
-from archery.protocol.errors import ArcheryError
+from archery.protocol.errors import PartLost
 from archery.services.robot.jobs import SimUnavailable
 
-__all__ = ["REOPEN_EVERY", "BoardsLock", "PartLost", "Presence"]
+__all__ = ["REOPEN_EVERY", "BoardsLock", "Presence"]
 
 log = logging.getLogger("archery.robot")
 
 REOPEN_EVERY = 1.0  # wall s between two attempts to open a lost part's board again
-
-
-class PartLost(ArcheryError):
-    """A verb on a part whose board no longer answers."""
-
-    code = "part_lost"
 
 
 class BoardsLock:
